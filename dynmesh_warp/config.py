@@ -1,0 +1,181 @@
+"""Scene description (YAML) and its validation, with pydantic.
+
+See ``docs/scene.md`` for the schema. Relative paths are resolved against the YAML file's
+folder. Unknown keys, wrong types and missing files are reported with the YAML path of the
+offending field (for example ``physics.dt: Input should be greater than 0``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal, Optional, Union
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+__all__ = ["SceneConfig", "SceneError", "load_scene_config", "DEFAULT_SCENE", "Vec3"]
+
+Vec3 = tuple[float, float, float]
+
+
+class SceneError(ValueError):
+    """The scene file is missing, unreadable or does not match the schema."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class ConversionConfig(_Strict):
+    """Turn a varying-topology input into a fixed-topology mesh before simulating."""
+
+    strategy: str = "tracking"
+    template: Optional[str] = None  # a mesh file; default: the first frame
+    options: dict = Field(default_factory=dict)
+
+
+class SurfaceConfig(_Strict):
+    source: str = "builtin:wave_bowl"
+    params: dict = Field(default_factory=dict)  # keyword arguments of a built-in generator
+    subdir: Optional[str] = None  # DG-Mesh scene folder: dynamic_mesh | mesh_gt
+    fps: Optional[float] = Field(default=None, gt=0)
+    playback: Literal["loop", "clamp", "pingpong"] = "loop"
+    interpolate: bool = True
+    up_axis: Literal["z", "y"] = "z"
+    scale: float = Field(default=1.0, gt=0)
+    translate: Vec3 = (0.0, 0.0, 0.0)
+    conversion: Optional[ConversionConfig] = None
+
+
+class SphereConfig(_Strict):
+    position: Vec3
+    velocity: Vec3 = (0.0, 0.0, 0.0)
+    radius: float = Field(default=0.05, gt=0)
+    mass: float = Field(default=1.0, ge=0)
+
+
+class SpawnConfig(_Strict):
+    """Spheres dropped above the surface's first frame at seeded random spots."""
+
+    count: int = Field(default=5, ge=0)
+    radius: float = Field(default=0.05, gt=0)
+    mass: float = Field(default=1.0, ge=0)
+    height: float = Field(default=0.3, ge=0)  # above the highest surface point [m]
+    spread: float = Field(default=0.6, gt=0, le=1)  # fraction of the horizontal extent used
+    seed: int = 0
+
+
+class PhysicsConfig(_Strict):
+    dt: float = Field(default=1.0 / 240.0, gt=0)
+    substeps: int = Field(default=1, ge=1)
+    auto_substeps: bool = True
+    gravity: Vec3 = (0.0, 0.0, -9.81)
+    restitution: float = Field(default=0.3, ge=0, le=1)
+    friction: float = Field(default=0.5, ge=0)
+    rest_speed: float = Field(default=0.2, ge=0)
+    margin: float = Field(default=1.0e-3, ge=0)
+    collider: Literal["fixed", "rebuild"] = "fixed"
+    rebuild_every: Literal["step", "frame"] = "step"
+
+
+class RunConfig(_Strict):
+    duration: Optional[float] = Field(default=5.0, gt=0)
+    steps: Optional[int] = Field(default=None, ge=1)
+    output: str = "out/{name}"
+    record_every: int = Field(default=4, ge=1)
+
+
+class SceneConfig(_Strict):
+    name: str = "scene"
+    device: Optional[str] = None
+    surface: SurfaceConfig = Field(default_factory=SurfaceConfig)
+    spheres: Union[list[SphereConfig], SpawnConfig] = Field(default_factory=SpawnConfig)
+    physics: PhysicsConfig = Field(default_factory=PhysicsConfig)
+    run: RunConfig = Field(default_factory=RunConfig)
+    base_dir: Optional[str] = Field(default=None, exclude=True)
+
+    @field_validator("name")
+    @classmethod
+    def _name_ok(cls, v):
+        if not v or any(c in v for c in "/\\"):
+            raise ValueError("must be a non-empty name without path separators")
+        return v
+
+    def resolve(self, p: str | None) -> Path | None:
+        if p is None:
+            return None
+        path = Path(p).expanduser()
+        if not path.is_absolute() and self.base_dir:
+            path = Path(self.base_dir) / path
+        return path
+
+    @model_validator(mode="after")
+    def _files_exist(self):
+        src = self.surface.source
+        if not src.startswith("builtin:"):
+            path = self.resolve(src)
+            if not path.exists():
+                raise ValueError(f"surface.source: file or folder not found: {path}")
+        if self.surface.conversion and self.surface.conversion.template:
+            t = self.resolve(self.surface.conversion.template)
+            if not t.exists():
+                raise ValueError(f"surface.conversion.template: file not found: {t}")
+        return self
+
+
+DEFAULT_SCENE = {
+    "name": "default",
+    "surface": {"source": "builtin:wave_bowl"},
+    "spheres": {"count": 5, "radius": 0.08, "mass": 1.0, "height": 0.4, "seed": 1},
+    "physics": {"dt": 1.0 / 240.0, "restitution": 0.3, "friction": 0.5},
+    "run": {"duration": 5.0},
+}
+
+
+def _format_errors(err: ValidationError, origin: str) -> str:
+    lines = [f"{origin}: invalid scene"]
+    for e in err.errors():
+        loc = ".".join(str(x) for x in e["loc"]) or "(top level)"
+        msg = e["msg"]
+        if e["type"] == "extra_forbidden":
+            msg = "unknown key"
+        lines.append(f"  {loc}: {msg}")
+    return "\n".join(lines)
+
+
+def load_scene_config(path: str | Path | None = None, data: dict | None = None) -> SceneConfig:
+    """Read and validate a scene YAML file (or a dict); ``None`` gives the built-in default scene."""
+    if path is None:
+        raw = dict(DEFAULT_SCENE if data is None else data)
+        origin, base = "<default scene>" if data is None else "<scene dict>", None
+    else:
+        path = Path(path)
+        origin = str(path)
+        if not path.is_file():
+            raise SceneError(f"{path}: scene file not found")
+        try:
+            raw = yaml.safe_load(path.read_text())
+        except (OSError, UnicodeDecodeError, yaml.YAMLError) as e:
+            raise SceneError(f"{path}: cannot read scene YAML: {e}") from e
+        if raw is None:
+            raw = {}
+        if not isinstance(raw, dict):
+            raise SceneError(f"{path}: the top level of a scene must be a mapping, got {type(raw).__name__}")
+        raw.setdefault("name", path.stem)
+        base = str(path.parent.resolve())
+    try:
+        return SceneConfig.model_validate({**raw, "base_dir": base})
+    except ValidationError as e:
+        raise SceneError(_format_errors(e, origin)) from None
+
+
+def spawn_positions(cfg: SpawnConfig, V0: np.ndarray, up: int = 2) -> np.ndarray:
+    """Seeded drop positions above the first frame's vertices ``V0`` (N,3)."""
+    rng = np.random.default_rng(cfg.seed)
+    lo, hi = V0.min(0), V0.max(0)
+    c = 0.5 * (lo + hi)
+    half = 0.5 * (hi - lo) * cfg.spread
+    pos = c + (rng.random((cfg.count, 3)) * 2 - 1) * half
+    pos[:, up] = hi[up] + cfg.height + cfg.radius + np.arange(cfg.count) * 2.5 * cfg.radius
+    return pos.astype(np.float32)

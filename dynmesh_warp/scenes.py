@@ -1,0 +1,141 @@
+"""Built-in scenes generated in code (no download): the default scene and the test data.
+
+- ``wave_bowl``  fixed topology: a square sheet shaped as a shallow bowl with travelling
+  waves on it (a height field, normals up, +z), periodic in time so it loops seamlessly.
+- ``pulsing_blob`` fixed topology, closed: an icosphere with a breathing, wobbling, drifting
+  radial deformation (outward normals).
+- ``torus_to_sphere`` varying topology: marching cubes of an implicit shape morphing from a
+  torus into a sphere (genus 1 -> 0), a new mesh every frame.
+- ``rigid_motion`` fixed topology: a mesh under a rotation + translation (for conversion tests).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .sequence import FixedTopologySequence, VaryingTopologySequence
+
+__all__ = ["wave_bowl", "pulsing_blob", "torus_to_sphere", "rigid_motion", "grid_sheet", "icosphere",
+           "BUILTIN_SCENES", "builtin_sequence"]
+
+
+def grid_sheet(n: int = 64, size: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+    """(n*n, 3) vertices on z = 0 over [-size/2, size/2]^2 and (2(n-1)^2, 3) faces, normals +z."""
+    xs = np.linspace(-size / 2, size / 2, n)
+    X, Y = np.meshgrid(xs, xs, indexing="xy")
+    V = np.stack([X.ravel(), Y.ravel(), np.zeros(n * n)], axis=1)
+    i, j = np.meshgrid(np.arange(n - 1), np.arange(n - 1), indexing="xy")
+    v00 = (j * n + i).ravel()
+    v10 = v00 + 1
+    v01 = v00 + n
+    v11 = v01 + 1
+    F = np.concatenate([np.stack([v00, v10, v11], 1), np.stack([v00, v11, v01], 1)])
+    return V.astype(np.float32), F.astype(np.int32)
+
+
+def wave_bowl(n: int = 64, frames: int = 48, fps: float = 24.0, amplitude: float = 0.06) -> FixedTopologySequence:
+    """A 2 m x 2 m bowl-shaped sheet (z up) with travelling waves, periodic over ``frames``."""
+    V0, F = grid_sheet(n, 2.0)
+    x, y = V0[:, 0].astype(np.float64), V0[:, 1].astype(np.float64)
+    r2 = x * x + y * y
+    period = frames / fps
+    w = 2 * np.pi / period
+    V = np.repeat(V0[None], frames, axis=0).astype(np.float64)
+    for t in range(frames):
+        s = t / fps
+        z = 0.3 * r2
+        z += amplitude * np.sin(3.0 * x - w * s) * np.cos(2.0 * y)
+        z += 0.5 * amplitude * np.sin(4.0 * (x + y) + 2 * w * s)
+        z += 0.8 * amplitude * np.sin(w * s) * np.exp(-4.0 * r2)  # a central bump rising and falling
+        V[t, :, 2] = z
+    return FixedTopologySequence(V.astype(np.float32), F, fps=fps, name="wave_bowl", source="builtin:wave_bowl")
+
+
+def icosphere(subdivisions: int = 4, radius: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    import trimesh
+
+    m = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    return np.asarray(m.vertices, np.float32), np.asarray(m.faces, np.int32)
+
+
+def pulsing_blob(subdivisions: int = 4, frames: int = 48, fps: float = 24.0, radius: float = 0.5,
+                 center=(0.0, 0.0, 0.6)) -> FixedTopologySequence:
+    """A closed, outward-oriented blob breathing and wobbling in place, periodic over ``frames``."""
+    V0, F = icosphere(subdivisions, 1.0)
+    d = V0.astype(np.float64)
+    w = 2 * np.pi * fps / frames
+    V = np.empty((frames,) + V0.shape)
+    for t in range(frames):
+        s = t / fps
+        rr = 1.0 + 0.12 * np.sin(w * s) + 0.08 * np.sin(3 * d[:, 0] + w * s) * np.cos(2 * d[:, 1])
+        V[t] = radius * d * rr[:, None] + np.asarray(center)
+    return FixedTopologySequence(V.astype(np.float32), F, fps=fps, name="pulsing_blob", source="builtin:pulsing_blob")
+
+
+def _orient_outward(V: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """Flip all faces if the signed volume of a closed mesh is negative."""
+    a, b, c = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
+    vol = np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0
+    return F[:, ::-1].copy() if vol < 0 else F
+
+
+def torus_to_sphere(frames: int = 200, fps: float = 24.0, resolution: int = 48,
+                    center=(0.0, 0.0, 0.6)) -> VaryingTopologySequence:
+    """Marching cubes of an implicit shape morphing from a torus into a sphere over ``frames``.
+
+    f = (1 - s) * sdf_torus + s * sdf_sphere, s = smoothstep(t / (frames - 1)); the shape also
+    turns slowly about z. Vertex count and faces change every frame (genus 1 -> 0).
+    """
+    from skimage.measure import marching_cubes
+
+    lo, hi = -0.85, 0.85
+    g = np.linspace(lo, hi, resolution)
+    X, Y, Z = np.meshgrid(g, g, g, indexing="ij")
+    spacing = (g[1] - g[0],) * 3
+    out = []
+    for t in range(frames):
+        u = t / max(frames - 1, 1)
+        s = u * u * (3 - 2 * u)
+        ang = 0.6 * np.pi * u
+        ca, sa = np.cos(ang), np.sin(ang)
+        xr, yr = ca * X + sa * Y, -sa * X + ca * Y
+        q = np.sqrt(xr**2 + yr**2) - 0.45
+        torus = np.sqrt(q**2 + Z**2) - 0.2
+        sphere = np.sqrt(xr**2 + yr**2 + Z**2) - 0.5
+        f = (1 - s) * torus + s * sphere
+        verts, faces, _, _ = marching_cubes(f, level=0.0, spacing=spacing)
+        verts = verts + lo + np.asarray(center)
+        faces = _orient_outward(verts, faces.astype(np.int32))
+        out.append((verts.astype(np.float32), faces.astype(np.int32)))
+    return VaryingTopologySequence(out, fps=fps, name="torus_to_sphere", source="builtin:torus_to_sphere")
+
+
+def rigid_motion(base: tuple[np.ndarray, np.ndarray] | None = None, frames: int = 30, fps: float = 24.0,
+                 angular_speed: float = 0.5, velocity=(0.1, 0.05, 0.0)) -> FixedTopologySequence:
+    """A mesh (default: icosphere with bumps) rotating about z and translating at constant speed."""
+    if base is None:
+        V0, F = icosphere(3, 0.5)
+        V0 = V0 * (1.0 + 0.15 * np.sin(4 * V0[:, :1]))  # break the symmetry
+    else:
+        V0, F = base
+    V = np.empty((frames,) + V0.shape)
+    for t in range(frames):
+        s = t / fps
+        a = angular_speed * s
+        R = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+        V[t] = V0 @ R.T + np.asarray(velocity) * s
+    return FixedTopologySequence(V.astype(np.float32), F, fps=fps, name="rigid_motion", source="builtin:rigid_motion")
+
+
+BUILTIN_SCENES = {
+    "wave_bowl": wave_bowl,
+    "pulsing_blob": pulsing_blob,
+    "torus_to_sphere": torus_to_sphere,
+    "rigid_motion": rigid_motion,
+}
+
+
+def builtin_sequence(name: str, **kwargs):
+    if name not in BUILTIN_SCENES:
+        raise ValueError(f"unknown built-in sequence {name!r}; choose one of {sorted(BUILTIN_SCENES)}")
+    return BUILTIN_SCENES[name](**kwargs)

@@ -1,0 +1,219 @@
+"""Mesh sequences: fixed topology (one face array, per-frame vertices) and varying topology.
+
+Both are plain NumPy containers on the host; the simulation uploads them to a Warp device.
+Every constructor validates its data, so bad input fails here with a message naming the
+source file and frame, never later inside a Warp kernel.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = [
+    "MeshDataError",
+    "FixedTopologySequence",
+    "VaryingTopologySequence",
+    "validate_mesh",
+]
+
+
+class MeshDataError(ValueError):
+    """Invalid mesh or sequence data. The message names the source (file) and frame."""
+
+
+def _where(source: str | None, frame: int | None) -> str:
+    parts = []
+    if source:
+        parts.append(str(source))
+    if frame is not None:
+        parts.append(f"frame {frame}")
+    return ", ".join(parts) if parts else "mesh"
+
+
+def validate_mesh(
+    vertices, faces, source: str | None = None, frame: int | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Check one triangle mesh and return it as (float32 (N,3), int32 (M,3)) arrays.
+
+    Raises :class:`MeshDataError` for: vertices not (N,3), no vertices, NaN/inf coordinates,
+    faces not (M,3) integer triangles, no faces, and face indices outside [0, N).
+    """
+    where = _where(source, frame)
+    V = np.asarray(vertices)
+    F = np.asarray(faces)
+    if V.ndim != 2 or V.shape[1] != 3:
+        raise MeshDataError(f"{where}: vertices must have shape (N, 3), got {V.shape}")
+    if V.shape[0] == 0:
+        raise MeshDataError(f"{where}: mesh is empty (no vertices)")
+    if not np.issubdtype(V.dtype, np.number):
+        raise MeshDataError(f"{where}: vertices must be numeric, got dtype {V.dtype}")
+    bad = ~np.isfinite(V).all(axis=1)
+    if bad.any():
+        idx = np.flatnonzero(bad)
+        raise MeshDataError(
+            f"{where}: {idx.size} vertices have NaN/inf coordinates (first: vertex {idx[0]})"
+        )
+    if F.ndim != 2 or F.shape[1] != 3:
+        raise MeshDataError(
+            f"{where}: faces must be triangles with shape (M, 3), got {F.shape}"
+        )
+    if F.shape[0] == 0:
+        raise MeshDataError(f"{where}: mesh has no faces")
+    if not np.issubdtype(F.dtype, np.integer):
+        if np.issubdtype(F.dtype, np.floating) and np.all(np.mod(F, 1) == 0):
+            F = F.astype(np.int64)
+        else:
+            raise MeshDataError(f"{where}: face indices must be integers, got dtype {F.dtype}")
+    n = V.shape[0]
+    lo, hi = int(F.min()), int(F.max())
+    if lo < 0 or hi >= n:
+        bad_face = int(np.flatnonzero(((F < 0) | (F >= n)).any(axis=1))[0])
+        raise MeshDataError(
+            f"{where}: face indices out of range [0, {n}): face {bad_face} = "
+            f"{F[bad_face].tolist()} (min index {lo}, max index {hi})"
+        )
+    return np.ascontiguousarray(V, dtype=np.float32), np.ascontiguousarray(F, dtype=np.int32)
+
+
+@dataclass
+class FixedTopologySequence:
+    """An animated triangle mesh whose faces are the same in every frame.
+
+    Attributes:
+        V: vertex positions, float32 (T, N, 3), scene units (metres by convention).
+        F: triangle indices, int32 (M, 3), shared by every frame.
+        fps: reconstruction frame rate f_recon in frames per second (frame k covers
+            t in [k/fps, (k+1)/fps)).
+        name: a label for logs and outputs.
+        source: where it came from (file or folder), used in error messages.
+    """
+
+    V: np.ndarray
+    F: np.ndarray
+    fps: float = 24.0
+    name: str = "sequence"
+    source: str | None = None
+
+    def __post_init__(self):
+        where = self.source or self.name
+        V = np.asarray(self.V)
+        if V.ndim != 3 or V.shape[-1] != 3:
+            raise MeshDataError(f"{where}: V must have shape (T, N, 3), got {V.shape}")
+        if V.shape[0] == 0:
+            raise MeshDataError(f"{where}: sequence has no frames")
+        if V.shape[1] == 0:
+            raise MeshDataError(f"{where}: mesh is empty (no vertices)")
+        _, F = validate_mesh(V[0], self.F, where, 0)
+        finite = np.isfinite(V).all(axis=(1, 2))
+        if not finite.all():
+            t = int(np.flatnonzero(~finite)[0])
+            validate_mesh(V[t], F, where, t)  # raises, naming the frame
+        self.V = np.ascontiguousarray(V, dtype=np.float32)
+        self.F = F
+        fps = float(self.fps)
+        if not np.isfinite(fps) or fps <= 0:
+            raise MeshDataError(f"{where}: fps must be a positive number, got {self.fps!r}")
+        self.fps = fps
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.V.shape[0])
+
+    @property
+    def num_vertices(self) -> int:
+        return int(self.V.shape[1])
+
+    @property
+    def num_faces(self) -> int:
+        return int(self.F.shape[0])
+
+    @property
+    def duration(self) -> float:
+        """Length in seconds: num_frames / fps."""
+        return self.num_frames / self.fps
+
+    def frame(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        return self.V[k], self.F
+
+    def max_vertex_speed(self) -> float:
+        """Largest vertex speed between consecutive frames, in units per second."""
+        if self.num_frames < 2:
+            return 0.0
+        d = np.linalg.norm(np.diff(self.V, axis=0), axis=-1)
+        return float(d.max() * self.fps)
+
+    def to_varying(self) -> "VaryingTopologySequence":
+        return VaryingTopologySequence(
+            [(v, self.F) for v in self.V], fps=self.fps, name=self.name, source=self.source
+        )
+
+
+@dataclass
+class VaryingTopologySequence:
+    """An animated mesh whose vertex count and faces may change every frame.
+
+    Attributes:
+        frames: list of (V_t float32 (N_t, 3), F_t int32 (M_t, 3)) per frame.
+        fps: frame rate in frames per second.
+        name, source: labels for logs and error messages.
+    """
+
+    frames: list = field(default_factory=list)
+    fps: float = 24.0
+    name: str = "sequence"
+    source: str | None = None
+    frame_sources: list | None = None  # optional per-frame file names for messages
+
+    def __post_init__(self):
+        where = self.source or self.name
+        if len(self.frames) == 0:
+            raise MeshDataError(f"{where}: sequence has no frames")
+        checked = []
+        for t, (v, f) in enumerate(self.frames):
+            src = self.frame_sources[t] if self.frame_sources else where
+            checked.append(validate_mesh(v, f, src, t))
+        self.frames = checked
+        fps = float(self.fps)
+        if not np.isfinite(fps) or fps <= 0:
+            raise MeshDataError(f"{where}: fps must be a positive number, got {self.fps!r}")
+        self.fps = fps
+
+    @property
+    def num_frames(self) -> int:
+        return len(self.frames)
+
+    @property
+    def duration(self) -> float:
+        return self.num_frames / self.fps
+
+    def frame(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        return self.frames[k]
+
+    def is_fixed_topology(self) -> bool:
+        """True when every frame has the first frame's vertex count and face array."""
+        V0, F0 = self.frames[0]
+        return all(v.shape == V0.shape and f.shape == F0.shape and np.array_equal(f, F0)
+                   for v, f in self.frames[1:])
+
+    def to_fixed(self) -> FixedTopologySequence:
+        """Stack into a fixed-topology sequence; raises if the frames disagree."""
+        V0, F0 = self.frames[0]
+        where = self.source or self.name
+        for t, (v, f) in enumerate(self.frames):
+            src = self.frame_sources[t] if self.frame_sources else where
+            if v.shape[0] != V0.shape[0]:
+                raise MeshDataError(
+                    f"{src}: frame {t} has {v.shape[0]} vertices but frame 0 has {V0.shape[0]}; "
+                    "a fixed-topology sequence needs the same vertex count in every frame"
+                )
+            if f.shape != F0.shape or not np.array_equal(f, F0):
+                raise MeshDataError(
+                    f"{src}: frame {t} has different faces from frame 0; "
+                    "convert it with dynmesh_warp.convert (to_fixed_topology)"
+                )
+        return FixedTopologySequence(
+            np.stack([v for v, _ in self.frames]), F0, fps=self.fps, name=self.name,
+            source=self.source,
+        )

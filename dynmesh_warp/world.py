@@ -1,0 +1,415 @@
+"""The physics world: rigid spheres against a deforming triangle mesh.
+
+Static data lives in :class:`Model` (with :class:`SurfaceModel` and :class:`SphereModel`),
+per-step data in :class:`State`, and the per-sphere contacts of the last step in
+:class:`Contacts` — all ``wp.array``s on one device. :class:`World` owns one of each plus a
+collider and advances them; on CUDA the fixed-topology step allocates nothing and reads
+nothing back, so it is captured once as a CUDA graph and replayed.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+
+from .kernels.collide import collide_sphere_mesh
+from .kernels.frames import PLAYBACK_CLAMP, PLAYBACK_LOOP, PLAYBACK_PINGPONG, update_frame_vertices
+from .kernels.geometry import compute_face_normals
+from .kernels.integrate import advance_time, integrate_spheres
+from .sequence import FixedTopologySequence, VaryingTopologySequence
+
+__all__ = [
+    "PhysicsParams",
+    "SurfaceModel",
+    "VaryingSurfaceModel",
+    "SphereModel",
+    "Model",
+    "State",
+    "Contacts",
+    "World",
+    "PLAYBACK_MODES",
+    "frame_pair_host",
+]
+
+PLAYBACK_MODES = {"loop": int(PLAYBACK_LOOP), "clamp": int(PLAYBACK_CLAMP), "pingpong": int(PLAYBACK_PINGPONG)}
+
+
+def _wrap_frame_host(k: int, num_frames: int, mode: int) -> int:
+    if num_frames <= 1:
+        return 0
+    if mode == PLAYBACK_MODES["clamp"]:
+        return min(max(k, 0), num_frames - 1)
+    if mode == PLAYBACK_MODES["pingpong"]:
+        period = 2 * (num_frames - 1)
+        m = k % period
+        return period - m if m >= num_frames else m
+    return k % num_frames
+
+
+def frame_pair_host(time: float, fps: float, num_frames: int, mode: int = 0) -> tuple[int, int, float]:
+    """Host twin of the device ``frame_pair``: (k, k+1) wrapped by playback mode, and alpha."""
+    s = time * fps
+    kf = math.floor(s)
+    k = int(kf)
+    return (_wrap_frame_host(k, num_frames, mode), _wrap_frame_host(k + 1, num_frames, mode), s - kf)
+
+
+@dataclass
+class PhysicsParams:
+    """Scalar physics settings.
+
+    dt: physics step [s]; substeps: sub-steps per step (each of dt/substeps);
+    gravity: [m/s^2]; restitution: normal coefficient of restitution in [0, 1];
+    friction: Coulomb coefficient; rest_speed: normal approach speed [m/s] below which an
+    impact does not bounce; margin: extra contact query distance [m]; auto_substeps: raise
+    substeps so the surface moves less than half the smallest sphere radius per sub-step.
+    """
+
+    dt: float = 1.0 / 240.0
+    substeps: int = 1
+    gravity: tuple = (0.0, 0.0, -9.81)
+    restitution: float = 0.3
+    friction: float = 0.5
+    rest_speed: float = 0.2
+    margin: float = 1.0e-3
+    auto_substeps: bool = True
+
+
+class SurfaceModel:
+    """Static data of a fixed-topology deforming surface.
+
+    Attributes:
+        frames: wp.array2d(vec3), (T, N) vertex positions per reconstruction frame [m].
+        indices: wp.array(int32), (3M,) triangle vertex indices, shared by all frames.
+        fps: reconstruction frame rate [1/s]; frame k = floor(t * fps).
+        playback: int code of "loop" | "clamp" | "pingpong" (times past the last frame).
+        interpolate: blend frames k and k+1 linearly (else hold frame k).
+        max_speed: largest vertex speed over the sequence [m/s] (host float).
+    """
+
+    def __init__(self, seq: FixedTopologySequence, device=None, playback: str = "loop", interpolate: bool = True):
+        if playback not in PLAYBACK_MODES:
+            raise ValueError(f"playback must be one of {sorted(PLAYBACK_MODES)}, got {playback!r}")
+        self.sequence = seq
+        self.device = wp.get_device(device)
+        self.frames = wp.array(seq.V, dtype=wp.vec3, device=self.device)
+        self.indices = wp.array(seq.F.reshape(-1), dtype=wp.int32, device=self.device)
+        self.fps = float(seq.fps)
+        self.num_frames = seq.num_frames
+        self.num_vertices = seq.num_vertices
+        self.num_faces = seq.num_faces
+        self.playback_name = playback
+        self.playback = PLAYBACK_MODES[playback]
+        self.interpolate = bool(interpolate)
+        speed = seq.max_vertex_speed()
+        if playback == "loop" and seq.num_frames > 1:
+            wrap = float(np.linalg.norm(seq.V[0] - seq.V[-1], axis=-1).max() * seq.fps)
+            speed = max(speed, wrap)
+        self.max_speed = speed
+        self.max_frame_step = speed / self.fps  # largest vertex displacement per frame [m]
+
+
+class VaryingSurfaceModel:
+    """Static data of a varying-topology surface: one (points, indices) pair per frame.
+
+    Attributes:
+        frame_points: list of wp.array(vec3) (N_t,) [m]; frame_indices: list of wp.array(int32) (3M_t,).
+        fps, playback, num_frames: as in :class:`SurfaceModel`. There is no correspondence
+        between frames, so the surface velocity is zero and no interpolation is possible.
+    """
+
+    interpolate = False
+    max_speed = 0.0
+
+    def __init__(self, seq: VaryingTopologySequence, device=None, playback: str = "loop"):
+        if playback not in PLAYBACK_MODES:
+            raise ValueError(f"playback must be one of {sorted(PLAYBACK_MODES)}, got {playback!r}")
+        self.sequence = seq
+        self.device = wp.get_device(device)
+        self.frame_points = [wp.array(v, dtype=wp.vec3, device=self.device) for v, _ in seq.frames]
+        self.frame_indices = [wp.array(f.reshape(-1), dtype=wp.int32, device=self.device) for _, f in seq.frames]
+        self.frame_velocities = [wp.zeros(v.shape[0], dtype=wp.vec3, device=self.device) for v, _ in seq.frames]
+        self.fps = float(seq.fps)
+        self.num_frames = seq.num_frames
+        self.playback_name = playback
+        self.playback = PLAYBACK_MODES[playback]
+        self.max_frame_step = 0.0
+
+
+class SphereModel:
+    """Static sphere data. radius (S,) [m]; inv_mass (S,) [1/kg], 0 for kinematic spheres."""
+
+    def __init__(self, radius, mass, device=None):
+        radius = np.asarray(radius, dtype=np.float32).reshape(-1)
+        mass = np.broadcast_to(np.asarray(mass, dtype=np.float64), radius.shape)
+        if (radius <= 0).any() or not np.isfinite(radius).all():
+            raise ValueError("sphere radius must be positive and finite")
+        if (mass < 0).any() or np.isnan(mass).any():
+            raise ValueError("sphere mass must be >= 0 (0 or inf = kinematic)")
+        inv = np.where((mass > 0) & np.isfinite(mass), 1.0 / np.where(mass > 0, mass, 1.0), 0.0)
+        self.count = int(radius.size)
+        self.radius = wp.array(radius, dtype=float, device=device)
+        self.inv_mass = wp.array(inv.astype(np.float32), dtype=float, device=device)
+        self.radius_np = radius
+
+
+class Model:
+    """Everything static: the surface, the spheres and the physics parameters."""
+
+    def __init__(self, surface, spheres: SphereModel, params: PhysicsParams):
+        self.surface = surface
+        self.spheres = spheres
+        self.params = params
+        self.device = surface.device
+
+
+class State:
+    """Per-step data.
+
+    Attributes:
+        sim_time: (1,) float64 simulation time [s] (device clock, advanced by the step).
+        points: (N,) vec3 current surface vertices [m]; velocities: (N,) vec3 [m/s].
+        face_normals: (M,) vec3 unit normals of the current surface.
+        sphere_pos: (S,) vec3 centres [m]; sphere_vel: (S,) vec3 [m/s].
+    """
+
+    def __init__(self, model: Model, positions, velocities=None, t0: float = 0.0):
+        d = model.device
+        surf = model.surface
+        self.sim_time = wp.array([t0], dtype=wp.float64, device=d)
+        if isinstance(surf, SurfaceModel):
+            self.points = wp.zeros(surf.num_vertices, dtype=wp.vec3, device=d)
+            self.velocities = wp.zeros(surf.num_vertices, dtype=wp.vec3, device=d)
+            self.face_normals = wp.zeros(surf.num_faces, dtype=wp.vec3, device=d)
+        else:  # varying topology: views of the current frame, set by the world
+            self.points = surf.frame_points[0]
+            self.velocities = surf.frame_velocities[0]
+            self.face_normals = wp.zeros(surf.frame_indices[0].shape[0] // 3, dtype=wp.vec3, device=d)
+        S = model.spheres.count
+        pos = np.asarray(positions, dtype=np.float32).reshape(S, 3)
+        vel = np.zeros((S, 3), np.float32) if velocities is None else np.asarray(velocities, np.float32).reshape(S, 3)
+        self.sphere_pos = wp.array(pos, dtype=wp.vec3, device=d)
+        self.sphere_vel = wp.array(vel, dtype=wp.vec3, device=d)
+
+
+class Contacts:
+    """Contact of each sphere with the surface at the last (sub)step.
+
+    face (S,) int32, -1 when none; point (S,) vec3 closest surface point [m]; normal (S,) vec3
+    unit, towards the sphere's free side; depth (S,) float radius - signed centre distance [m]
+    (> 0 penetrating); velocity (S,) vec3 surface velocity at the point [m/s].
+    """
+
+    def __init__(self, count: int, device=None):
+        self.face = wp.full(count, -1, dtype=wp.int32, device=device)
+        self.point = wp.zeros(count, dtype=wp.vec3, device=device)
+        self.normal = wp.zeros(count, dtype=wp.vec3, device=device)
+        self.depth = wp.zeros(count, dtype=float, device=device)
+        self.velocity = wp.zeros(count, dtype=wp.vec3, device=device)
+
+    def numpy(self) -> dict:
+        return {k: getattr(self, k).numpy() for k in ("face", "point", "normal", "depth", "velocity")}
+
+
+# ---------------------------------------------------------------------------------------------
+# Colliders: how the acceleration structure follows the surface.
+# ---------------------------------------------------------------------------------------------
+
+
+class RefitCollider:
+    """Fixed topology: one ``wp.Mesh`` BVH built at start, refit to the current vertices each step."""
+
+    name = "fixed"
+    capturable = True
+
+    def __init__(self, world: "World"):
+        s = world.state
+        self.mesh = wp.Mesh(points=s.points, indices=world.model.surface.indices, velocities=s.velocities)
+
+    def update(self, world: "World"):
+        self.mesh.refit()
+
+    def mesh_id(self):
+        return self.mesh.id
+
+
+class RebuildCollider:
+    """Varying-topology baseline: a new ``wp.Mesh`` (BVH built from scratch) every step, or only
+    when the reconstruction frame changes (``every="frame"``)."""
+
+    name = "rebuild"
+    capturable = False
+
+    def __init__(self, world: "World", every: str = "step"):
+        if every not in ("step", "frame"):
+            raise ValueError(f"rebuild 'every' must be 'step' or 'frame', got {every!r}")
+        self.every = every
+        self.mesh = None
+        self._key = None
+
+    def update(self, world: "World"):
+        key = world.current_frame_key()
+        if self.mesh is not None and self.every == "frame" and key == self._key:
+            return
+        s = world.state
+        indices = world.current_indices()
+        self.mesh = wp.Mesh(points=s.points, indices=indices, velocities=s.velocities)
+        self._key = key
+
+    def mesh_id(self):
+        return self.mesh.id
+
+
+COLLIDERS = {"fixed": RefitCollider, "rebuild": RebuildCollider}
+
+
+class World:
+    """Spheres on a deforming mesh.
+
+    ``step()`` advances by ``params.dt`` in ``params.substeps`` sub-steps. Each sub-step:
+    update surface vertices for the current time -> refit (or rebuild) the BVH -> face normals
+    -> sphere contacts -> integrate spheres and advance the device clock.
+
+    Tunnelling guarantee: the sphere's own motion is handled continuously (time of impact
+    within the step), and the number of sub-steps is raised if needed so that the surface moves
+    less than half the smallest sphere radius per sub-step; a centre can then never be carried
+    through the surface in one sub-step, and one found behind it is pushed back to the front.
+    """
+
+    def __init__(self, model: Model, state: State, collider: str = "fixed", rebuild_every: str = "step",
+                 use_graph: bool | None = None):
+        self.model = model
+        self.state = state
+        self.device = model.device
+        p = model.params
+        surf = model.surface
+        if isinstance(surf, VaryingSurfaceModel) and collider != "rebuild":
+            raise ValueError(
+                "a varying-topology surface can only use collider 'rebuild' "
+                "(or convert it to fixed topology first)"
+            )
+        self.substeps = max(1, int(p.substeps))
+        r_min = float(model.spheres.radius_np.min()) if model.spheres.count else math.inf
+        if surf.max_speed > 0 and math.isfinite(r_min):
+            need = math.ceil(surf.max_speed * p.dt / (0.5 * r_min))
+            if p.auto_substeps and surf.interpolate and need > self.substeps:
+                warnings.warn(
+                    f"surface moves up to {surf.max_speed:.3g} m/s: raising substeps from "
+                    f"{self.substeps} to {need} so it moves < r/2 per sub-step", stacklevel=2)
+                self.substeps = need
+            if not surf.interpolate and surf.max_frame_step > 0.5 * r_min:
+                warnings.warn(
+                    f"interpolation is off and the surface jumps up to {surf.max_frame_step:.3g} m "
+                    f"between frames (> half the smallest sphere radius {r_min:.3g} m): spheres may "
+                    "tunnel at frame changes; turn interpolation on", stacklevel=2)
+        self.sub_dt = p.dt / self.substeps
+        self.gravity = wp.vec3(*[float(g) for g in p.gravity])
+        self.extra_speed = float(surf.max_speed) + float(np.linalg.norm(p.gravity)) * self.sub_dt
+        self.contacts = Contacts(model.spheres.count, device=self.device)
+        self.t0 = float(state.sim_time.numpy()[0])
+        self.substep_count = 0
+        if collider not in COLLIDERS:
+            raise ValueError(f"collider must be one of {sorted(COLLIDERS)}, got {collider!r}")
+        self._update_surface()
+        self.collider = RebuildCollider(self, rebuild_every) if collider == "rebuild" else COLLIDERS[collider](self)
+        self.collider.update(self)
+        self._launch(compute_face_normals, self._num_faces(),
+                     [self.state.points, self.current_indices()], [self.state.face_normals])
+        if use_graph is None:
+            use_graph = self.device.is_cuda and self.collider.capturable
+        self.use_graph = bool(use_graph) and self.device.is_cuda and self.collider.capturable
+        self._graph = None
+
+    # -- host-side bookkeeping (no device reads) ---------------------------------------------
+    @property
+    def time(self) -> float:
+        """Simulation time [s], tracked on the host in step with the device clock."""
+        return self.t0 + self.substep_count * self.sub_dt
+
+    def current_frame_key(self):
+        surf = self.model.surface
+        k0, k1, a = frame_pair_host(self.time, surf.fps, surf.num_frames, surf.playback)
+        if surf.interpolate:
+            return (k0, k1, a)
+        return k0
+
+    def current_indices(self):
+        surf = self.model.surface
+        if isinstance(surf, VaryingSurfaceModel):
+            return surf.frame_indices[self._frame]
+        return surf.indices
+
+    def _num_faces(self):
+        return self.current_indices().shape[0] // 3
+
+    def _launch(self, kernel, dim, inputs, outputs):
+        wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=self.device)
+
+    # -- pipeline stages -----------------------------------------------------------------------
+    def _update_surface(self):
+        surf = self.model.surface
+        s = self.state
+        if isinstance(surf, VaryingSurfaceModel):
+            k, _, _ = frame_pair_host(self.time, surf.fps, surf.num_frames, surf.playback)
+            self._frame = k
+            s.points = surf.frame_points[k]
+            s.velocities = surf.frame_velocities[k]
+            m = surf.frame_indices[k].shape[0] // 3
+            if s.face_normals.shape[0] != m:
+                s.face_normals = wp.zeros(m, dtype=wp.vec3, device=self.device)
+        else:
+            self._launch(update_frame_vertices, surf.num_vertices,
+                         [surf.frames, s.sim_time, surf.fps, surf.playback, int(surf.interpolate)],
+                         [s.points, s.velocities])
+
+    def _substep(self):
+        s = self.state
+        m = self.model
+        dt = self.sub_dt
+        self._update_surface()
+        self.collider.update(self)
+        self._launch(compute_face_normals, self._num_faces(), [s.points, self.current_indices()], [s.face_normals])
+        c = self.contacts
+        S = m.spheres.count
+        if S:
+            self._launch(collide_sphere_mesh, S,
+                         [self.collider.mesh_id(), s.points, s.velocities, self.current_indices(),
+                          s.sphere_pos, s.sphere_vel, m.spheres.radius, dt, self.extra_speed, m.params.margin],
+                         [c.face, c.point, c.normal, c.depth, c.velocity])
+            self._launch(integrate_spheres, S,
+                         [c.face, c.normal, c.depth, c.velocity, m.spheres.inv_mass, self.gravity, dt,
+                          m.params.restitution, m.params.friction, m.params.rest_speed],
+                         [s.sphere_pos, s.sphere_vel])
+        self._launch(advance_time, 1, [dt], [s.sim_time])
+
+    def capture(self):
+        """Capture one step (all sub-steps) as a CUDA graph; later ``step()`` calls replay it."""
+        if not (self.device.is_cuda and self.collider.capturable):
+            raise RuntimeError("graph capture needs a CUDA device and a capturable collider")
+        with wp.ScopedCapture(device=self.device, force_module_load=True) as cap:
+            for _ in range(self.substeps):
+                self._substep()
+        self._graph = cap.graph
+
+    def step(self):
+        """Advance by one physics step (params.dt)."""
+        if self.use_graph:
+            if self._graph is None:
+                self.capture()
+            wp.capture_launch(self._graph)
+            self.substep_count += self.substeps
+            return
+        for _ in range(self.substeps):
+            self._substep()
+            self.substep_count += 1
+
+    # -- convenience ---------------------------------------------------------------------------
+    def sphere_positions(self) -> np.ndarray:
+        return self.state.sphere_pos.numpy()
+
+    def sphere_velocities(self) -> np.ndarray:
+        return self.state.sphere_vel.numpy()

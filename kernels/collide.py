@@ -1,0 +1,91 @@
+"""Stage 3: sphere–mesh contact generation.
+
+A contact is described per sphere by five arrays (see :class:`dynmesh_warp.Contacts`):
+face (-1 when none), closest point on the surface, unit normal pointing to the sphere's free
+side, depth = radius - signed distance of the centre (> 0 when penetrating), and the surface
+velocity at the closest point.
+
+Surfaces are one-sided: the side the triangle normals point to (outward for a closed, outward
+oriented mesh) is free space. A centre found behind the surface but closer than its radius is
+pushed out to the front; a sphere entirely behind the surface has no contact.
+"""
+
+import warp as wp
+
+from .geometry import closest_point_on_triangle
+
+
+@wp.func
+def make_contact(
+    p: wp.vec3,
+    r: float,
+    c: wp.vec3,
+    side: float,
+    face_normal: wp.vec3,
+):
+    """Normal (to the free side) and depth for a centre p, closest point c, side sign (+1 front)."""
+    d = p - c
+    dist = wp.length(d)
+    n = face_normal
+    if dist > 1.0e-9:
+        n = d * (side / dist)
+    depth = r - side * dist
+    return n, depth
+
+
+@wp.kernel
+def collide_sphere_mesh(
+    # inputs
+    mesh: wp.uint64,
+    points: wp.array(dtype=wp.vec3),
+    velocities: wp.array(dtype=wp.vec3),
+    indices: wp.array(dtype=wp.int32),
+    sphere_pos: wp.array(dtype=wp.vec3),
+    sphere_vel: wp.array(dtype=wp.vec3),
+    sphere_radius: wp.array(dtype=float),
+    dt: float,
+    extra_speed: float,
+    margin: float,
+    # outputs
+    contact_face: wp.array(dtype=wp.int32),
+    contact_point: wp.array(dtype=wp.vec3),
+    contact_normal: wp.array(dtype=wp.vec3),
+    contact_depth: wp.array(dtype=float),
+    contact_velocity: wp.array(dtype=wp.vec3),
+):
+    """Closest-point contact of each sphere with a BVH mesh (``wp.Mesh``, refit or rebuilt).
+
+    The query reaches radius + margin + (|v| + extra_speed) * dt, where extra_speed bounds the
+    surface speed plus the velocity gained from gravity in one step, so any surface the
+    sphere can touch during the step is found (continuous contact in the integrator).
+    """
+    s = wp.tid()
+    p = sphere_pos[s]
+    r = sphere_radius[s]
+    reach = r + margin + (wp.length(sphere_vel[s]) + extra_speed) * dt
+    face = int(-1)
+    c = wp.vec3(0.0)
+    n = wp.vec3(0.0)
+    depth = float(0.0)
+    vs = wp.vec3(0.0)
+    q = wp.mesh_query_point_sign_normal(mesh, p, reach)
+    if q.result:
+        i0 = indices[3 * q.face + 0]
+        i1 = indices[3 * q.face + 1]
+        i2 = indices[3 * q.face + 2]
+        a = points[i0]
+        b = points[i1]
+        e = points[i2]
+        w = wp.vec3(q.u, q.v, 1.0 - q.u - q.v)
+        c = w[0] * a + w[1] * b + w[2] * e
+        fn = wp.normalize(wp.cross(b - a, e - a))
+        n, depth = make_contact(p, r, c, q.sign, fn)
+        if depth > 0.0 or q.sign > 0.0:
+            face = q.face
+            vs = w[0] * velocities[i0] + w[1] * velocities[i1] + w[2] * velocities[i2]
+        # else: the sphere lies entirely behind the surface: no contact
+    contact_face[s] = face
+    contact_point[s] = c
+    contact_normal[s] = n
+    contact_depth[s] = depth
+    contact_velocity[s] = vs

@@ -1,0 +1,77 @@
+"""Stage 1: surface vertices for the current time from the per-frame vertex buffer."""
+
+import warp as wp
+
+# Playback modes for times past the last frame.
+PLAYBACK_LOOP = wp.constant(0)
+PLAYBACK_CLAMP = wp.constant(1)
+PLAYBACK_PINGPONG = wp.constant(2)
+
+
+@wp.func
+def wrap_frame(k: int, num_frames: int, mode: int) -> int:
+    """Map an unbounded frame number to [0, num_frames) for a playback mode."""
+    if num_frames <= 1:
+        return 0
+    if mode == PLAYBACK_CLAMP:
+        return wp.clamp(k, 0, num_frames - 1)
+    if mode == PLAYBACK_PINGPONG:
+        period = 2 * (num_frames - 1)
+        m = k % period
+        if m < 0:
+            m += period
+        if m >= num_frames:
+            m = period - m
+        return m
+    m = k % num_frames
+    if m < 0:
+        m += num_frames
+    return m
+
+
+@wp.func
+def frame_pair(time: float, fps: float, num_frames: int, mode: int):
+    """Frames (k, k+1) bracketing ``time`` and the blend factor alpha in [0, 1).
+
+    k = floor(time * fps); both indices are mapped with the playback mode.
+    """
+    s = time * fps
+    kf = wp.floor(s)
+    alpha = s - kf
+    k = int(kf)
+    return wrap_frame(k, num_frames, mode), wrap_frame(k + 1, num_frames, mode), alpha
+
+
+@wp.kernel
+def update_frame_vertices(
+    # inputs
+    frames: wp.array2d(dtype=wp.vec3),
+    sim_time: wp.array(dtype=wp.float64),
+    fps: float,
+    mode: int,
+    interpolate: int,
+    # outputs
+    points: wp.array(dtype=wp.vec3),
+    velocities: wp.array(dtype=wp.vec3),
+):
+    """Write the surface vertices and velocities at ``sim_time[0]``.
+
+    frames (T, N) vertex buffer [m]; points (N,) [m]; velocities (N,) [m/s].
+    With ``interpolate`` the position is the linear blend of frames k and k+1; otherwise
+    frame k is copied. The velocity is the finite difference (V[k+1] - V[k]) * fps in
+    both cases (the surface's own motion, used by the contact response).
+    """
+    i = wp.tid()
+    num_frames = frames.shape[0]
+    t = float(sim_time[0])
+    k0, k1, alpha = frame_pair(t, fps, num_frames, mode)
+    a = frames[k0, i]
+    b = frames[k1, i]
+    if interpolate != 0:
+        points[i] = a + alpha * (b - a)
+    else:
+        points[i] = a
+    if k1 == k0:
+        velocities[i] = wp.vec3(0.0)
+    else:
+        velocities[i] = (b - a) * fps
