@@ -323,6 +323,14 @@ class World:
             use_graph = self.device.is_cuda and self.collider.capturable
         self.use_graph = bool(use_graph) and self.device.is_cuda and self.collider.capturable
         self._graph = None
+        self._initial = (state.sphere_pos.numpy(), state.sphere_vel.numpy())
+        self.post_step_hooks = []  # callables hook(world) launched after each step (inside the graph)
+
+    def add_post_step_hook(self, hook):
+        """Run ``hook(world)`` after every step; it must only launch kernels (no allocation, no
+        host reads) so it is captured in the same CUDA graph. Invalidates a captured graph."""
+        self.post_step_hooks.append(hook)
+        self._graph = None
 
     # -- host-side bookkeeping (no device reads) ---------------------------------------------
     @property
@@ -391,9 +399,14 @@ class World:
         if not (self.device.is_cuda and self.collider.capturable):
             raise RuntimeError("graph capture needs a CUDA device and a capturable collider")
         with wp.ScopedCapture(device=self.device, force_module_load=True) as cap:
-            for _ in range(self.substeps):
-                self._substep()
+            self._step_body()
         self._graph = cap.graph
+
+    def _step_body(self):
+        for _ in range(self.substeps):
+            self._substep()
+        for hook in self.post_step_hooks:
+            hook(self)
 
     def step(self):
         """Advance by one physics step (params.dt)."""
@@ -406,6 +419,43 @@ class World:
         for _ in range(self.substeps):
             self._substep()
             self.substep_count += 1
+        for hook in self.post_step_hooks:
+            hook(self)
+
+    # -- editing between steps (host side; invalidates the captured graph) ---------------------
+    def _refresh_surface(self):
+        self._update_surface()
+        self.collider.update(self)
+        self._launch(compute_face_normals, self._num_faces(),
+                     [self.state.points, self.current_indices()], [self.state.face_normals])
+
+    def reset(self):
+        """Back to the initial time and sphere state."""
+        s = self.state
+        s.sim_time.assign(np.array([self.t0], dtype=np.float64))
+        s.sphere_pos.assign(self._initial[0])
+        s.sphere_vel.assign(self._initial[1])
+        self.substep_count = 0
+        self._refresh_surface()
+
+    def add_spheres(self, positions, radius, mass=1.0, velocities=None):
+        """Add spheres (between steps). Reallocates the sphere arrays and drops the graph."""
+        positions = np.asarray(positions, np.float32).reshape(-1, 3)
+        n = positions.shape[0]
+        radius = np.broadcast_to(np.asarray(radius, np.float32), (n,))
+        old = self.model.spheres
+        old_mass = np.where(old.inv_mass.numpy() > 0, 1.0 / np.maximum(old.inv_mass.numpy(), 1e-30), np.inf)
+        new_r = np.concatenate([old.radius_np, radius])
+        new_m = np.concatenate([old_mass, np.broadcast_to(np.asarray(mass, np.float64), (n,))])
+        vel = np.zeros((n, 3), np.float32) if velocities is None else np.asarray(velocities, np.float32).reshape(n, 3)
+        pos_all = np.concatenate([self.state.sphere_pos.numpy(), positions])
+        vel_all = np.concatenate([self.state.sphere_vel.numpy(), vel])
+        self.model.spheres = SphereModel(new_r, new_m, self.device)
+        self.state.sphere_pos = wp.array(pos_all, dtype=wp.vec3, device=self.device)
+        self.state.sphere_vel = wp.array(vel_all, dtype=wp.vec3, device=self.device)
+        self._initial = (np.concatenate([self._initial[0], positions]), np.concatenate([self._initial[1], vel]))
+        self.contacts = Contacts(self.model.spheres.count, device=self.device)
+        self._graph = None
 
     # -- convenience ---------------------------------------------------------------------------
     def sphere_positions(self) -> np.ndarray:

@@ -1,0 +1,464 @@
+"""Tests for dynmesh_warp.io: loading/saving sequences and meshes, ordering, bad input.
+
+All data is generated here (small icospheres); nothing is read from the shared data folder
+except by the optional test at the end, which skips when it is absent.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from dynmesh_warp.io import (
+    frame_index_from_name,
+    load_sequence,
+    read_mesh,
+    save_sequence,
+    write_mesh,
+)
+from dynmesh_warp.sequence import (
+    FixedTopologySequence,
+    MeshDataError,
+    VaryingTopologySequence,
+)
+
+SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def icosphere(subdiv: int = 1):
+    m = trimesh.creation.icosphere(subdivisions=subdiv)
+    return m.vertices.astype(np.float32), m.faces.astype(np.int32)
+
+
+def fixed_seq(T: int = 4, subdiv: int = 1, name: str = "ico") -> FixedTopologySequence:
+    """A fixed-topology sequence whose frame t is shifted by t along x (identifiable)."""
+    V, F = icosphere(subdiv)
+    rng = np.random.default_rng(0)
+    frames = [V * (1 + 0.05 * rng.standard_normal(V.shape)) + [t, 0, 0] for t in range(T)]
+    return FixedTopologySequence(np.stack(frames).astype(np.float32), F, fps=30.0, name=name)
+
+
+def varying_seq(T: int = 3) -> VaryingTopologySequence:
+    frames = []
+    for t in range(T):
+        V, F = icosphere(t % 3)  # 12 / 42 / 162 vertices: different topology per frame
+        frames.append((V + np.float32(t), F))
+    return VaryingTopologySequence(frames, fps=12.5, name="vary")
+
+
+def write_obj_text(path: Path, text: str) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+    return path
+
+
+def frame_of(V: np.ndarray) -> int:
+    """Recover the frame marker t from vertices written as ``base + [t, 0, 0]``."""
+    return int(round(float(V[:, 0].mean())))
+
+
+TRI_OBJ = "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n"
+
+
+# --------------------------------------------------------------------------- round trips
+
+
+def assert_same_fixed(a: FixedTopologySequence, b: FixedTopologySequence):
+    assert isinstance(b, FixedTopologySequence)
+    assert b.V.dtype == np.float32 and b.F.dtype == np.int32
+    np.testing.assert_allclose(b.V, a.V, rtol=0, atol=1e-6)  # vertex order preserved
+    np.testing.assert_array_equal(b.F, a.F)
+
+
+def test_roundtrip_fixed_npz(tmp_path):
+    seq = fixed_seq()
+    save_sequence(seq, tmp_path / "s.npz")
+    with np.load(tmp_path / "s.npz") as d:  # the shared-data layout, exactly
+        assert set(d.files) == {"V", "F", "fps", "name"}
+        assert d["V"].dtype == np.float32 and d["F"].dtype == np.int32
+        assert d["fps"].shape == () and str(d["name"]) == "ico"
+    out = load_sequence(tmp_path / "s.npz")
+    assert_same_fixed(seq, out)
+    assert out.fps == 30.0 and out.name == "ico"
+    assert load_sequence(tmp_path / "s.npz", fps=10).fps == 10.0  # argument wins
+
+
+@pytest.mark.parametrize("fmt", ["ply", "obj"])
+def test_roundtrip_fixed_folder(tmp_path, fmt):
+    seq = fixed_seq()
+    save_sequence(seq, tmp_path / "out", fmt=fmt)
+    names = sorted(p.name for p in (tmp_path / "out").iterdir())
+    assert names == [f"frame_{i:04d}.{fmt}" for i in range(seq.num_frames)]
+    out = load_sequence(tmp_path / "out")
+    assert_same_fixed(seq, out)
+    assert out.fps == 24.0  # folders carry no fps: default
+    assert load_sequence(tmp_path / "out", fps=30).fps == 30.0
+
+
+@pytest.mark.parametrize("target", ["npz", "ply", "obj"])
+def test_roundtrip_varying(tmp_path, target):
+    seq = varying_seq()
+    dest = tmp_path / ("v.npz" if target == "npz" else "v")
+    save_sequence(seq, dest, fmt=None if target == "npz" else target)
+    out = load_sequence(dest)
+    assert isinstance(out, VaryingTopologySequence)
+    assert out.num_frames == seq.num_frames
+    for (va, fa), (vb, fb) in zip(seq.frames, out.frames):
+        np.testing.assert_allclose(vb, va, rtol=0, atol=1e-6)
+        np.testing.assert_array_equal(fb, fa)
+    if target == "npz":
+        assert out.fps == 12.5 and out.name == "vary"
+        with np.load(dest) as d:
+            assert {"V_packed", "F_packed", "V_offsets", "F_offsets"} <= set(d.files)
+    else:
+        assert out.frame_sources[1].endswith(f"frame_0001.{target}")
+
+
+def test_kind_conversions(tmp_path):
+    save_sequence(fixed_seq(), tmp_path / "f.npz")
+    assert isinstance(load_sequence(tmp_path / "f.npz", kind="varying"), VaryingTopologySequence)
+    # a varying-layout npz whose frames happen to share topology loads as fixed in auto mode
+    save_sequence(fixed_seq().to_varying(), tmp_path / "fv.npz")
+    assert isinstance(load_sequence(tmp_path / "fv.npz"), FixedTopologySequence)
+    with pytest.raises(ValueError, match="kind"):
+        load_sequence(tmp_path / "f.npz", kind="bogus")
+
+
+def test_single_mesh_file(tmp_path):
+    V, F = icosphere()
+    write_mesh(tmp_path / "one.ply", V, F)
+    seq = load_sequence(tmp_path / "one.ply")
+    assert isinstance(seq, FixedTopologySequence) and seq.num_frames == 1
+    np.testing.assert_allclose(seq.V[0], V, atol=1e-6)
+    np.testing.assert_array_equal(seq.F, F)
+
+
+def test_write_mesh_formats_preserve_order(tmp_path):
+    V, F = icosphere()
+    V = V[::-1].copy()  # an order trimesh processing would not keep
+    F = (len(V) - 1 - F).astype(np.int32)
+    for ext in ("ply", "obj", "off"):
+        write_mesh(tmp_path / f"m.{ext}", V, F)
+        V2, F2 = read_mesh(tmp_path / f"m.{ext}")
+        np.testing.assert_allclose(V2, V, atol=1e-6)
+        np.testing.assert_array_equal(F2, F)
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temp leftovers
+
+
+def test_save_replaces_existing_folder_and_refuses_foreign_content(tmp_path):
+    save_sequence(fixed_seq(T=5), tmp_path / "out", fmt="ply")
+    save_sequence(fixed_seq(T=2), tmp_path / "out", fmt="ply")
+    assert load_sequence(tmp_path / "out").num_frames == 2  # old frames gone
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no temp folders left
+    (tmp_path / "out" / "notes.json").write_text("{}")
+    with pytest.raises(FileExistsError, match="notes.json"):
+        save_sequence(fixed_seq(T=2), tmp_path / "out", fmt="obj")
+    with pytest.raises(ValueError, match="fmt"):
+        save_sequence(fixed_seq(), tmp_path / "other")
+
+
+# --------------------------------------------------------------------------- ordering
+
+
+def test_frame_index_from_name():
+    assert frame_index_from_name("frame_0010.ply") == 10
+    assert frame_index_from_name("horse9.obj") == 9
+    assert frame_index_from_name("mesh_gt/bird3.obj") == 3
+    assert frame_index_from_name("/data/run2/scan_v2_017.obj") == 17
+    with pytest.raises(MeshDataError, match="mesh.obj"):
+        frame_index_from_name("mesh.obj")
+
+
+def write_marked_frames(folder: Path, names: list[str], marks: list[int]):
+    V, F = icosphere(0)
+    for name, t in zip(names, marks):
+        write_mesh(folder / name, V + np.float32([t, 0, 0]), F)
+
+
+def test_folder_numeric_order(tmp_path):
+    write_marked_frames(tmp_path, ["frame_2.ply", "frame_10.ply", "frame_1.ply"], [2, 10, 1])
+    (tmp_path / "cameras.json").write_text("{}")  # non-mesh and hidden files are ignored
+    (tmp_path / "readme.txt").write_text("x")
+    (tmp_path / ".hidden.ply").write_text("junk")
+    seq = load_sequence(tmp_path)
+    assert isinstance(seq, FixedTopologySequence)
+    assert [frame_of(v) for v in seq.V] == [1, 2, 10]
+
+
+def test_folder_numeric_order_obj_names(tmp_path):
+    write_marked_frames(tmp_path, ["horse10.obj", "horse9.obj", "horse11.obj"], [10, 9, 11])
+    (tmp_path / "horse.mtl").write_text("newmtl a\n")
+    seq = load_sequence(tmp_path)
+    assert [frame_of(v) for v in seq.V] == [9, 10, 11]
+
+
+def test_dgmesh_layouts(tmp_path):
+    scene = tmp_path / "bird"
+    write_marked_frames(scene / "dynamic_mesh", [f"frame_{i}.ply" for i in range(3)], [0, 1, 2])
+    V, F = icosphere(1)  # the ground truth differs (more vertices)
+    for i in range(4):
+        write_mesh(scene / "mesh_gt" / f"bird{i}.obj", V + np.float32([i, 0, 0]), F)
+    (scene / "input.ply").write_text("not a frame")  # e.g. 3DGS output next to them
+
+    rec = load_sequence(scene)  # dynamic_mesh preferred
+    assert rec.num_frames == 3 and rec.num_vertices == 12
+    gt = load_sequence(scene, subdir="mesh_gt")
+    assert gt.num_frames == 4 and gt.num_vertices == 42
+    assert [frame_of(v) for v in gt.V] == [0, 1, 2, 3]
+
+    only_gt = tmp_path / "only_gt"
+    only_gt.mkdir()
+    (scene / "mesh_gt").rename(only_gt / "mesh_gt")
+    assert load_sequence(only_gt).num_frames == 4  # the single DG-Mesh subfolder is found
+    with pytest.raises(FileNotFoundError, match="nope"):
+        load_sequence(scene, subdir="nope")
+
+
+# --------------------------------------------------------------------------- topology
+
+
+def test_quads_are_triangulated(tmp_path):
+    quads = (
+        "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 2 0 0\nv 2 1 0\n"
+        "f 1 2 3 4\nf 2 5 6 3\n"
+    )
+    V, F = read_mesh(write_obj_text(tmp_path / "q.obj", quads))
+    assert V.shape == (6, 3) and F.shape == (4, 3)  # 2 triangles per quad
+    np.testing.assert_array_equal(F, [[0, 1, 2], [0, 2, 3], [1, 4, 5], [1, 5, 2]])
+    pent = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0.5 2 0\nv 0 1 0\nf 1 2 3 4 5\n"
+    _, F = read_mesh(write_obj_text(tmp_path / "p.obj", pent))
+    assert F.shape == (3, 3)  # fan: n-2 triangles
+    off = "OFF\n4 1 0\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n4 0 1 2 3\n"
+    _, F = read_mesh(write_obj_text(tmp_path / "q.off", off))
+    assert F.shape == (2, 3)
+
+
+def test_obj_index_forms(tmp_path):
+    text = "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvn 0 0 1\nf -3/1/1 -2/1/1 -1/1/1\nl 1 2\n"
+    V, F = read_mesh(write_obj_text(tmp_path / "a.obj", text))
+    np.testing.assert_array_equal(F, [[0, 1, 2]])
+    text = "v 9 9 9\n" + TRI_OBJ.replace("f 1 2 3", "f 2 3 4")  # unreferenced vertex kept
+    V, F = read_mesh(write_obj_text(tmp_path / "b.obj", text))
+    assert V.shape == (4, 3) and V[0, 0] == 9
+
+
+def test_folder_fixed_vs_varying(tmp_path):
+    varying_seq_ = varying_seq()
+    save_sequence(varying_seq_, tmp_path / "vary", fmt="ply")
+    seq = load_sequence(tmp_path / "vary")
+    assert isinstance(seq, VaryingTopologySequence)
+    assert seq.frame_sources and seq.frame_sources[0].endswith("frame_0000.ply")
+    save_sequence(fixed_seq(), tmp_path / "fix", fmt="obj")
+    assert isinstance(load_sequence(tmp_path / "fix"), FixedTopologySequence)
+    assert isinstance(load_sequence(tmp_path / "fix", kind="varying"), VaryingTopologySequence)
+
+
+def test_kind_fixed_on_differing_vertex_counts(tmp_path):
+    V0, F0 = icosphere(1)
+    V1, F1 = icosphere(0)
+    for i in range(8):
+        V, F = (V1, F1) if i == 7 else (V0, F0)
+        write_mesh(tmp_path / f"frame_{i}.ply", V, F)
+    assert isinstance(load_sequence(tmp_path), VaryingTopologySequence)
+    with pytest.raises(MeshDataError) as e:
+        load_sequence(tmp_path, kind="fixed")
+    msg = str(e.value)
+    assert "frame_7.ply" in msg and "frame 7" in msg and "frame_0.ply" in msg
+    assert "12 vertices" in msg and "42" in msg
+
+
+def test_kind_fixed_on_differing_faces(tmp_path):
+    V, F = icosphere(0)
+    write_mesh(tmp_path / "m0.obj", V, F)
+    write_mesh(tmp_path / "m1.obj", V, F[:, [0, 2, 1]])
+    with pytest.raises(MeshDataError, match=r"m1\.obj.*frame 1.*faces differ"):
+        load_sequence(tmp_path, kind="fixed")
+
+
+# --------------------------------------------------------------------------- bad input
+
+
+def test_missing_file_and_folder(tmp_path):
+    with pytest.raises(FileNotFoundError, match="nothere.npz"):
+        load_sequence(tmp_path / "nothere.npz")
+    with pytest.raises(FileNotFoundError, match="nodir"):
+        load_sequence(tmp_path / "nodir")
+    with pytest.raises(FileNotFoundError, match="gone.obj"):
+        read_mesh(tmp_path / "gone.obj")
+
+
+def test_empty_folder(tmp_path):
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "empty" / "notes.txt").write_text("no meshes here")
+    with pytest.raises(MeshDataError, match="empty.*no mesh files"):
+        load_sequence(tmp_path / "empty")
+
+
+@pytest.mark.parametrize(
+    "name,content",
+    [
+        ("bad.obj", "v 0 0 zzz\nf 1 2 3\n"),
+        ("bad.ply", b"ply\nformat binary_little_endian 1.0\nelement vertex 3\n"
+                    b"property float x\nend_header\n\x00\x01"),
+        ("bad2.ply", b"\x00\x01 definitely not a mesh"),
+        ("bad.off", "OFF\n3 1 0\n0 0 0\n"),
+        ("bad.npz", b"PK\x03\x04 truncated zip"),
+    ],
+)
+def test_corrupt_file(tmp_path, name, content):
+    p = tmp_path / name
+    p.write_bytes(content if isinstance(content, bytes) else content.encode())
+    with pytest.raises(MeshDataError, match=name.replace(".", r"\.")):
+        load_sequence(p)
+
+
+def test_corrupt_frame_in_folder_names_file_and_frame(tmp_path):
+    write_marked_frames(tmp_path, ["f0.obj", "f1.obj", "f2.obj"], [0, 1, 2])
+    (tmp_path / "f1.obj").write_text("v 0 0 zzz\n")
+    with pytest.raises(MeshDataError, match=r"f1\.obj, frame 1: line 1"):
+        load_sequence(tmp_path)
+
+
+@pytest.mark.parametrize(
+    "name,content",
+    [
+        ("empty.obj", "# nothing\n"),
+        ("empty.ply", "ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\n"
+                      "property float y\nproperty float z\nend_header\n"),
+    ],
+)
+def test_empty_mesh(tmp_path, name, content):
+    p = write_obj_text(tmp_path / name, content)
+    with pytest.raises(MeshDataError, match=name.replace(".", r"\.")):
+        read_mesh(p)
+
+
+@pytest.mark.parametrize(
+    "name,content",
+    [
+        ("pts.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\n"),
+        ("lines.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nl 1 2 3\n"),
+        ("pts.ply", "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\n"
+                    "property float y\nproperty float z\nend_header\n0 0 0\n1 0 0\n0 1 0\n"),
+    ],
+)
+def test_points_without_faces(tmp_path, name, content):
+    p = write_obj_text(tmp_path / name, content)
+    with pytest.raises(MeshDataError, match=name.replace(".", r"\.") + ".*no triangle faces"):
+        read_mesh(p)
+
+
+PLY_HEAD = (
+    "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+    "property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n"
+)
+
+
+@pytest.mark.parametrize(
+    "name,content",
+    [
+        ("oor.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 5\n"),
+        ("zero.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 0 1 2\n"),
+        ("oor.ply", PLY_HEAD + "0 0 0\n1 0 0\n0 1 0\n3 0 1 7\n"),
+        ("oor.off", "OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 9\n"),
+    ],
+)
+def test_face_index_out_of_range_file(tmp_path, name, content):
+    p = write_obj_text(tmp_path / name, content)
+    with pytest.raises(MeshDataError, match=name.replace(".", r"\.") + ".*(out of range|index 0)"):
+        read_mesh(p)
+
+
+def test_face_index_out_of_range_npz(tmp_path):
+    seq = fixed_seq()
+    F = seq.F.copy()
+    F[5, 1] = seq.num_vertices + 3
+    np.savez(tmp_path / "oor.npz", V=seq.V, F=F, fps=np.float32(24), name="x")
+    with pytest.raises(MeshDataError, match=r"oor\.npz.*out of range"):
+        load_sequence(tmp_path / "oor.npz")
+
+
+@pytest.mark.parametrize("ext", ["obj", "ply"])
+def test_nan_vertex_in_file(tmp_path, ext):
+    if ext == "obj":
+        p = write_obj_text(tmp_path / "nan.obj", TRI_OBJ.replace("v 1 0 0", "v nan 0 0"))
+    else:
+        p = write_obj_text(tmp_path / "nan.ply", PLY_HEAD + "0 0 0\nnan 0 0\n0 1 0\n3 0 1 2\n")
+    with pytest.raises(MeshDataError, match=rf"nan\.{ext}.*NaN"):
+        read_mesh(p)
+
+
+def test_nan_vertex_in_folder_frame(tmp_path):
+    write_marked_frames(tmp_path, [f"frame_{i}.obj" for i in range(3)], [0, 1, 2])
+    (tmp_path / "frame_2.obj").write_text(TRI_OBJ.replace("v 1 0 0", "v 1 inf 0"))
+    with pytest.raises(MeshDataError, match=r"frame_2\.obj, frame 2.*NaN/inf"):
+        load_sequence(tmp_path, kind="varying")
+
+
+def test_nan_vertex_in_npz_later_frame(tmp_path):
+    seq = fixed_seq()
+    V = seq.V.copy()
+    V[2, 7, 1] = np.nan
+    np.savez(tmp_path / "nan.npz", V=V, F=seq.F, fps=np.float32(24), name="x")
+    with pytest.raises(MeshDataError, match=r"nan\.npz, frame 2.*NaN"):
+        load_sequence(tmp_path / "nan.npz")
+    # the same in the varying layout
+    vs = varying_seq()
+    v1 = vs.frames[1][0].copy()
+    v1[3] = np.inf
+    bad = VaryingTopologySequence.__new__(VaryingTopologySequence)  # skip validation
+    bad.frames, bad.fps, bad.name = [vs.frames[0], (v1, vs.frames[1][1])], 24.0, "bad"
+    bad.source = bad.frame_sources = None
+    save_sequence(bad, tmp_path / "vnan.npz")
+    with pytest.raises(MeshDataError, match=r"vnan\.npz, frame 1.*NaN"):
+        load_sequence(tmp_path / "vnan.npz")
+
+
+def test_unknown_npz_layout(tmp_path):
+    np.savez(tmp_path / "odd.npz", points=np.zeros((3, 3)))
+    with pytest.raises(MeshDataError, match=r"odd\.npz.*layout"):
+        load_sequence(tmp_path / "odd.npz")
+
+
+def test_folder_name_without_integer(tmp_path):
+    write_marked_frames(tmp_path, ["frame_0.ply", "frame_1.ply", "final.ply"], [0, 1, 2])
+    with pytest.raises(MeshDataError, match=r"final\.ply.*no integer"):
+        load_sequence(tmp_path)
+
+
+def test_folder_duplicate_index(tmp_path):
+    write_marked_frames(tmp_path, ["a_3.ply", "b_03.ply"], [0, 1])
+    with pytest.raises(MeshDataError, match=r"a_3\.ply.*b_03\.ply"):
+        load_sequence(tmp_path)
+
+
+def test_folder_mixed_extensions(tmp_path):
+    write_marked_frames(tmp_path, ["frame_0.ply", "frame_1.obj"], [0, 1])
+    with pytest.raises(MeshDataError, match=r"\.obj.*\.ply"):
+        load_sequence(tmp_path)
+
+
+def test_folder_gap_warns(tmp_path):
+    write_marked_frames(tmp_path, ["f1.ply", "f2.ply", "f5.ply"], [1, 2, 5])
+    with pytest.warns(UserWarning, match="missing 3, 4"):
+        seq = load_sequence(tmp_path)
+    assert [frame_of(v) for v in seq.V] == [1, 2, 5]
+
+
+# --------------------------------------------------------------------------- shared data
+
+
+def test_shared_pcow_npz():
+    path = SHARED_DATA / "pcow.npz"
+    if not path.exists():
+        pytest.skip(f"{path} not available")
+    seq = load_sequence(path)
+    assert isinstance(seq, FixedTopologySequence)
+    assert seq.V.shape == (204, 2904, 3) and seq.F.shape == (5804, 3)  # README figures
+    assert seq.fps == 24.0 and seq.name == "pcow"
