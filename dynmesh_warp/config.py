@@ -75,7 +75,7 @@ class PhysicsConfig(_Strict):
     friction: float = Field(default=0.5, ge=0)
     rest_speed: float = Field(default=0.2, ge=0)
     margin: float = Field(default=1.0e-3, ge=0)
-    collider: Literal["fixed", "rebuild"] = "fixed"
+    collider: Literal["fixed", "refit", "swept", "rebuild"] = "fixed"
     rebuild_every: Literal["step", "frame"] = "step"
 
 

@@ -219,97 +219,140 @@ def _fan(polygons) -> np.ndarray:
     return np.asarray(tris, dtype=np.int64).reshape(-1, 3)
 
 
+_OBJ_V_RE = re.compile(r"^[ \t]*v[ \t]+([^\n]*)", re.M)
+_OBJ_F_RE = re.compile(r"^[ \t]*f[ \t]+([^\n]*)", re.M)
+_OBJ_SLASH_RE = re.compile(r"/\S*")
+
+
 def _read_obj(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Minimal OBJ reader: ``v`` and ``f`` records, order preserved, bad indices kept."""
+    """OBJ reader: ``v`` and ``f`` records only, order preserved, bad indices kept.
+
+    A vectorised path handles the common case (3 coordinates per ``v``, positive indices,
+    triangles); anything else (polygons, negative indices, extra fields, malformed
+    records) goes through the line-by-line reader, which reports the offending line.
+    """
+    text = path.read_text(encoding="utf-8", errors="replace")
+    fast = _read_obj_fast(text)
+    return fast if fast is not None else _read_obj_lines(text.splitlines())
+
+
+def _read_obj_fast(text: str):
+    v_rows = _OBJ_V_RE.findall(text)
+    f_rows = _OBJ_F_RE.findall(text)
+    # every record must have exactly 3 fields (a 4-field row and a 2-field row would
+    # otherwise add up to a plausible total)
+    if any(len(r.split()) != 3 for r in v_rows) or any(len(r.split()) != 3 for r in f_rows):
+        return None
+    v_tok = " ".join(v_rows).split()
+    f_str = " ".join(f_rows)
+    if "/" in f_str:
+        f_str = _OBJ_SLASH_RE.sub("", f_str)
+    f_tok = f_str.split()
+    try:
+        V = np.array(v_tok, dtype=np.float64).reshape(-1, 3)
+        F = np.array(f_tok, dtype=np.int64).reshape(-1, 3)
+    except ValueError:
+        return None
+    if F.size and F.min() <= 0:  # relative (negative) or invalid 0 indices
+        return None
+    return V, F - 1
+
+
+def _read_obj_lines(lines) -> tuple[np.ndarray, np.ndarray]:
     verts: list[list[float]] = []
     polys: list[list[int]] = []
-    with open(path, "r", encoding="utf-8", errors="replace") as fh:
-        for lineno, line in enumerate(fh, 1):
-            line = line.lstrip()
-            if not line or line[0] not in "vf":  # fast skip of vt/vn/#/g/usemtl/l/...
-                continue
-            parts = line.split()
-            tag = parts[0]
-            if tag == "v":
-                if len(parts) < 4:
-                    raise _ReadError(
-                        f"line {lineno}: vertex needs 3 coordinates: {line.strip()!r}"
-                    )
+    for lineno, line in enumerate(lines, 1):
+        line = line.lstrip()
+        if not line or line[0] not in "vf":  # fast skip of vt/vn/#/g/usemtl/l/...
+            continue
+        parts = line.split()
+        tag = parts[0]
+        if tag == "v":
+            if len(parts) < 4:
+                raise _ReadError(f"line {lineno}: vertex needs 3 coordinates: {line.strip()!r}")
+            try:
+                verts.append([float(parts[1]), float(parts[2]), float(parts[3])])
+            except ValueError:
+                raise _ReadError(
+                    f"line {lineno}: bad vertex coordinates: {line.strip()!r}"
+                ) from None
+        elif tag == "f":
+            if len(parts) < 4:
+                raise _ReadError(
+                    f"line {lineno}: face needs at least 3 vertices: {line.strip()!r}"
+                )
+            n = len(verts)
+            poly = []
+            for tok in parts[1:]:
                 try:
-                    verts.append([float(parts[1]), float(parts[2]), float(parts[3])])
+                    i = int(tok.split("/", 1)[0])
                 except ValueError:
+                    raise _ReadError(f"line {lineno}: bad face index {tok!r}") from None
+                if i == 0:
                     raise _ReadError(
-                        f"line {lineno}: bad vertex coordinates: {line.strip()!r}"
-                    ) from None
-            elif tag == "f":
-                if len(parts) < 4:
-                    raise _ReadError(
-                        f"line {lineno}: face needs at least 3 vertices: "
-                        f"{line.strip()!r}"
+                        f"line {lineno}: face index 0 is invalid (OBJ indices start at 1)"
                     )
-                n = len(verts)
-                poly = []
-                for tok in parts[1:]:
-                    try:
-                        i = int(tok.split("/", 1)[0])
-                    except ValueError:
-                        raise _ReadError(
-                            f"line {lineno}: bad face index {tok!r}"
-                        ) from None
-                    if i == 0:
-                        raise _ReadError(
-                            f"line {lineno}: face index 0 is invalid "
-                            "(OBJ indices start at 1)"
-                        )
-                    # 1-based; negative indices count back from the latest vertex.
-                    poly.append(i - 1 if i > 0 else n + i)
-                polys.append(poly)
+                # 1-based; negative indices count back from the latest vertex.
+                poly.append(i - 1 if i > 0 else n + i)
+            polys.append(poly)
     V = np.asarray(verts, dtype=np.float64).reshape(-1, 3)
     return V, _fan(polys)
 
 
 def _read_off(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Minimal ASCII OFF reader (``OFF``/``COFF``/``NOFF``/... headers, n-gon faces)."""
-    with open(path, "r", encoding="utf-8", errors="replace") as fh:
-        lines = [ln.split("#", 1)[0].split() for ln in fh]
+    """ASCII OFF reader (``OFF``/``COFF``/``NOFF``/... headers, n-gon faces).
+
+    Vertex lines may carry extra fields (normals, colours); only x y z are used.
+    """
+    text = path.read_text(encoding="utf-8", errors="replace")
+    if "#" in text:
+        text = "\n".join(ln.split("#", 1)[0] for ln in text.splitlines())
+    tokens = text.split()
+    # Fast path: "[OFF] nv nf ne", then exactly 3 numbers per vertex, triangles only.
+    pos = 1 if tokens and tokens[0].endswith("OFF") else 0
+    try:
+        nv, nf, _ = (int(x) for x in tokens[pos:pos + 3])
+        body = tokens[pos + 3:]
+        if len(body) == 3 * nv + 4 * nf and all(c == "3" for c in body[3 * nv::4]):
+            V = np.array(body[:3 * nv], dtype=np.float64).reshape(-1, 3)
+            F = np.array(body[3 * nv:], dtype=np.int64).reshape(-1, 4)[:, 1:]
+            return V, F
+    except ValueError:
+        pass
+    # General path, line by line: extra per-vertex fields, polygons, errors.
+    lines = [ln.split() for ln in text.splitlines()]
     lines = [ln for ln in lines if ln]
     if not lines:
         raise _ReadError("empty OFF file")
-    pos = 0
     head = lines[0]
     if re.fullmatch(r"(ST)?C?N?OFF", head[0]):
         if len(head) > 1 and head[1].upper() == "BINARY":
             raise _ReadError("binary OFF is not supported")
-        counts = head[1:]
-        pos = 1
-        if not counts:
-            if len(lines) < 2:
-                raise _ReadError("OFF file has no vertex/face counts")
-            counts = lines[1]
-            pos = 2
-    elif head[0].isdigit():
-        counts = head
-        pos = 1
+        if len(head) > 1:  # "OFF nv nf ne" on one line
+            counts, data = head[1:], lines[1:]
+        else:
+            counts, data = (lines[1] if len(lines) > 1 else []), lines[2:]
+    elif head[0].isdigit():  # header-less
+        counts, data = head, lines[1:]
     else:
         raise _ReadError(f"not an OFF file (header {head[0]!r})")
     try:
         nv, nf = int(counts[0]), int(counts[1])
     except (ValueError, IndexError):
         raise _ReadError(f"bad OFF counts line {' '.join(counts)!r}") from None
-    if len(lines) < pos + nv + nf:
+    if len(data) < nv + nf:
         raise _ReadError(
-            f"OFF file is truncated: expected {nv} vertices and {nf} faces, "
-            f"found {len(lines) - pos} data lines"
+            f"OFF file is truncated: expected {nv} vertex and {nf} face lines, "
+            f"found {len(data)}"
         )
     try:
-        V = np.array([[float(x) for x in ln[:3]] for ln in lines[pos : pos + nv]],
-                     dtype=np.float64).reshape(-1, 3)
+        V = np.array([x for ln in data[:nv] for x in ln[:3]], dtype=np.float64).reshape(-1, 3)
         polys = []
-        for ln in lines[pos + nv : pos + nv + nf]:
+        for ln in data[nv:nv + nf]:
             k = int(ln[0])
             if k < 3 or len(ln) < k + 1:
                 raise _ReadError(f"bad OFF face {' '.join(ln)!r}")
-            polys.append([int(x) for x in ln[1 : k + 1]])
+            polys.append([int(x) for x in ln[1:k + 1]])
     except ValueError as e:
         raise _ReadError(f"bad OFF data ({e})") from None
     return V, _fan(polys)
@@ -506,7 +549,7 @@ def _list_frame_files(folder: Path) -> list[Path]:
         warnings.warn(
             f"{folder}: frame numbering has gaps (missing {shown}); frames are taken in "
             "order and played at a constant fps",
-            stacklevel=3,
+            stacklevel=4,  # _list_frame_files <- _load_folder <- load_sequence <- caller
         )
     return [by_index[i] for i in order]
 

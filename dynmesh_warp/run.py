@@ -26,7 +26,9 @@ def _parser() -> argparse.ArgumentParser:
     g = p.add_mutually_exclusive_group()
     g.add_argument("--duration", type=float, help="simulated seconds (overrides run.duration)")
     g.add_argument("--steps", type=int, help="number of physics steps (overrides run.duration/steps)")
-    p.add_argument("--collider", choices=["fixed", "rebuild"], help="fixed: refit one BVH; rebuild: new BVH")
+    p.add_argument("--collider", choices=["fixed", "refit", "swept", "rebuild"],
+                   help="fixed (default): swept with interpolation, else refit; refit: refit one BVH every step; "
+                        "swept: refit swept bounds once per frame; rebuild: new BVH (varying-topology baseline)")
     p.add_argument("--rebuild-every", choices=["step", "frame"], help="for --collider rebuild")
     p.add_argument("--viewer", choices=["none"], default="none", help="viewer (none: headless)")
     p.add_argument("--output", help="output folder (overrides run.output)")

@@ -20,6 +20,7 @@ from .kernels.collide import collide_sphere_mesh
 from .kernels.frames import PLAYBACK_CLAMP, PLAYBACK_LOOP, PLAYBACK_PINGPONG, update_frame_vertices
 from .kernels.geometry import compute_face_normals
 from .kernels.integrate import advance_time, integrate_spheres
+from .kernels.swept import collide_sphere_swept, compute_swept_bounds, detect_frame_change
 from .sequence import FixedTopologySequence, VaryingTopologySequence
 
 __all__ = [
@@ -111,6 +112,9 @@ class SurfaceModel:
             speed = max(speed, wrap)
         self.max_speed = speed
         self.max_frame_step = speed / self.fps  # largest vertex displacement per frame [m]
+        F = seq.F
+        edges = np.linalg.norm(seq.V[:, F[:, [1, 2, 0]]] - seq.V[:, F], axis=-1)  # (T, M, 3)
+        self.average_edge_length = edges.mean(axis=(1, 2)).astype(np.float32)  # (T,) [m], host
 
 
 class VaryingSurfaceModel:
@@ -221,10 +225,12 @@ class Contacts:
 
 
 class RefitCollider:
-    """Fixed topology: one ``wp.Mesh`` BVH built at start, refit to the current vertices each step."""
+    """Fixed topology: one ``wp.Mesh`` BVH built at start, refit to the current vertices each
+    sub-step (the reference path: per-step vertex copy/interpolation + refit)."""
 
-    name = "fixed"
+    name = "refit"
     capturable = True
+    needs_points = True
 
     def __init__(self, world: "World"):
         s = world.state
@@ -233,16 +239,17 @@ class RefitCollider:
     def update(self, world: "World"):
         self.mesh.refit()
 
-    def mesh_id(self):
-        return self.mesh.id
+    def collide(self, world: "World"):
+        world._collide_mesh(self.mesh.id)
 
 
 class RebuildCollider:
-    """Varying-topology baseline: a new ``wp.Mesh`` (BVH built from scratch) every step, or only
-    when the reconstruction frame changes (``every="frame"``)."""
+    """Varying-topology baseline: a new ``wp.Mesh`` (BVH built from scratch) every sub-step, or
+    only when the reconstruction frame changes (``every="frame"``)."""
 
     name = "rebuild"
     capturable = False
+    needs_points = True
 
     def __init__(self, world: "World", every: str = "step"):
         if every not in ("step", "frame"):
@@ -256,23 +263,79 @@ class RebuildCollider:
         if self.mesh is not None and self.every == "frame" and key == self._key:
             return
         s = world.state
-        indices = world.current_indices()
-        self.mesh = wp.Mesh(points=s.points, indices=indices, velocities=s.velocities)
+        self.mesh = wp.Mesh(points=s.points, indices=world.current_indices(), velocities=s.velocities)
         self._key = key
 
-    def mesh_id(self):
-        return self.mesh.id
+    def collide(self, world: "World"):
+        world._collide_mesh(self.mesh.id)
 
 
-COLLIDERS = {"fixed": RefitCollider, "rebuild": RebuildCollider}
+class SweptCollider:
+    """Fixed topology with interpolation, at per-frame cost: a ``wp.Bvh`` over each face's box
+    across the frame interval [k, k+1], refit only when the frame pair changes (a device-side
+    test and a conditional graph node), and a contact kernel that evaluates the interpolated
+    triangles itself. No per-step vertex copy or BVH refit."""
+
+    name = "swept"
+    capturable = True
+    needs_points = False
+
+    def __init__(self, world: "World"):
+        surf = world.model.surface
+        d = world.device
+        self.lowers = wp.zeros(surf.num_faces, dtype=wp.vec3, device=d)
+        self.uppers = wp.zeros(surf.num_faces, dtype=wp.vec3, device=d)
+        self.frame_key = wp.full(1, -1, dtype=wp.int32, device=d)
+        self.changed = wp.zeros(1, dtype=wp.int32, device=d)
+        self._bounds(world)
+        self.bvh = wp.Bvh(self.lowers, self.uppers)
+        wp.launch(detect_frame_change, 1, inputs=[world.state.sim_time, surf.fps, surf.num_frames, surf.playback],
+                  outputs=[self.frame_key, self.changed], device=d)
+        # tie tolerance of the closest-feature search, as wp.Mesh: 1e-3 x average edge length
+        self.epsilon = 1.0e-3 * float(surf.average_edge_length.mean())
+
+    def _bounds(self, world: "World"):
+        surf = world.model.surface
+        world._launch(compute_swept_bounds, surf.num_faces,
+                      [surf.frames, surf.indices, world.state.sim_time, surf.fps, surf.playback],
+                      [self.lowers, self.uppers])
+
+    def _refit(self, world: "World"):
+        self._bounds(world)
+        self.bvh.refit()
+
+    def update(self, world: "World"):
+        surf = world.model.surface
+        world._launch(detect_frame_change, 1, [world.state.sim_time, surf.fps, surf.num_frames, surf.playback],
+                      [self.frame_key, self.changed])
+        wp.capture_if(self.changed, on_true=self._refit, world=world)
+
+    def collide(self, world: "World"):
+        m, s, c = world.model, world.state, world.contacts
+        surf = m.surface
+        world._launch(collide_sphere_swept, m.spheres.count,
+                      [self.bvh.id, surf.frames, surf.indices, s.sim_time, surf.fps, surf.playback,
+                       int(surf.interpolate), self.epsilon, s.sphere_pos, s.sphere_vel, m.spheres.radius,
+                       world.sub_dt, world.extra_speed, m.params.margin],
+                      [c.face, c.point, c.normal, c.depth, c.velocity])
+
+
+COLLIDERS = {"refit": RefitCollider, "swept": SweptCollider, "rebuild": RebuildCollider}
+COLLIDER_CHOICES = ("fixed", "refit", "swept", "rebuild")
 
 
 class World:
     """Spheres on a deforming mesh.
 
     ``step()`` advances by ``params.dt`` in ``params.substeps`` sub-steps. Each sub-step:
-    update surface vertices for the current time -> refit (or rebuild) the BVH -> face normals
-    -> sphere contacts -> integrate spheres and advance the device clock.
+    surface vertices for the current time (refit/rebuild colliders) -> acceleration structure
+    (refit / rebuild / swept bounds on frame change) -> sphere contacts -> integrate spheres and
+    advance the device clock. After the sub-steps the face normals (render state) are updated
+    and the post-step hooks run.
+
+    Colliders: ``fixed`` picks ``swept`` when interpolation is on, else ``refit``;
+    ``refit`` (BVH refit every sub-step, the reference), ``swept`` (refit once per frame),
+    ``rebuild`` (varying-topology baseline, new BVH every sub-step or frame).
 
     Tunnelling guarantee: the sphere's own motion is handled continuously (time of impact
     within the step), and the number of sub-steps is raised if needed so that the surface moves
@@ -281,17 +344,21 @@ class World:
     """
 
     def __init__(self, model: Model, state: State, collider: str = "fixed", rebuild_every: str = "step",
-                 use_graph: bool | None = None):
+                 use_graph: bool | None = None, render_state: bool | None = None):
         self.model = model
         self.state = state
         self.device = model.device
         p = model.params
         surf = model.surface
+        if collider not in COLLIDER_CHOICES:
+            raise ValueError(f"collider must be one of {list(COLLIDER_CHOICES)}, got {collider!r}")
         if isinstance(surf, VaryingSurfaceModel) and collider != "rebuild":
             raise ValueError(
                 "a varying-topology surface can only use collider 'rebuild' "
                 "(or convert it to fixed topology first)"
             )
+        if collider == "fixed":
+            collider = "swept" if surf.interpolate else "refit"
         self.substeps = max(1, int(p.substeps))
         r_min = float(model.spheres.radius_np.min()) if model.spheres.count else math.inf
         if surf.max_speed > 0 and math.isfinite(r_min):
@@ -312,24 +379,30 @@ class World:
         self.contacts = Contacts(model.spheres.count, device=self.device)
         self.t0 = float(state.sim_time.numpy()[0])
         self.substep_count = 0
-        if collider not in COLLIDERS:
-            raise ValueError(f"collider must be one of {sorted(COLLIDERS)}, got {collider!r}")
+        self._launch_cache = None
         self._update_surface()
         self.collider = RebuildCollider(self, rebuild_every) if collider == "rebuild" else COLLIDERS[collider](self)
         self.collider.update(self)
-        self._launch(compute_face_normals, self._num_faces(),
-                     [self.state.points, self.current_indices()], [self.state.face_normals])
+        self._compute_normals()
+        # the swept collider needs no vertex buffer; keep it (and the normals) current once per
+        # step only when asked (viewer, Gaussians): render_state=True or a hook that needs it
+        self.render_state = (self.collider.needs_points if render_state is None else bool(render_state))
         if use_graph is None:
             use_graph = self.device.is_cuda and self.collider.capturable
         self.use_graph = bool(use_graph) and self.device.is_cuda and self.collider.capturable
         self._graph = None
+        if self.device.is_cpu and self.collider.capturable:
+            self._launch_cache = {}
         self._initial = (state.sphere_pos.numpy(), state.sphere_vel.numpy())
         self.post_step_hooks = []  # callables hook(world) launched after each step (inside the graph)
 
-    def add_post_step_hook(self, hook):
+    def add_post_step_hook(self, hook, needs_surface: bool = True):
         """Run ``hook(world)`` after every step; it must only launch kernels (no allocation, no
-        host reads) so it is captured in the same CUDA graph. Invalidates a captured graph."""
+        host reads) so it is captured in the same CUDA graph. With ``needs_surface`` the
+        vertex buffer and normals are brought to the current time before it. Drops the graph."""
         self.post_step_hooks.append(hook)
+        if needs_surface:
+            self.render_state = True
         self._graph = None
 
     # -- host-side bookkeeping (no device reads) ---------------------------------------------
@@ -351,14 +424,28 @@ class World:
             return surf.frame_indices[self._frame]
         return surf.indices
 
-    def _num_faces(self):
-        return self.current_indices().shape[0] // 3
-
     def _launch(self, kernel, dim, inputs, outputs):
-        wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=self.device)
+        """Launch a kernel. On the CPU with a static pipeline, each distinct launch is recorded
+        once (``record_cmd``) and replayed: this removes most of Python's per-launch argument
+        packing, which otherwise dominates a small CPU step. The cache holds the arguments, so
+        the arrays stay alive and their ids stay unique."""
+        if dim == 0:
+            return
+        if self._launch_cache is None:
+            wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=self.device)
+            return
+        key = (kernel, dim) + tuple(a if isinstance(a, (int, float)) else id(a) for a in inputs + outputs)
+        cmd = self._launch_cache.get(key)
+        if cmd is None:
+            cmd = wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=self.device, record_cmd=True)
+            self._launch_cache[key] = (cmd, inputs, outputs)
+        else:
+            cmd = cmd[0]
+        cmd.launch()
 
     # -- pipeline stages -----------------------------------------------------------------------
     def _update_surface(self):
+        """Stage 1: vertex buffer (points, velocities) at the current time."""
         surf = self.model.surface
         s = self.state
         if isinstance(surf, VaryingSurfaceModel):
@@ -374,25 +461,48 @@ class World:
                          [surf.frames, s.sim_time, surf.fps, surf.playback, int(surf.interpolate)],
                          [s.points, s.velocities])
 
+    def _compute_normals(self):
+        """Stage 2: per-face normals of the current vertex buffer."""
+        idx = self.current_indices()
+        self._launch(compute_face_normals, idx.shape[0] // 3, [self.state.points, idx], [self.state.face_normals])
+
+    def _collide_mesh(self, mesh_id):
+        """Stage 3 on a wp.Mesh (refit / rebuild colliders)."""
+        m, s, c = self.model, self.state, self.contacts
+        self._launch(collide_sphere_mesh, m.spheres.count,
+                     [mesh_id, s.points, s.velocities, self.current_indices(), s.sphere_pos, s.sphere_vel,
+                      m.spheres.radius, self.sub_dt, self.extra_speed, m.params.margin],
+                     [c.face, c.point, c.normal, c.depth, c.velocity])
+
+    def _integrate(self):
+        """Stage 4: sphere dynamics with the contacts of this sub-step."""
+        m, s, c = self.model, self.state, self.contacts
+        self._launch(integrate_spheres, m.spheres.count,
+                     [c.face, c.normal, c.depth, c.velocity, m.spheres.inv_mass, self.gravity, self.sub_dt,
+                      m.params.restitution, m.params.friction, m.params.rest_speed],
+                     [s.sphere_pos, s.sphere_vel])
+
     def _substep(self):
-        s = self.state
-        m = self.model
-        dt = self.sub_dt
-        self._update_surface()
+        if self.collider.needs_points:
+            self._update_surface()
         self.collider.update(self)
-        self._launch(compute_face_normals, self._num_faces(), [s.points, self.current_indices()], [s.face_normals])
-        c = self.contacts
-        S = m.spheres.count
-        if S:
-            self._launch(collide_sphere_mesh, S,
-                         [self.collider.mesh_id(), s.points, s.velocities, self.current_indices(),
-                          s.sphere_pos, s.sphere_vel, m.spheres.radius, dt, self.extra_speed, m.params.margin],
-                         [c.face, c.point, c.normal, c.depth, c.velocity])
-            self._launch(integrate_spheres, S,
-                         [c.face, c.normal, c.depth, c.velocity, m.spheres.inv_mass, self.gravity, dt,
-                          m.params.restitution, m.params.friction, m.params.rest_speed],
-                         [s.sphere_pos, s.sphere_vel])
-        self._launch(advance_time, 1, [dt], [s.sim_time])
+        if self.model.spheres.count:
+            self.collider.collide(self)
+            self._integrate()
+        self._launch(advance_time, 1, [self.sub_dt], [self.state.sim_time])
+
+    def _finish_step(self):
+        if self.render_state:
+            if not self.collider.needs_points:
+                self._update_surface()
+            self._compute_normals()
+        for hook in self.post_step_hooks:
+            hook(self)
+
+    def _step_body(self):
+        for _ in range(self.substeps):
+            self._substep()
+        self._finish_step()
 
     def capture(self):
         """Capture one step (all sub-steps) as a CUDA graph; later ``step()`` calls replay it."""
@@ -401,12 +511,6 @@ class World:
         with wp.ScopedCapture(device=self.device, force_module_load=True) as cap:
             self._step_body()
         self._graph = cap.graph
-
-    def _step_body(self):
-        for _ in range(self.substeps):
-            self._substep()
-        for hook in self.post_step_hooks:
-            hook(self)
 
     def step(self):
         """Advance by one physics step (params.dt)."""
@@ -419,15 +523,18 @@ class World:
         for _ in range(self.substeps):
             self._substep()
             self.substep_count += 1
-        for hook in self.post_step_hooks:
-            hook(self)
+        self._finish_step()
+
+    def sync_surface(self):
+        """Bring the vertex buffer and normals to the current time (for a viewer); eager."""
+        self._update_surface()
+        self._compute_normals()
 
     # -- editing between steps (host side; invalidates the captured graph) ---------------------
     def _refresh_surface(self):
         self._update_surface()
         self.collider.update(self)
-        self._launch(compute_face_normals, self._num_faces(),
-                     [self.state.points, self.current_indices()], [self.state.face_normals])
+        self._compute_normals()
 
     def reset(self):
         """Back to the initial time and sphere state."""
@@ -456,6 +563,8 @@ class World:
         self._initial = (np.concatenate([self._initial[0], positions]), np.concatenate([self._initial[1], vel]))
         self.contacts = Contacts(self.model.spheres.count, device=self.device)
         self._graph = None
+        if self._launch_cache is not None:
+            self._launch_cache = {}
 
     # -- convenience ---------------------------------------------------------------------------
     def sphere_positions(self) -> np.ndarray:

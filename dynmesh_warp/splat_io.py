@@ -1,0 +1,285 @@
+"""Read and write 3D Gaussian Splatting ``.ply`` files (binary little-endian).
+
+Layout of the standard 3DGS file (Kerbl et al. 2023, written by ``plyfile``): one ``vertex``
+element, one float32 property per column, in this order::
+
+    x y z  nx ny nz  f_dc_0..2  f_rest_0..(K-1)  opacity  scale_0..2  rot_0..3
+
+Values are stored *pre-activation*: ``scale_*`` is log(std dev), ``opacity`` is logit(alpha),
+``rot_*`` is an unnormalized quaternion (w, x, y, z), ``f_dc``/``f_rest`` are spherical-harmonic
+coefficients (``f_rest`` grouped by colour channel: K/3 per channel). The activations are
+:func:`activate_scale` (exp), :func:`activate_opacity` (sigmoid), :func:`activate_rotation`
+(normalize) and :func:`sh_dc_to_rgb` (0.5 + C0 * f_dc).
+
+The reader keeps the property order, types and comments, so ``write_splat_ply(read_splat_ply(p))``
+reproduces a file written by this module (or by plyfile) byte for byte.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .outputs import atomic_write_bytes
+
+__all__ = [
+    "SplatPlyError",
+    "SplatCloud",
+    "read_splat_ply",
+    "write_splat_ply",
+    "SH_C0",
+    "activate_scale",
+    "activate_opacity",
+    "activate_rotation",
+    "sh_dc_to_rgb",
+    "rgb_to_sh_dc",
+    "inverse_sigmoid",
+]
+
+SH_C0 = 0.28209479177387814  # Y_0^0 = 1 / (2 sqrt(pi))
+
+_PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
+    "short": "<i2", "int16": "<i2", "ushort": "<u2", "uint16": "<u2",
+    "int": "<i4", "int32": "<i4", "uint": "<u4", "uint32": "<u4",
+    "float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8",
+}
+_NP_TO_PLY = {"i1": "char", "u1": "uchar", "<i2": "short", "<u2": "ushort", "<i4": "int", "<u4": "uint",
+              "<f4": "float", "<f8": "double"}
+_REQUIRED = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
+             "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+
+
+class SplatPlyError(ValueError):
+    """A 3DGS .ply file is malformed or lacks a required property; the message names the file."""
+
+
+def activate_scale(log_scale):
+    """Std devs [m] from stored log-scales."""
+    return np.exp(log_scale)
+
+
+def inverse_sigmoid(p):
+    p = np.asarray(p, np.float64)
+    return np.log(p / (1.0 - p))
+
+
+def activate_opacity(logit):
+    """Opacity in (0, 1) from the stored logit."""
+    return 1.0 / (1.0 + np.exp(-np.asarray(logit, np.float64)))
+
+
+def activate_rotation(q_wxyz):
+    """Unit quaternions (w, x, y, z) from stored unnormalized ones; a zero quaternion -> identity."""
+    q = np.asarray(q_wxyz, np.float64)
+    n = np.linalg.norm(q, axis=-1, keepdims=True)
+    ident = np.zeros_like(q)
+    ident[..., 0] = 1.0
+    return np.where(n > 0, q / np.where(n > 0, n, 1.0), ident)
+
+
+def sh_dc_to_rgb(f_dc):
+    """Base colour in [0, 1] (clipped) from the degree-0 SH coefficient."""
+    return np.clip(0.5 + SH_C0 * np.asarray(f_dc, np.float64), 0.0, 1.0)
+
+
+def rgb_to_sh_dc(rgb):
+    return (np.asarray(rgb, np.float64) - 0.5) / SH_C0
+
+
+@dataclass
+class SplatCloud:
+    """A 3DGS point cloud: the raw vertex table (a NumPy structured array, file order) + comments.
+
+    Accessors return the stored (pre-activation) columns; the ``*_activated`` ones apply the
+    activations. G = number of Gaussians.
+    """
+
+    data: np.ndarray
+    comments: list = field(default_factory=list)
+    source: str = "<memory>"
+    type_names: list | None = None  # PLY type word per property as read ("float" / "float32" ...)
+
+    def __post_init__(self):
+        names = self.data.dtype.names or ()
+        missing = [n for n in _REQUIRED if n not in names]
+        if missing:
+            raise SplatPlyError(f"{self.source}: not a 3D Gaussian Splatting file, missing properties {missing}")
+
+    def __len__(self):
+        return int(self.data.shape[0])
+
+    def _cols(self, names) -> np.ndarray:
+        return np.stack([self.data[n] for n in names], axis=-1) if names else np.zeros((len(self), 0), np.float32)
+
+    @property
+    def positions(self) -> np.ndarray:
+        """(G, 3) centres [m]."""
+        return self._cols(["x", "y", "z"])
+
+    @property
+    def f_dc(self) -> np.ndarray:
+        return self._cols(["f_dc_0", "f_dc_1", "f_dc_2"])
+
+    @property
+    def f_rest(self) -> np.ndarray:
+        """(G, K) higher-order SH coefficients (channel-major: K/3 for R, then G, then B)."""
+        names = sorted((n for n in self.data.dtype.names if n.startswith("f_rest_")), key=lambda n: int(n[7:]))
+        return self._cols(names)
+
+    @property
+    def sh_degree(self) -> int:
+        k = self.f_rest.shape[1] // 3
+        return int(round(np.sqrt(k + 1))) - 1
+
+    @property
+    def log_scales(self) -> np.ndarray:
+        return self._cols(["scale_0", "scale_1", "scale_2"])
+
+    @property
+    def opacity_logits(self) -> np.ndarray:
+        return np.asarray(self.data["opacity"])
+
+    @property
+    def rotations_raw(self) -> np.ndarray:
+        """(G, 4) stored quaternions (w, x, y, z), unnormalized."""
+        return self._cols(["rot_0", "rot_1", "rot_2", "rot_3"])
+
+    # activated
+    def scales(self) -> np.ndarray:
+        """(G, 3) std devs [m]."""
+        return activate_scale(self.log_scales.astype(np.float64))
+
+    def opacities(self) -> np.ndarray:
+        """(G,) opacity in (0, 1)."""
+        return activate_opacity(self.opacity_logits)
+
+    def rotations_wxyz(self) -> np.ndarray:
+        """(G, 4) unit quaternions (w, x, y, z)."""
+        return activate_rotation(self.rotations_raw)
+
+    def rgb(self) -> np.ndarray:
+        """(G, 3) view-independent base colour in [0, 1]."""
+        return sh_dc_to_rgb(self.f_dc)
+
+    @classmethod
+    def from_activated(cls, centers, scales, rotations_wxyz, rgb, opacities, f_rest=None, normals=None,
+                       comments=None) -> "SplatCloud":
+        """Build a cloud in the standard property order from activated values (inverse
+        activations applied: log of scales, logit of opacities, SH DC from rgb)."""
+        centers = np.asarray(centers, np.float32).reshape(-1, 3)
+        G = centers.shape[0]
+        scales = np.asarray(scales, np.float64).reshape(G, 3)
+        if (scales <= 0).any():
+            raise SplatPlyError("scales must be > 0 (they are stored as logarithms)")
+        op = np.clip(np.asarray(opacities, np.float64).reshape(G), 1e-6, 1 - 1e-6)
+        f_rest = np.zeros((G, 0), np.float32) if f_rest is None else np.asarray(f_rest, np.float32).reshape(G, -1)
+        normals = np.zeros((G, 3), np.float32) if normals is None else np.asarray(normals, np.float32).reshape(G, 3)
+        cols = {"x": centers[:, 0], "y": centers[:, 1], "z": centers[:, 2],
+                "nx": normals[:, 0], "ny": normals[:, 1], "nz": normals[:, 2]}
+        dc = rgb_to_sh_dc(np.asarray(rgb, np.float64).reshape(G, 3))
+        for i in range(3):
+            cols[f"f_dc_{i}"] = dc[:, i]
+        for i in range(f_rest.shape[1]):
+            cols[f"f_rest_{i}"] = f_rest[:, i]
+        cols["opacity"] = inverse_sigmoid(op)
+        ls = np.log(scales)
+        for i in range(3):
+            cols[f"scale_{i}"] = ls[:, i]
+        q = np.asarray(rotations_wxyz, np.float64).reshape(G, 4)
+        for i in range(4):
+            cols[f"rot_{i}"] = q[:, i]
+        data = np.empty(G, dtype=[(k, "<f4") for k in cols])
+        for k, v in cols.items():
+            data[k] = v
+        return cls(data, list(comments or []))
+
+
+def _header_error(path, msg):
+    return SplatPlyError(f"{path}: {msg}")
+
+
+def read_splat_ply(path) -> SplatCloud:
+    """Read a binary little-endian 3DGS ``.ply``. Raises :class:`SplatPlyError` (naming the file)
+    for ASCII/big-endian files, list properties, extra elements, truncated data or missing
+    3DGS properties; FileNotFoundError when absent."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: splat file not found")
+    raw = path.read_bytes()
+    end = raw.find(b"end_header\n")
+    if not raw.startswith(b"ply\n") or end < 0:
+        raise _header_error(path, "not a PLY file (no 'ply' magic or no 'end_header')")
+    body = raw[end + len(b"end_header\n"):]
+    try:
+        lines = raw[:end].decode("ascii").split("\n")[1:]
+    except UnicodeDecodeError:
+        raise _header_error(path, "PLY header is not ASCII") from None
+    fmt, count, props, comments, element = None, None, [], [], None
+    for ln in lines:
+        parts = ln.split()
+        if not parts:
+            continue
+        key = parts[0]
+        if key == "format":
+            fmt = parts[1] if len(parts) > 1 else ""
+        elif key in ("comment", "obj_info"):
+            comments.append(ln)
+        elif key == "element":
+            if element is not None:
+                raise _header_error(path, f"unexpected second element {parts[1:]!r}: a 3DGS file has only 'vertex'")
+            if len(parts) != 3 or parts[1] != "vertex":
+                raise _header_error(path, f"expected 'element vertex N', got {ln!r}")
+            element = "vertex"
+            try:
+                count = int(parts[2])
+            except ValueError:
+                raise _header_error(path, f"bad vertex count in {ln!r}") from None
+            if count < 0:
+                raise _header_error(path, f"negative vertex count in {ln!r}")
+        elif key == "property":
+            if element is None:
+                raise _header_error(path, f"property before any element: {ln!r}")
+            if len(parts) != 3 or parts[1] == "list":
+                raise _header_error(path, f"unsupported property {ln!r} (only scalar properties)")
+            if parts[1] not in _PLY_TYPES:
+                raise _header_error(path, f"unknown property type {parts[1]!r}")
+            props.append((parts[2], _PLY_TYPES[parts[1]], parts[1]))
+        else:
+            raise _header_error(path, f"unexpected header line {ln!r}")
+    if fmt != "binary_little_endian":
+        raise _header_error(path, f"format {fmt!r} not supported: only binary_little_endian (3DGS standard)")
+    if count is None:
+        raise _header_error(path, "no 'element vertex' in header")
+    names = [p[0] for p in props]
+    if len(set(names)) != len(names):
+        raise _header_error(path, "duplicate property names")
+    dtype = np.dtype([(n, t) for n, t, _ in props])
+    need = count * dtype.itemsize
+    if len(body) != need:
+        raise _header_error(path, f"data has {len(body)} bytes, header says {count} x {dtype.itemsize} = {need}")
+    data = np.frombuffer(body, dtype=dtype, count=count).copy()
+    return SplatCloud(data, comments, source=str(path), type_names=[p[2] for p in props])
+
+
+def splat_ply_bytes(cloud: SplatCloud) -> bytes:
+    """The file contents of ``cloud`` as binary little-endian PLY."""
+    data = cloud.data
+    le = np.dtype([(n, data.dtype[n].newbyteorder("<") if data.dtype[n].itemsize > 1 else data.dtype[n])
+                   for n in data.dtype.names])
+    type_names = cloud.type_names
+    hdr = ["ply", "format binary_little_endian 1.0", *cloud.comments, f"element vertex {len(data)}"]
+    for i, n in enumerate(le.names):
+        t = type_names[i] if type_names and len(type_names) == len(le.names) else _NP_TO_PLY.get(le[n].str)
+        if t is None:
+            raise SplatPlyError(f"property {n!r}: dtype {le[n]} has no PLY type")
+        hdr.append(f"property {t} {n}")
+    hdr.append("end_header")
+    return ("\n".join(hdr) + "\n").encode("ascii") + np.ascontiguousarray(data.astype(le, copy=False)).tobytes()
+
+
+def write_splat_ply(path, cloud: SplatCloud) -> None:
+    """Write ``cloud`` to ``path`` atomically (binary little-endian, property order kept)."""
+    atomic_write_bytes(path, splat_ply_bytes(cloud))
