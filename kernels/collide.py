@@ -56,8 +56,8 @@ def collide_sphere_mesh(
     """Closest-point contact of each sphere with a BVH mesh (``wp.Mesh``, refit or rebuilt).
 
     The query reaches radius + margin + (|v| + extra_speed) * dt, where extra_speed bounds the
-    surface speed plus the velocity gained from gravity in one step, so any surface the
-    sphere can touch during the step is found (continuous contact in the integrator).
+    velocity gained in one step (gravity), so any surface the sphere's own motion can reach
+    during the step is found (continuous contact in the integrator).
     """
     s = wp.tid()
     p = sphere_pos[s]

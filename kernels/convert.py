@@ -350,3 +350,60 @@ def project_points_along_normals(
             bestd = tbest
     out[i] = best
     dist[i] = bestd
+
+
+@wp.kernel
+def accumulate_point_to_plane_system(
+    # inputs
+    points: wp.array(dtype=wp.vec3),
+    center: wp.vec3,
+    closest: wp.array(dtype=wp.vec3),
+    face: wp.array(dtype=wp.int32),
+    frame_points: wp.array(dtype=wp.vec3),
+    frame_indices: wp.array(dtype=wp.int32),
+    # outputs
+    system: wp.array(dtype=float),
+):
+    """Normal equations of one linearized point-to-plane ICP step (a small rigid motion).
+
+    Unknowns xi = (omega, tau): x' = x + omega x (x - center) + tau. Residual of vertex i:
+    n.(c - x) with c its closest point and n the unit normal of the target face. Adds J J^T to
+    system[0:36] (6x6 row-major) and J r to system[36:42], J = ((x - center) x n, n).
+    points, closest (N,) [m]; face (N,) target face or -1 (skipped); frame_points (Nf,) [m];
+    frame_indices (3Mf,); system (42,) zero it first.
+    """
+    i = wp.tid()
+    f = face[i]
+    if f < 0:
+        return
+    a = frame_points[frame_indices[3 * f + 0]]
+    b = frame_points[frame_indices[3 * f + 1]]
+    c = frame_points[frame_indices[3 * f + 2]]
+    n = wp.cross(b - a, c - a)
+    ln = wp.length(n)
+    if ln <= 0.0:
+        return
+    n = n / ln
+    x = points[i]
+    r = wp.dot(n, closest[i] - x)
+    w = wp.cross(x - center, n)
+    J = wp.spatial_vector(w[0], w[1], w[2], n[0], n[1], n[2])
+    for k in range(6):
+        for l in range(6):
+            wp.atomic_add(system, k * 6 + l, J[k] * J[l])
+        wp.atomic_add(system, 36 + k, J[k] * r)
+
+
+@wp.kernel
+def transform_points_rigid(
+    # inputs
+    points: wp.array(dtype=wp.vec3),
+    rotation: wp.mat33,
+    center: wp.vec3,
+    translation: wp.vec3,
+    # outputs
+    out: wp.array(dtype=wp.vec3),
+):
+    """out = rotation (p - center) + center + translation. points, out (N,) [m] (may alias)."""
+    i = wp.tid()
+    out[i] = rotation * (points[i] - center) + center + translation

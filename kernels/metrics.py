@@ -53,58 +53,6 @@ def sample_surface_points(
 # ------------------------------------------------------------------------ nearest neighbours
 
 
-@wp.kernel
-def find_nearest_points(
-    # inputs
-    grid: wp.uint64,
-    queries: wp.array(dtype=wp.vec3),
-    targets: wp.array(dtype=wp.vec3),
-    start_radius: float,
-    max_radius: float,
-    # outputs
-    nearest_index: wp.array(dtype=wp.int32),
-    nearest_dist_sq: wp.array(dtype=float),
-):
-    """Exact nearest target point of each query point, through a hash grid built on targets.
-
-    queries (Q,) [m]; targets (P,) [m], the points the hash grid ``grid`` was built on;
-    start_radius [m] first search radius (the grid's cell width); max_radius [m] radius past
-    which the search falls back to a loop over all targets.
-    nearest_index (Q,) index into targets; nearest_dist_sq (Q,) squared distance [m^2].
-
-    Exactness: a hash-grid query of radius r visits every target within r of the query. When
-    the best candidate found lies within r, no unvisited point can be closer, so it is the
-    nearest; otherwise the radius doubles. Past max_radius the brute-force loop decides.
-    """
-    i = wp.tid()
-    p = queries[i]
-    r = start_radius
-    best = float(3.0e38)
-    best_j = int(-1)
-    done = int(0)
-    while done == 0:
-        query = wp.hash_grid_query(grid, p, r)
-        j = int(0)
-        while wp.hash_grid_query_next(query, j):
-            d = wp.length_sq(p - targets[j])
-            if d < best or (d == best and j < best_j):
-                best = d
-                best_j = j
-        if best_j >= 0 and best <= r * r:
-            done = 1
-        else:
-            r = 2.0 * r
-            if r > max_radius:
-                for k in range(targets.shape[0]):
-                    d = wp.length_sq(p - targets[k])
-                    if d < best or (d == best and k < best_j):
-                        best = d
-                        best_j = k
-                done = 1
-    nearest_index[i] = best_j
-    nearest_dist_sq[i] = best
-
-
 # ------------------------------------------------------------------ approxmatch (Fan et al.)
 # One call of the three kernels below is one "level" of the approxmatch of
 # Fan, Su, Guibas, "A Point Set Generation Network for 3D Object Reconstruction from a Single
@@ -207,3 +155,31 @@ def accumulate_approxmatch_left(
             match[l, k] = match[l, k] + w
     remain_left[k] = wp.max(0.0, remain_left[k] - suml)
     cost_left[k] = cost_left[k] + cost
+
+
+@wp.kernel
+def find_nearest_points_bvh(
+    # inputs
+    point_mesh: wp.uint64,
+    queries: wp.array(dtype=wp.vec3),
+    targets: wp.array(dtype=wp.vec3),
+    # outputs
+    nearest_index: wp.array(dtype=wp.int32),
+    nearest_dist_sq: wp.array(dtype=float),
+):
+    """Exact nearest target point of each query through a BVH: ``point_mesh`` is a wp.Mesh
+    whose triangle i is the degenerate (i, i, i) on targets[i], so its closest face is the
+    nearest point (the BVH's box-distance pruning is exact).
+
+    queries (Q,) [m]; targets (P,) [m]; nearest_index (Q,); nearest_dist_sq (Q,) [m^2].
+    """
+    i = wp.tid()
+    p = queries[i]
+    q = wp.mesh_query_point_no_sign(point_mesh, p, 3.0e38)
+    j = int(-1)
+    d = float(3.0e38)
+    if q.result:
+        j = q.face
+        d = wp.length_sq(p - targets[j])
+    nearest_index[i] = j
+    nearest_dist_sq[i] = d

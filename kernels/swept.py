@@ -103,6 +103,120 @@ def vertex_weight_angle(c: wp.vec3, a: wp.vec3, b: wp.vec3, e: wp.vec3, eps_sq: 
     return 2.0 * 3.14159265359
 
 
+@wp.func
+def interpolated_triangle(
+    frames: wp.array2d(dtype=wp.vec3), indices: wp.array(dtype=wp.int32), f: int, k0: int, k1: int, alpha: float
+):
+    """Vertices of face f blended between frames k0 and k1."""
+    i0 = indices[3 * f + 0]
+    i1 = indices[3 * f + 1]
+    i2 = indices[3 * f + 2]
+    a = wp.lerp(frames[k0, i0], frames[k1, i0], alpha)
+    b = wp.lerp(frames[k0, i1], frames[k1, i1], alpha)
+    e = wp.lerp(frames[k0, i2], frames[k1, i2], alpha)
+    return a, b, e
+
+
+@wp.func
+def face_candidate(p: wp.vec3, a: wp.vec3, b: wp.vec3, e: wp.vec3, epsilon: float):
+    """Distance from p to triangle abc, the closest point's weights, and the face's
+    angle-weighted normal contribution; distance is +inf for slivers (skipped as by wp.Mesh)."""
+    e0 = b - a
+    e1 = e - a
+    e2 = e - b
+    nrm = wp.cross(e0, e1)
+    if wp.length(nrm) / (wp.dot(e0, e0) + wp.dot(e1, e1) + wp.dot(e2, e2)) < 1.0e-6:
+        return float(1.0e30), wp.vec3(0.0), wp.vec3(0.0)
+    w = closest_point_on_triangle(p, a, b, e)
+    c = w[0] * a + w[1] * b + w[2] * e
+    weight = vertex_weight_angle(c, a, b, e, epsilon * epsilon)
+    return wp.length(c - p), w, weight * wp.normalize(nrm)
+
+
+@wp.func
+def keep_closest(
+    dist: float, f: int, w: wp.vec3, wn: wp.vec3, epsilon: float,
+    min_dist: float, min_face: int, min_w: wp.vec3, acc_n: wp.vec3,
+):
+    """Sequential closest-feature update with pseudo-normal accumulation over ties (the rule of
+    wp.mesh_query_point_sign_normal)."""
+    if dist < min_dist + epsilon:
+        if dist > min_dist - epsilon:
+            acc_n = acc_n + wn
+            if dist < min_dist:
+                min_dist = dist
+                min_face = f
+                min_w = w
+        else:
+            min_dist = dist
+            min_face = f
+            min_w = w
+            acc_n = wn
+    return min_dist, min_face, min_w, acc_n
+
+
+@wp.func
+def closest_on_swept_bvh(
+    bvh: wp.uint64, frames: wp.array2d(dtype=wp.vec3), indices: wp.array(dtype=wp.int32),
+    k0: int, k1: int, alpha: float, p: wp.vec3, reach: float, epsilon: float,
+):
+    """Closest feature of the interpolated surface within ``reach`` of p (serial box query)."""
+    ext = wp.vec3(reach + epsilon)
+    query = wp.bvh_query_aabb(bvh, p - ext, p + ext)
+    f = int(0)
+    min_dist = reach
+    min_face = int(-1)
+    min_w = wp.vec3(0.0)
+    acc_n = wp.vec3(0.0)
+    while wp.bvh_query_next(query, f):
+        a, b, e = interpolated_triangle(frames, indices, f, k0, k1, alpha)
+        dist, w, wn = face_candidate(p, a, b, e, epsilon)
+        min_dist, min_face, min_w, acc_n = keep_closest(dist, f, w, wn, epsilon, min_dist, min_face, min_w, acc_n)
+    return min_dist, min_face, min_w, acc_n
+
+
+@wp.func
+def write_swept_contact(
+    s: int, p: wp.vec3, r: float, reach: float, min_dist: float, min_face: int, min_w: wp.vec3, acc_n: wp.vec3,
+    frames: wp.array2d(dtype=wp.vec3), indices: wp.array(dtype=wp.int32), k0: int, k1: int, alpha: float,
+    fps: float,
+    contact_face: wp.array(dtype=wp.int32),
+    contact_point: wp.array(dtype=wp.vec3),
+    contact_normal: wp.array(dtype=wp.vec3),
+    contact_depth: wp.array(dtype=float),
+    contact_velocity: wp.array(dtype=wp.vec3),
+):
+    face = int(-1)
+    c = wp.vec3(0.0)
+    n = wp.vec3(0.0)
+    depth = float(0.0)
+    vs = wp.vec3(0.0)
+    if min_face >= 0 and min_dist < reach:
+        a, b, e = interpolated_triangle(frames, indices, min_face, k0, k1, alpha)
+        c = min_w[0] * a + min_w[1] * b + min_w[2] * e
+        side = float(1.0)
+        if wp.dot(p - c, acc_n) < 0.0:
+            side = -1.0
+        fn = wp.normalize(wp.cross(b - a, e - a))
+        n, depth = make_contact(p, r, c, side, fn)
+        if depth > 0.0 or side > 0.0:
+            face = min_face
+            if k0 != k1:
+                i0 = indices[3 * min_face + 0]
+                i1 = indices[3 * min_face + 1]
+                i2 = indices[3 * min_face + 2]
+                vs = fps * (
+                    min_w[0] * (frames[k1, i0] - frames[k0, i0])
+                    + min_w[1] * (frames[k1, i1] - frames[k0, i1])
+                    + min_w[2] * (frames[k1, i2] - frames[k0, i2])
+                )
+    contact_face[s] = face
+    contact_point[s] = c
+    contact_normal[s] = n
+    contact_depth[s] = depth
+    contact_velocity[s] = vs
+
+
 @wp.kernel
 def collide_sphere_swept(
     # inputs
@@ -128,7 +242,8 @@ def collide_sphere_swept(
     contact_velocity: wp.array(dtype=wp.vec3),
 ):
     """Contact of each sphere with the surface interpolated at sim_time (same outputs as
-    ``collide_sphere_mesh``). ``epsilon`` [m] is the tie distance for the pseudo-normal."""
+    ``collide_sphere_mesh``), one thread per sphere walking the swept-box BVH (CPU path).
+    ``epsilon`` [m] is the tie distance for the pseudo-normal."""
     s = wp.tid()
     p = sphere_pos[s]
     r = sphere_radius[s]
@@ -136,73 +251,136 @@ def collide_sphere_swept(
     k0, k1, alpha = frame_pair(float(sim_time[0]), fps, frames.shape[0], mode)
     if interpolate == 0:
         alpha = 0.0
-    ext = wp.vec3(reach + epsilon)
-    query = wp.bvh_query_aabb(bvh, p - ext, p + ext)
+    min_dist, min_face, min_w, acc_n = closest_on_swept_bvh(bvh, frames, indices, k0, k1, alpha, p, reach, epsilon)
+    write_swept_contact(s, p, r, reach, min_dist, min_face, min_w, acc_n, frames, indices, k0, k1, alpha, fps,
+                        contact_face, contact_point, contact_normal, contact_depth, contact_velocity)
+
+
+# --- parallel path (GPU): candidate faces gathered once per frame, evaluated in parallel -----
+
+
+@wp.kernel
+def gather_sphere_candidates(
+    # inputs
+    bvh: wp.uint64,
+    sphere_pos: wp.array(dtype=wp.vec3),
+    sphere_vel: wp.array(dtype=wp.vec3),
+    sphere_radius: wp.array(dtype=float),
+    horizon: float,
+    gravity: float,
+    margin: float,
+    # outputs
+    cand_face: wp.array2d(dtype=wp.int32),
+    cand_count: wp.array(dtype=wp.int32),
+    cand_center: wp.array(dtype=wp.vec3),
+    cand_radius: wp.array(dtype=float),
+):
+    """Faces whose swept box lies within the sphere's reach over the next ``horizon`` seconds
+    (one frame interval): radius + margin + 2 (|v| + g horizon) horizon. cand_face (S, K);
+    cand_count (S,) number found, K + 1 on overflow (then the sphere takes the serial path)."""
+    s = wp.tid()
+    p = sphere_pos[s]
+    R = sphere_radius[s] + margin + 2.0 * (wp.length(sphere_vel[s]) + gravity * horizon) * horizon
+    K = cand_face.shape[1]
+    query = wp.bvh_query_aabb(bvh, p - wp.vec3(R), p + wp.vec3(R))
     f = int(0)
+    n = int(0)
+    while wp.bvh_query_next(query, f):
+        if n < K:
+            cand_face[s, n] = f
+        n += 1
+        if n > K:
+            break
+    cand_count[s] = n
+    cand_center[s] = p
+    cand_radius[s] = R
+
+
+@wp.kernel
+def evaluate_sphere_candidates(
+    # inputs
+    frames: wp.array2d(dtype=wp.vec3),
+    indices: wp.array(dtype=wp.int32),
+    sim_time: wp.array(dtype=wp.float64),
+    fps: float,
+    mode: int,
+    interpolate: int,
+    epsilon: float,
+    sphere_pos: wp.array(dtype=wp.vec3),
+    cand_face: wp.array2d(dtype=wp.int32),
+    cand_count: wp.array(dtype=wp.int32),
+    # outputs
+    cand_dist: wp.array2d(dtype=float),
+    cand_w: wp.array2d(dtype=wp.vec3),
+    cand_wn: wp.array2d(dtype=wp.vec3),
+):
+    """Distance, closest-point weights and pseudo-normal term of every gathered candidate (S, K)."""
+    s, j = wp.tid()
+    if j >= cand_count[s]:
+        return
+    k0, k1, alpha = frame_pair(float(sim_time[0]), fps, frames.shape[0], mode)
+    if interpolate == 0:
+        alpha = 0.0
+    a, b, e = interpolated_triangle(frames, indices, cand_face[s, j], k0, k1, alpha)
+    dist, w, wn = face_candidate(sphere_pos[s], a, b, e, epsilon)
+    cand_dist[s, j] = dist
+    cand_w[s, j] = w
+    cand_wn[s, j] = wn
+
+
+@wp.kernel
+def resolve_sphere_candidates(
+    # inputs
+    bvh: wp.uint64,
+    frames: wp.array2d(dtype=wp.vec3),
+    indices: wp.array(dtype=wp.int32),
+    sim_time: wp.array(dtype=wp.float64),
+    fps: float,
+    mode: int,
+    interpolate: int,
+    epsilon: float,
+    sphere_pos: wp.array(dtype=wp.vec3),
+    sphere_vel: wp.array(dtype=wp.vec3),
+    sphere_radius: wp.array(dtype=float),
+    dt: float,
+    extra_speed: float,
+    margin: float,
+    cand_face: wp.array2d(dtype=wp.int32),
+    cand_count: wp.array(dtype=wp.int32),
+    cand_center: wp.array(dtype=wp.vec3),
+    cand_radius: wp.array(dtype=float),
+    cand_dist: wp.array2d(dtype=float),
+    cand_w: wp.array2d(dtype=wp.vec3),
+    cand_wn: wp.array2d(dtype=wp.vec3),
+    # outputs
+    contact_face: wp.array(dtype=wp.int32),
+    contact_point: wp.array(dtype=wp.vec3),
+    contact_normal: wp.array(dtype=wp.vec3),
+    contact_depth: wp.array(dtype=float),
+    contact_velocity: wp.array(dtype=wp.vec3),
+):
+    """Closest feature from the evaluated candidates, in gather order (the same sequential rule
+    as the serial path); a sphere whose reach left its gathered ball, or whose list overflowed,
+    falls back to the serial BVH walk. Same outputs as ``collide_sphere_mesh``."""
+    s = wp.tid()
+    p = sphere_pos[s]
+    r = sphere_radius[s]
+    reach = r + margin + (wp.length(sphere_vel[s]) + extra_speed) * dt
+    k0, k1, alpha = frame_pair(float(sim_time[0]), fps, frames.shape[0], mode)
+    if interpolate == 0:
+        alpha = 0.0
+    n = cand_count[s]
     min_dist = reach
     min_face = int(-1)
     min_w = wp.vec3(0.0)
     acc_n = wp.vec3(0.0)
-    eps_sq = epsilon * epsilon
-    while wp.bvh_query_next(query, f):
-        i0 = indices[3 * f + 0]
-        i1 = indices[3 * f + 1]
-        i2 = indices[3 * f + 2]
-        a = wp.lerp(frames[k0, i0], frames[k1, i0], alpha)
-        b = wp.lerp(frames[k0, i1], frames[k1, i1], alpha)
-        e = wp.lerp(frames[k0, i2], frames[k1, i2], alpha)
-        e0 = b - a
-        e1 = e - a
-        e2 = e - b
-        nrm = wp.cross(e0, e1)
-        if wp.length(nrm) / (wp.dot(e0, e0) + wp.dot(e1, e1) + wp.dot(e2, e2)) < 1.0e-6:
-            continue  # sliver, skipped as by the wp.Mesh query
-        w = closest_point_on_triangle(p, a, b, e)
-        c = w[0] * a + w[1] * b + w[2] * e
-        dist = wp.length(c - p)
-        if dist < min_dist + epsilon:
-            weight = vertex_weight_angle(c, a, b, e, eps_sq)
-            if dist > min_dist - epsilon:
-                acc_n += weight * wp.normalize(nrm)
-                if dist < min_dist:
-                    min_dist = dist
-                    min_face = f
-                    min_w = w
-            else:
-                min_dist = dist
-                min_face = f
-                min_w = w
-                acc_n = weight * wp.normalize(nrm)
-    face = int(-1)
-    c = wp.vec3(0.0)
-    n = wp.vec3(0.0)
-    depth = float(0.0)
-    vs = wp.vec3(0.0)
-    if min_face >= 0 and min_dist < reach:
-        i0 = indices[3 * min_face + 0]
-        i1 = indices[3 * min_face + 1]
-        i2 = indices[3 * min_face + 2]
-        a = wp.lerp(frames[k0, i0], frames[k1, i0], alpha)
-        b = wp.lerp(frames[k0, i1], frames[k1, i1], alpha)
-        e = wp.lerp(frames[k0, i2], frames[k1, i2], alpha)
-        c = min_w[0] * a + min_w[1] * b + min_w[2] * e
-        side = float(1.0)
-        if wp.dot(p - c, acc_n) < 0.0:
-            side = -1.0
-        fn = wp.normalize(wp.cross(b - a, e - a))
-        n, depth = make_contact(p, r, c, side, fn)
-        if depth > 0.0 or side > 0.0:
-            face = min_face
-            va = (frames[k1, i0] - frames[k0, i0]) * fps
-            vb = (frames[k1, i1] - frames[k0, i1]) * fps
-            ve = (frames[k1, i2] - frames[k0, i2]) * fps
-            if k0 == k1:
-                va = wp.vec3(0.0)
-                vb = wp.vec3(0.0)
-                ve = wp.vec3(0.0)
-            vs = min_w[0] * va + min_w[1] * vb + min_w[2] * ve
-    contact_face[s] = face
-    contact_point[s] = c
-    contact_normal[s] = n
-    contact_depth[s] = depth
-    contact_velocity[s] = vs
+    if n > cand_face.shape[1] or wp.length(p - cand_center[s]) + reach + epsilon > cand_radius[s]:
+        min_dist, min_face, min_w, acc_n = closest_on_swept_bvh(bvh, frames, indices, k0, k1, alpha, p, reach, epsilon)
+    else:
+        for j in range(n):
+            d = cand_dist[s, j]
+            if d < min_dist + epsilon:
+                min_dist, min_face, min_w, acc_n = keep_closest(
+                    d, cand_face[s, j], cand_w[s, j], cand_wn[s, j], epsilon, min_dist, min_face, min_w, acc_n)
+    write_swept_contact(s, p, r, reach, min_dist, min_face, min_w, acc_n, frames, indices, k0, k1, alpha, fps,
+                        contact_face, contact_point, contact_normal, contact_depth, contact_velocity)

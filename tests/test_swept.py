@@ -1,0 +1,114 @@
+"""The swept-bounds collider (refit once per frame) against the refit-every-step reference."""
+
+import numpy as np
+import pytest
+import warp as wp
+
+from dynmesh_warp.scenes import pulsing_blob, wave_bowl
+from dynmesh_warp.world import Model, PhysicsParams, SphereModel, State, SurfaceModel, SweptCollider, World
+
+
+def _worlds(seq, pos, vel, radius, t0, collider_kw):
+    out = []
+    for col, kw in collider_kw:
+        model = Model(SurfaceModel(seq, "cpu", playback="loop", interpolate=True),
+                      SphereModel(radius, 1.0, "cpu"), PhysicsParams(auto_substeps=False))
+        w = World(model, State(model, pos, vel, t0=t0), collider=col)
+        if kw is not None:
+            w.collider = SweptCollider(w, **kw)
+        out.append(w)
+    return out
+
+
+def _contacts_at(w):
+    w._update_surface()
+    w.collider.update(w)
+    w.collider.collide(w)
+    return w.contacts.numpy()
+
+
+@pytest.mark.parametrize("make_seq", [lambda: wave_bowl(n=24, frames=12), lambda: pulsing_blob(subdivisions=2, frames=12)])
+def test_swept_contacts_equal_refit_reference(make_seq):
+    seq = make_seq()
+    rng = np.random.default_rng(3)
+    S = 64
+    checked = 0
+    for trial in range(6):
+        t0 = float(rng.uniform(0, seq.num_frames / seq.fps * 1.5))  # includes loop wrap
+        # sphere centres near the interpolated surface, on both sides of it
+        k = int(np.floor(t0 * seq.fps))
+        a = t0 * seq.fps - k
+        V = (1 - a) * seq.V[k % seq.num_frames] + a * seq.V[(k + 1) % seq.num_frames]
+        base = V[rng.integers(0, len(V), S)]
+        pos = base + rng.normal(scale=0.04, size=(S, 3))
+        vel = rng.normal(scale=0.5, size=(S, 3))
+        radius = rng.uniform(0.02, 0.06, S).astype(np.float32)
+        ref, serial, par = _worlds(seq, pos, vel, radius, t0, [("refit", None), ("swept", {"parallel": False}),
+                                                                ("swept", {"parallel": True, "max_candidates": 64})])
+        c_ref = _contacts_at(ref)
+        for w in (serial, par):
+            c = _contacts_at(w)
+            np.testing.assert_array_equal(c["face"] >= 0, c_ref["face"] >= 0)
+            m = c_ref["face"] >= 0
+            np.testing.assert_allclose(c["point"][m], c_ref["point"][m], atol=2e-5)
+            np.testing.assert_allclose(c["normal"][m], c_ref["normal"][m], atol=2e-3)
+            np.testing.assert_allclose(c["depth"][m], c_ref["depth"][m], atol=2e-5)
+            np.testing.assert_allclose(c["velocity"][m], c_ref["velocity"][m], atol=2e-3 * max(1.0, np.abs(c_ref["velocity"]).max()))
+            checked += int(m.sum())
+    assert checked > 50  # the states really produced contacts
+
+
+def test_swept_parallel_fallback_when_sphere_leaves_its_ball():
+    """A sphere teleported away from where it gathered its candidates still gets exact contacts."""
+    seq = wave_bowl(n=24, frames=12)
+    pos = np.array([[0.0, 0.0, 1.0], [0.5, 0.5, 1.0]], np.float32)
+    ref, par = _worlds(seq, pos, None, np.array([0.05, 0.05], np.float32), 0.01,
+                       [("refit", None), ("swept", {"parallel": True, "max_candidates": 4})])
+    V = seq.V[0]
+    targets = [V[np.argmin(np.linalg.norm(V[:, :2] - xy, axis=1))] + [0, 0, 0.03] for xy in ([0.2, -0.3], [-0.4, 0.1])]
+    for w in (ref, par):
+        w.state.sphere_pos.assign(np.array(targets, np.float32))
+    c_ref, c = _contacts_at(ref), _contacts_at(par)
+    assert (c_ref["face"] >= 0).all()
+    np.testing.assert_allclose(c["point"], c_ref["point"], atol=2e-5)
+    np.testing.assert_allclose(c["depth"], c_ref["depth"], atol=2e-5)
+
+
+def test_swept_world_matches_refit_world_trajectories():
+    seq = wave_bowl(n=24, frames=12)
+    rng = np.random.default_rng(0)
+    pos = np.c_[rng.uniform(-0.5, 0.5, (4, 2)), np.full(4, 0.5)]
+    ref, sw = _worlds(seq, pos, None, np.full(4, 0.06, np.float32), 0.0, [("refit", None), ("swept", None)])
+    touched = 0
+    for _ in range(240):
+        ref.step()
+        sw.step()
+        f_ref, f_sw = ref.contacts.face.numpy(), sw.contacts.face.numpy()
+        np.testing.assert_array_equal(f_sw >= 0, f_ref >= 0)
+        touched += int((f_sw >= 0).sum())
+    np.testing.assert_allclose(sw.sphere_positions(), ref.sphere_positions(), atol=1e-3)
+    assert touched > 50
+
+
+def test_fixed_collider_defaults_to_swept_with_interpolation():
+    seq = wave_bowl(n=16, frames=6)
+    for interp, name in [(True, "swept"), (False, "refit")]:
+        model = Model(SurfaceModel(seq, "cpu", interpolate=interp), SphereModel([0.05], 1.0, "cpu"), PhysicsParams())
+        assert World(model, State(model, [[0, 0, 1]])).collider.name == name
+
+
+def test_swept_bvh_refit_only_on_frame_change():
+    seq = wave_bowl(n=16, frames=6)
+    model = Model(SurfaceModel(seq, "cpu"), SphereModel([0.05], 1.0, "cpu"), PhysicsParams(dt=1 / 240))
+    w = World(model, State(model, [[0, 0, 1]]), collider="swept")
+    calls = []
+    orig = w.collider._refit
+    w.collider._refit = lambda world: (calls.append(world.time), orig(world))
+    for _ in range(40):  # 40 steps at 240 Hz: frames change at the start of steps 11, 21, 31
+        w.step()
+    np.testing.assert_allclose(calls, [1 / 24, 2 / 24, 3 / 24], atol=1e-9)
+    lo, hi = w.collider.lowers.numpy(), w.collider.uppers.numpy()
+    k = int(np.floor(w.time * seq.fps - 1e-9)) % seq.num_frames
+    tri = np.stack([seq.V[k][seq.F], seq.V[(k + 1) % seq.num_frames][seq.F]], 1).reshape(len(seq.F), 6, 3)
+    np.testing.assert_allclose(lo, tri.min(1), atol=1e-6)
+    np.testing.assert_allclose(hi, tri.max(1), atol=1e-6)
