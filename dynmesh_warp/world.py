@@ -297,11 +297,11 @@ class SweptCollider:
     capturable = True
     needs_points = False
 
-    def __init__(self, world: "World", parallel: bool | None = None, max_candidates: int = 128):
+    def __init__(self, world: "World", parallel: bool | None = None, max_candidates: int | None = None):
         surf = world.model.surface
         d = world.device
         self.parallel = d.is_cuda if parallel is None else bool(parallel)
-        self.max_candidates = int(max_candidates)
+        self.max_candidates = int(max_candidates or SWEPT_MAX_CANDIDATES)
         self.lowers = wp.zeros(surf.num_faces, dtype=wp.vec3, device=d)
         self.uppers = wp.zeros(surf.num_faces, dtype=wp.vec3, device=d)
         self.frame_key = wp.full(1, -1, dtype=wp.int32, device=d)
@@ -335,9 +335,11 @@ class SweptCollider:
 
     def _gather(self, world: "World"):
         m, s = world.model, world.state
+        g = float(np.linalg.norm(m.params.gravity))
+        step_reach = m.params.margin + 2.0 * g * world.sub_dt * world.sub_dt + self.epsilon
         world._launch(gather_sphere_candidates, m.spheres.count,
-                      [self.bvh.id, s.sphere_pos, s.sphere_vel, m.spheres.radius, 1.0 / m.surface.fps,
-                       float(np.linalg.norm(m.params.gravity)), m.params.margin],
+                      [self.bvh.id, s.sphere_pos, s.sphere_vel, m.spheres.radius, 1.0 / m.surface.fps, g,
+                       step_reach],
                       [self.cand_face, self.cand_count, self.cand_center, self.cand_radius])
 
     def _refit(self, world: "World"):
@@ -372,6 +374,7 @@ class SweptCollider:
                        self.cand_radius, self.cand_dist, self.cand_w, self.cand_wn], outputs)
 
 
+SWEPT_MAX_CANDIDATES = 256
 COLLIDERS = {"refit": RefitCollider, "swept": SweptCollider, "rebuild": RebuildCollider}
 COLLIDER_CHOICES = ("fixed", "refit", "swept", "rebuild")
 
@@ -385,7 +388,8 @@ class World:
     advance the device clock. After the sub-steps the face normals (render state) are updated
     and the post-step hooks run.
 
-    Colliders: ``fixed`` picks ``swept`` when interpolation is on, else ``refit``;
+    Colliders: ``fixed`` picks ``swept`` when interpolation is on and a sphere's per-frame
+    candidate list is expected to fit (else ``refit``: very fine meshes under large spheres);
     ``refit`` (BVH refit every sub-step, the reference), ``swept`` (refit once per frame),
     ``rebuild`` (varying-topology baseline, new BVH every sub-step or frame).
 
@@ -410,7 +414,7 @@ class World:
                 "(or convert it to fixed topology first)"
             )
         if collider == "fixed":
-            collider = "swept" if surf.interpolate else "refit"
+            collider = "swept" if surf.interpolate and self._swept_fits(model) else "refit"
         self.substeps = max(1, int(p.substeps))
         r_min = float(model.spheres.radius_np.min()) if model.spheres.count else math.inf
         if surf.max_speed > 0 and math.isfinite(r_min):
@@ -452,6 +456,20 @@ class World:
             self._launch_cache = {}
         self._initial = (state.sphere_pos.numpy().copy(), state.sphere_vel.numpy().copy())  # .numpy() is a view on the CPU
         self.post_step_hooks = []  # callables hook(world) launched after each step (inside the graph)
+
+    @staticmethod
+    def _swept_fits(model: Model, max_candidates: int = SWEPT_MAX_CANDIDATES) -> bool:
+        """Whether a resting sphere's per-frame candidate list is expected to fit (swept pays off):
+        faces per unit area of frame 0 x the area of the gather box of the largest sphere."""
+        surf, sph = model.surface, model.spheres
+        if sph.count == 0:
+            return True
+        V, F = surf.sequence.V[0].astype(np.float64), surf.sequence.F
+        area = 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1).sum()
+        T = 1.0 / surf.fps
+        R = float(sph.radius_np.max()) + model.params.margin + 0.625 * float(np.linalg.norm(model.params.gravity)) * T * T
+        expected = surf.num_faces / max(area, 1e-30) * (2.0 * R) ** 2
+        return expected <= 0.5 * max_candidates
 
     def add_post_step_hook(self, hook, needs_surface: bool = True):
         """Run ``hook(world)`` after every step; it must only launch kernels (no allocation, no

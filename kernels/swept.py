@@ -276,11 +276,14 @@ def gather_sphere_candidates(
     cand_radius: wp.array(dtype=float),
 ):
     """Faces whose swept box lies within the sphere's reach over the next ``horizon`` seconds
-    (one frame interval): radius + margin + 2 (|v| + g horizon) horizon. cand_face (S, K);
-    cand_count (S,) number found, K + 1 on overflow (then the sphere takes the serial path)."""
+    (one frame interval): R = radius + margin + 1.25 (|v| T + g T^2 / 2) + (one step's reach,
+    folded into margin by the caller). cand_face (S, K); cand_count (S,) number found, K + 1 on
+    overflow (then the sphere takes the serial path). A sphere that travels farther than this
+    ball allows during the interval also takes the serial path (checked every step)."""
     s = wp.tid()
     p = sphere_pos[s]
-    R = sphere_radius[s] + margin + 2.0 * (wp.length(sphere_vel[s]) + gravity * horizon) * horizon
+    T = horizon
+    R = sphere_radius[s] + margin + 1.25 * (wp.length(sphere_vel[s]) * T + 0.5 * gravity * T * T)
     K = cand_face.shape[1]
     query = wp.bvh_query_aabb(bvh, p - wp.vec3(R), p + wp.vec3(R))
     f = int(0)
