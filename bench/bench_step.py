@@ -7,7 +7,8 @@ launch floor, and scaling over vertex and sphere counts.
 Paper scene: ../shared/data/horse_gallop.npz (8431 vertices, 16843 faces, 24 fps; Sumner &
 Popovic 2004) when present, else a built-in surface of the same size; 5 spheres dropped on it,
 dt = 1/240 s, frames advancing at 24 fps with interpolation, one sub-step per step
-(auto_substeps off so every collider does the same work). Colliders, in the same run:
+(auto_substeps off so every collider does the same work), and a ground plane at the lowest
+surface point so spheres that roll off the horse come to rest instead of falling forever. Colliders, in the same run:
 swept (the default with interpolation), refit (BVH refit every step), rebuild every step,
 rebuild on frame change. Compile/module-load time and graph capture are reported apart from
 the timed loop (warm-up, then the median of repeats). On CUDA the fixed step is one graph.
@@ -37,7 +38,7 @@ def make_world(seq, device, collider, spheres=5, radius=0.05, rebuild_every="ste
     if spheres > 50:  # many spheres: a single layer just above the surface, not a tall column
         pos[:, 2] = seq.V[0][:, 2].max() + radius * (1.0 + np.random.default_rng(seed).random(spheres))
     model = Model(surf, SphereModel(np.full(spheres, radius, np.float32), 1.0, device),
-                  PhysicsParams(dt=1.0 / 240.0, auto_substeps=False))
+                  PhysicsParams(dt=1.0 / 240.0, auto_substeps=False, ground_height=float(seq.V[:, :, 2].min())))
     return World(model, State(model, pos), collider=collider, rebuild_every=rebuild_every)
 
 

@@ -75,6 +75,7 @@ class PhysicsConfig(_Strict):
     friction: float = Field(default=0.5, ge=0)
     rest_speed: float = Field(default=0.2, ge=0)
     margin: float = Field(default=1.0e-3, ge=0)
+    ground: Optional[Union[float, Literal["auto"]]] = None  # ground plane height [m]; auto: lowest surface point
     collider: Literal["fixed", "refit", "swept", "rebuild"] = "fixed"
     rebuild_every: Literal["step", "frame"] = "step"
 
@@ -86,6 +87,52 @@ class RunConfig(_Strict):
     record_every: int = Field(default=4, ge=1)
 
 
+class GaussiansConfig(_Strict):
+    """Rendering Gaussians bound to the surface (see docs/rendering.md)."""
+
+    splats: Optional[str] = None  # a 3DGS .ply in the scene frame, bound to the first frame
+    count: int = Field(default=20000, ge=0)  # generated on the surface when splats is null
+    color: Vec3 = (0.75, 0.72, 0.68)  # RGB in [0, 1] of generated Gaussians
+    opacity: float = Field(default=0.9, gt=0, lt=1)
+    seed: int = 0
+
+
+class NewtonBodyConfig(_Strict):
+    """A Newton body or articulated model on the surface (``newton:`` section; docs/newton.md)."""
+
+    type: Literal["box", "sphere", "capsule", "mjcf", "urdf", "usd"]
+    position: Vec3 = (0.0, 0.0, 0.0)
+    rotation: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)  # quaternion (x, y, z, w)
+    velocity: Vec3 = (0.0, 0.0, 0.0)  # initial linear velocity of a box / sphere / capsule [m/s]
+    half_extents: Optional[Vec3] = None  # box [m]
+    radius: Optional[float] = Field(default=None, gt=0)  # sphere, capsule [m]
+    half_height: Optional[float] = Field(default=None, gt=0)  # capsule, along its local z [m]
+    density: float = Field(default=1000.0, gt=0)  # [kg/m^3]
+    file: Optional[str] = None  # model file of mjcf / urdf / usd
+    floating: bool = True  # free base (False: fixed to the world)
+    options: dict = Field(default_factory=dict)  # more keyword arguments of add_mjcf / add_urdf / add_usd
+    label: Optional[str] = None
+
+    @model_validator(mode="after")
+    def _fields_for_type(self):
+        need = {"box": ["half_extents"], "sphere": ["radius"], "capsule": ["radius", "half_height"],
+                "mjcf": ["file"], "urdf": ["file"], "usd": ["file"]}[self.type]
+        missing = [k for k in need if getattr(self, k) is None]
+        if missing:
+            raise ValueError(f"a {self.type} body needs {', '.join(missing)}")
+        return self
+
+
+class NewtonConfig(_Strict):
+    """Simulate the bodies with the Newton engine instead of the built-in sphere world."""
+
+    solver: Literal["xpbd", "semi_implicit", "featherstone", "vbd", "mujoco"] = "xpbd"
+    solver_options: dict = Field(default_factory=dict)  # keyword arguments of the solver
+    bodies: list[NewtonBodyConfig] = Field(default_factory=list)
+    include_spheres: bool = True  # the scene's ``spheres`` become Newton spheres too
+    surface_mu: Optional[float] = Field(default=None, ge=0)  # default: physics.friction
+
+
 class SceneConfig(_Strict):
     name: str = "scene"
     device: Optional[str] = None
@@ -93,6 +140,8 @@ class SceneConfig(_Strict):
     spheres: Union[list[SphereConfig], SpawnConfig] = Field(default_factory=SpawnConfig)
     physics: PhysicsConfig = Field(default_factory=PhysicsConfig)
     run: RunConfig = Field(default_factory=RunConfig)
+    gaussians: GaussiansConfig = Field(default_factory=GaussiansConfig)
+    newton: Optional[NewtonConfig] = None  # run the bodies in Newton (docs/newton.md)
     base_dir: Optional[str] = Field(default=None, exclude=True)
 
     @field_validator("name")
@@ -121,6 +170,11 @@ class SceneConfig(_Strict):
             t = self.resolve(self.surface.conversion.template)
             if not t.exists():
                 raise ValueError(f"surface.conversion.template: file not found: {t}")
+        if self.gaussians.splats and not self.resolve(self.gaussians.splats).is_file():
+            raise ValueError(f"gaussians.splats: file not found: {self.resolve(self.gaussians.splats)}")
+        for i, b in enumerate(self.newton.bodies if self.newton else []):
+            if b.file and not self.resolve(b.file).is_file():
+                raise ValueError(f"newton.bodies.{i}.file: file not found: {self.resolve(b.file)}")
         return self
 
 

@@ -91,9 +91,13 @@ def build_world(cfg: SceneConfig, device=None, collider: str | None = None,
         n = cfg.spheres.count
         radius, mass = [cfg.spheres.radius] * n, [cfg.spheres.mass] * n
         pos, vel = spawn_positions(cfg.spheres, V0), None
+    ground = p.ground
+    if ground == "auto":
+        ground = float(seq.V[:, :, 2].min()) if isinstance(seq, FixedTopologySequence) else float(
+            min(v[:, 2].min() for v, _ in seq.frames))
     params = PhysicsParams(dt=p.dt, substeps=p.substeps, gravity=p.gravity, restitution=p.restitution,
                            friction=p.friction, rest_speed=p.rest_speed, margin=p.margin,
-                           auto_substeps=p.auto_substeps)
+                           auto_substeps=p.auto_substeps, ground_height=ground)
     model = Model(surface, SphereModel(np.asarray(radius, np.float32).reshape(-1), mass, device), params)
     state = State(model, np.asarray(pos, np.float32).reshape(-1, 3),
                   None if vel is None else np.asarray(vel, np.float32).reshape(-1, 3))

@@ -74,7 +74,8 @@ class PhysicsParams:
     gravity: [m/s^2]; restitution: normal coefficient of restitution in [0, 1];
     friction: Coulomb coefficient; rest_speed: normal approach speed [m/s] below which an
     impact does not bounce; margin: extra contact query distance [m]; auto_substeps: raise
-    substeps so the surface moves less than half the smallest sphere radius per sub-step.
+    substeps so the surface moves less than half the smallest sphere radius per sub-step;
+    ground_height: optional static ground plane z = ground_height [m] (None: no ground).
     """
 
     dt: float = 1.0 / 240.0
@@ -85,6 +86,7 @@ class PhysicsParams:
     rest_speed: float = 0.2
     margin: float = 1.0e-3
     auto_substeps: bool = True
+    ground_height: float | None = None
 
 
 class SurfaceModel:
@@ -551,8 +553,10 @@ class World:
         """Stage 4: sphere dynamics with the contacts of this sub-step."""
         m, s, c = self.model, self.state, self.contacts
         self._launch(integrate_spheres, m.spheres.count,
-                     [c.face, c.normal, c.depth, c.velocity, m.spheres.inv_mass, self.gravity, self.sub_dt,
-                      m.params.restitution, m.params.friction, m.params.rest_speed],
+                     [c.face, c.normal, c.depth, c.velocity, m.spheres.inv_mass, m.spheres.radius, self.gravity,
+                      self.sub_dt, m.params.restitution, m.params.friction, m.params.rest_speed,
+                      int(m.params.ground_height is not None),
+                      float(m.params.ground_height if m.params.ground_height is not None else 0.0)],
                      [s.sphere_pos, s.sphere_vel])
 
     def _substep(self):

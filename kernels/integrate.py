@@ -11,11 +11,14 @@ def integrate_spheres(
     contact_depth: wp.array(dtype=float),
     contact_velocity: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
+    sphere_radius: wp.array(dtype=float),
     gravity: wp.vec3,
     dt: float,
     restitution: float,
     friction: float,
     rest_speed: float,
+    ground: int,
+    ground_height: float,
     # in/out
     sphere_pos: wp.array(dtype=wp.vec3),
     sphere_vel: wp.array(dtype=wp.vec3),
@@ -30,6 +33,8 @@ def integrate_spheres(
     the tangential relative velocity, and it moves on for the rest of the step. A sphere
     already penetrating is first projected out along the contact normal.
     inv_mass (S,) [1/kg]: 0 marks a kinematic sphere (moves with its velocity, no forces).
+    With ``ground`` set, a static plane z = ground_height (normal +z) also stops the spheres
+    (same restitution and friction, applied after the mesh contact).
     """
     s = wp.tid()
     p = sphere_pos[s]
@@ -64,6 +69,20 @@ def integrate_spheres(
             p = p + v * dt
     else:
         p = p + v * dt
+    if ground != 0:
+        r = sphere_radius[s]
+        if p[2] - r < ground_height:
+            p = wp.vec3(p[0], p[1], ground_height + r)
+            if v[2] < 0.0:
+                vn = v[2]
+                vn_new = float(0.0)
+                if -vn > rest_speed:
+                    vn_new = -restitution * vn
+                vt = wp.vec3(v[0], v[1], 0.0)
+                lt = wp.length(vt)
+                if lt > 0.0:
+                    vt = vt * wp.max(0.0, 1.0 - friction * (vn_new - vn) / lt)
+                v = wp.vec3(vt[0], vt[1], vn_new)
     sphere_pos[s] = p
     sphere_vel[s] = v
 
