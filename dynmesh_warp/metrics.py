@@ -129,35 +129,23 @@ def sample_surface(V, F, num_points: int, seed: int = 0, device=None,
 # ---------------------------------------------------------------------- nearest neighbours
 
 
-def _grid_cell_width(targets: np.ndarray) -> float:
-    """Cell width of the hash grid: about twice the mean spacing of points on a surface that
-    fills the targets' bounding box (bbox half-area / P), so a typical query finds its nearest
-    neighbour in the first round."""
-    ext = targets.max(axis=0).astype(np.float64) - targets.min(axis=0)
-    ext = np.maximum(ext, 1e-6 * max(float(ext.max()), 1e-12))
-    half_area = ext[0] * ext[1] + ext[1] * ext[2] + ext[2] * ext[0]
-    h = 2.0 * np.sqrt(half_area / len(targets))
-    return float(max(h, 1e-9))
-
-
-def nearest_neighbors(queries, targets, device=None, grid_dim: int = 128):
+def nearest_neighbors(queries, targets, device=None):
     """Exact nearest target of each query: (dist_sq float32 (Q,), index int32 (Q,)).
 
-    A ``wp.HashGrid`` over the targets is searched with a growing radius (exact, see
-    :func:`dynmesh_warp.kernels.metrics.find_nearest_points`); queries farther than
-    8 cells from every target fall back to a loop over all targets.
+    Targets go into a BVH as degenerate triangles (i, i, i) of a ``wp.Mesh``; the kernel
+    :func:`dynmesh_warp.kernels.metrics.find_nearest_points_bvh` asks for the closest face
+    with no distance limit, so every query gets its exact nearest point however far it is.
     """
     q = _points(queries, "queries")
     t = _points(targets, "targets")
     dev = _device(device)
-    h = _grid_cell_width(t)
     tq = wp.array(q, dtype=wp.vec3, device=dev)
     tt = wp.array(t, dtype=wp.vec3, device=dev)
-    grid = wp.HashGrid(grid_dim, grid_dim, grid_dim, device=dev)
-    grid.build(tt, h)
+    tri = wp.array(np.repeat(np.arange(len(t), dtype=np.int32), 3), dtype=wp.int32, device=dev)
+    mesh = wp.Mesh(points=tt, indices=tri)
     idx = wp.empty(len(q), dtype=wp.int32, device=dev)
     d2 = wp.empty(len(q), dtype=float, device=dev)
-    wp.launch(K.find_nearest_points, dim=len(q), inputs=[grid.id, tq, tt, h, 8.0 * h],
+    wp.launch(K.find_nearest_points_bvh, dim=len(q), inputs=[mesh.id, tq, tt],
               outputs=[idx, d2], device=dev)
     return d2.numpy(), idx.numpy()
 
@@ -274,19 +262,35 @@ def evaluate_mesh_pair(gt, pred, protocol: str = "dgmesh", seed: int = 0, device
 
     gt, pred: (V, F) tuples. Sampling is seeded: gt uses ``seed``, pred ``seed + 1``
     (independent draws, as two independent ``trimesh.sample`` calls in DG-Mesh).
-    Returns raw values: {'cd', 'cd_gt_to_pred', 'cd_pred_to_gt', 'emd' (None when emd=False)}.
+    Returns raw values: {'cd', 'cd_gt_to_pred', 'cd_pred_to_gt', 'emd' (None when emd=False),
+    'degenerate_prediction'}. A prediction of zero total area (collapsed) is sampled at its
+    vertices (uniformly, with replacement) and flagged with degenerate_prediction=True.
     """
     if protocol not in PROTOCOLS:
         raise ValueError(f"unknown protocol {protocol!r}; choose one of {sorted(PROTOCOLS)}")
     P = PROTOCOLS[protocol]
     Vg, Fg = validate_mesh(*gt, source=f"{source or ''} ground truth".strip())
     Vp, Fp = validate_mesh(*pred, source=f"{source or ''} prediction".strip())
-    out = {}
+    out = {"degenerate_prediction": False}
+    src_g, src_p = f"{source or ''} ground truth".strip(), f"{source or ''} prediction".strip()
+
+    def samples(n):
+        g = sample_surface(Vg, Fg, n, seed, device, source=src_g)
+        try:
+            p = sample_surface(Vp, Fp, n, seed + 1, device, source=src_p)
+        except MeshDataError as e:
+            if "area is zero" not in str(e):
+                raise
+            # a collapsed prediction (all faces degenerate) has no surface to sample: use its
+            # vertices, drawn uniformly with replacement, and flag the result
+            out["degenerate_prediction"] = True
+            p = Vp[np.random.default_rng(seed + 1).integers(0, len(Vp), n)]
+        return g, p
+
     if P.cd_points == "vertices":
         cg, cp = Vg, Vp
     else:
-        cg = sample_surface(Vg, Fg, P.cd_samples, seed, device)
-        cp = sample_surface(Vp, Fp, P.cd_samples, seed + 1, device)
+        cg, cp = samples(P.cd_samples)
     c = chamfer_distance(cg, cp, squared=P.squared, device=device)
     out["cd"] = c.value
     out["cd_gt_to_pred"] = c.a_to_b
@@ -296,7 +300,6 @@ def evaluate_mesh_pair(gt, pred, protocol: str = "dgmesh", seed: int = 0, device
         if P.cd_points == "samples" and P.cd_samples == P.emd_samples:
             eg, ep = cg, cp
         else:
-            eg = sample_surface(Vg, Fg, P.emd_samples, seed, device)
-            ep = sample_surface(Vp, Fp, P.emd_samples, seed + 1, device)
+            eg, ep = samples(P.emd_samples)
         out["emd"] = approxmatch_emd(eg, ep, device)  # ground truth first, as DG-Mesh
     return out

@@ -30,7 +30,12 @@ def _parser() -> argparse.ArgumentParser:
                    help="fixed (default): swept with interpolation, else refit; refit: refit one BVH every step; "
                         "swept: refit swept bounds once per frame; rebuild: new BVH (varying-topology baseline)")
     p.add_argument("--rebuild-every", choices=["step", "frame"], help="for --collider rebuild")
-    p.add_argument("--viewer", choices=["none"], default="none", help="viewer (none: headless)")
+    p.add_argument("--viewer", choices=["viser", "none"], default=None,
+                   help="viser: live viewer (default when stdin and stdout are a terminal); none: headless")
+    p.add_argument("--port", type=int, default=8080, help="viewer port (0: any free port)")
+    p.add_argument("--host", default="127.0.0.1", help="viewer address to listen on (0.0.0.0: all)")
+    p.add_argument("--record", metavar="OUT.viser",
+                   help="save a replayable viser recording and a self-contained OUT.html next to it")
     p.add_argument("--output", help="output folder (overrides run.output)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     return p
@@ -48,6 +53,10 @@ def run_scene(cfg, device=None, steps: int | None = None, collider: str | None =
               rebuild_every: str | None = None, output: str | Path | None = None,
               progress: bool = True, log=print) -> dict:
     """Build and run a scene; write outputs; return the summary dict."""
+    if getattr(cfg, "newton", None) is not None:  # bodies simulated by Newton (docs/newton.md)
+        from .newton_adapter import run_newton_scene
+
+        return run_newton_scene(cfg, device=device, steps=steps, output=output, progress=progress, log=log)
     import warp as wp
 
     from .outputs import atomic_write_json, atomic_write_npz
@@ -163,6 +172,26 @@ def main(argv=None) -> int:
         steps = args.steps
         if args.duration is not None:
             steps = max(1, int(round(args.duration / cfg.physics.dt)))
+        viewer = args.viewer
+        if viewer is None:
+            import importlib.util
+
+            tty = sys.stdin.isatty() and sys.stdout.isatty()
+            viewer = "viser" if tty and importlib.util.find_spec("viser") is not None else "none"
+        if viewer == "viser" or args.record:
+            from .splat_io import SplatPlyError
+            from .viewer import run_viewer
+
+            try:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("always")
+                    run_viewer(cfg, device=args.device, viewer=viewer, port=args.port, host=args.host,
+                               record=args.record, steps=steps if (args.steps or args.duration) else None,
+                               collider=args.collider, rebuild_every=args.rebuild_every)
+            except (SplatPlyError, RuntimeError, OSError) as e:
+                print(f"error: {e}", file=sys.stderr)
+                return 2
+            return 0
         with warnings.catch_warnings():
             warnings.simplefilter("always")
             summary = run_scene(cfg, device=args.device, steps=steps, collider=args.collider,

@@ -442,6 +442,7 @@ class World:
         self.contacts = Contacts(model.spheres.count, device=self.device)
         self.t0 = float(state.sim_time.numpy()[0])
         self.substep_count = 0
+        self._time = self.t0  # host twin of sim_time: the same float64 additions as the device
         self._launch_cache = None
         self._update_surface()
         self.collider = RebuildCollider(self, rebuild_every) if collider == "rebuild" else COLLIDERS[collider](self)
@@ -486,7 +487,7 @@ class World:
     @property
     def time(self) -> float:
         """Simulation time [s], tracked on the host in step with the device clock."""
-        return self.t0 + self.substep_count * self.sub_dt
+        return self._time
 
     def current_frame_key(self):
         surf = self.model.surface
@@ -595,12 +596,22 @@ class World:
             if self._graph is None:
                 self.capture()
             wp.capture_launch(self._graph)
+            for _ in range(self.substeps):
+                self._time += self.sub_dt
             self.substep_count += self.substeps
             return
         for _ in range(self.substeps):
             self._substep()
             self.substep_count += 1
+            self._time += self.sub_dt
         self._finish_step()
+
+    def set_time(self, t: float):
+        """Move the clock (host and device) to ``t`` [s] and the surface with it; spheres keep
+        their state. Between steps only."""
+        self._time = float(t)
+        self.state.sim_time.assign(np.array([self._time], np.float64))
+        self._refresh_surface()
 
     def sync_surface(self):
         """Bring the vertex buffer and normals to the current time (for a viewer); eager."""
@@ -620,6 +631,7 @@ class World:
         s.sphere_pos.assign(self._initial[0])
         s.sphere_vel.assign(self._initial[1])
         self.substep_count = 0
+        self._time = self.t0
         self._refresh_surface()
         if hasattr(self.collider, "resize"):
             self.collider.resize(self)

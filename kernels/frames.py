@@ -30,14 +30,15 @@ def wrap_frame(k: int, num_frames: int, mode: int) -> int:
 
 
 @wp.func
-def frame_pair(time: float, fps: float, num_frames: int, mode: int):
+def frame_pair(time: wp.float64, fps: wp.float64, num_frames: int, mode: int):
     """Frames (k, k+1) bracketing ``time`` and the blend factor alpha in [0, 1).
 
-    k = floor(time * fps); both indices are mapped with the playback mode.
+    k = floor(time * fps) in float64, the same IEEE arithmetic as the host's
+    ``frame_pair_host``, so host and device agree on every frame boundary.
     """
     s = time * fps
     kf = wp.floor(s)
-    alpha = s - kf
+    alpha = float(s - kf)
     k = int(kf)
     return wrap_frame(k, num_frames, mode), wrap_frame(k + 1, num_frames, mode), alpha
 
@@ -47,7 +48,7 @@ def update_frame_vertices(
     # inputs
     frames: wp.array2d(dtype=wp.vec3),
     sim_time: wp.array(dtype=wp.float64),
-    fps: float,
+    fps: wp.float64,
     mode: int,
     interpolate: int,
     # outputs
@@ -63,8 +64,7 @@ def update_frame_vertices(
     """
     i = wp.tid()
     num_frames = frames.shape[0]
-    t = float(sim_time[0])
-    k0, k1, alpha = frame_pair(t, fps, num_frames, mode)
+    k0, k1, alpha = frame_pair(sim_time[0], fps, num_frames, mode)
     a = frames[k0, i]
     b = frames[k1, i]
     if interpolate != 0:
@@ -74,4 +74,4 @@ def update_frame_vertices(
     if k1 == k0:
         velocities[i] = wp.vec3(0.0)
     else:
-        velocities[i] = (b - a) * fps
+        velocities[i] = (b - a) * float(fps)

@@ -88,6 +88,6 @@ def integrate_spheres(
 
 
 @wp.kernel
-def advance_time(dt: float, sim_time: wp.array(dtype=wp.float64)):
+def advance_time(dt: wp.float64, sim_time: wp.array(dtype=wp.float64)):
     """sim_time[0] += dt (one thread; keeps the clock on the device for graph capture)."""
-    sim_time[0] = sim_time[0] + wp.float64(dt)
+    sim_time[0] = sim_time[0] + dt

@@ -21,7 +21,7 @@ from .geometry import closest_point_on_triangle
 def detect_frame_change(
     # inputs
     sim_time: wp.array(dtype=wp.float64),
-    fps: float,
+    fps: wp.float64,
     num_frames: int,
     mode: int,
     # in/out
@@ -30,8 +30,7 @@ def detect_frame_change(
     changed: wp.array(dtype=wp.int32),
 ):
     """changed[0] = 1 when the frame pair (k, k+1) at sim_time differs from frame_key[0] (then updated)."""
-    t = float(sim_time[0])
-    k0, k1, alpha = frame_pair(t, fps, num_frames, mode)
+    k0, k1, alpha = frame_pair(sim_time[0], fps, num_frames, mode)
     key = k0 * num_frames + k1
     if key != frame_key[0]:
         frame_key[0] = key
@@ -46,7 +45,7 @@ def compute_swept_bounds(
     frames: wp.array2d(dtype=wp.vec3),
     indices: wp.array(dtype=wp.int32),
     sim_time: wp.array(dtype=wp.float64),
-    fps: float,
+    fps: wp.float64,
     mode: int,
     # outputs
     lowers: wp.array(dtype=wp.vec3),
@@ -57,7 +56,7 @@ def compute_swept_bounds(
     frames (T, N) [m]; indices (3M,); lowers/uppers (M,) [m].
     """
     f = wp.tid()
-    k0, k1, alpha = frame_pair(float(sim_time[0]), fps, frames.shape[0], mode)
+    k0, k1, alpha = frame_pair(sim_time[0], fps, frames.shape[0], mode)
     i0 = indices[3 * f + 0]
     i1 = indices[3 * f + 1]
     i2 = indices[3 * f + 2]
@@ -179,7 +178,7 @@ def closest_on_swept_bvh(
 def write_swept_contact(
     s: int, p: wp.vec3, r: float, reach: float, min_dist: float, min_face: int, min_w: wp.vec3, acc_n: wp.vec3,
     frames: wp.array2d(dtype=wp.vec3), indices: wp.array(dtype=wp.int32), k0: int, k1: int, alpha: float,
-    fps: float,
+    fps: wp.float64,
     contact_face: wp.array(dtype=wp.int32),
     contact_point: wp.array(dtype=wp.vec3),
     contact_normal: wp.array(dtype=wp.vec3),
@@ -205,7 +204,7 @@ def write_swept_contact(
                 i0 = indices[3 * min_face + 0]
                 i1 = indices[3 * min_face + 1]
                 i2 = indices[3 * min_face + 2]
-                vs = fps * (
+                vs = float(fps) * (
                     min_w[0] * (frames[k1, i0] - frames[k0, i0])
                     + min_w[1] * (frames[k1, i1] - frames[k0, i1])
                     + min_w[2] * (frames[k1, i2] - frames[k0, i2])
@@ -224,7 +223,7 @@ def collide_sphere_swept(
     frames: wp.array2d(dtype=wp.vec3),
     indices: wp.array(dtype=wp.int32),
     sim_time: wp.array(dtype=wp.float64),
-    fps: float,
+    fps: wp.float64,
     mode: int,
     interpolate: int,
     epsilon: float,
@@ -248,7 +247,7 @@ def collide_sphere_swept(
     p = sphere_pos[s]
     r = sphere_radius[s]
     reach = r + margin + (wp.length(sphere_vel[s]) + extra_speed) * dt
-    k0, k1, alpha = frame_pair(float(sim_time[0]), fps, frames.shape[0], mode)
+    k0, k1, alpha = frame_pair(sim_time[0], fps, frames.shape[0], mode)
     if interpolate == 0:
         alpha = 0.0
     min_dist, min_face, min_w, acc_n = closest_on_swept_bvh(bvh, frames, indices, k0, k1, alpha, p, reach, epsilon)
@@ -305,7 +304,7 @@ def evaluate_sphere_candidates(
     frames: wp.array2d(dtype=wp.vec3),
     indices: wp.array(dtype=wp.int32),
     sim_time: wp.array(dtype=wp.float64),
-    fps: float,
+    fps: wp.float64,
     mode: int,
     interpolate: int,
     epsilon: float,
@@ -321,7 +320,7 @@ def evaluate_sphere_candidates(
     s, j = wp.tid()
     if j >= cand_count[s]:
         return
-    k0, k1, alpha = frame_pair(float(sim_time[0]), fps, frames.shape[0], mode)
+    k0, k1, alpha = frame_pair(sim_time[0], fps, frames.shape[0], mode)
     if interpolate == 0:
         alpha = 0.0
     a, b, e = interpolated_triangle(frames, indices, cand_face[s, j], k0, k1, alpha)
@@ -338,7 +337,7 @@ def resolve_sphere_candidates(
     frames: wp.array2d(dtype=wp.vec3),
     indices: wp.array(dtype=wp.int32),
     sim_time: wp.array(dtype=wp.float64),
-    fps: float,
+    fps: wp.float64,
     mode: int,
     interpolate: int,
     epsilon: float,
@@ -369,7 +368,7 @@ def resolve_sphere_candidates(
     p = sphere_pos[s]
     r = sphere_radius[s]
     reach = r + margin + (wp.length(sphere_vel[s]) + extra_speed) * dt
-    k0, k1, alpha = frame_pair(float(sim_time[0]), fps, frames.shape[0], mode)
+    k0, k1, alpha = frame_pair(sim_time[0], fps, frames.shape[0], mode)
     if interpolate == 0:
         alpha = 0.0
     n = cand_count[s]

@@ -163,6 +163,34 @@ def test_save_replaces_existing_folder_and_refuses_foreign_content(tmp_path):
         save_sequence(fixed_seq(), tmp_path / "other")
 
 
+def test_interrupted_save_leaves_no_partial_output(tmp_path, monkeypatch):
+    import dynmesh_warp.io as dio
+
+    save_sequence(fixed_seq(T=3), tmp_path / "out", fmt="ply")
+    save_sequence(fixed_seq(T=3), tmp_path / "s.npz")
+    before = sorted(p.name for p in tmp_path.iterdir())
+    real = dio._write_mesh_file
+
+    def failing(path, V, F):
+        real(path, V, F)  # the file is (partly) there, then the save is interrupted
+        if path.name.startswith(("frame_0001", ".one.ply")):
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(dio, "_write_mesh_file", failing)
+    with pytest.raises(KeyboardInterrupt):
+        save_sequence(fixed_seq(T=5), tmp_path / "out", fmt="ply")
+    with pytest.raises(KeyboardInterrupt):
+        save_sequence(fixed_seq(T=5), tmp_path / "new", fmt="obj")
+    with pytest.raises(KeyboardInterrupt):
+        write_mesh(tmp_path / "one.ply", *icosphere())
+    monkeypatch.setattr(dio.np, "savez", lambda *a, **k: (_ for _ in ()).throw(OSError("disk full")))
+    with pytest.raises(OSError, match="disk full"):
+        save_sequence(fixed_seq(T=5), tmp_path / "s.npz")
+    assert sorted(p.name for p in tmp_path.iterdir()) == before  # no temp files or folders
+    assert load_sequence(tmp_path / "out").num_frames == 3  # old output intact
+    assert load_sequence(tmp_path / "s.npz").num_frames == 3
+
+
 # --------------------------------------------------------------------------- ordering
 
 
@@ -186,7 +214,8 @@ def test_folder_numeric_order(tmp_path):
     (tmp_path / "cameras.json").write_text("{}")  # non-mesh and hidden files are ignored
     (tmp_path / "readme.txt").write_text("x")
     (tmp_path / ".hidden.ply").write_text("junk")
-    seq = load_sequence(tmp_path)
+    with pytest.warns(UserWarning, match="gaps"):  # 3..9 are missing
+        seq = load_sequence(tmp_path)
     assert isinstance(seq, FixedTopologySequence)
     assert [frame_of(v) for v in seq.V] == [1, 2, 10]
 

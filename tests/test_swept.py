@@ -104,11 +104,20 @@ def test_swept_bvh_refit_only_on_frame_change():
     calls = []
     orig = w.collider._refit
     w.collider._refit = lambda world: (calls.append(world.time), orig(world))
-    for _ in range(40):  # 40 steps at 240 Hz: frames change at the start of steps 11, 21, 31
+    for _ in range(40):  # 40 steps at 240 Hz: about 4 frames at 24 fps
         w.step()
-    np.testing.assert_allclose(calls, [1 / 24, 2 / 24, 3 / 24], atol=1e-9)
+    # expected: the steps at whose start floor(t * fps) changes, t accumulated as on the device
+    t, k_prev, expected = 0.0, 0, []
+    for _ in range(40):
+        k = int(np.floor(t * seq.fps))
+        if k != k_prev:
+            expected.append(t)
+            k_prev = k
+        t += 1 / 240
+    assert len(expected) == 3
+    np.testing.assert_array_equal(calls, expected)
     lo, hi = w.collider.lowers.numpy(), w.collider.uppers.numpy()
-    k = int(np.floor(w.time * seq.fps - 1e-9)) % seq.num_frames
+    k = int(np.floor(calls[-1] * seq.fps)) % seq.num_frames
     tri = np.stack([seq.V[k][seq.F], seq.V[(k + 1) % seq.num_frames][seq.F]], 1).reshape(len(seq.F), 6, 3)
     np.testing.assert_allclose(lo, tri.min(1), atol=1e-6)
     np.testing.assert_allclose(hi, tri.max(1), atol=1e-6)

@@ -1,0 +1,537 @@
+"""Topology conversion: a varying-topology sequence (a new mesh per frame, e.g. DG-Mesh's
+marching cubes output) -> a fixed-topology sequence (one template, moving vertices).
+
+Public API
+----------
+``nearest_surface(mesh, points, device=None, max_dist=None) -> NearestSurfaceResult``
+    Batched closest point on a triangle mesh (``wp.Mesh`` or ``(V, F)``): closest point,
+    face, barycentric weights of the face's vertices, distance; NumPy arrays.
+
+``to_fixed_topology(seq, strategy="tracking", template=None, device=None, progress=False,
+**options) -> FixedTopologySequence``
+    Strategies (see docs/conversion.md):
+
+    * ``"projection"``: every frame independently, each template vertex goes to its closest
+      point on that frame's surface (barycentric interpolation on the closest face).
+    * ``"tracking"``: start from the template, move each vertex to the closest point of the
+      next frame's surface, frame after frame; every ``reanchor_interval`` frames (default 50;
+      0 = never) blend ``tracked_weight`` (default 0.8) of the tracked positions with
+      ``1 - tracked_weight`` of the direct template projection.
+    * ``"regularized"``: tracking with a smooth displacement field, a two-sided data term and a
+      tangential, rotation-aware relaxation towards the template's vertex distribution, then
+      projection along normals. Options: ``iterations`` (2), ``smooth_iterations`` (5),
+      ``smooth_weight`` (0.5), ``pull_fraction`` (0.5), ``relax_iterations`` (1),
+      ``relax_step`` (0.5), ``normal_slack`` (3.0).
+
+    Common options: ``max_template_distance`` (0.25: the template must lie mostly within this
+    fraction of frame 0's bounding-box diagonal from frame 0's surface), ``scale_tolerance``
+    (4.0: warn about frames whose bounding-box diagonal differs from the median by more than
+    this factor).
+
+    The result carries ``result.conversion`` (a :class:`ConversionInfo`): strategy, options,
+    re-anchored frames, per-frame time.
+
+CLI: ``python -m dynmesh_warp.convert IN OUT --strategy tracking|projection|regularized
+[--template MESH] [--device cpu] [--reanchor-interval 50] [--tracked-weight 0.8] [--fmt ply]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+
+from .kernels import convert as kc
+from .kernels.geometry import project_points_to_mesh
+from .sequence import FixedTopologySequence, MeshDataError, VaryingTopologySequence, validate_mesh
+
+__all__ = [
+    "STRATEGIES",
+    "NearestSurfaceResult",
+    "ConversionInfo",
+    "nearest_surface",
+    "vertex_adjacency",
+    "to_fixed_topology",
+    "surface_deviation",
+    "main",
+]
+
+STRATEGIES = ("projection", "tracking", "regularized")
+
+_DEFAULTS = {
+    "projection": {},
+    "tracking": {"reanchor_interval": 50, "tracked_weight": 0.8},
+    "regularized": {
+        "iterations": 2,
+        "smooth_iterations": 5,
+        "smooth_weight": 0.5,
+        "pull_fraction": 0.5,
+        "relax_iterations": 1,
+        "relax_step": 0.5,
+        "normal_slack": 3.0,
+        "rigid_iterations": 3,
+    },
+}
+_COMMON = {"max_template_distance": 0.25, "scale_tolerance": 4.0}
+
+
+# --------------------------------------------------------------------------- NearestSurface
+
+
+@dataclass
+class NearestSurfaceResult:
+    """Closest points on a mesh. closest (Q,3) float32 [m]; face (Q,) int32, -1 where nothing
+    lies within max_dist; bary (Q,3) float32 weights of the face's vertices F[face] (sum 1);
+    dist (Q,) float32 [m] (max_dist where face is -1)."""
+
+    closest: np.ndarray
+    face: np.ndarray
+    bary: np.ndarray
+    dist: np.ndarray
+
+
+def _bbox_diag(V: np.ndarray) -> float:
+    return float(np.linalg.norm(V.max(axis=0) - V.min(axis=0))) if len(V) else 0.0
+
+
+def _wp_mesh(V: np.ndarray, F: np.ndarray, device) -> wp.Mesh:
+    pts = wp.array(np.ascontiguousarray(V, np.float32), dtype=wp.vec3, device=device)
+    idx = wp.array(np.ascontiguousarray(F, np.int32).reshape(-1), dtype=wp.int32, device=device)
+    return wp.Mesh(points=pts, indices=idx)
+
+
+def nearest_surface(mesh, points, device=None, max_dist: float | None = None,
+                    source: str = "mesh") -> NearestSurfaceResult:
+    """Closest point on ``mesh`` for every point (NearestSurface, one BVH query per point).
+
+    Args:
+        mesh: a ``wp.Mesh`` or a ``(V (N,3), F (M,3))`` pair (validated; bad faces raise
+            :class:`MeshDataError` naming ``source``).
+        points: (Q, 3) query points [m].
+        device: Warp device (default: the mesh's device, else Warp's default).
+        max_dist: search radius [m]; default: unbounded (10 x the diagonal of the box holding
+            the mesh and the points, so every query finds its closest point).
+    """
+    P = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+    if not np.isfinite(P).all():
+        raise MeshDataError(f"{source}: query points contain NaN/inf")
+    if isinstance(mesh, wp.Mesh):
+        m = mesh
+        device = m.device
+        Vm = m.points.numpy()
+    else:
+        Vm, Fm = validate_mesh(mesh[0], mesh[1], source)
+        device = wp.get_device(device)
+        m = _wp_mesh(Vm, Fm, device)
+    if max_dist is None:
+        both = np.concatenate([Vm, P]) if len(P) else Vm
+        max_dist = 10.0 * max(_bbox_diag(both), 1e-6)
+    q = wp.array(P, dtype=wp.vec3, device=device)
+    n = len(P)
+    closest = wp.empty(n, dtype=wp.vec3, device=device)
+    face = wp.empty(n, dtype=wp.int32, device=device)
+    bary = wp.empty(n, dtype=wp.vec3, device=device)
+    dist = wp.empty(n, dtype=float, device=device)
+    if n:
+        wp.launch(project_points_to_mesh, dim=n, inputs=[m.id, q, float(max_dist)],
+                  outputs=[closest, face, bary, dist], device=device)
+    return NearestSurfaceResult(closest.numpy(), face.numpy(), bary.numpy(), dist.numpy())
+
+
+def vertex_adjacency(F: np.ndarray, num_vertices: int) -> tuple[np.ndarray, np.ndarray]:
+    """CSR one-ring adjacency of a triangle mesh: (offsets int32 (N+1,), neighbors int32 (E,)),
+    the neighbours of vertex i being neighbors[offsets[i]:offsets[i+1]] (sorted, unique)."""
+    F = np.asarray(F, np.int64)
+    e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    e = np.concatenate([e, e[:, ::-1]])
+    e = np.unique(e[e[:, 0] != e[:, 1]], axis=0)
+    counts = np.bincount(e[:, 0], minlength=num_vertices)
+    offsets = np.zeros(num_vertices + 1, np.int32)
+    np.cumsum(counts, out=offsets[1:])
+    return offsets, e[:, 1].astype(np.int32)
+
+
+def surface_deviation(V, F, V_ref, F_ref, device=None) -> dict:
+    """Distances between two surfaces, via :func:`nearest_surface` in both directions.
+
+    Returns ``to_ref`` (mean distance of V's vertices to the reference surface), ``from_ref``
+    (mean distance of the reference vertices to the surface (V, F)), ``chamfer`` (the mean of
+    the two), ``max_to_ref`` and ``max_from_ref``; all in scene units.
+    """
+    a = nearest_surface((V_ref, F_ref), V, device=device).dist
+    b = nearest_surface((V, F), V_ref, device=device).dist
+    return {"to_ref": float(a.mean()), "from_ref": float(b.mean()),
+            "chamfer": 0.5 * float(a.mean() + b.mean()),
+            "max_to_ref": float(a.max()), "max_from_ref": float(b.max())}
+
+
+# --------------------------------------------------------------------------- converter
+
+
+@dataclass
+class ConversionInfo:
+    """What a conversion did. reanchored_frames: frames where tracking blended in the template
+    projection; frame_seconds: wall time per frame (host + kernels)."""
+
+    strategy: str
+    options: dict
+    num_frames: int
+    num_vertices: int
+    reanchored_frames: list = field(default_factory=list)
+    frame_seconds: list = field(default_factory=list)
+
+
+class _Converter:
+    """Template-side device arrays, allocated once; one wp.Mesh per input frame."""
+
+    def __init__(self, TV: np.ndarray, TF: np.ndarray, device, max_dist: float, opts: dict):
+        self.device = device
+        self.opts = opts
+        self.max_dist = float(max_dist)
+        n = len(TV)
+        self.n = n
+        self.nf = len(TF)
+        d = device
+        arr = lambda a, dt: wp.array(a, dtype=dt, device=d)  # noqa: E731
+        self.T = arr(TV, wp.vec3)
+        self.TF = arr(TF.reshape(-1), wp.int32)
+        self.X = wp.clone(self.T)
+        self.P = wp.empty(n, dtype=wp.vec3, device=d)
+        self.tmp = wp.empty(n, dtype=wp.vec3, device=d)
+        self.closest = wp.empty(n, dtype=wp.vec3, device=d)
+        self.face = wp.empty(n, dtype=wp.int32, device=d)
+        self.bary = wp.empty(n, dtype=wp.vec3, device=d)
+        self.dist = wp.empty(n, dtype=float, device=d)
+        if opts.get("strategy") == "regularized":
+            off, nb = vertex_adjacency(TF, n)
+            self.offsets = arr(off, wp.int32)
+            self.neighbors = arr(nb if len(nb) else np.zeros(1, np.int32), wp.int32)
+            self.delta_T = wp.empty(n, dtype=wp.vec3, device=d)
+            wp.launch(kc.compute_laplacian_coordinates, dim=n, inputs=[self.T, self.offsets, self.neighbors],
+                      outputs=[self.delta_T], device=d)
+            self.disp = wp.empty(n, dtype=wp.vec3, device=d)
+            self.disp2 = wp.empty(n, dtype=wp.vec3, device=d)
+            self.w = wp.empty(n, dtype=float, device=d)
+            self.w2 = wp.empty(n, dtype=float, device=d)
+            self.pull_sum = wp.zeros(n, dtype=wp.vec3, device=d)
+            self.pull_weight = wp.zeros(n, dtype=float, device=d)
+            self.normals = wp.zeros(n, dtype=wp.vec3, device=d)
+            self.Xm = wp.clone(self.T)  # points of the template-topology BVH (refit per use)
+            self.tmesh = wp.Mesh(points=self.Xm, indices=self.TF)
+            self.system = wp.zeros(42, dtype=float, device=d)
+
+    # --- building blocks
+    def project(self, frame, src, dst):
+        """dst = closest point of src on the frame surface (barycentric evaluation)."""
+        m, pts, idx = frame
+        wp.launch(project_points_to_mesh, dim=self.n, inputs=[m.id, src, self.max_dist],
+                  outputs=[self.closest, self.face, self.bary, self.dist], device=self.device)
+        wp.launch(kc.evaluate_barycentric_points, dim=self.n, inputs=[pts, idx, self.face, self.bary, src],
+                  outputs=[dst], device=self.device)
+
+    def _normals(self, X):
+        self.normals.zero_()
+        wp.launch(kc.accumulate_vertex_normals, dim=self.nf, inputs=[X, self.TF], outputs=[self.normals],
+                  device=self.device)
+
+    # --- strategies, one frame each; return True when the frame was re-anchored
+    def step_projection(self, frame, t):
+        self.project(frame, self.T, self.X)
+        return False
+
+    def step_tracking(self, frame, t):
+        self.project(frame, self.T if t == 0 else self.X, self.X)
+        k = int(self.opts["reanchor_interval"])
+        if t > 0 and k > 0 and t % k == 0:
+            self.project(frame, self.T, self.P)
+            wp.launch(kc.blend_points, dim=self.n, inputs=[self.X, self.P, float(self.opts["tracked_weight"])],
+                      outputs=[self.tmp], device=self.device)
+            wp.copy(self.X, self.tmp)
+            return True
+        return False
+
+    def rigid_align(self, frame, iterations: int):
+        """Point-to-plane ICP of the whole template (damped Gauss-Newton, 6x6 solve on host)."""
+        d, n = self.device, self.n
+        m, pts, idx = frame
+        for _ in range(iterations):
+            wp.launch(project_points_to_mesh, dim=n, inputs=[m.id, self.X, self.max_dist],
+                      outputs=[self.closest, self.face, self.bary, self.dist], device=d)
+            center = self.X.numpy().mean(axis=0)
+            self.system.zero_()
+            wp.launch(kc.accumulate_point_to_plane_system, dim=n,
+                      inputs=[self.X, wp.vec3(*center), self.closest, self.face, pts, idx],
+                      outputs=[self.system], device=d)
+            s = self.system.numpy().astype(np.float64)
+            A, b = s[:36].reshape(6, 6), s[36:]
+            A = A + np.diag(1e-3 * np.trace(A) / 6.0 + 1e-12 + 1e-3 * np.diag(A))
+            try:
+                xi = np.linalg.solve(A, b)
+            except np.linalg.LinAlgError:
+                return
+            if not np.isfinite(xi).all():
+                return
+            R = _rotation_from_vector(xi[:3])
+            wp.launch(kc.transform_points_rigid, dim=n,
+                      inputs=[self.X, wp.mat33(*R.reshape(-1)), wp.vec3(*center), wp.vec3(*xi[3:])],
+                      outputs=[self.X], device=d)
+            if np.linalg.norm(xi[3:]) < 1e-7 * self.max_dist and np.linalg.norm(xi[:3]) < 1e-7:
+                return
+
+    def step_regularized(self, frame, t):
+        o, d, n = self.opts, self.device, self.n
+        m, pts, idx = frame
+        if int(o["rigid_iterations"]) > 0:
+            self.rigid_align(frame, int(o["rigid_iterations"]))
+        for _ in range(int(o["iterations"])):
+            wp.launch(project_points_to_mesh, dim=n, inputs=[m.id, self.X, self.max_dist],
+                      outputs=[self.closest, self.face, self.bary, self.dist], device=d)
+            self.pull_sum.zero_()
+            self.pull_weight.zero_()
+            if o["pull_fraction"] > 0:
+                wp.copy(self.Xm, self.X)
+                self.tmesh.refit()
+                wp.launch(kc.scatter_surface_pulls, dim=pts.shape[0],
+                          inputs=[self.tmesh.id, self.TF, pts, self.max_dist],
+                          outputs=[self.pull_sum, self.pull_weight], device=d)
+            wp.launch(kc.compute_closest_displacements, dim=n,
+                      inputs=[self.X, self.closest, self.face, self.pull_sum, self.pull_weight,
+                              float(o["pull_fraction"])], outputs=[self.disp, self.w], device=d)
+            for _s in range(int(o["smooth_iterations"])):
+                wp.launch(kc.smooth_vectors_laplacian, dim=n,
+                          inputs=[self.disp, self.w, self.offsets, self.neighbors, float(o["smooth_weight"])],
+                          outputs=[self.disp2, self.w2], device=d)
+                self.disp, self.disp2 = self.disp2, self.disp
+                self.w, self.w2 = self.w2, self.w
+            wp.launch(kc.add_displacements, dim=n, inputs=[self.X, self.disp, 1.0], outputs=[self.X], device=d)
+        for _r in range(max(int(o["relax_iterations"]), 1)):
+            self._normals(self.X)
+            if int(o["relax_iterations"]) > 0:
+                wp.launch(kc.relax_points_tangentially, dim=n,
+                          inputs=[self.X, self.normals, self.T, self.delta_T, self.offsets, self.neighbors,
+                                  float(o["relax_step"])], outputs=[self.tmp], device=d)
+            else:
+                wp.copy(self.tmp, self.X)
+            wp.launch(kc.project_points_along_normals, dim=n,
+                      inputs=[m.id, self.tmp, self.normals, self.max_dist, float(o["normal_slack"])],
+                      outputs=[self.X, self.dist], device=d)
+        return False
+
+
+def _rotation_from_vector(w: np.ndarray) -> np.ndarray:
+    """Rodrigues: the rotation by angle |w| about w / |w| (float32 (3,3))."""
+    a = float(np.linalg.norm(w))
+    if a < 1e-12:
+        return np.eye(3, dtype=np.float32)
+    k = w / a
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return (np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K).astype(np.float32)
+
+
+def _as_varying(seq) -> VaryingTopologySequence:
+    if isinstance(seq, VaryingTopologySequence):
+        return seq
+    if isinstance(seq, FixedTopologySequence):
+        return seq.to_varying()
+    if isinstance(seq, (list, tuple)):
+        return VaryingTopologySequence(list(seq), name="frames", source="frames")
+    raise TypeError(f"expected a VaryingTopologySequence, FixedTopologySequence or a list of (V, F), "
+                    f"got {type(seq).__name__}")
+
+
+def _resolve_options(strategy: str, options: dict) -> dict:
+    if strategy not in STRATEGIES:
+        raise ValueError(f"strategy must be one of {STRATEGIES}, got {strategy!r}")
+    allowed = {**_COMMON, **_DEFAULTS[strategy]}
+    unknown = sorted(set(options) - set(allowed))
+    if unknown:
+        raise TypeError(f"to_fixed_topology(strategy={strategy!r}): unknown option(s) {unknown}; "
+                        f"valid: {sorted(allowed)}")
+    o = {**allowed, **options}
+    if strategy == "tracking":
+        ri = o["reanchor_interval"]
+        if ri is None:
+            ri = 0
+        if int(ri) != ri or ri < 0:
+            raise ValueError(f"reanchor_interval must be an integer >= 0 (0: never), got {ri!r}")
+        o["reanchor_interval"] = int(ri)
+        w = float(o["tracked_weight"])
+        if not 0.0 <= w <= 1.0:
+            raise ValueError(f"tracked_weight must lie in [0, 1], got {w!r}")
+        o["tracked_weight"] = w
+    if strategy == "regularized":
+        for k in ("iterations", "smooth_iterations", "relax_iterations", "rigid_iterations"):
+            if int(o[k]) != o[k] or o[k] < 0:
+                raise ValueError(f"{k} must be an integer >= 0, got {o[k]!r}")
+        for k in ("smooth_weight", "pull_fraction", "relax_step"):
+            if not 0.0 <= float(o[k]) <= 1.0:
+                raise ValueError(f"{k} must lie in [0, 1], got {o[k]!r}")
+        if float(o["normal_slack"]) < 1.0:
+            raise ValueError(f"normal_slack must be >= 1, got {o['normal_slack']!r}")
+    if not float(o["max_template_distance"]) > 0:
+        raise ValueError(f"max_template_distance must be > 0, got {o['max_template_distance']!r}")
+    o["strategy"] = strategy
+    return o
+
+
+def _check_scales(seq: VaryingTopologySequence, tol: float):
+    diags = np.array([_bbox_diag(v) for v, _ in seq.frames])
+    med = float(np.median(diags))
+    if med <= 0:
+        raise MeshDataError(f"{seq.source or seq.name}: every frame is degenerate (zero-size bounding box)")
+    ratio = diags / med
+    bad = np.flatnonzero((ratio > tol) | (ratio < 1.0 / tol))
+    if bad.size:
+        show = ", ".join(f"{int(t)} (x{ratio[t]:.3g})" for t in bad[:10])
+        more = f" and {bad.size - 10} more" if bad.size > 10 else ""
+        warnings.warn(
+            f"{seq.source or seq.name}: frames of very different scale: bounding-box diagonal vs the "
+            f"median {med:.4g} in frame(s) {show}{more}; converted vertices will be pulled across "
+            "the gap (mixed units or a broken frame?)", UserWarning, stacklevel=3)
+
+
+def _check_reach(TV, TF, V0, F0, limit: float, device):
+    diag = _bbox_diag(V0)
+    d = nearest_surface((V0, F0), TV, device=device).dist
+    far = d > limit * diag
+    frac = float(far.mean())
+    if frac > 0.5:
+        raise MeshDataError(
+            f"template: {100 * frac:.0f}% of its {len(TV)} vertices lie farther than "
+            f"{limit:g} x frame 0's bounding-box diagonal ({limit * diag:.4g}) from frame 0's surface "
+            f"(median distance {np.median(d):.4g}); the template does not describe this sequence "
+            "(other units, other placement?)")
+    if frac > 0.05:
+        warnings.warn(
+            f"template: {100 * frac:.0f}% of its vertices lie farther than {limit:g} x frame 0's "
+            f"bounding-box diagonal from frame 0's surface", UserWarning, stacklevel=3)
+
+
+def to_fixed_topology(seq, strategy: str = "tracking", template=None, device=None, progress: bool = False,
+                      **options) -> FixedTopologySequence:
+    """Convert a varying-topology sequence into a fixed-topology one on ``template``'s faces.
+
+    Args:
+        seq: a :class:`VaryingTopologySequence` (or a fixed one, or a list of (V, F) frames).
+        strategy: ``"projection"``, ``"tracking"`` or ``"regularized"`` (module docstring).
+        template: ``(V, F)`` mesh or a mesh file path; default: the first frame.
+        device: Warp device (default: Warp's default device).
+        progress: show a tqdm progress bar over frames.
+        **options: strategy options (module docstring); unknown names raise TypeError.
+
+    Returns:
+        FixedTopologySequence with the template's faces, the input's fps and name, and a
+        ``conversion`` attribute (:class:`ConversionInfo`).
+
+    Raises:
+        MeshDataError: an empty/invalid frame or template (naming it), a template out of the
+            surface's reach. Warns (UserWarning) about frames of very different scale.
+    """
+    o = _resolve_options(strategy, options)
+    vseq = _as_varying(seq)
+    where = vseq.source or vseq.name
+    for t, (v, f) in enumerate(vseq.frames):  # frames may have been mutated after construction
+        src = vseq.frame_sources[t] if vseq.frame_sources else where
+        validate_mesh(v, f, src, t)
+    if template is None:
+        TV, TF = vseq.frames[0]
+    else:
+        if isinstance(template, (str, bytes)) or hasattr(template, "__fspath__"):
+            from .io import read_mesh
+
+            template = read_mesh(template)
+        try:
+            tv, tf = template
+        except (TypeError, ValueError):
+            raise MeshDataError("template: expected a (V, F) pair or a mesh file path") from None
+        TV, TF = validate_mesh(tv, tf, "template")
+    TV = np.ascontiguousarray(TV, np.float32)
+    TF = np.ascontiguousarray(TF, np.int32)
+    device = wp.get_device(device)
+    _check_scales(vseq, float(o["scale_tolerance"]))
+    if template is not None:
+        _check_reach(TV, TF, *vseq.frames[0], float(o["max_template_distance"]), device)
+
+    all_diag = max(max(_bbox_diag(v) for v, _ in vseq.frames), _bbox_diag(TV), 1e-6)
+    conv = _Converter(TV, TF, device, 10.0 * all_diag, o)
+    step = getattr(conv, f"step_{strategy}")
+    T = vseq.num_frames
+    out = np.empty((T, len(TV), 3), np.float32)
+    info = ConversionInfo(strategy, {k: v for k, v in o.items() if k != "strategy"}, T, len(TV))
+    frames = range(T)
+    if progress:
+        from tqdm import tqdm
+
+        frames = tqdm(frames, desc=f"convert ({strategy})", unit="frame")
+    for t in frames:
+        t0 = time.perf_counter()
+        v, f = vseq.frames[t]
+        pts = wp.array(v, dtype=wp.vec3, device=device)
+        idx = wp.array(f.reshape(-1), dtype=wp.int32, device=device)
+        m = wp.Mesh(points=pts, indices=idx)
+        if step((m, pts, idx), t):
+            info.reanchored_frames.append(t)
+        out[t] = conv.X.numpy()
+        info.frame_seconds.append(time.perf_counter() - t0)
+        if not np.isfinite(out[t]).all():
+            raise RuntimeError(f"{where}: conversion ({strategy}) produced NaN/inf at frame {t}; "
+                               "the input frame may be degenerate")
+    res = FixedTopologySequence(out, TF, fps=vseq.fps, name=vseq.name, source=vseq.source)
+    res.conversion = info
+    return res
+
+
+# --------------------------------------------------------------------------- CLI
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(
+        prog="python -m dynmesh_warp.convert",
+        description="Convert a varying-topology mesh sequence into a fixed-topology one.")
+    p.add_argument("input", help="sequence: .npz, folder of per-frame meshes, DG-Mesh scene folder")
+    p.add_argument("output", help="output .npz, or a folder (frame_XXXX.ply/.obj, see --fmt)")
+    p.add_argument("--strategy", choices=STRATEGIES, default="tracking")
+    p.add_argument("--template", default=None, help="template mesh file (default: the first frame)")
+    p.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0")
+    p.add_argument("--reanchor-interval", type=int, default=None, help="tracking: frames between re-anchors (0: never)")
+    p.add_argument("--tracked-weight", type=float, default=None, help="tracking: weight of the tracked positions at a re-anchor")
+    p.add_argument("--iterations", type=int, default=None, help="regularized: outer iterations per frame")
+    p.add_argument("--smooth-iterations", type=int, default=None, help="regularized: displacement smoothing steps")
+    p.add_argument("--fmt", default=None, choices=["ply", "obj"], help="per-frame format for a folder output")
+    p.add_argument("--fps", type=float, default=None, help="override the input frame rate")
+    a = p.parse_args(argv)
+    from .io import load_sequence, save_sequence
+
+    opts = {}
+    for k in ("reanchor_interval", "tracked_weight"):
+        if getattr(a, k) is not None:
+            if a.strategy != "tracking":
+                p.error(f"--{k.replace('_', '-')} applies to --strategy tracking")
+            opts[k] = getattr(a, k)
+    for k in ("iterations", "smooth_iterations"):
+        if getattr(a, k) is not None:
+            if a.strategy != "regularized":
+                p.error(f"--{k.replace('_', '-')} applies to --strategy regularized")
+            opts[k] = getattr(a, k)
+    try:
+        seq = load_sequence(a.input, fps=a.fps)
+        res = to_fixed_topology(seq, strategy=a.strategy, template=a.template, device=a.device,
+                                progress=True, **opts)
+        save_sequence(res, a.output, fmt=a.fmt)
+    except (MeshDataError, FileNotFoundError, ValueError, TypeError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    info = res.conversion
+    print(f"wrote {a.output}: {res.num_frames} frames x {res.num_vertices} vertices, {res.num_faces} faces "
+          f"({a.strategy}; {sum(info.frame_seconds):.2f} s"
+          + (f"; re-anchored at {info.reanchored_frames}" if info.reanchored_frames else "") + ")")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,253 @@
+"""3D Gaussians bound to the faces of the physics mesh: binding, per-step update, generation.
+
+:class:`GaussianBinding` holds the static data (face, barycentrics, normal offset, local
+rotation and scale, colour, opacity), :class:`GaussianState` the per-step world outputs, both
+as ``wp.array``s on one device (like the World's Model/State). :class:`Gaussians` owns one of
+each; :meth:`Gaussians.attach` registers the ``update_gaussians`` kernel as a post-step hook of
+a :class:`~dynmesh_warp.world.World`, so it runs inside the same CUDA graph as the physics step.
+
+See ``kernels/gaussians.py`` and ``docs/rendering.md`` for the binding math.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from .kernels.gaussians import bind_gaussians_to_faces, pack_splat_covariances, update_gaussians
+from .kernels.geometry import project_points_to_mesh
+from .sequence import validate_mesh
+from .splat_io import SplatCloud
+
+__all__ = [
+    "GaussianBinding",
+    "GaussianState",
+    "Gaussians",
+    "bind_splats",
+    "generate_gaussians",
+    "gaussians_for_world",
+    "quat_wxyz_to_xyzw",
+    "quat_xyzw_to_wxyz",
+    "DEFAULT_COLOR",
+]
+
+DEFAULT_COLOR = (0.75, 0.72, 0.68)
+
+
+def quat_wxyz_to_xyzw(q):
+    q = np.asarray(q)
+    return np.concatenate([q[..., 1:], q[..., :1]], axis=-1)
+
+
+def quat_xyzw_to_wxyz(q):
+    q = np.asarray(q)
+    return np.concatenate([q[..., 3:], q[..., :3]], axis=-1)
+
+
+class GaussianBinding:
+    """Static per-Gaussian data (G Gaussians on a mesh of M faces).
+
+    Attributes (wp.array on ``device``):
+        face (G,) int32 face index in [0, M); bary (G,) vec3 weights of the face's vertices
+        (i0, i1, i2); offset (G,) float along the face normal [face scales = sqrt(face area)];
+        local_rotation (G,) quat (x, y, z, w) in the face frame; local_scale (G,) vec3 std devs
+        [face scales].
+    Host attributes: rgb (G, 3) float32 in [0, 1]; opacity (G,) float32 in [0, 1];
+        f_rest (G, K) float32 higher SH (kept for .ply export, not rendered).
+    """
+
+    def __init__(self, face, bary, offset, local_rotation_xyzw, local_scale, rgb, opacity, num_faces: int,
+                 f_rest=None, device=None):
+        self.device = wp.get_device(device)
+        face = np.asarray(face, np.int32).reshape(-1)
+        G = face.size
+        if G and (face.min() < 0 or face.max() >= num_faces):
+            raise ValueError(f"gaussian face index out of range [0, {num_faces})")
+        self.count = G
+        self.num_faces = int(num_faces)
+        self.face = wp.array(face, dtype=wp.int32, device=self.device)
+        self.bary = wp.array(np.asarray(bary, np.float32).reshape(G, 3), dtype=wp.vec3, device=self.device)
+        self.offset = wp.array(np.asarray(offset, np.float32).reshape(G), dtype=float, device=self.device)
+        self.local_rotation = wp.array(np.asarray(local_rotation_xyzw, np.float32).reshape(G, 4), dtype=wp.quat,
+                                       device=self.device)
+        self.local_scale = wp.array(np.asarray(local_scale, np.float32).reshape(G, 3), dtype=wp.vec3,
+                                    device=self.device)
+        self.rgb = np.clip(np.asarray(rgb, np.float32).reshape(G, 3), 0.0, 1.0)
+        self.opacity = np.clip(np.asarray(opacity, np.float32).reshape(G), 0.0, 1.0)
+        self.f_rest = np.zeros((G, 0), np.float32) if f_rest is None else np.asarray(f_rest, np.float32)
+
+
+class GaussianState:
+    """Per-step outputs: centers (G,) vec3 [m]; rotations (G,) quat (x, y, z, w), world;
+    scales (G,) vec3 std devs [m]; covariances (G,) mat33 R diag(s^2) R^T [m^2]."""
+
+    def __init__(self, count: int, device=None):
+        self.centers = wp.zeros(count, dtype=wp.vec3, device=device)
+        self.rotations = wp.zeros(count, dtype=wp.quat, device=device)
+        self.scales = wp.zeros(count, dtype=wp.vec3, device=device)
+        self.covariances = wp.zeros(count, dtype=wp.mat33, device=device)
+
+
+class Gaussians:
+    """Gaussians bound to a mesh: a :class:`GaussianBinding` + a :class:`GaussianState`."""
+
+    def __init__(self, binding: GaussianBinding):
+        self.binding = binding
+        self.device = binding.device
+        self.count = binding.count
+        self.state = GaussianState(binding.count, self.device)
+        self._cov16 = wp.zeros((binding.count, 6), dtype=wp.float16, device=self.device)
+
+    def update(self, points: wp.array, indices: wp.array):
+        """Recompute the world Gaussians from vertices ``points`` (N,) vec3 and ``indices`` (3M,)."""
+        if indices.shape[0] // 3 != self.binding.num_faces:
+            raise ValueError(f"mesh has {indices.shape[0] // 3} faces, the Gaussians were bound to "
+                             f"{self.binding.num_faces}")
+        if self.count == 0:
+            return
+        b, s = self.binding, self.state
+        wp.launch(update_gaussians, dim=self.count,
+                  inputs=[points, indices, b.face, b.bary, b.offset, b.local_rotation, b.local_scale],
+                  outputs=[s.centers, s.rotations, s.scales, s.covariances], device=self.device)
+
+    def attach(self, world) -> "Gaussians":
+        """Update after every step of ``world`` (a post-step hook, captured in its CUDA graph)."""
+        from .world import VaryingSurfaceModel
+
+        if isinstance(world.model.surface, VaryingSurfaceModel):
+            raise ValueError("Gaussians need a fixed-topology surface (convert the sequence first)")
+        if world.device != self.device:
+            raise ValueError(f"Gaussians are on {self.device}, the world on {world.device}")
+        self.update(world.state.points, world.current_indices())
+        b, s = self.binding, self.state
+
+        def hook(w):
+            w._launch(update_gaussians, self.count,
+                      [w.state.points, w.current_indices(), b.face, b.bary, b.offset, b.local_rotation,
+                       b.local_scale], [s.centers, s.rotations, s.scales, s.covariances])
+
+        world.add_post_step_hook(hook)
+        return self
+
+    def splat_covariances_f16(self, min_scale: float, min_ratio: float = 0.05) -> np.ndarray:
+        """(G, 6) float16 upper-triangle covariances for the viewer, std devs clamped to
+        >= max(min_scale [m], min_ratio * largest std dev) (see docs/rendering.md)."""
+        if self.count:
+            wp.launch(pack_splat_covariances, dim=self.count,
+                      inputs=[self.state.rotations, self.state.scales, float(min_scale), float(min_ratio)],
+                      outputs=[self._cov16], device=self.device)
+        return self._cov16.numpy().copy()
+
+    def numpy(self) -> dict:
+        s = self.state
+        # copies: on the CPU ``wp.array.numpy()`` is a view that the next update overwrites
+        return {"centers": s.centers.numpy().copy(), "rotations_xyzw": s.rotations.numpy().copy(),
+                "scales": s.scales.numpy().copy(), "covariances": s.covariances.numpy().copy()}
+
+    def to_splat_cloud(self) -> SplatCloud:
+        """The current world Gaussians as a 3DGS cloud (for ``write_splat_ply``)."""
+        d = self.numpy()
+        return SplatCloud.from_activated(d["centers"], np.maximum(d["scales"], 1e-12),
+                                         quat_xyzw_to_wxyz(d["rotations_xyzw"]), self.binding.rgb,
+                                         self.binding.opacity, f_rest=self.binding.f_rest)
+
+
+def _face_areas(V: np.ndarray, F: np.ndarray) -> np.ndarray:
+    A = 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1)
+    return A
+
+
+def bind_splats(cloud: SplatCloud, V, F, device=None, max_dist: float = 1.0e30) -> Gaussians:
+    """Bind a world-space splat cloud to the mesh (V (N,3) rest vertices [m], F (M,3)).
+
+    Each Gaussian goes to its nearest face (``project_points_to_mesh`` on a ``wp.Mesh``); its
+    world rotation and scale are expressed in that face's frame (``bind_gaussians_to_faces``),
+    so the binding reproduces the cloud at the rest pose.
+    """
+    V, F = validate_mesh(V, F, source="bind_splats mesh")
+    device = wp.get_device(device)
+    G = len(cloud)
+    pts = wp.array(V, dtype=wp.vec3, device=device)
+    idx = wp.array(F.reshape(-1), dtype=wp.int32, device=device)
+    centers = wp.array(cloud.positions.astype(np.float32), dtype=wp.vec3, device=device)
+    face = wp.zeros(G, dtype=wp.int32, device=device)
+    bary = wp.zeros(G, dtype=wp.vec3, device=device)
+    if G:
+        mesh = wp.Mesh(points=pts, indices=idx)
+        closest = wp.zeros(G, dtype=wp.vec3, device=device)
+        dist = wp.zeros(G, dtype=float, device=device)
+        wp.launch(project_points_to_mesh, dim=G, inputs=[mesh.id, centers, float(max_dist)],
+                  outputs=[closest, face, bary, dist], device=device)
+        f = face.numpy()
+        if (f < 0).any():
+            raise ValueError(f"{cloud.source}: {(f < 0).sum()} splats are farther than {max_dist} from the mesh")
+    rot = wp.array(quat_wxyz_to_xyzw(cloud.rotations_wxyz()).astype(np.float32), dtype=wp.quat, device=device)
+    scl = wp.array(cloud.scales().astype(np.float32), dtype=wp.vec3, device=device)
+    offset = wp.zeros(G, dtype=float, device=device)
+    lrot = wp.zeros(G, dtype=wp.quat, device=device)
+    lscl = wp.zeros(G, dtype=wp.vec3, device=device)
+    if G:
+        wp.launch(bind_gaussians_to_faces, dim=G, inputs=[pts, idx, face, centers, rot, scl],
+                  outputs=[bary, offset, lrot, lscl], device=device)
+    binding = GaussianBinding(face.numpy(), bary.numpy(), offset.numpy(), lrot.numpy(), lscl.numpy(),
+                              cloud.rgb(), cloud.opacities(), num_faces=F.shape[0], f_rest=cloud.f_rest,
+                              device=device)
+    return Gaussians(binding)
+
+
+def generate_gaussians(V, F, count: int = 20000, seed: int = 0, vertex_colors=None, color=DEFAULT_COLOR,
+                       opacity: float = 0.9, coverage: float = 0.6, thickness: float = 0.1,
+                       device=None) -> Gaussians:
+    """Seeded area-weighted Gaussians on the mesh surface (V (N,3) [m], F (M,3)).
+
+    Faces are drawn with probability proportional to area, points uniformly inside them. Each
+    Gaussian is a flat disc in its face's plane: in-plane std dev = coverage * sqrt(A / count)
+    (A = total area), normal std dev = thickness * that. Colour: ``vertex_colors`` (N,3) in
+    [0,1] (or 0..255 uint8) interpolated at the sample, else ``color``.
+    """
+    V, F = validate_mesh(V, F, source="generate_gaussians mesh")
+    if count < 0:
+        raise ValueError(f"gaussians.count must be >= 0, got {count}")
+    rng = np.random.default_rng(seed)
+    V64 = V.astype(np.float64)
+    area = _face_areas(V64, F)
+    total = float(area.sum())
+    if total <= 0:
+        raise ValueError("cannot generate Gaussians on a mesh of zero area")
+    face = rng.choice(F.shape[0], size=count, p=area / total).astype(np.int32)
+    r1, r2 = rng.random(count), rng.random(count)
+    s1 = np.sqrt(r1)
+    bary = np.stack([1.0 - s1, s1 * (1.0 - r2), s1 * r2], axis=1)
+    sigma = coverage * np.sqrt(total / max(count, 1))
+    sf = np.sqrt(area[face])
+    local_scale = np.stack([sigma / sf, sigma / sf, thickness * sigma / sf], axis=1)
+    local_rot = np.tile(np.array([0.0, 0.0, 0.0, 1.0]), (count, 1))
+    if vertex_colors is not None:
+        vc = np.asarray(vertex_colors)
+        if vc.shape != V.shape:
+            raise ValueError(f"vertex_colors must have shape {V.shape}, got {vc.shape}")
+        vc = vc.astype(np.float64) / (255.0 if vc.dtype == np.uint8 else 1.0)
+        rgb = np.einsum("gk,gkc->gc", bary, vc[F[face]])
+    else:
+        rgb = np.broadcast_to(np.asarray(color, np.float64), (count, 3))
+    binding = GaussianBinding(face, bary, np.zeros(count), local_rot, local_scale, rgb,
+                              np.full(count, opacity), num_faces=F.shape[0], device=device)
+    return Gaussians(binding)
+
+
+def gaussians_for_world(world, cfg=None) -> Gaussians:
+    """Gaussians for a world built from a scene: bind ``cfg.gaussians.splats`` (a 3DGS .ply in
+    the scene frame) if set, else generate ``cfg.gaussians.count`` on the first frame. Attached."""
+    from .splat_io import read_splat_ply
+
+    seq = world.model.surface.sequence
+    if not hasattr(seq, "V"):
+        raise ValueError("Gaussians need a fixed-topology surface (convert the sequence first)")
+    gcfg = getattr(cfg, "gaussians", None) if cfg is not None else None
+    if gcfg is not None and gcfg.splats:
+        g = bind_splats(read_splat_ply(cfg.resolve(gcfg.splats)), seq.V[0], seq.F, device=world.device)
+    else:
+        kw = {} if gcfg is None else {"count": gcfg.count, "seed": gcfg.seed, "color": gcfg.color,
+                                      "opacity": gcfg.opacity}
+        g = generate_gaussians(seq.V[0], seq.F, device=world.device, **kw)
+    return g.attach(world)

@@ -1,0 +1,532 @@
+"""Newton adapter: any Newton rigid body or robot against our deforming, fixed-topology mesh.
+
+Newton (``newton`` package, optional) is imported only inside functions, so importing this module
+or :mod:`dynmesh_warp` never imports it.
+
+:class:`DeformingMeshShape` adds the surface to a ``newton.ModelBuilder`` as a static mesh shape
+(body -1, identity transform, unit scale) backed by its OWN ``wp.Mesh``: the ``newton.Mesh`` is
+created with ``enable_surface_velocity=True``, which makes ``ModelBuilder.finalize`` key its
+geometry cache on object identity too, so it is never merged with an identical mesh (Newton
+otherwise shares one ``wp.Mesh`` between meshes with equal content hashes). After
+``finalize``, :meth:`DeformingMeshShape.bind` checks that ``Model.shape_source_ptr`` of the shape
+is that mesh's id and that no other shape uses it. Every sub-step :meth:`DeformingMeshShape.update`
+
+1. writes the vertices and per-vertex surface velocities at the device clock ``sim_time`` into
+   the mesh's ``points`` / ``velocities`` (``kernels/frames.py::update_frame_vertices``),
+2. refits the BVH,
+3. recomputes the shape's local AABB and bounding radius (``Model.shape_collision_aabb_lower``,
+   ``..._upper``, ``Model.shape_collision_radius``), which Newton's broad phase
+   (``compute_shape_aabbs``) otherwise keeps at the first frame's values.
+
+Newton solvers use only the tangential part of the mesh velocity (friction); the normal motion of
+the surface reaches bodies through the moving geometry (penetration correction), see
+``docs/newton.md``.
+
+:class:`NewtonWorld` is the time-stepper: a finalized Newton model, a solver, a collision
+pipeline and the deforming mesh, stepped like :class:`dynmesh_warp.world.World`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import warp as wp
+
+from .kernels.frames import update_frame_vertices
+from .kernels.integrate import advance_time
+from .kernels.newton_adapter import accumulate_shape_bounds, reset_shape_bounds
+from .sequence import FixedTopologySequence
+from .world import SurfaceModel
+
+__all__ = ["newton_available", "DeformingMeshShape", "NewtonWorld", "SOLVERS", "make_solver"]
+
+SOLVERS = ("xpbd", "semi_implicit", "featherstone", "vbd", "mujoco")
+
+
+def newton_available() -> bool:
+    """True when the optional ``newton`` package can be imported."""
+    try:
+        import newton  # noqa: F401, PLC0415
+    except Exception:  # noqa: BLE001 (any import failure means: not available)
+        return False
+    return True
+
+
+def _import_newton():
+    try:
+        import newton  # noqa: PLC0415
+    except ImportError as e:
+        raise ImportError("the Newton adapter needs the optional 'newton' package (pip install newton)") from e
+    return newton
+
+
+class DeformingMeshShape:
+    """Our deforming mesh as a static Newton mesh shape, updated on the device every sub-step.
+
+    Args:
+        surface: a :class:`SurfaceModel` (fixed topology; its ``frames`` buffer is read by the
+            update kernel).
+        update_bounds: recompute the shape's collision AABB / radius each update (default). Only
+            tests switch it off, to show that Newton's broad phase then misses the moved surface.
+        bounds_pad: extra padding of the bounds [m] (default 0: the bounds are recomputed before
+            every collision pass, and Newton adds the shape's margin + gap on top).
+        mu, restitution: Newton shape material of the surface.
+    """
+
+    def __init__(self, surface: SurfaceModel, *, update_bounds: bool = True, bounds_pad: float = 0.0,
+                 mu: float = 0.5, restitution: float = 0.0, label: str = "dynmesh_surface"):
+        if not isinstance(surface, SurfaceModel):
+            raise TypeError("the Newton adapter needs a fixed-topology SurfaceModel "
+                            "(convert a varying-topology input first)")
+        self.surface = surface
+        self.update_bounds = bool(update_bounds)
+        self.bounds_pad = float(bounds_pad)
+        self.mu = float(mu)
+        self.restitution = float(restitution)
+        self.label = label
+        self.shape = None
+        self.model = None
+        self.newton_mesh = None
+        self.mesh = None  # the wp.Mesh we write to, after bind()
+
+    def add_to_builder(self, builder) -> int:
+        """Add the surface (first frame) as a static mesh shape; returns the shape index."""
+        newton = _import_newton()
+        seq = self.surface.sequence
+        V0 = np.ascontiguousarray(seq.V[0], dtype=np.float32)
+        F = np.ascontiguousarray(seq.F, dtype=np.int32).reshape(-1)
+        # enable_surface_velocity: per-vertex velocities reach the contacts (friction), and the
+        # builder keeps a separate wp.Mesh for this object even if another mesh has equal content
+        self.newton_mesh = newton.Mesh(V0, F, compute_inertia=False, is_solid=False, enable_surface_velocity=True)
+        cfg = newton.ModelBuilder.ShapeConfig(density=0.0, mu=self.mu, restitution=self.restitution)
+        self.shape = builder.add_shape_mesh(-1, mesh=self.newton_mesh, cfg=cfg, label=self.label)
+        return self.shape
+
+    def bind(self, model, sim_time: wp.array | None = None):
+        """Attach to the finalized ``model``: find our ``wp.Mesh`` and check that it is ours alone.
+
+        ``sim_time`` is the (1,) float64 device clock [s] read by :meth:`update` (default: a new
+        one at t = 0). Writes the surface at that time and its bounds.
+        """
+        if self.shape is None:
+            raise RuntimeError("call add_to_builder(builder) before finalize() and bind()")
+        mesh = self.newton_mesh.mesh
+        ptr = model.shape_source_ptr.numpy()
+        if mesh is None or int(ptr[self.shape]) != int(mesh.id):
+            raise RuntimeError("Newton did not give the deforming surface shape its own wp.Mesh")
+        if int((ptr == ptr[self.shape]).sum()) != 1:
+            raise RuntimeError("the deforming surface's wp.Mesh is shared with another Newton shape")
+        if mesh.points.shape[0] != self.surface.num_vertices or mesh.velocities is None:
+            raise RuntimeError("Newton's mesh for the surface has an unexpected layout")
+        tr = model.shape_transform.numpy()[self.shape]
+        if not np.allclose(tr, [0, 0, 0, 0, 0, 0, 1]) or not np.allclose(model.shape_scale.numpy()[self.shape], 1):
+            raise RuntimeError("the deforming surface shape must have an identity transform and unit scale")
+        if model.device != self.surface.device:
+            raise ValueError(f"Newton model is on {model.device}, the surface on {self.surface.device}")
+        self.model = model
+        self.mesh = mesh
+        self.sim_time = sim_time if sim_time is not None else wp.zeros(1, dtype=wp.float64, device=model.device)
+        self.update()
+        return self
+
+    def update(self):
+        """Write the surface at ``sim_time`` into the mesh, refit its BVH, update its bounds.
+
+        Only kernel launches (no allocation, no host read): safe inside CUDA graph capture.
+        """
+        surf = self.surface
+        m = self.mesh
+        d = self.model.device
+        wp.launch(update_frame_vertices, dim=surf.num_vertices,
+                  inputs=[surf.frames, self.sim_time, surf.fps, surf.playback, int(surf.interpolate)],
+                  outputs=[m.points, m.velocities], device=d)
+        m.refit()
+        if self.update_bounds:
+            model = self.model
+            outs = [model.shape_collision_aabb_lower, model.shape_collision_aabb_upper, model.shape_collision_radius]
+            wp.launch(reset_shape_bounds, dim=1, inputs=[self.shape], outputs=outs, device=d)
+            wp.launch(accumulate_shape_bounds, dim=surf.num_vertices, inputs=[m.points, self.shape, self.bounds_pad],
+                      outputs=outs, device=d)
+
+    def points(self) -> np.ndarray:
+        """Current surface vertices (N, 3) [m] (host copy)."""
+        return self.mesh.points.numpy()
+
+
+def make_solver(model, name: str = "xpbd", **options):
+    """Create a Newton solver by name (``SOLVERS``); ``options`` go to its constructor."""
+    newton = _import_newton()
+    name = name.lower()
+    if name == "xpbd":
+        options.setdefault("iterations", 5)
+        return newton.solvers.SolverXPBD(model, **options)
+    if name == "semi_implicit":
+        return newton.solvers.SolverSemiImplicit(model, **options)
+    if name == "featherstone":
+        return newton.solvers.SolverFeatherstone(model, **options)
+    if name == "vbd":
+        return newton.solvers.SolverVBD(model, **options)
+    if name == "mujoco":
+        try:
+            return newton.solvers.SolverMuJoCo(model, **options)
+        except ImportError as e:
+            raise ImportError(f"Newton solver 'mujoco' needs mujoco / mujoco_warp: {e}") from e
+    raise ValueError(f"unknown Newton solver {name!r}; choose one of {list(SOLVERS)}")
+
+
+_GEO_NAMES = None
+
+
+def _geo_names():
+    global _GEO_NAMES
+    if _GEO_NAMES is None:
+        newton = _import_newton()
+        _GEO_NAMES = {int(v): v.name.lower() for v in newton.GeoType}
+    return _GEO_NAMES
+
+
+class NewtonWorld:
+    """Newton bodies on our deforming mesh, stepped like :class:`dynmesh_warp.world.World`.
+
+    Build a ``newton.ModelBuilder`` with the bodies (``add_body`` + shapes, ``add_mjcf`` ...),
+    then ``NewtonWorld(surface, builder, ...)`` adds the surface, finalizes the model on the
+    surface's device and creates the solver and collision pipeline.
+
+    Each sub-step (of ``dt / substeps``): advance the device clock -> write the surface at the new
+    time into the mesh, refit, update bounds -> ``CollisionPipeline.collide`` -> ``solver.step``.
+    The surface is the one at the END of the sub-step, the position the solver's contact
+    constraints should reach. On CUDA one step is captured as a CUDA graph.
+
+    Args:
+        surface: :class:`SurfaceModel`; builder: ``newton.ModelBuilder`` holding the bodies.
+        solver: a name in ``SOLVERS``; solver_options: constructor keyword arguments.
+        gravity: overrides the builder's gravity [m/s^2] (a 3-vector) when given.
+        update_bounds / bounds_pad / mu / restitution: see :class:`DeformingMeshShape`.
+    """
+
+    def __init__(self, surface: SurfaceModel, builder, *, dt: float = 1.0 / 240.0, substeps: int = 1,
+                 solver: str = "xpbd", solver_options: dict | None = None, gravity=None,
+                 update_bounds: bool = True, bounds_pad: float = 0.0, mu: float = 0.5, restitution: float = 0.0,
+                 t0: float = 0.0, use_graph: bool | None = None):
+        if not (dt > 0 and math.isfinite(dt)):
+            raise ValueError(f"dt must be a positive number, got {dt}")
+        if int(substeps) < 1:
+            raise ValueError(f"substeps must be >= 1, got {substeps}")
+        self.device = surface.device
+        self.surface = surface
+        self.dt = float(dt)
+        self.substeps = int(substeps)
+        self.sub_dt = self.dt / self.substeps
+        self.adapter = DeformingMeshShape(surface, update_bounds=update_bounds, bounds_pad=bounds_pad,
+                                          mu=mu, restitution=restitution)
+        self.adapter.add_to_builder(builder)
+        if gravity is not None:
+            builder.gravity = tuple(float(g) for g in gravity)
+        self.solver_name = solver
+        if solver == "vbd":
+            builder.color()
+        self.model = builder.finalize(device=self.device)
+        self.t0 = float(t0)
+        self.sim_time = wp.array([self.t0], dtype=wp.float64, device=self.device)
+        self.adapter.bind(self.model, self.sim_time)
+        self.solver = make_solver(self.model, solver, **(solver_options or {}))
+        newton = _import_newton()
+        self.state_0 = self.model.state()
+        self.state_1 = self.model.state()
+        self.control = self.model.control()
+        if self.model.joint_count:
+            newton.eval_fk(self.model, self.model.joint_q, self.model.joint_qd, self.state_0)
+        self.pipeline = newton.CollisionPipeline(self.model)
+        self.contacts = self.pipeline.contacts()
+        self.substep_count = 0
+        if use_graph is None:
+            use_graph = self.device.is_cuda
+        self.use_graph = bool(use_graph) and self.device.is_cuda
+        self._graph = None
+
+    # -- stepping ------------------------------------------------------------------------------
+    @property
+    def time(self) -> float:
+        """Simulation time [s], tracked on the host in step with the device clock."""
+        return self.t0 + self.substep_count * self.sub_dt
+
+    def _substep(self, last: bool):
+        self.state_0.clear_forces()
+        wp.launch(advance_time, dim=1, inputs=[self.sub_dt], outputs=[self.sim_time], device=self.device)
+        self.adapter.update()
+        self.pipeline.collide(self.state_0, self.contacts)
+        self.solver.step(self.state_0, self.state_1, self.control, self.contacts, self.sub_dt)
+        if last and self.substeps % 2 == 1:
+            self.state_0.assign(self.state_1)  # keeps state_0 the same arrays (graph replay)
+        else:
+            self.state_0, self.state_1 = self.state_1, self.state_0
+
+    def _step_body(self):
+        for i in range(self.substeps):
+            self._substep(i == self.substeps - 1)
+
+    def step(self):
+        """Advance by one physics step (dt)."""
+        if self.use_graph:
+            if self._graph is None:
+                with wp.ScopedCapture(device=self.device, force_module_load=True) as cap:
+                    self._step_body()
+                self._graph = cap.graph
+            wp.capture_launch(self._graph)
+        else:
+            self._step_body()
+        self.substep_count += self.substeps
+
+    # -- read-out (host copies; for the viewer and summaries) ----------------------------------
+    def body_transforms(self) -> np.ndarray:
+        """(B, 7) body poses: position [m] and quaternion (x, y, z, w)."""
+        return self.state_0.body_q.numpy().copy()
+
+    def body_velocities(self) -> np.ndarray:
+        """(B, 6) body twists as Newton stores them (linear [m/s], angular [rad/s])."""
+        return self.state_0.body_qd.numpy().copy()
+
+    def body_labels(self) -> list[str]:
+        return list(self.model.body_label) if getattr(self.model, "body_label", None) else []
+
+    def shape_transforms(self) -> np.ndarray:
+        """(S, 7) world poses of all shapes (body pose * shape's local transform; static shapes:
+        the local transform)."""
+        local = self.model.shape_transform.numpy()
+        body = self.model.shape_body.numpy()
+        bq = self.state_0.body_q.numpy()
+        out = local.copy()
+        for s in np.nonzero(body >= 0)[0]:
+            out[s] = _transform_multiply(bq[body[s]], local[s])
+        return out
+
+    def shapes(self, include_surface: bool = False) -> list[dict]:
+        """Descriptions of the collision shapes for display.
+
+        Each dict: ``index``, ``body`` (-1 static), ``type`` (``box`` | ``sphere`` | ``capsule`` |
+        ``cylinder`` | ``mesh`` | ...), ``scale`` (box: half extents; sphere: (r, 0, 0); capsule and
+        cylinder: (radius, half_height, 0), axis local z) [m], ``local_transform`` (7,) in the body
+        frame; mesh shapes also ``vertices`` (N, 3) and ``indices`` (M, 3) in the shape frame.
+        The deforming surface itself is left out unless ``include_surface``.
+        """
+        m = self.model
+        names = _geo_names()
+        types = m.shape_type.numpy()
+        scales = m.shape_scale.numpy()
+        bodies = m.shape_body.numpy()
+        local = m.shape_transform.numpy()
+        flags = m.shape_flags.numpy()
+        out = []
+        for s in range(m.shape_count):
+            if s == self.adapter.shape and not include_surface:
+                continue
+            d = {"index": s, "body": int(bodies[s]), "type": names.get(int(types[s]), str(int(types[s]))),
+                 "scale": scales[s].tolist(), "local_transform": local[s].tolist(), "flags": int(flags[s])}
+            src = m.shape_source[s] if getattr(m, "shape_source", None) is not None else None
+            if src is not None and hasattr(src, "vertices") and hasattr(src, "indices"):
+                d["vertices"] = np.asarray(src.vertices, np.float32)
+                d["indices"] = np.asarray(src.indices, np.int32).reshape(-1, 3)
+            out.append(d)
+        return out
+
+    def surface_points(self) -> np.ndarray:
+        """Current surface vertices (N, 3) [m] as Newton sees them."""
+        return self.adapter.points()
+
+
+def _quat_rotate(q, v):
+    x, y, z, w = q
+    u = np.array([x, y, z])
+    return v + 2.0 * np.cross(u, np.cross(u, v) + w * v)
+
+
+def _quat_mul(a, b):
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return np.array([aw * bx + ax * bw + ay * bz - az * by,
+                     aw * by - ax * bz + ay * bw + az * bx,
+                     aw * bz + ax * by - ay * bx + az * bw,
+                     aw * bw - ax * bx - ay * by - az * bz])
+
+
+def _transform_multiply(a, b):
+    p = a[:3] + _quat_rotate(a[3:], b[:3])
+    return np.concatenate([p, _quat_mul(a[3:], b[3:])])
+
+
+# ---------------------------------------------------------------------------------------------
+# Scenes: the ``newton:`` section of a scene YAML (see dynmesh_warp/config.py, docs/newton.md)
+# ---------------------------------------------------------------------------------------------
+
+
+def _set_free_velocity(builder, velocity):
+    """Initial linear velocity [m/s] of the body just added by ``add_body`` (its free joint's
+    qd is (v_com_world, omega_world))."""
+    if velocity is None or not np.any(velocity):
+        return
+    j = builder.joint_count - 1
+    q0 = builder.joint_qd_start[j]
+    for k in range(3):
+        builder.joint_qd[q0 + k] = float(velocity[k])
+
+
+def add_scene_bodies(builder, cfg, sphere_positions=None) -> list[dict]:
+    """Add the bodies of ``cfg.newton`` (and the scene's spheres when ``include_spheres``) to a
+    ``newton.ModelBuilder``. Returns one record per entry: kind, label, first/last body index."""
+    newton = _import_newton()
+    ncfg = cfg.newton
+    records = []
+    mu = cfg.physics.friction if ncfg.surface_mu is None else ncfg.surface_mu
+    for i, b in enumerate(ncfg.bodies):
+        label = b.label or f"{b.type}_{i}"
+        xf = wp.transform(wp.vec3(*b.position), wp.normalize(wp.quat(*b.rotation)))
+        scfg = newton.ModelBuilder.ShapeConfig(density=b.density, mu=mu, restitution=cfg.physics.restitution)
+        first = builder.body_count
+        if b.type in ("box", "sphere", "capsule"):
+            body = builder.add_body(xform=xf, label=label)
+            if b.type == "box":
+                hx, hy, hz = b.half_extents
+                builder.add_shape_box(body, hx=hx, hy=hy, hz=hz, cfg=scfg)
+            elif b.type == "sphere":
+                builder.add_shape_sphere(body, radius=b.radius, cfg=scfg)
+            else:
+                builder.add_shape_capsule(body, radius=b.radius, half_height=b.half_height, cfg=scfg)
+            _set_free_velocity(builder, b.velocity)
+        else:
+            path = str(cfg.resolve(b.file))
+            loader = {"mjcf": builder.add_mjcf, "urdf": builder.add_urdf, "usd": builder.add_usd}[b.type]
+            try:
+                loader(path, xform=xf, floating=b.floating, **b.options)
+            except Exception as e:  # noqa: BLE001 (report which file failed, with Newton's reason)
+                raise ValueError(f"newton.bodies.{i}.file: Newton could not load {b.type} {path}: {e}") from e
+        records.append({"kind": b.type, "label": label, "bodies": [first, builder.body_count]})
+    if ncfg.include_spheres and sphere_positions is not None:
+        radius, mass, pos, vel = sphere_positions
+        for k in range(len(pos)):
+            label = f"sphere_{k}"
+            vol = 4.0 / 3.0 * math.pi * radius[k] ** 3
+            scfg = newton.ModelBuilder.ShapeConfig(density=float(mass[k]) / vol, mu=mu,
+                                                   restitution=cfg.physics.restitution)
+            first = builder.body_count
+            body = builder.add_body(xform=wp.transform(wp.vec3(*[float(x) for x in pos[k]]), wp.quat_identity()),
+                                    label=label)
+            builder.add_shape_sphere(body, radius=float(radius[k]), cfg=scfg)
+            _set_free_velocity(builder, None if vel is None else vel[k])
+            records.append({"kind": "scene_sphere", "label": label, "bodies": [first, builder.body_count]})
+    return records
+
+
+def build_newton_world(cfg, device=None, sequence=None, **overrides) -> NewtonWorld:
+    """Create a :class:`NewtonWorld` from a validated scene with a ``newton:`` section."""
+    from .config import SceneError, spawn_positions  # noqa: PLC0415
+    from .scene import load_surface  # noqa: PLC0415
+
+    if cfg.newton is None:
+        raise SceneError("the scene has no 'newton:' section")
+    try:
+        newton = _import_newton()
+    except ImportError as e:
+        raise SceneError(f"newton: {e}") from e
+    device = wp.get_device(device or cfg.device)
+    seq = load_surface(cfg) if sequence is None else sequence
+    if not isinstance(seq, FixedTopologySequence):
+        raise SceneError(f"surface {cfg.surface.source}: the Newton path needs a fixed-topology surface; "
+                         "set surface.conversion to convert it")
+    if isinstance(cfg.spheres, list):
+        sph = ([s.radius for s in cfg.spheres], [s.mass for s in cfg.spheres],
+               np.asarray([s.position for s in cfg.spheres], np.float32).reshape(-1, 3),
+               np.asarray([s.velocity for s in cfg.spheres], np.float32).reshape(-1, 3))
+    else:
+        n = cfg.spheres.count
+        sph = ([cfg.spheres.radius] * n, [cfg.spheres.mass] * n, spawn_positions(cfg.spheres, seq.V[0]), None)
+    if any(m <= 0 for m in sph[1]) and cfg.newton.include_spheres:
+        raise SceneError("spheres: the Newton path needs mass > 0 for every sphere")
+    builder = newton.ModelBuilder()
+    records = add_scene_bodies(builder, cfg, sph)
+    p = cfg.physics
+    surface = SurfaceModel(seq, device, playback=cfg.surface.playback, interpolate=cfg.surface.interpolate)
+    kw = dict(dt=p.dt, substeps=p.substeps, solver=cfg.newton.solver, solver_options=dict(cfg.newton.solver_options),
+              gravity=p.gravity, mu=p.friction if cfg.newton.surface_mu is None else cfg.newton.surface_mu,
+              restitution=p.restitution)
+    kw.update(overrides)
+    world = NewtonWorld(surface, builder, **kw)
+    world.records = records
+    return world
+
+
+def run_newton_scene(cfg, device=None, steps: int | None = None, output=None, progress: bool = True,
+                     log=print) -> dict:
+    """Run a ``newton:`` scene headless; write ``trajectories.npz`` (time, body_q (K, B, 7)) and
+    ``summary.json`` atomically; return the summary (steps/s, final body poses)."""
+    import platform  # noqa: PLC0415
+    import sys  # noqa: PLC0415
+    import time  # noqa: PLC0415
+    from pathlib import Path  # noqa: PLC0415
+
+    from .outputs import atomic_write_json, atomic_write_npz  # noqa: PLC0415
+
+    t_build = time.perf_counter()
+    world = build_newton_world(cfg, device=device)
+    if steps is None:
+        steps = cfg.run.steps or max(1, int(round(cfg.run.duration / world.dt)))
+    out = Path(output) if output else cfg.resolve(cfg.run.output.format(name=cfg.name))
+    world.step()  # warm-up: compile kernels (and capture the CUDA graph) outside the timed loop
+    wp.synchronize_device(world.device)
+    build_s = time.perf_counter() - t_build
+    times, poses = [world.time], [world.body_transforms()]
+    try:
+        from tqdm import tqdm  # noqa: PLC0415
+
+        bar = tqdm(total=steps - 1, unit="step", disable=not progress, file=sys.stderr, dynamic_ncols=True)
+    except ImportError:  # pragma: no cover
+        bar = None
+    sim_s, done = 0.0, 1
+    while done < steps:
+        n = min(cfg.run.record_every, steps - done)
+        t0 = time.perf_counter()
+        for _ in range(n):
+            world.step()
+        wp.synchronize_device(world.device)
+        sim_s += time.perf_counter() - t0
+        done += n
+        times.append(world.time)
+        poses.append(world.body_transforms())
+        if bar is not None:
+            bar.update(n)
+    if bar is not None:
+        bar.close()
+    final = world.body_transforms()
+    finite = bool(np.isfinite(final).all())
+    sps = (steps - 1) / sim_s if sim_s > 0 else float("nan")
+    summary = {
+        "scene": cfg.name,
+        "engine": "newton",
+        "newton_version": _import_newton().__version__,
+        "solver": world.solver_name,
+        "device": str(world.device),
+        "device_name": world.device.name if world.device.is_cuda else (platform.processor() or platform.machine()),
+        "cuda_graph": bool(world.use_graph),
+        "surface": {"source": cfg.surface.source, "frames": world.surface.num_frames, "fps": world.surface.fps,
+                    "vertices": world.surface.num_vertices, "faces": world.surface.num_faces},
+        "bodies": world.model.body_count,
+        "entries": world.records,
+        "dt": world.dt,
+        "substeps": world.substeps,
+        "steps": steps,
+        "sim_time_s": world.time,
+        "setup_and_compile_s": build_s,
+        "timed_steps": steps - 1,
+        "timed_wall_s": sim_s,
+        "steps_per_second": sps,
+        "final": {"finite": finite, "body_q": final, "body_labels": world.body_labels()},
+    }
+    atomic_write_npz(out / "trajectories.npz", time=np.asarray(times), body_q=np.asarray(poses))
+    atomic_write_json(out / "summary.json", summary)
+    summary["output"] = str(out)
+    log(f"{cfg.name}: {steps - 1} steps on {summary['device']} (Newton {world.solver_name}"
+        f"{', CUDA graph' if world.use_graph else ''}): {sps:,.0f} steps/s; {world.model.body_count} bodies; "
+        f"outputs in {out}")
+    if not finite:
+        log("WARNING: non-finite body state at the end of the run")
+    return summary

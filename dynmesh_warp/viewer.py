@@ -1,0 +1,433 @@
+"""Live viewer with viser: bound Gaussians, the physics mesh and the spheres, streamed per frame.
+
+``python -m dynmesh_warp.run scene.yaml --viewer viser --port 8080`` (see docs/rendering.md).
+viser is imported inside functions only, so ``import dynmesh_warp`` never needs it.
+
+Per frame the viewer advances the world by ``speed * (1 / fps)`` simulated seconds (whole
+physics steps, the remainder carried over), then sends, inside one ``server.atomic()`` block,
+only what changed: mesh vertices and the splat buffer when the surface time moved, sphere
+positions when they moved (the whole sphere node when the count changed), the time slider.
+GUI callbacks (viser's threads) only queue actions; the frame loop applies them, so all Warp
+work stays on one thread.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["Viewer", "run_viewer", "decode_viser_recording", "decode_wire_message", "SceneStateTracker",
+           "recording_html"]
+
+MIN_SCALE_REL = 1.0e-3  # viewer std-dev floor, relative to the scene's bounding-box diagonal
+MIN_RATIO = 0.05  # viewer std-dev floor, relative to the Gaussian's largest std dev (float16)
+
+
+def _require_viser():
+    try:
+        import viser  # noqa: PLC0415
+    except ImportError as e:  # pragma: no cover
+        raise RuntimeError("the viser viewer needs the optional dependency: pip install 'dynmesh_warp[viewer]'") from e
+    return viser
+
+
+class Viewer:
+    """A viser server showing ``world`` (and ``gaussians`` bound to its mesh).
+
+    Programmatic use: ``v = Viewer(world, g, port=0); v.run(max_frames=10); v.close()``
+    (port 0: any free port, see ``v.port``). ``record``: path of a ``.viser`` file; every
+    frame is appended to a scene recording, written (with a self-contained ``.html`` next to
+    it) by :meth:`close`. ``realtime=False`` runs frames back to back (headless recording).
+    """
+
+    def __init__(self, world, gaussians=None, port: int = 8080, host: str = "127.0.0.1", fps: float = 30.0,
+                 record: str | Path | None = None, realtime: bool = True, speed: float = 1.0,
+                 min_scale_rel: float = MIN_SCALE_REL, min_ratio: float = MIN_RATIO,
+                 mesh_color=(90, 160, 220), sphere_color=(230, 90, 60), show_mesh: bool | None = None,
+                 seed: int = 0, log=print):
+        viser = _require_viser()
+        import trimesh
+
+        self.world = world
+        self.gaussians = gaussians
+        self.fps = float(fps)
+        self.frame_dt = 1.0 / self.fps
+        self.realtime = bool(realtime)
+        self.speed = float(speed)
+        self.playing = True
+        self.frame = 0
+        self._owed = 0.0
+        self._actions: list = []
+        self._lock = threading.Lock()
+        self._rng = np.random.default_rng(seed)
+        self.log = log
+        self.record_path = Path(record) if record else None
+        surf = world.model.surface
+        self.faces = surf.sequence.F.astype(np.uint32) if hasattr(surf.sequence, "F") else None
+        if self.faces is None:
+            raise ValueError("the viewer needs a fixed-topology surface (convert the sequence first)")
+        V0 = surf.sequence.V[0]
+        self.scene_scale = float(np.linalg.norm(V0.max(0) - V0.min(0))) or 1.0
+        self.min_scale = min_scale_rel * self.scene_scale
+        self.min_ratio = float(min_ratio)
+        self.duration = surf.num_frames / surf.fps if surf.num_frames > 1 else 10.0
+        self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        self.port = self.server.get_port()
+        ico = trimesh.creation.icosphere(subdivisions=2, radius=1.0)
+        self._ico = (np.asarray(ico.vertices, np.float32), np.asarray(ico.faces, np.uint32))
+        self.mesh_color, self.sphere_color = tuple(mesh_color), tuple(sphere_color)
+        if show_mesh is None:
+            show_mesh = gaussians is None
+        self._build_scene(V0, show_mesh)
+        self._build_gui(show_mesh)
+        self._serializer = self.server.get_scene_serializer() if self.record_path else None
+        self._closed = False
+
+    # -- scene ---------------------------------------------------------------------------------
+    def _points(self) -> np.ndarray:
+        w = self.world
+        if not getattr(w, "render_state", True):
+            w.sync_surface()
+        return np.array(w.state.points.numpy(), dtype=np.float32, copy=True)
+
+    def _splat_buffer(self) -> np.ndarray:
+        """(G, 8) uint32 viser splat buffer: centre f32 x3, reserved, covariance f16 x6, rgba."""
+        g = self.gaussians
+        cov = g.splat_covariances_f16(self.min_scale, self.min_ratio)
+        centers = np.array(g.state.centers.numpy(), dtype=np.float32, copy=True)
+        buf = np.zeros((g.count, 8), np.uint32)
+        buf[:, 0:3] = centers.view(np.uint32)
+        buf[:, 4:7] = np.ascontiguousarray(cov).view(np.uint32)
+        buf[:, 7] = self._rgba
+        return buf
+
+    def _build_scene(self, V0, show_mesh: bool):
+        sc = self.server.scene
+        sc.set_up_direction("+z")
+        lo, hi = V0.min(0), V0.max(0)
+        c = 0.5 * (lo + hi)
+        cam = self.server.initial_camera
+        cam.look_at = tuple(float(x) for x in c)
+        cam.position = tuple(float(x) for x in c + np.array([1.2, -1.6, 1.0]) * self.scene_scale * 0.5)
+        cam.up = (0.0, 0.0, 1.0)
+        P = self._points()
+        self.mesh = sc.add_mesh_simple("/mesh", P, self.faces, color=self.mesh_color, side="double",
+                                       visible=show_mesh)
+        self.splats = None
+        g = self.gaussians
+        if g is not None and g.count:
+            rgba = np.concatenate([np.round(g.binding.rgb * 255), np.round(g.binding.opacity[:, None] * 255)], 1)
+            self._rgba = np.ascontiguousarray(np.clip(rgba, 0, 255).astype(np.uint8)).view(np.uint32).reshape(-1)
+            cov = np.zeros((g.count, 3, 3), np.float32)
+            cov[:] = np.eye(3) * 1e-4
+            self.splats = sc.add_gaussian_splats("/splats", centers=np.zeros((g.count, 3), np.float32),
+                                                 covariances=cov, rgbs=g.binding.rgb,
+                                                 opacities=g.binding.opacity[:, None])
+            self.splats.buffer = self._splat_buffer()
+        self.spheres = None
+        self._sphere_count = -1
+        self._send_spheres(force=True)
+        self._sent_time = self.world.time
+        self._stale = {"mesh": False, "splats": False}
+
+    def _send_spheres(self, force: bool = False):
+        w = self.world
+        pos = np.array(w.sphere_positions(), dtype=np.float32, copy=True)  # CPU numpy() is a view
+        S = pos.shape[0]
+        if S != self._sphere_count or force:
+            if self.spheres is not None:
+                self.spheres.remove()
+                self.spheres = None
+            visible = self.gui_show_spheres.value if hasattr(self, "gui_show_spheres") else True
+            if S:
+                self.spheres = self.server.scene.add_batched_meshes_simple(
+                    "/spheres", self._ico[0], self._ico[1], batched_wxyzs=np.tile(np.float32([1, 0, 0, 0]), (S, 1)),
+                    batched_positions=pos, batched_scales=w.model.spheres.radius_np.astype(np.float32),
+                    batched_colors=self.sphere_color, lod="off", visible=visible)
+            self._sphere_count = S
+            self._last_pos = pos
+        elif S and not np.array_equal(pos, self._last_pos):
+            self.spheres.batched_positions = pos
+            self._last_pos = pos
+
+    # -- GUI -----------------------------------------------------------------------------------
+    def _queue(self, action, *args):
+        with self._lock:
+            self._actions.append((action, args))
+
+    def _build_gui(self, show_mesh: bool):
+        gui = self.server.gui
+        self.gui_play = gui.add_checkbox("Play", True)
+        self.gui_time = gui.add_slider("Time [s]", min=0.0, max=round(self.duration, 3), step=0.01, initial_value=0.0)
+        self.gui_speed = gui.add_slider("Speed", min=0.0, max=4.0, step=0.05, initial_value=self.speed)
+        self.gui_reset = gui.add_button("Reset")
+        self.gui_drop = gui.add_button("Drop sphere")
+        self.gui_show_splats = gui.add_checkbox("Show splats", self.gaussians is not None)
+        self.gui_show_mesh = gui.add_checkbox("Show mesh", show_mesh)
+        self.gui_wire = gui.add_checkbox("Wireframe", False)
+        self.gui_show_spheres = gui.add_checkbox("Show spheres", True)
+        self._slider_guard = False
+
+        self.gui_play.on_update(lambda e: self._queue("play", self.gui_play.value))
+        self.gui_speed.on_update(lambda e: self._queue("speed", self.gui_speed.value))
+        self.gui_reset.on_click(lambda e: self._queue("reset"))
+        self.gui_drop.on_click(lambda e: self._queue("drop"))
+        self.gui_show_splats.on_update(lambda e: self._queue("show", "splats", self.gui_show_splats.value))
+        self.gui_show_mesh.on_update(lambda e: self._queue("show", "mesh", self.gui_show_mesh.value))
+        self.gui_show_spheres.on_update(lambda e: self._queue("show", "spheres", self.gui_show_spheres.value))
+        self.gui_wire.on_update(lambda e: self._queue("wire", self.gui_wire.value))
+
+        def on_time(e):
+            if not self._slider_guard and getattr(e, "client", None) is not None:
+                self._queue("seek", float(self.gui_time.value))
+
+        self.gui_time.on_update(on_time)
+
+    # -- actions (frame-loop thread) -----------------------------------------------------------
+    def _refresh_gaussians(self):
+        if self.gaussians is not None:
+            w = self.world
+            self.gaussians.update(w.state.points, w.current_indices())
+
+    def reset(self):
+        self.world.reset()
+        self._refresh_gaussians()
+        self._owed = 0.0
+
+    def seek(self, t: float):
+        """Move the surface to time ``t`` [s] (spheres keep their state)."""
+        w = self.world
+        w.set_time(max(float(t), w.t0))
+        self._refresh_gaussians()
+
+    def drop_sphere(self, radius: float | None = None):
+        """Add one sphere above the current surface at a seeded random spot (up = +z)."""
+        w = self.world
+        P = self._points()
+        lo, hi = P.min(0), P.max(0)
+        r = float(np.median(w.model.spheres.radius_np)) if w.model.spheres.count else 0.03 * self.scene_scale
+        r = radius or r
+        xy = lo[:2] + (0.2 + 0.6 * self._rng.random(2)) * (hi[:2] - lo[:2])
+        w.add_spheres([[xy[0], xy[1], hi[2] + 3 * r]], r, 1.0)
+
+    def _apply_actions(self):
+        with self._lock:
+            actions, self._actions = self._actions, []
+        for name, args in actions:
+            if name == "play":
+                self.playing = bool(args[0])
+            elif name == "speed":
+                self.speed = float(args[0])
+            elif name == "reset":
+                self.reset()
+            elif name == "drop":
+                self.drop_sphere()
+            elif name == "seek":
+                self.seek(args[0])
+            elif name == "wire":
+                self.mesh.wireframe = bool(args[0])
+            elif name == "show":
+                node = {"mesh": self.mesh, "splats": self.splats, "spheres": self.spheres}[args[0]]
+                if node is not None:
+                    node.visible = bool(args[1])
+                if args[0] in self._stale and args[1]:
+                    self._stale[args[0]] = True
+
+    # -- frame loop ----------------------------------------------------------------------------
+    def update(self) -> int:
+        """One viewer frame: apply GUI actions, step the world, send what changed. Returns the
+        number of physics steps taken."""
+        self._apply_actions()
+        w = self.world
+        n = 0
+        if self.playing:
+            self._owed += self.speed * self.frame_dt
+            dt = w.model.params.dt
+            n = int(self._owed / dt + 1e-9)
+            self._owed -= n * dt
+            for _ in range(n):
+                w.step()
+        self._send()
+        if self._serializer is not None:
+            self._serializer.insert_sleep(self.frame_dt)
+        self.frame += 1
+        return n
+
+    def _send(self):
+        w = self.world
+        moved = w.time != self._sent_time
+        with self.server.atomic():
+            if (moved or self._stale["mesh"]) and self.mesh.visible:
+                self.mesh.vertices = self._points()
+                self._stale["mesh"] = False
+            elif moved:
+                self._stale["mesh"] = True
+            if self.splats is not None:
+                if (moved or self._stale["splats"]) and self.splats.visible:
+                    self.splats.buffer = self._splat_buffer()
+                    self._stale["splats"] = False
+                elif moved:
+                    self._stale["splats"] = True
+            self._send_spheres()
+            if moved:
+                self._slider_guard = True
+                try:
+                    t = w.time % self.duration if self.duration > 0 else w.time
+                    self.gui_time.value = round(min(t, self.duration), 2)
+                finally:
+                    self._slider_guard = False
+        self._sent_time = w.time
+
+    def run(self, max_frames: int | None = None):
+        """Frame loop until ``max_frames`` (None: until Ctrl-C); paced to ``fps`` when realtime."""
+        try:
+            while max_frames is None or self.frame < max_frames:
+                t0 = time.perf_counter()
+                self.update()
+                if self.realtime:
+                    rest = self.frame_dt - (time.perf_counter() - t0)
+                    if rest > 0:
+                        time.sleep(rest)
+        except KeyboardInterrupt:
+            self.log("viewer: interrupted")
+
+    def close(self):
+        """Write the recording (if any) and stop the server."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            if self._serializer is not None:
+                from .outputs import atomic_write_bytes
+
+                data = self._serializer.serialize()
+                atomic_write_bytes(self.record_path, data)
+                html = self.record_path.with_suffix(".html")
+                atomic_write_bytes(html, recording_html(data).encode("utf-8"))
+                self.log(f"recording: {self.record_path} ({len(data) / 1e6:.1f} MB), {html}")
+        finally:
+            self.server.stop()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+        return False
+
+
+def recording_html(data: bytes, dark_mode: bool = False) -> str:
+    """A self-contained HTML page playing the ``.viser`` recording ``data``: viser's single-file
+    client build with the recording embedded as base64 (what ``StateSerializer.as_html`` does)."""
+    import base64
+
+    viser = _require_viser()
+    client = Path(viser.__file__).parent / "client" / "build" / "index.html"
+    page = client.read_text(encoding="utf-8")
+    inject = (f'<script>window.__VISER_EMBED_DATA__="{base64.b64encode(data).decode("ascii")}";'
+              f"window.__VISER_EMBED_CONFIG__={{darkMode:{'true' if dark_mode else 'false'}}};</script>")
+    i = page.index("</head>")
+    return page[:i] + inject + page[i:]
+
+
+# -- decoding what viser sends (tests, inspection) -------------------------------------------------
+
+
+def _resolve(obj, buffers):
+    if isinstance(obj, dict):
+        if "__binary_index" in obj and "dtype" in obj:
+            return np.frombuffer(buffers[obj["__binary_index"]], dtype=np.dtype(obj["dtype"]))
+        return {k: _resolve(v, buffers) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_resolve(v, buffers) for v in obj]
+    return obj
+
+
+def _split_buffers(blob: memoryview, offset: int, lengths) -> list:
+    out = []
+    for n in lengths:
+        offset += (8 - offset % 8) % 8
+        out.append(bytes(blob[offset:offset + n]))
+        offset += n
+    return out
+
+
+def decode_wire_message(raw: bytes) -> list[dict]:
+    """Messages of one viser websocket frame (zstd msgpack + aligned raw buffers), arrays as
+    flat NumPy arrays."""
+    import msgspec
+    import zstandard
+
+    mv = memoryview(raw)
+    n_inner = int.from_bytes(mv[0:8], "little")
+    n_comp = int.from_bytes(mv[8:16], "little")
+    inner = zstandard.ZstdDecompressor().decompress(bytes(mv[16:16 + n_comp]), max_output_size=n_inner)
+    meta = msgspec.msgpack.decode(inner)
+    bufs = _split_buffers(mv, 16 + n_comp, meta["binaryBufferLengths"])
+    return [_resolve(m, bufs) for m in meta["messages"]]
+
+
+def decode_viser_recording(data: bytes) -> dict:
+    """A ``.viser`` recording: {"duration": s, "version": str, "messages": [(t, message dict)]}."""
+    import msgspec
+    import zstandard
+
+    size = int.from_bytes(data[:8], "little")
+    inner = zstandard.ZstdDecompressor().decompress(data[8:], max_output_size=size)
+    mv = memoryview(inner)
+    n = int.from_bytes(mv[:8], "little")
+    meta = msgspec.msgpack.decode(bytes(mv[8:8 + n]))
+    bufs = _split_buffers(mv, 8 + n, meta["binaryBufferLengths"])
+    msgs = [(t, _resolve(m, bufs)) for t, m in meta["messages"]]
+    return {"duration": meta["durationSeconds"], "version": meta["viserVersion"], "messages": msgs}
+
+
+class SceneStateTracker:
+    """Applies decoded viser messages to a {node name: props} dict (creation, prop updates,
+    removal), i.e. the scene a client would show."""
+
+    def __init__(self):
+        self.nodes: dict[str, dict] = {}
+
+    def apply(self, msg: dict):
+        t = msg.get("type", "")
+        if t == "SceneNodeUpdateMessage":
+            if msg["name"] in self.nodes:
+                self.nodes[msg["name"]].update(msg["updates"])
+        elif t == "RemoveSceneNodeMessage":
+            self.nodes.pop(msg["name"], None)
+        elif "props" in msg and "name" in msg and isinstance(msg["props"], dict):
+            self.nodes[msg["name"]] = dict(msg["props"], _type=t)
+
+
+def run_viewer(cfg, device=None, viewer: str = "viser", port: int = 8080, host: str = "127.0.0.1",
+               record: str | None = None, steps: int | None = None, collider: str | None = None,
+               rebuild_every: str | None = None, fps: float = 30.0, log=print) -> dict:
+    """Build the scene, bind/generate its Gaussians and run the viewer.
+
+    ``viewer="viser"``: interactive until Ctrl-C (or ``steps`` physics steps, if given);
+    ``viewer="none"`` with ``record``: headless, frames back to back for ``steps`` (default:
+    the scene's run duration), then the recording is written.
+    """
+    from .gaussians import gaussians_for_world
+    from .scene import build_world
+
+    world = build_world(cfg, device=device, collider=collider, rebuild_every=rebuild_every)
+    g = gaussians_for_world(world, cfg)
+    v = Viewer(world, g, port=port, host=host, fps=fps, record=record, realtime=(viewer == "viser"), log=log)
+    dt = world.model.params.dt
+    if steps is None and viewer != "viser":
+        steps = cfg.run.steps or max(1, int(round(cfg.run.duration / dt)))
+    max_frames = None if steps is None else max(1, int(np.ceil(steps * dt / v.frame_dt)))
+    if viewer == "viser":
+        log(f"viewer: http://{'localhost' if host in ('0.0.0.0', '127.0.0.1') else host}:{v.port} "
+            f"({g.count} Gaussians, {world.model.spheres.count} spheres); Ctrl-C to quit")
+    try:
+        v.run(max_frames=max_frames)
+    finally:
+        v.close()
+    return {"frames": v.frame, "sim_time_s": world.time, "gaussians": g.count, "port": v.port,
+            "record": str(record) if record else None}

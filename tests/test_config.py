@@ -1,0 +1,199 @@
+"""Scene YAML validation (load_scene_config) and the headless CLI (dynmesh_warp.run.main).
+
+Every bad input must give a SceneError whose message names the offending key path or file;
+the CLI must turn it into exit code 2 with the message on stderr.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from conftest import grid_height, surface_at
+
+from dynmesh_warp.config import SceneConfig, SceneError, load_scene_config
+from dynmesh_warp.run import main
+
+
+def write_yaml(folder: Path, data, name="scene.yaml") -> Path:
+    p = folder / name
+    p.write_text(data if isinstance(data, str) else yaml.safe_dump(data))
+    return p
+
+
+def test_default_scene_validates():
+    cfg = load_scene_config()
+    assert isinstance(cfg, SceneConfig)
+    assert cfg.name == "default"
+    assert cfg.surface.source == "builtin:wave_bowl"
+    assert cfg.physics.dt > 0
+
+
+def test_minimal_file_gets_defaults_and_its_name(tmp_path):
+    cfg = load_scene_config(write_yaml(tmp_path, {"physics": {"dt": 0.002}}, "my_scene.yaml"))
+    assert cfg.name == "my_scene"
+    assert cfg.physics.dt == 0.002
+    assert cfg.physics.restitution == SceneConfig().physics.restitution
+
+
+def test_empty_file_is_the_defaults(tmp_path):
+    cfg = load_scene_config(write_yaml(tmp_path, "", "empty.yaml"))
+    assert cfg.surface.source == "builtin:wave_bowl"
+
+
+@pytest.mark.parametrize("data, must_contain", [
+    ({"physics": {"dtt": 0.01}}, ["physics.dtt: unknown key"]),
+    ({"physiks": {"dt": 0.01}}, ["physiks: unknown key"]),
+    ({"surface": {"source": "builtin:wave_bowl", "fpss": 3}}, ["surface.fpss: unknown key"]),
+    ({"physics": {"dt": "fast"}}, ["physics.dt", "number"]),
+    ({"physics": {"dt": -0.01}}, ["physics.dt", "greater than 0"]),
+    ({"physics": {"dt": 0}}, ["physics.dt", "greater than 0"]),
+    ({"physics": {"restitution": 1.5}}, ["physics.restitution"]),
+    ({"physics": {"substeps": 0}}, ["physics.substeps"]),
+    ({"physics": {"collider": "octree"}}, ["physics.collider"]),
+    ({"physics": {"gravity": [0, -9.8]}}, ["physics.gravity"]),
+    ({"surface": {"playback": "bounce"}}, ["surface.playback"]),
+    ({"run": {"steps": 0}}, ["run.steps"]),
+    ({"name": "a/b"}, ["name"]),
+])
+def test_bad_values_name_the_key_path(tmp_path, data, must_contain):
+    path = write_yaml(tmp_path, data)
+    with pytest.raises(SceneError) as ei:
+        load_scene_config(path)
+    msg = str(ei.value)
+    assert str(path) in msg  # names the file
+    for s in must_contain:
+        assert s in msg, f"{s!r} not in message:\n{msg}"
+
+
+def test_bad_sphere_in_list_names_the_field(tmp_path):
+    path = write_yaml(tmp_path, {"spheres": [{"position": [0, 0, 1]}, {"position": [0, 0, 1], "radius": -1}]})
+    with pytest.raises(SceneError) as ei:
+        load_scene_config(path)
+    assert "spheres" in str(ei.value) and "radius" in str(ei.value)
+
+
+def test_missing_surface_file_names_the_path(tmp_path):
+    path = write_yaml(tmp_path, {"surface": {"source": "data/missing_sequence.npz"}})
+    with pytest.raises(SceneError) as ei:
+        load_scene_config(path)
+    msg = str(ei.value)
+    assert "surface.source" in msg
+    assert str(tmp_path / "data" / "missing_sequence.npz") in msg  # resolved against the YAML folder
+
+
+def test_missing_scene_file(tmp_path):
+    with pytest.raises(SceneError, match="not found") as ei:
+        load_scene_config(tmp_path / "nope.yaml")
+    assert "nope.yaml" in str(ei.value)
+
+
+@pytest.mark.parametrize("text", ["physics: {dt: 0.01\n", "physics:\n  dt: 0.1\n dt2: [\n", "a: b: c\n"])
+def test_yaml_syntax_error(tmp_path, text):
+    path = write_yaml(tmp_path, text, "broken.yaml")
+    with pytest.raises(SceneError) as ei:
+        load_scene_config(path)
+    assert "broken.yaml" in str(ei.value)
+    assert "YAML" in str(ei.value)
+
+
+def test_top_level_must_be_a_mapping(tmp_path):
+    with pytest.raises(SceneError, match="mapping"):
+        load_scene_config(write_yaml(tmp_path, "- 1\n- 2\n", "list.yaml"))
+
+
+def test_relative_paths_resolve_against_the_yaml_folder(tmp_path, monkeypatch):
+    from dynmesh_warp import scenes
+    from dynmesh_warp.io import load_sequence
+
+    data = tmp_path / "scene_dir" / "data"
+    data.mkdir(parents=True)
+    seq = scenes.pulsing_blob(subdivisions=1, frames=3)
+    np.savez(data / "blob.npz", V=seq.V, F=seq.F, fps=np.float32(seq.fps), name="blob")
+    path = write_yaml(tmp_path / "scene_dir", {"surface": {"source": "data/blob.npz"}})
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)  # the working directory must not matter
+    cfg = load_scene_config(path)
+    assert cfg.resolve(cfg.surface.source) == (data / "blob.npz").resolve()
+    assert cfg.resolve(cfg.run.output.format(name=cfg.name)).parent.resolve() == (tmp_path / "scene_dir" / "out").resolve()
+    loaded = load_sequence(cfg.resolve(cfg.surface.source))
+    np.testing.assert_array_equal(loaded.V, seq.V)
+    # the same relative path from the wrong folder is reported missing
+    with pytest.raises(SceneError, match="blob.npz"):
+        load_scene_config(write_yaml(elsewhere, {"surface": {"source": "data/blob.npz"}}))
+
+
+# ---------------------------------------------------------------------------------------------
+# CLI
+# ---------------------------------------------------------------------------------------------
+
+TINY_SCENE = {
+    "name": "tiny",
+    "surface": {"source": "builtin:wave_bowl", "params": {"n": 24, "frames": 12}},
+    "spheres": [{"position": [0.1, 0.0, 0.9], "radius": 0.08},
+                {"position": [-0.3, 0.2, 1.1], "radius": 0.06, "velocity": [0.5, 0.0, 0.0]}],
+    "physics": {"dt": 1.0 / 240.0},
+}
+
+
+def test_cli_runs_tiny_scene_and_writes_outputs(tmp_path, capsys):
+    from dynmesh_warp import scenes
+
+    scene = write_yaml(tmp_path, TINY_SCENE, "tiny.yaml")
+    out = tmp_path / "out"
+    steps = 200
+    rc = main([str(scene), "--steps", str(steps), "--device", "cpu", "--no-progress", "--output", str(out)])
+    captured = capsys.readouterr()
+    assert rc == 0, captured.err
+    summary = json.loads((out / "summary.json").read_text())
+    traj = np.load(out / "trajectories.npz")
+    assert summary["steps"] == steps
+    assert summary["steps_per_second"] > 0
+    assert summary["spheres"] == 2
+    assert summary["final"]["finite"] is True
+    pos = np.asarray(summary["final"]["position"], float)
+    assert pos.shape == (2, 3) and np.isfinite(pos).all()
+    assert summary["final"]["max_penetration"] < 0.02
+    assert summary["sim_time_s"] == pytest.approx(steps / 240.0)
+    # trajectories: time increases; the record starts at the first step and ends at the final state
+    t, P = traj["time"], traj["position"]
+    assert P.shape == (len(t), 2, 3) and np.all(np.diff(t) > 0)
+    np.testing.assert_allclose(traj["radius"], [0.08, 0.06])
+    np.testing.assert_allclose(P[-1], pos, atol=1e-6)
+    # the record is a trajectory, not the final state repeated: sphere 0 starts near where it was put
+    np.testing.assert_allclose(P[0, 0], TINY_SCENE["spheres"][0]["position"], atol=0.01)
+    assert P[0, 0, 2] - P[-1, 0, 2] > 0.1  # it fell onto the bowl
+    # both spheres end above the surface (independent check: NumPy height field at that time)
+    seq = scenes.wave_bowl(n=24, frames=12)
+    h = grid_height(surface_at(seq, summary["sim_time_s"]), 24, 2.0, pos[:, :2].astype(np.float64))
+    assert np.isfinite(h).all()
+    assert (pos[:, 2] - h > 0.5 * traj["radius"]).all()
+
+
+def test_cli_bad_scene_exit_code_2(tmp_path, capsys):
+    scene = write_yaml(tmp_path, {"physics": {"dtt": 0.01}}, "bad.yaml")
+    rc = main([str(scene), "--steps", "5", "--device", "cpu", "--no-progress", "--output", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert "physics.dtt: unknown key" in err
+    assert not (tmp_path / "o" / "summary.json").exists()
+
+
+def test_cli_missing_scene_and_bad_builtin_params(tmp_path, capsys):
+    rc = main([str(tmp_path / "absent.yaml"), "--steps", "5", "--device", "cpu", "--no-progress"])
+    assert rc == 2
+    assert "absent.yaml" in capsys.readouterr().err
+    scene = write_yaml(tmp_path, {"surface": {"source": "builtin:wave_bowl", "params": {"wobble": 3}}}, "p.yaml")
+    rc = main([str(scene), "--steps", "5", "--device", "cpu", "--no-progress", "--output", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert "wave_bowl" in err and "wobble" in err
+    scene = write_yaml(tmp_path, {"surface": {"source": "builtin:no_such_scene"}}, "q.yaml")
+    rc = main([str(scene), "--steps", "5", "--device", "cpu", "--no-progress", "--output", str(tmp_path / "o")])
+    assert rc == 2
+    assert "no_such_scene" in capsys.readouterr().err

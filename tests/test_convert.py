@@ -1,0 +1,319 @@
+"""Topology conversion (dynmesh_warp.convert): NearestSurface vs brute force, identity, rigid
+motion, re-anchoring, bad input. CPU, small meshes."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+import warp as wp
+
+from dynmesh_warp.convert import (
+    STRATEGIES,
+    nearest_surface,
+    surface_deviation,
+    to_fixed_topology,
+    vertex_adjacency,
+    main as convert_main,
+)
+from dynmesh_warp.scenes import icosphere, rigid_motion
+from dynmesh_warp.sequence import FixedTopologySequence, MeshDataError, VaryingTopologySequence
+
+wp.config.quiet = True
+DEV = "cpu"
+
+
+# ----------------------------------------------------------------------------- references
+
+
+def _closest_on_triangles_np(p, A, B, C):
+    """Brute-force closest points of p (3,) on every triangle (A,B,C each (M,3)), float64.
+    Minimum over: the plane projection when it falls inside the triangle, and the three edges."""
+    cands = []
+    ab, ac = B - A, C - A
+    n = np.cross(ab, ac)
+    nn = np.einsum("ij,ij->i", n, n)
+    ok = nn > 1e-30
+    t = np.where(ok, np.einsum("ij,ij->i", p - A, n) / np.where(ok, nn, 1), 0)
+    q = p - t[:, None] * n
+    # barycentrics of q
+    v2 = q - A
+    d00 = np.einsum("ij,ij->i", ab, ab)
+    d01 = np.einsum("ij,ij->i", ab, ac)
+    d11 = np.einsum("ij,ij->i", ac, ac)
+    d20 = np.einsum("ij,ij->i", v2, ab)
+    d21 = np.einsum("ij,ij->i", v2, ac)
+    den = d00 * d11 - d01 * d01
+    den = np.where(np.abs(den) > 1e-30, den, 1)
+    v = (d11 * d20 - d01 * d21) / den
+    w = (d00 * d21 - d01 * d20) / den
+    inside = ok & (v >= 0) & (w >= 0) & (v + w <= 1)
+    qin = np.where(inside[:, None], q, np.inf)
+    cands.append(qin)
+    for P0, P1 in ((A, B), (B, C), (C, A)):
+        e = P1 - P0
+        ee = np.einsum("ij,ij->i", e, e)
+        s = np.clip(np.einsum("ij,ij->i", p - P0, e) / np.where(ee > 0, ee, 1), 0, 1)
+        cands.append(P0 + s[:, None] * e)
+    cands = np.stack(cands)  # (4, M, 3)
+    d = np.linalg.norm(cands - p, axis=-1)
+    d = np.where(np.isfinite(d), d, np.inf)
+    k = np.unravel_index(np.argmin(d), d.shape)
+    return cands[k], d[k], d.min(axis=0)
+
+
+def _rigid(T, t, fps=24.0, w=0.5, vel=(0.1, 0.05, 0.0)):
+    a = w * t / fps
+    R = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    return T @ R.T + np.asarray(vel) * t / fps
+
+
+def _shuffled(V, F, rng):
+    """The same surface with vertices and faces permuted and the face corners rotated."""
+    p = rng.permutation(len(V))
+    inv = np.empty_like(p)
+    inv[p] = np.arange(len(V))
+    F2 = inv[F][rng.permutation(len(F))]
+    F2 = np.roll(F2, int(rng.integers(3)), axis=1)
+    return V[p], F2
+
+
+def _diag(V):
+    return float(np.linalg.norm(np.ptp(V, axis=0)))
+
+
+# ----------------------------------------------------------------------------- NearestSurface
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_nearest_surface_matches_brute_force(seed):
+    rng = np.random.default_rng(seed)
+    V = rng.normal(size=(40, 3)).astype(np.float32)
+    F = np.array([rng.choice(40, 3, replace=False) for _ in range(60)], np.int32)
+    P = (rng.normal(size=(150, 3)) * 1.5).astype(np.float32)
+    r = nearest_surface((V, F), P, device=DEV)
+    A, B, C = (V[F[:, k]].astype(np.float64) for k in range(3))
+    for i, p in enumerate(P.astype(np.float64)):
+        c_ref, d_ref, d_all = _closest_on_triangles_np(p, A, B, C)
+        assert r.dist[i] == pytest.approx(d_ref, abs=2e-5, rel=1e-4)
+        # the reported face attains the minimum distance and the barycentrics reproduce the point
+        assert d_all[r.face[i]] == pytest.approx(d_ref, abs=2e-5, rel=1e-4)
+        assert np.all(r.bary[i] >= -1e-5) and r.bary[i].sum() == pytest.approx(1.0, abs=1e-5)
+        from_bary = r.bary[i] @ V[F[r.face[i]]].astype(np.float64)
+        np.testing.assert_allclose(from_bary, r.closest[i], atol=2e-5)
+        # the closest point is unique for random data: compare it directly
+        np.testing.assert_allclose(r.closest[i], c_ref, atol=1e-4)
+
+
+def test_nearest_surface_max_dist_and_wp_mesh():
+    V, F = icosphere(2, 1.0)
+    P = np.array([[0, 0, 3.0], [0, 0, 1.2]], np.float32)
+    r = nearest_surface((V, F), P, device=DEV, max_dist=0.5)
+    assert r.face[0] == -1 and r.dist[0] == pytest.approx(0.5)
+    assert r.face[1] >= 0 and r.dist[1] == pytest.approx(0.2, abs=0.01)
+    m = wp.Mesh(points=wp.array(V, dtype=wp.vec3, device=DEV), indices=wp.array(F.ravel(), dtype=wp.int32, device=DEV))
+    r2 = nearest_surface(m, P)
+    np.testing.assert_allclose(r2.dist, [2.0, 0.2], atol=0.01)
+
+
+def test_vertex_adjacency_csr():
+    V, F = icosphere(1, 1.0)
+    off, nb = vertex_adjacency(F, len(V))
+    edges = {tuple(sorted(e)) for f in F for e in ((f[0], f[1]), (f[1], f[2]), (f[2], f[0]))}
+    assert off[-1] == 2 * len(edges)
+    for i in range(len(V)):
+        ref = sorted({b for a, b in edges if a == i} | {a for a, b in edges if b == i})
+        assert nb[off[i]:off[i + 1]].tolist() == ref
+
+
+# ----------------------------------------------------------------------------- strategies
+
+
+@pytest.fixture(scope="module")
+def blob():
+    V, F = icosphere(3, 0.5)
+    V = V * (1.0 + 0.15 * np.sin(4 * V[:, :1])) + np.float32([0.1, -0.2, 0.3])
+    return V.astype(np.float32), F
+
+
+@pytest.mark.parametrize("strategy", STRATEGIES)
+def test_projection_onto_itself_is_identity(blob, strategy):
+    V, F = blob
+    rng = np.random.default_rng(3)
+    # the same surface every frame, re-triangulated (shuffled) in frames 1, 2
+    seq = VaryingTopologySequence([(V, F), _shuffled(V, F, rng), _shuffled(V, F, rng)])
+    opts = {"reanchor_interval": 2} if strategy == "tracking" else {}
+    r = to_fixed_topology(seq, strategy=strategy, device=DEV, **opts)
+    assert r.V.shape == (3,) + V.shape and np.array_equal(r.F, F)
+    tol = 1e-5 * _diag(V)
+    for t in range(3):
+        assert np.abs(r.V[t] - V).max() < tol, (strategy, t, np.abs(r.V[t] - V).max())
+
+
+@pytest.fixture(scope="module")
+def rigid_varying():
+    """rigid_motion (30 frames, rotation 0.5 rad/s about z + translation), made varying by
+    marching cubes (remesh at resolution 40) and by shuffling."""
+    from dynmesh_warp.remesh import remesh_sequence
+
+    seq = rigid_motion(frames=30)
+    rng = np.random.default_rng(0)
+    shuffled = VaryingTopologySequence([_shuffled(v, seq.F, rng) for v in seq.V])
+    remeshed = remesh_sequence(seq, resolution=40, device=DEV)
+    return seq, shuffled, remeshed
+
+
+def test_regularized_recovers_rigid_motion(rigid_varying):
+    seq, shuffled, remeshed = rigid_varying
+    for s, tol in ((shuffled, 1e-3), (remeshed, 0.01)):
+        r = to_fixed_topology(s, strategy="regularized", device=DEV)
+        T0 = r.V[0]
+        diag = _diag(T0)
+        err = max(np.linalg.norm(r.V[t] - _rigid(T0, t), axis=1).max() for t in range(s.num_frames))
+        # per-vertex error vs the template moved by the known rigid transform
+        assert err < tol * diag, (err / diag)
+
+
+@pytest.mark.parametrize("strategy", ["projection", "tracking"])
+def test_closest_point_strategies_follow_rigid_surface(rigid_varying, strategy):
+    """Closest-point strategies stay on the moving surface (Chamfer to the rigidly moved
+    template below 0.5 % of the diagonal), but cannot follow the tangential part of the
+    motion: their per-vertex error grows with the rotation (that is what 'regularized' fixes)."""
+    seq, shuffled, remeshed = rigid_varying
+    r = to_fixed_topology(remeshed, strategy=strategy, device=DEV)
+    T0 = r.V[0]
+    diag = _diag(T0)
+    last = remeshed.num_frames - 1
+    for t in (10, last):
+        moved = _rigid(T0, t)
+        d = surface_deviation(r.V[t], r.F, moved, r.F, device=DEV)
+        assert d["chamfer"] < 0.005 * diag
+    per_vertex = np.linalg.norm(r.V[last] - _rigid(T0, last), axis=1).mean() / diag
+    reg = to_fixed_topology(remeshed, strategy="regularized", device=DEV)
+    per_vertex_reg = np.linalg.norm(reg.V[last] - _rigid(T0, last), axis=1).mean() / diag
+    assert per_vertex > 10 * per_vertex_reg
+
+
+def test_tracking_reanchors_at_interval_with_blend():
+    seq = rigid_motion(frames=13)
+    rng = np.random.default_rng(1)
+    var = VaryingTopologySequence([_shuffled(v, seq.F, rng) for v in seq.V])
+    V0, F0 = var.frames[0]
+    template = (V0 * 1.01, F0)  # slightly off the surface, so projection != identity
+    r = to_fixed_topology(var, strategy="tracking", template=template, device=DEV,
+                          reanchor_interval=4, tracked_weight=0.7)
+    assert r.conversion.reanchored_frames == [4, 8, 12]
+    assert r.conversion.options["tracked_weight"] == 0.7
+    for t in range(1, 13):
+        tracked = nearest_surface(var.frames[t], r.V[t - 1], device=DEV).closest
+        if t in (4, 8, 12):
+            proj = nearest_surface(var.frames[t], template[0], device=DEV).closest
+            expect = 0.7 * tracked + 0.3 * proj
+            assert np.abs(tracked - proj).max() > 1e-3  # the blend is observable
+        else:
+            expect = tracked
+        np.testing.assert_allclose(r.V[t], expect, atol=2e-6)
+    # interval 0 disables re-anchoring
+    r0 = to_fixed_topology(var, strategy="tracking", template=template, device=DEV, reanchor_interval=0)
+    assert r0.conversion.reanchored_frames == []
+
+
+def test_regularized_keeps_vertices_spread_on_concave_target():
+    """A sphere collapsing into a bowl-ish dent: plain projection clumps vertices, the regularized
+    fit keeps the template's edge lengths far more uniform."""
+    V, F = icosphere(3, 0.5)
+    frames = [(V, F)]
+    for k in range(1, 6):
+        s = 0.12 * k
+        W = V.copy()
+        W[:, 2] = np.where(W[:, 2] > 0, W[:, 2] * (1 - 1.6 * s), W[:, 2])  # flatten/dent the top
+        frames.append(_shuffled(W, F, np.random.default_rng(k)))
+    seq = VaryingTopologySequence(frames)
+    off, nb = vertex_adjacency(F, len(V))
+    src = np.repeat(np.arange(len(V)), np.diff(off))
+
+    def spread(X):
+        L = np.linalg.norm(X[src] - X[nb], axis=1)
+        return L.std() / L.mean()
+
+    res = {s: to_fixed_topology(seq, strategy=s, device=DEV) for s in STRATEGIES}
+    last = res["regularized"].V[-1]
+    assert spread(last) < 0.8 * spread(res["projection"].V[-1])
+    d = surface_deviation(last, F, *frames[-1], device=DEV)
+    assert d["max_to_ref"] < 1e-3 * _diag(V)  # and it is on the surface
+
+
+# ----------------------------------------------------------------------------- bad input
+
+
+def test_empty_frame_raises():
+    V, F = icosphere(1, 1.0)
+    with pytest.raises(MeshDataError, match="frame 1.*empty"):
+        to_fixed_topology([(V, F), (np.zeros((0, 3), np.float32), F[:0])], device=DEV)
+
+
+def test_template_without_faces_raises():
+    V, F = icosphere(1, 1.0)
+    with pytest.raises(MeshDataError, match="template.*no faces"):
+        to_fixed_topology([(V, F), (V, F)], template=(V, np.zeros((0, 3), np.int32)), device=DEV)
+
+
+def test_frames_of_wildly_different_scale_warn():
+    V, F = icosphere(1, 1.0)
+    frames = [(V, F), (V * 1.05, F), (V * 100.0, F), (V, F)]
+    with pytest.warns(UserWarning, match=r"different scale.*frame\(s\) 2 "):
+        r = to_fixed_topology(frames, strategy="projection", device=DEV)
+    assert np.isfinite(r.V).all()
+
+
+def test_template_out_of_reach_raises():
+    V, F = icosphere(2, 1.0)
+    with pytest.raises(MeshDataError, match="template.*farther than"):
+        to_fixed_topology([(V, F), (V, F)], template=(V + np.float32([10, 0, 0]), F), device=DEV)
+    # within reach: no error, no warning
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        r = to_fixed_topology([(V, F), (V, F)], template=(V * 1.02, F), device=DEV)
+    assert np.abs(np.linalg.norm(r.V, axis=-1) - 1).max() < 0.01
+
+
+def test_bad_options_raise():
+    V, F = icosphere(1, 1.0)
+    with pytest.raises(ValueError, match="strategy"):
+        to_fixed_topology([(V, F)], strategy="magic")
+    with pytest.raises(TypeError, match="reanchor_interval"):
+        to_fixed_topology([(V, F)], strategy="projection", reanchor_interval=3)
+    with pytest.raises(ValueError, match="tracked_weight"):
+        to_fixed_topology([(V, F)], strategy="tracking", tracked_weight=1.5)
+
+
+def test_degenerate_frame_gives_no_nan():
+    V, F = icosphere(2, 1.0)
+    flat = V.copy()
+    flat[:] = flat[:1]  # every vertex at one point: all faces degenerate
+    with pytest.warns(UserWarning):
+        try:
+            r = to_fixed_topology([(V, F), (flat, F), (V, F)], strategy="regularized", device=DEV)
+        except (MeshDataError, RuntimeError) as e:  # a clear error is acceptable
+            assert "frame 1" in str(e)
+        else:
+            assert np.isfinite(r.V).all()
+
+
+def test_cli_roundtrip(tmp_path, blob):
+    from dynmesh_warp.io import load_sequence, save_sequence
+
+    V, F = blob
+    rng = np.random.default_rng(5)
+    seq = VaryingTopologySequence([(V, F), _shuffled(V, F, rng)], name="blob")
+    src = tmp_path / "in.npz"
+    save_sequence(seq, src)
+    out = tmp_path / "out.npz"
+    rc = convert_main([str(src), str(out), "--strategy", "tracking", "--device", "cpu",
+                       "--reanchor-interval", "1", "--tracked-weight", "0.5"])
+    assert rc == 0
+    r = load_sequence(out)
+    assert isinstance(r, FixedTopologySequence) and r.V.shape == (2,) + V.shape
+    np.testing.assert_allclose(r.V[1], V, atol=1e-5)
+    assert convert_main([str(tmp_path / "missing.npz"), str(out)]) == 2

@@ -1,0 +1,183 @@
+"""Newton adapter: Newton bodies against our deforming mesh (CPU, skipped without newton).
+
+Surfaces are small 16x16 / 24x24 ``scenes.grid_sheet`` sheets moved up over time. Newton's
+CPU kernels compile once (~1 min cold, cached in Warp's kernel cache after); runs are a few
+hundred steps.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import warp as wp
+from conftest import brute_nearest, project_to_mesh
+from scipy.optimize import brentq
+
+from dynmesh_warp.scenes import grid_sheet
+from dynmesh_warp.sequence import FixedTopologySequence
+from dynmesh_warp.world import Model, PhysicsParams, SphereModel, State, SurfaceModel, World
+
+newton = pytest.importorskip("newton")
+
+from dynmesh_warp.newton_adapter import DeformingMeshShape, NewtonWorld  # noqa: E402
+
+FPS = 24.0
+RISE = 0.4  # [m] over the first second, then the sheet holds (playback clamp)
+
+
+def rising_sheet(n: int = 16, rise: float = RISE, frames: int = 25, dimples=None) -> FixedTopologySequence:
+    """A flat 2 m sheet at z = 0 rising linearly by ``rise`` over (frames-1)/FPS s; optional
+    Gaussian dimples (centre xy, depth, width) pressed into it (a rest spot for a sphere)."""
+    V0, F = grid_sheet(n, 2.0)
+    z = np.zeros(len(V0))
+    for c, depth, width in dimples or []:
+        z -= depth * np.exp(-((V0[:, :2] - np.asarray(c)) ** 2).sum(1) / width**2)
+    V = np.repeat(V0[None], frames, 0).astype(np.float64)
+    V[:, :, 2] = np.linspace(0.0, rise, frames)[:, None] + z[None]
+    return FixedTopologySequence(V.astype(np.float32), F, fps=FPS, name="rising_sheet")
+
+
+def box_world(seq, update_bounds=True, solver="xpbd", pos=(0.2, 0.1, 0.1)):
+    b = newton.ModelBuilder()
+    body = b.add_body(xform=wp.transform(wp.vec3(*pos), wp.quat_identity()))
+    b.add_shape_box(body, hx=0.1, hy=0.1, hz=0.1)
+    return NewtonWorld(SurfaceModel(seq, "cpu", playback="clamp"), b, solver=solver, update_bounds=update_bounds)
+
+
+def test_import_does_not_import_newton():
+    code = "import sys, dynmesh_warp, dynmesh_warp.newton_adapter; assert 'newton' not in sys.modules"
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_surface_gets_its_own_mesh_and_current_state(device):
+    """Two adapters on identical geometry plus a plain newton.Mesh with the same content: three
+    different wp.Mesh objects; update() writes the interpolated frame, velocities and bounds."""
+    seq = rising_sheet(16)
+    b = newton.ModelBuilder()
+    a1 = DeformingMeshShape(SurfaceModel(seq, device, playback="clamp"))
+    a2 = DeformingMeshShape(SurfaceModel(seq, device, playback="clamp"))
+    s1, s2 = a1.add_to_builder(b), a2.add_to_builder(b)
+    s3 = b.add_shape_mesh(-1, mesh=newton.Mesh(seq.V[0], seq.F.reshape(-1), compute_inertia=False))
+    model = b.finalize(device=device)
+    t = wp.array([0.3], dtype=wp.float64, device=device)
+    a1.bind(model, t)
+    a2.bind(model, wp.zeros(1, dtype=wp.float64, device=device))
+    ptr = model.shape_source_ptr.numpy()
+    assert len({int(ptr[s1]), int(ptr[s2]), int(ptr[s3])}) == 3
+    # writing to one leaves the other (and the plain one) untouched
+    k = int(np.floor(0.3 * FPS))
+    alpha = 0.3 * FPS - k
+    expect = (1 - alpha) * seq.V[k].astype(np.float64) + alpha * seq.V[k + 1]
+    np.testing.assert_allclose(a1.mesh.points.numpy(), expect, atol=1e-6)
+    np.testing.assert_allclose(a1.mesh.velocities.numpy(), (seq.V[k + 1] - seq.V[k]) * FPS, atol=1e-4)
+    np.testing.assert_allclose(a2.mesh.points.numpy(), seq.V[0], atol=1e-7)
+    # bounds of shape s1 = NumPy min / max / max-norm of the current points; s2 still frame 0
+    lo, hi, rad = (x.numpy() for x in (model.shape_collision_aabb_lower, model.shape_collision_aabb_upper,
+                                        model.shape_collision_radius))
+    np.testing.assert_allclose(lo[s1], expect.min(0), atol=1e-6)
+    np.testing.assert_allclose(hi[s1], expect.max(0), atol=1e-6)
+    np.testing.assert_allclose(rad[s1], np.linalg.norm(expect, axis=1).max(), atol=1e-6)
+    np.testing.assert_allclose(hi[s2], seq.V[0].max(0), atol=1e-6)
+    # the BVH was refit: BVH closest-point queries match a brute-force search on the new points
+    q = np.array([[0.1, -0.2, 0.5], [-0.7, 0.3, -0.2], [0.33, 0.6, 0.05]])
+    _, _, _, dist = project_to_mesh(a1.mesh, q, device)
+    ref, _, _ = brute_nearest(q, expect, seq.F)
+    np.testing.assert_allclose(dist, ref, atol=1e-5)
+
+
+def test_rising_surface_lifts_box_and_bounds_update_is_needed():
+    """A box resting on a sheet that rises 0.4 m in 1 s rides on it (z = sheet + half height);
+    with the per-sub-step bounds update switched off Newton's broad phase keeps the first frame's
+    AABB and the box is lost (thrown off or falls through)."""
+    seq = rising_sheet(16)
+    zs = {}
+    for ub in (True, False):
+        w = box_world(seq, update_bounds=ub)
+        track = []
+        for i in range(360):  # 1.5 s at 1/240 s
+            w.step()
+            if (i + 1) % 60 == 0:
+                track.append((w.time, float(w.body_transforms()[0, 2])))
+        zs[ub] = track
+        if ub:
+            assert np.isfinite(w.body_transforms()).all()
+    for t, z in zs[True]:
+        sheet = RISE * min(t, 1.0)
+        assert abs(z - (sheet + 0.1)) < 4e-3, (t, z, sheet)  # 4 mm: lag of one sub-step of rise + solver slop
+    t_end, z_end = zs[False][-1]
+    assert abs(z_end - (RISE + 0.1)) > 0.1, zs[False]
+
+
+def _rest_height(V, F, p, r):
+    """Reference: the height at which a sphere of radius r centred over p's xy just touches the
+    mesh (brute-force closest point over all triangles, root-found along z within 2 cm of p)."""
+    f = lambda z: float(brute_nearest(np.array([[p[0], p[1], z]]), V, F)[0][0]) - r  # noqa: E731
+    return brentq(f, p[2] - 0.02, p[2] + 0.02, xtol=1e-7)
+
+
+def test_spheres_rest_at_same_heights_as_our_world(device):
+    """Spheres dropped into three dimples of a rising sheet come to rest at the same heights in
+    our World and in Newton (XPBD), both within 1.5 mm of the brute-force touching height."""
+    dimples = [((-0.5, -0.5), 0.05, 0.3), ((0.5, -0.5), 0.10, 0.3), ((0.0, 0.5), 0.15, 0.3)]
+    seq = rising_sheet(24, rise=0.2, dimples=dimples)
+    r = 0.06
+    pos = np.array([[c[0], c[1], 0.3] for c, _, _ in dimples], np.float32)
+    steps = 480  # 2 s: 1 s of rise, 1 s holding
+    surf = SurfaceModel(seq, device, playback="clamp")
+    model = Model(surf, SphereModel([r] * 3, 1.0, device), PhysicsParams(dt=1 / 240))
+    ours = World(model, State(model, pos))
+    b = newton.ModelBuilder()
+    for p in pos:
+        body = b.add_body(xform=wp.transform(wp.vec3(*[float(x) for x in p]), wp.quat_identity()))
+        b.add_shape_sphere(body, radius=r)
+    nw = NewtonWorld(SurfaceModel(seq, device, playback="clamp"), b, dt=1 / 240)
+    for _ in range(steps):
+        ours.step()
+        nw.step()
+    p_ours = ours.sphere_positions()
+    p_newton = nw.body_transforms()[:, :3]
+    V_end = seq.V[-1].astype(np.float64)
+    for p in (p_ours, p_newton):
+        ref = np.array([_rest_height(V_end, seq.F, q, r) for q in p])
+        np.testing.assert_allclose(p[:, 2], ref, atol=1.5e-3)
+    # they stay in their dimples (different heights) and agree with each other
+    np.testing.assert_allclose(p_newton[:, 2], p_ours[:, 2], atol=2e-3)
+    np.testing.assert_allclose(p_newton[:, :2], pos[:, :2], atol=0.03)
+    assert np.all(np.diff(p_ours[:, 2]) < -0.03)
+
+
+def test_scene_yaml_runs_newton_bodies(tmp_path, device):
+    """A scene with a ``newton:`` section runs through run_scene: a box and a scene sphere drop
+    onto a flat sheet and rest on it; summary and trajectories are written; bad bodies are
+    reported with their field."""
+    from dynmesh_warp.config import SceneError, load_scene_config
+    from dynmesh_warp.run import run_scene
+
+    seq = rising_sheet(16, rise=0.0, frames=2)
+    npz = tmp_path / "sheet.npz"
+    np.savez(npz, V=seq.V, F=seq.F, fps=FPS)
+    scene = {
+        "name": "nt", "device": device,
+        "surface": {"source": str(npz)},
+        "spheres": [{"position": [0.5, 0.5, 0.3], "radius": 0.05, "mass": 1.0}],
+        "newton": {"solver": "xpbd", "bodies": [
+            {"type": "box", "position": [-0.3, 0.0, 0.3], "half_extents": [0.1, 0.1, 0.05]}]},
+        "run": {"steps": 240, "output": str(tmp_path / "out")},
+    }
+    import yaml
+
+    path = tmp_path / "nt.yaml"
+    path.write_text(yaml.safe_dump(scene))
+    summary = run_scene(load_scene_config(path), progress=False, log=lambda *a: None)
+    q = np.asarray(summary["final"]["body_q"])
+    assert summary["engine"] == "newton" and q.shape == (2, 7)
+    np.testing.assert_allclose(q[:, 2], [0.05, 0.05], atol=3e-3)  # box half height, sphere radius
+    assert (tmp_path / "out" / "summary.json").is_file()
+    assert np.load(tmp_path / "out" / "trajectories.npz")["body_q"].shape[1:] == (2, 7)
+    scene["newton"]["bodies"][0].pop("half_extents")
+    path.write_text(yaml.safe_dump(scene))
+    with pytest.raises(SceneError, match=r"newton\.bodies\.0.*half_extents"):
+        load_scene_config(path)
