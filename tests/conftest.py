@@ -5,6 +5,8 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import os
+
 import numpy as np
 import pytest
 import warp as wp
@@ -12,13 +14,17 @@ import warp as wp
 wp.config.quiet = True
 wp.init()
 
+# Unit tests run on Warp's CPU device (CI has no GPU). DYNMESH_TEST_DEVICE=cuda:0 runs the
+# device-parametrized tests (kernels, world, swept collider, Gaussians, metrics) on a GPU.
+TEST_DEVICE = os.environ.get("DYNMESH_TEST_DEVICE", "cpu")
+
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 
 @pytest.fixture(scope="session")
 def device():
-    """All unit tests run on Warp's CPU device (the lead runs GPU benchmarks separately)."""
-    return "cpu"
+    """The Warp device of the tests: "cpu" unless DYNMESH_TEST_DEVICE says otherwise."""
+    return TEST_DEVICE
 
 
 @pytest.fixture

@@ -9,6 +9,7 @@ import trimesh
 from dynmesh_warp import scenes
 from dynmesh_warp.sequence import FixedTopologySequence, VaryingTopologySequence
 from dynmesh_warp.world import SurfaceModel
+from conftest import TEST_DEVICE
 
 
 def _normals(V, F):
@@ -39,7 +40,7 @@ def test_wave_bowl_normals_up_and_seamless_loop():
     seam = np.linalg.norm(seq.V[0] - seq.V[-1], axis=-1).max()
     assert steps.min() * 0.5 < seam < steps.max() * 1.2
     # and the playback model does not see a jump there
-    surf = SurfaceModel(seq, "cpu", playback="loop")
+    surf = SurfaceModel(seq, TEST_DEVICE, playback="loop")
     assert surf.max_speed == pytest.approx(seq.max_vertex_speed(), rel=0.2)
 
 

@@ -13,6 +13,7 @@ import pytest
 from conftest import surface_at, winding_number
 from dynmesh_warp.sequence import FixedTopologySequence
 from dynmesh_warp.world import Model, PhysicsParams, SphereModel, State, SurfaceModel, World
+from conftest import TEST_DEVICE
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 HORSE = DATA / "horse_gallop.npz"
@@ -37,8 +38,8 @@ def test_spheres_on_galloping_horse_stay_outside(horse, collider):
         near = np.abs(V0[:, 2] - z) < 0.03
         top = V0[near][np.argmax(V0[near, 1])]
         pos.append([top[0], top[1] + r + 0.02, z])
-    surf = SurfaceModel(horse, "cpu", playback="loop")
-    model = Model(surf, SphereModel(np.full(5, r), 1.0, "cpu"), PhysicsParams(dt=1 / 240, gravity=(0.0, -9.81, 0.0)))
+    surf = SurfaceModel(horse, TEST_DEVICE, playback="loop")
+    model = Model(surf, SphereModel(np.full(5, r), 1.0, TEST_DEVICE), PhysicsParams(dt=1 / 240, gravity=(0.0, -9.81, 0.0)))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the legs move at ~14 m/s: auto sub-steps are raised
         w = World(model, State(model, np.asarray(pos, np.float32)), collider=collider)

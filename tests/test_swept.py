@@ -6,13 +6,14 @@ import warp as wp
 
 from dynmesh_warp.scenes import pulsing_blob, wave_bowl
 from dynmesh_warp.world import Model, PhysicsParams, SphereModel, State, SurfaceModel, SweptCollider, World
+from conftest import TEST_DEVICE
 
 
 def _worlds(seq, pos, vel, radius, t0, collider_kw):
     out = []
     for col, kw in collider_kw:
-        model = Model(SurfaceModel(seq, "cpu", playback="loop", interpolate=True),
-                      SphereModel(radius, 1.0, "cpu"), PhysicsParams(auto_substeps=False))
+        model = Model(SurfaceModel(seq, TEST_DEVICE, playback="loop", interpolate=True),
+                      SphereModel(radius, 1.0, TEST_DEVICE), PhysicsParams(auto_substeps=False))
         w = World(model, State(model, pos, vel, t0=t0), collider=col)
         if kw is not None:
             w.collider = SweptCollider(w, **kw)
@@ -93,13 +94,13 @@ def test_swept_world_matches_refit_world_trajectories():
 def test_fixed_collider_defaults_to_swept_with_interpolation():
     seq = wave_bowl(n=16, frames=6)
     for interp, name in [(True, "swept"), (False, "refit")]:
-        model = Model(SurfaceModel(seq, "cpu", interpolate=interp), SphereModel([0.05], 1.0, "cpu"), PhysicsParams())
+        model = Model(SurfaceModel(seq, TEST_DEVICE, interpolate=interp), SphereModel([0.05], 1.0, TEST_DEVICE), PhysicsParams())
         assert World(model, State(model, [[0, 0, 1]])).collider.name == name
 
 
 def test_swept_bvh_refit_only_on_frame_change():
     seq = wave_bowl(n=16, frames=6)
-    model = Model(SurfaceModel(seq, "cpu"), SphereModel([0.05], 1.0, "cpu"), PhysicsParams(dt=1 / 240))
+    model = Model(SurfaceModel(seq, TEST_DEVICE), SphereModel([0.05], 1.0, TEST_DEVICE), PhysicsParams(dt=1 / 240))
     w = World(model, State(model, [[0, 0, 1]]), collider="swept")
     calls = []
     orig = w.collider._refit

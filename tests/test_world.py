@@ -18,6 +18,7 @@ from dynmesh_warp import scenes
 from dynmesh_warp import world as world_mod
 from dynmesh_warp.sequence import FixedTopologySequence
 from dynmesh_warp.world import Model, PhysicsParams, SphereModel, State, SurfaceModel, VaryingSurfaceModel, World
+from conftest import TEST_DEVICE
 
 G = 9.81
 DT = 1.0 / 240.0
@@ -26,7 +27,7 @@ COLLIDERS = [c for c in getattr(world_mod, "COLLIDER_CHOICES", ("fixed", "rebuil
 
 
 def make_world(seq, positions, radius=0.1, collider="fixed", playback="clamp", interpolate=True,
-               velocities=None, device="cpu", rebuild_every="step", **params) -> World:
+               velocities=None, device=TEST_DEVICE, rebuild_every="step", **params) -> World:
     surf = SurfaceModel(seq, device, playback=playback, interpolate=interpolate)
     positions = np.asarray(positions, np.float32).reshape(-1, 3)
     radius = np.broadcast_to(np.asarray(radius, np.float32), (len(positions),))
@@ -339,13 +340,13 @@ def test_varying_topology_runs_with_rebuild_and_rejects_fixed():
     for collider in ("fixed", "refit", "swept"):
         if collider not in getattr(world_mod, "COLLIDER_CHOICES", ("fixed", "rebuild")):
             continue
-        surf = VaryingSurfaceModel(seq, "cpu")
-        model = Model(surf, SphereModel([0.05] * 3, 1.0, "cpu"), PhysicsParams(dt=DT))
+        surf = VaryingSurfaceModel(seq, TEST_DEVICE)
+        model = Model(surf, SphereModel([0.05] * 3, 1.0, TEST_DEVICE), PhysicsParams(dt=DT))
         with pytest.raises(ValueError, match="rebuild"):
             World(model, State(model, pos), collider=collider)
     for every in ("step", "frame"):
-        surf = VaryingSurfaceModel(seq, "cpu", playback="pingpong")
-        model = Model(surf, SphereModel([0.05] * 3, 1.0, "cpu"), PhysicsParams(dt=DT, restitution=0.2))
+        surf = VaryingSurfaceModel(seq, TEST_DEVICE, playback="pingpong")
+        model = Model(surf, SphereModel([0.05] * 3, 1.0, TEST_DEVICE), PhysicsParams(dt=DT, restitution=0.2))
         w = World(model, State(model, pos), collider="rebuild", rebuild_every=every)
         touched = 0
         for i in range(400):  # 1.67 s = 40 frames, pingpong over 24 (topology changes each frame)
@@ -364,12 +365,12 @@ def test_varying_topology_runs_with_rebuild_and_rejects_fixed():
 
 def test_world_rejects_unknown_collider_and_playback():
     seq = _static_sheet()
-    surf = SurfaceModel(seq, "cpu")
-    model = Model(surf, SphereModel([0.1], 1.0, "cpu"), PhysicsParams())
+    surf = SurfaceModel(seq, TEST_DEVICE)
+    model = Model(surf, SphereModel([0.1], 1.0, TEST_DEVICE), PhysicsParams())
     with pytest.raises(ValueError, match="collider"):
         World(model, State(model, [[0, 0, 1]]), collider="bvh")
     with pytest.raises(ValueError, match="playback"):
-        SurfaceModel(seq, "cpu", playback="bounce")
+        SurfaceModel(seq, TEST_DEVICE, playback="bounce")
 
 
 def test_reset_reproduces_the_trajectory():
