@@ -4,10 +4,42 @@ The public surface is small; see ``__all__``. Importing the package does not imp
 newton (the viewer and the Newton adapter are imported on use).
 """
 
-from .config import SceneConfig, SceneError, load_scene_config
-from .scene import build_world, load_surface
-from .sequence import FixedTopologySequence, MeshDataError, VaryingTopologySequence, validate_mesh
-from .world import Contacts, Model, PhysicsParams, SphereModel, State, SurfaceModel, VaryingSurfaceModel, World
+import importlib.util as _ilu
+import os as _os
+import sys as _sys
+
+
+def _map_source_kernels():
+    """In a source checkout that shadows the installed package (``python -m pytest`` from the
+    repository root puts it first on sys.path), map ``<repo>/kernels`` to ``dynmesh_warp.kernels``
+    as the installed package does through ``package-dir``."""
+    name = __name__ + ".kernels"
+    if name in _sys.modules or _ilu.find_spec(name) is not None:
+        return
+    folder = _os.path.join(_os.path.dirname(_os.path.dirname(_os.path.abspath(__file__))), "kernels")
+    init = _os.path.join(folder, "__init__.py")
+    if _os.path.isfile(init):
+        spec = _ilu.spec_from_file_location(name, init, submodule_search_locations=[folder])
+        module = _ilu.module_from_spec(spec)
+        _sys.modules[name] = module
+        spec.loader.exec_module(module)
+
+
+_map_source_kernels()
+
+from .config import SceneConfig, SceneError, load_scene_config  # noqa: E402
+from .scene import build_world, load_surface  # noqa: E402
+from .sequence import FixedTopologySequence, MeshDataError, VaryingTopologySequence, validate_mesh  # noqa: E402
+from .world import (  # noqa: E402
+    Contacts,
+    Model,
+    PhysicsParams,
+    SphereModel,
+    State,
+    SurfaceModel,
+    VaryingSurfaceModel,
+    World,
+)
 
 __version__ = "0.1.0"
 

@@ -19,9 +19,13 @@ Public API
       ``1 - tracked_weight`` of the direct template projection.
     * ``"regularized"``: tracking with a smooth displacement field, a two-sided data term and a
       tangential, rotation-aware relaxation towards the template's vertex distribution, then
-      projection along normals. Options: ``iterations`` (2), ``smooth_iterations`` (5),
-      ``smooth_weight`` (0.5), ``pull_fraction`` (0.5), ``relax_iterations`` (1),
-      ``relax_step`` (0.5), ``normal_slack`` (3.0).
+      projection along normals; restarts from a bank of earlier results (or the template) when
+      the fit to a frame is poor (a jump), and iterates more on large motion. Options:
+      ``iterations`` (3), ``smooth_iterations`` (10), ``smooth_weight`` (0.5),
+      ``pull_fraction`` (0.5), ``relax_iterations`` (3), ``relax_step`` (1.0),
+      ``normal_slack`` (3.0), ``rigid_iterations`` (3), ``reinit_threshold`` (0.005),
+      ``bank_interval`` (5), ``reinit_samples`` (1024), ``max_iterations`` (6),
+      ``refine_threshold`` (0.002); thresholds are fractions of the frame's bbox diagonal.
 
     Common options: ``max_template_distance`` (0.25: the template must lie mostly within this
     fraction of frame 0's bounding-box diagonal from frame 0's surface), ``scale_tolerance``
@@ -67,14 +71,19 @@ _DEFAULTS = {
     "projection": {},
     "tracking": {"reanchor_interval": 50, "tracked_weight": 0.8},
     "regularized": {
-        "iterations": 2,
-        "smooth_iterations": 5,
+        "iterations": 3,
+        "smooth_iterations": 10,
         "smooth_weight": 0.5,
         "pull_fraction": 0.5,
-        "relax_iterations": 1,
-        "relax_step": 0.5,
+        "relax_iterations": 3,
+        "relax_step": 1.0,
         "normal_slack": 3.0,
         "rigid_iterations": 3,
+        "reinit_threshold": 0.005,
+        "max_iterations": 6,
+        "refine_threshold": 0.002,
+        "bank_interval": 5,
+        "reinit_samples": 1024,
     },
 }
 _COMMON = {"max_template_distance": 0.25, "scale_tolerance": 4.0}
@@ -221,9 +230,14 @@ class _Converter:
             self.pull_sum = wp.zeros(n, dtype=wp.vec3, device=d)
             self.pull_weight = wp.zeros(n, dtype=float, device=d)
             self.normals = wp.zeros(n, dtype=wp.vec3, device=d)
+            self.T_center = TV.mean(axis=0)
             self.Xm = wp.clone(self.T)  # points of the template-topology BVH (refit per use)
             self.tmesh = wp.Mesh(points=self.Xm, indices=self.TF)
             self.system = wp.zeros(42, dtype=float, device=d)
+            self.score_fwd = wp.zeros(1, dtype=float, device=d)
+            self.score_bwd = wp.zeros(1, dtype=float, device=d)
+            self.bank = []  # (frame, positions (N,) wp.vec3, centroid (3,)) of earlier results
+            self.reinit_sources = []  # (frame, source frame or -1 = template)
 
     # --- building blocks
     def project(self, frame, src, dst):
@@ -283,32 +297,123 @@ class _Converter:
             if np.linalg.norm(xi[3:]) < 1e-7 * self.max_dist and np.linalg.norm(xi[:3]) < 1e-7:
                 return
 
+    def fit_score(self, frame, X, shift=(0.0, 0.0, 0.0)) -> float:
+        """Two-sided mean distance between the template at positions X + shift and the frame,
+        on about ``reinit_samples`` points per side: template vertices -> frame surface and
+        frame vertices -> template surface (BVH refit)."""
+        d, n = self.device, self.n
+        m, pts, idx = frame
+        ns = max(int(self.opts["reinit_samples"]), 1)
+        s1, s2 = max(1, n // ns), max(1, pts.shape[0] // ns)
+        k1, k2 = (n - 1) // s1 + 1, (pts.shape[0] - 1) // s2 + 1
+        self.score_fwd.zero_()
+        self.score_bwd.zero_()
+        sh = wp.vec3(*[float(x) for x in shift])
+        wp.launch(kc.sum_distances_to_mesh, dim=k1, inputs=[m.id, X, s1, sh, self.max_dist],
+                  outputs=[self.score_fwd], device=d)
+        wp.copy(self.Xm, X)
+        self.tmesh.refit()
+        wp.launch(kc.sum_distances_to_mesh, dim=k2, inputs=[self.tmesh.id, pts, s2, -sh, self.max_dist],
+                  outputs=[self.score_bwd], device=d)
+        return 0.5 * (float(self.score_fwd.numpy()[0]) / k1 + float(self.score_bwd.numpy()[0]) / k2)
+
+    def reinitialize(self, frame, t) -> bool:
+        """Robust restart after a jump: when the tracked (rigidly aligned) template fits frame t
+        worse than ``reinit_threshold`` x its bbox diagonal (two-sided mean distance), try every
+        stored earlier result and the template, each as is and moved onto the frame's centroid,
+        and restart from the best one if it fits better. Returns True when it restarted."""
+        o = self.opts
+        thr = float(o["reinit_threshold"])
+        if thr <= 0 or t == 0:
+            return False
+        V = frame[1].numpy()
+        diag = _bbox_diag(V)
+        cur = self.fit_score(frame, self.X)
+        if cur <= thr * diag:
+            return False
+        cen_f = V.mean(axis=0)
+        best = (cur, None, None, None)
+        cands = self.bank + [(-1, self.T, self.T_center)]
+        for tb, arr, cen in cands:
+            for shift in (np.zeros(3), cen_f - cen):
+                sc = self.fit_score(frame, arr, shift)
+                if sc < best[0]:
+                    best = (sc, tb, arr, shift)
+        if best[2] is None:
+            return False
+        wp.copy(self.X, best[2])
+        sh = best[3]
+        wp.launch(kc.transform_points_rigid, dim=self.n,
+                  inputs=[self.X, wp.mat33(*np.eye(3, dtype=np.float32).reshape(-1)), wp.vec3(0.0, 0.0, 0.0),
+                          wp.vec3(*[float(x) for x in sh])], outputs=[self.X], device=self.device)
+        self.rigid_align(frame, max(3 * int(o["rigid_iterations"]), 1))
+        self.reinit_sources.append((t, int(best[1])))
+        return True
+
+    def remember(self, t):
+        """Store frame t's result in the bank of restart candidates (every bank_interval frames)."""
+        k = int(self.opts["bank_interval"])
+        if float(self.opts["reinit_threshold"]) > 0 and k > 0 and t % k == 0:
+            self.bank.append((t, wp.clone(self.X), self.X.numpy().mean(axis=0)))
+
     def step_regularized(self, frame, t):
         o, d, n = self.opts, self.device, self.n
         m, pts, idx = frame
         if int(o["rigid_iterations"]) > 0:
             self.rigid_align(frame, int(o["rigid_iterations"]))
-        for _ in range(int(o["iterations"])):
-            wp.launch(project_points_to_mesh, dim=n, inputs=[m.id, self.X, self.max_dist],
-                      outputs=[self.closest, self.face, self.bary, self.dist], device=d)
-            self.pull_sum.zero_()
-            self.pull_weight.zero_()
-            if o["pull_fraction"] > 0:
-                wp.copy(self.Xm, self.X)
-                self.tmesh.refit()
-                wp.launch(kc.scatter_surface_pulls, dim=pts.shape[0],
-                          inputs=[self.tmesh.id, self.TF, pts, self.max_dist],
-                          outputs=[self.pull_sum, self.pull_weight], device=d)
-            wp.launch(kc.compute_closest_displacements, dim=n,
-                      inputs=[self.X, self.closest, self.face, self.pull_sum, self.pull_weight,
-                              float(o["pull_fraction"])], outputs=[self.disp, self.w], device=d)
-            for _s in range(int(o["smooth_iterations"])):
-                wp.launch(kc.smooth_vectors_laplacian, dim=n,
-                          inputs=[self.disp, self.w, self.offsets, self.neighbors, float(o["smooth_weight"])],
-                          outputs=[self.disp2, self.w2], device=d)
-                self.disp, self.disp2 = self.disp2, self.disp
-                self.w, self.w2 = self.w2, self.w
-            wp.launch(kc.add_displacements, dim=n, inputs=[self.X, self.disp, 1.0], outputs=[self.X], device=d)
+        restarted = self.reinitialize(frame, t)
+        for _ in range(int(o["iterations"]) * (2 if restarted else 1)):
+            self.fit_nonrigid(frame)
+        # large motion: keep iterating while the fit is poor and still improving
+        extra = int(o["max_iterations"]) - int(o["iterations"])
+        if extra > 0 and float(o["refine_threshold"]) > 0:
+            diag = _bbox_diag(pts.numpy())
+            sc = self.fit_score(frame, self.X)
+            for _ in range(extra):
+                if sc <= float(o["refine_threshold"]) * diag:
+                    break
+                wp.copy(self.P, self.X)
+                self.fit_nonrigid(frame)
+                sc2 = self.fit_score(frame, self.X)
+                if sc2 > 0.95 * sc:
+                    if sc2 > sc:
+                        wp.copy(self.X, self.P)
+                    break
+                sc = sc2
+        self.relax_and_project(frame)
+        self.remember(t)
+        return restarted
+
+    def fit_nonrigid(self, frame):
+        """One iteration of the smooth two-sided data term (forward closest points + backward
+        pulls, confidence-weighted Laplacian smoothing of the displacements)."""
+        o, d, n = self.opts, self.device, self.n
+        m, pts, idx = frame
+        wp.launch(project_points_to_mesh, dim=n, inputs=[m.id, self.X, self.max_dist],
+                  outputs=[self.closest, self.face, self.bary, self.dist], device=d)
+        self.pull_sum.zero_()
+        self.pull_weight.zero_()
+        if o["pull_fraction"] > 0:
+            wp.copy(self.Xm, self.X)
+            self.tmesh.refit()
+            wp.launch(kc.scatter_surface_pulls, dim=pts.shape[0],
+                      inputs=[self.tmesh.id, self.TF, pts, self.max_dist],
+                      outputs=[self.pull_sum, self.pull_weight], device=d)
+        wp.launch(kc.compute_closest_displacements, dim=n,
+                  inputs=[self.X, self.closest, self.face, self.pull_sum, self.pull_weight,
+                          float(o["pull_fraction"])], outputs=[self.disp, self.w], device=d)
+        for _s in range(int(o["smooth_iterations"])):
+            wp.launch(kc.smooth_vectors_laplacian, dim=n,
+                      inputs=[self.disp, self.w, self.offsets, self.neighbors, float(o["smooth_weight"])],
+                      outputs=[self.disp2, self.w2], device=d)
+            self.disp, self.disp2 = self.disp2, self.disp
+            self.w, self.w2 = self.w2, self.w
+        wp.launch(kc.add_displacements, dim=n, inputs=[self.X, self.disp, 1.0], outputs=[self.X], device=d)
+
+    def relax_and_project(self, frame):
+        """Tangential ARAP-style relaxation and projection along normals onto the frame."""
+        o, d, n = self.opts, self.device, self.n
+        m, pts, idx = frame
         for _r in range(max(int(o["relax_iterations"]), 1)):
             self._normals(self.X)
             if int(o["relax_iterations"]) > 0:
@@ -320,7 +425,6 @@ class _Converter:
             wp.launch(kc.project_points_along_normals, dim=n,
                       inputs=[m.id, self.tmp, self.normals, self.max_dist, float(o["normal_slack"])],
                       outputs=[self.X, self.dist], device=d)
-        return False
 
 
 def _rotation_from_vector(w: np.ndarray) -> np.ndarray:
@@ -365,9 +469,15 @@ def _resolve_options(strategy: str, options: dict) -> dict:
             raise ValueError(f"tracked_weight must lie in [0, 1], got {w!r}")
         o["tracked_weight"] = w
     if strategy == "regularized":
-        for k in ("iterations", "smooth_iterations", "relax_iterations", "rigid_iterations"):
+        for k in ("iterations", "smooth_iterations", "relax_iterations", "rigid_iterations", "bank_interval",
+                  "max_iterations"):
             if int(o[k]) != o[k] or o[k] < 0:
                 raise ValueError(f"{k} must be an integer >= 0, got {o[k]!r}")
+        if int(o["reinit_samples"]) != o["reinit_samples"] or o["reinit_samples"] < 1:
+            raise ValueError(f"reinit_samples must be an integer >= 1, got {o['reinit_samples']!r}")
+        for k in ("reinit_threshold", "refine_threshold"):
+            if not float(o[k]) >= 0:
+                raise ValueError(f"{k} must be >= 0 (0: off), got {o[k]!r}")
         for k in ("smooth_weight", "pull_fraction", "relax_step"):
             if not 0.0 <= float(o[k]) <= 1.0:
                 raise ValueError(f"{k} must lie in [0, 1], got {o[k]!r}")

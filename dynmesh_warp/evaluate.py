@@ -170,10 +170,10 @@ def evaluate_folders(gt_dir, pred_dir, protocols=("dgmesh", "paper"), frame_stri
     return {"pairs": pairs, "results": res["prediction"]}
 
 
-def _ground_truth(path: str, num_frames: int | None) -> FixedTopologySequence:
+def _ground_truth(path: str, num_frames: int | None, frame_order: str = "stored") -> FixedTopologySequence:
     from .io import load_sequence
 
-    seq = load_sequence(path, kind="fixed")
+    seq = load_sequence(path, kind="fixed", frame_order=frame_order)
     if num_frames is not None and num_frames != seq.num_frames:
         from .remesh import resample_time
 
@@ -186,8 +186,11 @@ def _ground_truth(path: str, num_frames: int | None) -> FixedTopologySequence:
 def evaluate_scene(gt_path, input_path=None, num_frames: int | None = 200, resolution: int = 96,
                    noise: float = 0.0, strategies=None, protocols=("dgmesh", "paper"),
                    frame_stride: int = 1, emd_stride: int | None = None, emd: bool = True,
-                   seed: int = 0, device=None, progress: bool = True, options=None) -> dict:
+                   seed: int = 0, device=None, progress: bool = True, options=None,
+                   frame_order: str = "stored") -> dict:
     """Remesh (or load) one scene, convert it with every strategy, evaluate every row.
+
+    frame_order: "text_sorted" undoes a text sort of the ground truth's frames (see io.load_sequence).
 
     emd_stride: EMD only on frames that are multiples of it (default: every evaluated frame).
     options: {strategy: {option: value}} passed to to_fixed_topology.
@@ -199,7 +202,7 @@ def evaluate_scene(gt_path, input_path=None, num_frames: int | None = 200, resol
     options = options or {}
     timing = {}
     t0 = time.perf_counter()
-    gt = _ground_truth(str(gt_path), num_frames)
+    gt = _ground_truth(str(gt_path), num_frames, frame_order)
     if input_path is None:
         from .remesh import remesh_sequence
 
@@ -398,6 +401,8 @@ def main(argv=None) -> int:
                     help="EMD only on frames that are multiples of this (0: every evaluated frame)")
     ap.add_argument("--no-emd", action="store_true", help="skip EMD")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--frame-order", choices=["stored", "text_sorted"], default="stored",
+                    help="text_sorted: undo a text sort of the ground truth's frames (1, 10, 11, ..., 2, ...)")
     ap.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda (default: Warp's default)")
     ap.add_argument("--no-progress", action="store_true")
     a = ap.parse_args(argv)
@@ -424,7 +429,8 @@ def main(argv=None) -> int:
         config = {"argv": sys.argv[1:] if argv is None else list(argv), "device": device,
                   "num_frames": a.num_frames or None, "resolution": a.resolution, "noise": a.noise,
                   "frame_stride": a.frame_stride, "emd_stride": a.emd_stride, "emd": not a.no_emd,
-                  "seed": a.seed, "protocols": a.protocol, "strategies": a.strategies}
+                  "seed": a.seed, "protocols": a.protocol, "strategies": a.strategies,
+                  "frame_order": a.frame_order}
         scenes = []
         for i, s in enumerate(a.scenes):
             t0 = time.perf_counter()
@@ -432,7 +438,7 @@ def main(argv=None) -> int:
                 s, a.inputs[i] if a.inputs else None, num_frames=a.num_frames or None,
                 resolution=a.resolution, noise=a.noise, strategies=a.strategies,
                 protocols=a.protocol, frame_stride=a.frame_stride, emd_stride=a.emd_stride or None,
-                emd=not a.no_emd, seed=a.seed, device=device, progress=progress))
+                emd=not a.no_emd, seed=a.seed, device=device, progress=progress, frame_order=a.frame_order))
             scenes[-1]["timing"]["total_s"] = time.perf_counter() - t0
             write_outputs(a.out, scenes, a.protocol, config)  # partial results after each scene
         doc = write_outputs(a.out, scenes, a.protocol, config)

@@ -593,7 +593,8 @@ def _resolve_folder(path: Path, subdir: str | None) -> Path:
 
 
 def load_sequence(
-    path, fps: float | None = None, kind: str = "auto", subdir: str | None = None
+    path, fps: float | None = None, kind: str = "auto", subdir: str | None = None,
+    frame_order: str = "stored",
 ) -> FixedTopologySequence | VaryingTopologySequence:
     """Load an animated mesh sequence from a ``.npz`` file, a mesh file or a folder.
 
@@ -606,6 +607,9 @@ def load_sequence(
             when they do not) or ``"varying"``.
         subdir: for a folder, load ``path / subdir`` (e.g. ``"mesh_gt"``); by default a
             DG-Mesh ``dynamic_mesh`` subfolder is preferred over ``mesh_gt``.
+        frame_order: ``"stored"`` keeps the frames of an npz as stored (a warning is given when
+            they look sorted as text: 1, 10, 11, ..., 2, 20, ...); ``"text_sorted"`` undoes such
+            a text sort (frame numbers from 1, or from 0 when that moves less per frame).
 
     Raises:
         FileNotFoundError: ``path`` (or ``path / subdir``) does not exist.
@@ -624,12 +628,33 @@ def load_sequence(
         return _load_folder(folder, fps, kind, name=path.name or str(path))
     if subdir is not None:
         raise ValueError(f"{path}: subdir= applies to folders, but this is a file")
+    if frame_order not in ("stored", "text_sorted"):
+        raise ValueError(f"frame_order must be 'stored' or 'text_sorted', got {frame_order!r}")
     if path.suffix.lower() == ".npz":
-        return _load_npz(path, fps, kind)
+        return _fix_frame_order(_load_npz(path, fps, kind), frame_order, path)
     V, F = read_mesh(path)
     fps = DEFAULT_FPS if fps is None else fps
     seq = FixedTopologySequence(V[None], F, fps=fps, name=path.stem, source=str(path))
     return seq.to_varying() if kind == "varying" else seq
+
+
+def _fix_frame_order(seq, frame_order: str, path: Path):
+    """Detect (warn) or undo a text sort of the frames of a fixed-topology npz."""
+    if not isinstance(seq, FixedTopologySequence):
+        return seq
+    from .sequence import detect_text_sorted_frames, text_sorted_permutation
+
+    start = detect_text_sorted_frames(seq.V)
+    if frame_order == "text_sorted":
+        if start is None:
+            start = 1
+        return seq.reordered(text_sorted_permutation(seq.num_frames, start))
+    if start is not None:
+        warnings.warn(
+            f"{path}: the frames look sorted as text (1, 10, 11, ..., 2, 20, ...): numeric order moves "
+            "far less per frame. Load with frame_order='text_sorted' (scene: surface.frame_order: "
+            "text_sorted) to restore it.", stacklevel=3)
+    return seq
 
 
 # --------------------------------------------------------------------------- writing

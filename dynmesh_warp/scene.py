@@ -41,7 +41,8 @@ def load_surface(cfg: SceneConfig):
     else:
         from .io import load_sequence
 
-        seq = load_sequence(cfg.resolve(s.source), fps=s.fps, **({"subdir": s.subdir} if s.subdir else {}))
+        seq = load_sequence(cfg.resolve(s.source), fps=s.fps, frame_order=s.frame_order,
+                            **({"subdir": s.subdir} if s.subdir else {}))
     if s.fps is not None:
         seq.fps = float(s.fps)
     if isinstance(seq, FixedTopologySequence):

@@ -13,6 +13,8 @@ import numpy as np
 
 __all__ = [
     "MeshDataError",
+    "text_sorted_permutation",
+    "detect_text_sorted_frames",
     "FixedTopologySequence",
     "VaryingTopologySequence",
     "validate_mesh",
@@ -144,6 +146,11 @@ class FixedTopologySequence:
         d = np.linalg.norm(np.diff(self.V, axis=0), axis=-1)
         return float(d.max() * self.fps)
 
+    def reordered(self, order) -> "FixedTopologySequence":
+        """A copy with frames taken in ``order`` (indices into the stored frames)."""
+        order = np.asarray(order, dtype=np.int64)
+        return FixedTopologySequence(self.V[order], self.F, self.fps, self.name, self.source)
+
     def to_varying(self) -> "VaryingTopologySequence":
         return VaryingTopologySequence(
             [(v, self.F) for v in self.V], fps=self.fps, name=self.name, source=self.source
@@ -217,3 +224,38 @@ class VaryingTopologySequence:
             np.stack([v for v, _ in self.frames]), F0, fps=self.fps, name=self.name,
             source=self.source,
         )
+
+
+def text_sorted_permutation(num_frames: int, start: int = 1) -> np.ndarray:
+    """Frame order that undoes a text sort of the frame numbers start..start+T-1.
+
+    A sequence assembled from files sorted as text stores frame numbers in the order
+    1, 10, 11, ..., 19, 2, 20, ...; ``V[text_sorted_permutation(T, 1)]`` puts them back in
+    numeric order.
+    """
+    labels = sorted(str(i) for i in range(start, start + num_frames))
+    return np.argsort([int(x) - start for x in labels], kind="stable")
+
+
+def detect_text_sorted_frames(V: np.ndarray, max_vertices: int = 2000) -> int | None:
+    """If the frames of V (T, N, 3) look text-sorted, the first frame number (0 or 1), else None.
+
+    The reordered sequence must move at most half as much per frame, on average, as the
+    stored one (measured on up to ``max_vertices`` vertices).
+    """
+    T = V.shape[0]
+    if T < 11:  # 1..10 is the first count where a text sort differs from a numeric one
+        return None
+    sel = np.linspace(0, V.shape[1] - 1, min(max_vertices, V.shape[1])).astype(np.int64)
+    W = V[:, sel].astype(np.float64)
+
+    def mean_step(X):
+        return float(np.linalg.norm(np.diff(X, axis=0), axis=-1).mean())
+
+    stored = mean_step(W)
+    best, best_start = stored, None
+    for start in (0, 1):
+        m = mean_step(W[text_sorted_permutation(T, start)])
+        if m < 0.5 * best:
+            best, best_start = m, start
+    return best_start

@@ -317,3 +317,31 @@ def test_cli_roundtrip(tmp_path, blob):
     assert isinstance(r, FixedTopologySequence) and r.V.shape == (2,) + V.shape
     np.testing.assert_allclose(r.V[1], V, atol=1e-5)
     assert convert_main([str(tmp_path / "missing.npz"), str(out)]) == 2
+
+
+def test_regularized_restarts_after_a_teleported_frame(rigid_varying):
+    """One frame of a rigidly moving sequence is moved 3 diagonals away (a jump no closest-point
+    method can follow). With restarts (default) the frames after the jump recover the rigid
+    motion per vertex from the bank of earlier results; with reinit_threshold=0 they do not.
+    The restarted frames are listed in conversion.reanchored_frames."""
+    seq, shuffled, _ = rigid_varying
+    frames = [(v.copy(), f) for v, f in shuffled.frames[:16]]
+    diag = _diag(frames[0][0])
+    jump = 10
+    frames[jump] = (frames[jump][0] + np.float32(3 * diag), frames[jump][1])
+    r = to_fixed_topology(frames, strategy="regularized", device=DEV)
+    off = to_fixed_topology(frames, strategy="regularized", device=DEV, reinit_threshold=0)
+    T0 = r.V[0]
+
+    def err(res, t):
+        return np.linalg.norm(res.V[t] - _rigid(T0, t), axis=1).mean() / diag
+
+    assert jump in r.conversion.reanchored_frames and jump + 1 in r.conversion.reanchored_frames
+    for t in range(jump + 1, 16):
+        assert err(r, t) < 5e-3, (t, err(r, t))
+    # the teleported frame itself: on its surface, via the centroid-shifted candidate
+    moved = _rigid(T0, jump) + np.float32(3 * diag)
+    assert surface_deviation(r.V[jump], r.F, moved, r.F, device=DEV)["chamfer"] < 0.01 * diag
+    assert max(err(off, t) for t in range(jump + 1, 16)) > 10 * max(err(r, t) for t in range(jump + 1, 16))
+    with pytest.raises(ValueError, match="reinit_threshold"):
+        to_fixed_topology(frames[:2], strategy="regularized", reinit_threshold=-1.0)

@@ -491,3 +491,33 @@ def test_shared_pcow_npz():
     assert isinstance(seq, FixedTopologySequence)
     assert seq.V.shape == (204, 2904, 3) and seq.F.shape == (5804, 3)  # README figures
     assert seq.fps == 24.0 and seq.name == "pcow"
+
+
+def test_text_sorted_frames_are_detected_and_restored(tmp_path):
+    """A sequence stored in text order (1, 10, 11, ..., 2, 20, ...) warns and is restored on request."""
+    import warnings
+
+    from dynmesh_warp.sequence import detect_text_sorted_frames, text_sorted_permutation
+
+    T = 23
+    t = np.arange(T, dtype=np.float32)
+    base = np.random.default_rng(0).normal(size=(50, 3)).astype(np.float32)
+    V = base[None] + 0.05 * t[:, None, None] * np.array([1.0, 0.2, 0.0], np.float32)  # smooth drift
+    F = np.array([[0, 1, 2], [2, 3, 4]], np.int32)
+    labels = sorted(str(i) for i in range(1, T + 1))  # what a text sort of frame_1..frame_23 gives
+    stored = V[[int(x) - 1 for x in labels]]
+    assert [int(x) for x in labels[:4]] == [1, 10, 11, 12]
+    np.testing.assert_array_equal(stored[text_sorted_permutation(T, 1)], V)
+    assert detect_text_sorted_frames(stored) == 1
+    assert detect_text_sorted_frames(V) is None
+    path = tmp_path / "seq.npz"
+    np.savez(path, V=stored, F=F, fps=np.float32(24))
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        seq = load_sequence(path)
+    assert any("sorted as text" in str(x.message) and "seq.npz" in str(x.message) for x in w)
+    np.testing.assert_array_equal(seq.V, stored)
+    fixed = load_sequence(path, frame_order="text_sorted")
+    np.testing.assert_array_equal(fixed.V, V)
+    with pytest.raises(ValueError, match="frame_order"):
+        load_sequence(path, frame_order="alphabetical")
