@@ -40,7 +40,7 @@ class SurfaceConfig(_Strict):
     params: dict = Field(default_factory=dict)  # keyword arguments of a built-in generator
     subdir: Optional[str] = None  # DG-Mesh scene folder: dynamic_mesh | mesh_gt
     fps: Optional[float] = Field(default=None, gt=0)
-    frame_order: Literal["stored", "text_sorted"] = "stored"  # text_sorted: undo 1, 10, 11, ..., 2, ...
+    frame_order: Literal["stored", "text_sorted", "auto"] = "stored"  # text_sorted: undo 1, 10, 11, ..., 2, ...
     playback: Literal["loop", "clamp", "pingpong"] = "loop"
     interpolate: bool = True
     up_axis: Literal["z", "y"] = "z"

@@ -401,8 +401,9 @@ def main(argv=None) -> int:
                     help="EMD only on frames that are multiples of this (0: every evaluated frame)")
     ap.add_argument("--no-emd", action="store_true", help="skip EMD")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--frame-order", choices=["stored", "text_sorted"], default="stored",
-                    help="text_sorted: undo a text sort of the ground truth's frames (1, 10, 11, ..., 2, ...)")
+    ap.add_argument("--frame-order", choices=["stored", "text_sorted", "auto"], default="stored",
+                    help="text_sorted: undo a text sort of the ground truth's frames (1, 10, 11, ..., 2, ...); "
+                         "auto: only where detected")
     ap.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda (default: Warp's default)")
     ap.add_argument("--no-progress", action="store_true")
     a = ap.parse_args(argv)

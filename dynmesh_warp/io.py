@@ -609,7 +609,8 @@ def load_sequence(
             DG-Mesh ``dynamic_mesh`` subfolder is preferred over ``mesh_gt``.
         frame_order: ``"stored"`` keeps the frames of an npz as stored (a warning is given when
             they look sorted as text: 1, 10, 11, ..., 2, 20, ...); ``"text_sorted"`` undoes such
-            a text sort (frame numbers from 1, or from 0 when that moves less per frame).
+            a text sort (frame numbers from 1, or from 0 when that moves less per frame);
+            ``"auto"`` undoes it only when detected (with a warning saying so).
 
     Raises:
         FileNotFoundError: ``path`` (or ``path / subdir``) does not exist.
@@ -628,8 +629,8 @@ def load_sequence(
         return _load_folder(folder, fps, kind, name=path.name or str(path))
     if subdir is not None:
         raise ValueError(f"{path}: subdir= applies to folders, but this is a file")
-    if frame_order not in ("stored", "text_sorted"):
-        raise ValueError(f"frame_order must be 'stored' or 'text_sorted', got {frame_order!r}")
+    if frame_order not in ("stored", "text_sorted", "auto"):
+        raise ValueError(f"frame_order must be 'stored', 'text_sorted' or 'auto', got {frame_order!r}")
     if path.suffix.lower() == ".npz":
         return _fix_frame_order(_load_npz(path, fps, kind), frame_order, path)
     V, F = read_mesh(path)
@@ -648,6 +649,10 @@ def _fix_frame_order(seq, frame_order: str, path: Path):
     if frame_order == "text_sorted":
         if start is None:
             start = 1
+        return seq.reordered(text_sorted_permutation(seq.num_frames, start))
+    if frame_order == "auto" and start is not None:
+        warnings.warn(f"{path}: the frames look sorted as text (1, 10, 11, ..., 2, 20, ...): restored "
+                      "numeric order (frame_order='auto')", stacklevel=3)
         return seq.reordered(text_sorted_permutation(seq.num_frames, start))
     if start is not None:
         warnings.warn(

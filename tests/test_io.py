@@ -519,5 +519,9 @@ def test_text_sorted_frames_are_detected_and_restored(tmp_path):
     np.testing.assert_array_equal(seq.V, stored)
     fixed = load_sequence(path, frame_order="text_sorted")
     np.testing.assert_array_equal(fixed.V, V)
+    np.testing.assert_array_equal(load_sequence(path, frame_order="auto").V, V)
+    path2 = tmp_path / "ordered.npz"
+    np.savez(path2, V=V, F=F, fps=np.float32(24))
+    np.testing.assert_array_equal(load_sequence(path2, frame_order="auto").V, V)  # nothing to undo
     with pytest.raises(ValueError, match="frame_order"):
         load_sequence(path, frame_order="alphabetical")
