@@ -1,19 +1,31 @@
 #!/usr/bin/env bash
-# All GPU benchmarks and the GPU test pass, for the GPU machine (see ../shared/gpu/README.md).
-# Usage: bash bench/run_gpu.sh OUTDIR     (Warp and the wheels in .gpu/ already installed)
+# GPU benchmarks and the GPU test pass, for the GPU machine (see ../shared/gpu/README.md).
+# Usage: bash bench/run_gpu.sh PHASE OUTDIR   (Warp and the wheels already installed in /root/site)
+#   PHASE: step (tests, swept profile, step benchmark) | other (gaussians, metrics, convert,
+#          newton) | eval (full evaluation table) | table (conversion table)
 set -u
-out=${1:-bench/results}
+phase=${1:-step}
+out=${2:-bench/results}
 mkdir -p "$out"
 export PYTHONPATH=${PYTHONPATH:-/root/site}
-nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv > "$out/gpu.txt" 2>&1
-{
-  echo "== GPU test pass (DYNMESH_TEST_DEVICE=cuda:0)"
+case "$phase" in
+step)
+  nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv > "$out/gpu.txt" 2>&1
   DYNMESH_TEST_DEVICE=cuda:0 python3 -m pytest -q -p no:cacheprovider tests/test_kernels.py tests/test_world.py \
-      tests/test_swept.py tests/test_gaussians.py tests/test_metrics.py tests/test_shared_data.py 2>&1 | tail -15
-} > "$out/gpu_tests.log" 2>&1
-python3 bench/bench_step.py --device cuda:0 --out "$out/step_cuda.json" 2>&1 | grep -v "^Module" | tail -60
-python3 bench/bench_gaussians.py --device cuda:0 --out "$out/gaussians_cuda.json" 2>&1 | grep -v "^Module" | tail -8
-python3 bench/bench_metrics.py --device cuda:0 --out "$out/metrics_cuda.json" 2>&1 | grep -v "^Module" | tail -8
-python3 bench/bench_convert.py --device cuda:0 --out "$out/convert_cuda.json" 2>&1 | grep -v "^Module" | tail -8
-python3 bench/bench_newton.py --device cuda:0 --out "$out/newton_cuda.json" 2>&1 | grep -v "^Module" | tail -8
-cat "$out/gpu_tests.log"
+      tests/test_swept.py tests/test_gaussians.py tests/test_metrics.py tests/test_shared_data.py > "$out/gpu_tests.log" 2>&1
+  tail -5 "$out/gpu_tests.log"
+  python3 bench/profile_swept.py --device cuda:0 --out "$out/profile_swept_cuda.json" 2>&1 | grep -v "^Module" | tail -14
+  python3 bench/bench_step.py --device cuda:0 --out "$out/step_cuda.json" 2>&1 | grep -v "^Module" | tail -50 ;;
+other)
+  python3 bench/bench_gaussians.py --device cuda:0 --out "$out/gaussians_cuda.json" 2>&1 | grep -v "^Module" | tail -4
+  python3 bench/bench_metrics.py --device cuda:0 --out "$out/metrics_cuda.json" 2>&1 | grep -v "^Module" | tail -6
+  python3 bench/bench_convert.py --device cuda:0 --out "$out/convert_cuda.json" 2>&1 | grep -v "^Module" | tail -8
+  python3 bench/bench_newton.py --device cuda:0 --out "$out/newton_cuda.json" 2>&1 | grep -v "^Module" | tail -8 ;;
+eval)
+  python3 -m dynmesh_warp.evaluate ../shared/data/horse_gallop.npz ../shared/data/horse_collapse.npz \
+      ../shared/data/pcow.npz --num-frames 200 --frame-order auto --device cuda:0 --no-progress \
+      --out "$out/eval" 2>&1 | grep -v "^Module" | tail -40
+  tar czf "$out/eval.tgz" -C "$out" eval && rm -rf "$out/eval" ;;
+table)
+  python3 bench/conversion_table.py --device cuda:0 --out "$out/conversion_table_cuda.json" 2>&1 | grep -v "^Module" | tail -30 ;;
+esac
