@@ -60,10 +60,10 @@ def load_inputs(names, frames, resolution, device, cache: Path | None):
         if not path.exists():
             print(f"skip {name}: {path} not found")
             continue
-        gt = load_sequence(path)
+        gt = load_sequence(path, frame_order="auto")  # horse_collapse and pcow are stored text-sorted
         gtV = resample_time(gt, frames)
         gt_seq = FixedTopologySequence(gtV, gt.F, fps=gt.fps, name=name)
-        cf = cache / f"{name}_f{frames}_r{resolution}.npz" if cache else None
+        cf = cache / f"{name}_f{frames}_r{resolution}_ordered.npz" if cache else None
         if cf is not None and cf.exists():
             var = load_sequence(cf, kind="varying")
             rs = None
