@@ -72,8 +72,6 @@ def stage_breakdown(seq, device, steps, repeats):
     """Each stage alone, replayed like the step (graph on CUDA)."""
     import warp as wp
 
-    from dynmesh_warp.kernels.integrate import advance_time
-
     out = {}
     w, _ = timed_build(seq, device, "refit")
     st = {
@@ -81,17 +79,16 @@ def stage_breakdown(seq, device, steps, repeats):
         "normals": w._compute_normals,
         "refit": lambda: w.collider.mesh.refit(),
         "contact": lambda: w.collider.collide(w),
-        "integrate": w._integrate,
-        "advance_time": lambda: w._launch(advance_time, 1, [0.0], [w.state.sim_time]),
+        "integrate_and_advance_time": w._integrate,
     }
     out["refit_step"] = {k: time_loop(graph_or_eager(f, device), device, steps, repeats)["us_per_step"]
                          for k, f in st.items()}
     ws, _ = timed_build(seq, device, "swept")
     c = ws.collider
     st = {
-        "frame_change_test": lambda: c.update(ws),  # detect + (conditional, not taken) refit
+        "conditional_refit_node (not taken)": lambda: c.update(ws),
         "contact_interpolated": lambda: c.collide(ws),
-        "integrate": ws._integrate,
+        "integrate_advance_time_frame_test": ws._integrate,
         "swept_bounds_and_bvh_refit (once per frame)": lambda: c._refit(ws),
     }
     out["swept_step"] = {k: time_loop(graph_or_eager(f, device), device, steps, repeats)["us_per_step"]
@@ -108,17 +105,24 @@ def do_nothing(x: wp.array(dtype=float)):
     pass
 
 
-def launch_floor(seq, device, steps, repeats, launches):
-    """The floor under a step: a graph of `launches` empty kernels; a D2D copy of the vertices."""
+def launch_floor(seq, device, steps, repeats, launch_counts):
+    """The floor under a step: graphs of K empty kernels (with and without an empty conditional
+    node, as the swept step has); a D2D copy of the vertex buffer."""
     d = wp.get_device(device)
     x = wp.zeros(1, dtype=float, device=d)
+    flag = wp.zeros(1, dtype=wp.int32, device=d)
     src = wp.array(seq.V[0], dtype=wp.vec3, device=d)
     dst = wp.zeros_like(src)
     res = {}
-    for k in sorted(set([1, launches])):
-        res[f"empty_launches_{k}"] = time_loop(graph_or_eager(
-            lambda k=k: [wp.launch(do_nothing, 1, inputs=[x], device=d) for _ in range(k)], d),
-            d, steps, repeats)["us_per_step"]
+
+    def empty(k):
+        for _ in range(k):
+            wp.launch(do_nothing, 1, inputs=[x], device=d)
+
+    for k in sorted(set(launch_counts)):
+        res[f"empty_launches_{k}"] = time_loop(graph_or_eager(lambda k=k: empty(k), d), d, steps, repeats)["us_per_step"]
+        res[f"empty_launches_{k}_plus_conditional"] = time_loop(graph_or_eager(
+            lambda k=k: (wp.capture_if(flag, on_true=lambda: empty(1)), empty(k)), d), d, steps, repeats)["us_per_step"]
     res["d2d_copy_vertex_buffer"] = time_loop(graph_or_eager(lambda: wp.copy(dst, src), d), d, steps,
                                               repeats)["us_per_step"]
     return res
@@ -213,10 +217,12 @@ def main(argv=None):
     result["paper"] = paper
     stages = stage_breakdown(seq, device, max(200, args.steps // 4), args.repeats)
     result["stages_us"] = stages
-    n_launch = 6 if device.is_cuda else 6  # update, refit, normals, contact, integrate, advance (refit path)
-    result["floor_us"] = launch_floor(seq, device, max(200, args.steps // 2), args.repeats, n_launch)
-    result["floor_us"]["note"] = ("empty_launches_K: a graph (CUDA) or eager loop (CPU) of K empty kernels; the "
-                                  "refit step issues 6 launches plus the BVH refit's own")
+    result["floor_us"] = launch_floor(seq, device, max(200, args.steps // 2), args.repeats, [3, 4, 10])
+    result["floor_us"]["note"] = (
+        "empty_launches_K: a graph (CUDA) or eager loop (CPU) of K empty kernels; _plus_conditional adds an "
+        "empty conditional node. The swept step (parallel path) is 3 launches + 1 conditional node (evaluate, "
+        "resolve, integrate); the refit step is 4 launches (interpolate, normals, contact, integrate) plus "
+        "wp.Mesh.refit's 6 (edge lengths, scan, average, bounds, memset, bottom-up refit)")
     print("  stages:", {k: {a: round(b, 2) for a, b in v.items()} for k, v in stages.items()}, flush=True)
     print("  floor:", result["floor_us"], flush=True)
     if not args.no_scaling:

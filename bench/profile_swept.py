@@ -34,14 +34,11 @@ def main(argv=None):
         w.step()
     wp.synchronize_device(device)
     c = w.collider
-    from dynmesh_warp.kernels.integrate import advance_time
-
     parts = {
         "full_step": w.step,
-        "frame_change_test (no change)": lambda: c.update(w),
+        "conditional refit node (not taken)": lambda: c.update(w),
         "collide (evaluate+resolve or serial)": lambda: c.collide(w),
-        "integrate": w._integrate,
-        "advance_time": lambda: w._launch(advance_time, 1, [0.0], [w.state.sim_time]),
+        "integrate + clock + frame test": w._integrate,
         "per_frame: bounds+bvh_refit+gather": lambda: c._refit(w),
         "per_frame: bounds only": lambda: c._bounds(w),
         "per_frame: bvh_refit only": lambda: c.bvh.refit(),

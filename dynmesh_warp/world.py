@@ -19,7 +19,7 @@ import warp as wp
 from .kernels.collide import collide_sphere_mesh
 from .kernels.frames import PLAYBACK_CLAMP, PLAYBACK_LOOP, PLAYBACK_PINGPONG, update_frame_vertices
 from .kernels.geometry import compute_face_normals
-from .kernels.integrate import advance_time, integrate_spheres
+from .kernels.integrate import integrate_spheres
 from .kernels.swept import (
     collide_sphere_swept,
     compute_swept_bounds,
@@ -349,12 +349,19 @@ class SweptCollider:
         self.bvh.refit()
         if self.parallel:
             self._gather(world)
+        self.changed.zero_()  # done; the next test (in integrate_spheres) sets it again
 
     def update(self, world: "World"):
+        """Refit if the frame pair changed; the test itself ran at the end of the previous
+        sub-step (fused into ``integrate_spheres``) or in ``refresh``."""
+        wp.capture_if(self.changed, on_true=self._refit, world=world)
+
+    def refresh(self, world: "World"):
+        """Frame-change test at the current time, then ``update`` (after the clock was moved)."""
         surf = world.model.surface
         world._launch(detect_frame_change, 1, [world.state.sim_time, surf.fps, surf.num_frames, surf.playback],
                       [self.frame_key, self.changed])
-        wp.capture_if(self.changed, on_true=self._refit, world=world)
+        self.update(world)
 
     def collide(self, world: "World"):
         m, s, c = world.model, world.state, world.contacts
@@ -440,6 +447,7 @@ class World:
         # query (x8 box volume on horse-gallop) for the same result.
         self.extra_speed = float(np.linalg.norm(p.gravity)) * self.sub_dt
         self.contacts = Contacts(model.spheres.count, device=self.device)
+        self._no_key = wp.zeros(1, dtype=wp.int32, device=self.device)
         self.t0 = float(state.sim_time.numpy()[0])
         self.substep_count = 0
         self._time = self.t0  # host twin of sim_time: the same float64 additions as the device
@@ -551,14 +559,20 @@ class World:
                      [c.face, c.point, c.normal, c.depth, c.velocity])
 
     def _integrate(self):
-        """Stage 4: sphere dynamics with the contacts of this sub-step."""
+        """Stage 4: sphere dynamics with the contacts of this sub-step; advances the device clock
+        (and runs the swept collider's frame-change test for the next sub-step)."""
         m, s, c = self.model, self.state, self.contacts
-        self._launch(integrate_spheres, m.spheres.count,
+        surf = m.surface
+        swept = isinstance(self.collider, SweptCollider)
+        key = self.collider.frame_key if swept else self._no_key
+        changed = self.collider.changed if swept else self._no_key
+        self._launch(integrate_spheres, max(m.spheres.count, 1),
                      [c.face, c.normal, c.depth, c.velocity, m.spheres.inv_mass, m.spheres.radius, self.gravity,
                       self.sub_dt, m.params.restitution, m.params.friction, m.params.rest_speed,
                       int(m.params.ground_height is not None),
-                      float(m.params.ground_height if m.params.ground_height is not None else 0.0)],
-                     [s.sphere_pos, s.sphere_vel])
+                      float(m.params.ground_height if m.params.ground_height is not None else 0.0),
+                      self.sub_dt, surf.fps, surf.num_frames, surf.playback, int(swept)],
+                     [s.sphere_pos, s.sphere_vel, s.sim_time, key, changed])
 
     def _substep(self):
         if self.collider.needs_points:
@@ -566,8 +580,7 @@ class World:
         self.collider.update(self)
         if self.model.spheres.count:
             self.collider.collide(self)
-            self._integrate()
-        self._launch(advance_time, 1, [self.sub_dt], [self.state.sim_time])
+        self._integrate()
 
     def _finish_step(self):
         if self.render_state:
@@ -621,7 +634,7 @@ class World:
     # -- editing between steps (host side; invalidates the captured graph) ---------------------
     def _refresh_surface(self):
         self._update_surface()
-        self.collider.update(self)
+        getattr(self.collider, "refresh", self.collider.update)(self)
         self._compute_normals()
 
     def reset(self):

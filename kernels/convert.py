@@ -407,3 +407,29 @@ def transform_points_rigid(
     """out = rotation (p - center) + center + translation. points, out (N,) [m] (may alias)."""
     i = wp.tid()
     out[i] = rotation * (points[i] - center) + center + translation
+
+
+@wp.kernel
+def sum_distances_to_mesh(
+    # inputs
+    mesh: wp.uint64,
+    points: wp.array(dtype=wp.vec3),
+    stride: int,
+    shift: wp.vec3,
+    max_dist: float,
+    # outputs
+    total: wp.array(dtype=float),
+):
+    """Sum of the distances of a strided subset of points, translated, to a mesh (fit score).
+
+    Thread k queries points[k * stride] + shift; launch with dim = ceil(N / stride).
+    mesh: wp.Mesh; points (N,) [m]; stride >= 1; shift [m]; max_dist [m] (a point with nothing
+    within it adds max_dist); total (1,) [m], zero it first (atomic add).
+    """
+    k = wp.tid()
+    p = points[k * stride] + shift
+    q = wp.mesh_query_point_no_sign(mesh, p, max_dist)
+    d = max_dist
+    if q.result:
+        d = wp.length(wp.mesh_eval_position(mesh, q.face, q.u, q.v) - p)
+    wp.atomic_add(total, 0, d)

@@ -2,6 +2,8 @@
 
 import warp as wp
 
+from .frames import frame_pair
+
 
 @wp.kernel
 def integrate_spheres(
@@ -19,9 +21,18 @@ def integrate_spheres(
     rest_speed: float,
     ground: int,
     ground_height: float,
+    time_step: wp.float64,
+    fps: wp.float64,
+    num_frames: int,
+    mode: int,
+    detect: int,
     # in/out
     sphere_pos: wp.array(dtype=wp.vec3),
     sphere_vel: wp.array(dtype=wp.vec3),
+    sim_time: wp.array(dtype=wp.float64),
+    frame_key: wp.array(dtype=wp.int32),
+    # outputs
+    frame_changed: wp.array(dtype=wp.int32),
 ):
     """Advance each sphere by dt with a continuous (time-of-impact) contact response.
 
@@ -35,8 +46,26 @@ def integrate_spheres(
     inv_mass (S,) [1/kg]: 0 marks a kinematic sphere (moves with its velocity, no forces).
     With ``ground`` set, a static plane z = ground_height (normal +z) also stops the spheres
     (same restitution and friction, applied after the mesh contact).
+
+    Thread 0 also advances the device clock, sim_time[0] += time_step (no thread of this kernel
+    reads it), and with ``detect`` sets frame_changed[0] = 1 when the frame pair at the new time
+    differs from frame_key[0] (updated): the swept collider's test for the next sub-step, fused
+    here to save a launch. Launch with max(S, 1) threads.
     """
     s = wp.tid()
+    if s == 0:
+        t = sim_time[0] + time_step
+        sim_time[0] = t
+        if detect != 0:
+            k0, k1, alpha = frame_pair(t, fps, num_frames, mode)
+            key = k0 * num_frames + k1
+            if key != frame_key[0]:
+                frame_key[0] = key
+                frame_changed[0] = 1
+            else:
+                frame_changed[0] = 0
+    if s >= inv_mass.shape[0]:
+        return
     p = sphere_pos[s]
     v = sphere_vel[s]
     if inv_mass[s] == 0.0:

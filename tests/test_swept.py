@@ -52,7 +52,11 @@ def test_swept_contacts_equal_refit_reference(make_seq):
             np.testing.assert_array_equal(c["face"] >= 0, c_ref["face"] >= 0)
             m = c_ref["face"] >= 0
             np.testing.assert_allclose(c["point"][m], c_ref["point"][m], atol=2e-5)
-            np.testing.assert_allclose(c["normal"][m], c_ref["normal"][m], atol=2e-3)
+            # the normal is (p - c)/|p - c|: compare it where the centre is not on the surface
+            # (there a 1e-6 difference in c, e.g. from FMA on a GPU, turns it noticeably)
+            far = m & (np.linalg.norm(pos - c_ref["point"], axis=1) > 1e-3)
+            np.testing.assert_allclose(c["normal"][far], c_ref["normal"][far], atol=2e-3)
+            np.testing.assert_allclose(np.linalg.norm(c["normal"][m], axis=1), 1.0, atol=1e-5)
             np.testing.assert_allclose(c["depth"][m], c_ref["depth"][m], atol=2e-5)
             np.testing.assert_allclose(c["velocity"][m], c_ref["velocity"][m], atol=2e-3 * max(1.0, np.abs(c_ref["velocity"]).max()))
             checked += int(m.sum())
@@ -101,7 +105,7 @@ def test_fixed_collider_defaults_to_swept_with_interpolation():
 def test_swept_bvh_refit_only_on_frame_change():
     seq = wave_bowl(n=16, frames=6)
     model = Model(SurfaceModel(seq, TEST_DEVICE), SphereModel([0.05], 1.0, TEST_DEVICE), PhysicsParams(dt=1 / 240))
-    w = World(model, State(model, [[0, 0, 1]]), collider="swept")
+    w = World(model, State(model, [[0, 0, 1]]), collider="swept", use_graph=False)  # count host calls
     calls = []
     orig = w.collider._refit
     w.collider._refit = lambda world: (calls.append(world.time), orig(world))
