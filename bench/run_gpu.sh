@@ -22,7 +22,7 @@ other)
   python3 bench/bench_convert.py --device cuda:0 --out "$out/convert_cuda.json" 2>&1 | grep -v "^Module" | tail -8
   python3 bench/bench_newton.py --device cuda:0 --out "$out/newton_cuda.json" 2>&1 | grep -v "^Module" | tail -8 ;;
 eval)
-  python3 -m dynmesh_warp.evaluate ../shared/data/horse_gallop.npz ../shared/data/horse_collapse.npz \
+  timeout 540 python3 -m dynmesh_warp.evaluate ../shared/data/horse_gallop.npz ../shared/data/horse_collapse.npz \
       ../shared/data/pcow.npz --num-frames 200 --frame-order auto --device cuda:0 --no-progress \
       --out "$out/eval" 2>&1 | grep -v "^Module" | tail -40
   tar czf "$out/eval.tgz" -C "$out" eval && rm -rf "$out/eval" ;;
