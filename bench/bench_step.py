@@ -167,7 +167,10 @@ def scaling(device, verts, spheres, colliders, steps, repeats):
                 m1 = mem_used(device)
                 nsteps = steps if not col.startswith("rebuild") else max(3, steps // 20)
                 if wp.get_device(device).is_cpu:
-                    nsteps = max(3, int(nsteps * min(1.0, 2e4 / nv)))
+                    # keep >= 2 frame intervals (10 steps each) in the timed loop, so the per-frame
+                    # work of the swept collider is always included
+                    floor = 3 if col.startswith("rebuild") else 20
+                    nsteps = max(floor, int(nsteps * min(1.0, 2e4 / nv)))
                 t = time_loop(w.step, device, nsteps, repeats, warmup=3)
                 rows.append({"vertices": n * n, "faces": 2 * (n - 1) ** 2, "spheres": ns, "collider": col,
                              "steps_per_s": t["steps_per_s"], "us_per_step": t["us_per_step"],
