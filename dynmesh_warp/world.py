@@ -24,7 +24,6 @@ from .kernels.swept import (
     collide_sphere_swept,
     compute_swept_bounds,
     detect_frame_change,
-    accumulate_candidate_ties,
     evaluate_sphere_candidates,
     gather_sphere_candidates,
     resolve_sphere_candidates,
@@ -291,8 +290,7 @@ class SweptCollider:
 
     ``parallel`` (default on CUDA): at each frame change every sphere gathers the faces its
     reach can meet during the frame interval (at most ``max_candidates``); each step evaluates
-    all (sphere, candidate) pairs in parallel and reduces them per sphere with atomics (minimum
-    distance, then the pseudo-normal of the candidates tied with it), with no serial loop. A
+    all (sphere, candidate) pairs in parallel and resolves the closest feature per sphere. A
     sphere that leaves its gathered ball or overflows its list takes the serial BVH walk, so the
     result is the same either way. On the CPU one thread per sphere walks the BVH (serial).
     """
@@ -328,10 +326,6 @@ class SweptCollider:
         self.cand_dist = wp.zeros((S, K), dtype=float, device=d)
         self.cand_w = wp.zeros((S, K), dtype=wp.vec3, device=d)
         self.cand_wn = wp.zeros((S, K), dtype=wp.vec3, device=d)
-        self.best_dist = wp.full(S, 1.0e30, dtype=float, device=d)
-        self.best_face = wp.full(S, -1, dtype=wp.int32, device=d)
-        self.best_w = wp.zeros(S, dtype=wp.vec3, device=d)
-        self.best_normal = wp.zeros(S, dtype=wp.vec3, device=d)
         if self.parallel:
             self._gather(world)
 
@@ -380,17 +374,13 @@ class SweptCollider:
                           [self.bvh.id, *common, s.sphere_pos, s.sphere_vel, m.spheres.radius,
                            world.sub_dt, world.extra_speed, m.params.margin], outputs)
             return
-        dims = (m.spheres.count, self.max_candidates)
-        world._launch(evaluate_sphere_candidates, dims, [*common, s.sphere_pos, self.cand_face, self.cand_count],
-                      [self.cand_dist, self.cand_w, self.cand_wn, self.best_dist])
-        world._launch(accumulate_candidate_ties, dims,
-                      [self.epsilon, self.cand_face, self.cand_count, self.cand_dist, self.cand_w, self.cand_wn,
-                       self.best_dist], [self.best_face, self.best_w, self.best_normal])
+        world._launch(evaluate_sphere_candidates, (m.spheres.count, self.max_candidates),
+                      [*common, s.sphere_pos, self.cand_face, self.cand_count],
+                      [self.cand_dist, self.cand_w, self.cand_wn])
         world._launch(resolve_sphere_candidates, m.spheres.count,
                       [self.bvh.id, *common, s.sphere_pos, s.sphere_vel, m.spheres.radius, world.sub_dt,
                        world.extra_speed, m.params.margin, self.cand_face, self.cand_count, self.cand_center,
-                       self.cand_radius],
-                      [self.best_dist, self.best_face, self.best_w, self.best_normal, *outputs])
+                       self.cand_radius, self.cand_dist, self.cand_w, self.cand_wn], outputs)
 
 
 SWEPT_MAX_CANDIDATES = 256

@@ -315,12 +315,10 @@ def evaluate_sphere_candidates(
     cand_dist: wp.array2d(dtype=float),
     cand_w: wp.array2d(dtype=wp.vec3),
     cand_wn: wp.array2d(dtype=wp.vec3),
-    best_dist: wp.array(dtype=float),
 ):
-    """Distance, closest-point weights and pseudo-normal term of every gathered candidate (S, K);
-    best_dist[s] = min over the sphere's candidates (atomic min; reset by the resolve pass)."""
+    """Distance, closest-point weights and pseudo-normal term of every gathered candidate (S, K)."""
     s, j = wp.tid()
-    if j >= cand_count[s] or cand_count[s] > cand_face.shape[1]:
+    if j >= cand_count[s]:
         return
     k0, k1, alpha = frame_pair(sim_time[0], fps, frames.shape[0], mode)
     if interpolate == 0:
@@ -330,36 +328,6 @@ def evaluate_sphere_candidates(
     cand_dist[s, j] = dist
     cand_w[s, j] = w
     cand_wn[s, j] = wn
-    wp.atomic_min(best_dist, s, dist)
-
-
-@wp.kernel
-def accumulate_candidate_ties(
-    # inputs
-    epsilon: float,
-    cand_face: wp.array2d(dtype=wp.int32),
-    cand_count: wp.array(dtype=wp.int32),
-    cand_dist: wp.array2d(dtype=float),
-    cand_w: wp.array2d(dtype=wp.vec3),
-    cand_wn: wp.array2d(dtype=wp.vec3),
-    best_dist: wp.array(dtype=float),
-    # outputs
-    best_face: wp.array(dtype=wp.int32),
-    best_w: wp.array(dtype=wp.vec3),
-    best_normal: wp.array(dtype=wp.vec3),
-):
-    """Pseudo-normal of the closest feature: sum of the angle-weighted normals of the candidates
-    within epsilon of best_dist (atomic add); the candidate at best_dist gives face and weights."""
-    s, j = wp.tid()
-    if j >= cand_count[s] or cand_count[s] > cand_face.shape[1]:
-        return
-    d = cand_dist[s, j]
-    b = best_dist[s]
-    if d < b + epsilon:
-        wp.atomic_add(best_normal, s, cand_wn[s, j])
-        if d == b:
-            best_face[s] = cand_face[s, j]
-            best_w[s] = cand_w[s, j]
 
 
 @wp.kernel
@@ -383,11 +351,9 @@ def resolve_sphere_candidates(
     cand_count: wp.array(dtype=wp.int32),
     cand_center: wp.array(dtype=wp.vec3),
     cand_radius: wp.array(dtype=float),
-    # in/out (reset here for the next sub-step)
-    best_dist: wp.array(dtype=float),
-    best_face: wp.array(dtype=wp.int32),
-    best_w: wp.array(dtype=wp.vec3),
-    best_normal: wp.array(dtype=wp.vec3),
+    cand_dist: wp.array2d(dtype=float),
+    cand_w: wp.array2d(dtype=wp.vec3),
+    cand_wn: wp.array2d(dtype=wp.vec3),
     # outputs
     contact_face: wp.array(dtype=wp.int32),
     contact_point: wp.array(dtype=wp.vec3),
@@ -395,9 +361,9 @@ def resolve_sphere_candidates(
     contact_depth: wp.array(dtype=float),
     contact_velocity: wp.array(dtype=wp.vec3),
 ):
-    """Contact from the parallel reduction over the candidates; a sphere whose reach left its
-    gathered ball, or whose list overflowed, takes the serial BVH walk instead. Same outputs as
-    ``collide_sphere_mesh``."""
+    """Closest feature from the evaluated candidates, in gather order (the same sequential rule
+    as the serial path); a sphere whose reach left its gathered ball, or whose list overflowed,
+    falls back to the serial BVH walk. Same outputs as ``collide_sphere_mesh``."""
     s = wp.tid()
     p = sphere_pos[s]
     r = sphere_radius[s]
@@ -405,19 +371,18 @@ def resolve_sphere_candidates(
     k0, k1, alpha = frame_pair(sim_time[0], fps, frames.shape[0], mode)
     if interpolate == 0:
         alpha = 0.0
+    n = cand_count[s]
     min_dist = reach
     min_face = int(-1)
     min_w = wp.vec3(0.0)
     acc_n = wp.vec3(0.0)
-    if cand_count[s] > cand_face.shape[1] or wp.length(p - cand_center[s]) + reach + epsilon > cand_radius[s]:
+    if n > cand_face.shape[1] or wp.length(p - cand_center[s]) + reach + epsilon > cand_radius[s]:
         min_dist, min_face, min_w, acc_n = closest_on_swept_bvh(bvh, frames, indices, k0, k1, alpha, p, reach, epsilon)
-    elif best_dist[s] < reach:
-        min_dist = best_dist[s]
-        min_face = best_face[s]
-        min_w = best_w[s]
-        acc_n = best_normal[s]
-    best_dist[s] = 1.0e30
-    best_face[s] = -1
-    best_normal[s] = wp.vec3(0.0)
+    else:
+        for j in range(n):
+            d = cand_dist[s, j]
+            if d < min_dist + epsilon:
+                min_dist, min_face, min_w, acc_n = keep_closest(
+                    d, cand_face[s, j], cand_w[s, j], cand_wn[s, j], epsilon, min_dist, min_face, min_w, acc_n)
     write_swept_contact(s, p, r, reach, min_dist, min_face, min_w, acc_n, frames, indices, k0, k1, alpha, fps,
                         contact_face, contact_point, contact_normal, contact_depth, contact_velocity)
