@@ -558,20 +558,6 @@ def _load_folder(folder: Path, fps, kind: str, name: str):
     files = _list_frame_files(folder)
     frames = [read_mesh(p, frame=t) for t, p in enumerate(files)]
     fps = DEFAULT_FPS if fps is None else fps
-    if kind == "fixed":
-        (V0, F0), f0 = frames[0], files[0]
-        for t, ((v, f), p) in enumerate(zip(frames, files)):
-            if len(v) != len(V0):
-                raise MeshDataError(
-                    f"{p} (frame {t}): {len(v)} vertices but frame 0 ({f0}) has {len(V0)}; "
-                    "kind='fixed' needs the same vertex count in every frame"
-                )
-            if f.shape != F0.shape or not np.array_equal(f, F0):
-                raise MeshDataError(
-                    f"{p} (frame {t}): faces differ from frame 0 ({f0}) "
-                    f"({len(f)} vs {len(F0)} faces); kind='fixed' needs identical faces "
-                    "in every frame"
-                )
     seq = VaryingTopologySequence(
         frames, fps=fps, name=name, source=str(folder),
         frame_sources=[str(p) for p in files],

@@ -208,17 +208,19 @@ class VaryingTopologySequence:
         """Stack into a fixed-topology sequence; raises if the frames disagree."""
         V0, F0 = self.frames[0]
         where = self.source or self.name
+        src0 = self.frame_sources[0] if self.frame_sources else where
         for t, (v, f) in enumerate(self.frames):
             src = self.frame_sources[t] if self.frame_sources else where
             if v.shape[0] != V0.shape[0]:
                 raise MeshDataError(
-                    f"{src}: frame {t} has {v.shape[0]} vertices but frame 0 has {V0.shape[0]}; "
+                    f"{src} (frame {t}): {v.shape[0]} vertices but frame 0 ({src0}) has {V0.shape[0]}; "
                     "a fixed-topology sequence needs the same vertex count in every frame"
                 )
             if f.shape != F0.shape or not np.array_equal(f, F0):
                 raise MeshDataError(
-                    f"{src}: frame {t} has different faces from frame 0; "
-                    "convert it with dynmesh_warp.convert (to_fixed_topology)"
+                    f"{src} (frame {t}): faces differ from frame 0 ({src0}) ({len(f)} vs {len(F0)} faces); "
+                    "a fixed-topology sequence needs identical faces in every frame (convert a "
+                    "varying-topology one with dynmesh_warp.convert)"
                 )
         return FixedTopologySequence(
             np.stack([v for v, _ in self.frames]), F0, fps=self.fps, name=self.name,
