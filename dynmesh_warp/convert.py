@@ -357,7 +357,7 @@ class _Converter:
             self.bank.append((t, wp.clone(self.X), self.X.numpy().mean(axis=0)))
 
     def step_regularized(self, frame, t):
-        o, d, n = self.opts, self.device, self.n
+        o = self.opts
         m, pts, idx = frame
         if int(o["rigid_iterations"]) > 0:
             self.rigid_align(frame, int(o["rigid_iterations"]))

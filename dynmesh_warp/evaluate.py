@@ -29,7 +29,6 @@ from __future__ import annotations
 import argparse
 import csv
 import io as _io
-import json
 import platform
 import sys
 import time

@@ -2,13 +2,11 @@
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
 import warp as wp
 
 from .config import SceneConfig, SceneError, spawn_positions
-from .sequence import FixedTopologySequence, MeshDataError, VaryingTopologySequence
+from .sequence import FixedTopologySequence, VaryingTopologySequence
 from .world import Model, PhysicsParams, SphereModel, State, SurfaceModel, VaryingSurfaceModel, World
 
 __all__ = ["load_surface", "build_world"]

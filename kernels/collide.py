@@ -12,7 +12,6 @@ pushed out to the front; a sphere entirely behind the surface has no contact.
 
 import warp as wp
 
-from .geometry import closest_point_on_triangle
 
 
 @wp.func

@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-import warp as wp
 
 from dynmesh_warp.scenes import pulsing_blob, wave_bowl
 from dynmesh_warp.world import Model, PhysicsParams, SphereModel, State, SurfaceModel, SweptCollider, World
