@@ -615,6 +615,9 @@ def main(argv=None) -> int:
     p.add_argument("--fmt", default=None, choices=["ply", "obj"], help="per-frame format for a folder output")
     p.add_argument("--fps", type=float, default=None, help="override the input frame rate")
     a = p.parse_args(argv)
+    from .cli import quiet_warp
+
+    quiet_warp()
     from .io import load_sequence, save_sequence
 
     opts = {}

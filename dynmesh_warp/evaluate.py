@@ -406,7 +406,9 @@ def main(argv=None) -> int:
     ap.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda (default: Warp's default)")
     ap.add_argument("--no-progress", action="store_true")
     a = ap.parse_args(argv)
-    wp.config.quiet = True
+    from .cli import quiet_warp
+
+    quiet_warp()
     device = str(wp.get_device(a.device))
     progress = not a.no_progress
     try:

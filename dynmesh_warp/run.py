@@ -161,14 +161,14 @@ def run_scene(cfg, device=None, steps: int | None = None, collider: str | None =
 
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
+    from .cli import quiet_warp
+
+    quiet_warp()
     from .config import SceneError, load_scene_config
     from .sequence import MeshDataError
 
     try:
         cfg = load_scene_config(args.scene)
-        import warp as wp
-
-        wp.config.quiet = True
         steps = args.steps
         if args.duration is not None:
             steps = max(1, int(round(args.duration / cfg.physics.dt)))

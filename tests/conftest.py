@@ -12,6 +12,8 @@ import pytest
 import warp as wp
 
 wp.config.quiet = True
+if hasattr(wp, "LOG_WARNING"):
+    wp.config.log_level = wp.LOG_WARNING  # no per-module load lines in test output
 wp.init()
 
 # Unit tests run on Warp's CPU device (CI has no GPU). DYNMESH_TEST_DEVICE=cuda:0 runs the
