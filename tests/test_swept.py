@@ -125,3 +125,47 @@ def test_swept_bvh_refit_only_on_frame_change():
     tri = np.stack([seq.V[k][seq.F], seq.V[(k + 1) % seq.num_frames][seq.F]], 1).reshape(len(seq.F), 6, 3)
     np.testing.assert_allclose(lo, tri.min(1), atol=1e-6)
     np.testing.assert_allclose(hi, tri.max(1), atol=1e-6)
+
+
+@pytest.mark.parametrize("scene", ["wave_bowl", "pulsing_blob"])
+def test_no_tunnelling_over_1e5_steps(scene):
+    """Issue #8: 10^5 steps of the default (swept) collider on the built-in scenes; no sphere centre
+    ever ends behind the surface (height field for the bowl, winding number for the closed blob)."""
+    from conftest import grid_height, surface_at, winding_number
+
+    rng = np.random.default_rng(5)
+    S, r = 6, 0.05
+    if scene == "wave_bowl":
+        n = 24
+        seq = wave_bowl(n=n, frames=12)
+        pos = np.column_stack([rng.uniform(-0.5, 0.5, (S, 2)), rng.uniform(0.4, 0.8, S)])
+        ground = None
+    else:
+        seq = pulsing_blob(subdivisions=2, frames=12)
+        # dropped near the top of the breathing blob; high friction keeps them riding on it
+        pos = np.array([0.0, 0.0, 0.6]) + np.column_stack([rng.uniform(-0.12, 0.12, (S, 2)), np.full(S, 0.68)])
+        ground = float(seq.V[:, :, 2].min())  # any that roll off rest around it and are pushed by it
+    model = Model(SurfaceModel(seq, TEST_DEVICE, playback="loop", interpolate=True),
+                  SphereModel(np.full(S, r, np.float32), 1.0, TEST_DEVICE),
+                  PhysicsParams(restitution=0.3 if scene == "wave_bowl" else 0.0,
+                                friction=0.5 if scene == "wave_bowl" else 2.0, ground_height=ground))
+    w = World(model, State(model, pos))
+    assert w.collider.name == "swept"
+    touched = 0
+    for i in range(100_000):
+        w.step()
+        if i % 50 == 49:
+            touched += int((w.contacts.face.numpy() >= 0).sum())
+        if i % 500 == 499 or (i < 2000 and i % 50 == 49):  # densely while they ride the surface
+            P = w.sphere_positions().astype(np.float64)
+            assert np.isfinite(P).all(), f"step {i}: non-finite state"
+            Vt = surface_at(seq, w.time, "loop")
+            if scene == "wave_bowl":
+                hz = grid_height(Vt, n, 2.0, P[:, :2])
+                on = np.isfinite(hz)
+                assert (P[on, 2] > hz[on]).all(), f"step {i}: a centre is below the bowl"
+            else:
+                assert (winding_number(Vt, seq.F, P) < 0.5).all(), f"step {i}: a centre is inside the blob"
+    # not vacuous: the spheres were on the moving surface (bowl: riding the waves, often airborne;
+    # blob: riding its top until its breathing, at about g, throws them off onto the ground)
+    assert touched >= (0.1 * S * 2000 if scene == "wave_bowl" else 10)
