@@ -348,7 +348,8 @@ def write_chart(summary: dict, protocol: str, path) -> bool:
                    label=r["label"])
         ax.set_xticks(np.arange(len(groups)))
         ax.set_xticklabels(groups, rotation=15)
-        ax.set_ylabel(unit)
+        ax.set_yscale("log")  # values span orders of magnitude between rows
+        ax.set_ylabel(unit + ", log scale")
         ax.set_title(f"{unit.split()[0]} ({protocol} protocol, lower is better)")
     axes[0].legend(fontsize=8)
     fig.tight_layout()
