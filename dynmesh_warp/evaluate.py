@@ -340,17 +340,23 @@ def write_chart(summary: dict, protocol: str, path) -> bool:
     for ax, m, scale, unit in ((axes[0], "cd", M.CD_SCALE, "CD (1e-3)"),
                                (axes[1], "emd", M.EMD_SCALE, "EMD (1e-1)")):
         width = 0.8 / len(keys)
+        plotted = []
         for j, k in enumerate(keys):
             r = summary["rows"][k]
             vals = [r["per_scene"][s][m] for s in summary["scenes"]] + [r[m]]
             vals = [np.nan if v is None else v / scale for v in vals]
+            plotted += vals
             ax.bar(np.arange(len(groups)) + (j - (len(keys) - 1) / 2) * width, vals, width,
                    label=r["label"])
         ax.set_xticks(np.arange(len(groups)))
         ax.set_xticklabels(groups, rotation=15)
-        ax.set_yscale("log")  # values span orders of magnitude between rows
-        ax.set_ylabel(unit + ", log scale")
-        ax.set_title(f"{unit.split()[0]} ({protocol} protocol, lower is better)")
+        finite = np.asarray(plotted, float)
+        finite = finite[np.isfinite(finite)]
+        if finite.size and (finite > 0).all():
+            ax.set_yscale("log")  # values span orders of magnitude between rows
+            unit += ", log scale"
+        ax.set_ylabel(unit)
+        ax.set_title(f"{m.upper()} ({protocol} protocol, lower is better)")
     axes[0].legend(fontsize=8)
     fig.tight_layout()
     with atomic_path(path, suffix=".png") as tmp:
