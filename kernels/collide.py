@@ -32,6 +32,13 @@ def make_contact(
     return n, depth
 
 
+@wp.func
+def contact_reach(r: float, v: wp.vec3, extra_speed: float, dt: float, margin: float) -> float:
+    """How far a sphere looks for the surface in one step: r + margin + (|v| + extra_speed) dt.
+    Every collider uses this one rule, so their contacts agree."""
+    return r + margin + (wp.length(v) + extra_speed) * dt
+
+
 @wp.kernel
 def collide_sphere_mesh(
     # inputs
@@ -61,7 +68,7 @@ def collide_sphere_mesh(
     s = wp.tid()
     p = sphere_pos[s]
     r = sphere_radius[s]
-    reach = r + margin + (wp.length(sphere_vel[s]) + extra_speed) * dt
+    reach = contact_reach(r, sphere_vel[s], extra_speed, dt, margin)
     face = int(-1)
     c = wp.vec3(0.0)
     n = wp.vec3(0.0)

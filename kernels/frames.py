@@ -43,6 +43,15 @@ def frame_pair(time: wp.float64, fps: wp.float64, num_frames: int, mode: int):
     return wrap_frame(k, num_frames, mode), wrap_frame(k + 1, num_frames, mode), alpha
 
 
+@wp.func
+def blend_pair(time: wp.float64, fps: wp.float64, num_frames: int, mode: int, interpolate: int):
+    """``frame_pair`` with alpha forced to 0 when interpolation is off (frame k is held)."""
+    k0, k1, alpha = frame_pair(time, fps, num_frames, mode)
+    if interpolate == 0:
+        alpha = 0.0
+    return k0, k1, alpha
+
+
 @wp.kernel
 def update_frame_vertices(
     # inputs

@@ -12,8 +12,8 @@ pseudo-normal over faces tied within epsilon), so the contacts equal the refit p
 
 import warp as wp
 
-from .collide import make_contact
-from .frames import frame_pair
+from .collide import contact_reach, make_contact
+from .frames import blend_pair, frame_pair
 from .geometry import closest_point_on_triangle
 
 
@@ -246,10 +246,8 @@ def collide_sphere_swept(
     s = wp.tid()
     p = sphere_pos[s]
     r = sphere_radius[s]
-    reach = r + margin + (wp.length(sphere_vel[s]) + extra_speed) * dt
-    k0, k1, alpha = frame_pair(sim_time[0], fps, frames.shape[0], mode)
-    if interpolate == 0:
-        alpha = 0.0
+    reach = contact_reach(r, sphere_vel[s], extra_speed, dt, margin)
+    k0, k1, alpha = blend_pair(sim_time[0], fps, frames.shape[0], mode, interpolate)
     min_dist, min_face, min_w, acc_n = closest_on_swept_bvh(bvh, frames, indices, k0, k1, alpha, p, reach, epsilon)
     write_swept_contact(s, p, r, reach, min_dist, min_face, min_w, acc_n, frames, indices, k0, k1, alpha, fps,
                         contact_face, contact_point, contact_normal, contact_depth, contact_velocity)
@@ -320,9 +318,7 @@ def evaluate_sphere_candidates(
     s, j = wp.tid()
     if j >= cand_count[s]:
         return
-    k0, k1, alpha = frame_pair(sim_time[0], fps, frames.shape[0], mode)
-    if interpolate == 0:
-        alpha = 0.0
+    k0, k1, alpha = blend_pair(sim_time[0], fps, frames.shape[0], mode, interpolate)
     a, b, e = interpolated_triangle(frames, indices, cand_face[s, j], k0, k1, alpha)
     dist, w, wn = face_candidate(sphere_pos[s], a, b, e, epsilon)
     cand_dist[s, j] = dist
@@ -367,10 +363,8 @@ def resolve_sphere_candidates(
     s = wp.tid()
     p = sphere_pos[s]
     r = sphere_radius[s]
-    reach = r + margin + (wp.length(sphere_vel[s]) + extra_speed) * dt
-    k0, k1, alpha = frame_pair(sim_time[0], fps, frames.shape[0], mode)
-    if interpolate == 0:
-        alpha = 0.0
+    reach = contact_reach(r, sphere_vel[s], extra_speed, dt, margin)
+    k0, k1, alpha = blend_pair(sim_time[0], fps, frames.shape[0], mode, interpolate)
     n = cand_count[s]
     min_dist = reach
     min_face = int(-1)
