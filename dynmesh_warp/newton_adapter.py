@@ -196,7 +196,8 @@ class NewtonWorld:
     Each sub-step (of ``dt / substeps``): advance the device clock -> write the surface at the new
     time into the mesh, refit, update bounds -> ``CollisionPipeline.collide`` -> ``solver.step``.
     The surface is the one at the END of the sub-step, the position the solver's contact
-    constraints should reach. On CUDA one step is captured as a CUDA graph.
+    constraints should reach. On CUDA the first step runs eagerly (loading the modules it uses);
+    the second is captured as a CUDA graph and replayed from then on.
 
     Args:
         surface: :class:`SurfaceModel`; builder: ``newton.ModelBuilder`` holding the bodies.
@@ -268,11 +269,14 @@ class NewtonWorld:
 
     def step(self):
         """Advance by one physics step (dt)."""
-        if self.use_graph:
-            if self._graph is None:
-                with wp.ScopedCapture(device=self.device, force_module_load=True) as cap:
-                    self._step_body()
-                self._graph = cap.graph
+        if self.use_graph and self._graph is None and self.substep_count > 0:
+            # Capture on the second step: the first ran eagerly, which loaded exactly the Warp
+            # modules Newton's pipeline and solver use. ``force_module_load=True`` would instead
+            # load (on a cold cache, compile) every module Newton defines: minutes on a GPU.
+            with wp.ScopedCapture(device=self.device, force_module_load=False) as cap:
+                self._step_body()
+            self._graph = cap.graph
+        if self._graph is not None:
             wp.capture_launch(self._graph)
         else:
             self._step_body()

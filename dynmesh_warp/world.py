@@ -46,6 +46,13 @@ __all__ = [
 PLAYBACK_MODES = {"loop": int(PLAYBACK_LOOP), "clamp": int(PLAYBACK_CLAMP), "pingpong": int(PLAYBACK_PINGPONG)}
 
 
+def _step_modules():
+    """Our kernel modules a step (and the Gaussian binding hook) launches from."""
+    from .kernels import collide, frames, gaussians, geometry, integrate, swept
+
+    return (frames, geometry, collide, swept, integrate, gaussians)
+
+
 def _wrap_frame_host(k: int, num_frames: int, mode: int) -> int:
     if num_frames <= 1:
         return 0
@@ -599,7 +606,13 @@ class World:
         """Capture one step (all sub-steps) as a CUDA graph; later ``step()`` calls replay it."""
         if not (self.device.is_cuda and self.collider.capturable):
             raise RuntimeError("graph capture needs a CUDA device and a capturable collider")
-        with wp.ScopedCapture(device=self.device, force_module_load=True) as cap:
+        # Load only our own kernel modules before capturing: ``force_module_load=True`` would load
+        # (and on a cold cache compile) every Warp module imported in the process (all of
+        # Newton's, for one), which took minutes on a fresh GPU machine. Kernels of other
+        # modules launched by post-step hooks load during capture (CUDA driver >= 12.3).
+        for module in _step_modules():
+            wp.load_module(module, device=self.device)
+        with wp.ScopedCapture(device=self.device, force_module_load=False) as cap:
             self._step_body()
         self._graph = cap.graph
 

@@ -384,3 +384,30 @@ def test_reset_reproduces_the_trajectory():
     np.testing.assert_array_equal(w.sphere_velocities(), 0.0, err_msg="reset() did not restore the initial velocities")
     _, p2, _ = run(w, 150)
     np.testing.assert_array_equal(p1, p2)
+
+
+# ---------------------------------------------------------------------------------------------
+# graph capture (CUDA only: run with DYNMESH_TEST_DEVICE=cuda:0)
+# ---------------------------------------------------------------------------------------------
+
+@pytest.mark.skipif(not TEST_DEVICE.startswith("cuda"), reason="CUDA graph capture needs a GPU")
+def test_capture_loads_only_the_step_modules():
+    """Capturing the step must not load Warp modules the step does not use: with
+    force_module_load=True every module imported in the process (all of Newton's) compiled on
+    a cold cache, for minutes. The captured step must match the eager one."""
+    import warp as wp
+
+    @wp.kernel(module="unique")
+    def unrelated(a: wp.array(dtype=float)):
+        a[wp.tid()] = 1.0
+
+    seq = moving_sheet((0.0, 0.0, 0.3), frames=12)
+    pos = [[0.0, 0.0, 0.25], [0.5, 0.3, 0.4]]
+    graph, eager = make_world(seq, pos), make_world(seq, pos)
+    eager.use_graph = False
+    assert graph.use_graph
+    _, p_graph, _ = run(graph, 60)
+    _, p_eager, _ = run(eager, 60)
+    assert graph._graph is not None
+    assert not unrelated.module.execs, "capture loaded a module the step does not use"
+    np.testing.assert_allclose(p_graph, p_eager, atol=1e-5)
