@@ -46,11 +46,11 @@ __all__ = [
 PLAYBACK_MODES = {"loop": int(PLAYBACK_LOOP), "clamp": int(PLAYBACK_CLAMP), "pingpong": int(PLAYBACK_PINGPONG)}
 
 
-def _step_modules():
-    """Our kernel modules a step (and the Gaussian binding hook) launches from."""
+def _step_modules(with_hooks: bool):
+    """Our kernel modules a step launches from (with the Gaussian binding hook's, if asked)."""
     from .kernels import collide, frames, gaussians, geometry, integrate, swept
 
-    return (frames, geometry, collide, swept, integrate, gaussians)
+    return (frames, geometry, collide, swept, integrate) + ((gaussians,) if with_hooks else ())
 
 
 def _wrap_frame_host(k: int, num_frames: int, mode: int) -> int:
@@ -610,7 +610,7 @@ class World:
         # (and on a cold cache compile) every Warp module imported in the process (all of
         # Newton's, for one), which took minutes on a fresh GPU machine. Kernels of other
         # modules launched by post-step hooks load during capture (CUDA driver >= 12.3).
-        for module in _step_modules():
+        for module in _step_modules(bool(self.post_step_hooks)):
             wp.load_module(module, device=self.device)
         with wp.ScopedCapture(device=self.device, force_module_load=False) as cap:
             self._step_body()
