@@ -46,6 +46,8 @@ class SurfaceConfig(_Strict):
     up_axis: Literal["z", "y"] = "z"
     scale: float = Field(default=1.0, gt=0)
     translate: Vec3 = (0.0, 0.0, 0.0)
+    # auto: a closed mesh whose triangles face inward is flipped (with a warning); keep; flip
+    orientation: Literal["auto", "keep", "flip"] = "auto"
     conversion: Optional[ConversionConfig] = None
 
 

@@ -46,6 +46,7 @@ import sys
 import time
 import warnings
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import warp as wp
@@ -612,13 +613,13 @@ def main(argv=None) -> int:
     p.add_argument("--tracked-weight", type=float, default=None, help="tracking: weight of the tracked positions at a re-anchor")
     p.add_argument("--iterations", type=int, default=None, help="regularized: outer iterations per frame")
     p.add_argument("--smooth-iterations", type=int, default=None, help="regularized: displacement smoothing steps")
-    p.add_argument("--fmt", default=None, choices=["ply", "obj"], help="per-frame format for a folder output")
+    p.add_argument("--fmt", default=None, choices=["ply", "obj"], help="per-frame format for a folder output (default ply)")
     p.add_argument("--fps", type=float, default=None, help="override the input frame rate")
     a = p.parse_args(argv)
     from .cli import quiet_warp
 
     quiet_warp()
-    from .io import load_sequence, save_sequence
+    from .io import MESH_EXTENSIONS, load_sequence, save_sequence
 
     opts = {}
     for k in ("reanchor_interval", "tracked_weight"):
@@ -631,9 +632,23 @@ def main(argv=None) -> int:
             if a.strategy != "regularized":
                 p.error(f"--{k.replace('_', '-')} applies to --strategy regularized")
             opts[k] = getattr(a, k)
+    out_suffix = Path(a.output).suffix.lower()
+    if out_suffix != ".npz":
+        if out_suffix in MESH_EXTENSIONS:
+            p.error(f"output {a.output}: a sequence does not fit in one {out_suffix} file; give a .npz "
+                    "file, or a folder (frames written as frame_XXXX.ply, or .obj with --fmt obj)")
+        a.fmt = a.fmt or "ply"
+    try:
+        device = wp.get_device(a.device)
+    except (RuntimeError, ValueError) as e:
+        print(f"error: --device {a.device!r}: not available here ({e})", file=sys.stderr)
+        return 2
     try:
         seq = load_sequence(a.input, fps=a.fps)
-        res = to_fixed_topology(seq, strategy=a.strategy, template=a.template, device=a.device,
+        if isinstance(seq, FixedTopologySequence):
+            print(f"note: {a.input} already has fixed topology ({seq.num_frames} frames); converting it "
+                  "anyway (it can be simulated as it is)", file=sys.stderr)
+        res = to_fixed_topology(seq, strategy=a.strategy, template=a.template, device=device,
                                 progress=True, **opts)
         save_sequence(res, a.output, fmt=a.fmt)
     except (MeshDataError, FileNotFoundError, ValueError, TypeError) as e:

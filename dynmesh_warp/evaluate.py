@@ -416,7 +416,11 @@ def main(argv=None) -> int:
     from .cli import quiet_warp
 
     quiet_warp()
-    device = str(wp.get_device(a.device))
+    try:
+        device = str(wp.get_device(a.device))
+    except (RuntimeError, ValueError) as e:
+        print(f"error: --device {a.device!r}: not available here ({e})", file=sys.stderr)
+        return 2
     progress = not a.no_progress
     try:
         if a.compare:

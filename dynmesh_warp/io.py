@@ -440,6 +440,11 @@ def read_mesh(path, frame: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     return validate_mesh(V, F, source=str(path), frame=frame)
 
 
+# npz array names: the canonical V (T, N, 3) / F (M, 3) first, then common aliases
+_NPZ_VERTEX_KEYS = ("V", "vertices", "verts", "points")
+_NPZ_FACE_KEYS = ("F", "faces", "triangles")
+
+
 def _npz_scalar(data, key, path, cast):
     if key not in data.files:
         return None
@@ -459,11 +464,16 @@ def _load_npz(path: Path, fps, kind: str):
         name = _npz_scalar(data, "name", path, str) or path.stem
         file_fps = _npz_scalar(data, "fps", path, float)
         fps = fps if fps is not None else (file_fps if file_fps is not None else DEFAULT_FPS)
+        vkey = next((k for k in _NPZ_VERTEX_KEYS if k in keys), None)
+        fkey = next((k for k in _NPZ_FACE_KEYS if k in keys), None)
         try:
-            if {"V", "F"} <= keys:
-                seq = FixedTopologySequence(
-                    data["V"], data["F"], fps=fps, name=name, source=str(path)
-                )
+            if vkey and fkey:
+                V, F = np.asarray(data[vkey]), np.asarray(data[fkey])
+                if V.ndim == 2:  # one frame (N, 3): a static mesh
+                    V = V[None]
+                if F.ndim == 2 and F.shape[1] == 4:  # quads: two triangles each, as for files
+                    F = F[:, [0, 1, 2, 0, 2, 3]].reshape(-1, 3)
+                seq = FixedTopologySequence(V, F, fps=fps, name=name, source=str(path))
                 return seq.to_varying() if kind == "varying" else seq
             packed = {"V_packed", "F_packed", "V_offsets", "F_offsets"}
             if packed <= keys:
@@ -474,7 +484,9 @@ def _load_npz(path: Path, fps, kind: str):
             else:
                 raise MeshDataError(
                     f"{path}: unknown npz layout; expected arrays 'V' and 'F' (fixed "
-                    f"topology) or {sorted(packed)} (varying topology), found {sorted(keys)}"
+                    f"topology; also read as {', '.join(_NPZ_VERTEX_KEYS[1:])} / "
+                    f"{', '.join(_NPZ_FACE_KEYS[1:])}) or {sorted(packed)} (varying topology), "
+                    f"found {sorted(keys)}"
                 )
         except MeshDataError:
             raise

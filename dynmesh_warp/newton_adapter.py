@@ -424,7 +424,7 @@ def add_scene_bodies(builder, cfg, sphere_positions=None) -> list[dict]:
 def build_newton_world(cfg, device=None, sequence=None, **overrides) -> NewtonWorld:
     """Create a :class:`NewtonWorld` from a validated scene with a ``newton:`` section."""
     from .config import SceneError, spawn_positions  # noqa: PLC0415
-    from .scene import load_surface  # noqa: PLC0415
+    from .scene import load_surface, prepare_surface  # noqa: PLC0415
 
     if cfg.newton is None:
         raise SceneError("the scene has no 'newton:' section")
@@ -432,8 +432,10 @@ def build_newton_world(cfg, device=None, sequence=None, **overrides) -> NewtonWo
         newton = _import_newton()
     except ImportError as e:
         raise SceneError(f"newton: {e}") from e
-    device = wp.get_device(device or cfg.device)
-    seq = load_surface(cfg) if sequence is None else sequence
+    from .scene import resolve_device
+
+    device = resolve_device(device, "--device") if device else resolve_device(cfg.device, "device")
+    seq = load_surface(cfg) if sequence is None else prepare_surface(sequence, cfg)
     if not isinstance(seq, FixedTopologySequence):
         raise SceneError(f"surface {cfg.surface.source}: the Newton path needs a fixed-topology surface; "
                          "set surface.conversion to convert it")
@@ -475,17 +477,20 @@ def run_newton_scene(cfg, device=None, steps: int | None = None, output=None, pr
     if steps is None:
         steps = cfg.run.steps or max(1, int(round(cfg.run.duration / world.dt)))
     out = Path(output) if output else cfg.resolve(cfg.run.output.format(name=cfg.name))
-    world.step()  # warm-up: compile kernels (and capture the CUDA graph) outside the timed loop
+    # warm-up outside the timed loop: step 1 loads (compiles) the kernels, step 2 captures the graph
+    warm = min(steps, 2 if world.use_graph else 1)
+    for _ in range(warm):
+        world.step()
     wp.synchronize_device(world.device)
     build_s = time.perf_counter() - t_build
     times, poses = [world.time], [world.body_transforms()]
     try:
         from tqdm import tqdm  # noqa: PLC0415
 
-        bar = tqdm(total=steps - 1, unit="step", disable=not progress, file=sys.stderr, dynamic_ncols=True)
+        bar = tqdm(total=steps - warm, unit="step", disable=not progress, file=sys.stderr, dynamic_ncols=True)
     except ImportError:  # pragma: no cover
         bar = None
-    sim_s, done = 0.0, 1
+    sim_s, done = 0.0, warm
     while done < steps:
         n = min(cfg.run.record_every, steps - done)
         t0 = time.perf_counter()
@@ -502,7 +507,7 @@ def run_newton_scene(cfg, device=None, steps: int | None = None, output=None, pr
         bar.close()
     final = world.body_transforms()
     finite = bool(np.isfinite(final).all())
-    sps = (steps - 1) / sim_s if sim_s > 0 else float("nan")
+    sps = (steps - warm) / sim_s if steps > warm and sim_s > 0 else None  # null in summary.json
     summary = {
         "scene": cfg.name,
         "engine": "newton",
@@ -520,7 +525,7 @@ def run_newton_scene(cfg, device=None, steps: int | None = None, output=None, pr
         "steps": steps,
         "sim_time_s": world.time,
         "setup_and_compile_s": build_s,
-        "timed_steps": steps - 1,
+        "timed_steps": steps - warm,
         "timed_wall_s": sim_s,
         "steps_per_second": sps,
         "final": {"finite": finite, "body_q": final, "body_labels": world.body_labels()},
@@ -528,8 +533,10 @@ def run_newton_scene(cfg, device=None, steps: int | None = None, output=None, pr
     atomic_write_npz(out / "trajectories.npz", time=np.asarray(times), body_q=np.asarray(poses))
     atomic_write_json(out / "summary.json", summary)
     summary["output"] = str(out)
-    log(f"{cfg.name}: {steps - 1} steps on {summary['device']} (Newton {world.solver_name}"
-        f"{', CUDA graph' if world.use_graph else ''}): {sps:,.0f} steps/s; {world.model.body_count} bodies; "
+    log(f"{cfg.name}: {steps} steps on {summary['device']} (Newton {world.solver_name}"
+        f"{', CUDA graph' if world.use_graph else ''}): "
+        + (f"{sps:,.0f} steps/s; " if sps is not None else "too few steps to time; ")
+        + f"{world.model.body_count} bodies; "
         f"outputs in {out}")
     if not finite:
         log("WARNING: non-finite body state at the end of the run")

@@ -104,8 +104,8 @@ def run_scene(cfg, device=None, steps: int | None = None, collider: str | None =
             bar.update(n)
     if bar is not None:
         bar.close()
-    timed_steps = steps - 1
-    sps = timed_steps / sim_s if sim_s > 0 else float("nan")
+    timed_steps = steps - 1  # the first step (compile, graph capture) is not timed
+    sps = timed_steps / sim_s if timed_steps > 0 and sim_s > 0 else None  # null in summary.json
     final_pos = world.sphere_positions()
     final_vel = world.sphere_velocities()
     gap = _signed_distances(world)
@@ -150,9 +150,10 @@ def run_scene(cfg, device=None, steps: int | None = None, collider: str | None =
                      velocity=np.asarray(vel), radius=world.model.spheres.radius.numpy())
     atomic_write_json(out / "summary.json", summary)
     summary["output"] = str(out)
-    log(f"{cfg.name}: {timed_steps} steps on {summary['device']} ({summary['collider']}"
-        f"{', CUDA graph' if world.use_graph else ''}): {sps:,.0f} steps/s; "
-        f"{summary['contacts']['in_contact_final']}/{world.model.spheres.count} spheres in contact, "
+    log(f"{cfg.name}: {steps} steps on {summary['device']} ({summary['collider']}"
+        f"{', CUDA graph' if world.use_graph else ''}): "
+        + (f"{sps:,.0f} steps/s; " if sps is not None else "too few steps to time; ")
+        + f"{summary['contacts']['in_contact_final']}/{world.model.spheres.count} spheres in contact, "
         f"max penetration {summary['final']['max_penetration']:.2e} m; outputs in {out}")
     if not finite:
         log("WARNING: non-finite sphere state at the end of the run")
@@ -168,6 +169,10 @@ def main(argv=None) -> int:
     from .sequence import MeshDataError
 
     try:
+        if args.steps is not None and args.steps < 1:
+            raise SceneError(f"--steps must be at least 1, got {args.steps}")
+        if args.duration is not None and not args.duration > 0:
+            raise SceneError(f"--duration must be a positive number of seconds, got {args.duration}")
         cfg = load_scene_config(args.scene)
         steps = args.steps
         if args.duration is not None:

@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import copy
+import warnings
+
 import numpy as np
 import warp as wp
 
 from .config import SceneConfig, SceneError, spawn_positions
-from .sequence import FixedTopologySequence, VaryingTopologySequence
+from .sequence import FixedTopologySequence, MeshDataError, VaryingTopologySequence, mesh_orientation
 from .world import Model, PhysicsParams, SphereModel, State, SurfaceModel, VaryingSurfaceModel, World
 
-__all__ = ["load_surface", "build_world"]
+__all__ = ["load_surface", "prepare_surface", "build_world", "resolve_device"]
 
 # y-up data to z-up: rotate +90 degrees about x, (x, y, z) -> (x, -z, y)
 _Y_TO_Z = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
@@ -20,6 +23,35 @@ def _transform(V: np.ndarray, cfg) -> np.ndarray:
     if cfg.up_axis == "y":
         V = V @ _Y_TO_Z.T
     return (V * cfg.scale + np.asarray(cfg.translate)).astype(np.float32)
+
+
+def _orient(V: np.ndarray, F: np.ndarray, cfg, where: str) -> np.ndarray:
+    """Faces as ``surface.orientation`` asks: contacts are one-sided (the side the triangle
+    normals point to), so a closed mesh must face outward."""
+    if cfg.orientation == "flip":
+        return F[:, ::-1].copy()
+    if cfg.orientation == "keep":
+        return F
+    state = mesh_orientation(V, F)
+    if state == "inward":
+        warnings.warn(f"{where}: closed mesh whose triangles face inward (negative volume): flipped them "
+                      "to face outward (surface.orientation: keep to leave them)", stacklevel=3)
+        return F[:, ::-1].copy()
+    if state == "inconsistent":
+        warnings.warn(f"{where}: closed mesh with inconsistent winding (neighbouring triangles face "
+                      "opposite ways); contacts are one-sided, so some faces may let spheres through",
+                      stacklevel=3)
+    return F
+
+
+def _check_size(V0: np.ndarray, cfg) -> None:
+    """Warn when the surface is implausibly large or small for metres (wrong units?)."""
+    diag = float(np.linalg.norm(V0.max(axis=0) - V0.min(axis=0)))
+    if diag > 100.0 or diag < 0.01:
+        warnings.warn(
+            f"surface {cfg.source}: the first frame is {diag:.3g} m across (bounding-box diagonal) in the "
+            "scene frame, which is in metres; for data in other units set surface.scale (e.g. 0.001 for "
+            "millimetres), and surface.up_axis: y for y-up data", stacklevel=3)
 
 
 def load_surface(cfg: SceneConfig):
@@ -41,12 +73,29 @@ def load_surface(cfg: SceneConfig):
 
         seq = load_sequence(cfg.resolve(s.source), fps=s.fps, frame_order=s.frame_order,
                             **({"subdir": s.subdir} if s.subdir else {}))
+    return prepare_surface(seq, cfg)
+
+
+def prepare_surface(seq, cfg: SceneConfig):
+    """Bring a loaded sequence into the scene frame as the ``surface`` section asks: fps,
+    up_axis, scale, translate, orientation, then ``conversion`` of a varying-topology one.
+    ``build_world(cfg, sequence=seq)`` calls it for a sequence you built or loaded yourself."""
+    s = cfg.surface
+    if not isinstance(seq, (FixedTopologySequence, VaryingTopologySequence)):
+        raise TypeError(f"expected a FixedTopologySequence or VaryingTopologySequence, got {type(seq).__name__}")
+    seq = copy.copy(seq)  # the caller's sequence keeps its fps
     if s.fps is not None:
         seq.fps = float(s.fps)
     if isinstance(seq, FixedTopologySequence):
-        seq = FixedTopologySequence(_transform(seq.V, s), seq.F, seq.fps, seq.name, seq.source)
+        V = _transform(seq.V, s)
+        seq = FixedTopologySequence(V, _orient(V[0], seq.F, s, seq.source or seq.name), seq.fps, seq.name,
+                                    seq.source)
+        _check_size(seq.V[0], s)
     else:
         frames = [(_transform(v, s), f) for v, f in seq.frames]
+        where = seq.source or seq.name
+        frames = [(v, _orient(v, f, s, f"{where} (frame {t})")) for t, (v, f) in enumerate(frames)]
+        _check_size(frames[0][0], s)
         seq = VaryingTopologySequence(frames, seq.fps, seq.name, seq.source, seq.frame_sources)
         if seq.is_fixed_topology():
             seq = seq.to_fixed()
@@ -59,16 +108,33 @@ def load_surface(cfg: SceneConfig):
 
                 V, F = read_mesh(cfg.resolve(s.conversion.template))
                 template = (_transform(V, s), F)
-            seq = to_fixed_topology(seq, strategy=s.conversion.strategy, template=template,
-                                    **s.conversion.options)
+            try:
+                seq = to_fixed_topology(seq, strategy=s.conversion.strategy, template=template,
+                                        **s.conversion.options)
+            except (TypeError, ValueError) as e:  # unknown or bad strategy options
+                raise SceneError(f"surface.conversion.options: {e}") from e
     return seq
+
+
+def resolve_device(name, field: str = "device"):
+    """``wp.get_device(name)``, with a :class:`SceneError` naming ``field`` when the device
+    does not exist here (e.g. ``cuda`` on a machine without a GPU)."""
+    try:
+        return wp.get_device(name)
+    except (RuntimeError, ValueError) as e:
+        have = ", ".join(str(d) for d in wp.get_devices())
+        raise SceneError(f"{field} {name!r}: not available here ({e}); devices here: {have}") from None
 
 
 def build_world(cfg: SceneConfig, device=None, collider: str | None = None,
                 rebuild_every: str | None = None, sequence=None) -> World:
-    """Create the model, state and world of a scene on ``device`` (default: cfg.device or Warp's)."""
-    device = wp.get_device(device or cfg.device)
-    seq = load_surface(cfg) if sequence is None else sequence
+    """Create the model, state and world of a scene on ``device`` (default: cfg.device or Warp's).
+
+    ``sequence``: a sequence already in memory (e.g. from ``load_sequence``) to use instead of
+    ``surface.source``; the rest of the ``surface`` section (fps, up_axis, scale, translate,
+    orientation, conversion) is applied to it as to a loaded one."""
+    device = resolve_device(device, "--device") if device else resolve_device(cfg.device, "device")
+    seq = load_surface(cfg) if sequence is None else prepare_surface(sequence, cfg)
     p = cfg.physics
     collider = collider or p.collider
     if isinstance(seq, FixedTopologySequence):
@@ -76,9 +142,14 @@ def build_world(cfg: SceneConfig, device=None, collider: str | None = None,
         V0 = seq.V[0]
     else:
         if collider != "rebuild":
+            try:
+                seq.to_fixed()
+                why = "frames have different topology"
+            except MeshDataError as e:  # names the first frame that differs from frame 0
+                why = str(e).split("; a fixed-topology sequence")[0]
             raise SceneError(
-                f"surface {cfg.surface.source}: frames have different topology; use "
-                "physics.collider: rebuild, or set surface.conversion to convert it to fixed topology")
+                f"surface {cfg.surface.source}: {why}. Varying topology needs "
+                "physics.collider: rebuild, or surface.conversion to convert it to fixed topology")
         surface = VaryingSurfaceModel(seq, device, playback=cfg.surface.playback)
         V0 = seq.frames[0][0]
     if isinstance(cfg.spheres, list):

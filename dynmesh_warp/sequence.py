@@ -18,6 +18,7 @@ __all__ = [
     "FixedTopologySequence",
     "VaryingTopologySequence",
     "validate_mesh",
+    "mesh_orientation",
 ]
 
 
@@ -72,9 +73,11 @@ def validate_mesh(
     lo, hi = int(F.min()), int(F.max())
     if lo < 0 or hi >= n:
         bad_face = int(np.flatnonzero(((F < 0) | (F >= n)).any(axis=1))[0])
+        hint = ("; the indices look 1-based (as in OBJ files or MATLAB): subtract 1"
+                if lo >= 1 and hi == n else "")
         raise MeshDataError(
             f"{where}: face indices out of range [0, {n}): face {bad_face} = "
-            f"{F[bad_face].tolist()} (min index {lo}, max index {hi})"
+            f"{F[bad_face].tolist()} (min index {lo}, max index {hi}){hint}"
         )
     return np.ascontiguousarray(V, dtype=np.float32), np.ascontiguousarray(F, dtype=np.int32)
 
@@ -226,6 +229,26 @@ class VaryingTopologySequence:
             np.stack([v for v, _ in self.frames]), F0, fps=self.fps, name=self.name,
             source=self.source,
         )
+
+
+def mesh_orientation(V, F) -> str:
+    """How the triangles of a mesh face: ``"outward"`` or ``"inward"`` for a closed mesh with
+    consistent winding (sign of its volume), ``"open"`` when some edge does not join exactly two
+    faces (a sheet, or a reconstruction with holes), ``"inconsistent"`` when two faces run
+    through a shared edge in the same direction."""
+    F = np.asarray(F, np.int64)
+    directed = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    n = int(max(int(F.max()) + 1, 1))
+    undirected = np.sort(directed, axis=1)
+    _, counts = np.unique(undirected[:, 0] * n + undirected[:, 1], return_counts=True)
+    if np.any(counts != 2):
+        return "open"
+    if len(np.unique(directed[:, 0] * n + directed[:, 1])) != len(directed):
+        return "inconsistent"
+    V = np.asarray(V, np.float64)
+    a, b, c = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
+    volume = np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0
+    return "outward" if volume > 0 else "inward"
 
 
 def text_sorted_permutation(num_frames: int, start: int = 1) -> np.ndarray:

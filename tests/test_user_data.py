@@ -1,0 +1,205 @@
+"""A new user's own data and mistakes: npz variants, inside-out and oddly scaled meshes,
+in-memory sequences, bad CLI arguments. Each must load correctly or fail with a clear message
+(exit code 2 from the command lines), never a traceback or a NaN in the outputs."""
+
+from __future__ import annotations
+
+import json
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+import warp as wp
+import yaml
+
+from dynmesh_warp.config import SceneConfig, SceneError
+from dynmesh_warp.io import load_sequence
+from dynmesh_warp.scene import build_world, load_surface
+from dynmesh_warp.sequence import FixedTopologySequence, MeshDataError, mesh_orientation
+
+
+def ico_sequence(T: int = 3, subdiv: int = 1, center=(0.0, 0.0, 0.5), radius=0.4):
+    m = trimesh.creation.icosphere(subdivisions=subdiv, radius=radius)
+    V = np.stack([m.vertices * (1.0 + 0.05 * t) + center for t in range(T)]).astype(np.float32)
+    return V, np.asarray(m.faces, np.int32)
+
+
+def scene_yaml(folder: Path, data: dict) -> Path:
+    p = folder / "scene.yaml"
+    p.write_text(yaml.safe_dump(data))
+    return p
+
+
+# --------------------------------------------------------------------------- npz variants
+
+
+def test_npz_common_key_names_single_frame_and_quads(tmp_path):
+    V, F = ico_sequence()
+    np.savez(tmp_path / "alias.npz", vertices=V, faces=F)
+    a = load_sequence(tmp_path / "alias.npz")
+    np.testing.assert_array_equal(a.V, V)
+    np.testing.assert_array_equal(a.F, F)
+    np.savez(tmp_path / "one.npz", V=V[0], F=F)  # (N, 3): one frame
+    one = load_sequence(tmp_path / "one.npz")
+    assert one.V.shape == (1,) + V[0].shape
+    # a quad grid: each quad becomes two triangles covering the same area (trimesh reference)
+    g = np.stack(np.meshgrid(np.arange(3.0), np.arange(3.0), indexing="ij"), -1).reshape(-1, 2)
+    Vq = np.c_[g, np.zeros(len(g))].astype(np.float32)
+    Q = np.array([[i * 3 + j, (i + 1) * 3 + j, (i + 1) * 3 + j + 1, i * 3 + j + 1]
+                  for i in range(2) for j in range(2)], np.int32)
+    np.savez(tmp_path / "quads.npz", V=Vq[None], F=Q)
+    q = load_sequence(tmp_path / "quads.npz")
+    assert q.F.shape == (8, 3)
+    assert trimesh.Trimesh(q.V[0], q.F, process=False).area == pytest.approx(4.0)
+
+
+def test_one_based_faces_get_a_hint(tmp_path):
+    V, F = ico_sequence()
+    np.savez(tmp_path / "matlab.npz", V=V, F=F + 1)
+    with pytest.raises(MeshDataError, match=r"matlab\.npz.*out of range.*1-based"):
+        load_sequence(tmp_path / "matlab.npz")
+    F_bad = F.copy()
+    F_bad[0, 0] = len(V[0]) + 5  # a plain bad index: no 1-based hint
+    np.savez(tmp_path / "bad.npz", V=V, F=F_bad)
+    with pytest.raises(MeshDataError) as e:
+        load_sequence(tmp_path / "bad.npz")
+    assert "1-based" not in str(e.value)
+
+
+# --------------------------------------------------------------------------- orientation
+
+
+def test_mesh_orientation_against_trimesh():
+    m = trimesh.creation.icosphere(subdivisions=2)
+    V, F = m.vertices, m.faces
+    assert m.volume > 0 and mesh_orientation(V, F) == "outward"
+    flipped = trimesh.Trimesh(V, F[:, ::-1], process=False)
+    assert flipped.volume < 0 and mesh_orientation(V, F[:, ::-1]) == "inward"
+    assert mesh_orientation(V, F[:-3]) == "open"  # holes
+    F_mixed = F.copy()
+    F_mixed[0] = F_mixed[0, ::-1]
+    assert not trimesh.Trimesh(V, F_mixed, process=False).is_winding_consistent
+    assert mesh_orientation(V, F_mixed) == "inconsistent"
+
+
+def test_inside_out_closed_mesh_is_flipped_and_holds_a_sphere(tmp_path):
+    """Contacts are one-sided, so an inward-facing closed mesh would let spheres fall inside."""
+    V, F = ico_sequence(T=2, subdiv=2)
+    np.savez(tmp_path / "inside_out.npz", V=V, F=F[:, ::-1], fps=np.float32(24))
+    cfg = SceneConfig.model_validate({
+        "surface": {"source": str(tmp_path / "inside_out.npz"), "playback": "clamp"},
+        "spheres": [{"position": [0.0, 0.0, 1.2], "radius": 0.05}],
+        "physics": {"restitution": 0.0}})
+    with pytest.warns(UserWarning, match="face inward.*flipped"):
+        world = build_world(cfg, device="cpu")
+    seq = world.model.surface
+    assert mesh_orientation(V[0], seq.indices.numpy().reshape(-1, 3)) == "outward"
+    for _ in range(480):
+        world.step()
+    top = float(V[1][:, 2].max())  # the sphere rests on the top of the (clamped) last frame
+    assert world.sphere_positions()[0, 2] == pytest.approx(top + 0.05, abs=0.02)
+    keep = cfg.model_copy(update={"surface": cfg.surface.model_copy(update={"orientation": "keep"})})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # keep: no warning and no flip
+        np.testing.assert_array_equal(load_surface(keep).F, F[:, ::-1])
+
+
+# --------------------------------------------------------------------------- units and in-memory data
+
+
+def test_millimetre_data_warns_and_scale_fixes_it(tmp_path):
+    V, F = ico_sequence(center=(0.0, 0.0, 500.0), radius=400.0)  # millimetres
+    np.savez(tmp_path / "mm.npz", V=V, F=F)
+    cfg = SceneConfig.model_validate({"surface": {"source": str(tmp_path / "mm.npz")}})
+    with pytest.warns(UserWarning, match=r"m across.*surface\.scale"):
+        load_surface(cfg)
+    cfg = SceneConfig.model_validate({"surface": {"source": str(tmp_path / "mm.npz"), "scale": 0.001}})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        seq = load_surface(cfg)
+    np.testing.assert_allclose(seq.V, V * 0.001, rtol=1e-6)
+
+
+def test_build_world_applies_the_surface_section_to_an_in_memory_sequence():
+    V, F = ico_sequence(center=(0.0, 500.0, 0.0), radius=400.0)  # y-up millimetres
+    seq = FixedTopologySequence(V, F, fps=30.0, name="mine")
+    cfg = SceneConfig.model_validate({"surface": {"up_axis": "y", "scale": 0.001, "fps": 12.0},
+                                      "spheres": {"count": 2, "radius": 0.05}})
+    world = build_world(cfg, device="cpu", sequence=seq)
+    pts = world.model.surface.frames.numpy()[0]
+    # y-up -> z-up: (x, y, z) -> (x, -z, y), then millimetres -> metres
+    np.testing.assert_allclose(pts, np.c_[V[0][:, 0], -V[0][:, 2], V[0][:, 1]] * 0.001, rtol=1e-5, atol=1e-6)
+    assert world.model.surface.fps == 12.0 and seq.fps == 30.0  # the caller's sequence is untouched
+    assert (world.sphere_positions()[:, 2] > pts[:, 2].max()).all()  # spawned above it, in metres
+
+
+# --------------------------------------------------------------------------- command lines
+
+
+def test_run_cli_rejects_bad_step_counts(tmp_path, capsys):
+    from dynmesh_warp.run import main
+
+    for args in (["--steps", "0"], ["--duration", "0"], ["--duration", "-1"]):
+        assert main(["--viewer", "none", "--device", "cpu", "--no-progress", *args]) == 2
+        assert "must be" in capsys.readouterr().err
+
+
+def test_run_cli_one_step_writes_strict_json(tmp_path, capsys):
+    from dynmesh_warp.run import main
+
+    out = tmp_path / "o"
+    assert main(["--viewer", "none", "--device", "cpu", "--no-progress", "--steps", "1", "--output", str(out)]) == 0
+    text = (out / "summary.json").read_text()
+    summary = json.loads(text, parse_constant=lambda c: pytest.fail(f"non-strict JSON constant {c}"))
+    assert summary["steps_per_second"] is None and summary["steps"] == 1
+
+
+@pytest.mark.skipif(wp.is_cuda_available(), reason="needs a machine without a CUDA device")
+def test_run_cli_cuda_without_gpu_is_a_clear_error(capsys):
+    from dynmesh_warp.run import main
+
+    assert main(["--viewer", "none", "--device", "cuda", "--no-progress", "--steps", "2"]) == 2
+    err = capsys.readouterr().err
+    assert "--device 'cuda'" in err and "cpu" in err
+
+
+def test_conversion_option_typo_names_the_field(tmp_path, capsys):
+    from dynmesh_warp.run import main
+
+    scene = scene_yaml(tmp_path, {
+        "surface": {"source": "builtin:torus_to_sphere", "params": {"frames": 3, "resolution": 16},
+                    "conversion": {"strategy": "tracking", "options": {"reanchor_intervl": 5}}},
+        "physics": {"collider": "refit"}})
+    assert main([str(scene), "--viewer", "none", "--device", "cpu", "--no-progress", "--steps", "2",
+                 "--output", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "surface.conversion.options" in err and "reanchor_intervl" in err
+
+
+def test_varying_folder_error_names_the_odd_frame(tmp_path, capsys):
+    from dynmesh_warp.io import write_mesh
+    from dynmesh_warp.run import main
+
+    V, F = ico_sequence(T=3)
+    for t in range(3):
+        write_mesh(tmp_path / "frames" / f"frame_{t + 1:04d}.obj", V[t], F)
+    m = trimesh.creation.icosphere(subdivisions=2, radius=0.4)  # frame 3: other topology
+    write_mesh(tmp_path / "frames" / "frame_0004.obj", m.vertices + [0, 0, 0.5], m.faces)
+    scene = scene_yaml(tmp_path, {"surface": {"source": "frames"}, "physics": {"collider": "refit"}})
+    assert main([str(scene), "--viewer", "none", "--device", "cpu", "--no-progress", "--steps", "2",
+                 "--output", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "frame_0004.obj" in err and "collider: rebuild" in err
+
+
+def test_convert_cli_checks_the_output_path_first(tmp_path, capsys, monkeypatch):
+    from dynmesh_warp import convert
+
+    called = []
+    monkeypatch.setattr(convert, "to_fixed_topology", lambda *a, **k: called.append(1))
+    with pytest.raises(SystemExit) as e:
+        convert.main(["frames", str(tmp_path / "out.obj")])
+    assert e.value.code == 2 and not called
+    assert "does not fit in one .obj file" in capsys.readouterr().err
