@@ -89,10 +89,24 @@ def pair_frames_by_index(gt_names, pred_names, strict: bool = True):
     g, p = index(gt_names, "ground truth"), index(pred_names, "prediction")
     only_g, only_p = sorted(set(g) - set(p)), sorted(set(p) - set(g))
     if strict and (only_g or only_p):
+        hint = ""
+        if len(g) == len(p):
+            hint = (f"; both have {len(g)} frames (numbered from {min(g)} and from {min(p)}): "
+                    "--pair order pairs them by position")
         raise MeshDataError(
             f"frames do not pair up by index: only in ground truth {only_g[:10]}, "
-            f"only in prediction {only_p[:10]}")
+            f"only in prediction {only_p[:10]}{hint}")
     return [(i, g[i], p[i]) for i in sorted(set(g) & set(p))]
+
+
+def pair_frames_by_order(gt_names, pred_names):
+    """Pair the k-th ground-truth frame with the k-th predicted frame (both in index order),
+    e.g. for frames numbered from 1 on one side and from 0 on the other. Returns
+    [(k, gt_name, pred_name)]; raises MeshDataError when the counts differ."""
+    if len(gt_names) != len(pred_names):
+        raise MeshDataError(f"--pair order needs as many predicted frames as ground-truth frames "
+                            f"({len(pred_names)} vs {len(gt_names)})")
+    return [(k, g, p) for k, (g, p) in enumerate(zip(gt_names, pred_names))]
 
 
 # --------------------------------------------------------------------------- evaluation
@@ -142,15 +156,20 @@ def evaluate_rows(gt_frames, rows: dict, frames, protocols=("dgmesh", "paper"), 
 
 
 def evaluate_folders(gt_dir, pred_dir, protocols=("dgmesh", "paper"), frame_stride: int = 1,
-                     emd: bool = True, seed: int = 0, device=None, progress: bool = False) -> dict:
+                     emd: bool = True, seed: int = 0, device=None, progress: bool = False,
+                     pair: str = "index") -> dict:
     """Compare a folder of predicted meshes with a folder of ground-truth meshes, pairing files
-    by the integer frame index in their names. Returns {'pairs': [(index, gt, pred)],
-    'results': evaluate_rows(...)['prediction']} (frames are the paired indices)."""
+    by the integer frame index in their names (``pair="index"``) or by position in index order
+    (``pair="order"``). Returns {'pairs': [(index, gt, pred)], 'results':
+    evaluate_rows(...)['prediction']} (frames are the paired indices)."""
     from .io import _list_frame_files, read_mesh
 
-    gt_files = _list_frame_files(Path(gt_dir))
-    pred_files = _list_frame_files(Path(pred_dir))
-    pairs = pair_frames_by_index([str(p) for p in gt_files], [str(p) for p in pred_files])
+    gt_files = [str(p) for p in _list_frame_files(Path(gt_dir))]  # in index order
+    pred_files = [str(p) for p in _list_frame_files(Path(pred_dir))]
+    if pair not in ("index", "order"):
+        raise ValueError(f"pair must be 'index' or 'order', got {pair!r}")
+    pairing = pair_frames_by_index if pair == "index" else pair_frames_by_order
+    pairs = pairing(gt_files, pred_files)
     pairs = pairs[:: max(1, int(frame_stride))]
 
     class _Lazy(dict):
@@ -182,7 +201,7 @@ def _ground_truth(path: str, num_frames: int | None, frame_order: str = "stored"
     return seq
 
 
-def evaluate_scene(gt_path, input_path=None, num_frames: int | None = 200, resolution: int = 96,
+def evaluate_scene(gt_path, input_path=None, num_frames: int | None = None, resolution: int = 96,
                    noise: float = 0.0, strategies=None, protocols=("dgmesh", "paper"),
                    frame_stride: int = 1, emd_stride: int | None = None, emd: bool = True,
                    seed: int = 0, device=None, progress: bool = True, options=None,
@@ -395,11 +414,15 @@ def main(argv=None) -> int:
     ap.add_argument("--inputs", nargs="*", default=None,
                     help="varying-topology inputs, one per scene (default: remesh the ground truth)")
     ap.add_argument("--compare", nargs=2, metavar=("GT_DIR", "PRED_DIR"),
-                    help="compare two folders of meshes, paired by frame index")
+                    help="compare two folders of meshes, paired by frame index (see --pair)")
+    ap.add_argument("--pair", choices=["index", "order"], default="index",
+                    help="--compare: pair files by the integer in their names (index) or by position (order)")
     ap.add_argument("--out", default="eval_out", help="output folder")
     ap.add_argument("--protocol", nargs="+", default=["dgmesh", "paper"], choices=sorted(M.PROTOCOLS))
     ap.add_argument("--strategies", nargs="+", default=None, help="default: all of convert.STRATEGIES")
-    ap.add_argument("--num-frames", type=int, default=200, help="resample the ground truth to this many frames (0: keep)")
+    ap.add_argument("--num-frames", type=int, default=0,
+                    help="resample the ground truth to this many frames (default 0: keep its frames; "
+                         "the paper's protocol uses 200)")
     ap.add_argument("--resolution", type=int, default=96, help="remesh grid resolution (longest side)")
     ap.add_argument("--noise", type=float, default=0.0, help="remesh vertex noise, in grid spacings")
     ap.add_argument("--frame-stride", type=int, default=1, help="evaluate every k-th frame")
@@ -424,7 +447,7 @@ def main(argv=None) -> int:
     progress = not a.no_progress
     try:
         if a.compare:
-            r = evaluate_folders(a.compare[0], a.compare[1], a.protocol, a.frame_stride,
+            r = evaluate_folders(a.compare[0], a.compare[1], a.protocol, a.frame_stride, pair=a.pair,
                                  emd=not a.no_emd, seed=a.seed, device=device, progress=progress)
             atomic_write_json(Path(a.out) / "compare.json", {
                 "ground_truth": a.compare[0], "prediction": a.compare[1], "device": device,

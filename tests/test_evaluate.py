@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -48,6 +49,26 @@ def test_evaluate_folders_pairs_gt10_with_frame10(tmp_path, device):
     assert d["cd"][0] == pytest.approx(0.01, rel=1e-5)
     assert d["cd"][1] == 0.0
     assert d["cd_mean"] == pytest.approx(0.005, rel=1e-5)
+
+
+def test_evaluate_folders_pair_by_order_for_differently_numbered_frames(tmp_path, device):
+    """Ground truth numbered from 1, prediction from 0 (what convert writes): pairing by index
+    fails with a hint, pairing by order pairs gt1 with frame_0000 and gt2 with frame_0001."""
+    (tmp_path / "gt").mkdir()
+    (tmp_path / "pred").mkdir()
+    write_mesh(tmp_path / "gt" / "gt1.obj", TETRA_V, TETRA_F)
+    write_mesh(tmp_path / "gt" / "gt2.obj", 3 * TETRA_V, TETRA_F)
+    write_mesh(tmp_path / "pred" / "frame_0000.obj", TETRA_V + np.float32([0, 0, 0.1]), TETRA_F)
+    write_mesh(tmp_path / "pred" / "frame_0001.obj", 3 * TETRA_V, TETRA_F)
+    with pytest.raises(MeshDataError, match="--pair order"):
+        E.evaluate_folders(tmp_path / "gt", tmp_path / "pred", protocols=("dgmesh",), emd=False, device=device)
+    r = E.evaluate_folders(tmp_path / "gt", tmp_path / "pred", protocols=("dgmesh",), emd=False,
+                           device=device, pair="order")
+    assert [(Path(g).name, Path(p).name) for _, g, p in r["pairs"]] == [
+        ("gt1.obj", "frame_0000.obj"), ("gt2.obj", "frame_0001.obj")]
+    assert r["results"]["dgmesh"]["cd"] == [pytest.approx(0.01, rel=1e-5), 0.0]
+    with pytest.raises(MeshDataError, match="as many"):
+        E.pair_frames_by_order(["a1.obj"], [])
 
 
 def test_rows_summary_and_percent_change(tmp_path, device):
