@@ -190,14 +190,36 @@ DEFAULT_SCENE = {
 }
 
 
+_MISMATCH = {"list_type", "dict_type", "model_type", "model_attributes_type", "tuple_type"}
+
+
+def _is_branch_tag(x) -> bool:
+    """pydantic's name of a union branch in an error location (``SpawnConfig``,
+    ``list[SphereConfig]``, ``literal['auto']``, ``float``), not a field name."""
+    return isinstance(x, str) and (x[:1].isupper() or "[" in x or x in ("float", "int", "str", "bool"))
+
+
 def _format_errors(err: ValidationError, origin: str) -> str:
-    lines = [f"{origin}: invalid scene"]
+    """One line per problem, at the field path. For a union field (``spheres``: a list or a
+    mapping) the branch the user did not mean ("should be a valid list") is left out when the
+    other branch has a more specific error, and alternatives at one path are joined."""
+    errs = []
     for e in err.errors():
-        loc = ".".join(str(x) for x in e["loc"]) or "(top level)"
-        msg = e["msg"]
-        if e["type"] == "extra_forbidden":
-            msg = "unknown key"
-        lines.append(f"  {loc}: {msg}")
+        loc = [x for x in e["loc"] if not _is_branch_tag(x)]
+        msg = "unknown key" if e["type"] == "extra_forbidden" else e["msg"]
+        errs.append((".".join(str(x) for x in loc) or "(top level)", e["type"], msg,
+                     any(_is_branch_tag(x) for x in e["loc"])))
+    keep = [
+        e for e in errs
+        if not (e[3] and e[1] in _MISMATCH and any(
+            f is not e and f[1] not in _MISMATCH and (f[0] + ".").startswith(e[0] + ".") for f in errs))
+    ]
+    merged: dict[str, list[str]] = {}
+    for loc, _, msg, _ in keep:
+        if msg not in merged.setdefault(loc, []):
+            merged[loc].append(msg)
+    lines = [f"{origin}: invalid scene"]
+    lines += [f"  {loc}: {'; or: '.join(msgs)}" for loc, msgs in merged.items()]
     return "\n".join(lines)
 
 

@@ -109,6 +109,7 @@ import re
 import shutil
 import tempfile
 import warnings
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -455,6 +456,8 @@ def _npz_scalar(data, key, path, cast):
 
 
 def _load_npz(path: Path, fps, kind: str):
+    if not zipfile.is_zipfile(path):
+        raise MeshDataError(f"{path}: not an npz file (a zip archive of arrays, as numpy.savez writes)")
     try:
         data = np.load(path, allow_pickle=False)
     except Exception as e:
@@ -533,6 +536,9 @@ def _list_frame_files(folder: Path) -> list[Path]:
         subdirs = sorted(p.name for p in folder.iterdir()
                          if p.is_dir() and not p.name.startswith("."))
         hint = f"; subfolders: {', '.join(subdirs)} (pass subdir=...)" if subdirs else ""
+        npz = sorted(p.name for p in folder.glob("*.npz"))
+        if npz:
+            hint += f"; it holds .npz files ({', '.join(npz[:3])}{' ...' if len(npz) > 3 else ''}): load one directly"
         raise MeshDataError(
             f"{folder}: no mesh files found (looked for {', '.join(sorted(MESH_EXTENSIONS))})"
             f"{hint}"

@@ -82,7 +82,7 @@ def validate_mesh(
     return np.ascontiguousarray(V, dtype=np.float32), np.ascontiguousarray(F, dtype=np.int32)
 
 
-@dataclass
+@dataclass(repr=False)
 class FixedTopologySequence:
     """An animated triangle mesh whose faces are the same in every frame.
 
@@ -122,6 +122,10 @@ class FixedTopologySequence:
             raise MeshDataError(f"{where}: fps must be a positive number, got {self.fps!r}")
         self.fps = fps
 
+    def __repr__(self) -> str:
+        return (f"FixedTopologySequence(name={self.name!r}, frames={self.num_frames}, "
+                f"vertices={self.num_vertices}, faces={self.num_faces}, fps={self.fps})")
+
     @property
     def num_frames(self) -> int:
         return int(self.V.shape[0])
@@ -160,7 +164,7 @@ class FixedTopologySequence:
         )
 
 
-@dataclass
+@dataclass(repr=False)
 class VaryingTopologySequence:
     """An animated mesh whose vertex count and faces may change every frame.
 
@@ -189,6 +193,11 @@ class VaryingTopologySequence:
         if not np.isfinite(fps) or fps <= 0:
             raise MeshDataError(f"{where}: fps must be a positive number, got {self.fps!r}")
         self.fps = fps
+
+    def __repr__(self) -> str:
+        nv = [len(v) for v, _ in self.frames]
+        return (f"VaryingTopologySequence(name={self.name!r}, frames={self.num_frames}, "
+                f"vertices={min(nv)}..{max(nv)}, fps={self.fps})")
 
     @property
     def num_frames(self) -> int:

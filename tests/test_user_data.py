@@ -203,3 +203,27 @@ def test_convert_cli_checks_the_output_path_first(tmp_path, capsys, monkeypatch)
         convert.main(["frames", str(tmp_path / "out.obj")])
     assert e.value.code == 2 and not called
     assert "does not fit in one .obj file" in capsys.readouterr().err
+
+
+def test_union_field_errors_name_only_the_meant_branch():
+    from dynmesh_warp.config import load_scene_config
+
+    with pytest.raises(SceneError) as e:
+        load_scene_config(data={"spheres": {"count": 3, "heigth": 1.0}})
+    lines = str(e.value).splitlines()[1:]
+    assert lines == ["  spheres.heigth: unknown key"]  # not also "spheres: should be a valid list"
+    with pytest.raises(SceneError) as e:
+        load_scene_config(data={"physics": {"ground": "autoo"}})
+    lines = str(e.value).splitlines()[1:]
+    assert len(lines) == 1 and lines[0].startswith("  physics.ground:") and "'auto'" in lines[0]
+
+
+def test_text_file_named_npz_and_folder_of_npz(tmp_path):
+    (tmp_path / "notes.npz").write_text("not an archive\n")
+    with pytest.raises(MeshDataError, match=r"notes\.npz: not an npz file"):
+        load_sequence(tmp_path / "notes.npz")
+    V, F = ico_sequence()
+    (tmp_path / "many").mkdir()
+    np.savez(tmp_path / "many" / "a.npz", V=V, F=F)
+    with pytest.raises(MeshDataError, match=r"a\.npz\): load one directly"):
+        load_sequence(tmp_path / "many")
