@@ -25,6 +25,7 @@ __all__ = [
     "Gaussians",
     "bind_splats",
     "generate_gaussians",
+    "gaussians_for_surface",
     "gaussians_for_world",
     "quat_wxyz_to_xyzw",
     "quat_xyzw_to_wxyz",
@@ -238,16 +239,19 @@ def generate_gaussians(V, F, count: int = 20000, seed: int = 0, vertex_colors=No
 def gaussians_for_world(world, cfg=None) -> Gaussians:
     """Gaussians for a world built from a scene: bind ``cfg.gaussians.splats`` (a 3DGS .ply in
     the scene frame) if set, else generate ``cfg.gaussians.count`` on the first frame. Attached."""
+    return gaussians_for_surface(world.model.surface.sequence, cfg, world.device).attach(world)
+
+
+def gaussians_for_surface(seq, cfg=None, device=None) -> Gaussians:
+    """Gaussians for a fixed-topology sequence as a scene asks (``cfg.gaussians``): bound to, or
+    generated on, its first frame. Not attached: call ``update(points, indices)`` yourself."""
     from .splat_io import read_splat_ply
 
-    seq = world.model.surface.sequence
     if not hasattr(seq, "V"):
         raise ValueError("Gaussians need a fixed-topology surface (convert the sequence first)")
     gcfg = getattr(cfg, "gaussians", None) if cfg is not None else None
     if gcfg is not None and gcfg.splats:
-        g = bind_splats(read_splat_ply(cfg.resolve(gcfg.splats)), seq.V[0], seq.F, device=world.device)
-    else:
-        kw = {} if gcfg is None else {"count": gcfg.count, "seed": gcfg.seed, "color": gcfg.color,
-                                      "opacity": gcfg.opacity}
-        g = generate_gaussians(seq.V[0], seq.F, device=world.device, **kw)
-    return g.attach(world)
+        return bind_splats(read_splat_ply(cfg.resolve(gcfg.splats)), seq.V[0], seq.F, device=device)
+    kw = {} if gcfg is None else {"count": gcfg.count, "seed": gcfg.seed, "color": gcfg.color,
+                                  "opacity": gcfg.opacity}
+    return generate_gaussians(seq.V[0], seq.F, device=device, **kw)

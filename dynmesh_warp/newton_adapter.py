@@ -451,12 +451,21 @@ def build_newton_world(cfg, device=None, sequence=None, **overrides) -> NewtonWo
     builder = newton.ModelBuilder()
     records = add_scene_bodies(builder, cfg, sph)
     p = cfg.physics
+    if p.ground is not None:  # the same static plane the built-in world has
+        ground = float(seq.V[:, :, 2].min()) if p.ground == "auto" else float(p.ground)
+        builder.add_ground_plane(height=ground, cfg=newton.ModelBuilder.ShapeConfig(
+            mu=p.friction if cfg.newton.surface_mu is None else cfg.newton.surface_mu))
     surface = SurfaceModel(seq, device, playback=cfg.surface.playback, interpolate=cfg.surface.interpolate)
     kw = dict(dt=p.dt, substeps=p.substeps, solver=cfg.newton.solver, solver_options=dict(cfg.newton.solver_options),
               gravity=p.gravity, mu=p.friction if cfg.newton.surface_mu is None else cfg.newton.surface_mu,
               restitution=p.restitution)
     kw.update(overrides)
-    world = NewtonWorld(surface, builder, **kw)
+    try:
+        world = NewtonWorld(surface, builder, **kw)
+    except ImportError as e:  # e.g. the mujoco solver without mujoco_warp installed
+        raise SceneError(f"newton.solver {cfg.newton.solver!r}: {e}") from e
+    except TypeError as e:  # a constructor argument the solver does not take
+        raise SceneError(f"newton.solver_options: {e}") from e
     world.records = records
     return world
 

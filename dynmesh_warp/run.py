@@ -56,6 +56,11 @@ def run_scene(cfg, device=None, steps: int | None = None, collider: str | None =
     if getattr(cfg, "newton", None) is not None:  # bodies simulated by Newton (docs/newton.md)
         from .newton_adapter import run_newton_scene
 
+        if collider is not None or rebuild_every is not None:
+            warnings.warn("--collider / --rebuild-every choose the built-in world's collider; a scene "
+                          "with a newton: section uses Newton's collision pipeline, so they are ignored",
+                          stacklevel=2)
+
         return run_newton_scene(cfg, device=device, steps=steps, output=output, progress=progress, log=log)
     import warp as wp
 

@@ -19,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["Viewer", "run_viewer", "decode_viser_recording", "decode_wire_message", "SceneStateTracker",
-           "recording_html"]
+__all__ = ["Viewer", "NewtonViewer", "run_viewer", "decode_viser_recording", "decode_wire_message",
+           "SceneStateTracker", "recording_html"]
 
 MIN_SCALE_REL = 1.0e-3  # viewer std-dev floor, relative to the scene's bounding-box diagonal
 MIN_RATIO = 0.05  # viewer std-dev floor, relative to the Gaussian's largest std dev (float16)
@@ -319,6 +319,115 @@ class Viewer:
         return False
 
 
+class _NewtonWorldView:
+    """What :class:`Viewer` reads of a ``World``, for a ``NewtonWorld``: its surface, clock and
+    step; no built-in spheres (the Newton bodies are drawn by :class:`NewtonViewer`)."""
+
+    render_state = True  # the adapter writes the surface into its wp.Mesh every sub-step
+
+    def __init__(self, newton_world):
+        from types import SimpleNamespace
+
+        nw = self.newton_world = newton_world
+        self.device = nw.device
+        self.t0 = nw.t0
+        no_spheres = SimpleNamespace(count=0, radius_np=np.zeros(0, np.float32))
+        self.model = SimpleNamespace(surface=nw.surface, params=SimpleNamespace(dt=nw.dt), spheres=no_spheres)
+        self.state = SimpleNamespace(points=nw.adapter.mesh.points)
+
+    @property
+    def time(self) -> float:
+        return self.newton_world.time
+
+    def step(self):
+        self.newton_world.step()
+
+    def sphere_positions(self) -> np.ndarray:
+        return np.zeros((0, 3), np.float32)
+
+    def current_indices(self):
+        return self.newton_world.surface.indices
+
+
+def _shape_mesh(shape: dict):
+    """(V float32, F uint32) of a Newton shape in its own frame, or None (planes, unknown)."""
+    import trimesh
+
+    t, sc = shape["type"], shape["scale"]
+    if t == "box":
+        m = trimesh.creation.box(extents=[2 * sc[0], 2 * sc[1], 2 * sc[2]])
+    elif t == "sphere":
+        m = trimesh.creation.icosphere(subdivisions=2, radius=sc[0])
+    elif t == "capsule":
+        m = trimesh.creation.capsule(height=2 * sc[1], radius=sc[0], count=[16, 16])
+    elif t == "cylinder":
+        m = trimesh.creation.cylinder(radius=sc[0], height=2 * sc[1], sections=24)
+    elif "vertices" in shape:
+        return (np.asarray(shape["vertices"], np.float32) * np.float32(sc[:3]),
+                np.asarray(shape["indices"], np.uint32))
+    else:
+        return None
+    return np.asarray(m.vertices, np.float32), np.asarray(m.faces, np.uint32)
+
+
+def _xyzw_to_wxyz(q) -> tuple:
+    return (float(q[3]), float(q[0]), float(q[1]), float(q[2]))
+
+
+class NewtonViewer(Viewer):
+    """:class:`Viewer` for a ``NewtonWorld``: the deforming surface (and its Gaussians) plus every
+    Newton shape (boxes, spheres, capsules, cylinders, meshes of MJCF/URDF/USD bodies) at its
+    current pose. Reset, time seeking and sphere dropping are built-in-world features and are
+    not offered here."""
+
+    body_color = (240, 170, 60)
+
+    def __init__(self, newton_world, gaussians=None, **kw):
+        self.newton_world = newton_world
+        self._bodies: list = []
+        super().__init__(_NewtonWorldView(newton_world), gaussians, **kw)
+        for name in ("gui_reset", "gui_drop", "gui_time"):
+            getattr(self, name).disabled = True
+        sc = self.server.scene
+        X = newton_world.shape_transforms()
+        for shape in newton_world.shapes():
+            mesh = _shape_mesh(shape)
+            if mesh is None:
+                continue
+            s = shape["index"]
+            h = sc.add_mesh_simple(f"/bodies/shape_{s}", mesh[0], mesh[1], color=self.body_color,
+                                   position=tuple(float(x) for x in X[s, :3]), wxyz=_xyzw_to_wxyz(X[s, 3:]))
+            self._bodies.append((s, h))
+        self._refresh_gaussians()
+
+    def _send_spheres(self, force: bool = False):
+        if not self._bodies:
+            return
+        X = self.newton_world.shape_transforms()
+        for s, h in self._bodies:
+            h.position = tuple(float(x) for x in X[s, :3])
+            h.wxyz = _xyzw_to_wxyz(X[s, 3:])
+
+    def _refresh_gaussians(self):
+        if self.gaussians is not None:
+            nw = self.newton_world
+            self.gaussians.update(nw.adapter.mesh.points, nw.surface.indices)
+
+    def _send(self):
+        if self.world.time != self._sent_time:
+            self._refresh_gaussians()
+        super()._send()
+
+    def reset(self):
+        self.log("viewer: reset is not available for Newton scenes")
+
+    def seek(self, t: float):
+        self.log("viewer: time seeking is not available for Newton scenes")
+
+    def drop_sphere(self, radius: float | None = None):
+        self.log("viewer: dropping spheres is not available for Newton scenes")
+
+
 def recording_html(data: bytes, dark_mode: bool = False) -> str:
     """A self-contained HTML page playing the ``.viser`` recording ``data``: viser's single-file
     client build with the recording embedded as base64 (what ``StateSerializer.as_html`` does)."""
@@ -387,7 +496,7 @@ def decode_viser_recording(data: bytes) -> dict:
 
 class SceneStateTracker:
     """Applies decoded viser messages to a {node name: props} dict (creation, prop updates,
-    removal), i.e. the scene a client would show."""
+    pose updates as ``position`` / ``wxyz``, removal), i.e. the scene a client would show."""
 
     def __init__(self):
         self.nodes: dict[str, dict] = {}
@@ -399,6 +508,10 @@ class SceneStateTracker:
                 self.nodes[msg["name"]].update(msg["updates"])
         elif t == "RemoveSceneNodeMessage":
             self.nodes.pop(msg["name"], None)
+        elif t in ("SetPositionMessage", "SetOrientationMessage"):  # node pose (position, wxyz)
+            if msg["name"] in self.nodes:
+                key = "position" if t == "SetPositionMessage" else "wxyz"
+                self.nodes[msg["name"]][key] = msg[key]
         elif "props" in msg and "name" in msg and isinstance(msg["props"], dict):
             self.nodes[msg["name"]] = dict(msg["props"], _type=t)
 
@@ -412,19 +525,29 @@ def run_viewer(cfg, device=None, viewer: str = "viser", port: int = 8080, host: 
     ``viewer="none"`` with ``record``: headless, frames back to back for ``steps`` (default:
     the scene's run duration), then the recording is written.
     """
-    from .gaussians import gaussians_for_world
+    from .gaussians import gaussians_for_surface, gaussians_for_world
     from .scene import build_world
 
-    world = build_world(cfg, device=device, collider=collider, rebuild_every=rebuild_every)
-    g = gaussians_for_world(world, cfg)
-    v = Viewer(world, g, port=port, host=host, fps=fps, record=record, realtime=(viewer == "viser"), log=log)
+    if getattr(cfg, "newton", None) is not None:  # bodies simulated by Newton (docs/newton.md)
+        from .newton_adapter import build_newton_world
+
+        newton_world = build_newton_world(cfg, device=device)
+        g = gaussians_for_surface(newton_world.surface.sequence, cfg, newton_world.device)
+        v = NewtonViewer(newton_world, g, port=port, host=host, fps=fps, record=record,
+                         realtime=(viewer == "viser"), log=log)
+        world, what = v.world, f"{newton_world.model.body_count} Newton bodies"
+    else:
+        world = build_world(cfg, device=device, collider=collider, rebuild_every=rebuild_every)
+        g = gaussians_for_world(world, cfg)
+        v = Viewer(world, g, port=port, host=host, fps=fps, record=record, realtime=(viewer == "viser"), log=log)
+        what = f"{world.model.spheres.count} spheres"
     dt = world.model.params.dt
     if steps is None and viewer != "viser":
         steps = cfg.run.steps or max(1, int(round(cfg.run.duration / dt)))
     max_frames = None if steps is None else max(1, int(np.ceil(steps * dt / v.frame_dt)))
     if viewer == "viser":
         log(f"viewer: http://{'localhost' if host in ('0.0.0.0', '127.0.0.1') else host}:{v.port} "
-            f"({g.count} Gaussians, {world.model.spheres.count} spheres); Ctrl-C to quit")
+            f"({g.count} Gaussians, {what}); Ctrl-C to quit")
     try:
         v.run(max_frames=max_frames)
     finally:

@@ -183,6 +183,85 @@ def test_scene_yaml_runs_newton_bodies(tmp_path, device):
         load_scene_config(path)
 
 
+def test_newton_scene_gets_the_ground_plane_and_clear_solver_errors(tmp_path, device):
+    """physics.ground reaches Newton too (a box rests on the plane above the sheet); an unknown
+    solver option is a SceneError naming newton.solver_options, not a traceback."""
+    from dynmesh_warp.config import SceneError, load_scene_config
+    from dynmesh_warp.newton_adapter import build_newton_world
+
+    seq = rising_sheet(16, rise=0.0, frames=2)
+    npz = tmp_path / "sheet.npz"
+    np.savez(npz, V=seq.V, F=seq.F, fps=FPS)
+    data = {"device": device, "surface": {"source": str(npz)}, "spheres": [], "physics": {"ground": 0.3},
+            "newton": {"solver": "xpbd", "bodies": [
+                {"type": "box", "position": [0.0, 0.0, 0.6], "half_extents": [0.1, 0.1, 0.05]}]}}
+    w = build_newton_world(load_scene_config(data=data))
+    for _ in range(240):
+        w.step()
+    assert w.body_transforms()[0, 2] == pytest.approx(0.35, abs=3e-3)  # on the plane, not the sheet (0.05)
+    data["newton"]["solver_options"] = {"iterationz": 3}
+    with pytest.raises(SceneError, match=r"newton\.solver_options.*iterationz"):
+        build_newton_world(load_scene_config(data=data))
+
+
+def test_viewer_shows_newton_bodies_and_the_recording_replays_them(tmp_path, device):
+    """--record / --viewer on a scene with a ``newton:`` section draws every Newton shape at its
+    pose, the deforming surface and its Gaussians (decoded from the .viser recording)."""
+    pytest.importorskip("viser")
+    from dynmesh_warp.config import load_scene_config
+    from dynmesh_warp.gaussians import gaussians_for_surface
+    from dynmesh_warp.newton_adapter import build_newton_world
+    from dynmesh_warp.run import main
+    from dynmesh_warp.viewer import NewtonViewer, SceneStateTracker, decode_viser_recording
+
+    data = {"name": "nv", "device": device, "surface": {"source": "builtin:wave_bowl", "params": {"n": 16, "frames": 6}},
+            "spheres": [{"position": [0.3, 0.0, 0.9], "radius": 0.06}], "gaussians": {"count": 300},
+            "newton": {"solver": "xpbd", "bodies": [
+                {"type": "box", "position": [0.0, 0.0, 1.0], "half_extents": [0.1, 0.08, 0.05]},
+                {"type": "capsule", "position": [-0.3, 0.2, 1.0], "radius": 0.05, "half_height": 0.1}]}}
+    cfg = load_scene_config(data=data)
+    nw = build_newton_world(cfg, device=device)
+    g = gaussians_for_surface(nw.surface.sequence, cfg, nw.device)
+    rec = tmp_path / "nv.viser"
+    v = NewtonViewer(nw, g, port=0, realtime=False, record=rec, show_mesh=True, log=lambda *a: None)
+    try:
+        v.run(max_frames=5)
+        X = nw.shape_transforms()
+        P = nw.surface_points()
+        C = g.state.centers.numpy().copy()
+    finally:
+        v.close()
+    assert nw.time > 0.1 and np.abs(X[[s["index"] for s in nw.shapes()], 2] - 1.0).max() > 0.01  # they moved
+    replay = SceneStateTracker()
+    for _, m in decode_viser_recording(rec.read_bytes())["messages"]:
+        replay.apply(m)
+    shapes = nw.shapes()
+    assert sorted(s["type"] for s in shapes) == ["box", "capsule", "sphere"]
+    for s in shapes:
+        node = replay.nodes[f"/bodies/shape_{s['index']}"]
+        np.testing.assert_allclose(np.asarray(node["position"], float), X[s["index"], :3], atol=1e-6)
+        x, y, z, w = X[s["index"], 3:]
+        wxyz = np.asarray(node.get("wxyz", (1.0, 0.0, 0.0, 0.0)), float)  # identity is not sent
+        assert abs(abs(np.dot(wxyz, [w, x, y, z])) - 1.0) < 1e-6
+    box = next(s for s in shapes if s["type"] == "box")
+    Vb = replay.nodes[f"/bodies/shape_{box['index']}"]["vertices"].reshape(-1, 3)
+    np.testing.assert_allclose(Vb.max(0), [0.1, 0.08, 0.05], atol=1e-6)  # drawn at its half extents
+    assert np.array_equal(replay.nodes["/mesh"]["vertices"].reshape(-1, 3), P)
+    assert np.array_equal(replay.nodes["/splats"]["buffer"].reshape(-1, 8)[:, :3].view(np.float32), C)
+    # the command line takes the same path
+    out = tmp_path / "cli.viser"
+    path = tmp_path / "nv.yaml"
+    import yaml
+
+    path.write_text(yaml.safe_dump(data))
+    assert main([str(path), "--viewer", "none", "--steps", "8", "--record", str(out), "--port", "0",
+                 "--device", device]) == 0
+    nodes = SceneStateTracker()
+    for _, m in decode_viser_recording(out.read_bytes())["messages"]:
+        nodes.apply(m)
+    assert sum(k.startswith("/bodies/") for k in nodes.nodes) == 3
+
+
 @pytest.mark.skipif(not str(TEST_DEVICE).startswith("cuda"), reason="CUDA graph capture needs a GPU")
 def test_graph_capture_on_second_step_loads_only_used_modules():
     """NewtonWorld runs step 1 eagerly (loading exactly the modules Newton's pipeline and solver
