@@ -11,6 +11,8 @@ See ``kernels/gaussians.py`` and ``docs/rendering.md`` for the binding math.
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import warp as wp
 
@@ -158,6 +160,26 @@ def _face_areas(V: np.ndarray, F: np.ndarray) -> np.ndarray:
     return A
 
 
+def _check_splats(cloud: SplatCloud) -> None:
+    """Refuse splats that cannot be rendered: NaN/inf in a required property (centre, colour,
+    opacity, log-scale, rotation) or a zero rotation quaternion; warn on an empty cloud."""
+    from .splat_io import _REQUIRED, SplatPlyError
+
+    if len(cloud) == 0:
+        warnings.warn(f"{cloud.source}: the splat file holds no Gaussians", stacklevel=3)
+        return
+    for name in _REQUIRED:
+        col = np.asarray(cloud.data[name], np.float64)
+        bad = ~np.isfinite(col)
+        if bad.any():
+            raise SplatPlyError(f"{cloud.source}: property {name!r} is NaN/inf in {int(bad.sum())} splats "
+                                f"(first: splat {int(np.flatnonzero(bad)[0])})")
+    q = np.linalg.norm(np.asarray(cloud.rotations_raw, np.float64), axis=1)
+    if (q == 0).any():
+        raise SplatPlyError(f"{cloud.source}: {int((q == 0).sum())} splats have a zero rotation quaternion "
+                            f"(first: splat {int(np.flatnonzero(q == 0)[0])})")
+
+
 def bind_splats(cloud: SplatCloud, V, F, device=None, max_dist: float = 1.0e30) -> Gaussians:
     """Bind a world-space splat cloud to the mesh (V (N,3) rest vertices [m], F (M,3)).
 
@@ -167,6 +189,7 @@ def bind_splats(cloud: SplatCloud, V, F, device=None, max_dist: float = 1.0e30) 
     """
     V, F = validate_mesh(V, F, source="bind_splats mesh")
     device = wp.get_device(device)
+    _check_splats(cloud)
     G = len(cloud)
     pts = wp.array(V, dtype=wp.vec3, device=device)
     idx = wp.array(F.reshape(-1), dtype=wp.int32, device=device)

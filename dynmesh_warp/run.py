@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import platform
+import os
 import sys
 import time
 import warnings
@@ -165,6 +166,19 @@ def run_scene(cfg, device=None, steps: int | None = None, collider: str | None =
     return summary
 
 
+def _check_writable(path: Path, what: str) -> None:
+    """Fail before the run, not after it, when ``path``'s folder cannot be created or written."""
+    from .config import SceneError
+
+    folder = path.expanduser().resolve().parent
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise SceneError(f"{what} {path}: cannot create its folder {folder} ({e.strerror or e})") from None
+    if not os.access(folder, os.W_OK):
+        raise SceneError(f"{what} {path}: the folder {folder} is not writable")
+
+
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     from .cli import quiet_warp
@@ -178,6 +192,8 @@ def main(argv=None) -> int:
             raise SceneError(f"--steps must be at least 1, got {args.steps}")
         if args.duration is not None and not args.duration > 0:
             raise SceneError(f"--duration must be a positive number of seconds, got {args.duration}")
+        if args.record:
+            _check_writable(Path(args.record), "--record")
         cfg = load_scene_config(args.scene)
         steps = args.steps
         if args.duration is not None:

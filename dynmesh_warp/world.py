@@ -432,27 +432,8 @@ class World:
         if collider == "fixed":
             collider = "swept" if surf.interpolate and self._swept_fits(model) else "refit"
         self.substeps = max(1, int(p.substeps))
-        r_min = float(model.spheres.radius_np.min()) if model.spheres.count else math.inf
-        if surf.max_speed > 0 and math.isfinite(r_min):
-            need = math.ceil(surf.max_speed * p.dt / (0.5 * r_min))
-            if p.auto_substeps and surf.interpolate and need > self.substeps:
-                warnings.warn(
-                    f"surface moves up to {surf.max_speed:.3g} m/s: raising substeps from "
-                    f"{self.substeps} to {need} so it moves < r/2 per sub-step", stacklevel=2)
-                self.substeps = need
-            if not surf.interpolate and surf.max_frame_step > 0.5 * r_min:
-                warnings.warn(
-                    f"interpolation is off and the surface jumps up to {surf.max_frame_step:.3g} m "
-                    f"between frames (> half the smallest sphere radius {r_min:.3g} m): spheres may "
-                    "tunnel at frame changes; turn interpolation on", stacklevel=2)
-        self.sub_dt = p.dt / self.substeps
+        self._apply_substep_rule(stacklevel=3)
         self.gravity = wp.vec3(*[float(g) for g in p.gravity])
-        # contact query reach: r + margin + (|v| + extra_speed) * dt, extra_speed = speed gained from
-        # gravity in one sub-step. The surface's own approach is not added: the sub-step rule keeps
-        # it under r/2 per sub-step, so a surface reaching into a sphere is caught as a (shallow)
-        # penetration and pushed out; adding the global max surface speed would only enlarge every
-        # query (x8 box volume on horse-gallop) for the same result.
-        self.extra_speed = float(np.linalg.norm(p.gravity)) * self.sub_dt
         self.contacts = Contacts(model.spheres.count, device=self.device)
         self._no_key = wp.zeros(1, dtype=wp.int32, device=self.device)
         self.t0 = float(state.sim_time.numpy()[0])
@@ -662,6 +643,33 @@ class World:
         if hasattr(self.collider, "resize"):
             self.collider.resize(self)
 
+    def _apply_substep_rule(self, stacklevel: int):
+        """Raise ``substeps`` (auto_substeps, interpolation on) so the surface moves less than half
+        the smallest sphere radius per sub-step; warn when interpolation is off and a frame jump
+        exceeds that. Sets ``sub_dt`` and ``extra_speed``."""
+        model, p = self.model, self.model.params
+        surf = model.surface
+        r_min = float(model.spheres.radius_np.min()) if model.spheres.count else math.inf
+        if surf.max_speed > 0 and math.isfinite(r_min):
+            need = math.ceil(surf.max_speed * p.dt / (0.5 * r_min))
+            if p.auto_substeps and surf.interpolate and need > self.substeps:
+                warnings.warn(
+                    f"surface moves up to {surf.max_speed:.3g} m/s: raising substeps from "
+                    f"{self.substeps} to {need} so it moves < r/2 per sub-step", stacklevel=stacklevel)
+                self.substeps = need
+            if not surf.interpolate and surf.max_frame_step > 0.5 * r_min:
+                warnings.warn(
+                    f"interpolation is off and the surface jumps up to {surf.max_frame_step:.3g} m "
+                    f"between frames (> half the smallest sphere radius {r_min:.3g} m): spheres may "
+                    "tunnel at frame changes; turn interpolation on", stacklevel=stacklevel)
+        self.sub_dt = p.dt / self.substeps
+        # contact query reach: r + margin + (|v| + extra_speed) * dt, extra_speed = speed gained from
+        # gravity in one sub-step. The surface's own approach is not added: the sub-step rule keeps
+        # it under r/2 per sub-step, so a surface reaching into a sphere is caught as a (shallow)
+        # penetration and pushed out; adding the global max surface speed would only enlarge every
+        # query (x8 box volume on horse-gallop) for the same result.
+        self.extra_speed = float(np.linalg.norm(p.gravity)) * self.sub_dt
+
     def add_spheres(self, positions, radius, mass=1.0, velocities=None):
         """Add spheres (between steps). Reallocates the sphere arrays and drops the graph."""
         positions = np.asarray(positions, np.float32).reshape(-1, 3)
@@ -679,6 +687,7 @@ class World:
         self.state.sphere_vel = wp.array(vel_all, dtype=wp.vec3, device=self.device)
         self._initial = (np.concatenate([self._initial[0], positions]), np.concatenate([self._initial[1], vel]))
         self.contacts = Contacts(self.model.spheres.count, device=self.device)
+        self._apply_substep_rule(stacklevel=3)  # smaller spheres may need more sub-steps
         self._graph = None
         if self._launch_cache is not None:
             self._launch_cache = {}

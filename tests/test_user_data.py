@@ -234,3 +234,48 @@ def test_text_file_named_npz_and_folder_of_npz(tmp_path):
     np.savez(tmp_path / "many" / "a.npz", V=V, F=F)
     with pytest.raises(MeshDataError, match=r"a\.npz\): load one directly"):
         load_sequence(tmp_path / "many")
+
+
+def test_unrenderable_splats_are_refused_naming_the_property():
+    from dynmesh_warp.gaussians import bind_splats
+    from dynmesh_warp.splat_io import SplatCloud, SplatPlyError
+
+    V, F = ico_sequence(T=1)
+    rng = np.random.default_rng(0)
+    G = 20
+    c = V[0][rng.integers(0, len(V[0]), G)]
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (G, 1))
+
+    def cloud(**change):
+        args = dict(centers=c, scales=np.full((G, 3), 0.01), rotations_wxyz=q, rgb=np.full((G, 3), 0.5),
+                    opacities=np.full(G, 0.8))
+        args.update(change)
+        out = SplatCloud.from_activated(**args)
+        out.source = "mine.ply"
+        return out
+
+    assert bind_splats(cloud(), V[0], F, device="cpu").count == G  # the good one binds
+    bad_c = c.copy()
+    bad_c[3, 0] = np.nan
+    with pytest.raises(SplatPlyError, match=r"mine\.ply: property 'x' is NaN/inf in 1 splats \(first: splat 3\)"):
+        bind_splats(cloud(centers=bad_c), V[0], F, device="cpu")
+    bad_s = np.full((G, 3), 0.01)
+    bad_s[5, 1] = np.inf
+    with pytest.raises(SplatPlyError, match="scale_1"):
+        bind_splats(cloud(scales=bad_s), V[0], F, device="cpu")
+    zero = cloud()
+    for k in ("rot_0", "rot_1", "rot_2", "rot_3"):
+        zero.data[k][7] = 0.0
+    with pytest.raises(SplatPlyError, match="zero rotation quaternion"):
+        bind_splats(zero, V[0], F, device="cpu")
+
+
+def test_record_path_is_checked_before_the_run(tmp_path, capsys):
+    from dynmesh_warp.run import main
+
+    blocker = tmp_path / "a_file"
+    blocker.write_text("x")
+    rc = main(["--viewer", "none", "--device", "cpu", "--no-progress", "--steps", "2",
+               "--record", str(blocker / "sub" / "out.viser")])
+    assert rc == 2
+    assert "--record" in capsys.readouterr().err

@@ -386,6 +386,21 @@ def test_reset_reproduces_the_trajectory():
     np.testing.assert_array_equal(p1, p2)
 
 
+def test_add_spheres_applies_the_substep_rule():
+    """Smaller spheres added while running get the same sub-step rule as spheres given at the
+    start (the surface moves < r/2 per sub-step), and stay on the right side of the surface."""
+    seq = moving_sheet((0.0, 0.0, 2.0), frames=48)  # rising at 2 m/s
+    w = make_world(seq, [[0.0, 0.0, 0.3]], radius=0.1)
+    assert w.substeps == 1  # 2 m/s * dt = 8.3 mm < r/2
+    with pytest.warns(UserWarning, match="raising substeps from 1 to 9"):
+        w.add_spheres([[0.5, 0.5, 0.05]], 0.002)
+    assert w.substeps == 9 and w.sub_dt == pytest.approx(DT / 9)
+    for _ in range(120):
+        w.step()
+        z_sheet = 2.0 * w.time
+        assert (w.sphere_positions()[:, 2] > z_sheet).all()
+
+
 # ---------------------------------------------------------------------------------------------
 # graph capture (CUDA only: run with DYNMESH_TEST_DEVICE=cuda:0)
 # ---------------------------------------------------------------------------------------------
