@@ -123,6 +123,12 @@ class NewtonBodyConfig(_Strict):
         missing = [k for k in need if getattr(self, k) is None]
         if missing:
             raise ValueError(f"a {self.type} body needs {', '.join(missing)}")
+        if self.half_extents is not None and min(self.half_extents) <= 0:
+            raise ValueError(f"half_extents must all be > 0, got {list(self.half_extents)}")
+        unused = [k for k in ("half_extents", "radius", "half_height", "file")
+                  if getattr(self, k) is not None and k not in need]
+        if unused:
+            raise ValueError(f"a {self.type} body does not use {', '.join(unused)}")
         return self
 
 

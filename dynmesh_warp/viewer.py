@@ -307,7 +307,8 @@ class Viewer:
                 atomic_write_bytes(self.record_path, data)
                 html = self.record_path.with_suffix(".html")
                 atomic_write_bytes(html, recording_html(data).encode("utf-8"))
-                self.log(f"recording: {self.record_path} ({len(data) / 1e6:.1f} MB), {html}")
+                size = f"{len(data) / 1e6:.1f} MB" if len(data) >= 1e6 else f"{len(data) / 1e3:.0f} kB"
+                self.log(f"recording: {self.record_path} ({size}), {html}")
         finally:
             self.server.stop()
 
