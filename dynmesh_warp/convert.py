@@ -639,11 +639,9 @@ def main(argv=None) -> int:
                     "file, or a folder (frames written as frame_XXXX.ply, or .obj with --fmt obj)")
         a.fmt = a.fmt or "ply"
     try:
-        device = wp.get_device(a.device)
-    except (RuntimeError, ValueError) as e:
-        print(f"error: --device {a.device!r}: not available here ({e})", file=sys.stderr)
-        return 2
-    try:
+        from .scene import resolve_device
+
+        device = resolve_device(a.device, "--device")
         seq = load_sequence(a.input, fps=a.fps)
         if isinstance(seq, FixedTopologySequence):
             print(f"note: {a.input} already has fixed topology ({seq.num_frames} frames); converting it "

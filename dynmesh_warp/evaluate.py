@@ -35,7 +35,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-import warp as wp
 
 from . import metrics as M
 from .outputs import atomic_path, atomic_write_bytes, atomic_write_json
@@ -439,13 +438,11 @@ def main(argv=None) -> int:
     from .cli import quiet_warp
 
     quiet_warp()
-    try:
-        device = str(wp.get_device(a.device))
-    except (RuntimeError, ValueError) as e:
-        print(f"error: --device {a.device!r}: not available here ({e})", file=sys.stderr)
-        return 2
     progress = not a.no_progress
     try:
+        from .scene import resolve_device
+
+        device = str(resolve_device(a.device, "--device"))
         if a.compare:
             r = evaluate_folders(a.compare[0], a.compare[1], a.protocol, a.frame_stride, pair=a.pair,
                                  emd=not a.no_emd, seed=a.seed, device=device, progress=progress)

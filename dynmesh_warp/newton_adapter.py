@@ -424,7 +424,7 @@ def add_scene_bodies(builder, cfg, sphere_positions=None) -> list[dict]:
 def build_newton_world(cfg, device=None, sequence=None, **overrides) -> NewtonWorld:
     """Create a :class:`NewtonWorld` from a validated scene with a ``newton:`` section."""
     from .config import SceneError, spawn_positions  # noqa: PLC0415
-    from .scene import load_surface, prepare_surface  # noqa: PLC0415
+    from .scene import load_surface, prepare_surface, scene_device  # noqa: PLC0415
 
     if cfg.newton is None:
         raise SceneError("the scene has no 'newton:' section")
@@ -432,9 +432,7 @@ def build_newton_world(cfg, device=None, sequence=None, **overrides) -> NewtonWo
         newton = _import_newton()
     except ImportError as e:
         raise SceneError(f"newton: {e}") from e
-    from .scene import resolve_device
-
-    device = resolve_device(device, "--device") if device else resolve_device(cfg.device, "device")
+    device = scene_device(cfg, device)
     seq = load_surface(cfg) if sequence is None else prepare_surface(sequence, cfg)
     if not isinstance(seq, FixedTopologySequence):
         raise SceneError(f"surface {cfg.surface.source}: the Newton path needs a fixed-topology surface; "
@@ -451,14 +449,13 @@ def build_newton_world(cfg, device=None, sequence=None, **overrides) -> NewtonWo
     builder = newton.ModelBuilder()
     records = add_scene_bodies(builder, cfg, sph)
     p = cfg.physics
+    mu = p.friction if cfg.newton.surface_mu is None else cfg.newton.surface_mu
     if p.ground is not None:  # the same static plane the built-in world has
         ground = float(seq.V[:, :, 2].min()) if p.ground == "auto" else float(p.ground)
-        builder.add_ground_plane(height=ground, cfg=newton.ModelBuilder.ShapeConfig(
-            mu=p.friction if cfg.newton.surface_mu is None else cfg.newton.surface_mu))
+        builder.add_ground_plane(height=ground, cfg=newton.ModelBuilder.ShapeConfig(mu=mu))
     surface = SurfaceModel(seq, device, playback=cfg.surface.playback, interpolate=cfg.surface.interpolate)
     kw = dict(dt=p.dt, substeps=p.substeps, solver=cfg.newton.solver, solver_options=dict(cfg.newton.solver_options),
-              gravity=p.gravity, mu=p.friction if cfg.newton.surface_mu is None else cfg.newton.surface_mu,
-              restitution=p.restitution)
+              gravity=p.gravity, mu=mu, restitution=p.restitution)
     kw.update(overrides)
     try:
         world = NewtonWorld(surface, builder, **kw)
@@ -475,11 +472,11 @@ def run_newton_scene(cfg, device=None, steps: int | None = None, output=None, pr
     """Run a ``newton:`` scene headless; write ``trajectories.npz`` (time, body_q (K, B, 7)) and
     ``summary.json`` atomically; return the summary (steps/s, final body poses)."""
     import platform  # noqa: PLC0415
-    import sys  # noqa: PLC0415
     import time  # noqa: PLC0415
     from pathlib import Path  # noqa: PLC0415
 
     from .outputs import atomic_write_json, atomic_write_npz  # noqa: PLC0415
+    from .run import rate_text, steps_per_second, timed_loop  # noqa: PLC0415
 
     t_build = time.perf_counter()
     world = build_newton_world(cfg, device=device)
@@ -493,30 +490,15 @@ def run_newton_scene(cfg, device=None, steps: int | None = None, output=None, pr
     wp.synchronize_device(world.device)
     build_s = time.perf_counter() - t_build
     times, poses = [world.time], [world.body_transforms()]
-    try:
-        from tqdm import tqdm  # noqa: PLC0415
 
-        bar = tqdm(total=steps - warm, unit="step", disable=not progress, file=sys.stderr, dynamic_ncols=True)
-    except ImportError:  # pragma: no cover
-        bar = None
-    sim_s, done = 0.0, warm
-    while done < steps:
-        n = min(cfg.run.record_every, steps - done)
-        t0 = time.perf_counter()
-        for _ in range(n):
-            world.step()
-        wp.synchronize_device(world.device)
-        sim_s += time.perf_counter() - t0
-        done += n
+    def record():
         times.append(world.time)
         poses.append(world.body_transforms())
-        if bar is not None:
-            bar.update(n)
-    if bar is not None:
-        bar.close()
+
+    sim_s = timed_loop(world, steps - warm, cfg.run.record_every, record, progress)
     final = world.body_transforms()
     finite = bool(np.isfinite(final).all())
-    sps = (steps - warm) / sim_s if steps > warm and sim_s > 0 else None  # null in summary.json
+    sps = steps_per_second(steps - warm, sim_s)
     summary = {
         "scene": cfg.name,
         "engine": "newton",
@@ -544,8 +526,7 @@ def run_newton_scene(cfg, device=None, steps: int | None = None, output=None, pr
     summary["output"] = str(out)
     log(f"{cfg.name}: {steps} steps on {summary['device']} (Newton {world.solver_name}"
         f"{', CUDA graph' if world.use_graph else ''}): "
-        + (f"{sps:,.0f} steps/s; " if sps is not None else "too few steps to time; ")
-        + f"{world.model.body_count} bodies; "
+        + rate_text(sps) + f"{world.model.body_count} bodies; "
         f"outputs in {out}")
     if not finite:
         log("WARNING: non-finite body state at the end of the run")

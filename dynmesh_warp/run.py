@@ -8,8 +8,8 @@ steps/s.
 from __future__ import annotations
 
 import argparse
-import platform
 import os
+import platform
 import sys
 import time
 import warnings
@@ -86,32 +86,17 @@ def run_scene(cfg, device=None, steps: int | None = None, collider: str | None =
         pos.append(world.sphere_positions())
         vel.append(world.sphere_velocities())
 
-    record()
-    try:
-        from tqdm import tqdm
-
-        bar = tqdm(total=steps - 1, unit="step", disable=not progress, file=sys.stderr, dynamic_ncols=True)
-    except ImportError:  # pragma: no cover
-        bar = None
-    sim_s = 0.0
     contact_samples = 0
-    done = 1
-    while done < steps:
-        n = min(rec, steps - done)
-        t0 = time.perf_counter()
-        for _ in range(n):
-            world.step()
-        wp.synchronize_device(world.device)
-        sim_s += time.perf_counter() - t0
-        done += n
+
+    def record_with_contacts():
+        nonlocal contact_samples
         record()
         contact_samples += int((world.contacts.face.numpy() >= 0).sum())
-        if bar is not None:
-            bar.update(n)
-    if bar is not None:
-        bar.close()
+
+    record()
     timed_steps = steps - 1  # the first step (compile, graph capture) is not timed
-    sps = timed_steps / sim_s if timed_steps > 0 and sim_s > 0 else None  # null in summary.json
+    sim_s = timed_loop(world, timed_steps, rec, record_with_contacts, progress)
+    sps = steps_per_second(timed_steps, sim_s)
     final_pos = world.sphere_positions()
     final_vel = world.sphere_velocities()
     gap = _signed_distances(world)
@@ -158,12 +143,49 @@ def run_scene(cfg, device=None, steps: int | None = None, collider: str | None =
     summary["output"] = str(out)
     log(f"{cfg.name}: {steps} steps on {summary['device']} ({summary['collider']}"
         f"{', CUDA graph' if world.use_graph else ''}): "
-        + (f"{sps:,.0f} steps/s; " if sps is not None else "too few steps to time; ")
-        + f"{summary['contacts']['in_contact_final']}/{world.model.spheres.count} spheres in contact, "
+        + rate_text(sps) + f"{summary['contacts']['in_contact_final']}/{world.model.spheres.count} spheres in contact, "
         f"max penetration {summary['final']['max_penetration']:.2e} m; outputs in {out}")
     if not finite:
         log("WARNING: non-finite sphere state at the end of the run")
     return summary
+
+
+def timed_loop(world, steps: int, every: int, record, progress: bool) -> float:
+    """Run ``steps`` steps of ``world`` in chunks of ``every``, calling ``record()`` after each
+    chunk, with a progress bar. Returns the wall seconds of the steps alone (device synchronised,
+    recording excluded). Shared by the built-in and the Newton run paths."""
+    import warp as wp
+
+    try:
+        from tqdm import tqdm
+
+        bar = tqdm(total=steps, unit="step", disable=not progress, file=sys.stderr, dynamic_ncols=True)
+    except ImportError:  # pragma: no cover
+        bar = None
+    sim_s, done = 0.0, 0
+    while done < steps:
+        n = min(every, steps - done)
+        t0 = time.perf_counter()
+        for _ in range(n):
+            world.step()
+        wp.synchronize_device(world.device)
+        sim_s += time.perf_counter() - t0
+        done += n
+        record()
+        if bar is not None:
+            bar.update(n)
+    if bar is not None:
+        bar.close()
+    return sim_s
+
+
+def steps_per_second(timed_steps: int, wall_s: float) -> float | None:
+    """Rate of the timed steps; None (null in summary.json) when nothing was timed."""
+    return timed_steps / wall_s if timed_steps > 0 and wall_s > 0 else None
+
+
+def rate_text(sps: float | None) -> str:
+    return f"{sps:,.0f} steps/s; " if sps is not None else "too few steps to time; "
 
 
 def _check_writable(path: Path, what: str) -> None:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import copy
 import warnings
 
 import numpy as np
@@ -12,7 +11,7 @@ from .config import SceneConfig, SceneError, spawn_positions
 from .sequence import FixedTopologySequence, MeshDataError, VaryingTopologySequence, mesh_orientation
 from .world import Model, PhysicsParams, SphereModel, State, SurfaceModel, VaryingSurfaceModel, World
 
-__all__ = ["load_surface", "prepare_surface", "build_world", "resolve_device"]
+__all__ = ["load_surface", "prepare_surface", "build_world", "resolve_device", "scene_device"]
 
 # y-up data to z-up: rotate +90 degrees about x, (x, y, z) -> (x, -z, y)
 _Y_TO_Z = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
@@ -83,20 +82,17 @@ def prepare_surface(seq, cfg: SceneConfig):
     s = cfg.surface
     if not isinstance(seq, (FixedTopologySequence, VaryingTopologySequence)):
         raise TypeError(f"expected a FixedTopologySequence or VaryingTopologySequence, got {type(seq).__name__}")
-    seq = copy.copy(seq)  # the caller's sequence keeps its fps
-    if s.fps is not None:
-        seq.fps = float(s.fps)
+    fps = float(s.fps) if s.fps is not None else seq.fps  # a new sequence: the caller's is untouched
+    where = seq.source or seq.name
     if isinstance(seq, FixedTopologySequence):
         V = _transform(seq.V, s)
-        seq = FixedTopologySequence(V, _orient(V[0], seq.F, s, seq.source or seq.name), seq.fps, seq.name,
-                                    seq.source)
+        seq = FixedTopologySequence(V, _orient(V[0], seq.F, s, where), fps, seq.name, seq.source)
         _check_size(seq.V[0], s)
     else:
         frames = [(_transform(v, s), f) for v, f in seq.frames]
-        where = seq.source or seq.name
         frames = [(v, _orient(v, f, s, f"{where} (frame {t})")) for t, (v, f) in enumerate(frames)]
         _check_size(frames[0][0], s)
-        seq = VaryingTopologySequence(frames, seq.fps, seq.name, seq.source, seq.frame_sources)
+        seq = VaryingTopologySequence(frames, fps, seq.name, seq.source, seq.frame_sources)
         if seq.is_fixed_topology():
             seq = seq.to_fixed()
         elif s.conversion is not None:
@@ -111,9 +107,17 @@ def prepare_surface(seq, cfg: SceneConfig):
             try:
                 seq = to_fixed_topology(seq, strategy=s.conversion.strategy, template=template,
                                         **s.conversion.options)
+            except MeshDataError:  # a data problem (e.g. a template in other units): its own message
+                raise
             except (TypeError, ValueError) as e:  # unknown or bad strategy options
                 raise SceneError(f"surface.conversion.options: {e}") from e
     return seq
+
+
+def scene_device(cfg: SceneConfig, device=None):
+    """The device a scene runs on: ``device`` (the CLI's --device) if given, else the scene's
+    ``device`` field, else Warp's default; a :class:`SceneError` names whichever is unavailable."""
+    return resolve_device(device, "--device") if device else resolve_device(cfg.device, "device")
 
 
 def resolve_device(name, field: str = "device"):
@@ -133,7 +137,7 @@ def build_world(cfg: SceneConfig, device=None, collider: str | None = None,
     ``sequence``: a sequence already in memory (e.g. from ``load_sequence``) to use instead of
     ``surface.source``; the rest of the ``surface`` section (fps, up_axis, scale, translate,
     orientation, conversion) is applied to it as to a loaded one."""
-    device = resolve_device(device, "--device") if device else resolve_device(cfg.device, "device")
+    device = scene_device(cfg, device)
     seq = load_surface(cfg) if sequence is None else prepare_surface(sequence, cfg)
     p = cfg.physics
     collider = collider or p.collider

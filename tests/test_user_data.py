@@ -170,6 +170,12 @@ def test_run_cli_cuda_without_gpu_is_a_clear_error(capsys):
     assert main(["--viewer", "none", "--device", "cuda", "--no-progress", "--steps", "2"]) == 2
     err = capsys.readouterr().err
     assert "--device 'cuda'" in err and "cpu" in err
+    from dynmesh_warp import convert, evaluate  # the same rule in the other command lines
+
+    assert convert.main(["in.npz", "out.npz", "--device", "cuda"]) == 2
+    assert "--device 'cuda'" in capsys.readouterr().err
+    assert evaluate.main(["gt.npz", "--device", "cuda", "--out", "unused"]) == 2
+    assert "--device 'cuda'" in capsys.readouterr().err
 
 
 def test_conversion_option_typo_names_the_field(tmp_path, capsys):
