@@ -409,13 +409,8 @@ class NewtonViewer(Viewer):
             h.position = tuple(float(x) for x in X[s, :3])
             h.wxyz = _xyzw_to_wxyz(X[s, 3:])
 
-    def _refresh_gaussians(self):
-        if self.gaussians is not None:
-            nw = self.newton_world
-            self.gaussians.update(nw.adapter.mesh.points, nw.surface.indices)
-
     def _send(self):
-        if self.world.time != self._sent_time:
+        if self.world.time != self._sent_time:  # not attached to a World's step: update here
             self._refresh_gaussians()
         super()._send()
 
