@@ -14,9 +14,15 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-__all__ = ["SceneConfig", "SceneError", "load_scene_config", "DEFAULT_SCENE", "Vec3"]
+__all__ = ["SceneConfig", "SceneError", "load_scene_config", "DEFAULT_SCENE", "Vec3", "PhysicsCore", "load_yaml",
+           "DEFAULT_MAX_SUBSTEPS", "DEFAULT_MAX_TOTAL_SUBSTEPS"]
 
 Vec3 = tuple[float, float, float]
+
+#: default bound on sub-steps per physics step (physics.max_substeps; measured, see docs/scene.md)
+DEFAULT_MAX_SUBSTEPS = 64
+#: default bound on the sub-steps of a whole run (run.max_total_substeps; see docs/scene.md)
+DEFAULT_MAX_TOTAL_SUBSTEPS = 10_000_000
 
 
 class SceneError(ValueError):
@@ -24,7 +30,8 @@ class SceneError(ValueError):
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    # every float of a scene (and of PhysicsParams) must be finite: NaN/inf are refused naming the field
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 class ConversionConfig(_Strict):
@@ -69,18 +76,40 @@ class SpawnConfig(_Strict):
     seed: int = 0
 
 
-class PhysicsConfig(_Strict):
+class PhysicsCore(_Strict):
+    """Physics settings shared by the scene's ``physics:`` section and the Python API's
+    :class:`~dynmesh_warp.world.PhysicsParams`: one place for their types, ranges and defaults
+    (validated on construction and on assignment; NaN/inf refused)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, validate_assignment=True)
+
     dt: float = Field(default=1.0 / 240.0, gt=0)
     substeps: int = Field(default=1, ge=1)
+    # the most sub-steps per step the sub-step rule may reach (None: no bound); see docs/scene.md
+    max_substeps: Optional[int] = Field(default=DEFAULT_MAX_SUBSTEPS, ge=1)
     auto_substeps: bool = True
     gravity: Vec3 = (0.0, 0.0, -9.81)
     restitution: float = Field(default=0.3, ge=0, le=1)
     friction: float = Field(default=0.5, ge=0)
     rest_speed: float = Field(default=0.2, ge=0)
     margin: float = Field(default=1.0e-3, ge=0)
+
+    @model_validator(mode="after")
+    def _substeps_within_bound(self):
+        if self.max_substeps is not None and self.substeps > self.max_substeps:
+            raise ValueError(f"substeps {self.substeps} exceeds max_substeps {self.max_substeps} (the work "
+                             "budget, see docs/scene.md); lower substeps, or raise max_substeps (null: no bound)")
+        return self
+
+
+class PhysicsConfig(PhysicsCore):
     ground: Optional[Union[float, Literal["auto"]]] = None  # ground plane height [m]; auto: lowest surface point
     collider: Literal["fixed", "refit", "swept", "rebuild"] = "fixed"
     rebuild_every: Literal["step", "frame"] = "step"
+
+
+#: placeholders allowed in ``run.output`` (filled from the scene's fields of the same name)
+OUTPUT_PLACEHOLDERS = ("name",)
 
 
 class RunConfig(_Strict):
@@ -88,6 +117,25 @@ class RunConfig(_Strict):
     steps: Optional[int] = Field(default=None, ge=1)
     output: str = "out/{name}"
     record_every: int = Field(default=4, ge=1)
+    # bound on steps x sub-steps of the whole run (None: no bound); the run stops before it starts
+    max_total_substeps: Optional[int] = Field(default=DEFAULT_MAX_TOTAL_SUBSTEPS, ge=1)
+
+    @field_validator("output")
+    @classmethod
+    def _placeholders_known(cls, v):
+        import string
+
+        valid = ", ".join("{" + k + "}" for k in OUTPUT_PLACEHOLDERS)
+        try:
+            fields = [f for _, f, _, _ in string.Formatter().parse(v) if f is not None]
+        except ValueError as e:
+            raise ValueError(f"{v!r}: {e} (write {{{{ and }}}} for literal braces; placeholders: {valid})") from None
+        for f in fields:
+            if f not in OUTPUT_PLACEHOLDERS:
+                raise ValueError(f"{v!r}: unknown placeholder {{{f}}}; valid: {valid}")
+        if not v.strip():
+            raise ValueError("must be a non-empty folder path")
+        return v
 
 
 class GaussiansConfig(_Strict):
@@ -152,6 +200,7 @@ class SceneConfig(_Strict):
     gaussians: GaussiansConfig = Field(default_factory=GaussiansConfig)
     newton: Optional[NewtonConfig] = None  # run the bodies in Newton (docs/newton.md)
     base_dir: Optional[str] = Field(default=None, exclude=True)
+    source_file: Optional[str] = Field(default=None, exclude=True)  # the YAML file, if any
 
     @field_validator("name")
     @classmethod
@@ -167,6 +216,28 @@ class SceneConfig(_Strict):
         if not path.is_absolute() and self.base_dir:
             path = Path(self.base_dir) / path
         return path
+
+    def inputs(self) -> list[Path]:
+        """Every file or folder the scene reads (outputs must not touch them): the scene file,
+        surface.source, surface.conversion.template, gaussians.splats, newton body files."""
+        out = []
+        if self.base_dir and self.source_file:
+            out.append(Path(self.source_file))
+        if not self.surface.source.startswith("builtin:"):
+            out.append(self.resolve(self.surface.source))
+        if self.surface.conversion and self.surface.conversion.template:
+            out.append(self.resolve(self.surface.conversion.template))
+        if self.gaussians.splats:
+            out.append(self.resolve(self.gaussians.splats))
+        out += [self.resolve(b.file) for b in (self.newton.bodies if self.newton else []) if b.file]
+        return out
+
+    def output_path(self, output=None) -> Path:
+        """The run's output folder: ``output`` if given, else ``run.output`` with ``{name}`` filled in."""
+        return Path(output).expanduser() if output else self.resolve(self.run.output.format(**self.placeholders()))
+
+    def placeholders(self) -> dict:
+        return {k: getattr(self, k) for k in OUTPUT_PLACEHOLDERS}
 
     @model_validator(mode="after")
     def _files_exist(self):
@@ -212,7 +283,7 @@ def _format_errors(err: ValidationError, origin: str) -> str:
     errs = []
     for e in err.errors():
         loc = [x for x in e["loc"] if not _is_branch_tag(x)]
-        msg = "unknown key" if e["type"] == "extra_forbidden" else e["msg"]
+        msg = "unknown key" if e["type"] == "extra_forbidden" else e["msg"].removeprefix("Value error, ")
         errs.append((".".join(str(x) for x in loc) or "(top level)", e["type"], msg,
                      any(_is_branch_tag(x) for x in e["loc"])))
     keep = [
@@ -224,9 +295,40 @@ def _format_errors(err: ValidationError, origin: str) -> str:
     for loc, _, msg, _ in keep:
         if msg not in merged.setdefault(loc, []):
             merged[loc].append(msg)
+    if len(merged) == 1:  # one problem: one line
+        (loc, msgs), = merged.items()
+        return f"{origin}: {loc}: {'; or: '.join(msgs)}"
     lines = [f"{origin}: invalid scene"]
     lines += [f"  {loc}: {'; or: '.join(msgs)}" for loc, msgs in merged.items()]
     return "\n".join(lines)
+
+
+class DuplicateKeyError(yaml.YAMLError):
+    """A YAML mapping gives one key twice."""
+
+
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """A safe YAML loader that refuses a key given twice in one mapping (PyYAML keeps the last)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=True)
+            try:
+                hash(key)
+            except TypeError:
+                continue  # the base loader reports unhashable keys
+            if key in seen:
+                raise DuplicateKeyError(
+                    f"duplicate key {key!r} (lines {seen[key] + 1} and {key_node.start_mark.line + 1}); "
+                    "a key may appear once per mapping")
+            seen[key] = key_node.start_mark.line
+        return super().construct_mapping(node, deep=deep)
+
+
+def load_yaml(text: str):
+    """Parse YAML with the safe loader, refusing duplicate keys."""
+    return yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 (a SafeLoader subclass)
 
 
 def load_scene_config(path: str | Path | None = None, data: dict | None = None) -> SceneConfig:
@@ -240,9 +342,9 @@ def load_scene_config(path: str | Path | None = None, data: dict | None = None) 
         if not path.is_file():
             raise SceneError(f"{path}: scene file not found")
         try:
-            raw = yaml.safe_load(path.read_text())
+            raw = load_yaml(path.read_text())
         except (OSError, UnicodeDecodeError, yaml.YAMLError) as e:
-            raise SceneError(f"{path}: cannot read scene YAML: {e}") from e
+            raise SceneError(f"{path}: cannot read scene YAML: {' '.join(str(e).split())}") from None
         if raw is None:
             raw = {}
         if not isinstance(raw, dict):
@@ -250,7 +352,8 @@ def load_scene_config(path: str | Path | None = None, data: dict | None = None) 
         raw.setdefault("name", path.stem)
         base = str(path.parent.resolve())
     try:
-        return SceneConfig.model_validate({**raw, "base_dir": base})
+        return SceneConfig.model_validate({**raw, "base_dir": base,
+                                           "source_file": None if path is None else str(path)})
     except ValidationError as e:
         raise SceneError(_format_errors(e, origin)) from None
 

@@ -600,8 +600,55 @@ def to_fixed_topology(seq, strategy: str = "tracking", template=None, device=Non
 # --------------------------------------------------------------------------- CLI
 
 
+class _TimedFrames(list):
+    """The frames of a sequence being converted, noting when the converter asks for each: after
+    the second frame (the first includes compilation) it prints an estimate when the whole
+    conversion will take more than ``limit_s``, naming faster options. Values are unchanged."""
+
+    def __init__(self, frames, device, strategy: str, limit_s: float = 60.0):
+        super().__init__(frames)
+        self.device, self.strategy, self.limit_s = str(device), strategy, limit_s
+        self.t1 = None
+        self.done = False
+
+    def __getitem__(self, t):
+        if isinstance(t, int) and not self.done:
+            if t == 1 and self.t1 is None:
+                self.t1 = time.perf_counter()
+            elif t >= 2 and self.t1 is not None:
+                self.done = True
+                per = time.perf_counter() - self.t1
+                total = per * len(self)
+                if total > self.limit_s:
+                    faster = [] if self.device.startswith("cuda") else ["--device cuda (a GPU)"]
+                    if self.strategy != "projection":
+                        faster.append("--strategy projection (fastest, least accurate)")
+                    _note(f"estimate: {per:.1f} s per frame, about {_duration(total)} for {len(self)} frames on "
+                          f"{self.device}" + (f"; faster: {', '.join(faster)}" if faster else ""))
+        return super().__getitem__(t)
+
+
+def _duration(s: float) -> str:
+    return f"{s / 3600:.1f} h" if s >= 5400 else f"{s / 60:.0f} min" if s >= 90 else f"{s:.0f} s"
+
+
+def _note(msg: str) -> None:
+    try:
+        from tqdm import tqdm
+
+        tqdm.write(msg, file=sys.stderr)
+    except ImportError:  # pragma: no cover
+        print(msg, file=sys.stderr)
+
+
+#: suffixes an output path must not have: a folder of frames is written without an extension
+_FILE_SUFFIXES = {".json", ".txt", ".csv", ".zip", ".npy", ".png", ".yaml", ".yml", ".h5", ".pkl"}
+
+
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(
+    from .cli import Parser
+
+    p = Parser(
         prog="python -m dynmesh_warp.convert",
         description="Convert a varying-topology mesh sequence into a fixed-topology one.")
     p.add_argument("input", help="sequence: .npz, folder of per-frame meshes, DG-Mesh scene folder")
@@ -615,11 +662,14 @@ def main(argv=None) -> int:
     p.add_argument("--smooth-iterations", type=int, default=None, help="regularized: displacement smoothing steps")
     p.add_argument("--fmt", default=None, choices=["ply", "obj"], help="per-frame format for a folder output (default ply)")
     p.add_argument("--fps", type=float, default=None, help="override the input frame rate")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an existing output (in a folder: only files this tool wrote; others are kept)")
     a = p.parse_args(argv)
     from .cli import quiet_warp
 
     quiet_warp()
     from .io import MESH_EXTENSIONS, load_sequence, save_sequence
+    from .outputs import check_output
 
     opts = {}
     for k in ("reanchor_interval", "tracked_weight"):
@@ -632,23 +682,44 @@ def main(argv=None) -> int:
             if a.strategy != "regularized":
                 p.error(f"--{k.replace('_', '-')} applies to --strategy regularized")
             opts[k] = getattr(a, k)
-    out_suffix = Path(a.output).suffix.lower()
-    if out_suffix != ".npz":
-        if out_suffix in MESH_EXTENSIONS:
-            p.error(f"output {a.output}: a sequence does not fit in one {out_suffix} file; give a .npz "
-                    "file, or a folder (frames written as frame_XXXX.ply, or .obj with --fmt obj)")
-        a.fmt = a.fmt or "ply"
     try:
+        # everything is checked before the sequence is loaded: options, input, template, output
+        try:
+            _resolve_options(a.strategy, opts)
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"--{str(e).split(' ', 1)[0].replace('_', '-')}: {str(e).split(' ', 1)[-1]}") from None
+        if a.fps is not None and not (np.isfinite(a.fps) and a.fps > 0):
+            raise ValueError(f"--fps must be a positive, finite frame rate, got {a.fps}")
         from .scene import resolve_device
 
         device = resolve_device(a.device, "--device")
+        if not Path(a.input).expanduser().exists():
+            raise ValueError(f"input {a.input}: file or folder not found")
+        if a.template is not None and not Path(a.template).expanduser().is_file():
+            raise ValueError(f"--template {a.template}: file not found")
+        inputs = [a.input] + ([a.template] if a.template else [])
+        out_suffix = Path(a.output).suffix.lower()
+        if out_suffix == ".npz":
+            if a.fmt:
+                raise ValueError(f"--fmt {a.fmt}: applies to a folder output, not to {a.output}")
+            check_output(a.output, kind="file", what="output", inputs=inputs, overwrite=a.overwrite,
+                         suffixes={".npz"})
+        else:
+            if out_suffix in MESH_EXTENSIONS or out_suffix in _FILE_SUFFIXES:
+                raise ValueError(f"output {a.output}: a sequence does not fit in one {out_suffix} file; give a "
+                                 ".npz file, or a folder (frames written as frame_XXXX.ply, or .obj with --fmt obj)")
+            a.fmt = a.fmt or "ply"
+            check_output(a.output, kind="folder", what="output", inputs=inputs, overwrite=a.overwrite,
+                         writes=("frame_*.ply", "frame_*.obj"))
         seq = load_sequence(a.input, fps=a.fps)
         if isinstance(seq, FixedTopologySequence):
             print(f"note: {a.input} already has fixed topology ({seq.num_frames} frames); converting it "
                   "anyway (it can be simulated as it is)", file=sys.stderr)
+            seq = seq.to_varying()
+        seq.frames = _TimedFrames(seq.frames, device, a.strategy)
         res = to_fixed_topology(seq, strategy=a.strategy, template=a.template, device=device,
                                 progress=True, **opts)
-        save_sequence(res, a.output, fmt=a.fmt)
+        save_sequence(res, a.output, fmt=a.fmt, overwrite=a.overwrite)
     except (MeshDataError, FileNotFoundError, ValueError, TypeError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -383,7 +383,18 @@ def write_chart(summary: dict, protocol: str, path) -> bool:
     return True
 
 
+#: names ``evaluate`` writes into ``--out`` (a foreign file of such a name is never replaced)
+EVAL_OUTPUTS = ("table_*.md", "table_*.csv", "chart_*.png", "results.json", "compare.json")
+
+#: approxmatch EMD on the CPU, measured: ~96 s per mesh pair at 8,192 samples (bench/results/metrics_cpu.json,
+#: 2-core VM); the cost grows with the square of the samples. On an H200: 0.026 s.
+EMD_CPU_S_8192 = 96.0
+
+
 def write_outputs(out_dir, scenes: list, protocols, config: dict) -> dict:
+    """Write the tables, charts and results.json into ``out_dir`` (each file atomically). The
+    CLI passes the temporary folder of an :class:`~dynmesh_warp.outputs.OutputFolder`, renamed
+    onto ``--out`` at the end (or after an interruption, with the scenes done so far)."""
     out_dir = Path(out_dir)
     summaries = {p: summarize(scenes, p) for p in protocols}
     strides = {(tuple(s["frames"]), tuple(s["emd_frames"])) for s in scenes}
@@ -407,8 +418,81 @@ def write_outputs(out_dir, scenes: list, protocols, config: dict) -> dict:
 # --------------------------------------------------------------------------- CLI
 
 
+def _check_options(a, ap_error) -> list:
+    """Every option and path of ``evaluate`` checked before any data is loaded; returns the
+    inputs (ground truth, --inputs, --compare folders). Raises ValueError with one line."""
+    from .convert import STRATEGIES
+
+    def positive_int(name, v, least):
+        if v < least:
+            raise ValueError(f"--{name} must be an integer >= {least}, got {v}")
+
+    positive_int("num-frames", a.num_frames, 0)
+    if a.num_frames == 1:
+        raise ValueError("--num-frames 1: resampling needs at least 2 frames (0 keeps the ground truth's)")
+    positive_int("resolution", a.resolution, 8)
+    positive_int("frame-stride", a.frame_stride, 1)
+    positive_int("emd-stride", a.emd_stride, 0)
+    positive_int("seed", a.seed, 0)
+    if not (np.isfinite(a.noise) and a.noise >= 0):
+        raise ValueError(f"--noise must be a finite number >= 0 (grid spacings), got {a.noise}")
+    for st in a.strategies or []:
+        if st not in STRATEGIES:
+            raise ValueError(f"--strategies {st}: unknown strategy; valid: {', '.join(STRATEGIES)}")
+    if a.compare:
+        if a.scenes:
+            raise ValueError("give either scenes or --compare GT_DIR PRED_DIR, not both")
+        for d in a.compare:
+            if not Path(d).expanduser().is_dir():
+                raise ValueError(f"--compare {d}: folder not found")
+        return list(a.compare)
+    if not a.scenes:
+        ap_error("give scenes to evaluate, or --compare GT_DIR PRED_DIR")
+    if a.inputs is not None and len(a.inputs) != len(a.scenes):
+        raise ValueError(f"--inputs needs one path per scene ({len(a.scenes)}), got {len(a.inputs)}")
+    for what, paths in (("scene", a.scenes), ("--inputs", a.inputs or [])):
+        for x in paths:
+            if not Path(x).expanduser().exists():
+                raise ValueError(f"{what} {x}: file or folder not found")
+    return list(a.scenes) + list(a.inputs or [])
+
+
+def _emd_estimate(a, device: str) -> str | None:
+    """A line estimating the EMD time on the CPU when it exceeds a minute, naming faster options."""
+    if a.no_emd or str(device).startswith("cuda"):
+        return None
+    from .convert import STRATEGIES
+
+    rows = 1 + len(a.strategies or STRATEGIES)
+    pairs = 0
+    for sc in (a.scenes if not a.compare else [a.compare[0]]):
+        n = a.num_frames
+        if not n:
+            try:
+                from .io import load_sequence
+
+                seq = load_sequence(sc) if not a.compare else None
+                n = seq.num_frames if seq is not None else len([p for p in Path(sc).iterdir() if not p.name.startswith(".")])
+            except Exception:  # noqa: BLE001 (the evaluation itself reports a bad input)
+                return None
+        frames = range(0, n, max(1, a.frame_stride))
+        emd = [t for t in frames if not a.emd_stride or t % a.emd_stride == 0]
+        pairs += len(emd) * (1 if a.compare else rows)
+    secs = sum(pairs * EMD_CPU_S_8192 * (M.PROTOCOLS[p].emd_samples / 8192) ** 2 for p in a.protocol)
+    if secs <= 60:
+        return None
+    h = secs / 3600
+    return (f"estimate: EMD on the CPU takes ~{EMD_CPU_S_8192:.0f} s per frame pair (8,192 samples): "
+            f"{pairs} pairs x {len(a.protocol)} protocol(s), about {h:.1f} h" if h >= 1 else
+            f"estimate: EMD on the CPU takes ~{EMD_CPU_S_8192:.0f} s per frame pair (8,192 samples): "
+            f"{pairs} pairs x {len(a.protocol)} protocol(s), about {secs / 60:.0f} min") + (
+            "; faster: --device cuda (a GPU), --emd-stride K (EMD on every K-th frame), --no-emd")
+
+
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m dynmesh_warp.evaluate", description=__doc__.split("\n\n")[0])
+    from .cli import Parser
+
+    ap = Parser(prog="python -m dynmesh_warp.evaluate", description=__doc__.split("\n\n")[0])
     ap.add_argument("scenes", nargs="*", help="ground-truth fixed-topology sequences (.npz / folder)")
     ap.add_argument("--inputs", nargs="*", default=None,
                     help="varying-topology inputs, one per scene (default: remesh the ground truth)")
@@ -434,47 +518,55 @@ def main(argv=None) -> int:
                          "auto: only where detected")
     ap.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda (default: Warp's default)")
     ap.add_argument("--no-progress", action="store_true")
+    ap.add_argument("--overwrite", action="store_true",
+                    help="replace an existing --out folder (only files this tool wrote; others are kept)")
     a = ap.parse_args(argv)
     from .cli import quiet_warp
 
     quiet_warp()
     progress = not a.no_progress
     try:
+        from .outputs import OutputFolder, check_output
         from .scene import resolve_device
 
         device = str(resolve_device(a.device, "--device"))
+        inputs = _check_options(a, ap.error)
+        check_output(a.out, kind="folder", what="--out", inputs=inputs, overwrite=a.overwrite, writes=EVAL_OUTPUTS)
+        note = _emd_estimate(a, device)
+        if note:
+            print(note, file=sys.stderr)
         if a.compare:
             r = evaluate_folders(a.compare[0], a.compare[1], a.protocol, a.frame_stride, pair=a.pair,
                                  emd=not a.no_emd, seed=a.seed, device=device, progress=progress)
-            atomic_write_json(Path(a.out) / "compare.json", {
-                "ground_truth": a.compare[0], "prediction": a.compare[1], "device": device,
-                "pairs": r["pairs"], "results": r["results"]})
+            with OutputFolder(a.out, overwrite=a.overwrite) as tmp:
+                atomic_write_json(tmp / "compare.json", {
+                    "ground_truth": a.compare[0], "prediction": a.compare[1], "device": device,
+                    "pairs": r["pairs"], "results": r["results"]})
             for p in a.protocol:
                 d = r["results"][p]
                 emd = "–" if d["emd_mean"] is None else f"{d['emd_mean'] / M.EMD_SCALE:.4f}"
                 print(f"{p}: CD {d['cd_mean'] / M.CD_SCALE:.4f} (1e-3), EMD {emd} (1e-1) "
                       f"over {len(d['frames'])} frames")
             return 0
-        if not a.scenes:
-            ap.error("give scenes to evaluate, or --compare GT_DIR PRED_DIR")
-        if a.inputs is not None and len(a.inputs) != len(a.scenes):
-            ap.error(f"--inputs needs one path per scene ({len(a.scenes)}), got {len(a.inputs)}")
         config = {"argv": sys.argv[1:] if argv is None else list(argv), "device": device,
                   "num_frames": a.num_frames or None, "resolution": a.resolution, "noise": a.noise,
                   "frame_stride": a.frame_stride, "emd_stride": a.emd_stride, "emd": not a.no_emd,
                   "seed": a.seed, "protocols": a.protocol, "strategies": a.strategies,
                   "frame_order": a.frame_order}
         scenes = []
-        for i, s in enumerate(a.scenes):
-            t0 = time.perf_counter()
-            scenes.append(evaluate_scene(
-                s, a.inputs[i] if a.inputs else None, num_frames=a.num_frames or None,
-                resolution=a.resolution, noise=a.noise, strategies=a.strategies,
-                protocols=a.protocol, frame_stride=a.frame_stride, emd_stride=a.emd_stride or None,
-                emd=not a.no_emd, seed=a.seed, device=device, progress=progress, frame_order=a.frame_order))
-            scenes[-1]["timing"]["total_s"] = time.perf_counter() - t0
-            write_outputs(a.out, scenes, a.protocol, config)  # partial results after each scene
-        doc = write_outputs(a.out, scenes, a.protocol, config)
+        folder = OutputFolder(a.out, overwrite=a.overwrite)
+        with folder as tmp:
+            for i, s in enumerate(a.scenes):
+                t0 = time.perf_counter()
+                scenes.append(evaluate_scene(
+                    s, a.inputs[i] if a.inputs else None, num_frames=a.num_frames or None,
+                    resolution=a.resolution, noise=a.noise, strategies=a.strategies,
+                    protocols=a.protocol, frame_stride=a.frame_stride, emd_stride=a.emd_stride or None,
+                    emd=not a.no_emd, seed=a.seed, device=device, progress=progress, frame_order=a.frame_order))
+                scenes[-1]["timing"]["total_s"] = time.perf_counter() - t0
+                write_outputs(tmp, scenes, a.protocol, config)  # partial results after each scene
+                folder.keep_on_error = True  # an interruption later keeps the scenes done so far
+            doc = write_outputs(tmp, scenes, a.protocol, config)
         for p in a.protocol:
             print(format_markdown(doc["summary"][p], p))
         return 0

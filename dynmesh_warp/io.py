@@ -97,8 +97,9 @@ Every write goes to a temporary file (or, for folders, a temporary hidden siblin
 :func:`os.replace` only when complete, so an interrupted save leaves no partial output.
 An existing destination folder is replaced only at that last step (it is renamed aside,
 the new one renamed in, then the old one deleted); to avoid deleting unrelated data, an
-existing folder is only replaced when it contains nothing but mesh files (e.g. an earlier
-save), otherwise :class:`FileExistsError` is raised.
+existing folder is only replaced when everything in it was written by this tool (the
+manifest ``.dynmesh_outputs.json`` lists it), otherwise :class:`FileExistsError` is raised;
+``overwrite=True`` replaces it keeping the files this tool did not write.
 """
 
 from __future__ import annotations
@@ -106,7 +107,6 @@ from __future__ import annotations
 import errno
 import os
 import re
-import shutil
 import tempfile
 import warnings
 import zipfile
@@ -719,6 +719,12 @@ def _write_mesh_file(path: Path, V: np.ndarray, F: np.ndarray) -> None:
         meshio.write(str(path), meshio.Mesh(V, [("triangle", F)]))
 
 
+def _current_umask() -> int:
+    m = os.umask(0)
+    os.umask(m)
+    return m
+
+
 def _atomic_file(path: Path, write) -> None:
     """Call ``write(tmp_path)`` on a temporary sibling of ``path``, then rename into place."""
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -727,6 +733,7 @@ def _atomic_file(path: Path, write) -> None:
     os.close(fd)
     try:
         write(Path(tmp))
+        os.chmod(tmp, 0o666 & ~_current_umask())  # mkstemp makes 0600: give the user's umask
         os.replace(tmp, path)
     except BaseException:
         try:
@@ -772,46 +779,16 @@ def _save_npz(seq, path: Path) -> None:
     _atomic_file(path, write)
 
 
-def _check_replaceable(folder: Path) -> None:
-    if not folder.exists():
-        return
-    if not folder.is_dir():
-        raise FileExistsError(errno.EEXIST, "exists and is not a folder", str(folder))
-    for p in folder.iterdir():
-        if not (p.is_file() and (_mesh_extension(p.name) or p.name.startswith("."))):
-            raise FileExistsError(
-                errno.EEXIST,
-                f"refusing to replace a folder that holds non-mesh entries (e.g. {p.name})",
-                str(folder),
-            )
+def _save_folder(seq, folder: Path, fmt: str, overwrite: bool = False) -> None:
+    from .outputs import OutputFolder
 
-
-def _save_folder(seq, folder: Path, fmt: str) -> None:
-    _check_replaceable(folder)
-    parent = folder.parent
-    parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.tmp-", dir=parent))
-    try:
+    with OutputFolder(folder, overwrite=overwrite) as tmp:
         for t in range(seq.num_frames):
             V, F = seq.frame(t)
             _write_mesh_file(tmp / f"frame_{t:04d}.{fmt}", V, F)
-        if folder.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{folder.name}.old-", dir=parent))
-            os.replace(folder, old)  # old is an empty folder: replaced atomically
-            try:
-                os.replace(tmp, folder)
-            except BaseException:
-                os.replace(old, folder)
-                raise
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, folder)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
 
 
-def save_sequence(seq, path, fmt: str | None = None) -> None:
+def save_sequence(seq, path, fmt: str | None = None, overwrite: bool = False) -> None:
     """Save a sequence atomically to a ``.npz`` file or a folder of per-frame meshes.
 
     Args:
@@ -822,8 +799,10 @@ def save_sequence(seq, path, fmt: str | None = None) -> None:
         fmt: ``"ply"`` or ``"obj"`` for a folder (required there); ``None``/``"npz"`` for
             an ``.npz`` path.
 
-    An existing folder is replaced at the very end, and only when it holds nothing but
-    mesh files (else :class:`FileExistsError`).
+    An existing folder is replaced at the very end, and only when everything in it was written
+    by this tool (listed in its manifest, see :mod:`dynmesh_warp.outputs`); else
+    :class:`FileExistsError`, unless ``overwrite`` (then the files this tool did not write
+    are kept in the new folder).
     """
     if not isinstance(seq, (FixedTopologySequence, VaryingTopologySequence)):
         raise TypeError(f"expected a FixedTopologySequence or VaryingTopologySequence, "
@@ -842,4 +821,4 @@ def save_sequence(seq, path, fmt: str | None = None) -> None:
             f"{path}: to save a folder of frames give fmt='ply' or fmt='obj' "
             f"(got {fmt!r}); use a .npz path for a single file"
         )
-    _save_folder(seq, path, fmt)
+    _save_folder(seq, path, fmt, overwrite)

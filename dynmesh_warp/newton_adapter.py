@@ -468,21 +468,20 @@ def build_newton_world(cfg, device=None, sequence=None, **overrides) -> NewtonWo
 
 
 def run_newton_scene(cfg, device=None, steps: int | None = None, output=None, progress: bool = True,
-                     log=print) -> dict:
+                     log=print, overwrite: bool | str = "ours") -> dict:
     """Run a ``newton:`` scene headless; write ``trajectories.npz`` (time, body_q (K, B, 7)) and
     ``summary.json`` atomically; return the summary (steps/s, final body poses)."""
     import platform  # noqa: PLC0415
     import time  # noqa: PLC0415
-    from pathlib import Path  # noqa: PLC0415
 
-    from .outputs import atomic_write_json, atomic_write_npz  # noqa: PLC0415
-    from .run import rate_text, steps_per_second, timed_loop  # noqa: PLC0415
+    from .outputs import OutputFolder, atomic_write_json, atomic_write_npz  # noqa: PLC0415
+    from .run import check_run_output, rate_text, steps_per_second, timed_loop  # noqa: PLC0415
 
+    out = check_run_output(cfg, output, overwrite)
     t_build = time.perf_counter()
     world = build_newton_world(cfg, device=device)
     if steps is None:
         steps = cfg.run.steps or max(1, int(round(cfg.run.duration / world.dt)))
-    out = Path(output) if output else cfg.resolve(cfg.run.output.format(name=cfg.name))
     # warm-up outside the timed loop: step 1 loads (compiles) the kernels, step 2 captures the graph
     warm = min(steps, 2 if world.use_graph else 1)
     for _ in range(warm):
@@ -521,8 +520,9 @@ def run_newton_scene(cfg, device=None, steps: int | None = None, output=None, pr
         "steps_per_second": sps,
         "final": {"finite": finite, "body_q": final, "body_labels": world.body_labels()},
     }
-    atomic_write_npz(out / "trajectories.npz", time=np.asarray(times), body_q=np.asarray(poses))
-    atomic_write_json(out / "summary.json", summary)
+    with OutputFolder(out, overwrite=bool(overwrite)) as tmp:
+        atomic_write_npz(tmp / "trajectories.npz", time=np.asarray(times), body_q=np.asarray(poses))
+        atomic_write_json(tmp / "summary.json", summary)
     summary["output"] = str(out)
     log(f"{cfg.name}: {steps} steps on {summary['device']} (Newton {world.solver_name}"
         f"{', CUDA graph' if world.use_graph else ''}): "

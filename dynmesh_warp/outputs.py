@@ -1,16 +1,52 @@
-"""Atomic output writing: a file appears whole or not at all."""
+"""Output safety, shared by every writer (``run``, ``--record``, ``convert``, ``evaluate``).
+
+- Atomic writing: a file appears whole or not at all (a temporary sibling renamed into place),
+  with the user's umask (``0666 & ~umask`` files, ``0777 & ~umask`` folders).
+- :func:`check_output`: before any work, refuse (:class:`OutputError`, one line) an output that
+  is, contains or lies inside an input (real paths, symlinks resolved), an existing output
+  without ``overwrite``, a file where a folder is expected (and the reverse), an unknown
+  extension, a folder that cannot be created or written.
+- :class:`OutputFolder`: a folder output is written into a temporary sibling folder and
+  renamed into place at the end; an existing folder is replaced keeping every entry this tool
+  did not write (the folder's manifest :data:`MANIFEST` lists what it wrote), so
+  ``--overwrite`` never deletes the user's files. On an error the old folder stays as it was.
+"""
 
 from __future__ import annotations
 
 import json
 import math
 import os
+import shutil
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["atomic_write_bytes", "atomic_write_json", "atomic_write_npz", "atomic_path"]
+__all__ = ["atomic_write_bytes", "atomic_write_json", "atomic_write_npz", "atomic_path", "OutputError",
+           "OutputExistsError", "check_output", "OutputFolder", "MANIFEST", "read_manifest", "apply_umask"]
+
+#: name of the manifest in every folder this tool writes: JSON {"tool": ..., "files": [names]}
+MANIFEST = ".dynmesh_outputs.json"
+
+
+class OutputError(ValueError):
+    """An output path that must not or cannot be written; the message is one line."""
+
+
+class OutputExistsError(OutputError, FileExistsError):
+    """The output exists (or holds a file this tool did not write) and may not be replaced."""
+
+
+def _umask() -> int:
+    m = os.umask(0)
+    os.umask(m)
+    return m
+
+
+def apply_umask(path, folder: bool = False) -> None:
+    """Give ``path`` the permissions a plain ``open``/``mkdir`` would (mkstemp/mkdtemp make 0600/0700)."""
+    os.chmod(path, (0o777 if folder else 0o666) & ~_umask())
 
 
 class atomic_path:
@@ -32,9 +68,7 @@ class atomic_path:
 
     def __exit__(self, exc_type, exc, tb):
         if exc_type is None:
-            umask = os.umask(0)
-            os.umask(umask)
-            os.chmod(self.tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the usual permissions
+            apply_umask(self.tmp)  # mkstemp makes 0600; give the usual permissions
             os.replace(self.tmp, self.path)
         else:
             self.tmp.unlink(missing_ok=True)
@@ -83,3 +117,179 @@ def atomic_write_json(path, obj):
 def atomic_write_npz(path, **arrays):
     with atomic_path(path, suffix=".npz") as tmp:
         np.savez_compressed(tmp, **arrays)
+
+
+# --------------------------------------------------------------------------- path checks
+
+
+def _real(p) -> Path:
+    return Path(os.path.realpath(Path(p).expanduser()))
+
+
+def _within(child: Path, parent: Path) -> bool:
+    return child == parent or parent in child.parents
+
+
+def read_manifest(folder) -> set[str]:
+    """Names this tool wrote in ``folder`` (empty when it has no readable manifest)."""
+    try:
+        doc = json.loads((Path(folder) / MANIFEST).read_text())
+        return {str(n) for n in doc.get("files", []) if isinstance(n, str) and "/" not in n}
+    except (OSError, ValueError, AttributeError):
+        return set()
+
+
+def _foreign(folder: Path) -> list[str]:
+    """Entries of an existing ``folder`` that this tool did not write (sorted)."""
+    ours = read_manifest(folder)
+    return sorted(e for e in os.listdir(folder) if e != MANIFEST and e not in ours)
+
+
+def _check_creatable(real: Path, shown: str, what: str) -> None:
+    """The nearest existing ancestor of ``real`` must be a writable folder (nothing is created
+    here; a probe folder is made and removed at once, which also catches read-only file systems
+    for root, for whom ``os.access`` always says yes)."""
+    anc = real.parent
+    while not os.path.lexists(anc):
+        anc = anc.parent
+    if not anc.is_dir():
+        raise OutputError(f"{what} {shown}: cannot create it, {anc} is a file, not a folder")
+    if not os.access(anc, os.W_OK | os.X_OK):
+        raise OutputError(f"{what} {shown}: the folder {anc} is not writable")
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=".dynmesh-probe-", dir=anc))
+    except OSError as e:
+        raise OutputError(f"{what} {shown}: the folder {anc} is not writable ({e.strerror or e})") from None
+
+
+def check_output(path, *, kind: str, what: str, inputs=(), overwrite: bool = False, suffixes=None,
+                 writes=()) -> Path:
+    """Check an output path before any work; return its real path. Raises :class:`OutputError`
+    with one line naming ``what`` (e.g. ``--output``) and the path. Writes nothing.
+
+    overwrite: replace an existing output (a folder keeps the entries this tool did not write);
+    ``"ours"``: replace a folder only when everything in it was written by this tool.
+    kind: ``"folder"`` or ``"file"``; inputs: paths the command reads (files or folders);
+    suffixes: allowed file extensions (``kind="file"``); writes: ``fnmatch`` patterns of the
+    names the tool will write into a folder (an existing foreign file of such a name would be
+    lost, so it is refused even with ``overwrite``).
+    """
+    import fnmatch
+
+    if path is None or not str(path).strip():
+        raise OutputError(f"{what}: empty path")
+    shown = str(path)
+    real = _real(path)
+    if kind == "file" and suffixes and real.suffix.lower() not in suffixes and Path(shown).suffix.lower() not in suffixes:
+        raise OutputError(f"{what} {shown}: unknown extension {Path(shown).suffix or '(none)'!r}; "
+                          f"expected {' or '.join(sorted(suffixes))}")
+    for inp in inputs:
+        if inp is None:
+            continue
+        ri = _real(inp)
+        if real == ri:
+            raise OutputError(f"{what} {shown}: this is the input {inp}; choose another output")
+        if _within(ri, real):
+            raise OutputError(f"{what} {shown}: it contains the input {inp}; choose another output")
+        if ri.is_dir() and _within(real, ri):
+            raise OutputError(f"{what} {shown}: it lies inside the input folder {inp}; choose an output outside it")
+    if os.path.lexists(real):
+        if kind == "folder":
+            if not real.is_dir():
+                raise OutputError(f"{what} {shown}: is a file, a folder is expected")
+            entries = [e for e in os.listdir(real)]
+            if entries and overwrite == "ours":  # replace a folder only this tool wrote (the Python API)
+                foreign = _foreign(real)
+                if foreign:
+                    raise OutputExistsError(f"{what} {shown}: holds {foreign[0]}, which this tool did not "
+                                            "write; refusing to replace the folder (pass overwrite=True to "
+                                            "replace only what this tool wrote)")
+            elif entries and not overwrite:
+                raise OutputExistsError(f"{what} {shown}: folder exists and is not empty; add --overwrite to "
+                                        "replace what this tool wrote there (other files are kept)")
+            clash = [e for e in _foreign(real) if any(fnmatch.fnmatch(e, w) for w in writes)]
+            if clash:
+                raise OutputExistsError(f"{what} {shown}: holds {clash[0]}, which this tool did not write and "
+                                        "would replace; move it away or choose another output")
+            if not os.access(real, os.W_OK | os.X_OK):
+                raise OutputError(f"{what} {shown}: the folder is not writable")
+        else:
+            if real.is_dir():
+                raise OutputError(f"{what} {shown}: is a folder, a file is expected")
+            if not overwrite:
+                raise OutputExistsError(f"{what} {shown}: file exists; add --overwrite to replace it")
+    _check_creatable(real, shown, what)
+    return real
+
+
+class OutputFolder:
+    """Write a folder output atomically: ``with OutputFolder(path) as tmp:`` write into ``tmp``
+    (a hidden temporary sibling); on success it becomes ``path``, with a manifest of what was
+    written. An existing ``path`` is replaced only when everything in it was written by this
+    tool, or with ``overwrite=True``, which keeps the entries this tool did not write (moved
+    into the new folder). On an exception nothing changes (unless ``keep_on_error`` was set,
+    e.g. after partial results worth keeping) and the temporary folder is removed."""
+
+    def __init__(self, path, overwrite: bool = False, keep_on_error: bool = False):
+        self.path = _real(path)
+        self.overwrite = bool(overwrite)
+        self.keep_on_error = keep_on_error
+        self.tmp = None
+
+    def __enter__(self) -> Path:
+        parent = self.path.parent
+        if not parent.is_dir():
+            parent.mkdir(parents=True, exist_ok=True)  # with the umask's permissions
+        self.tmp = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.tmp-", dir=parent))
+        apply_umask(self.tmp, folder=True)  # mkdtemp makes 0700
+        return self.tmp
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is None or self.keep_on_error:
+            try:
+                self.commit()
+            except BaseException:
+                shutil.rmtree(self.tmp, ignore_errors=True)
+                raise
+        else:
+            shutil.rmtree(self.tmp, ignore_errors=True)
+        return False
+
+    def commit(self):
+        tmp, target = self.tmp, self.path
+        written = sorted(e for e in os.listdir(tmp) if e != MANIFEST)
+        keep = []
+        if os.path.lexists(target):
+            if not target.is_dir():
+                raise OutputExistsError(f"{target}: is a file, a folder is expected")
+            keep = _foreign(target)
+            if keep and not self.overwrite:
+                raise OutputExistsError(f"{target}: holds {keep[0]}, which this tool did not write; "
+                                        "refusing to replace the folder")
+            clash = [e for e in keep if e in written]
+            if clash:
+                raise OutputExistsError(f"{target}: holds {clash[0]}, which this tool did not write and "
+                                        "would replace")
+        atomic_write_json(tmp / MANIFEST, {"tool": "dynmesh_warp", "files": written})
+        if not keep and not os.path.lexists(target):
+            os.replace(tmp, target)
+            return
+        moved = []
+        try:
+            for e in keep:  # the user's entries move into the new folder (same file system: renames)
+                os.replace(target / e, tmp / e)
+                moved.append(e)
+            old = Path(tempfile.mkdtemp(prefix=f".{target.name}.old-", dir=target.parent))
+            os.replace(target, old)  # onto an empty folder: atomic
+        except BaseException:
+            for e in moved:
+                os.replace(tmp / e, target / e)
+            raise
+        try:
+            os.replace(tmp, target)
+        except BaseException:
+            os.replace(old, target)
+            for e in moved:
+                os.replace(tmp / e, target / e)
+            raise
+        shutil.rmtree(old, ignore_errors=True)  # only what this tool wrote before

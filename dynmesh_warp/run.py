@@ -8,7 +8,7 @@ steps/s.
 from __future__ import annotations
 
 import argparse
-import os
+import math
 import platform
 import sys
 import time
@@ -21,7 +21,9 @@ __all__ = ["main", "run_scene"]
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m dynmesh_warp.run", description=__doc__.splitlines()[0])
+    from .cli import Parser
+
+    p = Parser(prog="python -m dynmesh_warp.run", description=__doc__.splitlines()[0])
     p.add_argument("scene", nargs="?", help="scene YAML file (default: the built-in default scene)")
     p.add_argument("--device", help="Warp device: cpu, cuda, cuda:0 (default: scene's, else Warp's default)")
     g = p.add_mutually_exclusive_group()
@@ -38,7 +40,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--record", metavar="OUT.viser",
                    help="save a replayable viser recording and a self-contained OUT.html next to it")
     p.add_argument("--output", help="output folder (overrides run.output)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace existing outputs (only files this tool wrote; other files are kept)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    p.add_argument("--no-work-limit", action="store_true",
+                   help="lift the work budget (physics.max_substeps, run.max_total_substeps)")
     return p
 
 
@@ -52,8 +58,13 @@ def _signed_distances(world) -> np.ndarray:
 
 def run_scene(cfg, device=None, steps: int | None = None, collider: str | None = None,
               rebuild_every: str | None = None, output: str | Path | None = None,
-              progress: bool = True, log=print) -> dict:
-    """Build and run a scene; write outputs; return the summary dict."""
+              progress: bool = True, log=print, overwrite: bool | str = "ours") -> dict:
+    """Build and run a scene; write outputs; return the summary dict.
+
+    The output folder is checked before the work (:func:`dynmesh_warp.outputs.check_output`)
+    and written atomically at the end; ``overwrite="ours"`` (default) replaces an existing
+    folder only when everything in it was written by this tool, ``True`` replaces what this
+    tool wrote and keeps the rest."""
     if getattr(cfg, "newton", None) is not None:  # bodies simulated by Newton (docs/newton.md)
         from .newton_adapter import run_newton_scene
 
@@ -62,18 +73,21 @@ def run_scene(cfg, device=None, steps: int | None = None, collider: str | None =
                           "with a newton: section uses Newton's collision pipeline, so they are ignored",
                           stacklevel=2)
 
-        return run_newton_scene(cfg, device=device, steps=steps, output=output, progress=progress, log=log)
+        return run_newton_scene(cfg, device=device, steps=steps, output=output, progress=progress, log=log,
+                                overwrite=overwrite)
     import warp as wp
 
-    from .outputs import atomic_write_json, atomic_write_npz
+    from .outputs import OutputFolder, atomic_write_json, atomic_write_npz
     from .scene import build_world
 
+    out = check_run_output(cfg, output, overwrite)
     t_build = time.perf_counter()
+    if steps is None:
+        steps = run_steps(cfg)
+    check_total_work(cfg, steps, cfg.physics.substeps)  # before loading: the configured sub-steps
     world = build_world(cfg, device=device, collider=collider, rebuild_every=rebuild_every)
     p = world.model.params
-    if steps is None:
-        steps = cfg.run.steps or max(1, int(round(cfg.run.duration / p.dt)))
-    out = Path(output) if output else (cfg.resolve(cfg.run.output.format(name=cfg.name)))
+    check_total_work(cfg, steps, world.substeps)  # with the sub-step rule's count
     # warm-up: compile kernels (and capture the CUDA graph) outside the timed loop
     world.step()
     wp.synchronize_device(world.device)
@@ -85,6 +99,13 @@ def run_scene(cfg, device=None, steps: int | None = None, collider: str | None =
         times.append(world.time)
         pos.append(world.sphere_positions())
         vel.append(world.sphere_velocities())
+        bad = np.flatnonzero(~(np.isfinite(pos[-1]).all(axis=1) & np.isfinite(vel[-1]).all(axis=1)))
+        if bad.size:
+            i, step = int(bad[0]), int(round((world.time - world.t0) / p.dt))
+            raise NonFiniteStateError(
+                f"sphere {i} has a non-finite state at step {step} (t = {world.time:.4g} s; checked every "
+                f"run.record_every = {rec} steps): position {pos[-1][i].tolist()}, velocity {vel[-1][i].tolist()}"
+                f"{f' ({bad.size} spheres)' if bad.size > 1 else ''}; stopped, {out} keeps its previous contents")
 
     contact_samples = 0
 
@@ -137,9 +158,10 @@ def run_scene(cfg, device=None, steps: int | None = None, collider: str | None =
             "max_penetration": float(max(0.0, -np.min(gap))) if world.model.spheres.count else 0.0,
         },
     }
-    atomic_write_npz(out / "trajectories.npz", time=np.asarray(times), position=np.asarray(pos),
-                     velocity=np.asarray(vel), radius=world.model.spheres.radius.numpy())
-    atomic_write_json(out / "summary.json", summary)
+    with OutputFolder(out, overwrite=bool(overwrite)) as tmp:
+        atomic_write_npz(tmp / "trajectories.npz", time=np.asarray(times), position=np.asarray(pos),
+                         velocity=np.asarray(vel), radius=world.model.spheres.radius.numpy())
+        atomic_write_json(tmp / "summary.json", summary)
     summary["output"] = str(out)
     log(f"{cfg.name}: {steps} steps on {summary['device']} ({summary['collider']}"
         f"{', CUDA graph' if world.use_graph else ''}): "
@@ -148,6 +170,69 @@ def run_scene(cfg, device=None, steps: int | None = None, collider: str | None =
     if not finite:
         log("WARNING: non-finite sphere state at the end of the run")
     return summary
+
+
+def run_steps(cfg, duration: float | None = None) -> int:
+    """Physics steps of a run: ``duration`` (the CLI's --duration) / physics.dt, else run.steps,
+    else run.duration / physics.dt."""
+    if duration is None and cfg.run.steps:
+        return int(cfg.run.steps)
+    d = cfg.run.duration if duration is None else duration
+    return max(1, int(round(d / cfg.physics.dt)))
+
+
+def check_total_work(cfg, steps: int, substeps: int) -> None:
+    """Refuse a run of more than ``run.max_total_substeps`` sub-steps (steps x sub-steps), naming
+    the step count, what it comes from and the values that would fit."""
+    from .world import WorkBudgetError
+
+    cap = cfg.run.max_total_substeps
+    total = int(steps) * int(substeps)
+    if cap is None or total <= cap:
+        return
+    dt = cfg.physics.dt
+    fit_steps = max(1, cap // max(int(substeps), 1))
+    raise WorkBudgetError(
+        f"work budget: {steps:,} steps x {substeps:,} sub-steps = {total:.3g} sub-steps, over "
+        f"run.max_total_substeps {cap:.3g}; {steps * dt:.3g} s of simulated time at physics.dt {dt:.3g} s. "
+        f"Fits with: at most {fit_steps:,} steps (--steps, run.steps, or a duration <= {fit_steps * dt:.3g} s), "
+        f"or physics.dt >= {steps * dt / fit_steps:.3g} s; or raise run.max_total_substeps "
+        "(--no-work-limit lifts the bounds)")
+
+
+def lift_work_limits(cfg) -> None:
+    """``--no-work-limit``: no bound on sub-steps per step or per run."""
+    cfg.physics.max_substeps = None
+    cfg.run.max_total_substeps = None
+
+
+class NonFiniteStateError(RuntimeError):
+    """The simulation produced NaN/inf; the message names the sphere and the step."""
+
+
+#: what a run writes into its output folder
+RUN_OUTPUTS = ("summary.json", "trajectories.npz")
+
+
+def check_run_output(cfg, output=None, overwrite: bool | str = "ours", what: str | None = None) -> Path:
+    """The run's output folder (``output``, else ``run.output``), checked before the work: not an
+    input of the scene, a folder, creatable and writable, existing only with ``overwrite``."""
+    from .outputs import check_output
+
+    path = cfg.output_path(output)
+    what = what or ("--output" if output else "run.output")
+    check_output(path, kind="folder", what=what, inputs=cfg.inputs(), overwrite=overwrite, writes=RUN_OUTPUTS)
+    return path
+
+
+def check_record_output(cfg, record, overwrite: bool) -> None:
+    """``--record OUT.viser`` and the ``OUT.html`` next to it, checked before the work."""
+    from .outputs import check_output
+
+    check_output(record, kind="file", what="--record", inputs=cfg.inputs(), overwrite=overwrite,
+                 suffixes={".viser"})
+    check_output(Path(record).with_suffix(".html"), kind="file", what="--record (its .html page)",
+                 inputs=cfg.inputs(), overwrite=overwrite)
 
 
 def timed_loop(world, steps: int, every: int, record, progress: bool) -> float:
@@ -188,17 +273,24 @@ def rate_text(sps: float | None) -> str:
     return f"{sps:,.0f} steps/s; " if sps is not None else "too few steps to time; "
 
 
-def _check_writable(path: Path, what: str) -> None:
-    """Fail before the run, not after it, when ``path``'s folder cannot be created or written."""
+def check_cli_options(args) -> None:
+    """Every option of ``run`` checked before the scene is loaded (one line, exit 2)."""
     from .config import SceneError
 
-    folder = path.expanduser().resolve().parent
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise SceneError(f"{what} {path}: cannot create its folder {folder} ({e.strerror or e})") from None
-    if not os.access(folder, os.W_OK):
-        raise SceneError(f"{what} {path}: the folder {folder} is not writable")
+    if args.steps is not None and args.steps < 1:
+        raise SceneError(f"--steps must be at least 1, got {args.steps}")
+    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
+        raise SceneError(f"--duration must be a positive, finite number of seconds, got {args.duration}")
+    if not 0 <= args.port <= 65535:
+        raise SceneError(f"--port must be in 0..65535, got {args.port}")
+    if not args.host.strip():
+        raise SceneError("--host: empty address")
+    if args.output is not None and args.record:
+        raise SceneError(f"--output {args.output}: a --record run writes only the recording (OUT.viser and "
+                         "OUT.html; it keeps no trajectories); run once more without --record for "
+                         "summary.json and trajectories.npz")
+    if args.rebuild_every is not None and args.collider not in (None, "rebuild"):
+        raise SceneError(f"--rebuild-every applies to --collider rebuild, not --collider {args.collider}")
 
 
 def main(argv=None) -> int:
@@ -210,26 +302,31 @@ def main(argv=None) -> int:
     from .sequence import MeshDataError
 
     try:
-        if args.steps is not None and args.steps < 1:
-            raise SceneError(f"--steps must be at least 1, got {args.steps}")
-        if args.duration is not None and not args.duration > 0:
-            raise SceneError(f"--duration must be a positive number of seconds, got {args.duration}")
-        if args.record:
-            _check_writable(Path(args.record), "--record")
+        check_cli_options(args)
         cfg = load_scene_config(args.scene)
+        if args.no_work_limit:
+            lift_work_limits(cfg)
         steps = args.steps
         if args.duration is not None:
-            steps = max(1, int(round(args.duration / cfg.physics.dt)))
+            steps = run_steps(cfg, args.duration)
+        check_total_work(cfg, steps or run_steps(cfg), cfg.physics.substeps)  # before any data is loaded
         viewer = args.viewer
         if viewer is None:
             import importlib.util
 
             tty = sys.stdin.isatty() and sys.stdout.isatty()
             viewer = "viser" if tty and importlib.util.find_spec("viser") is not None else "none"
+        from .scene import scene_device
+
+        scene_device(cfg, args.device)  # a missing device is reported before any data is loaded
         if viewer == "viser" or args.record:
             from .splat_io import SplatPlyError
             from .viewer import run_viewer
 
+            if args.record:
+                check_record_output(cfg, args.record, args.overwrite)
+                print(f"note: --record writes {args.record} and its .html page only; summary.json and "
+                      "trajectories.npz come from a run without --record", file=sys.stderr)
             try:
                 with warnings.catch_warnings():
                     warnings.simplefilter("always")
@@ -240,14 +337,18 @@ def main(argv=None) -> int:
                 print(f"error: {e}", file=sys.stderr)
                 return 2
             return 0
+        check_run_output(cfg, args.output, args.overwrite)
         with warnings.catch_warnings():
             warnings.simplefilter("always")
             summary = run_scene(cfg, device=args.device, steps=steps, collider=args.collider,
                                 rebuild_every=args.rebuild_every, output=args.output,
-                                progress=not args.no_progress)
+                                progress=not args.no_progress, overwrite=args.overwrite)
     except (SceneError, MeshDataError, FileNotFoundError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    except NonFiniteStateError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
     return 0 if summary["final"]["finite"] else 1
 
 

@@ -114,6 +114,38 @@ def prepare_surface(seq, cfg: SceneConfig):
     return seq
 
 
+def winding_numbers(V: np.ndarray, F: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """Generalised winding number of each point of ``P`` (K, 3) about the mesh (V, F): about
+    +-1 inside a closed mesh, 0 outside (solid angles, Van Oosterom & Strackee), float64."""
+    V = np.asarray(V, np.float64)
+    out = np.zeros(len(P))
+    for k, x in enumerate(np.asarray(P, np.float64)):
+        a, b, c = (V[F[:, i]] - x for i in range(3))
+        la, lb, lc = (np.linalg.norm(v, axis=1) for v in (a, b, c))
+        num = np.einsum("ij,ij->i", a, np.cross(b, c))
+        den = (la * lb * lc + np.einsum("ij,ij->i", a, b) * lc + np.einsum("ij,ij->i", b, c) * la
+               + np.einsum("ij,ij->i", c, a) * lb)
+        out[k] = 2.0 * np.arctan2(num, den).sum() / (4.0 * np.pi)
+    return out
+
+
+def _refuse_spheres_inside(V0, F0, positions, radius) -> None:
+    """A listed sphere whose centre starts inside a closed surface (frame 0) is refused: contacts
+    are one-sided, so it would fall out through the faces (docs/scene.md)."""
+    if not len(positions) or mesh_orientation(V0, F0) not in ("outward", "inward"):
+        return
+    w = winding_numbers(V0, F0, np.asarray(positions, np.float64).reshape(-1, 3))
+    inside = np.flatnonzero(np.abs(w) > 0.5)
+    if inside.size:
+        i = int(inside[0])
+        top = float(np.asarray(V0)[:, 2].max())
+        raise SceneError(
+            f"spheres.{i}: position {list(np.round(np.asarray(positions[i], float), 6))} starts inside the closed "
+            f"surface (frame 0); contacts are one-sided, so it would fall out through it. Move it outside, "
+            f"e.g. z >= {top + float(radius[i]):.4g} above the surface"
+            + (f" ({inside.size} spheres are inside)" if inside.size > 1 else ""))
+
+
 def scene_device(cfg: SceneConfig, device=None):
     """The device a scene runs on: ``device`` (the CLI's --device) if given, else the scene's
     ``device`` field, else Warp's default; a :class:`SceneError` names whichever is unavailable."""
@@ -124,6 +156,8 @@ def resolve_device(name, field: str = "device"):
     """``wp.get_device(name)``, with a :class:`SceneError` naming ``field`` when the device
     does not exist here (e.g. ``cuda`` on a machine without a GPU)."""
     try:
+        if isinstance(name, str) and name.startswith("cuda") and not wp.is_cuda_available():
+            raise RuntimeError("no CUDA device or driver on this machine")  # before Warp's native errors
         return wp.get_device(name)
     except (RuntimeError, ValueError) as e:
         have = ", ".join(str(d) for d in wp.get_devices())
@@ -165,11 +199,14 @@ def build_world(cfg: SceneConfig, device=None, collider: str | None = None,
         n = cfg.spheres.count
         radius, mass = [cfg.spheres.radius] * n, [cfg.spheres.mass] * n
         pos, vel = spawn_positions(cfg.spheres, V0), None
+    if isinstance(cfg.spheres, list):
+        _refuse_spheres_inside(V0, seq.F if isinstance(seq, FixedTopologySequence) else seq.frames[0][1], pos, radius)
     ground = p.ground
     if ground == "auto":
         ground = float(seq.V[:, :, 2].min()) if isinstance(seq, FixedTopologySequence) else float(
             min(v[:, 2].min() for v, _ in seq.frames))
-    params = PhysicsParams(dt=p.dt, substeps=p.substeps, gravity=p.gravity, restitution=p.restitution,
+    params = PhysicsParams(dt=p.dt, substeps=p.substeps, max_substeps=p.max_substeps, gravity=p.gravity,
+                           restitution=p.restitution,
                            friction=p.friction, rest_speed=p.rest_speed, margin=p.margin,
                            auto_substeps=p.auto_substeps, ground_height=ground)
     model = Model(surface, SphereModel(np.asarray(radius, np.float32).reshape(-1), mass, device), params)

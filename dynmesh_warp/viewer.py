@@ -534,12 +534,18 @@ def run_viewer(cfg, device=None, viewer: str = "viser", port: int = 8080, host: 
         world, what = v.world, f"{newton_world.model.body_count} Newton bodies"
     else:
         world = build_world(cfg, device=device, collider=collider, rebuild_every=rebuild_every)
+        if steps is not None or viewer != "viser":  # a bounded run: the work budget, before the server starts
+            from .run import check_total_work, run_steps
+
+            check_total_work(cfg, steps if steps is not None else run_steps(cfg), world.substeps)
         g = gaussians_for_world(world, cfg)
         v = Viewer(world, g, port=port, host=host, fps=fps, record=record, realtime=(viewer == "viser"), log=log)
         what = f"{world.model.spheres.count} spheres"
     dt = world.model.params.dt
     if steps is None and viewer != "viser":
-        steps = cfg.run.steps or max(1, int(round(cfg.run.duration / dt)))
+        from .run import run_steps
+
+        steps = run_steps(cfg)
     max_frames = None if steps is None else max(1, int(np.ceil(steps * dt / v.frame_dt)))
     if viewer == "viser":
         log(f"viewer: http://{'localhost' if host in ('0.0.0.0', '127.0.0.1') else host}:{v.port} "

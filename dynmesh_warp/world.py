@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 import warp as wp
@@ -28,10 +28,13 @@ from .kernels.swept import (
     gather_sphere_candidates,
     resolve_sphere_candidates,
 )
+from .config import PhysicsCore
 from .sequence import FixedTopologySequence, VaryingTopologySequence
 
 __all__ = [
     "PhysicsParams",
+    "WorkBudgetError",
+    "check_substep_budget",
     "SurfaceModel",
     "VaryingSurfaceModel",
     "SphereModel",
@@ -73,27 +76,48 @@ def frame_pair_host(time: float, fps: float, num_frames: int, mode: int = 0) -> 
     return (_wrap_frame_host(k, num_frames, mode), _wrap_frame_host(k + 1, num_frames, mode), s - kf)
 
 
-@dataclass
-class PhysicsParams:
-    """Scalar physics settings.
+class PhysicsParams(PhysicsCore):
+    """Scalar physics settings (keyword arguments; validated on construction and assignment by
+    the same pydantic model as the scene's ``physics:`` section, :class:`~dynmesh_warp.config.
+    PhysicsCore`, which holds the defaults: a bad value raises a ``ValueError`` naming the field).
 
-    dt: physics step [s]; substeps: sub-steps per step (each of dt/substeps);
-    gravity: [m/s^2]; restitution: normal coefficient of restitution in [0, 1];
-    friction: Coulomb coefficient; rest_speed: normal approach speed [m/s] below which an
-    impact does not bounce; margin: extra contact query distance [m]; auto_substeps: raise
-    substeps so the surface moves less than half the smallest sphere radius per sub-step;
-    ground_height: optional static ground plane z = ground_height [m] (None: no ground).
+    dt: physics step [s]; substeps: sub-steps per step (each of dt/substeps); max_substeps:
+    the most sub-steps the sub-step rule may reach (None: no bound; over it the world is not
+    built, see :class:`WorkBudgetError`); gravity: [m/s^2]; restitution: normal coefficient of
+    restitution in [0, 1]; friction: Coulomb coefficient; rest_speed: normal approach speed [m/s]
+    below which an impact does not bounce; margin: extra contact query distance [m];
+    auto_substeps: raise substeps so the surface moves less than half the smallest sphere radius
+    per sub-step; ground_height: optional static ground plane z = ground_height [m] (None: no ground).
     """
 
-    dt: float = 1.0 / 240.0
-    substeps: int = 1
-    gravity: tuple = (0.0, 0.0, -9.81)
-    restitution: float = 0.3
-    friction: float = 0.5
-    rest_speed: float = 0.2
-    margin: float = 1.0e-3
-    auto_substeps: bool = True
-    ground_height: float | None = None
+    ground_height: Optional[float] = None
+
+
+#: reference values of the default scene, to name what drives a large sub-step count
+_REFERENCE = {"radius": 0.05, "speed": 1.0, "dt": 1.0 / 240.0}
+
+
+def check_substep_budget(need: int, speed: float, r_min: float, p) -> None:
+    """Raise :class:`WorkBudgetError` when the sub-step rule needs more than ``p.max_substeps``
+    sub-steps per step: name the surface speed, the radius and dt, what drives it (the one
+    farthest from the default scene's values) and the value of each that would fit."""
+    cap = p.max_substeps
+    if cap is None or need <= cap:
+        return
+    drivers = {"the sphere radius": _REFERENCE["radius"] / r_min, "the surface speed": speed / _REFERENCE["speed"],
+               "physics.dt": p.dt / _REFERENCE["dt"]}
+    driver = max(drivers, key=drivers.get)
+    raise WorkBudgetError(
+        f"work budget: the surface moves up to {speed:.3g} m/s and the smallest sphere radius is {r_min:.3g} m, so "
+        f"at physics.dt {p.dt:.3g} s a step needs {need:,} sub-steps (surface < r/2 per sub-step), over "
+        f"physics.max_substeps {cap}; driven by {driver}. Fits with: radius >= {2 * speed * p.dt / cap:.3g} m, "
+        f"or physics.dt <= {cap * 0.5 * r_min / speed:.3g} s, or a surface speed <= {cap * 0.5 * r_min / p.dt:.3g} m/s "
+        "(surface.scale for data in other units); or raise physics.max_substeps (--no-work-limit lifts the bounds)")
+
+
+class WorkBudgetError(ValueError):
+    """The sub-steps a scene needs exceed the work budget (``physics.max_substeps`` /
+    ``run.max_total_substeps``); the message names what drives them and the value that fits."""
 
 
 class SurfaceModel:
@@ -212,6 +236,10 @@ class State:
         S = model.spheres.count
         pos = np.asarray(positions, dtype=np.float32).reshape(S, 3)
         vel = np.zeros((S, 3), np.float32) if velocities is None else np.asarray(velocities, np.float32).reshape(S, 3)
+        for name, a in (("positions", pos), ("velocities", vel)):
+            bad = np.flatnonzero(~np.isfinite(a).all(axis=1))
+            if bad.size:
+                raise ValueError(f"sphere {int(bad[0])}: {name[:-1]} {a[bad[0]].tolist()} is not finite")
         self.sphere_pos = wp.array(pos, dtype=wp.vec3, device=d)
         self.sphere_vel = wp.array(vel, dtype=wp.vec3, device=d)
 
@@ -653,6 +681,7 @@ class World:
         if surf.max_speed > 0 and math.isfinite(r_min):
             need = math.ceil(surf.max_speed * p.dt / (0.5 * r_min))
             if p.auto_substeps and surf.interpolate and need > self.substeps:
+                check_substep_budget(need, surf.max_speed, r_min, p)
                 warnings.warn(
                     f"surface moves up to {surf.max_speed:.3g} m/s: raising substeps from "
                     f"{self.substeps} to {need} so it moves < r/2 per sub-step", stacklevel=stacklevel)
@@ -675,6 +704,10 @@ class World:
         positions = np.asarray(positions, np.float32).reshape(-1, 3)
         n = positions.shape[0]
         radius = np.broadcast_to(np.asarray(radius, np.float32), (n,))
+        surf, p = self.model.surface, self.model.params
+        if n and surf.max_speed > 0 and surf.interpolate and p.auto_substeps and np.all(radius > 0):
+            r_min = float(min(radius.min(), self.model.spheres.radius_np.min(initial=np.inf)))
+            check_substep_budget(math.ceil(surf.max_speed * p.dt / (0.5 * r_min)), surf.max_speed, r_min, p)
         old = self.model.spheres
         old_mass = np.where(old.inv_mass.numpy() > 0, 1.0 / np.maximum(old.inv_mass.numpy(), 1e-30), np.inf)
         new_r = np.concatenate([old.radius_np, radius])

@@ -94,7 +94,7 @@ def test_roundtrip_fixed_folder(tmp_path, fmt):
     seq = fixed_seq()
     save_sequence(seq, tmp_path / "out", fmt=fmt)
     names = sorted(p.name for p in (tmp_path / "out").iterdir())
-    assert names == [f"frame_{i:04d}.{fmt}" for i in range(seq.num_frames)]
+    assert names == [".dynmesh_outputs.json"] + [f"frame_{i:04d}.{fmt}" for i in range(seq.num_frames)]
     out = load_sequence(tmp_path / "out")
     assert_same_fixed(seq, out)
     assert out.fps == 24.0  # folders carry no fps: default

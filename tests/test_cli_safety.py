@@ -1,0 +1,323 @@
+"""Issue 20: outputs never touch inputs, everything is checked before the work, the work is bounded.
+
+``test_bad_path_or_value_refused_before_the_work`` runs each command line in a subprocess (as a
+user would): it must exit 2 within 5 s with one line naming the offending path or value, no
+traceback, and leave every file in the work folder (inputs and pre-existing outputs) exactly
+as it was, with no temporary file left behind.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dynmesh_warp.io import write_mesh
+from dynmesh_warp.outputs import MANIFEST, OutputError, OutputFolder, check_output
+from dynmesh_warp.scenes import icosphere
+
+RUN, CONVERT, EVALUATE = (["-m", f"dynmesh_warp.{m}"] for m in ("run", "convert", "evaluate"))
+
+
+def _ico(T=4):
+    V, F = icosphere(1)
+    return [(V * (0.3 + 0.02 * t), F) for t in range(T)]
+
+
+@pytest.fixture(scope="module")
+def work(tmp_path_factory) -> Path:
+    """A user's folder: per-frame meshes, a folder of their own scans, a ground-truth npz,
+    scenes, an unrelated file, an earlier recording, a symlink to the frames."""
+    from dynmesh_warp.io import save_sequence
+    from dynmesh_warp.sequence import FixedTopologySequence
+
+    w = tmp_path_factory.mktemp("user")
+    (w / "frames").mkdir()
+    for t, (V, F) in enumerate(_ico()):
+        write_mesh(w / "frames" / f"{t:03d}.obj", V, F)
+    (w / "scans").mkdir()
+    write_mesh(w / "scans" / "my_scan.obj", *_ico(1)[0])
+    V, F = icosphere(1)
+    save_sequence(FixedTopologySequence(np.stack([V, V * 1.1, V * 1.2]), F, fps=10), w / "gt.npz")
+    (w / "notes.txt").write_text("my notes\n")
+    (w / "old.viser").write_bytes(b"an earlier recording")
+    (w / "dir.viser").mkdir()
+    (w / "dir.viser" / "keep").write_text("x")
+    (w / "frames_link").symlink_to(w / "frames")
+    scenes = {
+        "ok.yaml": "surface: {source: frames}\nrun: {steps: 2}\n",
+        "dt_inf.yaml": "physics: {dt: .inf}\n",
+        "dur_inf.yaml": "run: {duration: .inf}\n",
+        "ground_nan.yaml": "physics: {ground: .nan}\n",
+        "sphere_nan.yaml": "spheres: [{position: [.nan, 0, 1]}]\n",
+        "placeholder.yaml": "run: {output: 'out/{nmae}'}\n",
+        "dup.yaml": "run: {steps: 2}\nrun: {steps: 3}\n",
+        "substeps.yaml": "physics: {substeps: 100000000}\n",
+        "into_input.yaml": "surface: {source: frames}\nrun: {output: frames/out}\n",
+        "dt_tiny.yaml": "physics: {dt: 1.0e-12}\n",
+        "restitution.yaml": "physics: {restitution: 5}\n",
+    }
+    for name, text in scenes.items():
+        (w / name).write_text(text)
+    return w
+
+
+def _snapshot(root: Path) -> dict:
+    """Every entry under ``root`` (links as links) -> a checksum of its content."""
+    out = {}
+    for dirpath, dirnames, filenames in os.walk(root):
+        for n in dirnames + filenames:
+            p = Path(dirpath) / n
+            rel = str(p.relative_to(root))
+            if p.is_symlink():
+                out[rel] = "link:" + os.readlink(p)
+            elif p.is_dir():
+                out[rel] = "dir"
+            else:
+                out[rel] = hashlib.sha256(p.read_bytes()).hexdigest()
+    return out
+
+
+# (command, text the one error line must contain)
+BAD = [
+    # run: output paths
+    (RUN + ["--output", "notes.txt"], "notes.txt"),
+    (RUN + ["--output", "notes.txt/sub"], "notes.txt"),
+    (RUN + ["--output", "/proc/dynmesh_out"], "/proc"),
+    (RUN + ["--output", "scans"], "--overwrite"),
+    (RUN + ["ok.yaml", "--output", "frames"], "input"),
+    (RUN + ["ok.yaml", "--output", "frames_link"], "input"),
+    (RUN + ["ok.yaml", "--output", "."], "input"),
+    (RUN + ["into_input.yaml"], "frames"),
+    # run: --record
+    (RUN + ["--record", "rec.txt"], ".txt"),
+    (RUN + ["--record", "old.viser"], "old.viser"),
+    (RUN + ["--record", "dir.viser"], "dir.viser"),
+    (RUN + ["--record", "new.viser", "--output", "o"], "--output"),
+    # run: options
+    (RUN + ["--steps", "0"], "--steps"),
+    (RUN + ["--duration", "inf"], "--duration"),
+    (RUN + ["--duration", "nan"], "--duration"),
+    (RUN + ["--port", "70000"], "--port"),
+    (RUN + ["--steps", "x"], "--steps"),
+    (RUN + ["--device", "nodevice"], "nodevice"),
+    (RUN + ["missing.yaml"], "missing.yaml"),
+    # run: scene values
+    (RUN + ["dt_inf.yaml"], "physics.dt"),
+    (RUN + ["dur_inf.yaml"], "run.duration"),
+    (RUN + ["ground_nan.yaml"], "physics.ground"),
+    (RUN + ["sphere_nan.yaml"], "spheres.0.position"),
+    (RUN + ["placeholder.yaml"], "{nmae}"),
+    (RUN + ["dup.yaml"], "duplicate key 'run'"),
+    (RUN + ["substeps.yaml"], "max_substeps"),
+    (RUN + ["restitution.yaml"], "physics.restitution"),
+    (RUN + ["dt_tiny.yaml"], "work budget"),
+    # convert
+    (CONVERT + ["frames", "frames", "--fmt", "obj"], "input"),
+    (CONVERT + ["frames", "frames_link"], "input"),
+    (CONVERT + ["frames", "scans", "--fmt", "obj"], "--overwrite"),
+    (CONVERT + ["frames", "frames/out.npz"], "inside the input"),
+    (CONVERT + ["frames", "gt.npz"], "--overwrite"),
+    (CONVERT + ["frames", "out.obj"], ".obj"),
+    (CONVERT + ["frames", "x.npz", "--tracked-weight", "nan"], "--tracked-weight"),
+    (CONVERT + ["frames", "x.npz", "--fps", "inf"], "--fps"),
+    (CONVERT + ["nothere", "x.npz"], "nothere"),
+    (CONVERT + ["frames", "x.npz", "--template", "nope.obj"], "nope.obj"),
+    # evaluate
+    (EVALUATE + ["gt.npz", "--out", "."], "input"),
+    (EVALUATE + ["gt.npz", "--out", "notes.txt"], "notes.txt"),
+    (EVALUATE + ["gt.npz", "--out", "scans"], "--overwrite"),
+    (EVALUATE + ["gt.npz", "--noise", "inf"], "--noise"),
+    (EVALUATE + ["gt.npz", "--frame-stride", "0"], "--frame-stride"),
+    (EVALUATE + ["gt.npz", "--strategies", "nope"], "nope"),
+    (EVALUATE + ["absent.npz"], "absent.npz"),
+    (EVALUATE + ["--compare", "frames", "scans", "--out", "frames/x"], "inside the input"),
+]
+
+
+@pytest.mark.parametrize("argv,needle", BAD, ids=[" ".join(a[2:]) for a, _ in BAD])
+def test_bad_path_or_value_refused_before_the_work(work, argv, needle):
+    before = _snapshot(work)
+    t0 = time.perf_counter()
+    r = subprocess.run([sys.executable, *argv, "--no-progress"] if argv[1] != "dynmesh_warp.convert" else
+                       [sys.executable, *argv], cwd=work, capture_output=True, text=True, timeout=60)
+    wall = time.perf_counter() - t0
+    lines = [ln for ln in (r.stdout + r.stderr).splitlines() if ln.strip()]
+    assert r.returncode == 2, (r.returncode, lines)
+    assert len(lines) == 1 and lines[0].startswith("error: "), lines
+    assert needle in lines[0]
+    assert "Traceback" not in r.stderr
+    assert wall < 5.0, f"took {wall:.1f} s: not found before the work"
+    assert _snapshot(work) == before  # nothing written, changed, or left behind
+
+
+def test_there_are_at_least_30_cases():
+    assert len(BAD) >= 30 and {a[1] for a, _ in BAD} == {"dynmesh_warp.run", "dynmesh_warp.convert",
+                                                          "dynmesh_warp.evaluate"}
+
+
+# --------------------------------------------------------------------------- --overwrite
+
+
+def test_convert_overwrite_keeps_the_users_files(work, tmp_path, capsys):
+    from dynmesh_warp import convert
+
+    out = tmp_path / "scans"
+    out.mkdir()
+    (out / "my_scan.obj").write_bytes((work / "scans" / "my_scan.obj").read_bytes())
+    mine = hashlib.sha256((out / "my_scan.obj").read_bytes()).hexdigest()
+    assert convert.main([str(work / "frames"), str(out), "--fmt", "obj"]) == 2  # refused without it
+    assert sorted(p.name for p in out.iterdir()) == ["my_scan.obj"]
+    for _ in range(2):  # a second time replaces the first conversion, not the scan
+        assert convert.main([str(work / "frames"), str(out), "--fmt", "obj", "--overwrite"]) == 0
+        names = sorted(p.name for p in out.iterdir())
+        assert names == [MANIFEST] + [f"frame_{t:04d}.obj" for t in range(4)] + ["my_scan.obj"]
+        assert hashlib.sha256((out / "my_scan.obj").read_bytes()).hexdigest() == mine
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scans"]  # no temp folders left
+    assert (out.stat().st_mode & 0o777) == 0o777 & ~_umask()  # the user's umask, not 0700
+    # a file of a name it writes, not written by it, is never replaced
+    (out / "frame_0009.obj").write_text("mine")
+    assert convert.main([str(work / "frames"), str(out), "--fmt", "obj", "--overwrite"]) == 2
+    assert "frame_0009.obj" in capsys.readouterr().err
+
+
+def _umask() -> int:
+    m = os.umask(0)
+    os.umask(m)
+    return m
+
+
+def test_run_overwrite_keeps_the_users_files_and_nan_keeps_previous_outputs(tmp_path, capsys):
+    from dynmesh_warp.run import main
+
+    out = tmp_path / "o"
+    args = ["--viewer", "none", "--device", "cpu", "--no-progress", "--steps", "2", "--output", str(out)]
+    assert main(args) == 0
+    assert main(args) == 2 and "--overwrite" in capsys.readouterr().err
+    (out / "mine.txt").write_text("keep me")
+    assert main(args + ["--overwrite"]) == 0
+    assert (out / "mine.txt").read_text() == "keep me"
+    assert sorted(p.name for p in out.iterdir()) == [MANIFEST, "mine.txt", "summary.json", "trajectories.npz"]
+    assert (out / "summary.json").stat().st_mode & 0o777 == 0o666 & ~_umask()
+
+
+def test_record_onto_an_existing_file_needs_overwrite(tmp_path, capsys):
+    from dynmesh_warp.run import main
+
+    rec = tmp_path / "r.viser"
+    rec.write_bytes(b"earlier")
+    args = ["--viewer", "none", "--device", "cpu", "--no-progress", "--steps", "2", "--record", str(rec)]
+    assert main(args) == 2 and "--overwrite" in capsys.readouterr().err
+    assert rec.read_bytes() == b"earlier"
+    assert main(args + ["--overwrite"]) == 0
+    assert rec.read_bytes() != b"earlier" and rec.with_suffix(".html").is_file()
+
+
+# --------------------------------------------------------------------------- outputs.py
+
+
+def test_output_folder_is_untouched_on_error_and_refuses_foreign_files(tmp_path):
+    out = tmp_path / "o"
+    with OutputFolder(out) as tmp:
+        (tmp / "a.txt").write_text("1")
+    assert (out / "a.txt").read_text() == "1"
+    with pytest.raises(RuntimeError):
+        with OutputFolder(out) as tmp:
+            (tmp / "a.txt").write_text("2")
+            raise RuntimeError("NaN")
+    assert (out / "a.txt").read_text() == "1" and sorted(p.name for p in tmp_path.iterdir()) == ["o"]
+    (out / "user.txt").write_text("u")
+    with pytest.raises(FileExistsError, match="user.txt"):  # the API default: only what it wrote
+        with OutputFolder(out) as tmp:
+            (tmp / "a.txt").write_text("3")
+    with OutputFolder(out, overwrite=True) as tmp:
+        (tmp / "b.txt").write_text("3")
+    assert sorted(p.name for p in out.iterdir()) == [MANIFEST, "b.txt", "user.txt"]  # a.txt was ours
+    with pytest.raises(OutputError, match="inside the input"):
+        check_output(out / "x", kind="folder", what="--out", inputs=[out])
+
+
+# --------------------------------------------------------------------------- the work budget
+
+
+@pytest.mark.parametrize("yaml_text", ["spheres: {count: 2, radius: 1.0e-9}\n",
+                                       "physics: {dt: 1.0e-12}\n",
+                                       "surface: {source: builtin:wave_bowl, scale: 1.0e7}\n"],
+                         ids=["radius_1e-9", "dt_1e-12", "scale_1e7"])
+def test_work_budget_refuses_quickly_and_the_flag_lifts_it(tmp_path, capsys, yaml_text):
+    from dynmesh_warp.run import main
+
+    scene = tmp_path / "s.yaml"
+    scene.write_text(yaml_text)
+    base = [str(scene), "--viewer", "none", "--device", "cpu", "--no-progress", "--output", str(tmp_path / "o")]
+    t0 = time.perf_counter()
+    assert main(base) == 2
+    assert time.perf_counter() - t0 < 5.0
+    err = capsys.readouterr().err
+    assert "work budget" in err and "Fits with" in err and "--no-work-limit" in err
+    if "radius" in yaml_text:
+        assert "driven by the sphere radius" in err
+    elif "scale" in yaml_text:
+        assert "driven by the surface speed" in err
+    else:
+        assert "physics.dt" in err
+    # lifted: a run of one step (dt 1e-12: 1 sub-step; the others: one step of many sub-steps)
+    if "dt" in yaml_text:
+        steps = ["--steps", "3"]
+    else:
+        scene.write_text(yaml_text + "physics: {dt: 1.0e-6}\n")  # fewer sub-steps per step, same rule
+        steps = ["--steps", "1"]
+    assert main(base + steps + ["--no-work-limit"]) in (0, 1)
+    assert (tmp_path / "o" / "summary.json").is_file()
+
+
+# --------------------------------------------------------------------------- values
+
+
+def test_physics_params_validate_like_the_scene_schema():
+    from dynmesh_warp import PhysicsParams
+    from dynmesh_warp.config import PhysicsConfig
+
+    with pytest.raises(ValueError) as e:
+        PhysicsParams(dt=-0.01, restitution=5, friction=-1)
+    assert all(f in str(e.value) for f in ("dt", "restitution", "friction"))
+    p = PhysicsParams()
+    with pytest.raises(ValueError, match="finite"):
+        p.dt = float("nan")
+    with pytest.raises(ValueError, match="finite"):
+        PhysicsParams(gravity=(0.0, 0.0, float("-inf")))
+    assert PhysicsParams().dt == PhysicsConfig().dt  # one place for the defaults
+
+
+def test_nan_during_a_run_stops_naming_sphere_and_step_and_keeps_previous_outputs(tmp_path, capsys):
+    from dynmesh_warp.run import main
+
+    out = tmp_path / "o"
+    scene = tmp_path / "s.yaml"
+    scene.write_text("spheres: [{position: [0, 0, 2]}]\nphysics: {gravity: [0, 0, -3.0e38]}\n")
+    base = [str(scene), "--viewer", "none", "--device", "cpu", "--no-progress", "--output", str(out)]
+    assert main(base + ["--steps", "2"]) == 0
+    before = _snapshot(out)
+    assert main(base + ["--steps", "400", "--overwrite"]) == 1  # float32 overflows after ~270 steps
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "sphere 0" in err and "non-finite" in err and "step 2" in err
+    assert _snapshot(out) == before and sorted(p.name for p in tmp_path.iterdir()) == ["o", "s.yaml"]
+
+
+def test_sphere_starting_inside_a_closed_surface_is_refused():
+    from dynmesh_warp.config import SceneError, load_scene_config
+    from dynmesh_warp.scene import build_world
+
+    inside = load_scene_config(data={"surface": {"source": "builtin:pulsing_blob"},
+                                     "spheres": [{"position": [0, 0, 2]}, {"position": [0, 0, 0.6]}]})
+    with pytest.raises(SceneError, match=r"spheres\.1: .* inside the closed surface"):
+        build_world(inside, device="cpu")
+    outside = load_scene_config(data={"surface": {"source": "builtin:pulsing_blob"},
+                                      "spheres": [{"position": [0, 0, 2]}]})
+    assert build_world(outside, device="cpu").model.spheres.count == 1
