@@ -21,6 +21,18 @@ def quiet_warp():
     if hasattr(wp, "LOG_WARNING") and hasattr(wp.config, "log_level"):
         wp.config.log_level = wp.LOG_WARNING
     _init_without_driver_note(wp)
+    _exit_cleanly_on_sigterm()
+
+
+def _exit_cleanly_on_sigterm():
+    """SIGTERM (``timeout``, ``kill``) raises SystemExit like Ctrl-C raises KeyboardInterrupt, so
+    the temporary output files and folders are removed and the old outputs stay."""
+    import signal
+    import sys
+    import threading
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))
 
 
 #: what Warp's native library prints on a machine without an NVIDIA driver; the CLIs name the

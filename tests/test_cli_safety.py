@@ -321,3 +321,30 @@ def test_sphere_starting_inside_a_closed_surface_is_refused():
     outside = load_scene_config(data={"surface": {"source": "builtin:pulsing_blob"},
                                       "spheres": [{"position": [0, 0, 2]}]})
     assert build_world(outside, device="cpu").model.spheres.count == 1
+
+
+def test_convert_prints_an_estimate_after_the_second_frame_naming_faster_options(capsys):
+    from dynmesh_warp.convert import _TimedFrames
+
+    frames = _TimedFrames([10, 11, 12, 13], "cpu", "regularized", limit_s=0.0)  # any length is "long"
+    assert [frames[t] for t in range(4)] == [10, 11, 12, 13]  # values unchanged
+    err = capsys.readouterr().err
+    assert err.count("estimate:") == 1 and "--device cuda" in err and "--strategy projection" in err
+    quiet = _TimedFrames([1, 2, 3], "cpu", "tracking", limit_s=1e9)
+    assert [quiet[t] for t in range(3)] == [1, 2, 3] and "estimate" not in capsys.readouterr().err
+
+
+def test_evaluate_estimates_emd_on_the_cpu_up_front(work, capsys):
+    from dynmesh_warp.evaluate import main
+
+    assert main([str(work / "gt.npz"), "--out", str(work / "notes.txt" / "x")]) == 2  # checked first, no estimate
+    assert "estimate" not in capsys.readouterr().err
+    from dynmesh_warp import evaluate
+
+    class A:
+        no_emd, compare, scenes, num_frames, frame_stride, emd_stride = False, None, ["s"], 200, 1, 0
+        strategies, protocol = ["projection"], ["paper"]
+
+    line = evaluate._emd_estimate(A, "cpu")
+    assert "estimate" in line and "--no-emd" in line and "--emd-stride" in line and "--device cuda" in line
+    assert evaluate._emd_estimate(A, "cuda:0") is None
