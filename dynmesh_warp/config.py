@@ -212,7 +212,10 @@ class SceneConfig(_Strict):
     def resolve(self, p: str | None) -> Path | None:
         if p is None:
             return None
-        path = Path(p).expanduser()
+        try:
+            path = Path(p).expanduser()
+        except RuntimeError as e:  # "~nobody/x": no such user
+            raise ValueError(f"{p}: cannot expand '~' ({e})") from None
         if not path.is_absolute() and self.base_dir:
             path = Path(self.base_dir) / path
         return path
@@ -345,6 +348,10 @@ def load_scene_config(path: str | Path | None = None, data: dict | None = None) 
             raw = load_yaml(path.read_text())
         except (OSError, UnicodeDecodeError, yaml.YAMLError) as e:
             raise SceneError(f"{path}: cannot read scene YAML: {' '.join(str(e).split())}") from None
+        except RecursionError:
+            raise SceneError(f"{path}: cannot read scene YAML: nested too deeply") from None
+        except Exception as e:  # a constructor's own error, e.g. a bad !!timestamp
+            raise SceneError(f"{path}: cannot read scene YAML ({type(e).__name__}: {e})") from None
         if raw is None:
             raw = {}
         if not isinstance(raw, dict):
@@ -356,6 +363,8 @@ def load_scene_config(path: str | Path | None = None, data: dict | None = None) 
                                            "source_file": None if path is None else str(path)})
     except ValidationError as e:
         raise SceneError(_format_errors(e, origin)) from None
+    except OSError as e:  # a path the system refuses (name too long ...) while checking files
+        raise SceneError(f"{origin}: invalid scene: a file path cannot be used: {e}") from None
 
 
 def spawn_positions(cfg: SpawnConfig, V0: np.ndarray, up: int = 2) -> np.ndarray:

@@ -169,11 +169,19 @@ def _check_splats(cloud: SplatCloud) -> None:
         warnings.warn(f"{cloud.source}: the splat file holds no Gaussians", stacklevel=3)
         return
     for name in _REQUIRED:
-        col = np.asarray(cloud.data[name], np.float64)
+        with np.errstate(over="ignore", invalid="ignore"):  # the kernels get float32
+            col = np.asarray(cloud.data[name], np.float64).astype(np.float32)
         bad = ~np.isfinite(col)
         if bad.any():
-            raise SplatPlyError(f"{cloud.source}: property {name!r} is NaN/inf in {int(bad.sum())} splats "
+            what = "NaN/inf" if not np.isfinite(np.asarray(cloud.data[name], np.float64)).all() else \
+                "beyond float32's range (|x| > 3.4e38)"
+            raise SplatPlyError(f"{cloud.source}: property {name!r} is {what} in {int(bad.sum())} splats "
                                 f"(first: splat {int(np.flatnonzero(bad)[0])})")
+    with np.errstate(over="ignore"):
+        big = ~np.isfinite(cloud.scales().astype(np.float32)).all(axis=1)
+    if big.any():
+        raise SplatPlyError(f"{cloud.source}: {int(big.sum())} splats have a log-scale (scale_*) whose exp "
+                            f"overflows float32 (first: splat {int(np.flatnonzero(big)[0])})")
     q = np.linalg.norm(np.asarray(cloud.rotations_raw, np.float64), axis=1)
     if (q == 0).any():
         raise SplatPlyError(f"{cloud.source}: {int((q == 0).sum())} splats have a zero rotation quaternion "

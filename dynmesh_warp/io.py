@@ -314,7 +314,7 @@ def _read_off(path: Path) -> tuple[np.ndarray, np.ndarray]:
     try:
         nv, nf, _ = (int(x) for x in tokens[pos:pos + 3])
         body = tokens[pos + 3:]
-        if len(body) == 3 * nv + 4 * nf and all(c == "3" for c in body[3 * nv::4]):
+        if nv >= 0 and nf >= 0 and len(body) == 3 * nv + 4 * nf and all(c == "3" for c in body[3 * nv::4]):
             V = np.array(body[:3 * nv], dtype=np.float64).reshape(-1, 3)
             F = np.array(body[3 * nv:], dtype=np.int64).reshape(-1, 4)[:, 1:]
             return V, F
@@ -341,6 +341,8 @@ def _read_off(path: Path) -> tuple[np.ndarray, np.ndarray]:
         nv, nf = int(counts[0]), int(counts[1])
     except (ValueError, IndexError):
         raise _ReadError(f"bad OFF counts line {' '.join(counts)!r}") from None
+    if nv < 0 or nf < 0:
+        raise _ReadError(f"negative OFF counts {nv} vertices, {nf} faces")
     if len(data) < nv + nf:
         raise _ReadError(
             f"OFF file is truncated: expected {nv} vertex and {nf} face lines, "
@@ -561,9 +563,11 @@ def _list_frame_files(folder: Path) -> list[Path]:
             )
         by_index[i] = p
     order = sorted(by_index)
-    missing = sorted(set(range(order[0], order[-1] + 1)) - set(order))
+    # the first gaps only: indices may be far apart (frame_0, frame_99999999999)
+    missing = [i for a, b in zip(order, order[1:]) for i in range(a + 1, min(b, a + 12))][:11]
     if missing:
-        shown = ", ".join(map(str, missing[:10])) + (" ..." if len(missing) > 10 else "")
+        more = order[-1] - order[0] + 1 - len(order) > 10
+        shown = ", ".join(map(str, missing[:10])) + (" ..." if more else "")
         warnings.warn(
             f"{folder}: frame numbering has gaps (missing {shown}); frames are taken in "
             "order and played at a constant fps",

@@ -50,13 +50,16 @@ def validate_mesh(
         raise MeshDataError(f"{where}: vertices must have shape (N, 3), got {V.shape}")
     if V.shape[0] == 0:
         raise MeshDataError(f"{where}: mesh is empty (no vertices)")
-    if not np.issubdtype(V.dtype, np.number):
-        raise MeshDataError(f"{where}: vertices must be numeric, got dtype {V.dtype}")
-    bad = ~np.isfinite(V).all(axis=1)
+    if not (np.issubdtype(V.dtype, np.integer) or np.issubdtype(V.dtype, np.floating)):
+        raise MeshDataError(f"{where}: vertices must be real numbers, got dtype {V.dtype}")
+    with np.errstate(over="ignore", invalid="ignore"):
+        V32 = V.astype(np.float32)  # a finite float64 beyond float32's range becomes inf here
+    bad = ~np.isfinite(V32).all(axis=1)
     if bad.any():
         idx = np.flatnonzero(bad)
         raise MeshDataError(
-            f"{where}: {idx.size} vertices have NaN/inf coordinates (first: vertex {idx[0]})"
+            f"{where}: {idx.size} vertices have NaN/inf coordinates or ones beyond float32's "
+            f"range (first: vertex {idx[0]}: {V[idx[0]].tolist()})"
         )
     if F.ndim != 2 or F.shape[1] != 3:
         raise MeshDataError(
@@ -79,7 +82,7 @@ def validate_mesh(
             f"{where}: face indices out of range [0, {n}): face {bad_face} = "
             f"{F[bad_face].tolist()} (min index {lo}, max index {hi}){hint}"
         )
-    return np.ascontiguousarray(V, dtype=np.float32), np.ascontiguousarray(F, dtype=np.int32)
+    return np.ascontiguousarray(V32), np.ascontiguousarray(F, dtype=np.int32)
 
 
 @dataclass(repr=False)
@@ -111,11 +114,13 @@ class FixedTopologySequence:
         if V.shape[1] == 0:
             raise MeshDataError(f"{where}: mesh is empty (no vertices)")
         _, F = validate_mesh(V[0], self.F, where, 0)
-        finite = np.isfinite(V).all(axis=(1, 2))
+        with np.errstate(over="ignore", invalid="ignore"):
+            V32 = np.ascontiguousarray(V, dtype=np.float32)  # beyond float32's range -> inf
+        finite = np.isfinite(V32).all(axis=(1, 2))
         if not finite.all():
             t = int(np.flatnonzero(~finite)[0])
             validate_mesh(V[t], F, where, t)  # raises, naming the frame
-        self.V = np.ascontiguousarray(V, dtype=np.float32)
+        self.V = V32
         self.F = F
         fps = float(self.fps)
         if not np.isfinite(fps) or fps <= 0:

@@ -126,7 +126,8 @@ class SplatCloud:
     @property
     def f_rest(self) -> np.ndarray:
         """(G, K) higher-order SH coefficients (channel-major: K/3 for R, then G, then B)."""
-        names = sorted((n for n in self.data.dtype.names if n.startswith("f_rest_")), key=lambda n: int(n[7:]))
+        names = sorted((n for n in self.data.dtype.names if n.startswith("f_rest_") and n[7:].isdecimal()),
+                       key=lambda n: int(n[7:]))  # "f_rest_x" is some other property
         return self._cols(names)
 
     @property
