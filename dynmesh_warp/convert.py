@@ -66,7 +66,7 @@ __all__ = [
     "main",
 ]
 
-STRATEGIES = ("projection", "tracking", "regularized")
+STRATEGIES = ("projection", "tracking", "regularized", "graph")
 
 _DEFAULTS = {
     "projection": {},
@@ -85,6 +85,27 @@ _DEFAULTS = {
         "refine_threshold": 0.002,
         "bank_interval": 5,
         "reinit_samples": 1024,
+    },
+    "graph": {
+        # deformation graph (dynmesh_warp.deform_graph); lengths: fractions of the template's bbox diagonal
+        "node_spacing": 0.05,
+        "nodes_per_vertex": 4,
+        "graph_iterations": 10,
+        "stiffness": 10.0,
+        "stiffness_end": 0.3,
+        "damping": 0.01,
+        "max_normal_angle": 60.0,
+        "predict": 1.0,
+        "restart_threshold": 0.02,
+        "bank_interval": 10,
+        # fine stage on the full-resolution template (as in "regularized")
+        "iterations": 2,
+        "smooth_iterations": 10,
+        "smooth_weight": 0.5,
+        "pull_fraction": 0.5,
+        "relax_iterations": 3,
+        "relax_step": 1.0,
+        "normal_slack": 3.0,
     },
 }
 _COMMON = {"max_template_distance": 0.25, "scale_tolerance": 4.0}
@@ -217,7 +238,7 @@ class _Converter:
         self.face = wp.empty(n, dtype=wp.int32, device=d)
         self.bary = wp.empty(n, dtype=wp.vec3, device=d)
         self.dist = wp.empty(n, dtype=float, device=d)
-        if opts.get("strategy") == "regularized":
+        if opts.get("strategy") in ("regularized", "graph"):
             off, nb = vertex_adjacency(TF, n)
             self.offsets = arr(off, wp.int32)
             self.neighbors = arr(nb if len(nb) else np.zeros(1, np.int32), wp.int32)
@@ -239,6 +260,16 @@ class _Converter:
             self.score_bwd = wp.zeros(1, dtype=float, device=d)
             self.bank = []  # (frame, positions (N,) wp.vec3, centroid (3,)) of earlier results
             self.reinit_sources = []  # (frame, source frame or -1 = template)
+        if opts.get("strategy") == "graph":
+            from .deform_graph import GraphFitter, build_deformation_graph
+
+            self.graph = build_deformation_graph(TV, TF, float(opts["node_spacing"]) * max(_bbox_diag(TV), 1e-12),
+                                                 int(opts["nodes_per_vertex"]))
+            self.gf = GraphFitter(self.graph, TV, TF, d, self.max_dist, opts)
+            self.history = []  # graph states (R, P) of the last two frames
+            self.graph_bank = []  # (frame, R, P) every bank_interval frames: restart candidates
+            self.recovered = []  # (frame, what it restarted from)
+            self.coverage = []  # per frame: 99.5th percentile of input -> output distance [m]
 
     # --- building blocks
     def project(self, frame, src, dst):
@@ -383,6 +414,67 @@ class _Converter:
                 sc = sc2
         self.relax_and_project(frame)
         self.remember(t)
+        return restarted
+
+    def _graph_frame(self, frame):
+        m, pts, idx = frame
+        fn = wp.zeros(pts.shape[0], dtype=wp.vec3, device=self.device)
+        wp.launch(kc.accumulate_vertex_normals, dim=idx.shape[0] // 3, inputs=[pts, idx], outputs=[fn],
+                  device=self.device)
+        return (m, pts, idx, fn)
+
+    def _coverage(self, gframe, X) -> float:
+        """99.5th percentile of the distance of the frame's vertices to the template at X [m]."""
+        return float(np.percentile(self.gf.coverage_distances(gframe, X), 99.5))
+
+    def step_graph(self, frame, t):
+        from .deform_graph import extrapolate_rotations
+
+        o, gf = self.opts, self.gf
+        gframe = self._graph_frame(frame)
+        diag = _bbox_diag(frame[1].numpy())
+        rest = (np.repeat(np.eye(3)[None], gf.K, axis=0), self.graph.node_rest.copy())
+        gam = float(o["predict"])
+        if not self.history:
+            init = rest
+        elif len(self.history) == 1 or gam == 0:
+            init = self.history[-1]
+        else:
+            (R0, P0), (R1, P1) = self.history[-2:]
+            init = (extrapolate_rotations(R0, R1, gam), P1 + gam * (P1 - P0))
+        its, lam0, lam1, mu = (int(o["graph_iterations"]), float(o["stiffness"]), float(o["stiffness_end"]),
+                               float(o["damping"]))
+        R, P = gf.fit(gframe, *init, its, lam0, lam1, mu)
+        score = self._coverage(gframe, gf.points)
+        restarted = False
+        thr = float(o["restart_threshold"]) * diag
+        if thr > 0 and score > thr and self.history:
+            cands = [("previous frame", self.history[-1], False)]
+            cands += [(f"frame {tb}", (Rb, Pb), True) for tb, Rb, Pb in self.graph_bank]
+            cands.append(("template", rest, True))
+            cen = frame[1].numpy().mean(axis=0)
+            best = (score, None, R, P)
+            for name, (Rc, Pc), shift in cands:
+                if shift:
+                    Pc = Pc + (cen - gf.skin(Rc, Pc).numpy().mean(axis=0))
+                R2, P2 = gf.fit(gframe, Rc, Pc, 2 * its, lam0, lam1, mu)
+                sc = self._coverage(gframe, gf.points)
+                if sc < best[0]:
+                    best = (sc, name, R2, P2)
+            if best[1] is not None:
+                _, name, R, P = best
+                restarted = True
+                self.recovered.append((t, name))
+            gf.skin(R, P)
+        wp.copy(self.X, gf.points)
+        for _ in range(int(o["iterations"])):
+            self.fit_nonrigid(frame)
+        self.relax_and_project(frame)
+        self.coverage.append(self._coverage(gframe, self.X))
+        self.history = (self.history + [(R, P)])[-2:]
+        k = int(o["bank_interval"])
+        if k > 0 and t % k == 0:
+            self.graph_bank.append((t, R.copy(), P.copy()))
         return restarted
 
     def fit_nonrigid(self, frame):

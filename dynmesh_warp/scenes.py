@@ -7,6 +7,8 @@
 - ``torus_to_sphere`` varying topology: marching cubes of an implicit shape morphing from a
   torus into a sphere (genus 1 -> 0), a new mesh every frame.
 - ``rigid_motion`` fixed topology: a mesh under a rotation + translation (for conversion tests).
+- ``articulated_figure`` fixed topology: a capsule person doing jumping jacks, arms starting
+  3 cm from the torso (the conversion's articulated-motion test).
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ import numpy as np
 
 from .sequence import FixedTopologySequence, VaryingTopologySequence
 
-__all__ = ["wave_bowl", "pulsing_blob", "torus_to_sphere", "rigid_motion", "grid_sheet", "icosphere",
+__all__ = ["wave_bowl", "pulsing_blob", "torus_to_sphere", "rigid_motion", "articulated_figure", "FIGURE_BONES", "grid_sheet", "icosphere",
            "BUILTIN_SCENES", "builtin_sequence"]
 
 
@@ -127,11 +129,96 @@ def rigid_motion(base: tuple[np.ndarray, np.ndarray] | None = None, frames: int 
     return FixedTopologySequence(V.astype(np.float32), F, fps=fps, name="rigid_motion", source="builtin:rigid_motion")
 
 
+def _segment_distance(P: np.ndarray, a, b) -> tuple[np.ndarray, np.ndarray]:
+    """Distance of points P (..., 3) to the segment a-b and the segment parameter in [0, 1]."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    ab = b - a
+    u = np.clip(((P - a) @ ab) / float(ab @ ab), 0.0, 1.0)
+    return np.linalg.norm(P - (a + u[..., None] * ab), axis=-1), u
+
+
+def _axis_rotation(axis, angle: float) -> np.ndarray:
+    k = np.asarray(axis, float) / np.linalg.norm(axis)
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+
+
+#: bones of ``articulated_figure``: name -> (start joint, end joint, radius) in the rest pose [m]
+#: (z up, the figure faces -y; the arms join the torso at the shoulders and hang ~3 cm from it).
+FIGURE_BONES = {
+    "torso": ((0.0, 0.0, 0.95), (0.0, 0.0, 1.45), 0.15),
+    "head": ((0.0, 0.0, 1.62), (0.0, 0.0, 1.66), 0.11),
+    "arm_l": ((0.17, 0.0, 1.40), (0.27, 0.0, 0.85), 0.05),
+    "arm_r": ((-0.17, 0.0, 1.40), (-0.27, 0.0, 0.85), 0.05),
+    "leg_l": ((0.09, 0.0, 0.92), (0.11, 0.0, 0.08), 0.07),
+    "leg_r": ((-0.09, 0.0, 0.92), (-0.11, 0.0, 0.08), 0.07),
+}
+
+
+def articulated_figure(frames: int = 60, fps: float = 30.0, resolution: int = 56,
+                       arm_swing: float = 2.6, leg_swing: float = 0.5, cycles: float = 1.0
+                       ) -> FixedTopologySequence:
+    """A stick-figure person doing jumping jacks (fixed topology; the conversion's articulated test).
+
+    The rest mesh is marching cubes (``resolution`` cells on the height) of a smooth union of
+    capsules (:data:`FIGURE_BONES`: torso, head, two arms joined at the shoulders and hanging
+    ~3 cm from the torso, two legs). Frame k poses it by linear blend skinning: the arms swing up and out about the
+    shoulders by up to ``arm_swing`` rad, the legs spread by ``leg_swing`` rad, the whole body
+    hops and turns a little; ``cycles`` full cycles over the sequence. With the defaults the
+    hands travel ~1.3 m (the bbox diagonal is ~2 m) and an arm moves ~0.1 m per frame.
+    """
+    from skimage.measure import marching_cubes
+
+    lo, hi = np.array([-0.45, -0.3, -0.02]), np.array([0.45, 0.3, 1.82])
+    h = (hi[2] - lo[2]) / int(resolution)
+    axes = [np.arange(lo[i], hi[i] + h, h) for i in range(3)]
+    G = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
+    f = None
+    k = 0.01  # smooth-min radius [m]
+    for a, b, r in FIGURE_BONES.values():
+        d = _segment_distance(G, a, b)[0] - r
+        if f is None:
+            f = d
+        else:  # polynomial smooth minimum
+            hh = np.clip(0.5 + 0.5 * (d - f) / k, 0.0, 1.0)
+            f = d * (1 - hh) + f * hh - k * hh * (1 - hh)
+    verts, faces, _, _ = marching_cubes(f, level=0.0, spacing=(h, h, h))
+    V0 = verts + lo
+    F = _orient_outward(V0, faces.astype(np.int32))
+    # skinning weights: softmax of the distance to each bone
+    names = list(FIGURE_BONES)
+    D = np.stack([_segment_distance(V0, *FIGURE_BONES[n][:2])[0] - FIGURE_BONES[n][2] for n in names], 1)
+    W = np.exp(-(D - D.min(axis=1, keepdims=True)) / 0.012)
+    W /= W.sum(axis=1, keepdims=True)
+    out = np.empty((frames, len(V0), 3))
+    for t in range(frames):
+        u = t / max(frames - 1, 1)
+        s = 0.5 - 0.5 * np.cos(2 * np.pi * cycles * u)  # 0 -> 1 -> 0 per cycle
+        Vt = np.zeros_like(V0)
+        for j, n in enumerate(names):
+            a = np.asarray(FIGURE_BONES[n][0], float)
+            if n.startswith("arm"):
+                sign = 1.0 if n.endswith("l") else -1.0
+                R = _axis_rotation((0, 1, 0), -sign * arm_swing * s)
+            elif n.startswith("leg"):
+                sign = 1.0 if n.endswith("l") else -1.0
+                R = _axis_rotation((0, 1, 0), -sign * leg_swing * s)
+            else:
+                R = np.eye(3)
+            Vt += W[:, j:j + 1] * ((V0 - a) @ R.T + a)
+        turn = _axis_rotation((0, 0, 1), 0.4 * np.sin(2 * np.pi * u))
+        Vt = Vt @ turn.T + np.array([0.15 * np.sin(np.pi * u), 0.0, 0.12 * s])
+        out[t] = Vt
+    return FixedTopologySequence(out.astype(np.float32), F, fps=fps, name="articulated_figure",
+                                 source="builtin:articulated_figure")
+
+
 BUILTIN_SCENES = {
     "wave_bowl": wave_bowl,
     "pulsing_blob": pulsing_blob,
     "torus_to_sphere": torus_to_sphere,
     "rigid_motion": rigid_motion,
+    "articulated_figure": articulated_figure,
 }
 
 
