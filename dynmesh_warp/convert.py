@@ -98,16 +98,12 @@ _DEFAULTS = {
         "predict": 1.0,
         "restart_threshold": 0.02,
         "bank_interval": 10,
-        # fine stage on the full-resolution template (as in "regularized")
+        # fine stage on the full-resolution template: "regularized"'s steps, 2 iterations
         "iterations": 2,
-        "smooth_iterations": 10,
-        "smooth_weight": 0.5,
-        "pull_fraction": 0.5,
-        "relax_iterations": 3,
-        "relax_step": 1.0,
-        "normal_slack": 3.0,
     },
 }
+_DEFAULTS["graph"].update({k: _DEFAULTS["regularized"][k] for k in (
+    "smooth_iterations", "smooth_weight", "pull_fraction", "relax_iterations", "relax_step", "normal_slack")})
 _COMMON = {"max_template_distance": 0.25, "scale_tolerance": 4.0}
 
 

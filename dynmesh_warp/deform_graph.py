@@ -228,6 +228,8 @@ class GraphFitter:
         self.tmesh = wp.Mesh(points=self.mesh_points, indices=self.indices)
         self.normals = wp.zeros(n, dtype=wp.vec3, device=d)
         self.target = wp.empty(n, dtype=wp.vec3, device=d)
+        self.fface = wp.empty(n, dtype=wp.int32, device=d)
+        self.fbary = wp.empty(n, dtype=wp.vec3, device=d)
         self.fweight = wp.empty(n, dtype=float, device=d)
         self.fdist = wp.empty(n, dtype=float, device=d)
         self.system = wp.zeros(K * K, dtype=float, device=d)
@@ -253,6 +255,7 @@ class GraphFitter:
         if q > self._frame_cap:
             d = self.device
             self._frame_cap = q
+            self.bclosest = wp.empty(q, dtype=wp.vec3, device=d)
             self.bface = wp.empty(q, dtype=wp.int32, device=d)
             self.bbary = wp.empty(q, dtype=wp.vec3, device=d)
             self.bweight = wp.empty(q, dtype=float, device=d)
@@ -284,26 +287,26 @@ class GraphFitter:
         m, pts, idx, fnormals = frame
         d = self.device
         self._update_template()
-        wp.launch(kr.find_forward_correspondences, dim=self.n,
+        wp.launch(kr.find_correspondences, dim=self.n,
                   inputs=[m.id, pts, idx, self.points, self.normals, self.max_dist, min_cos],
-                  outputs=[self.target, self.fweight, self.fdist], device=d)
+                  outputs=[self.target, self.fface, self.fbary, self.fweight, self.fdist], device=d)
+        self._find_backward(frame, self.points, min_cos)
+
+    def _find_backward(self, frame, X, min_cos: float):
+        """Frame -> template correspondences against the template BVH (already refit to X)."""
+        m, pts, idx, fnormals = frame
         q = pts.shape[0]
         self._frame_arrays(q)
-        wp.launch(kr.find_backward_correspondences, dim=q,
-                  inputs=[self.tmesh.id, self.points, self.indices, pts, fnormals, self.max_dist, min_cos],
-                  outputs=[self.bface, self.bbary, self.bweight, self.bdist], device=d)
+        wp.launch(kr.find_correspondences, dim=q,
+                  inputs=[self.tmesh.id, X, self.indices, pts, fnormals, self.max_dist, min_cos],
+                  outputs=[self.bclosest, self.bface, self.bbary, self.bweight, self.bdist], device=self.device)
 
     def coverage_distances(self, frame, X) -> np.ndarray:
         """(Q,) distance of every frame vertex to the template surface at positions X [m]."""
-        m, pts, idx, fnormals = frame
         wp.copy(self.mesh_points, X)
         self.tmesh.refit()
-        q = pts.shape[0]
-        self._frame_arrays(q)
-        wp.launch(kr.find_backward_correspondences, dim=q,
-                  inputs=[self.tmesh.id, self.mesh_points, self.indices, pts, fnormals, self.max_dist, -2.0],
-                  outputs=[self.bface, self.bbary, self.bweight, self.bdist], device=self.device)
-        return self.bdist.numpy()[:q]
+        self._find_backward(frame, self.mesh_points, -2.0)
+        return self.bdist.numpy()[:frame[1].shape[0]]
 
     # ------------------------------------------------------------------ the fit
     def fit(self, frame, R: np.ndarray, P: np.ndarray, iterations: int, stiffness: float,

@@ -65,86 +65,51 @@ def skin_vertices(
 
 
 @wp.kernel
-def find_forward_correspondences(
+def find_correspondences(
     # In:
-    frame_mesh: wp.uint64,
-    frame_points: wp.array(dtype=wp.vec3),
-    frame_indices: wp.array(dtype=wp.int32),
-    points: wp.array(dtype=wp.vec3),
-    normals: wp.array(dtype=wp.vec3),
+    mesh: wp.uint64,
+    mesh_points: wp.array(dtype=wp.vec3),
+    mesh_indices: wp.array(dtype=wp.int32),
+    queries: wp.array(dtype=wp.vec3),
+    query_normals: wp.array(dtype=wp.vec3),
     max_dist: float,
     min_cos: float,
     # Out:
-    target: wp.array(dtype=wp.vec3),
-    weight: wp.array(dtype=float),
-    dist: wp.array(dtype=float),
-):
-    """Template -> frame: closest point on the frame for each template vertex.
-
-    points, normals (N,) current template positions [m] and normals (any length); target (N,) closest
-    point [m]; weight (N,) 1 where the frame's face normal and the vertex normal agree
-    (dot >= min_cos) and the point lies within max_dist, else 0; dist (N,) [m] (max_dist when
-    nothing was found).
-    """
-    i = wp.tid()
-    x = points[i]
-    q = wp.mesh_query_point_no_sign(frame_mesh, x, max_dist)
-    if not q.result:
-        target[i] = x
-        weight[i] = 0.0
-        dist[i] = max_dist
-        return
-    c = wp.mesh_eval_position(frame_mesh, q.face, q.u, q.v)
-    target[i] = c
-    dist[i] = wp.length(c - x)
-    n = triangle_normal(frame_points, frame_indices, q.face)
-    w = 0.0
-    if wp.dot(n, wp.normalize(normals[i])) >= min_cos:
-        w = 1.0
-    weight[i] = w
-
-
-@wp.kernel
-def find_backward_correspondences(
-    # In:
-    template_mesh: wp.uint64,
-    template_points: wp.array(dtype=wp.vec3),
-    template_indices: wp.array(dtype=wp.int32),
-    frame_points: wp.array(dtype=wp.vec3),
-    frame_normals: wp.array(dtype=wp.vec3),
-    max_dist: float,
-    min_cos: float,
-    # Out:
+    closest: wp.array(dtype=wp.vec3),
     face: wp.array(dtype=wp.int32),
     bary: wp.array(dtype=wp.vec3),
     weight: wp.array(dtype=float),
     dist: wp.array(dtype=float),
 ):
-    """Frame -> template: closest point on the current template for each frame vertex.
+    """Closest point on ``mesh`` for each query, kept where the normals agree. Used both ways:
+    template -> frame (mesh: the frame) and frame -> template (mesh: the template, refit).
 
-    template_mesh: wp.Mesh over template_points (refit to the current positions);
-    frame_points, frame_normals (Q,) [m] / normals (any length); face (Q,) template face or -1; bary (Q,)
-    weights of the face's vertices; weight (Q,) 1 where the normals agree (dot >= min_cos),
-    else 0; dist (Q,) [m] to the template surface, whatever the normals (max_dist if none).
+    mesh: wp.Mesh over mesh_points / mesh_indices (3M,); queries, query_normals (Q,) [m] /
+    normals (any length); closest (Q,) [m] (the query itself if nothing was found); face (Q,)
+    or -1; bary (Q,) weights of the face's vertices; weight (Q,) 1 where the face normal and
+    the query normal agree (dot of the unit vectors >= min_cos), else 0; dist (Q,) [m] to the
+    surface whatever the normals (max_dist if nothing was found).
     """
-    k = wp.tid()
-    q = frame_points[k]
-    r = wp.mesh_query_point_no_sign(template_mesh, q, max_dist)
+    i = wp.tid()
+    x = queries[i]
+    r = wp.mesh_query_point_no_sign(mesh, x, max_dist)
     if not r.result:
-        face[k] = -1
-        bary[k] = wp.vec3(0.0)
-        weight[k] = 0.0
-        dist[k] = max_dist
+        closest[i] = x
+        face[i] = -1
+        bary[i] = wp.vec3(0.0)
+        weight[i] = 0.0
+        dist[i] = max_dist
         return
-    c = wp.mesh_eval_position(template_mesh, r.face, r.u, r.v)
-    face[k] = r.face
-    bary[k] = wp.vec3(r.u, r.v, 1.0 - r.u - r.v)
-    dist[k] = wp.length(q - c)
-    n = triangle_normal(template_points, template_indices, r.face)
+    c = wp.mesh_eval_position(mesh, r.face, r.u, r.v)
+    closest[i] = c
+    face[i] = r.face
+    bary[i] = wp.vec3(r.u, r.v, 1.0 - r.u - r.v)
+    dist[i] = wp.length(c - x)
+    n = triangle_normal(mesh_points, mesh_indices, r.face)
     w = 0.0
-    if wp.dot(n, wp.normalize(frame_normals[k])) >= min_cos:
+    if wp.dot(n, wp.normalize(query_normals[i])) >= min_cos:
         w = 1.0
-    weight[k] = w
+    weight[i] = w
 
 
 @wp.func
@@ -222,7 +187,7 @@ def accumulate_backward_system(
     the skinned template vertex v of face(q); the row's node coefficients are
     b_qc w_{v_c a} over the 3 x k (vertex, node) pairs (repeated nodes add up).
 
-    frame_points (Q,) [m]; face, bary, weight (Q,) from find_backward_correspondences.
+    frame_points (Q,) [m]; face, bary, weight (Q,) from find_correspondences (frame -> template).
     """
     q = wp.tid()
     c = scale * weight[q]
@@ -271,7 +236,7 @@ def accumulate_rotation_covariance(
     covariance_j += scale * weight_i * w_ij (target_i - p_j) (T_i - g_j)^T over its vertices,
     so that R_j = argmax tr(R^T covariance_j) maps rest offsets onto target offsets.
 
-    covariance (K,) [m^2]; target, weight (N,) from find_forward_correspondences.
+    covariance (K,) [m^2]; target, weight (N,) from find_correspondences (template -> frame).
     """
     i = wp.tid()
     c = scale * weight[i]
