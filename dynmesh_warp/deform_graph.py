@@ -224,7 +224,9 @@ class GraphFitter:
         self.node_rotation = wp.empty(K, dtype=wp.mat33, device=d)
         self.node_position = wp.empty(K, dtype=wp.vec3, device=d)
         self.points = wp.empty(n, dtype=wp.vec3, device=d)
-        self.mesh_points = wp.empty(n, dtype=wp.vec3, device=d)
+        # the template BVH: built on the rest pose, rebuilt on the predicted pose at the start of
+        # every fit (a tree refit far from the pose it was built on answers queries slowly)
+        self.mesh_points = wp.clone(self.rest_points)
         self.tmesh = wp.Mesh(points=self.mesh_points, indices=self.indices)
         self.normals = wp.zeros(n, dtype=wp.vec3, device=d)
         self.target = wp.empty(n, dtype=wp.vec3, device=d)
@@ -272,6 +274,11 @@ class GraphFitter:
                   inputs=[self.rest_points, self.node_rest, self.node_index, self.node_weight, self.k,
                           self.node_rotation, self.node_position], outputs=[out], device=d)
         return out
+
+    def rebuild(self, R: np.ndarray, P: np.ndarray):
+        """Rebuild the template BVH on the template skinned by (R, P)."""
+        wp.copy(self.mesh_points, self.skin(R, P))
+        self.tmesh = wp.Mesh(points=self.mesh_points, indices=self.indices)
 
     def _update_template(self):
         from .kernels import convert as kc
@@ -326,6 +333,7 @@ class GraphFitter:
         q = frame[1].shape[0]
         its = max(int(iterations), 1)
         lams = np.geomspace(max(stiffness, 1e-12), max(stiffness_end, 1e-12), its) if its > 1 else [stiffness_end]
+        self.rebuild(R, P)
         for it in range(its):
             lam = float(lams[it])
             self.skin(R, P)

@@ -1,0 +1,178 @@
+"""Conversion accuracy on reconstruction-like input (docs/evaluation.md, issue 12 protocol).
+
+For each sequence: the ground truth (GT, fixed topology) is re-meshed per frame by marching
+cubes and given smooth reconstruction-like error along the normals (RMS ``--error`` x the bbox
+diagonal; 0 = noise-free), then converted back to one fixed topology by each strategy. Per frame:
+
+* CD (DG-Mesh convention: vertices, squared L2, mean per direction, directions averaged) of the
+  varying input and of the converted output against the GT vertices; the increase in percent;
+* coverage: the distance of every GT vertex to the converted surface; its maximum over the GT
+  vertices (the worst uncovered GT vertex) as a fraction of the GT's bbox diagonal;
+* the converted vertices' distance to the GT surface (the other side), 99th percentile.
+
+Summaries report the mean and the worst frame. Writes bench/results/conversion_eval_<device>.json
+(+ .md table, per-frame plot PNG).
+
+    python bench/conversion_eval.py --device cuda --sequences all --error 0.01
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+DATA = ROOT.parent / "shared" / "data"
+if not DATA.exists():
+    DATA = ROOT / ".gpu" / "data"
+
+from dynmesh_warp.convert import nearest_surface, to_fixed_topology  # noqa: E402
+from dynmesh_warp.metrics import chamfer_distance  # noqa: E402
+from dynmesh_warp.sequence import FixedTopologySequence  # noqa: E402
+
+SHARED = ("horse_gallop", "horse_collapse", "pcow", "chicken_crossing")
+SOURCES = {
+    "horse_gallop": "Sumner & Popovic 2004 (deformation transfer), horse-gallop",
+    "horse_collapse": "Sumner & Popovic 2004, horse-collapse",
+    "pcow": "Briceno et al. 2003 (geometry videos), elastic cow",
+    "chicken_crossing": "James & Twigg 2005 (skinning mesh animations), chicken crossing",
+    "articulated_figure": "built-in: dynmesh_warp.scenes.articulated_figure (jumping jacks)",
+}
+
+
+def _diag(V):
+    return float(np.linalg.norm(np.ptp(np.asarray(V, np.float64), axis=0)))
+
+
+def ground_truth(name: str, frames: int | None) -> FixedTopologySequence | None:
+    from dynmesh_warp.remesh import resample_time
+
+    if name == "articulated_figure":
+        from dynmesh_warp.scenes import articulated_figure
+
+        return articulated_figure(frames=frames or 60, resolution=72)
+    from dynmesh_warp.io import load_sequence
+
+    path = DATA / f"{name}.npz"
+    if not path.exists():
+        return None
+    gt = load_sequence(path)
+    if frames and frames != gt.num_frames:
+        gt = FixedTopologySequence(resample_time(gt, frames), gt.F, fps=gt.fps, name=gt.name)
+    return gt
+
+
+def varying_input(gt, resolution: int, error: float, device, cache: Path | None):
+    from dynmesh_warp.io import load_sequence, save_sequence
+    from dynmesh_warp.remesh import remesh_sequence
+
+    cf = cache / f"{gt.name}_T{gt.num_frames}_r{resolution}_e{error:g}.npz" if cache else None
+    if cf is not None and cf.exists():
+        return load_sequence(cf, kind="varying")
+    var = remesh_sequence(gt, resolution=resolution, error=error, device=device)
+    if cf is not None:
+        cf.parent.mkdir(parents=True, exist_ok=True)
+        save_sequence(var, cf)
+    return var
+
+
+def frame_metrics(gt_V, gt_F, V, F, device) -> dict:
+    diag = _diag(gt_V)
+    cd = chamfer_distance(V, gt_V, squared=True, device=device)
+    cov = nearest_surface((V, F), gt_V, device=device).dist  # GT vertex -> output surface
+    acc = nearest_surface((gt_V, gt_F), V, device=device).dist  # output vertex -> GT surface
+    return {"cd": cd.value, "uncovered_max": float(cov.max()) / diag,
+            "uncovered_p99": float(np.percentile(cov, 99)) / diag,
+            "off_surface_p99": float(np.percentile(acc, 99)) / diag}
+
+
+def evaluate(name, strategies, args, device) -> dict | None:
+    gt = ground_truth(name, args.frames)
+    if gt is None:
+        print(f"skip {name}: not found")
+        return None
+    t0 = time.perf_counter()
+    var = varying_input(gt, args.resolution, args.error, device, Path(args.cache) if args.cache else None)
+    prep = time.perf_counter() - t0
+    T = gt.num_frames
+    inp = [frame_metrics(gt.V[t], gt.F, *var.frames[t], device) for t in range(T)]
+    out = {"scene": name, "source": SOURCES.get(name, name), "frames": T, "gt_vertices": int(gt.num_vertices),
+           "input_vertices": [int(min(len(v) for v, _ in var.frames)), int(max(len(v) for v, _ in var.frames))],
+           "resolution": args.resolution, "error": args.error, "prepare_s": prep,
+           "input": _summ(inp), "input_per_frame": inp, "strategies": {}}
+    for s in strategies:
+        opts = json.loads(args.options).get(s, {}) if args.options else {}
+        # warm-up (kernel compilation) on 2 frames
+        to_fixed_topology(type(var)(var.frames[:2], fps=var.fps, name=var.name), strategy=s, device=device,
+                          **opts)
+        wp.synchronize_device(device)
+        t0 = time.perf_counter()
+        fx = to_fixed_topology(var, strategy=s, device=device, **opts)
+        wp.synchronize_device(device)
+        sec = time.perf_counter() - t0
+        per = [frame_metrics(gt.V[t], gt.F, fx.V[t], fx.F, device) for t in range(T)]
+        info = fx.conversion
+        summ = _summ(per)
+        summ["cd_increase_pct"] = 100.0 * (summ["cd_mean"] / out["input"]["cd_mean"] - 1.0)
+        summ["worst_frame_cd_ratio"] = max(p["cd"] / max(q["cd"], 1e-30) for p, q in zip(per, inp))
+        out["strategies"][s] = {"summary": summ, "seconds": sec, "per_frame": per,
+                                "recovered_frames": list(getattr(info, "recovered_frames", []) or []),
+                                "options": {k: v for k, v in info.options.items()}}
+        print(f"{name:18s} {s:12s} CD in {out['input']['cd_mean'] * 1e3:.4f} out {summ['cd_mean'] * 1e3:.4f} "
+              f"({summ['cd_increase_pct']:+.0f}%), worst frame ratio {summ['worst_frame_cd_ratio']:.2f}, "
+              f"uncovered max {100 * summ['uncovered_max_max']:.2f}% (mean {100 * summ['uncovered_max_mean']:.2f}%), "
+              f"{sec:.1f} s", flush=True)
+    return out
+
+
+def _summ(per):
+    keys = per[0].keys()
+    s = {}
+    for k in keys:
+        a = np.array([p[k] for p in per])
+        s[f"{k}_mean"] = float(a.mean())
+        s[f"{k}_max"] = float(a.max())
+        s[f"{k}_worst_frame"] = int(a.argmax())
+    return s
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--device", default=None)
+    ap.add_argument("--sequences", default="all")
+    ap.add_argument("--strategies", default="graph,regularized")
+    ap.add_argument("--frames", type=int, default=None, help="resample time to this many frames")
+    ap.add_argument("--resolution", type=int, default=96)
+    ap.add_argument("--error", type=float, default=0.01)
+    ap.add_argument("--options", default=None, help='JSON {strategy: {option: value}}')
+    ap.add_argument("--cache", default=str(ROOT / "out" / "cache"))
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args()
+    wp.config.quiet = True
+    wp.init()
+    device = wp.get_device(args.device)
+    names = list(SHARED) + ["articulated_figure"] if args.sequences == "all" else args.sequences.split(",")
+    res = []
+    for n in names:
+        r = evaluate(n, args.strategies.split(","), args, device)
+        if r is not None:
+            res.append(r)
+    doc = {"machine": platform.node(), "processor": platform.processor() or platform.machine(),
+           "device": str(device), "device_name": getattr(device, "name", str(device)),
+           "warp": wp.__version__, "args": vars(args), "scenes": res}
+    out = Path(args.out) if args.out else ROOT / "bench" / "results" / f"conversion_eval_{device.alias.split(':')[0]}.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(doc, indent=1))
+    print("wrote", out)
+
+
+if __name__ == "__main__":
+    main()
