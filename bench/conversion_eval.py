@@ -124,7 +124,8 @@ def evaluate(name, strategies, args, device) -> dict | None:
         summ["cd_increase_pct"] = 100.0 * (summ["cd_mean"] / out["input"]["cd_mean"] - 1.0)
         summ["worst_frame_cd_ratio"] = max(p["cd"] / max(q["cd"], 1e-30) for p, q in zip(per, inp))
         out["strategies"][s] = {"summary": summ, "seconds": sec, "per_frame": per,
-                                "recovered_frames": list(getattr(info, "recovered_frames", []) or []),
+                                "key_frame": info.key_frame, "coverage": info.coverage,
+                                "recovered_frames": [list(r) for r in info.recovered_frames],
                                 "options": {k: v for k, v in info.options.items()}}
         print(f"{name:18s} {s:12s} CD in {out['input']['cd_mean'] * 1e3:.4f} out {summ['cd_mean'] * 1e3:.4f} "
               f"({summ['cd_increase_pct']:+.0f}%), worst frame ratio {summ['worst_frame_cd_ratio']:.2f}, "

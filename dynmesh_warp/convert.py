@@ -104,7 +104,7 @@ _DEFAULTS = {
 }
 _DEFAULTS["graph"].update({k: _DEFAULTS["regularized"][k] for k in (
     "smooth_iterations", "smooth_weight", "pull_fraction", "relax_iterations", "relax_step", "normal_slack")})
-_COMMON = {"max_template_distance": 0.25, "scale_tolerance": 4.0}
+_COMMON = {"max_template_distance": 0.25, "scale_tolerance": 4.0, "key_frame": "auto"}
 
 
 # --------------------------------------------------------------------------- NearestSurface
@@ -202,8 +202,17 @@ def surface_deviation(V, F, V_ref, F_ref, device=None) -> dict:
 
 @dataclass
 class ConversionInfo:
-    """What a conversion did. reanchored_frames: frames where tracking blended in the template
-    projection; frame_seconds: wall time per frame (host + kernels)."""
+    """What a conversion did.
+
+    key_frame: the input frame the template was taken from (or matched to); frames were
+    converted from it forward to the end, then from it backward to frame 0.
+    reanchored_frames: frames where tracking blended in the template projection or a tracking
+    strategy restarted from a stored state; recovered_frames: ``(frame, source)`` pairs of those
+    restarts (source: "previous frame", "frame K", "template").
+    coverage: per frame (in input order), the 99.5th percentile of the distance of the input
+    frame's vertices to the converted surface, as a fraction of the frame's bbox diagonal: a
+    body part the conversion lost shows here (a restart trigger and the user's warning).
+    frame_seconds: wall time per frame (host + kernels), in input order."""
 
     strategy: str
     options: dict
@@ -211,6 +220,14 @@ class ConversionInfo:
     num_vertices: int
     reanchored_frames: list = field(default_factory=list)
     frame_seconds: list = field(default_factory=list)
+    key_frame: int = 0
+    recovered_frames: list = field(default_factory=list)
+    coverage: list = field(default_factory=list)
+
+    @property
+    def worst_coverage(self) -> float:
+        """Largest per-frame coverage (fraction of the frame's bbox diagonal); nan if none."""
+        return float(max(self.coverage)) if self.coverage else float("nan")
 
 
 class _Converter:
@@ -228,6 +245,7 @@ class _Converter:
         self.T = arr(TV, wp.vec3)
         self.TF = arr(TF.reshape(-1), wp.int32)
         self.X = wp.clone(self.T)
+        self.first = True  # the next frame is the first one converted (starts from the template)
         self.P = wp.empty(n, dtype=wp.vec3, device=d)
         self.tmp = wp.empty(n, dtype=wp.vec3, device=d)
         self.closest = wp.empty(n, dtype=wp.vec3, device=d)
@@ -263,9 +281,38 @@ class _Converter:
                                                  int(opts["nodes_per_vertex"]))
             self.gf = GraphFitter(self.graph, TV, TF, d, self.max_dist, opts)
             self.history = []  # graph states (R, P) of the last two frames
+            self.states = {}  # frame -> graph state (R, P): where the backward pass starts
+            self.scores = []  # coverage [m] of the frames converted so far
             self.graph_bank = []  # (frame, R, P) every bank_interval frames: restart candidates
             self.recovered = []  # (frame, what it restarted from)
-            self.coverage = []  # per frame: 99.5th percentile of input -> output distance [m]
+
+    # --- sequence control
+    def rewind(self, X: np.ndarray, t_key: int, t_next: int | None):
+        """Start a new pass from frame t_key's result X (N,3): the backward pass after the
+        forward one. The graph strategy predicts from frames t_next and t_key (the pass
+        continues their motion backwards in time)."""
+        self.X.assign(wp.array(np.ascontiguousarray(X, np.float32), dtype=wp.vec3, device=self.device))
+        self.first = False
+        if self.opts.get("strategy") == "graph":
+            self.history = ([self.states[t_next]] if t_next in self.states else []) + [self.states[t_key]]
+
+    def coverage(self, frame) -> float:
+        """99.5th percentile of the distance of the frame's vertices to the converted surface
+        (the template at self.X) [m]."""
+        if not hasattr(self, "cov_mesh"):
+            self.cov_points = wp.clone(self.X)
+            self.cov_mesh = wp.Mesh(points=self.cov_points, indices=self.TF)
+            self.cov_dist = wp.empty(0, dtype=float, device=self.device)
+        m, pts, idx = frame
+        q = pts.shape[0]
+        wp.copy(self.cov_points, self.X)
+        # rebuilt, not refit: a tree refit far from the pose it was built on answers slowly
+        self.cov_mesh = wp.Mesh(points=self.cov_points, indices=self.TF)
+        if self.cov_dist.shape[0] < q:
+            self.cov_dist = wp.empty(q, dtype=float, device=self.device)
+        wp.launch(kc.measure_distances_to_mesh, dim=q, inputs=[self.cov_mesh.id, pts, self.max_dist],
+                  outputs=[self.cov_dist], device=self.device)
+        return float(np.percentile(self.cov_dist.numpy()[:q], 99.5))
 
     # --- building blocks
     def project(self, frame, src, dst):
@@ -287,7 +334,7 @@ class _Converter:
         return False
 
     def step_tracking(self, frame, t):
-        self.project(frame, self.T if t == 0 else self.X, self.X)
+        self.project(frame, self.T if self.first else self.X, self.X)
         k = int(self.opts["reanchor_interval"])
         if t > 0 and k > 0 and t % k == 0:
             self.project(frame, self.T, self.P)
@@ -352,7 +399,7 @@ class _Converter:
         and restart from the best one if it fits better. Returns True when it restarted."""
         o = self.opts
         thr = float(o["reinit_threshold"])
-        if thr <= 0 or t == 0:
+        if thr <= 0 or self.first:
             return False
         V = frame[1].numpy()
         diag = _bbox_diag(V)
@@ -419,9 +466,15 @@ class _Converter:
                   device=self.device)
         return (m, pts, idx, fn)
 
-    def _coverage(self, gframe, X) -> float:
-        """99.5th percentile of the distance of the frame's vertices to the template at X [m]."""
-        return float(np.percentile(self.gf.coverage_distances(gframe, X), 99.5))
+    def _graph_finish(self, frame, R, P):
+        """The fine stage on the full-resolution template after the graph fit (R, P): the smooth
+        two-sided fit and the relaxation of ``regularized``. Returns the coverage [m]."""
+        self.gf.skin(R, P)
+        wp.copy(self.X, self.gf.points)
+        for _ in range(int(self.opts["iterations"])):
+            self.fit_nonrigid(frame)
+        self.relax_and_project(frame)
+        return self.coverage(frame)
 
     def step_graph(self, frame, t):
         from .deform_graph import extrapolate_rotations
@@ -441,33 +494,33 @@ class _Converter:
         its, lam0, lam1, mu = (int(o["graph_iterations"]), float(o["stiffness"]), float(o["stiffness_end"]),
                                float(o["damping"]))
         R, P = gf.fit(gframe, *init, its, lam0, lam1, mu)
-        score = self._coverage(gframe, gf.points)
+        score = self._graph_finish(frame, R, P)
         restarted = False
+        # drift control: a fit that leaves part of the input uncovered (well above this sequence's
+        # coverage so far) restarts from stored states and keeps the best
         thr = float(o["restart_threshold"]) * diag
-        if thr > 0 and score > thr and self.history:
+        floor = 3.0 * float(np.median(self.scores)) if len(self.scores) >= 3 else 0.0
+        if thr > 0 and score > max(thr, floor) and self.history:
+            best = (score, None, R, P, wp.clone(self.X))
             cands = [("previous frame", self.history[-1], False)]
-            cands += [(f"frame {tb}", (Rb, Pb), True) for tb, Rb, Pb in self.graph_bank]
+            cands += [(f"frame {tb}", (Rb, Pb), True) for tb, Rb, Pb in self.graph_bank[-3:]]
             cands.append(("template", rest, True))
             cen = frame[1].numpy().mean(axis=0)
-            best = (score, None, R, P)
             for name, (Rc, Pc), shift in cands:
                 if shift:
                     Pc = Pc + (cen - gf.skin(Rc, Pc).numpy().mean(axis=0))
                 R2, P2 = gf.fit(gframe, Rc, Pc, 2 * its, lam0, lam1, mu)
-                sc = self._coverage(gframe, gf.points)
+                sc = self._graph_finish(frame, R2, P2)
                 if sc < best[0]:
-                    best = (sc, name, R2, P2)
-            if best[1] is not None:
-                _, name, R, P = best
+                    best = (sc, name, R2, P2, wp.clone(self.X))
+            score, name, R, P, X = best
+            wp.copy(self.X, X)
+            if name is not None:
                 restarted = True
                 self.recovered.append((t, name))
-            gf.skin(R, P)
-        wp.copy(self.X, gf.points)
-        for _ in range(int(o["iterations"])):
-            self.fit_nonrigid(frame)
-        self.relax_and_project(frame)
-        self.coverage.append(self._coverage(gframe, self.X))
+        self.scores.append(score)
         self.history = (self.history + [(R, P)])[-2:]
+        self.states[t] = (R, P)
         k = int(o["bank_interval"])
         if k > 0 and t % k == 0:
             self.graph_bank.append((t, R.copy(), P.copy()))
@@ -594,7 +647,31 @@ def _check_scales(seq: VaryingTopologySequence, tol: float):
             "the gap (mixed units or a broken frame?)", UserWarning, stacklevel=3)
 
 
-def _check_reach(TV, TF, V0, F0, limit: float, device):
+def _surface_area(V: np.ndarray, F: np.ndarray) -> float:
+    V = np.asarray(V, np.float64)
+    return 0.5 * float(np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1).sum())
+
+
+def _key_frame(seq: VaryingTopologySequence, key, has_template: bool) -> int:
+    """The frame the template comes from (or is matched to). "auto": frame 0 with a given
+    template; otherwise the frame of largest surface area (median over 3 consecutive frames
+    against single-frame noise): limbs held apart, not fused by
+    the reconstruction. A fixed template can follow two parts into contact but cannot tear
+    one part into two, so tracking starts where the parts are most separate."""
+    T = seq.num_frames
+    if key is None or (isinstance(key, str) and key == "auto"):
+        if has_template or T < 3:
+            return 0
+        a = np.array([_surface_area(v, f) for v, f in seq.frames])
+        med = np.array([np.median(a[max(0, t - 1):t + 2]) for t in range(T)])
+        return int(np.argmax(med))
+    if isinstance(key, bool) or not isinstance(key, (int, np.integer)) or not -T <= int(key) < T:
+        raise ValueError(f"key_frame must be 'auto' or a frame index in [{-T}, {T - 1}] "
+                         f"(the sequence has {T} frames), got {key!r}")
+    return int(key) % T
+
+
+def _check_reach(TV, TF, V0, F0, limit: float, device, frame: int = 0):
     diag = _bbox_diag(V0)
     d = nearest_surface((V0, F0), TV, device=device).dist
     far = d > limit * diag
@@ -602,13 +679,13 @@ def _check_reach(TV, TF, V0, F0, limit: float, device):
     if frac > 0.5:
         raise MeshDataError(
             f"template: {100 * frac:.0f}% of its {len(TV)} vertices lie farther than "
-            f"{limit:g} x frame 0's bounding-box diagonal ({limit * diag:.4g}) from frame 0's surface "
+            f"{limit:g} x frame {frame}'s bounding-box diagonal ({limit * diag:.4g}) from frame {frame}'s surface "
             f"(median distance {np.median(d):.4g}); the template does not describe this sequence "
             "(other units, other placement?)")
     if frac > 0.05:
         warnings.warn(
-            f"template: {100 * frac:.0f}% of its vertices lie farther than {limit:g} x frame 0's "
-            f"bounding-box diagonal from frame 0's surface", UserWarning, stacklevel=3)
+            f"template: {100 * frac:.0f}% of its vertices lie farther than {limit:g} x frame {frame}'s "
+            f"bounding-box diagonal from frame {frame}'s surface", UserWarning, stacklevel=3)
 
 
 def to_fixed_topology(seq, strategy: str = "tracking", template=None, device=None, progress: bool = False,
@@ -637,8 +714,10 @@ def to_fixed_topology(seq, strategy: str = "tracking", template=None, device=Non
     for t, (v, f) in enumerate(vseq.frames):  # frames may have been mutated after construction
         src = vseq.frame_sources[t] if vseq.frame_sources else where
         validate_mesh(v, f, src, t)
+    T = vseq.num_frames
+    K = _key_frame(vseq, o["key_frame"], template is not None)
     if template is None:
-        TV, TF = vseq.frames[0]
+        TV, TF = vseq.frames[K]
     else:
         if isinstance(template, (str, bytes)) or hasattr(template, "__fspath__"):
             from .io import read_mesh
@@ -654,32 +733,45 @@ def to_fixed_topology(seq, strategy: str = "tracking", template=None, device=Non
     device = wp.get_device(device)
     _check_scales(vseq, float(o["scale_tolerance"]))
     if template is not None:
-        _check_reach(TV, TF, *vseq.frames[0], float(o["max_template_distance"]), device)
+        _check_reach(TV, TF, *vseq.frames[K], float(o["max_template_distance"]), device, K)
 
     all_diag = max(max(_bbox_diag(v) for v, _ in vseq.frames), _bbox_diag(TV), 1e-6)
     conv = _Converter(TV, TF, device, 10.0 * all_diag, o)
     step = getattr(conv, f"step_{strategy}")
-    T = vseq.num_frames
     out = np.empty((T, len(TV), 3), np.float32)
-    info = ConversionInfo(strategy, {k: v for k, v in o.items() if k != "strategy"}, T, len(TV))
-    frames = range(T)
+    info = ConversionInfo(strategy, {k: v for k, v in o.items() if k != "strategy"}, T, len(TV), key_frame=K)
+    seconds, coverage = np.zeros(T), np.zeros(T)
+    # the key frame forward to the end, then backward from it to frame 0
+    order = list(range(K, T)) + list(range(K - 1, -1, -1))
     if progress:
         from tqdm import tqdm
 
-        frames = tqdm(frames, desc=f"convert ({strategy})", unit="frame")
-    for t in frames:
+        order = tqdm(order, desc=f"convert ({strategy})", unit="frame")
+    for t in order:
         t0 = time.perf_counter()
+        if t == K - 1:
+            conv.rewind(out[K], K, K + 1)
         v, f = vseq.frames[t]
         pts = wp.array(v, dtype=wp.vec3, device=device)
         idx = wp.array(f.reshape(-1), dtype=wp.int32, device=device)
         m = wp.Mesh(points=pts, indices=idx)
         if step((m, pts, idx), t):
             info.reanchored_frames.append(t)
+        coverage[t] = conv.coverage((m, pts, idx)) / max(_bbox_diag(v), 1e-12)
+        conv.first = False
         out[t] = conv.X.numpy()
-        info.frame_seconds.append(time.perf_counter() - t0)
+        seconds[t] = time.perf_counter() - t0
         if not np.isfinite(out[t]).all():
             raise RuntimeError(f"{where}: conversion ({strategy}) produced NaN/inf at frame {t}; "
                                "the input frame may be degenerate")
+    info.frame_seconds = seconds.tolist()
+    info.coverage = coverage.tolist()
+    info.reanchored_frames.sort()
+    if hasattr(conv, "recovered"):
+        info.recovered_frames = sorted(conv.recovered)
+    elif getattr(conv, "reinit_sources", None):
+        info.recovered_frames = sorted((t, "template" if src < 0 else f"frame {src}")
+                                       for t, src in conv.reinit_sources)
     res = FixedTopologySequence(out, TF, fps=vseq.fps, name=vseq.name, source=vseq.source)
     res.conversion = info
     return res

@@ -308,13 +308,6 @@ class GraphFitter:
                   inputs=[self.tmesh.id, X, self.indices, pts, fnormals, self.max_dist, min_cos],
                   outputs=[self.bclosest, self.bface, self.bbary, self.bweight, self.bdist], device=self.device)
 
-    def coverage_distances(self, frame, X) -> np.ndarray:
-        """(Q,) distance of every frame vertex to the template surface at positions X [m]."""
-        wp.copy(self.mesh_points, X)
-        self.tmesh.refit()
-        self._find_backward(frame, self.mesh_points, -2.0)
-        return self.bdist.numpy()[:frame[1].shape[0]]
-
     # ------------------------------------------------------------------ the fit
     def fit(self, frame, R: np.ndarray, P: np.ndarray, iterations: int, stiffness: float,
             stiffness_end: float, damping: float):

@@ -410,6 +410,29 @@ def transform_points_rigid(
 
 
 @wp.kernel
+def measure_distances_to_mesh(
+    # In:
+    mesh: wp.uint64,
+    points: wp.array(dtype=wp.vec3),
+    max_dist: float,
+    # Out:
+    dist: wp.array(dtype=float),
+):
+    """Distance of each point to a mesh surface (coverage of a converted frame).
+
+    mesh: wp.Mesh; points (Q,) [m]; max_dist [m] (a point with nothing within it gets max_dist);
+    dist (Q,) [m] (at least Q entries).
+    """
+    k = wp.tid()
+    p = points[k]
+    q = wp.mesh_query_point_no_sign(mesh, p, max_dist)
+    d = max_dist
+    if q.result:
+        d = wp.length(wp.mesh_eval_position(mesh, q.face, q.u, q.v) - p)
+    dist[k] = d
+
+
+@wp.kernel
 def sum_distances_to_mesh(
     # inputs
     mesh: wp.uint64,
