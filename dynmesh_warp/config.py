@@ -14,6 +14,8 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from .choices import DEFAULT_STRATEGY
+
 __all__ = ["SceneConfig", "SceneError", "load_scene_config", "DEFAULT_SCENE", "Vec3", "PhysicsCore", "load_yaml",
            "DEFAULT_MAX_SUBSTEPS", "DEFAULT_MAX_TOTAL_SUBSTEPS"]
 
@@ -37,7 +39,7 @@ class _Strict(BaseModel):
 class ConversionConfig(_Strict):
     """Turn a varying-topology input into a fixed-topology mesh before simulating."""
 
-    strategy: str = "tracking"
+    strategy: str = DEFAULT_STRATEGY
     template: Optional[str] = None  # a mesh file; default: the first frame
     options: dict = Field(default_factory=dict)
 

@@ -51,6 +51,7 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
+from .choices import DEFAULT_STRATEGY, STRATEGIES
 from .kernels import convert as kc
 from .kernels.geometry import project_points_to_mesh
 from .sequence import FixedTopologySequence, MeshDataError, VaryingTopologySequence, validate_mesh
@@ -66,7 +67,6 @@ __all__ = [
     "main",
 ]
 
-STRATEGIES = ("projection", "tracking", "regularized", "graph")
 
 _DEFAULTS = {
     "projection": {},
@@ -88,7 +88,7 @@ _DEFAULTS = {
     },
     "graph": {
         # deformation graph (dynmesh_warp.deform_graph); lengths: fractions of the template's bbox diagonal
-        "node_spacing": 0.05,
+        "node_spacing": 0.03,
         "nodes_per_vertex": 4,
         "graph_iterations": 10,
         "stiffness": 10.0,
@@ -212,7 +212,12 @@ class ConversionInfo:
     coverage: per frame (in input order), the 99.5th percentile of the distance of the input
     frame's vertices to the converted surface, as a fraction of the frame's bbox diagonal: a
     body part the conversion lost shows here (a restart trigger and the user's warning).
-    frame_seconds: wall time per frame (host + kernels), in input order."""
+    frame_seconds: wall time per frame (host + kernels), in input order.
+    topology_events: ``(frame, description)`` where the input's topology (connected parts,
+    genus) differs from the previous frame's: parts touching or separating, a hole closing.
+    The conversion keeps one template through them (one segment): the fixed topology follows
+    parts into contact; what it cannot do is tear a part the template has fused, which is why
+    the key frame is the one with the most surface (parts most apart)."""
 
     strategy: str
     options: dict
@@ -223,6 +228,7 @@ class ConversionInfo:
     key_frame: int = 0
     recovered_frames: list = field(default_factory=list)
     coverage: list = field(default_factory=list)
+    topology_events: list = field(default_factory=list)
 
     @property
     def worst_coverage(self) -> float:
@@ -625,6 +631,30 @@ def _resolve_options(strategy: str, options: dict) -> dict:
                 raise ValueError(f"{k} must lie in [0, 1], got {o[k]!r}")
         if float(o["normal_slack"]) < 1.0:
             raise ValueError(f"normal_slack must be >= 1, got {o['normal_slack']!r}")
+    if strategy == "graph":
+        for k in ("nodes_per_vertex", "graph_iterations"):
+            if int(o[k]) != o[k] or o[k] < 1:
+                raise ValueError(f"{k} must be an integer >= 1, got {o[k]!r}")
+        for k in ("iterations", "smooth_iterations", "relax_iterations", "bank_interval"):
+            if int(o[k]) != o[k] or o[k] < 0:
+                raise ValueError(f"{k} must be an integer >= 0, got {o[k]!r}")
+        if not 0.0 < float(o["node_spacing"]) <= 1.0:
+            raise ValueError(f"node_spacing must lie in (0, 1] (a fraction of the bbox diagonal), "
+                             f"got {o['node_spacing']!r}")
+        for k in ("stiffness", "stiffness_end", "damping", "restart_threshold", "predict"):
+            if not (np.isfinite(float(o[k])) and float(o[k]) >= 0):
+                raise ValueError(f"{k} must be a finite number >= 0, got {o[k]!r}")
+        if not 0.0 <= float(o["max_normal_angle"]) <= 180.0:
+            raise ValueError(f"max_normal_angle must lie in [0, 180] degrees, got {o['max_normal_angle']!r}")
+        for k in ("smooth_weight", "pull_fraction", "relax_step"):
+            if not 0.0 <= float(o[k]) <= 1.0:
+                raise ValueError(f"{k} must lie in [0, 1], got {o[k]!r}")
+        if float(o["normal_slack"]) < 1.0:
+            raise ValueError(f"normal_slack must be >= 1, got {o['normal_slack']!r}")
+    kf = o["key_frame"]
+    if not ((isinstance(kf, str) and kf == "auto") or kf is None
+            or (isinstance(kf, (int, np.integer)) and not isinstance(kf, bool))):
+        raise ValueError(f"key_frame must be 'auto' or a frame index, got {kf!r}")
     if not float(o["max_template_distance"]) > 0:
         raise ValueError(f"max_template_distance must be > 0, got {o['max_template_distance']!r}")
     o["strategy"] = strategy
@@ -671,6 +701,41 @@ def _key_frame(seq: VaryingTopologySequence, key, has_template: bool) -> int:
     return int(key) % T
 
 
+def _topology(F: np.ndarray) -> tuple:
+    """(connected parts, genus) of a closed triangle mesh given by its faces (genus from the
+    Euler characteristic per part: chi = V - E + F = 2 parts - 2 genus; approximate for open
+    meshes)."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    F = np.asarray(F, np.int64)
+    used = np.unique(F)
+    e = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
+    ne = len(np.unique(e[:, 0] * (int(used.max()) + 1) + e[:, 1])) if len(F) else 0
+    n = int(used.max()) + 1 if len(used) else 0
+    g = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
+    parts = connected_components(g, directed=False)[1][used]
+    c = len(np.unique(parts))
+    chi = len(used) - ne + len(F)
+    return c, max(0, (2 * c - chi) // 2)
+
+
+def _topology_events(seq: VaryingTopologySequence) -> list:
+    """``(frame, text)`` for every frame whose (parts, genus) differs from the previous frame's."""
+    ev, prev = [], None
+    for t, (_v, f) in enumerate(seq.frames):
+        cur = _topology(f)
+        if prev is not None and cur != prev:
+            what = []
+            if cur[0] != prev[0]:
+                what.append(f"parts {prev[0]} -> {cur[0]}")
+            if cur[1] != prev[1]:
+                what.append(f"genus {prev[1]} -> {cur[1]}")
+            ev.append((t, ", ".join(what)))
+        prev = cur
+    return ev
+
+
 def _check_reach(TV, TF, V0, F0, limit: float, device, frame: int = 0):
     diag = _bbox_diag(V0)
     d = nearest_surface((V0, F0), TV, device=device).dist
@@ -688,13 +753,13 @@ def _check_reach(TV, TF, V0, F0, limit: float, device, frame: int = 0):
             f"bounding-box diagonal from frame {frame}'s surface", UserWarning, stacklevel=3)
 
 
-def to_fixed_topology(seq, strategy: str = "tracking", template=None, device=None, progress: bool = False,
+def to_fixed_topology(seq, strategy: str = DEFAULT_STRATEGY, template=None, device=None, progress: bool = False,
                       **options) -> FixedTopologySequence:
     """Convert a varying-topology sequence into a fixed-topology one on ``template``'s faces.
 
     Args:
         seq: a :class:`VaryingTopologySequence` (or a fixed one, or a list of (V, F) frames).
-        strategy: ``"projection"``, ``"tracking"`` or ``"regularized"`` (module docstring).
+        strategy: one of :data:`STRATEGIES` (module docstring); default ``"graph"``.
         template: ``(V, F)`` mesh or a mesh file path; default: the first frame.
         device: Warp device (default: Warp's default device).
         progress: show a tqdm progress bar over frames.
@@ -739,7 +804,8 @@ def to_fixed_topology(seq, strategy: str = "tracking", template=None, device=Non
     conv = _Converter(TV, TF, device, 10.0 * all_diag, o)
     step = getattr(conv, f"step_{strategy}")
     out = np.empty((T, len(TV), 3), np.float32)
-    info = ConversionInfo(strategy, {k: v for k, v in o.items() if k != "strategy"}, T, len(TV), key_frame=K)
+    info = ConversionInfo(strategy, {k: v for k, v in o.items() if k != "strategy"}, T, len(TV), key_frame=K,
+                          topology_events=_topology_events(vseq))
     seconds, coverage = np.zeros(T), np.zeros(T)
     # the key frame forward to the end, then backward from it to frame 0
     order = list(range(K, T)) + list(range(K - 1, -1, -1))
@@ -779,6 +845,40 @@ def to_fixed_topology(seq, strategy: str = "tracking", template=None, device=Non
 
 # --------------------------------------------------------------------------- CLI
 
+POOR_COVERAGE = 0.05  # coverage (fraction of the bbox diagonal) above which a frame counts as poorly fit
+
+
+def conversion_summary(info: ConversionInfo) -> list:
+    """Lines that tell the user what a conversion did and where it may have failed: key frame,
+    time, coverage (worst frame), recovered frames, topology changes; a warning line (starting
+    "warning:") for frames whose coverage exceeds POOR_COVERAGE."""
+    T = info.num_frames
+    cov = np.asarray(info.coverage, float)
+    lines = [f"conversion ({info.strategy}): template from frame {info.key_frame}, tracked "
+             + (f"frames {info.key_frame}..{T - 1} then {info.key_frame - 1}..0" if info.key_frame else f"0..{T - 1}")
+             + f"; {sum(info.frame_seconds):.2f} s"]
+    if cov.size:
+        w = int(np.argmax(cov))
+        lines.append(f"coverage (99.5th pct. input -> converted distance / bbox diagonal): mean "
+                     f"{100 * cov.mean():.2f}%, worst {100 * cov[w]:.2f}% at frame {w}")
+    rec = info.recovered_frames or [(t, "") for t in info.reanchored_frames]
+    if rec:
+        shown = ", ".join(f"{t}" + (f" (from {src})" if src else "") for t, src in rec[:12])
+        lines.append(f"recovered/re-anchored {len(rec)} frame(s): {shown}" + (" ..." if len(rec) > 12 else ""))
+    ev = info.topology_events
+    if ev:
+        shown = ", ".join(f"{t} ({what})" for t, what in ev[:8])
+        lines.append(f"input topology changes at {len(ev)} frame(s): {shown}" + (" ..." if len(ev) > 8 else "")
+                     + "; one template kept through them (1 segment)")
+    bad = np.flatnonzero(cov > POOR_COVERAGE)
+    if bad.size:
+        lines.append(f"warning: poor fit on {bad.size} frame(s) ({', '.join(map(str, bad[:12]))}"
+                     + (" ..." if bad.size > 12 else "") + f"): input surface farther than "
+                     f"{100 * POOR_COVERAGE:.0f}% of the diagonal from the converted mesh (a lost part?)"
+                     + ("; try --strategy graph" if info.strategy != "graph" else "; try another --key-frame"))
+    return lines
+
+
 
 class _TimedFrames(list):
     """The frames of a sequence being converted, noting when the converter asks for each: after
@@ -789,13 +889,15 @@ class _TimedFrames(list):
         super().__init__(frames)
         self.device, self.strategy, self.limit_s = str(device), strategy, limit_s
         self.t1 = None
+        self.calls = 0
         self.done = False
 
     def __getitem__(self, t):
         if isinstance(t, int) and not self.done:
-            if t == 1 and self.t1 is None:
+            self.calls += 1  # frames are asked for in conversion order (from the key frame)
+            if self.calls == 2:
                 self.t1 = time.perf_counter()
-            elif t >= 2 and self.t1 is not None:
+            elif self.calls == 3:
                 self.done = True
                 per = time.perf_counter() - self.t1
                 total = per * len(self)
@@ -833,8 +935,13 @@ def main(argv=None) -> int:
         description="Convert a varying-topology mesh sequence into a fixed-topology one.")
     p.add_argument("input", help="sequence: .npz, folder of per-frame meshes, DG-Mesh scene folder")
     p.add_argument("output", help="output .npz, or a folder (frame_XXXX.ply/.obj, see --fmt)")
-    p.add_argument("--strategy", choices=STRATEGIES, default="tracking")
-    p.add_argument("--template", default=None, help="template mesh file (default: the first frame)")
+    p.add_argument("--strategy", choices=STRATEGIES, default=DEFAULT_STRATEGY,
+                   help=f"conversion strategy (default {DEFAULT_STRATEGY}; docs/conversion.md)")
+    p.add_argument("--template", default=None,
+                   help="template mesh file (default: the key frame, see --key-frame)")
+    p.add_argument("--key-frame", default=None,
+                   help="frame the template comes from and tracking starts at, forward then backward "
+                        "(default 'auto': the frame of largest surface area; frame 0 with --template)")
     p.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0")
     p.add_argument("--reanchor-interval", type=int, default=None, help="tracking: frames between re-anchors (0: never)")
     p.add_argument("--tracked-weight", type=float, default=None, help="tracking: weight of the tracked positions at a re-anchor")
@@ -852,6 +959,11 @@ def main(argv=None) -> int:
     from .outputs import check_output
 
     opts = {}
+    if a.key_frame is not None:
+        try:
+            opts["key_frame"] = a.key_frame if a.key_frame == "auto" else int(a.key_frame)
+        except ValueError:
+            p.error(f"--key-frame: expected 'auto' or a frame index, got {a.key_frame!r}")
     for k in ("reanchor_interval", "tracked_weight"):
         if getattr(a, k) is not None:
             if a.strategy != "tracking":
@@ -903,10 +1015,9 @@ def main(argv=None) -> int:
     except (MeshDataError, FileNotFoundError, ValueError, TypeError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    info = res.conversion
-    print(f"wrote {a.output}: {res.num_frames} frames x {res.num_vertices} vertices, {res.num_faces} faces "
-          f"({a.strategy}; {sum(info.frame_seconds):.2f} s"
-          + (f"; re-anchored at {info.reanchored_frames}" if info.reanchored_frames else "") + ")")
+    print(f"wrote {a.output}: {res.num_frames} frames x {res.num_vertices} vertices, {res.num_faces} faces")
+    for line in conversion_summary(res.conversion):
+        print(line)
     return 0
 
 

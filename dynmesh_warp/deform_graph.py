@@ -202,6 +202,19 @@ def extrapolate_rotations(R0: np.ndarray, R1: np.ndarray, gamma: float) -> np.nd
     return Dg @ R1
 
 
+def _solve_sparse_spd(A: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Solve A x = b for the graph's sparse, symmetric positive definite normal matrix (K,K)
+    with a sparse LU (single-threaded SuperLU: a dense multithreaded LAPACK solve of this size
+    slows down 50x when the cores are busy, e.g. next to Warp's CPU kernels)."""
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import splu
+
+    try:
+        return splu(sp.csc_matrix(A)).solve(b)
+    except RuntimeError:  # exactly singular (no data, no damping): least squares
+        return np.linalg.lstsq(A, b, rcond=None)[0]
+
+
 class GraphFitter:
     """Device arrays and host solve of the graph fit (module docstring)."""
 
@@ -314,8 +327,6 @@ class GraphFitter:
         """Fit node rotations/positions to the frame, starting from (R, P) (float64 (K,3,3), (K,3)),
         which also serve as the damping's prior. Returns the fitted (R, P); self.points holds
         the skinned template."""
-        from scipy.linalg import cho_factor, cho_solve
-
         o = self.opts
         d = self.device
         K, n = self.K, self.n
@@ -359,10 +370,7 @@ class GraphFitter:
             A[np.diag_indices(K)] += wd + 1e-12
             b += wd * P_prior
             A = 0.5 * (A + A.T)
-            try:
-                P = cho_solve(cho_factor(A, lower=False, check_finite=True), b)
-            except np.linalg.LinAlgError:
-                P = np.linalg.lstsq(A, b, rcond=None)[0]
+            P = _solve_sparse_spd(A, b)
             # local step: rotations from the edges and the data, regularised towards the old R
             self.node_position.assign(wp.array(P.astype(np.float32), dtype=wp.vec3, device=d))
             self.covariance.zero_()

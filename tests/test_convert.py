@@ -345,3 +345,60 @@ def test_regularized_restarts_after_a_teleported_frame(rigid_varying):
     assert max(err(off, t) for t in range(jump + 1, 16)) > 10 * max(err(r, t) for t in range(jump + 1, 16))
     with pytest.raises(ValueError, match="reinit_threshold"):
         to_fixed_topology(frames[:2], strategy="regularized", reinit_threshold=-1.0)
+
+
+# --------------------------------------------------------------------------- key frame, topology, summary
+
+
+def _sphere_frames(radii):
+    from dynmesh_warp.scenes import icosphere
+
+    V, F = icosphere(2, 1.0)
+    return [(V * r, F) for r in radii]
+
+
+def test_key_frame_auto_is_the_largest_surface_and_tracks_both_ways():
+    from dynmesh_warp.convert import _key_frame
+
+    radii = [1.0, 1.05, 1.1, 1.3, 1.15, 1.05]
+    seq = VaryingTopologySequence(_sphere_frames(radii), name="grow")
+    assert _key_frame(seq, "auto", has_template=False) == 3
+    assert _key_frame(seq, "auto", has_template=True) == 0
+    assert _key_frame(seq, -1, has_template=False) == 5
+    with pytest.raises(ValueError, match="key_frame"):
+        _key_frame(seq, 6, has_template=False)
+    res = to_fixed_topology(seq, strategy="graph", device=DEV)
+    assert res.conversion.key_frame == 3
+    # every frame is converted (both directions): each lies on its sphere
+    r = np.linalg.norm(res.V, axis=2)
+    assert np.allclose(r.mean(axis=1), radii, rtol=0.02)
+    with pytest.raises(ValueError, match="key_frame"):
+        to_fixed_topology(seq, strategy="graph", device=DEV, key_frame="middle")
+
+
+def test_topology_events_name_parts_and_genus():
+    import trimesh
+
+    from dynmesh_warp.convert import _topology, _topology_events
+
+    s = trimesh.creation.icosphere(2)
+    t = trimesh.creation.torus(1.0, 0.3)
+    two = np.vstack([s.faces, s.faces + len(s.vertices)])
+    assert _topology(s.faces) == (1, 0) and _topology(t.faces) == (1, 1) and _topology(two) == (2, 0)
+    frames = [(s.vertices, s.faces), (np.vstack([s.vertices, s.vertices + 3]), two), (t.vertices, t.faces)]
+    ev = _topology_events(VaryingTopologySequence(frames, name="x"))
+    assert ev == [(1, "parts 1 -> 2"), (2, "parts 2 -> 1, genus 0 -> 1")]
+
+
+def test_conversion_summary_warns_on_poor_coverage():
+    from dynmesh_warp.convert import POOR_COVERAGE, ConversionInfo, conversion_summary
+
+    info = ConversionInfo("tracking", {}, 4, 10, frame_seconds=[0.1] * 4, key_frame=0,
+                          coverage=[0.01, 0.02, POOR_COVERAGE * 2, 0.01], recovered_frames=[(2, "template")])
+    lines = conversion_summary(info)
+    assert any("worst 10.00% at frame 2" in ln for ln in lines)
+    assert any(ln.startswith("recovered") and "2 (from template)" in ln for ln in lines)
+    warn = [ln for ln in lines if ln.startswith("warning:")]
+    assert len(warn) == 1 and "(2)" in warn[0] and "--strategy graph" in warn[0]
+    info.coverage = [0.01] * 4
+    assert not any(ln.startswith("warning:") for ln in conversion_summary(info))
