@@ -612,7 +612,7 @@ def _check_reach(TV, TF, V0, F0, limit: float, device):
 
 
 def to_fixed_topology(seq, strategy: str = "tracking", template=None, device=None, progress: bool = False,
-                      **options) -> FixedTopologySequence:
+                      should_stop=None, **options) -> FixedTopologySequence:
     """Convert a varying-topology sequence into a fixed-topology one on ``template``'s faces.
 
     Args:
@@ -621,11 +621,15 @@ def to_fixed_topology(seq, strategy: str = "tracking", template=None, device=Non
         template: ``(V, F)`` mesh or a mesh file path; default: the first frame.
         device: Warp device (default: Warp's default device).
         progress: show a tqdm progress bar over frames.
+        should_stop: a callable checked between frames (e.g. the CLI's Ctrl-C flag); once true
+            the conversion ends after the frames done so far (at least the first): the result
+            then holds frames 0..k-1 only.
         **options: strategy options (module docstring); unknown names raise TypeError.
 
     Returns:
         FixedTopologySequence with the template's faces, the input's fps and name, and a
-        ``conversion`` attribute (:class:`ConversionInfo`).
+        ``conversion`` attribute (:class:`ConversionInfo`); fewer frames than the input only
+        after ``should_stop``.
 
     Raises:
         MeshDataError: an empty/invalid frame or template (naming it), a template out of the
@@ -667,7 +671,11 @@ def to_fixed_topology(seq, strategy: str = "tracking", template=None, device=Non
         from tqdm import tqdm
 
         frames = tqdm(frames, desc=f"convert ({strategy})", unit="frame")
+    done = T
     for t in frames:
+        if t > 0 and should_stop is not None and should_stop():
+            done = t
+            break
         t0 = time.perf_counter()
         v, f = vseq.frames[t]
         pts = wp.array(v, dtype=wp.vec3, device=device)
@@ -680,7 +688,9 @@ def to_fixed_topology(seq, strategy: str = "tracking", template=None, device=Non
         if not np.isfinite(out[t]).all():
             raise RuntimeError(f"{where}: conversion ({strategy}) produced NaN/inf at frame {t}; "
                                "the input frame may be degenerate")
-    res = FixedTopologySequence(out, TF, fps=vseq.fps, name=vseq.name, source=vseq.source)
+    if hasattr(frames, "close"):
+        frames.close()
+    res = FixedTopologySequence(out[:done], TF, fps=vseq.fps, name=vseq.name, source=vseq.source)
     res.conversion = info
     return res
 
@@ -733,6 +743,10 @@ def _note(msg: str) -> None:
 _FILE_SUFFIXES = {".json", ".txt", ".csv", ".zip", ".npy", ".png", ".yaml", ".yml", ".h5", ".pkl"}
 
 
+from .cli import interruptible_main  # noqa: E402 (the CLI section's own import)
+
+
+@interruptible_main
 def main(argv=None) -> int:
     from .cli import Parser
 
@@ -753,9 +767,9 @@ def main(argv=None) -> int:
     p.add_argument("--overwrite", action="store_true",
                    help="replace an existing output (in a folder: only files this tool wrote; others are kept)")
     a = p.parse_args(argv)
-    from .cli import quiet_warp
+    from .cli import checking_stops, quiet_warp, stop_reason
 
-    quiet_warp()
+    quiet_warp(a.device)
     from .io import MESH_EXTENSIONS, load_sequence, save_sequence
     from .outputs import check_output
 
@@ -805,12 +819,22 @@ def main(argv=None) -> int:
                   "anyway (it can be simulated as it is)", file=sys.stderr)
             seq = seq.to_varying()
         seq.frames = _TimedFrames(seq.frames, device, a.strategy)
-        res = to_fixed_topology(seq, strategy=a.strategy, template=a.template, device=device,
-                                progress=True, **opts)
-        save_sequence(res, a.output, fmt=a.fmt, overwrite=a.overwrite)
+        with checking_stops():  # Ctrl-C / SIGTERM: stop between frames, write the frames done
+            res = to_fixed_topology(seq, strategy=a.strategy, template=a.template, device=device,
+                                    progress=True, should_stop=stop_reason, **opts)
+            reason = stop_reason() if res.num_frames < seq.num_frames else None
+            status = {"complete": not reason, "frames": res.num_frames, "input_frames": seq.num_frames,
+                      "interrupted_by": reason, "strategy": a.strategy}
+            save_sequence(res, a.output, fmt=a.fmt, overwrite=a.overwrite, status=status)
     except (MeshDataError, FileNotFoundError, ValueError, TypeError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    if reason:
+        print(f"interrupted by {reason} after frame {res.num_frames - 1} of {seq.num_frames}: wrote {a.output} with "
+              f"frames 0..{res.num_frames - 1} (status: complete false)", file=sys.stderr)
+        import signal
+
+        return 128 + int(getattr(signal, reason, signal.SIGINT))
     info = res.conversion
     print(f"wrote {a.output}: {res.num_frames} frames x {res.num_vertices} vertices, {res.num_faces} faces "
           f"({a.strategy}; {sum(info.frame_seconds):.2f} s"
