@@ -152,6 +152,37 @@ def test_run_stop_callable_ends_the_loop_within_a_chunk(tmp_path):
     assert len(np.load(tmp_path / "a" / "trajectories.npz")["time"]) == 1 + (k - 1) // 3 + ((k - 1) % 3 > 0)
 
 
+def test_newton_run_stops_at_a_step_and_writes_the_prefix(tmp_path):
+    """The Newton path of run_scene takes the same stop callable: an interrupted run writes the
+    body trajectory of the steps reached, equal to an uninterrupted run of that length."""
+    pytest.importorskip("newton")
+    from dynmesh_warp import load_scene_config
+    from dynmesh_warp.run import run_scene
+
+    cfg = load_scene_config(data={
+        "name": "nt", "surface": {"source": "builtin:wave_bowl", "params": {"n": 16, "frames": 12}},
+        "spheres": [{"position": [0.3, 0.0, 0.6], "radius": 0.06}],
+        "newton": {"solver": "xpbd", "bodies": [{"type": "box", "position": [-0.3, 0.0, 0.6],
+                                                  "half_extents": [0.08, 0.06, 0.05]}]},
+        "run": {"record_every": 4}})
+    calls = []
+
+    def stop():
+        calls.append(1)
+        return "SIGTERM" if len(calls) > 5 else None
+
+    s = run_scene(cfg, device="cpu", steps=1_000_000, output=tmp_path / "a", progress=False,
+                  log=lambda *_: None, stop=stop)
+    k = s["step_reached"]
+    assert s["engine"] == "newton" and s["interrupted"] and s["interrupted_by"] == "SIGTERM" and 2 < k < 1_000_000
+    assert s["steps"] == 1_000_000 and json.loads((tmp_path / "a" / "summary.json").read_text())["interrupted"]
+    ref = run_scene(cfg, device="cpu", steps=k, output=tmp_path / "b", progress=False, log=lambda *_: None)
+    assert not ref["interrupted"] and ref["step_reached"] == k
+    ta, tb = np.load(tmp_path / "a" / "trajectories.npz"), np.load(tmp_path / "b" / "trajectories.npz")
+    assert np.array_equal(ta["time"], tb["time"]) and np.array_equal(ta["body_q"], tb["body_q"])
+    assert np.array_equal(ta["body_q"][-1], np.asarray(s["final"]["body_q"], np.float32))
+
+
 # --------------------------------------------------------------------------- checkpoints
 
 
@@ -383,6 +414,25 @@ def test_viewer_server_shuts_down_cleanly(tmp_path, sig):
     assert rc == CODE[sig] and "Traceback" not in err + out, err
     assert "Server stopped" in out
     assert _last_line(err).startswith(f"interrupted by {signal.Signals(sig).name} after ")
+
+
+def test_recording_interrupted_keeps_the_frames_so_far(tmp_path):
+    """--viewer none --record: SIGTERM ends the frame loop, the recording of the frames so far is
+    written whole and the (headless) server stopped; exit 143, one line naming the frames."""
+    pytest.importorskip("viser")
+    pr = Proc(RUN[:3] + ["--viewer", "none", "--device", "cpu", "--record", "r.viser", "--steps", "1000000"],
+              tmp_path)
+    pr.wait_for(b"note: --record writes")  # printed before the frame loop: give it time for some frames
+    time.sleep(3.0)
+    pr.p.send_signal(signal.SIGTERM)
+    rc, out, err = pr.finish(timeout=60)
+    assert rc == 143 and "Traceback" not in err + out, err[-2000:]
+    line = _last_line(err)
+    assert line.startswith("interrupted by SIGTERM after ") and "wrote the recording r.viser" in line, line
+    frames = int(line.split(" after ")[1].split(" frames")[0].replace(",", ""))
+    assert frames >= 1
+    assert (tmp_path / "r.viser").stat().st_size > 0 and (tmp_path / "r.html").is_file()
+    assert _leftovers(tmp_path) == []
 
 
 def test_cpu_run_prints_no_cuda_driver_note_unless_cuda_is_asked(tmp_path):
