@@ -300,7 +300,8 @@ def test_to_fixed_topology_should_stop_keeps_a_prefix(varying_npz):
     assert one.num_frames == 1  # the first frame is always converted: a valid (shorter) sequence
 
 
-@pytest.mark.parametrize("sig,folder", [(signal.SIGINT, False), (signal.SIGTERM, True)], ids=["SIGINT-npz", "SIGTERM-folder"])
+@pytest.mark.parametrize("sig,folder", [(signal.SIGINT, False), (signal.SIGTERM, True)],
+                         ids=["SIGINT-npz", "SIGTERM-folder"])
 def test_convert_interrupted_writes_the_frames_done(tmp_path, varying_npz, sig, folder, capsys):
     from dynmesh_warp.convert import to_fixed_topology
     from dynmesh_warp.io import load_sequence

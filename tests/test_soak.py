@@ -74,3 +74,13 @@ def test_soak_reports_a_centre_inside(soak, monkeypatch):
                         stop_flag={}, log=lambda *_: None)
     assert not r["passed"] and r["tunnelled"] == r["sphere_checks"] == 15 and r["max_winding_number"] > 0.99
     assert r["events"][0]["kind"] == "inside" and r["events"][0]["step"] == 100
+
+
+def test_sheet_rim_distance(soak):
+    from dynmesh_warp.scenes import grid_sheet
+
+    G, H = grid_sheet(5, 2.0)
+    rim = soak.boundary_edge_list(H)
+    assert len(rim) == 16
+    d = soak.distance_to_boundary_xy(G.astype(np.float64), rim, np.array([[0.0, 0.0], [0.96, 0.2], [-0.9, -0.95]]))
+    np.testing.assert_allclose(d, [1.0, 0.04, 0.05], atol=1e-12)
