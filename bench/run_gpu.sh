@@ -2,7 +2,7 @@
 # GPU benchmarks and the GPU test pass, for the GPU machine (see ../shared/gpu/README.md).
 # Usage: bash bench/run_gpu.sh PHASE OUTDIR   (Warp and the wheels already installed in /root/site)
 #   PHASE: step (tests, swept profile, step benchmark) | other (gaussians, metrics, convert,
-#          newton) | eval (full evaluation table) | table (conversion table)
+#          newton) | eval (full evaluation table) | table (conversion table) | soak (10^6 steps, paper scene)
 set -u
 phase=${1:-step}
 out=${2:-bench/results}
@@ -26,6 +26,9 @@ eval)
       ../shared/data/pcow.npz --num-frames 200 --frame-order auto --device cuda:0 --no-progress \
       --out "$out/eval" 2>&1 | grep -v "^Module" | tail -40
   tar czf "$out/eval.tgz" -C "$out" eval && rm -rf "$out/eval" ;;
+soak)
+  python3 bench/soak.py --device cuda:0 --steps 1000000 --scenes paper --check-every 200 \
+      --out "$out/soak_cuda.json" 2>&1 | grep -v "^Module" | tail -8 ;;
 table)
   python3 bench/conversion_table.py --device cuda:0 --out "$out/conversion_table_cuda.json" 2>&1 | grep -v "^Module" | tail -30 ;;
 esac

@@ -1,8 +1,41 @@
-"""Shared command-line helpers."""
+"""Shared command-line helpers: one-line argument errors, a quiet Warp start, and how the
+command lines stop on SIGINT (Ctrl-C) and SIGTERM (``kill``, ``timeout``).
+
+Stopping (docs/scene.md#interrupted-runs). Every CLI's ``main`` runs under
+:func:`interruptible_main`, which installs handlers for both signals:
+
+- Inside :func:`checking_stops` (the step loop of ``run``, the frame loops of ``convert`` and
+  ``evaluate``, the viewer's frame loop, the writing of outputs) the first signal only sets a
+  flag. The loop sees it at its next step or frame boundary (:func:`stop_requested`), stops,
+  writes what it has done (marked interrupted) and the CLI exits 130 (SIGINT) or 143 (SIGTERM)
+  after one line on stderr.
+- Elsewhere (loading, compiling, a stage with no boundaries to check) the first signal raises
+  :class:`Interrupted` at once: temporary outputs are removed, old outputs stay, same exit codes.
+- A second signal exits at once, even while the main thread is inside a long native call (a
+  watcher thread reads the signal numbers CPython writes to its wakeup file descriptor): the
+  temporary files and folders of writes in progress are removed (a folder being renamed into
+  place is let finish first, so a user's files moved into it are never lost) and the process
+  ends with ``os._exit``.
+"""
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import functools
+import os
+import signal
+import sys
+import threading
+
+__all__ = ["Parser", "quiet_warp", "Interrupted", "interruptible_main", "checking_stops", "raising_stops",
+           "stop_requested", "stop_reason", "stop_signal", "signal_name", "STOP_SIGNALS"]
+
+#: the signals that stop a command line
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+#: seconds after a first signal before saying that the stop is under way (a quick stop says nothing twice)
+_ACK_AFTER_S = 1.0
 
 
 class Parser(argparse.ArgumentParser):
@@ -13,26 +46,18 @@ class Parser(argparse.ArgumentParser):
         self.exit(2, f"error: {message} (see {self.prog} --help)\n")
 
 
-def quiet_warp():
-    """Silence Warp's start-up banner and per-module load lines (CLIs print their own summary)."""
+def quiet_warp(device: str | None = None):
+    """Silence Warp's start-up banner and per-module load lines (CLIs print their own summary).
+
+    ``device``: the ``--device`` asked for. Warp's note about a missing NVIDIA driver is dropped
+    unless it names a CUDA device (there it says why the device is missing, next to the
+    CLI's own error)."""
     import warp as wp
 
     wp.config.quiet = True
     if hasattr(wp, "LOG_WARNING") and hasattr(wp.config, "log_level"):
         wp.config.log_level = wp.LOG_WARNING
-    _init_without_driver_note(wp)
-    _exit_cleanly_on_sigterm()
-
-
-def _exit_cleanly_on_sigterm():
-    """SIGTERM (``timeout``, ``kill``) raises SystemExit like Ctrl-C raises KeyboardInterrupt, so
-    the temporary output files and folders are removed and the old outputs stay."""
-    import signal
-    import sys
-    import threading
-
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))
+    _init_without_driver_note(wp, keep=bool(device) and str(device).strip().lower().startswith("cuda"))
 
 
 #: what Warp's native library prints on a machine without an NVIDIA driver; the CLIs name the
@@ -40,13 +65,14 @@ def _exit_cleanly_on_sigterm():
 _NO_DRIVER_NOTE = b"Could not find or load the NVIDIA CUDA driver"
 
 
-def _init_without_driver_note(wp):
+def _init_without_driver_note(wp, keep: bool = False):
     """``wp.init()`` with its native stderr captured: the no-driver note of a CPU-only machine is
-    dropped (error messages stay one line), anything else is passed on."""
-    import os
-    import sys
+    dropped (error messages stay one line) unless ``keep``; anything else is passed on."""
     import tempfile
 
+    if keep:
+        wp.init()
+        return
     try:
         sys.stderr.flush()
         saved = os.dup(2)
@@ -65,3 +91,221 @@ def _init_without_driver_note(wp):
     if rest:
         sys.stderr.buffer.write(b"".join(rest))
         sys.stderr.flush()
+
+
+# --------------------------------------------------------------------------- stopping
+
+
+class Interrupted(KeyboardInterrupt):
+    """A stop signal outside a region that checks for stops (raised once, by the handler)."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal_name(signum))
+        self.signum = int(signum)
+
+    @property
+    def exit_code(self) -> int:
+        """128 + the signal number: 130 for SIGINT, 143 for SIGTERM (as a shell reports them)."""
+        return 128 + self.signum
+
+
+def signal_name(signum) -> str:
+    try:
+        return signal.Signals(signum).name
+    except ValueError:
+        return f"signal {signum}"
+
+
+class _StopState:
+    def __init__(self):
+        self.lock = threading.Lock()
+        self.reset()
+
+    def reset(self):
+        self.signum = None  # the first stop signal received
+        self.count = 0  # stop signals received (counted by the watcher when it runs)
+        self.checking = 0  # depth of checking_stops()
+        self.raised = False  # Interrupted was raised once already
+        self.installed = False
+        self.watched = False  # a watcher thread counts the signals
+        self.done = threading.Event()  # the CLI has finished (no acknowledgement needed)
+        self.seen = threading.Event()  # a loop has seen the stop (or it was raised)
+
+
+_state = _StopState()
+
+
+def stop_requested() -> bool:
+    """True once SIGINT or SIGTERM was received by a CLI (checked at step and frame boundaries)."""
+    if _state.signum is None:
+        return False
+    _state.seen.set()
+    return True
+
+
+def stop_reason() -> str | None:
+    """The name of the first stop signal received (``"SIGINT"``, ``"SIGTERM"``), else None: the
+    ``stop`` callable the CLIs give their loops."""
+    return signal_name(_state.signum) if stop_requested() else None
+
+
+def stop_signal() -> int | None:
+    """The first stop signal received (``signal.SIGINT`` / ``signal.SIGTERM``), else None."""
+    return _state.signum
+
+
+@contextlib.contextmanager
+def checking_stops():
+    """A region whose loops call :func:`stop_requested` at their boundaries: a first signal there
+    only sets the flag (no exception in the middle of a step or of a write)."""
+    _state.checking += 1
+    try:
+        yield
+    finally:
+        _state.checking -= 1
+
+
+@contextlib.contextmanager
+def raising_stops():
+    """Inside :func:`checking_stops`, a stage with no boundaries to check (e.g. re-meshing): a
+    signal raises :class:`Interrupted` at once again (also on entry, if one came before)."""
+    saved = _state.checking
+    _state.checking = 0
+    try:
+        if _state.installed and _state.signum is not None and not _state.raised:
+            _state.raised = True
+            _state.seen.set()
+            raise Interrupted(_state.signum)
+        yield
+    finally:
+        _state.checking = saved
+
+
+def _hard_exit(signum: int):
+    """The second signal: remove the temporaries of writes in progress and exit at once."""
+    try:
+        os.write(2, (f"\n{signal_name(signum)} again: exiting at once; unfinished outputs are discarded, "
+                     "existing outputs are left as they are\n").encode())
+    except OSError:
+        pass
+    try:
+        from .outputs import abandon_temporaries
+
+        abandon_temporaries(timeout=2.0)
+    except BaseException:  # noqa: BLE001 (exiting whatever happens)
+        pass
+    os._exit(128 + int(signum))
+
+
+def _acknowledge(signum: int):
+    """A stop that takes longer than a moment (a long frame, a native call) says it is coming."""
+    if _state.done.is_set() or _state.seen.is_set() or not _state.installed:
+        return
+    try:
+        sys.stderr.write(f"\n{signal_name(signum)}: stopping at the next step or frame and writing what is done; "
+                         "send it again to exit at once\n")
+        sys.stderr.flush()
+    except (OSError, ValueError):
+        pass
+
+
+def _first(signum: int) -> int:
+    """Count a stop signal; returns how many were received."""
+    with _state.lock:
+        if _state.signum is None:
+            _state.signum = int(signum)
+            t = threading.Timer(_ACK_AFTER_S, _acknowledge, args=(int(signum),))
+            t.daemon = True
+            t.start()
+        _state.count += 1
+        return _state.count
+
+
+def _on_signal(signum, frame):
+    """The Python-level handler (main thread, between bytecodes)."""
+    if not _state.watched:
+        if _first(signum) >= 2:
+            _hard_exit(signum)
+    elif _state.signum is None:  # the watcher has not read the byte yet
+        with _state.lock:
+            _state.signum = _state.signum or int(signum)
+    if _state.checking == 0 and not _state.raised:
+        _state.raised = True
+        _state.seen.set()
+        raise Interrupted(_state.signum)
+
+
+def _watch(fd: int):
+    """Read the signal numbers CPython's C handler writes to the wakeup fd; runs even while the
+    main thread is inside a native call, so a second signal always exits at once."""
+    wanted = {int(s) for s in STOP_SIGNALS}
+    try:
+        while True:
+            try:
+                data = os.read(fd, 64)
+            except InterruptedError:
+                continue
+            except OSError:
+                return
+            if not data:
+                return
+            for b in data:
+                if b in wanted and _first(b) >= 2:
+                    _hard_exit(b)
+    finally:
+        try:
+            os.close(fd)
+        except OSError:
+            pass
+
+
+@contextlib.contextmanager
+def handle_stop_signals():
+    """Install the stop handlers (SIGINT, SIGTERM) for the duration of a CLI's ``main``; the
+    previous handlers are restored afterwards (``main`` called in-process, e.g. by tests).
+    Outside the main thread nothing is installed."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    _state.reset()
+    old = {s: signal.getsignal(s) for s in STOP_SIGNALS}
+    r, w = os.pipe()
+    os.set_blocking(w, False)
+    try:
+        old_fd = signal.set_wakeup_fd(w, warn_on_full_buffer=False)
+        threading.Thread(target=_watch, args=(r,), name="dynmesh-stop-watcher", daemon=True).start()
+        _state.watched = True
+    except (ValueError, OSError):  # no wakeup fd here: the Python handler counts
+        old_fd = None
+        os.close(r)
+    for s in STOP_SIGNALS:
+        signal.signal(s, _on_signal)
+    _state.installed = True
+    try:
+        yield
+    finally:
+        _state.done.set()
+        for s, h in old.items():
+            signal.signal(s, h if h is not None else signal.SIG_DFL)
+        if old_fd is not None:
+            signal.set_wakeup_fd(old_fd)
+        os.close(w)  # the watcher reads EOF and ends
+        _state.installed = False
+
+
+def interruptible_main(fn):
+    """Decorate a CLI's ``main(argv)``: stop handlers installed while it runs; an
+    :class:`Interrupted` that reaches it (a signal outside a checking region, before anything
+    was written) becomes one line on stderr and exit code 130 / 143."""
+
+    @functools.wraps(fn)
+    def main(argv=None) -> int:
+        with handle_stop_signals():
+            try:
+                return fn(argv)
+            except Interrupted as e:
+                print(f"interrupted ({signal_name(e.signum)}) before any output was written; existing "
+                      "outputs are unchanged", file=sys.stderr)
+                return e.exit_code
+
+    return main

@@ -229,6 +229,7 @@ class ConversionInfo:
     recovered_frames: list = field(default_factory=list)
     coverage: list = field(default_factory=list)
     topology_events: list = field(default_factory=list)
+    first_frame: int = 0  # the result holds input frames first_frame.. (not 0 only when stopped early)
 
     @property
     def worst_coverage(self) -> float:
@@ -754,7 +755,7 @@ def _check_reach(TV, TF, V0, F0, limit: float, device, frame: int = 0):
 
 
 def to_fixed_topology(seq, strategy: str = DEFAULT_STRATEGY, template=None, device=None, progress: bool = False,
-                      **options) -> FixedTopologySequence:
+                      should_stop=None, **options) -> FixedTopologySequence:
     """Convert a varying-topology sequence into a fixed-topology one on ``template``'s faces.
 
     Args:
@@ -763,11 +764,15 @@ def to_fixed_topology(seq, strategy: str = DEFAULT_STRATEGY, template=None, devi
         template: ``(V, F)`` mesh or a mesh file path; default: the first frame.
         device: Warp device (default: Warp's default device).
         progress: show a tqdm progress bar over frames.
+        should_stop: a callable checked between frames (e.g. the CLI's Ctrl-C flag); once true
+            the conversion ends after the frames done so far (at least the first): the result
+            then holds frames 0..k-1 only.
         **options: strategy options (module docstring); unknown names raise TypeError.
 
     Returns:
         FixedTopologySequence with the template's faces, the input's fps and name, and a
-        ``conversion`` attribute (:class:`ConversionInfo`).
+        ``conversion`` attribute (:class:`ConversionInfo`); fewer frames than the input only
+        after ``should_stop``.
 
     Raises:
         MeshDataError: an empty/invalid frame or template (naming it), a template out of the
@@ -813,7 +818,10 @@ def to_fixed_topology(seq, strategy: str = DEFAULT_STRATEGY, template=None, devi
         from tqdm import tqdm
 
         order = tqdm(order, desc=f"convert ({strategy})", unit="frame")
+    lo = hi = None  # the converted frames lo..hi (contiguous: the key frame forward, then backward)
     for t in order:
+        if lo is not None and should_stop is not None and should_stop():
+            break
         t0 = time.perf_counter()
         if t == K - 1:
             conv.rewind(out[K], K, K + 1)
@@ -830,6 +838,9 @@ def to_fixed_topology(seq, strategy: str = DEFAULT_STRATEGY, template=None, devi
         if not np.isfinite(out[t]).all():
             raise RuntimeError(f"{where}: conversion ({strategy}) produced NaN/inf at frame {t}; "
                                "the input frame may be degenerate")
+        lo, hi = (t, t) if lo is None else (min(lo, t), max(hi, t))
+    if hasattr(order, "close"):
+        order.close()
     info.frame_seconds = seconds.tolist()
     info.coverage = coverage.tolist()
     info.reanchored_frames.sort()
@@ -838,7 +849,12 @@ def to_fixed_topology(seq, strategy: str = DEFAULT_STRATEGY, template=None, devi
     elif getattr(conv, "reinit_sources", None):
         info.recovered_frames = sorted((t, "template" if src < 0 else f"frame {src}")
                                        for t, src in conv.reinit_sources)
-    res = FixedTopologySequence(out, TF, fps=vseq.fps, name=vseq.name, source=vseq.source)
+    if lo is None:
+        lo, hi = 0, -1
+    info.first_frame = lo
+    if (lo, hi) != (0, T - 1):  # stopped early: the frames converted so far
+        info.frame_seconds, info.coverage = info.frame_seconds[lo:hi + 1], info.coverage[lo:hi + 1]
+    res = FixedTopologySequence(out[lo:hi + 1], TF, fps=vseq.fps, name=vseq.name, source=vseq.source)
     res.conversion = info
     return res
 
@@ -927,6 +943,10 @@ def _note(msg: str) -> None:
 _FILE_SUFFIXES = {".json", ".txt", ".csv", ".zip", ".npy", ".png", ".yaml", ".yml", ".h5", ".pkl"}
 
 
+from .cli import interruptible_main  # noqa: E402 (the CLI section's own import)
+
+
+@interruptible_main
 def main(argv=None) -> int:
     from .cli import Parser
 
@@ -952,9 +972,9 @@ def main(argv=None) -> int:
     p.add_argument("--overwrite", action="store_true",
                    help="replace an existing output (in a folder: only files this tool wrote; others are kept)")
     a = p.parse_args(argv)
-    from .cli import quiet_warp
+    from .cli import checking_stops, quiet_warp, stop_reason
 
-    quiet_warp()
+    quiet_warp(a.device)
     from .io import MESH_EXTENSIONS, load_sequence, save_sequence
     from .outputs import check_output
 
@@ -1009,12 +1029,24 @@ def main(argv=None) -> int:
                   "anyway (it can be simulated as it is)", file=sys.stderr)
             seq = seq.to_varying()
         seq.frames = _TimedFrames(seq.frames, device, a.strategy)
-        res = to_fixed_topology(seq, strategy=a.strategy, template=a.template, device=device,
-                                progress=True, **opts)
-        save_sequence(res, a.output, fmt=a.fmt, overwrite=a.overwrite)
+        with checking_stops():  # Ctrl-C / SIGTERM: stop between frames, write the frames done
+            res = to_fixed_topology(seq, strategy=a.strategy, template=a.template, device=device,
+                                    progress=True, should_stop=stop_reason, **opts)
+            reason = stop_reason() if res.num_frames < seq.num_frames else None
+            status = {"complete": not reason, "frames": res.num_frames, "input_frames": seq.num_frames,
+                      "first_frame": res.conversion.first_frame,
+                      "interrupted_by": reason, "strategy": a.strategy}
+            save_sequence(res, a.output, fmt=a.fmt, overwrite=a.overwrite, status=status)
     except (MeshDataError, FileNotFoundError, ValueError, TypeError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    if reason:
+        print(f"interrupted by {reason}: wrote {a.output} with input frames {res.conversion.first_frame}.."
+              f"{res.conversion.first_frame + res.num_frames - 1} of 0..{seq.num_frames - 1} (status: complete "
+              "false)", file=sys.stderr)
+        import signal
+
+        return 128 + int(getattr(signal, reason, signal.SIGINT))
     print(f"wrote {a.output}: {res.num_frames} frames x {res.num_vertices} vertices, {res.num_faces} faces")
     for line in conversion_summary(res.conversion):
         print(line)

@@ -112,7 +112,7 @@ def pair_frames_by_order(gt_names, pred_names):
 
 
 def evaluate_rows(gt_frames, rows: dict, frames, protocols=("dgmesh", "paper"), emd_frames=None,
-                  seed: int = 0, device=None, progress: bool = False, desc: str = "") -> dict:
+                  seed: int = 0, device=None, progress: bool = False, desc: str = "", should_stop=None) -> dict:
     """Compare each row's frames with the ground truth at the same frame index.
 
     gt_frames: indexable of (V, F) by frame index; rows: {key: indexable of (V, F)};
@@ -121,19 +121,31 @@ def evaluate_rows(gt_frames, rows: dict, frames, protocols=("dgmesh", "paper"), 
     (prediction), the same ground-truth samples for every row.
     Returns {key: {protocol: {'frames', 'cd', 'cd_gt_to_pred', 'cd_pred_to_gt', 'emd_frames',
     'emd'}}} with raw values (scene units; CD squared).
+    Frames are evaluated in order, every row's frame t before frame t + 1; ``should_stop``
+    (checked before each row's frame) ends it early: each row's ``frames`` then lists the
+    frames it has values for.
     """
     frames = [int(t) for t in frames]
     emd_set = set(frames if emd_frames is None else (int(t) for t in emd_frames))
     out = {k: {p: {"frames": frames, "cd": [], "cd_gt_to_pred": [], "cd_pred_to_gt": [],
                    "emd_frames": [], "emd": [], "degenerate_frames": []}
                 for p in protocols} for k in rows}
-    jobs = [(k, t) for k in rows for t in frames]
+    jobs = [(k, t) for t in frames for k in rows]
     it = jobs
     if progress:
         from tqdm import tqdm
 
         it = tqdm(jobs, desc=f"metrics {desc}".strip(), unit="frame")
+    done = {k: [] for k in rows}
     for k, t in it:
+        if should_stop is not None and should_stop():
+            if hasattr(it, "close"):
+                it.close()
+            for kk in out:
+                for p in protocols:
+                    out[kk][p]["frames"] = list(done[kk])
+            break
+        done[k].append(t)
         for p in protocols:
             r = M.evaluate_mesh_pair(gt_frames[t], rows[k][t], p, seed=seed + 2 * t, device=device,
                                      emd=t in emd_set, source=f"{desc} {k} frame {t}".strip())
@@ -156,7 +168,7 @@ def evaluate_rows(gt_frames, rows: dict, frames, protocols=("dgmesh", "paper"), 
 
 def evaluate_folders(gt_dir, pred_dir, protocols=("dgmesh", "paper"), frame_stride: int = 1,
                      emd: bool = True, seed: int = 0, device=None, progress: bool = False,
-                     pair: str = "index") -> dict:
+                     pair: str = "index", should_stop=None) -> dict:
     """Compare a folder of predicted meshes with a folder of ground-truth meshes, pairing files
     by the integer frame index in their names (``pair="index"``) or by position in index order
     (``pair="order"``). Returns {'pairs': [(index, gt, pred)], 'results':
@@ -183,7 +195,7 @@ def evaluate_folders(gt_dir, pred_dir, protocols=("dgmesh", "paper"), frame_stri
     idx = [p[0] for p in pairs]
     res = evaluate_rows(_Lazy(1), {"prediction": _Lazy(2)}, idx, protocols,
                         emd_frames=None if emd else [], seed=seed, device=device,
-                        progress=progress, desc=Path(pred_dir).name)
+                        progress=progress, desc=Path(pred_dir).name, should_stop=should_stop)
     return {"pairs": pairs, "results": res["prediction"]}
 
 
@@ -204,8 +216,12 @@ def evaluate_scene(gt_path, input_path=None, num_frames: int | None = None, reso
                    noise: float = 0.0, strategies=None, protocols=("dgmesh", "paper"),
                    frame_stride: int = 1, emd_stride: int | None = None, emd: bool = True,
                    seed: int = 0, device=None, progress: bool = True, options=None,
-                   frame_order: str = "stored") -> dict:
+                   frame_order: str = "stored", should_stop=None) -> dict | None:
     """Remesh (or load) one scene, convert it with every strategy, evaluate every row.
+
+    should_stop: checked between frames (conversion, metrics; the CLI's Ctrl-C): stopped before
+    the metrics it returns None; during them, the rows' frames so far, with ``"interrupted":
+    true``. Re-meshing has no frame boundaries here: a CLI's signal raises there (cli.raising_stops).
 
     frame_order: "text_sorted" undoes a text sort of the ground truth's frames (see io.load_sequence).
 
@@ -220,11 +236,14 @@ def evaluate_scene(gt_path, input_path=None, num_frames: int | None = None, reso
     timing = {}
     t0 = time.perf_counter()
     gt = _ground_truth(str(gt_path), num_frames, frame_order)
+    stopped = should_stop if should_stop is not None else (lambda: False)
     if input_path is None:
+        from .cli import raising_stops
         from .remesh import remesh_sequence
 
-        varying = remesh_sequence(gt, resolution=resolution, noise=noise, seed=seed, device=device,
-                                  progress=progress)
+        with raising_stops():
+            varying = remesh_sequence(gt, resolution=resolution, noise=noise, seed=seed, device=device,
+                                      progress=progress)
     else:
         from .io import load_sequence
 
@@ -239,9 +258,13 @@ def evaluate_scene(gt_path, input_path=None, num_frames: int | None = None, reso
     rows = {"varying": varying.frames}
     conv_info = {}
     for s in strategies:
+        if stopped():
+            return None
         t0 = time.perf_counter()
-        fixed = to_fixed_topology(varying, strategy=s, device=device, progress=progress,
+        fixed = to_fixed_topology(varying, strategy=s, device=device, progress=progress, should_stop=should_stop,
                                   **options.get(s, {}))
+        if fixed.num_frames < varying.num_frames:
+            return None
         timing[f"convert_{s}_s"] = time.perf_counter() - t0
         rows[s] = [fixed.frame(t) for t in range(fixed.num_frames)]
         info = getattr(fixed, "conversion", None)
@@ -256,8 +279,10 @@ def evaluate_scene(gt_path, input_path=None, num_frames: int | None = None, reso
         emd_frames = frames
     gt_frames = [gt.frame(t) for t in range(gt.num_frames)]
     t0 = time.perf_counter()
+    if stopped():
+        return None
     res = evaluate_rows(gt_frames, rows, frames, protocols, emd_frames, seed=seed, device=device,
-                        progress=progress, desc=gt.name)
+                        progress=progress, desc=gt.name, should_stop=should_stop)
     timing["metrics_s"] = time.perf_counter() - t0
     nv = [len(v) for v, _ in varying.frames]
     return {
@@ -267,6 +292,8 @@ def evaluate_scene(gt_path, input_path=None, num_frames: int | None = None, reso
         "input_vertices_min_max": [int(min(nv)), int(max(nv))],
         "frames": frames, "emd_frames": emd_frames, "rows": res, "conversion": conv_info,
         "timing": timing,
+        # stopped during the metrics: some row lacks some of the frames
+        "interrupted": any(len(res[k][p]["frames"]) < len(frames) for k in res for p in protocols),
     }
 
 
@@ -391,17 +418,27 @@ EVAL_OUTPUTS = ("table_*.md", "table_*.csv", "chart_*.png", "results.json", "com
 EMD_CPU_S_8192 = 96.0
 
 
-def write_outputs(out_dir, scenes: list, protocols, config: dict) -> dict:
+def _frames_done(scene: dict) -> str:
+    """How many frames a scene's rows were evaluated on (a range when an interruption left them uneven)."""
+    n = sorted({len(p["frames"]) for r in scene["rows"].values() for p in r.values()}) or [len(scene["frames"])]
+    return str(n[0]) if len(n) == 1 else f"{n[0]}-{n[-1]}"
+
+
+def write_outputs(out_dir, scenes: list, protocols, config: dict, interrupted: dict | None = None) -> dict:
     """Write the tables, charts and results.json into ``out_dir`` (each file atomically). The
     CLI passes the temporary folder of an :class:`~dynmesh_warp.outputs.OutputFolder`, renamed
-    onto ``--out`` at the end (or after an interruption, with the scenes done so far)."""
+    onto ``--out`` at the end (or after an interruption, with the scenes done so far).
+    ``interrupted``: what was left out (results.json's ``"interrupted"``, a line in the tables)."""
     out_dir = Path(out_dir)
     summaries = {p: summarize(scenes, p) for p in protocols}
     strides = {(tuple(s["frames"]), tuple(s["emd_frames"])) for s in scenes}
     note = "; ".join(
-        f"{s['scene']}: CD on {len(s['frames'])} of {s['num_frames']} frames "
+        f"{s['scene']}: CD on {_frames_done(s)} of {s['num_frames']} frames "
         f"(stride {config.get('frame_stride', 1)}), EMD on {len(s['emd_frames'])} frames"
         for s in scenes) if len(strides) else ""
+    if interrupted:
+        note = (f"INTERRUPTED by {interrupted['signal']}: partial results ({interrupted['note']})"
+                + (f"; {note}" if note else ""))
     for p in protocols:
         atomic_write_bytes(out_dir / f"table_{p}.md", format_markdown(summaries[p], p, note).encode())
         atomic_write_bytes(out_dir / f"table_{p}.csv", format_csv(summaries[p]).encode())
@@ -410,7 +447,7 @@ def write_outputs(out_dir, scenes: list, protocols, config: dict) -> dict:
            "device": str(config.get("device")), "units": {"cd": "squared scene units (raw)",
            "emd": "scene units (raw)", "table_cd_scale": M.CD_SCALE, "table_emd_scale": M.EMD_SCALE},
            "protocols": {p: M.PROTOCOLS[p].description for p in protocols},
-           "summary": summaries, "scenes": scenes}
+           "summary": summaries, "scenes": scenes, "interrupted": interrupted}
     atomic_write_json(out_dir / "results.json", doc)
     return doc
 
@@ -489,6 +526,10 @@ def _emd_estimate(a, device: str) -> str | None:
             "; faster: --device cuda (a GPU), --emd-stride K (EMD on every K-th frame), --no-emd")
 
 
+from .cli import interruptible_main  # noqa: E402 (the CLI section's own import)
+
+
+@interruptible_main
 def main(argv=None) -> int:
     from .cli import Parser
 
@@ -521,9 +562,11 @@ def main(argv=None) -> int:
     ap.add_argument("--overwrite", action="store_true",
                     help="replace an existing --out folder (only files this tool wrote; others are kept)")
     a = ap.parse_args(argv)
-    from .cli import quiet_warp
+    import signal
 
-    quiet_warp()
+    from .cli import Interrupted, checking_stops, quiet_warp, signal_name, stop_reason
+
+    quiet_warp(a.device)
     progress = not a.no_progress
     try:
         from .outputs import OutputFolder, check_output
@@ -536,12 +579,24 @@ def main(argv=None) -> int:
         if note:
             print(note, file=sys.stderr)
         if a.compare:
-            r = evaluate_folders(a.compare[0], a.compare[1], a.protocol, a.frame_stride, pair=a.pair,
-                                 emd=not a.no_emd, seed=a.seed, device=device, progress=progress)
-            with OutputFolder(a.out, overwrite=a.overwrite) as tmp:
-                atomic_write_json(tmp / "compare.json", {
-                    "ground_truth": a.compare[0], "prediction": a.compare[1], "device": device,
-                    "pairs": r["pairs"], "results": r["results"]})
+            with checking_stops():  # Ctrl-C / SIGTERM: stop between frames, write the frames done
+                r = evaluate_folders(a.compare[0], a.compare[1], a.protocol, a.frame_stride, pair=a.pair,
+                                     emd=not a.no_emd, seed=a.seed, device=device, progress=progress,
+                                     should_stop=stop_reason)
+                reason = stop_reason()
+                done = len(r["results"][a.protocol[0]]["frames"])
+                if reason and not done:
+                    raise Interrupted(getattr(signal, reason))
+                with OutputFolder(a.out, overwrite=a.overwrite) as tmp:
+                    atomic_write_json(tmp / "compare.json", {
+                        "ground_truth": a.compare[0], "prediction": a.compare[1], "device": device,
+                        "pairs": r["pairs"], "results": r["results"],
+                        "interrupted": {"signal": reason, "frames_done": done, "pairs": len(r["pairs"])}
+                        if reason else None})
+            if reason:
+                print(f"interrupted by {reason} after {done} of {len(r['pairs'])} frame pairs: wrote "
+                      f"{Path(a.out) / 'compare.json'} with those (\"interrupted\" set)", file=sys.stderr)
+                return 128 + int(getattr(signal, reason))
             for p in a.protocol:
                 d = r["results"][p]
                 emd = "–" if d["emd_mean"] is None else f"{d['emd_mean'] / M.EMD_SCALE:.4f}"
@@ -555,18 +610,43 @@ def main(argv=None) -> int:
                   "frame_order": a.frame_order}
         scenes = []
         folder = OutputFolder(a.out, overwrite=a.overwrite)
-        with folder as tmp:
+        reason, info = None, None
+        with checking_stops(), folder as tmp:  # Ctrl-C / SIGTERM: stop between frames, keep what is done
             for i, s in enumerate(a.scenes):
                 t0 = time.perf_counter()
-                scenes.append(evaluate_scene(
-                    s, a.inputs[i] if a.inputs else None, num_frames=a.num_frames or None,
-                    resolution=a.resolution, noise=a.noise, strategies=a.strategies,
-                    protocols=a.protocol, frame_stride=a.frame_stride, emd_stride=a.emd_stride or None,
-                    emd=not a.no_emd, seed=a.seed, device=device, progress=progress, frame_order=a.frame_order))
-                scenes[-1]["timing"]["total_s"] = time.perf_counter() - t0
+                try:
+                    scene = evaluate_scene(
+                        s, a.inputs[i] if a.inputs else None, num_frames=a.num_frames or None,
+                        resolution=a.resolution, noise=a.noise, strategies=a.strategies,
+                        protocols=a.protocol, frame_stride=a.frame_stride, emd_stride=a.emd_stride or None,
+                        emd=not a.no_emd, seed=a.seed, device=device, progress=progress,
+                        frame_order=a.frame_order, should_stop=stop_reason)
+                except Interrupted as e:  # in a stage without frame boundaries (re-meshing)
+                    if not scenes:
+                        raise
+                    scene, reason = None, signal_name(e.signum)
+                reason = reason or stop_reason()
+                if scene is not None:
+                    scene["timing"]["total_s"] = time.perf_counter() - t0
+                    scenes.append(scene)
+                if reason:
+                    if not scenes:  # nothing evaluated: no output, the old one stays
+                        raise Interrupted(getattr(signal, reason))
+                    partial = scene is not None and scene["interrupted"]
+                    info = {"signal": reason,
+                            "complete_scenes": [sc["scene"] for sc in scenes if not sc["interrupted"]],
+                            "partial_scene": scene["scene"] if partial else None,
+                            "not_evaluated": [str(x) for x in a.scenes[i + (1 if scene is not None else 0):]],
+                            "note": (f"{scene['scene']}: the frames evaluated before the stop" if partial else
+                                     f"stopped before the metrics of {s}" if scene is None else f"stopped after {s}")}
+                    break
                 write_outputs(tmp, scenes, a.protocol, config)  # partial results after each scene
                 folder.keep_on_error = True  # an interruption later keeps the scenes done so far
-            doc = write_outputs(tmp, scenes, a.protocol, config)
+            doc = write_outputs(tmp, scenes, a.protocol, config, interrupted=info)
+        if reason:
+            print(f"interrupted by {reason}: wrote {a.out} with partial results ({info['note']}; "
+                  f"results.json \"interrupted\" lists what is missing)", file=sys.stderr)
+            return 128 + int(getattr(signal, reason))
         for p in a.protocol:
             print(format_markdown(doc["summary"][p], p))
         return 0

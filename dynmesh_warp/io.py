@@ -105,6 +105,7 @@ manifest ``.dynmesh_outputs.json`` lists it), otherwise :class:`FileExistsError`
 from __future__ import annotations
 
 import errno
+import json
 import os
 import re
 import tempfile
@@ -735,16 +736,20 @@ def _atomic_file(path: Path, write) -> None:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{path.suffix}",
                                dir=path.parent)
     os.close(fd)
-    try:
-        write(Path(tmp))
-        os.chmod(tmp, 0o666 & ~_current_umask())  # mkstemp makes 0600: give the user's umask
-        os.replace(tmp, path)
-    except BaseException:
+    from .outputs import _COMMIT, temporary
+
+    with temporary(tmp):  # a hard exit (second Ctrl-C) removes it
         try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+            write(Path(tmp))
+            with _COMMIT:
+                os.chmod(tmp, 0o666 & ~_current_umask())  # mkstemp makes 0600: give the user's umask
+                os.replace(tmp, path)
+        except BaseException:
+            try:
+                os.unlink(tmp)
+            except OSError:
+                pass
+            raise
 
 
 def write_mesh(path, V, F) -> None:
@@ -759,7 +764,7 @@ def write_mesh(path, V, F) -> None:
     _atomic_file(path, lambda tmp: _write_mesh_file(tmp, V, F))
 
 
-def _save_npz(seq, path: Path) -> None:
+def _save_npz(seq, path: Path, status: dict | None = None) -> None:
     if isinstance(seq, FixedTopologySequence):
         arrays = {"V": seq.V, "F": seq.F}
     else:
@@ -773,6 +778,8 @@ def _save_npz(seq, path: Path) -> None:
         }
     arrays["fps"] = np.asarray(seq.fps, dtype=np.float32)
     arrays["name"] = np.asarray(str(seq.name))
+    if status is not None:
+        arrays["status"] = np.asarray(json.dumps(status))
 
     def write(tmp: Path):
         with open(tmp, "wb") as fh:  # a file object keeps numpy from appending ".npz"
@@ -783,16 +790,16 @@ def _save_npz(seq, path: Path) -> None:
     _atomic_file(path, write)
 
 
-def _save_folder(seq, folder: Path, fmt: str, overwrite: bool = False) -> None:
+def _save_folder(seq, folder: Path, fmt: str, overwrite: bool = False, status: dict | None = None) -> None:
     from .outputs import OutputFolder
 
-    with OutputFolder(folder, overwrite=overwrite) as tmp:
+    with OutputFolder(folder, overwrite=overwrite, status=status) as tmp:
         for t in range(seq.num_frames):
             V, F = seq.frame(t)
             _write_mesh_file(tmp / f"frame_{t:04d}.{fmt}", V, F)
 
 
-def save_sequence(seq, path, fmt: str | None = None, overwrite: bool = False) -> None:
+def save_sequence(seq, path, fmt: str | None = None, overwrite: bool = False, status: dict | None = None) -> None:
     """Save a sequence atomically to a ``.npz`` file or a folder of per-frame meshes.
 
     Args:
@@ -807,6 +814,10 @@ def save_sequence(seq, path, fmt: str | None = None, overwrite: bool = False) ->
     by this tool (listed in its manifest, see :mod:`dynmesh_warp.outputs`); else
     :class:`FileExistsError`, unless ``overwrite`` (then the files this tool did not write
     are kept in the new folder).
+
+    ``status``: a JSON-ready dict saved with the sequence (the npz's ``status`` array, JSON
+    text; a folder's manifest, under ``"status"``), e.g. ``convert``'s frame counts and whether it
+    was interrupted. Readers ignore it.
     """
     if not isinstance(seq, (FixedTopologySequence, VaryingTopologySequence)):
         raise TypeError(f"expected a FixedTopologySequence or VaryingTopologySequence, "
@@ -816,7 +827,7 @@ def save_sequence(seq, path, fmt: str | None = None, overwrite: bool = False) ->
     if path.suffix.lower() == ".npz":
         if fmt not in (None, "npz"):
             raise ValueError(f"{path}: fmt={fmt!r} conflicts with the .npz extension")
-        _save_npz(seq, path)
+        _save_npz(seq, path, status)
         return
     if fmt == "npz":
         raise ValueError(f"{path}: an npz output path must end in .npz")
@@ -825,4 +836,4 @@ def save_sequence(seq, path, fmt: str | None = None, overwrite: bool = False) ->
             f"{path}: to save a folder of frames give fmt='ply' or fmt='obj' "
             f"(got {fmt!r}); use a .npz path for a single file"
         )
-    _save_folder(seq, path, fmt, overwrite)
+    _save_folder(seq, path, fmt, overwrite, status)

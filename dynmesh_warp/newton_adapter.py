@@ -468,12 +468,14 @@ def build_newton_world(cfg, device=None, sequence=None, **overrides) -> NewtonWo
 
 
 def run_newton_scene(cfg, device=None, steps: int | None = None, output=None, progress: bool = True,
-                     log=print, overwrite: bool | str = "ours") -> dict:
+                     log=print, overwrite: bool | str = "ours", stop=None) -> dict:
     """Run a ``newton:`` scene headless; write ``trajectories.npz`` (time, body_q (K, B, 7)) and
-    ``summary.json`` atomically; return the summary (steps/s, final body poses)."""
+    ``summary.json`` atomically; return the summary (steps/s, final body poses). ``stop``: as in
+    :func:`~dynmesh_warp.run.run_scene` (the run ends at that step, ``"interrupted": true``)."""
     import platform  # noqa: PLC0415
     import time  # noqa: PLC0415
 
+    from .cli import checking_stops  # noqa: PLC0415
     from .outputs import OutputFolder, atomic_write_json, atomic_write_npz  # noqa: PLC0415
     from .run import check_run_output, rate_text, steps_per_second, timed_loop  # noqa: PLC0415
 
@@ -494,10 +496,14 @@ def run_newton_scene(cfg, device=None, steps: int | None = None, output=None, pr
         times.append(world.time)
         poses.append(world.body_transforms())
 
-    sim_s = timed_loop(world, steps - warm, cfg.run.record_every, record, progress)
+    with checking_stops():  # a signal from here on stops at a step boundary (cli.py)
+        sim_s, reached = timed_loop(world, steps, cfg.run.record_every, record, progress, start=warm, stop=stop)
+        reason = stop() if (stop is not None and reached < steps) else None
+        if reason and (reached - warm) % cfg.run.record_every:
+            record()  # the state where it stopped
     final = world.body_transforms()
     finite = bool(np.isfinite(final).all())
-    sps = steps_per_second(steps - warm, sim_s)
+    sps = steps_per_second(reached - warm, sim_s)
     summary = {
         "scene": cfg.name,
         "engine": "newton",
@@ -513,17 +519,22 @@ def run_newton_scene(cfg, device=None, steps: int | None = None, output=None, pr
         "dt": world.dt,
         "substeps": world.substeps,
         "steps": steps,
+        "step_reached": reached,
+        "interrupted": bool(reason),
+        "interrupted_by": (reason if isinstance(reason, str) else "stop()") if reason else None,
         "sim_time_s": world.time,
         "setup_and_compile_s": build_s,
-        "timed_steps": steps - warm,
+        "timed_steps": reached - warm,
         "timed_wall_s": sim_s,
         "steps_per_second": sps,
         "final": {"finite": finite, "body_q": final, "body_labels": world.body_labels()},
     }
-    with OutputFolder(out, overwrite=bool(overwrite)) as tmp:
+    with checking_stops(), OutputFolder(out, overwrite=bool(overwrite)) as tmp:
         atomic_write_npz(tmp / "trajectories.npz", time=np.asarray(times), body_q=np.asarray(poses))
         atomic_write_json(tmp / "summary.json", summary)
     summary["output"] = str(out)
+    if reason:
+        return summary  # the CLI says what was written
     log(f"{cfg.name}: {steps} steps on {summary['device']} (Newton {world.solver_name}"
         f"{', CUDA graph' if world.use_graph else ''}): "
         + rate_text(sps) + f"{world.model.body_count} bodies; "

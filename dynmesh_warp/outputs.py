@@ -10,24 +10,66 @@
   renamed into place at the end; an existing folder is replaced keeping every entry this tool
   did not write (the folder's manifest :data:`MANIFEST` lists what it wrote), so
   ``--overwrite`` never deletes the user's files. On an error the old folder stays as it was.
+- The temporaries of writes in progress are registered, so a hard exit (a second Ctrl-C,
+  :mod:`dynmesh_warp.cli`) removes them (:func:`abandon_temporaries`) without cutting a
+  rename into place in two.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
 import shutil
 import tempfile
+import threading
 from pathlib import Path
 
 import numpy as np
 
 __all__ = ["atomic_write_bytes", "atomic_write_json", "atomic_write_npz", "atomic_path", "OutputError",
-           "OutputExistsError", "check_output", "OutputFolder", "MANIFEST", "read_manifest", "apply_umask"]
+           "OutputExistsError", "check_output", "OutputFolder", "MANIFEST", "read_manifest", "apply_umask",
+           "add_to_manifest", "temporary", "abandon_temporaries"]
 
 #: name of the manifest in every folder this tool writes: JSON {"tool": ..., "files": [names]}
 MANIFEST = ".dynmesh_outputs.json"
+
+
+#: temporary files and folders of writes in progress (path -> is a folder), for a hard exit
+_TEMPORARIES: dict[str, bool] = {}
+#: held while a temporary is renamed into place (or removed), so a hard exit never cuts it in two
+_COMMIT = threading.RLock()
+
+
+@contextlib.contextmanager
+def temporary(path, folder: bool = False):
+    """Register ``path`` (a temporary file or folder being written) for the duration of the
+    block; the block's own clean-up still removes it. Used by every atomic writer."""
+    key = str(path)
+    _TEMPORARIES[key] = folder
+    try:
+        yield
+    finally:
+        _TEMPORARIES.pop(key, None)
+
+
+def abandon_temporaries(timeout: float = 2.0) -> None:
+    """Remove every registered temporary (the process is about to exit at once); a rename into
+    place in progress is let finish first (up to ``timeout`` seconds)."""
+    got = _COMMIT.acquire(timeout=timeout)
+    try:
+        for p, folder in list(_TEMPORARIES.items()):
+            if folder:
+                shutil.rmtree(p, ignore_errors=True)
+            else:
+                try:
+                    os.unlink(p)
+                except OSError:
+                    pass
+    finally:
+        if got:
+            _COMMIT.release()
 
 
 class OutputError(ValueError):
@@ -64,14 +106,20 @@ class atomic_path:
         fd, tmp = tempfile.mkstemp(prefix=f".{self.path.stem}.", suffix=".tmp" + self.suffix, dir=self.path.parent)
         os.close(fd)
         self.tmp = Path(tmp)
+        self._reg = temporary(self.tmp)
+        self._reg.__enter__()
         return self.tmp
 
     def __exit__(self, exc_type, exc, tb):
-        if exc_type is None:
-            apply_umask(self.tmp)  # mkstemp makes 0600; give the usual permissions
-            os.replace(self.tmp, self.path)
-        else:
-            self.tmp.unlink(missing_ok=True)
+        with _COMMIT:
+            try:
+                if exc_type is None:
+                    apply_umask(self.tmp)  # mkstemp makes 0600; give the usual permissions
+                    os.replace(self.tmp, self.path)
+                else:
+                    self.tmp.unlink(missing_ok=True)
+            finally:
+                self._reg.__exit__(None, None, None)
         return False
 
 
@@ -137,6 +185,20 @@ def read_manifest(folder) -> set[str]:
         return {str(n) for n in doc.get("files", []) if isinstance(n, str) and "/" not in n}
     except (OSError, ValueError, AttributeError):
         return set()
+
+
+def add_to_manifest(folder, name: str) -> None:
+    """List ``name`` (a file just written into ``folder`` during a run, e.g. a checkpoint) in the
+    folder's manifest, so the folder stays one this tool wrote (``--overwrite`` rules)."""
+    folder = Path(folder)
+    try:
+        doc = json.loads((folder / MANIFEST).read_text())
+        if not isinstance(doc, dict):
+            doc = {}
+    except (OSError, ValueError):
+        doc = {}
+    files = sorted(read_manifest(folder) | {name})
+    atomic_write_json(folder / MANIFEST, {**doc, "tool": "dynmesh_warp", "files": files})
 
 
 def _foreign(folder: Path) -> list[str]:
@@ -228,12 +290,15 @@ class OutputFolder:
     written. An existing ``path`` is replaced only when everything in it was written by this
     tool, or with ``overwrite=True``, which keeps the entries this tool did not write (moved
     into the new folder). On an exception nothing changes (unless ``keep_on_error`` was set,
-    e.g. after partial results worth keeping) and the temporary folder is removed."""
+    e.g. after partial results worth keeping) and the temporary folder is removed.
+    ``status``: a JSON-ready dict stored in the manifest under ``"status"`` (e.g. an
+    interrupted conversion's frame counts)."""
 
-    def __init__(self, path, overwrite: bool = False, keep_on_error: bool = False):
+    def __init__(self, path, overwrite: bool = False, keep_on_error: bool = False, status: dict | None = None):
         self.path = _real(path)
         self.overwrite = bool(overwrite)
         self.keep_on_error = keep_on_error
+        self.status = status
         self.tmp = None
 
     def __enter__(self) -> Path:
@@ -241,18 +306,24 @@ class OutputFolder:
         if not parent.is_dir():
             parent.mkdir(parents=True, exist_ok=True)  # with the umask's permissions
         self.tmp = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.tmp-", dir=parent))
+        self._reg = temporary(self.tmp, folder=True)
+        self._reg.__enter__()
         apply_umask(self.tmp, folder=True)  # mkdtemp makes 0700
         return self.tmp
 
     def __exit__(self, exc_type, exc, tb):
-        if exc_type is None or self.keep_on_error:
+        with _COMMIT:
             try:
-                self.commit()
-            except BaseException:
-                shutil.rmtree(self.tmp, ignore_errors=True)
-                raise
-        else:
-            shutil.rmtree(self.tmp, ignore_errors=True)
+                if exc_type is None or self.keep_on_error:
+                    try:
+                        self.commit()
+                    except BaseException:
+                        shutil.rmtree(self.tmp, ignore_errors=True)
+                        raise
+                else:
+                    shutil.rmtree(self.tmp, ignore_errors=True)
+            finally:
+                self._reg.__exit__(None, None, None)
         return False
 
     def commit(self):
@@ -270,7 +341,8 @@ class OutputFolder:
             if clash:
                 raise OutputExistsError(f"{target}: holds {clash[0]}, which this tool did not write and "
                                         "would replace")
-        atomic_write_json(tmp / MANIFEST, {"tool": "dynmesh_warp", "files": written})
+        atomic_write_json(tmp / MANIFEST, {"tool": "dynmesh_warp", "files": written,
+                                           **({"status": self.status} if self.status is not None else {})})
         if not keep and not os.path.lexists(target):
             os.replace(tmp, target)
             return

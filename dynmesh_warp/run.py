@@ -2,7 +2,9 @@
 
 With no scene file the built-in default scene runs (a deforming bowl with five spheres).
 Writes ``trajectories.npz`` and ``summary.json`` (atomically) to the output folder and prints
-steps/s.
+steps/s. ``--checkpoint-every N`` also keeps ``checkpoint.npz`` there (every N steps), which
+``--resume`` continues from. Ctrl-C or SIGTERM stops at the next step and writes what was done
+(``"interrupted": true``; docs/scene.md#interrupted-runs).
 """
 
 from __future__ import annotations
@@ -10,12 +12,15 @@ from __future__ import annotations
 import argparse
 import math
 import platform
+import signal
 import sys
 import time
 import warnings
 from pathlib import Path
 
 import numpy as np
+
+from .cli import interruptible_main
 
 __all__ = ["main", "run_scene"]
 
@@ -45,6 +50,12 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.add_argument("--no-work-limit", action="store_true",
                    help="lift the work budget (physics.max_substeps, run.max_total_substeps)")
+    p.add_argument("--checkpoint-every", type=int, metavar="N",
+                   help="write OUTPUT/checkpoint.npz every N steps and where an interrupted run stops "
+                        "(0: none; with --resume: the checkpoint's interval)")
+    p.add_argument("--resume", metavar="CHECKPOINT",
+                   help="continue the run from a checkpoint.npz (same scene and options); the trajectory "
+                        "is the uninterrupted run's (bit for bit on the CPU)")
     return p
 
 
@@ -58,13 +69,23 @@ def _signed_distances(world) -> np.ndarray:
 
 def run_scene(cfg, device=None, steps: int | None = None, collider: str | None = None,
               rebuild_every: str | None = None, output: str | Path | None = None,
-              progress: bool = True, log=print, overwrite: bool | str = "ours") -> dict:
+              progress: bool = True, log=print, overwrite: bool | str = "ours",
+              checkpoint_every: int | None = None, resume: str | Path | None = None, stop=None) -> dict:
     """Build and run a scene; write outputs; return the summary dict.
 
     The output folder is checked before the work (:func:`dynmesh_warp.outputs.check_output`)
     and written atomically at the end; ``overwrite="ours"`` (default) replaces an existing
     folder only when everything in it was written by this tool, ``True`` replaces what this
-    tool wrote and keeps the rest."""
+    tool wrote and keeps the rest.
+
+    checkpoint_every: write ``<output>/checkpoint.npz`` (:mod:`dynmesh_warp.checkpoint`) every
+    that many steps, and at the step where a stopped run ends (0 / None: none). resume: a
+    checkpoint to continue from (checked against the scene); the run goes on to ``steps`` in all
+    and writes the whole trajectory, equal to the uninterrupted run's (bit for bit on the CPU);
+    its checkpoint interval is kept unless ``checkpoint_every`` is given. stop: a callable
+    checked between steps (at least every ~0.05 s of stepping): once it returns a true value
+    (e.g. ``"SIGINT"``) the run ends at that step and writes what it has, with
+    ``"interrupted": true`` and ``"step_reached"`` in the summary."""
     if getattr(cfg, "newton", None) is not None:  # bodies simulated by Newton (docs/newton.md)
         from .newton_adapter import run_newton_scene
 
@@ -72,97 +93,154 @@ def run_scene(cfg, device=None, steps: int | None = None, collider: str | None =
             warnings.warn("--collider / --rebuild-every choose the built-in world's collider; a scene "
                           "with a newton: section uses Newton's collision pipeline, so they are ignored",
                           stacklevel=2)
+        if checkpoint_every or resume is not None:
+            from .checkpoint import CheckpointError
 
+            raise CheckpointError("--checkpoint-every / --resume: not available for a scene with a newton: section "
+                                  "(the Newton solver's state is not saved)")
         return run_newton_scene(cfg, device=device, steps=steps, output=output, progress=progress, log=log,
-                                overwrite=overwrite)
+                                overwrite=overwrite, stop=stop)
     import warp as wp
 
-    from .outputs import OutputFolder, atomic_write_json, atomic_write_npz
+    from .checkpoint import CHECKPOINT_NAME, Checkpoint, CheckpointError, load_checkpoint, save_checkpoint
+    from .cli import checking_stops
+    from .outputs import OutputFolder, add_to_manifest, atomic_write_json, atomic_write_npz
     from .scene import build_world
 
-    out = check_run_output(cfg, output, overwrite)
+    ckpt = resume
+    if resume is not None and not isinstance(resume, Checkpoint):
+        ckpt = load_checkpoint(resume)  # the file on its own, before any work
+    resume = None if ckpt is None else ckpt.path
+    out = check_run_output(cfg, output, overwrite, resume=resume)
     t_build = time.perf_counter()
     if steps is None:
-        steps = run_steps(cfg)
+        steps = int(ckpt.meta["steps"]) if ckpt is not None else run_steps(cfg)
+    if ckpt is not None and ckpt.step >= steps:
+        raise CheckpointError(f"--resume {resume}: the checkpoint is at step {ckpt.step:,}, and this run has "
+                              f"{steps:,} steps; give more (--steps, --duration, run.steps) to continue it")
+    every = int(ckpt.checkpoint_every if (ckpt is not None and checkpoint_every is None) else (checkpoint_every or 0))
     check_total_work(cfg, steps, cfg.physics.substeps)  # before loading: the configured sub-steps
     world = build_world(cfg, device=device, collider=collider, rebuild_every=rebuild_every)
     p = world.model.params
     check_total_work(cfg, steps, world.substeps)  # with the sub-step rule's count
-    # warm-up: compile kernels (and capture the CUDA graph) outside the timed loop
-    world.step()
-    wp.synchronize_device(world.device)
-    build_s = time.perf_counter() - t_build
     rec = cfg.run.record_every
     times, pos, vel = [], [], []
+    contact_samples, start = 0, 0
+    if ckpt is not None:
+        ckpt.restore(world)  # checked against the scene first (CheckpointError naming the field)
+        times, pos, vel = ckpt.times, ckpt.positions, ckpt.velocities
+        contact_samples, start = ckpt.contact_samples, ckpt.step
+    marks = {"record": None, "checkpoint": None}  # the last step recorded / checkpointed
 
-    def record():
+    def step_now() -> int:
+        return world.substep_count // world.substeps  # steps since the run's start (restored on resume)
+
+    def record(count_contacts: bool = True):
+        nonlocal contact_samples
         times.append(world.time)
         pos.append(world.sphere_positions())
         vel.append(world.sphere_velocities())
+        marks["record"] = step_now()
         bad = np.flatnonzero(~(np.isfinite(pos[-1]).all(axis=1) & np.isfinite(vel[-1]).all(axis=1)))
         if bad.size:
-            i, step = int(bad[0]), int(round((world.time - world.t0) / p.dt))
+            i, step = int(bad[0]), marks["record"]
             raise NonFiniteStateError(
                 f"sphere {i} has a non-finite state at step {step} (t = {world.time:.4g} s; checked every "
                 f"run.record_every = {rec} steps): position {pos[-1][i].tolist()}, velocity {vel[-1][i].tolist()}"
                 f"{f' ({bad.size} spheres)' if bad.size > 1 else ''}; stopped, {out} keeps its previous contents")
+        if count_contacts:
+            contact_samples += int((world.contacts.face.numpy() >= 0).sum())
 
-    contact_samples = 0
+    def checkpoint(step: int):
+        st = world.checkpoint_state()
+        if not (np.isfinite(st["sphere_pos"]).all() and np.isfinite(st["sphere_vel"]).all()):
+            raise NonFiniteStateError(f"non-finite sphere state at step {step}: no checkpoint written there; "
+                                      f"{out / CHECKPOINT_NAME} keeps the last good one")
+        out.mkdir(parents=True, exist_ok=True)
+        save_checkpoint(out / CHECKPOINT_NAME, world, scene=cfg.name, step=step, steps=steps,
+                        checkpoint_every=every, contact_samples=contact_samples, times=times, positions=pos,
+                        velocities=vel)
+        add_to_manifest(out, CHECKPOINT_NAME)
+        marks["checkpoint"] = step
 
-    def record_with_contacts():
-        nonlocal contact_samples
-        record()
-        contact_samples += int((world.contacts.face.numpy() >= 0).sum())
-
-    record()
-    timed_steps = steps - 1  # the first step (compile, graph capture) is not timed
-    sim_s = timed_loop(world, timed_steps, rec, record_with_contacts, progress)
-    sps = steps_per_second(timed_steps, sim_s)
-    final_pos = world.sphere_positions()
-    final_vel = world.sphere_velocities()
-    gap = _signed_distances(world)
-    cnt = world.contacts.numpy()
-    finite = bool(np.isfinite(final_pos).all() and np.isfinite(final_vel).all())
-    summary = {
-        "scene": cfg.name,
-        "device": str(world.device),
-        "device_name": world.device.name if world.device.is_cuda else (platform.processor() or platform.machine()),
-        "collider": world.collider.name + (f"/{world.collider.every}" if world.collider.name == "rebuild" else ""),
-        "cuda_graph": bool(world.use_graph),
-        "surface": {
-            "source": cfg.surface.source,
-            "frames": world.model.surface.num_frames,
-            "fps": world.model.surface.fps,
-            "interpolate": bool(world.model.surface.interpolate),
-            "max_speed_m_s": float(world.model.surface.max_speed),
-        },
-        "spheres": world.model.spheres.count,
-        "dt": p.dt,
-        "substeps": world.substeps,
-        "steps": steps,
-        "sim_time_s": world.time,
-        "setup_and_compile_s": build_s,
-        "timed_steps": timed_steps,
-        "timed_wall_s": sim_s,
-        "steps_per_second": sps,
-        "contacts": {
-            "in_contact_final": int((cnt["face"] >= 0).sum()),
-            "contact_sphere_samples": contact_samples,
-            "samples": len(times) - 1,
-        },
-        "final": {
-            "finite": finite,
-            "position": final_pos,
-            "velocity": final_vel,
-            "surface_gap": np.where(np.isfinite(gap), gap, None).tolist(),
-            "max_penetration": float(max(0.0, -np.min(gap))) if world.model.spheres.count else 0.0,
-        },
-    }
-    with OutputFolder(out, overwrite=bool(overwrite)) as tmp:
-        atomic_write_npz(tmp / "trajectories.npz", time=np.asarray(times), position=np.asarray(pos),
-                         velocity=np.asarray(vel), radius=world.model.spheres.radius.numpy())
-        atomic_write_json(tmp / "summary.json", summary)
+    # warm-up: compile kernels (and capture the CUDA graph) outside the timed loop; the first
+    # sample is the state after it (step 1 of a new run)
+    world.step()
+    wp.synchronize_device(world.device)
+    build_s = time.perf_counter() - t_build
+    first = start + 1
+    with checking_stops():  # a signal from here on stops at a step boundary (cli.py)
+        if (first - 1) % rec == 0:
+            record(count_contacts=first > 1)
+        if every and first % every == 0:
+            checkpoint(first)
+        sim_s, reached = timed_loop(world, steps, rec, record, progress, start=first, origin=1,
+                                    stop=stop, checkpoint_every=every, checkpoint=checkpoint)
+        if first == steps and marks["record"] != steps:
+            record()  # a one-step run (or a resume one step short of the end): its final sample
+        reason = stop() if (stop is not None and reached < steps) else None
+        if reason:  # stopped early: a checkpoint there (when checkpointing), then the final sample
+            if every and marks["checkpoint"] != reached:
+                checkpoint(reached)
+            if marks["record"] != reached:
+                record()
+        timed_steps = reached - first  # the first step (compile, graph capture) is not timed
+        sps = steps_per_second(timed_steps, sim_s)
+        final_pos = world.sphere_positions()
+        final_vel = world.sphere_velocities()
+        gap = _signed_distances(world)
+        cnt = world.contacts.numpy()
+        finite = bool(np.isfinite(final_pos).all() and np.isfinite(final_vel).all())
+        summary = {
+            "scene": cfg.name,
+            "device": str(world.device),
+            "device_name": world.device.name if world.device.is_cuda else (platform.processor() or platform.machine()),
+            "collider": world.collider.name + (f"/{world.collider.every}" if world.collider.name == "rebuild" else ""),
+            "cuda_graph": bool(world.use_graph),
+            "surface": {
+                "source": cfg.surface.source,
+                "frames": world.model.surface.num_frames,
+                "fps": world.model.surface.fps,
+                "interpolate": bool(world.model.surface.interpolate),
+                "max_speed_m_s": float(world.model.surface.max_speed),
+            },
+            "spheres": world.model.spheres.count,
+            "dt": p.dt,
+            "substeps": world.substeps,
+            "steps": steps,
+            "step_reached": reached,
+            "interrupted": bool(reason),
+            "interrupted_by": (reason if isinstance(reason, str) else "stop()") if reason else None,
+            "resumed_from": {"checkpoint": str(resume), "step": start} if ckpt is not None else None,
+            "checkpoint": ({"file": CHECKPOINT_NAME, "step": marks["checkpoint"], "every": every}
+                           if marks["checkpoint"] is not None else None),
+            "sim_time_s": world.time,
+            "setup_and_compile_s": build_s,
+            "timed_steps": timed_steps,
+            "timed_wall_s": sim_s,
+            "steps_per_second": sps,
+            "contacts": {
+                "in_contact_final": int((cnt["face"] >= 0).sum()),
+                "contact_sphere_samples": contact_samples,
+                "samples": len(times) - 1,
+            },
+            "final": {
+                "finite": finite,
+                "position": final_pos,
+                "velocity": final_vel,
+                "surface_gap": np.where(np.isfinite(gap), gap, None).tolist(),
+                "max_penetration": float(max(0.0, -np.min(gap))) if world.model.spheres.count else 0.0,
+            },
+        }
+        with OutputFolder(out, overwrite=bool(overwrite)) as tmp:
+            atomic_write_npz(tmp / "trajectories.npz", time=np.asarray(times), position=np.asarray(pos),
+                             velocity=np.asarray(vel), radius=world.model.spheres.radius.numpy())
+            atomic_write_json(tmp / "summary.json", summary)
+            if marks["checkpoint"] is not None:  # the latest checkpoint stays with the outputs
+                _link_or_copy(out / CHECKPOINT_NAME, tmp / CHECKPOINT_NAME)
     summary["output"] = str(out)
+    if reason:
+        return summary  # the CLI says what was written (one line on stderr)
     log(f"{cfg.name}: {steps} steps on {summary['device']} ({summary['collider']}"
         f"{', CUDA graph' if world.use_graph else ''}): "
         + rate_text(sps) + f"{summary['contacts']['in_contact_final']}/{world.model.spheres.count} spheres in contact, "
@@ -170,6 +248,17 @@ def run_scene(cfg, device=None, steps: int | None = None, collider: str | None =
     if not finite:
         log("WARNING: non-finite sphere state at the end of the run")
     return summary
+
+
+def _link_or_copy(src: Path, dst: Path) -> None:
+    """``dst`` as a hard link of ``src`` (same folder tree), else a copy."""
+    import os
+    import shutil
+
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)
 
 
 def run_steps(cfg, duration: float | None = None) -> int:
@@ -211,16 +300,25 @@ class NonFiniteStateError(RuntimeError):
 
 
 #: what a run writes into its output folder
-RUN_OUTPUTS = ("summary.json", "trajectories.npz")
+RUN_OUTPUTS = ("summary.json", "trajectories.npz", "checkpoint.npz")
 
 
-def check_run_output(cfg, output=None, overwrite: bool | str = "ours", what: str | None = None) -> Path:
+def check_run_output(cfg, output=None, overwrite: bool | str = "ours", what: str | None = None,
+                     resume=None) -> Path:
     """The run's output folder (``output``, else ``run.output``), checked before the work: not an
-    input of the scene, a folder, creatable and writable, existing only with ``overwrite``."""
-    from .outputs import check_output
+    input of the scene, a folder, creatable and writable, existing only with ``overwrite``.
+    Resuming from the checkpoint inside it continues that run: the folder may then be replaced
+    without ``overwrite`` when everything in it was written by this tool."""
+    from .outputs import OutputExistsError, _foreign, _real, check_output
 
     path = cfg.output_path(output)
     what = what or ("--output" if output else "run.output")
+    if resume is not None and not overwrite and _real(resume).parent == _real(path) and Path(path).is_dir():
+        foreign = _foreign(_real(path))
+        if foreign:
+            raise OutputExistsError(f"{what} {path}: holds {foreign[0]}, which this tool did not write; add "
+                                    "--overwrite to resume into it (files this tool did not write are kept)")
+        overwrite = "ours"
     check_output(path, kind="folder", what=what, inputs=cfg.inputs(), overwrite=overwrite, writes=RUN_OUTPUTS)
     return path
 
@@ -235,33 +333,61 @@ def check_record_output(cfg, record, overwrite: bool) -> None:
                  inputs=cfg.inputs(), overwrite=overwrite)
 
 
-def timed_loop(world, steps: int, every: int, record, progress: bool) -> float:
-    """Run ``steps`` steps of ``world`` in chunks of ``every``, calling ``record()`` after each
-    chunk, with a progress bar. Returns the wall seconds of the steps alone (device synchronised,
-    recording excluded). Shared by the built-in and the Newton run paths."""
+def timed_loop(world, steps: int, every: int, record, progress: bool, *, start: int = 0, origin: int | None = None,
+               stop=None, checkpoint_every: int = 0, checkpoint=None, chunk_s: float = 0.05) -> tuple[float, int]:
+    """Step ``world`` from step ``start`` to step ``steps`` (steps counted from the start of the
+    run) with a progress bar. ``record()`` runs after every step ``s`` with ``(s - origin) %
+    every == 0`` (``origin`` defaults to ``start``) and after the last; ``checkpoint(s)`` after
+    every multiple of ``checkpoint_every`` (after that step's sample, before a last-step-only
+    one). ``stop()`` is checked between chunks of about ``chunk_s`` wall seconds of steps and at
+    those boundaries: once true the loop ends there. Returns (wall seconds of the steps alone,
+    device synchronised, recording excluded; the step reached). Shared by the built-in and the
+    Newton run paths."""
     import warp as wp
 
+    origin = start if origin is None else origin
     try:
         from tqdm import tqdm
 
-        bar = tqdm(total=steps, unit="step", disable=not progress, file=sys.stderr, dynamic_ncols=True)
+        bar = tqdm(total=steps - start, unit="step", disable=not progress, file=sys.stderr, dynamic_ncols=True)
     except ImportError:  # pragma: no cover
         bar = None
-    sim_s, done = 0.0, 0
-    while done < steps:
-        n = min(every, steps - done)
-        t0 = time.perf_counter()
-        for _ in range(n):
-            world.step()
-        wp.synchronize_device(world.device)
-        sim_s += time.perf_counter() - t0
-        done += n
-        record()
-        if bar is not None:
-            bar.update(n)
+    sim_s, s, chunk = 0.0, start, 1
+    stopped = False
+    while s < steps and not stopped:
+        nxt = min(s + every - (s - origin) % every, steps)  # the next sample
+        if checkpoint_every:
+            nxt = min(nxt, (s // checkpoint_every + 1) * checkpoint_every)
+        while s < nxt:
+            n = min(chunk, nxt - s)
+            t0 = time.perf_counter()
+            for _ in range(n):
+                world.step()
+            wp.synchronize_device(world.device)
+            dt = time.perf_counter() - t0
+            sim_s += dt
+            s += n
+            if bar is not None:
+                bar.update(n)
+            # chunks of about chunk_s: a stop is seen within that (at most doubling per chunk)
+            chunk = max(1, min(2 * n, int(n * chunk_s / dt) if dt > 0 else 2 * n))
+            if s < nxt and stop is not None and stop():
+                stopped = True
+                break
+        if stopped:
+            break
+        regular = (s - origin) % every == 0
+        if regular:
+            record()
+        if checkpoint_every and checkpoint is not None and s % checkpoint_every == 0:
+            checkpoint(s)
+        if s == steps and not regular:
+            record()
+        if s < steps and stop is not None and stop():
+            break
     if bar is not None:
         bar.close()
-    return sim_s
+    return sim_s, s
 
 
 def steps_per_second(timed_steps: int, wall_s: float) -> float | None:
@@ -291,24 +417,48 @@ def check_cli_options(args) -> None:
                          "summary.json and trajectories.npz")
     if args.rebuild_every is not None and args.collider not in (None, "rebuild"):
         raise SceneError(f"--rebuild-every applies to --collider rebuild, not --collider {args.collider}")
+    if args.checkpoint_every is not None and args.checkpoint_every < 0:
+        raise SceneError(f"--checkpoint-every must be a number of steps >= 0 (0: no checkpoints), got "
+                         f"{args.checkpoint_every}")
+    if (args.checkpoint_every or args.resume is not None) and (args.record or args.viewer == "viser"):
+        raise SceneError("--checkpoint-every / --resume apply to a headless run (--viewer none, no --record)")
 
 
+def _interrupted_line(summary: dict) -> str:
+    """The one line an interrupted run prints on stderr."""
+    out = summary["output"]
+    line = (f"interrupted by {summary['interrupted_by']} at step {summary['step_reached']:,} of {summary['steps']:,}: "
+            f"wrote {out}/summary.json (\"interrupted\": true) and trajectories.npz up to that step")
+    ck = summary.get("checkpoint")
+    if ck:
+        line += f" and {ck['file']}; continue with --resume {Path(out) / ck['file']} (same scene and options)"
+    return line
+
+
+@interruptible_main
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
-    from .cli import quiet_warp
+    from .cli import quiet_warp, stop_reason
 
-    quiet_warp()
+    quiet_warp(args.device)
     from .config import SceneError, load_scene_config
     from .sequence import MeshDataError
 
     try:
         check_cli_options(args)
+        ckpt = None
+        if args.resume is not None:
+            from .checkpoint import load_checkpoint
+
+            ckpt = load_checkpoint(args.resume)  # the file on its own, before the scene's data is loaded
         cfg = load_scene_config(args.scene)
         if args.no_work_limit:
             lift_work_limits(cfg)
         steps = args.steps
         if args.duration is not None:
             steps = run_steps(cfg, args.duration)
+        if steps is None and ckpt is not None:
+            steps = int(ckpt.meta["steps"])  # resuming: the interrupted run's length
         check_total_work(cfg, steps or run_steps(cfg), cfg.physics.substeps)  # before any data is loaded
         viewer = args.viewer
         if viewer is None:
@@ -330,25 +480,34 @@ def main(argv=None) -> int:
             try:
                 with warnings.catch_warnings():
                     warnings.simplefilter("always")
-                    run_viewer(cfg, device=args.device, viewer=viewer, port=args.port, host=args.host,
-                               record=args.record, steps=steps if (args.steps or args.duration) else None,
-                               collider=args.collider, rebuild_every=args.rebuild_every)
+                    res = run_viewer(cfg, device=args.device, viewer=viewer, port=args.port, host=args.host,
+                                     record=args.record, steps=steps if (args.steps or args.duration) else None,
+                                     collider=args.collider, rebuild_every=args.rebuild_every, stop=stop_reason)
             except (SplatPlyError, RuntimeError, OSError) as e:
                 print(f"error: {e}", file=sys.stderr)
                 return 2
+            if res.get("interrupted_by"):
+                what = f"wrote the recording {args.record} up to there" if args.record else "viewer closed"
+                print(f"interrupted by {res['interrupted_by']} after {res['frames']:,} frames "
+                      f"(t = {res['sim_time_s']:.3f} s): {what}", file=sys.stderr)
+                return 128 + int(getattr(signal, res["interrupted_by"], signal.SIGINT))
             return 0
-        check_run_output(cfg, args.output, args.overwrite)
+        check_run_output(cfg, args.output, args.overwrite, resume=args.resume)
         with warnings.catch_warnings():
             warnings.simplefilter("always")
             summary = run_scene(cfg, device=args.device, steps=steps, collider=args.collider,
                                 rebuild_every=args.rebuild_every, output=args.output,
-                                progress=not args.no_progress, overwrite=args.overwrite)
+                                progress=not args.no_progress, overwrite=args.overwrite,
+                                checkpoint_every=args.checkpoint_every, resume=ckpt, stop=stop_reason)
     except (SceneError, MeshDataError, FileNotFoundError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     except NonFiniteStateError as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
+    if summary.get("interrupted"):
+        print(_interrupted_line(summary), file=sys.stderr)
+        return 128 + int(getattr(signal, summary["interrupted_by"], signal.SIGINT))
     return 0 if summary["final"]["finite"] else 1
 
 

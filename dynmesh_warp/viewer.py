@@ -281,18 +281,29 @@ class Viewer:
                     self._slider_guard = False
         self._sent_time = w.time
 
-    def run(self, max_frames: int | None = None):
-        """Frame loop until ``max_frames`` (None: until Ctrl-C); paced to ``fps`` when realtime."""
+    def run(self, max_frames: int | None = None, stop=None):
+        """Frame loop until ``max_frames`` (None: until Ctrl-C); paced to ``fps`` when realtime.
+        ``stop``: a callable checked before every frame; a true value (e.g. ``"SIGINT"``) ends the
+        loop there and is returned (else None)."""
+        from .cli import checking_stops
+
         try:
-            while max_frames is None or self.frame < max_frames:
-                t0 = time.perf_counter()
-                self.update()
-                if self.realtime:
-                    rest = self.frame_dt - (time.perf_counter() - t0)
-                    if rest > 0:
-                        time.sleep(rest)
-        except KeyboardInterrupt:
+            with checking_stops():  # the CLIs' SIGINT/SIGTERM end the loop between frames
+                while max_frames is None or self.frame < max_frames:
+                    reason = stop() if stop is not None else None
+                    if reason:
+                        return reason
+                    t0 = time.perf_counter()
+                    self.update()
+                    if self.realtime:
+                        rest = self.frame_dt - (time.perf_counter() - t0)
+                        while rest > 0 and not (stop is not None and stop()):  # sleep, waking for a stop
+                            time.sleep(min(rest, 0.05))
+                            rest = self.frame_dt - (time.perf_counter() - t0)
+        except KeyboardInterrupt:  # Ctrl-C outside the CLIs (default handler)
             self.log("viewer: interrupted")
+            return "SIGINT"
+        return None
 
     def close(self):
         """Write the recording (if any) and stop the server."""
@@ -514,12 +525,14 @@ class SceneStateTracker:
 
 def run_viewer(cfg, device=None, viewer: str = "viser", port: int = 8080, host: str = "127.0.0.1",
                record: str | None = None, steps: int | None = None, collider: str | None = None,
-               rebuild_every: str | None = None, fps: float = 30.0, log=print) -> dict:
+               rebuild_every: str | None = None, fps: float = 30.0, log=print, stop=None) -> dict:
     """Build the scene, bind/generate its Gaussians and run the viewer.
 
     ``viewer="viser"``: interactive until Ctrl-C (or ``steps`` physics steps, if given);
     ``viewer="none"`` with ``record``: headless, frames back to back for ``steps`` (default:
-    the scene's run duration), then the recording is written.
+    the scene's run duration), then the recording is written. ``stop``: a callable checked
+    between frames (the CLI's SIGINT/SIGTERM); the loop ends there, the recording of the frames
+    so far is written and the server stopped; ``"interrupted_by"`` in the result names it.
     """
     from .gaussians import gaussians_for_surface, gaussians_for_world
     from .scene import build_world
@@ -550,9 +563,12 @@ def run_viewer(cfg, device=None, viewer: str = "viser", port: int = 8080, host: 
     if viewer == "viser":
         log(f"viewer: http://{'localhost' if host in ('0.0.0.0', '127.0.0.1') else host}:{v.port} "
             f"({g.count} Gaussians, {what}); Ctrl-C to quit")
+    from .cli import checking_stops
+
     try:
-        v.run(max_frames=max_frames)
+        reason = v.run(max_frames=max_frames, stop=stop)
     finally:
-        v.close()
+        with checking_stops():  # the recording is written whole, the server stopped, even on a signal
+            v.close()
     return {"frames": v.frame, "sim_time_s": world.time, "gaussians": g.count, "port": v.port,
-            "record": str(record) if record else None}
+            "record": str(record) if record else None, "interrupted_by": reason}

@@ -398,6 +398,21 @@ class SweptCollider:
                       [self.frame_key, self.changed])
         self.update(world)
 
+    #: per-frame state a step reads before writing it again: the frame pair of the bounds, the
+    #: pending-refit flag, the swept bounds (the BVH is refit from them) and the candidate lists
+    #: gathered at the last frame change (parallel path); the candidates' distances and weights
+    #: are recomputed every sub-step
+    CHECKPOINT_ARRAYS = ("frame_key", "changed", "lowers", "uppers", "cand_face", "cand_count", "cand_center",
+                         "cand_radius")
+
+    def checkpoint_state(self) -> dict:
+        return {k: getattr(self, k).numpy().copy() for k in self.CHECKPOINT_ARRAYS}
+
+    def restore_checkpoint_state(self, st: dict):
+        for k in self.CHECKPOINT_ARRAYS:
+            getattr(self, k).assign(st[k])
+        self.bvh.refit()  # the tree's topology comes from the build at the initial time, as in the run
+
     def collide(self, world: "World"):
         m, s, c = world.model, world.state, world.contacts
         surf = m.surface
@@ -670,6 +685,35 @@ class World:
         self._refresh_surface()
         if hasattr(self.collider, "resize"):
             self.collider.resize(self)
+
+    # -- checkpoints (run --checkpoint-every / --resume; dynmesh_warp.checkpoint) -------------
+    def checkpoint_state(self) -> dict:
+        """Everything a step reads that changes while the world runs, as NumPy copies: the clock
+        (the host's float64 and the device's), the sub-step count, the spheres' positions and
+        velocities, and the collider's frame state (swept: :attr:`SweptCollider.CHECKPOINT_ARRAYS`;
+        refit and rebuild derive theirs from the clock). The rest is static (surface, radii,
+        masses, parameters: compared with the scene on resume); contacts are recomputed before
+        they are read, and no step draws random numbers. Between steps only."""
+        st = {"time": np.array(self._time, np.float64), "sim_time": self.state.sim_time.numpy().copy(),
+              "substep_count": np.array(self.substep_count, np.int64),
+              "sphere_pos": self.sphere_positions(), "sphere_vel": self.sphere_velocities()}
+        if hasattr(self.collider, "checkpoint_state"):
+            st.update({f"collider_{k}": v for k, v in self.collider.checkpoint_state().items()})
+        return st
+
+    def restore_checkpoint_state(self, st: dict):
+        """Continue from :meth:`checkpoint_state` of a world built the same way (same scene,
+        collider and device kind; :mod:`dynmesh_warp.checkpoint` checks that). On the CPU the
+        following steps are bit-identical to those of the world that wrote it."""
+        self.set_time(float(st["time"]))  # surface and collider at that time, then the exact values
+        self.state.sim_time.assign(np.asarray(st["sim_time"], np.float64).reshape(1))
+        self.state.sphere_pos.assign(np.asarray(st["sphere_pos"], np.float32).reshape(-1, 3))
+        self.state.sphere_vel.assign(np.asarray(st["sphere_vel"], np.float32).reshape(-1, 3))
+        self.substep_count = int(st["substep_count"])
+        if hasattr(self.collider, "restore_checkpoint_state"):
+            self.collider.restore_checkpoint_state({k[len("collider_"):]: v for k, v in st.items()
+                                                    if k.startswith("collider_")})
+        self._graph = None
 
     def _apply_substep_rule(self, stacklevel: int):
         """Raise ``substeps`` (auto_substeps, interpolation on) so the surface moves less than half
