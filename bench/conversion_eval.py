@@ -11,7 +11,9 @@ diagonal; 0 = noise-free), then converted back to one fixed topology by each str
 * the converted vertices' distance to the GT surface (the other side), 99th percentile.
 
 Summaries report the mean and the worst frame. Writes bench/results/conversion_eval_<device>.json
-(+ .md table, per-frame plot PNG).
+and, next to it, a Markdown table (.md) and a per-frame plot (.png: the worst uncovered GT
+vertex per frame, input and each strategy, one panel per sequence). ``--plot-only JSON``
+redraws both from an earlier result.
 
     python bench/conversion_eval.py --device cuda --sequences all --error 0.01
 """
@@ -145,6 +147,50 @@ def _summ(per):
     return s
 
 
+def report(path: Path):
+    """Write PATH.md (table: mean and worst) and PATH.png (per-frame worst uncovered GT vertex)."""
+    doc = json.loads(Path(path).read_text())
+    rows = ["| sequence (frames, GT vertices) | input CD | input worst uncovered | strategy | CD | vs input | "
+            "worst-frame CD ratio | worst uncovered (mean over frames) | key frame | recovered frames | s |",
+            "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for sc in doc["scenes"]:
+        i = sc["input"]
+        for k, v in sc["strategies"].items():
+            m = v["summary"]
+            rows.append(f"| {sc['scene']} ({sc['frames']}, {sc['gt_vertices']}) | {1e3 * i['cd_mean']:.3f} | "
+                        f"{100 * i['uncovered_max_max']:.1f}% | {k} | {1e3 * m['cd_mean']:.3f} | "
+                        f"{m['cd_increase_pct']:+.0f}% | {m['worst_frame_cd_ratio']:.2f} | "
+                        f"{100 * m['uncovered_max_max']:.1f}% ({100 * m['uncovered_max_mean']:.1f}%) | "
+                        f"{v.get('key_frame', 0)} | {len(v['recovered_frames'])} | {v['seconds']:.1f} |")
+    md = Path(path).with_suffix(".md")
+    md.write_text(f"Conversion evaluation on {doc['device_name']} ({doc['device']}), error {doc['args']['error']}, "
+                  f"resolution {doc['args']['resolution']}; CD x1e-3 (vertices, squared)\n\n" + "\n".join(rows) + "\n")
+    print("wrote", md)
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("matplotlib not installed: no plot")
+        return
+    n = len(doc["scenes"])
+    fig, axes = plt.subplots(n, 1, figsize=(8, 2.4 * n), squeeze=False)
+    for ax, sc in zip(axes[:, 0], doc["scenes"]):
+        ax.plot([100 * p["uncovered_max"] for p in sc["input_per_frame"]], "k--", label="varying input")
+        for k, v in sc["strategies"].items():
+            ax.plot([100 * p["uncovered_max"] for p in v["per_frame"]], label=k)
+        ax.set_title(sc["scene"], fontsize=9)
+        ax.set_ylabel("worst uncovered\nGT vertex [% diag]", fontsize=8)
+        ax.set_yscale("log")
+    axes[-1, 0].set_xlabel("frame")
+    axes[0, 0].legend(fontsize=7, ncol=5)
+    fig.tight_layout()
+    png = Path(path).with_suffix(".png")
+    fig.savefig(png, dpi=90)
+    print("wrote", png)
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default=None)
@@ -156,7 +202,11 @@ def main():
     ap.add_argument("--options", default=None, help='JSON {strategy: {option: value}}')
     ap.add_argument("--cache", default=str(ROOT / "out" / "cache"))
     ap.add_argument("--out", default=None)
+    ap.add_argument("--plot-only", default=None, help="redraw the table and plot of this result JSON")
     args = ap.parse_args()
+    if args.plot_only:
+        report(Path(args.plot_only))
+        return
     wp.config.quiet = True
     wp.init()
     device = wp.get_device(args.device)
@@ -171,8 +221,11 @@ def main():
            "warp": wp.__version__, "args": vars(args), "scenes": res}
     out = Path(args.out) if args.out else ROOT / "bench" / "results" / f"conversion_eval_{device.alias.split(':')[0]}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(doc, indent=1))
+    from dynmesh_warp.outputs import atomic_write_json
+
+    atomic_write_json(out, doc)
     print("wrote", out)
+    report(out)
 
 
 if __name__ == "__main__":
