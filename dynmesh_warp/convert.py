@@ -597,6 +597,15 @@ def _as_varying(seq) -> VaryingTopologySequence:
                     f"got {type(seq).__name__}")
 
 
+def _check_fine_stage(o: dict):
+    """Range checks of the smoothing/relaxation options ``regularized`` and ``graph`` share."""
+    for k in ("smooth_weight", "pull_fraction", "relax_step"):
+        if not 0.0 <= float(o[k]) <= 1.0:
+            raise ValueError(f"{k} must lie in [0, 1], got {o[k]!r}")
+    if float(o["normal_slack"]) < 1.0:
+        raise ValueError(f"normal_slack must be >= 1, got {o['normal_slack']!r}")
+
+
 def _resolve_options(strategy: str, options: dict) -> dict:
     if strategy not in STRATEGIES:
         raise ValueError(f"strategy must be one of {STRATEGIES}, got {strategy!r}")
@@ -627,11 +636,7 @@ def _resolve_options(strategy: str, options: dict) -> dict:
         for k in ("reinit_threshold", "refine_threshold"):
             if not float(o[k]) >= 0:
                 raise ValueError(f"{k} must be >= 0 (0: off), got {o[k]!r}")
-        for k in ("smooth_weight", "pull_fraction", "relax_step"):
-            if not 0.0 <= float(o[k]) <= 1.0:
-                raise ValueError(f"{k} must lie in [0, 1], got {o[k]!r}")
-        if float(o["normal_slack"]) < 1.0:
-            raise ValueError(f"normal_slack must be >= 1, got {o['normal_slack']!r}")
+        _check_fine_stage(o)
     if strategy == "graph":
         for k in ("nodes_per_vertex", "graph_iterations"):
             if int(o[k]) != o[k] or o[k] < 1:
@@ -647,11 +652,7 @@ def _resolve_options(strategy: str, options: dict) -> dict:
                 raise ValueError(f"{k} must be a finite number >= 0, got {o[k]!r}")
         if not 0.0 <= float(o["max_normal_angle"]) <= 180.0:
             raise ValueError(f"max_normal_angle must lie in [0, 180] degrees, got {o['max_normal_angle']!r}")
-        for k in ("smooth_weight", "pull_fraction", "relax_step"):
-            if not 0.0 <= float(o[k]) <= 1.0:
-                raise ValueError(f"{k} must lie in [0, 1], got {o[k]!r}")
-        if float(o["normal_slack"]) < 1.0:
-            raise ValueError(f"normal_slack must be >= 1, got {o['normal_slack']!r}")
+        _check_fine_stage(o)
     kf = o["key_frame"]
     if not ((isinstance(kf, str) and kf == "auto") or kf is None
             or (isinstance(kf, (int, np.integer)) and not isinstance(kf, bool))):

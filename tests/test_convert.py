@@ -402,3 +402,13 @@ def test_conversion_summary_warns_on_poor_coverage():
     assert len(warn) == 1 and "(2)" in warn[0] and "--strategy graph" in warn[0]
     info.coverage = [0.01] * 4
     assert not any(ln.startswith("warning:") for ln in conversion_summary(info))
+
+
+@pytest.mark.parametrize("bad,name", [({"node_spacing": 0}, "node_spacing"), ({"graph_iterations": 0}, "graph_iterations"),
+                                      ({"stiffness": float("nan")}, "stiffness"), ({"smooth_weight": 2}, "smooth_weight"),
+                                      ({"max_normal_angle": 200}, "max_normal_angle"), ({"key_frame": 1.5}, "key_frame")])
+def test_graph_options_are_range_checked(bad, name):
+    from dynmesh_warp.convert import _resolve_options
+
+    with pytest.raises(ValueError, match=name):
+        _resolve_options("graph", bad)
