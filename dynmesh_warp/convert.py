@@ -231,11 +231,6 @@ class ConversionInfo:
     topology_events: list = field(default_factory=list)
     first_frame: int = 0  # the result holds input frames first_frame.. (not 0 only when stopped early)
 
-    @property
-    def worst_coverage(self) -> float:
-        """Largest per-frame coverage (fraction of the frame's bbox diagonal); nan if none."""
-        return float(max(self.coverage)) if self.coverage else float("nan")
-
 
 class _Converter:
     """Template-side device arrays, allocated once; one wp.Mesh per input frame."""
@@ -253,6 +248,7 @@ class _Converter:
         self.TF = arr(TF.reshape(-1), wp.int32)
         self.X = wp.clone(self.T)
         self.first = True  # the next frame is the first one converted (starts from the template)
+        self.frame_coverage = None  # set by a step that already measured its result's coverage [m]
         self.P = wp.empty(n, dtype=wp.vec3, device=d)
         self.tmp = wp.empty(n, dtype=wp.vec3, device=d)
         self.closest = wp.empty(n, dtype=wp.vec3, device=d)
@@ -288,7 +284,7 @@ class _Converter:
                                                  int(opts["nodes_per_vertex"]))
             self.gf = GraphFitter(self.graph, TV, TF, d, self.max_dist, opts)
             self.history = []  # graph states (R, P) of the last two frames
-            self.states = {}  # frame -> graph state (R, P): where the backward pass starts
+            self.states = {}  # frame -> graph state (R, P) of the first two frames: where the backward pass starts
             self.scores = []  # coverage [m] of the frames converted so far
             self.graph_bank = []  # (frame, R, P) every bank_interval frames: restart candidates
             self.recovered = []  # (frame, what it restarted from)
@@ -306,20 +302,15 @@ class _Converter:
     def coverage(self, frame) -> float:
         """99.5th percentile of the distance of the frame's vertices to the converted surface
         (the template at self.X) [m]."""
-        if not hasattr(self, "cov_mesh"):
-            self.cov_points = wp.clone(self.X)
-            self.cov_mesh = wp.Mesh(points=self.cov_points, indices=self.TF)
-            self.cov_dist = wp.empty(0, dtype=float, device=self.device)
         m, pts, idx = frame
         q = pts.shape[0]
-        wp.copy(self.cov_points, self.X)
-        # rebuilt, not refit: a tree refit far from the pose it was built on answers slowly
-        self.cov_mesh = wp.Mesh(points=self.cov_points, indices=self.TF)
-        if self.cov_dist.shape[0] < q:
-            self.cov_dist = wp.empty(q, dtype=float, device=self.device)
-        wp.launch(kc.measure_distances_to_mesh, dim=q, inputs=[self.cov_mesh.id, pts, self.max_dist],
-                  outputs=[self.cov_dist], device=self.device)
-        return float(np.percentile(self.cov_dist.numpy()[:q], 99.5))
+        # a BVH built on a copy of X (rebuilt, not refit: a tree refit far from the pose it was
+        # built on answers slowly; the copy keeps the tree's points apart from X)
+        mesh = wp.Mesh(points=wp.clone(self.X), indices=self.TF)
+        dist = wp.empty(q, dtype=float, device=self.device)
+        wp.launch(kc.measure_distances_to_mesh, dim=q, inputs=[mesh.id, pts, self.max_dist], outputs=[dist],
+                  device=self.device)
+        return float(np.percentile(dist.numpy(), 99.5))
 
     # --- building blocks
     def project(self, frame, src, dst):
@@ -526,8 +517,10 @@ class _Converter:
                 restarted = True
                 self.recovered.append((t, name))
         self.scores.append(score)
+        self.frame_coverage = score
         self.history = (self.history + [(R, P)])[-2:]
-        self.states[t] = (R, P)
+        if len(self.states) < 2:  # the key frame and the one after it
+            self.states[t] = (R, P)
         k = int(o["bank_interval"])
         if k > 0 and t % k == 0:
             self.graph_bank.append((t, R.copy(), P.copy()))
@@ -832,7 +825,9 @@ def to_fixed_topology(seq, strategy: str = DEFAULT_STRATEGY, template=None, devi
         m = wp.Mesh(points=pts, indices=idx)
         if step((m, pts, idx), t):
             info.reanchored_frames.append(t)
-        coverage[t] = conv.coverage((m, pts, idx)) / max(_bbox_diag(v), 1e-12)
+        cov = conv.frame_coverage if conv.frame_coverage is not None else conv.coverage((m, pts, idx))
+        conv.frame_coverage = None
+        coverage[t] = cov / max(_bbox_diag(v), 1e-12)
         conv.first = False
         out[t] = conv.X.numpy()
         seconds[t] = time.perf_counter() - t0
@@ -850,8 +845,6 @@ def to_fixed_topology(seq, strategy: str = DEFAULT_STRATEGY, template=None, devi
     elif getattr(conv, "reinit_sources", None):
         info.recovered_frames = sorted((t, "template" if src < 0 else f"frame {src}")
                                        for t, src in conv.reinit_sources)
-    if lo is None:
-        lo, hi = 0, -1
     info.first_frame = lo
     if (lo, hi) != (0, T - 1):  # stopped early: the frames converted so far
         info.frame_seconds, info.coverage = info.frame_seconds[lo:hi + 1], info.coverage[lo:hi + 1]

@@ -237,10 +237,10 @@ class GraphFitter:
         self.node_rotation = wp.empty(K, dtype=wp.mat33, device=d)
         self.node_position = wp.empty(K, dtype=wp.vec3, device=d)
         self.points = wp.empty(n, dtype=wp.vec3, device=d)
-        # the template BVH: built on the rest pose, rebuilt on the predicted pose at the start of
-        # every fit (a tree refit far from the pose it was built on answers queries slowly)
-        self.mesh_points = wp.clone(self.rest_points)
-        self.tmesh = wp.Mesh(points=self.mesh_points, indices=self.indices)
+        # the template BVH: built on the predicted pose by rebuild() at the start of every fit
+        # (a tree refit far from the pose it was built on answers queries slowly)
+        self.mesh_points = wp.empty(n, dtype=wp.vec3, device=d)
+        self.tmesh = None
         self.normals = wp.zeros(n, dtype=wp.vec3, device=d)
         self.target = wp.empty(n, dtype=wp.vec3, device=d)
         self.fface = wp.empty(n, dtype=wp.int32, device=d)

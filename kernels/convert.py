@@ -409,6 +409,16 @@ def transform_points_rigid(
     out[i] = rotation * (points[i] - center) + center + translation
 
 
+@wp.func
+def distance_to_mesh(mesh: wp.uint64, p: wp.vec3, max_dist: float) -> float:
+    """Unsigned distance of p to the mesh surface [m]; max_dist when nothing lies within it."""
+    q = wp.mesh_query_point_no_sign(mesh, p, max_dist)
+    d = max_dist
+    if q.result:
+        d = wp.length(wp.mesh_eval_position(mesh, q.face, q.u, q.v) - p)
+    return d
+
+
 @wp.kernel
 def measure_distances_to_mesh(
     # In:
@@ -424,12 +434,7 @@ def measure_distances_to_mesh(
     dist (Q,) [m] (at least Q entries).
     """
     k = wp.tid()
-    p = points[k]
-    q = wp.mesh_query_point_no_sign(mesh, p, max_dist)
-    d = max_dist
-    if q.result:
-        d = wp.length(wp.mesh_eval_position(mesh, q.face, q.u, q.v) - p)
-    dist[k] = d
+    dist[k] = distance_to_mesh(mesh, points[k], max_dist)
 
 
 @wp.kernel
@@ -450,9 +455,4 @@ def sum_distances_to_mesh(
     within it adds max_dist); total (1,) [m], zero it first (atomic add).
     """
     k = wp.tid()
-    p = points[k * stride] + shift
-    q = wp.mesh_query_point_no_sign(mesh, p, max_dist)
-    d = max_dist
-    if q.result:
-        d = wp.length(wp.mesh_eval_position(mesh, q.face, q.u, q.v) - p)
-    wp.atomic_add(total, 0, d)
+    wp.atomic_add(total, 0, distance_to_mesh(mesh, points[k * stride] + shift, max_dist))
