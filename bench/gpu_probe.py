@@ -1,33 +1,57 @@
-"""Diagnostic for the GPU machine: times the graph conversion stage by stage (prints as it goes;
-dumps the Python stacks every 60 s if it is stuck)."""
+"""Graph conversion speed probe: the first N frames of the 200-frame torus_to_sphere input
+(~10k vertices, the bench_convert.py workload) with the default ``graph`` strategy, printing as it
+goes and dumping the Python stacks every 60 s if stuck. Writes a JSON naming machine and device.
+
+    python bench/gpu_probe.py --device cuda:0 --frames 20 --out bench/results/graph_probe_cuda.json
+"""
+import argparse
 import faulthandler
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import warp as wp
 
-faulthandler.dump_traceback_later(60, repeat=True, file=sys.stdout)
-t0 = time.perf_counter()
-wp.init()
-dev = sys.argv[1] if len(sys.argv) > 1 else "cuda:0"
-frames = int(sys.argv[2]) if len(sys.argv) > 2 else 20
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import describe_device, write_json  # noqa: E402
+
 from dynmesh_warp.convert import to_fixed_topology  # noqa: E402
 from dynmesh_warp.scenes import torus_to_sphere  # noqa: E402
 from dynmesh_warp.sequence import VaryingTopologySequence  # noqa: E402
 
-seq = torus_to_sphere(frames=200, resolution=76)
-print(f"gen {time.perf_counter() - t0:.1f} s, {len(seq.frames[0][0])} vertices", flush=True)
-for st in ("graph",):
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--device", default="cuda:0")
+    ap.add_argument("--frames", type=int, default=20)
+    ap.add_argument("--out", default=None)
+    a = ap.parse_args()
+    faulthandler.dump_traceback_later(60, repeat=True, file=sys.stdout)
+    wp.config.quiet = True
+    wp.init()
+    t0 = time.perf_counter()
+    seq = torus_to_sphere(frames=200, resolution=76)
+    print(f"gen {time.perf_counter() - t0:.1f} s, {len(seq.frames[0][0])} vertices", flush=True)
     t = time.perf_counter()
-    to_fixed_topology(VaryingTopologySequence(seq.frames[:2]), strategy=st, device=dev)
+    to_fixed_topology(VaryingTopologySequence(seq.frames[:2]), strategy="graph", device=a.device)
     wp.synchronize()
-    print(f"{st} warm-up (compile) {time.perf_counter() - t:.1f} s", flush=True)
+    compile_s = time.perf_counter() - t
     t = time.perf_counter()
-    r = to_fixed_topology(VaryingTopologySequence(seq.frames[:frames]), strategy=st, device=dev)
+    r = to_fixed_topology(VaryingTopologySequence(seq.frames[:a.frames]), strategy="graph", device=a.device)
     wp.synchronize()
     s = time.perf_counter() - t
     fs = np.array(r.conversion.frame_seconds)
-    print(f"{st} {frames} frames {s:.2f} s ({1e3 * s / frames:.1f} ms/frame; median frame {1e3 * np.median(fs):.1f} ms, "
-          f"max {1e3 * fs.max():.1f} ms; recovered {len(r.conversion.recovered_frames)})", flush=True)
-faulthandler.cancel_dump_traceback_later()
+    faulthandler.cancel_dump_traceback_later()
+    res = {"benchmark": "graph_probe", **describe_device(a.device), "input": "torus_to_sphere(frames=200, resolution=76)",
+           "template_vertices": int(r.num_vertices), "frames": a.frames, "warmup_s": compile_s, "total_s": s,
+           "ms_per_frame": 1e3 * s / a.frames, "frame_ms_median": 1e3 * float(np.median(fs)),
+           "frame_ms_max": 1e3 * float(fs.max()), "recovered_frames": len(r.conversion.recovered_frames),
+           "key_frame": r.conversion.key_frame}
+    print(res, flush=True)
+    if a.out:
+        write_json(a.out, res)
+
+
+if __name__ == "__main__":
+    main()

@@ -348,3 +348,18 @@ def test_evaluate_estimates_emd_on_the_cpu_up_front(work, capsys):
     line = evaluate._emd_estimate(A, "cpu")
     assert "estimate" in line and "--no-emd" in line and "--emd-stride" in line and "--device cuda" in line
     assert evaluate._emd_estimate(A, "cuda:0") is None
+
+
+def test_convert_refuses_a_bad_key_frame_before_writing(work, tmp_path, capsys):
+    from dynmesh_warp import convert
+
+    out = tmp_path / "out.npz"
+    with pytest.raises(SystemExit) as e:
+        convert.main([str(work / "frames"), str(out), "--key-frame", "middle"])
+    assert e.value.code == 2 and "--key-frame" in capsys.readouterr().err
+    assert convert.main([str(work / "frames"), str(out), "--key-frame", "9"]) == 2
+    err = capsys.readouterr().err
+    assert "key_frame" in err and "4 frames" in err, err
+    assert list(tmp_path.iterdir()) == []  # nothing written
+    assert convert.main([str(work / "frames"), str(out), "--key-frame", "-1", "--strategy", "tracking"]) == 0
+    assert "template from frame 3" in capsys.readouterr().out
