@@ -19,6 +19,10 @@ Spheres: the scene's own, plus one dropped every ``--drop-every`` steps above th
 seeded random spot (like the viewer's "drop sphere" button) until ``--max-spheres``; from then
 on the lowest sphere (at rest on the ground, or fallen away) is taken out and dropped again
 (a new sphere in the same slot), so spheres keep arriving for the whole run at a bounded cost.
+``--recycle oldest`` takes the oldest sphere instead (slots in turn: with 32 spheres and a drop
+every 60 steps, the one dropped 1,920 steps = 8 s earlier, at rest by then); it needs no read-back
+of the spheres, so the GPU runs the steps between checks without waiting for the host (used for
+the 10^6-step GPU run).
 
 Checks, every ``--check-every`` steps (and at the last step), computed here in NumPy float64,
 independently of the step's kernels:
@@ -34,14 +38,19 @@ independently of the step's kernels:
 The JSON (``bench/results/soak_<device>.json`` unless ``--out``) names the machine and device
 and, per scene: steps, steps/s, spheres dropped, checks, tunnelled and non-finite counts (with
 the first few events), and how many sphere checks found the sphere in contact with the surface
-(the run is not vacuous). Ctrl-C writes what was done, marked ``"interrupted": true``.
+(the run is not vacuous). Ctrl-C writes what was done, marked ``"interrupted": true``; with
+``--checkpoint PATH`` (one scene) it also writes the run's state there, and ``--resume PATH`` (same
+options) continues it in a new process to the same end (``"segments"`` in the JSON): a 10^6-step
+GPU run longer than one machine slot is one simulation in two processes.
 Exit status 0 when every scene passed (0 tunnelled, 0 non-finite), else 1.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
+import os
 import sys
 import time
 import warnings
@@ -158,8 +167,10 @@ class Dropper:
     lowest one (resting on the ground, or fallen away) dropped again (its slot reset to a new
     position, at rest)."""
 
-    def __init__(self, world, radius: float, every: int, cap: int, seed: int):
+    def __init__(self, world, radius: float, every: int, cap: int, seed: int, recycle: str = "lowest"):
         self.world, self.r, self.every, self.cap = world, float(radius), int(every), int(cap)
+        self.recycle = recycle
+        self.next_slot = 0  # recycle == "oldest": the slot dropped again next
         self.rng = np.random.default_rng(seed)
         self.dropped = 0
         self.touched = np.zeros(world.model.spheres.count, bool)  # per slot: in contact at a check since dropped
@@ -184,15 +195,20 @@ class Dropper:
         if w.model.spheres.count < self.cap:
             w.add_spheres([p], self.r, 1.0)
             self.touched = np.append(self.touched, False)
-        else:  # the lowest sphere (at rest on the ground, or fallen away) is dropped again, in its slot:
-            # the same arrays, so a captured CUDA graph stays valid
-            i = int(np.argmin(w.sphere_positions()[:, 2]))
+        else:  # the lowest (or the oldest) sphere is dropped again, in its slot: the same arrays, so a
+            # captured CUDA graph stays valid
+            import warp as wp
+
+            if self.recycle == "oldest":  # no read-back: the device goes on with the queued steps
+                i = self.next_slot
+                self.next_slot = (i + 1) % w.model.spheres.count
+            else:
+                i = int(np.argmin(w.sphere_positions()[:, 2]))
             self.touched_done += int(self.touched[i])
             self.touched[i] = False
-            pos, vel = w.sphere_positions(), w.sphere_velocities()
-            pos[i], vel[i] = p, 0.0
-            w.state.sphere_pos.assign(pos)
-            w.state.sphere_vel.assign(vel)
+            d = w.device
+            wp.copy(w.state.sphere_pos, wp.array(p[None], dtype=wp.vec3, device=d), dest_offset=i, count=1)
+            wp.copy(w.state.sphere_vel, wp.zeros(1, dtype=wp.vec3, device=d), dest_offset=i, count=1)
             col = w.collider
             if getattr(col, "parallel", False):  # the swept collider's per-sphere candidate lists
                 col._gather(w)
@@ -203,7 +219,7 @@ class Dropper:
 
 
 def soak_scene(name: str, device, steps: int, check_every: int, drop_every: int, max_spheres: int,
-               seed: int, stop_flag: dict, log=print) -> dict:
+               seed: int, stop_flag: dict, log=print, recycle: str = "lowest", checkpoint=None, resume=None) -> dict:
     import warp as wp
 
     from dynmesh_warp.scene import build_world
@@ -217,7 +233,7 @@ def soak_scene(name: str, device, steps: int, check_every: int, drop_every: int,
         wp.synchronize_device(world.device)
     build_s = time.perf_counter() - t_build
     radius = float(np.median(world.model.spheres.radius_np))
-    dropper = Dropper(world, radius, drop_every, max_spheres, seed)
+    dropper = Dropper(world, radius, drop_every, max_spheres, seed, recycle)
     surf = world.model.surface
     frames = surf.sequence.frames if hasattr(surf, "frame_points") else [(surf.sequence.V[0], surf.sequence.F)]
     open_edges = max(boundary_edges(np.asarray(f)) for _, f in frames)
@@ -242,6 +258,31 @@ def soak_scene(name: str, device, steps: int, check_every: int, drop_every: int,
     max_depth = 0.0  # the deepest contact the step reported (sphere surface into the mesh) [m]
     done = 1  # the warm-up step
     next_report = time.perf_counter() + 30.0
+    next_drop = drop_every
+    segments = []
+    if resume is not None:  # continue a run stopped with --checkpoint: the world, the dropper and the tallies
+        with np.load(resume, allow_pickle=False) as z:
+            saved = json.loads(str(z["soak"]))
+            if saved["scene"] != name or saved["args"] != [drop_every, max_spheres, seed, recycle, check_every]:
+                raise SystemExit(f"--resume {resume}: written for scene {saved['scene']} with (drop_every, "
+                                 f"max_spheres, seed, recycle, check_every) = {saved['args']}")
+            extra = int(z["world_sphere_pos"].shape[0]) - world.model.spheres.count
+            if extra > 0:
+                world.add_spheres(np.zeros((extra, 3), np.float32), radius, 1.0)
+            world.restore_checkpoint_state({k[len("world_"):]: z[k] for k in z.files if k.startswith("world_")})
+            dropper.touched = z["dropper_touched"].copy()
+        for k in ("dropped", "touched_done", "next_slot"):
+            setattr(dropper, k, saved["dropper"][k])
+        dropper.rng.bit_generator.state = saved["dropper"]["rng"]
+        t = saved["tallies"]
+        checks, sphere_checks, contacts, tunnelled, nonfinite = (t[k] for k in (
+            "checks", "sphere_checks", "contacts", "tunnelled", "nonfinite"))
+        events, step_s, check_s, max_depth, done, next_drop = (t[k] for k in (
+            "events", "step_s", "check_s", "max_depth", "done", "next_drop"))
+        worst = -math.inf if t["worst"] is None else t["worst"]
+        segments = saved["segments"]
+        log(f"{name}: resumed from {resume} at step {done:,}")
+    segment_start = done
 
     def check():
         nonlocal checks, sphere_checks, contacts, tunnelled, nonfinite, worst, max_depth, check_s
@@ -287,15 +328,19 @@ def soak_scene(name: str, device, steps: int, check_every: int, drop_every: int,
                                    "values": vals[inside].round(4).tolist(), "positions": P[ids].tolist()})
         check_s += time.perf_counter() - t0
 
-    next_drop = drop_every
     while done < steps and not stop_flag.get("stop"):
         n = min(check_every - done % check_every, steps - done, next_drop - done)
         t0 = time.perf_counter()
         for _ in range(n):
             world.step()
+        done += n
+        if done == next_drop and done < steps and done % check_every and recycle == "oldest":
+            next_drop += drop_every  # queued behind the steps, no wait (the wall time counts as stepping)
+            dropper.drop()
+            step_s += time.perf_counter() - t0
+            continue
         wp.synchronize_device(world.device)
         step_s += time.perf_counter() - t0
-        done += n
         if done % check_every == 0 or done == steps:
             check()
         if done == next_drop:
@@ -307,7 +352,23 @@ def soak_scene(name: str, device, steps: int, check_every: int, drop_every: int,
             log(f"  {name}: step {done:,}/{steps:,}, {done / max(step_s, 1e-9):,.0f} step/s, "
                 f"{world.model.spheres.count} spheres, {dropper.dropped} dropped, tunnelled {tunnelled}, "
                 f"non-finite {nonfinite}")
+    segments = segments + [{"from_step": segment_start, "to_step": done, "device": str(world.device)}]
+    if checkpoint is not None and done < steps:
+        tallies = {"checks": checks, "sphere_checks": sphere_checks, "contacts": contacts, "tunnelled": tunnelled,
+                   "nonfinite": nonfinite, "events": events, "step_s": step_s, "check_s": check_s,
+                   "max_depth": max_depth, "done": done, "next_drop": next_drop,
+                   "worst": worst if math.isfinite(worst) else None}
+        meta = {"scene": name, "args": [drop_every, max_spheres, seed, recycle, check_every], "segments": segments,
+                "dropper": {"dropped": dropper.dropped, "touched_done": dropper.touched_done,
+                            "next_slot": dropper.next_slot, "rng": dropper.rng.bit_generator.state},
+                "tallies": tallies}
+        arrays = {f"world_{k}": np.asarray(v) for k, v in world.checkpoint_state().items()}
+        tmp = Path(str(checkpoint) + ".tmp.npz")
+        np.savez(tmp, soak=np.array(json.dumps(meta)), dropper_touched=dropper.touched, **arrays)
+        os.replace(tmp, checkpoint)  # atomic
+        log(f"{name}: checkpoint at step {done:,} written to {checkpoint} (continue with --resume)")
     res.update({
+        "segments": segments,
         "steps": done, "interrupted": done < steps, "sim_time_s": world.time,
         "stepping_wall_s": round(step_s, 3), "steps_per_second": round(done / step_s, 1) if step_s else None,
         "checking_wall_s": round(check_s, 3), "final_spheres": world.model.spheres.count,
@@ -334,12 +395,19 @@ def main(argv=None) -> int:
     p.add_argument("--drop-every", type=int, default=60, help="steps between dropped spheres (60: 0.25 s)")
     p.add_argument("--max-spheres", type=int, default=32, help="spheres in the world at most")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--recycle", choices=("lowest", "oldest"), default="lowest",
+                   help="which sphere is dropped again once --max-spheres are in the world")
+    p.add_argument("--checkpoint", help="when stopped (Ctrl-C, SIGTERM) before the end, write the run's state "
+                   "here (.npz, one scene only) so that --resume continues it on a fresh process")
+    p.add_argument("--resume", help="continue from a --checkpoint file (same scene and options)")
     p.add_argument("--out", help="result JSON (default bench/results/soak_<device>.json)")
     a = p.parse_args(argv)
     scenes = [s.strip() for s in a.scenes.split(",") if s.strip()]
     unknown = [s for s in scenes if s not in ALL_SCENES]
     if unknown:
         p.error(f"unknown scenes {unknown}; choose from {', '.join(ALL_SCENES)}")
+    if (a.checkpoint or a.resume) and len(scenes) != 1:
+        p.error("--checkpoint/--resume need exactly one scene (--scenes NAME)")
     if "paper" in scenes and not (SHARED_DATA / "horse_gallop.npz").is_file():
         p.error(f"the paper scene needs {SHARED_DATA / 'horse_gallop.npz'}")
     import warp as wp
@@ -366,14 +434,14 @@ def main(argv=None) -> int:
         if stop_flag.get("stop"):
             break
         results.append(soak_scene(name, device, a.steps, a.check_every, a.drop_every, a.max_spheres, a.seed,
-                                  stop_flag, log=lambda *m: print(*m, flush=True)))
+                                  stop_flag, log=lambda *m: print(*m, flush=True), recycle=a.recycle, checkpoint=a.checkpoint, resume=a.resume))
     doc = {
         "what": "soak: spheres dropped continuously; every check_every steps no sphere centre inside the surface "
                 "(winding number; height field for the open sheet) and all positions/velocities finite",
         "machine": describe_device(device),
         "device": str(device),
         "args": {"steps": a.steps, "check_every": a.check_every, "drop_every": a.drop_every,
-                 "max_spheres": a.max_spheres, "seed": a.seed, "scenes": scenes},
+                 "max_spheres": a.max_spheres, "seed": a.seed, "recycle": a.recycle, "scenes": scenes},
         "interrupted": stop_flag.get("stop") or False,
         "wall_s": round(time.perf_counter() - t0, 1),
         "total_steps": sum(r["steps"] for r in results),
