@@ -1,11 +1,131 @@
-"""Closed choices shared by the library, the scene schema and the CLIs, each with its default in
-one place. Bottom layer: imports nothing from the package."""
+"""Closed choices and their defaults, each defined once (docs/architecture.md, "One vocabulary").
+
+Every closed choice of the project is one ``str`` enum here; its default sits next to it. The
+scene schema (:mod:`dynmesh_warp.config`) types its fields with these enums, the CLIs derive their
+``choices=`` and defaults from them (:func:`values`), and kernels receive the integer code of a
+member where they branch on it (:data:`PLAYBACK_CODES`). ``tests/test_choices.py`` checks that the
+schema and every CLI's help derive from this module.
+
+A member compares equal to its value (``Collider.SWEPT == "swept"``) and prints as it
+(``f"{Collider.SWEPT}"`` is ``swept``), so plain strings keep working in the Python API.
+
+Bottom layer: imports nothing from the package.
+"""
 
 from __future__ import annotations
 
-__all__ = ["STRATEGIES", "DEFAULT_STRATEGY"]
+import enum
 
-#: topology conversion strategies (dynmesh_warp.convert, docs/conversion.md)
-STRATEGIES = ("projection", "tracking", "regularized", "graph")
-#: the default conversion: the embedded deformation graph (best on every sequence of docs/evaluation.md)
-DEFAULT_STRATEGY = "graph"
+__all__ = ["StrEnum", "Collider", "RebuildEvery", "Playback", "FrameOrder", "Orientation", "UpAxis", "Strategy",
+           "NewtonSolver", "PLAYBACK_CODES", "DEFAULT_COLLIDER", "DEFAULT_REBUILD_EVERY", "DEFAULT_PLAYBACK",
+           "DEFAULT_FRAME_ORDER", "DEFAULT_ORIENTATION", "DEFAULT_UP_AXIS", "DEFAULT_STRATEGY",
+           "DEFAULT_NEWTON_SOLVER", "STRATEGIES", "values", "parse"]
+
+
+class StrEnum(str, enum.Enum):
+    """``enum.StrEnum`` for Python 3.10 too: members are strings that print as their value."""
+
+    def __str__(self) -> str:
+        return str(self.value)
+
+    def __format__(self, spec: str) -> str:
+        return format(str(self.value), spec)
+
+
+class Collider(StrEnum):
+    """How contacts find the deforming surface (docs/physics.md)."""
+
+    #: swept when interpolating and the candidate lists are expected to fit, else refit
+    FIXED = "fixed"
+    #: the vertex buffer and the BVH are refit every sub-step (the reference)
+    REFIT = "refit"
+    #: a BVH over each face's box across the frame interval, refit once per frame
+    SWEPT = "swept"
+    #: a new BVH every sub-step or frame (varying topology)
+    REBUILD = "rebuild"
+
+
+class RebuildEvery(StrEnum):
+    """When the rebuild collider builds its BVH."""
+
+    STEP = "step"
+    FRAME = "frame"
+
+
+class Playback(StrEnum):
+    """Times past the last frame."""
+
+    LOOP = "loop"
+    CLAMP = "clamp"
+    PINGPONG = "pingpong"
+
+
+class FrameOrder(StrEnum):
+    """Order of the frames of an npz (docs/data.md)."""
+
+    STORED = "stored"
+    #: undo a text sort (1, 10, 11, ..., 2, ...) of the frame names
+    TEXT_SORTED = "text_sorted"
+    AUTO = "auto"
+
+
+class Orientation(StrEnum):
+    """Triangle orientation of a loaded surface: ``auto`` flips a closed mesh whose triangles face inward."""
+
+    AUTO = "auto"
+    KEEP = "keep"
+    FLIP = "flip"
+
+
+class UpAxis(StrEnum):
+    Z = "z"
+    Y = "y"
+
+
+class Strategy(StrEnum):
+    """Topology conversion strategies (dynmesh_warp.convert, docs/conversion.md)."""
+
+    PROJECTION = "projection"
+    TRACKING = "tracking"
+    REGULARIZED = "regularized"
+    #: the embedded deformation graph (best on every sequence of docs/evaluation.md)
+    GRAPH = "graph"
+
+
+class NewtonSolver(StrEnum):
+    """Newton solvers the adapter can create (docs/newton.md)."""
+
+    XPBD = "xpbd"
+    SEMI_IMPLICIT = "semi_implicit"
+    FEATHERSTONE = "featherstone"
+    VBD = "vbd"
+    MUJOCO = "mujoco"
+
+
+DEFAULT_COLLIDER = Collider.FIXED
+DEFAULT_REBUILD_EVERY = RebuildEvery.STEP
+DEFAULT_PLAYBACK = Playback.LOOP
+DEFAULT_FRAME_ORDER = FrameOrder.STORED
+DEFAULT_ORIENTATION = Orientation.AUTO
+DEFAULT_UP_AXIS = UpAxis.Z
+DEFAULT_STRATEGY = Strategy.GRAPH
+DEFAULT_NEWTON_SOLVER = NewtonSolver.XPBD
+
+#: integer code of each playback mode, as the kernels branch on it (kernels/frames.py)
+PLAYBACK_CODES = {Playback.LOOP: 0, Playback.CLAMP: 1, Playback.PINGPONG: 2}
+
+#: the strategy names, in the enum's order
+STRATEGIES = tuple(s.value for s in Strategy)
+
+
+def values(choice: type[StrEnum]) -> list[str]:
+    """The values of an enum, in order (argparse ``choices=``, messages)."""
+    return [m.value for m in choice]
+
+
+def parse(choice: type[StrEnum], value, field: str):
+    """``value`` as a member of ``choice``; a ``ValueError`` naming ``field`` and the valid values."""
+    try:
+        return choice(value)
+    except ValueError:
+        raise ValueError(f"{field} must be one of {values(choice)}, got {value!r}") from None

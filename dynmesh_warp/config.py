@@ -14,9 +14,26 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from .choices import DEFAULT_STRATEGY
+from .choices import (
+    DEFAULT_COLLIDER,
+    DEFAULT_FRAME_ORDER,
+    DEFAULT_NEWTON_SOLVER,
+    DEFAULT_ORIENTATION,
+    DEFAULT_PLAYBACK,
+    DEFAULT_REBUILD_EVERY,
+    DEFAULT_STRATEGY,
+    DEFAULT_UP_AXIS,
+    Collider,
+    FrameOrder,
+    NewtonSolver,
+    Orientation,
+    Playback,
+    RebuildEvery,
+    Strategy,
+    UpAxis,
+)
 
-__all__ = ["SceneConfig", "SceneError", "load_scene_config", "DEFAULT_SCENE", "Vec3", "PhysicsCore", "load_yaml",
+__all__ = ["SceneConfig", "SceneError", "load_scene_config", "DEFAULT_SCENE", "DEFAULT_SCENE_FILE", "Vec3", "PhysicsCore", "load_yaml",
            "DEFAULT_MAX_SUBSTEPS", "DEFAULT_MAX_TOTAL_SUBSTEPS"]
 
 Vec3 = tuple[float, float, float]
@@ -39,7 +56,7 @@ class _Strict(BaseModel):
 class ConversionConfig(_Strict):
     """Turn a varying-topology input into a fixed-topology mesh before simulating."""
 
-    strategy: str = DEFAULT_STRATEGY
+    strategy: Strategy = DEFAULT_STRATEGY
     template: Optional[str] = None  # a mesh file; default: the first frame
     options: dict = Field(default_factory=dict)
 
@@ -49,14 +66,14 @@ class SurfaceConfig(_Strict):
     params: dict = Field(default_factory=dict)  # keyword arguments of a built-in generator
     subdir: Optional[str] = None  # DG-Mesh scene folder: dynamic_mesh | mesh_gt
     fps: Optional[float] = Field(default=None, gt=0)
-    frame_order: Literal["stored", "text_sorted", "auto"] = "stored"  # text_sorted: undo 1, 10, 11, ..., 2, ...
-    playback: Literal["loop", "clamp", "pingpong"] = "loop"
+    frame_order: FrameOrder = DEFAULT_FRAME_ORDER  # text_sorted: undo 1, 10, 11, ..., 2, ...
+    playback: Playback = DEFAULT_PLAYBACK
     interpolate: bool = True
-    up_axis: Literal["z", "y"] = "z"
+    up_axis: UpAxis = DEFAULT_UP_AXIS
     scale: float = Field(default=1.0, gt=0)
     translate: Vec3 = (0.0, 0.0, 0.0)
     # auto: a closed mesh whose triangles face inward is flipped (with a warning); keep; flip
-    orientation: Literal["auto", "keep", "flip"] = "auto"
+    orientation: Orientation = DEFAULT_ORIENTATION
     conversion: Optional[ConversionConfig] = None
 
 
@@ -106,8 +123,8 @@ class PhysicsCore(_Strict):
 
 class PhysicsConfig(PhysicsCore):
     ground: Optional[Union[float, Literal["auto"]]] = None  # ground plane height [m]; auto: lowest surface point
-    collider: Literal["fixed", "refit", "swept", "rebuild"] = "fixed"
-    rebuild_every: Literal["step", "frame"] = "step"
+    collider: Collider = DEFAULT_COLLIDER
+    rebuild_every: RebuildEvery = DEFAULT_REBUILD_EVERY
 
 
 #: placeholders allowed in ``run.output`` (filled from the scene's fields of the same name)
@@ -185,7 +202,7 @@ class NewtonBodyConfig(_Strict):
 class NewtonConfig(_Strict):
     """Simulate the bodies with the Newton engine instead of the built-in sphere world."""
 
-    solver: Literal["xpbd", "semi_implicit", "featherstone", "vbd", "mujoco"] = "xpbd"
+    solver: NewtonSolver = DEFAULT_NEWTON_SOLVER
     solver_options: dict = Field(default_factory=dict)  # keyword arguments of the solver
     bodies: list[NewtonBodyConfig] = Field(default_factory=list)
     include_spheres: bool = True  # the scene's ``spheres`` become Newton spheres too
@@ -263,13 +280,8 @@ class SceneConfig(_Strict):
         return self
 
 
-DEFAULT_SCENE = {
-    "name": "default",
-    "surface": {"source": "builtin:wave_bowl"},
-    "spheres": {"count": 5, "radius": 0.08, "mass": 1.0, "height": 0.4, "seed": 1},
-    "physics": {"dt": 1.0 / 240.0, "restitution": 0.3, "friction": 0.5},
-    "run": {"duration": 5.0},
-}
+#: the packaged YAML of the built-in default scene (``python -m dynmesh_warp.run`` with no scene)
+DEFAULT_SCENE_FILE = Path(__file__).with_name("default_scene.yaml")
 
 
 _MISMATCH = {"list_type", "dict_type", "model_type", "model_attributes_type", "tuple_type"}
@@ -334,6 +346,10 @@ class _UniqueKeyLoader(yaml.SafeLoader):
 def load_yaml(text: str):
     """Parse YAML with the safe loader, refusing duplicate keys."""
     return yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 (a SafeLoader subclass)
+
+
+#: the built-in default scene as a mapping (read once from :data:`DEFAULT_SCENE_FILE`)
+DEFAULT_SCENE = load_yaml(DEFAULT_SCENE_FILE.read_text())
 
 
 def load_scene_config(path: str | Path | None = None, data: dict | None = None) -> SceneConfig:

@@ -996,7 +996,7 @@ def main(argv=None) -> int:
             raise ValueError(f"--{str(e).split(' ', 1)[0].replace('_', '-')}: {str(e).split(' ', 1)[-1]}") from None
         if a.fps is not None and not (np.isfinite(a.fps) and a.fps > 0):
             raise ValueError(f"--fps must be a positive, finite frame rate, got {a.fps}")
-        from .scene import resolve_device
+        from .runtime import resolve_device
 
         device = resolve_device(a.device, "--device")
         if not Path(a.input).expanduser().exists():

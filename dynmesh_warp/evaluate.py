@@ -531,6 +531,7 @@ from .cli import interruptible_main  # noqa: E402 (the CLI section's own import)
 
 @interruptible_main
 def main(argv=None) -> int:
+    from .choices import DEFAULT_FRAME_ORDER, FrameOrder, values
     from .cli import Parser
 
     ap = Parser(prog="python -m dynmesh_warp.evaluate", description=__doc__.split("\n\n")[0])
@@ -554,7 +555,7 @@ def main(argv=None) -> int:
                     help="EMD only on frames that are multiples of this (0: every evaluated frame)")
     ap.add_argument("--no-emd", action="store_true", help="skip EMD")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--frame-order", choices=["stored", "text_sorted", "auto"], default="stored",
+    ap.add_argument("--frame-order", choices=values(FrameOrder), default=DEFAULT_FRAME_ORDER.value,
                     help="text_sorted: undo a text sort of the ground truth's frames (1, 10, 11, ..., 2, ...); "
                          "auto: only where detected")
     ap.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda (default: Warp's default)")
@@ -570,7 +571,7 @@ def main(argv=None) -> int:
     progress = not a.no_progress
     try:
         from .outputs import OutputFolder, check_output
-        from .scene import resolve_device
+        from .runtime import resolve_device
 
         device = str(resolve_device(a.device, "--device"))
         inputs = _check_options(a, ap.error)

@@ -115,6 +115,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .choices import FrameOrder, parse
 from .sequence import (
     FixedTopologySequence,
     MeshDataError,
@@ -638,8 +639,7 @@ def load_sequence(
         return _load_folder(folder, fps, kind, name=path.name or str(path))
     if subdir is not None:
         raise ValueError(f"{path}: subdir= applies to folders, but this is a file")
-    if frame_order not in ("stored", "text_sorted", "auto"):
-        raise ValueError(f"frame_order must be 'stored', 'text_sorted' or 'auto', got {frame_order!r}")
+    frame_order = parse(FrameOrder, frame_order, "frame_order").value
     if path.suffix.lower() == ".npz":
         return _fix_frame_order(_load_npz(path, fps, kind), frame_order, path)
     V, F = read_mesh(path)

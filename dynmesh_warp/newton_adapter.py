@@ -33,6 +33,8 @@ import math
 import numpy as np
 import warp as wp
 
+from .choices import DEFAULT_NEWTON_SOLVER, NewtonSolver, values
+from .config import PhysicsCore
 from .kernels.frames import update_frame_vertices
 from .kernels.integrate import advance_time
 from .kernels.newton_adapter import accumulate_shape_bounds, reset_shape_bounds
@@ -41,7 +43,11 @@ from .world import SurfaceModel
 
 __all__ = ["newton_available", "DeformingMeshShape", "NewtonWorld", "SOLVERS", "make_solver"]
 
-SOLVERS = ("xpbd", "semi_implicit", "featherstone", "vbd", "mujoco")
+#: the physics defaults (one home: dynmesh_warp.config.PhysicsCore)
+_PHYSICS = {k: f.default for k, f in PhysicsCore.model_fields.items()}
+
+#: the Newton solvers make_solver creates (dynmesh_warp.choices.NewtonSolver)
+SOLVERS = tuple(values(NewtonSolver))
 
 
 def newton_available() -> bool:
@@ -71,11 +77,13 @@ class DeformingMeshShape:
             tests switch it off, to show that Newton's broad phase then misses the moved surface.
         bounds_pad: extra padding of the bounds [m] (default 0: the bounds are recomputed before
             every collision pass, and Newton adds the shape's margin + gap on top).
-        mu, restitution: Newton shape material of the surface.
+        mu, restitution: Newton shape material of the surface (default: the scene's physics
+            defaults, ``physics.friction`` and ``physics.restitution``).
     """
 
     def __init__(self, surface: SurfaceModel, *, update_bounds: bool = True, bounds_pad: float = 0.0,
-                 mu: float = 0.5, restitution: float = 0.0, label: str = "dynmesh_surface"):
+                 mu: float = _PHYSICS["friction"], restitution: float = _PHYSICS["restitution"],
+                 label: str = "dynmesh_surface"):
         if not isinstance(surface, SurfaceModel):
             raise TypeError("the Newton adapter needs a fixed-topology SurfaceModel "
                             "(convert a varying-topology input first)")
@@ -154,10 +162,10 @@ class DeformingMeshShape:
         return self.mesh.points.numpy()
 
 
-def make_solver(model, name: str = "xpbd", **options):
+def make_solver(model, name: str = DEFAULT_NEWTON_SOLVER, **options):
     """Create a Newton solver by name (``SOLVERS``); ``options`` go to its constructor."""
     newton = _import_newton()
-    name = name.lower()
+    name = str(name).lower()
     if name == "xpbd":
         options.setdefault("iterations", 5)
         return newton.solvers.SolverXPBD(model, **options)
@@ -206,9 +214,11 @@ class NewtonWorld:
         update_bounds / bounds_pad / mu / restitution: see :class:`DeformingMeshShape`.
     """
 
-    def __init__(self, surface: SurfaceModel, builder, *, dt: float = 1.0 / 240.0, substeps: int = 1,
-                 solver: str = "xpbd", solver_options: dict | None = None, gravity=None,
-                 update_bounds: bool = True, bounds_pad: float = 0.0, mu: float = 0.5, restitution: float = 0.0,
+    def __init__(self, surface: SurfaceModel, builder, *, dt: float = _PHYSICS["dt"],
+                 substeps: int = _PHYSICS["substeps"], solver: str = DEFAULT_NEWTON_SOLVER,
+                 solver_options: dict | None = None, gravity=None, update_bounds: bool = True,
+                 bounds_pad: float = 0.0, mu: float = _PHYSICS["friction"],
+                 restitution: float = _PHYSICS["restitution"],
                  t0: float = 0.0, use_graph: bool | None = None):
         if not (dt > 0 and math.isfinite(dt)):
             raise ValueError(f"dt must be a positive number, got {dt}")
@@ -424,7 +434,8 @@ def add_scene_bodies(builder, cfg, sphere_positions=None) -> list[dict]:
 def build_newton_world(cfg, device=None, sequence=None, **overrides) -> NewtonWorld:
     """Create a :class:`NewtonWorld` from a validated scene with a ``newton:`` section."""
     from .config import SceneError, spawn_positions  # noqa: PLC0415
-    from .scene import load_surface, prepare_surface, scene_device  # noqa: PLC0415
+    from .runtime import scene_device  # noqa: PLC0415
+    from .scene import load_surface, prepare_surface  # noqa: PLC0415
 
     if cfg.newton is None:
         raise SceneError("the scene has no 'newton:' section")
@@ -477,7 +488,7 @@ def run_newton_scene(cfg, device=None, steps: int | None = None, output=None, pr
 
     from .cli import checking_stops  # noqa: PLC0415
     from .outputs import OutputFolder, atomic_write_json, atomic_write_npz  # noqa: PLC0415
-    from .run import check_run_output, rate_text, steps_per_second, timed_loop  # noqa: PLC0415
+    from .runtime import check_run_output, rate_text, steps_per_second, timed_loop  # noqa: PLC0415
 
     out = check_run_output(cfg, output, overwrite)
     t_build = time.perf_counter()

@@ -5,13 +5,13 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
-import warp as wp
 
 from .config import SceneConfig, SceneError, spawn_positions
+from .runtime import scene_device
 from .sequence import FixedTopologySequence, MeshDataError, VaryingTopologySequence, mesh_orientation
 from .world import Model, PhysicsParams, SphereModel, State, SurfaceModel, VaryingSurfaceModel, World
 
-__all__ = ["load_surface", "prepare_surface", "build_world", "resolve_device", "scene_device"]
+__all__ = ["load_surface", "prepare_surface", "build_world"]
 
 # y-up data to z-up: rotate +90 degrees about x, (x, y, z) -> (x, -z, y)
 _Y_TO_Z = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
@@ -144,24 +144,6 @@ def _refuse_spheres_inside(V0, F0, positions, radius) -> None:
             f"surface (frame 0); contacts are one-sided, so it would fall out through it. Move it outside, "
             f"e.g. z >= {top + float(radius[i]):.4g} above the surface"
             + (f" ({inside.size} spheres are inside)" if inside.size > 1 else ""))
-
-
-def scene_device(cfg: SceneConfig, device=None):
-    """The device a scene runs on: ``device`` (the CLI's --device) if given, else the scene's
-    ``device`` field, else Warp's default; a :class:`SceneError` names whichever is unavailable."""
-    return resolve_device(device, "--device") if device else resolve_device(cfg.device, "device")
-
-
-def resolve_device(name, field: str = "device"):
-    """``wp.get_device(name)``, with a :class:`SceneError` naming ``field`` when the device
-    does not exist here (e.g. ``cuda`` on a machine without a GPU)."""
-    try:
-        if isinstance(name, str) and name.startswith("cuda") and not wp.is_cuda_available():
-            raise RuntimeError("no CUDA device or driver on this machine")  # before Warp's native errors
-        return wp.get_device(name)
-    except (RuntimeError, ValueError) as e:
-        have = ", ".join(str(d) for d in wp.get_devices())
-        raise SceneError(f"{field} {name!r}: not available here ({e}); devices here: {have}") from None
 
 
 def build_world(cfg: SceneConfig, device=None, collider: str | None = None,

@@ -548,7 +548,7 @@ def run_viewer(cfg, device=None, viewer: str = "viser", port: int = 8080, host: 
     else:
         world = build_world(cfg, device=device, collider=collider, rebuild_every=rebuild_every)
         if steps is not None or viewer != "viser":  # a bounded run: the work budget, before the server starts
-            from .run import check_total_work, run_steps
+            from .runtime import check_total_work, run_steps
 
             check_total_work(cfg, steps if steps is not None else run_steps(cfg), world.substeps)
         g = gaussians_for_world(world, cfg)
@@ -556,7 +556,7 @@ def run_viewer(cfg, device=None, viewer: str = "viser", port: int = 8080, host: 
         what = f"{world.model.spheres.count} spheres"
     dt = world.model.params.dt
     if steps is None and viewer != "viser":
-        from .run import run_steps
+        from .runtime import run_steps
 
         steps = run_steps(cfg)
     max_frames = None if steps is None else max(1, int(np.ceil(steps * dt / v.frame_dt)))

@@ -17,7 +17,7 @@ import numpy as np
 import warp as wp
 
 from .kernels.collide import collide_sphere_mesh
-from .kernels.frames import PLAYBACK_CLAMP, PLAYBACK_LOOP, PLAYBACK_PINGPONG, update_frame_vertices
+from .kernels.frames import update_frame_vertices
 from .kernels.geometry import compute_face_normals
 from .kernels.integrate import integrate_spheres
 from .kernels.swept import (
@@ -27,6 +27,17 @@ from .kernels.swept import (
     evaluate_sphere_candidates,
     gather_sphere_candidates,
     resolve_sphere_candidates,
+)
+from .choices import (
+    DEFAULT_COLLIDER,
+    DEFAULT_PLAYBACK,
+    DEFAULT_REBUILD_EVERY,
+    PLAYBACK_CODES,
+    Collider,
+    Playback,
+    RebuildEvery,
+    parse,
+    values,
 )
 from .config import PhysicsCore
 from .sequence import FixedTopologySequence, VaryingTopologySequence
@@ -46,7 +57,8 @@ __all__ = [
     "frame_pair_host",
 ]
 
-PLAYBACK_MODES = {"loop": int(PLAYBACK_LOOP), "clamp": int(PLAYBACK_CLAMP), "pingpong": int(PLAYBACK_PINGPONG)}
+#: playback name -> the integer code the kernels branch on (dynmesh_warp.choices.PLAYBACK_CODES)
+PLAYBACK_MODES = {m.value: code for m, code in PLAYBACK_CODES.items()}
 
 
 def _step_modules(with_hooks: bool):
@@ -132,9 +144,8 @@ class SurfaceModel:
         max_speed: largest vertex speed over the sequence [m/s] (host float).
     """
 
-    def __init__(self, seq: FixedTopologySequence, device=None, playback: str = "loop", interpolate: bool = True):
-        if playback not in PLAYBACK_MODES:
-            raise ValueError(f"playback must be one of {sorted(PLAYBACK_MODES)}, got {playback!r}")
+    def __init__(self, seq: FixedTopologySequence, device=None, playback: str = DEFAULT_PLAYBACK, interpolate: bool = True):
+        playback = parse(Playback, playback, "playback").value
         self.sequence = seq
         self.device = wp.get_device(device)
         self.frames = wp.array(seq.V, dtype=wp.vec3, device=self.device)
@@ -169,9 +180,8 @@ class VaryingSurfaceModel:
     interpolate = False
     max_speed = 0.0
 
-    def __init__(self, seq: VaryingTopologySequence, device=None, playback: str = "loop"):
-        if playback not in PLAYBACK_MODES:
-            raise ValueError(f"playback must be one of {sorted(PLAYBACK_MODES)}, got {playback!r}")
+    def __init__(self, seq: VaryingTopologySequence, device=None, playback: str = DEFAULT_PLAYBACK):
+        playback = parse(Playback, playback, "playback").value
         self.sequence = seq
         self.device = wp.get_device(device)
         self.frame_points = [wp.array(v, dtype=wp.vec3, device=self.device) for v, _ in seq.frames]
@@ -295,9 +305,8 @@ class RebuildCollider:
     capturable = False
     needs_points = True
 
-    def __init__(self, world: "World", every: str = "step"):
-        if every not in ("step", "frame"):
-            raise ValueError(f"rebuild 'every' must be 'step' or 'frame', got {every!r}")
+    def __init__(self, world: "World", every: str = DEFAULT_REBUILD_EVERY):
+        every = parse(RebuildEvery, every, "rebuild_every").value
         if every == "frame" and world.model.surface.interpolate:
             raise ValueError("rebuild_every 'frame' needs a surface that changes only per frame: "
                              "set surface.interpolate: false (with interpolation it changes every step)")
@@ -435,7 +444,7 @@ class SweptCollider:
 
 SWEPT_MAX_CANDIDATES = 256
 COLLIDERS = {"refit": RefitCollider, "swept": SweptCollider, "rebuild": RebuildCollider}
-COLLIDER_CHOICES = ("fixed", "refit", "swept", "rebuild")
+COLLIDER_CHOICES = tuple(values(Collider))
 
 
 class World:
@@ -458,15 +467,16 @@ class World:
     through the surface in one sub-step, and one found behind it is pushed back to the front.
     """
 
-    def __init__(self, model: Model, state: State, collider: str = "fixed", rebuild_every: str = "step",
+    def __init__(self, model: Model, state: State, collider: str = DEFAULT_COLLIDER,
+                 rebuild_every: str = DEFAULT_REBUILD_EVERY,
                  use_graph: bool | None = None, render_state: bool | None = None):
         self.model = model
         self.state = state
         self.device = model.device
         p = model.params
         surf = model.surface
-        if collider not in COLLIDER_CHOICES:
-            raise ValueError(f"collider must be one of {list(COLLIDER_CHOICES)}, got {collider!r}")
+        collider = parse(Collider, collider, "collider").value
+        rebuild_every = parse(RebuildEvery, rebuild_every, "rebuild_every").value
         if isinstance(surf, VaryingSurfaceModel) and collider != "rebuild":
             raise ValueError(
                 "a varying-topology surface can only use collider 'rebuild' "

@@ -2,10 +2,12 @@
 
 import warp as wp
 
-# Playback modes for times past the last frame.
-PLAYBACK_LOOP = wp.constant(0)
-PLAYBACK_CLAMP = wp.constant(1)
-PLAYBACK_PINGPONG = wp.constant(2)
+from ..choices import PLAYBACK_CODES, Playback
+
+# Playback modes for times past the last frame (codes of dynmesh_warp.choices.Playback).
+PLAYBACK_LOOP = wp.constant(PLAYBACK_CODES[Playback.LOOP])
+PLAYBACK_CLAMP = wp.constant(PLAYBACK_CODES[Playback.CLAMP])
+PLAYBACK_PINGPONG = wp.constant(PLAYBACK_CODES[Playback.PINGPONG])
 
 
 @wp.func
