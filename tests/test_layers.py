@@ -1,0 +1,116 @@
+"""Modules are layered without cycles (issue 13; docs/architecture.md): every import inside the
+package — at module level or inside a function — goes from a higher layer to a lower one."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+PKG = "dynmesh_warp"
+
+#: the layers, bottom first (docs/architecture.md); a module imports only from layers below its own
+LAYERS = [
+    # data and vocabulary: import nothing from the package
+    {"choices", "sequence", "outputs"},
+    # kernels (the top-level kernels/ folder, installed as dynmesh_warp.kernels)
+    {"kernels"},
+    # schema, readers/writers, signals and CLI plumbing, built-in surfaces
+    {"config", "io", "splat_io", "scenes", "cli"},
+    # the simulation core and the geometry stages
+    {"world", "remesh", "metrics", "deform_graph"},
+    # what runners share: devices, run length, output checks, the timed loop; checkpoints; Gaussians
+    {"runtime", "checkpoint", "gaussians"},
+    # conversion, then building a scene (which may convert)
+    {"convert"},
+    {"scene"},
+    # engines and tools over a scene
+    {"newton_adapter", "evaluate"},
+    {"viewer"},
+    # the run CLI on top
+    {"run"},
+]
+LAYER = {m: i for i, layer in enumerate(LAYERS) for m in layer}
+
+
+def _modules() -> dict[str, Path]:
+    mods = {p.stem: p for p in (ROOT / PKG).glob("*.py") if p.stem != "__init__"}
+    mods.update({f"kernels.{p.stem}": p for p in (ROOT / "kernels").glob("*.py") if p.stem != "__init__"})
+    return mods
+
+
+def _layer(mod: str) -> int:
+    return LAYER["kernels"] if mod.startswith("kernels.") else LAYER[mod]
+
+
+def _imports(mod: str, path: Path) -> set[str]:
+    """Package modules ``mod`` imports (absolute or relative, anywhere in the file)."""
+    pkg = mod.split(".")[:-1]  # [] for dynmesh_warp.x, ["kernels"] for dynmesh_warp.kernels.x
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = pkg[: len(pkg) - (node.level - 1)] if node.level > 1 else pkg
+                target = base + (node.module.split(".") if node.module else [])
+            elif node.module and node.module.split(".")[0] == PKG:
+                target = node.module.split(".")[1:]
+            else:
+                continue
+            names = [a.name for a in node.names]
+            if not target:  # from . import x
+                out |= {n for n in names}
+            elif target == ["kernels"]:
+                out |= {f"kernels.{n}" for n in names} if node.module == "kernels" or node.level else {"kernels"}
+            else:
+                out.add(".".join(target[:2]) if target[0] == "kernels" else target[0])
+        elif isinstance(node, ast.Import):
+            for a in node.names:
+                parts = a.name.split(".")
+                if parts[0] == PKG and len(parts) > 1:
+                    out.add(".".join(parts[1:3]) if parts[1] == "kernels" else parts[1])
+    mods = _modules()
+    return {m for m in out if (m in mods or m == "kernels") and m != mod}
+
+
+def _graph() -> dict[str, set[str]]:
+    return {m: _imports(m, p) for m, p in _modules().items()}
+
+
+def test_every_module_has_a_layer():
+    missing = sorted(m for m in _modules() if not m.startswith("kernels.") and m not in LAYER)
+    assert not missing, f"modules without a layer in tests/test_layers.py (and docs/architecture.md): {missing}"
+
+
+def test_imports_go_down_the_layers():
+    wrong = sorted(f"{a} (layer {_layer(a)}) imports {b} (layer {_layer(b)})"
+                   for a, deps in _graph().items() for b in deps
+                   if not (a.startswith("kernels.") and b.startswith("kernels.")) and _layer(b) >= _layer(a))
+    assert not wrong, "\n".join(wrong)
+
+
+def test_no_import_cycles():
+    g = _graph()
+    state: dict[str, int] = {}
+    stack: list[str] = []
+
+    def visit(m):
+        state[m] = 1
+        stack.append(m)
+        for d in sorted(g.get(m, ())):
+            if state.get(d) == 1:
+                raise AssertionError("import cycle: " + " -> ".join(stack[stack.index(d):] + [d]))
+            if d not in state:
+                visit(d)
+        stack.pop()
+        state[m] = 2
+
+    for m in sorted(g):
+        if m not in state:
+            visit(m)
+
+
+def test_the_checker_sees_function_level_and_relative_imports(tmp_path):
+    """The checker itself: a lazy relative import inside a function is an edge."""
+    f = tmp_path / "x.py"
+    f.write_text("def f():\n    from .run import main\n    from .kernels.frames import wrap_frame\n")
+    assert _imports("world", f) == {"run", "kernels.frames"}
