@@ -52,6 +52,7 @@ import numpy as np
 import warp as wp
 
 from .choices import DEFAULT_STRATEGY, STRATEGIES
+from .geometry import surface_area
 from .kernels import convert as kc
 from .kernels.geometry import project_points_to_mesh
 from .sequence import FixedTopologySequence, MeshDataError, VaryingTopologySequence, validate_mesh
@@ -672,11 +673,6 @@ def _check_scales(seq: VaryingTopologySequence, tol: float):
             "the gap (mixed units or a broken frame?)", UserWarning, stacklevel=3)
 
 
-def _surface_area(V: np.ndarray, F: np.ndarray) -> float:
-    V = np.asarray(V, np.float64)
-    return 0.5 * float(np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1).sum())
-
-
 def _key_frame(seq: VaryingTopologySequence, key, has_template: bool) -> int:
     """The frame the template comes from (or is matched to). "auto": frame 0 with a given
     template; otherwise the frame of largest surface area (median over 3 consecutive frames
@@ -687,7 +683,7 @@ def _key_frame(seq: VaryingTopologySequence, key, has_template: bool) -> int:
     if key is None or (isinstance(key, str) and key == "auto"):
         if has_template or T < 3:
             return 0
-        a = np.array([_surface_area(v, f) for v, f in seq.frames])
+        a = np.array([surface_area(v, f) for v, f in seq.frames])
         med = np.array([np.median(a[max(0, t - 1):t + 2]) for t in range(T)])
         return int(np.argmax(med))
     if isinstance(key, bool) or not isinstance(key, (int, np.integer)) or not -T <= int(key) < T:

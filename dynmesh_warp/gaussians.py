@@ -16,6 +16,7 @@ import warnings
 import numpy as np
 import warp as wp
 
+from .geometry import face_areas
 from .kernels.gaussians import bind_gaussians_to_faces, pack_splat_covariances, update_gaussians
 from .kernels.geometry import project_points_to_mesh
 from .sequence import validate_mesh
@@ -155,11 +156,6 @@ class Gaussians:
                                          self.binding.opacity, f_rest=self.binding.f_rest)
 
 
-def _face_areas(V: np.ndarray, F: np.ndarray) -> np.ndarray:
-    A = 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1)
-    return A
-
-
 def _check_splats(cloud: SplatCloud) -> None:
     """Refuse splats that cannot be rendered: NaN/inf in a required property (centre, colour,
     opacity, log-scale, rotation) or a zero rotation quaternion; warn on an empty cloud."""
@@ -242,7 +238,7 @@ def generate_gaussians(V, F, count: int = 20000, seed: int = 0, vertex_colors=No
         raise ValueError(f"gaussians.count must be >= 0, got {count}")
     rng = np.random.default_rng(seed)
     V64 = V.astype(np.float64)
-    area = _face_areas(V64, F)
+    area = face_areas(V64, F)
     total = float(area.sum())
     if total <= 0:
         raise ValueError("cannot generate Gaussians on a mesh of zero area")

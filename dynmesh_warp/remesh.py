@@ -32,6 +32,7 @@ import numpy as np
 import warp as wp
 
 from .kernels.remesh import compute_signed_distances, mark_band_voxels
+from .geometry import orient_outward
 from .sequence import FixedTopologySequence, MeshDataError, VaryingTopologySequence
 
 __all__ = ["remesh_sequence", "resample_time", "grid_for", "remesh_frame", "reconstruction_error",
@@ -64,12 +65,6 @@ def grid_for(frames_V, resolution: int, pad: int = 2):
     dims = np.ceil((hi - lo) / h).astype(int) + 1 + 2 * pad
     origin = lo - pad * h
     return origin, h, dims
-
-
-def _orient_outward(V, F):
-    a, b, c = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
-    vol = np.einsum("ij,ij->i", a.astype(np.float64), np.cross(b, c).astype(np.float64)).sum() / 6.0
-    return (F[:, ::-1].copy() if vol < 0 else F), vol
 
 
 def remesh_frame(V, F, origin, h, dims, band: float = 2.0, device=None):
@@ -134,7 +129,7 @@ def remesh_frame(V, F, origin, h, dims, band: float = 2.0, device=None):
                             "the resolution?)")
     verts, faces, _, _ = marching_cubes(field, level=0.0, spacing=(h, h, h))
     verts = (verts + origin).astype(np.float32)
-    faces, _ = _orient_outward(verts, faces.astype(np.int32))
+    faces = orient_outward(verts, faces.astype(np.int32))
     return verts, faces.astype(np.int32)
 
 

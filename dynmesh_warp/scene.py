@@ -8,7 +8,8 @@ import numpy as np
 
 from .config import SceneConfig, SceneError, spawn_positions
 from .runtime import scene_device
-from .sequence import FixedTopologySequence, MeshDataError, VaryingTopologySequence, mesh_orientation
+from .geometry import mesh_orientation
+from .sequence import FixedTopologySequence, MeshDataError, VaryingTopologySequence
 from .world import Model, PhysicsParams, SphereModel, State, SurfaceModel, VaryingSurfaceModel, World
 
 __all__ = ["load_surface", "prepare_surface", "build_world"]

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .geometry import orient_outward
 from .sequence import FixedTopologySequence, VaryingTopologySequence
 
 __all__ = ["wave_bowl", "pulsing_blob", "torus_to_sphere", "rigid_motion", "articulated_figure", "FIGURE_BONES", "grid_sheet", "icosphere",
@@ -74,13 +75,6 @@ def pulsing_blob(subdivisions: int = 4, frames: int = 48, fps: float = 24.0, rad
     return FixedTopologySequence(V.astype(np.float32), F, fps=fps, name="pulsing_blob", source="builtin:pulsing_blob")
 
 
-def _orient_outward(V: np.ndarray, F: np.ndarray) -> np.ndarray:
-    """Flip all faces if the signed volume of a closed mesh is negative."""
-    a, b, c = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
-    vol = np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0
-    return F[:, ::-1].copy() if vol < 0 else F
-
-
 def torus_to_sphere(frames: int = 200, fps: float = 24.0, resolution: int = 48,
                     center=(0.0, 0.0, 0.6)) -> VaryingTopologySequence:
     """Marching cubes of an implicit shape morphing from a torus into a sphere over ``frames``.
@@ -107,7 +101,7 @@ def torus_to_sphere(frames: int = 200, fps: float = 24.0, resolution: int = 48,
         f = (1 - s) * torus + s * sphere
         verts, faces, _, _ = marching_cubes(f, level=0.0, spacing=spacing)
         verts = verts + lo + np.asarray(center)
-        faces = _orient_outward(verts, faces.astype(np.int32))
+        faces = orient_outward(verts, faces.astype(np.int32))
         out.append((verts.astype(np.float32), faces.astype(np.int32)))
     return VaryingTopologySequence(out, fps=fps, name="torus_to_sphere", source="builtin:torus_to_sphere")
 
@@ -184,7 +178,7 @@ def articulated_figure(frames: int = 60, fps: float = 30.0, resolution: int = 56
             f = d * (1 - hh) + f * hh - k * hh * (1 - hh)
     verts, faces, _, _ = marching_cubes(f, level=0.0, spacing=(h, h, h))
     V0 = verts + lo
-    F = _orient_outward(V0, faces.astype(np.int32))
+    F = orient_outward(V0, faces.astype(np.int32))
     # skinning weights: softmax of the distance to each bone
     names = list(FIGURE_BONES)
     D = np.stack([_segment_distance(V0, *FIGURE_BONES[n][:2])[0] - FIGURE_BONES[n][2] for n in names], 1)

@@ -18,7 +18,6 @@ __all__ = [
     "FixedTopologySequence",
     "VaryingTopologySequence",
     "validate_mesh",
-    "mesh_orientation",
 ]
 
 
@@ -243,31 +242,6 @@ class VaryingTopologySequence:
             np.stack([v for v, _ in self.frames]), F0, fps=self.fps, name=self.name,
             source=self.source,
         )
-
-
-def mesh_orientation(V, F, max_boundary: float = 0.01) -> str:
-    """How the triangles of a mesh face.
-
-    ``"outward"`` / ``"inward"``: a closed mesh, or one with a few small holes (at most
-    ``max_boundary`` of its edges on a boundary, as in a scan or reconstruction), with
-    consistent winding; the sign of its volume about the vertex centroid decides.
-    ``"open"``: more boundary than that (a sheet, a terrain), or an edge shared by more than two
-    faces: no inside to tell. ``"inconsistent"``: two faces run through a shared edge in the same
-    direction."""
-    F = np.asarray(F, np.int64)
-    directed = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
-    n = int(max(int(F.max()) + 1, 1))
-    undirected = np.sort(directed, axis=1)
-    _, counts = np.unique(undirected[:, 0] * n + undirected[:, 1], return_counts=True)
-    if np.any(counts > 2) or np.count_nonzero(counts == 1) > max_boundary * len(counts):
-        return "open"
-    if len(np.unique(directed[:, 0] * n + directed[:, 1])) != len(directed):
-        return "inconsistent"
-    V = np.asarray(V, np.float64)
-    V = V - V[np.unique(F)].mean(axis=0)  # about the centroid: a small hole biases it less
-    a, b, c = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
-    volume = np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0
-    return "outward" if volume > 0 else "inward"
 
 
 def text_sorted_permutation(num_frames: int, start: int = 1) -> np.ndarray:

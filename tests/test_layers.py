@@ -12,7 +12,7 @@ PKG = "dynmesh_warp"
 #: the layers, bottom first (docs/architecture.md); a module imports only from layers below its own
 LAYERS = [
     # data and vocabulary: import nothing from the package
-    {"choices", "sequence", "outputs"},
+    {"choices", "sequence", "outputs", "geometry"},
     # kernels (the top-level kernels/ folder, installed as dynmesh_warp.kernels)
     {"kernels"},
     # schema, readers/writers, signals and CLI plumbing, built-in surfaces

@@ -17,7 +17,8 @@ import yaml
 from dynmesh_warp.config import SceneConfig, SceneError
 from dynmesh_warp.io import load_sequence
 from dynmesh_warp.scene import build_world, load_surface
-from dynmesh_warp.sequence import FixedTopologySequence, MeshDataError, mesh_orientation
+from dynmesh_warp.geometry import mesh_orientation
+from dynmesh_warp.sequence import FixedTopologySequence, MeshDataError
 
 
 def ico_sequence(T: int = 3, subdiv: int = 1, center=(0.0, 0.0, 0.5), radius=0.4):
@@ -284,3 +285,21 @@ def test_record_path_is_checked_before_the_run(tmp_path, capsys):
                "--record", str(blocker / "sub" / "out.viser")])
     assert rc == 2
     assert "--record" in capsys.readouterr().err
+
+
+def test_one_orientation_rule_and_face_areas_match_trimesh():
+    """dynmesh_warp.geometry (the one signed-volume rule used by scene loading, remesh and the
+    built-in surfaces) against trimesh, on a closed mesh off the origin and its flipped copy."""
+    from dynmesh_warp.geometry import face_areas, orient_outward, signed_volume, surface_area
+
+    m = trimesh.creation.capsule(height=0.7, radius=0.3, count=[12, 12])
+    m.apply_translation([3.0, -2.0, 5.0])
+    V, F = np.asarray(m.vertices), np.asarray(m.faces)
+    np.testing.assert_allclose(signed_volume(V, F), m.volume, rtol=1e-9)
+    np.testing.assert_allclose(signed_volume(V, F[:, ::-1]), -m.volume, rtol=1e-9)
+    np.testing.assert_allclose(face_areas(V, F), m.area_faces, rtol=1e-9)
+    np.testing.assert_allclose(surface_area(V, F), m.area, rtol=1e-9)
+    assert orient_outward(V, F) is F
+    G = orient_outward(V, F[:, ::-1])
+    np.testing.assert_array_equal(G, F)
+    assert G.flags["C_CONTIGUOUS"]
