@@ -145,18 +145,7 @@ def distance_to_boundary_xy(V: np.ndarray, E: np.ndarray, xy: np.ndarray) -> np.
 
 def surface_now(world):
     """(V, F) of the surface at the world's time, as the scene plays it (float64, host)."""
-    from dynmesh_warp.world import SurfaceModel, frame_pair_host
-
-    surf = world.model.surface
-    k0, k1, a = frame_pair_host(world.time, surf.fps, surf.num_frames, surf.playback)
-    if isinstance(surf, SurfaceModel):
-        seq = surf.sequence
-        V = seq.V[k0].astype(np.float64)
-        if surf.interpolate:
-            V = V * (1.0 - a) + seq.V[k1].astype(np.float64) * a
-        return V, seq.F
-    v, f = surf.sequence.frames[k0]
-    return np.asarray(v, np.float64), np.asarray(f)
+    return world.model.surface.host_mesh_at(world.time)
 
 
 # --------------------------------------------------------------------------- dropping spheres
@@ -197,8 +186,6 @@ class Dropper:
             self.touched = np.append(self.touched, False)
         else:  # the lowest (or the oldest) sphere is dropped again, in its slot: the same arrays, so a
             # captured CUDA graph stays valid
-            import warp as wp
-
             if self.recycle == "oldest":  # no read-back: the device goes on with the queued steps
                 i = self.next_slot
                 self.next_slot = (i + 1) % w.model.spheres.count
@@ -206,12 +193,7 @@ class Dropper:
                 i = int(np.argmin(w.sphere_positions()[:, 2]))
             self.touched_done += int(self.touched[i])
             self.touched[i] = False
-            d = w.device
-            wp.copy(w.state.sphere_pos, wp.array(p[None], dtype=wp.vec3, device=d), dest_offset=i, count=1)
-            wp.copy(w.state.sphere_vel, wp.zeros(1, dtype=wp.vec3, device=d), dest_offset=i, count=1)
-            col = w.collider
-            if getattr(col, "parallel", False):  # the swept collider's per-sphere candidate lists
-                col._gather(w)
+            w.set_sphere(i, p)  # at rest; the collider re-gathers its candidate lists
         self.dropped += 1
 
 
@@ -235,7 +217,12 @@ def soak_scene(name: str, device, steps: int, check_every: int, drop_every: int,
     radius = float(np.median(world.model.spheres.radius_np))
     dropper = Dropper(world, radius, drop_every, max_spheres, seed, recycle)
     surf = world.model.surface
-    frames = surf.sequence.frames if hasattr(surf, "frame_points") else [(surf.sequence.V[0], surf.sequence.F)]
+    seq = surf.sequence
+    frames: dict = {}  # the first frame of each distinct face array (one for fixed topology)
+    for k in range(seq.num_frames):
+        v, f = seq.frame(k)
+        frames.setdefault(id(f), (v, f))
+    frames = list(frames.values())
     open_edges = max(boundary_edges(np.asarray(f)) for _, f in frames)
     V0, F0 = np.asarray(frames[0][0], np.float64), np.asarray(frames[0][1])
     n0 = np.cross(V0[F0[:, 1]] - V0[F0[:, 0]], V0[F0[:, 2]] - V0[F0[:, 0]])

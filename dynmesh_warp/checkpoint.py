@@ -57,18 +57,10 @@ def scene_fingerprint(world) -> dict:
     field it comes from: the surface (frames, vertex and face counts, fps, playback,
     interpolation, a digest of every vertex position and face), the sphere count, the physics
     parameters, the sub-steps actually used and the collider."""
-    from .world import SurfaceModel
-
     m = world.model
     surf, p = m.surface, m.params
-    seq = surf.sequence
-    if isinstance(surf, SurfaceModel):
-        kind, geom = "fixed", _digest(seq.V, seq.F)
-        nv, nf = int(surf.num_vertices), int(surf.num_faces)
-    else:
-        kind = "varying"
-        geom = _digest(*[a for v, f in seq.frames for a in (v, f)])
-        nv, nf = sum(len(v) for v, _ in seq.frames), sum(len(f) for _, f in seq.frames)
+    arrays, nv, nf = surf.geometry_digest_inputs()
+    kind, geom = surf.topology, _digest(*arrays)
     col = world.collider.name + (f"/{world.collider.every}" if world.collider.name == "rebuild" else "")
     return {
         "surface.topology": kind,

@@ -116,10 +116,10 @@ class Gaussians:
 
     def attach(self, world) -> "Gaussians":
         """Update after every step of ``world`` (a post-step hook, captured in its CUDA graph)."""
-        from .world import VaryingSurfaceModel
-
-        if isinstance(world.model.surface, VaryingSurfaceModel):
-            raise ValueError("Gaussians need a fixed-topology surface (convert the sequence first)")
+        try:
+            world.model.surface.faces()  # Gaussians are bound to faces every frame shares
+        except ValueError:
+            raise ValueError("Gaussians need a fixed-topology surface (convert the sequence first)") from None
         if world.device != self.device:
             raise ValueError(f"Gaussians are on {self.device}, the world on {world.device}")
         self.update(world.state.points, world.current_indices())

@@ -10,7 +10,7 @@ from .config import SceneConfig, SceneError, spawn_positions
 from .runtime import scene_device
 from .geometry import mesh_orientation
 from .sequence import FixedTopologySequence, MeshDataError, VaryingTopologySequence
-from .world import Model, PhysicsParams, SphereModel, State, SurfaceModel, VaryingSurfaceModel, World
+from .world import Model, PhysicsParams, SphereModel, State, World, surface_model
 
 __all__ = ["load_surface", "prepare_surface", "build_world"]
 
@@ -158,21 +158,17 @@ def build_world(cfg: SceneConfig, device=None, collider: str | None = None,
     seq = load_surface(cfg) if sequence is None else prepare_surface(sequence, cfg)
     p = cfg.physics
     collider = collider or p.collider
-    if isinstance(seq, FixedTopologySequence):
-        surface = SurfaceModel(seq, device, playback=cfg.surface.playback, interpolate=cfg.surface.interpolate)
-        V0 = seq.V[0]
-    else:
-        if collider != "rebuild":
-            try:
-                seq.to_fixed()
-                why = "frames have different topology"
-            except MeshDataError as e:  # names the first frame that differs from frame 0
-                why = str(e).split("; a fixed-topology sequence")[0]
-            raise SceneError(
-                f"surface {cfg.surface.source}: {why}. Varying topology needs "
-                "physics.collider: rebuild, or surface.conversion to convert it to fixed topology")
-        surface = VaryingSurfaceModel(seq, device, playback=cfg.surface.playback)
-        V0 = seq.frames[0][0]
+    surface = surface_model(seq, device, playback=cfg.surface.playback, interpolate=cfg.surface.interpolate)
+    if surface.resolve_collider(collider, lambda: True) not in surface.colliders:
+        try:
+            seq.to_fixed()
+            why = "frames have different topology"
+        except MeshDataError as e:  # names the first frame that differs from frame 0
+            why = str(e).split("; a fixed-topology sequence")[0]
+        raise SceneError(
+            f"surface {cfg.surface.source}: {why}. Varying topology needs "
+            "physics.collider: rebuild, or surface.conversion to convert it to fixed topology")
+    V0, F0 = seq.frame(0)
     if isinstance(cfg.spheres, list):
         radius = [sp.radius for sp in cfg.spheres]
         mass = [sp.mass for sp in cfg.spheres]
@@ -183,11 +179,10 @@ def build_world(cfg: SceneConfig, device=None, collider: str | None = None,
         radius, mass = [cfg.spheres.radius] * n, [cfg.spheres.mass] * n
         pos, vel = spawn_positions(cfg.spheres, V0), None
     if isinstance(cfg.spheres, list):
-        _refuse_spheres_inside(V0, seq.F if isinstance(seq, FixedTopologySequence) else seq.frames[0][1], pos, radius)
+        _refuse_spheres_inside(V0, F0, pos, radius)
     ground = p.ground
     if ground == "auto":
-        ground = float(seq.V[:, :, 2].min()) if isinstance(seq, FixedTopologySequence) else float(
-            min(v[:, 2].min() for v, _ in seq.frames))
+        ground = float(seq.bounds()[0][2])
     params = PhysicsParams(dt=p.dt, substeps=p.substeps, max_substeps=p.max_substeps, gravity=p.gravity,
                            restitution=p.restitution,
                            friction=p.friction, rest_speed=p.rest_speed, margin=p.margin,

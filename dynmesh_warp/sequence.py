@@ -150,6 +150,10 @@ class FixedTopologySequence:
     def frame(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         return self.V[k], self.F
 
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(lo (3,), hi (3,)) over every vertex of every frame."""
+        return self.V.min(axis=(0, 1)), self.V.max(axis=(0, 1))
+
     def max_vertex_speed(self) -> float:
         """Largest vertex speed between consecutive frames, in units per second."""
         if self.num_frames < 2:
@@ -213,6 +217,11 @@ class VaryingTopologySequence:
 
     def frame(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         return self.frames[k]
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(lo (3,), hi (3,)) over every vertex of every frame."""
+        return (np.min([v.min(axis=0) for v, _ in self.frames], axis=0),
+                np.max([v.max(axis=0) for v, _ in self.frames], axis=0))
 
     def is_fixed_topology(self) -> bool:
         """True when every frame has the first frame's vertex count and face array."""

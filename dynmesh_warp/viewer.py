@@ -66,10 +66,11 @@ class Viewer:
         self.log = log
         self.record_path = Path(record) if record else None
         surf = world.model.surface
-        self.faces = surf.sequence.F.astype(np.uint32) if hasattr(surf.sequence, "F") else None
-        if self.faces is None:
-            raise ValueError("the viewer needs a fixed-topology surface (convert the sequence first)")
-        V0 = surf.sequence.V[0]
+        try:
+            self.faces = surf.faces().astype(np.uint32)
+        except ValueError:
+            raise ValueError("the viewer needs a fixed-topology surface (convert the sequence first)") from None
+        V0, _ = surf.host_mesh_at(0.0)
         self.scene_scale = float(np.linalg.norm(V0.max(0) - V0.min(0))) or 1.0
         self.min_scale = min_scale_rel * self.scene_scale
         self.min_ratio = float(min_ratio)

@@ -54,6 +54,7 @@ __all__ = [
     "Contacts",
     "World",
     "PLAYBACK_MODES",
+    "surface_model",
     "frame_pair_host",
 ]
 
@@ -167,6 +168,57 @@ class SurfaceModel:
         edges = np.linalg.norm(seq.V[:, F[:, [1, 2, 0]]] - seq.V[:, F], axis=-1)  # (T, M, 3)
         self.average_edge_length = edges.mean(axis=(1, 2)).astype(np.float32)  # (T,) [m], host
 
+    # What the rest of the package asks of a surface, answered by each surface class (no type
+    # checks elsewhere): the colliders it supports, its state buffers, the indices of a frame,
+    # the host mesh at a time, the faces every frame shares, the frame (k0, k1, alpha) it plays.
+    #: colliders this surface supports
+    colliders = tuple(values(Collider))
+    #: the topology, for reports (summary, checkpoint fingerprint)
+    topology = "fixed"
+
+    def resolve_collider(self, asked: str, swept_fits) -> str:
+        """``fixed`` (automatic): ``swept`` when interpolating and ``swept_fits()``, else ``refit``."""
+        if asked != Collider.FIXED:
+            return asked
+        return Collider.SWEPT.value if self.interpolate and swept_fits() else Collider.REFIT.value
+
+    def faces(self) -> np.ndarray:
+        """(M, 3) int32 faces shared by every frame (host)."""
+        return self.sequence.F
+
+    def indices_at(self, frame: int):
+        """Device (3M,) indices of ``frame``: the same array for every frame."""
+        return self.indices
+
+    def allocate_state(self, state: "State") -> None:
+        """State-owned buffers of the current surface: points, velocities, face normals."""
+        d = self.device
+        state.points = wp.zeros(self.num_vertices, dtype=wp.vec3, device=d)
+        state.velocities = wp.zeros(self.num_vertices, dtype=wp.vec3, device=d)
+        state.face_normals = wp.zeros(self.num_faces, dtype=wp.vec3, device=d)
+
+    def host_mesh_at(self, time: float) -> tuple[np.ndarray, np.ndarray]:
+        """(V (N, 3) float64, F) of the surface at ``time`` [s] as the step plays it (frames k,
+        k+1 blended when interpolating): the host twin of ``update_frame_vertices``."""
+        k0, k1, a = frame_pair_host(time, self.fps, self.num_frames, self.playback)
+        V = self.sequence.V[k0].astype(np.float64)
+        if self.interpolate:
+            V = V * (1.0 - a) + self.sequence.V[k1].astype(np.float64) * a
+        return V, self.sequence.F
+
+    def update_state(self, state: "State", time: float, launch) -> int:
+        """Stage 1 (on the device clock ``state.sim_time``): the vertex buffer and velocities at
+        the current time, one launch of ``update_frame_vertices``; returns the frame k0 at the
+        host twin ``time`` [s]. ``launch(kernel, dim, inputs, outputs)`` is the world's."""
+        launch(update_frame_vertices, self.num_vertices,
+               [self.frames, state.sim_time, self.fps, self.playback, int(self.interpolate)],
+               [state.points, state.velocities])
+        return 0
+
+    def geometry_digest_inputs(self) -> tuple[list[np.ndarray], int, int]:
+        """Arrays that fix the geometry (for a checkpoint's fingerprint), vertex and face counts."""
+        return [self.sequence.V, self.sequence.F], int(self.num_vertices), int(self.num_faces)
+
 
 class VaryingSurfaceModel:
     """Static data of a varying-topology surface: one (points, indices) pair per frame.
@@ -186,12 +238,78 @@ class VaryingSurfaceModel:
         self.device = wp.get_device(device)
         self.frame_points = [wp.array(v, dtype=wp.vec3, device=self.device) for v, _ in seq.frames]
         self.frame_indices = [wp.array(f.reshape(-1), dtype=wp.int32, device=self.device) for _, f in seq.frames]
-        self.frame_velocities = [wp.zeros(v.shape[0], dtype=wp.vec3, device=self.device) for v, _ in seq.frames]
         self.fps = float(seq.fps)
         self.num_frames = seq.num_frames
         self.playback_name = playback
         self.playback = PLAYBACK_MODES[playback]
         self.max_frame_step = 0.0
+
+    #: without vertex correspondence only a BVH built per frame or step can follow it
+    colliders = (Collider.REBUILD.value,)
+    topology = "varying"
+
+    def resolve_collider(self, asked: str, swept_fits) -> str:
+        return asked  # no automatic choice: only "rebuild" follows it
+
+    def faces(self) -> np.ndarray:
+        raise ValueError(f"{self.sequence.name}: a varying-topology surface has no faces shared by every frame "
+                         "(convert it to fixed topology first: python -m dynmesh_warp.convert)")
+
+    def indices_at(self, frame: int):
+        return self.frame_indices[frame]
+
+    def allocate_state(self, state: "State") -> None:
+        """Per-step buffers sized to the largest frame; the current frame is copied into their
+        first N_k entries (State never aliases the Model's frames)."""
+        d = self.device
+        n = max(int(p.shape[0]) for p in self.frame_points)
+        m = max(int(i.shape[0]) // 3 for i in self.frame_indices)
+        state.points_buffer = wp.zeros(n, dtype=wp.vec3, device=d)
+        state.velocities_buffer = wp.zeros(n, dtype=wp.vec3, device=d)  # no correspondence: zero velocity
+        state.normals_buffer = wp.zeros(m, dtype=wp.vec3, device=d)
+        self.show_frame(state, 0)
+        state.frame_shown = 0
+
+    def show_frame(self, state: "State", k: int) -> None:
+        """Copy frame ``k`` into the state's buffers; ``state.points`` / ``velocities`` /
+        ``face_normals`` become views of their first N_k / M_k entries."""
+        views = state.__dict__.setdefault("frame_views", {})
+        if k not in views:  # one set of views per frame, made once (launch caches key on them)
+            n = int(self.frame_points[k].shape[0])
+            m = int(self.frame_indices[k].shape[0]) // 3
+            views[k] = (state.points_buffer[:n], state.velocities_buffer[:n], state.normals_buffer[:m])
+        state.points, state.velocities, state.face_normals = views[k]
+        wp.copy(state.points, self.frame_points[k])
+
+    def update_state(self, state: "State", time: float, launch) -> int:
+        """Stage 1 on the host clock ``time`` [s]: frame k held (copied into the state's buffers
+        when it changes); returns k. Not capturable (the frame's size changes the launches)."""
+        k, _, _ = frame_pair_host(time, self.fps, self.num_frames, self.playback)
+        if getattr(state, "frame_shown", None) != k:
+            self.show_frame(state, k)
+            state.frame_shown = k
+        return k
+
+    def host_mesh_at(self, time: float) -> tuple[np.ndarray, np.ndarray]:
+        """(V float64, F) of frame k held at ``time`` (no interpolation without correspondence)."""
+        k, _, _ = frame_pair_host(time, self.fps, self.num_frames, self.playback)
+        v, f = self.sequence.frames[k]
+        return np.asarray(v, np.float64), np.asarray(f)
+
+    def geometry_digest_inputs(self) -> tuple[list[np.ndarray], int, int]:
+        seq = self.sequence
+        return ([a for v, f in seq.frames for a in (v, f)], sum(len(v) for v, _ in seq.frames),
+                sum(len(f) for _, f in seq.frames))
+
+
+def surface_model(seq, device=None, playback: str = DEFAULT_PLAYBACK, interpolate: bool = True):
+    """The surface model of a sequence: :class:`SurfaceModel` for fixed topology,
+    :class:`VaryingSurfaceModel` (held frames) for varying topology."""
+    if isinstance(seq, FixedTopologySequence):
+        return SurfaceModel(seq, device, playback=playback, interpolate=interpolate)
+    if isinstance(seq, VaryingTopologySequence):
+        return VaryingSurfaceModel(seq, device, playback=playback)
+    raise TypeError(f"expected a FixedTopologySequence or VaryingTopologySequence, got {type(seq).__name__}")
 
 
 class SphereModel:
@@ -235,14 +353,7 @@ class State:
         d = model.device
         surf = model.surface
         self.sim_time = wp.array([t0], dtype=wp.float64, device=d)
-        if isinstance(surf, SurfaceModel):
-            self.points = wp.zeros(surf.num_vertices, dtype=wp.vec3, device=d)
-            self.velocities = wp.zeros(surf.num_vertices, dtype=wp.vec3, device=d)
-            self.face_normals = wp.zeros(surf.num_faces, dtype=wp.vec3, device=d)
-        else:  # varying topology: views of the current frame, set by the world
-            self.points = surf.frame_points[0]
-            self.velocities = surf.frame_velocities[0]
-            self.face_normals = wp.zeros(surf.frame_indices[0].shape[0] // 3, dtype=wp.vec3, device=d)
+        surf.allocate_state(self)  # points, velocities, face_normals: owned by the state
         S = model.spheres.count
         pos = np.asarray(positions, dtype=np.float32).reshape(S, 3)
         vel = np.zeros((S, 3), np.float32) if velocities is None else np.asarray(velocities, np.float32).reshape(S, 3)
@@ -278,7 +389,45 @@ class Contacts:
 # ---------------------------------------------------------------------------------------------
 
 
-class RefitCollider:
+class ColliderBase:
+    """The collider protocol: how a step finds the surface. Every hook is defined here (a no-op
+    where a collider has nothing to do), so the world calls them without ``getattr`` probes.
+
+    - ``update(world)``: the acceleration structure for the current time (inside the step).
+    - ``collide(world)``: sphere contacts into ``world.contacts`` (inside the step).
+    - ``refresh(world)``: after the clock was moved between steps (default: ``update``).
+    - ``resize(world)``: after the number of spheres changed.
+    - ``spheres_moved(world)``: after sphere positions/velocities were set between steps.
+    - ``checkpoint_state()`` / ``restore_checkpoint_state(st)``: per-run state a step reads.
+    """
+
+    name = "base"
+    capturable = False
+    needs_points = True
+
+    def update(self, world: "World"):
+        raise NotImplementedError
+
+    def collide(self, world: "World"):
+        raise NotImplementedError
+
+    def refresh(self, world: "World"):
+        self.update(world)
+
+    def resize(self, world: "World"):
+        pass
+
+    def spheres_moved(self, world: "World"):
+        pass
+
+    def checkpoint_state(self) -> dict:
+        return {}
+
+    def restore_checkpoint_state(self, st: dict):
+        pass
+
+
+class RefitCollider(ColliderBase):
     """Fixed topology: one ``wp.Mesh`` BVH built at start, refit to the current vertices each
     sub-step (the reference path: per-step vertex copy/interpolation + refit)."""
 
@@ -297,7 +446,7 @@ class RefitCollider:
         world._collide_mesh(self.mesh.id)
 
 
-class RebuildCollider:
+class RebuildCollider(ColliderBase):
     """Varying-topology baseline: a new ``wp.Mesh`` (BVH built from scratch) every sub-step, or
     only when the reconstruction frame changes (``every="frame"``)."""
 
@@ -326,7 +475,7 @@ class RebuildCollider:
         world._collide_mesh(self.mesh.id)
 
 
-class SweptCollider:
+class SweptCollider(ColliderBase):
     """Fixed topology with interpolation, at per-frame cost: a ``wp.Bvh`` over each face's box
     across the frame interval [k, k+1], refit only when the frame pair changes (a device-side
     test and a conditional graph node), and a contact kernel that evaluates the interpolated
@@ -387,6 +536,11 @@ class SweptCollider:
                       [self.bvh.id, s.sphere_pos, s.sphere_vel, m.spheres.radius, 1.0 / m.surface.fps, g,
                        step_reach],
                       [self.cand_face, self.cand_count, self.cand_center, self.cand_radius])
+
+    def spheres_moved(self, world: "World"):
+        """Spheres set between steps: gather their candidate lists again (parallel path)."""
+        if self.parallel:
+            self._gather(world)
 
     def _refit(self, world: "World"):
         self._bounds(world)
@@ -477,13 +631,13 @@ class World:
         surf = model.surface
         collider = parse(Collider, collider, "collider").value
         rebuild_every = parse(RebuildEvery, rebuild_every, "rebuild_every").value
-        if isinstance(surf, VaryingSurfaceModel) and collider != "rebuild":
+        asked = collider
+        collider = surf.resolve_collider(collider, lambda: self._swept_fits(model))
+        if collider not in surf.colliders:
             raise ValueError(
-                "a varying-topology surface can only use collider 'rebuild' "
-                "(or convert it to fixed topology first)"
+                f"collider {asked!r}: a {surf.topology}-topology surface can only use collider "
+                f"{' or '.join(map(repr, surf.colliders))} (or convert it to fixed topology first)"
             )
-        if collider == "fixed":
-            collider = "swept" if surf.interpolate and self._swept_fits(model) else "refit"
         self.substeps = max(1, int(p.substeps))
         self._apply_substep_rule(stacklevel=3)
         self.gravity = wp.vec3(*[float(g) for g in p.gravity])
@@ -544,10 +698,7 @@ class World:
         return (k0, k1, a) if surf.interpolate else k0
 
     def current_indices(self):
-        surf = self.model.surface
-        if isinstance(surf, VaryingSurfaceModel):
-            return surf.frame_indices[self._frame]
-        return surf.indices
+        return self.model.surface.indices_at(self._frame)
 
     def _launch(self, kernel, dim, inputs, outputs):
         """Launch a kernel. On the CPU with a static pipeline, each distinct launch is recorded
@@ -571,20 +722,7 @@ class World:
     # -- pipeline stages -----------------------------------------------------------------------
     def _update_surface(self):
         """Stage 1: vertex buffer (points, velocities) at the current time."""
-        surf = self.model.surface
-        s = self.state
-        if isinstance(surf, VaryingSurfaceModel):
-            k, _, _ = frame_pair_host(self.time, surf.fps, surf.num_frames, surf.playback)
-            self._frame = k
-            s.points = surf.frame_points[k]
-            s.velocities = surf.frame_velocities[k]
-            m = surf.frame_indices[k].shape[0] // 3
-            if s.face_normals.shape[0] != m:
-                s.face_normals = wp.zeros(m, dtype=wp.vec3, device=self.device)
-        else:
-            self._launch(update_frame_vertices, surf.num_vertices,
-                         [surf.frames, s.sim_time, surf.fps, surf.playback, int(surf.interpolate)],
-                         [s.points, s.velocities])
+        self._frame = self.model.surface.update_state(self.state, self._time, self._launch)
 
     def _compute_normals(self):
         """Stage 2: per-face normals of the current vertex buffer."""
@@ -681,7 +819,7 @@ class World:
     # -- editing between steps (host side; invalidates the captured graph) ---------------------
     def _refresh_surface(self):
         self._update_surface()
-        getattr(self.collider, "refresh", self.collider.update)(self)
+        self.collider.refresh(self)
         self._compute_normals()
 
     def reset(self):
@@ -693,8 +831,7 @@ class World:
         self.substep_count = 0
         self._time = self.t0
         self._refresh_surface()
-        if hasattr(self.collider, "resize"):
-            self.collider.resize(self)
+        self.collider.resize(self)
 
     # -- checkpoints (run --checkpoint-every / --resume; dynmesh_warp.checkpoint) -------------
     def checkpoint_state(self) -> dict:
@@ -707,8 +844,7 @@ class World:
         st = {"time": np.array(self._time, np.float64), "sim_time": self.state.sim_time.numpy().copy(),
               "substep_count": np.array(self.substep_count, np.int64),
               "sphere_pos": self.sphere_positions(), "sphere_vel": self.sphere_velocities()}
-        if hasattr(self.collider, "checkpoint_state"):
-            st.update({f"collider_{k}": v for k, v in self.collider.checkpoint_state().items()})
+        st.update({f"collider_{k}": v for k, v in self.collider.checkpoint_state().items()})
         return st
 
     def restore_checkpoint_state(self, st: dict):
@@ -720,9 +856,8 @@ class World:
         self.state.sphere_pos.assign(np.asarray(st["sphere_pos"], np.float32).reshape(-1, 3))
         self.state.sphere_vel.assign(np.asarray(st["sphere_vel"], np.float32).reshape(-1, 3))
         self.substep_count = int(st["substep_count"])
-        if hasattr(self.collider, "restore_checkpoint_state"):
-            self.collider.restore_checkpoint_state({k[len("collider_"):]: v for k, v in st.items()
-                                                    if k.startswith("collider_")})
+        self.collider.restore_checkpoint_state({k[len("collider_"):]: v for k, v in st.items()
+                                                if k.startswith("collider_")})
         self._graph = None
 
     def _apply_substep_rule(self, stacklevel: int):
@@ -778,8 +913,24 @@ class World:
         self._graph = None
         if self._launch_cache is not None:
             self._launch_cache = {}
-        if hasattr(self.collider, "resize"):
-            self.collider.resize(self)
+        self.collider.resize(self)
+
+    def set_sphere(self, i: int, position, velocity=(0.0, 0.0, 0.0)):
+        """Place sphere ``i`` at ``position`` [m] with ``velocity`` [m/s] between steps, without a
+        host read-back and keeping the captured graph (the arrays stay the same); the collider
+        is told (``spheres_moved``)."""
+        i = int(i)
+        if not 0 <= i < self.model.spheres.count:
+            raise IndexError(f"sphere {i}: the world has {self.model.spheres.count} spheres")
+        for name, v in (("position", position), ("velocity", velocity)):
+            if not np.isfinite(np.asarray(v, np.float64)).all():
+                raise ValueError(f"sphere {i}: {name} {list(v)} is not finite")
+        d = self.device
+        wp.copy(self.state.sphere_pos, wp.array(np.asarray(position, np.float32).reshape(1, 3), dtype=wp.vec3,
+                                                device=d), dest_offset=i, count=1)
+        wp.copy(self.state.sphere_vel, wp.array(np.asarray(velocity, np.float32).reshape(1, 3), dtype=wp.vec3,
+                                                device=d), dest_offset=i, count=1)
+        self.collider.spheres_moved(self)
 
     # -- convenience ---------------------------------------------------------------------------
     def sphere_positions(self) -> np.ndarray:

@@ -426,3 +426,49 @@ def test_capture_loads_only_the_step_modules():
     assert graph._graph is not None
     assert not unrelated.module.execs, "capture loaded a module the step does not use"
     np.testing.assert_allclose(p_graph, p_eager, atol=1e-5)
+
+
+def test_varying_state_owns_its_buffers_and_shows_the_played_frame():
+    """State never aliases Model: the varying surface's current frame is copied into the state's
+    own buffers (views of the first N_k entries); writing them leaves the model's frames intact."""
+    seq = scenes.torus_to_sphere(frames=6, resolution=14, fps=24.0)
+    surf = VaryingSurfaceModel(seq, TEST_DEVICE, playback="pingpong")
+    model = Model(surf, SphereModel([0.05], 1.0, TEST_DEVICE), PhysicsParams(dt=DT))
+    w = World(model, State(model, [[0.0, 0.0, 2.0]]), collider="rebuild", rebuild_every="step")
+    model_ptrs = {a.ptr for a in surf.frame_points}
+    for t in (0.0, 0.05, 0.13, 0.25, 0.41):  # pingpong over 6 frames: 0 1 3 4 1 (after the turn)
+        w.set_time(t)
+        k = world_mod.frame_pair_host(t, surf.fps, surf.num_frames, surf.playback)[0]
+        V, F = seq.frames[k]
+        assert w.state.points.ptr not in model_ptrs
+        np.testing.assert_array_equal(w.state.points.numpy(), V)
+        np.testing.assert_array_equal(w.current_indices().numpy().reshape(-1, 3), F)
+        assert w.state.face_normals.shape[0] == len(F) and w.state.velocities.shape[0] == len(V)
+        Vh, Fh = surf.host_mesh_at(t)
+        np.testing.assert_array_equal(Vh, V.astype(np.float64))
+        np.testing.assert_array_equal(Fh, F)
+    w.state.points.fill_(7.0)  # the state's copy, not the model's frame
+    np.testing.assert_array_equal(surf.frame_points[k].numpy(), V)
+
+
+def test_set_sphere_equals_starting_there():
+    """World.set_sphere between steps gives the trajectory of a world that started with the
+    sphere there (bit for bit on the CPU), keeps the other spheres, and refuses bad input."""
+    seq = moving_sheet([0.0, 0.0, 0.3], frames=12)
+    pos = [[0.0, 0.0, 0.6], [0.5, 0.3, 0.8]]
+    new_p, new_v = [-0.4, 0.2, 0.9], [0.3, 0.0, -1.0]
+    a = make_world(seq, pos, collider="swept")
+    a.set_sphere(1, new_p, new_v)
+    np.testing.assert_array_equal(a.sphere_positions()[0], np.float32(pos[0]))
+    np.testing.assert_array_equal(a.sphere_positions()[1], np.float32(new_p))
+    b = make_world(seq, [pos[0], new_p], collider="swept")
+    b.state.sphere_vel.assign(np.array([[0, 0, 0], new_v], np.float32))
+    for _ in range(120):
+        a.step()
+        b.step()
+    np.testing.assert_array_equal(a.sphere_positions(), b.sphere_positions())
+    assert (a.sphere_positions()[:, 2] > seq.V[:, :, 2].min()).all()
+    with pytest.raises(IndexError, match="sphere 2"):
+        a.set_sphere(2, new_p)
+    with pytest.raises(ValueError, match="sphere 0: position .* not finite"):
+        a.set_sphere(0, [0.0, np.nan, 1.0])
