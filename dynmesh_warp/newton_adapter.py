@@ -488,13 +488,13 @@ def run_newton_scene(cfg, device=None, steps: int | None = None, output=None, pr
 
     from .cli import checking_stops  # noqa: PLC0415
     from .outputs import OutputFolder, atomic_write_json, atomic_write_npz  # noqa: PLC0415
-    from .runtime import check_run_output, rate_text, steps_per_second, timed_loop  # noqa: PLC0415
+    from .runtime import check_run_output, rate_text, run_steps, steps_per_second, timed_loop  # noqa: PLC0415
 
     out = check_run_output(cfg, output, overwrite)
     t_build = time.perf_counter()
     world = build_newton_world(cfg, device=device)
     if steps is None:
-        steps = cfg.run.steps or max(1, int(round(cfg.run.duration / world.dt)))
+        steps = run_steps(cfg)
     # warm-up outside the timed loop: step 1 loads (compiles) the kernels, step 2 captures the graph
     warm = min(steps, 2 if world.use_graph else 1)
     for _ in range(warm):
