@@ -33,7 +33,7 @@ from .choices import (
     UpAxis,
 )
 
-__all__ = ["SceneConfig", "SceneError", "load_scene_config", "DEFAULT_SCENE", "DEFAULT_SCENE_FILE", "Vec3", "PhysicsCore", "load_yaml",
+__all__ = ["SceneConfig", "SceneError", "load_scene_config", "apply_overrides", "DEFAULT_SCENE", "DEFAULT_SCENE_FILE", "Vec3", "PhysicsCore", "load_yaml",
            "DEFAULT_MAX_SUBSTEPS", "DEFAULT_MAX_TOTAL_SUBSTEPS"]
 
 Vec3 = tuple[float, float, float]
@@ -352,8 +352,39 @@ def load_yaml(text: str):
 DEFAULT_SCENE = load_yaml(DEFAULT_SCENE_FILE.read_text())
 
 
-def load_scene_config(path: str | Path | None = None, data: dict | None = None) -> SceneConfig:
-    """Read and validate a scene YAML file (or a dict); ``None`` gives the built-in default scene."""
+def apply_overrides(raw: dict, overrides, origin: str = "--set") -> dict:
+    """``raw`` with each ``"key.path=value"`` of ``overrides`` set (the value parsed as YAML:
+    ``physics.dt=0.002``, ``surface.playback=pingpong``, ``physics.gravity=[0, 0, -3]``,
+    ``physics.ground=null``); intermediate mappings are created. The schema then validates the
+    result, naming the field. A :class:`SceneError` for an override that cannot be applied."""
+    raw = dict(raw)
+    for item in overrides or ():
+        key, sep, text = str(item).partition("=")
+        parts = key.strip().split(".")
+        if not sep or not all(p.strip() for p in parts):
+            raise SceneError(f"{origin} {item!r}: expected KEY.PATH=VALUE, e.g. physics.dt=0.002")
+        try:
+            value = load_yaml(text) if text.strip() else ""
+        except yaml.YAMLError as e:
+            raise SceneError(f"{origin} {item!r}: the value is not valid YAML ({' '.join(str(e).split())})") from None
+        node = raw
+        for depth, part in enumerate(parts[:-1]):
+            child = node.get(part)
+            if child is None:
+                child = {}
+            elif not isinstance(child, dict):
+                where = ".".join(parts[:depth + 1])
+                raise SceneError(f"{origin} {item!r}: {where} is a {type(child).__name__}, not a section")
+            node[part] = child = dict(child)
+            node = child
+        node[parts[-1]] = value
+    return raw
+
+
+def load_scene_config(path: str | Path | None = None, data: dict | None = None, overrides=None) -> SceneConfig:
+    """Read and validate a scene YAML file (or a dict); ``None`` gives the built-in default scene.
+    ``overrides``: ``"key.path=value"`` strings applied before validation (:func:`apply_overrides`,
+    the CLI's ``--set``)."""
     if path is None:
         raw = dict(DEFAULT_SCENE if data is None else data)
         origin, base = "<default scene>" if data is None else "<scene dict>", None
@@ -376,6 +407,9 @@ def load_scene_config(path: str | Path | None = None, data: dict | None = None) 
             raise SceneError(f"{path}: the top level of a scene must be a mapping, got {type(raw).__name__}")
         raw.setdefault("name", path.stem)
         base = str(path.parent.resolve())
+    if overrides:
+        raw = apply_overrides(raw, overrides)
+        origin += " (with --set " + ", ".join(map(str, overrides)) + ")"
     try:
         return SceneConfig.model_validate({**raw, "base_dir": base,
                                            "source_file": None if path is None else str(path)})

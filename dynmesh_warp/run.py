@@ -42,6 +42,9 @@ def _parser() -> argparse.ArgumentParser:
 
     p = Parser(prog="python -m dynmesh_warp.run", description=__doc__.splitlines()[0])
     p.add_argument("scene", nargs="?", help="scene YAML file (default: the built-in default scene)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY.PATH=VALUE", dest="overrides",
+                   help="override a scene field (YAML value), e.g. --set physics.dt=0.002 --set spheres.count=20; "
+                        "repeatable, applied before validation")
     p.add_argument("--device", help="Warp device: cpu, cuda, cuda:0 (default: scene's, else Warp's default)")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--duration", type=float, help="simulated seconds (overrides run.duration)")
@@ -326,7 +329,7 @@ def main(argv=None) -> int:
             from .checkpoint import load_checkpoint
 
             ckpt = load_checkpoint(args.resume)  # the file on its own, before the scene's data is loaded
-        cfg = load_scene_config(args.scene)
+        cfg = load_scene_config(args.scene, overrides=args.overrides)
         if args.no_work_limit:
             lift_work_limits(cfg)
         steps = args.steps

@@ -197,3 +197,29 @@ def test_cli_missing_scene_and_bad_builtin_params(tmp_path, capsys):
     rc = main([str(scene), "--steps", "5", "--device", "cpu", "--no-progress", "--output", str(tmp_path / "o")])
     assert rc == 2
     assert "no_such_scene" in capsys.readouterr().err
+
+
+def test_set_overrides_apply_before_validation(tmp_path, capsys):
+    from dynmesh_warp.config import apply_overrides
+
+    cfg = load_scene_config(overrides=["physics.dt=0.002", "spheres.count=3", "surface.playback=pingpong",
+                                       "physics.gravity=[0, 0, -3]", "physics.ground=null", "newton.solver=vbd"])
+    assert cfg.physics.dt == 0.002 and cfg.spheres.count == 3 and cfg.surface.playback == "pingpong"
+    assert cfg.physics.gravity == (0.0, 0.0, -3.0) and cfg.physics.ground is None and cfg.newton.solver == "vbd"
+    assert cfg.spheres.radius == 0.08  # the rest of the default scene is kept
+    raw = {"physics": {"dt": 0.01}}
+    assert apply_overrides(raw, ["physics.substeps=2"]) == {"physics": {"dt": 0.01, "substeps": 2}}
+    assert raw == {"physics": {"dt": 0.01}}  # the caller's mapping is untouched
+    for bad, msg in [("physics.dtt=1", r"physics\.dtt: unknown key"),
+                     ("physics.dt=-1", r"physics\.dt: Input should be greater than 0"),
+                     ("surface.source.x=1", r"surface\.source is a str, not a section"),
+                     ("physics.dt", r"expected KEY\.PATH=VALUE"), ("physics.dt=[1", r"not valid YAML")]:
+        with pytest.raises(SceneError, match=msg):
+            load_scene_config(overrides=[bad])
+    out = tmp_path / "o"
+    assert main(["--viewer", "none", "--no-progress", "--steps", "20", "--output", str(out),
+                 "--set", "spheres.count=2", "--set", "physics.dt=0.002"]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert len(s["final"]["position"]) == 2 and s["steps"] == 20
+    assert main(["--viewer", "none", "--steps", "5", "--output", str(tmp_path / "p"), "--set", "physics.dt=0"]) == 2
+    assert "physics.dt" in capsys.readouterr().err and not (tmp_path / "p").exists()
