@@ -75,11 +75,11 @@ def stage_breakdown(seq, device, steps, repeats):
     out = {}
     w, _ = timed_build(seq, device, "refit")
     st = {
-        "frame_copy_interp": w._update_surface,
-        "normals": w._compute_normals,
+        "frame_copy_interp": w.update_surface,
+        "normals": w.compute_normals,
         "refit": lambda: w.collider.mesh.refit(),
         "contact": lambda: w.collider.collide(w),
-        "integrate_and_advance_time": w._integrate,
+        "integrate_and_advance_time": w.integrate,
     }
     out["refit_step"] = {k: time_loop(graph_or_eager(f, device), device, steps, repeats)["us_per_step"]
                          for k, f in st.items()}
@@ -88,8 +88,8 @@ def stage_breakdown(seq, device, steps, repeats):
     st = {
         "conditional_refit_node (not taken)": lambda: c.update(ws),
         "contact_interpolated": lambda: c.collide(ws),
-        "integrate_advance_time_frame_test": ws._integrate,
-        "swept_bounds_and_bvh_refit (once per frame)": lambda: c._refit(ws),
+        "integrate_advance_time_frame_test": ws.integrate,
+        "swept_bounds_and_bvh_refit (once per frame)": lambda: c.refit_frame(ws),
     }
     out["swept_step"] = {k: time_loop(graph_or_eager(f, device), device, steps, repeats)["us_per_step"]
                          for k, f in st.items()}

@@ -38,13 +38,13 @@ def main(argv=None):
         "full_step": w.step,
         "conditional refit node (not taken)": lambda: c.update(w),
         "collide (evaluate+resolve or serial)": lambda: c.collide(w),
-        "integrate + clock + frame test": w._integrate,
-        "per_frame: bounds+bvh_refit+gather": lambda: c._refit(w),
-        "per_frame: bounds only": lambda: c._bounds(w),
+        "integrate + clock + frame test": w.integrate,
+        "per_frame: bounds+bvh_refit+gather": lambda: c.refit_frame(w),
+        "per_frame: bounds only": lambda: c.compute_bounds(w),
         "per_frame: bvh_refit only": lambda: c.bvh.refit(),
     }
     if c.parallel:
-        parts["per_frame: gather only"] = lambda: c._gather(w)
+        parts["per_frame: gather only"] = lambda: c.gather(w)
     res = {}
     for k, f in parts.items():
         fn = f if k == "full_step" else graph_or_eager(f, device)

@@ -262,7 +262,7 @@ class NewtonWorld:
         """Simulation time [s], tracked on the host in step with the device clock."""
         return self.t0 + self.substep_count * self.sub_dt
 
-    def _substep(self, last: bool):
+    def substep(self, last: bool):
         self.state_0.clear_forces()
         wp.launch(advance_time, dim=1, inputs=[self.sub_dt], outputs=[self.sim_time], device=self.device)
         self.adapter.update()
@@ -275,7 +275,7 @@ class NewtonWorld:
 
     def _step_body(self):
         for i in range(self.substeps):
-            self._substep(i == self.substeps - 1)
+            self.substep(i == self.substeps - 1)
 
     def step(self):
         """Advance by one physics step (dt)."""

@@ -443,7 +443,7 @@ class RefitCollider(ColliderBase):
         self.mesh.refit()
 
     def collide(self, world: "World"):
-        world._collide_mesh(self.mesh.id)
+        world.collide_mesh(self.mesh.id)
 
 
 class RebuildCollider(ColliderBase):
@@ -472,7 +472,7 @@ class RebuildCollider(ColliderBase):
         self._key = key
 
     def collide(self, world: "World"):
-        world._collide_mesh(self.mesh.id)
+        world.collide_mesh(self.mesh.id)
 
 
 class SweptCollider(ColliderBase):
@@ -501,7 +501,7 @@ class SweptCollider(ColliderBase):
         self.uppers = wp.zeros(surf.num_faces, dtype=wp.vec3, device=d)
         self.frame_key = wp.full(1, -1, dtype=wp.int32, device=d)
         self.changed = wp.zeros(1, dtype=wp.int32, device=d)
-        self._bounds(world)
+        self.compute_bounds(world)
         self.bvh = wp.Bvh(self.lowers, self.uppers, leaf_size=4)  # cheaper per-frame refit on CPU
         # tie tolerance of the closest-feature search, as wp.Mesh: 1e-3 x average edge length
         self.epsilon = 1.0e-3 * float(surf.average_edge_length.mean())
@@ -520,15 +520,15 @@ class SweptCollider(ColliderBase):
         self.cand_w = wp.zeros((S, K), dtype=wp.vec3, device=d)
         self.cand_wn = wp.zeros((S, K), dtype=wp.vec3, device=d)
         if self.parallel:
-            self._gather(world)
+            self.gather(world)
 
-    def _bounds(self, world: "World"):
+    def compute_bounds(self, world: "World"):
         surf = world.model.surface
         world._launch(compute_swept_bounds, surf.num_faces,
                       [surf.frames, surf.indices, world.state.sim_time, surf.fps, surf.playback],
                       [self.lowers, self.uppers])
 
-    def _gather(self, world: "World"):
+    def gather(self, world: "World"):
         m, s = world.model, world.state
         g = float(np.linalg.norm(m.params.gravity))
         step_reach = m.params.margin + 2.0 * g * world.sub_dt * world.sub_dt + self.epsilon
@@ -540,19 +540,19 @@ class SweptCollider(ColliderBase):
     def spheres_moved(self, world: "World"):
         """Spheres set between steps: gather their candidate lists again (parallel path)."""
         if self.parallel:
-            self._gather(world)
+            self.gather(world)
 
-    def _refit(self, world: "World"):
-        self._bounds(world)
+    def refit_frame(self, world: "World"):
+        self.compute_bounds(world)
         self.bvh.refit()
         if self.parallel:
-            self._gather(world)
+            self.gather(world)
         self.changed.zero_()  # done; the next test (in integrate_spheres) sets it again
 
     def update(self, world: "World"):
         """Refit if the frame pair changed; the test itself ran at the end of the previous
         sub-step (fused into ``integrate_spheres``) or in ``refresh``."""
-        wp.capture_if(self.changed, on_true=self._refit, world=world)
+        wp.capture_if(self.changed, on_true=self.refit_frame, world=world)
 
     def refresh(self, world: "World"):
         """Frame-change test at the current time, then ``update`` (after the clock was moved)."""
@@ -647,10 +647,10 @@ class World:
         self.substep_count = 0
         self._time = self.t0  # host twin of sim_time: the same float64 additions as the device
         self._launch_cache = None
-        self._update_surface()
+        self.update_surface()
         self.collider = RebuildCollider(self, rebuild_every) if collider == "rebuild" else COLLIDERS[collider](self)
         self.collider.update(self)
-        self._compute_normals()
+        self.compute_normals()
         # the swept collider needs no vertex buffer; keep it (and the normals) current once per
         # step only when asked (viewer, Gaussians): render_state=True or a hook that needs it
         self.render_state = (self.collider.needs_points if render_state is None else bool(render_state))
@@ -697,6 +697,12 @@ class World:
         k0, k1, a = frame_pair_host(self.time, surf.fps, surf.num_frames, surf.playback)
         return (k0, k1, a) if surf.interpolate else k0
 
+    @property
+    def frame(self) -> int:
+        """The frame whose indices the last surface update used (0 for fixed topology, whose
+        indices every frame shares; the held frame k for varying topology)."""
+        return self._frame
+
     def current_indices(self):
         return self.model.surface.indices_at(self._frame)
 
@@ -720,16 +726,16 @@ class World:
         cmd.launch()
 
     # -- pipeline stages -----------------------------------------------------------------------
-    def _update_surface(self):
+    def update_surface(self):
         """Stage 1: vertex buffer (points, velocities) at the current time."""
         self._frame = self.model.surface.update_state(self.state, self._time, self._launch)
 
-    def _compute_normals(self):
+    def compute_normals(self):
         """Stage 2: per-face normals of the current vertex buffer."""
         idx = self.current_indices()
         self._launch(compute_face_normals, idx.shape[0] // 3, [self.state.points, idx], [self.state.face_normals])
 
-    def _collide_mesh(self, mesh_id):
+    def collide_mesh(self, mesh_id):
         """Stage 3 on a wp.Mesh (refit / rebuild colliders)."""
         m, s, c = self.model, self.state, self.contacts
         self._launch(collide_sphere_mesh, m.spheres.count,
@@ -737,7 +743,7 @@ class World:
                       m.spheres.radius, self.sub_dt, self.extra_speed, m.params.margin],
                      [c.face, c.point, c.normal, c.depth, c.velocity])
 
-    def _integrate(self):
+    def integrate(self):
         """Stage 4: sphere dynamics with the contacts of this sub-step; advances the device clock
         (and runs the swept collider's frame-change test for the next sub-step)."""
         m, s, c = self.model, self.state, self.contacts
@@ -753,26 +759,26 @@ class World:
                       self.sub_dt, surf.fps, surf.num_frames, surf.playback, int(swept)],
                      [s.sphere_pos, s.sphere_vel, s.sim_time, key, changed])
 
-    def _substep(self):
+    def substep(self):
         if self.collider.needs_points:
-            self._update_surface()
+            self.update_surface()
         self.collider.update(self)
         if self.model.spheres.count:
             self.collider.collide(self)
-        self._integrate()
+        self.integrate()
 
-    def _finish_step(self):
+    def finish_step(self):
         if self.render_state:
             if not self.collider.needs_points:
-                self._update_surface()
-            self._compute_normals()
+                self.update_surface()
+            self.compute_normals()
         for hook in self.post_step_hooks:
             hook(self)
 
     def _step_body(self):
         for _ in range(self.substeps):
-            self._substep()
-        self._finish_step()
+            self.substep()
+        self.finish_step()
 
     def capture(self):
         """Capture one step (all sub-steps) as a CUDA graph; later ``step()`` calls replay it."""
@@ -799,10 +805,10 @@ class World:
             self.substep_count += self.substeps
             return
         for _ in range(self.substeps):
-            self._substep()
+            self.substep()
             self.substep_count += 1
             self._time += self.sub_dt
-        self._finish_step()
+        self.finish_step()
 
     def set_time(self, t: float):
         """Move the clock (host and device) to ``t`` [s] and the surface with it; spheres keep
@@ -813,14 +819,14 @@ class World:
 
     def sync_surface(self):
         """Bring the vertex buffer and normals to the current time (for a viewer); eager."""
-        self._update_surface()
-        self._compute_normals()
+        self.update_surface()
+        self.compute_normals()
 
     # -- editing between steps (host side; invalidates the captured graph) ---------------------
     def _refresh_surface(self):
-        self._update_surface()
+        self.update_surface()
         self.collider.refresh(self)
-        self._compute_normals()
+        self.compute_normals()
 
     def reset(self):
         """Back to the initial time and sphere state."""

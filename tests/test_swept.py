@@ -21,7 +21,7 @@ def _worlds(seq, pos, vel, radius, t0, collider_kw):
 
 
 def _contacts_at(w):
-    w._update_surface()
+    w.update_surface()
     w.collider.update(w)
     w.collider.collide(w)
     return w.contacts.numpy()
@@ -106,8 +106,8 @@ def test_swept_bvh_refit_only_on_frame_change():
     model = Model(SurfaceModel(seq, TEST_DEVICE), SphereModel([0.05], 1.0, TEST_DEVICE), PhysicsParams(dt=1 / 240))
     w = World(model, State(model, [[0, 0, 1]]), collider="swept", use_graph=False)  # count host calls
     calls = []
-    orig = w.collider._refit
-    w.collider._refit = lambda world: (calls.append(world.time), orig(world))
+    orig = w.collider.refit_frame
+    w.collider.refit_frame = lambda world: (calls.append(world.time), orig(world))
     for _ in range(40):  # 40 steps at 240 Hz: about 4 frames at 24 fps
         w.step()
     # expected: the steps at whose start floor(t * fps) changes, t accumulated as on the device

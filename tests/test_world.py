@@ -322,7 +322,7 @@ def test_rebuild_every_frame_host_frame_matches_device_frame():
                        rebuild_every="frame")
     bad = []
     for i in range(1000):
-        w._update_surface()  # the vertex buffer at the current device time (what the next sub-step uses)
+        w.update_surface()  # the vertex buffer at the current device time (what the next sub-step uses)
         k_dev = int(round(float(w.state.points.numpy()[0, 2] - V0[0, 2]) / 0.01))
         k_host = w.current_frame_key()
         if k_dev != k_host:
@@ -355,7 +355,7 @@ def test_varying_topology_runs_with_rebuild_and_rejects_fixed():
             if i % 20 == 0 or i == 399:
                 P = w.sphere_positions()
                 assert np.isfinite(P).all()
-                k = w._frame  # the frame the last sub-step collided against (host and device agree)
+                k = w.frame  # the frame the last sub-step collided against (host and device agree)
                 Vk, Fk = seq.frames[k]
                 assert (winding_number(Vk, Fk, P) < 0.5).all(), f"step {i}: centre inside frame {k}"
         # spheres landed on the changing surface (and later roll off the rounding shape; the one
