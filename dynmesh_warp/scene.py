@@ -10,7 +10,7 @@ from .config import SceneConfig, SceneError, spawn_positions
 from .runtime import scene_device
 from .geometry import mesh_orientation
 from .sequence import FixedTopologySequence, MeshDataError, VaryingTopologySequence
-from .world import Model, PhysicsParams, SphereModel, State, World, surface_model
+from .world import Model, PhysicsParams, SphereModel, State, World, surface_model, surface_model_class
 
 __all__ = ["load_surface", "prepare_surface", "build_world"]
 
@@ -158,8 +158,7 @@ def build_world(cfg: SceneConfig, device=None, collider: str | None = None,
     seq = load_surface(cfg) if sequence is None else prepare_surface(sequence, cfg)
     p = cfg.physics
     collider = collider or p.collider
-    surface = surface_model(seq, device, playback=cfg.surface.playback, interpolate=cfg.surface.interpolate)
-    if surface.resolve_collider(collider, lambda: True) not in surface.colliders:
+    if collider not in surface_model_class(seq).colliders:  # before the frames go to the device
         try:
             seq.to_fixed()
             why = "frames have different topology"
@@ -168,6 +167,7 @@ def build_world(cfg: SceneConfig, device=None, collider: str | None = None,
         raise SceneError(
             f"surface {cfg.surface.source}: {why}. Varying topology needs "
             "physics.collider: rebuild, or surface.conversion to convert it to fixed topology")
+    surface = surface_model(seq, device, playback=cfg.surface.playback, interpolate=cfg.surface.interpolate)
     V0, F0 = seq.frame(0)
     if isinstance(cfg.spheres, list):
         radius = [sp.radius for sp in cfg.spheres]

@@ -55,6 +55,7 @@ __all__ = [
     "World",
     "PLAYBACK_MODES",
     "surface_model",
+    "surface_model_class",
     "frame_pair_host",
 ]
 
@@ -267,27 +268,27 @@ class VaryingSurfaceModel:
         state.points_buffer = wp.zeros(n, dtype=wp.vec3, device=d)
         state.velocities_buffer = wp.zeros(n, dtype=wp.vec3, device=d)  # no correspondence: zero velocity
         state.normals_buffer = wp.zeros(m, dtype=wp.vec3, device=d)
+        state.frame_views = {}  # frame -> views of the buffers, made once (launch caches key on them)
         self.show_frame(state, 0)
-        state.frame_shown = 0
 
     def show_frame(self, state: "State", k: int) -> None:
         """Copy frame ``k`` into the state's buffers; ``state.points`` / ``velocities`` /
         ``face_normals`` become views of their first N_k / M_k entries."""
-        views = state.__dict__.setdefault("frame_views", {})
-        if k not in views:  # one set of views per frame, made once (launch caches key on them)
+        views = state.frame_views
+        if k not in views:
             n = int(self.frame_points[k].shape[0])
             m = int(self.frame_indices[k].shape[0]) // 3
             views[k] = (state.points_buffer[:n], state.velocities_buffer[:n], state.normals_buffer[:m])
         state.points, state.velocities, state.face_normals = views[k]
         wp.copy(state.points, self.frame_points[k])
+        state.frame_shown = k
 
     def update_state(self, state: "State", time: float, launch) -> int:
         """Stage 1 on the host clock ``time`` [s]: frame k held (copied into the state's buffers
         when it changes); returns k. Not capturable (the frame's size changes the launches)."""
         k, _, _ = frame_pair_host(time, self.fps, self.num_frames, self.playback)
-        if getattr(state, "frame_shown", None) != k:
+        if state.frame_shown != k:
             self.show_frame(state, k)
-            state.frame_shown = k
         return k
 
     def host_mesh_at(self, time: float) -> tuple[np.ndarray, np.ndarray]:
@@ -302,14 +303,33 @@ class VaryingSurfaceModel:
                 sum(len(f) for _, f in seq.frames))
 
 
-def surface_model(seq, device=None, playback: str = DEFAULT_PLAYBACK, interpolate: bool = True):
-    """The surface model of a sequence: :class:`SurfaceModel` for fixed topology,
-    :class:`VaryingSurfaceModel` (held frames) for varying topology."""
+def surface_model_class(seq) -> type:
+    """The surface class of a sequence (its ``colliders`` can be checked before any upload):
+    :class:`SurfaceModel` for fixed topology, :class:`VaryingSurfaceModel` for varying."""
     if isinstance(seq, FixedTopologySequence):
-        return SurfaceModel(seq, device, playback=playback, interpolate=interpolate)
+        return SurfaceModel
     if isinstance(seq, VaryingTopologySequence):
-        return VaryingSurfaceModel(seq, device, playback=playback)
+        return VaryingSurfaceModel
     raise TypeError(f"expected a FixedTopologySequence or VaryingTopologySequence, got {type(seq).__name__}")
+
+
+def surface_model(seq, device=None, playback: str = DEFAULT_PLAYBACK, interpolate: bool = True):
+    """The surface model of a sequence (frames uploaded to ``device``); varying topology holds
+    each frame, so ``interpolate`` applies to fixed topology only."""
+    cls = surface_model_class(seq)
+    if cls is SurfaceModel:
+        return SurfaceModel(seq, device, playback=playback, interpolate=interpolate)
+    return VaryingSurfaceModel(seq, device, playback=playback)
+
+
+def _sphere_rows(name: str, values, count: int, first: int = 0) -> np.ndarray:
+    """``values`` as (count, 3) float32 rows of spheres ``first``.., refusing a non-finite row
+    (ValueError naming the sphere and ``name``)."""
+    a = np.asarray(values, np.float32).reshape(count, 3)
+    bad = np.flatnonzero(~np.isfinite(a).all(axis=1))
+    if bad.size:
+        raise ValueError(f"sphere {first + int(bad[0])}: {name} {a[bad[0]].tolist()} is not finite")
+    return a
 
 
 class SphereModel:
@@ -355,12 +375,8 @@ class State:
         self.sim_time = wp.array([t0], dtype=wp.float64, device=d)
         surf.allocate_state(self)  # points, velocities, face_normals: owned by the state
         S = model.spheres.count
-        pos = np.asarray(positions, dtype=np.float32).reshape(S, 3)
-        vel = np.zeros((S, 3), np.float32) if velocities is None else np.asarray(velocities, np.float32).reshape(S, 3)
-        for name, a in (("positions", pos), ("velocities", vel)):
-            bad = np.flatnonzero(~np.isfinite(a).all(axis=1))
-            if bad.size:
-                raise ValueError(f"sphere {int(bad[0])}: {name[:-1]} {a[bad[0]].tolist()} is not finite")
+        pos = _sphere_rows("position", positions, S)
+        vel = np.zeros((S, 3), np.float32) if velocities is None else _sphere_rows("velocity", velocities, S)
         self.sphere_pos = wp.array(pos, dtype=wp.vec3, device=d)
         self.sphere_vel = wp.array(vel, dtype=wp.vec3, device=d)
 
@@ -631,13 +647,12 @@ class World:
         surf = model.surface
         collider = parse(Collider, collider, "collider").value
         rebuild_every = parse(RebuildEvery, rebuild_every, "rebuild_every").value
-        asked = collider
-        collider = surf.resolve_collider(collider, lambda: self._swept_fits(model))
         if collider not in surf.colliders:
             raise ValueError(
-                f"collider {asked!r}: a {surf.topology}-topology surface can only use collider "
+                f"collider {collider!r}: a {surf.topology}-topology surface can only use collider "
                 f"{' or '.join(map(repr, surf.colliders))} (or convert it to fixed topology first)"
             )
+        collider = surf.resolve_collider(collider, lambda: self._swept_fits(model))
         self.substeps = max(1, int(p.substeps))
         self._apply_substep_rule(stacklevel=3)
         self.gravity = wp.vec3(*[float(g) for g in p.gravity])
@@ -928,14 +943,9 @@ class World:
         i = int(i)
         if not 0 <= i < self.model.spheres.count:
             raise IndexError(f"sphere {i}: the world has {self.model.spheres.count} spheres")
-        for name, v in (("position", position), ("velocity", velocity)):
-            if not np.isfinite(np.asarray(v, np.float64)).all():
-                raise ValueError(f"sphere {i}: {name} {list(v)} is not finite")
-        d = self.device
-        wp.copy(self.state.sphere_pos, wp.array(np.asarray(position, np.float32).reshape(1, 3), dtype=wp.vec3,
-                                                device=d), dest_offset=i, count=1)
-        wp.copy(self.state.sphere_vel, wp.array(np.asarray(velocity, np.float32).reshape(1, 3), dtype=wp.vec3,
-                                                device=d), dest_offset=i, count=1)
+        rows = [_sphere_rows(name, v, 1, i) for name, v in (("position", position), ("velocity", velocity))]
+        for dst, row in zip((self.state.sphere_pos, self.state.sphere_vel), rows):
+            wp.copy(dst, wp.array(row, dtype=wp.vec3, device=self.device), dest_offset=i, count=1)
         self.collider.spheres_moved(self)
 
     # -- convenience ---------------------------------------------------------------------------
