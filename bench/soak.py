@@ -197,6 +197,15 @@ class Dropper:
         self.dropped += 1
 
 
+def is_soak_checkpoint(path) -> bool:
+    """True for a file this script wrote with --checkpoint (an npz holding the ``soak`` record)."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return "soak" in z.files
+    except Exception:  # not an npz (a folder, a scene, a mesh ...)
+        return False
+
+
 # --------------------------------------------------------------------------- one scene
 
 
@@ -395,6 +404,11 @@ def main(argv=None) -> int:
         p.error(f"unknown scenes {unknown}; choose from {', '.join(ALL_SCENES)}")
     if (a.checkpoint or a.resume) and len(scenes) != 1:
         p.error("--checkpoint/--resume need exactly one scene (--scenes NAME)")
+    if a.resume and not Path(a.resume).is_file():
+        p.error(f"--resume {a.resume}: no such file")
+    if a.checkpoint and Path(a.checkpoint).exists() and not is_soak_checkpoint(a.checkpoint):
+        p.error(f"--checkpoint {a.checkpoint}: exists and is not a soak checkpoint; it would be replaced "
+                "(choose a new path)")
     if "paper" in scenes and not (SHARED_DATA / "horse_gallop.npz").is_file():
         p.error(f"the paper scene needs {SHARED_DATA / 'horse_gallop.npz'}")
     import warp as wp

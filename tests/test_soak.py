@@ -117,3 +117,18 @@ def test_soak_stopped_and_resumed_equals_one_run(soak, tmp_path, recycle):
     assert whole["spheres_that_touched_the_surface"] > 0 and whole["sphere_checks_in_contact"] > 0
     with pytest.raises(SystemExit, match="written for scene"):
         soak.soak_scene("pulsing_blob", "cpu", stop_flag={}, resume=ck, **{**kw, "seed": 4})
+
+
+def test_checkpoint_never_replaces_a_file_it_did_not_write(soak, tmp_path, capsys):
+    """--checkpoint pointed at a user's file (here a scene YAML) is refused before any work, and
+    the file is left byte-identical; a missing --resume file is refused too."""
+    user = tmp_path / "scene.yaml"
+    user.write_bytes(b"name: mine\n")
+    with pytest.raises(SystemExit) as e:
+        soak.main(["--scenes", "pulsing_blob", "--steps", "10", "--checkpoint", str(user),
+                   "--out", str(tmp_path / "o.json")])
+    assert e.value.code == 2 and "is not a soak checkpoint" in capsys.readouterr().err
+    assert user.read_bytes() == b"name: mine\n" and not (tmp_path / "o.json").exists()
+    with pytest.raises(SystemExit) as e:
+        soak.main(["--scenes", "pulsing_blob", "--resume", str(tmp_path / "none.npz")])
+    assert e.value.code == 2 and "no such file" in capsys.readouterr().err
