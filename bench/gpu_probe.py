@@ -21,11 +21,49 @@ from dynmesh_warp.scenes import torus_to_sphere  # noqa: E402
 from dynmesh_warp.sequence import VaryingTopologySequence  # noqa: E402
 
 
+def _instrument() -> dict:
+    """Wrap the conversion's parts with synchronised timers; returns the dict they add to [s]."""
+    import dynmesh_warp.convert as cv
+    import dynmesh_warp.deform_graph as dg
+
+    parts = {}
+    calls = parts.setdefault("calls", {})
+
+    def wrap(owner, name, label):
+        f = getattr(owner, name)
+
+        def timed(*args, **kw):
+            wp.synchronize()
+            t = time.perf_counter()
+            out = f(*args, **kw)
+            wp.synchronize()
+            parts[label] = parts.get(label, 0.0) + time.perf_counter() - t
+            calls[label] = calls.get(label, 0) + 1
+            return out
+        setattr(owner, name, timed)
+
+    wrap(dg.GraphFitter, "fit", "graph fit")
+    wrap(dg.GraphFitter, "solve", "graph fit: CG solves")
+    wrap(dg.GraphFitter, "assemble", "graph fit: assembly")
+    wrap(dg.GraphFitter, "correspondences", "graph fit: correspondences")
+    wrap(dg.GraphFitter, "rebuild", "graph fit: template BVH build")
+    wrap(dg.GraphFitter, "_update_template", "graph fit: correspondences: template refit + normals")
+    wrap(dg.GraphFitter, "_find_backward", "graph fit: correspondences: backward query")
+    wrap(cv._Converter, "_graph_finish", "fine stage + coverage")
+    wrap(cv._Converter, "coverage", "fine stage + coverage: coverage")
+    wrap(cv._Converter, "_graph_frame", "frame normals")
+    wrap(cv, "_topology_events", "topology events (host)")
+    wrap(cv, "_key_frame", "key frame choice")
+    return parts
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--device", default="cuda:0")
     ap.add_argument("--frames", type=int, default=20)
     ap.add_argument("--out", default=None)
+    ap.add_argument("--breakdown", action="store_true",
+                    help="time the conversion's parts (synchronising around each: adds a little)")
     a = ap.parse_args()
     faulthandler.dump_traceback_later(60, repeat=True, file=sys.stdout)
     wp.config.quiet = True
@@ -37,6 +75,7 @@ def main():
     to_fixed_topology(VaryingTopologySequence(seq.frames[:2]), strategy="graph", device=a.device)
     wp.synchronize()
     compile_s = time.perf_counter() - t
+    parts = _instrument() if a.breakdown else None
     t = time.perf_counter()
     r = to_fixed_topology(VaryingTopologySequence(seq.frames[:a.frames]), strategy="graph", device=a.device)
     wp.synchronize()
@@ -47,7 +86,13 @@ def main():
            "template_vertices": int(r.num_vertices), "frames": a.frames, "warmup_s": compile_s, "total_s": s,
            "ms_per_frame": 1e3 * s / a.frames, "frame_ms_median": 1e3 * float(np.median(fs)),
            "frame_ms_max": 1e3 * float(fs.max()), "recovered_frames": len(r.conversion.recovered_frames),
+           "unrecovered_frames": len(r.conversion.unrecovered_frames),
+           "coverage_mean": float(np.mean(r.conversion.coverage)), "coverage_max": float(np.max(r.conversion.coverage)),
            "key_frame": r.conversion.key_frame}
+    if parts is not None:
+        calls = parts.pop("calls")
+        res["breakdown_s"] = {k: round(v, 4) for k, v in parts.items()}
+        res["breakdown_calls"] = calls
     print(res, flush=True)
     if a.out:
         write_json(a.out, res)

@@ -41,7 +41,6 @@ CLI: ``python -m dynmesh_warp.convert IN OUT --strategy tracking|projection|regu
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 import warnings
@@ -99,6 +98,9 @@ _DEFAULTS = {
         "predict": 1.0,
         "restart_threshold": 0.02,
         "bank_interval": 10,
+        # the per-iteration linear solve on the device (conjugate gradients, warm-started)
+        "cg_iterations": 40,
+        "cg_tolerance": 1e-5,
         # fine stage on the full-resolution template: "regularized"'s steps, 2 iterations
         "iterations": 2,
     },
@@ -231,6 +233,7 @@ class ConversionInfo:
     coverage: list = field(default_factory=list)
     topology_events: list = field(default_factory=list)
     first_frame: int = 0  # the result holds input frames first_frame.. (not 0 only when stopped early)
+    unrecovered_frames: list = field(default_factory=list)
 
 
 class _Converter:
@@ -289,6 +292,8 @@ class _Converter:
             self.scores = []  # coverage [m] of the frames converted so far
             self.graph_bank = []  # (frame, R, P) every bank_interval frames: restart candidates
             self.recovered = []  # (frame, what it restarted from)
+            self.failed_restart = None  # coverage [m] of the last restart that found nothing better
+            self.restarts_failed = []  # frames whose restart candidates all fitted worse
 
     # --- sequence control
     def rewind(self, X: np.ndarray, t_key: int, t_next: int | None):
@@ -499,7 +504,13 @@ class _Converter:
         # coverage so far) restarts from stored states and keeps the best
         thr = float(o["restart_threshold"]) * diag
         floor = 3.0 * float(np.median(self.scores)) if len(self.scores) >= 3 else 0.0
-        if thr > 0 and score > max(thr, floor) and self.history:
+        poor = thr > 0 and score > max(thr, floor)
+        if not poor:
+            self.failed_restart = None
+        # after a restart that found nothing better (e.g. the input changed topology and no
+        # state of this template covers it), try again only once the fit is 1.5x worse still
+        retry = self.failed_restart is None or score > 1.5 * self.failed_restart
+        if poor and retry and self.history:
             best = (score, None, R, P, wp.clone(self.X))
             cands = [("previous frame", self.history[-1], False)]
             cands += [(f"frame {tb}", (Rb, Pb), True) for tb, Rb, Pb in self.graph_bank[-3:]]
@@ -512,11 +523,17 @@ class _Converter:
                 sc = self._graph_finish(frame, R2, P2)
                 if sc < best[0]:
                     best = (sc, name, R2, P2, wp.clone(self.X))
+            before = score
             score, name, R, P, X = best
             wp.copy(self.X, X)
             if name is not None:
                 restarted = True
                 self.recovered.append((t, name))
+            if score < 0.9 * before:
+                self.failed_restart = None
+            else:  # nothing fitted clearly better (10 %): do not retry on every frame
+                self.failed_restart = score
+                self.restarts_failed.append(t)
         self.scores.append(score)
         self.frame_coverage = score
         self.history = (self.history + [(R, P)])[-2:]
@@ -632,16 +649,20 @@ def _resolve_options(strategy: str, options: dict) -> dict:
                 raise ValueError(f"{k} must be >= 0 (0: off), got {o[k]!r}")
         _check_fine_stage(o)
     if strategy == "graph":
-        for k in ("nodes_per_vertex", "graph_iterations"):
+        for k in ("nodes_per_vertex", "graph_iterations", "cg_iterations"):
             if int(o[k]) != o[k] or o[k] < 1:
                 raise ValueError(f"{k} must be an integer >= 1, got {o[k]!r}")
+        from .kernels.register import MAX_NODES_PER_VERTEX
+
+        if o["nodes_per_vertex"] > MAX_NODES_PER_VERTEX:
+            raise ValueError(f"nodes_per_vertex must be <= {MAX_NODES_PER_VERTEX}, got {o['nodes_per_vertex']!r}")
         for k in ("iterations", "smooth_iterations", "relax_iterations", "bank_interval"):
             if int(o[k]) != o[k] or o[k] < 0:
                 raise ValueError(f"{k} must be an integer >= 0, got {o[k]!r}")
         if not 0.0 < float(o["node_spacing"]) <= 1.0:
             raise ValueError(f"node_spacing must lie in (0, 1] (a fraction of the bbox diagonal), "
                              f"got {o['node_spacing']!r}")
-        for k in ("stiffness", "stiffness_end", "damping", "restart_threshold", "predict"):
+        for k in ("stiffness", "stiffness_end", "damping", "restart_threshold", "predict", "cg_tolerance"):
             if not (np.isfinite(float(o[k])) and float(o[k]) >= 0):
                 raise ValueError(f"{k} must be a finite number >= 0, got {o[k]!r}")
         if not 0.0 <= float(o["max_normal_angle"]) <= 180.0:
@@ -744,6 +765,47 @@ def _check_reach(TV, TF, V0, F0, limit: float, device, frame: int = 0):
             f"bounding-box diagonal from frame {frame}'s surface", UserWarning, stacklevel=3)
 
 
+def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info, strategy: str, where: str, TV):
+    """The frame loop of to_fixed_topology: the key frame forward to the end, then backward to
+    frame 0. Returns (out (T, N, 3), lo, hi (the converted frames lo..hi), seconds, coverage)."""
+    T = vseq.num_frames
+    device = conv.device
+    out = np.empty((T, len(TV), 3), np.float32)
+    seconds, coverage = np.zeros(T), np.zeros(T)
+    # the key frame forward to the end, then backward from it to frame 0
+    order = list(range(K, T)) + list(range(K - 1, -1, -1))
+    if progress:
+        from tqdm import tqdm
+
+        order = tqdm(order, desc=f"convert ({strategy})", unit="frame")
+    lo = hi = None  # the converted frames lo..hi (contiguous: the key frame forward, then backward)
+    for t in order:
+        if lo is not None and should_stop is not None and should_stop():
+            break
+        t0 = time.perf_counter()
+        if t == K - 1:
+            conv.rewind(out[K], K, K + 1)
+        v, f = vseq.frames[t]
+        pts = wp.array(v, dtype=wp.vec3, device=device)
+        idx = wp.array(f.reshape(-1), dtype=wp.int32, device=device)
+        m = wp.Mesh(points=pts, indices=idx)
+        if step((m, pts, idx), t):
+            info.reanchored_frames.append(t)
+        cov = conv.frame_coverage if conv.frame_coverage is not None else conv.coverage((m, pts, idx))
+        conv.frame_coverage = None
+        coverage[t] = cov / max(_bbox_diag(v), 1e-12)
+        conv.first = False
+        out[t] = conv.X.numpy()
+        seconds[t] = time.perf_counter() - t0
+        if not np.isfinite(out[t]).all():
+            raise RuntimeError(f"{where}: conversion ({strategy}) produced NaN/inf at frame {t}; "
+                               "the input frame may be degenerate")
+        lo, hi = (t, t) if lo is None else (min(lo, t), max(hi, t))
+    if hasattr(order, "close"):
+        order.close()
+    return out, lo, hi, seconds, coverage
+
+
 def to_fixed_topology(seq, strategy: str = DEFAULT_STRATEGY, template=None, device=None, progress: bool = False,
                       should_stop=None, **options) -> FixedTopologySequence:
     """Convert a varying-topology sequence into a fixed-topology one on ``template``'s faces.
@@ -798,46 +860,25 @@ def to_fixed_topology(seq, strategy: str = DEFAULT_STRATEGY, template=None, devi
     all_diag = max(max(_bbox_diag(v) for v, _ in vseq.frames), _bbox_diag(TV), 1e-6)
     conv = _Converter(TV, TF, device, 10.0 * all_diag, o)
     step = getattr(conv, f"step_{strategy}")
-    out = np.empty((T, len(TV), 3), np.float32)
-    info = ConversionInfo(strategy, {k: v for k, v in o.items() if k != "strategy"}, T, len(TV), key_frame=K,
-                          topology_events=_topology_events(vseq))
-    seconds, coverage = np.zeros(T), np.zeros(T)
-    # the key frame forward to the end, then backward from it to frame 0
-    order = list(range(K, T)) + list(range(K - 1, -1, -1))
-    if progress:
-        from tqdm import tqdm
+    info = ConversionInfo(strategy, {k: v for k, v in o.items() if k != "strategy"}, T, len(TV), key_frame=K)
+    # the topology report is host work that does not steer the conversion: a worker thread does
+    # it while the main thread waits on the device (NumPy and SciPy release the GIL in its sorts)
+    from concurrent.futures import ThreadPoolExecutor
 
-        order = tqdm(order, desc=f"convert ({strategy})", unit="frame")
-    lo = hi = None  # the converted frames lo..hi (contiguous: the key frame forward, then backward)
-    for t in order:
-        if lo is not None and should_stop is not None and should_stop():
-            break
-        t0 = time.perf_counter()
-        if t == K - 1:
-            conv.rewind(out[K], K, K + 1)
-        v, f = vseq.frames[t]
-        pts = wp.array(v, dtype=wp.vec3, device=device)
-        idx = wp.array(f.reshape(-1), dtype=wp.int32, device=device)
-        m = wp.Mesh(points=pts, indices=idx)
-        if step((m, pts, idx), t):
-            info.reanchored_frames.append(t)
-        cov = conv.frame_coverage if conv.frame_coverage is not None else conv.coverage((m, pts, idx))
-        conv.frame_coverage = None
-        coverage[t] = cov / max(_bbox_diag(v), 1e-12)
-        conv.first = False
-        out[t] = conv.X.numpy()
-        seconds[t] = time.perf_counter() - t0
-        if not np.isfinite(out[t]).all():
-            raise RuntimeError(f"{where}: conversion ({strategy}) produced NaN/inf at frame {t}; "
-                               "the input frame may be degenerate")
-        lo, hi = (t, t) if lo is None else (min(lo, t), max(hi, t))
-    if hasattr(order, "close"):
-        order.close()
+    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="topology")
+    try:
+        topology = pool.submit(_topology_events, vseq)
+        out, lo, hi, seconds, coverage = _convert_frames(vseq, conv, step, K, progress, should_stop, info,
+                                                         strategy, where, TV)
+        info.topology_events = [e for e in topology.result() if lo <= e[0] <= hi]
+    finally:
+        pool.shutdown(wait=False, cancel_futures=True)
     info.frame_seconds = seconds.tolist()
     info.coverage = coverage.tolist()
     info.reanchored_frames.sort()
     if hasattr(conv, "recovered"):
         info.recovered_frames = sorted(conv.recovered)
+        info.unrecovered_frames = sorted(conv.restarts_failed)
     elif getattr(conv, "reinit_sources", None):
         info.recovered_frames = sorted((t, "template" if src < 0 else f"frame {src}")
                                        for t, src in conv.reinit_sources)
@@ -871,6 +912,10 @@ def conversion_summary(info: ConversionInfo) -> list:
     if rec:
         shown = ", ".join(f"{t}" + (f" (from {src})" if src else "") for t, src in rec[:12])
         lines.append(f"recovered/re-anchored {len(rec)} frame(s): {shown}" + (" ..." if len(rec) > 12 else ""))
+    if info.unrecovered_frames:
+        u = info.unrecovered_frames
+        lines.append(f"restart found no better fit at {len(u)} frame(s): {', '.join(map(str, u[:12]))}"
+                     + (" ..." if len(u) > 12 else ""))
     ev = info.topology_events
     if ev:
         shown = ", ".join(f"{t} ({what})" for t, what in ev[:8])

@@ -17,9 +17,11 @@ the two directions are means, weighted equally, like the Chamfer distance they m
 as-rigid-as-possible graph term sum_(j,l) |p_l - p_j - R_j (g_l - g_j)|^2 (mean over edges,
 weight ``stiffness``, lowered geometrically from ``stiffness`` to ``stiffness_end`` over the
 iterations: coarse, near-rigid motion first, then finer bending) and a small damping towards the
-prediction. Each iteration: correspondences (kernels), the dense K x K normal equations in p
-(accumulated by kernels, solved by Cholesky on the host in float64), then the rotations
-(local step: polar part of the rotation covariance, edges + data, batched SVD).
+prediction. Each iteration, all on the device with no host round trip: correspondences, the
+sparse K x K normal equations in p (fixed CSR pattern, accumulated by kernels), a
+Jacobi-preconditioned conjugate-gradient solve warm-started from the current p (one captured
+CUDA graph on the GPU), then the rotations (local step: polar part of the rotation covariance,
+edges + data, ``wp.svd3`` per node). ``fit`` reads the result back once.
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ from .kernels import register as kr
 
 
 __all__ = ["DeformationGraph", "build_deformation_graph", "GraphFitter", "polar_rotations",
-           "extrapolate_rotations"]
+           "extrapolate_rotations", "system_pattern"]
 
 
 @dataclass
@@ -86,7 +88,7 @@ def build_deformation_graph(V, F, spacing: float, k: int = 4, max_nodes: int = 4
 
     Args:
         spacing: node spacing [m] (farthest-point sampling radius).
-        k: nodes per vertex (>= 1).
+        k: nodes per vertex (1 .. kernels.register.MAX_NODES_PER_VERTEX).
         max_nodes: refuse (ValueError) a spacing that would need more nodes than this.
     """
     from scipy.sparse.csgraph import connected_components, dijkstra
@@ -98,8 +100,8 @@ def build_deformation_graph(V, F, spacing: float, k: int = 4, max_nodes: int = 4
     if not spacing > 0:
         raise ValueError(f"node spacing must be > 0, got {spacing}")
     k = int(k)
-    if k < 1:
-        raise ValueError(f"nodes per vertex must be >= 1, got {k}")
+    if not 1 <= k <= kr.MAX_NODES_PER_VERTEX:
+        raise ValueError(f"nodes per vertex must lie in [1, {kr.MAX_NODES_PER_VERTEX}], got {k}")
     G = _edge_graph(V, F)
     ncomp, labels = connected_components(G, directed=False)
     used = np.zeros(n, bool)
@@ -202,31 +204,55 @@ def extrapolate_rotations(R0: np.ndarray, R1: np.ndarray, gamma: float) -> np.nd
     return Dg @ R1
 
 
-def _solve_sparse_spd(A: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Solve A x = b for the graph's sparse, symmetric positive definite normal matrix (K,K)
-    with a sparse LU (single-threaded SuperLU: a dense multithreaded LAPACK solve of this size
-    slows down 50x when the cores are busy, e.g. next to Warp's CPU kernels)."""
-    import scipy.sparse as sp
-    from scipy.sparse.linalg import splu
+def system_pattern(graph: DeformationGraph, TF: np.ndarray) -> tuple:
+    """CSR sparsity pattern of the fit's K x K system: node pairs bound to one template vertex
+    (forward term, graph edges) or to one template face (backward term), and the diagonal.
+    Returns (row_offsets (K+1,), columns (nnz,)) int32, columns sorted within each row."""
+    K = graph.num_nodes
+    NI = graph.node_index.astype(np.int64)
+    keys = [np.arange(K, dtype=np.int64) * (K + 1)]
+    e = graph.edges.astype(np.int64)
+    keys += [e[:, 0] * K + e[:, 1], e[:, 1] * K + e[:, 0]]
 
-    try:
-        return splu(sp.csc_matrix(A)).solve(b)
-    except RuntimeError:  # exactly singular (no data, no damping): least squares
-        return np.linalg.lstsq(A, b, rcond=None)[0]
+    def pairs(groups):  # (m, g) node groups -> unique keys of all ordered pairs in a group
+        a = np.repeat(groups, groups.shape[1], axis=1)
+        b = np.tile(groups, (1, groups.shape[1]))
+        return np.unique(a * K + b)
+
+    step = max(1, 2_000_000 // max(NI.shape[1] ** 2, 1))
+    for s in range(0, len(NI), step):
+        keys.append(pairs(NI[s:s + step]))
+    TF = np.asarray(TF, np.int64).reshape(-1, 3)
+    step = max(1, 2_000_000 // max((3 * NI.shape[1]) ** 2, 1))
+    for s in range(0, len(TF), step):
+        keys.append(pairs(NI[TF[s:s + step]].reshape(-1, 3 * NI.shape[1])))
+    keys = np.unique(np.concatenate(keys))
+    rows, cols = keys // K, keys % K
+    offsets = np.zeros(K + 1, np.int64)
+    np.add.at(offsets, rows + 1, 1)
+    return np.cumsum(offsets).astype(np.int32), cols.astype(np.int32)
 
 
 class GraphFitter:
-    """Device arrays and host solve of the graph fit (module docstring)."""
+    """Device arrays and the device-side solve of the graph fit (module docstring).
+
+    Every iteration runs on the device with no host round trip: correspondences, the sparse
+    normal equations (CSR, fixed pattern), a Jacobi-preconditioned CG warm-started from the
+    current positions (``cg_iterations`` iterations at most, relative tolerance ``cg_tolerance``;
+    on CUDA one captured graph per solve) and the per-node rotation update. ``fit`` reads the
+    result back once."""
 
     def __init__(self, graph: DeformationGraph, TV: np.ndarray, TF: np.ndarray, device, max_dist: float,
                  opts: dict):
         self.g = graph
-        self.device = d = device
+        self.device = d = wp.get_device(device)
         self.opts = opts
         self.max_dist = float(max_dist)
         self.n = len(TV)
         self.K = graph.num_nodes
         self.k = graph.node_index.shape[1]
+        self.cg_iterations = max(int(opts.get("cg_iterations", 64)), 1)
+        self.cg_tolerance = float(opts.get("cg_tolerance", 1e-4))
         arr = lambda a, dt: wp.array(a, dtype=dt, device=d)  # noqa: E731
         self.rest_points = arr(np.ascontiguousarray(TV, np.float32), wp.vec3)
         self.indices = arr(np.ascontiguousarray(TF, np.int32).reshape(-1), wp.int32)
@@ -236,6 +262,7 @@ class GraphFitter:
         K, n = self.K, self.n
         self.node_rotation = wp.empty(K, dtype=wp.mat33, device=d)
         self.node_position = wp.empty(K, dtype=wp.vec3, device=d)
+        self.position_prior = wp.empty(K, dtype=wp.vec3, device=d)
         self.points = wp.empty(n, dtype=wp.vec3, device=d)
         # the template BVH: built on the predicted pose by rebuild() at the start of every fit
         # (a tree refit far from the pose it was built on answers queries slowly)
@@ -247,23 +274,47 @@ class GraphFitter:
         self.fbary = wp.empty(n, dtype=wp.vec3, device=d)
         self.fweight = wp.empty(n, dtype=float, device=d)
         self.fdist = wp.empty(n, dtype=float, device=d)
-        self.system = wp.zeros(K * K, dtype=float, device=d)
-        self.rhs = wp.zeros(K, dtype=wp.vec3, device=d)
+        self.weight_sum = wp.zeros(2, dtype=float, device=d)
         self.covariance = wp.zeros(K, dtype=wp.mat33, device=d)
         self._frame_cap = 0
-        # host: ARAP graph term (directed both ways), constant Laplacian
+        # the K x K system: fixed CSR pattern, graph Laplacian per slot
+        offsets, cols = system_pattern(graph, TF)
+        rows = np.repeat(np.arange(K, dtype=np.int32), np.diff(offsets))
+        self.nnz = len(cols)
         e = graph.edges
-        self.ej = np.concatenate([e[:, 0], e[:, 1]])
-        self.el = np.concatenate([e[:, 1], e[:, 0]])
+        ej = np.concatenate([e[:, 0], e[:, 1]]).astype(np.int64)
+        el = np.concatenate([e[:, 1], e[:, 0]]).astype(np.int64)
+        lap = {}
+        for a, b, v in ((ej, ej, 1.0), (el, el, 1.0), (ej, el, -1.0), (el, ej, -1.0)):
+            key = a * K + b
+            u, c = np.unique(key, return_counts=True)
+            for kk, cc in zip(u.tolist(), c.tolist()):
+                lap[kk] = lap.get(kk, 0.0) + v * cc
+        slot_key = rows.astype(np.int64) * K + cols
+        lap_values = np.array([lap.get(int(x), 0.0) for x in slot_key], np.float32) if lap else np.zeros(
+            self.nnz, np.float32)
+        self.row_offsets = arr(offsets, wp.int32)
+        self.columns = arr(cols, wp.int32)
+        self.slot_row = arr(rows, wp.int32)
+        self.laplacian = arr(lap_values, float)
+        diag = offsets[:-1] + np.array([np.searchsorted(cols[offsets[r]:offsets[r + 1]], r) for r in range(K)],
+                                       np.int64)
+        self.diagonal_slot = arr(diag.astype(np.int32), wp.int32)
+        self.values = wp.zeros(self.nnz, dtype=float, device=d)
+        self.rhs = wp.zeros(K, dtype=wp.vec3, device=d)
+        self.edge_from = arr(ej.astype(np.int32) if len(ej) else np.zeros(0, np.int32), wp.int32)
+        self.edge_to = arr(el.astype(np.int32) if len(el) else np.zeros(0, np.int32), wp.int32)
         g = graph.node_rest
-        self.rest_offset = g[self.el] - g[self.ej]  # (2E, 3)
-        L = np.zeros((K, K))
-        np.add.at(L, (self.ej, self.ej), 1.0)
-        np.add.at(L, (self.el, self.el), 1.0)
-        np.add.at(L, (self.ej, self.el), -1.0)
-        np.add.at(L, (self.el, self.ej), -1.0)
-        self.L = L
-        self.num_edges = max(len(self.ej), 1)
+        self.rest_offset = arr((g[el] - g[ej]).astype(np.float32).reshape(-1, 3), wp.vec3)
+        self.num_edges = max(len(ej), 1)
+        # CG work arrays
+        self.residual = wp.zeros(K, dtype=wp.vec3, device=d)
+        self.preconditioned = wp.zeros(K, dtype=wp.vec3, device=d)
+        self.direction = (wp.zeros(K, dtype=wp.vec3, device=d), wp.zeros(K, dtype=wp.vec3, device=d))
+        self.product = wp.zeros(K, dtype=wp.vec3, device=d)
+        self.residual_dot = wp.zeros(self.cg_iterations + 1, dtype=float, device=d)
+        self.curvature = wp.zeros(self.cg_iterations, dtype=float, device=d)
+        self._cg_graph = None
 
     # ------------------------------------------------------------------ building blocks
     def _frame_arrays(self, q: int):
@@ -276,21 +327,34 @@ class GraphFitter:
             self.bweight = wp.empty(q, dtype=float, device=d)
             self.bdist = wp.empty(q, dtype=float, device=d)
 
-    def skin(self, R: np.ndarray, P: np.ndarray, out=None):
-        """Template positions for node rotations R (K,3,3) and positions P (K,3) -> ``out``
-        (default self.points); also refits the template BVH and the vertex normals."""
+    def set_state(self, R: np.ndarray, P: np.ndarray):
+        """Upload node rotations R (K,3,3) and positions P (K,3) to the device."""
         d = self.device
-        self.node_rotation.assign(wp.array(R.astype(np.float32), dtype=wp.mat33, device=d))
-        self.node_position.assign(wp.array(P.astype(np.float32), dtype=wp.vec3, device=d))
+        self.node_rotation.assign(wp.array(np.asarray(R, np.float32), dtype=wp.mat33, device=d))
+        self.node_position.assign(wp.array(np.asarray(P, np.float32), dtype=wp.vec3, device=d))
+
+    def get_state(self) -> tuple:
+        """The device's node rotations and positions as float64 (K,3,3), (K,3)."""
+        return self.node_rotation.numpy().astype(np.float64), self.node_position.numpy().astype(np.float64)
+
+    def _skin(self, out=None):
         out = self.points if out is None else out
         wp.launch(kr.skin_vertices, dim=self.n,
                   inputs=[self.rest_points, self.node_rest, self.node_index, self.node_weight, self.k,
-                          self.node_rotation, self.node_position], outputs=[out], device=d)
+                          self.node_rotation, self.node_position], outputs=[out], device=self.device)
         return out
 
-    def rebuild(self, R: np.ndarray, P: np.ndarray):
-        """Rebuild the template BVH on the template skinned by (R, P)."""
-        wp.copy(self.mesh_points, self.skin(R, P))
+    def skin(self, R: np.ndarray, P: np.ndarray, out=None):
+        """Template positions for node rotations R (K,3,3) and positions P (K,3) -> ``out``
+        (default self.points)."""
+        self.set_state(R, P)
+        return self._skin(out)
+
+    def rebuild(self, R: np.ndarray | None = None, P: np.ndarray | None = None):
+        """Rebuild the template BVH on the template skinned by (R, P) (default: the device state)."""
+        if R is not None:
+            self.set_state(R, P)
+        wp.copy(self.mesh_points, self._skin())
         self.tmesh = wp.Mesh(points=self.mesh_points, indices=self.indices)
 
     def _update_template(self):
@@ -321,69 +385,121 @@ class GraphFitter:
                   inputs=[self.tmesh.id, X, self.indices, pts, fnormals, self.max_dist, min_cos],
                   outputs=[self.bclosest, self.bface, self.bbary, self.bweight, self.bdist], device=self.device)
 
+    def assemble(self, frame, stiffness_weight: float, damping_weight: float):
+        """The normal equations in the node positions (values, rhs) for the current
+        correspondences and rotations: two-sided data term, ARAP graph term with weight
+        ``stiffness_weight`` per directed edge, damping towards ``position_prior``."""
+        d, n, K = self.device, self.n, self.K
+        q = frame[1].shape[0]
+        self.weight_sum.zero_()
+        wp.launch(kr.sum_correspondence_weights, dim=n, inputs=[self.fweight, n, 0], outputs=[self.weight_sum],
+                  device=d)
+        wp.launch(kr.sum_correspondence_weights, dim=q, inputs=[self.bweight, q, 1], outputs=[self.weight_sum],
+                  device=d)
+        self.values.zero_()
+        self.rhs.zero_()
+        wp.launch(kr.accumulate_forward_system, dim=n,
+                  inputs=[self.node_index, self.node_weight, self.k, self.row_offsets, self.columns, self.points,
+                          self.node_position, self.target, self.fweight, self.weight_sum],
+                  outputs=[self.values, self.rhs], device=d)
+        wp.launch(kr.accumulate_backward_system, dim=q,
+                  inputs=[self.indices, self.node_index, self.node_weight, self.k, self.row_offsets, self.columns,
+                          self.points, self.node_position, frame[1], self.bface, self.bbary, self.bweight,
+                          self.weight_sum], outputs=[self.values, self.rhs], device=d)
+        wp.launch(kr.add_graph_terms, dim=self.nnz, inputs=[self.slot_row, self.columns, self.laplacian,
+                                                           stiffness_weight, damping_weight],
+                  outputs=[self.values], device=d)
+        if len(self.edge_from):
+            wp.launch(kr.accumulate_graph_rhs, dim=len(self.edge_from),
+                      inputs=[self.edge_from, self.edge_to, self.rest_offset, self.node_rotation, stiffness_weight],
+                      outputs=[self.rhs], device=d)
+        wp.launch(kr.add_damping_rhs, dim=K, inputs=[self.position_prior, damping_weight], outputs=[self.rhs],
+                  device=d)
+
+    def _cg_launches(self):
+        d, K = self.device, self.K
+        self.residual_dot.zero_()
+        self.curvature.zero_()
+        wp.launch(kr.begin_conjugate_gradient, dim=K,
+                  inputs=[self.row_offsets, self.columns, self.diagonal_slot, self.values, self.rhs,
+                          self.node_position], outputs=[self.residual, self.preconditioned, self.residual_dot],
+                  device=d)
+        for it in range(self.cg_iterations):
+            p_in, p_out = self.direction[it % 2], self.direction[(it + 1) % 2]
+            wp.launch(kr.multiply_search_direction, dim=K,
+                      inputs=[self.row_offsets, self.columns, self.values, self.preconditioned, p_in,
+                              self.residual_dot, it], outputs=[p_out, self.product, self.curvature], device=d)
+            wp.launch(kr.update_conjugate_gradient, dim=K,
+                      inputs=[self.diagonal_slot, self.values, p_out, self.product, self.curvature, it,
+                              self.cg_tolerance],
+                      outputs=[self.node_position, self.residual, self.preconditioned, self.residual_dot], device=d)
+
+    def solve(self, serial: bool | None = None):
+        """node_position <- the solution of the assembled system (CG warm-started from it).
+        On the CPU (``serial`` default) the CG runs as one serial launch and stops at the
+        tolerance; on CUDA as two launches per iteration, captured once as a graph."""
+        if serial is None:
+            serial = not self.device.is_cuda
+        if serial:
+            self.residual_dot.zero_()
+            wp.launch(kr.solve_conjugate_gradient_serial, dim=1,
+                      inputs=[self.row_offsets, self.columns, self.diagonal_slot, self.values, self.rhs,
+                              self.cg_iterations, self.cg_tolerance],
+                      outputs=[self.node_position, self.residual, self.preconditioned, self.direction[0],
+                               self.product, self.residual_dot], device=self.device)
+            return
+        if self._cg_graph is not None:
+            wp.capture_launch(self._cg_graph)
+            return
+        if self.device.is_cuda:
+            with wp.ScopedCapture(device=self.device) as cap:
+                self._cg_launches()
+            self._cg_graph = cap.graph
+            wp.capture_launch(self._cg_graph)
+            return
+        self._cg_launches()
+
+    def solve_residual(self) -> float:
+        """Relative preconditioned residual sqrt(rz_final / rz_0) of the last solve (host read)."""
+        rz = self.residual_dot.numpy()
+        done = np.flatnonzero(rz > 0)
+        return float(np.sqrt(rz[done[-1]] / rz[0])) if len(done) and rz[0] > 0 else 0.0
+
+    def update_rotations(self, stiffness_weight: float):
+        """Local step: per-node rotations from the data and the edges, at the current positions."""
+        d = self.device
+        self.covariance.zero_()
+        wp.launch(kr.accumulate_rotation_covariance, dim=self.n,
+                  inputs=[self.rest_points, self.node_rest, self.node_index, self.node_weight, self.k,
+                          self.node_position, self.target, self.fweight, self.weight_sum],
+                  outputs=[self.covariance], device=d)
+        if len(self.edge_from):
+            wp.launch(kr.accumulate_edge_covariance, dim=len(self.edge_from),
+                      inputs=[self.edge_from, self.edge_to, self.rest_offset, self.node_position, stiffness_weight],
+                      outputs=[self.covariance], device=d)
+        wp.launch(kr.update_node_rotations, dim=self.K, inputs=[self.covariance], outputs=[self.node_rotation],
+                  device=d)
+
     # ------------------------------------------------------------------ the fit
     def fit(self, frame, R: np.ndarray, P: np.ndarray, iterations: int, stiffness: float,
             stiffness_end: float, damping: float):
         """Fit node rotations/positions to the frame, starting from (R, P) (float64 (K,3,3), (K,3)),
-        which also serve as the damping's prior. Returns the fitted (R, P); self.points holds
-        the skinned template."""
+        which also serve as the damping's prior. Returns the fitted (R, P) (float64);
+        self.points holds the skinned template."""
         o = self.opts
-        d = self.device
-        K, n = self.K, self.n
         min_cos = float(np.cos(np.radians(float(o["max_normal_angle"]))))
-        R = R.copy()
-        P = P.copy()
-        P_prior = P.copy()
-        q = frame[1].shape[0]
         its = max(int(iterations), 1)
         lams = np.geomspace(max(stiffness, 1e-12), max(stiffness_end, 1e-12), its) if its > 1 else [stiffness_end]
-        self.rebuild(R, P)
+        self.set_state(R, P)
+        wp.copy(self.position_prior, self.node_position)
+        self.rebuild()
+        wd = float(damping) / self.K
         for it in range(its):
-            lam = float(lams[it])
-            self.skin(R, P)
+            wr = float(lams[it]) / self.num_edges
+            self._skin()
             self.correspondences(frame, min_cos)
-            fw = self.fweight.numpy()
-            bw = self.bweight.numpy()[:q]
-            nf = max(float(fw.sum()), 1.0)
-            nb = max(float(bw.sum()), 1.0)
-            self.system.zero_()
-            self.rhs.zero_()
-            wp.launch(kr.accumulate_forward_system, dim=n,
-                      inputs=[self.node_index, self.node_weight, self.k, K, self.points, self.node_position,
-                              self.target, self.fweight, 0.5 / nf], outputs=[self.system, self.rhs], device=d)
-            wp.launch(kr.accumulate_backward_system, dim=q,
-                      inputs=[self.indices, self.node_index, self.node_weight, self.k, K, self.points,
-                              self.node_position, frame[1], self.bface, self.bbary, self.bweight, 0.5 / nb],
-                      outputs=[self.system, self.rhs], device=d)
-            A = self.system.numpy().astype(np.float64).reshape(K, K)
-            b = self.rhs.numpy().astype(np.float64)
-            # ARAP graph term: (lam / E) sum |p_l - p_j - R_j (g_l - g_j)|^2
-            wr = lam / self.num_edges
-            dvec = np.einsum("eab,eb->ea", R[self.ej], self.rest_offset)
-            rb = np.zeros((K, 3))
-            np.add.at(rb, self.el, dvec)
-            np.add.at(rb, self.ej, -dvec)
-            A += wr * self.L
-            b += wr * rb
-            # damping towards the prior
-            wd = damping / K
-            A[np.diag_indices(K)] += wd + 1e-12
-            b += wd * P_prior
-            A = 0.5 * (A + A.T)
-            P = _solve_sparse_spd(A, b)
-            # local step: rotations from the edges and the data, regularised towards the old R
-            self.node_position.assign(wp.array(P.astype(np.float32), dtype=wp.vec3, device=d))
-            self.covariance.zero_()
-            wp.launch(kr.accumulate_rotation_covariance, dim=n,
-                      inputs=[self.rest_points, self.node_rest, self.node_index, self.node_weight, self.k,
-                              self.node_position, self.target, self.fweight, 0.5 / nf],
-                      outputs=[self.covariance], device=d)
-            C = self.covariance.numpy().astype(np.float64)
-            cur = P[self.el] - P[self.ej]
-            Ce = np.einsum("ea,eb->eab", cur, self.rest_offset) * wr
-            np.add.at(C, self.ej, Ce)
-            scale = np.linalg.norm(C, axis=(1, 2))
-            C += (1e-3 * scale + 1e-12)[:, None, None] * R
-            R = polar_rotations(C)
-        self.skin(R, P)
-        return R, P
+            self.assemble(frame, wr, wd)
+            self.solve()
+            self.update_rotations(wr)
+        self._skin()
+        return self.get_state()

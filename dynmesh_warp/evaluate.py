@@ -26,7 +26,6 @@ horse_collapse,pcow}.npz --num-frames 200 --device cuda --out eval_out``.
 
 from __future__ import annotations
 
-import argparse
 import csv
 import io as _io
 import platform
