@@ -99,7 +99,7 @@ _DEFAULTS = {
         "restart_threshold": 0.02,
         "bank_interval": 10,
         # the per-iteration linear solve on the device (conjugate gradients, warm-started)
-        "cg_iterations": 40,
+        "cg_iterations": 32,
         "cg_tolerance": 1e-5,
         # fine stage on the full-resolution template: "regularized"'s steps, 2 iterations
         "iterations": 2,
@@ -519,10 +519,15 @@ class _Converter:
             for name, (Rc, Pc), shift in cands:
                 if shift:
                     Pc = Pc + (cen - gf.skin(Rc, Pc).numpy().mean(axis=0))
-                R2, P2 = gf.fit(gframe, Rc, Pc, 2 * its, lam0, lam1, mu)
+                R2, P2 = gf.fit(gframe, Rc, Pc, its, lam0, lam1, mu)
                 sc = self._graph_finish(frame, R2, P2)
                 if sc < best[0]:
                     best = (sc, name, R2, P2, wp.clone(self.X))
+            if best[1] is not None:  # the winner gets a second round of iterations, at the final stiffness
+                R2, P2 = gf.fit(gframe, best[2], best[3], its, lam1, lam1, mu)
+                sc = self._graph_finish(frame, R2, P2)
+                if sc < best[0]:
+                    best = (sc, best[1], R2, P2, wp.clone(self.X))
             before = score
             score, name, R, P, X = best
             wp.copy(self.X, X)
