@@ -549,7 +549,7 @@ class SweptCollider(ColliderBase):
         g = float(np.linalg.norm(m.params.gravity))
         step_reach = m.params.margin + 2.0 * g * world.sub_dt * world.sub_dt + self.epsilon
         world._launch(gather_sphere_candidates, m.spheres.count,
-                      [self.bvh.id, s.sphere_pos, s.sphere_vel, m.spheres.radius, 1.0 / m.surface.fps, g,
+                      [m.spheres.radius, s.sphere_pos, s.sphere_vel, self.bvh.id, 1.0 / m.surface.fps, g,
                        step_reach],
                       [self.cand_face, self.cand_count, self.cand_center, self.cand_radius])
 
@@ -595,21 +595,23 @@ class SweptCollider(ColliderBase):
     def collide(self, world: "World"):
         m, s, c = world.model, world.state, world.contacts
         surf = m.surface
-        common = [surf.frames, surf.indices, s.sim_time, surf.fps, surf.playback, int(surf.interpolate),
-                  self.epsilon]
+        # kernel argument groups (kernels/swept.py): Model, State in, In, Out
+        frame_args = [surf.fps, surf.playback, int(surf.interpolate), self.epsilon]
         outputs = [c.face, c.point, c.normal, c.depth, c.velocity]
         if not self.parallel:
             world._launch(collide_sphere_swept, m.spheres.count,
-                          [self.bvh.id, *common, s.sphere_pos, s.sphere_vel, m.spheres.radius,
-                           world.sub_dt, world.extra_speed, m.params.margin], outputs)
+                          [surf.frames, surf.indices, m.spheres.radius, s.sim_time, s.sphere_pos, s.sphere_vel,
+                           self.bvh.id, *frame_args, world.sub_dt, world.extra_speed, m.params.margin], outputs)
             return
         world._launch(evaluate_sphere_candidates, (m.spheres.count, self.max_candidates),
-                      [*common, s.sphere_pos, self.cand_face, self.cand_count],
+                      [surf.frames, surf.indices, s.sim_time, s.sphere_pos, *frame_args, self.cand_face,
+                       self.cand_count],
                       [self.cand_dist, self.cand_w, self.cand_wn])
         world._launch(resolve_sphere_candidates, m.spheres.count,
-                      [self.bvh.id, *common, s.sphere_pos, s.sphere_vel, m.spheres.radius, world.sub_dt,
-                       world.extra_speed, m.params.margin, self.cand_face, self.cand_count, self.cand_center,
-                       self.cand_radius, self.cand_dist, self.cand_w, self.cand_wn], outputs)
+                      [surf.frames, surf.indices, m.spheres.radius, s.sim_time, s.sphere_pos, s.sphere_vel,
+                       self.bvh.id, *frame_args, world.sub_dt, world.extra_speed, m.params.margin, self.cand_face,
+                       self.cand_count, self.cand_center, self.cand_radius, self.cand_dist, self.cand_w,
+                       self.cand_wn], outputs)
 
 
 SWEPT_MAX_CANDIDATES = 256
@@ -754,8 +756,8 @@ class World:
         """Stage 3 on a wp.Mesh (refit / rebuild colliders)."""
         m, s, c = self.model, self.state, self.contacts
         self._launch(collide_sphere_mesh, m.spheres.count,
-                     [mesh_id, s.points, s.velocities, self.current_indices(), s.sphere_pos, s.sphere_vel,
-                      m.spheres.radius, self.sub_dt, self.extra_speed, m.params.margin],
+                     [self.current_indices(), m.spheres.radius, s.points, s.velocities, s.sphere_pos, s.sphere_vel,
+                      mesh_id, self.sub_dt, self.extra_speed, m.params.margin],
                      [c.face, c.point, c.normal, c.depth, c.velocity])
 
     def integrate(self):
@@ -767,11 +769,12 @@ class World:
         key = self.collider.frame_key if swept else self._no_key
         changed = self.collider.changed if swept else self._no_key
         self._launch(integrate_spheres, max(m.spheres.count, 1),
-                     [c.face, c.normal, c.depth, c.velocity, m.spheres.inv_mass, m.spheres.radius, self.gravity,
+                     [m.spheres.inv_mass, m.spheres.radius, self.gravity,
                       self.sub_dt, m.params.restitution, m.params.friction, m.params.rest_speed,
                       int(m.params.ground_height is not None),
                       float(m.params.ground_height if m.params.ground_height is not None else 0.0),
-                      self.sub_dt, surf.fps, surf.num_frames, surf.playback, int(swept)],
+                      self.sub_dt, surf.fps, surf.num_frames, surf.playback,
+                      c.face, c.normal, c.depth, c.velocity, int(swept)],
                      [s.sphere_pos, s.sphere_vel, s.sim_time, key, changed])
 
     def substep(self):

@@ -41,18 +41,20 @@ def contact_reach(r: float, v: wp.vec3, extra_speed: float, dt: float, margin: f
 
 @wp.kernel
 def collide_sphere_mesh(
-    # inputs
-    mesh: wp.uint64,
-    points: wp.array(dtype=wp.vec3),
-    velocities: wp.array(dtype=wp.vec3),
+    # Model:
     indices: wp.array(dtype=wp.int32),
-    sphere_pos: wp.array(dtype=wp.vec3),
-    sphere_vel: wp.array(dtype=wp.vec3),
     sphere_radius: wp.array(dtype=float),
+    # State in:
+    points_in: wp.array(dtype=wp.vec3),
+    velocities_in: wp.array(dtype=wp.vec3),
+    sphere_pos_in: wp.array(dtype=wp.vec3),
+    sphere_vel_in: wp.array(dtype=wp.vec3),
+    # In:
+    mesh: wp.uint64,
     dt: float,
     extra_speed: float,
     margin: float,
-    # outputs
+    # Out:
     contact_face: wp.array(dtype=wp.int32),
     contact_point: wp.array(dtype=wp.vec3),
     contact_normal: wp.array(dtype=wp.vec3),
@@ -66,9 +68,9 @@ def collide_sphere_mesh(
     during the step is found (continuous contact in the integrator).
     """
     s = wp.tid()
-    p = sphere_pos[s]
+    p = sphere_pos_in[s]
     r = sphere_radius[s]
-    reach = contact_reach(r, sphere_vel[s], extra_speed, dt, margin)
+    reach = contact_reach(r, sphere_vel_in[s], extra_speed, dt, margin)
     face = int(-1)
     c = wp.vec3(0.0)
     n = wp.vec3(0.0)
@@ -79,16 +81,16 @@ def collide_sphere_mesh(
         i0 = indices[3 * q.face + 0]
         i1 = indices[3 * q.face + 1]
         i2 = indices[3 * q.face + 2]
-        a = points[i0]
-        b = points[i1]
-        e = points[i2]
+        a = points_in[i0]
+        b = points_in[i1]
+        e = points_in[i2]
         w = wp.vec3(q.u, q.v, 1.0 - q.u - q.v)
         c = w[0] * a + w[1] * b + w[2] * e
         fn = wp.normalize(wp.cross(b - a, e - a))
         n, depth = make_contact(p, r, c, q.sign, fn)
         if depth > 0.0 or q.sign > 0.0:
             face = q.face
-            vs = w[0] * velocities[i0] + w[1] * velocities[i1] + w[2] * velocities[i2]
+            vs = w[0] * velocities_in[i0] + w[1] * velocities_in[i1] + w[2] * velocities_in[i2]
         # else: the sphere lies entirely behind the surface: no contact
     contact_face[s] = face
     contact_point[s] = c

@@ -14,13 +14,13 @@ import warp as wp
 
 @wp.kernel
 def evaluate_barycentric_points(
-    # inputs
+    # In:
     points: wp.array(dtype=wp.vec3),
     indices: wp.array(dtype=wp.int32),
     face: wp.array(dtype=wp.int32),
     bary: wp.array(dtype=wp.vec3),
     fallback: wp.array(dtype=wp.vec3),
-    # outputs
+    # Out:
     out: wp.array(dtype=wp.vec3),
 ):
     """Position of each query on its face: w0 p[i0] + w1 p[i1] + w2 p[i2].
@@ -44,11 +44,11 @@ def evaluate_barycentric_points(
 
 @wp.kernel
 def blend_points(
-    # inputs
+    # In:
     a: wp.array(dtype=wp.vec3),
     b: wp.array(dtype=wp.vec3),
     weight_a: float,
-    # outputs
+    # Out:
     out: wp.array(dtype=wp.vec3),
 ):
     """out = weight_a * a + (1 - weight_a) * b (re-anchoring blend). a, b, out (N,) [m]."""
@@ -58,11 +58,11 @@ def blend_points(
 
 @wp.kernel
 def compute_laplacian_coordinates(
-    # inputs
+    # In:
     points: wp.array(dtype=wp.vec3),
     offsets: wp.array(dtype=wp.int32),
     neighbors: wp.array(dtype=wp.int32),
-    # outputs
+    # Out:
     delta: wp.array(dtype=wp.vec3),
 ):
     """Uniform Laplacian coordinates: delta_i = p_i - mean of its neighbours.
@@ -84,14 +84,14 @@ def compute_laplacian_coordinates(
 
 @wp.kernel
 def compute_closest_displacements(
-    # inputs
+    # In:
     points: wp.array(dtype=wp.vec3),
     closest: wp.array(dtype=wp.vec3),
     face: wp.array(dtype=wp.int32),
     pull_sum: wp.array(dtype=wp.vec3),
     pull_weight: wp.array(dtype=float),
     pull_fraction: float,
-    # outputs
+    # Out:
     disp: wp.array(dtype=wp.vec3),
     weight: wp.array(dtype=float),
 ):
@@ -124,12 +124,12 @@ def compute_closest_displacements(
 
 @wp.kernel
 def scatter_surface_pulls(
-    # inputs
+    # In:
     template_mesh: wp.uint64,
     template_indices: wp.array(dtype=wp.int32),
     targets: wp.array(dtype=wp.vec3),
     max_dist: float,
-    # outputs
+    # Out:
     pull_sum: wp.array(dtype=wp.vec3),
     pull_weight: wp.array(dtype=float),
 ):
@@ -163,13 +163,13 @@ def scatter_surface_pulls(
 
 @wp.kernel
 def smooth_vectors_laplacian(
-    # inputs
+    # In:
     values: wp.array(dtype=wp.vec3),
     weight: wp.array(dtype=float),
     offsets: wp.array(dtype=wp.int32),
     neighbors: wp.array(dtype=wp.int32),
     lam: float,
-    # outputs
+    # Out:
     out: wp.array(dtype=wp.vec3),
     out_weight: wp.array(dtype=float),
 ):
@@ -208,11 +208,11 @@ def smooth_vectors_laplacian(
 
 @wp.kernel
 def add_displacements(
-    # inputs
+    # In:
     points: wp.array(dtype=wp.vec3),
     disp: wp.array(dtype=wp.vec3),
     scale: float,
-    # outputs
+    # Out:
     out: wp.array(dtype=wp.vec3),
 ):
     """out = points + scale * disp. points, disp, out (N,) [m] (out may alias points)."""
@@ -222,10 +222,10 @@ def add_displacements(
 
 @wp.kernel
 def accumulate_vertex_normals(
-    # inputs
+    # In:
     points: wp.array(dtype=wp.vec3),
     indices: wp.array(dtype=wp.int32),
-    # outputs
+    # Out:
     normals: wp.array(dtype=wp.vec3),
 ):
     """Area-weighted vertex normals (unnormalized): adds (p1-p0)x(p2-p0) of each face to its
@@ -242,7 +242,7 @@ def accumulate_vertex_normals(
 
 @wp.kernel
 def relax_points_tangentially(
-    # inputs
+    # In:
     points: wp.array(dtype=wp.vec3),
     normals: wp.array(dtype=wp.vec3),
     rest_points: wp.array(dtype=wp.vec3),
@@ -250,7 +250,7 @@ def relax_points_tangentially(
     offsets: wp.array(dtype=wp.int32),
     neighbors: wp.array(dtype=wp.int32),
     step: float,
-    # outputs
+    # Out:
     out: wp.array(dtype=wp.vec3),
 ):
     """Restore the template's vertex distribution, moving vertices only within the tangent plane.
@@ -300,13 +300,13 @@ def relax_points_tangentially(
 
 @wp.kernel
 def project_points_along_normals(
-    # inputs
+    # In:
     mesh: wp.uint64,
     points: wp.array(dtype=wp.vec3),
     normals: wp.array(dtype=wp.vec3),
     max_dist: float,
     slack: float,
-    # outputs
+    # Out:
     out: wp.array(dtype=wp.vec3),
     dist: wp.array(dtype=float),
 ):
@@ -354,14 +354,14 @@ def project_points_along_normals(
 
 @wp.kernel
 def accumulate_point_to_plane_system(
-    # inputs
+    # In:
     points: wp.array(dtype=wp.vec3),
     center: wp.vec3,
     closest: wp.array(dtype=wp.vec3),
     face: wp.array(dtype=wp.int32),
     frame_points: wp.array(dtype=wp.vec3),
     frame_indices: wp.array(dtype=wp.int32),
-    # outputs
+    # Out:
     system: wp.array(dtype=float),
 ):
     """Normal equations of one linearized point-to-plane ICP step (a small rigid motion).
@@ -396,12 +396,12 @@ def accumulate_point_to_plane_system(
 
 @wp.kernel
 def transform_points_rigid(
-    # inputs
+    # In:
     points: wp.array(dtype=wp.vec3),
     rotation: wp.mat33,
     center: wp.vec3,
     translation: wp.vec3,
-    # outputs
+    # Out:
     out: wp.array(dtype=wp.vec3),
 ):
     """out = rotation (p - center) + center + translation. points, out (N,) [m] (may alias)."""
@@ -439,13 +439,13 @@ def measure_distances_to_mesh(
 
 @wp.kernel
 def sum_distances_to_mesh(
-    # inputs
+    # In:
     mesh: wp.uint64,
     points: wp.array(dtype=wp.vec3),
     stride: int,
     shift: wp.vec3,
     max_dist: float,
-    # outputs
+    # Out:
     total: wp.array(dtype=float),
 ):
     """Sum of the distances of a strided subset of points, translated, to a mesh (fit score).

@@ -56,33 +56,35 @@ def blend_pair(time: wp.float64, fps: wp.float64, num_frames: int, mode: int, in
 
 @wp.kernel
 def update_frame_vertices(
-    # inputs
+    # Model:
     frames: wp.array2d(dtype=wp.vec3),
-    sim_time: wp.array(dtype=wp.float64),
+    # State in:
+    sim_time_in: wp.array(dtype=wp.float64),
+    # In:
     fps: wp.float64,
     mode: int,
     interpolate: int,
-    # outputs
-    points: wp.array(dtype=wp.vec3),
-    velocities: wp.array(dtype=wp.vec3),
+    # State out:
+    points_out: wp.array(dtype=wp.vec3),
+    velocities_out: wp.array(dtype=wp.vec3),
 ):
-    """Write the surface vertices and velocities at ``sim_time[0]``.
+    """Write the surface vertices and velocities_out at ``sim_time_in[0]``.
 
-    frames (T, N) vertex buffer [m]; points (N,) [m]; velocities (N,) [m/s].
+    frames (T, N) vertex buffer [m]; points_out (N,) [m]; velocities_out (N,) [m/s].
     With ``interpolate`` the position is the linear blend of frames k and k+1; otherwise
     frame k is copied. The velocity is the finite difference (V[k+1] - V[k]) * fps in
     both cases (the surface's own motion, used by the contact response).
     """
     i = wp.tid()
     num_frames = frames.shape[0]
-    k0, k1, alpha = frame_pair(sim_time[0], fps, num_frames, mode)
+    k0, k1, alpha = frame_pair(sim_time_in[0], fps, num_frames, mode)
     a = frames[k0, i]
     b = frames[k1, i]
     if interpolate != 0:
-        points[i] = a + alpha * (b - a)
+        points_out[i] = a + alpha * (b - a)
     else:
-        points[i] = a
+        points_out[i] = a
     if k1 == k0:
-        velocities[i] = wp.vec3(0.0)
+        velocities_out[i] = wp.vec3(0.0)
     else:
-        velocities[i] = (b - a) * float(fps)
+        velocities_out[i] = (b - a) * float(fps)

@@ -39,7 +39,7 @@ def face_frame_scale(p0: wp.vec3, p1: wp.vec3, p2: wp.vec3) -> float:
 
 @wp.kernel
 def update_gaussians(
-    # inputs
+    # In:
     points: wp.array(dtype=wp.vec3),
     indices: wp.array(dtype=wp.int32),
     face: wp.array(dtype=wp.int32),
@@ -47,7 +47,7 @@ def update_gaussians(
     offset: wp.array(dtype=float),
     local_rotation: wp.array(dtype=wp.quat),
     local_scale: wp.array(dtype=wp.vec3),
-    # outputs
+    # Out:
     centers: wp.array(dtype=wp.vec3),
     rotations: wp.array(dtype=wp.quat),
     scales: wp.array(dtype=wp.vec3),
@@ -82,14 +82,14 @@ def update_gaussians(
 
 @wp.kernel
 def bind_gaussians_to_faces(
-    # inputs
+    # In:
     points: wp.array(dtype=wp.vec3),
     indices: wp.array(dtype=wp.int32),
     face: wp.array(dtype=wp.int32),
     centers: wp.array(dtype=wp.vec3),
     rotations: wp.array(dtype=wp.quat),
     scales: wp.array(dtype=wp.vec3),
-    # outputs
+    # Out:
     bary: wp.array(dtype=wp.vec3),
     offset: wp.array(dtype=float),
     local_rotation: wp.array(dtype=wp.quat),
@@ -141,12 +141,12 @@ def bind_gaussians_to_faces(
 
 @wp.kernel
 def pack_splat_covariances(
-    # inputs
+    # In:
     rotations: wp.array(dtype=wp.quat),
     scales: wp.array(dtype=wp.vec3),
     min_scale: float,
     min_ratio: float,
-    # outputs
+    # Out:
     cov_triu: wp.array2d(dtype=wp.float16),
 ):
     """Upper-triangle covariance (xx, xy, xz, yy, yz, zz) in float16 for the viewer, with each

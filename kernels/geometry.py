@@ -5,10 +5,10 @@ import warp as wp
 
 @wp.kernel
 def compute_face_normals(
-    # inputs
+    # In:
     points: wp.array(dtype=wp.vec3),
     indices: wp.array(dtype=wp.int32),
-    # outputs
+    # Out:
     face_normals: wp.array(dtype=wp.vec3),
 ):
     """Unit normal of each triangle, (p1 - p0) x (p2 - p0) normalized; zero for degenerate faces.
@@ -74,11 +74,11 @@ def closest_point_on_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) ->
 
 @wp.kernel
 def project_points_to_mesh(
-    # inputs
+    # In:
     mesh: wp.uint64,
     queries: wp.array(dtype=wp.vec3),
     max_dist: float,
-    # outputs
+    # Out:
     closest: wp.array(dtype=wp.vec3),
     face: wp.array(dtype=wp.int32),
     bary: wp.array(dtype=wp.vec3),

@@ -7,11 +7,7 @@ from .frames import frame_pair
 
 @wp.kernel
 def integrate_spheres(
-    # inputs
-    contact_face: wp.array(dtype=wp.int32),
-    contact_normal: wp.array(dtype=wp.vec3),
-    contact_depth: wp.array(dtype=float),
-    contact_velocity: wp.array(dtype=wp.vec3),
+    # Model:
     inv_mass: wp.array(dtype=float),
     sphere_radius: wp.array(dtype=float),
     gravity: wp.vec3,
@@ -25,13 +21,18 @@ def integrate_spheres(
     fps: wp.float64,
     num_frames: int,
     mode: int,
+    # In:
+    contact_face: wp.array(dtype=wp.int32),
+    contact_normal: wp.array(dtype=wp.vec3),
+    contact_depth: wp.array(dtype=float),
+    contact_velocity: wp.array(dtype=wp.vec3),
     detect: int,
-    # in/out
-    sphere_pos: wp.array(dtype=wp.vec3),
-    sphere_vel: wp.array(dtype=wp.vec3),
-    sim_time: wp.array(dtype=wp.float64),
-    frame_key: wp.array(dtype=wp.int32),
-    # outputs
+    # State out:
+    sphere_pos_out: wp.array(dtype=wp.vec3),
+    sphere_vel_out: wp.array(dtype=wp.vec3),
+    sim_time_out: wp.array(dtype=wp.float64),
+    frame_key_out: wp.array(dtype=wp.int32),
+    # Out:
     frame_changed: wp.array(dtype=wp.int32),
 ):
     """Advance each sphere by dt with a continuous (time-of-impact) contact response.
@@ -47,29 +48,29 @@ def integrate_spheres(
     With ``ground`` set, a static plane z = ground_height (normal +z) also stops the spheres
     (same restitution and friction, applied after the mesh contact).
 
-    Thread 0 also advances the device clock, sim_time[0] += time_step (no thread of this kernel
+    Thread 0 also advances the device clock, sim_time_out[0] += time_step (no thread of this kernel
     reads it), and with ``detect`` sets frame_changed[0] = 1 when the frame pair at the new time
-    differs from frame_key[0] (updated): the swept collider's test for the next sub-step, fused
+    differs from frame_key_out[0] (updated): the swept collider's test for the next sub-step, fused
     here to save a launch. Launch with max(S, 1) threads.
     """
     s = wp.tid()
     if s == 0:
-        t = sim_time[0] + time_step
-        sim_time[0] = t
+        t = sim_time_out[0] + time_step
+        sim_time_out[0] = t
         if detect != 0:
             k0, k1, alpha = frame_pair(t, fps, num_frames, mode)
             key = k0 * num_frames + k1
-            if key != frame_key[0]:
-                frame_key[0] = key
+            if key != frame_key_out[0]:
+                frame_key_out[0] = key
                 frame_changed[0] = 1
             else:
                 frame_changed[0] = 0
     if s >= inv_mass.shape[0]:
         return
-    p = sphere_pos[s]
-    v = sphere_vel[s]
+    p = sphere_pos_out[s]
+    v = sphere_vel_out[s]
     if inv_mass[s] == 0.0:
-        sphere_pos[s] = p + v * dt
+        sphere_pos_out[s] = p + v * dt
         return
     v = v + gravity * dt
     if contact_face[s] >= 0:
@@ -112,11 +113,16 @@ def integrate_spheres(
                 if lt > 0.0:
                     vt = vt * wp.max(0.0, 1.0 - friction * (vn_new - vn) / lt)
                 v = wp.vec3(vt[0], vt[1], vn_new)
-    sphere_pos[s] = p
-    sphere_vel[s] = v
+    sphere_pos_out[s] = p
+    sphere_vel_out[s] = v
 
 
 @wp.kernel
-def advance_time(dt: wp.float64, sim_time: wp.array(dtype=wp.float64)):
-    """sim_time[0] += dt (one thread; keeps the clock on the device for graph capture)."""
-    sim_time[0] = sim_time[0] + dt
+def advance_time(
+    # In:
+    dt: wp.float64,
+    # State out:
+    sim_time_out: wp.array(dtype=wp.float64),
+):
+    """sim_time_out[0] += dt (one thread; keeps the clock on the device for graph capture)."""
+    sim_time_out[0] = sim_time_out[0] + dt

@@ -11,12 +11,12 @@ import warp as wp
 
 @wp.kernel
 def sample_surface_points(
-    # inputs
+    # In:
     points: wp.array(dtype=wp.vec3),
     indices: wp.array(dtype=wp.int32),
     face_cdf: wp.array(dtype=float),
     seed: int,
-    # outputs
+    # Out:
     samples: wp.array(dtype=wp.vec3),
     sample_face: wp.array(dtype=wp.int32),
 ):
@@ -63,13 +63,13 @@ def sample_surface_points(
 
 @wp.kernel
 def compute_approxmatch_ratio_left(
-    # inputs
+    # In:
     xyz1: wp.array(dtype=wp.vec3),
     xyz2: wp.array(dtype=wp.vec3),
     remain_right: wp.array(dtype=float),
     remain_left: wp.array(dtype=float),
     level: float,
-    # outputs
+    # Out:
     ratio_left: wp.array(dtype=float),
 ):
     """ratio_left[k] = remain_left[k] / (1e-9 + sum_l exp(level |x1_k - x2_l|^2) remain_right[l]).
@@ -88,12 +88,12 @@ def compute_approxmatch_ratio_left(
 
 @wp.kernel
 def compute_approxmatch_ratio_right(
-    # inputs
+    # In:
     xyz1: wp.array(dtype=wp.vec3),
     xyz2: wp.array(dtype=wp.vec3),
     ratio_left: wp.array(dtype=float),
     level: float,
-    # outputs
+    # Out:
     remain_right: wp.array(dtype=float),
     ratio_right: wp.array(dtype=float),
 ):
@@ -119,14 +119,14 @@ def compute_approxmatch_ratio_right(
 
 @wp.kernel
 def accumulate_approxmatch_left(
-    # inputs
+    # In:
     xyz1: wp.array(dtype=wp.vec3),
     xyz2: wp.array(dtype=wp.vec3),
     ratio_left: wp.array(dtype=float),
     ratio_right: wp.array(dtype=float),
     level: float,
     store_match: int,
-    # outputs
+    # Out:
     remain_left: wp.array(dtype=float),
     cost_left: wp.array(dtype=float),
     match: wp.array2d(dtype=float),
@@ -159,11 +159,11 @@ def accumulate_approxmatch_left(
 
 @wp.kernel
 def find_nearest_points_bvh(
-    # inputs
+    # In:
     point_mesh: wp.uint64,
     queries: wp.array(dtype=wp.vec3),
     targets: wp.array(dtype=wp.vec3),
-    # outputs
+    # Out:
     nearest_index: wp.array(dtype=wp.int32),
     nearest_dist_sq: wp.array(dtype=float),
 ):

@@ -13,9 +13,9 @@ import warp as wp
 
 @wp.kernel
 def reset_shape_bounds(
-    # inputs
+    # In:
     shape: int,
-    # outputs
+    # Out:
     aabb_lower: wp.array(dtype=wp.vec3),
     aabb_upper: wp.array(dtype=wp.vec3),
     radius: wp.array(dtype=float),
@@ -32,11 +32,11 @@ def reset_shape_bounds(
 
 @wp.kernel
 def accumulate_shape_bounds(
-    # inputs
+    # In:
     points: wp.array(dtype=wp.vec3),
     shape: int,
     pad: float,
-    # outputs
+    # Out (accumulated):
     aabb_lower: wp.array(dtype=wp.vec3),
     aabb_upper: wp.array(dtype=wp.vec3),
     radius: wp.array(dtype=float),

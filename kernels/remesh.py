@@ -11,7 +11,7 @@ from .geometry import closest_point_on_triangle
 
 @wp.kernel
 def mark_band_voxels(
-    # inputs
+    # In:
     points: wp.array(dtype=wp.vec3),
     indices: wp.array(dtype=wp.int32),
     origin: wp.vec3,
@@ -20,7 +20,7 @@ def mark_band_voxels(
     ny: int,
     nz: int,
     band: float,
-    # outputs
+    # Out:
     mask: wp.array(dtype=wp.int32),
 ):
     """Mark every grid point within ``band`` (in grid spacings) of each triangle.
@@ -53,11 +53,11 @@ def mark_band_voxels(
 
 @wp.kernel
 def compute_signed_distances(
-    # inputs
+    # In:
     mesh: wp.uint64,
     queries: wp.array(dtype=wp.vec3),
     max_dist: float,
-    # outputs
+    # Out:
     sdf: wp.array(dtype=float),
 ):
     """Signed distance to a mesh, negative inside, with the sign from the generalized winding

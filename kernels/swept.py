@@ -19,21 +19,22 @@ from .geometry import closest_point_on_triangle
 
 @wp.kernel
 def detect_frame_change(
-    # inputs
-    sim_time: wp.array(dtype=wp.float64),
+    # State in:
+    sim_time_in: wp.array(dtype=wp.float64),
+    # In:
     fps: wp.float64,
     num_frames: int,
     mode: int,
-    # in/out
-    frame_key: wp.array(dtype=wp.int32),
-    # outputs
+    # State out:
+    frame_key_out: wp.array(dtype=wp.int32),
+    # Out:
     changed: wp.array(dtype=wp.int32),
 ):
-    """changed[0] = 1 when the frame pair (k, k+1) at sim_time differs from frame_key[0] (then updated)."""
-    k0, k1, alpha = frame_pair(sim_time[0], fps, num_frames, mode)
+    """changed[0] = 1 when the frame pair (k, k+1) at sim_time_in differs from frame_key_out[0] (then updated)."""
+    k0, k1, alpha = frame_pair(sim_time_in[0], fps, num_frames, mode)
     key = k0 * num_frames + k1
-    if key != frame_key[0]:
-        frame_key[0] = key
+    if key != frame_key_out[0]:
+        frame_key_out[0] = key
         changed[0] = 1
     else:
         changed[0] = 0
@@ -41,13 +42,15 @@ def detect_frame_change(
 
 @wp.kernel
 def compute_swept_bounds(
-    # inputs
+    # Model:
     frames: wp.array2d(dtype=wp.vec3),
     indices: wp.array(dtype=wp.int32),
-    sim_time: wp.array(dtype=wp.float64),
+    # State in:
+    sim_time_in: wp.array(dtype=wp.float64),
+    # In:
     fps: wp.float64,
     mode: int,
-    # outputs
+    # Out:
     lowers: wp.array(dtype=wp.vec3),
     uppers: wp.array(dtype=wp.vec3),
 ):
@@ -56,7 +59,7 @@ def compute_swept_bounds(
     frames (T, N) [m]; indices (3M,); lowers/uppers (M,) [m].
     """
     f = wp.tid()
-    k0, k1, alpha = frame_pair(sim_time[0], fps, frames.shape[0], mode)
+    k0, k1, alpha = frame_pair(sim_time_in[0], fps, frames.shape[0], mode)
     i0 = indices[3 * f + 0]
     i1 = indices[3 * f + 1]
     i2 = indices[3 * f + 2]
@@ -218,36 +221,38 @@ def write_swept_contact(
 
 @wp.kernel
 def collide_sphere_swept(
-    # inputs
-    bvh: wp.uint64,
+    # Model:
     frames: wp.array2d(dtype=wp.vec3),
     indices: wp.array(dtype=wp.int32),
-    sim_time: wp.array(dtype=wp.float64),
+    sphere_radius: wp.array(dtype=float),
+    # State in:
+    sim_time_in: wp.array(dtype=wp.float64),
+    sphere_pos_in: wp.array(dtype=wp.vec3),
+    sphere_vel_in: wp.array(dtype=wp.vec3),
+    # In:
+    bvh: wp.uint64,
     fps: wp.float64,
     mode: int,
     interpolate: int,
     epsilon: float,
-    sphere_pos: wp.array(dtype=wp.vec3),
-    sphere_vel: wp.array(dtype=wp.vec3),
-    sphere_radius: wp.array(dtype=float),
     dt: float,
     extra_speed: float,
     margin: float,
-    # outputs
+    # Out:
     contact_face: wp.array(dtype=wp.int32),
     contact_point: wp.array(dtype=wp.vec3),
     contact_normal: wp.array(dtype=wp.vec3),
     contact_depth: wp.array(dtype=float),
     contact_velocity: wp.array(dtype=wp.vec3),
 ):
-    """Contact of each sphere with the surface interpolated at sim_time (same outputs as
+    """Contact of each sphere with the surface interpolated at sim_time_in (same outputs as
     ``collide_sphere_mesh``), one thread per sphere walking the swept-box BVH (CPU path).
     ``epsilon`` [m] is the tie distance for the pseudo-normal."""
     s = wp.tid()
-    p = sphere_pos[s]
+    p = sphere_pos_in[s]
     r = sphere_radius[s]
-    reach = contact_reach(r, sphere_vel[s], extra_speed, dt, margin)
-    k0, k1, alpha = blend_pair(sim_time[0], fps, frames.shape[0], mode, interpolate)
+    reach = contact_reach(r, sphere_vel_in[s], extra_speed, dt, margin)
+    k0, k1, alpha = blend_pair(sim_time_in[0], fps, frames.shape[0], mode, interpolate)
     min_dist, min_face, min_w, acc_n = closest_on_swept_bvh(bvh, frames, indices, k0, k1, alpha, p, reach, epsilon)
     write_swept_contact(s, p, r, reach, min_dist, min_face, min_w, acc_n, frames, indices, k0, k1, alpha, fps,
                         contact_face, contact_point, contact_normal, contact_depth, contact_velocity)
@@ -258,15 +263,17 @@ def collide_sphere_swept(
 
 @wp.kernel
 def gather_sphere_candidates(
-    # inputs
-    bvh: wp.uint64,
-    sphere_pos: wp.array(dtype=wp.vec3),
-    sphere_vel: wp.array(dtype=wp.vec3),
+    # Model:
     sphere_radius: wp.array(dtype=float),
+    # State in:
+    sphere_pos_in: wp.array(dtype=wp.vec3),
+    sphere_vel_in: wp.array(dtype=wp.vec3),
+    # In:
+    bvh: wp.uint64,
     horizon: float,
     gravity: float,
     margin: float,
-    # outputs
+    # Out:
     cand_face: wp.array2d(dtype=wp.int32),
     cand_count: wp.array(dtype=wp.int32),
     cand_center: wp.array(dtype=wp.vec3),
@@ -278,9 +285,9 @@ def gather_sphere_candidates(
     overflow (then the sphere takes the serial path). A sphere that travels farther than this
     ball allows during the interval also takes the serial path (checked every step)."""
     s = wp.tid()
-    p = sphere_pos[s]
+    p = sphere_pos_in[s]
     T = horizon
-    R = sphere_radius[s] + margin + 1.25 * (wp.length(sphere_vel[s]) * T + 0.5 * gravity * T * T)
+    R = sphere_radius[s] + margin + 1.25 * (wp.length(sphere_vel_in[s]) * T + 0.5 * gravity * T * T)
     K = cand_face.shape[1]
     query = wp.bvh_query_aabb(bvh, p - wp.vec3(R), p + wp.vec3(R))
     f = int(0)
@@ -298,18 +305,20 @@ def gather_sphere_candidates(
 
 @wp.kernel
 def evaluate_sphere_candidates(
-    # inputs
+    # Model:
     frames: wp.array2d(dtype=wp.vec3),
     indices: wp.array(dtype=wp.int32),
-    sim_time: wp.array(dtype=wp.float64),
+    # State in:
+    sim_time_in: wp.array(dtype=wp.float64),
+    sphere_pos_in: wp.array(dtype=wp.vec3),
+    # In:
     fps: wp.float64,
     mode: int,
     interpolate: int,
     epsilon: float,
-    sphere_pos: wp.array(dtype=wp.vec3),
     cand_face: wp.array2d(dtype=wp.int32),
     cand_count: wp.array(dtype=wp.int32),
-    # outputs
+    # Out:
     cand_dist: wp.array2d(dtype=float),
     cand_w: wp.array2d(dtype=wp.vec3),
     cand_wn: wp.array2d(dtype=wp.vec3),
@@ -318,9 +327,9 @@ def evaluate_sphere_candidates(
     s, j = wp.tid()
     if j >= cand_count[s]:
         return
-    k0, k1, alpha = blend_pair(sim_time[0], fps, frames.shape[0], mode, interpolate)
+    k0, k1, alpha = blend_pair(sim_time_in[0], fps, frames.shape[0], mode, interpolate)
     a, b, e = interpolated_triangle(frames, indices, cand_face[s, j], k0, k1, alpha)
-    dist, w, wn = face_candidate(sphere_pos[s], a, b, e, epsilon)
+    dist, w, wn = face_candidate(sphere_pos_in[s], a, b, e, epsilon)
     cand_dist[s, j] = dist
     cand_w[s, j] = w
     cand_wn[s, j] = wn
@@ -328,18 +337,20 @@ def evaluate_sphere_candidates(
 
 @wp.kernel
 def resolve_sphere_candidates(
-    # inputs
-    bvh: wp.uint64,
+    # Model:
     frames: wp.array2d(dtype=wp.vec3),
     indices: wp.array(dtype=wp.int32),
-    sim_time: wp.array(dtype=wp.float64),
+    sphere_radius: wp.array(dtype=float),
+    # State in:
+    sim_time_in: wp.array(dtype=wp.float64),
+    sphere_pos_in: wp.array(dtype=wp.vec3),
+    sphere_vel_in: wp.array(dtype=wp.vec3),
+    # In:
+    bvh: wp.uint64,
     fps: wp.float64,
     mode: int,
     interpolate: int,
     epsilon: float,
-    sphere_pos: wp.array(dtype=wp.vec3),
-    sphere_vel: wp.array(dtype=wp.vec3),
-    sphere_radius: wp.array(dtype=float),
     dt: float,
     extra_speed: float,
     margin: float,
@@ -350,7 +361,7 @@ def resolve_sphere_candidates(
     cand_dist: wp.array2d(dtype=float),
     cand_w: wp.array2d(dtype=wp.vec3),
     cand_wn: wp.array2d(dtype=wp.vec3),
-    # outputs
+    # Out:
     contact_face: wp.array(dtype=wp.int32),
     contact_point: wp.array(dtype=wp.vec3),
     contact_normal: wp.array(dtype=wp.vec3),
@@ -361,10 +372,10 @@ def resolve_sphere_candidates(
     as the serial path); a sphere whose reach left its gathered ball, or whose list overflowed,
     falls back to the serial BVH walk. Same outputs as ``collide_sphere_mesh``."""
     s = wp.tid()
-    p = sphere_pos[s]
+    p = sphere_pos_in[s]
     r = sphere_radius[s]
-    reach = contact_reach(r, sphere_vel[s], extra_speed, dt, margin)
-    k0, k1, alpha = blend_pair(sim_time[0], fps, frames.shape[0], mode, interpolate)
+    reach = contact_reach(r, sphere_vel_in[s], extra_speed, dt, margin)
+    k0, k1, alpha = blend_pair(sim_time_in[0], fps, frames.shape[0], mode, interpolate)
     n = cand_count[s]
     min_dist = reach
     min_face = int(-1)
