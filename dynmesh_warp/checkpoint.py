@@ -6,7 +6,7 @@ A checkpoint is one ``.npz`` file (written atomically, NumPy arrays only, no pic
   written at, the run's step count, the checkpoint interval, the device, the number of contact
   samples so far and the scene's fingerprint (:func:`scene_fingerprint`);
 - the world's state (:meth:`World.checkpoint_state <dynmesh_warp.world.World.checkpoint_state>`):
-  ``time``, ``sim_time``, ``substep_count``, ``sphere_pos``, ``sphere_vel`` and the collider's
+  ``time``, ``sim_time``, ``substep_count``, ``sphere_pos``, ``sphere_vel``, ``frame_key``, ``frame_changed`` and the collider's
   ``collider_*`` arrays;
 - ``radius`` and ``inv_mass`` of the spheres (compared with the scene's, sphere by sphere);
 - ``traj_time``, ``traj_position``, ``traj_velocity``: the trajectory samples taken so far (every
@@ -35,7 +35,7 @@ __all__ = ["CheckpointError", "Checkpoint", "FORMAT", "CHECKPOINT_NAME", "scene_
 #: file name of the checkpoint in a run's output folder
 CHECKPOINT_NAME = "checkpoint.npz"
 #: the ``format`` field of the files this version writes and reads
-FORMAT = "dynmesh_warp.checkpoint/1"
+FORMAT = "dynmesh_warp.checkpoint/2"  # 2: the clock's frame_key / frame_changed are state fields
 
 
 class CheckpointError(SceneError):
@@ -166,7 +166,8 @@ def save_checkpoint(path, world, *, scene: str, step: int, steps: int, checkpoin
 
 #: state fields every checkpoint has: name -> (dtype kind, shape with "S" for the sphere count)
 _STATE_FIELDS = {"time": ("f", ()), "sim_time": ("f", (1,)), "substep_count": ("i", ()),
-                 "sphere_pos": ("f", ("S", 3)), "sphere_vel": ("f", ("S", 3))}
+                 "sphere_pos": ("f", ("S", 3)), "sphere_vel": ("f", ("S", 3)),
+                 "frame_key": ("i", (1,)), "frame_changed": ("i", (1,))}
 
 
 def load_checkpoint(path) -> Checkpoint:

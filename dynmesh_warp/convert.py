@@ -90,7 +90,7 @@ _DEFAULTS = {
         # deformation graph (dynmesh_warp.deform_graph); lengths: fractions of the template's bbox diagonal
         "node_spacing": 0.03,
         "nodes_per_vertex": 4,
-        "graph_iterations": 10,
+        "graph_iterations": 8,
         "stiffness": 10.0,
         "stiffness_end": 0.3,
         "damping": 0.01,

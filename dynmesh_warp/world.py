@@ -364,6 +364,10 @@ class State:
 
     Attributes:
         sim_time: (1,) float64 simulation time [s] (device clock, advanced by the step).
+        frame_key: (1,) int32 the clock's frame pair k0 * num_frames + k1 at sim_time;
+        frame_changed: (1,) int32 1 when the last clock advance (or time change) moved to another
+        frame pair, else 0 (written by the step's integrate stage; a collider that rebuilds per
+        frame pair, the swept one, reads it).
         points: (N,) vec3 current surface vertices [m]; velocities: (N,) vec3 [m/s].
         face_normals: (M,) vec3 unit normals of the current surface.
         sphere_pos: (S,) vec3 centres [m]; sphere_vel: (S,) vec3 [m/s].
@@ -373,12 +377,23 @@ class State:
         d = model.device
         surf = model.surface
         self.sim_time = wp.array([t0], dtype=wp.float64, device=d)
+        self.frame_key = wp.full(1, -1, dtype=wp.int32, device=d)
+        self.frame_changed = wp.zeros(1, dtype=wp.int32, device=d)
+        self.update_frame_key(model)
         surf.allocate_state(self)  # points, velocities, face_normals: owned by the state
         S = model.spheres.count
         pos = _sphere_rows("position", positions, S)
         vel = np.zeros((S, 3), np.float32) if velocities is None else _sphere_rows("velocity", velocities, S)
         self.sphere_pos = wp.array(pos, dtype=wp.vec3, device=d)
         self.sphere_vel = wp.array(vel, dtype=wp.vec3, device=d)
+
+
+    def update_frame_key(self, model: Model):
+        """frame_key at sim_time; frame_changed = 1 if that differs from the stored key (eager
+        or captured launch; after the clock was moved between steps)."""
+        surf = model.surface
+        wp.launch(detect_frame_change, dim=1, inputs=[self.sim_time, surf.fps, surf.num_frames, surf.playback],
+                  outputs=[self.frame_key, self.frame_changed], device=model.device)
 
 
 class Contacts:
@@ -515,15 +530,11 @@ class SweptCollider(ColliderBase):
         self.max_candidates = int(max_candidates or SWEPT_MAX_CANDIDATES)
         self.lowers = wp.zeros(surf.num_faces, dtype=wp.vec3, device=d)
         self.uppers = wp.zeros(surf.num_faces, dtype=wp.vec3, device=d)
-        self.frame_key = wp.full(1, -1, dtype=wp.int32, device=d)
-        self.changed = wp.zeros(1, dtype=wp.int32, device=d)
         self.compute_bounds(world)
         self.bvh = wp.Bvh(self.lowers, self.uppers, leaf_size=4)  # cheaper per-frame refit on CPU
         # tie tolerance of the closest-feature search, as wp.Mesh: 1e-3 x average edge length
         self.epsilon = 1.0e-3 * float(surf.average_edge_length.mean())
         self.resize(world)
-        world._launch(detect_frame_change, 1, [world.state.sim_time, surf.fps, surf.num_frames, surf.playback],
-                      [self.frame_key, self.changed])
 
     def resize(self, world: "World"):
         """(Re)allocate the per-sphere candidate lists and gather them (after spheres change)."""
@@ -563,26 +574,17 @@ class SweptCollider(ColliderBase):
         self.bvh.refit()
         if self.parallel:
             self.gather(world)
-        self.changed.zero_()  # done; the next test (in integrate_spheres) sets it again
 
     def update(self, world: "World"):
-        """Refit if the frame pair changed; the test itself ran at the end of the previous
-        sub-step (fused into ``integrate_spheres``) or in ``refresh``."""
-        wp.capture_if(self.changed, on_true=self.refit_frame, world=world)
+        """Refit if the clock's frame pair changed (``State.frame_changed``: set by the previous
+        sub-step's integrate stage, or by the world when the clock was moved)."""
+        wp.capture_if(world.state.frame_changed, on_true=self.refit_frame, world=world)
 
-    def refresh(self, world: "World"):
-        """Frame-change test at the current time, then ``update`` (after the clock was moved)."""
-        surf = world.model.surface
-        world._launch(detect_frame_change, 1, [world.state.sim_time, surf.fps, surf.num_frames, surf.playback],
-                      [self.frame_key, self.changed])
-        self.update(world)
-
-    #: per-frame state a step reads before writing it again: the frame pair of the bounds, the
-    #: pending-refit flag, the swept bounds (the BVH is refit from them) and the candidate lists
-    #: gathered at the last frame change (parallel path); the candidates' distances and weights
-    #: are recomputed every sub-step
-    CHECKPOINT_ARRAYS = ("frame_key", "changed", "lowers", "uppers", "cand_face", "cand_count", "cand_center",
-                         "cand_radius")
+    #: per-frame state a step reads before writing it again: the swept bounds (the BVH is refit
+    #: from them) and the candidate lists gathered at the last frame change (parallel path); the
+    #: candidates' distances and weights are recomputed every sub-step. (The frame pair and the
+    #: pending-refit flag are the clock's: State.frame_key / frame_changed.)
+    CHECKPOINT_ARRAYS = ("lowers", "uppers", "cand_face", "cand_count", "cand_center", "cand_radius")
 
     def checkpoint_state(self) -> dict:
         return {k: getattr(self, k).numpy().copy() for k in self.CHECKPOINT_ARRAYS}
@@ -659,7 +661,6 @@ class World:
         self._apply_substep_rule(stacklevel=3)
         self.gravity = wp.vec3(*[float(g) for g in p.gravity])
         self.contacts = Contacts(model.spheres.count, device=self.device)
-        self._no_key = wp.zeros(1, dtype=wp.int32, device=self.device)
         self.t0 = float(state.sim_time.numpy()[0])
         self.substep_count = 0
         self._time = self.t0  # host twin of sim_time: the same float64 additions as the device
@@ -667,6 +668,7 @@ class World:
         self.update_surface()
         self.collider = RebuildCollider(self, rebuild_every) if collider == "rebuild" else COLLIDERS[collider](self)
         self.collider.update(self)
+        self.state.frame_changed.zero_()  # the collider is at the clock's frame pair
         self.compute_normals()
         # the swept collider needs no vertex buffer; keep it (and the normals) current once per
         # step only when asked (viewer, Gaussians): render_state=True or a hook that needs it
@@ -762,20 +764,17 @@ class World:
 
     def integrate(self):
         """Stage 4: sphere dynamics with the contacts of this sub-step; advances the device clock
-        (and runs the swept collider's frame-change test for the next sub-step)."""
+        and its frame pair (``State.frame_key`` / ``frame_changed``)."""
         m, s, c = self.model, self.state, self.contacts
         surf = m.surface
-        swept = isinstance(self.collider, SweptCollider)
-        key = self.collider.frame_key if swept else self._no_key
-        changed = self.collider.changed if swept else self._no_key
         self._launch(integrate_spheres, max(m.spheres.count, 1),
                      [m.spheres.inv_mass, m.spheres.radius, self.gravity,
                       self.sub_dt, m.params.restitution, m.params.friction, m.params.rest_speed,
                       int(m.params.ground_height is not None),
                       float(m.params.ground_height if m.params.ground_height is not None else 0.0),
                       self.sub_dt, surf.fps, surf.num_frames, surf.playback,
-                      c.face, c.normal, c.depth, c.velocity, int(swept)],
-                     [s.sphere_pos, s.sphere_vel, s.sim_time, key, changed])
+                      c.face, c.normal, c.depth, c.velocity],
+                     [s.sphere_pos, s.sphere_vel, s.sim_time, s.frame_key, s.frame_changed])
 
     def substep(self):
         if self.collider.needs_points:
@@ -843,7 +842,9 @@ class World:
     # -- editing between steps (host side; invalidates the captured graph) ---------------------
     def _refresh_surface(self):
         self.update_surface()
+        self.state.update_frame_key(self.model)  # the clock moved: its frame pair, and whether it changed
         self.collider.refresh(self)
+        self.state.frame_changed.zero_()  # the collider has caught up with the clock
         self.compute_normals()
 
     def reset(self):
@@ -861,13 +862,14 @@ class World:
     def checkpoint_state(self) -> dict:
         """Everything a step reads that changes while the world runs, as NumPy copies: the clock
         (the host's float64 and the device's), the sub-step count, the spheres' positions and
-        velocities, and the collider's frame state (swept: :attr:`SweptCollider.CHECKPOINT_ARRAYS`;
+        velocities, the clock's frame pair and pending-change flag, and the collider's frame state (swept: :attr:`SweptCollider.CHECKPOINT_ARRAYS`;
         refit and rebuild derive theirs from the clock). The rest is static (surface, radii,
         masses, parameters: compared with the scene on resume); contacts are recomputed before
         they are read, and no step draws random numbers. Between steps only."""
         st = {"time": np.array(self._time, np.float64), "sim_time": self.state.sim_time.numpy().copy(),
               "substep_count": np.array(self.substep_count, np.int64),
-              "sphere_pos": self.sphere_positions(), "sphere_vel": self.sphere_velocities()}
+              "sphere_pos": self.sphere_positions(), "sphere_vel": self.sphere_velocities(),
+              "frame_key": self.state.frame_key.numpy().copy(), "frame_changed": self.state.frame_changed.numpy().copy()}
         st.update({f"collider_{k}": v for k, v in self.collider.checkpoint_state().items()})
         return st
 
@@ -879,6 +881,8 @@ class World:
         self.state.sim_time.assign(np.asarray(st["sim_time"], np.float64).reshape(1))
         self.state.sphere_pos.assign(np.asarray(st["sphere_pos"], np.float32).reshape(-1, 3))
         self.state.sphere_vel.assign(np.asarray(st["sphere_vel"], np.float32).reshape(-1, 3))
+        self.state.frame_key.assign(np.asarray(st["frame_key"], np.int32).reshape(1))
+        self.state.frame_changed.assign(np.asarray(st["frame_changed"], np.int32).reshape(1))
         self.substep_count = int(st["substep_count"])
         self.collider.restore_checkpoint_state({k[len("collider_"):]: v for k, v in st.items()
                                                 if k.startswith("collider_")})

@@ -26,14 +26,12 @@ def integrate_spheres(
     contact_normal: wp.array(dtype=wp.vec3),
     contact_depth: wp.array(dtype=float),
     contact_velocity: wp.array(dtype=wp.vec3),
-    detect: int,
     # State out:
     sphere_pos_out: wp.array(dtype=wp.vec3),
     sphere_vel_out: wp.array(dtype=wp.vec3),
     sim_time_out: wp.array(dtype=wp.float64),
     frame_key_out: wp.array(dtype=wp.int32),
-    # Out:
-    frame_changed: wp.array(dtype=wp.int32),
+    frame_changed_out: wp.array(dtype=wp.int32),
 ):
     """Advance each sphere by dt with a continuous (time-of-impact) contact response.
 
@@ -49,22 +47,22 @@ def integrate_spheres(
     (same restitution and friction, applied after the mesh contact).
 
     Thread 0 also advances the device clock, sim_time_out[0] += time_step (no thread of this kernel
-    reads it), and with ``detect`` sets frame_changed[0] = 1 when the frame pair at the new time
-    differs from frame_key_out[0] (updated): the swept collider's test for the next sub-step, fused
-    here to save a launch. Launch with max(S, 1) threads.
+    reads it), and keeps the clock's frame pair: frame_key_out[0] = k0 * num_frames + k1 at the
+    new time, frame_changed_out[0] = 1 when that differs from the old key, else 0 (State: a
+    collider that rebuilds per frame pair reads it at the next sub-step). Launch with max(S, 1)
+    threads.
     """
     s = wp.tid()
     if s == 0:
         t = sim_time_out[0] + time_step
         sim_time_out[0] = t
-        if detect != 0:
-            k0, k1, alpha = frame_pair(t, fps, num_frames, mode)
-            key = k0 * num_frames + k1
-            if key != frame_key_out[0]:
-                frame_key_out[0] = key
-                frame_changed[0] = 1
-            else:
-                frame_changed[0] = 0
+        k0, k1, alpha = frame_pair(t, fps, num_frames, mode)
+        key = k0 * num_frames + k1
+        if key != frame_key_out[0]:
+            frame_key_out[0] = key
+            frame_changed_out[0] = 1
+        else:
+            frame_changed_out[0] = 0
     if s >= inv_mass.shape[0]:
         return
     p = sphere_pos_out[s]

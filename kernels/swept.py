@@ -27,17 +27,16 @@ def detect_frame_change(
     mode: int,
     # State out:
     frame_key_out: wp.array(dtype=wp.int32),
-    # Out:
-    changed: wp.array(dtype=wp.int32),
+    frame_changed_out: wp.array(dtype=wp.int32),
 ):
-    """changed[0] = 1 when the frame pair (k, k+1) at sim_time_in differs from frame_key_out[0] (then updated)."""
+    """frame_changed_out[0] = 1 when the frame pair (k, k+1) at sim_time_in differs from frame_key_out[0] (then updated)."""
     k0, k1, alpha = frame_pair(sim_time_in[0], fps, num_frames, mode)
     key = k0 * num_frames + k1
     if key != frame_key_out[0]:
         frame_key_out[0] = key
-        changed[0] = 1
+        frame_changed_out[0] = 1
     else:
-        changed[0] = 0
+        frame_changed_out[0] = 0
 
 
 @wp.kernel
