@@ -648,9 +648,22 @@ def _resolve_options(strategy: str, options: dict) -> dict:
     allowed = {**_COMMON, **_DEFAULTS[strategy]}
     unknown = sorted(set(options) - set(allowed))
     if unknown:
-        raise TypeError(f"to_fixed_topology(strategy={strategy!r}): unknown option(s) {unknown}; "
+        raise TypeError(f"to_fixed_topology(strategy={str(strategy)!r}): unknown option(s) {unknown}; "
                         f"valid: {sorted(allowed)}")
     o = {**allowed, **options}
+    for k, default in allowed.items():  # the type of each option is its default's
+        v = o[k]
+        if v is None and k in ("reanchor_interval", "key_frame"):
+            continue
+        if isinstance(default, bool) or isinstance(default, str):
+            continue
+        if isinstance(default, int):
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer, float)) or (
+                    isinstance(v, float) and not v.is_integer()):
+                raise ValueError(f"{k} must be an integer, got {v!r}")
+        elif isinstance(default, float):
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not np.isfinite(v):
+                raise ValueError(f"{k} must be a finite number, got {v!r}")
     if strategy == "tracking":
         ri = o["reanchor_interval"]
         if ri is None:
@@ -1027,6 +1040,9 @@ def main(argv=None) -> int:
     p.add_argument("--tracked-weight", type=float, default=None, help="tracking: weight of the tracked positions at a re-anchor")
     p.add_argument("--iterations", type=int, default=None, help="regularized: outer iterations per frame")
     p.add_argument("--smooth-iterations", type=int, default=None, help="regularized: displacement smoothing steps")
+    p.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                   help="a strategy option (repeatable), e.g. --option refine_rounds=0 --option iterations=2 "
+                        "(the graph strategy's fast settings; docs/conversion.md lists the options)")
     p.add_argument("--fmt", default=None, choices=["ply", "obj"], help="per-frame format for a folder output (default ply)")
     p.add_argument("--fps", type=float, default=None, help="override the input frame rate")
     p.add_argument("--overwrite", action="store_true",
@@ -1054,12 +1070,27 @@ def main(argv=None) -> int:
             if a.strategy != "regularized":
                 p.error(f"--{k.replace('_', '-')} applies to --strategy regularized")
             opts[k] = getattr(a, k)
+    import yaml
+
+    for item in a.option:
+        key, sep, val = item.partition("=")
+        if not sep or not key.strip():
+            p.error(f"--option {item!r}: expected KEY=VALUE, e.g. --option refine_rounds=0")
+        try:
+            opts[key.strip()] = yaml.safe_load(val) if val.strip() else None
+        except yaml.YAMLError:
+            opts[key.strip()] = val
     try:
         # everything is checked before the sequence is loaded: options, input, template, output
         try:
             _resolve_options(a.strategy, opts)
         except (TypeError, ValueError) as e:
-            raise ValueError(f"--{str(e).split(' ', 1)[0].replace('_', '-')}: {str(e).split(' ', 1)[-1]}") from None
+            name, _, rest = str(e).partition(" ")
+            if name in opts and any(item.partition("=")[0].strip() == name for item in a.option):
+                raise ValueError(f"--option {name}: {rest}") from None
+            if name in opts:
+                raise ValueError(f"--{name.replace('_', '-')}: {rest}") from None
+            raise ValueError(f"--strategy {a.strategy}: {e}") from None
         if a.fps is not None and not (np.isfinite(a.fps) and a.fps > 0):
             raise ValueError(f"--fps must be a positive, finite frame rate, got {a.fps}")
         from .runtime import resolve_device

@@ -286,6 +286,28 @@ def test_bad_options_raise():
         to_fixed_topology([(V, F)], strategy="projection", reanchor_interval=3)
     with pytest.raises(ValueError, match="tracked_weight"):
         to_fixed_topology([(V, F)], strategy="tracking", tracked_weight=1.5)
+    # each option has its default's type
+    with pytest.raises(ValueError, match="refine_rounds must be an integer"):
+        to_fixed_topology([(V, F)], strategy="graph", refine_rounds="x")
+    with pytest.raises(ValueError, match="stiffness must be a finite number"):
+        to_fixed_topology([(V, F)], strategy="graph", stiffness=float("nan"))
+
+
+def test_cli_strategy_options_are_checked_before_the_input_is_read(tmp_path, capsys):
+    """``--option KEY=VALUE`` reaches the strategy; a bad key or value is reported naming it,
+    before the (here missing) input is looked at."""
+    out = str(tmp_path / "out.npz")
+    missing = str(tmp_path / "missing.npz")
+    for opt, msg in (("refine_rounds=x", "--option refine_rounds: must be an integer"),
+                     ("pull_fraction=2", "--option pull_fraction: must lie in [0, 1]"),
+                     ("bogus=1", "unknown option(s) ['bogus']")):
+        assert convert_main([missing, out, "--option", opt]) == 2
+        assert msg in capsys.readouterr().err, opt
+    with pytest.raises(SystemExit) as e:  # a usage error (argparse)
+        convert_main([missing, out, "--option", "noequals"])
+    assert e.value.code == 2 and "expected KEY=VALUE" in capsys.readouterr().err
+    assert convert_main([missing, out, "--option", "refine_rounds=0"]) == 2
+    assert "file or folder not found" in capsys.readouterr().err
 
 
 def test_degenerate_frame_gives_no_nan():
