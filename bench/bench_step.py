@@ -78,7 +78,7 @@ def stage_breakdown(seq, device, steps, repeats):
         "frame_copy_interp": w.update_surface,
         "normals": w.compute_normals,
         "refit": lambda: w.collider.mesh.refit(),
-        "contact": lambda: w.collider.collide(w),
+        "contact": lambda: w.collider.collide(w.model, w.state, w.contacts, w.ctx),
         "integrate_and_advance_time": w.integrate,
     }
     out["refit_step"] = {k: time_loop(graph_or_eager(f, device), device, steps, repeats)["us_per_step"]

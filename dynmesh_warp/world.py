@@ -416,6 +416,94 @@ class Contacts:
 
 
 # ---------------------------------------------------------------------------------------------
+# The step's stages: functions of (Model, State, Contacts, StepContext).
+# ---------------------------------------------------------------------------------------------
+
+
+class StepContext:
+    """What the step's stages take besides ``(Model, State, Contacts)``: the sub-step length and
+    contact reach, the launch function, and the host's bookkeeping of the clock. A ``World``
+    owns one and keeps it current; the stages and the colliders read it (they never see the
+    world).
+
+    Attributes:
+        device: the Warp device.
+        launch: ``launch(kernel, dim, inputs, outputs)`` (the world's, with its CPU replay cache).
+        sub_dt: sub-step length [s]; extra_speed: speed gained from gravity in one sub-step [m/s]
+            (part of the contact query reach); gravity: wp.vec3 [m/s^2].
+        time: host twin of ``State.sim_time`` [s] (the same float64 additions as the device).
+        frame: the frame whose indices the last surface update used (0 for fixed topology, the
+            held frame k for varying topology).
+    """
+
+    def __init__(self, device, launch, gravity, sub_dt: float = 0.0, extra_speed: float = 0.0, time: float = 0.0):
+        self.device = device
+        self.launch = launch
+        self.gravity = gravity
+        self.sub_dt = float(sub_dt)
+        self.extra_speed = float(extra_speed)
+        self.time = float(time)
+        self.frame = 0
+
+    def indices(self, model: Model):
+        """The current triangle indices (3M,) of the surface."""
+        return model.surface.indices_at(self.frame)
+
+    def frame_key(self, model: Model):
+        """Host-side frame key at ``time``: (k0, k1, alpha) with interpolation, else k0."""
+        surf = model.surface
+        k0, k1, a = frame_pair_host(self.time, surf.fps, surf.num_frames, surf.playback)
+        return (k0, k1, a) if surf.interpolate else k0
+
+
+def update_surface(model: Model, state: State, ctx: StepContext):
+    """Stage 1: the vertex buffer (``state.points``, ``state.velocities``) at ``ctx.time``."""
+    ctx.frame = model.surface.update_state(state, ctx.time, ctx.launch)
+
+
+def compute_normals(model: Model, state: State, ctx: StepContext):
+    """Stage 2: per-face normals of the current vertex buffer (``state.face_normals``)."""
+    idx = ctx.indices(model)
+    ctx.launch(compute_face_normals, idx.shape[0] // 3, [state.points, idx], [state.face_normals])
+
+
+def collide_mesh(model: Model, state: State, contacts: "Contacts", ctx: StepContext, mesh_id):
+    """Stage 3 on a ``wp.Mesh`` over the current vertex buffer (refit / rebuild colliders)."""
+    m, s, c = model, state, contacts
+    ctx.launch(collide_sphere_mesh, m.spheres.count,
+               [ctx.indices(m), m.spheres.radius, s.points, s.velocities, s.sphere_pos, s.sphere_vel,
+                mesh_id, ctx.sub_dt, ctx.extra_speed, m.params.margin],
+               [c.face, c.point, c.normal, c.depth, c.velocity])
+
+
+def integrate(model: Model, state: State, contacts: "Contacts", ctx: StepContext):
+    """Stage 4: sphere dynamics with the contacts of this sub-step; advances the device clock
+    and its frame pair (``State.frame_key`` / ``frame_changed``)."""
+    m, s, c = model, state, contacts
+    surf = m.surface
+    ctx.launch(integrate_spheres, max(m.spheres.count, 1),
+               [m.spheres.inv_mass, m.spheres.radius, ctx.gravity,
+                ctx.sub_dt, m.params.restitution, m.params.friction, m.params.rest_speed,
+                int(m.params.ground_height is not None),
+                float(m.params.ground_height if m.params.ground_height is not None else 0.0),
+                ctx.sub_dt, surf.fps, surf.num_frames, surf.playback,
+                c.face, c.normal, c.depth, c.velocity],
+               [s.sphere_pos, s.sphere_vel, s.sim_time, s.frame_key, s.frame_changed])
+
+
+def substep(model: Model, state: State, contacts: "Contacts", collider: "ColliderBase", ctx: StepContext):
+    """One sub-step: surface (if the collider needs the vertex buffer), acceleration structure,
+    contacts, dynamics. Device work only (capturable when the collider is); the caller advances
+    ``ctx.time``."""
+    if collider.needs_points:
+        update_surface(model, state, ctx)
+    collider.update(model, state, ctx)
+    if model.spheres.count:
+        collider.collide(model, state, contacts, ctx)
+    integrate(model, state, contacts, ctx)
+
+
+# ---------------------------------------------------------------------------------------------
 # Colliders: how the acceleration structure follows the surface.
 # ---------------------------------------------------------------------------------------------
 
@@ -424,11 +512,13 @@ class ColliderBase:
     """The collider protocol: how a step finds the surface. Every hook is defined here (a no-op
     where a collider has nothing to do), so the world calls them without ``getattr`` probes.
 
-    - ``update(world)``: the acceleration structure for the current time (inside the step).
-    - ``collide(world)``: sphere contacts into ``world.contacts`` (inside the step).
-    - ``refresh(world)``: after the clock was moved between steps (default: ``update``).
-    - ``resize(world)``: after the number of spheres changed.
-    - ``spheres_moved(world)``: after sphere positions/velocities were set between steps.
+    Hooks take ``(model, state, ctx)`` (a :class:`StepContext`), never the world:
+
+    - ``update(model, state, ctx)``: the acceleration structure for the current time (in the step).
+    - ``collide(model, state, contacts, ctx)``: sphere contacts into ``contacts`` (in the step).
+    - ``refresh(model, state, ctx)``: after the clock was moved between steps (default: ``update``).
+    - ``resize(model, state, ctx)``: after the number of spheres changed.
+    - ``spheres_moved(model, state, ctx)``: after sphere positions/velocities were set between steps.
     - ``checkpoint_state()`` / ``restore_checkpoint_state(st)``: per-run state a step reads.
     """
 
@@ -436,19 +526,19 @@ class ColliderBase:
     capturable = False
     needs_points = True
 
-    def update(self, world: "World"):
+    def update(self, model: Model, state: State, ctx: StepContext):
         raise NotImplementedError
 
-    def collide(self, world: "World"):
+    def collide(self, model: Model, state: State, contacts: "Contacts", ctx: StepContext):
         raise NotImplementedError
 
-    def refresh(self, world: "World"):
-        self.update(world)
+    def refresh(self, model: Model, state: State, ctx: StepContext):
+        self.update(model, state, ctx)
 
-    def resize(self, world: "World"):
+    def resize(self, model: Model, state: State, ctx: StepContext):
         pass
 
-    def spheres_moved(self, world: "World"):
+    def spheres_moved(self, model: Model, state: State, ctx: StepContext):
         pass
 
     def checkpoint_state(self) -> dict:
@@ -466,15 +556,14 @@ class RefitCollider(ColliderBase):
     capturable = True
     needs_points = True
 
-    def __init__(self, world: "World"):
-        s = world.state
-        self.mesh = wp.Mesh(points=s.points, indices=world.model.surface.indices, velocities=s.velocities)
+    def __init__(self, model: Model, state: State, ctx: StepContext):
+        self.mesh = wp.Mesh(points=state.points, indices=model.surface.indices, velocities=state.velocities)
 
-    def update(self, world: "World"):
+    def update(self, model: Model, state: State, ctx: StepContext):
         self.mesh.refit()
 
-    def collide(self, world: "World"):
-        world.collide_mesh(self.mesh.id)
+    def collide(self, model: Model, state: State, contacts: "Contacts", ctx: StepContext):
+        collide_mesh(model, state, contacts, ctx, self.mesh.id)
 
 
 class RebuildCollider(ColliderBase):
@@ -485,25 +574,24 @@ class RebuildCollider(ColliderBase):
     capturable = False
     needs_points = True
 
-    def __init__(self, world: "World", every: str = DEFAULT_REBUILD_EVERY):
+    def __init__(self, model: Model, state: State, ctx: StepContext, every: str = DEFAULT_REBUILD_EVERY):
         every = parse(RebuildEvery, every, "rebuild_every").value
-        if every == "frame" and world.model.surface.interpolate:
+        if every == "frame" and model.surface.interpolate:
             raise ValueError("rebuild_every 'frame' needs a surface that changes only per frame: "
                              "set surface.interpolate: false (with interpolation it changes every step)")
         self.every = every
         self.mesh = None
         self._key = None
 
-    def update(self, world: "World"):
-        key = world.current_frame_key()
+    def update(self, model: Model, state: State, ctx: StepContext):
+        key = ctx.frame_key(model)
         if self.mesh is not None and self.every == "frame" and key == self._key:
             return
-        s = world.state
-        self.mesh = wp.Mesh(points=s.points, indices=world.current_indices(), velocities=s.velocities)
+        self.mesh = wp.Mesh(points=state.points, indices=ctx.indices(model), velocities=state.velocities)
         self._key = key
 
-    def collide(self, world: "World"):
-        world.collide_mesh(self.mesh.id)
+    def collide(self, model: Model, state: State, contacts: "Contacts", ctx: StepContext):
+        collide_mesh(model, state, contacts, ctx, self.mesh.id)
 
 
 class SweptCollider(ColliderBase):
@@ -523,22 +611,22 @@ class SweptCollider(ColliderBase):
     capturable = True
     needs_points = False
 
-    def __init__(self, world: "World", parallel: bool | None = None, max_candidates: int | None = None):
-        surf = world.model.surface
-        d = world.device
+    def __init__(self, model: Model, state: State, ctx: StepContext, parallel: bool | None = None, max_candidates: int | None = None):
+        surf = model.surface
+        d = ctx.device
         self.parallel = d.is_cuda if parallel is None else bool(parallel)
         self.max_candidates = int(max_candidates or SWEPT_MAX_CANDIDATES)
         self.lowers = wp.zeros(surf.num_faces, dtype=wp.vec3, device=d)
         self.uppers = wp.zeros(surf.num_faces, dtype=wp.vec3, device=d)
-        self.compute_bounds(world)
+        self.compute_bounds(model, state, ctx)
         self.bvh = wp.Bvh(self.lowers, self.uppers, leaf_size=4)  # cheaper per-frame refit on CPU
         # tie tolerance of the closest-feature search, as wp.Mesh: 1e-3 x average edge length
         self.epsilon = 1.0e-3 * float(surf.average_edge_length.mean())
-        self.resize(world)
+        self.resize(model, state, ctx)
 
-    def resize(self, world: "World"):
+    def resize(self, model: Model, state: State, ctx: StepContext):
         """(Re)allocate the per-sphere candidate lists and gather them (after spheres change)."""
-        S, K, d = world.model.spheres.count, self.max_candidates, world.device
+        S, K, d = model.spheres.count, self.max_candidates, ctx.device
         self.cand_face = wp.zeros((S, K), dtype=wp.int32, device=d)
         self.cand_count = wp.full(S, K + 1, dtype=wp.int32, device=d)
         self.cand_center = wp.zeros(S, dtype=wp.vec3, device=d)
@@ -547,38 +635,38 @@ class SweptCollider(ColliderBase):
         self.cand_w = wp.zeros((S, K), dtype=wp.vec3, device=d)
         self.cand_wn = wp.zeros((S, K), dtype=wp.vec3, device=d)
         if self.parallel:
-            self.gather(world)
+            self.gather(model, state, ctx)
 
-    def compute_bounds(self, world: "World"):
-        surf = world.model.surface
-        world._launch(compute_swept_bounds, surf.num_faces,
-                      [surf.frames, surf.indices, world.state.sim_time, surf.fps, surf.playback],
+    def compute_bounds(self, model: Model, state: State, ctx: StepContext):
+        surf = model.surface
+        ctx.launch(compute_swept_bounds, surf.num_faces,
+                      [surf.frames, surf.indices, state.sim_time, surf.fps, surf.playback],
                       [self.lowers, self.uppers])
 
-    def gather(self, world: "World"):
-        m, s = world.model, world.state
+    def gather(self, model: Model, state: State, ctx: StepContext):
+        m, s = model, state
         g = float(np.linalg.norm(m.params.gravity))
-        step_reach = m.params.margin + 2.0 * g * world.sub_dt * world.sub_dt + self.epsilon
-        world._launch(gather_sphere_candidates, m.spheres.count,
+        step_reach = m.params.margin + 2.0 * g * ctx.sub_dt * ctx.sub_dt + self.epsilon
+        ctx.launch(gather_sphere_candidates, m.spheres.count,
                       [m.spheres.radius, s.sphere_pos, s.sphere_vel, self.bvh.id, 1.0 / m.surface.fps, g,
                        step_reach],
                       [self.cand_face, self.cand_count, self.cand_center, self.cand_radius])
 
-    def spheres_moved(self, world: "World"):
+    def spheres_moved(self, model: Model, state: State, ctx: StepContext):
         """Spheres set between steps: gather their candidate lists again (parallel path)."""
         if self.parallel:
-            self.gather(world)
+            self.gather(model, state, ctx)
 
-    def refit_frame(self, world: "World"):
-        self.compute_bounds(world)
+    def refit_frame(self, model: Model, state: State, ctx: StepContext):
+        self.compute_bounds(model, state, ctx)
         self.bvh.refit()
         if self.parallel:
-            self.gather(world)
+            self.gather(model, state, ctx)
 
-    def update(self, world: "World"):
+    def update(self, model: Model, state: State, ctx: StepContext):
         """Refit if the clock's frame pair changed (``State.frame_changed``: set by the previous
         sub-step's integrate stage, or by the world when the clock was moved)."""
-        wp.capture_if(world.state.frame_changed, on_true=self.refit_frame, world=world)
+        wp.capture_if(state.frame_changed, on_true=self.refit_frame, model=model, state=state, ctx=ctx)
 
     #: per-frame state a step reads before writing it again: the swept bounds (the BVH is refit
     #: from them) and the candidate lists gathered at the last frame change (parallel path); the
@@ -594,24 +682,24 @@ class SweptCollider(ColliderBase):
             getattr(self, k).assign(st[k])
         self.bvh.refit()  # the tree's topology comes from the build at the initial time, as in the run
 
-    def collide(self, world: "World"):
-        m, s, c = world.model, world.state, world.contacts
+    def collide(self, model: Model, state: State, contacts: "Contacts", ctx: StepContext):
+        m, s, c = model, state, contacts
         surf = m.surface
         # kernel argument groups (kernels/swept.py): Model, State in, In, Out
         frame_args = [surf.fps, surf.playback, int(surf.interpolate), self.epsilon]
         outputs = [c.face, c.point, c.normal, c.depth, c.velocity]
         if not self.parallel:
-            world._launch(collide_sphere_swept, m.spheres.count,
+            ctx.launch(collide_sphere_swept, m.spheres.count,
                           [surf.frames, surf.indices, m.spheres.radius, s.sim_time, s.sphere_pos, s.sphere_vel,
-                           self.bvh.id, *frame_args, world.sub_dt, world.extra_speed, m.params.margin], outputs)
+                           self.bvh.id, *frame_args, ctx.sub_dt, ctx.extra_speed, m.params.margin], outputs)
             return
-        world._launch(evaluate_sphere_candidates, (m.spheres.count, self.max_candidates),
+        ctx.launch(evaluate_sphere_candidates, (m.spheres.count, self.max_candidates),
                       [surf.frames, surf.indices, s.sim_time, s.sphere_pos, *frame_args, self.cand_face,
                        self.cand_count],
                       [self.cand_dist, self.cand_w, self.cand_wn])
-        world._launch(resolve_sphere_candidates, m.spheres.count,
+        ctx.launch(resolve_sphere_candidates, m.spheres.count,
                       [surf.frames, surf.indices, m.spheres.radius, s.sim_time, s.sphere_pos, s.sphere_vel,
-                       self.bvh.id, *frame_args, world.sub_dt, world.extra_speed, m.params.margin, self.cand_face,
+                       self.bvh.id, *frame_args, ctx.sub_dt, ctx.extra_speed, m.params.margin, self.cand_face,
                        self.cand_count, self.cand_center, self.cand_radius, self.cand_dist, self.cand_w,
                        self.cand_wn], outputs)
 
@@ -658,16 +746,19 @@ class World:
             )
         collider = surf.resolve_collider(collider, lambda: self._swept_fits(model))
         self.substeps = max(1, int(p.substeps))
-        self._apply_substep_rule(stacklevel=3)
-        self.gravity = wp.vec3(*[float(g) for g in p.gravity])
-        self.contacts = Contacts(model.spheres.count, device=self.device)
         self.t0 = float(state.sim_time.numpy()[0])
+        # the stages' context: sub-step, reach, launch, host clock (twin of sim_time: the same
+        # float64 additions as the device)
+        self.ctx = StepContext(self.device, self._launch, wp.vec3(*[float(g) for g in p.gravity]), time=self.t0)
+        self._apply_substep_rule(stacklevel=3)
+        self.contacts = Contacts(model.spheres.count, device=self.device)
         self.substep_count = 0
-        self._time = self.t0  # host twin of sim_time: the same float64 additions as the device
         self._launch_cache = None
         self.update_surface()
-        self.collider = RebuildCollider(self, rebuild_every) if collider == "rebuild" else COLLIDERS[collider](self)
-        self.collider.update(self)
+        m, st, ctx = self.model, self.state, self.ctx
+        self.collider = (RebuildCollider(m, st, ctx, rebuild_every) if collider == "rebuild"
+                         else COLLIDERS[collider](m, st, ctx))
+        self.collider.update(m, st, ctx)
         self.state.frame_changed.zero_()  # the collider is at the clock's frame pair
         self.compute_normals()
         # the swept collider needs no vertex buffer; keep it (and the normals) current once per
@@ -709,21 +800,33 @@ class World:
     @property
     def time(self) -> float:
         """Simulation time [s], tracked on the host in step with the device clock."""
-        return self._time
+        return self.ctx.time
+
+    @property
+    def sub_dt(self) -> float:
+        """Sub-step length [s] (``ctx.sub_dt``)."""
+        return self.ctx.sub_dt
+
+    @property
+    def extra_speed(self) -> float:
+        """Speed gained from gravity in one sub-step [m/s] (``ctx.extra_speed``)."""
+        return self.ctx.extra_speed
+
+    @property
+    def gravity(self):
+        return self.ctx.gravity
 
     def current_frame_key(self):
-        surf = self.model.surface
-        k0, k1, a = frame_pair_host(self.time, surf.fps, surf.num_frames, surf.playback)
-        return (k0, k1, a) if surf.interpolate else k0
+        return self.ctx.frame_key(self.model)
 
     @property
     def frame(self) -> int:
         """The frame whose indices the last surface update used (0 for fixed topology, whose
         indices every frame shares; the held frame k for varying topology)."""
-        return self._frame
+        return self.ctx.frame
 
     def current_indices(self):
-        return self.model.surface.indices_at(self._frame)
+        return self.ctx.indices(self.model)
 
     def _launch(self, kernel, dim, inputs, outputs):
         """Launch a kernel. On the CPU with a static pipeline, each distinct launch is recorded
@@ -744,45 +847,25 @@ class World:
             cmd = cmd[0]
         cmd.launch()
 
-    # -- pipeline stages -----------------------------------------------------------------------
+    # -- pipeline stages (the module's stage functions on this world's model, state, context) ---
     def update_surface(self):
         """Stage 1: vertex buffer (points, velocities) at the current time."""
-        self._frame = self.model.surface.update_state(self.state, self._time, self._launch)
+        update_surface(self.model, self.state, self.ctx)
 
     def compute_normals(self):
         """Stage 2: per-face normals of the current vertex buffer."""
-        idx = self.current_indices()
-        self._launch(compute_face_normals, idx.shape[0] // 3, [self.state.points, idx], [self.state.face_normals])
+        compute_normals(self.model, self.state, self.ctx)
 
     def collide_mesh(self, mesh_id):
         """Stage 3 on a wp.Mesh (refit / rebuild colliders)."""
-        m, s, c = self.model, self.state, self.contacts
-        self._launch(collide_sphere_mesh, m.spheres.count,
-                     [self.current_indices(), m.spheres.radius, s.points, s.velocities, s.sphere_pos, s.sphere_vel,
-                      mesh_id, self.sub_dt, self.extra_speed, m.params.margin],
-                     [c.face, c.point, c.normal, c.depth, c.velocity])
+        collide_mesh(self.model, self.state, self.contacts, self.ctx, mesh_id)
 
     def integrate(self):
-        """Stage 4: sphere dynamics with the contacts of this sub-step; advances the device clock
-        and its frame pair (``State.frame_key`` / ``frame_changed``)."""
-        m, s, c = self.model, self.state, self.contacts
-        surf = m.surface
-        self._launch(integrate_spheres, max(m.spheres.count, 1),
-                     [m.spheres.inv_mass, m.spheres.radius, self.gravity,
-                      self.sub_dt, m.params.restitution, m.params.friction, m.params.rest_speed,
-                      int(m.params.ground_height is not None),
-                      float(m.params.ground_height if m.params.ground_height is not None else 0.0),
-                      self.sub_dt, surf.fps, surf.num_frames, surf.playback,
-                      c.face, c.normal, c.depth, c.velocity],
-                     [s.sphere_pos, s.sphere_vel, s.sim_time, s.frame_key, s.frame_changed])
+        """Stage 4: sphere dynamics; advances the device clock and its frame pair."""
+        integrate(self.model, self.state, self.contacts, self.ctx)
 
     def substep(self):
-        if self.collider.needs_points:
-            self.update_surface()
-        self.collider.update(self)
-        if self.model.spheres.count:
-            self.collider.collide(self)
-        self.integrate()
+        substep(self.model, self.state, self.contacts, self.collider, self.ctx)
 
     def finish_step(self):
         if self.render_state:
@@ -818,20 +901,20 @@ class World:
                 self.capture()
             wp.capture_launch(self._graph)
             for _ in range(self.substeps):
-                self._time += self.sub_dt
+                self.ctx.time += self.sub_dt
             self.substep_count += self.substeps
             return
         for _ in range(self.substeps):
             self.substep()
             self.substep_count += 1
-            self._time += self.sub_dt
+            self.ctx.time += self.sub_dt
         self.finish_step()
 
     def set_time(self, t: float):
         """Move the clock (host and device) to ``t`` [s] and the surface with it; spheres keep
         their state. Between steps only."""
-        self._time = float(t)
-        self.state.sim_time.assign(np.array([self._time], np.float64))
+        self.ctx.time = float(t)
+        self.state.sim_time.assign(np.array([self.ctx.time], np.float64))
         self._refresh_surface()
 
     def sync_surface(self):
@@ -843,7 +926,7 @@ class World:
     def _refresh_surface(self):
         self.update_surface()
         self.state.update_frame_key(self.model)  # the clock moved: its frame pair, and whether it changed
-        self.collider.refresh(self)
+        self.collider.refresh(self.model, self.state, self.ctx)
         self.state.frame_changed.zero_()  # the collider has caught up with the clock
         self.compute_normals()
 
@@ -854,9 +937,9 @@ class World:
         s.sphere_pos.assign(self._initial[0])
         s.sphere_vel.assign(self._initial[1])
         self.substep_count = 0
-        self._time = self.t0
+        self.ctx.time = self.t0
         self._refresh_surface()
-        self.collider.resize(self)
+        self.collider.resize(self.model, self.state, self.ctx)
 
     # -- checkpoints (run --checkpoint-every / --resume; dynmesh_warp.checkpoint) -------------
     def checkpoint_state(self) -> dict:
@@ -866,7 +949,7 @@ class World:
         refit and rebuild derive theirs from the clock). The rest is static (surface, radii,
         masses, parameters: compared with the scene on resume); contacts are recomputed before
         they are read, and no step draws random numbers. Between steps only."""
-        st = {"time": np.array(self._time, np.float64), "sim_time": self.state.sim_time.numpy().copy(),
+        st = {"time": np.array(self.ctx.time, np.float64), "sim_time": self.state.sim_time.numpy().copy(),
               "substep_count": np.array(self.substep_count, np.int64),
               "sphere_pos": self.sphere_positions(), "sphere_vel": self.sphere_velocities(),
               "frame_key": self.state.frame_key.numpy().copy(), "frame_changed": self.state.frame_changed.numpy().copy()}
@@ -908,13 +991,13 @@ class World:
                     f"interpolation is off and the surface jumps up to {surf.max_frame_step:.3g} m "
                     f"between frames (> half the smallest sphere radius {r_min:.3g} m): spheres may "
                     "tunnel at frame changes; turn interpolation on", stacklevel=stacklevel)
-        self.sub_dt = p.dt / self.substeps
+        self.ctx.sub_dt = p.dt / self.substeps
         # contact query reach: r + margin + (|v| + extra_speed) * dt, extra_speed = speed gained from
         # gravity in one sub-step. The surface's own approach is not added: the sub-step rule keeps
         # it under r/2 per sub-step, so a surface reaching into a sphere is caught as a (shallow)
         # penetration and pushed out; adding the global max surface speed would only enlarge every
         # query (x8 box volume on horse-gallop) for the same result.
-        self.extra_speed = float(np.linalg.norm(p.gravity)) * self.sub_dt
+        self.ctx.extra_speed = float(np.linalg.norm(p.gravity)) * self.ctx.sub_dt
 
     def add_spheres(self, positions, radius, mass=1.0, velocities=None):
         """Add spheres (between steps). Reallocates the sphere arrays and drops the graph."""
@@ -941,7 +1024,7 @@ class World:
         self._graph = None
         if self._launch_cache is not None:
             self._launch_cache = {}
-        self.collider.resize(self)
+        self.collider.resize(self.model, self.state, self.ctx)
 
     def set_sphere(self, i: int, position, velocity=(0.0, 0.0, 0.0)):
         """Place sphere ``i`` at ``position`` [m] with ``velocity`` [m/s] between steps, without a
@@ -953,7 +1036,7 @@ class World:
         rows = [_sphere_rows(name, v, 1, i) for name, v in (("position", position), ("velocity", velocity))]
         for dst, row in zip((self.state.sphere_pos, self.state.sphere_vel), rows):
             wp.copy(dst, wp.array(row, dtype=wp.vec3, device=self.device), dest_offset=i, count=1)
-        self.collider.spheres_moved(self)
+        self.collider.spheres_moved(self.model, self.state, self.ctx)
 
     # -- convenience ---------------------------------------------------------------------------
     def sphere_positions(self) -> np.ndarray:

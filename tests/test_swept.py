@@ -15,15 +15,15 @@ def _worlds(seq, pos, vel, radius, t0, collider_kw):
                       SphereModel(radius, 1.0, TEST_DEVICE), PhysicsParams(auto_substeps=False))
         w = World(model, State(model, pos, vel, t0=t0), collider=col)
         if kw is not None:
-            w.collider = SweptCollider(w, **kw)
+            w.collider = SweptCollider(w.model, w.state, w.ctx, **kw)
         out.append(w)
     return out
 
 
 def _contacts_at(w):
     w.update_surface()
-    w.collider.update(w)
-    w.collider.collide(w)
+    w.collider.update(w.model, w.state, w.ctx)
+    w.collider.collide(w.model, w.state, w.contacts, w.ctx)
     return w.contacts.numpy()
 
 
@@ -107,7 +107,7 @@ def test_swept_bvh_refit_only_on_frame_change():
     w = World(model, State(model, [[0, 0, 1]]), collider="swept", use_graph=False)  # count host calls
     calls = []
     orig = w.collider.refit_frame
-    w.collider.refit_frame = lambda world: (calls.append(world.time), orig(world))
+    w.collider.refit_frame = lambda model, state, ctx: (calls.append(ctx.time), orig(model, state, ctx))
     for _ in range(40):  # 40 steps at 240 Hz: about 4 frames at 24 fps
         w.step()
     # expected: the steps at whose start floor(t * fps) changes, t accumulated as on the device

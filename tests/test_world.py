@@ -279,9 +279,9 @@ def test_rebuild_every_frame_matches_refit():
     built = []
     orig = b.collider.update
 
-    def counting_update(world):
+    def counting_update(model, state, ctx):
         before = b.collider.mesh
-        orig(world)
+        orig(model, state, ctx)
         built.append(b.collider.mesh is not before)
 
     b.collider.update = counting_update
