@@ -86,10 +86,10 @@ def stage_breakdown(seq, device, steps, repeats):
     ws, _ = timed_build(seq, device, "swept")
     c = ws.collider
     st = {
-        "conditional_refit_node (not taken)": lambda: c.update(ws),
-        "contact_interpolated": lambda: c.collide(ws),
+        "conditional_refit_node (not taken)": lambda: c.update(ws.model, ws.state, ws.ctx),
+        "contact_interpolated": lambda: c.collide(ws.model, ws.state, ws.contacts, ws.ctx),
         "integrate_advance_time_frame_test": ws.integrate,
-        "swept_bounds_and_bvh_refit (once per frame)": lambda: c.refit_frame(ws),
+        "swept_bounds_and_bvh_refit (once per frame)": lambda: c.refit_frame(ws.model, ws.state, ws.ctx),
     }
     out["swept_step"] = {k: time_loop(graph_or_eager(f, device), device, steps, repeats)["us_per_step"]
                          for k, f in st.items()}
