@@ -292,6 +292,23 @@ class NewtonWorld:
             self._step_body()
         self.substep_count += self.substeps
 
+    # -- the Simulation protocol (runtime.Simulation) ------------------------------------------
+    editable = False  # reset / set_time / add_spheres are the built-in world's
+
+    def surface_points(self):
+        """The surface's vertices (N,) at the current time: the adapter writes them into Newton's
+        mesh every sub-step."""
+        return self.adapter.mesh.points
+
+    def surface_indices(self):
+        return self.surface.indices
+
+    def sphere_positions(self) -> np.ndarray:
+        return np.zeros((0, 3), np.float32)  # the bodies are Newton's (body_transforms)
+
+    def sphere_radii(self) -> np.ndarray:
+        return np.zeros(0, np.float32)
+
     # -- read-out (host copies; for the viewer and summaries) ----------------------------------
     def body_transforms(self) -> np.ndarray:
         """(B, 7) body poses: position [m] and quaternion (x, y, z, w)."""
@@ -344,9 +361,6 @@ class NewtonWorld:
             out.append(d)
         return out
 
-    def surface_points(self) -> np.ndarray:
-        """Current surface vertices (N, 3) [m] as Newton sees them."""
-        return self.adapter.points()
 
 
 def _quat_rotate(q, v):

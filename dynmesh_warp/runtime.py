@@ -11,14 +11,55 @@ from __future__ import annotations
 import sys
 import time
 from pathlib import Path
+from typing import Protocol, runtime_checkable
 
+import numpy as np
 import warp as wp
 
 from .config import SceneConfig, SceneError
 
-__all__ = ["resolve_device", "scene_device", "run_steps", "check_total_work", "lift_work_limits",
+__all__ = ["Simulation", "resolve_device", "scene_device", "run_steps", "check_total_work", "lift_work_limits",
            "NonFiniteStateError", "RUN_OUTPUTS", "check_run_output", "check_record_output", "timed_loop",
            "steps_per_second", "rate_text"]
+
+
+@runtime_checkable
+class Simulation(Protocol):
+    """What runners and the viewer read of a simulation, built-in (``world.World``) or Newton
+    (``newton_adapter.NewtonWorld``): one protocol, so neither needs a stand-in for the other.
+
+    Attributes:
+        device: the Warp device; surface: the deforming surface (``world.SurfaceModel``);
+        t0: start time [s]; time: simulation time [s] (host twin of the device clock);
+        dt: physics step [s]; editable: whether ``reset``, ``set_time`` and ``add_spheres``
+        exist (the built-in world; a Newton world's bodies are Newton's).
+    """
+
+    device: object
+    surface: object
+    t0: float
+    editable: bool
+
+    @property
+    def time(self) -> float: ...
+
+    @property
+    def dt(self) -> float: ...
+
+    def step(self) -> None:
+        """Advance by one physics step."""
+
+    def surface_points(self):
+        """The surface's vertex buffer (N,) wp.vec3 [m] at ``time`` (brought up to date)."""
+
+    def surface_indices(self):
+        """The surface's triangle indices (3M,) wp.int32."""
+
+    def sphere_positions(self) -> np.ndarray:
+        """(S, 3) built-in sphere centres [m] (S = 0 for a Newton world)."""
+
+    def sphere_radii(self) -> np.ndarray:
+        """(S,) built-in sphere radii [m]."""
 
 
 def scene_device(cfg: SceneConfig, device=None):

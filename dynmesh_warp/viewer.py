@@ -65,7 +65,7 @@ class Viewer:
         self._rng = np.random.default_rng(seed)
         self.log = log
         self.record_path = Path(record) if record else None
-        surf = world.model.surface
+        surf = world.surface
         try:
             self.faces = surf.faces().astype(np.uint32)
         except ValueError:
@@ -84,15 +84,15 @@ class Viewer:
             show_mesh = gaussians is None
         self._build_scene(V0, show_mesh)
         self._build_gui(show_mesh)
+        if not world.editable:  # reset, seeking and dropping spheres are the built-in world's
+            for name in ("gui_reset", "gui_drop", "gui_time"):
+                getattr(self, name).disabled = True
         self._serializer = self.server.get_scene_serializer() if self.record_path else None
         self._closed = False
 
     # -- scene ---------------------------------------------------------------------------------
     def _points(self) -> np.ndarray:
-        w = self.world
-        if not getattr(w, "render_state", True):
-            w.sync_surface()
-        return np.array(w.state.points.numpy(), dtype=np.float32, copy=True)
+        return np.array(self.world.surface_points().numpy(), dtype=np.float32, copy=True)
 
     def _splat_buffer(self) -> np.ndarray:
         """(G, 8) uint32 viser splat buffer: centre f32 x3, reserved, covariance f16 x6, rgba."""
@@ -146,7 +146,7 @@ class Viewer:
             if S:
                 self.spheres = self.server.scene.add_batched_meshes_simple(
                     "/spheres", self._ico[0], self._ico[1], batched_wxyzs=np.tile(np.float32([1, 0, 0, 0]), (S, 1)),
-                    batched_positions=pos, batched_scales=w.model.spheres.radius_np.astype(np.float32),
+                    batched_positions=pos, batched_scales=w.sphere_radii().astype(np.float32),
                     batched_colors=self.sphere_color, lod="off", visible=visible)
             self._sphere_count = S
             self._last_pos = pos
@@ -191,7 +191,7 @@ class Viewer:
     def _refresh_gaussians(self):
         if self.gaussians is not None:
             w = self.world
-            self.gaussians.update(w.state.points, w.current_indices())
+            self.gaussians.update(w.surface_points(), w.surface_indices())
 
     def reset(self):
         self.world.reset()
@@ -209,7 +209,8 @@ class Viewer:
         w = self.world
         P = self._points()
         lo, hi = P.min(0), P.max(0)
-        r = float(np.median(w.model.spheres.radius_np)) if w.model.spheres.count else 0.03 * self.scene_scale
+        radii = w.sphere_radii()
+        r = float(np.median(radii)) if len(radii) else 0.03 * self.scene_scale
         r = radius or r
         xy = lo[:2] + (0.2 + 0.6 * self._rng.random(2)) * (hi[:2] - lo[:2])
         w.add_spheres([[xy[0], xy[1], hi[2] + 3 * r]], r, 1.0)
@@ -246,7 +247,7 @@ class Viewer:
         n = 0
         if self.playing:
             self._owed += self.speed * self.frame_dt
-            dt = w.model.params.dt
+            dt = w.dt
             n = int(self._owed / dt + 1e-9)
             self._owed -= n * dt
             for _ in range(n):
@@ -332,36 +333,6 @@ class Viewer:
         return False
 
 
-class _NewtonWorldView:
-    """What :class:`Viewer` reads of a ``World``, for a ``NewtonWorld``: its surface, clock and
-    step; no built-in spheres (the Newton bodies are drawn by :class:`NewtonViewer`)."""
-
-    render_state = True  # the adapter writes the surface into its wp.Mesh every sub-step
-
-    def __init__(self, newton_world):
-        from types import SimpleNamespace
-
-        nw = self.newton_world = newton_world
-        self.device = nw.device
-        self.t0 = nw.t0
-        no_spheres = SimpleNamespace(count=0, radius_np=np.zeros(0, np.float32))
-        self.model = SimpleNamespace(surface=nw.surface, params=SimpleNamespace(dt=nw.dt), spheres=no_spheres)
-        self.state = SimpleNamespace(points=nw.adapter.mesh.points)
-
-    @property
-    def time(self) -> float:
-        return self.newton_world.time
-
-    def step(self):
-        self.newton_world.step()
-
-    def sphere_positions(self) -> np.ndarray:
-        return np.zeros((0, 3), np.float32)
-
-    def current_indices(self):
-        return self.newton_world.surface.indices
-
-
 def _shape_mesh(shape: dict):
     """(V float32, F uint32) of a Newton shape in its own frame, or None (planes, unknown)."""
     import trimesh
@@ -398,9 +369,7 @@ class NewtonViewer(Viewer):
     def __init__(self, newton_world, gaussians=None, **kw):
         self.newton_world = newton_world
         self._bodies: list = []
-        super().__init__(_NewtonWorldView(newton_world), gaussians, **kw)
-        for name in ("gui_reset", "gui_drop", "gui_time"):
-            getattr(self, name).disabled = True
+        super().__init__(newton_world, gaussians, **kw)
         sc = self.server.scene
         X = newton_world.shape_transforms()
         for shape in newton_world.shapes():
@@ -555,7 +524,7 @@ def run_viewer(cfg, device=None, viewer: str = "viser", port: int = 8080, host: 
         g = gaussians_for_world(world, cfg)
         v = Viewer(world, g, port=port, host=host, fps=fps, record=record, realtime=(viewer == "viser"), log=log)
         what = f"{world.model.spheres.count} spheres"
-    dt = world.model.params.dt
+    dt = world.dt
     if steps is None and viewer != "viser":
         from .runtime import run_steps
 

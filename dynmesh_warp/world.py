@@ -819,6 +819,31 @@ class World:
     def current_frame_key(self):
         return self.ctx.frame_key(self.model)
 
+    # -- the Simulation protocol (runtime.Simulation): what runners and the viewer read ----------
+    editable = True  # reset / set_time / add_spheres
+
+    @property
+    def surface(self):
+        return self.model.surface
+
+    @property
+    def dt(self) -> float:
+        """Physics step [s] (``params.dt``)."""
+        return self.model.params.dt
+
+    def surface_points(self):
+        """The vertex buffer (N,) at the current time; synchronised first when the step does not
+        keep it (the swept collider without ``render_state``)."""
+        if not self.render_state:
+            self.sync_surface()
+        return self.state.points
+
+    def surface_indices(self):
+        return self.current_indices()
+
+    def sphere_radii(self) -> np.ndarray:
+        return self.model.spheres.radius_np
+
     @property
     def frame(self) -> int:
         """The frame whose indices the last surface update used (0 for fixed topology, whose
