@@ -54,6 +54,26 @@ def blend_pair(time: wp.float64, fps: wp.float64, num_frames: int, mode: int, in
     return k0, k1, alpha
 
 
+@wp.func
+def store_frame_key(
+    time: wp.float64,
+    fps: wp.float64,
+    num_frames: int,
+    mode: int,
+    frame_key_out: wp.array(dtype=wp.int32),
+    frame_changed_out: wp.array(dtype=wp.int32),
+):
+    """The clock's frame pair at ``time`` into State: frame_key_out[0] = k0 * num_frames + k1,
+    frame_changed_out[0] = 1 if that differs from the stored key, else 0 (one thread)."""
+    k0, k1, alpha = frame_pair(time, fps, num_frames, mode)
+    key = k0 * num_frames + k1
+    if key != frame_key_out[0]:
+        frame_key_out[0] = key
+        frame_changed_out[0] = 1
+    else:
+        frame_changed_out[0] = 0
+
+
 @wp.kernel
 def update_frame_vertices(
     # Model:

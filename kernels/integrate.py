@@ -2,7 +2,7 @@
 
 import warp as wp
 
-from .frames import frame_pair
+from .frames import store_frame_key
 
 
 @wp.kernel
@@ -56,13 +56,7 @@ def integrate_spheres(
     if s == 0:
         t = sim_time_out[0] + time_step
         sim_time_out[0] = t
-        k0, k1, alpha = frame_pair(t, fps, num_frames, mode)
-        key = k0 * num_frames + k1
-        if key != frame_key_out[0]:
-            frame_key_out[0] = key
-            frame_changed_out[0] = 1
-        else:
-            frame_changed_out[0] = 0
+        store_frame_key(t, fps, num_frames, mode, frame_key_out, frame_changed_out)
     if s >= inv_mass.shape[0]:
         return
     p = sphere_pos_out[s]

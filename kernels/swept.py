@@ -13,7 +13,7 @@ pseudo-normal over faces tied within epsilon), so the contacts equal the refit p
 import warp as wp
 
 from .collide import contact_reach, make_contact
-from .frames import blend_pair, frame_pair
+from .frames import blend_pair, frame_pair, store_frame_key
 from .geometry import closest_point_on_triangle
 
 
@@ -30,13 +30,7 @@ def detect_frame_change(
     frame_changed_out: wp.array(dtype=wp.int32),
 ):
     """frame_changed_out[0] = 1 when the frame pair (k, k+1) at sim_time_in differs from frame_key_out[0] (then updated)."""
-    k0, k1, alpha = frame_pair(sim_time_in[0], fps, num_frames, mode)
-    key = k0 * num_frames + k1
-    if key != frame_key_out[0]:
-        frame_key_out[0] = key
-        frame_changed_out[0] = 1
-    else:
-        frame_changed_out[0] = 0
+    store_frame_key(sim_time_in[0], fps, num_frames, mode, frame_key_out, frame_changed_out)
 
 
 @wp.kernel
