@@ -435,7 +435,8 @@ def main(argv=None) -> int:
         if stop_flag.get("stop"):
             break
         results.append(soak_scene(name, device, a.steps, a.check_every, a.drop_every, a.max_spheres, a.seed,
-                                  stop_flag, log=lambda *m: print(*m, flush=True), recycle=a.recycle, checkpoint=a.checkpoint, resume=a.resume))
+                                  stop_flag, log=lambda *m: print(*m, flush=True), recycle=a.recycle,
+                                  checkpoint=a.checkpoint, resume=a.resume))
     doc = {
         "what": "soak: spheres dropped continuously; every check_every steps no sphere centre inside the surface "
                 "(winding number; height field for the open sheet) and all positions/velocities finite",

@@ -36,10 +36,31 @@ from .world import (  # noqa: E402
     PhysicsParams,
     SphereModel,
     State,
+    StepContext,
     SurfaceModel,
     VaryingSurfaceModel,
     World,
 )
+
+#: public names imported on first use (the conversion, I/O, Gaussians and viewer modules pull in
+#: SciPy, scikit-image, viser...): name -> module
+_LAZY = {
+    "load_sequence": "io", "save_sequence": "io",
+    "to_fixed_topology": "convert", "ConversionInfo": "convert",
+    "Gaussians": "gaussians", "gaussians_for_world": "gaussians",
+    "Viewer": "viewer", "NewtonViewer": "viewer",
+    "Simulation": "runtime",
+}
+
+
+def __getattr__(name):
+    if name in _LAZY:
+        import importlib
+
+        value = getattr(importlib.import_module(f".{_LAZY[name]}", __name__), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 __version__ = "0.1.0"
 
@@ -60,5 +81,15 @@ __all__ = [
     "Model",
     "State",
     "Contacts",
+    "StepContext",
     "World",
+    "Simulation",
+    "load_sequence",
+    "save_sequence",
+    "to_fixed_topology",
+    "ConversionInfo",
+    "Gaussians",
+    "gaussians_for_world",
+    "Viewer",
+    "NewtonViewer",
 ]

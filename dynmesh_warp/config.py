@@ -33,7 +33,8 @@ from .choices import (
     UpAxis,
 )
 
-__all__ = ["SceneConfig", "SceneError", "load_scene_config", "apply_overrides", "DEFAULT_SCENE", "DEFAULT_SCENE_FILE", "Vec3", "PhysicsCore", "load_yaml",
+__all__ = ["SceneConfig", "SceneError", "load_scene_config", "apply_overrides", "DEFAULT_SCENE", "DEFAULT_SCENE_FILE",
+           "Vec3", "PhysicsCore", "load_yaml",
            "DEFAULT_MAX_SUBSTEPS", "DEFAULT_MAX_TOTAL_SUBSTEPS"]
 
 Vec3 = tuple[float, float, float]

@@ -9,7 +9,7 @@ import numpy as np
 from .config import SceneConfig, SceneError, spawn_positions
 from .runtime import scene_device
 from .geometry import mesh_orientation
-from .sequence import FixedTopologySequence, MeshDataError, VaryingTopologySequence
+from .sequence import FixedTopologySequence, MeshDataError, TopologyMismatchError, VaryingTopologySequence
 from .world import Model, PhysicsParams, SphereModel, State, World, surface_model, surface_model_class
 
 __all__ = ["load_surface", "prepare_surface", "build_world"]
@@ -162,8 +162,8 @@ def build_world(cfg: SceneConfig, device=None, collider: str | None = None,
         try:
             seq.to_fixed()
             why = "frames have different topology"
-        except MeshDataError as e:  # names the first frame that differs from frame 0
-            why = str(e).split("; a fixed-topology sequence")[0]
+        except TopologyMismatchError as e:  # names the first frame that differs from frame 0
+            why = e.summary
         raise SceneError(
             f"surface {cfg.surface.source}: {why}. Varying topology needs "
             "physics.collider: rebuild, or surface.conversion to convert it to fixed topology")

@@ -18,7 +18,8 @@ import numpy as np
 from .geometry import orient_outward
 from .sequence import FixedTopologySequence, VaryingTopologySequence
 
-__all__ = ["wave_bowl", "pulsing_blob", "torus_to_sphere", "rigid_motion", "articulated_figure", "FIGURE_BONES", "grid_sheet", "icosphere",
+__all__ = ["wave_bowl", "pulsing_blob", "torus_to_sphere", "rigid_motion", "articulated_figure", "FIGURE_BONES",
+           "grid_sheet", "icosphere",
            "BUILTIN_SCENES", "builtin_sequence"]
 
 

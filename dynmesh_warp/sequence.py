@@ -25,6 +25,20 @@ class MeshDataError(ValueError):
     """Invalid mesh or sequence data. The message names the source (file) and frame."""
 
 
+class TopologyMismatchError(MeshDataError):
+    """A varying-topology sequence asked to be fixed topology: ``frame`` (index) and ``source``
+    differ from frame 0 in ``what`` ("vertex count" or "faces"); ``detail`` says how."""
+
+    def __init__(self, message: str, *, frame: int, source: str, what: str, detail: str):
+        super().__init__(message)
+        self.frame, self.source, self.what, self.detail = frame, source, what, detail
+
+    @property
+    def summary(self) -> str:
+        """One line without advice: '<source> (frame t): <detail>'."""
+        return f"{self.source} (frame {self.frame}): {self.detail}"
+
+
 def _where(source: str | None, frame: int | None) -> str:
     parts = []
     if source:
@@ -237,16 +251,16 @@ class VaryingTopologySequence:
         for t, (v, f) in enumerate(self.frames):
             src = self.frame_sources[t] if self.frame_sources else where
             if v.shape[0] != V0.shape[0]:
-                raise MeshDataError(
-                    f"{src} (frame {t}): {v.shape[0]} vertices but frame 0 ({src0}) has {V0.shape[0]}; "
-                    "a fixed-topology sequence needs the same vertex count in every frame"
-                )
+                detail = f"{v.shape[0]} vertices but frame 0 ({src0}) has {V0.shape[0]}"
+                raise TopologyMismatchError(
+                    f"{src} (frame {t}): {detail}; a fixed-topology sequence needs the same vertex count "
+                    "in every frame", frame=t, source=str(src), what="vertex count", detail=detail)
             if f.shape != F0.shape or not np.array_equal(f, F0):
-                raise MeshDataError(
-                    f"{src} (frame {t}): faces differ from frame 0 ({src0}) ({len(f)} vs {len(F0)} faces); "
-                    "a fixed-topology sequence needs identical faces in every frame (convert a "
-                    "varying-topology one with dynmesh_warp.convert)"
-                )
+                detail = f"faces differ from frame 0 ({src0}) ({len(f)} vs {len(F0)} faces)"
+                raise TopologyMismatchError(
+                    f"{src} (frame {t}): {detail}; a fixed-topology sequence needs identical faces in every "
+                    "frame (convert a varying-topology one with dynmesh_warp.convert)",
+                    frame=t, source=str(src), what="faces", detail=detail)
         return FixedTopologySequence(
             np.stack([v for v, _ in self.frames]), F0, fps=self.fps, name=self.name,
             source=self.source,

@@ -611,7 +611,8 @@ class SweptCollider(ColliderBase):
     capturable = True
     needs_points = False
 
-    def __init__(self, model: Model, state: State, ctx: StepContext, parallel: bool | None = None, max_candidates: int | None = None):
+    def __init__(self, model: Model, state: State, ctx: StepContext, parallel: bool | None = None,
+                 max_candidates: int | None = None):
         surf = model.surface
         d = ctx.device
         self.parallel = d.is_cuda if parallel is None else bool(parallel)
@@ -970,7 +971,8 @@ class World:
     def checkpoint_state(self) -> dict:
         """Everything a step reads that changes while the world runs, as NumPy copies: the clock
         (the host's float64 and the device's), the sub-step count, the spheres' positions and
-        velocities, the clock's frame pair and pending-change flag, and the collider's frame state (swept: :attr:`SweptCollider.CHECKPOINT_ARRAYS`;
+        velocities, the clock's frame pair and pending-change flag, and the collider's frame state
+        (swept: :attr:`SweptCollider.CHECKPOINT_ARRAYS`;
         refit and rebuild derive theirs from the clock). The rest is static (surface, radii,
         masses, parameters: compared with the scene on resume); contacts are recomputed before
         they are read, and no step draws random numbers. Between steps only."""

@@ -389,8 +389,8 @@ def accumulate_point_to_plane_system(
     w = wp.cross(x - center, n)
     J = wp.spatial_vector(w[0], w[1], w[2], n[0], n[1], n[2])
     for k in range(6):
-        for l in range(6):
-            wp.atomic_add(system, k * 6 + l, J[k] * J[l])
+        for m in range(6):
+            wp.atomic_add(system, k * 6 + m, J[k] * J[m])
         wp.atomic_add(system, 36 + k, J[k] * r)
 
 

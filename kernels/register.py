@@ -255,7 +255,8 @@ def accumulate_backward_system(
 ):
     """Normal equations of sum_q s_b weight_q |sum_c b_qc X_{v_c}(p) - q|^2 in p, X_v(p) the
     skinned template vertex v of face(q), s_b = side_scale(weight_sum, 1); the row's node
-    coefficients are b_qc w_{v_c a} over the 3 x k (vertex, node) pairs (repeated nodes merged first: at most MAX_ROW_NODES distinct).
+    coefficients are b_qc w_{v_c a} over the 3 x k (vertex, node) pairs (repeated nodes merged first:
+    at most MAX_ROW_NODES distinct).
 
     frame_points (Q,) [m]; face, bary, weight (Q,) from find_correspondences (frame -> template).
     """

@@ -118,3 +118,17 @@ def spheres_integrate(
     assert node.name.split("_")[0] not in VERBS
     assert ("State out", "d") in groups and not "d".endswith("_out")
     assert ast.get_docstring(node) is None
+
+
+def test_ruff_passes_with_the_project_configuration():
+    """``ruff check`` (configured in pyproject.toml: pycodestyle errors/warnings and pyflakes) is
+    clean on the package, the kernels, the tests and the benchmarks."""
+    import shutil
+    import subprocess
+
+    exe = shutil.which("ruff")
+    if exe is None:
+        pytest.skip("ruff is not installed (it is in the test extra)")
+    r = subprocess.run([exe, "check", "dynmesh_warp", "kernels", "tests", "bench"], cwd=ROOT, capture_output=True,
+                       text=True)
+    assert r.returncode == 0, r.stdout[-3000:]

@@ -114,3 +114,18 @@ def test_the_checker_sees_function_level_and_relative_imports(tmp_path):
     f = tmp_path / "x.py"
     f.write_text("def f():\n    from .run import main\n    from .kernels.frames import wrap_frame\n")
     assert _imports("world", f) == {"run", "kernels.frames"}
+
+
+def test_public_face_is_the_root_all():
+    """Every name in ``dynmesh_warp.__all__`` resolves from the root (the conversion, I/O,
+    Gaussians and viewer on first use), and importing the package loads neither viser nor newton."""
+    import subprocess
+    import sys
+
+    code = ("import sys, dynmesh_warp as dw; assert 'viser' not in sys.modules and 'newton' not in sys.modules; "
+            "missing = [n for n in dw.__all__ if getattr(dw, n, None) is None]; assert not missing, missing; "
+            "from dynmesh_warp.io import load_sequence; assert dw.load_sequence is load_sequence; "
+            "from dynmesh_warp.convert import to_fixed_topology; assert dw.to_fixed_topology is to_fixed_topology; "
+            "assert {'load_sequence', 'save_sequence', 'to_fixed_topology', 'Gaussians', 'Viewer'} <= set(dw.__all__)")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert r.returncode == 0, r.stderr[-2000:]

@@ -57,7 +57,8 @@ def test_swept_contacts_equal_refit_reference(make_seq):
             np.testing.assert_allclose(c["normal"][far], c_ref["normal"][far], atol=2e-3)
             np.testing.assert_allclose(np.linalg.norm(c["normal"][m], axis=1), 1.0, atol=1e-5)
             np.testing.assert_allclose(c["depth"][m], c_ref["depth"][m], atol=2e-5)
-            np.testing.assert_allclose(c["velocity"][m], c_ref["velocity"][m], atol=2e-3 * max(1.0, np.abs(c_ref["velocity"]).max()))
+            np.testing.assert_allclose(c["velocity"][m], c_ref["velocity"][m],
+                                       atol=2e-3 * max(1.0, np.abs(c_ref["velocity"]).max()))
             checked += int(m.sum())
     assert checked > 50  # the states really produced contacts
 

@@ -206,6 +206,23 @@ def test_varying_folder_error_names_the_odd_frame(tmp_path, capsys):
                  "--output", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err
     assert "frame_0004.obj" in err and "collider: rebuild" in err
+    assert "(frame 3): 162 vertices but frame 0" in err  # the structured error's summary, not parsed text
+
+
+def test_topology_mismatch_error_carries_the_frame():
+    from dynmesh_warp.sequence import MeshDataError, TopologyMismatchError, VaryingTopologySequence
+
+    V, F = ico_sequence(T=2)
+    m = trimesh.creation.icosphere(subdivisions=2, radius=0.4)
+    seq = VaryingTopologySequence([(V[0], F), (V[1], F), (np.asarray(m.vertices, np.float32), m.faces)], name="s")
+    with pytest.raises(TopologyMismatchError) as e:
+        seq.to_fixed()
+    assert isinstance(e.value, MeshDataError) and e.value.frame == 2 and e.value.what == "vertex count"
+    assert e.value.summary.startswith("s (frame 2): 162 vertices")
+    seq2 = VaryingTopologySequence([(V[0], F), (V[1], F[:, ::-1].copy())], name="s")
+    with pytest.raises(TopologyMismatchError) as e:
+        seq2.to_fixed()
+    assert e.value.frame == 1 and e.value.what == "faces"
 
 
 def test_convert_cli_checks_the_output_path_first(tmp_path, capsys, monkeypatch):
