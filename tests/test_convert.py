@@ -434,3 +434,18 @@ def test_graph_options_are_range_checked(bad, name):
 
     with pytest.raises(ValueError, match=name):
         _resolve_options("graph", bad)
+
+
+def test_poor_runs_are_re_tracked_from_the_other_side():
+    """The repair pass's runs: after the key frame a poor run is re-tracked backward from the good
+    frame after it, before the key frame forward from the good frame before it; a run with no
+    good frame on that side, or the key frame itself, is left alone."""
+    from dynmesh_warp.convert import _poor_runs
+
+    cov = np.array([0.01, 0.09, 0.08, 0.01, 0.0, 0.01, 0.07, 0.09, 0.01, 0.08])
+    K = 4
+    runs = _poor_runs(cov, K, 0.05)
+    assert runs == [(0, [1, 2]), (8, [7, 6])]  # frame 9: nothing good after it
+    assert _poor_runs(np.full(5, 0.01), 2, 0.05) == []
+    # a poor run right before the key frame, starting at frame 0: no anchor on its other side
+    assert _poor_runs(np.array([0.09, 0.09, 0.0, 0.01]), 2, 0.05) == []
