@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import yaml
 
-from conftest import grid_height, surface_at
+from reference import grid_height, surface_at
 
 from dynmesh_warp.config import SceneConfig, SceneError, load_scene_config
 from dynmesh_warp.run import main

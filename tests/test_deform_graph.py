@@ -96,7 +96,7 @@ def test_graph_keeps_swinging_arms_covered_through_the_motion():
 
 
 def test_measure_distances_kernel_matches_brute_force():
-    from conftest import brute_nearest
+    from reference import brute_nearest
 
     from dynmesh_warp.kernels import convert as kc
 

@@ -19,7 +19,7 @@ import pytest
 import warp as wp
 from scipy.spatial.transform import Rotation
 
-from conftest import brute_closest_points, brute_nearest
+from reference import brute_closest_points, brute_nearest
 from dynmesh_warp.gaussians import bind_splats, generate_gaussians, quat_xyzw_to_wxyz
 from dynmesh_warp.splat_io import SplatCloud
 

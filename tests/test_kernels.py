@@ -17,7 +17,8 @@ import pytest
 import trimesh
 import warp as wp
 
-from conftest import brute_closest_points, brute_nearest, closest_on_triangles, project_to_mesh
+from conftest import project_to_mesh
+from reference import brute_closest_points, brute_nearest, closest_on_triangles
 from dynmesh_warp import scenes
 from dynmesh_warp.kernels.frames import update_frame_vertices
 from dynmesh_warp.kernels.geometry import closest_point_on_triangle, compute_face_normals

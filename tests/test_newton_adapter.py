@@ -13,7 +13,8 @@ import sys
 import numpy as np
 import pytest
 import warp as wp
-from conftest import TEST_DEVICE, brute_nearest, project_to_mesh
+from conftest import TEST_DEVICE, project_to_mesh
+from reference import brute_nearest
 from scipy.optimize import brentq
 
 from dynmesh_warp.scenes import grid_sheet

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import surface_at, winding_number
+from reference import surface_at, winding_number
 from dynmesh_warp.sequence import FixedTopologySequence
 from dynmesh_warp.world import Model, PhysicsParams, SphereModel, State, SurfaceModel, World
 from conftest import TEST_DEVICE

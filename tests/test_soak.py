@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import surface_at, winding_number as reference_winding
+from reference import surface_at, winding_number as reference_winding
 
 ROOT = Path(__file__).resolve().parents[1]
 

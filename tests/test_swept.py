@@ -132,7 +132,7 @@ def test_swept_bvh_refit_only_on_frame_change():
 def test_no_tunnelling_over_1e5_steps(scene):
     """Issue #8: 10^5 steps of the default (swept) collider on the built-in scenes; no sphere centre
     ever ends behind the surface (height field for the bowl, winding number for the closed blob)."""
-    from conftest import grid_height, surface_at, winding_number
+    from reference import grid_height, surface_at, winding_number
 
     rng = np.random.default_rng(5)
     S, r = 6, 0.05

@@ -13,7 +13,7 @@ import warnings
 import numpy as np
 import pytest
 
-from conftest import brute_nearest, grid_height, surface_at, winding_number
+from reference import brute_nearest, grid_height, surface_at, winding_number
 from dynmesh_warp import scenes
 from dynmesh_warp import world as world_mod
 from dynmesh_warp.sequence import FixedTopologySequence
