@@ -452,7 +452,10 @@ class GraphFitter:
             wp.capture_launch(self._cg_graph)
             return
         if self.device.is_cuda:
-            with wp.ScopedCapture(device=self.device) as cap:
+            # load only this module before capturing: force_module_load would load (on a cold
+            # cache, compile) every Warp module imported in the process, Newton's included
+            wp.load_module(kr, device=self.device)
+            with wp.ScopedCapture(device=self.device, force_module_load=False) as cap:
                 self._cg_launches()
             self._cg_graph = cap.graph
             wp.capture_launch(self._cg_graph)
