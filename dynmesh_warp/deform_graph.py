@@ -389,15 +389,17 @@ class GraphFitter:
         """The normal equations in the node positions (values, rhs) for the current
         correspondences and rotations: two-sided data term, ARAP graph term with weight
         ``stiffness_weight`` per directed edge, damping towards ``position_prior``."""
-        d, n, K = self.device, self.n, self.K
+        d, n = self.device, self.n
         q = frame[1].shape[0]
-        self.weight_sum.zero_()
+        # graph and damping terms, zeroed covariance and weight sums: one launch (nnz >= K)
+        wp.launch(kr.begin_graph_system, dim=self.nnz,
+                  inputs=[self.slot_row, self.columns, self.laplacian, self.position_prior, stiffness_weight,
+                          damping_weight], outputs=[self.values, self.rhs, self.covariance, self.weight_sum],
+                  device=d)
         wp.launch(kr.sum_correspondence_weights, dim=n, inputs=[self.fweight, n, 0], outputs=[self.weight_sum],
                   device=d)
         wp.launch(kr.sum_correspondence_weights, dim=q, inputs=[self.bweight, q, 1], outputs=[self.weight_sum],
                   device=d)
-        self.values.zero_()
-        self.rhs.zero_()
         wp.launch(kr.accumulate_forward_system, dim=n,
                   inputs=[self.node_index, self.node_weight, self.k, self.row_offsets, self.columns, self.points,
                           self.node_position, self.target, self.fweight, self.weight_sum],
@@ -406,15 +408,10 @@ class GraphFitter:
                   inputs=[self.indices, self.node_index, self.node_weight, self.k, self.row_offsets, self.columns,
                           self.points, self.node_position, frame[1], self.bface, self.bbary, self.bweight,
                           self.weight_sum], outputs=[self.values, self.rhs], device=d)
-        wp.launch(kr.add_graph_terms, dim=self.nnz, inputs=[self.slot_row, self.columns, self.laplacian,
-                                                           stiffness_weight, damping_weight],
-                  outputs=[self.values], device=d)
         if len(self.edge_from):
             wp.launch(kr.accumulate_graph_rhs, dim=len(self.edge_from),
                       inputs=[self.edge_from, self.edge_to, self.rest_offset, self.node_rotation, stiffness_weight],
                       outputs=[self.rhs], device=d)
-        wp.launch(kr.add_damping_rhs, dim=K, inputs=[self.position_prior, damping_weight], outputs=[self.rhs],
-                  device=d)
 
     def _cg_launches(self):
         d, K = self.device, self.K
@@ -469,9 +466,10 @@ class GraphFitter:
         return float(np.sqrt(rz[done[-1]] / rz[0])) if len(done) and rz[0] > 0 else 0.0
 
     def update_rotations(self, stiffness_weight: float):
-        """Local step: per-node rotations from the data and the edges, at the current positions."""
+        """Local step: per-node rotations from the data and the edges, at the current positions
+        (after :meth:`assemble`, which zeroes the covariance and sums the weights)."""
         d = self.device
-        self.covariance.zero_()
+        # covariance was zeroed by assemble()'s first launch
         wp.launch(kr.accumulate_rotation_covariance, dim=self.n,
                   inputs=[self.rest_points, self.node_rest, self.node_index, self.node_weight, self.k,
                           self.node_position, self.target, self.fweight, self.weight_sum],

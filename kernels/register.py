@@ -297,27 +297,40 @@ def accumulate_backward_system(
 
 
 @wp.kernel
-def add_graph_terms(
+def begin_graph_system(
     # Model:
     slot_row: wp.array(dtype=wp.int32),
     columns: wp.array(dtype=wp.int32),
     laplacian: wp.array(dtype=float),
     # In:
+    position_prior: wp.array(dtype=wp.vec3),
     stiffness_weight: float,
     damping_weight: float,
-    # Out (in place):
-    values_in: wp.array(dtype=float),
+    # Out:
+    values: wp.array(dtype=float),
+    rhs: wp.array(dtype=wp.vec3),
+    covariance: wp.array(dtype=wp.mat33),
+    weight_sum: wp.array(dtype=float),
 ):
-    """values += stiffness_weight * laplacian (the graph's ARAP term) + damping_weight on the
-    diagonal (plus 1e-12, so a node with no data and no edge stays solvable).
+    """Start an iteration's system with its data-independent part, in one launch (dim = nnz):
+    values = stiffness_weight * laplacian (the graph's ARAP term) + (damping_weight + 1e-12) on
+    the diagonal (a node with no data and no edge stays solvable); rhs = damping_weight * prior
+    (the damping term damping_weight |p - prior|^2, (K,) [m]); covariance = 0 (K,);
+    weight_sum = 0 (2,). The data terms are accumulated on top.
 
     slot_row, columns, laplacian (nnz,): the row, column and graph-Laplacian value of each slot.
     """
     s = wp.tid()
-    v = values_in[s] + stiffness_weight * laplacian[s]
+    v = stiffness_weight * laplacian[s]
     if slot_row[s] == columns[s]:
         v += damping_weight + 1.0e-12
-    values_in[s] = v
+    values[s] = v
+    if s < rhs.shape[0]:
+        rhs[s] = damping_weight * position_prior[s]
+        covariance[s] = wp.mat33(0.0)
+    if s == 0:
+        weight_sum[0] = 0.0
+        weight_sum[1] = 0.0
 
 
 @wp.kernel
@@ -342,19 +355,6 @@ def accumulate_graph_rhs(
     d = stiffness_weight * (node_rotation[j] * rest_offset[e])
     wp.atomic_add(rhs, edge_to[e], d)
     wp.atomic_sub(rhs, j, d)
-
-
-@wp.kernel
-def add_damping_rhs(
-    # In:
-    position_prior: wp.array(dtype=wp.vec3),
-    damping_weight: float,
-    # Out (in place):
-    rhs_in: wp.array(dtype=wp.vec3),
-):
-    """rhs += damping_weight * prior (the damping term damping_weight |p - prior|^2), (K,) [m]."""
-    j = wp.tid()
-    rhs_in[j] = rhs_in[j] + damping_weight * position_prior[j]
 
 
 @wp.func
