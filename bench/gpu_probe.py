@@ -23,7 +23,6 @@ from dynmesh_warp.sequence import VaryingTopologySequence  # noqa: E402
 
 def _instrument() -> dict:
     """Wrap the conversion's parts with synchronised timers; returns the dict they add to [s]."""
-    import dynmesh_warp.convert as cv
     import dynmesh_warp.deform_graph as dg
 
     parts = {}
@@ -42,18 +41,13 @@ def _instrument() -> dict:
             return out
         setattr(owner, name, timed)
 
+    # public stages of the graph fit only (the rest of a frame: total minus "graph fit")
     wrap(dg.GraphFitter, "fit", "graph fit")
     wrap(dg.GraphFitter, "solve", "graph fit: CG solves")
     wrap(dg.GraphFitter, "assemble", "graph fit: assembly")
     wrap(dg.GraphFitter, "correspondences", "graph fit: correspondences")
+    wrap(dg.GraphFitter, "update_rotations", "graph fit: rotations")
     wrap(dg.GraphFitter, "rebuild", "graph fit: template BVH build")
-    wrap(dg.GraphFitter, "_update_template", "graph fit: correspondences: template refit + normals")
-    wrap(dg.GraphFitter, "_find_backward", "graph fit: correspondences: backward query")
-    wrap(cv._Converter, "_graph_finish", "fine stage + coverage")
-    wrap(cv._Converter, "coverage", "fine stage + coverage: coverage")
-    wrap(cv._Converter, "_graph_frame", "frame normals")
-    wrap(cv, "_topology_events", "topology events (host)")
-    wrap(cv, "_key_frame", "key frame choice")
     return parts
 
 

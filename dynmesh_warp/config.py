@@ -34,7 +34,7 @@ from .choices import (
 )
 
 __all__ = ["SceneConfig", "SceneError", "load_scene_config", "apply_overrides", "DEFAULT_SCENE", "DEFAULT_SCENE_FILE",
-           "Vec3", "PhysicsCore", "load_yaml",
+           "parse_assignment", "Vec3", "PhysicsCore", "load_yaml",
            "DEFAULT_MAX_SUBSTEPS", "DEFAULT_MAX_TOTAL_SUBSTEPS"]
 
 Vec3 = tuple[float, float, float]
@@ -353,6 +353,21 @@ def load_yaml(text: str):
 DEFAULT_SCENE = load_yaml(DEFAULT_SCENE_FILE.read_text())
 
 
+def parse_assignment(item, origin: str, expected: str) -> tuple[list[str], object]:
+    """``"key.path=value"`` -> (["key", "path"], value parsed as YAML; "" when empty). A
+    :class:`SceneError` naming ``origin`` and the item for a missing ``=`` or key (with the
+    ``expected`` form) or a value that is not YAML."""
+    key, sep, text = str(item).partition("=")
+    parts = key.strip().split(".")
+    if not sep or not all(p.strip() for p in parts):
+        raise SceneError(f"{origin} {item!r}: expected {expected}")
+    try:
+        value = load_yaml(text) if text.strip() else ""
+    except yaml.YAMLError as e:
+        raise SceneError(f"{origin} {item!r}: the value is not valid YAML ({' '.join(str(e).split())})") from None
+    return parts, value
+
+
 def apply_overrides(raw: dict, overrides, origin: str = "--set") -> dict:
     """``raw`` with each ``"key.path=value"`` of ``overrides`` set (the value parsed as YAML:
     ``physics.dt=0.002``, ``surface.playback=pingpong``, ``physics.gravity=[0, 0, -3]``,
@@ -360,14 +375,7 @@ def apply_overrides(raw: dict, overrides, origin: str = "--set") -> dict:
     result, naming the field. A :class:`SceneError` for an override that cannot be applied."""
     raw = dict(raw)
     for item in overrides or ():
-        key, sep, text = str(item).partition("=")
-        parts = key.strip().split(".")
-        if not sep or not all(p.strip() for p in parts):
-            raise SceneError(f"{origin} {item!r}: expected KEY.PATH=VALUE, e.g. physics.dt=0.002")
-        try:
-            value = load_yaml(text) if text.strip() else ""
-        except yaml.YAMLError as e:
-            raise SceneError(f"{origin} {item!r}: the value is not valid YAML ({' '.join(str(e).split())})") from None
+        parts, value = parse_assignment(item, origin, "KEY.PATH=VALUE, e.g. physics.dt=0.002")
         node = raw
         for depth, part in enumerate(parts[:-1]):
             child = node.get(part)

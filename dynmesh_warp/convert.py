@@ -51,6 +51,7 @@ import numpy as np
 import warp as wp
 
 from .choices import DEFAULT_STRATEGY, STRATEGIES
+from .deform_graph import CG_ITERATIONS, CG_TOLERANCE, GraphFitter, build_deformation_graph, extrapolate_rotations
 from .geometry import surface_area
 from .kernels import convert as kc
 from .kernels.geometry import project_points_to_mesh
@@ -104,8 +105,8 @@ _DEFAULTS = {
         "repair_threshold": 0.0,  # coverage above which a frame is poor; 0: max(restart_threshold, 2 x median)
         "bank_interval": 10,
         # the per-iteration linear solve on the device (conjugate gradients, warm-started)
-        "cg_iterations": 32,
-        "cg_tolerance": 1e-5,
+        "cg_iterations": CG_ITERATIONS,
+        "cg_tolerance": CG_TOLERANCE,
         # fine stage on the full-resolution template: "regularized"'s steps, 4 iterations, the
         # backward (coverage) pull alone where a vertex has one (pull_fraction 1; the forward
         # closest point elsewhere): issue 12's protocol, horse_collapse +17 % -> +13 % CD
@@ -137,10 +138,15 @@ def _bbox_diag(V: np.ndarray) -> float:
     return float(np.linalg.norm(V.max(axis=0) - V.min(axis=0))) if len(V) else 0.0
 
 
-def _wp_mesh(V: np.ndarray, F: np.ndarray, device) -> wp.Mesh:
+def _device_frame(V: np.ndarray, F: np.ndarray, device) -> tuple:
+    """A mesh on the device as the strategies take an input frame: (wp.Mesh, points, indices)."""
     pts = wp.array(np.ascontiguousarray(V, np.float32), dtype=wp.vec3, device=device)
     idx = wp.array(np.ascontiguousarray(F, np.int32).reshape(-1), dtype=wp.int32, device=device)
-    return wp.Mesh(points=pts, indices=idx)
+    return wp.Mesh(points=pts, indices=idx), pts, idx
+
+
+def _wp_mesh(V: np.ndarray, F: np.ndarray, device) -> wp.Mesh:
+    return _device_frame(V, F, device)[0]
 
 
 def nearest_surface(mesh, points, device=None, max_dist: float | None = None,
@@ -291,8 +297,6 @@ class _Converter:
             self.bank = []  # (frame, positions (N,) wp.vec3, centroid (3,)) of earlier results
             self.reinit_sources = []  # (frame, source frame or -1 = template)
         if opts.get("strategy") == "graph":
-            from .deform_graph import GraphFitter, build_deformation_graph
-
             self.graph = build_deformation_graph(TV, TF, float(opts["node_spacing"]) * max(_bbox_diag(TV), 1e-12),
                                                  int(opts["nodes_per_vertex"]))
             self.gf = GraphFitter(self.graph, TV, TF, d, self.max_dist, opts)
@@ -491,8 +495,6 @@ class _Converter:
         return self.coverage(frame)
 
     def step_graph(self, frame, t):
-        from .deform_graph import extrapolate_rotations
-
         o, gf = self.opts, self.gf
         gframe = self._graph_frame(frame)
         diag = _bbox_diag(frame[1].numpy())
@@ -517,13 +519,12 @@ class _Converter:
             X_prev = wp.clone(self.X)
             R2, P2 = gf.fit(gframe, R, P, its, lam0, lam1, mu)
             sc = self._graph_finish(frame, R2, P2)
-            if sc < score:
-                R, P, better = R2, P2, sc < 0.9 * score
-                score = sc
-                if not better:
-                    break
-            else:
+            if sc >= score:  # no better: keep the last result
                 wp.copy(self.X, X_prev)
+                break
+            improved = sc < 0.9 * score
+            R, P, score = R2, P2, sc
+            if not improved:
                 break
         restarted = False
         # drift control: a fit that leaves part of the input uncovered (well above this sequence's
@@ -833,12 +834,10 @@ def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info,
         if t == K - 1:
             conv.rewind(out[K], K, K + 1)
         v, f = vseq.frames[t]
-        pts = wp.array(v, dtype=wp.vec3, device=device)
-        idx = wp.array(f.reshape(-1), dtype=wp.int32, device=device)
-        m = wp.Mesh(points=pts, indices=idx)
-        if step((m, pts, idx), t):
+        frame = _device_frame(v, f, device)
+        if step(frame, t):
             info.reanchored_frames.append(t)
-        cov = conv.frame_coverage if conv.frame_coverage is not None else conv.coverage((m, pts, idx))
+        cov = conv.frame_coverage if conv.frame_coverage is not None else conv.coverage(frame)
         conv.frame_coverage = None
         coverage[t] = cov / max(_bbox_diag(v), 1e-12)
         conv.first = False
@@ -899,10 +898,8 @@ def _repair_poor_runs(vseq, conv, out, coverage, seconds, K: int, o: dict, shoul
             for t in frames:
                 t0 = time.perf_counter()
                 v, f = vseq.frames[t]
-                pts = wp.array(v, dtype=wp.vec3, device=device)
-                idx = wp.array(f.reshape(-1), dtype=wp.int32, device=device)
                 old_state = conv.frame_states.get(t)
-                conv.step_graph((wp.Mesh(points=pts, indices=idx), pts, idx), t)
+                conv.step_graph(_device_frame(v, f, device), t)
                 cov = conv.frame_coverage / max(_bbox_diag(v), 1e-12)
                 conv.frame_coverage = None
                 if cov < coverage[t]:
@@ -1147,16 +1144,14 @@ def main(argv=None) -> int:
             if a.strategy != "regularized":
                 p.error(f"--{k.replace('_', '-')} applies to --strategy regularized")
             opts[k] = getattr(a, k)
-    import yaml
+    from .config import SceneError, parse_assignment
 
     for item in a.option:
-        key, sep, val = item.partition("=")
-        if not sep or not key.strip():
-            p.error(f"--option {item!r}: expected KEY=VALUE, e.g. --option refine_rounds=0")
         try:
-            opts[key.strip()] = yaml.safe_load(val) if val.strip() else None
-        except yaml.YAMLError:
-            opts[key.strip()] = val
+            parts, value = parse_assignment(item, "--option", "KEY=VALUE, e.g. --option refine_rounds=0")
+        except SceneError as e:
+            p.error(str(e))
+        opts[".".join(parts).strip()] = None if value == "" else value
     try:
         # everything is checked before the sequence is loaded: options, input, template, output
         try:

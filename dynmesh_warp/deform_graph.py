@@ -20,8 +20,9 @@ iterations: coarse, near-rigid motion first, then finer bending) and a small dam
 prediction. Each iteration, all on the device with no host round trip: correspondences, the
 sparse K x K normal equations in p (fixed CSR pattern, accumulated by kernels), a
 Jacobi-preconditioned conjugate-gradient solve warm-started from the current p (one captured
-CUDA graph on the GPU), then the rotations (local step: polar part of the rotation covariance,
-edges + data, ``wp.svd3`` per node). ``fit`` reads the result back once.
+CUDA graph on the GPU), then the rotations (local step: the rotation closest to each node's
+covariance, edges + data, by a robust polar iteration per node). ``fit`` reads the result back
+once.
 """
 
 from __future__ import annotations
@@ -35,7 +36,12 @@ from .kernels import register as kr
 
 
 __all__ = ["DeformationGraph", "build_deformation_graph", "GraphFitter", "polar_rotations",
-           "extrapolate_rotations", "system_pattern"]
+           "extrapolate_rotations", "system_pattern", "CG_ITERATIONS", "CG_TOLERANCE"]
+
+#: the per-iteration linear solve: at most this many CG iterations, stopping at this relative
+#: (preconditioned) residual; the conversion's ``cg_iterations`` / ``cg_tolerance`` defaults
+CG_ITERATIONS = 32
+CG_TOLERANCE = 1e-5
 
 
 @dataclass
@@ -251,8 +257,8 @@ class GraphFitter:
         self.n = len(TV)
         self.K = graph.num_nodes
         self.k = graph.node_index.shape[1]
-        self.cg_iterations = max(int(opts.get("cg_iterations", 64)), 1)
-        self.cg_tolerance = float(opts.get("cg_tolerance", 1e-4))
+        self.cg_iterations = max(int(opts.get("cg_iterations", CG_ITERATIONS)), 1)
+        self.cg_tolerance = float(opts.get("cg_tolerance", CG_TOLERANCE))
         arr = lambda a, dt: wp.array(a, dtype=dt, device=d)  # noqa: E731
         self.rest_points = arr(np.ascontiguousarray(TV, np.float32), wp.vec3)
         self.indices = arr(np.ascontiguousarray(TF, np.int32).reshape(-1), wp.int32)
@@ -284,21 +290,16 @@ class GraphFitter:
         e = graph.edges
         ej = np.concatenate([e[:, 0], e[:, 1]]).astype(np.int64)
         el = np.concatenate([e[:, 1], e[:, 0]]).astype(np.int64)
-        lap = {}
-        for a, b, v in ((ej, ej, 1.0), (el, el, 1.0), (ej, el, -1.0), (el, ej, -1.0)):
-            key = a * K + b
-            u, c = np.unique(key, return_counts=True)
-            for kk, cc in zip(u.tolist(), c.tolist()):
-                lap[kk] = lap.get(kk, 0.0) + v * cc
+        # slots are sorted by row * K + column, so a slot is found by binary search of that key
         slot_key = rows.astype(np.int64) * K + cols
-        lap_values = np.array([lap.get(int(x), 0.0) for x in slot_key], np.float32) if lap else np.zeros(
-            self.nnz, np.float32)
+        lap_values = np.zeros(self.nnz, np.float64)
+        for a, b, v in ((ej, ej, 1.0), (el, el, 1.0), (ej, el, -1.0), (el, ej, -1.0)):
+            np.add.at(lap_values, np.searchsorted(slot_key, a * K + b), v)
         self.row_offsets = arr(offsets, wp.int32)
         self.columns = arr(cols, wp.int32)
         self.slot_row = arr(rows, wp.int32)
-        self.laplacian = arr(lap_values, float)
-        diag = offsets[:-1] + np.array([np.searchsorted(cols[offsets[r]:offsets[r + 1]], r) for r in range(K)],
-                                       np.int64)
+        self.laplacian = arr(lap_values.astype(np.float32), float)
+        diag = np.searchsorted(slot_key, np.arange(K, dtype=np.int64) * (K + 1))
         self.diagonal_slot = arr(diag.astype(np.int32), wp.int32)
         self.values = wp.zeros(self.nnz, dtype=float, device=d)
         self.rhs = wp.zeros(K, dtype=wp.vec3, device=d)
@@ -337,24 +338,19 @@ class GraphFitter:
         """The device's node rotations and positions as float64 (K,3,3), (K,3)."""
         return self.node_rotation.numpy().astype(np.float64), self.node_position.numpy().astype(np.float64)
 
-    def _skin(self, out=None):
-        out = self.points if out is None else out
-        wp.launch(kr.skin_vertices, dim=self.n,
-                  inputs=[self.rest_points, self.node_rest, self.node_index, self.node_weight, self.k,
-                          self.node_rotation, self.node_position], outputs=[out], device=self.device)
-        return out
-
-    def skin(self, R: np.ndarray, P: np.ndarray, out=None):
-        """Template positions for node rotations R (K,3,3) and positions P (K,3) -> ``out``
-        (default self.points)."""
-        self.set_state(R, P)
-        return self._skin(out)
-
-    def rebuild(self, R: np.ndarray | None = None, P: np.ndarray | None = None):
-        """Rebuild the template BVH on the template skinned by (R, P) (default: the device state)."""
+    def skin(self, R: np.ndarray | None = None, P: np.ndarray | None = None):
+        """Template positions (self.points) for node rotations R (K,3,3) and positions P (K,3),
+        uploaded first when given (default: the device state)."""
         if R is not None:
             self.set_state(R, P)
-        wp.copy(self.mesh_points, self._skin())
+        wp.launch(kr.skin_vertices, dim=self.n,
+                  inputs=[self.rest_points, self.node_rest, self.node_index, self.node_weight, self.k,
+                          self.node_rotation, self.node_position], outputs=[self.points], device=self.device)
+        return self.points
+
+    def rebuild(self):
+        """Rebuild the template BVH on the template skinned by the device state."""
+        wp.copy(self.mesh_points, self.skin())
         self.tmesh = wp.Mesh(points=self.mesh_points, indices=self.indices)
 
     def _update_template(self):
@@ -396,9 +392,9 @@ class GraphFitter:
                   inputs=[self.slot_row, self.columns, self.laplacian, self.position_prior, stiffness_weight,
                           damping_weight], outputs=[self.values, self.rhs, self.covariance, self.weight_sum],
                   device=d)
-        wp.launch(kr.sum_correspondence_weights, dim=n, inputs=[self.fweight, n, 0], outputs=[self.weight_sum],
+        wp.launch(kr.sum_correspondence_weights, dim=n, inputs=[self.fweight, 0], outputs=[self.weight_sum],
                   device=d)
-        wp.launch(kr.sum_correspondence_weights, dim=q, inputs=[self.bweight, q, 1], outputs=[self.weight_sum],
+        wp.launch(kr.sum_correspondence_weights, dim=q, inputs=[self.bweight, 1], outputs=[self.weight_sum],
                   device=d)
         wp.launch(kr.accumulate_forward_system, dim=n,
                   inputs=[self.node_index, self.node_weight, self.k, self.row_offsets, self.columns, self.points,
@@ -497,10 +493,10 @@ class GraphFitter:
         wd = float(damping) / self.K
         for it in range(its):
             wr = float(lams[it]) / self.num_edges
-            self._skin()
+            self.skin()
             self.correspondences(frame, min_cos)
             self.assemble(frame, wr, wd)
             self.solve()
             self.update_rotations(wr)
-        self._skin()
+        self.skin()
         return self.get_state()

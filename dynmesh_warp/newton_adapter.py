@@ -157,10 +157,6 @@ class DeformingMeshShape:
             wp.launch(accumulate_shape_bounds, dim=surf.num_vertices, inputs=[m.points, self.shape, self.bounds_pad],
                       outputs=outs, device=d)
 
-    def points(self) -> np.ndarray:
-        """Current surface vertices (N, 3) [m] (host copy)."""
-        return self.mesh.points.numpy()
-
 
 def make_solver(model, name: str = DEFAULT_NEWTON_SOLVER, **options):
     """Create a Newton solver by name (``SOLVERS``); ``options`` go to its constructor."""

@@ -27,11 +27,12 @@ class MeshDataError(ValueError):
 
 class TopologyMismatchError(MeshDataError):
     """A varying-topology sequence asked to be fixed topology: ``frame`` (index) and ``source``
-    differ from frame 0 in ``what`` ("vertex count" or "faces"); ``detail`` says how."""
+    differ from frame 0 in ``what`` ("vertex count" or "faces"); ``detail`` says how. The
+    message is the summary followed by ``advice``."""
 
-    def __init__(self, message: str, *, frame: int, source: str, what: str, detail: str):
-        super().__init__(message)
+    def __init__(self, *, frame: int, source: str, what: str, detail: str, advice: str):
         self.frame, self.source, self.what, self.detail = frame, source, what, detail
+        super().__init__(f"{self.summary}; {advice}")
 
     @property
     def summary(self) -> str:
@@ -251,16 +252,16 @@ class VaryingTopologySequence:
         for t, (v, f) in enumerate(self.frames):
             src = self.frame_sources[t] if self.frame_sources else where
             if v.shape[0] != V0.shape[0]:
-                detail = f"{v.shape[0]} vertices but frame 0 ({src0}) has {V0.shape[0]}"
                 raise TopologyMismatchError(
-                    f"{src} (frame {t}): {detail}; a fixed-topology sequence needs the same vertex count "
-                    "in every frame", frame=t, source=str(src), what="vertex count", detail=detail)
+                    frame=t, source=str(src), what="vertex count",
+                    detail=f"{v.shape[0]} vertices but frame 0 ({src0}) has {V0.shape[0]}",
+                    advice="a fixed-topology sequence needs the same vertex count in every frame")
             if f.shape != F0.shape or not np.array_equal(f, F0):
-                detail = f"faces differ from frame 0 ({src0}) ({len(f)} vs {len(F0)} faces)"
                 raise TopologyMismatchError(
-                    f"{src} (frame {t}): {detail}; a fixed-topology sequence needs identical faces in every "
-                    "frame (convert a varying-topology one with dynmesh_warp.convert)",
-                    frame=t, source=str(src), what="faces", detail=detail)
+                    frame=t, source=str(src), what="faces",
+                    detail=f"faces differ from frame 0 ({src0}) ({len(f)} vs {len(F0)} faces)",
+                    advice="a fixed-topology sequence needs identical faces in every frame (convert a "
+                           "varying-topology one with dynmesh_warp.convert)")
         return FixedTopologySequence(
             np.stack([v for v, _ in self.frames]), F0, fps=self.fps, name=self.name,
             source=self.source,

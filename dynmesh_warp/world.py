@@ -759,8 +759,7 @@ class World:
         m, st, ctx = self.model, self.state, self.ctx
         self.collider = (RebuildCollider(m, st, ctx, rebuild_every) if collider == "rebuild"
                          else COLLIDERS[collider](m, st, ctx))
-        self.collider.update(m, st, ctx)
-        self.state.frame_changed.zero_()  # the collider is at the clock's frame pair
+        self._catch_up_collider()
         self.compute_normals()
         # the swept collider needs no vertex buffer; keep it (and the normals) current once per
         # step only when asked (viewer, Gaussians): render_state=True or a hook that needs it
@@ -949,11 +948,16 @@ class World:
         self.compute_normals()
 
     # -- editing between steps (host side; invalidates the captured graph) ---------------------
+    def _catch_up_collider(self):
+        """The collider's structure at the current time (its ``refresh`` hook); the frame change
+        it consumed is cleared, so the next step does not redo it."""
+        self.collider.refresh(self.model, self.state, self.ctx)
+        self.state.frame_changed.zero_()
+
     def _refresh_surface(self):
         self.update_surface()
         self.state.update_frame_key(self.model)  # the clock moved: its frame pair, and whether it changed
-        self.collider.refresh(self.model, self.state, self.ctx)
-        self.state.frame_changed.zero_()  # the collider has caught up with the clock
+        self._catch_up_collider()
         self.compute_normals()
 
     def reset(self):

@@ -178,17 +178,16 @@ def side_scale(weight_sum: wp.array(dtype=float), side: int) -> float:
 def sum_correspondence_weights(
     # In:
     weight: wp.array(dtype=float),
-    count: int,
     side: int,
     # Out (accumulated):
     weight_sum: wp.array(dtype=float),
 ):
-    """weight_sum[side] += sum of weight[:count] (weight may be longer than the live count)."""
+    """weight_sum[side] += sum of weight[:dim] (launch with the live count: the array may be
+    longer)."""
     i = wp.tid()
-    if i < count:
-        w = weight[i]
-        if w != 0.0:
-            wp.atomic_add(weight_sum, side, w)
+    w = weight[i]
+    if w != 0.0:
+        wp.atomic_add(weight_sum, side, w)
 
 
 @wp.kernel

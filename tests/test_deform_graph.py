@@ -142,7 +142,7 @@ def _fit_setup(seed=0, cg_iterations=40):
     wp.copy(fit.position_prior, fit.node_position)
     fit.set_state(R, P)
     fit.rebuild()
-    fit._skin()
+    fit.skin()
     fit.correspondences(frame, float(np.cos(np.radians(60.0))))
     return fit, frame, V, F, V1, R, P, prior
 
