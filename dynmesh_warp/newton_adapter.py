@@ -273,15 +273,23 @@ class NewtonWorld:
         for i in range(self.substeps):
             self.substep(i == self.substeps - 1)
 
+    def capture(self):
+        """Capture one step as a CUDA graph that later ``step()`` calls replay; nothing without
+        ``use_graph``. Captures nothing, advances nothing. Call it after one eager step: that step
+        loaded exactly the Warp modules Newton's pipeline and solver use (``force_module_load=True``
+        would instead load, on a cold cache compile, every module Newton defines: minutes on a
+        GPU). ``step()`` does the same by itself on its second call."""
+        if not self.use_graph or self._graph is not None:
+            return
+        with wp.ScopedCapture(device=self.device, force_module_load=False) as cap:
+            self._step_body()
+        self._graph = cap.graph
+
     def step(self):
-        """Advance by one physics step (dt)."""
+        """Advance by one physics step (dt): eager the first time, then a captured CUDA graph
+        (``use_graph``; the same policy as the built-in ``World``)."""
         if self.use_graph and self._graph is None and self.substep_count > 0:
-            # Capture on the second step: the first ran eagerly, which loaded exactly the Warp
-            # modules Newton's pipeline and solver use. ``force_module_load=True`` would instead
-            # load (on a cold cache, compile) every module Newton defines: minutes on a GPU.
-            with wp.ScopedCapture(device=self.device, force_module_load=False) as cap:
-                self._step_body()
-            self._graph = cap.graph
+            self.capture()
         if self._graph is not None:
             wp.capture_launch(self._graph)
         else:
@@ -304,6 +312,39 @@ class NewtonWorld:
 
     def sphere_radii(self) -> np.ndarray:
         return np.zeros(0, np.float32)
+
+    # -- what the runner reads (runtime.Simulation; runner.run_simulation) ---------------------
+    checkpointable = False  # the Newton solver's state is not saved
+    body_noun = "body"
+
+    def sample(self) -> dict:
+        """The arrays of one ``trajectories.npz`` sample: ``body_q`` (B, 7) body poses."""
+        return {"body_q": self.body_transforms()}
+
+    def trajectory_constants(self) -> dict:
+        return {}
+
+    def contact_count(self) -> int:
+        """Rigid contacts found by Newton's collision pipeline in the last sub-step."""
+        return int(self.contacts.rigid_contact_count.numpy()[0])
+
+    def run_summary(self) -> dict:
+        """The Newton world's fields of a run's ``summary.json``."""
+        final = self.body_transforms()
+        return {
+            "engine": "newton",
+            "newton_version": _import_newton().__version__,
+            "solver": self.solver_name,
+            "surface": {"frames": self.surface.num_frames, "fps": self.surface.fps,
+                        "vertices": self.surface.num_vertices, "faces": self.surface.num_faces},
+            "bodies": self.model.body_count,
+            "entries": self.records,
+            "final": {"finite": bool(np.isfinite(final).all()), "body_q": final, "body_labels": self.body_labels()},
+        }
+
+    def run_line(self) -> tuple[str, str]:
+        """(engine label, result) of the run's log line."""
+        return f"Newton {self.solver_name}", f"{self.model.body_count} bodies"
 
     # -- read-out (host copies; for the viewer and summaries) ----------------------------------
     def body_transforms(self) -> np.ndarray:
@@ -486,80 +527,3 @@ def build_newton_world(cfg, device=None, sequence=None, **overrides) -> NewtonWo
         raise SceneError(f"newton.solver_options: {e}") from e
     world.records = records
     return world
-
-
-def run_newton_scene(cfg, device=None, steps: int | None = None, output=None, progress: bool = True,
-                     log=print, overwrite: bool | str = "ours", stop=None) -> dict:
-    """Run a ``newton:`` scene headless; write ``trajectories.npz`` (time, body_q (K, B, 7)) and
-    ``summary.json`` atomically; return the summary (steps/s, final body poses). ``stop``: as in
-    :func:`~dynmesh_warp.run.run_scene` (the run ends at that step, ``"interrupted": true``)."""
-    import platform  # noqa: PLC0415
-    import time  # noqa: PLC0415
-
-    from .cli import checking_stops  # noqa: PLC0415
-    from .outputs import OutputFolder, atomic_write_json, atomic_write_npz  # noqa: PLC0415
-    from .runtime import check_run_output, rate_text, run_steps, steps_per_second, timed_loop  # noqa: PLC0415
-
-    out = check_run_output(cfg, output, overwrite)
-    t_build = time.perf_counter()
-    world = build_newton_world(cfg, device=device)
-    if steps is None:
-        steps = run_steps(cfg)
-    # warm-up outside the timed loop: step 1 loads (compiles) the kernels, step 2 captures the graph
-    warm = min(steps, 2 if world.use_graph else 1)
-    for _ in range(warm):
-        world.step()
-    wp.synchronize_device(world.device)
-    build_s = time.perf_counter() - t_build
-    times, poses = [world.time], [world.body_transforms()]
-
-    def record():
-        times.append(world.time)
-        poses.append(world.body_transforms())
-
-    with checking_stops():  # a signal from here on stops at a step boundary (cli.py)
-        sim_s, reached = timed_loop(world, steps, cfg.run.record_every, record, progress, start=warm, stop=stop)
-        reason = stop() if (stop is not None and reached < steps) else None
-        if reason and (reached - warm) % cfg.run.record_every:
-            record()  # the state where it stopped
-    final = world.body_transforms()
-    finite = bool(np.isfinite(final).all())
-    sps = steps_per_second(reached - warm, sim_s)
-    summary = {
-        "scene": cfg.name,
-        "engine": "newton",
-        "newton_version": _import_newton().__version__,
-        "solver": world.solver_name,
-        "device": str(world.device),
-        "device_name": world.device.name if world.device.is_cuda else (platform.processor() or platform.machine()),
-        "cuda_graph": bool(world.use_graph),
-        "surface": {"source": cfg.surface.source, "frames": world.surface.num_frames, "fps": world.surface.fps,
-                    "vertices": world.surface.num_vertices, "faces": world.surface.num_faces},
-        "bodies": world.model.body_count,
-        "entries": world.records,
-        "dt": world.dt,
-        "substeps": world.substeps,
-        "steps": steps,
-        "step_reached": reached,
-        "interrupted": bool(reason),
-        "interrupted_by": (reason if isinstance(reason, str) else "stop()") if reason else None,
-        "sim_time_s": world.time,
-        "setup_and_compile_s": build_s,
-        "timed_steps": reached - warm,
-        "timed_wall_s": sim_s,
-        "steps_per_second": sps,
-        "final": {"finite": finite, "body_q": final, "body_labels": world.body_labels()},
-    }
-    with checking_stops(), OutputFolder(out, overwrite=bool(overwrite)) as tmp:
-        atomic_write_npz(tmp / "trajectories.npz", time=np.asarray(times), body_q=np.asarray(poses))
-        atomic_write_json(tmp / "summary.json", summary)
-    summary["output"] = str(out)
-    if reason:
-        return summary  # the CLI says what was written
-    log(f"{cfg.name}: {steps} steps on {summary['device']} (Newton {world.solver_name}"
-        f"{', CUDA graph' if world.use_graph else ''}): "
-        + rate_text(sps) + f"{world.model.body_count} bodies; "
-        f"outputs in {out}")
-    if not finite:
-        log("WARNING: non-finite body state at the end of the run")
-    return summary

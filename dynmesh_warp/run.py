@@ -11,14 +11,12 @@ from __future__ import annotations
 
 import argparse
 import math
-import platform
 import signal
 import sys
 import time
 import warnings
 from pathlib import Path
 
-import numpy as np
 
 from .cli import interruptible_main
 from .runtime import (
@@ -27,10 +25,7 @@ from .runtime import (
     check_run_output,
     check_total_work,
     lift_work_limits,
-    rate_text,
     run_steps,
-    steps_per_second,
-    timed_loop,
 )
 
 __all__ = ["main", "run_scene"]
@@ -75,14 +70,6 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def _signed_distances(world) -> np.ndarray:
-    """Signed distance of each sphere surface to the mesh (>= 0 outside), from the contacts."""
-    c = world.contacts.numpy()
-    d = -c["depth"]
-    d[c["face"] < 0] = np.inf
-    return d
-
-
 def run_scene(cfg, device=None, steps: int | None = None, collider: str | None = None,
               rebuild_every: str | None = None, output: str | Path | None = None,
               progress: bool = True, log=print, overwrite: bool | str = "ours",
@@ -102,27 +89,18 @@ def run_scene(cfg, device=None, steps: int | None = None, collider: str | None =
     checked between steps (at least every ~0.05 s of stepping): once it returns a true value
     (e.g. ``"SIGINT"``) the run ends at that step and writes what it has, with
     ``"interrupted": true`` and ``"step_reached"`` in the summary."""
-    if getattr(cfg, "newton", None) is not None:  # bodies simulated by Newton (docs/newton.md)
-        from .newton_adapter import run_newton_scene
+    newton = getattr(cfg, "newton", None) is not None  # bodies simulated by Newton (docs/newton.md)
+    from .checkpoint import Checkpoint, CheckpointError, load_checkpoint
+    from .runner import run_simulation
 
+    if newton:
         if collider is not None or rebuild_every is not None:
             warnings.warn("--collider / --rebuild-every choose the built-in world's collider; a scene "
                           "with a newton: section uses Newton's collision pipeline, so they are ignored",
                           stacklevel=2)
         if checkpoint_every or resume is not None:
-            from .checkpoint import CheckpointError
-
             raise CheckpointError("--checkpoint-every / --resume: not available for a scene with a newton: section "
                                   "(the Newton solver's state is not saved)")
-        return run_newton_scene(cfg, device=device, steps=steps, output=output, progress=progress, log=log,
-                                overwrite=overwrite, stop=stop)
-    import warp as wp
-
-    from .checkpoint import CHECKPOINT_NAME, Checkpoint, CheckpointError, load_checkpoint, save_checkpoint
-    from .cli import checking_stops
-    from .outputs import OutputFolder, add_to_manifest, atomic_write_json, atomic_write_npz
-    from .scene import build_world
-
     ckpt = resume
     if resume is not None and not isinstance(resume, Checkpoint):
         ckpt = load_checkpoint(resume)  # the file on its own, before any work
@@ -136,145 +114,17 @@ def run_scene(cfg, device=None, steps: int | None = None, collider: str | None =
                               f"{steps:,} steps; give more (--steps, --duration, run.steps) to continue it")
     every = int(ckpt.checkpoint_every if (ckpt is not None and checkpoint_every is None) else (checkpoint_every or 0))
     check_total_work(cfg, steps, cfg.physics.substeps)  # before loading: the configured sub-steps
-    world = build_world(cfg, device=device, collider=collider, rebuild_every=rebuild_every)
-    p = world.model.params
-    check_total_work(cfg, steps, world.substeps)  # with the sub-step rule's count
-    rec = cfg.run.record_every
-    times, pos, vel = [], [], []
-    contact_samples, start = 0, 0
-    if ckpt is not None:
-        ckpt.restore(world)  # checked against the scene first (CheckpointError naming the field)
-        times, pos, vel = ckpt.times, ckpt.positions, ckpt.velocities
-        contact_samples, start = ckpt.contact_samples, ckpt.step
-    marks = {"record": None, "checkpoint": None}  # the last step recorded / checkpointed
+    if newton:
+        from .newton_adapter import build_newton_world
 
-    def step_now() -> int:
-        return world.substep_count // world.substeps  # steps since the run's start (restored on resume)
+        sim = build_newton_world(cfg, device=device)
+    else:
+        from .scene import build_world
 
-    def record(count_contacts: bool = True):
-        nonlocal contact_samples
-        times.append(world.time)
-        pos.append(world.sphere_positions())
-        vel.append(world.sphere_velocities())
-        marks["record"] = step_now()
-        bad = np.flatnonzero(~(np.isfinite(pos[-1]).all(axis=1) & np.isfinite(vel[-1]).all(axis=1)))
-        if bad.size:
-            i, step = int(bad[0]), marks["record"]
-            raise NonFiniteStateError(
-                f"sphere {i} has a non-finite state at step {step} (t = {world.time:.4g} s; checked every "
-                f"run.record_every = {rec} steps): position {pos[-1][i].tolist()}, velocity {vel[-1][i].tolist()}"
-                f"{f' ({bad.size} spheres)' if bad.size > 1 else ''}; stopped, {out} keeps its previous contents")
-        if count_contacts:
-            contact_samples += int((world.contacts.face.numpy() >= 0).sum())
-
-    def checkpoint(step: int):
-        st = world.checkpoint_state()
-        if not (np.isfinite(st["sphere_pos"]).all() and np.isfinite(st["sphere_vel"]).all()):
-            raise NonFiniteStateError(f"non-finite sphere state at step {step}: no checkpoint written there; "
-                                      f"{out / CHECKPOINT_NAME} keeps the last good one")
-        out.mkdir(parents=True, exist_ok=True)
-        save_checkpoint(out / CHECKPOINT_NAME, world, scene=cfg.name, step=step, steps=steps,
-                        checkpoint_every=every, contact_samples=contact_samples, times=times, positions=pos,
-                        velocities=vel)
-        add_to_manifest(out, CHECKPOINT_NAME)
-        marks["checkpoint"] = step
-
-    # warm-up: compile kernels (and capture the CUDA graph) outside the timed loop; the first
-    # sample is the state after it (step 1 of a new run)
-    world.step()
-    wp.synchronize_device(world.device)
-    build_s = time.perf_counter() - t_build
-    first = start + 1
-    with checking_stops():  # a signal from here on stops at a step boundary (cli.py)
-        if (first - 1) % rec == 0:
-            record(count_contacts=first > 1)
-        if every and first % every == 0:
-            checkpoint(first)
-        sim_s, reached = timed_loop(world, steps, rec, record, progress, start=first, origin=1,
-                                    stop=stop, checkpoint_every=every, checkpoint=checkpoint)
-        if first == steps and marks["record"] != steps:
-            record()  # a one-step run (or a resume one step short of the end): its final sample
-        reason = stop() if (stop is not None and reached < steps) else None
-        if reason:  # stopped early: a checkpoint there (when checkpointing), then the final sample
-            if every and marks["checkpoint"] != reached:
-                checkpoint(reached)
-            if marks["record"] != reached:
-                record()
-        timed_steps = reached - first  # the first step (compile, graph capture) is not timed
-        sps = steps_per_second(timed_steps, sim_s)
-        final_pos = world.sphere_positions()
-        final_vel = world.sphere_velocities()
-        gap = _signed_distances(world)
-        cnt = world.contacts.numpy()
-        finite = bool(np.isfinite(final_pos).all() and np.isfinite(final_vel).all())
-        summary = {
-            "scene": cfg.name,
-            "device": str(world.device),
-            "device_name": world.device.name if world.device.is_cuda else (platform.processor() or platform.machine()),
-            "collider": world.collider.name + (f"/{world.collider.every}" if world.collider.name == "rebuild" else ""),
-            "cuda_graph": bool(world.use_graph),
-            "surface": {
-                "source": cfg.surface.source,
-                "frames": world.model.surface.num_frames,
-                "fps": world.model.surface.fps,
-                "interpolate": bool(world.model.surface.interpolate),
-                "max_speed_m_s": float(world.model.surface.max_speed),
-            },
-            "spheres": world.model.spheres.count,
-            "dt": p.dt,
-            "substeps": world.substeps,
-            "steps": steps,
-            "step_reached": reached,
-            "interrupted": bool(reason),
-            "interrupted_by": (reason if isinstance(reason, str) else "stop()") if reason else None,
-            "resumed_from": {"checkpoint": str(resume), "step": start} if ckpt is not None else None,
-            "checkpoint": ({"file": CHECKPOINT_NAME, "step": marks["checkpoint"], "every": every}
-                           if marks["checkpoint"] is not None else None),
-            "sim_time_s": world.time,
-            "setup_and_compile_s": build_s,
-            "timed_steps": timed_steps,
-            "timed_wall_s": sim_s,
-            "steps_per_second": sps,
-            "contacts": {
-                "in_contact_final": int((cnt["face"] >= 0).sum()),
-                "contact_sphere_samples": contact_samples,
-                "samples": len(times) - 1,
-            },
-            "final": {
-                "finite": finite,
-                "position": final_pos,
-                "velocity": final_vel,
-                "surface_gap": np.where(np.isfinite(gap), gap, None).tolist(),
-                "max_penetration": float(max(0.0, -np.min(gap))) if world.model.spheres.count else 0.0,
-            },
-        }
-        with OutputFolder(out, overwrite=bool(overwrite)) as tmp:
-            atomic_write_npz(tmp / "trajectories.npz", time=np.asarray(times), position=np.asarray(pos),
-                             velocity=np.asarray(vel), radius=world.model.spheres.radius.numpy())
-            atomic_write_json(tmp / "summary.json", summary)
-            if marks["checkpoint"] is not None:  # the latest checkpoint stays with the outputs
-                _link_or_copy(out / CHECKPOINT_NAME, tmp / CHECKPOINT_NAME)
-    summary["output"] = str(out)
-    if reason:
-        return summary  # the CLI says what was written (one line on stderr)
-    log(f"{cfg.name}: {steps} steps on {summary['device']} ({summary['collider']}"
-        f"{', CUDA graph' if world.use_graph else ''}): "
-        + rate_text(sps) + f"{summary['contacts']['in_contact_final']}/{world.model.spheres.count} spheres in contact, "
-        f"max penetration {summary['final']['max_penetration']:.2e} m; outputs in {out}")
-    if not finite:
-        log("WARNING: non-finite sphere state at the end of the run")
-    return summary
-
-
-def _link_or_copy(src: Path, dst: Path) -> None:
-    """``dst`` as a hard link of ``src`` (same folder tree), else a copy."""
-    import os
-    import shutil
-
-    try:
-        os.link(src, dst)
-    except OSError:
-        shutil.copy2(src, dst)
+        sim = build_world(cfg, device=device, collider=collider, rebuild_every=rebuild_every)
+        check_total_work(cfg, steps, sim.substeps)  # with the sub-step rule's count
+    return run_simulation(sim, cfg, steps=steps, out=out, t_build=t_build, progress=progress, log=log,
+                          overwrite=overwrite, stop=stop, checkpoint_every=every, ckpt=ckpt)
 
 
 def check_cli_options(args) -> None:

@@ -31,14 +31,25 @@ class Simulation(Protocol):
     Attributes:
         device: the Warp device; surface: the deforming surface (``world.SurfaceModel``);
         t0: start time [s]; time: simulation time [s] (host twin of the device clock);
-        dt: physics step [s]; editable: whether ``reset``, ``set_time`` and ``add_spheres``
-        exist (the built-in world; a Newton world's bodies are Newton's).
+        dt: physics step [s]; substeps: sub-steps per step; substep_count: sub-steps taken;
+        use_graph: whether steps replay a captured CUDA graph; editable: whether ``reset``,
+        ``set_time`` and ``add_spheres`` exist (the built-in world; a Newton world's bodies are
+        Newton's); checkpointable: whether ``checkpoint_state`` exists (the built-in world);
+        body_noun: what a row of the sampled arrays is ("sphere", "body"), for messages.
+
+    The runner (``runner.run_simulation``) reads only this protocol: ``step``, ``capture``,
+    ``sample``, ``trajectory_constants``, ``contact_count``, ``run_summary``, ``run_line``.
     """
 
     device: object
     surface: object
     t0: float
+    substeps: int
+    substep_count: int
+    use_graph: bool
     editable: bool
+    checkpointable: bool
+    body_noun: str
 
     @property
     def time(self) -> float: ...
@@ -47,7 +58,28 @@ class Simulation(Protocol):
     def dt(self) -> float: ...
 
     def step(self) -> None:
-        """Advance by one physics step."""
+        """Advance by one physics step (eager the first time; then a captured graph where
+        ``use_graph``)."""
+
+    def capture(self) -> None:
+        """Capture one step as a CUDA graph (nothing without ``use_graph``); advances nothing.
+        Called after one eager step, which loaded the step's modules."""
+
+    def sample(self) -> dict:
+        """The arrays of one trajectory sample (host copies; rows = bodies)."""
+
+    def trajectory_constants(self) -> dict:
+        """Arrays stored once next to the samples (e.g. sphere radii)."""
+
+    def contact_count(self) -> int:
+        """Contacts now (spheres in contact; Newton's rigid contacts)."""
+
+    def run_summary(self) -> dict:
+        """The engine's fields of a run's summary (collider or solver, surface, bodies, and
+        ``final`` with a ``finite`` flag)."""
+
+    def run_line(self) -> tuple[str, str]:
+        """(engine label, result) for the run's log line."""
 
     def surface_points(self):
         """The surface's vertex buffer (N,) wp.vec3 [m] at ``time`` (brought up to date)."""
@@ -160,8 +192,8 @@ def timed_loop(world, steps: int, every: int, record, progress: bool, *, start: 
     every multiple of ``checkpoint_every`` (after that step's sample, before a last-step-only
     one). ``stop()`` is checked between chunks of about ``chunk_s`` wall seconds of steps and at
     those boundaries: once true the loop ends there. Returns (wall seconds of the steps alone,
-    device synchronised, recording excluded; the step reached). Shared by the built-in and the
-    Newton run paths."""
+    device synchronised, recording excluded; the step reached). The loop of
+    ``runner.run_simulation``, for both engines."""
     import warp as wp
 
     origin = start if origin is None else origin

@@ -906,9 +906,12 @@ class World:
         self.finish_step()
 
     def capture(self):
-        """Capture one step (all sub-steps) as a CUDA graph; later ``step()`` calls replay it."""
-        if not (self.device.is_cuda and self.collider.capturable):
-            raise RuntimeError("graph capture needs a CUDA device and a capturable collider")
+        """Capture one step (all sub-steps) as a CUDA graph, which later ``step()`` calls replay;
+        nothing where the world steps eagerly (``use_graph`` false: the CPU, a rebuild collider).
+        Captures nothing, advances nothing. ``step()`` captures by itself after one eager step;
+        the runner calls this after its warm-up step, so capture stays out of the timed loop."""
+        if not self.use_graph:
+            return
         # Load only our own kernel modules before capturing: ``force_module_load=True`` would load
         # (and on a cold cache compile) every Warp module imported in the process (all of
         # Newton's, for one), which took minutes on a fresh GPU machine. Kernels of other
@@ -920,8 +923,11 @@ class World:
         self._graph = cap.graph
 
     def step(self):
-        """Advance by one physics step (params.dt)."""
-        if self.use_graph:
+        """Advance by one physics step (params.dt). With ``use_graph`` the first step runs
+        eagerly (it loads the step's modules) and the next captures the step as a CUDA graph
+        (the same policy as ``NewtonWorld``); from then on steps replay it. Editing the world
+        drops the graph; the next step captures it again."""
+        if self.use_graph and (self._graph is not None or self.substep_count > 0):
             if self._graph is None:
                 self.capture()
             wp.capture_launch(self._graph)
@@ -1068,6 +1074,56 @@ class World:
         for dst, row in zip((self.state.sphere_pos, self.state.sphere_vel), rows):
             wp.copy(dst, wp.array(row, dtype=wp.vec3, device=self.device), dest_offset=i, count=1)
         self.collider.spheres_moved(self.model, self.state, self.ctx)
+
+    # -- what the runner reads (runtime.Simulation; runner.run_simulation) ---------------------
+    checkpointable = True  # checkpoint_state / checkpoint.Checkpoint.restore
+    body_noun = "sphere"
+
+    def sample(self) -> dict:
+        """The arrays of one ``trajectories.npz`` sample: ``position`` and ``velocity`` (S, 3)
+        [m], [m/s] (host copies)."""
+        return {"position": self.sphere_positions(), "velocity": self.sphere_velocities()}
+
+    def trajectory_constants(self) -> dict:
+        """Arrays stored once in ``trajectories.npz``: ``radius`` (S,) [m]."""
+        return {"radius": self.model.spheres.radius.numpy()}
+
+    def contact_count(self) -> int:
+        """Spheres in contact with the surface after the last step."""
+        return int((self.contacts.face.numpy() >= 0).sum())
+
+    def _surface_gaps(self) -> np.ndarray:
+        """(S,) signed gap of each sphere to the surface [m] from the last step's contacts; inf
+        where a sphere has no contact candidate."""
+        c = self.contacts.numpy()
+        d = -c["depth"]
+        d[c["face"] < 0] = np.inf
+        return d
+
+    def run_summary(self) -> dict:
+        """The built-in world's fields of a run's ``summary.json``."""
+        surf = self.model.surface
+        pos, vel = self.sphere_positions(), self.sphere_velocities()
+        gap = self._surface_gaps()
+        return {
+            "collider": self.collider.name + (f"/{self.collider.every}" if self.collider.name == "rebuild" else ""),
+            "surface": {"frames": surf.num_frames, "fps": surf.fps,
+                        "interpolate": bool(surf.interpolate), "max_speed_m_s": float(surf.max_speed)},
+            "spheres": self.model.spheres.count,
+            "final": {
+                "finite": bool(np.isfinite(pos).all() and np.isfinite(vel).all()),
+                "position": pos,
+                "velocity": vel,
+                "surface_gap": np.where(np.isfinite(gap), gap, None).tolist(),
+                "max_penetration": float(max(0.0, -np.min(gap))) if self.model.spheres.count else 0.0,
+            },
+        }
+
+    def run_line(self) -> tuple[str, str]:
+        """(engine label, result) of the run's log line."""
+        s = self.run_summary()
+        return (s["collider"], f"{self.contact_count()}/{s['spheres']} spheres in contact, "
+                f"max penetration {s['final']['max_penetration']:.2e} m")
 
     # -- convenience ---------------------------------------------------------------------------
     def sphere_positions(self) -> np.ndarray:

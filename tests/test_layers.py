@@ -21,6 +21,8 @@ LAYERS = [
     {"world", "remesh", "metrics", "deform_graph"},
     # what runners share: devices, run length, output checks, the timed loop; checkpoints; Gaussians
     {"runtime", "checkpoint", "gaussians"},
+    # the one runner of both engines (it is handed a built simulation)
+    {"runner"},
     # conversion, then building a scene (which may convert)
     {"convert"},
     {"scene"},
