@@ -59,7 +59,19 @@ class ConversionConfig(_Strict):
 
     strategy: Strategy = DEFAULT_STRATEGY
     template: Optional[str] = None  # a mesh file; default: the first frame
+    #: the strategy's options (conversion_options: names, defaults and ranges), checked here
     options: dict = Field(default_factory=dict)
+
+    @field_validator("options")
+    @classmethod
+    def _check_options(cls, v: dict, info):
+        from .conversion_options import options_for
+
+        try:
+            options_for(info.data.get("strategy", DEFAULT_STRATEGY), **v)
+        except (TypeError, ValueError) as e:  # TypeError (unknown name) too: pydantic reports ValueErrors
+            raise ValueError(str(e)) from None
+        return v
 
 
 class SurfaceConfig(_Strict):

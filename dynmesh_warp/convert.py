@@ -51,7 +51,8 @@ import numpy as np
 import warp as wp
 
 from .choices import DEFAULT_STRATEGY, STRATEGIES
-from .deform_graph import CG_ITERATIONS, CG_TOLERANCE, GraphFitter, build_deformation_graph, extrapolate_rotations
+from .conversion_options import options_for
+from .deform_graph import GraphFitter, build_deformation_graph, extrapolate_rotations
 from .geometry import surface_area
 from .kernels import convert as kc
 from .kernels.geometry import project_points_to_mesh
@@ -67,56 +68,6 @@ __all__ = [
     "surface_deviation",
     "main",
 ]
-
-
-_DEFAULTS = {
-    "projection": {},
-    "tracking": {"reanchor_interval": 50, "tracked_weight": 0.8},
-    "regularized": {
-        "iterations": 3,
-        "smooth_iterations": 10,
-        "smooth_weight": 0.5,
-        "pull_fraction": 0.5,
-        "relax_iterations": 3,
-        "relax_step": 1.0,
-        "normal_slack": 3.0,
-        "rigid_iterations": 3,
-        "reinit_threshold": 0.005,
-        "max_iterations": 6,
-        "refine_threshold": 0.002,
-        "bank_interval": 5,
-        "reinit_samples": 1024,
-    },
-    "graph": {
-        # deformation graph (dynmesh_warp.deform_graph); lengths: fractions of the template's bbox diagonal
-        "node_spacing": 0.03,
-        "nodes_per_vertex": 4,
-        "graph_iterations": 8,
-        "stiffness": 10.0,
-        "stiffness_end": 0.3,
-        "damping": 0.01,
-        "max_normal_angle": 60.0,
-        "predict": 1.0,
-        "restart_threshold": 0.02,
-        "refine_rounds": 2,
-        # bidirectional repair: re-track runs of poorly covered frames from the other side (off:
-        # on pcow it lowered the worst uncovered vertex 13.6 -> 12.3 % but not the CD, +58 -> +60 %)
-        "repair_passes": 0,
-        "repair_threshold": 0.0,  # coverage above which a frame is poor; 0: max(restart_threshold, 2 x median)
-        "bank_interval": 10,
-        # the per-iteration linear solve on the device (conjugate gradients, warm-started)
-        "cg_iterations": CG_ITERATIONS,
-        "cg_tolerance": CG_TOLERANCE,
-        # fine stage on the full-resolution template: "regularized"'s steps, 4 iterations, the
-        # backward (coverage) pull alone where a vertex has one (pull_fraction 1; the forward
-        # closest point elsewhere): issue 12's protocol, horse_collapse +17 % -> +13 % CD
-        "iterations": 4,
-        "pull_fraction": 1.0,
-    },
-}
-_DEFAULTS["graph"].update({k: _DEFAULTS["regularized"][k] for k in (
-    "smooth_iterations", "smooth_weight", "relax_iterations", "relax_step", "normal_slack")})
-_COMMON = {"max_template_distance": 0.25, "scale_tolerance": 4.0, "key_frame": "auto"}
 
 
 # --------------------------------------------------------------------------- NearestSurface
@@ -641,89 +592,10 @@ def _as_varying(seq) -> VaryingTopologySequence:
                     f"got {type(seq).__name__}")
 
 
-def _check_fine_stage(o: dict):
-    """Range checks of the smoothing/relaxation options ``regularized`` and ``graph`` share."""
-    for k in ("smooth_weight", "pull_fraction", "relax_step"):
-        if not 0.0 <= float(o[k]) <= 1.0:
-            raise ValueError(f"{k} must lie in [0, 1], got {o[k]!r}")
-    if float(o["normal_slack"]) < 1.0:
-        raise ValueError(f"normal_slack must be >= 1, got {o['normal_slack']!r}")
-
-
 def _resolve_options(strategy: str, options: dict) -> dict:
-    if strategy not in STRATEGIES:
-        raise ValueError(f"strategy must be one of {STRATEGIES}, got {strategy!r}")
-    allowed = {**_COMMON, **_DEFAULTS[strategy]}
-    unknown = sorted(set(options) - set(allowed))
-    if unknown:
-        raise TypeError(f"to_fixed_topology(strategy={str(strategy)!r}): unknown option(s) {unknown}; "
-                        f"valid: {sorted(allowed)}")
-    o = {**allowed, **options}
-    for k, default in allowed.items():  # the type of each option is its default's
-        v = o[k]
-        if v is None and k in ("reanchor_interval", "key_frame"):
-            continue
-        if isinstance(default, bool) or isinstance(default, str):
-            continue
-        if isinstance(default, int):
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer, float)) or (
-                    isinstance(v, float) and not v.is_integer()):
-                raise ValueError(f"{k} must be an integer, got {v!r}")
-        elif isinstance(default, float):
-            if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not np.isfinite(v):
-                raise ValueError(f"{k} must be a finite number, got {v!r}")
-    if strategy == "tracking":
-        ri = o["reanchor_interval"]
-        if ri is None:
-            ri = 0
-        if int(ri) != ri or ri < 0:
-            raise ValueError(f"reanchor_interval must be an integer >= 0 (0: never), got {ri!r}")
-        o["reanchor_interval"] = int(ri)
-        w = float(o["tracked_weight"])
-        if not 0.0 <= w <= 1.0:
-            raise ValueError(f"tracked_weight must lie in [0, 1], got {w!r}")
-        o["tracked_weight"] = w
-    if strategy == "regularized":
-        for k in ("iterations", "smooth_iterations", "relax_iterations", "rigid_iterations", "bank_interval",
-                  "max_iterations"):
-            if int(o[k]) != o[k] or o[k] < 0:
-                raise ValueError(f"{k} must be an integer >= 0, got {o[k]!r}")
-        if int(o["reinit_samples"]) != o["reinit_samples"] or o["reinit_samples"] < 1:
-            raise ValueError(f"reinit_samples must be an integer >= 1, got {o['reinit_samples']!r}")
-        for k in ("reinit_threshold", "refine_threshold"):
-            if not float(o[k]) >= 0:
-                raise ValueError(f"{k} must be >= 0 (0: off), got {o[k]!r}")
-        _check_fine_stage(o)
-    if strategy == "graph":
-        for k in ("nodes_per_vertex", "graph_iterations", "cg_iterations"):
-            if int(o[k]) != o[k] or o[k] < 1:
-                raise ValueError(f"{k} must be an integer >= 1, got {o[k]!r}")
-        from .kernels.register import MAX_NODES_PER_VERTEX
-
-        if o["nodes_per_vertex"] > MAX_NODES_PER_VERTEX:
-            raise ValueError(f"nodes_per_vertex must be <= {MAX_NODES_PER_VERTEX}, got {o['nodes_per_vertex']!r}")
-        for k in ("iterations", "smooth_iterations", "relax_iterations", "bank_interval", "refine_rounds",
-                  "repair_passes"):
-            if int(o[k]) != o[k] or o[k] < 0:
-                raise ValueError(f"{k} must be an integer >= 0, got {o[k]!r}")
-        if not 0.0 < float(o["node_spacing"]) <= 1.0:
-            raise ValueError(f"node_spacing must lie in (0, 1] (a fraction of the bbox diagonal), "
-                             f"got {o['node_spacing']!r}")
-        for k in ("stiffness", "stiffness_end", "damping", "restart_threshold", "predict", "cg_tolerance",
-                  "repair_threshold"):
-            if not (np.isfinite(float(o[k])) and float(o[k]) >= 0):
-                raise ValueError(f"{k} must be a finite number >= 0, got {o[k]!r}")
-        if not 0.0 <= float(o["max_normal_angle"]) <= 180.0:
-            raise ValueError(f"max_normal_angle must lie in [0, 180] degrees, got {o['max_normal_angle']!r}")
-        _check_fine_stage(o)
-    kf = o["key_frame"]
-    if not ((isinstance(kf, str) and kf == "auto") or kf is None
-            or (isinstance(kf, (int, np.integer)) and not isinstance(kf, bool))):
-        raise ValueError(f"key_frame must be 'auto' or a frame index, got {kf!r}")
-    if not float(o["max_template_distance"]) > 0:
-        raise ValueError(f"max_template_distance must be > 0, got {o['max_template_distance']!r}")
-    o["strategy"] = strategy
-    return o
+    """The strategy's options, checked and with the defaults filled in
+    (:func:`dynmesh_warp.conversion_options.options_for`), as a dict with ``strategy``."""
+    return options_for(strategy, **options).model_dump()
 
 
 def _check_scales(seq: VaryingTopologySequence, tol: float):

@@ -32,16 +32,12 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from .conversion_options import CG_ITERATIONS, CG_TOLERANCE  # the solve's defaults (one home)
 from .kernels import register as kr
 
 
 __all__ = ["DeformationGraph", "build_deformation_graph", "GraphFitter", "polar_rotations",
-           "extrapolate_rotations", "system_pattern", "CG_ITERATIONS", "CG_TOLERANCE"]
-
-#: the per-iteration linear solve: at most this many CG iterations, stopping at this relative
-#: (preconditioned) residual; the conversion's ``cg_iterations`` / ``cg_tolerance`` defaults
-CG_ITERATIONS = 32
-CG_TOLERANCE = 1e-5
+           "extrapolate_rotations", "system_pattern"]
 
 
 @dataclass

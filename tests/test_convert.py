@@ -449,3 +449,34 @@ def test_poor_runs_are_re_tracked_from_the_other_side():
     assert _poor_runs(np.full(5, 0.01), 2, 0.05) == []
     # a poor run right before the key frame, starting at frame 0: no anchor on its other side
     assert _poor_runs(np.array([0.09, 0.09, 0.0, 0.01]), 2, 0.05) == []
+
+
+def test_strategy_options_are_one_typed_model_per_strategy():
+    """Each strategy's options are one pydantic model (conversion_options): the converter, the
+    CLI and the scene schema check them the same way, naming the option."""
+    from dynmesh_warp.choices import STRATEGIES
+    from dynmesh_warp.config import SceneError, load_scene_config
+    from dynmesh_warp.conversion_options import GraphOptions, option_defaults, options_for
+    from dynmesh_warp.kernels.register import MAX_NODES_PER_VERTEX
+
+    for s in STRATEGIES:
+        assert option_defaults(s)["strategy"] == s
+    g = options_for("graph", refine_rounds=1.0, key_frame=np.int64(3))  # an integral float is an integer
+    assert isinstance(g, GraphOptions) and g.refine_rounds == 1 and isinstance(g.refine_rounds, int)
+    assert g.key_frame == 3 and g.pull_fraction == 1.0 and option_defaults("regularized")["pull_fraction"] == 0.5
+    for bad, msg in (({"refine_rounds": True}, "refine_rounds must be an integer >= 0"),
+                     ({"nodes_per_vertex": MAX_NODES_PER_VERTEX + 1}, f"lie in [1, {MAX_NODES_PER_VERTEX}]"),
+                     ({"cg_tolerance": -1.0}, "cg_tolerance must be a finite number >= 0"),
+                     ({"node_spacing": 0.0}, "node_spacing must lie in (0, 1]")):
+        with pytest.raises(ValueError) as e:
+            options_for("graph", **bad)
+        assert msg in str(e.value), (bad, str(e.value))
+    with pytest.raises(TypeError, match=r"unknown option\(s\) \['strategy'\]"):
+        options_for("graph", strategy="tracking")
+    # the scene schema checks them when the file is read, before any data is loaded
+    with pytest.raises(SceneError, match=r"surface\.conversion\.options.*pull_fraction must lie in \[0, 1\], got 2"):
+        load_scene_config(data={"surface": {"source": "builtin:wave_bowl", "conversion": {
+            "strategy": "graph", "options": {"pull_fraction": 2}}}})
+    cfg = load_scene_config(data={"surface": {"source": "builtin:wave_bowl", "conversion": {
+        "strategy": "tracking", "options": {"tracked_weight": 0.25}}}})
+    assert cfg.surface.conversion.options == {"tracked_weight": 0.25}

@@ -15,6 +15,8 @@ LAYERS = [
     {"choices", "sequence", "outputs", "geometry"},
     # kernels (the top-level kernels/ folder, installed as dynmesh_warp.kernels)
     {"kernels"},
+    # the conversion strategies' typed options (the schema and the converter take them from here)
+    {"conversion_options"},
     # schema, readers/writers, signals and CLI plumbing, built-in surfaces
     {"config", "io", "splat_io", "scenes", "cli"},
     # the simulation core and the geometry stages

@@ -1,0 +1,183 @@
+"""The options of each conversion strategy as typed models (issue 13): one home for their
+defaults and ranges, used by ``to_fixed_topology``, ``convert --option`` and the scene schema
+(``surface.conversion.options``), so a bad option is reported the same way everywhere and at
+the boundary where it enters (the scene file, the command line, the library call).
+
+``ConversionOptions`` is a discriminated union on ``strategy`` (pydantic); ``options_for`` checks
+a strategy's options and returns its model. Lengths are fractions of the template's bbox
+diagonal; angles in degrees. docs/conversion.md says what each option does.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal, Union
+
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, TypeAdapter, ValidationError
+
+from .choices import STRATEGIES
+from .kernels.register import MAX_NODES_PER_VERTEX
+
+__all__ = ["ProjectionOptions", "TrackingOptions", "RegularizedOptions", "GraphOptions", "ConversionOptions",
+           "options_for", "option_defaults", "CG_ITERATIONS", "CG_TOLERANCE"]
+
+#: the graph fit's per-iteration linear solve (conjugate gradients, warm-started): iteration cap
+#: and relative-residual tolerance (one home; deform_graph.GraphFitter takes them from here)
+CG_ITERATIONS = 32
+CG_TOLERANCE = 1e-5
+
+
+def _no_bool(v):
+    if isinstance(v, bool):
+        raise ValueError("a boolean is not a number")
+    return v
+
+
+def _key_frame(v):
+    if v is None or (isinstance(v, str) and v == "auto"):
+        return v
+    if isinstance(v, bool) or not isinstance(v, int) and not (hasattr(v, "__index__") and not isinstance(v, float)):
+        raise ValueError("not a frame index")
+    return int(v)
+
+
+Int = Annotated[int, BeforeValidator(_no_bool)]
+Float = Annotated[float, BeforeValidator(_no_bool)]
+Fraction = Annotated[float, BeforeValidator(_no_bool), Field(ge=0.0, le=1.0)]
+KeyFrame = Annotated[Union[Literal["auto"], int, None], BeforeValidator(_key_frame)]
+
+
+class _Options(BaseModel):
+    """Options every strategy takes."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
+
+    #: the template must lie mostly within this distance of the first frame (fraction of its diagonal)
+    max_template_distance: Float = Field(0.25, gt=0.0)
+    #: frames whose bbox diagonal differs from the median by more than this factor are warned about
+    scale_tolerance: Float = Field(4.0, gt=0.0)
+    #: the frame the template comes from and tracking starts at: "auto" (largest surface area) or an index
+    key_frame: KeyFrame = "auto"
+
+
+class _FineStage(BaseModel):
+    """The full-resolution refinement ``regularized`` and ``graph`` share."""
+
+    smooth_iterations: Int = Field(10, ge=0)
+    smooth_weight: Fraction = 0.5
+    pull_fraction: Fraction = 0.5
+    relax_iterations: Int = Field(3, ge=0)
+    relax_step: Fraction = 1.0
+    normal_slack: Float = Field(3.0, ge=1.0)
+
+
+class ProjectionOptions(_Options):
+    strategy: Literal["projection"] = "projection"
+
+
+class TrackingOptions(_Options):
+    strategy: Literal["tracking"] = "tracking"
+    #: re-project onto the frame every this many frames (0 or None: never)
+    reanchor_interval: Annotated[Int, BeforeValidator(lambda v: 0 if v is None else v), Field(ge=0)] = 50
+    tracked_weight: Fraction = 0.8
+
+
+class RegularizedOptions(_Options, _FineStage):
+    strategy: Literal["regularized"] = "regularized"
+    iterations: Int = Field(3, ge=0)
+    rigid_iterations: Int = Field(3, ge=0)
+    reinit_threshold: Float = Field(0.005, ge=0.0)
+    max_iterations: Int = Field(6, ge=0)
+    refine_threshold: Float = Field(0.002, ge=0.0)
+    bank_interval: Int = Field(5, ge=0)
+    reinit_samples: Int = Field(1024, ge=1)
+
+
+class GraphOptions(_Options, _FineStage):
+    strategy: Literal["graph"] = "graph"
+    # the deformation graph (dynmesh_warp.deform_graph)
+    node_spacing: Float = Field(0.03, gt=0.0, le=1.0)
+    nodes_per_vertex: Int = Field(4, ge=1, le=MAX_NODES_PER_VERTEX)
+    graph_iterations: Int = Field(8, ge=1)
+    stiffness: Float = Field(10.0, ge=0.0)
+    stiffness_end: Float = Field(0.3, ge=0.0)
+    damping: Float = Field(0.01, ge=0.0)
+    max_normal_angle: Float = Field(60.0, ge=0.0, le=180.0)
+    predict: Float = Field(1.0, ge=0.0)
+    restart_threshold: Float = Field(0.02, ge=0.0)
+    refine_rounds: Int = Field(2, ge=0)
+    # bidirectional repair: re-track runs of poorly covered frames from the other side (off: on
+    # pcow it lowered the worst uncovered vertex 13.6 -> 12.3 % but not the CD, +58 -> +60 %)
+    repair_passes: Int = Field(0, ge=0)
+    #: coverage above which a frame is poor; 0: max(restart_threshold, 2 x the median)
+    repair_threshold: Float = Field(0.0, ge=0.0)
+    bank_interval: Int = Field(10, ge=0)
+    cg_iterations: Int = Field(CG_ITERATIONS, ge=1)
+    cg_tolerance: Float = Field(CG_TOLERANCE, ge=0.0)
+    # fine stage: 4 iterations, the backward (coverage) pull alone where a vertex has one
+    # (issue 12's protocol: horse_collapse +17 % -> +13 % CD)
+    iterations: Int = Field(4, ge=0)
+    pull_fraction: Fraction = 1.0
+
+
+ConversionOptions = Annotated[Union[ProjectionOptions, TrackingOptions, RegularizedOptions, GraphOptions],
+                              Field(discriminator="strategy")]
+_ADAPTER = TypeAdapter(ConversionOptions)
+_MODELS = {m.model_fields["strategy"].default: m
+           for m in (ProjectionOptions, TrackingOptions, RegularizedOptions, GraphOptions)}
+assert set(_MODELS) == set(STRATEGIES)
+
+
+def _domain(field) -> str:
+    """What a field accepts, in words, from its annotation and constraints."""
+    lo = hi = None
+    lo_open = hi_open = False
+    for m in field.metadata:
+        if getattr(m, "ge", None) is not None:
+            lo = m.ge
+        if getattr(m, "gt", None) is not None:
+            lo, lo_open = m.gt, True
+        if getattr(m, "le", None) is not None:
+            hi = m.le
+        if getattr(m, "lt", None) is not None:
+            hi, hi_open = m.lt, True
+    if field.annotation is int:
+        kind = "be an integer"
+    elif field.annotation is float:
+        kind = "be a finite number"
+    else:
+        return "be 'auto' or a frame index"
+    if lo is not None and hi is not None:
+        return f"lie in {'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
+    if lo is not None:
+        return f"{kind} {'>' if lo_open else '>='} {lo:g}"
+    if hi is not None:
+        return f"{kind} {'<' if hi_open else '<='} {hi:g}"
+    return kind
+
+
+def options_for(strategy, /, **options) -> GraphOptions | RegularizedOptions | TrackingOptions | ProjectionOptions:
+    """The options of ``strategy`` (a :class:`~dynmesh_warp.choices.Strategy` or its name), the
+    defaults filled in. Raises ``ValueError`` for an unknown strategy or a value out of its
+    range ("<name> must lie in [0, 1], got 2"), ``TypeError`` for an option the strategy does
+    not have (naming the valid ones)."""
+    strategy = str(getattr(strategy, "value", strategy))
+    if strategy not in _MODELS:
+        raise ValueError(f"strategy must be one of {STRATEGIES}, got {strategy!r}")
+    model = _MODELS[strategy]
+    unknown = sorted(set(options) - set(model.model_fields) | ({"strategy"} & set(options)))
+    if unknown:
+        valid = sorted(k for k in model.model_fields if k != "strategy")
+        raise TypeError(f"to_fixed_topology(strategy={strategy!r}): unknown option(s) {unknown}; valid: {valid}")
+    try:
+        return _ADAPTER.validate_python({"strategy": strategy, **options})
+    except ValidationError as e:
+        err = e.errors()[0]
+        name = str(err["loc"][1]) if len(err["loc"]) > 1 else "options"
+        field = model.model_fields.get(name)
+        what = _domain(field) if field is not None else "be valid"
+        raise ValueError(f"{name} must {what}, got {options.get(name)!r}") from None
+
+
+def option_defaults(strategy) -> dict:
+    """The default options of ``strategy`` as a dict (``strategy`` included)."""
+    return options_for(strategy).model_dump()
