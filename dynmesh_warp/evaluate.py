@@ -172,10 +172,11 @@ def evaluate_folders(gt_dir, pred_dir, protocols=("dgmesh", "paper"), frame_stri
     by the integer frame index in their names (``pair="index"``) or by position in index order
     (``pair="order"``). Returns {'pairs': [(index, gt, pred)], 'results':
     evaluate_rows(...)['prediction']} (frames are the paired indices)."""
-    from .io import _list_frame_files, read_mesh
+    from .io import read_mesh
+    from .sequence_layouts import list_frame_files
 
-    gt_files = [str(p) for p in _list_frame_files(Path(gt_dir))]  # in index order
-    pred_files = [str(p) for p in _list_frame_files(Path(pred_dir))]
+    gt_files = [str(p) for p in list_frame_files(Path(gt_dir))]  # in index order
+    pred_files = [str(p) for p in list_frame_files(Path(pred_dir))]
     if pair not in ("index", "order"):
         raise ValueError(f"pair must be 'index' or 'order', got {pair!r}")
     pairing = pair_frames_by_index if pair == "index" else pair_frames_by_order

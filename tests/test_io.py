@@ -164,26 +164,29 @@ def test_save_replaces_existing_folder_and_refuses_foreign_content(tmp_path):
 
 
 def test_interrupted_save_leaves_no_partial_output(tmp_path, monkeypatch):
-    import dynmesh_warp.io as dio
+    import dynmesh_warp.mesh_formats as mf
 
     save_sequence(fixed_seq(T=3), tmp_path / "out", fmt="ply")
     save_sequence(fixed_seq(T=3), tmp_path / "s.npz")
     before = sorted(p.name for p in tmp_path.iterdir())
-    real = dio._write_mesh_file
+    real = dict(mf.WRITERS)
 
-    def failing(path, V, F):
-        real(path, V, F)  # the file is (partly) there, then the save is interrupted
-        if path.name.startswith(("frame_0001", ".one.ply")):
-            raise KeyboardInterrupt
+    def failing(ext):
+        def write(fh, V, F):
+            real[ext](fh, V, F)  # the file is (partly) there, then the save is interrupted
+            if Path(fh.name).name.startswith(("frame_0001", ".one.")):
+                raise KeyboardInterrupt
+        return write
 
-    monkeypatch.setattr(dio, "_write_mesh_file", failing)
+    for ext in (".ply", ".obj"):  # the registries of mesh_formats (a format's writer)
+        monkeypatch.setitem(mf.WRITERS, ext, failing(ext))
     with pytest.raises(KeyboardInterrupt):
         save_sequence(fixed_seq(T=5), tmp_path / "out", fmt="ply")
     with pytest.raises(KeyboardInterrupt):
         save_sequence(fixed_seq(T=5), tmp_path / "new", fmt="obj")
     with pytest.raises(KeyboardInterrupt):
         write_mesh(tmp_path / "one.ply", *icosphere())
-    monkeypatch.setattr(dio.np, "savez", lambda *a, **k: (_ for _ in ()).throw(OSError("disk full")))
+    monkeypatch.setattr(np, "savez", lambda *a, **k: (_ for _ in ()).throw(OSError("disk full")))
     with pytest.raises(OSError, match="disk full"):
         save_sequence(fixed_seq(T=5), tmp_path / "s.npz")
     assert sorted(p.name for p in tmp_path.iterdir()) == before  # no temp files or folders
@@ -525,3 +528,36 @@ def test_text_sorted_frames_are_detected_and_restored(tmp_path):
     np.testing.assert_array_equal(load_sequence(path2, frame_order="auto").V, V)  # nothing to undo
     with pytest.raises(ValueError, match="frame_order"):
         load_sequence(path, frame_order="alphabetical")
+
+
+def test_a_registered_format_is_read_written_and_found_in_folders(tmp_path):
+    """mesh_formats' registries: a format added with register_format is used by write_mesh,
+    read_mesh and folder loading (the one place a new format goes; docs/architecture.md)."""
+    import dynmesh_warp.mesh_formats as mf
+
+    def write_tri(fh, V, F):  # a toy text format: "N M", N vertex lines, M face lines
+        fh.write(f"{len(V)} {len(F)}\n".encode())
+        np.savetxt(fh, V, fmt="%.9g")
+        np.savetxt(fh, F, fmt="%d")
+
+    def read_tri(path):
+        n, m = map(int, Path(path).read_text().split("\n", 1)[0].split())
+        rows = np.loadtxt(path, skiprows=1, ndmin=2)
+        return rows[:n], rows[n:n + m].astype(np.int64)
+
+    V, F = icosphere()
+    try:
+        mf.register_format("TRI", reader=read_tri, writer=write_tri)
+        for t in range(3):
+            write_mesh(tmp_path / "seq" / f"f_{t}.tri", V * (1 + t), F)
+        V1, F1 = read_mesh(tmp_path / "seq" / "f_1.tri")
+        np.testing.assert_array_equal(F1, F)
+        np.testing.assert_allclose(V1, (V * 2).astype(np.float32))
+        seq = load_sequence(tmp_path / "seq")
+        assert isinstance(seq, FixedTopologySequence) and seq.num_frames == 3
+        np.testing.assert_allclose(seq.V[2], (V * 3).astype(np.float32))
+    finally:
+        mf.READERS.pop(".tri", None)
+        mf.WRITERS.pop(".tri", None)
+        mf.MESH_EXTENSIONS.discard(".tri")
+    assert ".tri" not in mf.MESH_EXTENSIONS

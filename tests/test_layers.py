@@ -15,8 +15,11 @@ LAYERS = [
     {"choices", "sequence", "outputs", "geometry"},
     # kernels (the top-level kernels/ folder, installed as dynmesh_warp.kernels)
     {"kernels"},
-    # the conversion strategies' typed options (the schema and the converter take them from here)
-    {"conversion_options"},
+    # the conversion strategies' typed options (the schema and the converter take them from here);
+    # mesh file formats (reader and writer registries)
+    {"conversion_options", "mesh_formats"},
+    # sequence layouts on disk (npz layouts, folders of frames, DG-Mesh folders)
+    {"sequence_layouts"},
     # schema, readers/writers, signals and CLI plumbing, built-in surfaces
     {"config", "io", "splat_io", "scenes", "cli"},
     # the simulation core and the geometry stages

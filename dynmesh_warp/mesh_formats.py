@@ -1,0 +1,378 @@
+"""Mesh file formats: one reader and one writer per extension, in two registries (issue 13).
+
+``READERS`` maps an extension (lower case, with the dot) to ``reader(path) -> (V, F)`` and
+``WRITERS`` maps one to ``writer(fh, V, F)`` (a binary file object); :func:`register_format`
+adds a format. ``read_mesh`` falls back to meshio for an extension with no reader, and
+``write_mesh_file`` to trimesh (``.stl``, ``.glb``, ``.gltf``) or meshio. The formats and the
+decisions behind them (vertex order kept, fan triangulation, errors naming the file) are in
+docs/data.md; ``dynmesh_warp.io`` is the public face (``read_mesh``, ``write_mesh``).
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import re
+from pathlib import Path
+
+import numpy as np
+
+from .outputs import atomic_path
+from .sequence import MeshDataError, validate_mesh
+
+__all__ = ["READERS", "WRITERS", "MESH_EXTENSIONS", "register_format", "mesh_extension", "read_mesh",
+           "write_mesh_file", "write_mesh"]
+
+_OWN_READERS = (".obj", ".off")
+_TRIMESH_READERS = (".ply", ".stl", ".glb", ".gltf")
+# Extensions meshio can read but which are usually not meshes in a data folder
+# (read_mesh still reads them when given such a file explicitly).
+_NOT_FRAME_EXTENSIONS = {".svg", ".xml", ".dat", ".node"}
+
+
+def _meshio_extensions() -> set[str]:
+    try:
+        import meshio
+
+        return {e.lower() for e in meshio.extension_to_filetypes}
+    except Exception:  # pragma: no cover - meshio is a dependency, but stay importable
+        return set()
+
+
+MESH_EXTENSIONS: set[str] = (set(_OWN_READERS) | set(_TRIMESH_READERS) | _meshio_extensions()) - _NOT_FRAME_EXTENSIONS
+"""File extensions (lower case, with dot) treated as per-frame meshes in a folder
+(:func:`register_format` adds to it)."""
+
+
+def mesh_extension(name: str) -> str | None:
+    """The mesh extension of a file name (handles ``.vol.gz``-style double suffixes)."""
+    lower = name.lower()
+    for ext in MESH_EXTENSIONS:
+        if ext.count(".") > 1 and lower.endswith(ext):
+            return ext
+    ext = os.path.splitext(lower)[1]
+    return ext if ext in MESH_EXTENSIONS else None
+
+
+# --------------------------------------------------------------------------- reading
+
+
+class _ReadError(Exception):
+    """Raised by the format readers with a reason; read_mesh adds the file and frame."""
+
+
+def _not_found(path: Path) -> FileNotFoundError:
+    return FileNotFoundError(errno.ENOENT, os.strerror(errno.ENOENT), str(path))
+
+
+def _fan(polygons) -> np.ndarray:
+    """Fan-triangulate a list of index sequences (each of length >= 3), keeping order."""
+    tris = []
+    for poly in polygons:
+        if len(poly) == 3:
+            tris.append(poly)
+        else:
+            v0 = poly[0]
+            tris.extend((v0, poly[i], poly[i + 1]) for i in range(1, len(poly) - 1))
+    return np.asarray(tris, dtype=np.int64).reshape(-1, 3)
+
+
+_OBJ_V_RE = re.compile(r"^[ \t]*v[ \t]+([^\n]*)", re.M)
+_OBJ_F_RE = re.compile(r"^[ \t]*f[ \t]+([^\n]*)", re.M)
+_OBJ_SLASH_RE = re.compile(r"/\S*")
+
+
+def _read_obj(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """OBJ reader: ``v`` and ``f`` records only, order preserved, bad indices kept.
+
+    A vectorised path handles the common case (3 coordinates per ``v``, positive indices,
+    triangles); anything else (polygons, negative indices, extra fields, malformed
+    records) goes through the line-by-line reader, which reports the offending line.
+    """
+    text = path.read_text(encoding="utf-8", errors="replace")
+    fast = _read_obj_fast(text)
+    return fast if fast is not None else _read_obj_lines(text.splitlines())
+
+
+def _read_obj_fast(text: str):
+    v_rows = _OBJ_V_RE.findall(text)
+    f_rows = _OBJ_F_RE.findall(text)
+    # every record must have exactly 3 fields (a 4-field row and a 2-field row would
+    # otherwise add up to a plausible total)
+    if any(len(r.split()) != 3 for r in v_rows) or any(len(r.split()) != 3 for r in f_rows):
+        return None
+    v_tok = " ".join(v_rows).split()
+    f_str = " ".join(f_rows)
+    if "/" in f_str:
+        f_str = _OBJ_SLASH_RE.sub("", f_str)
+    f_tok = f_str.split()
+    try:
+        V = np.array(v_tok, dtype=np.float64).reshape(-1, 3)
+        F = np.array(f_tok, dtype=np.int64).reshape(-1, 3)
+    except ValueError:
+        return None
+    if F.size and F.min() <= 0:  # relative (negative) or invalid 0 indices
+        return None
+    return V, F - 1
+
+
+def _read_obj_lines(lines) -> tuple[np.ndarray, np.ndarray]:
+    verts: list[list[float]] = []
+    polys: list[list[int]] = []
+    for lineno, line in enumerate(lines, 1):
+        line = line.lstrip()
+        if not line or line[0] not in "vf":  # fast skip of vt/vn/#/g/usemtl/l/...
+            continue
+        parts = line.split()
+        tag = parts[0]
+        if tag == "v":
+            if len(parts) < 4:
+                raise _ReadError(f"line {lineno}: vertex needs 3 coordinates: {line.strip()!r}")
+            try:
+                verts.append([float(parts[1]), float(parts[2]), float(parts[3])])
+            except ValueError:
+                raise _ReadError(
+                    f"line {lineno}: bad vertex coordinates: {line.strip()!r}"
+                ) from None
+        elif tag == "f":
+            if len(parts) < 4:
+                raise _ReadError(
+                    f"line {lineno}: face needs at least 3 vertices: {line.strip()!r}"
+                )
+            n = len(verts)
+            poly = []
+            for tok in parts[1:]:
+                try:
+                    i = int(tok.split("/", 1)[0])
+                except ValueError:
+                    raise _ReadError(f"line {lineno}: bad face index {tok!r}") from None
+                if i == 0:
+                    raise _ReadError(
+                        f"line {lineno}: face index 0 is invalid (OBJ indices start at 1)"
+                    )
+                # 1-based; negative indices count back from the latest vertex.
+                poly.append(i - 1 if i > 0 else n + i)
+            polys.append(poly)
+    V = np.asarray(verts, dtype=np.float64).reshape(-1, 3)
+    return V, _fan(polys)
+
+
+def _read_off(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """ASCII OFF reader (``OFF``/``COFF``/``NOFF``/... headers, n-gon faces).
+
+    Vertex lines may carry extra fields (normals, colours); only x y z are used.
+    """
+    text = path.read_text(encoding="utf-8", errors="replace")
+    if "#" in text:
+        text = "\n".join(ln.split("#", 1)[0] for ln in text.splitlines())
+    tokens = text.split()
+    # Fast path: "[OFF] nv nf ne", then exactly 3 numbers per vertex, triangles only.
+    pos = 1 if tokens and tokens[0].endswith("OFF") else 0
+    try:
+        nv, nf, _ = (int(x) for x in tokens[pos:pos + 3])
+        body = tokens[pos + 3:]
+        if nv >= 0 and nf >= 0 and len(body) == 3 * nv + 4 * nf and all(c == "3" for c in body[3 * nv::4]):
+            V = np.array(body[:3 * nv], dtype=np.float64).reshape(-1, 3)
+            F = np.array(body[3 * nv:], dtype=np.int64).reshape(-1, 4)[:, 1:]
+            return V, F
+    except ValueError:
+        pass
+    # General path, line by line: extra per-vertex fields, polygons, errors.
+    lines = [ln.split() for ln in text.splitlines()]
+    lines = [ln for ln in lines if ln]
+    if not lines:
+        raise _ReadError("empty OFF file")
+    head = lines[0]
+    if re.fullmatch(r"(ST)?C?N?OFF", head[0]):
+        if len(head) > 1 and head[1].upper() == "BINARY":
+            raise _ReadError("binary OFF is not supported")
+        if len(head) > 1:  # "OFF nv nf ne" on one line
+            counts, data = head[1:], lines[1:]
+        else:
+            counts, data = (lines[1] if len(lines) > 1 else []), lines[2:]
+    elif head[0].isdigit():  # header-less
+        counts, data = head, lines[1:]
+    else:
+        raise _ReadError(f"not an OFF file (header {head[0]!r})")
+    try:
+        nv, nf = int(counts[0]), int(counts[1])
+    except (ValueError, IndexError):
+        raise _ReadError(f"bad OFF counts line {' '.join(counts)!r}") from None
+    if nv < 0 or nf < 0:
+        raise _ReadError(f"negative OFF counts {nv} vertices, {nf} faces")
+    if len(data) < nv + nf:
+        raise _ReadError(
+            f"OFF file is truncated: expected {nv} vertex and {nf} face lines, "
+            f"found {len(data)}"
+        )
+    try:
+        V = np.array([x for ln in data[:nv] for x in ln[:3]], dtype=np.float64).reshape(-1, 3)
+        polys = []
+        for ln in data[nv:nv + nf]:
+            k = int(ln[0])
+            if k < 3 or len(ln) < k + 1:
+                raise _ReadError(f"bad OFF face {' '.join(ln)!r}")
+            polys.append([int(x) for x in ln[1:k + 1]])
+    except ValueError as e:
+        raise _ReadError(f"bad OFF data ({e})") from None
+    return V, _fan(polys)
+
+
+def _read_trimesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    import trimesh
+
+    loaded = trimesh.load(str(path), process=False, maintain_order=True)
+    if isinstance(loaded, trimesh.Scene):
+        geoms = list(loaded.dump())
+        if not geoms:
+            raise _ReadError("no mesh data found (empty or unreadable file)")
+        meshes = [g for g in geoms if isinstance(g, trimesh.Trimesh)]
+        if not meshes:
+            n = sum(len(getattr(g, "vertices", ())) for g in geoms)
+            return np.zeros((n, 3)), np.zeros((0, 3), dtype=np.int64)
+        loaded = meshes[0] if len(meshes) == 1 else trimesh.util.concatenate(meshes)
+    V = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=np.float64)
+    F = getattr(loaded, "faces", None)  # a PointCloud has no faces
+    F = np.zeros((0, 3), dtype=np.int64) if F is None else np.asarray(F).reshape(-1, 3)
+    return V.reshape(-1, 3), F
+
+
+def _read_meshio(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    import meshio
+
+    m = meshio.read(str(path))
+    polys = []
+    for block in m.cells:
+        if block.type == "triangle":
+            polys.append(np.asarray(block.data, dtype=np.int64))
+        elif block.type == "quad" or block.type.startswith("polygon"):
+            polys.append(_fan(np.asarray(block.data, dtype=np.int64).tolist()))
+    F = np.concatenate(polys) if polys else np.zeros((0, 3), dtype=np.int64)
+    V = np.asarray(m.points, dtype=np.float64)
+    if V.ndim == 2 and V.shape[1] == 2:  # planar formats: z = 0
+        V = np.concatenate([V, np.zeros((len(V), 1))], axis=1)
+    return V, F
+
+
+READERS = {".obj": _read_obj, ".off": _read_off, **{e: _read_trimesh for e in _TRIMESH_READERS}}
+"""Extension -> ``reader(path) -> (V (N, 3), F (M, 3))``; other extensions go through meshio.
+A reader raises any exception for a bad file; ``read_mesh`` names the file and frame."""
+
+
+def read_mesh(path, frame: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Read one triangle mesh file into ``(V float32 (N, 3), F int32 (M, 3))``.
+
+    Vertex order is preserved as stored (no merging or reordering); polygons are
+    fan-triangulated. ``frame`` only labels error messages. docs/data.md lists the formats
+    and decisions.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        MeshDataError: the file is unreadable or corrupt, has no vertices, has no triangle
+            faces (points/lines only), has NaN/inf coordinates or out-of-range face indices.
+            The message names the file (and ``frame`` when given).
+    """
+    path = Path(path).expanduser()
+    if not path.exists():
+        raise _not_found(path)
+    if path.is_dir():
+        raise IsADirectoryError(errno.EISDIR, "expected a mesh file, got a folder", str(path))
+    where = f"{path}" if frame is None else f"{path}, frame {frame}"
+    ext = mesh_extension(path.name) or path.suffix.lower()
+    try:
+        V, F = READERS.get(ext, _read_meshio)(path)
+    except _ReadError as e:
+        raise MeshDataError(f"{where}: {e}") from None
+    except Exception as e:  # corrupt/unsupported file: surface the reason with the name
+        reason = f"{type(e).__name__}: {e}".rstrip(": ")
+        raise MeshDataError(f"{where}: cannot read mesh file ({reason})") from e
+    V = np.asarray(V)
+    F = np.asarray(F)
+    if V.size == 0:
+        raise MeshDataError(f"{where}: mesh is empty (no vertices)")
+    if F.size == 0:
+        raise MeshDataError(
+            f"{where}: no triangle faces ({len(V)} vertices but no faces; "
+            "point clouds and line sets are not meshes)"
+        )
+    return validate_mesh(V, F, source=str(path), frame=frame)
+
+
+# --------------------------------------------------------------------------- writing
+
+
+def _write_ply(fh, V: np.ndarray, F: np.ndarray) -> None:
+    header = (
+        "ply\nformat binary_little_endian 1.0\n"
+        f"element vertex {len(V)}\nproperty float x\nproperty float y\nproperty float z\n"
+        f"element face {len(F)}\nproperty list uchar int vertex_indices\nend_header\n"
+    )
+    fh.write(header.encode("ascii"))
+    fh.write(np.ascontiguousarray(V, dtype="<f4").tobytes())
+    faces = np.empty(len(F), dtype=[("n", "u1"), ("i", "<i4", (3,))])
+    faces["n"] = 3
+    faces["i"] = F
+    fh.write(faces.tobytes())
+
+
+def _write_obj(fh, V: np.ndarray, F: np.ndarray) -> None:
+    # %.9g round-trips float32 exactly.
+    fh.write(("v %.9g %.9g %.9g\n" * len(V) % tuple(V.astype(np.float64).ravel()))
+             .encode("ascii"))
+    fh.write(("f %d %d %d\n" * len(F) % tuple((F.astype(np.int64) + 1).ravel()))
+             .encode("ascii"))
+
+
+def _write_off(fh, V: np.ndarray, F: np.ndarray) -> None:
+    fh.write(f"OFF\n{len(V)} {len(F)} 0\n".encode("ascii"))
+    fh.write(("%.9g %.9g %.9g\n" * len(V) % tuple(V.astype(np.float64).ravel()))
+             .encode("ascii"))
+    fh.write(("3 %d %d %d\n" * len(F) % tuple(F.astype(np.int64).ravel())).encode("ascii"))
+
+
+WRITERS = {".ply": _write_ply, ".obj": _write_obj, ".off": _write_off}
+"""Extension -> ``writer(fh, V, F)`` writing one mesh to a binary file object, keeping vertex
+order; other extensions go through trimesh (``.stl``, ``.glb``, ``.gltf``) or meshio."""
+
+
+def register_format(ext: str, reader=None, writer=None) -> None:
+    """Add (or replace) the reader and/or writer of extension ``ext`` (e.g. ``".xyzmesh"``);
+    a format with a reader also counts as a per-frame mesh in folders."""
+    ext = ext.lower() if ext.startswith(".") else "." + ext.lower()
+    if reader is not None:
+        READERS[ext] = reader
+        MESH_EXTENSIONS.add(ext)
+    if writer is not None:
+        WRITERS[ext] = writer
+
+
+def write_mesh_file(path: Path, V: np.ndarray, F: np.ndarray) -> None:
+    """Write one mesh to ``path`` (not atomic; callers write to a temporary name)."""
+    path = Path(path)
+    ext = path.suffix.lower()
+    if ext in WRITERS:
+        with open(path, "wb") as fh:
+            WRITERS[ext](fh, V, F)
+            fh.flush()
+            os.fsync(fh.fileno())
+    elif ext in (".stl", ".glb", ".gltf"):
+        import trimesh
+
+        trimesh.Trimesh(V, F, process=False).export(str(path))
+    else:
+        import meshio
+
+        meshio.write(str(path), meshio.Mesh(V, [("triangle", F)]))
+
+
+def write_mesh(path, V, F) -> None:
+    """Write one triangle mesh atomically; the format follows the extension of ``path``.
+
+    ``.ply`` (binary, float32), ``.obj`` and ``.off`` use this module's writers, which keep
+    vertex order; ``.stl``/``.glb``/``.gltf`` go through trimesh (``process=False``) and
+    other extensions through meshio. The mesh is validated first (``MeshDataError``).
+    """
+    path = Path(path).expanduser()
+    V, F = validate_mesh(V, F, source=str(path))
+    with atomic_path(path, suffix=path.suffix) as tmp:  # the one atomic writer (outputs)
+        write_mesh_file(tmp, V, F)

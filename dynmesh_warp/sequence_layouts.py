@@ -1,0 +1,255 @@
+"""Sequence layouts on disk: the two npz layouts (fixed ``V``/``F``; varying packed
+``V_packed``/``F_packed``/``V_offsets``/``F_offsets``), folders of per-frame meshes ordered by
+the last integer in the file name, DG-Mesh scene folders, and the frame-order check of an npz.
+docs/data.md is the format spec; ``dynmesh_warp.io`` is the public face (``load_sequence``,
+``save_sequence``).
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import re
+import warnings
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from .mesh_formats import MESH_EXTENSIONS, mesh_extension, read_mesh
+from .sequence import FixedTopologySequence, MeshDataError, VaryingTopologySequence
+
+__all__ = ["DEFAULT_FPS", "DGMESH_SUBDIRS", "frame_index_from_name", "load_npz", "npz_arrays", "list_frame_files",
+           "load_folder", "resolve_folder", "fix_frame_order", "finish_kind"]
+
+DEFAULT_FPS = 24.0
+"""Frame rate assumed for folders, single meshes and npz files that carry no ``fps``."""
+
+DGMESH_SUBDIRS = ("dynamic_mesh", "mesh_gt")
+"""DG-Mesh subfolders recognised in a scene folder, in order of preference."""
+
+_INT_RE = re.compile(r"\d+")
+
+
+def frame_index_from_name(name) -> int:
+    """Return the last integer in the stem of a file name or path.
+
+    ``"frame_0010.ply"`` -> 10, ``"horse9.obj"`` -> 9, ``"mesh_gt/bird3.obj"`` -> 3,
+    ``"scan_v2_017.obj"`` -> 17. Only the final path component is looked at and only its
+    stem (the last extension is removed). Raises :class:`MeshDataError` (a ``ValueError``)
+    naming ``name`` when the stem holds no integer.
+    """
+    stem = Path(str(name)).stem
+    ext = mesh_extension(Path(str(name)).name)
+    if ext and ext.count(".") > 1:  # frame_3.vol.gz -> frame_3
+        stem = Path(str(name)).name[: -len(ext)]
+    found = _INT_RE.findall(stem)
+    if not found:
+        raise MeshDataError(
+            f"{name}: file name has no integer frame index (frames in a folder are ordered "
+            "by the last integer in the file name, e.g. frame_12.ply)"
+        )
+    return int(found[-1])
+
+
+# npz array names: the canonical V (T, N, 3) / F (M, 3) first, then common aliases
+_NPZ_VERTEX_KEYS = ("V", "vertices", "verts", "points")
+_NPZ_FACE_KEYS = ("F", "faces", "triangles")
+
+
+def _npz_scalar(data, key, path, cast):
+    if key not in data.files:
+        return None
+    try:
+        return cast(np.asarray(data[key]).reshape(()).item())
+    except Exception as e:
+        raise MeshDataError(f"{path}: bad '{key}' entry ({e})") from e
+
+
+def load_npz(path: Path, fps, kind: str):
+    if not zipfile.is_zipfile(path):
+        raise MeshDataError(f"{path}: not an npz file (a zip archive of arrays, as numpy.savez writes)")
+    try:
+        data = np.load(path, allow_pickle=False)
+    except Exception as e:
+        raise MeshDataError(f"{path}: cannot read npz file ({type(e).__name__}: {e})") from e
+    with data:
+        keys = set(data.files)
+        name = _npz_scalar(data, "name", path, str) or path.stem
+        file_fps = _npz_scalar(data, "fps", path, float)
+        fps = fps if fps is not None else (file_fps if file_fps is not None else DEFAULT_FPS)
+        vkey = next((k for k in _NPZ_VERTEX_KEYS if k in keys), None)
+        fkey = next((k for k in _NPZ_FACE_KEYS if k in keys), None)
+        try:
+            if vkey and fkey:
+                V, F = np.asarray(data[vkey]), np.asarray(data[fkey])
+                if V.ndim == 2:  # one frame (N, 3): a static mesh
+                    V = V[None]
+                if F.ndim == 2 and F.shape[1] == 4:  # quads: two triangles each, as for files
+                    F = F[:, [0, 1, 2, 0, 2, 3]].reshape(-1, 3)
+                seq = FixedTopologySequence(V, F, fps=fps, name=name, source=str(path))
+                return seq.to_varying() if kind == "varying" else seq
+            packed = {"V_packed", "F_packed", "V_offsets", "F_offsets"}
+            if packed <= keys:
+                frames = _unpack_frames(
+                    path, data["V_packed"], data["F_packed"], data["V_offsets"],
+                    data["F_offsets"],
+                )
+            else:
+                raise MeshDataError(
+                    f"{path}: unknown npz layout; expected arrays 'V' and 'F' (fixed "
+                    f"topology; also read as {', '.join(_NPZ_VERTEX_KEYS[1:])} / "
+                    f"{', '.join(_NPZ_FACE_KEYS[1:])}) or {sorted(packed)} (varying topology), "
+                    f"found {sorted(keys)}"
+                )
+        except MeshDataError:
+            raise
+        except Exception as e:  # e.g. a corrupt member inside the zip
+            raise MeshDataError(f"{path}: cannot read npz data ({type(e).__name__}: {e})") from e
+    seq = VaryingTopologySequence(frames, fps=fps, name=name, source=str(path))
+    return finish_kind(seq, kind)
+
+
+def _unpack_frames(path, Vp, Fp, vo, fo):
+    Vp, Fp, vo, fo = (np.asarray(a) for a in (Vp, Fp, vo, fo))
+    for key, off, rows in (("V_offsets", vo, len(Vp)), ("F_offsets", fo, len(Fp))):
+        if off.ndim != 1 or len(off) < 2 or not np.issubdtype(off.dtype, np.integer):
+            raise MeshDataError(f"{path}: '{key}' must be a 1-D integer array of length T+1")
+        if off[0] != 0 or off[-1] != rows or np.any(np.diff(off) < 0):
+            raise MeshDataError(
+                f"{path}: '{key}' must start at 0, not decrease and end at {rows} "
+                f"(got {off[0]} ... {off[-1]})"
+            )
+    if len(vo) != len(fo):
+        raise MeshDataError(
+            f"{path}: 'V_offsets' and 'F_offsets' disagree on the frame count "
+            f"({len(vo) - 1} vs {len(fo) - 1})"
+        )
+    return [(Vp[vo[t]:vo[t + 1]], Fp[fo[t]:fo[t + 1]]) for t in range(len(vo) - 1)]
+
+
+def finish_kind(seq: VaryingTopologySequence, kind: str):
+    """Apply ``kind`` to a varying sequence ("auto" -> fixed when topology is identical)."""
+    if kind == "varying":
+        return seq
+    if kind == "fixed" or seq.is_fixed_topology():
+        return seq.to_fixed()
+    return seq
+
+
+def list_frame_files(folder: Path) -> list[Path]:
+    """Mesh files in ``folder`` ordered by the last integer in their stem."""
+    files = [
+        p for p in folder.iterdir()
+        if not p.name.startswith(".") and mesh_extension(p.name) and p.is_file()
+    ]
+    if not files:
+        subdirs = sorted(p.name for p in folder.iterdir()
+                         if p.is_dir() and not p.name.startswith("."))
+        hint = f"; subfolders: {', '.join(subdirs)} (pass subdir=...)" if subdirs else ""
+        npz = sorted(p.name for p in folder.glob("*.npz"))
+        if npz:
+            hint += f"; it holds .npz files ({', '.join(npz[:3])}{' ...' if len(npz) > 3 else ''}): load one directly"
+        raise MeshDataError(
+            f"{folder}: no mesh files found (looked for {', '.join(sorted(MESH_EXTENSIONS))})"
+            f"{hint}"
+        )
+    exts = sorted({mesh_extension(p.name) for p in files})
+    if len(exts) > 1:
+        examples = ", ".join(
+            next(p.name for p in sorted(files) if mesh_extension(p.name) == e) for e in exts
+        )
+        raise MeshDataError(
+            f"{folder}: ambiguous folder, it holds meshes of several extensions "
+            f"({', '.join(exts)}; e.g. {examples}); keep one format per folder"
+        )
+    by_index: dict[int, Path] = {}
+    for p in sorted(files):
+        i = frame_index_from_name(p)  # raises naming the file
+        if i in by_index:
+            raise MeshDataError(
+                f"{folder}: two files have frame index {i}: {by_index[i]} and {p}"
+            )
+        by_index[i] = p
+    order = sorted(by_index)
+    # the first gaps only: indices may be far apart (frame_0, frame_99999999999)
+    missing = [i for a, b in zip(order, order[1:]) for i in range(a + 1, min(b, a + 12))][:11]
+    if missing:
+        more = order[-1] - order[0] + 1 - len(order) > 10
+        shown = ", ".join(map(str, missing[:10])) + (" ..." if more else "")
+        warnings.warn(
+            f"{folder}: frame numbering has gaps (missing {shown}); frames are taken in "
+            "order and played at a constant fps",
+            stacklevel=4,  # list_frame_files <- load_folder <- load_sequence <- caller
+        )
+    return [by_index[i] for i in order]
+
+
+def load_folder(folder: Path, fps, kind: str, name: str):
+    files = list_frame_files(folder)
+    frames = [read_mesh(p, frame=t) for t, p in enumerate(files)]
+    fps = DEFAULT_FPS if fps is None else fps
+    seq = VaryingTopologySequence(
+        frames, fps=fps, name=name, source=str(folder),
+        frame_sources=[str(p) for p in files],
+    )
+    return finish_kind(seq, kind)
+
+
+def resolve_folder(path: Path, subdir: str | None) -> Path:
+    """Pick the folder holding the frames (``subdir``, a DG-Mesh subfolder, or ``path``)."""
+    if subdir is not None:
+        folder = path / subdir
+        if not folder.is_dir():
+            raise FileNotFoundError(errno.ENOENT, os.strerror(errno.ENOENT), str(folder))
+        return folder
+    for sub in DGMESH_SUBDIRS:  # preference order: dynamic_mesh, then mesh_gt
+        if (path / sub).is_dir():
+            return path / sub
+    return path
+
+
+def fix_frame_order(seq, frame_order: str, path: Path):
+    """Detect (warn) or undo a text sort of the frames of a fixed-topology npz."""
+    if not isinstance(seq, FixedTopologySequence):
+        return seq
+    from .sequence import detect_text_sorted_frames, text_sorted_permutation
+
+    start = detect_text_sorted_frames(seq.V)
+    if frame_order == "text_sorted":
+        if start is None:
+            start = 1
+        return seq.reordered(text_sorted_permutation(seq.num_frames, start))
+    if frame_order == "auto" and start is not None:
+        warnings.warn(f"{path}: the frames look sorted as text (1, 10, 11, ..., 2, 20, ...): restored "
+                      "numeric order (frame_order='auto')", stacklevel=3)
+        return seq.reordered(text_sorted_permutation(seq.num_frames, start))
+    if start is not None:
+        warnings.warn(
+            f"{path}: the frames look sorted as text (1, 10, 11, ..., 2, 20, ...): numeric order moves "
+            "far less per frame. Load with frame_order='text_sorted' (scene: surface.frame_order: "
+            "text_sorted) to restore it.", stacklevel=3)
+    return seq
+
+
+def npz_arrays(seq, status: dict | None = None) -> dict:
+    """The arrays of ``seq`` in its npz layout: ``V``/``F`` for fixed topology, the packed
+    ``V_packed``/``F_packed``/``V_offsets``/``F_offsets`` for varying; ``fps``, ``name`` and,
+    when given, ``status`` (JSON text)."""
+    if isinstance(seq, FixedTopologySequence):
+        arrays = {"V": seq.V, "F": seq.F}
+    else:
+        Vs = [v for v, _ in seq.frames]
+        Fs = [f for _, f in seq.frames]
+        arrays = {
+            "V_packed": np.concatenate(Vs).astype(np.float32),
+            "F_packed": np.concatenate(Fs).astype(np.int32),
+            "V_offsets": np.concatenate([[0], np.cumsum([len(v) for v in Vs])]).astype(np.int64),
+            "F_offsets": np.concatenate([[0], np.cumsum([len(f) for f in Fs])]).astype(np.int64),
+        }
+    arrays["fps"] = np.asarray(seq.fps, dtype=np.float32)
+    arrays["name"] = np.asarray(str(seq.name))
+    if status is not None:
+        arrays["status"] = np.asarray(json.dumps(status))
+    return arrays
