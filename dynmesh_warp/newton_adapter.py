@@ -273,6 +273,11 @@ class NewtonWorld:
         for i in range(self.substeps):
             self.substep(i == self.substeps - 1)
 
+    @property
+    def graph_captured(self) -> bool:
+        """Whether a captured CUDA graph is held (steps replay it)."""
+        return self._graph is not None
+
     def capture(self):
         """Capture one step as a CUDA graph that later ``step()`` calls replay; nothing without
         ``use_graph``. Captures nothing, advances nothing. Call it after one eager step: that step

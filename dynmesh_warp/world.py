@@ -905,6 +905,11 @@ class World:
             self.substep()
         self.finish_step()
 
+    @property
+    def graph_captured(self) -> bool:
+        """Whether a captured CUDA graph is held (steps replay it)."""
+        return self._graph is not None
+
     def capture(self):
         """Capture one step (all sub-steps) as a CUDA graph, which later ``step()`` calls replay;
         nothing where the world steps eagerly (``use_graph`` false: the CPU, a rebuild collider).

@@ -16,17 +16,36 @@ if hasattr(wp, "LOG_WARNING"):
     wp.config.log_level = wp.LOG_WARNING  # no per-module load lines in test output
 wp.init()
 
-# Unit tests run on Warp's CPU device (CI has no GPU). DYNMESH_TEST_DEVICE=cuda:0 runs the
-# device-parametrized tests (kernels, world, swept collider, Gaussians, metrics) on a GPU.
-TEST_DEVICE = os.environ.get("DYNMESH_TEST_DEVICE", "cpu")
+# The device matrix, in one run: the tests that take the ``device`` fixture (kernels, world,
+# swept collider, Gaussians, metrics, conversion, Newton adapter) run on the CPU always and on
+# CUDA too when a GPU is present (CI has none). DYNMESH_TEST_DEVICES=cpu,cuda:0 (or the older
+# DYNMESH_TEST_DEVICE=cuda:0) chooses the devices; TEST_DEVICE, the first, is the device of the
+# tests that are not parametrized.
+def _test_devices() -> list[str]:
+    env = os.environ.get("DYNMESH_TEST_DEVICES") or os.environ.get("DYNMESH_TEST_DEVICE")
+    if env:
+        return [d.strip() for d in env.split(",") if d.strip()]
+    return ["cpu"] + (["cuda:0"] if wp.is_cuda_available() else [])
+
+
+DEVICES = _test_devices()
+TEST_DEVICE = DEVICES[0]
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 
-@pytest.fixture(scope="session")
-def device():
-    """The Warp device of the tests: "cpu" unless DYNMESH_TEST_DEVICE says otherwise."""
-    return TEST_DEVICE
+@pytest.fixture(scope="session", params=DEVICES)
+def device(request):
+    """A Warp device of the matrix (``DEVICES``): each test taking it runs once per device."""
+    return request.param
+
+
+@pytest.fixture
+def cuda_device(device):
+    """The matrix's device where it is a GPU; the test is skipped on the CPU."""
+    if not str(device).startswith("cuda"):
+        pytest.skip("needs a CUDA device (CUDA graph capture)")
+    return device
 
 
 @pytest.fixture

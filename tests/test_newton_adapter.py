@@ -13,7 +13,7 @@ import sys
 import numpy as np
 import pytest
 import warp as wp
-from conftest import TEST_DEVICE, project_to_mesh
+from conftest import project_to_mesh
 from reference import brute_nearest
 from scipy.optimize import brentq
 
@@ -263,8 +263,7 @@ def test_viewer_shows_newton_bodies_and_the_recording_replays_them(tmp_path, dev
     assert sum(k.startswith("/bodies/") for k in nodes.nodes) == 3
 
 
-@pytest.mark.skipif(not str(TEST_DEVICE).startswith("cuda"), reason="CUDA graph capture needs a GPU")
-def test_graph_capture_on_second_step_loads_only_used_modules():
+def test_graph_capture_on_second_step_loads_only_used_modules(cuda_device):
     """NewtonWorld runs step 1 eagerly (loading exactly the modules Newton's pipeline and solver
     use) and captures step 2 without force-loading every module (which compiled all of Newton on
     a cold cache). The replayed graph follows the eager run."""
@@ -277,13 +276,13 @@ def test_graph_capture_on_second_step_loads_only_used_modules():
         b = newton.ModelBuilder()
         body = b.add_body(xform=wp.transform(wp.vec3(0.2, 0.1, 0.1), wp.quat_identity()))
         b.add_shape_box(body, hx=0.1, hy=0.1, hz=0.1)
-        return NewtonWorld(SurfaceModel(rising_sheet(), TEST_DEVICE, playback="clamp"), b, use_graph=use_graph)
+        return NewtonWorld(SurfaceModel(rising_sheet(), cuda_device, playback="clamp"), b, use_graph=use_graph)
 
     g, e = world(True), world(False)
     g.step()
-    assert g._graph is None  # step 1 ran eagerly
+    assert not g.graph_captured  # step 1 ran eagerly
     g.step()
-    assert g._graph is not None
+    assert g.graph_captured
     for _ in range(118):
         g.step()
     for _ in range(120):

@@ -402,11 +402,10 @@ def test_add_spheres_applies_the_substep_rule():
 
 
 # ---------------------------------------------------------------------------------------------
-# graph capture (CUDA only: run with DYNMESH_TEST_DEVICE=cuda:0)
+# graph capture (CUDA only: the device matrix runs it where a GPU is present)
 # ---------------------------------------------------------------------------------------------
 
-@pytest.mark.skipif(not TEST_DEVICE.startswith("cuda"), reason="CUDA graph capture needs a GPU")
-def test_capture_loads_only_the_step_modules():
+def test_capture_loads_only_the_step_modules(cuda_device):
     """Capturing the step must not load Warp modules the step does not use: with
     force_module_load=True every module imported in the process (all of Newton's) compiled on
     a cold cache, for minutes. The captured step must match the eager one."""
@@ -418,12 +417,14 @@ def test_capture_loads_only_the_step_modules():
 
     seq = moving_sheet((0.0, 0.0, 0.3), frames=12)
     pos = [[0.0, 0.0, 0.25], [0.5, 0.3, 0.4]]
-    graph, eager = make_world(seq, pos), make_world(seq, pos)
+    graph, eager = make_world(seq, pos, device=cuda_device), make_world(seq, pos, device=cuda_device)
     eager.use_graph = False
     assert graph.use_graph
-    _, p_graph, _ = run(graph, 60)
+    graph.step()
+    assert not graph.graph_captured  # the first step runs eagerly (it loads the step's modules)
+    _, p_graph, _ = run(graph, 59)
     _, p_eager, _ = run(eager, 60)
-    assert graph._graph is not None
+    assert graph.graph_captured
     assert not unrelated.module.execs, "capture loaded a module the step does not use"
     np.testing.assert_allclose(p_graph, p_eager, atol=1e-5)
 
