@@ -42,24 +42,24 @@ def contact_reach(r: float, v: wp.vec3, extra_speed: float, dt: float, margin: f
 @wp.kernel
 def collide_sphere_mesh(
     # Model:
-    indices: wp.array(dtype=wp.int32),
-    sphere_radius: wp.array(dtype=float),
+    indices: wp.array[wp.int32],
+    sphere_radius: wp.array[float],
     # State in:
-    points_in: wp.array(dtype=wp.vec3),
-    velocities_in: wp.array(dtype=wp.vec3),
-    sphere_pos_in: wp.array(dtype=wp.vec3),
-    sphere_vel_in: wp.array(dtype=wp.vec3),
+    points_in: wp.array[wp.vec3],
+    velocities_in: wp.array[wp.vec3],
+    sphere_pos_in: wp.array[wp.vec3],
+    sphere_vel_in: wp.array[wp.vec3],
     # In:
     mesh: wp.uint64,
     dt: float,
     extra_speed: float,
     margin: float,
     # Out:
-    contact_face: wp.array(dtype=wp.int32),
-    contact_point: wp.array(dtype=wp.vec3),
-    contact_normal: wp.array(dtype=wp.vec3),
-    contact_depth: wp.array(dtype=float),
-    contact_velocity: wp.array(dtype=wp.vec3),
+    contact_face: wp.array[wp.int32],
+    contact_point: wp.array[wp.vec3],
+    contact_normal: wp.array[wp.vec3],
+    contact_depth: wp.array[float],
+    contact_velocity: wp.array[wp.vec3],
 ):
     """Closest-point contact of each sphere with a BVH mesh (``wp.Mesh``, refit or rebuilt).
 

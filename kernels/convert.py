@@ -15,13 +15,13 @@ import warp as wp
 @wp.kernel
 def evaluate_barycentric_points(
     # In:
-    points: wp.array(dtype=wp.vec3),
-    indices: wp.array(dtype=wp.int32),
-    face: wp.array(dtype=wp.int32),
-    bary: wp.array(dtype=wp.vec3),
-    fallback: wp.array(dtype=wp.vec3),
+    points: wp.array[wp.vec3],
+    indices: wp.array[wp.int32],
+    face: wp.array[wp.int32],
+    bary: wp.array[wp.vec3],
+    fallback: wp.array[wp.vec3],
     # Out:
-    out: wp.array(dtype=wp.vec3),
+    out: wp.array[wp.vec3],
 ):
     """Position of each query on its face: w0 p[i0] + w1 p[i1] + w2 p[i2].
 
@@ -45,11 +45,11 @@ def evaluate_barycentric_points(
 @wp.kernel
 def blend_points(
     # In:
-    a: wp.array(dtype=wp.vec3),
-    b: wp.array(dtype=wp.vec3),
+    a: wp.array[wp.vec3],
+    b: wp.array[wp.vec3],
     weight_a: float,
     # Out:
-    out: wp.array(dtype=wp.vec3),
+    out: wp.array[wp.vec3],
 ):
     """out = weight_a * a + (1 - weight_a) * b (re-anchoring blend). a, b, out (N,) [m]."""
     i = wp.tid()
@@ -59,11 +59,11 @@ def blend_points(
 @wp.kernel
 def compute_laplacian_coordinates(
     # In:
-    points: wp.array(dtype=wp.vec3),
-    offsets: wp.array(dtype=wp.int32),
-    neighbors: wp.array(dtype=wp.int32),
+    points: wp.array[wp.vec3],
+    offsets: wp.array[wp.int32],
+    neighbors: wp.array[wp.int32],
     # Out:
-    delta: wp.array(dtype=wp.vec3),
+    delta: wp.array[wp.vec3],
 ):
     """Uniform Laplacian coordinates: delta_i = p_i - mean of its neighbours.
 
@@ -85,15 +85,15 @@ def compute_laplacian_coordinates(
 @wp.kernel
 def compute_closest_displacements(
     # In:
-    points: wp.array(dtype=wp.vec3),
-    closest: wp.array(dtype=wp.vec3),
-    face: wp.array(dtype=wp.int32),
-    pull_sum: wp.array(dtype=wp.vec3),
-    pull_weight: wp.array(dtype=float),
+    points: wp.array[wp.vec3],
+    closest: wp.array[wp.vec3],
+    face: wp.array[wp.int32],
+    pull_sum: wp.array[wp.vec3],
+    pull_weight: wp.array[float],
     pull_fraction: float,
     # Out:
-    disp: wp.array(dtype=wp.vec3),
-    weight: wp.array(dtype=float),
+    disp: wp.array[wp.vec3],
+    weight: wp.array[float],
 ):
     """Data term of the regularized fit: where each vertex wants to move, and how sure it is.
 
@@ -126,12 +126,12 @@ def compute_closest_displacements(
 def scatter_surface_pulls(
     # In:
     template_mesh: wp.uint64,
-    template_indices: wp.array(dtype=wp.int32),
-    targets: wp.array(dtype=wp.vec3),
+    template_indices: wp.array[wp.int32],
+    targets: wp.array[wp.vec3],
     max_dist: float,
     # Out:
-    pull_sum: wp.array(dtype=wp.vec3),
-    pull_weight: wp.array(dtype=float),
+    pull_sum: wp.array[wp.vec3],
+    pull_weight: wp.array[float],
 ):
     """Backward data term: each target point pulls the template face closest to it.
 
@@ -164,14 +164,14 @@ def scatter_surface_pulls(
 @wp.kernel
 def smooth_vectors_laplacian(
     # In:
-    values: wp.array(dtype=wp.vec3),
-    weight: wp.array(dtype=float),
-    offsets: wp.array(dtype=wp.int32),
-    neighbors: wp.array(dtype=wp.int32),
+    values: wp.array[wp.vec3],
+    weight: wp.array[float],
+    offsets: wp.array[wp.int32],
+    neighbors: wp.array[wp.int32],
     lam: float,
     # Out:
-    out: wp.array(dtype=wp.vec3),
-    out_weight: wp.array(dtype=float),
+    out: wp.array[wp.vec3],
+    out_weight: wp.array[float],
 ):
     """One Jacobi step of confidence-weighted Laplacian smoothing of a vector field.
 
@@ -209,11 +209,11 @@ def smooth_vectors_laplacian(
 @wp.kernel
 def add_displacements(
     # In:
-    points: wp.array(dtype=wp.vec3),
-    disp: wp.array(dtype=wp.vec3),
+    points: wp.array[wp.vec3],
+    disp: wp.array[wp.vec3],
     scale: float,
     # Out:
-    out: wp.array(dtype=wp.vec3),
+    out: wp.array[wp.vec3],
 ):
     """out = points + scale * disp. points, disp, out (N,) [m] (out may alias points)."""
     i = wp.tid()
@@ -223,10 +223,10 @@ def add_displacements(
 @wp.kernel
 def accumulate_vertex_normals(
     # In:
-    points: wp.array(dtype=wp.vec3),
-    indices: wp.array(dtype=wp.int32),
+    points: wp.array[wp.vec3],
+    indices: wp.array[wp.int32],
     # Out:
-    normals: wp.array(dtype=wp.vec3),
+    normals: wp.array[wp.vec3],
 ):
     """Area-weighted vertex normals (unnormalized): adds (p1-p0)x(p2-p0) of each face to its
     three vertices. points (N,) [m]; indices (3M,); normals (N,) [m^2], zero it first."""
@@ -243,15 +243,15 @@ def accumulate_vertex_normals(
 @wp.kernel
 def relax_points_tangentially(
     # In:
-    points: wp.array(dtype=wp.vec3),
-    normals: wp.array(dtype=wp.vec3),
-    rest_points: wp.array(dtype=wp.vec3),
-    rest_delta: wp.array(dtype=wp.vec3),
-    offsets: wp.array(dtype=wp.int32),
-    neighbors: wp.array(dtype=wp.int32),
+    points: wp.array[wp.vec3],
+    normals: wp.array[wp.vec3],
+    rest_points: wp.array[wp.vec3],
+    rest_delta: wp.array[wp.vec3],
+    offsets: wp.array[wp.int32],
+    neighbors: wp.array[wp.int32],
     step: float,
     # Out:
-    out: wp.array(dtype=wp.vec3),
+    out: wp.array[wp.vec3],
 ):
     """Restore the template's vertex distribution, moving vertices only within the tangent plane.
 
@@ -302,13 +302,13 @@ def relax_points_tangentially(
 def project_points_along_normals(
     # In:
     mesh: wp.uint64,
-    points: wp.array(dtype=wp.vec3),
-    normals: wp.array(dtype=wp.vec3),
+    points: wp.array[wp.vec3],
+    normals: wp.array[wp.vec3],
     max_dist: float,
     slack: float,
     # Out:
-    out: wp.array(dtype=wp.vec3),
-    dist: wp.array(dtype=float),
+    out: wp.array[wp.vec3],
+    dist: wp.array[float],
 ):
     """Move each point onto the mesh along its normal line, else to the closest point.
 
@@ -355,14 +355,14 @@ def project_points_along_normals(
 @wp.kernel
 def accumulate_point_to_plane_system(
     # In:
-    points: wp.array(dtype=wp.vec3),
+    points: wp.array[wp.vec3],
     center: wp.vec3,
-    closest: wp.array(dtype=wp.vec3),
-    face: wp.array(dtype=wp.int32),
-    frame_points: wp.array(dtype=wp.vec3),
-    frame_indices: wp.array(dtype=wp.int32),
+    closest: wp.array[wp.vec3],
+    face: wp.array[wp.int32],
+    frame_points: wp.array[wp.vec3],
+    frame_indices: wp.array[wp.int32],
     # Out:
-    system: wp.array(dtype=float),
+    system: wp.array[float],
 ):
     """Normal equations of one linearized point-to-plane ICP step (a small rigid motion).
 
@@ -397,12 +397,12 @@ def accumulate_point_to_plane_system(
 @wp.kernel
 def transform_points_rigid(
     # In:
-    points: wp.array(dtype=wp.vec3),
+    points: wp.array[wp.vec3],
     rotation: wp.mat33,
     center: wp.vec3,
     translation: wp.vec3,
     # Out:
-    out: wp.array(dtype=wp.vec3),
+    out: wp.array[wp.vec3],
 ):
     """out = rotation (p - center) + center + translation. points, out (N,) [m] (may alias)."""
     i = wp.tid()
@@ -423,10 +423,10 @@ def distance_to_mesh(mesh: wp.uint64, p: wp.vec3, max_dist: float) -> float:
 def measure_distances_to_mesh(
     # In:
     mesh: wp.uint64,
-    points: wp.array(dtype=wp.vec3),
+    points: wp.array[wp.vec3],
     max_dist: float,
     # Out:
-    dist: wp.array(dtype=float),
+    dist: wp.array[float],
 ):
     """Distance of each point to a mesh surface (coverage of a converted frame).
 
@@ -441,12 +441,12 @@ def measure_distances_to_mesh(
 def sum_distances_to_mesh(
     # In:
     mesh: wp.uint64,
-    points: wp.array(dtype=wp.vec3),
+    points: wp.array[wp.vec3],
     stride: int,
     shift: wp.vec3,
     max_dist: float,
     # Out:
-    total: wp.array(dtype=float),
+    total: wp.array[float],
 ):
     """Sum of the distances of a strided subset of points, translated, to a mesh (fit score).
 

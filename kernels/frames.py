@@ -60,8 +60,8 @@ def store_frame_key(
     fps: wp.float64,
     num_frames: int,
     mode: int,
-    frame_key_out: wp.array(dtype=wp.int32),
-    frame_changed_out: wp.array(dtype=wp.int32),
+    frame_key_out: wp.array[wp.int32],
+    frame_changed_out: wp.array[wp.int32],
 ):
     """The clock's frame pair at ``time`` into State: frame_key_out[0] = k0 * num_frames + k1,
     frame_changed_out[0] = 1 if that differs from the stored key, else 0 (one thread)."""
@@ -77,16 +77,16 @@ def store_frame_key(
 @wp.kernel
 def update_frame_vertices(
     # Model:
-    frames: wp.array2d(dtype=wp.vec3),
+    frames: wp.array2d[wp.vec3],
     # State in:
-    sim_time_in: wp.array(dtype=wp.float64),
+    sim_time_in: wp.array[wp.float64],
     # In:
     fps: wp.float64,
     mode: int,
     interpolate: int,
     # State out:
-    points_out: wp.array(dtype=wp.vec3),
-    velocities_out: wp.array(dtype=wp.vec3),
+    points_out: wp.array[wp.vec3],
+    velocities_out: wp.array[wp.vec3],
 ):
     """Write the surface vertices and velocities_out at ``sim_time_in[0]``.
 

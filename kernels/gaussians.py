@@ -40,18 +40,18 @@ def face_frame_scale(p0: wp.vec3, p1: wp.vec3, p2: wp.vec3) -> float:
 @wp.kernel
 def update_gaussians(
     # In:
-    points: wp.array(dtype=wp.vec3),
-    indices: wp.array(dtype=wp.int32),
-    face: wp.array(dtype=wp.int32),
-    bary: wp.array(dtype=wp.vec3),
-    offset: wp.array(dtype=float),
-    local_rotation: wp.array(dtype=wp.quat),
-    local_scale: wp.array(dtype=wp.vec3),
+    points: wp.array[wp.vec3],
+    indices: wp.array[wp.int32],
+    face: wp.array[wp.int32],
+    bary: wp.array[wp.vec3],
+    offset: wp.array[float],
+    local_rotation: wp.array[wp.quat],
+    local_scale: wp.array[wp.vec3],
     # Out:
-    centers: wp.array(dtype=wp.vec3),
-    rotations: wp.array(dtype=wp.quat),
-    scales: wp.array(dtype=wp.vec3),
-    covariances: wp.array(dtype=wp.mat33),
+    centers: wp.array[wp.vec3],
+    rotations: wp.array[wp.quat],
+    scales: wp.array[wp.vec3],
+    covariances: wp.array[wp.mat33],
 ):
     """World centre, rotation, scale and covariance of each Gaussian from the current vertices.
 
@@ -83,17 +83,17 @@ def update_gaussians(
 @wp.kernel
 def bind_gaussians_to_faces(
     # In:
-    points: wp.array(dtype=wp.vec3),
-    indices: wp.array(dtype=wp.int32),
-    face: wp.array(dtype=wp.int32),
-    centers: wp.array(dtype=wp.vec3),
-    rotations: wp.array(dtype=wp.quat),
-    scales: wp.array(dtype=wp.vec3),
+    points: wp.array[wp.vec3],
+    indices: wp.array[wp.int32],
+    face: wp.array[wp.int32],
+    centers: wp.array[wp.vec3],
+    rotations: wp.array[wp.quat],
+    scales: wp.array[wp.vec3],
     # Out:
-    bary: wp.array(dtype=wp.vec3),
-    offset: wp.array(dtype=float),
-    local_rotation: wp.array(dtype=wp.quat),
-    local_scale: wp.array(dtype=wp.vec3),
+    bary: wp.array[wp.vec3],
+    offset: wp.array[float],
+    local_rotation: wp.array[wp.quat],
+    local_scale: wp.array[wp.vec3],
 ):
     """Express world Gaussians in the frame of their (already chosen, nearest) face.
 
@@ -142,12 +142,12 @@ def bind_gaussians_to_faces(
 @wp.kernel
 def pack_splat_covariances(
     # In:
-    rotations: wp.array(dtype=wp.quat),
-    scales: wp.array(dtype=wp.vec3),
+    rotations: wp.array[wp.quat],
+    scales: wp.array[wp.vec3],
     min_scale: float,
     min_ratio: float,
     # Out:
-    cov_triu: wp.array2d(dtype=wp.float16),
+    cov_triu: wp.array2d[wp.float16],
 ):
     """Upper-triangle covariance (xx, xy, xz, yy, yz, zz) in float16 for the viewer, with each
     std dev clamped to >= max(min_scale, min_ratio * largest std dev) so thin Gaussians keep a

@@ -6,10 +6,10 @@ import warp as wp
 @wp.kernel
 def compute_face_normals(
     # In:
-    points: wp.array(dtype=wp.vec3),
-    indices: wp.array(dtype=wp.int32),
+    points: wp.array[wp.vec3],
+    indices: wp.array[wp.int32],
     # Out:
-    face_normals: wp.array(dtype=wp.vec3),
+    face_normals: wp.array[wp.vec3],
 ):
     """Unit normal of each triangle, (p1 - p0) x (p2 - p0) normalized; zero for degenerate faces.
 
@@ -76,13 +76,13 @@ def closest_point_on_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) ->
 def project_points_to_mesh(
     # In:
     mesh: wp.uint64,
-    queries: wp.array(dtype=wp.vec3),
+    queries: wp.array[wp.vec3],
     max_dist: float,
     # Out:
-    closest: wp.array(dtype=wp.vec3),
-    face: wp.array(dtype=wp.int32),
-    bary: wp.array(dtype=wp.vec3),
-    dist: wp.array(dtype=float),
+    closest: wp.array[wp.vec3],
+    face: wp.array[wp.int32],
+    bary: wp.array[wp.vec3],
+    dist: wp.array[float],
 ):
     """NearestSurface: closest point on a mesh for each query point (BVH query).
 

@@ -8,8 +8,8 @@ from .frames import store_frame_key
 @wp.kernel
 def integrate_spheres(
     # Model:
-    inv_mass: wp.array(dtype=float),
-    sphere_radius: wp.array(dtype=float),
+    inv_mass: wp.array[float],
+    sphere_radius: wp.array[float],
     gravity: wp.vec3,
     dt: float,
     restitution: float,
@@ -22,16 +22,16 @@ def integrate_spheres(
     num_frames: int,
     mode: int,
     # In:
-    contact_face: wp.array(dtype=wp.int32),
-    contact_normal: wp.array(dtype=wp.vec3),
-    contact_depth: wp.array(dtype=float),
-    contact_velocity: wp.array(dtype=wp.vec3),
+    contact_face: wp.array[wp.int32],
+    contact_normal: wp.array[wp.vec3],
+    contact_depth: wp.array[float],
+    contact_velocity: wp.array[wp.vec3],
     # State out:
-    sphere_pos_out: wp.array(dtype=wp.vec3),
-    sphere_vel_out: wp.array(dtype=wp.vec3),
-    sim_time_out: wp.array(dtype=wp.float64),
-    frame_key_out: wp.array(dtype=wp.int32),
-    frame_changed_out: wp.array(dtype=wp.int32),
+    sphere_pos_out: wp.array[wp.vec3],
+    sphere_vel_out: wp.array[wp.vec3],
+    sim_time_out: wp.array[wp.float64],
+    frame_key_out: wp.array[wp.int32],
+    frame_changed_out: wp.array[wp.int32],
 ):
     """Advance each sphere by dt with a continuous (time-of-impact) contact response.
 
@@ -114,7 +114,7 @@ def advance_time(
     # In:
     dt: wp.float64,
     # State out:
-    sim_time_out: wp.array(dtype=wp.float64),
+    sim_time_out: wp.array[wp.float64],
 ):
     """sim_time_out[0] += dt (one thread; keeps the clock on the device for graph capture)."""
     sim_time_out[0] = sim_time_out[0] + dt

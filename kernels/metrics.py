@@ -12,13 +12,13 @@ import warp as wp
 @wp.kernel
 def sample_surface_points(
     # In:
-    points: wp.array(dtype=wp.vec3),
-    indices: wp.array(dtype=wp.int32),
-    face_cdf: wp.array(dtype=float),
+    points: wp.array[wp.vec3],
+    indices: wp.array[wp.int32],
+    face_cdf: wp.array[float],
     seed: int,
     # Out:
-    samples: wp.array(dtype=wp.vec3),
-    sample_face: wp.array(dtype=wp.int32),
+    samples: wp.array[wp.vec3],
+    sample_face: wp.array[wp.int32],
 ):
     """Area-weighted uniform random points on a triangle mesh.
 
@@ -64,13 +64,13 @@ def sample_surface_points(
 @wp.kernel
 def compute_approxmatch_ratio_left(
     # In:
-    xyz1: wp.array(dtype=wp.vec3),
-    xyz2: wp.array(dtype=wp.vec3),
-    remain_right: wp.array(dtype=float),
-    remain_left: wp.array(dtype=float),
+    xyz1: wp.array[wp.vec3],
+    xyz2: wp.array[wp.vec3],
+    remain_right: wp.array[float],
+    remain_left: wp.array[float],
     level: float,
     # Out:
-    ratio_left: wp.array(dtype=float),
+    ratio_left: wp.array[float],
 ):
     """ratio_left[k] = remain_left[k] / (1e-9 + sum_l exp(level |x1_k - x2_l|^2) remain_right[l]).
 
@@ -89,13 +89,13 @@ def compute_approxmatch_ratio_left(
 @wp.kernel
 def compute_approxmatch_ratio_right(
     # In:
-    xyz1: wp.array(dtype=wp.vec3),
-    xyz2: wp.array(dtype=wp.vec3),
-    ratio_left: wp.array(dtype=float),
+    xyz1: wp.array[wp.vec3],
+    xyz2: wp.array[wp.vec3],
+    ratio_left: wp.array[float],
     level: float,
     # Out:
-    remain_right: wp.array(dtype=float),
-    ratio_right: wp.array(dtype=float),
+    remain_right: wp.array[float],
+    ratio_right: wp.array[float],
 ):
     """Right-side consumption of one level.
 
@@ -120,16 +120,16 @@ def compute_approxmatch_ratio_right(
 @wp.kernel
 def accumulate_approxmatch_left(
     # In:
-    xyz1: wp.array(dtype=wp.vec3),
-    xyz2: wp.array(dtype=wp.vec3),
-    ratio_left: wp.array(dtype=float),
-    ratio_right: wp.array(dtype=float),
+    xyz1: wp.array[wp.vec3],
+    xyz2: wp.array[wp.vec3],
+    ratio_left: wp.array[float],
+    ratio_right: wp.array[float],
     level: float,
     store_match: int,
     # Out:
-    remain_left: wp.array(dtype=float),
-    cost_left: wp.array(dtype=float),
-    match: wp.array2d(dtype=float),
+    remain_left: wp.array[float],
+    cost_left: wp.array[float],
+    match: wp.array2d[float],
 ):
     """Add this level's matches of each left point; update its remaining mass and cost.
 
@@ -161,11 +161,11 @@ def accumulate_approxmatch_left(
 def find_nearest_points_bvh(
     # In:
     point_mesh: wp.uint64,
-    queries: wp.array(dtype=wp.vec3),
-    targets: wp.array(dtype=wp.vec3),
+    queries: wp.array[wp.vec3],
+    targets: wp.array[wp.vec3],
     # Out:
-    nearest_index: wp.array(dtype=wp.int32),
-    nearest_dist_sq: wp.array(dtype=float),
+    nearest_index: wp.array[wp.int32],
+    nearest_dist_sq: wp.array[float],
 ):
     """Exact nearest target point of each query through a BVH: ``point_mesh`` is a wp.Mesh
     whose triangle i is the degenerate (i, i, i) on targets[i], so its closest face is the

@@ -16,9 +16,9 @@ def reset_shape_bounds(
     # In:
     shape: int,
     # Out:
-    aabb_lower: wp.array(dtype=wp.vec3),
-    aabb_upper: wp.array(dtype=wp.vec3),
-    radius: wp.array(dtype=float),
+    aabb_lower: wp.array[wp.vec3],
+    aabb_upper: wp.array[wp.vec3],
+    radius: wp.array[float],
 ):
     """Set shape ``shape``'s local AABB to empty (+inf, -inf) and its bounding radius to 0.
 
@@ -33,13 +33,13 @@ def reset_shape_bounds(
 @wp.kernel
 def accumulate_shape_bounds(
     # In:
-    points: wp.array(dtype=wp.vec3),
+    points: wp.array[wp.vec3],
     shape: int,
     pad: float,
     # Out (accumulated):
-    aabb_lower: wp.array(dtype=wp.vec3),
-    aabb_upper: wp.array(dtype=wp.vec3),
-    radius: wp.array(dtype=float),
+    aabb_lower: wp.array[wp.vec3],
+    aabb_upper: wp.array[wp.vec3],
+    radius: wp.array[float],
 ):
     """Grow shape ``shape``'s local AABB and bounding radius to contain every point.
 

@@ -36,7 +36,7 @@ MAX_ROW_NODES = wp.constant(3 * MAX_NODES_PER_VERTEX)  # distinct nodes of one t
 
 
 @wp.func
-def triangle_normal(points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32), f: int) -> wp.vec3:
+def triangle_normal(points: wp.array[wp.vec3], indices: wp.array[wp.int32], f: int) -> wp.vec3:
     """Unit normal of face f (counter-clockwise), zero for a degenerate face."""
     a = points[indices[3 * f + 0]]
     b = points[indices[3 * f + 1]]
@@ -51,16 +51,16 @@ def triangle_normal(points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.
 @wp.kernel
 def skin_vertices(
     # Model:
-    rest_points: wp.array(dtype=wp.vec3),
-    node_rest: wp.array(dtype=wp.vec3),
-    node_index: wp.array(dtype=wp.int32),
-    node_weight: wp.array(dtype=float),
+    rest_points: wp.array[wp.vec3],
+    node_rest: wp.array[wp.vec3],
+    node_index: wp.array[wp.int32],
+    node_weight: wp.array[float],
     k: int,
     # In:
-    node_rotation: wp.array(dtype=wp.mat33),
-    node_position: wp.array(dtype=wp.vec3),
+    node_rotation: wp.array[wp.mat33],
+    node_position: wp.array[wp.vec3],
     # Out:
-    points: wp.array(dtype=wp.vec3),
+    points: wp.array[wp.vec3],
 ):
     """Embedded deformation: X_i = sum_a w_ia (R_a (T_i - g_a) + p_a).
 
@@ -81,18 +81,18 @@ def skin_vertices(
 def find_correspondences(
     # In:
     mesh: wp.uint64,
-    mesh_points: wp.array(dtype=wp.vec3),
-    mesh_indices: wp.array(dtype=wp.int32),
-    queries: wp.array(dtype=wp.vec3),
-    query_normals: wp.array(dtype=wp.vec3),
+    mesh_points: wp.array[wp.vec3],
+    mesh_indices: wp.array[wp.int32],
+    queries: wp.array[wp.vec3],
+    query_normals: wp.array[wp.vec3],
     max_dist: float,
     min_cos: float,
     # Out:
-    closest: wp.array(dtype=wp.vec3),
-    face: wp.array(dtype=wp.int32),
-    bary: wp.array(dtype=wp.vec3),
-    weight: wp.array(dtype=float),
-    dist: wp.array(dtype=float),
+    closest: wp.array[wp.vec3],
+    face: wp.array[wp.int32],
+    bary: wp.array[wp.vec3],
+    weight: wp.array[float],
+    dist: wp.array[float],
 ):
     """Closest point on ``mesh`` for each query, kept where the normals agree. Used both ways:
     template -> frame (mesh: the frame) and frame -> template (mesh: the template, refit).
@@ -127,11 +127,11 @@ def find_correspondences(
 
 @wp.func
 def fixed_part(
-    points: wp.array(dtype=wp.vec3),
-    node_index: wp.array(dtype=wp.int32),
-    node_weight: wp.array(dtype=float),
+    points: wp.array[wp.vec3],
+    node_index: wp.array[wp.int32],
+    node_weight: wp.array[float],
     k: int,
-    node_position: wp.array(dtype=wp.vec3),
+    node_position: wp.array[wp.vec3],
     i: int,
 ) -> wp.vec3:
     """X_i minus its part linear in the node positions: X_i - sum_a w_ia p_a [m]."""
@@ -142,7 +142,7 @@ def fixed_part(
 
 
 @wp.func
-def find_slot(row_offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32), row: int, col: int) -> int:
+def find_slot(row_offsets: wp.array[wp.int32], columns: wp.array[wp.int32], row: int, col: int) -> int:
     """Index of entry (row, col) in the CSR arrays (binary search; -1 if not in the pattern)."""
     lo = row_offsets[row]
     hi = row_offsets[row + 1] - 1
@@ -159,8 +159,8 @@ def find_slot(row_offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.
 
 
 @wp.func
-def add_entry(row_offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32), row: int, col: int,
-              v: float, values: wp.array(dtype=float)):
+def add_entry(row_offsets: wp.array[wp.int32], columns: wp.array[wp.int32], row: int, col: int,
+              v: float, values: wp.array[float]):
     """values[(row, col)] += v (atomic); an entry outside the pattern is dropped (never happens for
     the pattern of ``deform_graph.system_pattern``; the guard keeps a write in bounds)."""
     s = find_slot(row_offsets, columns, row, col)
@@ -169,7 +169,7 @@ def add_entry(row_offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.
 
 
 @wp.func
-def side_scale(weight_sum: wp.array(dtype=float), side: int) -> float:
+def side_scale(weight_sum: wp.array[float], side: int) -> float:
     """0.5 / max(total weight of one side, 1): each direction of the data term is a mean."""
     return 0.5 / wp.max(weight_sum[side], 1.0)
 
@@ -177,10 +177,10 @@ def side_scale(weight_sum: wp.array(dtype=float), side: int) -> float:
 @wp.kernel
 def sum_correspondence_weights(
     # In:
-    weight: wp.array(dtype=float),
+    weight: wp.array[float],
     side: int,
     # Out (accumulated):
-    weight_sum: wp.array(dtype=float),
+    weight_sum: wp.array[float],
 ):
     """weight_sum[side] += sum of weight[:dim] (launch with the live count: the array may be
     longer)."""
@@ -193,20 +193,20 @@ def sum_correspondence_weights(
 @wp.kernel
 def accumulate_forward_system(
     # Model:
-    node_index: wp.array(dtype=wp.int32),
-    node_weight: wp.array(dtype=float),
+    node_index: wp.array[wp.int32],
+    node_weight: wp.array[float],
     k: int,
-    row_offsets: wp.array(dtype=wp.int32),
-    columns: wp.array(dtype=wp.int32),
+    row_offsets: wp.array[wp.int32],
+    columns: wp.array[wp.int32],
     # In:
-    points: wp.array(dtype=wp.vec3),
-    node_position: wp.array(dtype=wp.vec3),
-    target: wp.array(dtype=wp.vec3),
-    weight: wp.array(dtype=float),
-    weight_sum: wp.array(dtype=float),
+    points: wp.array[wp.vec3],
+    node_position: wp.array[wp.vec3],
+    target: wp.array[wp.vec3],
+    weight: wp.array[float],
+    weight_sum: wp.array[float],
     # Out (accumulated):
-    values: wp.array(dtype=float),
-    rhs: wp.array(dtype=wp.vec3),
+    values: wp.array[float],
+    rhs: wp.array[wp.vec3],
 ):
     """Normal equations of sum_i s_f weight_i |sum_a w_ia p_a + X_fixed_i - target_i|^2 in p,
     s_f = side_scale(weight_sum, 0).
@@ -234,23 +234,23 @@ def accumulate_forward_system(
 @wp.kernel
 def accumulate_backward_system(
     # Model:
-    template_indices: wp.array(dtype=wp.int32),
-    node_index: wp.array(dtype=wp.int32),
-    node_weight: wp.array(dtype=float),
+    template_indices: wp.array[wp.int32],
+    node_index: wp.array[wp.int32],
+    node_weight: wp.array[float],
     k: int,
-    row_offsets: wp.array(dtype=wp.int32),
-    columns: wp.array(dtype=wp.int32),
+    row_offsets: wp.array[wp.int32],
+    columns: wp.array[wp.int32],
     # In:
-    points: wp.array(dtype=wp.vec3),
-    node_position: wp.array(dtype=wp.vec3),
-    frame_points: wp.array(dtype=wp.vec3),
-    face: wp.array(dtype=wp.int32),
-    bary: wp.array(dtype=wp.vec3),
-    weight: wp.array(dtype=float),
-    weight_sum: wp.array(dtype=float),
+    points: wp.array[wp.vec3],
+    node_position: wp.array[wp.vec3],
+    frame_points: wp.array[wp.vec3],
+    face: wp.array[wp.int32],
+    bary: wp.array[wp.vec3],
+    weight: wp.array[float],
+    weight_sum: wp.array[float],
     # Out (accumulated):
-    values: wp.array(dtype=float),
-    rhs: wp.array(dtype=wp.vec3),
+    values: wp.array[float],
+    rhs: wp.array[wp.vec3],
 ):
     """Normal equations of sum_q s_b weight_q |sum_c b_qc X_{v_c}(p) - q|^2 in p, X_v(p) the
     skinned template vertex v of face(q), s_b = side_scale(weight_sum, 1); the row's node
@@ -298,18 +298,18 @@ def accumulate_backward_system(
 @wp.kernel
 def begin_graph_system(
     # Model:
-    slot_row: wp.array(dtype=wp.int32),
-    columns: wp.array(dtype=wp.int32),
-    laplacian: wp.array(dtype=float),
+    slot_row: wp.array[wp.int32],
+    columns: wp.array[wp.int32],
+    laplacian: wp.array[float],
     # In:
-    position_prior: wp.array(dtype=wp.vec3),
+    position_prior: wp.array[wp.vec3],
     stiffness_weight: float,
     damping_weight: float,
     # Out:
-    values: wp.array(dtype=float),
-    rhs: wp.array(dtype=wp.vec3),
-    covariance: wp.array(dtype=wp.mat33),
-    weight_sum: wp.array(dtype=float),
+    values: wp.array[float],
+    rhs: wp.array[wp.vec3],
+    covariance: wp.array[wp.mat33],
+    weight_sum: wp.array[float],
 ):
     """Start an iteration's system with its data-independent part, in one launch (dim = nnz):
     values = stiffness_weight * laplacian (the graph's ARAP term) + (damping_weight + 1e-12) on
@@ -335,14 +335,14 @@ def begin_graph_system(
 @wp.kernel
 def accumulate_graph_rhs(
     # Model:
-    edge_from: wp.array(dtype=wp.int32),
-    edge_to: wp.array(dtype=wp.int32),
-    rest_offset: wp.array(dtype=wp.vec3),
+    edge_from: wp.array[wp.int32],
+    edge_to: wp.array[wp.int32],
+    rest_offset: wp.array[wp.vec3],
     # In:
-    node_rotation: wp.array(dtype=wp.mat33),
+    node_rotation: wp.array[wp.mat33],
     stiffness_weight: float,
     # Out (accumulated):
-    rhs: wp.array(dtype=wp.vec3),
+    rhs: wp.array[wp.vec3],
 ):
     """Right-hand side of the ARAP graph term stiffness_weight * sum_e |p_l - p_j - R_j (g_l - g_j)|^2
     over directed edges e = (j -> l): rhs_l += w R_j d_e, rhs_j -= w R_j d_e.
@@ -358,10 +358,10 @@ def accumulate_graph_rhs(
 
 @wp.func
 def csr_multiply_row(
-    row_offsets: wp.array(dtype=wp.int32),
-    columns: wp.array(dtype=wp.int32),
-    values: wp.array(dtype=float),
-    x: wp.array(dtype=wp.vec3),
+    row_offsets: wp.array[wp.int32],
+    columns: wp.array[wp.int32],
+    values: wp.array[float],
+    x: wp.array[wp.vec3],
     row: int,
 ) -> wp.vec3:
     s = wp.vec3(0.0)
@@ -373,17 +373,17 @@ def csr_multiply_row(
 @wp.kernel
 def begin_conjugate_gradient(
     # Model:
-    row_offsets: wp.array(dtype=wp.int32),
-    columns: wp.array(dtype=wp.int32),
-    diagonal_slot: wp.array(dtype=wp.int32),
+    row_offsets: wp.array[wp.int32],
+    columns: wp.array[wp.int32],
+    diagonal_slot: wp.array[wp.int32],
     # In:
-    values: wp.array(dtype=float),
-    rhs: wp.array(dtype=wp.vec3),
-    solution: wp.array(dtype=wp.vec3),
+    values: wp.array[float],
+    rhs: wp.array[wp.vec3],
+    solution: wp.array[wp.vec3],
     # Out:
-    residual: wp.array(dtype=wp.vec3),
-    preconditioned: wp.array(dtype=wp.vec3),
-    residual_dot: wp.array(dtype=float),
+    residual: wp.array[wp.vec3],
+    preconditioned: wp.array[wp.vec3],
+    residual_dot: wp.array[float],
 ):
     """Preconditioned CG, start: r = b - A x, z = r / diag(A), residual_dot[0] += r . z.
 
@@ -401,18 +401,18 @@ def begin_conjugate_gradient(
 @wp.kernel
 def multiply_search_direction(
     # Model:
-    row_offsets: wp.array(dtype=wp.int32),
-    columns: wp.array(dtype=wp.int32),
+    row_offsets: wp.array[wp.int32],
+    columns: wp.array[wp.int32],
     # In:
-    values: wp.array(dtype=float),
-    preconditioned: wp.array(dtype=wp.vec3),
-    direction_in: wp.array(dtype=wp.vec3),
-    residual_dot: wp.array(dtype=float),
+    values: wp.array[float],
+    preconditioned: wp.array[wp.vec3],
+    direction_in: wp.array[wp.vec3],
+    residual_dot: wp.array[float],
     iteration: int,
     # Out:
-    direction_out: wp.array(dtype=wp.vec3),
-    product: wp.array(dtype=wp.vec3),
-    curvature: wp.array(dtype=float),
+    direction_out: wp.array[wp.vec3],
+    product: wp.array[wp.vec3],
+    curvature: wp.array[float],
 ):
     """CG iteration ``iteration``, first half: the new search direction p' = z + beta p
     (beta = rz_it / rz_(it-1), 0 on the first iteration) and q = A p', curvature[it] += p' . q.
@@ -436,19 +436,19 @@ def multiply_search_direction(
 @wp.kernel
 def update_conjugate_gradient(
     # Model:
-    diagonal_slot: wp.array(dtype=wp.int32),
+    diagonal_slot: wp.array[wp.int32],
     # In:
-    values: wp.array(dtype=float),
-    direction: wp.array(dtype=wp.vec3),
-    product: wp.array(dtype=wp.vec3),
-    curvature: wp.array(dtype=float),
+    values: wp.array[float],
+    direction: wp.array[wp.vec3],
+    product: wp.array[wp.vec3],
+    curvature: wp.array[float],
     iteration: int,
     relative_tolerance: float,
     # Out (in place / accumulated):
-    solution_in: wp.array(dtype=wp.vec3),
-    residual_in: wp.array(dtype=wp.vec3),
-    preconditioned: wp.array(dtype=wp.vec3),
-    residual_dot: wp.array(dtype=float),
+    solution_in: wp.array[wp.vec3],
+    residual_in: wp.array[wp.vec3],
+    preconditioned: wp.array[wp.vec3],
+    residual_dot: wp.array[float],
 ):
     """CG iteration ``iteration``, second half: alpha = rz_it / (p' . A p'); x += alpha p',
     r -= alpha q, z = r / diag(A), residual_dot[it + 1] += r . z. Once rz_it <= tol^2 rz_0
@@ -470,21 +470,21 @@ def update_conjugate_gradient(
 @wp.kernel
 def solve_conjugate_gradient_serial(
     # Model:
-    row_offsets: wp.array(dtype=wp.int32),
-    columns: wp.array(dtype=wp.int32),
-    diagonal_slot: wp.array(dtype=wp.int32),
+    row_offsets: wp.array[wp.int32],
+    columns: wp.array[wp.int32],
+    diagonal_slot: wp.array[wp.int32],
     # In:
-    values: wp.array(dtype=float),
-    rhs: wp.array(dtype=wp.vec3),
+    values: wp.array[float],
+    rhs: wp.array[wp.vec3],
     iterations: int,
     relative_tolerance: float,
     # Out (in place / scratch):
-    solution_in: wp.array(dtype=wp.vec3),
-    residual: wp.array(dtype=wp.vec3),
-    preconditioned: wp.array(dtype=wp.vec3),
-    direction: wp.array(dtype=wp.vec3),
-    product: wp.array(dtype=wp.vec3),
-    residual_dot: wp.array(dtype=float),
+    solution_in: wp.array[wp.vec3],
+    residual: wp.array[wp.vec3],
+    preconditioned: wp.array[wp.vec3],
+    direction: wp.array[wp.vec3],
+    product: wp.array[wp.vec3],
+    residual_dot: wp.array[float],
 ):
     """The same preconditioned CG as begin_conjugate_gradient / multiply_search_direction /
     update_conjugate_gradient, as one serial launch (dim 1) for the CPU device: Warp's CPU
@@ -531,18 +531,18 @@ def solve_conjugate_gradient_serial(
 @wp.kernel
 def accumulate_rotation_covariance(
     # Model:
-    rest_points: wp.array(dtype=wp.vec3),
-    node_rest: wp.array(dtype=wp.vec3),
-    node_index: wp.array(dtype=wp.int32),
-    node_weight: wp.array(dtype=float),
+    rest_points: wp.array[wp.vec3],
+    node_rest: wp.array[wp.vec3],
+    node_index: wp.array[wp.int32],
+    node_weight: wp.array[float],
     k: int,
     # In:
-    node_position: wp.array(dtype=wp.vec3),
-    target: wp.array(dtype=wp.vec3),
-    weight: wp.array(dtype=float),
-    weight_sum: wp.array(dtype=float),
+    node_position: wp.array[wp.vec3],
+    target: wp.array[wp.vec3],
+    weight: wp.array[float],
+    weight_sum: wp.array[float],
     # Out (accumulated):
-    covariance: wp.array(dtype=wp.mat33),
+    covariance: wp.array[wp.mat33],
 ):
     """Data part of each node's rotation fit (the local step of as-rigid-as-possible):
     covariance_j += s_f weight_i w_ij (target_i - p_j) (T_i - g_j)^T over its vertices
@@ -566,14 +566,14 @@ def accumulate_rotation_covariance(
 @wp.kernel
 def accumulate_edge_covariance(
     # Model:
-    edge_from: wp.array(dtype=wp.int32),
-    edge_to: wp.array(dtype=wp.int32),
-    rest_offset: wp.array(dtype=wp.vec3),
+    edge_from: wp.array[wp.int32],
+    edge_to: wp.array[wp.int32],
+    rest_offset: wp.array[wp.vec3],
     # In:
-    node_position: wp.array(dtype=wp.vec3),
+    node_position: wp.array[wp.vec3],
     stiffness_weight: float,
     # Out (accumulated):
-    covariance: wp.array(dtype=wp.mat33),
+    covariance: wp.array[wp.mat33],
 ):
     """Graph part of the rotation fit: covariance_j += w (p_l - p_j) (g_l - g_j)^T per directed
     edge (j -> l) [m^2]."""
@@ -586,9 +586,9 @@ def accumulate_edge_covariance(
 @wp.kernel
 def update_node_rotations(
     # In:
-    covariance: wp.array(dtype=wp.mat33),
+    covariance: wp.array[wp.mat33],
     # Out (in place):
-    node_rotation_in: wp.array(dtype=wp.mat33),
+    node_rotation_in: wp.array[wp.mat33],
 ):
     """R_j = the rotation maximising tr(R^T C_j), C_j = covariance_j + (1e-3 |covariance_j|_F +
     1e-12) R_j (a small pull towards the current rotation keeps nodes with little data stable).

@@ -12,8 +12,8 @@ from .geometry import closest_point_on_triangle
 @wp.kernel
 def mark_band_voxels(
     # In:
-    points: wp.array(dtype=wp.vec3),
-    indices: wp.array(dtype=wp.int32),
+    points: wp.array[wp.vec3],
+    indices: wp.array[wp.int32],
     origin: wp.vec3,
     h: float,
     nx: int,
@@ -21,7 +21,7 @@ def mark_band_voxels(
     nz: int,
     band: float,
     # Out:
-    mask: wp.array(dtype=wp.int32),
+    mask: wp.array[wp.int32],
 ):
     """Mark every grid point within ``band`` (in grid spacings) of each triangle.
 
@@ -55,10 +55,10 @@ def mark_band_voxels(
 def compute_signed_distances(
     # In:
     mesh: wp.uint64,
-    queries: wp.array(dtype=wp.vec3),
+    queries: wp.array[wp.vec3],
     max_dist: float,
     # Out:
-    sdf: wp.array(dtype=float),
+    sdf: wp.array[float],
 ):
     """Signed distance to a mesh, negative inside, with the sign from the generalized winding
     number (robust for meshes with small holes or slits). The mesh must be built with

@@ -20,14 +20,14 @@ from .geometry import closest_point_on_triangle
 @wp.kernel
 def detect_frame_change(
     # State in:
-    sim_time_in: wp.array(dtype=wp.float64),
+    sim_time_in: wp.array[wp.float64],
     # In:
     fps: wp.float64,
     num_frames: int,
     mode: int,
     # State out:
-    frame_key_out: wp.array(dtype=wp.int32),
-    frame_changed_out: wp.array(dtype=wp.int32),
+    frame_key_out: wp.array[wp.int32],
+    frame_changed_out: wp.array[wp.int32],
 ):
     """frame_changed_out[0] = 1 when the frame pair (k, k+1) at sim_time_in differs from frame_key_out[0] (then updated)."""
     store_frame_key(sim_time_in[0], fps, num_frames, mode, frame_key_out, frame_changed_out)
@@ -36,16 +36,16 @@ def detect_frame_change(
 @wp.kernel
 def compute_swept_bounds(
     # Model:
-    frames: wp.array2d(dtype=wp.vec3),
-    indices: wp.array(dtype=wp.int32),
+    frames: wp.array2d[wp.vec3],
+    indices: wp.array[wp.int32],
     # State in:
-    sim_time_in: wp.array(dtype=wp.float64),
+    sim_time_in: wp.array[wp.float64],
     # In:
     fps: wp.float64,
     mode: int,
     # Out:
-    lowers: wp.array(dtype=wp.vec3),
-    uppers: wp.array(dtype=wp.vec3),
+    lowers: wp.array[wp.vec3],
+    uppers: wp.array[wp.vec3],
 ):
     """Box of each face over the interval between frames k and k+1 (both frames' vertices).
 
@@ -100,7 +100,7 @@ def vertex_weight_angle(c: wp.vec3, a: wp.vec3, b: wp.vec3, e: wp.vec3, eps_sq: 
 
 @wp.func
 def interpolated_triangle(
-    frames: wp.array2d(dtype=wp.vec3), indices: wp.array(dtype=wp.int32), f: int, k0: int, k1: int, alpha: float
+    frames: wp.array2d[wp.vec3], indices: wp.array[wp.int32], f: int, k0: int, k1: int, alpha: float
 ):
     """Vertices of face f blended between frames k0 and k1."""
     i0 = indices[3 * f + 0]
@@ -152,7 +152,7 @@ def keep_closest(
 
 @wp.func
 def closest_on_swept_bvh(
-    bvh: wp.uint64, frames: wp.array2d(dtype=wp.vec3), indices: wp.array(dtype=wp.int32),
+    bvh: wp.uint64, frames: wp.array2d[wp.vec3], indices: wp.array[wp.int32],
     k0: int, k1: int, alpha: float, p: wp.vec3, reach: float, epsilon: float,
 ):
     """Closest feature of the interpolated surface within ``reach`` of p (serial box query)."""
@@ -173,13 +173,13 @@ def closest_on_swept_bvh(
 @wp.func
 def write_swept_contact(
     s: int, p: wp.vec3, r: float, reach: float, min_dist: float, min_face: int, min_w: wp.vec3, acc_n: wp.vec3,
-    frames: wp.array2d(dtype=wp.vec3), indices: wp.array(dtype=wp.int32), k0: int, k1: int, alpha: float,
+    frames: wp.array2d[wp.vec3], indices: wp.array[wp.int32], k0: int, k1: int, alpha: float,
     fps: wp.float64,
-    contact_face: wp.array(dtype=wp.int32),
-    contact_point: wp.array(dtype=wp.vec3),
-    contact_normal: wp.array(dtype=wp.vec3),
-    contact_depth: wp.array(dtype=float),
-    contact_velocity: wp.array(dtype=wp.vec3),
+    contact_face: wp.array[wp.int32],
+    contact_point: wp.array[wp.vec3],
+    contact_normal: wp.array[wp.vec3],
+    contact_depth: wp.array[float],
+    contact_velocity: wp.array[wp.vec3],
 ):
     face = int(-1)
     c = wp.vec3(0.0)
@@ -215,13 +215,13 @@ def write_swept_contact(
 @wp.kernel
 def collide_sphere_swept(
     # Model:
-    frames: wp.array2d(dtype=wp.vec3),
-    indices: wp.array(dtype=wp.int32),
-    sphere_radius: wp.array(dtype=float),
+    frames: wp.array2d[wp.vec3],
+    indices: wp.array[wp.int32],
+    sphere_radius: wp.array[float],
     # State in:
-    sim_time_in: wp.array(dtype=wp.float64),
-    sphere_pos_in: wp.array(dtype=wp.vec3),
-    sphere_vel_in: wp.array(dtype=wp.vec3),
+    sim_time_in: wp.array[wp.float64],
+    sphere_pos_in: wp.array[wp.vec3],
+    sphere_vel_in: wp.array[wp.vec3],
     # In:
     bvh: wp.uint64,
     fps: wp.float64,
@@ -232,11 +232,11 @@ def collide_sphere_swept(
     extra_speed: float,
     margin: float,
     # Out:
-    contact_face: wp.array(dtype=wp.int32),
-    contact_point: wp.array(dtype=wp.vec3),
-    contact_normal: wp.array(dtype=wp.vec3),
-    contact_depth: wp.array(dtype=float),
-    contact_velocity: wp.array(dtype=wp.vec3),
+    contact_face: wp.array[wp.int32],
+    contact_point: wp.array[wp.vec3],
+    contact_normal: wp.array[wp.vec3],
+    contact_depth: wp.array[float],
+    contact_velocity: wp.array[wp.vec3],
 ):
     """Contact of each sphere with the surface interpolated at sim_time_in (same outputs as
     ``collide_sphere_mesh``), one thread per sphere walking the swept-box BVH (CPU path).
@@ -257,20 +257,20 @@ def collide_sphere_swept(
 @wp.kernel
 def gather_sphere_candidates(
     # Model:
-    sphere_radius: wp.array(dtype=float),
+    sphere_radius: wp.array[float],
     # State in:
-    sphere_pos_in: wp.array(dtype=wp.vec3),
-    sphere_vel_in: wp.array(dtype=wp.vec3),
+    sphere_pos_in: wp.array[wp.vec3],
+    sphere_vel_in: wp.array[wp.vec3],
     # In:
     bvh: wp.uint64,
     horizon: float,
     gravity: float,
     margin: float,
     # Out:
-    cand_face: wp.array2d(dtype=wp.int32),
-    cand_count: wp.array(dtype=wp.int32),
-    cand_center: wp.array(dtype=wp.vec3),
-    cand_radius: wp.array(dtype=float),
+    cand_face: wp.array2d[wp.int32],
+    cand_count: wp.array[wp.int32],
+    cand_center: wp.array[wp.vec3],
+    cand_radius: wp.array[float],
 ):
     """Faces whose swept box lies within the sphere's reach over the next ``horizon`` seconds
     (one frame interval): R = radius + margin + 1.25 (|v| T + g T^2 / 2) + (one step's reach,
@@ -299,22 +299,22 @@ def gather_sphere_candidates(
 @wp.kernel
 def evaluate_sphere_candidates(
     # Model:
-    frames: wp.array2d(dtype=wp.vec3),
-    indices: wp.array(dtype=wp.int32),
+    frames: wp.array2d[wp.vec3],
+    indices: wp.array[wp.int32],
     # State in:
-    sim_time_in: wp.array(dtype=wp.float64),
-    sphere_pos_in: wp.array(dtype=wp.vec3),
+    sim_time_in: wp.array[wp.float64],
+    sphere_pos_in: wp.array[wp.vec3],
     # In:
     fps: wp.float64,
     mode: int,
     interpolate: int,
     epsilon: float,
-    cand_face: wp.array2d(dtype=wp.int32),
-    cand_count: wp.array(dtype=wp.int32),
+    cand_face: wp.array2d[wp.int32],
+    cand_count: wp.array[wp.int32],
     # Out:
-    cand_dist: wp.array2d(dtype=float),
-    cand_w: wp.array2d(dtype=wp.vec3),
-    cand_wn: wp.array2d(dtype=wp.vec3),
+    cand_dist: wp.array2d[float],
+    cand_w: wp.array2d[wp.vec3],
+    cand_wn: wp.array2d[wp.vec3],
 ):
     """Distance, closest-point weights and pseudo-normal term of every gathered candidate (S, K)."""
     s, j = wp.tid()
@@ -331,13 +331,13 @@ def evaluate_sphere_candidates(
 @wp.kernel
 def resolve_sphere_candidates(
     # Model:
-    frames: wp.array2d(dtype=wp.vec3),
-    indices: wp.array(dtype=wp.int32),
-    sphere_radius: wp.array(dtype=float),
+    frames: wp.array2d[wp.vec3],
+    indices: wp.array[wp.int32],
+    sphere_radius: wp.array[float],
     # State in:
-    sim_time_in: wp.array(dtype=wp.float64),
-    sphere_pos_in: wp.array(dtype=wp.vec3),
-    sphere_vel_in: wp.array(dtype=wp.vec3),
+    sim_time_in: wp.array[wp.float64],
+    sphere_pos_in: wp.array[wp.vec3],
+    sphere_vel_in: wp.array[wp.vec3],
     # In:
     bvh: wp.uint64,
     fps: wp.float64,
@@ -347,19 +347,19 @@ def resolve_sphere_candidates(
     dt: float,
     extra_speed: float,
     margin: float,
-    cand_face: wp.array2d(dtype=wp.int32),
-    cand_count: wp.array(dtype=wp.int32),
-    cand_center: wp.array(dtype=wp.vec3),
-    cand_radius: wp.array(dtype=float),
-    cand_dist: wp.array2d(dtype=float),
-    cand_w: wp.array2d(dtype=wp.vec3),
-    cand_wn: wp.array2d(dtype=wp.vec3),
+    cand_face: wp.array2d[wp.int32],
+    cand_count: wp.array[wp.int32],
+    cand_center: wp.array[wp.vec3],
+    cand_radius: wp.array[float],
+    cand_dist: wp.array2d[float],
+    cand_w: wp.array2d[wp.vec3],
+    cand_wn: wp.array2d[wp.vec3],
     # Out:
-    contact_face: wp.array(dtype=wp.int32),
-    contact_point: wp.array(dtype=wp.vec3),
-    contact_normal: wp.array(dtype=wp.vec3),
-    contact_depth: wp.array(dtype=float),
-    contact_velocity: wp.array(dtype=wp.vec3),
+    contact_face: wp.array[wp.int32],
+    contact_point: wp.array[wp.vec3],
+    contact_normal: wp.array[wp.vec3],
+    contact_depth: wp.array[float],
+    contact_velocity: wp.array[wp.vec3],
 ):
     """Closest feature from the evaluated candidates, in gather order (the same sequential rule
     as the serial path); a sphere whose reach left its gathered ball, or whose list overflowed,

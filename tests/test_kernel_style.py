@@ -7,7 +7,9 @@ checked on the source like MuJoCo Warp's kernel linter: every ``@wp.kernel`` in 
   ``# In:`` (other inputs), ``# State out:`` (per-step state it writes, in place included),
   ``# Out:`` (other results); a header may carry a note, ``# Out (accumulated):``;
 * names parameters under ``# State in:`` with the suffix ``_in`` and under ``# State out:``
-  with ``_out`` (the rest of the name is the host field the array carries).
+  with ``_out`` (the rest of the name is the host field the array carries);
+* writes array types with the bracket syntax, ``wp.array[wp.vec3]``, ``wp.array2d[float]``
+  (not ``wp.array(dtype=...)``).
 """
 
 from __future__ import annotations
@@ -70,6 +72,13 @@ def _groups(node: ast.FunctionDef, lines: list[str]) -> tuple[list[tuple[str, st
     return out, problems
 
 
+def _array_syntax(node: ast.FunctionDef) -> list[str]:
+    """Parameters typed with the call form ``wp.array(dtype=...)`` instead of ``wp.array[...]``."""
+    return [f"parameter {a.arg!r}: write {ast.unparse(a.annotation)} as wp.array[...]"
+            for a in node.args.args
+            if isinstance(a.annotation, ast.Call) and ast.unparse(a.annotation.func).startswith("wp.array")]
+
+
 KERNELS = list(_kernels())
 
 
@@ -83,6 +92,7 @@ def test_kernel_convention(path, node, lines):
     assert node.name.split("_")[0] in VERBS, f"{where}: name must start with a verb from VERBS"
     assert ast.get_docstring(node), f"{where}: no docstring"
     groups, problems = _groups(node, lines)
+    problems += _array_syntax(node)
     assert not problems, f"{where}: " + "; ".join(problems)
     for g, name in groups:
         if g == "State in":
@@ -118,6 +128,7 @@ def spheres_integrate(
     assert node.name.split("_")[0] not in VERBS
     assert ("State out", "d") in groups and not "d".endswith("_out")
     assert ast.get_docstring(node) is None
+    assert len(_array_syntax(node)) == 4  # the call form, four times
 
 
 def test_ruff_passes_with_the_project_configuration():
