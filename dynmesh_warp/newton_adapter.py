@@ -489,9 +489,8 @@ def add_scene_bodies(builder, cfg, sphere_positions=None) -> list[dict]:
 
 def build_newton_world(cfg, device=None, sequence=None, **overrides) -> NewtonWorld:
     """Create a :class:`NewtonWorld` from a validated scene with a ``newton:`` section."""
-    from .config import SceneError, spawn_positions  # noqa: PLC0415
-    from .runtime import scene_device  # noqa: PLC0415
-    from .scene import load_surface, prepare_surface  # noqa: PLC0415
+    from .config import SceneError  # noqa: PLC0415
+    from .scene import build_model, load_surface, prepare_surface  # noqa: PLC0415
 
     if cfg.newton is None:
         raise SceneError("the scene has no 'newton:' section")
@@ -499,28 +498,23 @@ def build_newton_world(cfg, device=None, sequence=None, **overrides) -> NewtonWo
         newton = _import_newton()
     except ImportError as e:
         raise SceneError(f"newton: {e}") from e
-    device = scene_device(cfg, device)
     seq = load_surface(cfg) if sequence is None else prepare_surface(sequence, cfg)
     if not isinstance(seq, FixedTopologySequence):
         raise SceneError(f"surface {cfg.surface.source}: the Newton path needs a fixed-topology surface; "
                          "set surface.conversion to convert it")
-    if isinstance(cfg.spheres, list):
-        sph = ([s.radius for s in cfg.spheres], [s.mass for s in cfg.spheres],
-               np.asarray([s.position for s in cfg.spheres], np.float32).reshape(-1, 3),
-               np.asarray([s.velocity for s in cfg.spheres], np.float32).reshape(-1, 3))
-    else:
-        n = cfg.spheres.count
-        sph = ([cfg.spheres.radius] * n, [cfg.spheres.mass] * n, spawn_positions(cfg.spheres, seq.V[0]), None)
+    # the one builder (scene.build_model): the surface on the device, the spheres, the ground
+    model, state = build_model(cfg, seq, device)
+    surface, sp = model.surface, model.spheres
+    vel = state.sphere_vel.numpy() if isinstance(cfg.spheres, list) else None
+    sph = (sp.radius_np.tolist(), sp.mass_np.tolist(), state.sphere_pos.numpy().copy(), vel)
     if any(m <= 0 for m in sph[1]) and cfg.newton.include_spheres:
         raise SceneError("spheres: the Newton path needs mass > 0 for every sphere")
     builder = newton.ModelBuilder()
     records = add_scene_bodies(builder, cfg, sph)
     p = cfg.physics
     mu = p.friction if cfg.newton.surface_mu is None else cfg.newton.surface_mu
-    if p.ground is not None:  # the same static plane the built-in world has
-        ground = float(seq.V[:, :, 2].min()) if p.ground == "auto" else float(p.ground)
-        builder.add_ground_plane(height=ground, cfg=newton.ModelBuilder.ShapeConfig(mu=mu))
-    surface = SurfaceModel(seq, device, playback=cfg.surface.playback, interpolate=cfg.surface.interpolate)
+    if model.params.ground_height is not None:  # the same static plane the built-in world has
+        builder.add_ground_plane(height=float(model.params.ground_height), cfg=newton.ModelBuilder.ShapeConfig(mu=mu))
     kw = dict(dt=p.dt, substeps=p.substeps, solver=cfg.newton.solver, solver_options=dict(cfg.newton.solver_options),
               gravity=p.gravity, mu=mu, restitution=p.restitution)
     kw.update(overrides)

@@ -12,7 +12,7 @@ from .geometry import mesh_orientation
 from .sequence import FixedTopologySequence, MeshDataError, TopologyMismatchError, VaryingTopologySequence
 from .world import Model, PhysicsParams, SphereModel, State, World, surface_model, surface_model_class
 
-__all__ = ["load_surface", "prepare_surface", "build_world"]
+__all__ = ["load_surface", "prepare_surface", "scene_spheres", "scene_ground", "build_model", "build_world"]
 
 # y-up data to z-up: rotate +90 degrees about x, (x, y, z) -> (x, -z, y)
 _Y_TO_Z = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
@@ -147,6 +147,46 @@ def _refuse_spheres_inside(V0, F0, positions, radius) -> None:
             + (f" ({inside.size} spheres are inside)" if inside.size > 1 else ""))
 
 
+def scene_spheres(cfg: SceneConfig, V0: np.ndarray):
+    """The scene's spheres: ``(radius (S,) float32 [m], mass (S,) float64 [kg], position (S, 3)
+    float32 [m], velocity (S, 3) float32 [m/s] or None)``, from a list of spheres or a spawn
+    section (placed over frame 0's vertices ``V0``). Both engines take their spheres from here."""
+    if isinstance(cfg.spheres, list):
+        radius = [sp.radius for sp in cfg.spheres]
+        mass = [sp.mass for sp in cfg.spheres]
+        pos = [sp.position for sp in cfg.spheres]
+        vel = np.asarray([sp.velocity for sp in cfg.spheres], np.float32).reshape(-1, 3)
+    else:
+        n = cfg.spheres.count
+        radius, mass = [cfg.spheres.radius] * n, [cfg.spheres.mass] * n
+        pos, vel = spawn_positions(cfg.spheres, V0), None
+    return (np.asarray(radius, np.float32).reshape(-1), np.asarray(mass, np.float64).reshape(-1),
+            np.asarray(pos, np.float32).reshape(-1, 3), vel)
+
+
+def scene_ground(cfg: SceneConfig, seq) -> float | None:
+    """The ground plane's height [m]: ``physics.ground``, where ``"auto"`` is the lowest vertex of
+    any frame; None: no ground."""
+    g = cfg.physics.ground
+    return float(seq.bounds()[0][2]) if g == "auto" else (None if g is None else float(g))
+
+
+def build_model(cfg: SceneConfig, seq, device=None) -> tuple[Model, State]:
+    """The one builder of a scene's :class:`~dynmesh_warp.world.Model` (surface, spheres,
+    physics) and its initial :class:`~dynmesh_warp.world.State`, from a sequence already in the
+    scene frame (``load_surface`` / ``prepare_surface``). The built-in world runs them; the
+    Newton world takes the surface and the spheres from them (``build_newton_world``)."""
+    device = scene_device(cfg, device)
+    surface = surface_model(seq, device, playback=cfg.surface.playback, interpolate=cfg.surface.interpolate)
+    radius, mass, pos, vel = scene_spheres(cfg, seq.frame(0)[0])
+    p = cfg.physics
+    params = PhysicsParams(dt=p.dt, substeps=p.substeps, max_substeps=p.max_substeps, gravity=p.gravity,
+                           restitution=p.restitution, friction=p.friction, rest_speed=p.rest_speed, margin=p.margin,
+                           auto_substeps=p.auto_substeps, ground_height=scene_ground(cfg, seq))
+    model = Model(surface, SphereModel(radius, mass, device), params)
+    return model, State(model, pos, vel)
+
+
 def build_world(cfg: SceneConfig, device=None, collider: str | None = None,
                 rebuild_every: str | None = None, sequence=None) -> World:
     """Create the model, state and world of a scene on ``device`` (default: cfg.device or Warp's).
@@ -154,7 +194,6 @@ def build_world(cfg: SceneConfig, device=None, collider: str | None = None,
     ``sequence``: a sequence already in memory (e.g. from ``load_sequence``) to use instead of
     ``surface.source``; the rest of the ``surface`` section (fps, up_axis, scale, translate,
     orientation, conversion) is applied to it as to a loaded one."""
-    device = scene_device(cfg, device)
     seq = load_surface(cfg) if sequence is None else prepare_surface(sequence, cfg)
     p = cfg.physics
     collider = collider or p.collider
@@ -167,27 +206,8 @@ def build_world(cfg: SceneConfig, device=None, collider: str | None = None,
         raise SceneError(
             f"surface {cfg.surface.source}: {why}. Varying topology needs "
             "physics.collider: rebuild, or surface.conversion to convert it to fixed topology")
-    surface = surface_model(seq, device, playback=cfg.surface.playback, interpolate=cfg.surface.interpolate)
-    V0, F0 = seq.frame(0)
-    if isinstance(cfg.spheres, list):
-        radius = [sp.radius for sp in cfg.spheres]
-        mass = [sp.mass for sp in cfg.spheres]
-        pos = [sp.position for sp in cfg.spheres]
-        vel = [sp.velocity for sp in cfg.spheres]
-    else:
-        n = cfg.spheres.count
-        radius, mass = [cfg.spheres.radius] * n, [cfg.spheres.mass] * n
-        pos, vel = spawn_positions(cfg.spheres, V0), None
-    if isinstance(cfg.spheres, list):
-        _refuse_spheres_inside(V0, F0, pos, radius)
-    ground = p.ground
-    if ground == "auto":
-        ground = float(seq.bounds()[0][2])
-    params = PhysicsParams(dt=p.dt, substeps=p.substeps, max_substeps=p.max_substeps, gravity=p.gravity,
-                           restitution=p.restitution,
-                           friction=p.friction, rest_speed=p.rest_speed, margin=p.margin,
-                           auto_substeps=p.auto_substeps, ground_height=ground)
-    model = Model(surface, SphereModel(np.asarray(radius, np.float32).reshape(-1), mass, device), params)
-    state = State(model, np.asarray(pos, np.float32).reshape(-1, 3),
-                  None if vel is None else np.asarray(vel, np.float32).reshape(-1, 3))
+    if isinstance(cfg.spheres, list):  # listed spheres must start outside a closed surface
+        V0, F0 = seq.frame(0)
+        _refuse_spheres_inside(V0, F0, [sp.position for sp in cfg.spheres], [sp.radius for sp in cfg.spheres])
+    model, state = build_model(cfg, seq, device)
     return World(model, state, collider=collider, rebuild_every=rebuild_every or p.rebuild_every)

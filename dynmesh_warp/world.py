@@ -333,7 +333,8 @@ def _sphere_rows(name: str, values, count: int, first: int = 0) -> np.ndarray:
 
 
 class SphereModel:
-    """Static sphere data. radius (S,) [m]; inv_mass (S,) [1/kg], 0 for kinematic spheres."""
+    """Static sphere data. radius (S,) [m]; inv_mass (S,) [1/kg], 0 for kinematic spheres;
+    host twins radius_np (S,) float32 [m] and mass_np (S,) float64 [kg] (0 or inf: kinematic)."""
 
     def __init__(self, radius, mass, device=None):
         radius = np.asarray(radius, dtype=np.float32).reshape(-1)
@@ -347,6 +348,7 @@ class SphereModel:
         self.radius = wp.array(radius, dtype=float, device=device)
         self.inv_mass = wp.array(inv.astype(np.float32), dtype=float, device=device)
         self.radius_np = radius
+        self.mass_np = np.array(mass, dtype=np.float64)
 
 
 class Model:

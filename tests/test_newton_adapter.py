@@ -314,3 +314,25 @@ def test_both_engines_satisfy_the_simulation_protocol(device):
     assert nw.sphere_positions().shape == (0, 3) and nw.surface_points().shape[0] == N
     assert nw.surface_indices().shape == w.surface_indices().shape
     assert not isinstance(object(), Simulation)  # the check can fail
+
+
+def test_one_builder_for_both_engines(device):
+    """scene.build_model is the one builder: the built-in and the Newton world start from the same
+    surface, spawned spheres (positions, radii, masses) and ground."""
+    from dynmesh_warp.config import load_scene_config
+    from dynmesh_warp.newton_adapter import build_newton_world
+    from dynmesh_warp.scene import build_model, build_world, load_surface, scene_ground
+
+    data = {"device": device, "surface": {"source": "builtin:wave_bowl", "params": {"n": 8, "frames": 4}},
+            "spheres": {"count": 3, "radius": 0.05, "mass": 2.0, "seed": 7}, "physics": {"ground": "auto"}}
+    cfg = load_scene_config(data=data)
+    seq = load_surface(cfg)
+    model, state = build_model(cfg, seq, device)
+    w = build_world(cfg)
+    np.testing.assert_array_equal(w.sphere_positions(), state.sphere_pos.numpy())
+    assert model.params.ground_height == scene_ground(cfg, seq) == pytest.approx(float(seq.V[..., 2].min()))
+    np.testing.assert_array_equal(model.spheres.mass_np, [2.0] * 3)
+    data["newton"] = {"solver": "xpbd", "bodies": []}
+    nw = build_newton_world(load_scene_config(data=data))
+    np.testing.assert_allclose(nw.body_transforms()[:, :3], state.sphere_pos.numpy(), atol=1e-7)
+    np.testing.assert_array_equal(nw.surface.frames.numpy(), model.surface.frames.numpy())
