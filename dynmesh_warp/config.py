@@ -222,6 +222,26 @@ class NewtonConfig(_Strict):
     surface_mu: Optional[float] = Field(default=None, ge=0)  # default: physics.friction
 
 
+class EnvsConfig(_Strict):
+    """Batched environments (docs/envs.md): ``count`` copies of the scene's spheres, each env on
+    the shared surface at its own clock. count 1 (the default) runs the single world."""
+
+    count: int = Field(default=1, ge=1)
+    #: each env's start time [s]: "random" (uniform over one playback of the sequence) or a number
+    time_offset: Union[Literal["random"], float] = "random"
+    #: each env's playback rate, uniform in [lo, hi] (1 = real time)
+    rate: tuple[float, float] = (1.0, 1.0)
+    seed: int = 0
+
+    @field_validator("rate")
+    @classmethod
+    def _rate_ok(cls, v):
+        lo, hi = v
+        if not (0.0 <= lo <= hi):
+            raise ValueError(f"must be [lo, hi] with 0 <= lo <= hi, got {list(v)}")
+        return v
+
+
 class SceneConfig(_Strict):
     name: str = "scene"
     device: Optional[str] = None
@@ -231,6 +251,7 @@ class SceneConfig(_Strict):
     run: RunConfig = Field(default_factory=RunConfig)
     gaussians: GaussiansConfig = Field(default_factory=GaussiansConfig)
     newton: Optional[NewtonConfig] = None  # run the bodies in Newton (docs/newton.md)
+    envs: EnvsConfig = Field(default_factory=EnvsConfig)  # batched environments (docs/envs.md)
     base_dir: Optional[str] = Field(default=None, exclude=True)
     source_file: Optional[str] = Field(default=None, exclude=True)  # the YAML file, if any
 

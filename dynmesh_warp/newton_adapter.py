@@ -321,6 +321,7 @@ class NewtonWorld:
     # -- what the runner reads (runtime.Simulation; runner.run_simulation) ---------------------
     checkpointable = False  # the Newton solver's state is not saved
     body_noun = "body"
+    num_envs = 1
 
     def sample(self) -> dict:
         """The arrays of one ``trajectories.npz`` sample: ``body_q`` (B, 7) body poses."""

@@ -55,6 +55,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--host", default="127.0.0.1", help="viewer address to listen on (0.0.0.0: all)")
     p.add_argument("--record", metavar="OUT.viser",
                    help="save a replayable viser recording and a self-contained OUT.html next to it")
+    p.add_argument("--envs", type=int, metavar="N",
+                   help="run N batched environments on the shared surface, each at its own clock "
+                        "(overrides envs.count; prints env-steps/s; docs/envs.md)")
     p.add_argument("--output", help="output folder (overrides run.output)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace existing outputs (only files this tool wrote; other files are kept)")
@@ -91,6 +94,7 @@ def run_scene(cfg, device=None, steps: int | None = None, collider: str | None =
     ``"interrupted": true`` and ``"step_reached"`` in the summary."""
     newton = getattr(cfg, "newton", None) is not None  # bodies simulated by Newton (docs/newton.md)
     from .checkpoint import Checkpoint, CheckpointError, load_checkpoint
+    from .config import SceneError
     from .runner import run_simulation
 
     if newton:
@@ -114,10 +118,19 @@ def run_scene(cfg, device=None, steps: int | None = None, collider: str | None =
                               f"{steps:,} steps; give more (--steps, --duration, run.steps) to continue it")
     every = int(ckpt.checkpoint_every if (ckpt is not None and checkpoint_every is None) else (checkpoint_every or 0))
     check_total_work(cfg, steps, cfg.physics.substeps)  # before loading: the configured sub-steps
+    if newton and cfg.envs.count > 1:
+        raise SceneError("envs.count > 1 with a newton: section: batched envs run the built-in world only "
+                         "(docs/envs.md)")
     if newton:
         from .newton_adapter import build_newton_world
 
         sim = build_newton_world(cfg, device=device)
+    elif cfg.envs.count > 1:  # batched environments (docs/envs.md)
+        from .batch import build_batched_world
+
+        if collider not in (None, "swept", "fixed") or rebuild_every is not None:
+            raise SceneError(f"--collider {collider}: batched envs use the swept pair BVHs (docs/envs.md)")
+        sim = build_batched_world(cfg, device=device)
     else:
         from .scene import build_world
 
@@ -179,7 +192,10 @@ def main(argv=None) -> int:
             from .checkpoint import load_checkpoint
 
             ckpt = load_checkpoint(args.resume)  # the file on its own, before the scene's data is loaded
-        cfg = load_scene_config(args.scene, overrides=args.overrides)
+        if args.envs is not None and args.envs < 1:
+            raise SceneError(f"--envs must be at least 1, got {args.envs}")
+        overrides = list(args.overrides) + ([f"envs.count={args.envs}"] if args.envs is not None else [])
+        cfg = load_scene_config(args.scene, overrides=overrides)
         if args.no_work_limit:
             lift_work_limits(cfg)
         steps = args.steps

@@ -154,6 +154,7 @@ def run_simulation(sim, cfg, *, steps: int, out: Path, t_build: float, progress:
             "timed_steps": timed_steps,
             "timed_wall_s": sim_s,
             "steps_per_second": sps,
+            "env_steps_per_second": None if sps is None else sps * sim.num_envs,
             "contacts": {
                 "in_contact_final": sim.contact_count(),
                 "contact_samples": contact_samples,
@@ -173,8 +174,9 @@ def run_simulation(sim, cfg, *, steps: int, out: Path, t_build: float, progress:
     if reason:
         return summary  # the CLI says what was written (one line on stderr)
     label, tail = sim.run_line()
+    envs = f"{sps * sim.num_envs:,.0f} env-steps/s; " if (sps is not None and sim.num_envs > 1) else ""
     log(f"{cfg.name}: {steps} steps on {summary['device']} ({label}{', CUDA graph' if sim.use_graph else ''}): "
-        + rate_text(sps) + f"{tail}; outputs in {out}")
+        + rate_text(sps) + envs + f"{tail}; outputs in {out}")
     if not summary["final"]["finite"]:
         log(f"WARNING: non-finite {sim.body_noun} state at the end of the run")
     return summary

@@ -35,7 +35,8 @@ class Simulation(Protocol):
         use_graph: whether steps replay a captured CUDA graph; editable: whether ``reset``,
         ``set_time`` and ``add_spheres`` exist (the built-in world; a Newton world's bodies are
         Newton's); checkpointable: whether ``checkpoint_state`` exists (the built-in world);
-        body_noun: what a row of the sampled arrays is ("sphere", "body"), for messages.
+        body_noun: what a row of the sampled arrays is ("sphere", "body"), for messages;
+        num_envs: environments stepped together (1 but for ``batch.BatchedWorld``).
 
     The runner (``runner.run_simulation``) reads only this protocol: ``step``, ``capture``,
     ``sample``, ``trajectory_constants``, ``contact_count``, ``run_summary``, ``run_line``.
@@ -50,6 +51,7 @@ class Simulation(Protocol):
     editable: bool
     checkpointable: bool
     body_noun: str
+    num_envs: int
 
     @property
     def time(self) -> float: ...

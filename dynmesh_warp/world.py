@@ -1085,6 +1085,7 @@ class World:
     # -- what the runner reads (runtime.Simulation; runner.run_simulation) ---------------------
     checkpointable = True  # checkpoint_state / checkpoint.Checkpoint.restore
     body_noun = "sphere"
+    num_envs = 1
 
     def sample(self) -> dict:
         """The arrays of one ``trajectories.npz`` sample: ``position`` and ``velocity`` (S, 3)

@@ -5,6 +5,70 @@ import warp as wp
 from .frames import store_frame_key
 
 
+@wp.func
+def advance_sphere(
+    p: wp.vec3,
+    v: wp.vec3,
+    inv_mass: float,
+    r: float,
+    gravity: wp.vec3,
+    dt: float,
+    restitution: float,
+    friction: float,
+    rest_speed: float,
+    ground: int,
+    ground_height: float,
+    face: int,
+    n: wp.vec3,
+    depth: float,
+    vs: wp.vec3,
+):
+    """One sphere over dt with its contact (face >= 0: normal n, depth [m], surface velocity vs
+    [m/s]) and the optional ground plane: the continuous response of ``integrate_spheres``
+    (shared with the batched step, kernels/batch.py). Returns (position, velocity)."""
+    if inv_mass == 0.0:
+        return p + v * dt, v
+    v = v + gravity * dt
+    if face >= 0:
+        gap = -depth
+        if gap < 0.0:
+            p = p - n * gap
+            gap = 0.0
+        vrel = v - vs
+        vn = wp.dot(vrel, n)
+        if vn < 0.0 and -vn * dt >= gap:
+            toi = gap / (-vn)
+            vn_new = float(0.0)
+            if -vn > rest_speed:
+                vn_new = -restitution * vn
+            jn = vn_new - vn
+            vt = vrel - vn * n
+            lt = wp.length(vt)
+            if lt > 0.0:
+                vt = vt * wp.max(0.0, 1.0 - friction * jn / lt)
+            v_new = vs + vn_new * n + vt
+            p = p + v * toi + v_new * (dt - toi)
+            v = v_new
+        else:
+            p = p + v * dt
+    else:
+        p = p + v * dt
+    if ground != 0:
+        if p[2] - r < ground_height:
+            p = wp.vec3(p[0], p[1], ground_height + r)
+            if v[2] < 0.0:
+                vn = v[2]
+                vn_new = float(0.0)
+                if -vn > rest_speed:
+                    vn_new = -restitution * vn
+                vt = wp.vec3(v[0], v[1], 0.0)
+                lt = wp.length(vt)
+                if lt > 0.0:
+                    vt = vt * wp.max(0.0, 1.0 - friction * (vn_new - vn) / lt)
+                v = wp.vec3(vt[0], vt[1], vn_new)
+    return p, v
+
+
 @wp.kernel
 def integrate_spheres(
     # Model:
@@ -59,52 +123,9 @@ def integrate_spheres(
         store_frame_key(t, fps, num_frames, mode, frame_key_out, frame_changed_out)
     if s >= inv_mass.shape[0]:
         return
-    p = sphere_pos_out[s]
-    v = sphere_vel_out[s]
-    if inv_mass[s] == 0.0:
-        sphere_pos_out[s] = p + v * dt
-        return
-    v = v + gravity * dt
-    if contact_face[s] >= 0:
-        n = contact_normal[s]
-        vs = contact_velocity[s]
-        gap = -contact_depth[s]
-        if gap < 0.0:
-            p = p - n * gap
-            gap = 0.0
-        vrel = v - vs
-        vn = wp.dot(vrel, n)
-        if vn < 0.0 and -vn * dt >= gap:
-            toi = gap / (-vn)
-            vn_new = float(0.0)
-            if -vn > rest_speed:
-                vn_new = -restitution * vn
-            jn = vn_new - vn
-            vt = vrel - vn * n
-            lt = wp.length(vt)
-            if lt > 0.0:
-                vt = vt * wp.max(0.0, 1.0 - friction * jn / lt)
-            v_new = vs + vn_new * n + vt
-            p = p + v * toi + v_new * (dt - toi)
-            v = v_new
-        else:
-            p = p + v * dt
-    else:
-        p = p + v * dt
-    if ground != 0:
-        r = sphere_radius[s]
-        if p[2] - r < ground_height:
-            p = wp.vec3(p[0], p[1], ground_height + r)
-            if v[2] < 0.0:
-                vn = v[2]
-                vn_new = float(0.0)
-                if -vn > rest_speed:
-                    vn_new = -restitution * vn
-                vt = wp.vec3(v[0], v[1], 0.0)
-                lt = wp.length(vt)
-                if lt > 0.0:
-                    vt = vt * wp.max(0.0, 1.0 - friction * (vn_new - vn) / lt)
-                v = wp.vec3(vt[0], vt[1], vn_new)
+    p, v = advance_sphere(sphere_pos_out[s], sphere_vel_out[s], inv_mass[s], sphere_radius[s], gravity, dt,
+                          restitution, friction, rest_speed, ground, ground_height, contact_face[s],
+                          contact_normal[s], contact_depth[s], contact_velocity[s])
     sphere_pos_out[s] = p
     sphere_vel_out[s] = v
 

@@ -32,7 +32,7 @@ LAYERS = [
     {"convert"},
     {"scene"},
     # engines and tools over a scene
-    {"newton_adapter", "evaluate"},
+    {"newton_adapter", "evaluate", "batch"},
     {"viewer"},
     # the run CLI on top
     {"run"},

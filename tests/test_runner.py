@@ -27,6 +27,7 @@ class Ballistic:
     editable = False
     checkpointable = False
     body_noun = "point"
+    num_envs = 1
     use_graph = False
 
     def __init__(self, B=3, dt=0.01, blow_up_at=None):

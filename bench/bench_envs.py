@@ -1,0 +1,73 @@
+"""Batched environments (issue 15): env-steps/s vs num_envs on the paper scene.
+
+horse_gallop (or the built-in stand-in), 5 spheres per env (radius 0.05 m, spawned over the
+surface as bench_step's paper scene), dt 1/240, every env at its own random phase of the
+gallop; loop playback. Per num_envs: batched steps/s, env-steps/s (= steps/s x envs), memory
+(pair BVHs once, per env). CUDA graph on a GPU.
+
+    python bench/bench_envs.py --device cuda --envs 1,64,1024,4096,16384,65536
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from common import RESULTS, describe_device, load_paper_sequence, time_loop, write_json  # noqa: E402
+
+
+def main(argv=None):
+    from dynmesh_warp.batch import BatchedWorld, BatchModel, BatchState
+    from dynmesh_warp.config import SpawnConfig, spawn_positions
+    from dynmesh_warp.world import PhysicsParams, SurfaceModel
+
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--envs", default="1,16,64,256,1024")
+    ap.add_argument("--steps", type=int, default=200)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--out", default=None)
+    a = ap.parse_args(argv)
+    wp.init()
+    device = wp.get_device(a.device)
+    seq, shared = load_paper_sequence()
+    S, r = 5, 0.05
+    pos = spawn_positions(SpawnConfig(count=S, radius=r, height=0.05, seed=0, spread=0.6), seq.V[0])
+    params = PhysicsParams(dt=1.0 / 240.0, auto_substeps=False, ground_height=float(seq.V[:, :, 2].min()))
+    surf = SurfaceModel(seq, device, playback="loop")
+    res = {"machine": describe_device(device), "scene": {"sequence": seq.name, "shared_data": shared,
+           "frames": seq.num_frames, "faces": int(seq.F.shape[0]), "spheres_per_env": S, "radius": r,
+           "dt": 1 / 240, "substeps": 1, "phase": "uniform random over one gallop"}, "rows": []}
+    for E in [int(x) for x in a.envs.split(",")]:
+        t0 = time.perf_counter()
+        bm = BatchModel(surf, E, np.full(S, r), 1.0, params)
+        times = np.random.default_rng(1).uniform(0.0, seq.num_frames / seq.fps, E)
+        w = BatchedWorld(bm, BatchState(bm, pos, times=times))
+        w.step()
+        w.capture()
+        wp.synchronize_device(device)
+        build_s = time.perf_counter() - t0
+        steps = max(10, min(a.steps, int(2e6 / E)))
+        t = time_loop(w.step, device, steps, repeats=a.repeats, warmup=5)
+        P = w.sphere_positions()
+        row = {"num_envs": E, **t, "env_steps_per_s": t["steps_per_s"] * E, "build_s": build_s,
+               "cuda_graph": w.graph_captured, "final_finite": bool(np.isfinite(P).all()),
+               "in_contact_final": w.contact_count(), "memory_bytes": bm.memory_bytes}
+        res["rows"].append(row)
+        print(f"E={E:>6}: {t['steps_per_s']:>10,.0f} steps/s  {row['env_steps_per_s']:>14,.0f} env-steps/s  "
+              f"mem/env {bm.memory_bytes['per_env']} B", flush=True)
+        del w, bm
+    out = Path(a.out) if a.out else RESULTS / f"envs_{'cuda' if device.is_cuda else 'cpu'}.json"
+    write_json(out, res)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,369 @@
+"""Batched environments (issue 15): ``num_envs`` worlds in one Model/State, one step for all.
+
+Every env plays the same reconstruction (one copy of its frames on the device) with spheres of
+its own and **its own clock**: a time [s], a playback rate and a playback mode, each settable
+per env at reset. Contacts of env e use the surface at env e's time. There is no per-env and
+no per-step refit: the swept BVH of every frame pair is built once at load (memory: frames x
+one BVH over the faces, ``BatchModel.memory_bytes``), and each sphere queries the one of its
+env's frame pair (kernels/batch.py).
+
+Layout: static data in :class:`BatchModel`, per-step data in :class:`BatchState`, contacts in
+``world.Contacts`` (all flat over E * S spheres, env-major); the step is one public stage,
+:func:`step_envs`; :class:`BatchedWorld` owns the CUDA graph, the host clock and resets.
+Physics, contact and playback rules are the single world's (``world.World`` with the swept
+collider): a batched world of E envs equals E single worlds run separately
+(``tests/test_batch.py``).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import numpy as np
+import warp as wp
+
+from .choices import PLAYBACK_CODES, Playback, parse
+from .kernels.batch import (
+    advance_env_clocks,
+    collide_and_integrate_env_spheres,
+    compute_pair_bounds,
+    reset_env_clocks,
+    reset_env_spheres,
+)
+from .world import Contacts, PhysicsParams, SphereModel, SurfaceModel, check_substep_budget
+
+__all__ = ["BatchModel", "BatchState", "BatchedWorld", "step_envs", "required_substeps", "env_clocks",
+           "build_batched_world"]
+
+
+def required_substeps(max_speed: float, dt: float, r_min: float) -> int:
+    """Sub-steps per step so a surface moving at ``max_speed`` [m/s] moves less than half the
+    smallest sphere radius ``r_min`` [m] per sub-step (the single world's rule)."""
+    if max_speed <= 0 or not math.isfinite(r_min):
+        return 1
+    return max(1, math.ceil(max_speed * dt / (0.5 * r_min)))
+
+
+class BatchModel:
+    """Static data of E envs on one deforming surface.
+
+    Attributes:
+        surface: the shared :class:`~dynmesh_warp.world.SurfaceModel` (frames (T, N) [m]).
+        num_envs: E; spheres_per_env: S.
+        spheres: :class:`~dynmesh_warp.world.SphereModel` of all E * S spheres (env-major).
+        sphere_env: (E * S,) int32, the env of each sphere.
+        params: :class:`~dynmesh_warp.world.PhysicsParams` shared by the envs.
+        pair_lowers, pair_uppers: (T, M) vec3 [m], each face's box over frame pair slot k
+            (frames k and (k + 1) mod T); pair_bvh: (T,) uint64 ids of one ``wp.Bvh`` per slot.
+        epsilon: tie distance of the closest-feature search [m] (1e-3 x mean edge length).
+    """
+
+    def __init__(self, surface: SurfaceModel, num_envs: int, radius, mass, params: PhysicsParams):
+        if int(num_envs) < 1:
+            raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+        if not isinstance(surface, SurfaceModel):
+            raise TypeError("batched envs need a fixed-topology surface (world.SurfaceModel); convert a "
+                            "varying-topology input first (surface.conversion)")
+        radius = np.asarray(radius, np.float32).reshape(-1)
+        if radius.size < 1:
+            raise ValueError("batched envs need at least one sphere per env")
+        self.surface = surface
+        self.device = surface.device
+        self.num_envs = int(num_envs)
+        self.spheres_per_env = int(radius.size)
+        E, S = self.num_envs, self.spheres_per_env
+        mass = np.broadcast_to(np.asarray(mass, np.float64), radius.shape)
+        self.spheres = SphereModel(np.tile(radius, E), np.tile(mass, E), self.device)
+        self.sphere_env = wp.array(np.repeat(np.arange(E, dtype=np.int32), S), dtype=wp.int32, device=self.device)
+        self.params = params
+        T, M = surface.num_frames, surface.num_faces
+        self.pair_lowers = wp.zeros((T, M), dtype=wp.vec3, device=self.device)
+        self.pair_uppers = wp.zeros((T, M), dtype=wp.vec3, device=self.device)
+        wp.launch(compute_pair_bounds, (T, M), inputs=[surface.frames, surface.indices],
+                  outputs=[self.pair_lowers, self.pair_uppers], device=self.device)
+        self._bvhs = [wp.Bvh(self.pair_lowers[k], self.pair_uppers[k], leaf_size=4) for k in range(T)]
+        self.pair_bvh = wp.array([b.id for b in self._bvhs], dtype=wp.uint64, device=self.device)
+        self.epsilon = 1.0e-3 * float(surface.average_edge_length.mean())
+
+    @property
+    def memory_bytes(self) -> dict:
+        """Device memory of the batch [bytes]: the pair boxes and BVHs (per frame pair; a BVH's
+        nodes estimated at 2M - 1 of 32 bytes each), the shared frames, and per env (spheres,
+        contacts, clock)."""
+        T, M, N = self.surface.num_frames, self.surface.num_faces, self.surface.num_vertices
+        leaves = math.ceil(M / 4)
+        boxes = 2 * T * M * 12
+        bvh_nodes = T * (2 * leaves - 1) * 32 + T * M * 4  # nodes + primitive indices
+        frames = T * N * 12 + 3 * M * 4
+        per_sphere = 4 + 4 + 4 + 2 * 12 + (4 + 12 + 12 + 4 + 12)  # radius, inv_mass, env, pos/vel, contacts
+        per_env = self.spheres_per_env * per_sphere + 8 + 4 + 4
+        return {"pair_boxes": boxes, "pair_bvh_nodes_estimate": bvh_nodes, "frames": frames,
+                "per_env": per_env, "total_estimate": boxes + bvh_nodes + frames + per_env * self.num_envs}
+
+
+class BatchState:
+    """Per-step data of E envs: env_time (E,) float64 [s], env_rate (E,) float32 (1 = real time),
+    env_playback (E,) int32 (``choices.PLAYBACK_CODES``), sphere_pos / sphere_vel (E * S,) vec3
+    [m], [m/s]. Owns its arrays (never aliases the model)."""
+
+    def __init__(self, model: BatchModel, positions, velocities=None, times=0.0, rates=1.0, playback=None):
+        E, S, d = model.num_envs, model.spheres_per_env, model.device
+        pos = _per_env(positions, E, S, "positions")
+        vel = np.zeros_like(pos) if velocities is None else _per_env(velocities, E, S, "velocities")
+        self.sphere_pos = wp.array(pos, dtype=wp.vec3, device=d)
+        self.sphere_vel = wp.array(vel, dtype=wp.vec3, device=d)
+        t, r, m = _clocks(model, times, rates, playback)
+        self.env_time = wp.array(t, dtype=wp.float64, device=d)
+        self.env_rate = wp.array(r, dtype=float, device=d)
+        self.env_playback = wp.array(m, dtype=wp.int32, device=d)
+
+
+def _per_env(a, E: int, S: int, what: str) -> np.ndarray:
+    """(S, 3) for every env or (E, S, 3) per env -> (E * S, 3) float32, checked."""
+    a = np.asarray(a, np.float32)
+    if a.shape == (S, 3):
+        a = np.broadcast_to(a, (E, S, 3))
+    if a.shape != (E, S, 3):
+        raise ValueError(f"{what}: expected ({S}, 3) or ({E}, {S}, 3), got {a.shape}")
+    if not np.isfinite(a).all():
+        raise ValueError(f"{what}: non-finite values")
+    return np.ascontiguousarray(a.reshape(E * S, 3))
+
+
+def _clocks(model: BatchModel, times, rates, playback):
+    E = model.num_envs
+    t = np.broadcast_to(np.asarray(times, np.float64), (E,)).copy()
+    r = np.broadcast_to(np.asarray(rates, np.float32), (E,)).copy()
+    if not (np.isfinite(t).all() and np.isfinite(r).all()) or (r < 0).any():
+        raise ValueError("env clocks: times must be finite and rates finite and >= 0")
+    if playback is None:
+        m = np.full(E, model.surface.playback, np.int32)
+    else:
+        vals = [playback] * E if isinstance(playback, str) else list(playback)
+        if len(vals) != E:
+            raise ValueError(f"playback: expected one mode or {E}, got {len(vals)}")
+        m = np.array([PLAYBACK_CODES[parse(Playback, v, "playback")] for v in vals], np.int32)
+    return t, r, m
+
+
+def step_envs(model: BatchModel, state: BatchState, contacts: Contacts, sub_dt: float, substeps: int,
+              extra_speed: float):
+    """The step of every env: ``substeps`` sub-steps of contact + integration at each env's
+    own time, each followed by the env clocks' advance. Device work only (capturable)."""
+    m, s, c, p = model, state, contacts, model.params
+    surf = m.surface
+    ground = int(p.ground_height is not None)
+    gh = float(p.ground_height if p.ground_height is not None else 0.0)
+    g = wp.vec3(*[float(x) for x in p.gravity])
+    n = m.spheres.count
+    for _ in range(substeps):
+        wp.launch(collide_and_integrate_env_spheres, n,
+                  inputs=[surf.frames, surf.indices, m.pair_bvh, m.spheres.radius, m.spheres.inv_mass, m.sphere_env,
+                          g, p.restitution, p.friction, p.rest_speed, ground, gh, surf.fps, int(surf.interpolate),
+                          s.env_time, s.env_rate, s.env_playback,
+                          sub_dt, extra_speed, p.margin, m.epsilon],
+                  outputs=[s.sphere_pos, s.sphere_vel, c.face, c.point, c.normal, c.depth, c.velocity],
+                  device=m.device)
+        wp.launch(advance_env_clocks, m.num_envs, inputs=[s.env_rate, wp.float64(sub_dt)], outputs=[s.env_time],
+                  device=m.device)
+
+
+class BatchedWorld:
+    """E envs stepped together: one CUDA graph per step on a GPU (the first step eager, as the
+    single world); the sub-step count follows the single world's rule at the fastest env rate
+    (``max_rate``). ``reset`` sets chosen envs' spheres and clocks on the device."""
+
+    def __init__(self, model: BatchModel, state: BatchState, max_rate: float | None = None,
+                 use_graph: bool | None = None):
+        self.model, self.state = model, state
+        self.device = model.device
+        p = model.params
+        rate = float(state.env_rate.numpy().max()) if max_rate is None else float(max_rate)
+        self.max_rate = rate
+        r_min = float(model.spheres.radius_np.min())
+        speed = model.surface.max_speed * rate
+        self.substeps = max(1, int(p.substeps))
+        if p.auto_substeps and model.surface.interpolate:
+            need = required_substeps(speed, p.dt, r_min)
+            if need > self.substeps:
+                check_substep_budget(need, speed, r_min, p)
+                warnings.warn(f"surface moves up to {speed:.3g} m/s (at rate {rate:g}): raising substeps from "
+                              f"{self.substeps} to {need} so it moves < r/2 per sub-step", stacklevel=2)
+                self.substeps = need
+        self.sub_dt = p.dt / self.substeps
+        self.extra_speed = float(np.linalg.norm(p.gravity)) * self.sub_dt
+        self.contacts = Contacts(model.spheres.count, device=self.device)
+        self.use_graph = self.device.is_cuda if use_graph is None else bool(use_graph) and self.device.is_cuda
+        self._graph = None
+        self.step_count = 0
+        self._t0 = float(state.env_time.numpy()[0])
+        E = model.num_envs
+        self._mask = wp.zeros(E, dtype=wp.int32, device=self.device)
+
+    @property
+    def num_envs(self) -> int:
+        return self.model.num_envs
+
+    @property
+    def dt(self) -> float:
+        return self.model.params.dt
+
+    def _step_body(self):
+        step_envs(self.model, self.state, self.contacts, self.sub_dt, self.substeps, self.extra_speed)
+
+    def capture(self):
+        if not self.use_graph or self._graph is not None:
+            return
+        with wp.ScopedCapture(device=self.device, force_module_load=False) as cap:
+            self._step_body()
+        self._graph = cap.graph
+
+    def step(self):
+        """Advance every env by one step (``params.dt`` of its own clock times its rate)."""
+        if self.use_graph and self._graph is None and self.step_count > 0:
+            self.capture()
+        if self._graph is not None:
+            wp.capture_launch(self._graph)
+        else:
+            self._step_body()
+        self.step_count += 1
+
+    def reset(self, env_mask, positions=None, velocities=None, times=None, rates=None, playback=None):
+        """Reset the envs where ``env_mask`` (E,) is true: their spheres to ``positions`` /
+        ``velocities`` ((S, 3) or (E, S, 3); rows of other envs are ignored) and their clocks to
+        ``times`` [s] / ``rates`` / ``playback`` (scalars or (E,)). What is not given is kept.
+        The other envs are untouched; the captured graph stays valid (arrays are written, not
+        replaced)."""
+        m, s = self.model, self.state
+        E, S = m.num_envs, m.spheres_per_env
+        mask = np.broadcast_to(np.asarray(env_mask, bool), (E,)).astype(np.int32)
+        self._mask.assign(mask)
+        pos = s.sphere_pos.numpy().reshape(E, S, 3) if positions is None else positions
+        vel = s.sphere_vel.numpy().reshape(E, S, 3) if velocities is None else velocities
+        new_pos = wp.array(_per_env(pos, E, S, "positions"), dtype=wp.vec3, device=self.device)
+        new_vel = wp.array(_per_env(vel, E, S, "velocities"), dtype=wp.vec3, device=self.device)
+        t, r, pb = _clocks(m, s.env_time.numpy() if times is None else times,
+                           s.env_rate.numpy() if rates is None else rates, playback)
+        if playback is None:
+            pb = s.env_playback.numpy()
+        if rates is not None and float(np.max(r)) > self.max_rate * (1 + 1e-6):
+            raise ValueError(f"rates: {float(np.max(r)):g} exceeds the rate the sub-steps were chosen for "
+                             f"({self.max_rate:g}); build the world with max_rate=")
+        wp.launch(reset_env_spheres, m.spheres.count, inputs=[m.sphere_env, self._mask, new_pos, new_vel],
+                  outputs=[s.sphere_pos, s.sphere_vel], device=self.device)
+        wp.launch(reset_env_clocks, E,
+                  inputs=[self._mask, wp.array(t, dtype=wp.float64, device=self.device),
+                          wp.array(r, dtype=float, device=self.device),
+                          wp.array(pb, dtype=wp.int32, device=self.device)],
+                  outputs=[s.env_time, s.env_rate, s.env_playback], device=self.device)
+
+    # -- the Simulation protocol (runtime.Simulation; the runner reads it) ----------------------
+    editable = False
+    checkpointable = False
+    body_noun = "sphere"
+
+    @property
+    def surface(self):
+        return self.model.surface
+
+    @property
+    def t0(self) -> float:
+        return self._t0
+
+    @property
+    def time(self) -> float:
+        """Env 0's clock [s] (a host read)."""
+        return float(self.state.env_time.numpy()[0])
+
+    @property
+    def substep_count(self) -> int:
+        return self.step_count * self.substeps
+
+    @property
+    def graph_captured(self) -> bool:
+        return self._graph is not None
+
+    def surface_points(self):
+        return self.model.surface.frames[0]  # the viewer shows no batch (frame 0 for a caller that asks)
+
+    def surface_indices(self):
+        return self.model.surface.indices
+
+    def sphere_radii(self) -> np.ndarray:
+        return self.model.spheres.radius_np
+
+    def sample(self) -> dict:
+        """``position`` and ``velocity`` (E * S, 3) and ``env_time`` (E,) of every env."""
+        return {"position": self.state.sphere_pos.numpy().copy(), "velocity": self.state.sphere_vel.numpy().copy(),
+                "env_time": self.env_times()}
+
+    def trajectory_constants(self) -> dict:
+        return {"radius": self.model.spheres.radius_np, "sphere_env": self.model.sphere_env.numpy(),
+                "env_rate": self.state.env_rate.numpy()}
+
+    def contact_count(self) -> int:
+        return int((self.contacts.face.numpy() >= 0).sum())
+
+    def run_summary(self) -> dict:
+        pos, vel = self.state.sphere_pos.numpy(), self.state.sphere_vel.numpy()
+        surf = self.model.surface
+        return {"collider": "swept (pair BVHs, batched)", "num_envs": self.num_envs,
+                "spheres_per_env": self.model.spheres_per_env,
+                "surface": {"frames": surf.num_frames, "fps": surf.fps, "faces": surf.num_faces},
+                "memory_bytes": self.model.memory_bytes,
+                "final": {"finite": bool(np.isfinite(pos).all() and np.isfinite(vel).all())}}
+
+    def run_line(self) -> tuple[str, str]:
+        return (f"{self.num_envs} envs x {self.model.spheres_per_env} spheres",
+                f"{self.contact_count()}/{self.model.spheres.count} spheres in contact")
+
+    # -- read-out (host copies) -----------------------------------------------------------------
+    def sphere_positions(self) -> np.ndarray:
+        """(E, S, 3) [m]."""
+        return self.state.sphere_pos.numpy().reshape(self.num_envs, -1, 3).copy()
+
+    def sphere_velocities(self) -> np.ndarray:
+        """(E, S, 3) [m/s]."""
+        return self.state.sphere_vel.numpy().reshape(self.num_envs, -1, 3).copy()
+
+    def env_times(self) -> np.ndarray:
+        """(E,) float64 [s]."""
+        return self.state.env_time.numpy().copy()
+
+
+def env_clocks(envs, duration: float, rng: np.random.Generator | None = None):
+    """(times (E,) [s], rates (E,)) of an ``envs:`` section (config.EnvsConfig): start times
+    uniform over one playback of ``duration`` [s] ("random") or the given offset; rates uniform in
+    ``envs.rate``."""
+    rng = np.random.default_rng(envs.seed) if rng is None else rng
+    E = envs.count
+    if envs.time_offset == "random":
+        times = rng.uniform(0.0, max(duration, 0.0), E)
+    else:
+        times = np.full(E, float(envs.time_offset))
+    lo, hi = envs.rate
+    rates = rng.uniform(lo, hi, E) if hi > lo else np.full(E, lo)
+    return times, rates.astype(np.float32)
+
+
+def build_batched_world(cfg, device=None, num_envs: int | None = None, sequence=None) -> BatchedWorld:
+    """A :class:`BatchedWorld` of a scene: the one builder (``scene.build_model``) gives the
+    surface, spheres and physics; ``envs:`` (or ``num_envs``) the count and clocks."""
+    from .config import SceneError
+    from .scene import build_model, load_surface, prepare_surface
+    from .sequence import FixedTopologySequence
+
+    seq = load_surface(cfg) if sequence is None else prepare_surface(sequence, cfg)
+    if not isinstance(seq, FixedTopologySequence):
+        raise SceneError(f"surface {cfg.surface.source}: batched envs need a fixed-topology surface; set "
+                         "surface.conversion to convert it")
+    model, state = build_model(cfg, seq, device)
+    envs = cfg.envs if num_envs is None else cfg.envs.model_copy(update={"count": int(num_envs)})
+    if envs.count < 1:
+        raise SceneError(f"envs.count must be >= 1, got {envs.count}")
+    times, rates = env_clocks(envs, seq.num_frames / seq.fps)
+    bm = BatchModel(model.surface, envs.count, model.spheres.radius_np, model.spheres.mass_np, model.params)
+    vel = state.sphere_vel.numpy()
+    bs = BatchState(bm, state.sphere_pos.numpy(), vel, times=times, rates=rates)
+    return BatchedWorld(bm, bs, max_rate=float(max(envs.rate[1], 1e-9)))

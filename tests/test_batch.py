@@ -1,0 +1,137 @@
+"""Batched environments (issue 15; dynmesh_warp/batch.py): E envs in one Model/State with their
+own clocks equal E single worlds run separately; a reset touches only the envs it names; the
+pair BVH slots bound the interpolated surface at every time (NumPy oracle)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import warp as wp
+
+from dynmesh_warp.batch import BatchedWorld, BatchModel, BatchState
+from dynmesh_warp.scenes import pulsing_blob, wave_bowl
+from dynmesh_warp.world import Model, PhysicsParams, SphereModel, State, SurfaceModel, World
+from reference import surface_at
+
+
+def _spheres(S, rng):
+    pos = np.column_stack([rng.uniform(-0.5, 0.5, (S, 2)), rng.uniform(0.25, 0.5, S)]).astype(np.float32)
+    vel = np.column_stack([rng.uniform(-0.3, 0.3, (S, 2)), np.zeros(S)]).astype(np.float32)
+    return pos, vel
+
+
+def _params():
+    return PhysicsParams(restitution=0.3, friction=0.5, ground_height=-0.4)
+
+
+@pytest.mark.parametrize("playback", ["loop", "pingpong", "clamp"])
+def test_batched_envs_equal_single_worlds(device, playback):
+    seq = wave_bowl(n=20, frames=10)
+    rng = np.random.default_rng(5)
+    E, S = 4, 6
+    pos, vel = _spheres(S, rng)
+    radius = np.full(S, 0.06, np.float32)
+    times = np.array([0.0, 0.13, 0.37, 0.41 + 10 / 24.0])  # includes a time past the end (loop / turn / hold)
+    surf = SurfaceModel(seq, device, playback=playback)
+    bm = BatchModel(surf, E, radius, 1.0, _params())
+    bw = BatchedWorld(bm, BatchState(bm, pos, vel, times=times))
+    singles = []
+    for e in range(E):
+        m = Model(SurfaceModel(seq, device, playback=playback), SphereModel(radius, 1.0, device), _params())
+        w = World(m, State(m, pos, vel, t0=float(times[e])), collider="swept")
+        assert w.substeps == bw.substeps
+        singles.append(w)
+    touched = 0
+    for i in range(150):
+        bw.step()
+        for w in singles:
+            w.step()
+        if i % 10 == 9:
+            touched += int((bw.contacts.face.numpy() >= 0).sum())
+    P = bw.sphere_positions()
+    for e, w in enumerate(singles):
+        np.testing.assert_allclose(P[e], w.sphere_positions(), atol=2e-5, err_msg=f"env {e}")
+        np.testing.assert_allclose(bw.sphere_velocities()[e], w.sphere_velocities(), atol=2e-4)
+        assert bw.env_times()[e] == pytest.approx(w.time, abs=1e-12)
+    assert touched > 0  # the spheres did meet the moving surface
+    assert not np.allclose(P[0], P[1])  # different clocks, different outcomes
+
+
+def test_reset_touches_only_the_named_envs(device):
+    seq = wave_bowl(n=16, frames=8)
+    rng = np.random.default_rng(2)
+    E, S = 5, 3
+    pos, vel = _spheres(S, rng)
+    times = np.linspace(0.0, 0.3, E)
+
+    def world():
+        bm = BatchModel(SurfaceModel(seq, device), E, np.full(S, 0.05), 1.0, _params())
+        return BatchedWorld(bm, BatchState(bm, pos, vel, times=times))
+
+    a, b = world(), world()
+    for _ in range(40):
+        a.step()
+        b.step()
+    new = np.broadcast_to(np.array([0.0, 0.0, 0.9], np.float32), (S, 3))
+    mask = np.array([False, True, False, True, False])
+    a.reset(mask, positions=new, velocities=np.zeros((S, 3)), times=0.5)
+    Pa, Pb = a.sphere_positions(), b.sphere_positions()
+    np.testing.assert_array_equal(Pa[~mask], Pb[~mask])
+    np.testing.assert_array_equal(Pa[mask], np.broadcast_to(new, (2, S, 3)))
+    np.testing.assert_array_equal(a.env_times()[mask], [0.5, 0.5])
+    np.testing.assert_array_equal(a.env_times()[~mask], b.env_times()[~mask])
+    for _ in range(30):
+        a.step()
+        b.step()
+    np.testing.assert_array_equal(a.sphere_positions()[~mask], b.sphere_positions()[~mask])
+    with pytest.raises(ValueError, match="positions"):
+        a.reset(mask, positions=np.zeros((S + 1, 3)))
+
+
+def test_pair_slots_bound_the_interpolated_surface(device):
+    """The slot a sphere picks holds boxes that contain every face of the surface interpolated at
+    its env's time, for each playback mode (NumPy oracle of the surface at a time)."""
+    seq = pulsing_blob(subdivisions=1, frames=7)
+    F = seq.F
+    for playback in ("loop", "pingpong", "clamp"):
+        bm = BatchModel(SurfaceModel(seq, device, playback=playback), 1, [0.05], 1.0, PhysicsParams())
+        lo, hi = bm.pair_lowers.numpy(), bm.pair_uppers.numpy()
+        T = seq.num_frames
+        for t in np.linspace(0.0, 3.0 * T / seq.fps, 97):
+            k = int(np.floor(t * seq.fps))
+            # the playback's frame pair (pingpong reflects at the ends), then the slot rule of
+            # kernels/batch.pair_slot
+            k0, k1 = _wrap(k, T, playback), _wrap(k + 1, T, playback)
+            if playback == "pingpong":
+                a = t * seq.fps - k
+                Vt = seq.V[k0].astype(np.float64) * (1 - a) + seq.V[k1].astype(np.float64) * a
+            else:
+                Vt = surface_at(seq, t, playback).astype(np.float64)  # the NumPy oracle
+            tri = Vt[F]  # (M, 3, 3)
+            slot = min(k0, max(T - 2, 0)) if k0 == k1 else (min(k0, k1) if abs(k0 - k1) == 1 else T - 1)
+            assert (tri.min(axis=1) >= lo[slot] - 1e-6).all() and (tri.max(axis=1) <= hi[slot] + 1e-6).all(), (
+                playback, t, slot)
+    mem = bm.memory_bytes
+    assert mem["per_env"] > 0 and mem["pair_boxes"] == 2 * T * len(F) * 12
+
+
+def _wrap(k, T, playback):
+    if playback == "clamp":
+        return min(max(k, 0), T - 1)
+    if playback == "pingpong":
+        period = 2 * (T - 1)
+        m = k % period
+        return period - m if m >= T else m
+    return k % T
+
+
+def test_batch_needs_a_fixed_surface_and_spheres(device):
+    seq = wave_bowl(n=8, frames=4)
+    with pytest.raises(ValueError, match="num_envs"):
+        BatchModel(SurfaceModel(seq, device), 0, [0.05], 1.0, PhysicsParams())
+    with pytest.raises(ValueError, match="at least one sphere"):
+        BatchModel(SurfaceModel(seq, device), 2, [], 1.0, PhysicsParams())
+    bm = BatchModel(SurfaceModel(seq, device), 2, [0.05], 1.0, PhysicsParams())
+    with pytest.raises(ValueError, match="non-finite"):
+        BatchState(bm, [[0.0, 0.0, np.nan]])
+    assert wp.get_device(bm.device) == wp.get_device(device)
