@@ -24,7 +24,8 @@ ROOT = Path(__file__).resolve().parents[1]
 GROUPS = ["Model", "State in", "In", "State out", "Out"]
 HEADER = re.compile(r"^#\s*(Model|State in|In|State out|Out)(\s*\([^)]*\))?:\s*$")
 VERBS = {
-    "accumulate", "add", "advance", "begin", "bind", "blend", "collide", "compute", "detect", "evaluate",
+    "accumulate", "add", "advance", "apply", "begin", "bind", "blend", "collide", "combine", "compute", "count",
+    "detect", "evaluate",
     "find", "gather", "integrate", "mark", "measure", "multiply", "pack", "project", "relax", "reset",
     "resolve", "sample", "scatter", "skin", "smooth", "solve", "sum", "transform", "update",
 }

@@ -33,7 +33,9 @@ LAYERS = [
     {"scene"},
     # engines and tools over a scene
     {"newton_adapter", "evaluate", "batch"},
-    {"viewer"},
+    {"viewer", "envs"},
+    # Ray actors over the envs
+    {"distributed"},
     # the run CLI on top
     {"run"},
 ]

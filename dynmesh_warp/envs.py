@@ -1,0 +1,196 @@
+"""A Gymnasium vector env on the batched world (issue 15): keep a pushed ball on a deforming
+reconstruction, near a target (by default the top of the surface: the galloping horse's back).
+
+``RideSurfaceEnv(num_envs, scene=...)`` is a ``gymnasium.vector.VectorEnv`` (gymnasium >= 1.0)
+whose envs share one :class:`~dynmesh_warp.batch.BatchedWorld`, each at its own phase of the
+sequence. Everything per step runs on the simulation device (kernels/envs.py): the actions
+enter as velocity changes, the world takes ``decimation`` physics steps (one CUDA graph each),
+observations, rewards and flags are computed there, and finished envs are reset there (same-step
+autoreset: the returned observation of a finished env is its new episode's first; the last one
+is in ``info["final_obs"]``). With ``backend="torch"`` step returns torch tensors on the
+simulation device that share memory with the Warp arrays (``wp.to_torch``: no host round trip);
+with ``backend="numpy"`` (default, Gymnasium's convention) host copies.
+
+Observation (18 per env): ball position relative to the target (3) [m], ball velocity (3)
+[m/s], heights of the surface at a 3 x 3 grid around the ball relative to it (9) [m], in contact
+(1), sin/cos of the env's phase in the sequence (2). Action (2 per env): horizontal acceleration
+in [-1, 1] x ``accel`` [m/s^2]. Reward per step: 1 - (horizontal distance / max_distance)^2 -
+0.01 |action|^2, and -1 on termination (the ball fell to the ground or left ``max_distance``);
+episodes are truncated after ``max_steps``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from .batch import BatchedWorld, BatchModel, BatchState
+from .kernels.envs import (
+    OBS_DIM,
+    apply_env_actions,
+    combine_env_flags,
+    count_env_steps,
+    evaluate_ball_task,
+    reset_ball_envs,
+)
+
+try:  # gymnasium is an optional dependency (the "rl" and "all" extras)
+    import gymnasium as gym
+    from gymnasium.vector import AutoresetMode, VectorEnv
+except ImportError:  # pragma: no cover - reported when an env is made
+    gym = None
+    VectorEnv = object
+    AutoresetMode = None
+
+__all__ = ["RideSurfaceEnv", "surface_target"]
+
+
+def surface_target(V0: np.ndarray, top_fraction: float = 0.1) -> np.ndarray:
+    """Default target [m]: the centroid of the highest ``top_fraction`` of frame 0's vertices (a
+    horse's back and head; a bowl's rim would be a ring, so pass your own target there)."""
+    z = V0[:, 2]
+    top = V0[z >= np.quantile(z, 1.0 - top_fraction)]
+    return top.mean(axis=0).astype(np.float32)
+
+
+class RideSurfaceEnv(VectorEnv):
+    """Keep a pushed ball on a deforming surface near a target; ``num_envs`` envs in one batch.
+
+    Args:
+        num_envs: E.
+        scene: a scene (``config.SceneConfig``, a YAML path, or None: ``builtin:pulsing_blob``, a ball
+            on top of a breathing blob); its
+            surface and physics are used, its spheres are not (one ball per env).
+        device: Warp device (default: the scene's, else Warp's).
+        backend: "numpy" (host arrays) or "torch" (device tensors, zero copy).
+        radius: ball radius [m]; max_steps: episode length; decimation: physics steps per env
+            step; accel: action scale [m/s^2]; push: largest initial push [m/s]; max_distance:
+            horizontal reach around the target [m] (default 0.25 x the surface's bbox diagonal);
+            target: (3,) [m] (default :func:`surface_target`).
+    """
+
+    metadata = {"autoreset_mode": AutoresetMode.SAME_STEP if AutoresetMode is not None else "same-step"}
+
+    def __init__(self, num_envs: int = 64, scene=None, device=None, backend: str = "numpy", radius: float = 0.05,
+                 max_steps: int = 500, decimation: int = 4, accel: float = 4.0, push: float = 0.6,
+                 max_distance: float | None = None, target=None, seed: int = 0):
+        if gym is None:
+            raise ImportError("RideSurfaceEnv needs gymnasium >= 1.0: pip install 'dynmesh_warp[rl]'")
+        if backend not in ("numpy", "torch"):
+            raise ValueError(f"backend must be 'numpy' or 'torch', got {backend!r}")
+        from .config import load_scene_config
+        from .scene import build_model, load_surface
+
+        cfg = scene if hasattr(scene, "surface") else load_scene_config(scene) if scene is not None else \
+            load_scene_config(data={"surface": {"source": "builtin:pulsing_blob"}})
+        cfg = cfg.model_copy(update={"spheres": []})
+        seq = load_surface(cfg)
+        model, _ = build_model(cfg, seq, device)
+        self.device = model.device
+        self.backend = backend
+        V0 = seq.V[0]
+        diag = float(np.linalg.norm(V0.max(axis=0) - V0.min(axis=0)))
+        self.target = np.asarray(surface_target(V0) if target is None else target, np.float32).reshape(3)
+        self.max_distance = float(0.25 * diag if max_distance is None else max_distance)
+        self.radius, self.max_steps, self.decimation = float(radius), int(max_steps), int(decimation)
+        self.accel, self.push = float(accel), float(push)
+        self.duration = seq.num_frames / seq.fps
+        self.top = float(seq.V[..., 2].max()) + 1.0
+        bm = BatchModel(model.surface, int(num_envs), [self.radius], 1.0, model.params)
+        far = np.tile(self.target + np.array([0.0, 0.0, 10.0], np.float32), (1, 1))
+        self.world = BatchedWorld(bm, BatchState(bm, far))
+        self.num_envs = bm.num_envs
+        E, d = self.num_envs, self.device
+        self.env_steps = wp.zeros(E, dtype=wp.int32, device=d)
+        self.env_episode = wp.zeros(E, dtype=wp.int32, device=d)
+        self.obs = wp.zeros((E, OBS_DIM), dtype=float, device=d)
+        self.final_obs = wp.zeros((E, OBS_DIM), dtype=float, device=d)
+        self.reward = wp.zeros(E, dtype=float, device=d)
+        self.terminated = wp.zeros(E, dtype=wp.int32, device=d)
+        self.truncated = wp.zeros(E, dtype=wp.int32, device=d)
+        self.done = wp.zeros(E, dtype=wp.int32, device=d)
+        self.actions = wp.zeros((E, 2), dtype=float, device=d)
+        self._all = wp.ones(E, dtype=wp.int32, device=d)
+        self._seed = int(seed)
+        box = gym.spaces.Box(-np.inf, np.inf, (int(OBS_DIM),), np.float32)
+        act = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
+        self.single_observation_space, self.single_action_space = box, act
+        self.observation_space = gym.vector.utils.batch_space(box, E)
+        self.action_space = gym.vector.utils.batch_space(act, E)
+
+    # -- device stages ------------------------------------------------------------------------------
+    def _reset_envs(self, mask: wp.array):
+        m, s = self.world.model, self.world.state
+        surf = m.surface
+        wp.launch(reset_ball_envs, self.num_envs,
+                  inputs=[surf.frames, surf.indices, m.pair_bvh, surf.fps, int(surf.interpolate), m.spheres_per_env,
+                          mask, self._seed, wp.vec3(*self.target.tolist()), 0.3 * self.max_distance, self.push,
+                          self.duration, self.top, self.radius],
+                  outputs=[s.env_time, s.env_playback, s.sphere_pos, s.sphere_vel, self.env_steps, self.env_episode],
+                  device=self.device)
+
+    def _evaluate(self, mask: wp.array | None = None):
+        """Observation, reward and flags of every env; with ``mask`` the observation of the masked
+        envs alone (their first after a reset; the finished step's rewards and flags stay)."""
+        m, s = self.world.model, self.world.state
+        surf = m.surface
+        gh = m.params.ground_height
+        wp.launch(evaluate_ball_task, self.num_envs,
+                  inputs=[surf.frames, surf.indices, m.pair_bvh, surf.fps, int(surf.interpolate), m.spheres_per_env,
+                          float(gh if gh is not None else -1.0e6),
+                          s.env_time, s.env_playback, s.sphere_pos, s.sphere_vel,
+                          self.world.contacts.face, self.actions, self.env_steps,
+                          self._all if mask is None else mask, int(mask is not None), wp.vec3(*self.target.tolist()),
+                          self.max_distance, 0.5 * self.max_distance / 3.0, self.top, self.radius, self.max_steps],
+                  outputs=[self.obs, self.reward, self.terminated, self.truncated], device=self.device)
+
+    def _out(self, a: wp.array):
+        if self.backend == "torch":
+            return wp.to_torch(a)
+        return a.numpy().copy()
+
+    # -- the Gymnasium API ---------------------------------------------------------------------------
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        """Start a new episode in every env (``seed`` makes the phases, spawn points and pushes
+        reproducible). Returns (obs (E, 18), info {})."""
+        if seed is not None:
+            self._seed = int(seed)
+            self.env_episode.zero_()
+        self.actions.zero_()
+        self._reset_envs(self._all)
+        self._evaluate()
+        return self._out(self.obs), {}
+
+    def step(self, actions):
+        """Apply the actions (E, 2), take ``decimation`` physics steps, and return (obs, reward,
+        terminated, truncated, info); finished envs are reset in the same step."""
+        if self.backend == "torch" and not isinstance(actions, np.ndarray):
+            a = wp.from_torch(actions.detach().to(dtype=__import__("torch").float32).contiguous())
+            wp.copy(self.actions, a.reshape((self.num_envs, 2)) if a.ndim == 1 else a)
+        else:
+            a = np.asarray(actions, np.float32).reshape(self.num_envs, 2)
+            self.actions.assign(a)
+        w = self.world
+        wp.launch(apply_env_actions, self.num_envs,
+                  inputs=[w.model.spheres_per_env, self.actions, self.accel, self.decimation * w.dt],
+                  outputs=[w.state.sphere_vel], device=self.device)
+        for _ in range(self.decimation):
+            w.step()
+        wp.launch(count_env_steps, self.num_envs, outputs=[self.env_steps], device=self.device)
+        self._evaluate()
+        wp.copy(self.final_obs, self.obs)
+        wp.launch(combine_env_flags, self.num_envs, inputs=[self.terminated, self.truncated], outputs=[self.done],
+                  device=self.device)
+        self._reset_envs(self.done)
+        self._evaluate(self.done)
+        done = self._out(self.done)
+        info = {"final_obs": self._out(self.final_obs), "_final_obs": done.astype(bool) if self.backend == "numpy"
+                else done.bool()}
+        term, trunc = self._out(self.terminated), self._out(self.truncated)
+        if self.backend == "numpy":
+            return self._out(self.obs), self._out(self.reward), term.astype(bool), trunc.astype(bool), info
+        return wp.to_torch(self.obs), wp.to_torch(self.reward), term.bool(), trunc.bool(), info
+
+    def close(self, **kwargs):
+        pass
+

@@ -1,0 +1,116 @@
+"""The Gymnasium vector env on the batched world (issue 15; dynmesh_warp/envs.py): spaces,
+seeding, same-step autoreset, termination, and that the observation's height probes equal the
+NumPy oracle of the surface at each env's time."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+gym = pytest.importorskip("gymnasium")
+
+from dynmesh_warp.envs import RideSurfaceEnv  # noqa: E402
+from reference import surface_at  # noqa: E402
+
+
+def _env(device, **kw):
+    from dynmesh_warp.config import load_scene_config
+
+    cfg = load_scene_config(data={"device": device, "surface": {"source": "builtin:pulsing_blob",
+                                                                 "params": {"subdivisions": 2, "frames": 12}}})
+    return RideSurfaceEnv(scene=cfg, **kw)
+
+
+def test_spaces_reset_and_step_follow_the_vector_api(device):
+    env = _env(device, num_envs=6, seed=1)
+    assert isinstance(env, gym.vector.VectorEnv) and env.num_envs == 6
+    assert env.metadata["autoreset_mode"] == gym.vector.AutoresetMode.SAME_STEP
+    obs, info = env.reset(seed=11)
+    assert obs.shape == (6, 18) and obs.dtype == np.float32 and env.observation_space.contains(obs)
+    a = env.action_space.sample()
+    assert a.shape == (6, 2)
+    obs2, r, term, trunc, info = env.step(a)
+    assert obs2.shape == (6, 18) and r.shape == (6,) and r.dtype == np.float32
+    assert term.dtype == bool and trunc.dtype == bool and info["final_obs"].shape == (6, 18)
+    # deterministic seeding: the same seed and actions give the same rollout
+    again = _env(device, num_envs=6)
+    o, _ = again.reset(seed=11)
+    np.testing.assert_array_equal(o, obs)
+    np.testing.assert_array_equal(again.step(a)[0], obs2)
+    o3, _ = again.reset(seed=12)
+    assert not np.allclose(o3, obs)
+
+
+def test_same_step_autoreset_and_termination(device):
+    env = _env(device, num_envs=4, max_steps=3, seed=2)
+    env.reset(seed=2)
+    zero = np.zeros((4, 2), np.float32)
+    for _ in range(2):
+        _, _, term, trunc, _ = env.step(zero)
+        assert not trunc.any()
+    obs, r, term, trunc, info = env.step(zero)
+    assert (trunc | term).all()  # every episode ended at max_steps (or earlier by falling)
+    assert info["_final_obs"].all()
+    assert not np.allclose(info["final_obs"], obs)  # obs is the new episode's first, final_obs the last
+    np.testing.assert_array_equal(env.env_steps.numpy(), 0)
+    # pushing hard in one direction carries the ball off its reach: terminated, reward -1 included
+    env = _env(device, num_envs=3, max_steps=10_000, seed=3)
+    env.reset(seed=3)
+    ended = np.zeros(3, bool)
+    for _ in range(400):
+        _, r, term, trunc, _ = env.step(np.tile([1.0, 0.0], (3, 1)).astype(np.float32))
+        assert not trunc.any()
+        assert (r[term] < 0).all()
+        ended |= term
+    assert ended.all()
+
+
+def test_height_probes_equal_the_surface_at_each_envs_time(device):
+    """Observation entries 6..14: the surface height below a 3 x 3 grid around the ball, relative
+    to the ball, at the env's own time; checked against a brute-force ray cast of the NumPy
+    surface (reference.surface_at) at that time."""
+    env = _env(device, num_envs=5, seed=4)
+    obs, _ = env.reset(seed=4)
+    for _ in range(3):
+        obs, *_ = env.step(np.zeros((5, 2), np.float32))
+    seq = env.world.model.surface.sequence
+    times = env.world.env_times()
+    P = env.world.sphere_positions()[:, 0]
+    spacing = 0.5 * env.max_distance / 3.0
+    for e in range(5):
+        V = surface_at(seq, float(times[e]), "loop")
+        tri = V[seq.F]
+        j = 6
+        for iy in range(3):
+            for ix in range(3):
+                x, y = P[e, 0] + (ix - 1) * spacing, P[e, 1] + (iy - 1) * spacing
+                h = _ray_down(tri, x, y)
+                want = (h if h is not None else env.world.model.params.ground_height) - P[e, 2]
+                assert obs[e, j] == pytest.approx(want, abs=2e-5), (e, ix, iy)
+                j += 1
+
+
+def _ray_down(tri, x, y):
+    """Highest z of the triangles over (x, y) (2-D barycentric test), None if none."""
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    d = (b[:, 1] - c[:, 1]) * (a[:, 0] - c[:, 0]) + (c[:, 0] - b[:, 0]) * (a[:, 1] - c[:, 1])
+    ok = np.abs(d) > 1e-14
+    d = np.where(ok, d, 1.0)
+    l1 = ((b[:, 1] - c[:, 1]) * (x - c[:, 0]) + (c[:, 0] - b[:, 0]) * (y - c[:, 1])) / d
+    l2 = ((c[:, 1] - a[:, 1]) * (x - c[:, 0]) + (a[:, 0] - c[:, 0]) * (y - c[:, 1])) / d
+    l3 = 1 - l1 - l2
+    inside = ok & (l1 >= 0) & (l2 >= 0) & (l3 >= 0)
+    if not inside.any():
+        return None
+    z = l1 * a[:, 2] + l2 * b[:, 2] + l3 * c[:, 2]
+    return float(z[inside].max())
+
+
+def test_torch_backend_shares_device_memory(device):
+    torch = pytest.importorskip("torch")
+    env = _env(device, num_envs=3, backend="torch")
+    obs, _ = env.reset(seed=0)
+    assert isinstance(obs, torch.Tensor) and obs.shape == (3, 18)
+    obs2, r, term, trunc, info = env.step(torch.zeros((3, 2), device=obs.device))
+    assert obs2.data_ptr() == env.obs.ptr  # the Warp array itself, no copy
+    assert r.shape == (3,) and term.dtype == torch.bool
