@@ -38,6 +38,8 @@ def main(argv=None):
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--warmup", type=int, default=480,
                     help="steps before timing (2 s: the spheres have landed and ride the surface)")
+    ap.add_argument("--time-slices", type=int, default=None, help="slices per frame pair (default: batch.TIME_SLICES)")
+    ap.add_argument("--lanes", type=int, default=None, help="threads per sphere of the contact query (default: batch's)")
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
     wp.init()
@@ -49,12 +51,14 @@ def main(argv=None):
     surf = SurfaceModel(seq, device, playback="loop")
     res = {"machine": describe_device(device), "scene": {"sequence": seq.name, "shared_data": shared,
            "frames": seq.num_frames, "faces": int(seq.F.shape[0]), "spheres_per_env": S, "radius": r,
-           "dt": 1 / 240, "substeps": 1, "phase": "uniform random over one gallop"}, "rows": []}
+           "dt": 1 / 240, "substeps": 1, "phase": "uniform random over one gallop", "warmup_steps": a.warmup,
+           "timed_steps": a.steps}, "rows": []}
     for E in [int(x) for x in a.envs.split(",")]:
         t0 = time.perf_counter()
-        bm = BatchModel(surf, E, np.full(S, r), 1.0, params)
+        bm = BatchModel(surf, E, np.full(S, r), 1.0, params,
+                        **({"time_slices": a.time_slices} if a.time_slices else {}))
         times = np.random.default_rng(1).uniform(0.0, seq.num_frames / seq.fps, E)
-        w = BatchedWorld(bm, BatchState(bm, pos, times=times))
+        w = BatchedWorld(bm, BatchState(bm, pos, times=times), contact_lanes=a.lanes)
         w.step()
         w.capture()
         wp.synchronize_device(device)
@@ -63,7 +67,8 @@ def main(argv=None):
         P = w.sphere_positions()
         row = {"num_envs": E, **t, "env_steps_per_s": t["steps_per_s"] * E, "build_s": build_s,
                "cuda_graph": w.graph_captured, "final_finite": bool(np.isfinite(P).all()),
-               "in_contact_final": w.contact_count(), "memory_bytes": bm.memory_bytes}
+               "in_contact_final": w.contact_count(), "time_slices": bm.time_slices,
+               "contact_lanes": w.lanes.lanes if w.lanes is not None else 1, "memory_bytes": bm.memory_bytes}
         res["rows"].append(row)
         print(f"E={E:>6}: {t['steps_per_s']:>10,.0f} steps/s  {row['env_steps_per_s']:>14,.0f} env-steps/s  "
               f"mem/env {bm.memory_bytes['per_env']} B", flush=True)

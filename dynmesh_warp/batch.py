@@ -27,14 +27,26 @@ from .choices import PLAYBACK_CODES, Playback, parse
 from .kernels.batch import (
     advance_env_clocks,
     collide_and_integrate_env_spheres,
+    collide_env_sphere_lanes,
     compute_pair_bounds,
+    resolve_and_integrate_env_spheres,
     reset_env_clocks,
     reset_env_spheres,
 )
 from .world import Contacts, PhysicsParams, SphereModel, SurfaceModel, check_substep_budget
 
-__all__ = ["BatchModel", "BatchState", "BatchedWorld", "step_envs", "required_substeps", "env_clocks",
-           "build_batched_world"]
+__all__ = ["BatchModel", "BatchState", "BatchedWorld", "step_envs", "required_substeps", "env_clocks", "TIME_SLICES",
+           "CONTACT_LANES", "ContactLanes", "build_batched_world"]
+
+
+#: time slices per frame pair of the pair BVHs: a face's box covers 1/TIME_SLICES of its motion
+#: between two frames. 1 by default: on horse_gallop 4 slices cut a sphere's candidate faces by
+#: 2-10 % only (325 -> 319 at the worst; the count is set by the mesh's density, not its motion)
+#: and cost 4x the memory (docs/envs.md)
+TIME_SLICES = 1
+
+#: threads per sphere of the contact query on a GPU (collide_env_sphere_lanes); 1 on the CPU
+CONTACT_LANES = 8
 
 
 def required_substeps(max_speed: float, dt: float, r_min: float) -> int:
@@ -54,12 +66,15 @@ class BatchModel:
         spheres: :class:`~dynmesh_warp.world.SphereModel` of all E * S spheres (env-major).
         sphere_env: (E * S,) int32, the env of each sphere.
         params: :class:`~dynmesh_warp.world.PhysicsParams` shared by the envs.
-        pair_lowers, pair_uppers: (T, M) vec3 [m], each face's box over frame pair slot k
-            (frames k and (k + 1) mod T); pair_bvh: (T,) uint64 ids of one ``wp.Bvh`` per slot.
+        time_slices: slices per frame pair (``TIME_SLICES``); pair_lowers, pair_uppers:
+            (T * slices, M) vec3 [m], each face's box over slice j of frame pair k (frames k and
+            (k + 1) mod T), slot k * slices + j; pair_bvh: (T * slices,) uint64 ids of one
+            ``wp.Bvh`` per slot.
         epsilon: tie distance of the closest-feature search [m] (1e-3 x mean edge length).
     """
 
-    def __init__(self, surface: SurfaceModel, num_envs: int, radius, mass, params: PhysicsParams):
+    def __init__(self, surface: SurfaceModel, num_envs: int, radius, mass, params: PhysicsParams,
+                 time_slices: int = TIME_SLICES):
         if int(num_envs) < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
         if not isinstance(surface, SurfaceModel):
@@ -77,12 +92,16 @@ class BatchModel:
         self.spheres = SphereModel(np.tile(radius, E), np.tile(mass, E), self.device)
         self.sphere_env = wp.array(np.repeat(np.arange(E, dtype=np.int32), S), dtype=wp.int32, device=self.device)
         self.params = params
+        if int(time_slices) < 1:
+            raise ValueError(f"time_slices must be >= 1, got {time_slices}")
+        self.time_slices = int(time_slices)
         T, M = surface.num_frames, surface.num_faces
-        self.pair_lowers = wp.zeros((T, M), dtype=wp.vec3, device=self.device)
-        self.pair_uppers = wp.zeros((T, M), dtype=wp.vec3, device=self.device)
-        wp.launch(compute_pair_bounds, (T, M), inputs=[surface.frames, surface.indices],
+        n = T * self.time_slices
+        self.pair_lowers = wp.zeros((n, M), dtype=wp.vec3, device=self.device)
+        self.pair_uppers = wp.zeros((n, M), dtype=wp.vec3, device=self.device)
+        wp.launch(compute_pair_bounds, (n, M), inputs=[surface.frames, surface.indices, self.time_slices],
                   outputs=[self.pair_lowers, self.pair_uppers], device=self.device)
-        self._bvhs = [wp.Bvh(self.pair_lowers[k], self.pair_uppers[k], leaf_size=4) for k in range(T)]
+        self._bvhs = [wp.Bvh(self.pair_lowers[k], self.pair_uppers[k], leaf_size=4) for k in range(n)]
         self.pair_bvh = wp.array([b.id for b in self._bvhs], dtype=wp.uint64, device=self.device)
         self.epsilon = 1.0e-3 * float(surface.average_edge_length.mean())
 
@@ -92,10 +111,11 @@ class BatchModel:
         nodes estimated at 2M - 1 of 32 bytes each), the shared frames, and per env (spheres,
         contacts, clock)."""
         T, M, N = self.surface.num_frames, self.surface.num_faces, self.surface.num_vertices
+        frames = T * N * 12 + 3 * M * 4
+        T = T * self.time_slices  # slots
         leaves = math.ceil(M / 4)
         boxes = 2 * T * M * 12
         bvh_nodes = T * (2 * leaves - 1) * 32 + T * M * 4  # nodes + primitive indices
-        frames = T * N * 12 + 3 * M * 4
         per_sphere = 4 + 4 + 4 + 2 * 12 + (4 + 12 + 12 + 4 + 12)  # radius, inv_mass, env, pos/vel, contacts
         per_env = self.spheres_per_env * per_sphere + 8 + 4 + 4
         return {"pair_boxes": boxes, "pair_bvh_nodes_estimate": bvh_nodes, "frames": frames,
@@ -147,24 +167,52 @@ def _clocks(model: BatchModel, times, rates, playback):
     return t, r, m
 
 
+class ContactLanes:
+    """Scratch of the lane-split contact query (GPU path): per sphere and lane the closest
+    feature found, its weights and tie-normal sum ((E * S * lanes,) arrays)."""
+
+    def __init__(self, count: int, lanes: int, device):
+        n = max(count * lanes, 1)
+        self.lanes = int(lanes)
+        self.dist = wp.zeros(n, dtype=float, device=device)
+        self.face = wp.zeros(n, dtype=wp.int32, device=device)
+        self.w = wp.zeros(n, dtype=wp.vec3, device=device)
+        self.n = wp.zeros(n, dtype=wp.vec3, device=device)
+
+
 def step_envs(model: BatchModel, state: BatchState, contacts: Contacts, sub_dt: float, substeps: int,
-              extra_speed: float):
+              extra_speed: float, lanes: ContactLanes | None = None):
     """The step of every env: ``substeps`` sub-steps of contact + integration at each env's
-    own time, each followed by the env clocks' advance. Device work only (capturable)."""
+    own time, each followed by the env clocks' advance. With ``lanes`` the contact query of each
+    sphere is split over that many threads (the GPU path: a sphere near a finely meshed surface
+    has hundreds of candidate faces); else one thread per sphere. Device work only (capturable)."""
     m, s, c, p = model, state, contacts, model.params
     surf = m.surface
     ground = int(p.ground_height is not None)
     gh = float(p.ground_height if p.ground_height is not None else 0.0)
     g = wp.vec3(*[float(x) for x in p.gravity])
     n = m.spheres.count
+    physics = [g, p.restitution, p.friction, p.rest_speed, ground, gh, surf.fps, int(surf.interpolate)]
     for _ in range(substeps):
-        wp.launch(collide_and_integrate_env_spheres, n,
-                  inputs=[surf.frames, surf.indices, m.pair_bvh, m.spheres.radius, m.spheres.inv_mass, m.sphere_env,
-                          g, p.restitution, p.friction, p.rest_speed, ground, gh, surf.fps, int(surf.interpolate),
-                          s.env_time, s.env_rate, s.env_playback,
-                          sub_dt, extra_speed, p.margin, m.epsilon],
-                  outputs=[s.sphere_pos, s.sphere_vel, c.face, c.point, c.normal, c.depth, c.velocity],
-                  device=m.device)
+        if lanes is None or lanes.lanes <= 1:
+            wp.launch(collide_and_integrate_env_spheres, n,
+                      inputs=[surf.frames, surf.indices, m.pair_bvh, m.spheres.radius, m.spheres.inv_mass,
+                              m.sphere_env, *physics, m.time_slices, s.env_time, s.env_rate, s.env_playback,
+                              sub_dt, extra_speed, p.margin, m.epsilon],
+                      outputs=[s.sphere_pos, s.sphere_vel, c.face, c.point, c.normal, c.depth, c.velocity],
+                      device=m.device)
+        else:
+            wp.launch(collide_env_sphere_lanes, n * lanes.lanes,
+                      inputs=[surf.frames, surf.indices, m.pair_bvh, m.spheres.radius, m.sphere_env, surf.fps,
+                              int(surf.interpolate), m.time_slices, s.env_time, s.env_playback, s.sphere_pos,
+                              s.sphere_vel, lanes.lanes, sub_dt, extra_speed, p.margin, m.epsilon],
+                      outputs=[lanes.dist, lanes.face, lanes.w, lanes.n], device=m.device)
+            wp.launch(resolve_and_integrate_env_spheres, n,
+                      inputs=[surf.frames, surf.indices, m.spheres.radius, m.spheres.inv_mass, m.sphere_env,
+                              *physics, s.env_time, s.env_rate, s.env_playback, lanes.lanes, lanes.dist,
+                              lanes.face, lanes.w, lanes.n, sub_dt, extra_speed, p.margin, m.epsilon],
+                      outputs=[s.sphere_pos, s.sphere_vel, c.face, c.point, c.normal, c.depth, c.velocity],
+                      device=m.device)
         wp.launch(advance_env_clocks, m.num_envs, inputs=[s.env_rate, wp.float64(sub_dt)], outputs=[s.env_time],
                   device=m.device)
 
@@ -175,7 +223,7 @@ class BatchedWorld:
     (``max_rate``). ``reset`` sets chosen envs' spheres and clocks on the device."""
 
     def __init__(self, model: BatchModel, state: BatchState, max_rate: float | None = None,
-                 use_graph: bool | None = None):
+                 use_graph: bool | None = None, contact_lanes: int | None = None):
         self.model, self.state = model, state
         self.device = model.device
         p = model.params
@@ -194,6 +242,10 @@ class BatchedWorld:
         self.sub_dt = p.dt / self.substeps
         self.extra_speed = float(np.linalg.norm(p.gravity)) * self.sub_dt
         self.contacts = Contacts(model.spheres.count, device=self.device)
+        lanes = (CONTACT_LANES if self.device.is_cuda else 1) if contact_lanes is None else int(contact_lanes)
+        if lanes < 1:
+            raise ValueError(f"contact_lanes must be >= 1, got {contact_lanes}")
+        self.lanes = ContactLanes(model.spheres.count, lanes, self.device) if lanes > 1 else None
         self.use_graph = self.device.is_cuda if use_graph is None else bool(use_graph) and self.device.is_cuda
         self._graph = None
         self.step_count = 0
@@ -210,7 +262,7 @@ class BatchedWorld:
         return self.model.params.dt
 
     def _step_body(self):
-        step_envs(self.model, self.state, self.contacts, self.sub_dt, self.substeps, self.extra_speed)
+        step_envs(self.model, self.state, self.contacts, self.sub_dt, self.substeps, self.extra_speed, self.lanes)
 
     def capture(self):
         if not self.use_graph or self._graph is not None:

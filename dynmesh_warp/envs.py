@@ -123,8 +123,8 @@ class RideSurfaceEnv(VectorEnv):
         m, s = self.world.model, self.world.state
         surf = m.surface
         wp.launch(reset_ball_envs, self.num_envs,
-                  inputs=[surf.frames, surf.indices, m.pair_bvh, surf.fps, int(surf.interpolate), m.spheres_per_env,
-                          mask, self._seed, wp.vec3(*self.target.tolist()), 0.3 * self.max_distance, self.push,
+                  inputs=[surf.frames, surf.indices, m.pair_bvh, surf.fps, int(surf.interpolate), m.time_slices,
+                          m.spheres_per_env, mask, self._seed, wp.vec3(*self.target.tolist()), 0.3 * self.max_distance, self.push,
                           self.duration, self.top, self.radius],
                   outputs=[s.env_time, s.env_playback, s.sphere_pos, s.sphere_vel, self.env_steps, self.env_episode],
                   device=self.device)
@@ -136,8 +136,8 @@ class RideSurfaceEnv(VectorEnv):
         surf = m.surface
         gh = m.params.ground_height
         wp.launch(evaluate_ball_task, self.num_envs,
-                  inputs=[surf.frames, surf.indices, m.pair_bvh, surf.fps, int(surf.interpolate), m.spheres_per_env,
-                          float(gh if gh is not None else -1.0e6),
+                  inputs=[surf.frames, surf.indices, m.pair_bvh, surf.fps, int(surf.interpolate), m.time_slices,
+                          m.spheres_per_env, float(gh if gh is not None else -1.0e6),
                           s.env_time, s.env_playback, s.sphere_pos, s.sphere_vel,
                           self.world.contacts.face, self.actions, self.env_steps,
                           self._all if mask is None else mask, int(mask is not None), wp.vec3(*self.target.tolist()),

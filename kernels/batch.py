@@ -2,10 +2,11 @@
 
 Every env plays the same reconstruction, each at its own time, so no single vertex buffer or
 BVH fits them all. Instead the swept BVH of every frame pair is built once at load
-(``compute_pair_bounds``; slot k holds the faces' boxes over frames k and k+1, slot T-1 the
-loop's wrap pair (T-1, 0)); a sphere of env e picks the slot of e's frame pair and evaluates the
-interpolated triangles itself, exactly as the single-clock swept collider does. Nothing is
-refit per step or per env.
+(``compute_pair_bounds``: the faces' boxes over frames k and k+1, cut into ``slices`` time
+slices so a fast-moving face's box stays small; pair T-1 is the loop's wrap pair (T-1, 0)); a
+sphere of env e picks the slot of e's frame pair and blend and evaluates the interpolated
+triangles itself, exactly as the single-clock swept collider does. Nothing is refit per step or
+per env.
 
 Flat layout: env e owns spheres ``sphere_env == e`` (E * S spheres in all, env-major).
 """
@@ -15,21 +16,38 @@ import warp as wp
 from .collide import contact_reach
 from .frames import PLAYBACK_LOOP, blend_pair, wrap_frame
 from .integrate import advance_sphere
-from .swept import closest_on_swept_bvh, write_swept_contact
+from .swept import closest_on_swept_bvh, face_candidate, interpolated_triangle, keep_closest, write_swept_contact
 
 
 @wp.func
-def pair_slot(k0: int, k1: int, num_frames: int) -> int:
-    """The BVH slot of frame pair (k0, k1): min(k0, k1) for neighbours, T-1 for the loop's
-    wrap pair (T-1, 0), and for a held frame (k0 == k1, clamped at the end) the pair that
-    contains it."""
+def pair_slot(k0: int, k1: int, alpha: float, num_frames: int, slices: int) -> int:
+    """The BVH slot of the surface between frames k0 and k1 at blend ``alpha``: frame pair p =
+    min(k0, k1) for neighbours, T-1 for the loop's wrap pair (T-1, 0), and for a held frame
+    (k0 == k1, clamped at an end) the pair that contains it; then the time slice of that pair,
+    of ``slices`` equal slices of the interval from the pair's first frame to its second (a
+    pingpong pair played backwards counts alpha from the other end). Slot = p * slices + slice."""
+    T = num_frames
+    p = int(0)
+    u = float(0.0)  # position in the pair, 0 at its first frame, 1 at its second
     if k0 == k1:
-        return wp.min(k0, wp.max(num_frames - 2, 0))
-    lo = wp.min(k0, k1)
-    hi = wp.max(k0, k1)
-    if hi == lo + 1:
-        return lo
-    return num_frames - 1
+        p = wp.min(k0, wp.max(T - 2, 0))
+        if k0 != p:
+            u = 1.0
+    else:
+        lo = wp.min(k0, k1)
+        hi = wp.max(k0, k1)
+        if hi == lo + 1:
+            p = lo
+            u = alpha
+            if k0 > k1:
+                u = 1.0 - alpha
+        else:
+            p = T - 1
+            u = alpha
+            if k0 < k1:
+                u = 1.0 - alpha
+    sl = wp.min(int(u * float(slices)), slices - 1)
+    return p * slices + wp.max(sl, 0)
 
 
 @wp.kernel
@@ -37,25 +55,34 @@ def compute_pair_bounds(
     # Model:
     frames: wp.array2d[wp.vec3],
     indices: wp.array[wp.int32],
+    slices: int,
     # Out:
     lowers: wp.array2d[wp.vec3],
     uppers: wp.array2d[wp.vec3],
 ):
-    """Box of each face over every frame pair: slot k (T slots) spans frames k and (k+1) mod T.
+    """Box of each face over every time slice of every frame pair: slot k * slices + j spans the
+    surface from frame k to frame (k + 1) mod T over blend [j / slices, (j + 1) / slices]
+    (linear motion: the box of the triangle at the slice's two ends contains it in between).
 
-    frames (T, N) [m]; indices (3M,); lowers/uppers (T, M) [m]. Launch (T, M)."""
-    k, f = wp.tid()
+    frames (T, N) [m]; indices (3M,); lowers/uppers (T * slices, M) [m]. Launch (T * slices, M)."""
+    slot, f = wp.tid()
     T = frames.shape[0]
-    k1 = wrap_frame(k + 1, T, PLAYBACK_LOOP)  # the last slot is the wrap pair (T-1, 0)
+    k = slot / slices
+    j = slot - k * slices
+    k1 = wrap_frame(k + 1, T, PLAYBACK_LOOP)  # the last pair is the wrap pair (T-1, 0)
+    a0 = float(j) / float(slices)
+    a1 = float(j + 1) / float(slices)
     lo = frames[k, indices[3 * f]]
     hi = lo
     for c in range(3):
-        a = frames[k, indices[3 * f + c]]
-        b = frames[k1, indices[3 * f + c]]
+        v0 = frames[k, indices[3 * f + c]]
+        v1 = frames[k1, indices[3 * f + c]]
+        a = v0 * (1.0 - a0) + v1 * a0
+        b = v0 * (1.0 - a1) + v1 * a1
         lo = wp.min(lo, wp.min(a, b))
         hi = wp.max(hi, wp.max(a, b))
-    lowers[k, f] = lo
-    uppers[k, f] = hi
+    lowers[slot, f] = lo
+    uppers[slot, f] = hi
 
 
 @wp.kernel
@@ -75,6 +102,7 @@ def collide_and_integrate_env_spheres(
     ground_height: float,
     fps: wp.float64,
     interpolate: int,
+    slices: int,
     # State in:
     env_time_in: wp.array[wp.float64],
     env_rate_in: wp.array[float],
@@ -108,10 +136,139 @@ def collide_and_integrate_env_spheres(
     v = sphere_vel_out[s]
     r = sphere_radius[s]
     reach = contact_reach(r, v, extra_speed, dt, margin)
-    bvh = pair_bvh[pair_slot(k0, k1, T)]
+    bvh = pair_bvh[pair_slot(k0, k1, alpha, T, slices)]
     min_dist, min_face, min_w, acc_n = closest_on_swept_bvh(bvh, frames, indices, k0, k1, alpha, p, reach, epsilon)
     write_swept_contact(s, p, r, reach, min_dist, min_face, min_w, acc_n, frames, indices, k0, k1, alpha,
                         fps * wp.float64(rate), contact_face, contact_point, contact_normal, contact_depth,
+                        contact_velocity)
+    p, v = advance_sphere(p, v, inv_mass[s], r, gravity, dt, restitution, friction, rest_speed, ground,
+                          ground_height, contact_face[s], contact_normal[s], contact_depth[s], contact_velocity[s])
+    sphere_pos_out[s] = p
+    sphere_vel_out[s] = v
+
+
+@wp.kernel
+def collide_env_sphere_lanes(
+    # Model:
+    frames: wp.array2d[wp.vec3],
+    indices: wp.array[wp.int32],
+    pair_bvh: wp.array[wp.uint64],
+    sphere_radius: wp.array[float],
+    sphere_env: wp.array[wp.int32],
+    fps: wp.float64,
+    interpolate: int,
+    slices: int,
+    # State in:
+    env_time_in: wp.array[wp.float64],
+    env_playback_in: wp.array[wp.int32],
+    sphere_pos_in: wp.array[wp.vec3],
+    sphere_vel_in: wp.array[wp.vec3],
+    # In:
+    lanes: int,
+    dt: float,
+    extra_speed: float,
+    margin: float,
+    epsilon: float,
+    # Out:
+    lane_dist: wp.array[float],
+    lane_face: wp.array[wp.int32],
+    lane_w: wp.array[wp.vec3],
+    lane_n: wp.array[wp.vec3],
+):
+    """The contact query of each sphere split over ``lanes`` threads (GPU path): every lane walks
+    the same BVH query (neighbouring threads: the same memory, no divergence) and evaluates every
+    lanes-th candidate face, keeping its closest feature and tie-normal sum. (E * S * lanes,)
+    outputs, merged in lane order by ``resolve_and_integrate_env_spheres``."""
+    tid = wp.tid()
+    s = tid / lanes
+    lane = tid - s * lanes
+    e = sphere_env[s]
+    T = frames.shape[0]
+    k0, k1, alpha = blend_pair(env_time_in[e], fps, T, env_playback_in[e], interpolate)
+    p = sphere_pos_in[s]
+    reach = contact_reach(sphere_radius[s], sphere_vel_in[s], extra_speed, dt, margin)
+    ext = wp.vec3(reach + epsilon)
+    query = wp.bvh_query_aabb(pair_bvh[pair_slot(k0, k1, alpha, T, slices)], p - ext, p + ext)
+    f = int(0)
+    c = int(0)
+    min_dist = reach
+    min_face = int(-1)
+    min_w = wp.vec3(0.0)
+    acc_n = wp.vec3(0.0)
+    while wp.bvh_query_next(query, f):
+        if c % lanes == lane:
+            a, b, g = interpolated_triangle(frames, indices, f, k0, k1, alpha)
+            dist, w, wn = face_candidate(p, a, b, g, epsilon)
+            min_dist, min_face, min_w, acc_n = keep_closest(dist, f, w, wn, epsilon, min_dist, min_face, min_w, acc_n)
+        c += 1
+    lane_dist[tid] = min_dist
+    lane_face[tid] = min_face
+    lane_w[tid] = min_w
+    lane_n[tid] = acc_n
+
+
+@wp.kernel
+def resolve_and_integrate_env_spheres(
+    # Model:
+    frames: wp.array2d[wp.vec3],
+    indices: wp.array[wp.int32],
+    sphere_radius: wp.array[float],
+    inv_mass: wp.array[float],
+    sphere_env: wp.array[wp.int32],
+    gravity: wp.vec3,
+    restitution: float,
+    friction: float,
+    rest_speed: float,
+    ground: int,
+    ground_height: float,
+    fps: wp.float64,
+    interpolate: int,
+    # State in:
+    env_time_in: wp.array[wp.float64],
+    env_rate_in: wp.array[float],
+    env_playback_in: wp.array[wp.int32],
+    # In:
+    lanes: int,
+    lane_dist: wp.array[float],
+    lane_face: wp.array[wp.int32],
+    lane_w: wp.array[wp.vec3],
+    lane_n: wp.array[wp.vec3],
+    dt: float,
+    extra_speed: float,
+    margin: float,
+    epsilon: float,
+    # State out:
+    sphere_pos_out: wp.array[wp.vec3],
+    sphere_vel_out: wp.array[wp.vec3],
+    # Out:
+    contact_face: wp.array[wp.int32],
+    contact_point: wp.array[wp.vec3],
+    contact_normal: wp.array[wp.vec3],
+    contact_depth: wp.array[float],
+    contact_velocity: wp.array[wp.vec3],
+):
+    """Merge each sphere's lanes in lane order with the sequential tie rule (a lane's result is a
+    candidate whose normal term is the lane's tie sum), then the contact and the continuous
+    response, as ``collide_and_integrate_env_spheres``. One thread per sphere."""
+    s = wp.tid()
+    e = sphere_env[s]
+    T = frames.shape[0]
+    k0, k1, alpha = blend_pair(env_time_in[e], fps, T, env_playback_in[e], interpolate)
+    p = sphere_pos_out[s]
+    v = sphere_vel_out[s]
+    r = sphere_radius[s]
+    reach = contact_reach(r, v, extra_speed, dt, margin)
+    min_dist = reach
+    min_face = int(-1)
+    min_w = wp.vec3(0.0)
+    acc_n = wp.vec3(0.0)
+    for lane in range(lanes):
+        j = s * lanes + lane
+        if lane_face[j] >= 0:
+            min_dist, min_face, min_w, acc_n = keep_closest(
+                lane_dist[j], lane_face[j], lane_w[j], lane_n[j], epsilon, min_dist, min_face, min_w, acc_n)
+    write_swept_contact(s, p, r, reach, min_dist, min_face, min_w, acc_n, frames, indices, k0, k1, alpha,
+                        fps * wp.float64(env_rate_in[e]), contact_face, contact_point, contact_normal, contact_depth,
                         contact_velocity)
     p, v = advance_sphere(p, v, inv_mass[s], r, gravity, dt, restitution, friction, rest_speed, ground,
                           ground_height, contact_face[s], contact_normal[s], contact_depth[s], contact_velocity[s])

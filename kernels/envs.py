@@ -91,6 +91,7 @@ def evaluate_ball_task(
     pair_bvh: wp.array[wp.uint64],
     fps: wp.float64,
     interpolate: int,
+    slices: int,
     spheres_per_env: int,
     ground_height: float,
     # State in:
@@ -129,7 +130,7 @@ def evaluate_ball_task(
     v = sphere_vel_in[s]
     T = frames.shape[0]
     k0, k1, alpha = blend_pair(env_time_in[e], fps, T, env_playback_in[e], interpolate)
-    bvh = pair_bvh[pair_slot(k0, k1, T)]
+    bvh = pair_bvh[pair_slot(k0, k1, alpha, T, slices)]
     rel = p - target
     obs[e, 0] = rel[0]
     obs[e, 1] = rel[1]
@@ -179,6 +180,7 @@ def reset_ball_envs(
     pair_bvh: wp.array[wp.uint64],
     fps: wp.float64,
     interpolate: int,
+    slices: int,
     spheres_per_env: int,
     # In:
     env_mask: wp.array[wp.int32],
@@ -211,7 +213,7 @@ def reset_ball_envs(
     env_time_out[e] = t
     T = frames.shape[0]
     k0, k1, alpha = blend_pair(t, fps, T, env_playback_out[e], interpolate)
-    bvh = pair_bvh[pair_slot(k0, k1, T)]
+    bvh = pair_bvh[pair_slot(k0, k1, alpha, T, slices)]
     ang = wp.randf(state) * 6.283185307179586
     rad = spawn_radius * wp.sqrt(wp.randf(state))
     x = target[0] + rad * wp.cos(ang)

@@ -24,8 +24,9 @@ def _params():
     return PhysicsParams(restitution=0.3, friction=0.5, ground_height=-0.4)
 
 
-@pytest.mark.parametrize("playback", ["loop", "pingpong", "clamp"])
-def test_batched_envs_equal_single_worlds(device, playback):
+@pytest.mark.parametrize("playback,lanes", [("loop", 1), ("pingpong", 1), ("clamp", 1), ("loop", 4)])
+def test_batched_envs_equal_single_worlds(device, playback, lanes):
+    """... also with the contact query split over lanes (the GPU path), merged in lane order."""
     seq = wave_bowl(n=20, frames=10)
     rng = np.random.default_rng(5)
     E, S = 4, 6
@@ -34,7 +35,7 @@ def test_batched_envs_equal_single_worlds(device, playback):
     times = np.array([0.0, 0.13, 0.37, 0.41 + 10 / 24.0])  # includes a time past the end (loop / turn / hold)
     surf = SurfaceModel(seq, device, playback=playback)
     bm = BatchModel(surf, E, radius, 1.0, _params())
-    bw = BatchedWorld(bm, BatchState(bm, pos, vel, times=times))
+    bw = BatchedWorld(bm, BatchState(bm, pos, vel, times=times), contact_lanes=lanes)
     singles = []
     for e in range(E):
         m = Model(SurfaceModel(seq, device, playback=playback), SphereModel(radius, 1.0, device), _params())
@@ -93,8 +94,9 @@ def test_pair_slots_bound_the_interpolated_surface(device):
     its env's time, for each playback mode (NumPy oracle of the surface at a time)."""
     seq = pulsing_blob(subdivisions=1, frames=7)
     F = seq.F
-    for playback in ("loop", "pingpong", "clamp"):
-        bm = BatchModel(SurfaceModel(seq, device, playback=playback), 1, [0.05], 1.0, PhysicsParams())
+    for playback, slices in (("loop", 1), ("loop", 3), ("pingpong", 3), ("clamp", 3)):
+        bm = BatchModel(SurfaceModel(seq, device, playback=playback), 1, [0.05], 1.0, PhysicsParams(),
+                        time_slices=slices)
         lo, hi = bm.pair_lowers.numpy(), bm.pair_uppers.numpy()
         T = seq.num_frames
         for t in np.linspace(0.0, 3.0 * T / seq.fps, 97):
@@ -102,17 +104,25 @@ def test_pair_slots_bound_the_interpolated_surface(device):
             # the playback's frame pair (pingpong reflects at the ends), then the slot rule of
             # kernels/batch.pair_slot
             k0, k1 = _wrap(k, T, playback), _wrap(k + 1, T, playback)
+            a = t * seq.fps - k
             if playback == "pingpong":
-                a = t * seq.fps - k
                 Vt = seq.V[k0].astype(np.float64) * (1 - a) + seq.V[k1].astype(np.float64) * a
             else:
                 Vt = surface_at(seq, t, playback).astype(np.float64)  # the NumPy oracle
             tri = Vt[F]  # (M, 3, 3)
-            slot = min(k0, max(T - 2, 0)) if k0 == k1 else (min(k0, k1) if abs(k0 - k1) == 1 else T - 1)
+            if k0 == k1:  # held at an end: the pair containing it, at its end
+                pair = min(k0, max(T - 2, 0))
+                u = 0.0 if k0 == pair else 1.0
+            elif abs(k0 - k1) == 1:
+                pair, u = min(k0, k1), (a if k0 < k1 else 1.0 - a)
+            else:  # the loop's wrap pair (T-1, 0)
+                pair, u = T - 1, a
+            slot = pair * bm.time_slices + min(int(u * bm.time_slices), bm.time_slices - 1)
             assert (tri.min(axis=1) >= lo[slot] - 1e-6).all() and (tri.max(axis=1) <= hi[slot] + 1e-6).all(), (
                 playback, t, slot)
     mem = bm.memory_bytes
-    assert mem["per_env"] > 0 and mem["pair_boxes"] == 2 * T * len(F) * 12
+    assert mem["per_env"] > 0 and mem["pair_boxes"] == 2 * T * bm.time_slices * len(F) * 12
+    assert bm.time_slices == 3  # time slices of the frame intervals were checked, not only whole intervals
 
 
 def _wrap(k, T, playback):
