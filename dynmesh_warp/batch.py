@@ -45,8 +45,10 @@ __all__ = ["BatchModel", "BatchState", "BatchedWorld", "step_envs", "required_su
 #: and cost 4x the memory (docs/envs.md)
 TIME_SLICES = 1
 
-#: threads per sphere of the contact query on a GPU (collide_env_sphere_lanes); 1 on the CPU
+#: threads per sphere of the contact query on a GPU (collide_env_sphere_lanes) up to
+#: LANES_UP_TO spheres; 1 beyond (the GPU is full of spheres already) and on the CPU
 CONTACT_LANES = 8
+LANES_UP_TO = 8192
 
 
 def required_substeps(max_speed: float, dt: float, r_min: float) -> int:
@@ -196,14 +198,15 @@ def step_envs(model: BatchModel, state: BatchState, contacts: Contacts, sub_dt: 
     for _ in range(substeps):
         if lanes is None or lanes.lanes <= 1:
             wp.launch(collide_and_integrate_env_spheres, n,
-                      inputs=[surf.frames, surf.indices, m.pair_bvh, m.spheres.radius, m.spheres.inv_mass,
-                              m.sphere_env, *physics, m.time_slices, s.env_time, s.env_rate, s.env_playback,
+                      inputs=[surf.frames, surf.indices, m.pair_bvh, m.pair_lowers, m.pair_uppers, m.spheres.radius,
+                              m.spheres.inv_mass, m.sphere_env, *physics, m.time_slices, s.env_time, s.env_rate, s.env_playback,
                               sub_dt, extra_speed, p.margin, m.epsilon],
                       outputs=[s.sphere_pos, s.sphere_vel, c.face, c.point, c.normal, c.depth, c.velocity],
                       device=m.device)
         else:
             wp.launch(collide_env_sphere_lanes, n * lanes.lanes,
-                      inputs=[surf.frames, surf.indices, m.pair_bvh, m.spheres.radius, m.sphere_env, surf.fps,
+                      inputs=[surf.frames, surf.indices, m.pair_bvh, m.pair_lowers, m.pair_uppers, m.spheres.radius,
+                              m.sphere_env, surf.fps,
                               int(surf.interpolate), m.time_slices, s.env_time, s.env_playback, s.sphere_pos,
                               s.sphere_vel, lanes.lanes, sub_dt, extra_speed, p.margin, m.epsilon],
                       outputs=[lanes.dist, lanes.face, lanes.w, lanes.n], device=m.device)
@@ -242,7 +245,9 @@ class BatchedWorld:
         self.sub_dt = p.dt / self.substeps
         self.extra_speed = float(np.linalg.norm(p.gravity)) * self.sub_dt
         self.contacts = Contacts(model.spheres.count, device=self.device)
-        lanes = (CONTACT_LANES if self.device.is_cuda else 1) if contact_lanes is None else int(contact_lanes)
+        if contact_lanes is None:  # measured (docs/envs.md): lanes pay off until the GPU is full of spheres
+            contact_lanes = CONTACT_LANES if (self.device.is_cuda and model.spheres.count <= LANES_UP_TO) else 1
+        lanes = int(contact_lanes)
         if lanes < 1:
             raise ValueError(f"contact_lanes must be >= 1, got {contact_lanes}")
         self.lanes = ContactLanes(model.spheres.count, lanes, self.device) if lanes > 1 else None

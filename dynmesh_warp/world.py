@@ -694,7 +694,8 @@ class SweptCollider(ColliderBase):
         if not self.parallel:
             ctx.launch(collide_sphere_swept, m.spheres.count,
                           [surf.frames, surf.indices, m.spheres.radius, s.sim_time, s.sphere_pos, s.sphere_vel,
-                           self.bvh.id, *frame_args, ctx.sub_dt, ctx.extra_speed, m.params.margin], outputs)
+                           self.bvh.id, self.lowers, self.uppers, *frame_args, ctx.sub_dt, ctx.extra_speed,
+                           m.params.margin], outputs)
             return
         ctx.launch(evaluate_sphere_candidates, (m.spheres.count, self.max_candidates),
                       [surf.frames, surf.indices, s.sim_time, s.sphere_pos, *frame_args, self.cand_face,
@@ -702,7 +703,8 @@ class SweptCollider(ColliderBase):
                       [self.cand_dist, self.cand_w, self.cand_wn])
         ctx.launch(resolve_sphere_candidates, m.spheres.count,
                       [surf.frames, surf.indices, m.spheres.radius, s.sim_time, s.sphere_pos, s.sphere_vel,
-                       self.bvh.id, *frame_args, ctx.sub_dt, ctx.extra_speed, m.params.margin, self.cand_face,
+                       self.bvh.id, self.lowers, self.uppers, *frame_args, ctx.sub_dt, ctx.extra_speed,
+                       m.params.margin, self.cand_face,
                        self.cand_count, self.cand_center, self.cand_radius, self.cand_dist, self.cand_w,
                        self.cand_wn], outputs)
 

@@ -16,7 +16,7 @@ import warp as wp
 from .collide import contact_reach
 from .frames import PLAYBACK_LOOP, blend_pair, wrap_frame
 from .integrate import advance_sphere
-from .swept import closest_on_swept_bvh, face_candidate, interpolated_triangle, keep_closest, write_swept_contact
+from .swept import box_distance, face_candidate, interpolated_triangle, keep_closest, write_swept_contact
 
 
 @wp.func
@@ -48,6 +48,35 @@ def pair_slot(k0: int, k1: int, alpha: float, num_frames: int, slices: int) -> i
                 u = 1.0 - alpha
     sl = wp.min(int(u * float(slices)), slices - 1)
     return p * slices + wp.max(sl, 0)
+
+
+@wp.func
+def closest_on_pair_bvh(
+    bvh: wp.uint64, lowers: wp.array2d[wp.vec3], uppers: wp.array2d[wp.vec3], slot: int,
+    frames: wp.array2d[wp.vec3], indices: wp.array[wp.int32], k0: int, k1: int, alpha: float, p: wp.vec3,
+    reach: float, epsilon: float, lanes: int, lane: int,
+):
+    """Closest feature of the interpolated surface within ``reach`` of p over the candidates of
+    slot's BVH (every lanes-th one from ``lane``), skipping a face whose box is farther than the
+    closest feature so far (+ epsilon): the box contains the face at every blend of the slot,
+    so a skipped face could neither be closer nor tie; the result is that of evaluating all."""
+    ext = wp.vec3(reach + epsilon)
+    query = wp.bvh_query_aabb(bvh, p - ext, p + ext)
+    f = int(0)
+    c = int(0)
+    min_dist = reach
+    min_face = int(-1)
+    min_w = wp.vec3(0.0)
+    acc_n = wp.vec3(0.0)
+    while wp.bvh_query_next(query, f):
+        if c % lanes == lane:
+            if box_distance(p, lowers[slot, f], uppers[slot, f]) < min_dist + epsilon:
+                a, b, g = interpolated_triangle(frames, indices, f, k0, k1, alpha)
+                dist, w, wn = face_candidate(p, a, b, g, epsilon)
+                min_dist, min_face, min_w, acc_n = keep_closest(dist, f, w, wn, epsilon, min_dist, min_face, min_w,
+                                                                acc_n)
+        c += 1
+    return min_dist, min_face, min_w, acc_n
 
 
 @wp.kernel
@@ -91,6 +120,8 @@ def collide_and_integrate_env_spheres(
     frames: wp.array2d[wp.vec3],
     indices: wp.array[wp.int32],
     pair_bvh: wp.array[wp.uint64],
+    pair_lowers: wp.array2d[wp.vec3],
+    pair_uppers: wp.array2d[wp.vec3],
     sphere_radius: wp.array[float],
     inv_mass: wp.array[float],
     sphere_env: wp.array[wp.int32],
@@ -136,8 +167,9 @@ def collide_and_integrate_env_spheres(
     v = sphere_vel_out[s]
     r = sphere_radius[s]
     reach = contact_reach(r, v, extra_speed, dt, margin)
-    bvh = pair_bvh[pair_slot(k0, k1, alpha, T, slices)]
-    min_dist, min_face, min_w, acc_n = closest_on_swept_bvh(bvh, frames, indices, k0, k1, alpha, p, reach, epsilon)
+    slot = pair_slot(k0, k1, alpha, T, slices)
+    min_dist, min_face, min_w, acc_n = closest_on_pair_bvh(pair_bvh[slot], pair_lowers, pair_uppers, slot, frames,
+                                                           indices, k0, k1, alpha, p, reach, epsilon, 1, 0)
     write_swept_contact(s, p, r, reach, min_dist, min_face, min_w, acc_n, frames, indices, k0, k1, alpha,
                         fps * wp.float64(rate), contact_face, contact_point, contact_normal, contact_depth,
                         contact_velocity)
@@ -153,6 +185,8 @@ def collide_env_sphere_lanes(
     frames: wp.array2d[wp.vec3],
     indices: wp.array[wp.int32],
     pair_bvh: wp.array[wp.uint64],
+    pair_lowers: wp.array2d[wp.vec3],
+    pair_uppers: wp.array2d[wp.vec3],
     sphere_radius: wp.array[float],
     sphere_env: wp.array[wp.int32],
     fps: wp.float64,
@@ -187,20 +221,9 @@ def collide_env_sphere_lanes(
     k0, k1, alpha = blend_pair(env_time_in[e], fps, T, env_playback_in[e], interpolate)
     p = sphere_pos_in[s]
     reach = contact_reach(sphere_radius[s], sphere_vel_in[s], extra_speed, dt, margin)
-    ext = wp.vec3(reach + epsilon)
-    query = wp.bvh_query_aabb(pair_bvh[pair_slot(k0, k1, alpha, T, slices)], p - ext, p + ext)
-    f = int(0)
-    c = int(0)
-    min_dist = reach
-    min_face = int(-1)
-    min_w = wp.vec3(0.0)
-    acc_n = wp.vec3(0.0)
-    while wp.bvh_query_next(query, f):
-        if c % lanes == lane:
-            a, b, g = interpolated_triangle(frames, indices, f, k0, k1, alpha)
-            dist, w, wn = face_candidate(p, a, b, g, epsilon)
-            min_dist, min_face, min_w, acc_n = keep_closest(dist, f, w, wn, epsilon, min_dist, min_face, min_w, acc_n)
-        c += 1
+    slot = pair_slot(k0, k1, alpha, T, slices)
+    min_dist, min_face, min_w, acc_n = closest_on_pair_bvh(pair_bvh[slot], pair_lowers, pair_uppers, slot, frames,
+                                                           indices, k0, k1, alpha, p, reach, epsilon, lanes, lane)
     lane_dist[tid] = min_dist
     lane_face[tid] = min_face
     lane_w[tid] = min_w

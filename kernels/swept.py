@@ -151,11 +151,20 @@ def keep_closest(
 
 
 @wp.func
+def box_distance(p: wp.vec3, lo: wp.vec3, hi: wp.vec3) -> float:
+    """Distance from p to the box [lo, hi] (0 inside)."""
+    return wp.length(wp.max(wp.max(lo - p, p - hi), wp.vec3(0.0)))
+
+
+@wp.func
 def closest_on_swept_bvh(
-    bvh: wp.uint64, frames: wp.array2d[wp.vec3], indices: wp.array[wp.int32],
-    k0: int, k1: int, alpha: float, p: wp.vec3, reach: float, epsilon: float,
+    bvh: wp.uint64, lowers: wp.array[wp.vec3], uppers: wp.array[wp.vec3], frames: wp.array2d[wp.vec3],
+    indices: wp.array[wp.int32], k0: int, k1: int, alpha: float, p: wp.vec3, reach: float, epsilon: float,
 ):
-    """Closest feature of the interpolated surface within ``reach`` of p (serial box query)."""
+    """Closest feature of the interpolated surface within ``reach`` of p (serial box query). A
+    face whose swept box (``lowers``/``uppers``, which contain it at every blend of the pair) is
+    farther than the closest feature so far + epsilon is skipped unevaluated: it could neither be
+    closer nor tie, so the result is that of evaluating every candidate."""
     ext = wp.vec3(reach + epsilon)
     query = wp.bvh_query_aabb(bvh, p - ext, p + ext)
     f = int(0)
@@ -164,9 +173,10 @@ def closest_on_swept_bvh(
     min_w = wp.vec3(0.0)
     acc_n = wp.vec3(0.0)
     while wp.bvh_query_next(query, f):
-        a, b, e = interpolated_triangle(frames, indices, f, k0, k1, alpha)
-        dist, w, wn = face_candidate(p, a, b, e, epsilon)
-        min_dist, min_face, min_w, acc_n = keep_closest(dist, f, w, wn, epsilon, min_dist, min_face, min_w, acc_n)
+        if box_distance(p, lowers[f], uppers[f]) < min_dist + epsilon:
+            a, b, e = interpolated_triangle(frames, indices, f, k0, k1, alpha)
+            dist, w, wn = face_candidate(p, a, b, e, epsilon)
+            min_dist, min_face, min_w, acc_n = keep_closest(dist, f, w, wn, epsilon, min_dist, min_face, min_w, acc_n)
     return min_dist, min_face, min_w, acc_n
 
 
@@ -224,6 +234,8 @@ def collide_sphere_swept(
     sphere_vel_in: wp.array[wp.vec3],
     # In:
     bvh: wp.uint64,
+    lowers: wp.array[wp.vec3],
+    uppers: wp.array[wp.vec3],
     fps: wp.float64,
     mode: int,
     interpolate: int,
@@ -246,7 +258,8 @@ def collide_sphere_swept(
     r = sphere_radius[s]
     reach = contact_reach(r, sphere_vel_in[s], extra_speed, dt, margin)
     k0, k1, alpha = blend_pair(sim_time_in[0], fps, frames.shape[0], mode, interpolate)
-    min_dist, min_face, min_w, acc_n = closest_on_swept_bvh(bvh, frames, indices, k0, k1, alpha, p, reach, epsilon)
+    min_dist, min_face, min_w, acc_n = closest_on_swept_bvh(bvh, lowers, uppers, frames, indices, k0, k1, alpha, p,
+                                                            reach, epsilon)
     write_swept_contact(s, p, r, reach, min_dist, min_face, min_w, acc_n, frames, indices, k0, k1, alpha, fps,
                         contact_face, contact_point, contact_normal, contact_depth, contact_velocity)
 
@@ -340,6 +353,8 @@ def resolve_sphere_candidates(
     sphere_vel_in: wp.array[wp.vec3],
     # In:
     bvh: wp.uint64,
+    lowers: wp.array[wp.vec3],
+    uppers: wp.array[wp.vec3],
     fps: wp.float64,
     mode: int,
     interpolate: int,
@@ -375,7 +390,8 @@ def resolve_sphere_candidates(
     min_w = wp.vec3(0.0)
     acc_n = wp.vec3(0.0)
     if n > cand_face.shape[1] or wp.length(p - cand_center[s]) + reach + epsilon > cand_radius[s]:
-        min_dist, min_face, min_w, acc_n = closest_on_swept_bvh(bvh, frames, indices, k0, k1, alpha, p, reach, epsilon)
+        min_dist, min_face, min_w, acc_n = closest_on_swept_bvh(bvh, lowers, uppers, frames, indices, k0, k1, alpha, p,
+                                                            reach, epsilon)
     else:
         for j in range(n):
             d = cand_dist[s, j]
