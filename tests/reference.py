@@ -112,3 +112,120 @@ def winding_number(V: np.ndarray, F: np.ndarray, P: np.ndarray) -> np.ndarray:
     den = la * lb * lc + dot(a, b) * lc + dot(b, c) * la + dot(c, a) * lb
     return 2.0 * np.arctan2(num, den).sum(axis=1) / (4 * np.pi)
 
+
+
+SH_C = (0.28209479177387814, 0.4886025119029199,
+        (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396),
+        (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154, -0.4570457994644658,
+         1.445305721320277, -0.5900435899266435))
+
+
+def sh_color(sh: np.ndarray, degree: int, d: np.ndarray) -> np.ndarray:
+    """3DGS spherical-harmonics colour (the reference implementation's basis and order), + 0.5,
+    clamped at 0. sh (K, 3), d (3,) unit."""
+    x, y, z = d
+    c = SH_C[0] * sh[0]
+    if degree > 0:
+        c = c - SH_C[1] * y * sh[1] + SH_C[1] * z * sh[2] - SH_C[1] * x * sh[3]
+    if degree > 1:
+        xx, yy, zz = x * x, y * y, z * z
+        c2 = SH_C[2]
+        c = (c + c2[0] * x * y * sh[4] + c2[1] * y * z * sh[5] + c2[2] * (2 * zz - xx - yy) * sh[6]
+             + c2[3] * x * z * sh[7] + c2[4] * (xx - yy) * sh[8])
+        if degree > 2:
+            c3 = SH_C[3]
+            c = (c + c3[0] * y * (3 * xx - yy) * sh[9] + c3[1] * x * y * z * sh[10]
+                 + c3[2] * y * (4 * zz - xx - yy) * sh[11] + c3[3] * z * (2 * zz - 3 * xx - 3 * yy) * sh[12]
+                 + c3[4] * x * (4 * zz - xx - yy) * sh[13] + c3[5] * z * (xx - yy) * sh[14]
+                 + c3[6] * x * (xx - 3 * yy) * sh[15])
+    return np.maximum(c + 0.5, 0.0)
+
+
+def render_splats(means, covs, sh, degree, opacity, cam, spheres=None, sphere_color=(0.85, 0.25, 0.2),
+                  background=(1.0, 1.0, 1.0), near=0.01, tile=16):
+    """A plain NumPy 3DGS renderer with the same maths as kernels/render.py (float32 like the
+    kernels): EWA projection (1.3x field-of-view clamp, 0.3 px^2 dilation, 3-sigma radius),
+    Gaussians sorted per tile by depth (micrometre keys, then index), alpha = min(0.999, o e^-s),
+    skip < 1/255, stop before transmittance <= 1e-4; spheres ray-cast and opaque. Returns
+    (rgb (H, W, 3), alpha (H, W))."""
+    f32 = np.float32
+    W, H = cam.width, cam.height
+    R, t = np.asarray(cam.R, f32), np.asarray(cam.t, f32)
+    fx, fy, cx, cy = (f32(v) for v in (cam.fx, cam.fy, cam.cx, cam.cy))
+    tx_n, ty_n = (W + tile - 1) // tile, (H + tile - 1) // tile
+    proj = []
+    centre = -(R.T @ t)
+    for g in range(len(means)):
+        p = R @ means[g].astype(f32) + t
+        if p[2] < near:
+            continue
+        rz = f32(1) / p[2]
+        lxp, lxn = (f32(W) - cx) / fx + f32(0.3) * f32(W) / fx, cx / fx + f32(0.3) * f32(W) / fx
+        lyp, lyn = (f32(H) - cy) / fy + f32(0.3) * f32(H) / fy, cy / fy + f32(0.3) * f32(H) / fy
+        tx = p[2] * np.clip(p[0] * rz, -lxn, lxp)
+        ty = p[2] * np.clip(p[1] * rz, -lyn, lyp)
+        J = np.array([[fx * rz, 0, -fx * tx * rz * rz], [0, fy * rz, -fy * ty * rz * rz]], f32)
+        cov = J @ (R @ covs[g].astype(f32) @ R.T) @ J.T
+        a, b, d = cov[0, 0] + f32(0.3), cov[0, 1], cov[1, 1] + f32(0.3)
+        det = a * d - b * b
+        if det <= 0:
+            continue
+        mid = f32(0.5) * (a + d)
+        r = int(np.ceil(3.0 * np.sqrt(mid + np.sqrt(max(f32(0.1), mid * mid - det)))))
+        u, v = fx * p[0] * rz + cx, fy * p[1] * rz + cy
+        x0, x1 = np.clip(int(np.floor((u - r) / tile)), 0, tx_n), np.clip(int(np.floor((u + r) / tile)) + 1, 0, tx_n)
+        y0, y1 = np.clip(int(np.floor((v - r) / tile)), 0, ty_n), np.clip(int(np.floor((v + r) / tile)) + 1, 0, ty_n)
+        if r <= 0 or (x1 - x0) * (y1 - y0) <= 0:
+            continue
+        dvec = means[g] - centre
+        col = sh_color(np.asarray(sh[g], f32), degree, dvec / np.linalg.norm(dvec))
+        proj.append((int(min(p[2] * 1e6, 2147483647.0)), g, u, v, np.array([d / det, -b / det, a / det]), p[2],
+                     col, (x0, x1, y0, y1)))
+    proj.sort(key=lambda e: (e[0], e[1]))
+    rgb = np.zeros((H, W, 3))
+    alpha = np.zeros((H, W))
+    bg = np.asarray(background)
+    for py in range(H):
+        for px in range(W):
+            tcx, tcy = px // tile, py // tile
+            x, y = px + 0.5, py + 0.5
+            dc = np.array([(x - cx) / fx, (y - cy) / fy, 1.0])
+            dc /= np.linalg.norm(dc)
+            dw = R.T.astype(np.float64) @ dc
+            z_s, hit = np.inf, None
+            if spheres is not None:
+                for k, (sc, sr) in enumerate(zip(*spheres)):
+                    oc = centre - sc
+                    bb = oc @ dw
+                    disc = bb * bb - (oc @ oc - sr * sr)
+                    if disc >= 0:
+                        s = -bb - np.sqrt(disc)
+                        if 0 < s and s * dc[2] < z_s:
+                            z_s, hit = s * dc[2], (k, s)
+            T, acc, early = 1.0, np.zeros(3), False
+            for _, g, u, v, q, z, col, (x0, x1, y0, y1) in proj:
+                if not (x0 <= tcx < x1 and y0 <= tcy < y1):
+                    continue
+                if z > z_s:
+                    break
+                dx, dy = u - x, v - y
+                sig = 0.5 * (q[0] * dx * dx + q[2] * dy * dy) + q[1] * dx * dy
+                if sig < 0:
+                    continue
+                al = min(0.999, opacity[g] * np.exp(-sig))
+                if al < 1 / 255:
+                    continue
+                if T * (1 - al) <= 1e-4:
+                    early = True
+                    break
+                acc += col * al * T
+                T *= 1 - al
+            if hit is not None and not early:
+                k, s = hit
+                nrm = centre + dw * s - spheres[0][k]
+                nrm /= np.linalg.norm(nrm)
+                acc += np.asarray(sphere_color) * (0.25 + 0.75 * max(0.0, -(nrm @ dw))) * T
+                T = 0.0
+            rgb[py, px] = acc + bg * T
+            alpha[py, px] = 1 - T
+    return rgb, alpha

@@ -25,8 +25,8 @@ GROUPS = ["Model", "State in", "In", "State out", "Out"]
 HEADER = re.compile(r"^#\s*(Model|State in|In|State out|Out)(\s*\([^)]*\))?:\s*$")
 VERBS = {
     "accumulate", "add", "advance", "apply", "begin", "bind", "blend", "collide", "combine", "compute", "count",
-    "detect", "evaluate",
-    "find", "gather", "integrate", "mark", "measure", "multiply", "pack", "project", "relax", "reset",
+    "detect", "emit", "evaluate",
+    "find", "gather", "integrate", "mark", "measure", "multiply", "pack", "project", "rasterize", "relax", "reset",
     "resolve", "sample", "scatter", "skin", "smooth", "solve", "sum", "transform", "update",
 }
 

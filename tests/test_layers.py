@@ -33,7 +33,7 @@ LAYERS = [
     {"scene"},
     # engines and tools over a scene
     {"newton_adapter", "evaluate", "batch"},
-    {"viewer", "envs"},
+    {"viewer", "envs", "render"},
     # Ray actors over the envs
     {"distributed"},
     # the run CLI on top

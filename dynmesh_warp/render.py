@@ -1,0 +1,269 @@
+"""Render Gaussians (and the rigid spheres) with our own Warp splatting rasteriser (issue 16).
+
+``Renderer.render(means, covariances, sh, opacities, cameras, spheres=...)`` returns device
+arrays (rgb (C, H, W) vec3, alpha, expected depth) for a batch of pinhole cameras in the
+OpenCV/COLMAP convention; ``render_world(world, gaussians, cameras)`` draws a simulation's bound
+Gaussians and its spheres. kernels/render.py has the maths (the reference 3DGS rasteriser's:
+EWA projection, 16 x 16 tiles, radix sort by (camera, tile, depth), front-to-back alpha
+compositing with early termination). Runs on the CPU and on CUDA.
+
+    python -m dynmesh_warp.render scene.yaml --out frames/ --frames 48
+    python -m dynmesh_warp.render scene.yaml --figure strip.png --moments 4
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+from .kernels.render import (
+    SH_C0,
+    TILE,
+    emit_tile_keys,
+    find_tile_ranges,
+    project_gaussians,
+    rasterize_gaussians,
+)
+
+__all__ = ["Camera", "look_at", "orbit_cameras", "Renderer", "RenderResult", "rgb_to_sh", "render_world", "main"]
+
+
+@dataclass
+class Camera:
+    """A pinhole camera, OpenCV/COLMAP convention (x right, y down, z forward): world-to-camera
+    rotation ``R`` (3, 3) and translation ``t`` (3,) [m]; intrinsics fx, fy, cx, cy [px]; image
+    width x height [px]."""
+
+    R: np.ndarray
+    t: np.ndarray
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    @property
+    def center(self) -> np.ndarray:
+        return -np.asarray(self.R, np.float64).T @ np.asarray(self.t, np.float64)
+
+
+def look_at(eye, target, up=(0.0, 0.0, 1.0), width: int = 640, height: int = 480, fov_y_deg: float = 45.0) -> Camera:
+    """A camera at ``eye`` looking at ``target`` with ``up`` roughly up in the image."""
+    eye, target, up = (np.asarray(v, np.float64) for v in (eye, target, up))
+    z = target - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(z, up)
+    if np.linalg.norm(x) < 1e-9:
+        x = np.cross(z, [1.0, 0.0, 0.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])  # rows: camera axes in world
+    f = 0.5 * height / math.tan(math.radians(fov_y_deg) / 2)
+    return Camera(R, -R @ eye, f, f, width / 2.0, height / 2.0, int(width), int(height))
+
+
+def orbit_cameras(center, distance: float, count: int, elevation_deg: float = 20.0, width: int = 640,
+                  height: int = 480, fov_y_deg: float = 45.0, start_deg: float = 0.0) -> list[Camera]:
+    """``count`` cameras on a circle around ``center`` (z up) at ``elevation_deg``."""
+    c = np.asarray(center, np.float64)
+    el = math.radians(elevation_deg)
+    out = []
+    for i in range(count):
+        az = math.radians(start_deg) + 2 * math.pi * i / max(count, 1)
+        eye = c + distance * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+        out.append(look_at(eye, c, width=width, height=height, fov_y_deg=fov_y_deg))
+    return out
+
+
+def rgb_to_sh(rgb) -> np.ndarray:
+    """Degree-0 SH coefficients (G, 1, 3) that render as ``rgb`` (G, 3) in [0, 1]."""
+    return ((np.asarray(rgb, np.float32) - 0.5) / SH_C0).reshape(-1, 1, 3).astype(np.float32)
+
+
+@dataclass
+class RenderResult:
+    """rgb (C, H, W) vec3 in [0, 1]; alpha (C, H, W) float; depth (C, H, W) float, expected
+    camera z [m] of what was drawn (0 where nothing). Device arrays (``.numpy()`` to read)."""
+
+    rgb: wp.array
+    alpha: wp.array
+    depth: wp.array
+
+
+class Renderer:
+    """Reusable buffers for rendering G Gaussians from C cameras of one image size."""
+
+    def __init__(self, device=None):
+        self.device = wp.get_device(device)
+        self._cap = 0
+        self._keys = self._values = None
+
+    def _grow(self, n: int):
+        if n > self._cap:
+            self._cap = max(n, int(self._cap * 1.5), 1024)
+            self._keys = wp.zeros(2 * self._cap, dtype=wp.int64, device=self.device)
+            self._values = wp.zeros(2 * self._cap, dtype=wp.int32, device=self.device)
+
+    def render(self, means, covariances, sh, opacities, cameras: list[Camera], sh_degree: int | None = None,
+               spheres=None, sphere_color=(0.85, 0.25, 0.2), background=(1.0, 1.0, 1.0),
+               near: float = 0.01) -> RenderResult:
+        """Render for every camera (all of one size). means (G,) vec3 / (G, 3) [m]; covariances
+        (G,) mat33 / (G, 3, 3) [m^2]; sh (G, K, 3) SH coefficients (K = 1, 4, 9 or 16; degree
+        from K unless given); opacities (G,) in [0, 1]; spheres: (centres (S, 3), radii (S,))
+        or None."""
+        d = self.device
+        if not cameras:
+            raise ValueError("render: no cameras")
+        W, H = cameras[0].width, cameras[0].height
+        if any((c.width, c.height) != (W, H) for c in cameras):
+            raise ValueError("render: every camera of a batch must have the same image size")
+        means = means if isinstance(means, wp.array) else wp.array(np.asarray(means, np.float32), dtype=wp.vec3, device=d)
+        covs = covariances if isinstance(covariances, wp.array) else wp.array(
+            np.asarray(covariances, np.float32), dtype=wp.mat33, device=d)
+        sh = sh if isinstance(sh, wp.array) else wp.array(np.asarray(sh, np.float32), dtype=float, device=d)
+        if sh.ndim != 3 or sh.shape[2] != 3 or sh.shape[1] not in (1, 4, 9, 16):
+            raise ValueError(f"sh: expected (G, K, 3) with K in 1, 4, 9, 16, got {tuple(sh.shape)}")
+        degree = int(round(math.sqrt(sh.shape[1]))) - 1 if sh_degree is None else int(sh_degree)
+        op = opacities if isinstance(opacities, wp.array) else wp.array(np.asarray(opacities, np.float32), dtype=float,
+                                                                        device=d)
+        G, C = means.shape[0], len(cameras)
+        if covs.shape[0] != G or sh.shape[0] != G or op.shape[0] != G:
+            raise ValueError("render: means, covariances, sh and opacities must have one entry per Gaussian")
+        Rs = wp.array(np.stack([np.asarray(c.R, np.float32) for c in cameras]), dtype=wp.mat33, device=d)
+        ts = wp.array(np.stack([np.asarray(c.t, np.float32) for c in cameras]), dtype=wp.vec3, device=d)
+        ks = wp.array(np.array([[c.fx, c.fy, c.cx, c.cy] for c in cameras], np.float32), dtype=wp.vec4, device=d)
+        mean2d = wp.zeros((C, G), dtype=wp.vec2, device=d)
+        conic = wp.zeros((C, G), dtype=wp.vec3, device=d)
+        depth = wp.zeros((C, G), dtype=float, device=d)
+        radius = wp.zeros((C, G), dtype=wp.int32, device=d)
+        touched = wp.zeros(C * G, dtype=wp.int32, device=d)
+        color = wp.zeros((C, G), dtype=wp.vec3, device=d)
+        wp.launch(project_gaussians, (C, G), inputs=[means, covs, sh, degree, Rs, ts, ks, W, H, near],
+                  outputs=[mean2d, conic, depth, radius, touched, color], device=d)
+        offsets = wp.zeros(C * G, dtype=wp.int32, device=d)
+        wp.utils.array_scan(touched, offsets, inclusive=False)
+        n = int(offsets.numpy()[-1] + touched.numpy()[-1]) if C * G else 0  # one host read: the list size
+        tiles = C * ((W + TILE - 1) // TILE) * ((H + TILE - 1) // TILE)
+        start = wp.zeros(tiles, dtype=wp.int32, device=d)
+        end = wp.zeros(tiles, dtype=wp.int32, device=d)
+        if n:
+            self._grow(n)
+            wp.launch(emit_tile_keys, (C, G), inputs=[mean2d, depth, radius, offsets, W, H],
+                      outputs=[self._keys, self._values], device=d)
+            wp.utils.radix_sort_pairs(self._keys, self._values, n)
+            wp.launch(find_tile_ranges, n, inputs=[self._keys, n], outputs=[start, end], device=d)
+        if spheres is None:
+            sc = wp.zeros(0, dtype=wp.vec3, device=d)
+            sr = wp.zeros(0, dtype=float, device=d)
+        else:
+            sc = wp.array(np.asarray(spheres[0], np.float32).reshape(-1, 3), dtype=wp.vec3, device=d)
+            sr = wp.array(np.asarray(spheres[1], np.float32).reshape(-1), dtype=float, device=d)
+        rgb = wp.zeros((C, H, W), dtype=wp.vec3, device=d)
+        alpha = wp.zeros((C, H, W), dtype=float, device=d)
+        zbuf = wp.zeros((C, H, W), dtype=float, device=d)
+        values = self._values if n else wp.zeros(1, dtype=wp.int32, device=d)
+        wp.launch(rasterize_gaussians, (C, H, W),
+                  inputs=[mean2d, conic, depth, color, op, values, start, end, Rs, ts, ks, sc, sr,
+                          wp.vec3(*sphere_color), wp.vec3(*background), W, H],
+                  outputs=[rgb, alpha, zbuf], device=d)
+        return RenderResult(rgb, alpha, zbuf)
+
+
+def render_world(sim, gaussians, cameras: list[Camera], renderer: Renderer | None = None, **kw) -> RenderResult:
+    """The simulation's bound Gaussians (``gaussians.Gaussians``, updated to its current
+    surface) and its spheres, from ``cameras``."""
+    renderer = renderer or Renderer(sim.device)
+    b = gaussians.binding
+    sh = getattr(gaussians, "_render_sh", None)
+    if sh is None:
+        sh = gaussians._render_sh = wp.array(rgb_to_sh(b.rgb), dtype=float, device=sim.device)
+        gaussians._render_opacity = wp.array(b.opacity, dtype=float, device=sim.device)
+    pos, rad = sim.sphere_positions(), sim.sphere_radii()
+    return renderer.render(gaussians.state.centers, gaussians.state.covariances, sh, gaussians._render_opacity,
+                           cameras, spheres=(pos, rad) if len(rad) else None, **kw)
+
+
+def _to_uint8(rgb: np.ndarray) -> np.ndarray:
+    return (np.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
+def _write_png(path: Path, img: np.ndarray) -> None:
+    from .outputs import atomic_path
+
+    from PIL import Image
+
+    with atomic_path(path, suffix=".png") as tmp:
+        Image.fromarray(img).save(tmp, format="PNG")
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m dynmesh_warp.render", description=__doc__.splitlines()[0])
+    p.add_argument("scene", nargs="?", help="scene YAML (default: the built-in default scene)")
+    p.add_argument("--out", help="folder for frame_NNNN.png (written atomically, one per frame)")
+    p.add_argument("--figure", help="a PNG strip of --moments moments side by side")
+    p.add_argument("--frames", type=int, default=48, help="frames to render with --out")
+    p.add_argument("--moments", type=int, default=4)
+    p.add_argument("--fps", type=float, default=24.0, help="frames per simulated second")
+    p.add_argument("--width", type=int, default=640)
+    p.add_argument("--height", type=int, default=480)
+    p.add_argument("--device", default=None)
+    p.add_argument("--no-progress", action="store_true")
+    a = p.parse_args(argv)
+    if not a.out and not a.figure:
+        p.error("give --out FOLDER and/or --figure STRIP.png")
+    if a.frames < 1 or a.moments < 1 or a.width < 16 or a.height < 16 or not a.fps > 0:
+        p.error("--frames, --moments >= 1, --width, --height >= 16, --fps > 0")
+    from .config import SceneError, load_scene_config
+    from .gaussians import gaussians_for_world
+    from .scene import build_world
+
+    try:
+        cfg = load_scene_config(a.scene)
+        world = build_world(cfg, device=a.device)
+    except (SceneError, ValueError, FileNotFoundError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    gs = gaussians_for_world(world, cfg)
+    world.render_state = True
+    V = world.surface.sequence.V
+    lo, hi = V.reshape(-1, 3).min(axis=0), V.reshape(-1, 3).max(axis=0)
+    centre, diag = 0.5 * (lo + hi), float(np.linalg.norm(hi - lo))
+    renderer = Renderer(world.device)
+    steps_per_frame = max(1, int(round(1.0 / (a.fps * world.dt))))
+    total = a.frames if a.out else 0
+    moments = sorted(set(np.linspace(0, max(a.frames, a.moments) - 1, a.moments).astype(int).tolist()))
+    last = max(total - 1, moments[-1] if a.figure else 0)
+    strip = []
+    try:
+        from tqdm import tqdm
+
+        it = tqdm(range(last + 1), unit="frame", disable=a.no_progress, file=sys.stderr)
+    except ImportError:  # pragma: no cover
+        it = range(last + 1)
+    for f in it:
+        world.sync_surface()
+        gs.update(world.state.points, world.model.surface.indices)
+        cam = orbit_cameras(centre, 1.6 * diag, 1, 20.0, a.width, a.height, start_deg=30.0 + 90.0 * f / max(last, 1))
+        img = _to_uint8(render_world(world, gs, cam, renderer).rgb.numpy()[0])
+        if a.out and f < total:
+            _write_png(Path(a.out) / f"frame_{f:04d}.png", img)
+        if a.figure and f in moments:
+            strip.append(img)
+        for _ in range(steps_per_frame):
+            world.step()
+    if a.figure:
+        _write_png(Path(a.figure), np.concatenate(strip, axis=1))
+    print(f"rendered {last + 1} frames of {cfg.name} ({a.width}x{a.height})"
+          + (f"; frames in {a.out}" if a.out else "") + (f"; figure {a.figure}" if a.figure else ""))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,313 @@
+"""3D Gaussian splatting as Warp kernels (issue 16; dynmesh_warp/render.py): project, bin into
+16 x 16 tiles, sort by (camera, tile, depth), composite front to back per pixel.
+
+The maths follow the reference 3DGS rasteriser as gsplat implements it: pinhole cameras in the
+OpenCV/COLMAP convention (x right, y down, z forward; world-to-camera ``R``, ``t``), the EWA
+Jacobian with the camera-space position clamped to 1.3 x the half field of view, a 0.3 px^2
+dilation of the 2-D covariance, a 3-sigma radius, alpha = min(0.999, opacity exp(-sigma)),
+Gaussians under alpha 1/255 skipped, and a pixel finished once its transmittance would fall
+to 1e-4 (that Gaussian not composited). Colour from spherical harmonics up to degree 3 with the
+view direction from the camera centre, + 0.5, clamped at 0. Rigid spheres are ray-cast per pixel
+and composited by depth with the splats (a splat behind the nearest sphere is hidden).
+"""
+
+import warp as wp
+
+TILE = wp.constant(16)
+
+SH_C0 = wp.constant(0.28209479177387814)
+SH_C1 = wp.constant(0.4886025119029199)
+SH_C2_0 = wp.constant(1.0925484305920792)
+SH_C2_1 = wp.constant(-1.0925484305920792)
+SH_C2_2 = wp.constant(0.31539156525252005)
+SH_C2_3 = wp.constant(-1.0925484305920792)
+SH_C2_4 = wp.constant(0.5462742152960396)
+SH_C3_0 = wp.constant(-0.5900435899266435)
+SH_C3_1 = wp.constant(2.890611442640554)
+SH_C3_2 = wp.constant(-0.4570457994644658)
+SH_C3_3 = wp.constant(0.3731763325901154)
+SH_C3_4 = wp.constant(-0.4570457994644658)
+SH_C3_5 = wp.constant(1.445305721320277)
+SH_C3_6 = wp.constant(-0.5900435899266435)
+
+
+@wp.func
+def evaluate_sh(sh: wp.array3d[float], g: int, degree: int, d: wp.vec3) -> wp.vec3:
+    """Colour of Gaussian g seen along unit direction d: SH coefficients sh[g, k, :] (k < 16, the
+    3DGS order), up to ``degree``, + 0.5, clamped at 0."""
+    c = SH_C0 * wp.vec3(sh[g, 0, 0], sh[g, 0, 1], sh[g, 0, 2])
+    if degree > 0:
+        x = d[0]
+        y = d[1]
+        z = d[2]
+        c = c - SH_C1 * y * wp.vec3(sh[g, 1, 0], sh[g, 1, 1], sh[g, 1, 2])
+        c = c + SH_C1 * z * wp.vec3(sh[g, 2, 0], sh[g, 2, 1], sh[g, 2, 2])
+        c = c - SH_C1 * x * wp.vec3(sh[g, 3, 0], sh[g, 3, 1], sh[g, 3, 2])
+        if degree > 1:
+            xx = x * x
+            yy = y * y
+            zz = z * z
+            c = c + SH_C2_0 * x * y * wp.vec3(sh[g, 4, 0], sh[g, 4, 1], sh[g, 4, 2])
+            c = c + SH_C2_1 * y * z * wp.vec3(sh[g, 5, 0], sh[g, 5, 1], sh[g, 5, 2])
+            c = c + SH_C2_2 * (2.0 * zz - xx - yy) * wp.vec3(sh[g, 6, 0], sh[g, 6, 1], sh[g, 6, 2])
+            c = c + SH_C2_3 * x * z * wp.vec3(sh[g, 7, 0], sh[g, 7, 1], sh[g, 7, 2])
+            c = c + SH_C2_4 * (xx - yy) * wp.vec3(sh[g, 8, 0], sh[g, 8, 1], sh[g, 8, 2])
+            if degree > 2:
+                c = c + SH_C3_0 * y * (3.0 * xx - yy) * wp.vec3(sh[g, 9, 0], sh[g, 9, 1], sh[g, 9, 2])
+                c = c + SH_C3_1 * x * y * z * wp.vec3(sh[g, 10, 0], sh[g, 10, 1], sh[g, 10, 2])
+                c = c + SH_C3_2 * y * (4.0 * zz - xx - yy) * wp.vec3(sh[g, 11, 0], sh[g, 11, 1], sh[g, 11, 2])
+                c = c + SH_C3_3 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy) * wp.vec3(sh[g, 12, 0], sh[g, 12, 1], sh[g, 12, 2])
+                c = c + SH_C3_4 * x * (4.0 * zz - xx - yy) * wp.vec3(sh[g, 13, 0], sh[g, 13, 1], sh[g, 13, 2])
+                c = c + SH_C3_5 * z * (xx - yy) * wp.vec3(sh[g, 14, 0], sh[g, 14, 1], sh[g, 14, 2])
+                c = c + SH_C3_6 * x * (xx - 3.0 * yy) * wp.vec3(sh[g, 15, 0], sh[g, 15, 1], sh[g, 15, 2])
+    c = c + wp.vec3(0.5)
+    return wp.vec3(wp.max(c[0], 0.0), wp.max(c[1], 0.0), wp.max(c[2], 0.0))
+
+
+@wp.kernel
+def project_gaussians(
+    # Model:
+    means: wp.array[wp.vec3],
+    covariances: wp.array[wp.mat33],
+    sh: wp.array3d[float],
+    sh_degree: int,
+    # In:
+    view_rotation: wp.array[wp.mat33],
+    view_translation: wp.array[wp.vec3],
+    intrinsics: wp.array[wp.vec4],
+    width: int,
+    height: int,
+    near: float,
+    # Out:
+    mean2d: wp.array2d[wp.vec2],
+    conic: wp.array2d[wp.vec3],
+    depth: wp.array2d[float],
+    radius: wp.array2d[wp.int32],
+    tiles_touched: wp.array[wp.int32],
+    color: wp.array2d[wp.vec3],
+):
+    """Screen-space footprint of Gaussian g in camera c (launch (C, G)): mean2d [px], conic (the
+    inverse 2-D covariance a, b, c), depth [m] (camera z), radius [px] (0: culled), the number of
+    16 x 16 tiles it touches (flat (C * G,), for the prefix sum) and its colour from SH.
+    means (G,) [m] and covariances (G,) [m^2] in world; view_rotation / view_translation (C,)
+    world-to-camera; intrinsics (C,) (fx, fy, cx, cy) [px]."""
+    c, g = wp.tid()
+    G = means.shape[0]
+    R = view_rotation[c]
+    p = R * means[g] + view_translation[c]
+    radius[c, g] = 0
+    tiles_touched[c * G + g] = 0
+    if p[2] < near:
+        return
+    k = intrinsics[c]
+    fx = k[0]
+    fy = k[1]
+    cx = k[2]
+    cy = k[3]
+    # EWA: clamp the position to 1.3x the half field of view, as the reference does
+    lim_x_pos = (float(width) - cx) / fx + 0.3 * float(width) / fx
+    lim_x_neg = cx / fx + 0.3 * float(width) / fx
+    lim_y_pos = (float(height) - cy) / fy + 0.3 * float(height) / fy
+    lim_y_neg = cy / fy + 0.3 * float(height) / fy
+    rz = 1.0 / p[2]
+    tx = p[2] * wp.clamp(p[0] * rz, -lim_x_neg, lim_x_pos)
+    ty = p[2] * wp.clamp(p[1] * rz, -lim_y_neg, lim_y_pos)
+    J = wp.mat33(fx * rz, 0.0, -fx * tx * rz * rz, 0.0, fy * rz, -fy * ty * rz * rz, 0.0, 0.0, 0.0)
+    cov_cam = R * covariances[g] * wp.transpose(R)
+    cov = J * cov_cam * wp.transpose(J)
+    a = cov[0, 0] + 0.3
+    b = cov[0, 1]
+    d = cov[1, 1] + 0.3
+    det = a * d - b * b
+    if det <= 0.0:
+        return
+    inv = 1.0 / det
+    mid = 0.5 * (a + d)
+    lam = mid + wp.sqrt(wp.max(0.1, mid * mid - det))
+    r = int(wp.ceil(3.0 * wp.sqrt(lam)))
+    u = fx * p[0] * rz + cx
+    v = fy * p[1] * rz + cy
+    # tiles of the box [u - r, u + r] x [v - r, v + r]
+    tiles_x = (width + TILE - 1) / TILE
+    tiles_y = (height + TILE - 1) / TILE
+    x0 = wp.clamp(int(wp.floor((u - float(r)) / float(TILE))), 0, tiles_x)
+    x1 = wp.clamp(int(wp.floor((u + float(r)) / float(TILE))) + 1, 0, tiles_x)
+    y0 = wp.clamp(int(wp.floor((v - float(r)) / float(TILE))), 0, tiles_y)
+    y1 = wp.clamp(int(wp.floor((v + float(r)) / float(TILE))) + 1, 0, tiles_y)
+    n = (x1 - x0) * (y1 - y0)
+    if n <= 0 or r <= 0:
+        return
+    mean2d[c, g] = wp.vec2(u, v)
+    conic[c, g] = wp.vec3(d * inv, -b * inv, a * inv)
+    depth[c, g] = p[2]
+    radius[c, g] = r
+    tiles_touched[c * G + g] = n
+    # view direction from the camera centre (world): centre = -R^T t
+    centre = -(wp.transpose(R) * view_translation[c])
+    color[c, g] = evaluate_sh(sh, g, sh_degree, wp.normalize(means[g] - centre))
+
+
+@wp.kernel
+def emit_tile_keys(
+    # In:
+    mean2d: wp.array2d[wp.vec2],
+    depth: wp.array2d[float],
+    radius: wp.array2d[wp.int32],
+    offsets: wp.array[wp.int32],
+    width: int,
+    height: int,
+    # Out:
+    keys: wp.array[wp.int64],
+    values: wp.array[wp.int32],
+):
+    """One (key, value) per (Gaussian, touched tile): key = (camera * tiles + tile) << 32 | the
+    depth in micrometres (31 bits: up to 2,147 m), value = the Gaussian; written from the
+    exclusive prefix sum ``offsets`` of the tile counts. Launch (C, G)."""
+    c, g = wp.tid()
+    r = radius[c, g]
+    if r <= 0:
+        return
+    G = mean2d.shape[1]
+    tiles_x = (width + TILE - 1) / TILE
+    tiles_y = (height + TILE - 1) / TILE
+    m = mean2d[c, g]
+    x0 = wp.clamp(int(wp.floor((m[0] - float(r)) / float(TILE))), 0, tiles_x)
+    x1 = wp.clamp(int(wp.floor((m[0] + float(r)) / float(TILE))) + 1, 0, tiles_x)
+    y0 = wp.clamp(int(wp.floor((m[1] - float(r)) / float(TILE))), 0, tiles_y)
+    y1 = wp.clamp(int(wp.floor((m[1] + float(r)) / float(TILE))) + 1, 0, tiles_y)
+    dbits = wp.int64(wp.min(depth[c, g] * 1.0e6, 2147483647.0))
+    i = offsets[c * G + g]
+    for ty in range(y0, y1):
+        for tx in range(x0, x1):
+            tile = wp.int64(c * tiles_x * tiles_y + ty * tiles_x + tx)
+            keys[i] = (tile << wp.int64(32)) | dbits
+            values[i] = g
+            i += 1
+
+
+@wp.kernel
+def find_tile_ranges(
+    # In:
+    keys: wp.array[wp.int64],
+    count: int,
+    # Out:
+    tile_start: wp.array[wp.int32],
+    tile_end: wp.array[wp.int32],
+):
+    """[tile_start, tile_end) of each (camera, tile) in the sorted keys (untouched tiles keep
+    0, 0). Launch (count,)."""
+    i = wp.tid()
+    tile = int(keys[i] >> wp.int64(32))
+    if i == 0:
+        tile_start[tile] = 0
+    else:
+        prev = int(keys[i - 1] >> wp.int64(32))
+        if prev != tile:
+            tile_start[tile] = i
+            tile_end[prev] = i
+    if i == count - 1:
+        tile_end[tile] = count
+
+
+@wp.func
+def nearest_sphere(o: wp.vec3, d: wp.vec3, centers: wp.array[wp.vec3], radii: wp.array[float]):
+    """Ray o + s d (d unit) against every sphere: (s of the nearest hit, its index; -1 if none)."""
+    best = float(1.0e30)
+    hit = int(-1)
+    for k in range(centers.shape[0]):
+        oc = o - centers[k]
+        b = wp.dot(oc, d)
+        cc = wp.dot(oc, oc) - radii[k] * radii[k]
+        disc = b * b - cc
+        if disc >= 0.0:
+            s = -b - wp.sqrt(disc)
+            if s > 0.0 and s < best:
+                best = s
+                hit = k
+    return best, hit
+
+
+@wp.kernel
+def rasterize_gaussians(
+    # In:
+    mean2d: wp.array2d[wp.vec2],
+    conic: wp.array2d[wp.vec3],
+    depth: wp.array2d[float],
+    color: wp.array2d[wp.vec3],
+    opacity: wp.array[float],
+    values: wp.array[wp.int32],
+    tile_start: wp.array[wp.int32],
+    tile_end: wp.array[wp.int32],
+    view_rotation: wp.array[wp.mat33],
+    view_translation: wp.array[wp.vec3],
+    intrinsics: wp.array[wp.vec4],
+    sphere_centers: wp.array[wp.vec3],
+    sphere_radii: wp.array[float],
+    sphere_color: wp.vec3,
+    background: wp.vec3,
+    width: int,
+    height: int,
+    # Out:
+    rgb: wp.array3d[wp.vec3],
+    alpha: wp.array3d[float],
+    expected_depth: wp.array3d[float],
+):
+    """Front-to-back compositing of the depth-sorted Gaussians of each pixel's tile (launch
+    (C, H, W)); the nearest ray-cast sphere, if any, is opaque at its depth (Lambert-shaded from
+    the camera) and hides what lies behind it. rgb (C, H, W) in [0, 1] over ``background``;
+    alpha = 1 - transmittance; expected_depth = sum(w z) / sum(w) [m] (0 where nothing)."""
+    c, py, px = wp.tid()
+    tiles_x = (width + TILE - 1) / TILE
+    tiles_y = (height + TILE - 1) / TILE
+    tile = c * tiles_x * tiles_y + (py / TILE) * tiles_x + (px / TILE)
+    x = float(px) + 0.5
+    y = float(py) + 0.5
+    # the pixel's ray in world, for the spheres: camera z along the ray per unit length
+    k = intrinsics[c]
+    R = view_rotation[c]
+    dc = wp.normalize(wp.vec3((x - k[2]) / k[0], (y - k[3]) / k[1], 1.0))
+    o = -(wp.transpose(R) * view_translation[c])
+    dw = wp.transpose(R) * dc
+    s_hit, sk = nearest_sphere(o, dw, sphere_centers, sphere_radii)
+    z_sphere = float(1.0e30)
+    if sk >= 0:
+        z_sphere = s_hit * dc[2]
+    T = float(1.0)
+    acc = wp.vec3(0.0)
+    acc_z = float(0.0)
+    done = int(0)
+    for i in range(tile_start[tile], tile_end[tile]):
+        g = values[i]
+        zg = depth[c, g]
+        if zg > z_sphere:
+            break
+        m = mean2d[c, g]
+        q = conic[c, g]
+        dx = m[0] - x
+        dy = m[1] - y
+        sigma = 0.5 * (q[0] * dx * dx + q[2] * dy * dy) + q[1] * dx * dy
+        if sigma < 0.0:
+            continue
+        a = wp.min(0.999, opacity[g] * wp.exp(-sigma))
+        if a < 1.0 / 255.0:
+            continue
+        next_t = T * (1.0 - a)
+        if next_t <= 1.0e-4:
+            done = 1
+            break
+        acc = acc + color[c, g] * (a * T)
+        acc_z = acc_z + zg * (a * T)
+        T = next_t
+    if sk >= 0 and done != 1:  # the sphere, opaque, behind the splats composited so far
+        pw = o + dw * s_hit
+        nrm = wp.normalize(pw - sphere_centers[sk])
+        shade = 0.25 + 0.75 * wp.max(0.0, -wp.dot(nrm, dw))
+        acc = acc + sphere_color * (shade * T)
+        acc_z = acc_z + z_sphere * T
+        T = 0.0
+    rgb[c, py, px] = acc + background * T
+    alpha[c, py, px] = 1.0 - T
+    ez = float(0.0)
+    if T < 1.0:
+        ez = acc_z / (1.0 - T)
+    expected_depth[c, py, px] = ez
