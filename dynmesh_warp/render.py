@@ -176,18 +176,37 @@ class Renderer:
         return RenderResult(rgb, alpha, zbuf)
 
 
-def render_world(sim, gaussians, cameras: list[Camera], renderer: Renderer | None = None, **kw) -> RenderResult:
+def render_world(sim, gaussians, cameras: list[Camera], renderer: Renderer | None = None, shade: bool = True,
+                 **kw) -> RenderResult:
     """The simulation's bound Gaussians (``gaussians.Gaussians``, updated to its current
-    surface) and its spheres, from ``cameras``."""
+    surface) and its spheres, from ``cameras``. ``shade``: each Gaussian's colour times
+    0.35 + 0.65 |n . l|, n its flat axis (the smallest scale: the surface normal for Gaussians
+    bound to faces), l from the first camera towards the scene and a little from above, so the
+    shape reads (the colours of the binding are unlit)."""
     renderer = renderer or Renderer(sim.device)
     b = gaussians.binding
-    sh = getattr(gaussians, "_render_sh", None)
-    if sh is None:
-        sh = gaussians._render_sh = wp.array(rgb_to_sh(b.rgb), dtype=float, device=sim.device)
-        gaussians._render_opacity = wp.array(b.opacity, dtype=float, device=sim.device)
+    rgb = b.rgb
+    if shade:
+        q = gaussians.state.rotations.numpy()
+        s = gaussians.state.scales.numpy()
+        axis = np.eye(3)[np.argmin(s, axis=1)]  # (G, 3) local axis of the smallest scale
+        n = _rotate_rows(q, axis)
+        view = np.asarray(cameras[0].R, np.float64)[2]
+        light = view + np.array([0.0, 0.0, -0.5])
+        light /= np.linalg.norm(light)
+        rgb = rgb * (0.35 + 0.65 * np.abs(n @ light))[:, None]
+    sh = wp.array(rgb_to_sh(rgb), dtype=float, device=sim.device)
+    op = wp.array(b.opacity, dtype=float, device=sim.device)
     pos, rad = sim.sphere_positions(), sim.sphere_radii()
-    return renderer.render(gaussians.state.centers, gaussians.state.covariances, sh, gaussians._render_opacity,
-                           cameras, spheres=(pos, rad) if len(rad) else None, **kw)
+    return renderer.render(gaussians.state.centers, gaussians.state.covariances, sh, op, cameras,
+                           spheres=(pos, rad) if len(rad) else None, **kw)
+
+
+def _rotate_rows(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Rotate each row v[i] (G, 3) by quaternion q[i] (G, 4) (x, y, z, w)."""
+    u, w = q[:, :3], q[:, 3:4]
+    uv = (u * v).sum(axis=1, keepdims=True)
+    return 2.0 * uv * u + (w * w - (u * u).sum(axis=1, keepdims=True)) * v + 2.0 * w * np.cross(u, v)
 
 
 def _to_uint8(rgb: np.ndarray) -> np.ndarray:
@@ -250,7 +269,7 @@ def main(argv=None) -> int:
     for f in it:
         world.sync_surface()
         gs.update(world.state.points, world.model.surface.indices)
-        cam = orbit_cameras(centre, 1.6 * diag, 1, 20.0, a.width, a.height, start_deg=30.0 + 90.0 * f / max(last, 1))
+        cam = orbit_cameras(centre, 1.05 * diag, 1, 20.0, a.width, a.height, start_deg=30.0 + 90.0 * f / max(last, 1))
         img = _to_uint8(render_world(world, gs, cam, renderer).rgb.numpy()[0])
         if a.out and f < total:
             _write_png(Path(a.out) / f"frame_{f:04d}.png", img)

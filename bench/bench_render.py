@@ -1,0 +1,131 @@
+"""Our Warp splatting renderer against gsplat (issue 16): same Gaussians, same cameras.
+
+Random scenes (G Gaussians in a unit cube, random rotations and scales, SH degree 3) at 1080p,
+and a batch of small cameras for RL observations. Reports our forward time and, when gsplat is
+importable (the GPU machine; a reference only, not a dependency), gsplat's forward time and the
+PSNR between the two images. Median of ``--repeats`` after warm-up, device synchronised.
+
+    python bench/bench_render.py --device cuda --gaussians 100000 --out bench/results/render_cuda.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from common import RESULTS, describe_device, write_json  # noqa: E402
+
+
+def scene(G: int, degree: int, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    means = rng.uniform(-1, 1, (G, 3)).astype(np.float32)
+    q = rng.normal(size=(G, 4)).astype(np.float32)
+    q /= np.linalg.norm(q, axis=1, keepdims=True)  # (w, x, y, z) as gsplat takes them
+    scales = rng.uniform(0.005, 0.03, (G, 3)).astype(np.float32)
+    w, x, y, z = q.T
+    R = np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+                  np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+                  np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], 1)
+    covs = np.einsum("gij,gj,gkj->gik", R, scales**2, R).astype(np.float32)
+    sh = (rng.normal(0, 0.3, (G, (degree + 1) ** 2, 3))).astype(np.float32)
+    op = rng.uniform(0.3, 1.0, G).astype(np.float32)
+    return means, q, scales, covs, sh, op
+
+
+def timed(fn, device, repeats, warmup=3):
+    for _ in range(warmup):
+        fn()
+    wp.synchronize_device(device)
+    ts = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        wp.synchronize_device(device)
+        ts.append(time.perf_counter() - t0)
+    return statistics.median(ts)
+
+
+def psnr(a, b):
+    mse = float(np.mean((np.clip(a, 0, 1) - np.clip(b, 0, 1)) ** 2))
+    return float("inf") if mse == 0 else 10 * np.log10(1.0 / mse)
+
+
+def main(argv=None):
+    from dynmesh_warp.render import Renderer, look_at, orbit_cameras
+
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--gaussians", type=int, default=100_000)
+    ap.add_argument("--degree", type=int, default=3)
+    ap.add_argument("--width", type=int, default=1920)
+    ap.add_argument("--height", type=int, default=1080)
+    ap.add_argument("--batch", type=int, default=1024, help="cameras of the RL-observation batch (128 x 128)")
+    ap.add_argument("--repeats", type=int, default=10)
+    ap.add_argument("--out", default=None)
+    a = ap.parse_args(argv)
+    wp.init()
+    device = wp.get_device(a.device)
+    means, q, scales, covs, sh, op = scene(a.gaussians, a.degree)
+    cam = look_at([2.2, 1.6, 1.2], [0, 0, 0], width=a.width, height=a.height, fov_y_deg=50)
+    r = Renderer(device)
+    dm = wp.array(means, dtype=wp.vec3, device=device)
+    dc = wp.array(covs, dtype=wp.mat33, device=device)
+    ds = wp.array(sh, dtype=float, device=device)
+    do = wp.array(op, dtype=float, device=device)
+    res = {"machine": describe_device(device), "gaussians": a.gaussians, "sh_degree": a.degree,
+           "image": [a.width, a.height]}
+    out = {}
+    t = timed(lambda: out.__setitem__("r", r.render(dm, dc, ds, do, [cam], background=(0, 0, 0))), device, a.repeats)
+    ours = out["r"].rgb.numpy()[0]
+    res["ours_ms"] = t * 1e3
+    print(f"ours {a.width}x{a.height}, {a.gaussians} Gaussians: {t * 1e3:.2f} ms ({1 / t:,.0f} frames/s)", flush=True)
+    cams = orbit_cameras([0, 0, 0], 3.0, a.batch, width=128, height=128)
+    tb = timed(lambda: r.render(dm, dc, ds, do, cams, background=(0, 0, 0)), device, max(2, a.repeats // 3), warmup=1)
+    res["batch"] = {"cameras": a.batch, "size": [128, 128], "ours_ms": tb * 1e3}
+    print(f"ours batch of {a.batch} cameras at 128x128: {tb * 1e3:.2f} ms", flush=True)
+    try:
+        import gsplat
+        import torch
+    except ImportError as e:
+        res["gsplat"] = f"not available: {e}"
+    else:
+        dev = "cuda" if device.is_cuda else "cpu"
+        T = lambda x: torch.as_tensor(x, device=dev)  # noqa: E731
+        K = T(np.array([[[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1]]], np.float32))
+        V = np.eye(4, dtype=np.float32)
+        V[:3, :3], V[:3, 3] = cam.R, cam.t
+        args = dict(means=T(means), quats=T(q), scales=T(scales), opacities=T(op), colors=T(sh),
+                    viewmats=T(V[None]), Ks=K, width=a.width, height=a.height, sh_degree=a.degree)
+        g = {}
+
+        def run_gsplat():
+            g["img"] = gsplat.rasterization(**args)[0]
+
+        tg = timed(lambda: (run_gsplat(), torch.cuda.synchronize() if dev == "cuda" else None), device, a.repeats)
+        ref = g["img"][0].detach().cpu().numpy()
+        res["gsplat"] = {"version": gsplat.__version__, "ms": tg * 1e3, "psnr_db": psnr(ours, ref),
+                         "ours_over_gsplat": t / tg}
+        Ks = T(np.stack([[[c.fx, 0, c.cx], [0, c.fy, c.cy], [0, 0, 1]] for c in cams]).astype(np.float32))
+        Vs = np.tile(np.eye(4, dtype=np.float32), (len(cams), 1, 1))
+        for i, c in enumerate(cams):
+            Vs[i, :3, :3], Vs[i, :3, 3] = c.R, c.t
+        bargs = dict(args, viewmats=T(Vs), Ks=Ks, width=128, height=128)
+        tgb = timed(lambda: (gsplat.rasterization(**bargs), torch.cuda.synchronize() if dev == "cuda" else None),
+                    device, max(2, a.repeats // 3), warmup=1)
+        res["batch"]["gsplat_ms"] = tgb * 1e3
+        print(f"gsplat {gsplat.__version__}: {tg * 1e3:.2f} ms; ours/gsplat {t / tg:.2f}; "
+              f"PSNR {res['gsplat']['psnr_db']:.1f} dB; batch {tgb * 1e3:.2f} ms", flush=True)
+    write_json(Path(a.out) if a.out else RESULTS / f"render_{'cuda' if device.is_cuda else 'cpu'}.json", res)
+
+
+if __name__ == "__main__":
+    main()
