@@ -26,6 +26,11 @@ MIN_SCALE_REL = 1.0e-3  # viewer std-dev floor, relative to the scene's bounding
 MIN_RATIO = 0.05  # viewer std-dev floor, relative to the Gaussian's largest std dev (float16)
 
 
+#: the most wall time one viewer frame catches up on [s] (a stall longer than this slows the clock
+#: instead of making one frame simulate seconds)
+MAX_CATCH_UP = 0.25
+
+
 def _require_viser():
     try:
         import viser  # noqa: PLC0415
@@ -60,6 +65,9 @@ class Viewer:
         self.playing = True
         self.frame = 0
         self._owed = 0.0
+        self._last_wall = None
+        self._rate_window: list = []
+        self.achieved_rate = None
         self._actions: list = []
         self._lock = threading.Lock()
         self._rng = np.random.default_rng(seed)
@@ -75,7 +83,14 @@ class Viewer:
         self.min_scale = min_scale_rel * self.scene_scale
         self.min_ratio = float(min_ratio)
         self.duration = surf.num_frames / surf.fps if surf.num_frames > 1 else 10.0
-        self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        if self.realtime:
+            self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        else:  # headless recording: the server is only the recording's scene; announce nothing
+            import contextlib
+            import io
+
+            with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+                self.server = viser.ViserServer(host=host, port=port, verbose=False)
         self.port = self.server.get_port()
         ico = trimesh.creation.icosphere(subdivisions=2, radius=1.0)
         self._ico = (np.asarray(ico.vertices, np.float32), np.asarray(ico.faces, np.uint32))
@@ -133,6 +148,7 @@ class Viewer:
         self._send_spheres(force=True)
         self._sent_time = self.world.time
         self._stale = {"mesh": False, "splats": False}
+        self._gaussians_stale = True
 
     def _send_spheres(self, force: bool = False):
         w = self.world
@@ -171,6 +187,8 @@ class Viewer:
         self.gui_wire = gui.add_checkbox("Wireframe", False)
         self.gui_show_spheres = gui.add_checkbox("Show spheres", True)
         self._slider_guard = False
+        self._last_seek = -1e9
+        self.gui_rate = gui.add_text("Rate (sim s / wall s)", "-", disabled=True)
 
         self.gui_play.on_update(lambda e: self._queue("play", self.gui_play.value))
         self.gui_speed.on_update(lambda e: self._queue("speed", self.gui_speed.value))
@@ -194,9 +212,11 @@ class Viewer:
             self.gaussians.update(w.surface_points(), w.surface_indices())
 
     def reset(self):
+        """Back to the start: the scene's own spheres (dropped ones removed), time t0."""
         self.world.reset()
         self._refresh_gaussians()
         self._owed = 0.0
+        self._send_spheres(force=True)
 
     def seek(self, t: float):
         """Move the surface to time ``t`` [s] (spheres keep their state)."""
@@ -208,12 +228,17 @@ class Viewer:
         """Add one sphere above the current surface at a seeded random spot (up = +z)."""
         w = self.world
         P = self._points()
-        lo, hi = P.min(0), P.max(0)
+        hi = P.max(0)
         radii = w.sphere_radii()
         r = float(np.median(radii)) if len(radii) else 0.03 * self.scene_scale
         r = radius or r
-        xy = lo[:2] + (0.2 + 0.6 * self._rng.random(2)) * (hi[:2] - lo[:2])
-        w.add_spheres([[xy[0], xy[1], hi[2] + 3 * r]], r, 1.0)
+        # above a random vertex of the surface's upper side (the highest vertex near that x, y), so
+        # it lands on the surface, not beside it on the ground
+        up = P[P[:, 2] >= np.quantile(P[:, 2], 0.5)]
+        xy = up[int(self._rng.integers(len(up))), :2]
+        near = P[np.linalg.norm(P[:, :2] - xy, axis=1) <= 2 * r]
+        top = float(near[:, 2].max()) if len(near) else float(hi[2])
+        w.add_spheres([[xy[0], xy[1], top + 4 * r]], r, 1.0)
 
     def _apply_actions(self):
         with self._lock:
@@ -228,6 +253,7 @@ class Viewer:
             elif name == "drop":
                 self.drop_sphere()
             elif name == "seek":
+                self._last_seek = time.monotonic()
                 self.seek(args[0])
             elif name == "wire":
                 self.mesh.wireframe = bool(args[0])
@@ -245,8 +271,15 @@ class Viewer:
         self._apply_actions()
         w = self.world
         n = 0
+        now = time.perf_counter()
+        # realtime: simulate speed x the wall time since the last frame (a late frame catches up,
+        # up to MAX_CATCH_UP seconds of it; frames are dropped, time is not slowed); recording /
+        # headless: a fixed frame_dt per frame
+        elapsed = self.frame_dt if (not self.realtime or self._last_wall is None) else \
+            min(now - self._last_wall, MAX_CATCH_UP)
+        self._last_wall = now
         if self.playing:
-            self._owed += self.speed * self.frame_dt
+            self._owed += self.speed * elapsed
             dt = w.dt
             n = int(self._owed / dt + 1e-9)
             self._owed -= n * dt
@@ -256,11 +289,21 @@ class Viewer:
         if self._serializer is not None:
             self._serializer.insert_sleep(self.frame_dt)
         self.frame += 1
+        self._rate_window.append((now, w.time))
+        if len(self._rate_window) > 30:
+            self._rate_window.pop(0)
+        (t0w, t0s), (t1w, t1s) = self._rate_window[0], self._rate_window[-1]
+        if t1w > t0w and self.frame % 10 == 0:
+            self.achieved_rate = (t1s - t0s) / (t1w - t0w)
+            self.gui_rate.value = f"{self.achieved_rate:.2f} (speed {self.speed:g})"
         return n
 
     def _send(self):
         w = self.world
         moved = w.time != self._sent_time
+        if moved or self._gaussians_stale:  # once per viewer frame, never per physics step
+            self._refresh_gaussians()
+            self._gaussians_stale = False
         with self.server.atomic():
             if (moved or self._stale["mesh"]) and self.mesh.visible:
                 self.mesh.vertices = self._points()
@@ -274,7 +317,7 @@ class Viewer:
                 elif moved:
                     self._stale["splats"] = True
             self._send_spheres()
-            if moved:
+            if moved and time.monotonic() - self._last_seek > 0.5:  # not while a user drags it
                 self._slider_guard = True
                 try:
                     t = w.time % self.duration if self.duration > 0 else w.time
@@ -323,7 +366,11 @@ class Viewer:
                 size = f"{len(data) / 1e6:.1f} MB" if len(data) >= 1e6 else f"{len(data) / 1e3:.0f} kB"
                 self.log(f"recording: {self.record_path} ({size}), {html}")
         finally:
-            self.server.stop()
+            import contextlib
+            import io
+
+            with contextlib.redirect_stdout(io.StringIO()) if not self.realtime else contextlib.nullcontext():
+                self.server.stop()
 
     def __enter__(self):
         return self
@@ -389,11 +436,6 @@ class NewtonViewer(Viewer):
         for s, h in self._bodies:
             h.position = tuple(float(x) for x in X[s, :3])
             h.wxyz = _xyzw_to_wxyz(X[s, 3:])
-
-    def _send(self):
-        if self.world.time != self._sent_time:  # not attached to a World's step: update here
-            self._refresh_gaussians()
-        super()._send()
 
     def reset(self):
         self.log("viewer: reset is not available for Newton scenes")
@@ -504,7 +546,10 @@ def run_viewer(cfg, device=None, viewer: str = "viser", port: int = 8080, host: 
     between frames (the CLI's SIGINT/SIGTERM); the loop ends there, the recording of the frames
     so far is written and the server stopped; ``"interrupted_by"`` in the result names it.
     """
-    from .gaussians import gaussians_for_surface, gaussians_for_world
+    from .gaussians import gaussians_for_surface
+
+    if viewer != "viser":  # headless recording: viser's serializer needs a server object; bind it to an
+        host, port = "127.0.0.1", 0  # ephemeral local port (nothing announced, no port clash)
     from .scene import build_world
 
     if getattr(cfg, "newton", None) is not None:  # bodies simulated by Newton (docs/newton.md)
@@ -521,7 +566,9 @@ def run_viewer(cfg, device=None, viewer: str = "viser", port: int = 8080, host: 
             from .runtime import check_total_work, run_steps
 
             check_total_work(cfg, steps if steps is not None else run_steps(cfg), world.substeps)
-        g = gaussians_for_world(world, cfg)
+        # not attached to the step: the viewer updates them once per frame it sends
+        g = gaussians_for_surface(world.model.surface.sequence, cfg, world.device)
+        world.render_state = True  # the vertex buffer current after every step, for the splats and mesh
         v = Viewer(world, g, port=port, host=host, fps=fps, record=record, realtime=(viewer == "viser"), log=log)
         what = f"{world.model.spheres.count} spheres"
     dt = world.dt

@@ -775,6 +775,7 @@ class World:
         if self.device.is_cpu and self.collider.capturable:
             self._launch_cache = {}
         self._initial = (state.sphere_pos.numpy().copy(), state.sphere_vel.numpy().copy())  # .numpy() is a view on the CPU
+        self._initial_spheres = model.spheres  # the scene's own spheres: reset() goes back to them
         self.post_step_hooks = []  # callables hook(world) launched after each step (inside the graph)
 
     @staticmethod
@@ -976,7 +977,14 @@ class World:
         self.compute_normals()
 
     def reset(self):
-        """Back to the initial time and sphere state."""
+        """Back to the initial time and the scene's initial spheres: spheres added since
+        (:meth:`add_spheres`, the viewer's "Drop sphere") are removed."""
+        if self.model.spheres is not self._initial_spheres:
+            with warnings.catch_warnings():  # the scene's own sub-step note was given when it was built
+                warnings.simplefilter("ignore")
+                self._set_spheres(self._initial_spheres, self._initial[0][: self._initial_spheres.count],
+                                  self._initial[1][: self._initial_spheres.count], rederive_substeps=True)
+            self._initial = (self._initial[0][: self.model.spheres.count], self._initial[1][: self.model.spheres.count])
         s = self.state
         s.sim_time.assign(np.array([self.t0], dtype=np.float64))
         s.sphere_pos.assign(self._initial[0])
@@ -1061,12 +1069,20 @@ class World:
         vel = np.zeros((n, 3), np.float32) if velocities is None else np.asarray(velocities, np.float32).reshape(n, 3)
         pos_all = np.concatenate([self.state.sphere_pos.numpy(), positions])
         vel_all = np.concatenate([self.state.sphere_vel.numpy(), vel])
-        self.model.spheres = SphereModel(new_r, new_m, self.device)
-        self.state.sphere_pos = wp.array(pos_all, dtype=wp.vec3, device=self.device)
-        self.state.sphere_vel = wp.array(vel_all, dtype=wp.vec3, device=self.device)
         self._initial = (np.concatenate([self._initial[0], positions]), np.concatenate([self._initial[1], vel]))
+        self._set_spheres(SphereModel(new_r, new_m, self.device), pos_all, vel_all, stacklevel=4)
+
+    def _set_spheres(self, spheres: SphereModel, pos, vel, stacklevel: int = 3, rederive_substeps: bool = False):
+        """Replace the sphere set (model and state arrays, contacts, sub-step rule, collider lists);
+        drops the graph. ``rederive_substeps``: from the configured count again (after removing
+        spheres), else only ever raised."""
+        self.model.spheres = spheres
+        self.state.sphere_pos = wp.array(np.asarray(pos, np.float32), dtype=wp.vec3, device=self.device)
+        self.state.sphere_vel = wp.array(np.asarray(vel, np.float32), dtype=wp.vec3, device=self.device)
         self.contacts = Contacts(self.model.spheres.count, device=self.device)
-        self._apply_substep_rule(stacklevel=3)  # smaller spheres may need more sub-steps
+        if rederive_substeps:
+            self.substeps = max(1, int(self.model.params.substeps))
+        self._apply_substep_rule(stacklevel=stacklevel)  # smaller spheres may need more sub-steps
         self._graph = None
         if self._launch_cache is not None:
             self._launch_cache = {}

@@ -97,3 +97,46 @@ def test_client_receives_engine_state_and_recording_replays(tmp_path, device):
     assert times == sorted(times) and times[-1] > 0
     html = rec.with_suffix(".html").read_text()
     assert "window.__VISER_EMBED_DATA__=" in html and "<script" in html
+
+
+def test_clock_follows_the_wall_and_gaussians_update_once_per_frame(device, monkeypatch):
+    """Realtime: each frame simulates speed x the wall time since the last (a late frame catches
+    up, at most MAX_CATCH_UP); the Gaussians are updated once per sent frame, not per physics
+    step; Drop sphere lands above the surface; Reset restores the scene's spheres (issue 18)."""
+    import dynmesh_warp.viewer as vw
+    from dynmesh_warp import build_world, load_scene_config
+    from dynmesh_warp.gaussians import gaussians_for_surface
+
+    cfg = load_scene_config(data={"name": "v", "surface": {"source": "builtin:pulsing_blob",
+                                                             "params": {"subdivisions": 2}},
+                                  "spheres": {"count": 2, "radius": 0.08}, "gaussians": {"count": 300}})
+    world = build_world(cfg, device=device)
+    world.render_state = True
+    g = gaussians_for_surface(world.model.surface.sequence, cfg, world.device)
+    calls = []
+    real_update = g.update
+    monkeypatch.setattr(g, "update", lambda *a: (calls.append(world.time), real_update(*a))[1])
+    clock = iter([0.0, 0.1, 0.2, 0.3, 1.5, 1.6])  # wall times of six frames; a 1.2 s stall before the 5th
+    monkeypatch.setattr(vw.time, "perf_counter", lambda: next(clock))
+    v = vw.Viewer(world, g, port=0, realtime=True, speed=2.0, log=lambda *a: None)
+    try:
+        calls.clear()
+        times = []
+        for _ in range(6):
+            v.update()
+            times.append(world.time)
+        dt = world.dt
+        steps = np.diff([world.t0] + times)
+        expect = [2.0 * 0.0333333, 0.2, 0.2, 0.2, 2.0 * vw.MAX_CATCH_UP, 0.2]  # first frame: one frame_dt
+        np.testing.assert_allclose(steps, expect, atol=dt + 1e-9)
+        assert len(calls) == 6  # one Gaussian update per frame sent, though ~190 physics steps ran
+        n0 = world.model.spheres.count
+        v.drop_sphere()
+        p = world.sphere_positions()[-1]
+        P = world.surface_points().numpy()
+        near = P[np.linalg.norm(P[:, :2] - p[:2], axis=1) <= 0.16]
+        assert len(near) and p[2] > near[:, 2].max()  # above the surface at its x, y
+        v.reset()
+        assert world.model.spheres.count == n0 and world.time == world.t0
+    finally:
+        v.close()

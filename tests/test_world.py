@@ -473,3 +473,21 @@ def test_set_sphere_equals_starting_there():
         a.set_sphere(2, new_p)
     with pytest.raises(ValueError, match="sphere 0: position .* not finite"):
         a.set_sphere(0, [0.0, np.nan, 1.0])
+
+
+def test_reset_restores_the_scenes_own_spheres():
+    """Spheres added between steps (the viewer's Drop sphere) are gone after reset(); the scene's
+    spheres are back at their initial state and the world steps as a fresh one does."""
+    seq = moving_sheet((0.0, 0.0, 0.2), frames=8)
+    pos = [[0.0, 0.0, 0.3], [0.4, 0.2, 0.5]]
+    w, fresh = make_world(seq, pos), make_world(seq, pos)
+    run(w, 20)
+    w.add_spheres([[0.1, 0.1, 0.8]], 0.05)
+    run(w, 20)
+    assert w.model.spheres.count == 3
+    w.reset()
+    assert w.model.spheres.count == 2 and w.contacts.face.shape[0] == 2
+    np.testing.assert_array_equal(w.sphere_positions(), fresh.sphere_positions())
+    _, pa, _ = run(w, 30)
+    _, pb, _ = run(fresh, 30)
+    np.testing.assert_allclose(pa, pb, atol=1e-6)
