@@ -240,7 +240,7 @@ def main(argv=None) -> int:
     if a.frames < 1 or a.moments < 1 or a.width < 16 or a.height < 16 or not a.fps > 0:
         p.error("--frames, --moments >= 1, --width, --height >= 16, --fps > 0")
     from .config import SceneError, load_scene_config
-    from .gaussians import gaussians_for_world
+    from .gaussians import gaussians_for_surface
     from .scene import build_world
 
     try:
@@ -249,7 +249,7 @@ def main(argv=None) -> int:
     except (SceneError, ValueError, FileNotFoundError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    gs = gaussians_for_world(world, cfg)
+    gs = gaussians_for_surface(world.model.surface.sequence, cfg, world.device)  # updated once per frame below
     world.render_state = True
     V = world.surface.sequence.V
     lo, hi = V.reshape(-1, 3).min(axis=0), V.reshape(-1, 3).max(axis=0)
