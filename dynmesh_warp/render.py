@@ -98,12 +98,34 @@ class RenderResult:
 
 
 class Renderer:
-    """Reusable buffers for rendering G Gaussians from C cameras of one image size."""
+    """Reusable buffers for rendering G Gaussians from C cameras of one image size. The arrays of
+    a :class:`RenderResult` are this renderer's own: valid until its next ``render`` (copy them
+    to keep them)."""
 
     def __init__(self, device=None):
         self.device = wp.get_device(device)
         self._cap = 0
         self._keys = self._values = None
+        self._bkey, self._b = None, {}
+
+    def _buffers(self, C: int, G: int, W: int, H: int) -> dict:
+        """Per-(C, G, W, H) buffers, allocated once and reused; the kernels write every entry they
+        read (tile ranges are cleared per render)."""
+        key = (C, G, W, H)
+        if self._bkey != key:
+            d = self.device
+            tiles = C * ((W + TILE - 1) // TILE) * ((H + TILE - 1) // TILE)
+            self._b = {
+                "mean2d": wp.zeros((C, G), dtype=wp.vec2, device=d), "conic": wp.zeros((C, G), dtype=wp.vec3, device=d),
+                "depth": wp.zeros((C, G), dtype=float, device=d), "radius": wp.zeros((C, G), dtype=wp.int32, device=d),
+                "touched": wp.zeros(C * G, dtype=wp.int32, device=d), "color": wp.zeros((C, G), dtype=wp.vec3, device=d),
+                "offsets": wp.zeros(C * G, dtype=wp.int32, device=d),
+                "start": wp.zeros(tiles, dtype=wp.int32, device=d), "end": wp.zeros(tiles, dtype=wp.int32, device=d),
+                "rgb": wp.zeros((C, H, W), dtype=wp.vec3, device=d), "alpha": wp.zeros((C, H, W), dtype=float, device=d),
+                "depth_image": wp.zeros((C, H, W), dtype=float, device=d),
+                "no_values": wp.zeros(1, dtype=wp.int32, device=d)}
+            self._bkey = key
+        return self._b
 
     def _grow(self, n: int):
         if n > self._cap:
@@ -139,20 +161,16 @@ class Renderer:
         Rs = wp.array(np.stack([np.asarray(c.R, np.float32) for c in cameras]), dtype=wp.mat33, device=d)
         ts = wp.array(np.stack([np.asarray(c.t, np.float32) for c in cameras]), dtype=wp.vec3, device=d)
         ks = wp.array(np.array([[c.fx, c.fy, c.cx, c.cy] for c in cameras], np.float32), dtype=wp.vec4, device=d)
-        mean2d = wp.zeros((C, G), dtype=wp.vec2, device=d)
-        conic = wp.zeros((C, G), dtype=wp.vec3, device=d)
-        depth = wp.zeros((C, G), dtype=float, device=d)
-        radius = wp.zeros((C, G), dtype=wp.int32, device=d)
-        touched = wp.zeros(C * G, dtype=wp.int32, device=d)
-        color = wp.zeros((C, G), dtype=wp.vec3, device=d)
+        b = self._buffers(C, G, W, H)
+        mean2d, conic, depth, radius, touched, color, offsets = (b[k] for k in (
+            "mean2d", "conic", "depth", "radius", "touched", "color", "offsets"))
         wp.launch(project_gaussians, (C, G), inputs=[means, covs, sh, degree, Rs, ts, ks, W, H, near],
                   outputs=[mean2d, conic, depth, radius, touched, color], device=d)
-        offsets = wp.zeros(C * G, dtype=wp.int32, device=d)
         wp.utils.array_scan(touched, offsets, inclusive=False)
-        n = int(offsets.numpy()[-1] + touched.numpy()[-1]) if C * G else 0  # one host read: the list size
-        tiles = C * ((W + TILE - 1) // TILE) * ((H + TILE - 1) // TILE)
-        start = wp.zeros(tiles, dtype=wp.int32, device=d)
-        end = wp.zeros(tiles, dtype=wp.int32, device=d)
+        n = int(offsets[-1:].numpy()[0] + touched[-1:].numpy()[0]) if C * G else 0  # one host read: the list size
+        start, end = b["start"], b["end"]
+        start.zero_()
+        end.zero_()
         if n:
             self._grow(n)
             wp.launch(emit_tile_keys, (C, G), inputs=[mean2d, depth, radius, offsets, W, H],
@@ -165,10 +183,8 @@ class Renderer:
         else:
             sc = wp.array(np.asarray(spheres[0], np.float32).reshape(-1, 3), dtype=wp.vec3, device=d)
             sr = wp.array(np.asarray(spheres[1], np.float32).reshape(-1), dtype=float, device=d)
-        rgb = wp.zeros((C, H, W), dtype=wp.vec3, device=d)
-        alpha = wp.zeros((C, H, W), dtype=float, device=d)
-        zbuf = wp.zeros((C, H, W), dtype=float, device=d)
-        values = self._values if n else wp.zeros(1, dtype=wp.int32, device=d)
+        rgb, alpha, zbuf = b["rgb"], b["alpha"], b["depth_image"]  # every pixel is written
+        values = self._values if n else b["no_values"]
         wp.launch(rasterize_gaussians, (C, H, W),
                   inputs=[mean2d, conic, depth, color, op, values, start, end, Rs, ts, ks, sc, sr,
                           wp.vec3(*sphere_color), wp.vec3(*background), W, H],
