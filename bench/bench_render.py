@@ -70,6 +70,7 @@ def main(argv=None):
     ap.add_argument("--height", type=int, default=1080)
     ap.add_argument("--batch", type=int, default=1024, help="cameras of the RL-observation batch (128 x 128)")
     ap.add_argument("--repeats", type=int, default=10)
+    ap.add_argument("--profile", action="store_true", help="also time each stage (synchronised after each)")
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
     wp.init()
@@ -87,6 +88,33 @@ def main(argv=None):
     t = timed(lambda: out.__setitem__("r", r.render(dm, dc, ds, do, [cam], background=(0, 0, 0))), device, a.repeats)
     ours = out["r"].rgb.numpy()[0]
     res["ours_ms"] = t * 1e3
+    if a.profile:  # each launch / the sort timed with a device sync before and after
+        import dynmesh_warp.render as R
+
+        stages: dict = {}
+        launch, sort, scan = R.wp.launch, R.wp.utils.radix_sort_pairs, R.wp.utils.array_scan
+
+        def wrap(name, fn):
+            def call(*args, **kw):
+                wp.synchronize_device(device)
+                t0 = time.perf_counter()
+                out = fn(*args, **kw)
+                wp.synchronize_device(device)
+                key = getattr(args[0], "key", name) if name == "launch" else name
+                stages[key] = stages.get(key, 0.0) + (time.perf_counter() - t0) * 1e3
+                return out
+            return call
+
+        R.wp.launch, R.wp.utils.radix_sort_pairs, R.wp.utils.array_scan = (
+            wrap("launch", launch), wrap("radix_sort_pairs", sort), wrap("array_scan", scan))
+        try:
+            for _ in range(a.repeats):
+                r.render(dm, dc, ds, do, [cam], background=(0, 0, 0))
+        finally:
+            R.wp.launch, R.wp.utils.radix_sort_pairs, R.wp.utils.array_scan = launch, sort, scan
+        res["stages_ms"] = {k: v / a.repeats for k, v in stages.items()}
+        res["keys"] = int(r._cap)
+        print("stages (ms):", {k: round(v, 3) for k, v in res["stages_ms"].items()}, flush=True)
     print(f"ours {a.width}x{a.height}, {a.gaussians} Gaussians: {t * 1e3:.2f} ms ({1 / t:,.0f} frames/s)", flush=True)
     cams = orbit_cameras([0, 0, 0], 3.0, a.batch, width=128, height=128)
     tb = timed(lambda: r.render(dm, dc, ds, do, cams, background=(0, 0, 0)), device, max(2, a.repeats // 3), warmup=1)
