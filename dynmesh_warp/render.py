@@ -27,6 +27,7 @@ from .kernels.render import (
     TILE,
     emit_tile_keys,
     find_tile_ranges,
+    gather_sorted_splats,
     project_gaussians,
     rasterize_gaussians,
 )
@@ -122,8 +123,7 @@ class Renderer:
                 "offsets": wp.zeros(C * G, dtype=wp.int32, device=d),
                 "start": wp.zeros(tiles, dtype=wp.int32, device=d), "end": wp.zeros(tiles, dtype=wp.int32, device=d),
                 "rgb": wp.zeros((C, H, W), dtype=wp.vec3, device=d), "alpha": wp.zeros((C, H, W), dtype=float, device=d),
-                "depth_image": wp.zeros((C, H, W), dtype=float, device=d),
-                "no_values": wp.zeros(1, dtype=wp.int32, device=d)}
+                "depth_image": wp.zeros((C, H, W), dtype=float, device=d)}
             self._bkey = key
         return self._b
 
@@ -132,6 +132,9 @@ class Renderer:
             self._cap = max(n, int(self._cap * 1.5), 1024)
             self._keys = wp.zeros(2 * self._cap, dtype=wp.int64, device=self.device)
             self._values = wp.zeros(2 * self._cap, dtype=wp.int32, device=self.device)
+            self._s_xyo = wp.zeros(self._cap, dtype=wp.vec3, device=self.device)  # splats in key order
+            self._s_conic = wp.zeros(self._cap, dtype=wp.vec3, device=self.device)
+            self._s_cd = wp.zeros(self._cap, dtype=wp.vec4, device=self.device)
 
     def render(self, means, covariances, sh, opacities, cameras: list[Camera], sh_degree: int | None = None,
                spheres=None, sphere_color=(0.85, 0.25, 0.2), background=(1.0, 1.0, 1.0),
@@ -171,12 +174,16 @@ class Renderer:
         start, end = b["start"], b["end"]
         start.zero_()
         end.zero_()
+        tiles = start.shape[0]
+        self._grow(max(n, 1))
         if n:
-            self._grow(n)
             wp.launch(emit_tile_keys, (C, G), inputs=[mean2d, depth, radius, offsets, W, H],
                       outputs=[self._keys, self._values], device=d)
             wp.utils.radix_sort_pairs(self._keys, self._values, n)
             wp.launch(find_tile_ranges, n, inputs=[self._keys, n], outputs=[start, end], device=d)
+            wp.launch(gather_sorted_splats, n,
+                      inputs=[self._keys, self._values, tiles // C, mean2d, conic, depth, color, op],
+                      outputs=[self._s_xyo, self._s_conic, self._s_cd], device=d)
         if spheres is None:
             sc = wp.zeros(0, dtype=wp.vec3, device=d)
             sr = wp.zeros(0, dtype=float, device=d)
@@ -184,9 +191,8 @@ class Renderer:
             sc = wp.array(np.asarray(spheres[0], np.float32).reshape(-1, 3), dtype=wp.vec3, device=d)
             sr = wp.array(np.asarray(spheres[1], np.float32).reshape(-1), dtype=float, device=d)
         rgb, alpha, zbuf = b["rgb"], b["alpha"], b["depth_image"]  # every pixel is written
-        values = self._values if n else b["no_values"]
         wp.launch(rasterize_gaussians, (C, H, W),
-                  inputs=[mean2d, conic, depth, color, op, values, start, end, Rs, ts, ks, sc, sr,
+                  inputs=[self._s_xyo, self._s_conic, self._s_cd, start, end, Rs, ts, ks, sc, sr,
                           wp.vec3(*sphere_color), wp.vec3(*background), W, H],
                   outputs=[rgb, alpha, zbuf], device=d)
         return RenderResult(rgb, alpha, zbuf)

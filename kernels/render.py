@@ -209,6 +209,34 @@ def find_tile_ranges(
         tile_end[tile] = count
 
 
+@wp.kernel
+def gather_sorted_splats(
+    # In:
+    keys: wp.array[wp.int64],
+    values: wp.array[wp.int32],
+    tiles_per_camera: int,
+    mean2d: wp.array2d[wp.vec2],
+    conic: wp.array2d[wp.vec3],
+    depth: wp.array2d[float],
+    color: wp.array2d[wp.vec3],
+    opacity: wp.array[float],
+    # Out:
+    sorted_xy_opacity: wp.array[wp.vec3],
+    sorted_conic: wp.array[wp.vec3],
+    sorted_color_depth: wp.array[wp.vec4],
+):
+    """Each sorted key's splat data in key order (launch (count,)): the rasteriser then reads a
+    tile's splats as one contiguous run instead of through the Gaussian index."""
+    i = wp.tid()
+    c = int(keys[i] >> wp.int64(32)) / tiles_per_camera
+    g = values[i]
+    m = mean2d[c, g]
+    sorted_xy_opacity[i] = wp.vec3(m[0], m[1], opacity[g])
+    sorted_conic[i] = conic[c, g]
+    col = color[c, g]
+    sorted_color_depth[i] = wp.vec4(col[0], col[1], col[2], depth[c, g])
+
+
 @wp.func
 def nearest_sphere(o: wp.vec3, d: wp.vec3, centers: wp.array[wp.vec3], radii: wp.array[float]):
     """Ray o + s d (d unit) against every sphere: (s of the nearest hit, its index; -1 if none)."""
@@ -230,12 +258,9 @@ def nearest_sphere(o: wp.vec3, d: wp.vec3, centers: wp.array[wp.vec3], radii: wp
 @wp.kernel
 def rasterize_gaussians(
     # In:
-    mean2d: wp.array2d[wp.vec2],
-    conic: wp.array2d[wp.vec3],
-    depth: wp.array2d[float],
-    color: wp.array2d[wp.vec3],
-    opacity: wp.array[float],
-    values: wp.array[wp.int32],
+    sorted_xy_opacity: wp.array[wp.vec3],
+    sorted_conic: wp.array[wp.vec3],
+    sorted_color_depth: wp.array[wp.vec4],
     tile_start: wp.array[wp.int32],
     tile_end: wp.array[wp.int32],
     view_rotation: wp.array[wp.mat33],
@@ -252,10 +277,11 @@ def rasterize_gaussians(
     alpha: wp.array3d[float],
     expected_depth: wp.array3d[float],
 ):
-    """Front-to-back compositing of the depth-sorted Gaussians of each pixel's tile (launch
-    (C, H, W)); the nearest ray-cast sphere, if any, is opaque at its depth (Lambert-shaded from
-    the camera) and hides what lies behind it. rgb (C, H, W) in [0, 1] over ``background``;
-    alpha = 1 - transmittance; expected_depth = sum(w z) / sum(w) [m] (0 where nothing)."""
+    """Front-to-back compositing of the depth-sorted splats of each pixel's tile (launch
+    (C, H, W); the splats in key order from ``gather_sorted_splats``); the nearest ray-cast
+    sphere, if any, is opaque at its depth (Lambert-shaded from the camera) and hides what lies
+    behind it. rgb (C, H, W) in [0, 1] over ``background``; alpha = 1 - transmittance;
+    expected_depth = sum(w z) / sum(w) [m] (0 where nothing)."""
     c, py, px = wp.tid()
     tiles_x = (width + TILE - 1) / TILE
     tiles_y = (height + TILE - 1) / TILE
@@ -277,25 +303,25 @@ def rasterize_gaussians(
     acc_z = float(0.0)
     done = int(0)
     for i in range(tile_start[tile], tile_end[tile]):
-        g = values[i]
-        zg = depth[c, g]
+        cd = sorted_color_depth[i]
+        zg = cd[3]
         if zg > z_sphere:
             break
-        m = mean2d[c, g]
-        q = conic[c, g]
-        dx = m[0] - x
-        dy = m[1] - y
+        mo = sorted_xy_opacity[i]
+        q = sorted_conic[i]
+        dx = mo[0] - x
+        dy = mo[1] - y
         sigma = 0.5 * (q[0] * dx * dx + q[2] * dy * dy) + q[1] * dx * dy
         if sigma < 0.0:
             continue
-        a = wp.min(0.999, opacity[g] * wp.exp(-sigma))
+        a = wp.min(0.999, mo[2] * wp.exp(-sigma))
         if a < 1.0 / 255.0:
             continue
         next_t = T * (1.0 - a)
         if next_t <= 1.0e-4:
             done = 1
             break
-        acc = acc + color[c, g] * (a * T)
+        acc = acc + wp.vec3(cd[0], cd[1], cd[2]) * (a * T)
         acc_z = acc_z + zg * (a * T)
         T = next_t
     if sk >= 0 and done != 1:  # the sphere, opaque, behind the splats composited so far
