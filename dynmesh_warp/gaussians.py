@@ -33,6 +33,7 @@ __all__ = [
     "quat_wxyz_to_xyzw",
     "quat_xyzw_to_wxyz",
     "DEFAULT_COLOR",
+    "shaded_rgb",
 ]
 
 DEFAULT_COLOR = (0.75, 0.72, 0.68)
@@ -282,3 +283,19 @@ def gaussians_for_surface(seq, cfg=None, device=None) -> Gaussians:
     kw = {} if gcfg is None else {"count": gcfg.count, "seed": gcfg.seed, "color": gcfg.color,
                                   "opacity": gcfg.opacity}
     return generate_gaussians(seq.V[0], seq.F, device=device, **kw)
+
+
+def shaded_rgb(gaussians: "Gaussians", light_dir, ambient: float = 0.35) -> np.ndarray:
+    """(G, 3) colours of ``gaussians`` shaded by ambient + (1 - ambient) |n . l|: n each
+    Gaussian's flat axis (its smallest scale: the face normal for Gaussians bound to faces, at
+    the current state), l the unit ``light_dir`` towards the scene. The binding's colours are
+    unlit; shading baked per frame lets the shape read (the viewer, ``render_world``)."""
+    q = gaussians.state.rotations.numpy()
+    s = gaussians.state.scales.numpy()
+    axis = np.eye(3)[np.argmin(s, axis=1)]
+    u, w = q[:, :3], q[:, 3:4]
+    uv = (u * axis).sum(axis=1, keepdims=True)
+    n = 2.0 * uv * u + (w * w - (u * u).sum(axis=1, keepdims=True)) * axis + 2.0 * w * np.cross(u, axis)
+    light = np.asarray(light_dir, np.float64)
+    light = light / np.linalg.norm(light)
+    return (gaussians.binding.rgb * (ambient + (1.0 - ambient) * np.abs(n @ light))[:, None]).astype(np.float32)

@@ -209,26 +209,15 @@ def render_world(sim, gaussians, cameras: list[Camera], renderer: Renderer | Non
     b = gaussians.binding
     rgb = b.rgb
     if shade:
-        q = gaussians.state.rotations.numpy()
-        s = gaussians.state.scales.numpy()
-        axis = np.eye(3)[np.argmin(s, axis=1)]  # (G, 3) local axis of the smallest scale
-        n = _rotate_rows(q, axis)
-        view = np.asarray(cameras[0].R, np.float64)[2]
-        light = view + np.array([0.0, 0.0, -0.5])
-        light /= np.linalg.norm(light)
-        rgb = rgb * (0.35 + 0.65 * np.abs(n @ light))[:, None]
+        from .gaussians import shaded_rgb
+
+        view = np.asarray(cameras[0].R, np.float64)[2]  # the first camera's viewing direction
+        rgb = shaded_rgb(gaussians, view + np.array([0.0, 0.0, -0.5]))
     sh = wp.array(rgb_to_sh(rgb), dtype=float, device=sim.device)
     op = wp.array(b.opacity, dtype=float, device=sim.device)
     pos, rad = sim.sphere_positions(), sim.sphere_radii()
     return renderer.render(gaussians.state.centers, gaussians.state.covariances, sh, op, cameras,
                            spheres=(pos, rad) if len(rad) else None, **kw)
-
-
-def _rotate_rows(q: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Rotate each row v[i] (G, 3) by quaternion q[i] (G, 4) (x, y, z, w)."""
-    u, w = q[:, :3], q[:, 3:4]
-    uv = (u * v).sum(axis=1, keepdims=True)
-    return 2.0 * uv * u + (w * w - (u * u).sum(axis=1, keepdims=True)) * v + 2.0 * w * np.cross(u, v)
 
 
 def _to_uint8(rgb: np.ndarray) -> np.ndarray:

@@ -26,6 +26,10 @@ MIN_SCALE_REL = 1.0e-3  # viewer std-dev floor, relative to the scene's bounding
 MIN_RATIO = 0.05  # viewer std-dev floor, relative to the Gaussian's largest std dev (float16)
 
 
+#: direction of the key light baked into the splats' colours (towards the scene: from above, in
+#: front of the initial camera)
+LIGHT_DIR = (-0.45, 0.6, -0.65)
+
 #: the most wall time one viewer frame catches up on [s] (a stall longer than this slows the clock
 #: instead of making one frame simulate seconds)
 MAX_CATCH_UP = 0.25
@@ -52,12 +56,13 @@ class Viewer:
                  record: str | Path | None = None, realtime: bool = True, speed: float = 1.0,
                  min_scale_rel: float = MIN_SCALE_REL, min_ratio: float = MIN_RATIO,
                  mesh_color=(90, 160, 220), sphere_color=(230, 90, 60), show_mesh: bool | None = None,
-                 seed: int = 0, log=print):
+                 seed: int = 0, log=print, shade: bool = True):
         viser = _require_viser()
         import trimesh
 
         self.world = world
         self.gaussians = gaussians
+        self.shade = bool(shade)
         self.fps = float(fps)
         self.frame_dt = 1.0 / self.fps
         self.realtime = bool(realtime)
@@ -117,8 +122,18 @@ class Viewer:
         buf = np.zeros((g.count, 8), np.uint32)
         buf[:, 0:3] = centers.view(np.uint32)
         buf[:, 4:7] = np.ascontiguousarray(cov).view(np.uint32)
-        buf[:, 7] = self._rgba
+        buf[:, 7] = self._shaded_rgba() if self.shade else self._rgba
         return buf
+
+    def _shaded_rgba(self) -> np.ndarray:
+        """The splats' RGBA with shading baked from their normals this frame (a key light from
+        above and in front of the initial view), so the surface reads as a shape."""
+        from .gaussians import shaded_rgb
+
+        g = self.gaussians
+        rgb = shaded_rgb(g, LIGHT_DIR)
+        rgba = np.concatenate([np.round(rgb * 255), np.round(g.binding.opacity[:, None] * 255)], 1)
+        return np.ascontiguousarray(np.clip(rgba, 0, 255).astype(np.uint8)).view(np.uint32).reshape(-1)
 
     def _build_scene(self, V0, show_mesh: bool):
         sc = self.server.scene

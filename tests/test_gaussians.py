@@ -215,3 +215,21 @@ def test_post_step_hook_follows_world_surface(device):
     np.testing.assert_allclose(g.numpy()["centers"], c, atol=2e-5)
     first = world.model.surface.sequence.V[0]
     assert np.abs(V - first).max() > 1e-3  # the surface did move
+
+
+def test_shading_follows_the_surface_normal(device):
+    """shaded_rgb: Gaussians on a flat sheet (normal +z) are fully lit by light along -z and get
+    the ambient term alone for light along x; on a tilted sheet the factor is |cos| of the tilt."""
+    from dynmesh_warp.gaussians import shaded_rgb
+    from dynmesh_warp.scenes import grid_sheet
+
+    V, F = grid_sheet(8, 1.0)
+    g = generate_gaussians(V, F, count=200, seed=1, color=(0.8, 0.6, 0.4), device=device)
+    g.update(wp.array(V, dtype=wp.vec3, device=device), wp.array(F.reshape(-1), dtype=wp.int32, device=device))
+    np.testing.assert_allclose(shaded_rgb(g, (0, 0, -1)), g.binding.rgb, atol=1e-4)
+    np.testing.assert_allclose(shaded_rgb(g, (1, 0, 0)), 0.35 * g.binding.rgb, atol=1e-4)
+    tilt = np.radians(30.0)
+    Rx = Rotation.from_rotvec([tilt, 0, 0]).as_matrix()
+    g.update(wp.array((V @ Rx.T).astype(np.float32), dtype=wp.vec3, device=device),
+             wp.array(F.reshape(-1), dtype=wp.int32, device=device))
+    np.testing.assert_allclose(shaded_rgb(g, (0, 0, -1)), (0.35 + 0.65 * np.cos(tilt)) * g.binding.rgb, atol=1e-3)
