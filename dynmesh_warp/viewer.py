@@ -592,6 +592,13 @@ def run_viewer(cfg, device=None, viewer: str = "viser", port: int = 8080, host: 
 
         steps = run_steps(cfg)
     max_frames = None if steps is None else max(1, int(np.ceil(steps * dt / v.frame_dt)))
+    if record and max_frames is not None:  # what a long recording will cost, before it is made
+        per_frame = g.count * 32 + (world.surface.num_vertices * 12 if v.mesh.visible else 0) + \
+            len(world.sphere_radii()) * 12
+        est = max_frames * per_frame
+        log(f"recording {max_frames:,} frames at {v.fps:g} fps: up to {est / 2**20:,.0f} MB before compression "
+            f"({per_frame / 2**10:,.0f} kB per frame: {g.count:,} splats x 32 B"
+            f"{', the mesh' if v.mesh.visible else ''}, the spheres; the default scene's compresses to ~1/3)")
     if viewer == "viser":
         log(f"viewer: http://{'localhost' if host in ('0.0.0.0', '127.0.0.1') else host}:{v.port} "
             f"({g.count} Gaussians, {what}); Ctrl-C to quit")
