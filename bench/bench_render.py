@@ -182,15 +182,14 @@ def main(argv=None):
               f"PSNR {res['gsplat']['psnr_db']:.1f} dB; batch {tgb * 1e3:.2f} ms", flush=True)
         if horse is not None:  # the real splat scene: Gaussians bound to the horse, 4 orbit views
             hm, hq, hs, hc, hsh, hop, hcams = horse
-            ours_h = r.render(hm, hc, hsh, hop, hcams, background=(1, 1, 1)).rgb.numpy().copy()
+            ours_h = r.render(hm, hc, hsh, hop, hcams, background=(0, 0, 0)).rgb.numpy().copy()
             Ks = T(np.stack([[[c.fx, 0, c.cx], [0, c.fy, c.cy], [0, 0, 1]] for c in hcams]).astype(np.float32))
             Vs = np.tile(np.eye(4, dtype=np.float32), (len(hcams), 1, 1))
             for i, c in enumerate(hcams):
                 Vs[i, :3, :3], Vs[i, :3, 3] = c.R, c.t
             ref = gsplat.rasterization(means=T(hm), quats=T(hq), scales=T(hs), opacities=T(hop), colors=T(hsh),
                                        viewmats=T(Vs), Ks=Ks, width=hcams[0].width, height=hcams[0].height,
-                                       sh_degree=int(round(np.sqrt(hsh.shape[1]))) - 1,
-                                       backgrounds=T(np.ones((len(hcams), 3), np.float32)))[0]
+                                       sh_degree=int(round(np.sqrt(hsh.shape[1]))) - 1)[0]
             ref = ref.detach().cpu().numpy()
             res["horse"] = {"gaussians": int(len(hm)), "views": len(hcams),
                             "psnr_db": [psnr(ours_h[i], ref[i]) for i in range(len(hcams))]}
