@@ -9,6 +9,7 @@ compositing with early termination). Runs on the CPU and on CUDA.
 
     python -m dynmesh_warp.render scene.yaml --out frames/ --frames 48
     python -m dynmesh_warp.render scene.yaml --figure strip.png --moments 4
+    python -m dynmesh_warp.render scene.yaml --video run.gif --frames 48
 """
 
 from __future__ import annotations
@@ -233,11 +234,26 @@ def _write_png(path: Path, img: np.ndarray) -> None:
         Image.fromarray(img).save(tmp, format="PNG")
 
 
+def _write_video(path: Path, frames: list, fps: float) -> None:
+    """Frames (H, W, 3) uint8 as a .gif (imageio + Pillow) or .mp4 (imageio-ffmpeg), atomically."""
+    import imageio.v2 as imageio
+
+    from .outputs import atomic_path
+
+    with atomic_path(path, suffix=path.suffix) as tmp:
+        if path.suffix.lower() == ".gif":
+            imageio.mimsave(tmp, frames, format="GIF", duration=1000.0 / fps, loop=0)
+        else:
+            imageio.mimsave(tmp, frames, fps=fps, format="FFMPEG")
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m dynmesh_warp.render", description=__doc__.splitlines()[0])
     p.add_argument("scene", nargs="?", help="scene YAML (default: the built-in default scene)")
     p.add_argument("--out", help="folder for frame_NNNN.png (written atomically, one per frame)")
     p.add_argument("--figure", help="a PNG strip of --moments moments side by side")
+    p.add_argument("--video", help="a video of the frames: .gif (imageio with Pillow) or .mp4 (needs imageio-ffmpeg); "
+                                   "written atomically")
     p.add_argument("--frames", type=int, default=48, help="frames to render with --out")
     p.add_argument("--moments", type=int, default=4)
     p.add_argument("--fps", type=float, default=24.0, help="frames per simulated second")
@@ -246,8 +262,18 @@ def main(argv=None) -> int:
     p.add_argument("--device", default=None)
     p.add_argument("--no-progress", action="store_true")
     a = p.parse_args(argv)
-    if not a.out and not a.figure:
-        p.error("give --out FOLDER and/or --figure STRIP.png")
+    if not a.out and not a.figure and not a.video:
+        p.error("give --out FOLDER, --video RUN.gif|RUN.mp4 and/or --figure STRIP.png")
+    if a.video:
+        ext = Path(a.video).suffix.lower()
+        if ext not in (".gif", ".mp4"):
+            p.error(f"--video {a.video}: give a .gif or .mp4 path")
+        if ext == ".mp4":
+            import importlib.util
+
+            if importlib.util.find_spec("imageio_ffmpeg") is None:
+                p.error(f"--video {a.video}: .mp4 needs the imageio-ffmpeg package (pip install imageio-ffmpeg); "
+                        "or write a .gif, or PNG frames with --out")
     if a.frames < 1 or a.moments < 1 or a.width < 16 or a.height < 16 or not a.fps > 0:
         p.error("--frames, --moments >= 1, --width, --height >= 16, --fps > 0")
     from .config import SceneError, load_scene_config
@@ -267,7 +293,8 @@ def main(argv=None) -> int:
     centre, diag = 0.5 * (lo + hi), float(np.linalg.norm(hi - lo))
     renderer = Renderer(world.device)
     steps_per_frame = max(1, int(round(1.0 / (a.fps * world.dt))))
-    total = a.frames if a.out else 0
+    total = a.frames if (a.out or a.video) else 0
+    video = []
     moments = sorted(set(np.linspace(0, max(a.frames, a.moments) - 1, a.moments).astype(int).tolist()))
     last = max(total - 1, moments[-1] if a.figure else 0)
     strip = []
@@ -284,14 +311,19 @@ def main(argv=None) -> int:
         img = _to_uint8(render_world(world, gs, cam, renderer).rgb.numpy()[0])
         if a.out and f < total:
             _write_png(Path(a.out) / f"frame_{f:04d}.png", img)
+        if a.video and f < total:
+            video.append(img)
         if a.figure and f in moments:
             strip.append(img)
         for _ in range(steps_per_frame):
             world.step()
     if a.figure:
         _write_png(Path(a.figure), np.concatenate(strip, axis=1))
+    if a.video:
+        _write_video(Path(a.video), video, a.fps)
     print(f"rendered {last + 1} frames of {cfg.name} ({a.width}x{a.height})"
-          + (f"; frames in {a.out}" if a.out else "") + (f"; figure {a.figure}" if a.figure else ""))
+          + (f"; frames in {a.out}" if a.out else "") + (f"; figure {a.figure}" if a.figure else "")
+          + (f"; video {a.video}" if a.video else ""))
     return 0
 
 

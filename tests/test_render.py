@@ -61,6 +61,7 @@ def test_render_cli_writes_frames_and_a_figure(tmp_path):
     from dynmesh_warp.render import main
 
     rc = main(["--out", str(tmp_path / "frames"), "--figure", str(tmp_path / "strip.png"), "--frames", "3",
+               "--video", str(tmp_path / "run.gif"),
                "--moments", "2", "--width", "64", "--height", "48", "--no-progress", "--device", "cpu"])
     assert rc == 0
     from PIL import Image
@@ -71,3 +72,7 @@ def test_render_cli_writes_frames_and_a_figure(tmp_path):
     assert img.shape == (48, 64, 3) and img.std() > 5  # not blank
     strip = np.asarray(Image.open(tmp_path / "strip.png"))
     assert strip.shape == (48, 128, 3)
+    gif = Image.open(tmp_path / "run.gif")
+    assert gif.n_frames == 3 and gif.size == (64, 48)
+    with pytest.raises(SystemExit):
+        main(["--video", str(tmp_path / "run.avi"), "--device", "cpu"])  # a format it cannot write
