@@ -33,10 +33,11 @@ from .kernels.batch import (
     reset_env_clocks,
     reset_env_spheres,
 )
+from .kernels.frames import update_frame_vertices
 from .world import Contacts, PhysicsParams, SphereModel, SurfaceModel, check_substep_budget
 
 __all__ = ["BatchModel", "BatchState", "BatchedWorld", "step_envs", "required_substeps", "env_clocks", "TIME_SLICES",
-           "CONTACT_LANES", "ContactLanes", "build_batched_world"]
+           "CONTACT_LANES", "ContactLanes", "build_batched_world", "EnvView"]
 
 
 #: time slices per frame pair of the pair BVHs: a face's box covers 1/TIME_SLICES of its motion
@@ -387,6 +388,76 @@ class BatchedWorld:
     def env_times(self) -> np.ndarray:
         """(E,) float64 [s]."""
         return self.state.env_time.numpy().copy()
+
+
+class EnvView:
+    """One env of a :class:`BatchedWorld` seen as a single simulation (the read side of
+    ``runtime.Simulation``: surface at the env's own time, its spheres, its clock), for the
+    viewer; ``step()`` steps the whole batch. Not editable (reset, seek and drop are the single
+    world's)."""
+
+    editable = False
+    checkpointable = False
+    body_noun = "sphere"
+    num_envs = 1
+
+    def __init__(self, world: BatchedWorld, env: int = 0):
+        if not 0 <= int(env) < world.num_envs:
+            raise IndexError(f"env {env}: the batch has {world.num_envs} envs")
+        self.batch, self.env = world, int(env)
+        self.model = world.model
+        self.surface = world.model.surface
+        self.device = world.device
+        self.render_state = True
+        self.points = wp.zeros(self.surface.num_vertices, dtype=wp.vec3, device=self.device)
+        self._velocities = wp.zeros(self.surface.num_vertices, dtype=wp.vec3, device=self.device)
+        self.t0 = self.time
+
+    @property
+    def time(self) -> float:
+        return float(self.batch.state.env_time.numpy()[self.env])
+
+    @property
+    def dt(self) -> float:
+        return self.batch.dt
+
+    @property
+    def substeps(self) -> int:
+        return self.batch.substeps
+
+    @property
+    def substep_count(self) -> int:
+        return self.batch.substep_count
+
+    @property
+    def use_graph(self) -> bool:
+        return self.batch.use_graph
+
+    def step(self):
+        self.batch.step()
+
+    def capture(self):
+        self.batch.capture()
+
+    def surface_points(self):
+        """The surface's vertices (N,) at this env's time (its rate and playback mode)."""
+        e = self.env
+        mode = int(self.batch.state.env_playback.numpy()[e])
+        wp.launch(update_frame_vertices, self.surface.num_vertices,
+                  inputs=[self.surface.frames, self.batch.state.env_time[e:e + 1], self.surface.fps, mode,
+                          int(self.surface.interpolate)],
+                  outputs=[self.points, self._velocities], device=self.device)
+        return self.points
+
+    def surface_indices(self):
+        return self.surface.indices
+
+    def sphere_positions(self) -> np.ndarray:
+        return self.batch.sphere_positions()[self.env]
+
+    def sphere_radii(self) -> np.ndarray:
+        S = self.model.spheres_per_env
+        return self.model.spheres.radius_np[self.env * S:(self.env + 1) * S]
 
 
 def env_clocks(envs, duration: float, rng: np.random.Generator | None = None):

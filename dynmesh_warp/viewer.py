@@ -575,6 +575,14 @@ def run_viewer(cfg, device=None, viewer: str = "viser", port: int = 8080, host: 
         v = NewtonViewer(newton_world, g, port=port, host=host, fps=fps, record=record,
                          realtime=(viewer == "viser"), log=log)
         world, what = v.world, f"{newton_world.model.body_count} Newton bodies"
+    elif cfg.envs.count > 1:  # batched envs: the viewer shows env 0 (docs/envs.md)
+        from .batch import EnvView, build_batched_world
+
+        batch = build_batched_world(cfg, device=device)
+        world = EnvView(batch, 0)
+        g = gaussians_for_surface(world.surface.sequence, cfg, world.device)
+        v = Viewer(world, g, port=port, host=host, fps=fps, record=record, realtime=(viewer == "viser"), log=log)
+        what = f"env 0 of {batch.num_envs} ({batch.model.spheres_per_env} spheres each)"
     else:
         world = build_world(cfg, device=device, collider=collider, rebuild_every=rebuild_every)
         if steps is not None or viewer != "viser":  # a bounded run: the work budget, before the server starts

@@ -145,3 +145,23 @@ def test_batch_needs_a_fixed_surface_and_spheres(device):
     with pytest.raises(ValueError, match="non-finite"):
         BatchState(bm, [[0.0, 0.0, np.nan]])
     assert wp.get_device(bm.device) == wp.get_device(device)
+
+
+def test_env_view_shows_one_env_at_its_own_time(device):
+    """EnvView (what the viewer shows of a batch): the surface at the env's own time (NumPy
+    oracle), that env's spheres and clock; stepping it steps the batch."""
+    seq = wave_bowl(n=12, frames=6)
+    from dynmesh_warp.batch import EnvView
+
+    bm = BatchModel(SurfaceModel(seq, device, playback="loop"), 3, [0.05, 0.07], 1.0, PhysicsParams())
+    pos = np.array([[0.0, 0.0, 0.5], [0.2, 0.1, 0.6]], np.float32)
+    bw = BatchedWorld(bm, BatchState(bm, pos, times=[0.0, 0.11, 0.2]))
+    v = EnvView(bw, 2)
+    for _ in range(5):
+        v.step()
+    assert v.time == pytest.approx(bw.env_times()[2]) and bw.step_count == 5
+    np.testing.assert_allclose(v.surface_points().numpy(), surface_at(seq, v.time, "loop"), atol=1e-5)
+    np.testing.assert_array_equal(v.sphere_positions(), bw.sphere_positions()[2])
+    np.testing.assert_array_equal(v.sphere_radii(), np.array([0.05, 0.07], np.float32))
+    with pytest.raises(IndexError):
+        EnvView(bw, 3)
