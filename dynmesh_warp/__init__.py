@@ -28,7 +28,7 @@ def _map_source_kernels():
 _map_source_kernels()
 
 from .config import SceneConfig, SceneError, load_scene_config  # noqa: E402
-from .scene import build_world, load_surface  # noqa: E402
+from .scene import build_model, build_world, load_surface  # noqa: E402
 from .sequence import FixedTopologySequence, MeshDataError, VaryingTopologySequence, validate_mesh  # noqa: E402
 from .world import (  # noqa: E402
     Contacts,
@@ -50,6 +50,10 @@ _LAZY = {
     "Gaussians": "gaussians", "gaussians_for_world": "gaussians",
     "Viewer": "viewer", "NewtonViewer": "viewer",
     "Simulation": "runtime",
+    "run_simulation": "runner",
+    "BatchedWorld": "batch", "build_batched_world": "batch",
+    "RideSurfaceEnv": "envs",
+    "Renderer": "render", "Camera": "render", "render_world": "render",
 }
 
 
@@ -92,4 +96,12 @@ __all__ = [
     "gaussians_for_world",
     "Viewer",
     "NewtonViewer",
+    "run_simulation",
+    "build_model",
+    "BatchedWorld",
+    "build_batched_world",
+    "RideSurfaceEnv",
+    "Renderer",
+    "Camera",
+    "render_world",
 ]
