@@ -176,9 +176,31 @@ def scaling(device, verts, spheres, colliders, steps, repeats):
                 rows.append({"vertices": n * n, "faces": 2 * (n - 1) ** 2, "spheres": ns, "collider": col,
                              "steps_per_s": t["steps_per_s"], "us_per_step": t["us_per_step"],
                              "device_mem_bytes": None if m0 is None else m1 - m0, **comp})
-                print(f"  N={n*n:>8} S={ns:>6} {col:<8} {t['steps_per_s']:>10.0f} steps/s", flush=True)
+                if col == "fixed":  # the automatic choice: what it measured and kept
+                    rows[-1]["chosen"] = w.collider.name
+                    rows[-1]["measured_steps_per_s"] = {k: 1.0 / v for k, v in (w.collider_costs or {}).items()}
+                print(f"  N={n*n:>8} S={ns:>6} {col:<8} {t['steps_per_s']:>10.0f} steps/s"
+                      + (f" (chose {w.collider.name})" if col == "fixed" else ""), flush=True)
                 del w
     return rows
+
+
+def fixed_vs_best(rows) -> list:
+    """Per (vertices, spheres): the automatic choice's time per step over the best collider's
+    (issue 14: never more than 1.2)."""
+    out = []
+    for key in sorted({(r["vertices"], r["spheres"]) for r in rows}):
+        grp = {r["collider"]: r for r in rows if (r["vertices"], r["spheres"]) == key}
+        if "fixed" not in grp:
+            continue
+        best = max((r for c, r in grp.items() if c != "fixed"), key=lambda r: r["steps_per_s"])
+        out.append({"vertices": key[0], "spheres": key[1], "chosen": grp["fixed"].get("chosen"),
+                    "best": best["collider"], "fixed_steps_per_s": grp["fixed"]["steps_per_s"],
+                    "best_steps_per_s": best["steps_per_s"],
+                    "slowdown_vs_best": best["steps_per_s"] / grp["fixed"]["steps_per_s"]})
+        print(f"  N={key[0]:>8} S={key[1]:>6} fixed chose {out[-1]['chosen']}, best {best['collider']}: "
+              f"{out[-1]['slowdown_vs_best']:.2f}x the best's time", flush=True)
+    return out
 
 
 def main(argv=None):
@@ -188,6 +210,9 @@ def main(argv=None):
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--no-scaling", action="store_true")
     ap.add_argument("--out", default=None)
+    ap.add_argument("--scaling-only", action="store_true", help="skip the paper scene and the stage breakdown")
+    ap.add_argument("--verts", default=None, help="comma-separated vertex counts of the scaling table")
+    ap.add_argument("--spheres", default=None, help="comma-separated sphere counts of the scaling table")
     args = ap.parse_args(argv)
     import warp as wp
 
@@ -203,7 +228,8 @@ def main(argv=None):
         "interpolate": True}}
     print(f"device {device} ({result['machine']['device_name']}), paper scene {seq.name}", flush=True)
     paper = {}
-    for col, every in [("swept", None), ("refit", None), ("rebuild", "step"), ("rebuild", "frame")]:
+    for col, every in ([] if args.scaling_only else
+                       [("fixed", None), ("swept", None), ("refit", None), ("rebuild", "step"), ("rebuild", "frame")]):
         name = col if every is None else f"rebuild_every_{every}"
         # rebuilding only on frame change is valid when the surface changes only per frame:
         # that variant runs with interpolation off (frames held), as a varying-topology method would
@@ -213,16 +239,21 @@ def main(argv=None):
         paper[name] = {**t, **comp, "cuda_graph": bool(w.use_graph), "interpolate": bool(w.model.surface.interpolate)}
         pos = w.sphere_positions()
         paper[name]["final_finite"] = bool(np.isfinite(pos).all())
+        if col == "fixed":
+            paper[name]["chosen"] = w.collider.name
         print(f"  {name:<22} {t['steps_per_s']:>10.0f} steps/s  ({t['us_per_step']:.1f} us)", flush=True)
         del w
-    for k in ("swept", "refit"):
+    for k in ("swept", "refit") if paper else ():
         paper[f"speedup_{k}_vs_rebuild_every_step"] = paper[k]["steps_per_s"] / paper["rebuild_every_step"]["steps_per_s"]
         paper[f"speedup_{k}_vs_rebuild_every_frame"] = paper[k]["steps_per_s"] / paper["rebuild_every_frame"]["steps_per_s"]
     result["paper"] = paper
-    stages = stage_breakdown(seq, device, max(200, args.steps // 4), args.repeats)
-    result["stages_us"] = stages
-    result["floor_us"] = launch_floor(seq, device, max(200, args.steps // 2), args.repeats, [3, 4, 10])
-    result["floor_us"]["note"] = (
+    if args.scaling_only:
+        stages = {}
+    else:
+        stages = stage_breakdown(seq, device, max(200, args.steps // 4), args.repeats)
+        result["stages_us"] = stages
+        result["floor_us"] = launch_floor(seq, device, max(200, args.steps // 2), args.repeats, [3, 4, 10])
+    result.setdefault("floor_us", {})["note"] = (
         "empty_launches_K: a graph (CUDA) or eager loop (CPU) of K empty kernels; _plus_conditional adds an "
         "empty conditional node. The swept step (parallel path) is 3 launches + 1 conditional node (evaluate, "
         "resolve, integrate); the refit step is 4 launches (interpolate, normals, contact, integrate) plus "
@@ -232,13 +263,15 @@ def main(argv=None):
     if not args.no_scaling:
         if device.is_cuda:
             verts, sph = [1_000, 10_000, 100_000, 1_000_000], [5, 1_000, 100_000]
-            cols = ["swept", "refit", "rebuild"]
             st = 300
         else:
             verts, sph = [1_000, 10_000, 100_000, 1_000_000], [5, 1_000, 10_000]
-            cols = ["swept", "refit", "rebuild"]
             st = 200
+        verts = [int(float(v)) for v in args.verts.split(",")] if args.verts else verts
+        sph = [int(float(v)) for v in args.spheres.split(",")] if args.spheres else sph
+        cols = ["fixed", "swept", "refit", "rebuild"]
         result["scaling"] = scaling(device, verts, sph, cols, st, 3)
+        result["fixed_vs_best"] = fixed_vs_best(result["scaling"])
     write_json(out, result)
 
 

@@ -132,8 +132,15 @@ def run_scene(cfg, device=None, steps: int | None = None, collider: str | None =
             raise SceneError(f"--collider {collider}: batched envs use the swept pair BVHs (docs/envs.md)")
         sim = build_batched_world(cfg, device=device)
     else:
+        from .choices import Collider
         from .scene import build_world
 
+        if ckpt is not None and (collider or cfg.physics.collider) == Collider.FIXED:
+            # the automatic choice is measured (it can differ between machines): a resumed run
+            # keeps the collider its checkpoint was written with
+            kept = str(ckpt.meta.get("fingerprint", {}).get("physics.collider", ""))
+            if kept in (Collider.SWEPT, Collider.REFIT):
+                collider = kept
         sim = build_world(cfg, device=device, collider=collider, rebuild_every=rebuild_every)
         check_total_work(cfg, steps, sim.substeps)  # with the sub-step rule's count
     return run_simulation(sim, cfg, steps=steps, out=out, t_build=t_build, progress=progress, log=log,

@@ -10,6 +10,7 @@ nothing back, so it is captured once as a CUDA graph and replayed.
 from __future__ import annotations
 
 import math
+import time
 import warnings
 from typing import Optional
 
@@ -177,11 +178,14 @@ class SurfaceModel:
     #: the topology, for reports (summary, checkpoint fingerprint)
     topology = "fixed"
 
-    def resolve_collider(self, asked: str, swept_fits) -> str:
-        """``fixed`` (automatic): ``swept`` when interpolating and ``swept_fits()``, else ``refit``."""
+    def resolve_collider(self, asked: str, choose) -> str:
+        """``fixed`` (automatic): ``choose((swept, refit))`` (the measured faster one) when
+        interpolating; else ``refit`` (swept boxes span the interpolated motion between frames)."""
         if asked != Collider.FIXED:
             return asked
-        return Collider.SWEPT.value if self.interpolate and swept_fits() else Collider.REFIT.value
+        if not self.interpolate:
+            return Collider.REFIT.value
+        return choose((Collider.SWEPT.value, Collider.REFIT.value))
 
     def faces(self) -> np.ndarray:
         """(M, 3) int32 faces shared by every frame (host)."""
@@ -249,7 +253,7 @@ class VaryingSurfaceModel:
     colliders = (Collider.REBUILD.value,)
     topology = "varying"
 
-    def resolve_collider(self, asked: str, swept_fits) -> str:
+    def resolve_collider(self, asked: str, choose) -> str:
         return asked  # no automatic choice: only "rebuild" follows it
 
     def faces(self) -> np.ndarray:
@@ -712,6 +716,67 @@ class SweptCollider(ColliderBase):
 SWEPT_MAX_CANDIDATES = 256
 COLLIDERS = {"refit": RefitCollider, "swept": SweptCollider, "rebuild": RebuildCollider}
 COLLIDER_CHOICES = tuple(values(Collider))
+#: the measured choice of ``fixed`` (docs/physics.md#the-automatic-collider): each candidate is
+#: timed on each trial state for this many reconstruction frames of steps, bounded by
+#: CHOICE_STEPS and by CHOICE_SECONDS of timed steps per candidate and trial
+CHOICE_FRAMES = 2.0
+CHOICE_STEPS = (4, 120)
+CHOICE_SECONDS = 0.25
+
+
+def resting_positions(model: Model, t: float, seed: int = 0) -> np.ndarray:
+    """(S, 3) positions [m]: each sphere touching the surface at time ``t`` (centred one radius
+    along the area-weighted vertex normal of a random vertex of the frame played at ``t``): the
+    contact regime of a trial for the measured collider choice."""
+    surf, sph = model.surface, model.spheres
+    seq = surf.sequence
+    k = int(math.floor(t * surf.fps)) % surf.num_frames
+    V, F = seq.V[k].astype(np.float64), seq.F
+    fn = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    vn = np.zeros_like(V)
+    for j in range(3):
+        np.add.at(vn, F[:, j], fn)
+    vn /= np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-30)
+    idx = np.random.default_rng(seed).choice(len(V), sph.count, replace=sph.count > len(V))
+    return (V[idx] + vn[idx] * (sph.radius_np[:, None] + model.params.margin)).astype(np.float32)
+
+
+def measure_colliders(model: Model, state: State, candidates, steps: int | None = None) -> dict:
+    """Seconds per step of each candidate collider on ``model`` (dict name -> s), each the sum
+    over two trial copies of ``state``: as given (e.g. spheres still falling) and every sphere
+    resting on the surface (:func:`resting_positions`, where the colliders differ most). Each
+    trial world runs one eager step and one more (the CUDA graph capture) untimed, then
+    ``steps`` timed steps (default: CHOICE_FRAMES reconstruction frames of steps within
+    CHOICE_STEPS, stopping early after CHOICE_SECONDS). The state itself is not touched."""
+    p, surf = model.params, model.surface
+    if steps is None:
+        per_frame = 1.0 / max(surf.fps * p.dt, 1e-12)
+        steps = int(min(max(math.ceil(CHOICE_FRAMES * per_frame), CHOICE_STEPS[0]), CHOICE_STEPS[1]))
+    t0 = float(state.sim_time.numpy()[0])
+    pos, vel = state.sphere_pos.numpy().copy(), state.sphere_vel.numpy().copy()
+    trials = [(pos, vel)]
+    if model.spheres.count:
+        trials.append((resting_positions(model, t0), np.zeros_like(vel)))
+    cost = dict.fromkeys(candidates, 0.0)
+    for tp, tv in trials:
+        for name in candidates:
+            with warnings.catch_warnings():  # the scene's own notes come from the real world
+                warnings.simplefilter("ignore")
+                w = World(model, State(model, tp, tv, t0=t0), collider=name, render_state=False)
+            w.step()
+            w.step()
+            wp.synchronize_device(w.device)
+            n, start = 0, time.perf_counter()
+            while n < steps:
+                w.step()
+                n += 1
+                if n % 4 == 0 or n == steps:
+                    wp.synchronize_device(w.device)
+                    if time.perf_counter() - start > CHOICE_SECONDS:
+                        break
+            wp.synchronize_device(w.device)
+            cost[name] += (time.perf_counter() - start) / n
+    return cost
 
 
 class World:
@@ -723,8 +788,9 @@ class World:
     advance the device clock. After the sub-steps the face normals (render state) are updated
     and the post-step hooks run.
 
-    Colliders: ``fixed`` picks ``swept`` when interpolation is on and a sphere's per-frame
-    candidate list is expected to fit (else ``refit``: very fine meshes under large spheres);
+    Colliders: ``fixed`` times ``swept`` and ``refit`` on trial copies of the state when
+    interpolation is on and keeps the faster (:func:`measure_colliders`; ``collider_costs``),
+    else ``refit``;
     ``refit`` (BVH refit every sub-step, the reference), ``swept`` (refit once per frame),
     ``rebuild`` (varying-topology baseline, new BVH every sub-step or frame).
 
@@ -749,7 +815,8 @@ class World:
                 f"collider {collider!r}: a {surf.topology}-topology surface can only use collider "
                 f"{' or '.join(map(repr, surf.colliders))} (or convert it to fixed topology first)"
             )
-        collider = surf.resolve_collider(collider, lambda: self._swept_fits(model))
+        self.collider_costs = None  # seconds per step of each candidate when ``fixed`` measured them
+        collider = surf.resolve_collider(collider, lambda cands: self._choose_measured(model, state, cands))
         self.substeps = max(1, int(p.substeps))
         self.t0 = float(state.sim_time.numpy()[0])
         # the stages' context: sub-step, reach, launch, host clock (twin of sim_time: the same
@@ -778,19 +845,11 @@ class World:
         self._initial_spheres = model.spheres  # the scene's own spheres: reset() goes back to them
         self.post_step_hooks = []  # callables hook(world) launched after each step (inside the graph)
 
-    @staticmethod
-    def _swept_fits(model: Model, max_candidates: int = SWEPT_MAX_CANDIDATES) -> bool:
-        """Whether a resting sphere's per-frame candidate list is expected to fit (swept pays off):
-        faces per unit area of frame 0 x the area of the gather box of the largest sphere."""
-        surf, sph = model.surface, model.spheres
-        if sph.count == 0:
-            return True
-        V, F = surf.sequence.V[0].astype(np.float64), surf.sequence.F
-        area = 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1).sum()
-        T = 1.0 / surf.fps
-        R = float(sph.radius_np.max()) + model.params.margin + 0.625 * float(np.linalg.norm(model.params.gravity)) * T * T
-        expected = surf.num_faces / max(area, 1e-30) * (2.0 * R) ** 2
-        return expected <= 0.5 * max_candidates
+    def _choose_measured(self, model: Model, state: State, candidates) -> str:
+        """The candidate with the least measured time per step (:func:`measure_colliders`);
+        the first candidate on a tie. Records the costs in ``collider_costs``."""
+        self.collider_costs = measure_colliders(model, state, candidates)
+        return min(candidates, key=lambda c: self.collider_costs[c])
 
     def add_post_step_hook(self, hook, needs_surface: bool = True):
         """Run ``hook(world)`` after every step; it must only launch kernels (no allocation, no
@@ -1133,6 +1192,8 @@ class World:
         gap = self._surface_gaps()
         return {
             "collider": self.collider.name + (f"/{self.collider.every}" if self.collider.name == "rebuild" else ""),
+            "collider_choice": (None if self.collider_costs is None else
+                                {"measured_steps_per_s": {k: 1.0 / max(v, 1e-12) for k, v in self.collider_costs.items()}}),
             "surface": {"frames": surf.num_frames, "fps": surf.fps,
                         "interpolate": bool(surf.interpolate), "max_speed_m_s": float(surf.max_speed)},
             "spheres": self.model.spheres.count,

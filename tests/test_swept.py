@@ -95,11 +95,46 @@ def test_swept_world_matches_refit_world_trajectories():
     assert touched > 50
 
 
-def test_fixed_collider_defaults_to_swept_with_interpolation():
+def test_fixed_collider_measures_and_keeps_the_faster(monkeypatch):
+    """``fixed``: without interpolation refit (nothing measured); with it, both candidates timed
+    on trial states (the world's own state untouched) and the faster kept, whichever it is."""
+    import dynmesh_warp.world as world_mod
+
     seq = wave_bowl(n=16, frames=6)
-    for interp, name in [(True, "swept"), (False, "refit")]:
-        model = Model(SurfaceModel(seq, TEST_DEVICE, interpolate=interp), SphereModel([0.05], 1.0, TEST_DEVICE), PhysicsParams())
-        assert World(model, State(model, [[0, 0, 1]])).collider.name == name
+    model = Model(SurfaceModel(seq, TEST_DEVICE, interpolate=False), SphereModel([0.05], 1.0, TEST_DEVICE), PhysicsParams())
+    w = World(model, State(model, [[0, 0, 1]]))
+    assert w.collider.name == "refit" and w.collider_costs is None
+    model = Model(SurfaceModel(seq, TEST_DEVICE, interpolate=True), SphereModel([0.05, 0.05], 1.0, TEST_DEVICE),
+                  PhysicsParams())
+    state = State(model, [[0, 0, 1], [0.2, 0, 1]], t0=0.1)
+    w = World(model, state)
+    costs = w.collider_costs
+    assert set(costs) == {"swept", "refit"} and all(np.isfinite(v) and v > 0 for v in costs.values())
+    assert w.collider.name == min(costs, key=costs.get)
+    np.testing.assert_allclose(w.sphere_positions(), [[0, 0, 1], [0.2, 0, 1]])  # trials ran on copies
+    assert float(state.sim_time.numpy()[0]) == 0.1
+    assert w.run_summary()["collider_choice"]["measured_steps_per_s"]["refit"] > 0
+    for fake in ({"swept": 2.0, "refit": 1.0}, {"swept": 1.0, "refit": 2.0}):  # the choice follows the costs
+        monkeypatch.setattr(world_mod, "measure_colliders", lambda m, s, c, fake=fake: dict(fake))
+        assert World(model, State(model, [[0, 0, 1], [0.2, 0, 1]])).collider.name == min(fake, key=fake.get)
+
+
+def test_resting_positions_touch_the_surface():
+    """The contact trial of the measured choice: each sphere one radius + margin from the frame's
+    surface (closest point by brute force over the triangles), outside it along the normal."""
+    from reference import brute_nearest
+
+    seq = wave_bowl(n=12, frames=4)
+    r = np.array([0.03, 0.05, 0.08] * 4, np.float32)
+    model = Model(SurfaceModel(seq, TEST_DEVICE), SphereModel(r, 1.0, TEST_DEVICE), PhysicsParams())
+    from dynmesh_warp.world import resting_positions
+
+    t = 1.5 / seq.fps
+    pos = resting_positions(model, t)
+    dist = brute_nearest(pos, seq.V[1].astype(np.float64), seq.F)[0]
+    assert pos.shape == (12, 3)
+    np.testing.assert_array_less(dist, r + model.params.margin + 1e-5)
+    assert (dist > 0.5 * r).all()
 
 
 def test_swept_bvh_refit_only_on_frame_change():
@@ -150,8 +185,7 @@ def test_no_tunnelling_over_1e5_steps(scene):
                   SphereModel(np.full(S, r, np.float32), 1.0, TEST_DEVICE),
                   PhysicsParams(restitution=0.3 if scene == "wave_bowl" else 0.0,
                                 friction=0.5 if scene == "wave_bowl" else 2.0, ground_height=ground))
-    w = World(model, State(model, pos))
-    assert w.collider.name == "swept"
+    w = World(model, State(model, pos), collider="swept")
     touched = 0
     for i in range(100_000):
         w.step()
