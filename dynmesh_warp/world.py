@@ -716,66 +716,44 @@ class SweptCollider(ColliderBase):
 SWEPT_MAX_CANDIDATES = 256
 COLLIDERS = {"refit": RefitCollider, "swept": SweptCollider, "rebuild": RebuildCollider}
 COLLIDER_CHOICES = tuple(values(Collider))
-#: the measured choice of ``fixed`` (docs/physics.md#the-automatic-collider): each candidate is
-#: timed on each trial state for this many reconstruction frames of steps, bounded by
-#: CHOICE_STEPS and by CHOICE_SECONDS of timed steps per candidate and trial
-CHOICE_FRAMES = 2.0
-CHOICE_STEPS = (4, 120)
-CHOICE_SECONDS = 0.25
+#: the measured choice of ``fixed`` (docs/physics.md#the-automatic-collider): each candidate runs
+#: the scene's own start on a copy of its state for CHOICE_HORIZON simulated seconds (or until
+#: CHOICE_SECONDS of wall time), timed after CHOICE_WARMUP untimed steps; the mean counts
+CHOICE_HORIZON = 2.0
+CHOICE_SECONDS = 0.5
+CHOICE_WARMUP = 4
 
 
-def resting_positions(model: Model, t: float, seed: int = 0) -> np.ndarray:
-    """(S, 3) positions [m]: each sphere touching the surface at time ``t`` (centred one radius
-    along the area-weighted vertex normal of a random vertex of the frame played at ``t``): the
-    contact regime of a trial for the measured collider choice."""
-    surf, sph = model.surface, model.spheres
-    seq = surf.sequence
-    k = int(math.floor(t * surf.fps)) % surf.num_frames
-    V, F = seq.V[k].astype(np.float64), seq.F
-    fn = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
-    vn = np.zeros_like(V)
-    for j in range(3):
-        np.add.at(vn, F[:, j], fn)
-    vn /= np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-30)
-    idx = np.random.default_rng(seed).choice(len(V), sph.count, replace=sph.count > len(V))
-    return (V[idx] + vn[idx] * (sph.radius_np[:, None] + model.params.margin)).astype(np.float32)
-
-
-def measure_colliders(model: Model, state: State, candidates, steps: int | None = None) -> dict:
-    """Seconds per step of each candidate collider on ``model`` (dict name -> s), each the sum
-    over two trial copies of ``state``: as given (e.g. spheres still falling) and every sphere
-    resting on the surface (:func:`resting_positions`, where the colliders differ most). Each
-    trial world runs one eager step and one more (the CUDA graph capture) untimed, then
-    ``steps`` timed steps (default: CHOICE_FRAMES reconstruction frames of steps within
-    CHOICE_STEPS, stopping early after CHOICE_SECONDS). The state itself is not touched."""
+def measure_colliders(model: Model, state: State, candidates, horizon: float = CHOICE_HORIZON,
+                      budget_s: float = CHOICE_SECONDS) -> dict:
+    """Seconds per step of each candidate collider (dict name -> s) on the run this state
+    starts: each candidate steps a trial copy of ``state`` (spheres fall, land, bounce or roll
+    off as they will in the run) for ``horizon`` simulated seconds, or until ``budget_s`` of
+    wall time, after CHOICE_WARMUP untimed steps (eager, CUDA graph capture, two replays: the
+    first replay uploads the graph). Timed in rounds of about two reconstruction frames with a
+    device sync after each; the cost is the mean over the timed steps. ``state`` is not touched."""
     p, surf = model.params, model.surface
-    if steps is None:
-        per_frame = 1.0 / max(surf.fps * p.dt, 1e-12)
-        steps = int(min(max(math.ceil(CHOICE_FRAMES * per_frame), CHOICE_STEPS[0]), CHOICE_STEPS[1]))
+    per_round = max(4, math.ceil(2.0 / max(surf.fps * p.dt, 1e-12)))
+    total = max(per_round, math.ceil(horizon / p.dt))
     t0 = float(state.sim_time.numpy()[0])
     pos, vel = state.sphere_pos.numpy().copy(), state.sphere_vel.numpy().copy()
-    trials = [(pos, vel)]
-    if model.spheres.count:
-        trials.append((resting_positions(model, t0), np.zeros_like(vel)))
-    cost = dict.fromkeys(candidates, 0.0)
-    for tp, tv in trials:
-        for name in candidates:
-            with warnings.catch_warnings():  # the scene's own notes come from the real world
-                warnings.simplefilter("ignore")
-                w = World(model, State(model, tp, tv, t0=t0), collider=name, render_state=False)
+    cost = {}
+    for name in candidates:
+        with warnings.catch_warnings():  # the scene's own notes come from the real world
+            warnings.simplefilter("ignore")
+            w = World(model, State(model, pos, vel, t0=t0), collider=name, render_state=False)
+        for _ in range(CHOICE_WARMUP):
             w.step()
-            w.step()
-            wp.synchronize_device(w.device)
-            n, start = 0, time.perf_counter()
-            while n < steps:
+        wp.synchronize_device(w.device)
+        n, spent = 0, 0.0
+        while n < total and spent < budget_s:
+            start = time.perf_counter()
+            for _ in range(per_round):
                 w.step()
-                n += 1
-                if n % 4 == 0 or n == steps:
-                    wp.synchronize_device(w.device)
-                    if time.perf_counter() - start > CHOICE_SECONDS:
-                        break
             wp.synchronize_device(w.device)
-            cost[name] += (time.perf_counter() - start) / n
+            spent += time.perf_counter() - start
+            n += per_round
+        cost[name] = spent / n
     return cost
 
 
@@ -788,7 +766,7 @@ class World:
     advance the device clock. After the sub-steps the face normals (render state) are updated
     and the post-step hooks run.
 
-    Colliders: ``fixed`` times ``swept`` and ``refit`` on trial copies of the state when
+    Colliders: ``fixed`` runs ``swept`` and ``refit`` on trial copies of the state when
     interpolation is on and keeps the faster (:func:`measure_colliders`; ``collider_costs``),
     else ``refit``;
     ``refit`` (BVH refit every sub-step, the reference), ``swept`` (refit once per frame),

@@ -209,6 +209,20 @@ def test_resume_from_a_checkpoint_is_bit_identical(tmp_path, collider, steps, ev
     assert sb["checkpoint"]["every"] == every  # the interval is kept on resume
 
 
+def test_resume_keeps_the_collider_fixed_chose(tmp_path, monkeypatch):
+    """``fixed`` is measured and may choose differently on another machine: a resumed run takes
+    the collider its checkpoint was written with, whatever a new measurement says."""
+    import dynmesh_warp.world as world_mod
+
+    a, b = tmp_path / "a", tmp_path / "b"
+    monkeypatch.setattr(world_mod, "measure_colliders", lambda m, s, c: {"swept": 1.0, "refit": 2.0})
+    assert _run_inprocess(["--steps", "60", "--checkpoint-every", "30", "--output", str(a)]) == 0
+    assert json.loads(str(np.load(a / "checkpoint.npz")["meta"]))["fingerprint"]["physics.collider"] == "swept"
+    monkeypatch.setattr(world_mod, "measure_colliders", lambda m, s, c: {"swept": 2.0, "refit": 1.0})
+    assert _run_inprocess(["--steps", "90", "--resume", str(a / "checkpoint.npz"), "--output", str(b)]) == 0
+    assert json.loads((b / "summary.json").read_text())["collider"] == "swept"
+
+
 def test_interrupted_run_checkpoints_where_it_stops_and_resumes_in_place(tmp_path, capsys):
     """Ctrl-C with checkpointing on: checkpoint.npz at the step reached; --resume into the same
     folder (no --overwrite needed: all of it is the tool's) finishes the run as if never stopped."""

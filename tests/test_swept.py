@@ -119,24 +119,6 @@ def test_fixed_collider_measures_and_keeps_the_faster(monkeypatch):
         assert World(model, State(model, [[0, 0, 1], [0.2, 0, 1]])).collider.name == min(fake, key=fake.get)
 
 
-def test_resting_positions_touch_the_surface():
-    """The contact trial of the measured choice: each sphere one radius + margin from the frame's
-    surface (closest point by brute force over the triangles), outside it along the normal."""
-    from reference import brute_nearest
-
-    seq = wave_bowl(n=12, frames=4)
-    r = np.array([0.03, 0.05, 0.08] * 4, np.float32)
-    model = Model(SurfaceModel(seq, TEST_DEVICE), SphereModel(r, 1.0, TEST_DEVICE), PhysicsParams())
-    from dynmesh_warp.world import resting_positions
-
-    t = 1.5 / seq.fps
-    pos = resting_positions(model, t)
-    dist = brute_nearest(pos, seq.V[1].astype(np.float64), seq.F)[0]
-    assert pos.shape == (12, 3)
-    np.testing.assert_array_less(dist, r + model.params.margin + 1e-5)
-    assert (dist > 0.5 * r).all()
-
-
 def test_swept_bvh_refit_only_on_frame_change():
     seq = wave_bowl(n=16, frames=6)
     model = Model(SurfaceModel(seq, TEST_DEVICE), SphereModel([0.05], 1.0, TEST_DEVICE), PhysicsParams(dt=1 / 240))
