@@ -722,19 +722,24 @@ COLLIDER_CHOICES = tuple(values(Collider))
 CHOICE_HORIZON = 2.0
 CHOICE_SECONDS = 0.5
 CHOICE_WARMUP = 4
+CHOICE_ROUND_MAX = 120  # steps per timed round
 
 
-def measure_colliders(model: Model, state: State, candidates, horizon: float = CHOICE_HORIZON,
-                      budget_s: float = CHOICE_SECONDS) -> dict:
+def measure_colliders(model: Model, state: State, candidates, horizon: float | None = None,
+                      budget_s: float | None = None) -> dict:
     """Seconds per step of each candidate collider (dict name -> s) on the run this state
     starts: each candidate steps a trial copy of ``state`` (spheres fall, land, bounce or roll
     off as they will in the run) for ``horizon`` simulated seconds, or until ``budget_s`` of
     wall time, after CHOICE_WARMUP untimed steps (eager, CUDA graph capture, two replays: the
-    first replay uploads the graph). Timed in rounds of about two reconstruction frames with a
-    device sync after each; the cost is the mean over the timed steps. ``state`` is not touched."""
+    first replay uploads the graph). Timed in rounds of about two reconstruction frames (at
+    most CHOICE_ROUND_MAX steps) with a device sync after each; the cost is the mean over the
+    timed steps. Steps so costly that the warm-up alone outlasts ``budget_s`` end the trial
+    there (their mean counts), so a scene with a huge sub-step count is not run for long. ``state`` is not touched."""
+    horizon = CHOICE_HORIZON if horizon is None else float(horizon)
+    budget_s = CHOICE_SECONDS if budget_s is None else float(budget_s)
     p, surf = model.params, model.surface
-    per_round = max(4, math.ceil(2.0 / max(surf.fps * p.dt, 1e-12)))
-    total = max(per_round, math.ceil(horizon / p.dt))
+    per_round = int(min(max(4, math.ceil(2.0 / max(surf.fps * p.dt, 1e-12))), CHOICE_ROUND_MAX))
+    total = max(per_round, math.ceil(horizon / p.dt)) if p.dt > 0 else per_round
     t0 = float(state.sim_time.numpy()[0])
     pos, vel = state.sphere_pos.numpy().copy(), state.sphere_vel.numpy().copy()
     cost = {}
@@ -742,9 +747,17 @@ def measure_colliders(model: Model, state: State, candidates, horizon: float = C
         with warnings.catch_warnings():  # the scene's own notes come from the real world
             warnings.simplefilter("ignore")
             w = World(model, State(model, pos, vel, t0=t0), collider=name, render_state=False)
+        warm = []  # the warm-up steps' times; a step that alone outlasts the budget ends the trial there
         for _ in range(CHOICE_WARMUP):
+            start = time.perf_counter()
             w.step()
-        wp.synchronize_device(w.device)
+            wp.synchronize_device(w.device)
+            warm.append(time.perf_counter() - start)
+            if sum(warm[1:]) > budget_s:
+                break
+        if sum(warm[1:]) > budget_s:
+            cost[name] = sum(warm[1:]) / len(warm[1:])
+            continue
         n, spent = 0, 0.0
         while n < total and spent < budget_s:
             start = time.perf_counter()

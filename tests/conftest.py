@@ -85,3 +85,15 @@ def project_to_mesh(mesh: "wp.Mesh", queries: np.ndarray, device, max_dist: floa
     return closest.numpy(), face.numpy(), bary.numpy(), dist.numpy()
 
 
+
+
+@pytest.fixture(autouse=True)
+def _short_collider_trials(monkeypatch):
+    """``collider: fixed`` measures both colliders on a trial run when a world is built (2
+    simulated s, up to 0.5 s of wall time each): hundreds of worlds in the suite would spend
+    minutes there. Tests keep the measurement but on a 0.05 s trial; the tests of the choice
+    itself (tests/test_swept.py) time it in full where they need to."""
+    import dynmesh_warp.world as world_mod
+
+    monkeypatch.setattr(world_mod, "CHOICE_HORIZON", 0.05)
+    monkeypatch.setattr(world_mod, "CHOICE_SECONDS", 0.05)
