@@ -34,6 +34,7 @@ __all__ = ["main", "run_scene"]
 def _parser() -> argparse.ArgumentParser:
     from .choices import DEFAULT_COLLIDER, DEFAULT_REBUILD_EVERY, Collider, RebuildEvery, values
     from .cli import Parser
+    from .viewer import SPLAT_GROUPS
 
     p = Parser(prog="python -m dynmesh_warp.run", description=__doc__.splitlines()[0])
     p.add_argument("scene", nargs="?", help="scene YAML file (default: the built-in default scene)")
@@ -45,7 +46,8 @@ def _parser() -> argparse.ArgumentParser:
     g.add_argument("--duration", type=float, help="simulated seconds (overrides run.duration)")
     g.add_argument("--steps", type=int, help="number of physics steps (overrides run.duration/steps)")
     p.add_argument("--collider", choices=values(Collider),
-                   help=f"{DEFAULT_COLLIDER} (default): swept with interpolation, else refit; refit: refit one BVH every step; "
+                   help=f"{DEFAULT_COLLIDER} (default): the faster of swept and refit, timed on the scene's first 2 s "
+                        "(interpolation on; else refit); refit: refit one BVH every step; "
                         "swept: refit swept bounds once per frame; rebuild: new BVH (varying-topology baseline)")
     p.add_argument("--rebuild-every", choices=values(RebuildEvery),
                    help=f"for --collider rebuild (default {DEFAULT_REBUILD_EVERY})")
@@ -55,6 +57,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--host", default="127.0.0.1", help="viewer address to listen on (0.0.0.0: all)")
     p.add_argument("--record", metavar="OUT.viser",
                    help="save a replayable viser recording and a self-contained OUT.html next to it")
+    p.add_argument("--splat-groups", type=int, metavar="K", default=None,
+                   help="viewer/--record: send the splats once and then only the poses of K rigidly moving "
+                        f"groups per frame (default {SPLAT_GROUPS}; more: closer to the surface, more bytes); 0: the "
+                        "whole splat buffer every frame (docs/rendering.md)")
     p.add_argument("--envs", type=int, metavar="N",
                    help="run N batched environments on the shared surface, each at its own clock "
                         "(overrides envs.count; prints env-steps/s; docs/envs.md)")
@@ -163,6 +169,8 @@ def check_cli_options(args) -> None:
         raise SceneError(f"--output {args.output}: a --record run writes only the recording (OUT.viser and "
                          "OUT.html; it keeps no trajectories); run once more without --record for "
                          "summary.json and trajectories.npz")
+    if args.splat_groups is not None and args.splat_groups < 0:
+        raise SceneError(f"--splat-groups must be >= 0 (0: the whole splat buffer every frame), got {args.splat_groups}")
     if args.rebuild_every is not None and args.collider not in (None, "rebuild"):
         raise SceneError(f"--rebuild-every applies to --collider rebuild, not --collider {args.collider}")
     if args.checkpoint_every is not None and args.checkpoint_every < 0:
@@ -233,7 +241,8 @@ def main(argv=None) -> int:
                     warnings.simplefilter("always")
                     res = run_viewer(cfg, device=args.device, viewer=viewer, port=args.port, host=args.host,
                                      record=args.record, steps=steps if (args.steps or args.duration) else None,
-                                     collider=args.collider, rebuild_every=args.rebuild_every, stop=stop_reason)
+                                     collider=args.collider, rebuild_every=args.rebuild_every, stop=stop_reason,
+                                     splat_groups=args.splat_groups)
             except (SplatPlyError, RuntimeError, OSError) as e:
                 print(f"error: {e}", file=sys.stderr)
                 return 2

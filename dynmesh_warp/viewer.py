@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["Viewer", "NewtonViewer", "run_viewer", "decode_viser_recording", "decode_wire_message",
-           "SceneStateTracker", "recording_html"]
+           "SceneStateTracker", "scene_splat_centers", "recording_html", "SPLAT_GROUPS"]
 
 MIN_SCALE_REL = 1.0e-3  # viewer std-dev floor, relative to the scene's bounding-box diagonal
 MIN_RATIO = 0.05  # viewer std-dev floor, relative to the Gaussian's largest std dev (float16)
@@ -29,6 +29,15 @@ MIN_RATIO = 0.05  # viewer std-dev floor, relative to the Gaussian's largest std
 #: direction of the key light baked into the splats' colours (towards the scene: from above, in
 #: front of the initial camera)
 LIGHT_DIR = (-0.45, 0.6, -0.65)
+
+#: bound Gaussians are streamed as this many rigidly moving groups (docs/rendering.md#what-the-viewer-sends):
+#: the splat buffer goes once, then each frame only the groups' poses; 0 sends the whole buffer
+#: every frame the surface moves
+SPLAT_GROUPS = 128
+#: the groups' buffers are sent again from the current pose when a Gaussian's rigid-fit error
+#: exceeds this fraction of the scene's bounding-box diagonal, at most once per REKEY_INTERVAL [s]
+REKEY_ERROR = 0.05
+REKEY_INTERVAL = 1.0
 
 #: the most wall time one viewer frame catches up on [s] (a stall longer than this slows the clock
 #: instead of making one frame simulate seconds)
@@ -56,13 +65,17 @@ class Viewer:
                  record: str | Path | None = None, realtime: bool = True, speed: float = 1.0,
                  min_scale_rel: float = MIN_SCALE_REL, min_ratio: float = MIN_RATIO,
                  mesh_color=(90, 160, 220), sphere_color=(230, 90, 60), show_mesh: bool | None = None,
-                 seed: int = 0, log=print, shade: bool = True):
+                 seed: int = 0, log=print, shade: bool = True, splat_groups: int = SPLAT_GROUPS):
         viser = _require_viser()
         import trimesh
 
         self.world = world
         self.gaussians = gaussians
         self.shade = bool(shade)
+        if int(splat_groups) < 0:
+            raise ValueError(f"splat_groups must be >= 0 (0: the whole buffer every frame), got {splat_groups}")
+        self.splat_groups = int(splat_groups)
+        self.stream = None  # the grouped splat stream (_SplatGroups) when splat_groups > 0
         self.fps = float(fps)
         self.frame_dt = 1.0 / self.fps
         self.realtime = bool(realtime)
@@ -152,12 +165,18 @@ class Viewer:
         if g is not None and g.count:
             rgba = np.concatenate([np.round(g.binding.rgb * 255), np.round(g.binding.opacity[:, None] * 255)], 1)
             self._rgba = np.ascontiguousarray(np.clip(rgba, 0, 255).astype(np.uint8)).view(np.uint32).reshape(-1)
-            cov = np.zeros((g.count, 3, 3), np.float32)
-            cov[:] = np.eye(3) * 1e-4
-            self.splats = sc.add_gaussian_splats("/splats", centers=np.zeros((g.count, 3), np.float32),
-                                                 covariances=cov, rgbs=g.binding.rgb,
-                                                 opacities=g.binding.opacity[:, None])
-            self.splats.buffer = self._splat_buffer()
+            seq = getattr(self.world.surface, "sequence", None)
+            if self.splat_groups > 0 and getattr(seq, "V", None) is not None:
+                self._refresh_gaussians()
+                self.stream = _SplatGroups(self, np.asarray(seq.V), seq.F, self.splat_groups)
+                self.splats = self.stream.parent
+            else:
+                cov = np.zeros((g.count, 3, 3), np.float32)
+                cov[:] = np.eye(3) * 1e-4
+                self.splats = sc.add_gaussian_splats("/splats", centers=np.zeros((g.count, 3), np.float32),
+                                                     covariances=cov, rgbs=g.binding.rgb,
+                                                     opacities=g.binding.opacity[:, None])
+                self.splats.buffer = self._splat_buffer()
         self.spheres = None
         self._sphere_count = -1
         self._send_spheres(force=True)
@@ -204,6 +223,7 @@ class Viewer:
         self._slider_guard = False
         self._last_seek = -1e9
         self.gui_rate = gui.add_text("Rate (sim s / wall s)", "-", disabled=True)
+        self.gui_splat_error = gui.add_text("Splat error (of the scene size)", "-", disabled=True)
 
         self.gui_play.on_update(lambda e: self._queue("play", self.gui_play.value))
         self.gui_speed.on_update(lambda e: self._queue("speed", self.gui_speed.value))
@@ -311,6 +331,10 @@ class Viewer:
         if t1w > t0w and self.frame % 10 == 0:
             self.achieved_rate = (t1s - t0s) / (t1w - t0w)
             self.gui_rate.value = f"{self.achieved_rate:.2f} (speed {self.speed:g})"
+            if self.stream is not None and self.stream.error is not None:
+                e = self.stream.error
+                self.gui_splat_error.value = (f"p99 {100 * e['p99']:.2f} % / max {100 * e['max']:.2f} % "
+                                              f"({self.stream.K} groups)")
         return n
 
     def _send(self):
@@ -327,7 +351,10 @@ class Viewer:
                 self._stale["mesh"] = True
             if self.splats is not None:
                 if (moved or self._stale["splats"]) and self.splats.visible:
-                    self.splats.buffer = self._splat_buffer()
+                    if self.stream is not None:
+                        self.stream.update()
+                    else:
+                        self.splats.buffer = self._splat_buffer()
                     self._stale["splats"] = False
                 elif moved:
                     self._stale["splats"] = True
@@ -393,6 +420,85 @@ class Viewer:
     def __exit__(self, *exc):
         self.close()
         return False
+
+
+class _SplatGroups:
+    """The viewer's Gaussians as K rigidly moving groups (docs/rendering.md#what-the-viewer-sends).
+
+    Faces are grouped by their motion over the whole sequence (:func:`geometry.motion_groups`:
+    k-means of centroid trajectories), each Gaussian joins its face's group, and each group is one
+    viser splat node under the ``/splats`` frame: its buffer (centres relative to the group's
+    centroid, covariances and shaded colours of the reference pose) is sent once; per frame only
+    the groups' poses go (Kabsch fit of the reference centres to the current ones,
+    :func:`geometry.fit_group_motions`; viser's splat shader applies a node's pose to centres and
+    covariances). ``error``: the last frame's fit error per Gaussian as fractions of the scene's
+    bounding-box diagonal (median, p99, max); above REKEY_ERROR (at most every REKEY_INTERVAL s)
+    the buffers are sent again from the current pose (``rekeys`` counts them)."""
+
+    def __init__(self, viewer, V, F, groups: int):
+        from .geometry import motion_groups
+
+        self.viewer = viewer
+        g = viewer.gaussians
+        face_group = motion_groups(V, F, min(int(groups), g.count))
+        self.labels = face_group[g.binding.face.numpy()]
+        self.labels = np.unique(self.labels, return_inverse=True)[1]  # groups that hold a Gaussian
+        self.K = int(self.labels.max()) + 1
+        order = np.argsort(self.labels, kind="stable")
+        bounds = np.searchsorted(self.labels[order], np.arange(self.K + 1))
+        self.members = [order[bounds[k]:bounds[k + 1]] for k in range(self.K)]
+        sc = viewer.server.scene
+        self.parent = sc.add_frame("/splats", show_axes=False)
+        self.nodes = []
+        for k, idx in enumerate(self.members):
+            n = len(idx)
+            self.nodes.append(sc.add_gaussian_splats(
+                f"/splats/g{k}", centers=np.zeros((n, 3), np.float32), covariances=np.zeros((n, 3, 3), np.float32),
+                rgbs=np.zeros((n, 3), np.float32), opacities=np.zeros((n, 1), np.float32)))
+        self.error = None
+        self.rekeys = 0
+        self._last_key = -np.inf
+        self.key()
+
+    def _centers(self) -> np.ndarray:
+        return np.array(self.viewer.gaussians.state.centers.numpy(), dtype=np.float64, copy=True)
+
+    def key(self):
+        """Send every group's buffer from the current pose (the new reference)."""
+        C = self._centers()
+        cnt = np.bincount(self.labels, minlength=self.K).astype(np.float64)
+        mean = np.stack([np.bincount(self.labels, C[:, j], self.K) for j in range(3)], 1) / cnt[:, None]
+        self.ref_local = C - mean[self.labels]
+        buf = self.viewer._splat_buffer()
+        buf[:, 0:3] = self.ref_local.astype(np.float32).view(np.uint32)
+        self._pose = np.concatenate([np.tile([1.0, 0.0, 0.0, 0.0], (self.K, 1)), mean], 1)  # (K, 7) wxyz, xyz
+        for k, node in enumerate(self.nodes):
+            node.buffer = np.ascontiguousarray(buf[self.members[k]])
+            node.wxyz = (1.0, 0.0, 0.0, 0.0)
+            node.position = tuple(float(x) for x in mean[k])
+        self._last_key = time.monotonic()
+        self.error = {"median": 0.0, "p99": 0.0, "max": 0.0}
+
+    def update(self):
+        """Fit each group's pose to the Gaussians' current centres and send the ones that moved;
+        key again instead when the fit error is over REKEY_ERROR (at most every REKEY_INTERVAL)."""
+        from .geometry import fit_group_motions, rotation_to_wxyz
+
+        scale = self.viewer.scene_scale
+        R, t, err = fit_group_motions(self.ref_local, self._centers(), self.labels, self.K)
+        err = err / scale
+        self.error = {"median": float(np.median(err)), "p99": float(np.percentile(err, 99)), "max": float(err.max())}
+        if self.error["max"] > REKEY_ERROR and time.monotonic() - self._last_key >= REKEY_INTERVAL:
+            self.rekeys += 1
+            self.key()
+            return
+        pose = np.concatenate([rotation_to_wxyz(R), t], 1)
+        d = np.abs(pose - self._pose)
+        moved = np.flatnonzero((d[:, :4].max(axis=1) > 1e-7) | (d[:, 4:].max(axis=1) > 1e-7 * scale))
+        for k in moved:
+            self.nodes[k].wxyz = tuple(float(x) for x in pose[k, :4])
+            self.nodes[k].position = tuple(float(x) for x in pose[k, 4:])
+        self._pose[moved] = pose[moved]
 
 
 def _shape_mesh(shape: dict):
@@ -550,9 +656,35 @@ class SceneStateTracker:
             self.nodes[msg["name"]] = dict(msg["props"], _type=t)
 
 
+def scene_splat_centers(nodes: dict, members=None) -> np.ndarray:
+    """(G, 3) float64 world centres of the splats a client shows (``SceneStateTracker.nodes``):
+    the one ``/splats`` node's buffer, or the grouped ``/splats/g{k}`` nodes' local centres moved
+    by each node's pose (position, wxyz), in group order, or in the Gaussians' order when the
+    stream's ``members`` are given."""
+    if "/splats" in nodes and "buffer" in nodes["/splats"]:
+        return nodes["/splats"]["buffer"].reshape(-1, 8)[:, :3].copy().view(np.float32).astype(np.float64)
+    keys = sorted((int(k[len("/splats/g"):]), k) for k in nodes if k.startswith("/splats/g"))
+    parts = []
+    for _, k in keys:
+        nd = nodes[k]
+        local = nd["buffer"].reshape(-1, 8)[:, :3].copy().view(np.float32).astype(np.float64)
+        w, x, y, z = (float(a) for a in nd.get("wxyz", (1.0, 0.0, 0.0, 0.0)))
+        R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                      [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                      [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+        parts.append(local @ R.T + np.asarray(nd.get("position", (0.0, 0.0, 0.0)), np.float64))
+    C = np.concatenate(parts) if parts else np.zeros((0, 3))
+    if members is not None:
+        out = np.empty_like(C)
+        out[np.concatenate(members)] = C
+        return out
+    return C
+
+
 def run_viewer(cfg, device=None, viewer: str = "viser", port: int = 8080, host: str = "127.0.0.1",
                record: str | None = None, steps: int | None = None, collider: str | None = None,
-               rebuild_every: str | None = None, fps: float = 30.0, log=print, stop=None) -> dict:
+               rebuild_every: str | None = None, fps: float = 30.0, log=print, stop=None,
+               splat_groups: int | None = None) -> dict:
     """Build the scene, bind/generate its Gaussians and run the viewer.
 
     ``viewer="viser"``: interactive until Ctrl-C (or ``steps`` physics steps, if given);
@@ -560,7 +692,9 @@ def run_viewer(cfg, device=None, viewer: str = "viser", port: int = 8080, host: 
     the scene's run duration), then the recording is written. ``stop``: a callable checked
     between frames (the CLI's SIGINT/SIGTERM); the loop ends there, the recording of the frames
     so far is written and the server stopped; ``"interrupted_by"`` in the result names it.
+    ``splat_groups``: :class:`Viewer`'s (None: SPLAT_GROUPS).
     """
+    kw = {"splat_groups": SPLAT_GROUPS if splat_groups is None else int(splat_groups)}
     from .gaussians import gaussians_for_surface
 
     if viewer != "viser":  # headless recording: viser's serializer needs a server object; bind it to an
@@ -573,7 +707,7 @@ def run_viewer(cfg, device=None, viewer: str = "viser", port: int = 8080, host: 
         newton_world = build_newton_world(cfg, device=device)
         g = gaussians_for_surface(newton_world.surface.sequence, cfg, newton_world.device)
         v = NewtonViewer(newton_world, g, port=port, host=host, fps=fps, record=record,
-                         realtime=(viewer == "viser"), log=log)
+                         realtime=(viewer == "viser"), log=log, **kw)
         world, what = v.world, f"{newton_world.model.body_count} Newton bodies"
     elif cfg.envs.count > 1:  # batched envs: the viewer shows env 0 (docs/envs.md)
         from .batch import EnvView, build_batched_world
@@ -581,7 +715,8 @@ def run_viewer(cfg, device=None, viewer: str = "viser", port: int = 8080, host: 
         batch = build_batched_world(cfg, device=device)
         world = EnvView(batch, 0)
         g = gaussians_for_surface(world.surface.sequence, cfg, world.device)
-        v = Viewer(world, g, port=port, host=host, fps=fps, record=record, realtime=(viewer == "viser"), log=log)
+        v = Viewer(world, g, port=port, host=host, fps=fps, record=record, realtime=(viewer == "viser"), log=log,
+                   **kw)
         what = f"env 0 of {batch.num_envs} ({batch.model.spheres_per_env} spheres each)"
     else:
         world = build_world(cfg, device=device, collider=collider, rebuild_every=rebuild_every)
@@ -592,7 +727,8 @@ def run_viewer(cfg, device=None, viewer: str = "viser", port: int = 8080, host: 
         # not attached to the step: the viewer updates them once per frame it sends
         g = gaussians_for_surface(world.model.surface.sequence, cfg, world.device)
         world.render_state = True  # the vertex buffer current after every step, for the splats and mesh
-        v = Viewer(world, g, port=port, host=host, fps=fps, record=record, realtime=(viewer == "viser"), log=log)
+        v = Viewer(world, g, port=port, host=host, fps=fps, record=record, realtime=(viewer == "viser"), log=log,
+                   **kw)
         what = f"{world.model.spheres.count} spheres"
     dt = world.dt
     if steps is None and viewer != "viser":
@@ -601,12 +737,15 @@ def run_viewer(cfg, device=None, viewer: str = "viser", port: int = 8080, host: 
         steps = run_steps(cfg)
     max_frames = None if steps is None else max(1, int(np.ceil(steps * dt / v.frame_dt)))
     if record and max_frames is not None:  # what a long recording will cost, before it is made
-        per_frame = g.count * 32 + (world.surface.num_vertices * 12 if v.mesh.visible else 0) + \
+        grouped = v.stream is not None
+        splats = v.stream.K * 64 if grouped else g.count * 32  # per frame: the groups' poses, or the buffer
+        per_frame = splats + (world.surface.num_vertices * 12 if v.mesh.visible else 0) + \
             len(world.sphere_radii()) * 12
-        est = max_frames * per_frame
-        log(f"recording {max_frames:,} frames at {v.fps:g} fps: up to {est / 2**20:,.0f} MB before compression "
-            f"({per_frame / 2**10:,.0f} kB per frame: {g.count:,} splats x 32 B"
-            f"{', the mesh' if v.mesh.visible else ''}, the spheres; the default scene's compresses to ~1/3)")
+        est = max_frames * per_frame + (g.count * 32 if grouped else 0)
+        what = (f"the splats once ({g.count * 32 / 2**20:,.1f} MB) and the poses of {v.stream.K} groups per frame"
+                if grouped else f"{g.count:,} splats x 32 B per frame")
+        log(f"recording {max_frames:,} frames at {v.fps:g} fps: up to {est / 2**20:,.1f} MB before compression "
+            f"({what}{', the mesh' if v.mesh.visible else ''}, the spheres)")
     if viewer == "viser":
         log(f"viewer: http://{'localhost' if host in ('0.0.0.0', '127.0.0.1') else host}:{v.port} "
             f"({g.count} Gaussians, {what}); Ctrl-C to quit")

@@ -41,12 +41,17 @@ def _recv_until(ws, tracker, decode, done, timeout=10.0):
     return done()
 
 
-def test_client_receives_engine_state_and_recording_replays(tmp_path, device):
+@pytest.mark.parametrize("groups", [0, 8], ids=["whole_buffer", "8_groups"])
+def test_client_receives_engine_state_and_recording_replays(tmp_path, device, groups):
+    """groups 0: the whole splat buffer per frame, bit for bit; groups > 0: the buffers once and
+    the groups' poses per frame: every centre the client shows is within the stream's reported
+    fit error of the engine's, and the error is small on this smooth motion."""
     from websockets.sync.client import connect
 
     from dynmesh_warp import build_world, load_scene_config
     from dynmesh_warp.gaussians import gaussians_for_world
-    from dynmesh_warp.viewer import (SceneStateTracker, Viewer, decode_viser_recording, decode_wire_message)
+    from dynmesh_warp.viewer import (SceneStateTracker, Viewer, decode_viser_recording, decode_wire_message,
+                                     scene_splat_centers)
 
     cfg = load_scene_config(data={"name": "v", "surface": {"source": "builtin:pulsing_blob",
                                                              "params": {"subdivisions": 2}},
@@ -54,8 +59,18 @@ def test_client_receives_engine_state_and_recording_replays(tmp_path, device):
     world = build_world(cfg, device=device)
     g = gaussians_for_world(world, cfg)
     rec = tmp_path / "out" / "run.viser"
-    v = Viewer(world, g, port=0, realtime=False, record=rec, show_mesh=True, log=lambda *a: None)
+    v = Viewer(world, g, port=0, realtime=False, record=rec, show_mesh=True, log=lambda *a: None,
+               splat_groups=groups)
     tracker = SceneStateTracker()
+
+    def splats_match(nodes, C):
+        if groups == 0:
+            return np.array_equal(nodes["/splats"]["buffer"].reshape(-1, 8)[:, :3].view(np.float32), C)
+        if not any(k.startswith("/splats/g") for k in nodes):
+            return False
+        err = np.linalg.norm(scene_splat_centers(nodes, v.stream.members) - C, axis=1)
+        return err.max() <= v.stream.error["max"] * v.scene_scale + 1e-5
+
     ws = connect(f"ws://127.0.0.1:{v.port}", subprotocols=[f"viser-v{viser.__version__}"], max_size=None)
     try:
         v.run(max_frames=3)
@@ -72,13 +87,18 @@ def test_client_receives_engine_state_and_recording_replays(tmp_path, device):
             n = tracker.nodes
             return ("/mesh" in n and "/splats" in n and "/spheres" in n
                     and np.array_equal(n["/mesh"]["vertices"].reshape(-1, 3), P)
-                    and np.array_equal(n["/splats"]["buffer"].reshape(-1, 8)[:, :3].view(np.float32), C)
+                    and splats_match(n, C)
                     and n["/spheres"]["batched_positions"].size == S.size
                     and np.array_equal(n["/spheres"]["batched_positions"].reshape(-1, 3), S))
 
         assert _recv_until(ws, tracker, decode_wire_message, done), "client never saw the last frame"
-        buf = tracker.nodes["/splats"]["buffer"].reshape(-1, 8)
-        assert np.array_equal(buf[:, 4:7].copy().view(np.float16).reshape(-1, 6), cov16)
+        if groups == 0:
+            buf = tracker.nodes["/splats"]["buffer"].reshape(-1, 8)
+            assert np.array_equal(buf[:, 4:7].copy().view(np.float16).reshape(-1, 6), cov16)
+        else:
+            assert v.stream.K == groups and sorted(np.concatenate(v.stream.members)) == list(range(g.count))
+            assert v.stream.error["max"] < 0.02  # of the scene size: a breathing blob, 8 groups
+            assert v.stream.error["max"] > 0.0  # the fit is checked for real (non-rigid motion)
         np.testing.assert_array_equal(tracker.nodes["/mesh"]["faces"].reshape(-1, 3), world.model.surface.sequence.F)
         assert np.array_equal(tracker.nodes["/spheres"]["batched_scales"], world.model.spheres.radius_np)
     finally:
@@ -91,7 +111,7 @@ def test_client_receives_engine_state_and_recording_replays(tmp_path, device):
     for _, m in r["messages"]:
         replay.apply(m)
     assert np.array_equal(replay.nodes["/mesh"]["vertices"].reshape(-1, 3), P)
-    assert np.array_equal(replay.nodes["/splats"]["buffer"].reshape(-1, 8)[:, :3].view(np.float32), C)
+    assert splats_match(replay.nodes, C)
     assert np.array_equal(replay.nodes["/spheres"]["batched_positions"].reshape(-1, 3), S)
     times = [t for t, _ in r["messages"]]
     assert times == sorted(times) and times[-1] > 0
