@@ -53,7 +53,7 @@ _LAZY = {
     "run_simulation": "runner",
     "BatchedWorld": "batch", "build_batched_world": "batch",
     "RideSurfaceEnv": "envs",
-    "Renderer": "render", "Camera": "render", "render_world": "render",
+    "Renderer": "render", "Camera": "render", "render_world": "render", "render_envs": "render",
 }
 
 
@@ -104,4 +104,5 @@ __all__ = [
     "Renderer",
     "Camera",
     "render_world",
+    "render_envs",
 ]

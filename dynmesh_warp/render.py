@@ -33,7 +33,8 @@ from .kernels.render import (
     rasterize_gaussians,
 )
 
-__all__ = ["Camera", "look_at", "orbit_cameras", "Renderer", "RenderResult", "rgb_to_sh", "render_world", "main"]
+__all__ = ["Camera", "look_at", "orbit_cameras", "Renderer", "RenderResult", "rgb_to_sh", "render_world", "render_envs",
+           "main"]
 
 
 @dataclass
@@ -139,11 +140,13 @@ class Renderer:
 
     def render(self, means, covariances, sh, opacities, cameras: list[Camera], sh_degree: int | None = None,
                spheres=None, sphere_color=(0.85, 0.25, 0.2), background=(1.0, 1.0, 1.0),
-               near: float = 0.01) -> RenderResult:
+               near: float = 0.01, per_camera: bool = False) -> RenderResult:
         """Render for every camera (all of one size). means (G,) vec3 / (G, 3) [m]; covariances
         (G,) mat33 / (G, 3, 3) [m^2]; sh (G, K, 3) SH coefficients (K = 1, 4, 9 or 16; degree
         from K unless given); opacities (G,) in [0, 1]; spheres: (centres (S, 3), radii (S,))
-        or None."""
+        or None. ``per_camera``: each camera has its own scene (one env each): means and
+        covariances (C * G,) camera-major, spheres (C * S,) with camera c's at c * S; sh and
+        opacities shared (the same Gaussians, posed differently)."""
         d = self.device
         if not cameras:
             raise ValueError("render: no cameras")
@@ -159,16 +162,21 @@ class Renderer:
         degree = int(round(math.sqrt(sh.shape[1]))) - 1 if sh_degree is None else int(sh_degree)
         op = opacities if isinstance(opacities, wp.array) else wp.array(np.asarray(opacities, np.float32), dtype=float,
                                                                         device=d)
-        G, C = means.shape[0], len(cameras)
-        if covs.shape[0] != G or sh.shape[0] != G or op.shape[0] != G:
-            raise ValueError("render: means, covariances, sh and opacities must have one entry per Gaussian")
+        C = len(cameras)
+        G = sh.shape[0]
+        scenes = C if per_camera else 1
+        if means.shape[0] != scenes * G or covs.shape[0] != scenes * G or op.shape[0] != G:
+            raise ValueError(f"render: means and covariances need {scenes} x G entries"
+                             f"{' (per_camera: one scene per camera)' if per_camera else ''}, sh and opacities G "
+                             f"(G = {G}); got means {means.shape[0]}, covariances {covs.shape[0]}, opacities {op.shape[0]}")
         Rs = wp.array(np.stack([np.asarray(c.R, np.float32) for c in cameras]), dtype=wp.mat33, device=d)
         ts = wp.array(np.stack([np.asarray(c.t, np.float32) for c in cameras]), dtype=wp.vec3, device=d)
         ks = wp.array(np.array([[c.fx, c.fy, c.cx, c.cy] for c in cameras], np.float32), dtype=wp.vec4, device=d)
         b = self._buffers(C, G, W, H)
         mean2d, conic, depth, radius, touched, color, offsets = (b[k] for k in (
             "mean2d", "conic", "depth", "radius", "touched", "color", "offsets"))
-        wp.launch(project_gaussians, (C, G), inputs=[means, covs, sh, degree, Rs, ts, ks, W, H, near],
+        wp.launch(project_gaussians, (C, G), inputs=[means, covs, sh, degree, Rs, ts, ks, W, H, near,
+                                                     G if per_camera else 0],
                   outputs=[mean2d, conic, depth, radius, touched, color], device=d)
         wp.utils.array_scan(touched, offsets, inclusive=False)
         n = int(offsets[-1:].numpy()[0] + touched[-1:].numpy()[0]) if C * G else 0  # one host read: the list size
@@ -189,11 +197,16 @@ class Renderer:
             sc = wp.zeros(0, dtype=wp.vec3, device=d)
             sr = wp.zeros(0, dtype=float, device=d)
         else:
-            sc = wp.array(np.asarray(spheres[0], np.float32).reshape(-1, 3), dtype=wp.vec3, device=d)
-            sr = wp.array(np.asarray(spheres[1], np.float32).reshape(-1), dtype=float, device=d)
+            sc = spheres[0] if isinstance(spheres[0], wp.array) else wp.array(
+                np.asarray(spheres[0], np.float32).reshape(-1, 3), dtype=wp.vec3, device=d)
+            sr = spheres[1] if isinstance(spheres[1], wp.array) else wp.array(
+                np.asarray(spheres[1], np.float32).reshape(-1), dtype=float, device=d)
+        if per_camera and sc.shape[0] % C:
+            raise ValueError(f"render: per_camera spheres must be C x S = {C} x S, got {sc.shape[0]}")
+        s_per = sc.shape[0] // C if per_camera else 0
         rgb, alpha, zbuf = b["rgb"], b["alpha"], b["depth_image"]  # every pixel is written
         wp.launch(rasterize_gaussians, (C, H, W),
-                  inputs=[self._s_xyo, self._s_conic, self._s_cd, start, end, Rs, ts, ks, sc, sr,
+                  inputs=[self._s_xyo, self._s_conic, self._s_cd, start, end, Rs, ts, ks, sc, sr, s_per,
                           wp.vec3(*sphere_color), wp.vec3(*background), W, H],
                   outputs=[rgb, alpha, zbuf], device=d)
         return RenderResult(rgb, alpha, zbuf)
@@ -219,6 +232,44 @@ def render_world(sim, gaussians, cameras: list[Camera], renderer: Renderer | Non
     pos, rad = sim.sphere_positions(), sim.sphere_radii()
     return renderer.render(gaussians.state.centers, gaussians.state.covariances, sh, op, cameras,
                            spheres=(pos, rad) if len(rad) else None, **kw)
+
+
+def render_envs(batch, gaussians, cameras, renderer: Renderer | None = None, **kw) -> RenderResult:
+    """Camera observations of a batch: one image per env, env e seen by ``cameras[e]`` (a list of
+    E cameras of one size, or one camera for every env) with the Gaussians bound to the shared
+    surface posed at **env e's own time** (its clock, rate and playback mode:
+    ``kernels.gaussians.update_env_gaussians``) and env e's own spheres only. Returns the
+    renderer's device arrays, rgb (E, H, W) vec3 etc. (``wp.to_torch`` for zero-copy torch).
+
+    ``batch``: a ``batch.BatchedWorld``; ``gaussians``: the ``gaussians.Gaussians`` bound to its
+    surface (their binding is used, not their state). Colours are the binding's, unlit (the
+    head-light shading of :func:`render_world` needs each env's normals)."""
+    from .kernels.gaussians import update_env_gaussians
+
+    d = batch.device
+    renderer = renderer or Renderer(d)
+    E, G = batch.num_envs, gaussians.count
+    cams = list(cameras) if isinstance(cameras, (list, tuple)) else [cameras] * E
+    if len(cams) != E:
+        raise ValueError(f"render_envs: {len(cams)} cameras for {E} envs (give one per env, or one for all)")
+    surf, b, st = batch.model.surface, gaussians.binding, batch.state
+    if b.num_faces != surf.num_faces:
+        raise ValueError(f"render_envs: the Gaussians were bound to {b.num_faces} faces, the surface has {surf.num_faces}")
+    key = (E, G)
+    if getattr(renderer, "_env_key", None) != key:
+        renderer._env_means = wp.zeros(E * G, dtype=wp.vec3, device=d)
+        renderer._env_covs = wp.zeros(E * G, dtype=wp.mat33, device=d)
+        renderer._env_key = key
+    means, covs = renderer._env_means, renderer._env_covs
+    if G:
+        wp.launch(update_env_gaussians, (E, G),
+                  inputs=[surf.frames, surf.indices, surf.fps, int(surf.interpolate), st.env_time, st.env_playback,
+                          b.face, b.bary, b.offset, b.local_rotation, b.local_scale],
+                  outputs=[means, covs], device=d)
+    sh = wp.array(rgb_to_sh(b.rgb), dtype=float, device=d)
+    op = wp.array(b.opacity, dtype=float, device=d)
+    spheres = (st.sphere_pos, batch.model.spheres.radius) if batch.model.spheres_per_env else None
+    return renderer.render(means, covs, sh, op, cams, spheres=spheres, per_camera=True, **kw)
 
 
 def _to_uint8(rgb: np.ndarray) -> np.ndarray:

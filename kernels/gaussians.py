@@ -15,6 +15,8 @@ Quaternions here are Warp's ``wp.quat`` = (x, y, z, w).
 
 import warp as wp
 
+from .frames import frame_pair
+
 
 @wp.func
 def face_frame_rotation(p0: wp.vec3, p1: wp.vec3, p2: wp.vec3) -> wp.mat33:
@@ -35,6 +37,23 @@ def face_frame_rotation(p0: wp.vec3, p1: wp.vec3, p2: wp.vec3) -> wp.mat33:
 def face_frame_scale(p0: wp.vec3, p1: wp.vec3, p2: wp.vec3) -> float:
     """Length scale of a face: sqrt(area) [m]."""
     return wp.sqrt(0.5 * wp.length(wp.cross(p1 - p0, p2 - p0)))
+
+
+@wp.func
+def gaussian_on_face(p0: wp.vec3, p1: wp.vec3, p2: wp.vec3, b: wp.vec3, offset: float, local_rotation: wp.quat,
+                     local_scale: wp.vec3):
+    """One bound Gaussian on the face (p0, p1, p2) [m]: (centre [m], world rotation, std devs [m],
+    covariance [m^2]) from its barycentric weights, normal offset and face-frame rotation and
+    scales (see ``update_gaussians``)."""
+    rf = face_frame_rotation(p0, p1, p2)
+    sf = face_frame_scale(p0, p1, p2)
+    e3 = wp.vec3(rf[0, 2], rf[1, 2], rf[2, 2])
+    center = b[0] * p0 + b[1] * p1 + b[2] * p2 + (offset * sf) * e3
+    q = wp.normalize(wp.quat_from_matrix(rf) * local_rotation)
+    s = local_scale * sf
+    r = wp.quat_to_matrix(q)
+    d = wp.diag(wp.vec3(s[0] * s[0], s[1] * s[1], s[2] * s[2]))
+    return center, q, s, r * d * wp.transpose(r)
 
 
 @wp.kernel
@@ -66,18 +85,52 @@ def update_gaussians(
     p0 = points[indices[3 * f + 0]]
     p1 = points[indices[3 * f + 1]]
     p2 = points[indices[3 * f + 2]]
-    rf = face_frame_rotation(p0, p1, p2)
-    sf = face_frame_scale(p0, p1, p2)
-    b = bary[g]
-    e3 = wp.vec3(rf[0, 2], rf[1, 2], rf[2, 2])
-    centers[g] = b[0] * p0 + b[1] * p1 + b[2] * p2 + (offset[g] * sf) * e3
-    q = wp.normalize(wp.quat_from_matrix(rf) * local_rotation[g])
-    s = local_scale[g] * sf
+    center, q, s, cov = gaussian_on_face(p0, p1, p2, bary[g], offset[g], local_rotation[g], local_scale[g])
+    centers[g] = center
     rotations[g] = q
     scales[g] = s
-    r = wp.quat_to_matrix(q)
-    d = wp.diag(wp.vec3(s[0] * s[0], s[1] * s[1], s[2] * s[2]))
-    covariances[g] = r * d * wp.transpose(r)
+    covariances[g] = cov
+
+
+@wp.kernel
+def update_env_gaussians(
+    # Model:
+    frames: wp.array2d[wp.vec3],
+    indices: wp.array[wp.int32],
+    fps: wp.float64,
+    interpolate: int,
+    # State in:
+    env_time_in: wp.array[wp.float64],
+    env_playback_in: wp.array[wp.int32],
+    # In:
+    face: wp.array[wp.int32],
+    bary: wp.array[wp.vec3],
+    offset: wp.array[float],
+    local_rotation: wp.array[wp.quat],
+    local_scale: wp.array[wp.vec3],
+    # Out:
+    centers: wp.array[wp.vec3],
+    covariances: wp.array[wp.mat33],
+):
+    """Gaussian g of env e on the surface at that env's own time (launch (E, G)): the face's
+    three vertices blended from frames k and k+1 of ``frames`` (T, N) [m] at env_time_in[e]
+    [s] with its playback mode, exactly as ``update_frame_vertices`` does for one clock, then
+    ``gaussian_on_face``. centers / covariances (E * G,) [m] / [m^2], env-major."""
+    e, g = wp.tid()
+    G = face.shape[0]
+    k0, k1, alpha = frame_pair(env_time_in[e], fps, frames.shape[0], env_playback_in[e])
+    if interpolate == 0:
+        alpha = 0.0
+    f = face[g]
+    i0 = indices[3 * f + 0]
+    i1 = indices[3 * f + 1]
+    i2 = indices[3 * f + 2]
+    p0 = frames[k0, i0] + alpha * (frames[k1, i0] - frames[k0, i0])
+    p1 = frames[k0, i1] + alpha * (frames[k1, i1] - frames[k0, i1])
+    p2 = frames[k0, i2] + alpha * (frames[k1, i2] - frames[k0, i2])
+    center, q, s, cov = gaussian_on_face(p0, p1, p2, bary[g], offset[g], local_rotation[g], local_scale[g])
+    centers[e * G + g] = center
+    covariances[e * G + g] = cov
 
 
 @wp.kernel

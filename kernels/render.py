@@ -78,6 +78,7 @@ def project_gaussians(
     width: int,
     height: int,
     near: float,
+    camera_stride: int,
     # Out:
     mean2d: wp.array2d[wp.vec2],
     conic: wp.array2d[wp.vec3],
@@ -89,12 +90,15 @@ def project_gaussians(
     """Screen-space footprint of Gaussian g in camera c (launch (C, G)): mean2d [px], conic (the
     inverse 2-D covariance a, b, c), depth [m] (camera z), radius [px] (0: culled), the number of
     16 x 16 tiles it touches (flat (C * G,), for the prefix sum) and its colour from SH.
-    means (G,) [m] and covariances (G,) [m^2] in world; view_rotation / view_translation (C,)
-    world-to-camera; intrinsics (C,) (fx, fy, cx, cy) [px]."""
+    means [m] and covariances [m^2] in world: (G,), seen by every camera (camera_stride 0), or
+    (C * G,) with camera c's own G at c * camera_stride (camera_stride = G: one scene per camera,
+    e.g. per env); sh (G, K, 3) shared; view_rotation / view_translation (C,) world-to-camera;
+    intrinsics (C,) (fx, fy, cx, cy) [px]."""
     c, g = wp.tid()
-    G = means.shape[0]
+    G = mean2d.shape[1]
+    j = c * camera_stride + g
     R = view_rotation[c]
-    p = R * means[g] + view_translation[c]
+    p = R * means[j] + view_translation[c]
     radius[c, g] = 0
     tiles_touched[c * G + g] = 0
     if p[2] < near:
@@ -113,7 +117,7 @@ def project_gaussians(
     tx = p[2] * wp.clamp(p[0] * rz, -lim_x_neg, lim_x_pos)
     ty = p[2] * wp.clamp(p[1] * rz, -lim_y_neg, lim_y_pos)
     J = wp.mat33(fx * rz, 0.0, -fx * tx * rz * rz, 0.0, fy * rz, -fy * ty * rz * rz, 0.0, 0.0, 0.0)
-    cov_cam = R * covariances[g] * wp.transpose(R)
+    cov_cam = R * covariances[j] * wp.transpose(R)
     cov = J * cov_cam * wp.transpose(J)
     a = cov[0, 0] + 0.3
     b = cov[0, 1]
@@ -144,7 +148,7 @@ def project_gaussians(
     tiles_touched[c * G + g] = n
     # view direction from the camera centre (world): centre = -R^T t
     centre = -(wp.transpose(R) * view_translation[c])
-    color[c, g] = evaluate_sh(sh, g, sh_degree, wp.normalize(means[g] - centre))
+    color[c, g] = evaluate_sh(sh, g, sh_degree, wp.normalize(means[j] - centre))
 
 
 @wp.kernel
@@ -238,11 +242,13 @@ def gather_sorted_splats(
 
 
 @wp.func
-def nearest_sphere(o: wp.vec3, d: wp.vec3, centers: wp.array[wp.vec3], radii: wp.array[float]):
-    """Ray o + s d (d unit) against every sphere: (s of the nearest hit, its index; -1 if none)."""
+def nearest_sphere(o: wp.vec3, d: wp.vec3, centers: wp.array[wp.vec3], radii: wp.array[float], first: int,
+                   count: int):
+    """Ray o + s d (d unit) against spheres first .. first + count - 1: (s of the nearest hit,
+    its index; -1 if none)."""
     best = float(1.0e30)
     hit = int(-1)
-    for k in range(centers.shape[0]):
+    for k in range(first, first + count):
         oc = o - centers[k]
         b = wp.dot(oc, d)
         cc = wp.dot(oc, oc) - radii[k] * radii[k]
@@ -268,6 +274,7 @@ def rasterize_gaussians(
     intrinsics: wp.array[wp.vec4],
     sphere_centers: wp.array[wp.vec3],
     sphere_radii: wp.array[float],
+    spheres_per_camera: int,
     sphere_color: wp.vec3,
     background: wp.vec3,
     width: int,
@@ -281,7 +288,8 @@ def rasterize_gaussians(
     (C, H, W); the splats in key order from ``gather_sorted_splats``); the nearest ray-cast
     sphere, if any, is opaque at its depth (Lambert-shaded from the camera) and hides what lies
     behind it. rgb (C, H, W) in [0, 1] over ``background``; alpha = 1 - transmittance;
-    expected_depth = sum(w z) / sum(w) [m] (0 where nothing)."""
+    expected_depth = sum(w z) / sum(w) [m] (0 where nothing). spheres_per_camera 0: every
+    camera sees every sphere; S > 0: camera c sees spheres c * S .. c * S + S - 1 (per env)."""
     c, py, px = wp.tid()
     tiles_x = (width + TILE - 1) / TILE
     tiles_y = (height + TILE - 1) / TILE
@@ -294,7 +302,12 @@ def rasterize_gaussians(
     dc = wp.normalize(wp.vec3((x - k[2]) / k[0], (y - k[3]) / k[1], 1.0))
     o = -(wp.transpose(R) * view_translation[c])
     dw = wp.transpose(R) * dc
-    s_hit, sk = nearest_sphere(o, dw, sphere_centers, sphere_radii)
+    first = int(0)
+    count = sphere_centers.shape[0]
+    if spheres_per_camera > 0:
+        first = c * spheres_per_camera
+        count = spheres_per_camera
+    s_hit, sk = nearest_sphere(o, dw, sphere_centers, sphere_radii, first, count)
     z_sphere = float(1.0e30)
     if sk >= 0:
         z_sphere = s_hit * dc[2]

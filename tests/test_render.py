@@ -57,6 +57,51 @@ def test_render_batch_of_cameras_equals_one_at_a_time(device):
         r.render(means, covs, np.zeros((200, 2, 3)), op, cams)
 
 
+@pytest.mark.parametrize("playback", ["loop", "pingpong"])
+def test_render_envs_equals_each_env_rendered_alone(device, playback):
+    """Camera observations of a batch (issue 16): env e's image, rendered in one launch with the
+    others, equals rendering env e alone: its surface at its own time (EnvView), its Gaussians
+    updated from it (the tested single-scene path), only its spheres, its camera."""
+    from dynmesh_warp.batch import BatchedWorld, BatchModel, BatchState, EnvView
+    from dynmesh_warp.gaussians import generate_gaussians
+    from dynmesh_warp.render import render_envs
+    from dynmesh_warp.scenes import wave_bowl
+    from dynmesh_warp.world import PhysicsParams, SurfaceModel
+
+    seq = wave_bowl(n=16, frames=8)
+    E, S = 3, 2
+    rng = np.random.default_rng(2)
+    pos = np.concatenate([rng.uniform(-0.4, 0.4, (E, S, 2)), np.full((E, S, 1), 0.25)], axis=2)
+    bm = BatchModel(SurfaceModel(seq, device, playback=playback), E, np.full(S, 0.12, np.float32), 1.0,
+                    PhysicsParams())
+    bw = BatchedWorld(bm, BatchState(bm, pos, times=np.array([0.0, 0.21, 0.55]), rates=[1.0, 0.5, 2.0]))
+    for _ in range(5):
+        bw.step()
+    g = generate_gaussians(seq.V[0], seq.F, count=600, seed=1, device=device)
+    cams = [look_at([1.6, -1.4, 1.2], [0, 0, 0], width=40, height=32),
+            look_at([-1.5, 1.2, 1.4], [0, 0, 0.1], width=40, height=32, fov_y_deg=55),
+            look_at([0.2, -2.0, 0.9], [0, 0, 0], width=40, height=32)]
+    r = Renderer(device)
+    out = render_envs(bw, g, cams, renderer=r)
+    rgb, alpha, depth = out.rgb.numpy().copy(), out.alpha.numpy().copy(), out.depth.numpy().copy()
+    assert rgb.shape == (E, 32, 40, 3)
+    sh, op = rgb_to_sh(g.binding.rgb), g.binding.opacity
+    for e in range(E):
+        view = EnvView(bw, e)
+        g.update(view.surface_points(), view.surface_indices())
+        one = Renderer(device).render(g.state.centers, g.state.covariances, sh, op, [cams[e]],
+                                      spheres=(view.sphere_positions(), view.sphere_radii()))
+        np.testing.assert_allclose(rgb[e], one.rgb.numpy()[0], atol=1e-5)
+        np.testing.assert_allclose(alpha[e], one.alpha.numpy()[0], atol=1e-5)
+        np.testing.assert_allclose(depth[e], one.depth.numpy()[0], atol=1e-4)
+        assert 0.05 < alpha[e].mean() < 1.0
+    # the envs' surfaces differ (own clocks): the same camera sees different pictures
+    same = render_envs(bw, g, cams[0], renderer=r).rgb.numpy()
+    assert np.abs(same[0] - same[2]).max() > 0.05
+    with pytest.raises(ValueError, match="2 cameras for 3 envs"):
+        render_envs(bw, g, cams[:2])
+
+
 def test_render_cli_writes_frames_and_a_figure(tmp_path):
     from dynmesh_warp.render import main
 
