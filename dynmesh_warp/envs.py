@@ -85,6 +85,8 @@ class RideSurfaceEnv(VectorEnv):
             load_scene_config(data={"surface": {"source": "builtin:pulsing_blob"}})
         cfg = cfg.model_copy(update={"spheres": []})
         seq = load_surface(cfg)
+        self._cfg, self._seq = cfg, seq
+        self._camera_state = None  # (key, Gaussians, Renderer, camera) of render_images
         model, _ = build_model(cfg, seq, device)
         self.device = model.device
         self.backend = backend
@@ -143,6 +145,27 @@ class RideSurfaceEnv(VectorEnv):
                           self._all if mask is None else mask, int(mask is not None), wp.vec3(*self.target.tolist()),
                           self.max_distance, 0.5 * self.max_distance / 3.0, self.top, self.radius, self.max_steps],
                   outputs=[self.obs, self.reward, self.terminated, self.truncated], device=self.device)
+
+    def render_images(self, width: int = 64, height: int = 64, gaussians: int = 5000):
+        """Camera observations, when asked (issue 16): one RGB image per env, (E, height, width, 3)
+        in [0, 1] (torch on the simulation device with ``backend="torch"``, else NumPy), each env's
+        Gaussians posed at its own time with its own ball (:func:`render.render_envs`), seen by
+        one fixed camera looking at the target from the side and above (the scene's size away).
+        The ``gaussians`` Gaussians are generated once on the surface (or bound from the scene's
+        ``gaussians.splats``). Call it after ``step``/``reset``; it is not part of the captured step."""
+        from .gaussians import gaussians_for_surface
+        from .render import Renderer, look_at, render_envs
+
+        key = (int(width), int(height), int(gaussians))
+        if self._camera_state is None or self._camera_state[0] != key:
+            cfg = self._cfg.model_copy(update={"gaussians": self._cfg.gaussians.model_copy(update={"count": key[2]})})
+            g = gaussians_for_surface(self._seq, cfg, self.device)
+            V0 = self._seq.V[0]
+            diag = float(np.linalg.norm(V0.max(axis=0) - V0.min(axis=0)))
+            eye = self.target + diag * np.array([0.9, -0.9, 0.6], np.float32)
+            self._camera_state = (key, g, Renderer(self.device), look_at(eye, self.target, width=key[0], height=key[1]))
+        _, g, r, cam = self._camera_state
+        return self._out(render_envs(self.world, g, cam, renderer=r).rgb)
 
     def _out(self, a: wp.array):
         if self.backend == "torch":

@@ -41,6 +41,23 @@ def test_spaces_reset_and_step_follow_the_vector_api(device):
     assert not np.allclose(o3, obs)
 
 
+def test_render_images_one_per_env_at_its_own_phase(device):
+    """Camera observations when asked: (E, H, W, 3) images in [0, 1], the surface drawn, each
+    env's picture its own (own phase); equal to render_envs on the env's batch (tested against
+    rendering each env alone in tests/test_render.py)."""
+    from dynmesh_warp.render import render_envs
+
+    env = _env(device, num_envs=4, seed=2)
+    env.reset(seed=5)
+    env.step(env.action_space.sample())
+    img = env.render_images(width=32, height=24, gaussians=800)
+    assert img.shape == (4, 24, 32, 3) and np.isfinite(img).all() and img.min() >= 0.0 and img.max() <= 1.0
+    assert (np.abs(img - 1.0).max(axis=-1) > 0.05).mean() > 0.02  # not just the white background
+    assert np.abs(img[0] - img[1]).max() > 0.05
+    _, g, r, cam = env._camera_state
+    np.testing.assert_array_equal(render_envs(env.world, g, cam, renderer=r).rgb.numpy(), img)
+
+
 def test_same_step_autoreset_and_termination(device):
     env = _env(device, num_envs=4, max_steps=3, seed=2)
     env.reset(seed=2)
