@@ -61,6 +61,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="viewer/--record: send the splats once and then only the poses of K rigidly moving "
                         f"groups per frame (default {SPLAT_GROUPS}; more: closer to the surface, more bytes); 0: the "
                         "whole splat buffer every frame (docs/rendering.md)")
+    p.add_argument("--view-envs", metavar="LIST",
+                   help="batched envs in the viewer/--record: the envs shown, e.g. 3 (that env) or 0,1,2,3 or 0-8 "
+                        "(side by side in a grid); default: env 0")
     p.add_argument("--envs", type=int, metavar="N",
                    help="run N batched environments on the shared surface, each at its own clock "
                         "(overrides envs.count; prints env-steps/s; docs/envs.md)")
@@ -153,6 +156,25 @@ def run_scene(cfg, device=None, steps: int | None = None, collider: str | None =
                           overwrite=overwrite, stop=stop, checkpoint_every=every, ckpt=ckpt)
 
 
+def parse_env_list(text: str) -> list:
+    """``--view-envs``: "3", "0,1,2,3" or "0-8" (ranges inclusive; at most 16 envs shown)."""
+    from .config import SceneError
+
+    out = []
+    try:
+        for part in str(text).split(","):
+            a, _, b = part.strip().partition("-")
+            lo, hi = int(a), int(b) if b else int(a)
+            if lo < 0 or hi < lo:
+                raise ValueError
+            out.extend(range(lo, hi + 1))
+    except ValueError:
+        raise SceneError(f"--view-envs {text!r}: expected env indices like 3, 0,1,2,3 or 0-8") from None
+    if len(out) > 16:
+        raise SceneError(f"--view-envs {text!r}: {len(out)} envs; show at most 16 side by side")
+    return out
+
+
 def check_cli_options(args) -> None:
     """Every option of ``run`` checked before the scene is loaded (one line, exit 2)."""
     from .config import SceneError
@@ -169,6 +191,8 @@ def check_cli_options(args) -> None:
         raise SceneError(f"--output {args.output}: a --record run writes only the recording (OUT.viser and "
                          "OUT.html; it keeps no trajectories); run once more without --record for "
                          "summary.json and trajectories.npz")
+    if args.view_envs is not None:
+        args.view_envs = parse_env_list(args.view_envs)
     if args.splat_groups is not None and args.splat_groups < 0:
         raise SceneError(f"--splat-groups must be >= 0 (0: the whole splat buffer every frame), got {args.splat_groups}")
     if args.rebuild_every is not None and args.collider not in (None, "rebuild"):
@@ -211,6 +235,9 @@ def main(argv=None) -> int:
             raise SceneError(f"--envs must be at least 1, got {args.envs}")
         overrides = list(args.overrides) + ([f"envs.count={args.envs}"] if args.envs is not None else [])
         cfg = load_scene_config(args.scene, overrides=overrides)
+        if args.view_envs is not None and max(args.view_envs) >= cfg.envs.count:
+            raise SceneError(f"--view-envs: env {max(args.view_envs)} does not exist (the scene has "
+                             f"{cfg.envs.count} env{'s' if cfg.envs.count != 1 else ''}; --envs N to batch)")
         if args.no_work_limit:
             lift_work_limits(cfg)
         steps = args.steps
@@ -242,7 +269,7 @@ def main(argv=None) -> int:
                     res = run_viewer(cfg, device=args.device, viewer=viewer, port=args.port, host=args.host,
                                      record=args.record, steps=steps if (args.steps or args.duration) else None,
                                      collider=args.collider, rebuild_every=args.rebuild_every, stop=stop_reason,
-                                     splat_groups=args.splat_groups)
+                                     splat_groups=args.splat_groups, view_envs=args.view_envs)
             except (SplatPlyError, RuntimeError, OSError) as e:
                 print(f"error: {e}", file=sys.stderr)
                 return 2

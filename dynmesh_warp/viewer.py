@@ -684,7 +684,7 @@ def scene_splat_centers(nodes: dict, members=None) -> np.ndarray:
 def run_viewer(cfg, device=None, viewer: str = "viser", port: int = 8080, host: str = "127.0.0.1",
                record: str | None = None, steps: int | None = None, collider: str | None = None,
                rebuild_every: str | None = None, fps: float = 30.0, log=print, stop=None,
-               splat_groups: int | None = None) -> dict:
+               splat_groups: int | None = None, view_envs=None) -> dict:
     """Build the scene, bind/generate its Gaussians and run the viewer.
 
     ``viewer="viser"``: interactive until Ctrl-C (or ``steps`` physics steps, if given);
@@ -692,7 +692,8 @@ def run_viewer(cfg, device=None, viewer: str = "viser", port: int = 8080, host: 
     the scene's run duration), then the recording is written. ``stop``: a callable checked
     between frames (the CLI's SIGINT/SIGTERM); the loop ends there, the recording of the frames
     so far is written and the server stopped; ``"interrupted_by"`` in the result names it.
-    ``splat_groups``: :class:`Viewer`'s (None: SPLAT_GROUPS).
+    ``splat_groups``: :class:`Viewer`'s (None: SPLAT_GROUPS). ``view_envs``: for batched envs,
+    the envs shown (one: that env; several: side by side, ``batch.EnvGrid``; None: env 0).
     """
     kw = {"splat_groups": SPLAT_GROUPS if splat_groups is None else int(splat_groups)}
     from .gaussians import gaussians_for_surface
@@ -709,15 +710,17 @@ def run_viewer(cfg, device=None, viewer: str = "viser", port: int = 8080, host: 
         v = NewtonViewer(newton_world, g, port=port, host=host, fps=fps, record=record,
                          realtime=(viewer == "viser"), log=log, **kw)
         world, what = v.world, f"{newton_world.model.body_count} Newton bodies"
-    elif cfg.envs.count > 1:  # batched envs: the viewer shows env 0 (docs/envs.md)
-        from .batch import EnvView, build_batched_world
+    elif cfg.envs.count > 1:  # batched envs: the viewer shows one env or a grid of a few (docs/envs.md)
+        from .batch import EnvGrid, EnvView, build_batched_world
 
         batch = build_batched_world(cfg, device=device)
-        world = EnvView(batch, 0)
+        shown = [0] if not view_envs else [int(e) for e in view_envs]
+        world = EnvView(batch, shown[0]) if len(shown) == 1 else EnvGrid(batch, shown)
         g = gaussians_for_surface(world.surface.sequence, cfg, world.device)
         v = Viewer(world, g, port=port, host=host, fps=fps, record=record, realtime=(viewer == "viser"), log=log,
                    **kw)
-        what = f"env 0 of {batch.num_envs} ({batch.model.spheres_per_env} spheres each)"
+        what = (f"env {shown[0]}" if len(shown) == 1 else f"envs {', '.join(map(str, shown))}") + \
+            f" of {batch.num_envs} ({batch.model.spheres_per_env} spheres each)"
     else:
         world = build_world(cfg, device=device, collider=collider, rebuild_every=rebuild_every)
         if steps is not None or viewer != "viser":  # a bounded run: the work budget, before the server starts

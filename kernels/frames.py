@@ -108,3 +108,17 @@ def update_frame_vertices(
         velocities_out[i] = wp.vec3(0.0)
     else:
         velocities_out[i] = (b - a) * float(fps)
+
+
+@wp.kernel
+def add_points_offset(
+    # In:
+    points: wp.array[wp.vec3],
+    offset: wp.vec3,
+    # Out:
+    points_out: wp.array[wp.vec3],
+):
+    """points_out = points + offset (N,) [m] (a copy of a surface drawn elsewhere, e.g. one tile
+    of the viewer's env grid)."""
+    i = wp.tid()
+    points_out[i] = points[i] + offset

@@ -165,3 +165,41 @@ def test_env_view_shows_one_env_at_its_own_time(device):
     np.testing.assert_array_equal(v.sphere_radii(), np.array([0.05, 0.07], np.float32))
     with pytest.raises(IndexError):
         EnvView(bw, 3)
+
+
+def test_env_grid_shows_several_envs_side_by_side(device, tmp_path):
+    """EnvGrid (the viewer's grid of a few envs): tile i is env envs[i]'s surface at its own time
+    (NumPy oracle) shifted by its offset, with that env's spheres; tiles do not overlap; the
+    viewer runs on it (a headless recording, the splats streamed in groups)."""
+    pytest.importorskip("viser")
+    from dynmesh_warp.batch import EnvGrid
+    from dynmesh_warp.gaussians import gaussians_for_surface
+    from dynmesh_warp.viewer import Viewer
+
+    seq = wave_bowl(n=12, frames=6)
+    bm = BatchModel(SurfaceModel(seq, device, playback="loop"), 4, [0.05], 1.0, PhysicsParams())
+    bw = BatchedWorld(bm, BatchState(bm, [[0.0, 0.0, 0.5]], times=[0.0, 0.11, 0.2, 0.33]))
+    grid = EnvGrid(bw, [3, 1, 2])
+    for _ in range(3):
+        grid.step()
+    P = grid.surface_points().numpy()
+    N = seq.num_vertices
+    times = bw.env_times()
+    for i, e in enumerate([3, 1, 2]):
+        np.testing.assert_allclose(P[i * N:(i + 1) * N], surface_at(seq, times[e], "loop") + grid.offsets[i], atol=1e-5)
+        np.testing.assert_allclose(grid.sphere_positions()[i], bw.sphere_positions()[e][0] + grid.offsets[i], atol=1e-6)
+    lo = [P[i * N:(i + 1) * N].min(0) for i in range(3)]
+    hi = [P[i * N:(i + 1) * N].max(0) for i in range(3)]
+    assert all((hi[i][:2] < lo[j][:2]).any() or (hi[j][:2] < lo[i][:2]).any()
+               for i in range(3) for j in range(i + 1, 3))  # apart in x or y
+    assert grid.surface_indices().shape[0] == 3 * 3 * seq.num_faces and grid.sphere_radii().shape == (3,)
+    g = gaussians_for_surface(grid.surface.sequence, None, grid.device)
+    v = Viewer(grid, g, port=0, realtime=False, record=tmp_path / "grid.viser", log=lambda *a: None)
+    try:
+        v.run(max_frames=3)
+        assert v.stream is not None and v.stream.error["max"] < 0.05
+    finally:
+        v.close()
+    assert (tmp_path / "grid.viser").stat().st_size > 0
+    with pytest.raises(IndexError):
+        EnvGrid(bw, [0, 4])

@@ -32,8 +32,8 @@ LAYERS = [
     {"convert"},
     {"scene"},
     # engines and tools over a scene
-    {"newton_adapter", "evaluate", "batch"},
-    {"viewer", "envs", "render"},
+    {"newton_adapter", "evaluate", "batch", "render"},
+    {"viewer", "envs"},
     # Ray actors over the envs
     {"distributed"},
     # the run CLI on top
