@@ -24,6 +24,7 @@ import numpy as np
 import warp as wp
 
 from .kernels.render import (
+    EMPTY_KEY,
     SH_C0,
     TILE,
     emit_tile_keys,
@@ -98,6 +99,9 @@ class RenderResult:
     rgb: wp.array
     alpha: wp.array
     depth: wp.array
+    #: (1,) int32 on the device: (Gaussian, tile) entries dropped by a fixed-capacity render
+    #: (``capacity=``); 0 when everything was drawn (always 0 without a capacity)
+    overflow: wp.array | None = None
 
 
 class Renderer:
@@ -110,6 +114,22 @@ class Renderer:
         self._cap = 0
         self._keys = self._values = None
         self._bkey, self._b = None, {}
+        self._overflow = wp.zeros(1, dtype=wp.int32, device=self.device)
+        self._no_spheres = (wp.zeros(0, dtype=wp.vec3, device=self.device), wp.zeros(0, dtype=float, device=self.device))
+        self._cams = (None, None)  # (the cameras' values, their device arrays): reused while unchanged
+
+    def _camera_arrays(self, cameras):
+        """Device (R, t, intrinsics) of the cameras, uploaded only when their values change (so a
+        render with the same cameras as the previous one does no host-to-device copy)."""
+        R = np.stack([np.asarray(c.R, np.float32) for c in cameras])
+        t = np.stack([np.asarray(c.t, np.float32) for c in cameras])
+        k = np.array([[c.fx, c.fy, c.cx, c.cy] for c in cameras], np.float32)
+        key = R.tobytes() + t.tobytes() + k.tobytes()
+        if self._cams[0] != key:
+            d = self.device
+            self._cams = (key, (wp.array(R, dtype=wp.mat33, device=d), wp.array(t, dtype=wp.vec3, device=d),
+                                wp.array(k, dtype=wp.vec4, device=d)))
+        return self._cams[1]
 
     def _buffers(self, C: int, G: int, W: int, H: int) -> dict:
         """Per-(C, G, W, H) buffers, allocated once and reused; the kernels write every entry they
@@ -140,13 +160,17 @@ class Renderer:
 
     def render(self, means, covariances, sh, opacities, cameras: list[Camera], sh_degree: int | None = None,
                spheres=None, sphere_color=(0.85, 0.25, 0.2), background=(1.0, 1.0, 1.0),
-               near: float = 0.01, per_camera: bool = False) -> RenderResult:
+               near: float = 0.01, per_camera: bool = False, capacity: int | None = None) -> RenderResult:
         """Render for every camera (all of one size). means (G,) vec3 / (G, 3) [m]; covariances
         (G,) mat33 / (G, 3, 3) [m^2]; sh (G, K, 3) SH coefficients (K = 1, 4, 9 or 16; degree
         from K unless given); opacities (G,) in [0, 1]; spheres: (centres (S, 3), radii (S,))
         or None. ``per_camera``: each camera has its own scene (one env each): means and
         covariances (C * G,) camera-major, spheres (C * S,) with camera c's at c * S; sh and
-        opacities shared (the same Gaussians, posed differently)."""
+        opacities shared (the same Gaussians, posed differently). ``capacity``: a fixed number of
+        (Gaussian, tile) entries to sort: no value is read back to the host, so the call can be
+        captured in a CUDA graph (``wp.ScopedCapture``) with array inputs; entries beyond it are
+        dropped and counted in ``result.overflow`` (check it, and raise the capacity, when the
+        picture must be complete). None: the exact count is read back (one small host read)."""
         d = self.device
         if not cameras:
             raise ValueError("render: no cameras")
@@ -169,9 +193,7 @@ class Renderer:
             raise ValueError(f"render: means and covariances need {scenes} x G entries"
                              f"{' (per_camera: one scene per camera)' if per_camera else ''}, sh and opacities G "
                              f"(G = {G}); got means {means.shape[0]}, covariances {covs.shape[0]}, opacities {op.shape[0]}")
-        Rs = wp.array(np.stack([np.asarray(c.R, np.float32) for c in cameras]), dtype=wp.mat33, device=d)
-        ts = wp.array(np.stack([np.asarray(c.t, np.float32) for c in cameras]), dtype=wp.vec3, device=d)
-        ks = wp.array(np.array([[c.fx, c.fy, c.cx, c.cy] for c in cameras], np.float32), dtype=wp.vec4, device=d)
+        Rs, ts, ks = self._camera_arrays(cameras)
         b = self._buffers(C, G, W, H)
         mean2d, conic, depth, radius, touched, color, offsets = (b[k] for k in (
             "mean2d", "conic", "depth", "radius", "touched", "color", "offsets"))
@@ -179,23 +201,30 @@ class Renderer:
                                                      G if per_camera else 0],
                   outputs=[mean2d, conic, depth, radius, touched, color], device=d)
         wp.utils.array_scan(touched, offsets, inclusive=False)
-        n = int(offsets[-1:].numpy()[0] + touched[-1:].numpy()[0]) if C * G else 0  # one host read: the list size
         start, end = b["start"], b["end"]
         start.zero_()
         end.zero_()
         tiles = start.shape[0]
-        self._grow(max(n, 1))
+        self._overflow.zero_()
+        if capacity is not None:  # fixed capacity: nothing read back (capturable); the unused tail sorts last
+            n = int(capacity)
+            if n < 1:
+                raise ValueError(f"render: capacity must be >= 1, got {capacity}")
+            self._grow(n)
+            self._keys.fill_(EMPTY_KEY)
+        else:
+            n = int(offsets[-1:].numpy()[0] + touched[-1:].numpy()[0]) if C * G else 0  # one host read: the list size
+            self._grow(max(n, 1))
         if n:
-            wp.launch(emit_tile_keys, (C, G), inputs=[mean2d, depth, radius, offsets, W, H],
-                      outputs=[self._keys, self._values], device=d)
+            wp.launch(emit_tile_keys, (C, G), inputs=[mean2d, depth, radius, offsets, W, H, n],
+                      outputs=[self._keys, self._values, self._overflow], device=d)
             wp.utils.radix_sort_pairs(self._keys, self._values, n)
             wp.launch(find_tile_ranges, n, inputs=[self._keys, n], outputs=[start, end], device=d)
             wp.launch(gather_sorted_splats, n,
                       inputs=[self._keys, self._values, tiles // C, mean2d, conic, depth, color, op],
                       outputs=[self._s_xyo, self._s_conic, self._s_cd], device=d)
         if spheres is None:
-            sc = wp.zeros(0, dtype=wp.vec3, device=d)
-            sr = wp.zeros(0, dtype=float, device=d)
+            sc, sr = self._no_spheres
         else:
             sc = spheres[0] if isinstance(spheres[0], wp.array) else wp.array(
                 np.asarray(spheres[0], np.float32).reshape(-1, 3), dtype=wp.vec3, device=d)
@@ -209,7 +238,7 @@ class Renderer:
                   inputs=[self._s_xyo, self._s_conic, self._s_cd, start, end, Rs, ts, ks, sc, sr, s_per,
                           wp.vec3(*sphere_color), wp.vec3(*background), W, H],
                   outputs=[rgb, alpha, zbuf], device=d)
-        return RenderResult(rgb, alpha, zbuf)
+        return RenderResult(rgb, alpha, zbuf, self._overflow)
 
 
 def render_world(sim, gaussians, cameras: list[Camera], renderer: Renderer | None = None, shade: bool = True,
@@ -243,7 +272,9 @@ def render_envs(batch, gaussians, cameras, renderer: Renderer | None = None, **k
 
     ``batch``: a ``batch.BatchedWorld``; ``gaussians``: the ``gaussians.Gaussians`` bound to its
     surface (their binding is used, not their state). Colours are the binding's, unlit (the
-    head-light shading of :func:`render_world` needs each env's normals)."""
+    head-light shading of :func:`render_world` needs each env's normals). ``capacity=`` (passed
+    on to :meth:`Renderer.render`): no host read, for a CUDA graph; with the same cameras and
+    Gaussians as the call before, nothing is uploaded either."""
     from .kernels.gaussians import update_env_gaussians
 
     d = batch.device
@@ -266,8 +297,11 @@ def render_envs(batch, gaussians, cameras, renderer: Renderer | None = None, **k
                   inputs=[surf.frames, surf.indices, surf.fps, int(surf.interpolate), st.env_time, st.env_playback,
                           b.face, b.bary, b.offset, b.local_rotation, b.local_scale],
                   outputs=[means, covs], device=d)
-    sh = wp.array(rgb_to_sh(b.rgb), dtype=float, device=d)
-    op = wp.array(b.opacity, dtype=float, device=d)
+    if getattr(renderer, "_env_binding", None) is not b:  # colours uploaded once per binding
+        renderer._env_sh = wp.array(rgb_to_sh(b.rgb), dtype=float, device=d)
+        renderer._env_op = wp.array(b.opacity, dtype=float, device=d)
+        renderer._env_binding = b
+    sh, op = renderer._env_sh, renderer._env_op
     spheres = (st.sphere_pos, batch.model.spheres.radius) if batch.model.spheres_per_env else None
     return renderer.render(means, covs, sh, op, cams, spheres=spheres, per_camera=True, **kw)
 

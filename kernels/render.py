@@ -14,6 +14,8 @@ and composited by depth with the splats (a splat behind the nearest sphere is hi
 import warp as wp
 
 TILE = wp.constant(16)
+#: the key of an unused entry of a fixed-capacity render (sorts after every real key)
+EMPTY_KEY = wp.constant(wp.int64(9223372036854775807))
 
 SH_C0 = wp.constant(0.28209479177387814)
 SH_C1 = wp.constant(0.4886025119029199)
@@ -160,13 +162,16 @@ def emit_tile_keys(
     offsets: wp.array[wp.int32],
     width: int,
     height: int,
+    capacity: int,
     # Out:
     keys: wp.array[wp.int64],
     values: wp.array[wp.int32],
+    overflow: wp.array[wp.int32],
 ):
     """One (key, value) per (Gaussian, touched tile): key = (camera * tiles + tile) << 32 | the
     depth in micrometres (31 bits: up to 2,147 m), value = the Gaussian; written from the
-    exclusive prefix sum ``offsets`` of the tile counts. Launch (C, G)."""
+    exclusive prefix sum ``offsets`` of the tile counts. Launch (C, G). Entries at or beyond
+    ``capacity`` are not written; overflow[0] counts them (a fixed-capacity render)."""
     c, g = wp.tid()
     r = radius[c, g]
     if r <= 0:
@@ -183,9 +188,12 @@ def emit_tile_keys(
     i = offsets[c * G + g]
     for ty in range(y0, y1):
         for tx in range(x0, x1):
-            tile = wp.int64(c * tiles_x * tiles_y + ty * tiles_x + tx)
-            keys[i] = (tile << wp.int64(32)) | dbits
-            values[i] = g
+            if i < capacity:
+                tile = wp.int64(c * tiles_x * tiles_y + ty * tiles_x + tx)
+                keys[i] = (tile << wp.int64(32)) | dbits
+                values[i] = g
+            else:
+                wp.atomic_add(overflow, 0, 1)
             i += 1
 
 
@@ -199,8 +207,13 @@ def find_tile_ranges(
     tile_end: wp.array[wp.int32],
 ):
     """[tile_start, tile_end) of each (camera, tile) in the sorted keys (untouched tiles keep
-    0, 0). Launch (count,)."""
+    0, 0). Launch (count,). Keys equal to EMPTY_KEY (the unused tail of a fixed-capacity
+    render, sorted last) end the list."""
     i = wp.tid()
+    if keys[i] == EMPTY_KEY:
+        if i > 0 and keys[i - 1] != EMPTY_KEY:
+            tile_end[int(keys[i - 1] >> wp.int64(32))] = i
+        return
     tile = int(keys[i] >> wp.int64(32))
     if i == 0:
         tile_start[tile] = 0
@@ -232,6 +245,8 @@ def gather_sorted_splats(
     """Each sorted key's splat data in key order (launch (count,)): the rasteriser then reads a
     tile's splats as one contiguous run instead of through the Gaussian index."""
     i = wp.tid()
+    if keys[i] == EMPTY_KEY:
+        return
     c = int(keys[i] >> wp.int64(32)) / tiles_per_camera
     g = values[i]
     m = mean2d[c, g]

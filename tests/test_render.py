@@ -102,6 +102,56 @@ def test_render_envs_equals_each_env_rendered_alone(device, playback):
         render_envs(bw, g, cams[:2])
 
 
+def test_fixed_capacity_render_equals_the_exact_one_and_counts_what_it_drops(device):
+    """``capacity=``: no host read (capturable); with room for every entry the picture equals
+    the exactly sized render and nothing is counted as dropped; with too little room the dropped
+    entries are counted and the picture differs."""
+    means, covs, sh, op = _scene(300, 4, 1)
+    cams = orbit_cameras([0, 0, 0], 3.5, 2, width=40, height=32)
+    r = Renderer(device)
+    exact = r.render(means, covs, sh, op, cams)
+    ref = exact.rgb.numpy().copy()
+    assert int(exact.overflow.numpy()[0]) == 0
+    roomy = r.render(means, covs, sh, op, cams, capacity=200_000)
+    np.testing.assert_array_equal(roomy.rgb.numpy(), ref)
+    assert int(roomy.overflow.numpy()[0]) == 0
+    tight = r.render(means, covs, sh, op, cams, capacity=500)
+    assert int(tight.overflow.numpy()[0]) > 0
+    assert np.abs(tight.rgb.numpy() - ref).max() > 0.05
+    with pytest.raises(ValueError, match="capacity"):
+        r.render(means, covs, sh, op, cams, capacity=0)
+
+
+def test_fixed_capacity_render_is_captured_in_a_cuda_graph(cuda_device):
+    """Camera observations inside a CUDA graph: render_envs with a capacity, after one warm-up
+    call (cameras and colours uploaded, modules loaded), captured and replayed after the envs
+    moved, equals an eager render at the new times."""
+    import warp as wp
+
+    from dynmesh_warp.batch import BatchedWorld, BatchModel, BatchState
+    from dynmesh_warp.gaussians import generate_gaussians
+    from dynmesh_warp.render import render_envs
+    from dynmesh_warp.scenes import wave_bowl
+    from dynmesh_warp.world import PhysicsParams, SurfaceModel
+
+    seq = wave_bowl(n=16, frames=8)
+    bm = BatchModel(SurfaceModel(seq, cuda_device), 4, [0.1], 1.0, PhysicsParams())
+    bw = BatchedWorld(bm, BatchState(bm, [[0.0, 0.0, 0.3]], times=[0.0, 0.1, 0.2, 0.3]))
+    g = generate_gaussians(seq.V[0], seq.F, count=500, seed=0, device=cuda_device)
+    cam = look_at([1.6, -1.4, 1.2], [0, 0, 0], width=32, height=32)
+    r = Renderer(cuda_device)
+    render_envs(bw, g, cam, renderer=r, capacity=100_000)
+    with wp.ScopedCapture(device=cuda_device) as cap:
+        out = render_envs(bw, g, cam, renderer=r, capacity=100_000)
+    for _ in range(7):
+        bw.step()
+    wp.capture_launch(cap.graph)
+    got = out.rgb.numpy().copy()
+    want = render_envs(bw, g, cam, renderer=Renderer(cuda_device)).rgb.numpy()
+    np.testing.assert_allclose(got, want, atol=1e-5)
+    assert int(out.overflow.numpy()[0]) == 0
+
+
 def test_render_cli_writes_frames_and_a_figure(tmp_path):
     from dynmesh_warp.render import main
 
