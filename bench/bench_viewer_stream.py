@@ -94,7 +94,8 @@ def measure(scene: str, groups: int, seconds: float, device, tmp: Path, realtime
     # seconds with a counting client attached; the achieved simulated s per wall s and frames/s
     rt = {}
     if realtime_s > 0:
-        v2 = Viewer(world, g, port=0, realtime=True, splat_groups=groups, log=lambda *a: None)
+        v2 = Viewer(world, g, port=0, realtime=True, splat_groups=groups, log=lambda *a: None,
+                    hold_until_client=False)  # the counting client is not a browser (sends no camera)
         stop2, out2 = threading.Event(), {"connected": threading.Event()}
         th2 = threading.Thread(target=_count_bytes, args=(v2.port, stop2, out2), daemon=True)
         th2.start()

@@ -65,7 +65,8 @@ class Viewer:
                  record: str | Path | None = None, realtime: bool = True, speed: float = 1.0,
                  min_scale_rel: float = MIN_SCALE_REL, min_ratio: float = MIN_RATIO,
                  mesh_color=(90, 160, 220), sphere_color=(230, 90, 60), show_mesh: bool | None = None,
-                 seed: int = 0, log=print, shade: bool = True, splat_groups: int = SPLAT_GROUPS):
+                 seed: int = 0, log=print, shade: bool = True, splat_groups: int = SPLAT_GROUPS,
+                 hold_until_client: bool = True):
         viser = _require_viser()
         import trimesh
 
@@ -75,6 +76,10 @@ class Viewer:
         if int(splat_groups) < 0:
             raise ValueError(f"splat_groups must be >= 0 (0: the whole buffer every frame), got {splat_groups}")
         self.splat_groups = int(splat_groups)
+        # realtime: the clock waits for the first browser, so the scene's moment (spheres landing)
+        # is not over before the page has opened
+        self.hold_until_client = bool(hold_until_client) and bool(realtime)
+        self._client_seen = False
         self.stream = None  # the grouped splat stream (_SplatGroups) when splat_groups > 0
         self.fps = float(fps)
         self.frame_dt = 1.0 / self.fps
@@ -160,6 +165,15 @@ class Viewer:
         P = self._points()
         self.mesh = sc.add_mesh_simple("/mesh", P, self.faces, color=self.mesh_color, side="double",
                                        visible=show_mesh)
+        params = getattr(getattr(self.world, "model", None), "params", None)
+        gz = getattr(params, "ground_height", None)
+        self.ground = None
+        if gz is not None:  # the ground the spheres land on, drawn: a grid 3 x the scene's size
+            size = 3.0 * self.scene_scale
+            cell = float(10.0 ** np.floor(np.log10(max(size / 20.0, 1e-9))))
+            self.ground = sc.add_grid("/ground", width=size, height=size, plane="xy", cell_size=cell,
+                                      section_size=10.0 * cell, plane_color=(236, 236, 232), plane_opacity=1.0,
+                                      position=(float(c[0]), float(c[1]), float(gz)))
         self.splats = None
         g = self.gaussians
         if g is not None and g.count:
@@ -306,6 +320,13 @@ class Viewer:
         self._apply_actions()
         w = self.world
         n = 0
+        if self.hold_until_client and not self._client_seen:
+            if not self.server.get_clients():  # nobody is watching yet: hold the clock
+                self.gui_rate.value = "waiting for a browser"
+                self.frame += 1
+                return 0
+            self._client_seen = True
+            self._last_wall = None  # the clock starts now, at one frame's worth
         now = time.perf_counter()
         # realtime: simulate speed x the wall time since the last frame (a late frame catches up,
         # up to MAX_CATCH_UP seconds of it; frames are dropped, time is not slowed); recording /

@@ -138,7 +138,7 @@ def test_clock_follows_the_wall_and_gaussians_update_once_per_frame(device, monk
     monkeypatch.setattr(g, "update", lambda *a: (calls.append(world.time), real_update(*a))[1])
     clock = iter([0.0, 0.1, 0.2, 0.3, 1.5, 1.6])  # wall times of six frames; a 1.2 s stall before the 5th
     monkeypatch.setattr(vw.time, "perf_counter", lambda: next(clock))
-    v = vw.Viewer(world, g, port=0, realtime=True, speed=2.0, log=lambda *a: None)
+    v = vw.Viewer(world, g, port=0, realtime=True, speed=2.0, log=lambda *a: None, hold_until_client=False)
     try:
         calls.clear()
         times = []
@@ -158,5 +158,34 @@ def test_clock_follows_the_wall_and_gaussians_update_once_per_frame(device, monk
         assert len(near) and p[2] > near[:, 2].max()  # above the surface at its x, y
         v.reset()
         assert world.model.spheres.count == n0 and world.time == world.t0
+    finally:
+        v.close()
+
+
+def test_realtime_clock_waits_for_the_first_browser_and_the_ground_is_drawn(device):
+    """Live: the clock holds until a client connects (the scene's moment is not over before the
+    page opens), then runs; a scene with a ground plane gets a grid node at its height."""
+    import dynmesh_warp.viewer as vw
+    from dynmesh_warp import build_world, load_scene_config
+    from dynmesh_warp.gaussians import gaussians_for_surface
+
+    cfg = load_scene_config(data={"name": "v", "surface": {"source": "builtin:pulsing_blob",
+                                                             "params": {"subdivisions": 2}},
+                                  "spheres": {"count": 1, "radius": 0.08}, "gaussians": {"count": 200},
+                                  "physics": {"ground": -0.5}})
+    world = build_world(cfg, device=device)
+    g = gaussians_for_surface(world.model.surface.sequence, cfg, world.device)
+    v = vw.Viewer(world, g, port=0, realtime=True, log=lambda *a: None)
+    try:
+        assert v.ground is not None and v.ground.position[2] == pytest.approx(-0.5)
+        for _ in range(3):
+            v.update()
+        assert world.time == world.t0 and v.gui_rate.value == "waiting for a browser"
+        # viser counts a client once its browser sends its first camera message
+        v.server.get_clients = lambda: {1: object()}
+        for _ in range(3):
+            v.update()
+            time.sleep(0.02)
+        assert world.time > world.t0
     finally:
         v.close()
