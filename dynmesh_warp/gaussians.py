@@ -229,7 +229,9 @@ def generate_gaussians(V, F, count: int = 20000, seed: int = 0, vertex_colors=No
                        device=None) -> Gaussians:
     """Seeded area-weighted Gaussians on the mesh surface (V (N,3) [m], F (M,3)).
 
-    Faces are drawn with probability proportional to area, points uniformly inside them. Each
+    Faces are drawn in proportion to area by systematic sampling (``count`` evenly spaced
+    quantiles of the cumulative area with one random phase: each face gets its share +-1, no
+    clumps), points uniformly inside them. Each
     Gaussian is a flat disc in its face's plane: in-plane std dev = coverage * sqrt(A / count)
     (A = total area), normal std dev = thickness * that. Colour: ``vertex_colors`` (N,3) in
     [0,1] (or 0..255 uint8) interpolated at the sample, else ``color``.
@@ -243,7 +245,11 @@ def generate_gaussians(V, F, count: int = 20000, seed: int = 0, vertex_colors=No
     total = float(area.sum())
     if total <= 0:
         raise ValueError("cannot generate Gaussians on a mesh of zero area")
-    face = rng.choice(F.shape[0], size=count, p=area / total).astype(np.int32)
+    # systematic sampling by area: count evenly spaced quantiles of the cumulative area (one random
+    # phase), so each face gets its share +-1 (independent draws clump and leave holes: the default
+    # scene's silhouette was 98.4 % covered at 320 px, see docs/rendering.md)
+    q = (np.arange(count) + rng.random()) * (total / max(count, 1))
+    face = np.minimum(np.searchsorted(np.cumsum(area), q, side="right"), F.shape[0] - 1).astype(np.int32)
     r1, r2 = rng.random(count), rng.random(count)
     s1 = np.sqrt(r1)
     bary = np.stack([1.0 - s1, s1 * (1.0 - r2), s1 * r2], axis=1)

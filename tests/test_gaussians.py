@@ -147,8 +147,8 @@ def test_generation_area_weighted_seeded_and_coloured(device):
     n = 20000
     g = generate_gaussians(V, F, count=n, seed=5, vertex_colors=colors, device=device)
     face = g.binding.face.numpy()
-    frac = (face == 1).mean()
-    assert abs(frac - 0.75) < 4 * np.sqrt(0.75 * 0.25 / n)
+    # systematic sampling: each face gets its area share to within one Gaussian (no clumping)
+    assert abs(int((face == 1).sum()) - 0.75 * n) <= 1
     b = g.binding.bary.numpy().astype(np.float64)
     assert (b >= -1e-6).all() and np.allclose(b.sum(1), 1, atol=1e-5)
     # uniform inside the face: mean barycentric -> (1/3, 1/3, 1/3)
@@ -157,7 +157,7 @@ def test_generation_area_weighted_seeded_and_coloured(device):
     g2 = generate_gaussians(V, F, count=n, seed=5, device=device)
     assert np.array_equal(g2.binding.face.numpy(), face)
     g3 = generate_gaussians(V, F, count=n, seed=6, device=device)
-    assert not np.array_equal(g3.binding.face.numpy(), face)
+    assert not np.array_equal(g3.binding.bary.numpy(), g.binding.bary.numpy())  # the seed moves the samples
     # centres lie on the surface, discs are flat along the face normal
     g.update(_arr(V, device), _idx(F, device))
     out = g.numpy()
