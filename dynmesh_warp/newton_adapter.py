@@ -488,8 +488,14 @@ def add_scene_bodies(builder, cfg, sphere_positions=None) -> list[dict]:
     return records
 
 
-def build_newton_world(cfg, device=None, sequence=None, **overrides) -> NewtonWorld:
-    """Create a :class:`NewtonWorld` from a validated scene with a ``newton:`` section."""
+def build_newton_world(cfg, device=None, sequence=None, num_worlds: int = 1, **overrides) -> NewtonWorld:
+    """Create a :class:`NewtonWorld` from a validated scene with a ``newton:`` section.
+
+    ``num_worlds`` > 1: Newton's own batching (issue 15, for comparison with ``batch``): the
+    scene's bodies are built once and replicated into that many Newton worlds
+    (``ModelBuilder.replicate``: copies do not collide with each other); the deforming surface
+    and the ground are global (world -1), shared by every world, so all worlds see the surface
+    at one time (Newton has one clock; per-world clocks would need one mesh per world)."""
     from .config import SceneError  # noqa: PLC0415
     from .scene import build_model, load_surface, prepare_surface  # noqa: PLC0415
 
@@ -510,8 +516,15 @@ def build_newton_world(cfg, device=None, sequence=None, **overrides) -> NewtonWo
     sph = (sp.radius_np.tolist(), sp.mass_np.tolist(), state.sphere_pos.numpy().copy(), vel)
     if any(m <= 0 for m in sph[1]) and cfg.newton.include_spheres:
         raise SceneError("spheres: the Newton path needs mass > 0 for every sphere")
+    if int(num_worlds) < 1:
+        raise SceneError(f"num_worlds must be >= 1, got {num_worlds}")
     builder = newton.ModelBuilder()
-    records = add_scene_bodies(builder, cfg, sph)
+    if int(num_worlds) == 1:
+        records = add_scene_bodies(builder, cfg, sph)
+    else:
+        one = newton.ModelBuilder()
+        records = add_scene_bodies(one, cfg, sph)
+        builder.replicate(one, copy_count=int(num_worlds))
     p = cfg.physics
     mu = p.friction if cfg.newton.surface_mu is None else cfg.newton.surface_mu
     if model.params.ground_height is not None:  # the same static plane the built-in world has
