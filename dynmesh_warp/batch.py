@@ -348,6 +348,10 @@ class BatchedWorld:
     def surface_indices(self):
         return self.model.surface.indices
 
+    def rigid_shapes(self) -> list:
+        """Rigid shapes other than the built-in spheres, for rendering: none here."""
+        return []
+
     def sphere_radii(self) -> np.ndarray:
         return self.model.spheres.radius_np
 
@@ -455,6 +459,10 @@ class EnvView:
     def sphere_positions(self) -> np.ndarray:
         return self.batch.sphere_positions()[self.env]
 
+    def rigid_shapes(self) -> list:
+        """Rigid shapes other than the built-in spheres, for rendering: none here."""
+        return []
+
     def sphere_radii(self) -> np.ndarray:
         S = self.model.spheres_per_env
         return self.model.spheres.radius_np[self.env * S:(self.env + 1) * S]
@@ -532,6 +540,10 @@ class EnvGrid(EnvView):
     def sphere_positions(self) -> np.ndarray:
         pos = self.batch.sphere_positions()
         return np.concatenate([pos[e] + o for e, o in zip(self.envs, self.offsets)]).astype(np.float32)
+
+    def rigid_shapes(self) -> list:
+        """Rigid shapes other than the built-in spheres, for rendering: none here."""
+        return []
 
     def sphere_radii(self) -> np.ndarray:
         S = self.model.spheres_per_env

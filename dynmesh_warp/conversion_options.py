@@ -103,6 +103,11 @@ class GraphOptions(_Options, _FineStage):
     damping: Float = Field(0.01, ge=0.0)
     max_normal_angle: Float = Field(60.0, ge=0.0, le=180.0)
     predict: Float = Field(1.0, ge=0.0)
+    #: start poses tried per frame: the prediction scaled by k / (n - 1), k = 0 .. n - 1 (0: the
+    #: previous pose), the one with the lowest two-sided fit score kept (1: the prediction alone)
+    predict_candidates: Int = Field(3, ge=1)
+    #: samples per side of that score
+    reinit_samples: Int = Field(1024, ge=1)
     restart_threshold: Float = Field(0.02, ge=0.0)
     refine_rounds: Int = Field(2, ge=0)
     # bidirectional repair: re-track runs of poorly covered frames from the other side (off: on

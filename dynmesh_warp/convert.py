@@ -457,7 +457,18 @@ class _Converter:
             init = self.history[-1]
         else:
             (R0, P0), (R1, P1) = self.history[-2:]
-            init = (extrapolate_rotations(R0, R1, gam), P1 + gam * (P1 - P0))
+            # constant velocity overshoots where the motion reverses (a wing beat, a leg's stride):
+            # the prediction scaled by k / (n - 1) from 0 (the previous pose) to 1, the start
+            # pose with the lowest two-sided fit score kept
+            n = int(o["predict_candidates"])
+            best = None
+            for k in range(n):
+                g = gam * (k / (n - 1) if n > 1 else 1.0)
+                cand = (extrapolate_rotations(R0, R1, g), P1 + g * (P1 - P0))
+                sc = self.fit_score(frame, gf.skin(*cand)) if n > 1 else 0.0
+                if best is None or sc < best[0]:
+                    best = (sc, cand)
+            init = best[1]
         its, lam0, lam1, mu = (int(o["graph_iterations"]), float(o["stiffness"]), float(o["stiffness_end"]),
                                float(o["damping"]))
         R, P = gf.fit(gframe, *init, its, lam0, lam1, mu)

@@ -315,6 +315,17 @@ class NewtonWorld:
     def sphere_positions(self) -> np.ndarray:
         return np.zeros((0, 3), np.float32)  # the bodies are Newton's (body_transforms)
 
+    def rigid_shapes(self) -> list:
+        """The bodies' collision shapes (``shapes()``) with their world poses now (``pose``),
+        for rendering; the deforming surface and static planes left out."""
+        X = self.shape_transforms()
+        out = []
+        for sh in self.shapes():
+            if sh["type"] == "plane":
+                continue
+            out.append({**sh, "pose": X[sh["index"]]})
+        return out
+
     def sphere_radii(self) -> np.ndarray:
         return np.zeros(0, np.float32)
 

@@ -26,7 +26,14 @@ import warp as wp
 from .kernels.render import (
     EMPTY_KEY,
     SH_C0,
+    SHAPE_BOX,
+    SHAPE_CAPSULE,
+    SHAPE_CYLINDER,
+    SHAPE_ELLIPSOID,
+    SHAPE_MESH,
+    SHAPE_SPHERE,
     TILE,
+    cast_rigid_shapes,
     emit_tile_keys,
     find_tile_ranges,
     gather_sorted_splats,
@@ -34,8 +41,13 @@ from .kernels.render import (
     rasterize_gaussians,
 )
 
-__all__ = ["Camera", "look_at", "orbit_cameras", "Renderer", "RenderResult", "rgb_to_sh", "render_world", "render_envs",
-           "main"]
+__all__ = ["Camera", "look_at", "orbit_cameras", "Renderer", "RenderResult", "RigidShapes", "rgb_to_sh", "render_world",
+           "render_envs", "main"]
+
+#: shape types drawn by :class:`RigidShapes` (Newton's ``GeoType`` names, lower case)
+SHAPE_KINDS = {"sphere": int(SHAPE_SPHERE), "box": int(SHAPE_BOX), "capsule": int(SHAPE_CAPSULE),
+               "cylinder": int(SHAPE_CYLINDER), "ellipsoid": int(SHAPE_ELLIPSOID), "mesh": int(SHAPE_MESH),
+               "convex_mesh": int(SHAPE_MESH)}
 
 
 @dataclass
@@ -104,6 +116,62 @@ class RenderResult:
     overflow: wp.array | None = None
 
 
+class RigidShapes:
+    """Rigid shapes drawn into a render besides the spheres (e.g. a Newton world's bodies,
+    ``Simulation.rigid_shapes()``): ray-cast per pixel in each shape's frame, opaque, shaded
+    like the spheres, composited by depth with the splats.
+
+    ``shapes``: dicts with ``type`` (a key of :data:`SHAPE_KINDS`), ``scale`` (3,) [m] (sphere
+    (r, -, -); box half extents; capsule and cylinder (r, half height, -) along local z;
+    ellipsoid semi-axes; mesh the scale of its vertices), ``pose`` (7,) world position and
+    quaternion (x, y, z, w), and for meshes ``vertices`` (N, 3) / ``indices`` (M, 3) in the
+    shape frame. Other types (cones, height fields, planes) are not drawn and are listed in
+    ``skipped``. ``set_poses`` updates the poses (one upload); the geometry is uploaded once."""
+
+    def __init__(self, shapes: list, device=None, color=(0.35, 0.5, 0.85)):
+        self.device = wp.get_device(device)
+        keep = [s for s in shapes if s["type"] in SHAPE_KINDS]
+        self.skipped = sorted({str(s["type"]) for s in shapes if s["type"] not in SHAPE_KINDS})
+        self.count = len(keep)
+        d = self.device
+        self._meshes = []  # kept alive: the kernel holds their ids
+        ids = np.zeros(self.count, np.uint64)
+        for j, sh in enumerate(keep):
+            if SHAPE_KINDS[sh["type"]] == int(SHAPE_MESH):
+                V = np.asarray(sh["vertices"], np.float32).reshape(-1, 3)
+                F = np.asarray(sh["indices"], np.int32).reshape(-1)
+                m = wp.Mesh(points=wp.array(V, dtype=wp.vec3, device=d), indices=wp.array(F, dtype=wp.int32, device=d))
+                self._meshes.append(m)
+                ids[j] = m.id
+        scale = np.array([np.asarray(sh["scale"], np.float64) for sh in keep], np.float32).reshape(-1, 3)
+        bad = [j for j, sh in enumerate(keep) if not np.all(np.isfinite(scale[j])) or
+               np.any(scale[j][:1] <= 0) or (sh["type"] in ("box", "ellipsoid", "mesh", "convex_mesh")
+                                             and np.any(scale[j] <= 0))]
+        if bad:
+            j = bad[0]
+            raise ValueError(f"RigidShapes: shape {j} ({keep[j]['type']}) has a non-positive or non-finite size "
+                             f"{scale[j].tolist()}")
+        cols = [np.asarray(sh.get("color", color), np.float32) for sh in keep]
+        self.kind = wp.array(np.array([SHAPE_KINDS[sh["type"]] for sh in keep], np.int32), dtype=wp.int32, device=d)
+        self.size = wp.array(scale, dtype=wp.vec3, device=d)
+        self.mesh = wp.array(ids, dtype=wp.uint64, device=d)
+        self.color = wp.array(np.array(cols, np.float32).reshape(-1, 3), dtype=wp.vec3, device=d)
+        self.pose = wp.zeros(self.count, dtype=wp.transform, device=d)
+        if self.count:
+            self.set_poses([sh["pose"] for sh in keep])
+
+    def set_poses(self, poses) -> None:
+        """World poses (K, 7) [m, quaternion x y z w] of the kept shapes, in their order."""
+        P = np.asarray(poses, np.float32).reshape(-1, 7)
+        if P.shape[0] != self.count:
+            raise ValueError(f"RigidShapes.set_poses: {P.shape[0]} poses for {self.count} shapes")
+        q = np.linalg.norm(P[:, 3:], axis=1)
+        if not np.all(np.isfinite(P)) or np.any(q < 1e-6):
+            raise ValueError("RigidShapes.set_poses: non-finite pose or zero quaternion")
+        P[:, 3:] /= q[:, None]
+        self.pose.assign(wp.array(P, dtype=wp.transform, device=self.device))
+
+
 class Renderer:
     """Reusable buffers for rendering G Gaussians from C cameras of one image size. The arrays of
     a :class:`RenderResult` are this renderer's own: valid until its next ``render`` (copy them
@@ -116,6 +184,7 @@ class Renderer:
         self._bkey, self._b = None, {}
         self._overflow = wp.zeros(1, dtype=wp.int32, device=self.device)
         self._no_spheres = (wp.zeros(0, dtype=wp.vec3, device=self.device), wp.zeros(0, dtype=float, device=self.device))
+        self._no_solid = wp.zeros((1, 1, 1), dtype=wp.vec4, device=self.device)
         self._cams = (None, None)  # (the cameras' values, their device arrays): reused while unchanged
 
     def _camera_arrays(self, cameras):
@@ -160,7 +229,8 @@ class Renderer:
 
     def render(self, means, covariances, sh, opacities, cameras: list[Camera], sh_degree: int | None = None,
                spheres=None, sphere_color=(0.85, 0.25, 0.2), background=(1.0, 1.0, 1.0),
-               near: float = 0.01, per_camera: bool = False, capacity: int | None = None) -> RenderResult:
+               near: float = 0.01, per_camera: bool = False, capacity: int | None = None,
+               shapes: RigidShapes | None = None) -> RenderResult:
         """Render for every camera (all of one size). means (G,) vec3 / (G, 3) [m]; covariances
         (G,) mat33 / (G, 3, 3) [m^2]; sh (G, K, 3) SH coefficients (K = 1, 4, 9 or 16; degree
         from K unless given); opacities (G,) in [0, 1]; spheres: (centres (S, 3), radii (S,))
@@ -170,7 +240,8 @@ class Renderer:
         (Gaussian, tile) entries to sort: no value is read back to the host, so the call can be
         captured in a CUDA graph (``wp.ScopedCapture``) with array inputs; entries beyond it are
         dropped and counted in ``result.overflow`` (check it, and raise the capacity, when the
-        picture must be complete). None: the exact count is read back (one small host read)."""
+        picture must be complete). None: the exact count is read back (one small host read).
+        ``shapes``: :class:`RigidShapes` seen by every camera (opaque, composited by depth)."""
         d = self.device
         if not cameras:
             raise ValueError("render: no cameras")
@@ -234,9 +305,20 @@ class Renderer:
             raise ValueError(f"render: per_camera spheres must be C x S = {C} x S, got {sc.shape[0]}")
         s_per = sc.shape[0] // C if per_camera else 0
         rgb, alpha, zbuf = b["rgb"], b["alpha"], b["depth_image"]  # every pixel is written
+        has_solid = shapes is not None and shapes.count > 0
+        if has_solid:
+            if shapes.device != d:
+                raise ValueError(f"render: the shapes are on {shapes.device}, the renderer on {d}")
+            solid = b.get("solid")
+            if solid is None:
+                solid = b["solid"] = wp.empty((C, H, W), dtype=wp.vec4, device=d)
+            wp.launch(cast_rigid_shapes, (C, H, W), inputs=[shapes.kind, shapes.size, shapes.mesh, shapes.color,
+                                                            shapes.pose, Rs, ts, ks], outputs=[solid], device=d)
+        else:
+            solid = self._no_solid
         wp.launch(rasterize_gaussians, (C, H, W),
                   inputs=[self._s_xyo, self._s_conic, self._s_cd, start, end, Rs, ts, ks, sc, sr, s_per,
-                          wp.vec3(*sphere_color), wp.vec3(*background), W, H],
+                          wp.vec3(*sphere_color), solid, int(has_solid), wp.vec3(*background), W, H],
                   outputs=[rgb, alpha, zbuf], device=d)
         return RenderResult(rgb, alpha, zbuf, self._overflow)
 
@@ -244,7 +326,8 @@ class Renderer:
 def render_world(sim, gaussians, cameras: list[Camera], renderer: Renderer | None = None, shade: bool = True,
                  **kw) -> RenderResult:
     """The simulation's bound Gaussians (``gaussians.Gaussians``, updated to its current
-    surface) and its spheres, from ``cameras``. ``shade``: each Gaussian's colour times
+    surface), its spheres and its other rigid shapes (``sim.rigid_shapes()``: a Newton world's
+    boxes, capsules, meshes ...), from ``cameras``. ``shade``: each Gaussian's colour times
     0.35 + 0.65 |n . l|, n its flat axis (the smallest scale: the surface normal for Gaussians
     bound to faces), l from the first camera towards the scene and a little from above, so the
     shape reads (the colours of the binding are unlit)."""
@@ -259,8 +342,17 @@ def render_world(sim, gaussians, cameras: list[Camera], renderer: Renderer | Non
     sh = wp.array(rgb_to_sh(rgb), dtype=float, device=sim.device)
     op = wp.array(b.opacity, dtype=float, device=sim.device)
     pos, rad = sim.sphere_positions(), sim.sphere_radii()
+    rigid = sim.rigid_shapes()
+    shapes = None
+    if rigid:  # a Newton world's bodies: geometry uploaded once per renderer, poses every call
+        key = (id(sim), len(rigid))
+        if getattr(renderer, "_shapes_key", None) != key:
+            renderer._shapes = RigidShapes(rigid, sim.device)
+            renderer._shapes_key = key
+        shapes = renderer._shapes
+        shapes.set_poses([r["pose"] for r in rigid if r["type"] in SHAPE_KINDS])
     return renderer.render(gaussians.state.centers, gaussians.state.covariances, sh, op, cameras,
-                           spheres=(pos, rad) if len(rad) else None, **kw)
+                           spheres=(pos, rad) if len(rad) else None, shapes=shapes, **kw)
 
 
 def render_envs(batch, gaussians, cameras, renderer: Renderer | None = None, **kw) -> RenderResult:
@@ -367,12 +459,17 @@ def main(argv=None) -> int:
 
     try:
         cfg = load_scene_config(a.scene)
-        world = build_world(cfg, device=a.device)
+        if cfg.newton is not None:  # a newton: scene renders the Newton world, its bodies drawn in
+            from .newton_adapter import build_newton_world
+
+            world = build_newton_world(cfg, device=a.device)
+        else:
+            world = build_world(cfg, device=a.device)
+            world.render_state = True
     except (SceneError, ValueError, FileNotFoundError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    gs = gaussians_for_surface(world.model.surface.sequence, cfg, world.device)  # updated once per frame below
-    world.render_state = True
+    gs = gaussians_for_surface(world.surface.sequence, cfg, world.device)  # updated once per frame below
     V = world.surface.sequence.V
     lo, hi = V.reshape(-1, 3).min(axis=0), V.reshape(-1, 3).max(axis=0)
     centre, diag = 0.5 * (lo + hi), float(np.linalg.norm(hi - lo))
@@ -390,8 +487,7 @@ def main(argv=None) -> int:
     except ImportError:  # pragma: no cover
         it = range(last + 1)
     for f in it:
-        world.sync_surface()
-        gs.update(world.state.points, world.model.surface.indices)
+        gs.update(world.surface_points(), world.surface_indices())
         cam = orbit_cameras(centre, 1.05 * diag, 1, 20.0, a.width, a.height, start_deg=30.0 + 90.0 * f / max(last, 1))
         img = _to_uint8(render_world(world, gs, cam, renderer).rgb.numpy()[0])
         if a.out and f < total:

@@ -92,6 +92,13 @@ class Simulation(Protocol):
     def sphere_positions(self) -> np.ndarray:
         """(S, 3) built-in sphere centres [m] (S = 0 for a Newton world)."""
 
+    def rigid_shapes(self) -> list:
+        """Rigid shapes other than the built-in spheres, for rendering (``render.RigidShapes``):
+        one dict per shape with ``type`` (``sphere`` | ``box`` | ``capsule`` | ``cylinder`` |
+        ``ellipsoid`` | ``mesh`` | ...), ``scale`` (3,) [m], ``pose`` (7,) world position [m] and
+        quaternion (x, y, z, w), mesh shapes also ``vertices`` (N, 3) and ``indices`` (M, 3);
+        empty for the built-in world (its bodies are the spheres)."""
+
     def sphere_radii(self) -> np.ndarray:
         """(S,) built-in sphere radii [m]."""
 

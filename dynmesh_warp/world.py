@@ -896,6 +896,10 @@ class World:
     def surface_indices(self):
         return self.current_indices()
 
+    def rigid_shapes(self) -> list:
+        """Rigid shapes other than the built-in spheres, for rendering: none here."""
+        return []
+
     def sphere_radii(self) -> np.ndarray:
         return self.model.spheres.radius_np
 

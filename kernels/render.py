@@ -8,7 +8,9 @@ dilation of the 2-D covariance, a 3-sigma radius, alpha = min(0.999, opacity exp
 Gaussians under alpha 1/255 skipped, and a pixel finished once its transmittance would fall
 to 1e-4 (that Gaussian not composited). Colour from spherical harmonics up to degree 3 with the
 view direction from the camera centre, + 0.5, clamped at 0. Rigid spheres are ray-cast per pixel
-and composited by depth with the splats (a splat behind the nearest sphere is hidden).
+and composited by depth with the splats (a splat behind the nearest sphere is hidden); other
+rigid shapes (Newton's boxes, capsules, cylinders, ellipsoids, meshes) are cast first by
+``cast_rigid_shapes`` into an opaque layer the compositing treats the same way.
 """
 
 import warp as wp
@@ -276,6 +278,202 @@ def nearest_sphere(o: wp.vec3, d: wp.vec3, centers: wp.array[wp.vec3], radii: wp
     return best, hit
 
 
+#: rigid shape kinds of ``cast_rigid_shapes`` (``render.RigidShapes``); sizes [m] per kind:
+#: sphere (r, -, -), box half extents, capsule / cylinder (r, half height, -) along local z,
+#: ellipsoid semi-axes, mesh the scale of its vertices
+SHAPE_SPHERE = wp.constant(0)
+SHAPE_BOX = wp.constant(1)
+SHAPE_CAPSULE = wp.constant(2)
+SHAPE_CYLINDER = wp.constant(3)
+SHAPE_ELLIPSOID = wp.constant(4)
+SHAPE_MESH = wp.constant(5)
+NO_HIT = wp.constant(1.0e30)
+
+
+@wp.func
+def intersect_sphere_local(o: wp.vec3, d: wp.vec3, r: float):
+    """Ray o + s d (d unit) against a sphere of radius r at the origin: (s, outward normal);
+    s = NO_HIT if missed or behind."""
+    b = wp.dot(o, d)
+    disc = b * b - (wp.dot(o, o) - r * r)
+    s = float(NO_HIT)
+    n = wp.vec3(0.0)
+    if disc >= 0.0:
+        s0 = -b - wp.sqrt(disc)
+        if s0 > 0.0:
+            s = s0
+            n = (o + d * s0) / r
+    return s, n
+
+
+@wp.func
+def intersect_box_local(o: wp.vec3, d: wp.vec3, h: wp.vec3):
+    """Ray o + s d against the box |x_i| <= h_i (slab test): (s of entry, the entered face's
+    outward normal); NO_HIT if missed, behind, or the origin inside."""
+    t0 = float(-NO_HIT)
+    t1 = float(NO_HIT)
+    axis = int(-1)
+    sgn = float(0.0)
+    ok = int(1)
+    for i in range(3):
+        if wp.abs(d[i]) < 1.0e-12:
+            if wp.abs(o[i]) > h[i]:
+                ok = 0
+        else:
+            inv = 1.0 / d[i]
+            ta = (-h[i] - o[i]) * inv
+            tb = (h[i] - o[i]) * inv
+            sa = float(-1.0)
+            if ta > tb:
+                tmp = ta
+                ta = tb
+                tb = tmp
+                sa = 1.0
+            if ta > t0:
+                t0 = ta
+                axis = i
+                sgn = sa
+            t1 = wp.min(t1, tb)
+    s = float(NO_HIT)
+    n = wp.vec3(0.0)
+    if ok == 1 and axis >= 0 and t0 <= t1 and t0 > 0.0:
+        s = t0
+        n[axis] = sgn
+    return s, n
+
+
+@wp.func
+def intersect_capsule_local(o: wp.vec3, d: wp.vec3, r: float, h: float):
+    """Ray o + s d against the capsule of radius r around the segment z in [-h, h]: (s, normal)."""
+    # the infinite cylinder x^2 + y^2 = r^2, kept where |z| <= h
+    s = float(NO_HIT)
+    n = wp.vec3(0.0)
+    a = d[0] * d[0] + d[1] * d[1]
+    if a > 1.0e-12:
+        b = o[0] * d[0] + o[1] * d[1]
+        c = o[0] * o[0] + o[1] * o[1] - r * r
+        disc = b * b - a * c
+        if disc >= 0.0:
+            t = (-b - wp.sqrt(disc)) / a
+            z = o[2] + t * d[2]
+            if t > 0.0 and wp.abs(z) <= h:
+                s = t
+                p = o + d * t
+                n = wp.vec3(p[0], p[1], 0.0) / r
+    # the end spheres
+    for k in range(2):
+        cz = h * (2.0 * float(k) - 1.0)
+        c0 = wp.vec3(0.0, 0.0, cz)
+        t, nn = intersect_sphere_local(o - c0, d, r)
+        if t < s:
+            s = t
+            n = nn
+    return s, n
+
+
+@wp.func
+def intersect_cylinder_local(o: wp.vec3, d: wp.vec3, r: float, h: float):
+    """Ray o + s d against the closed cylinder x^2 + y^2 <= r^2, |z| <= h: (s, normal)."""
+    s = float(NO_HIT)
+    n = wp.vec3(0.0)
+    a = d[0] * d[0] + d[1] * d[1]
+    if a > 1.0e-12:
+        b = o[0] * d[0] + o[1] * d[1]
+        c = o[0] * o[0] + o[1] * o[1] - r * r
+        disc = b * b - a * c
+        if disc >= 0.0:
+            t = (-b - wp.sqrt(disc)) / a
+            z = o[2] + t * d[2]
+            if t > 0.0 and wp.abs(z) <= h:
+                s = t
+                p = o + d * t
+                n = wp.vec3(p[0], p[1], 0.0) / r
+    if wp.abs(d[2]) > 1.0e-12:
+        for k in range(2):
+            cz = h * (2.0 * float(k) - 1.0)
+            t = (cz - o[2]) / d[2]
+            p = o + d * t
+            if t > 0.0 and t < s and p[0] * p[0] + p[1] * p[1] <= r * r:
+                s = t
+                n = wp.vec3(0.0, 0.0, 2.0 * float(k) - 1.0)
+    return s, n
+
+
+@wp.kernel
+def cast_rigid_shapes(
+    # Model:
+    shape_kind: wp.array[wp.int32],
+    shape_size: wp.array[wp.vec3],
+    shape_mesh: wp.array[wp.uint64],
+    shape_color: wp.array[wp.vec3],
+    # In:
+    shape_pose: wp.array[wp.transform],
+    view_rotation: wp.array[wp.mat33],
+    view_translation: wp.array[wp.vec3],
+    intrinsics: wp.array[wp.vec4],
+    # Out:
+    solid: wp.array3d[wp.vec4],
+):
+    """The nearest rigid shape along each pixel's ray (launch (C, H, W)), Lambert-shaded from
+    the camera like the spheres: solid[c, y, x] = (r, g, b, camera z [m]) with z = NO_HIT where
+    no shape is hit. Each shape is intersected in its own frame (``shape_pose``: world pose,
+    position [m] + unit quaternion); sizes and kinds as the SHAPE_* constants say; a mesh shape
+    by ``wp.mesh_query_ray`` on its vertices divided by its scale."""
+    c, py, px = wp.tid()
+    k = intrinsics[c]
+    R = view_rotation[c]
+    dc = wp.normalize(wp.vec3((float(px) + 0.5 - k[2]) / k[0], (float(py) + 0.5 - k[3]) / k[1], 1.0))
+    o = -(wp.transpose(R) * view_translation[c])
+    dw = wp.transpose(R) * dc
+    best = float(NO_HIT)
+    nrm = wp.vec3(0.0)
+    best_k = int(-1)
+    for j in range(shape_kind.shape[0]):
+        X = shape_pose[j]
+        q = wp.transform_get_rotation(X)
+        ol = wp.quat_rotate_inv(q, o - wp.transform_get_translation(X))
+        dl = wp.quat_rotate_inv(q, dw)
+        kind = shape_kind[j]
+        sz = shape_size[j]
+        s = float(NO_HIT)
+        nl = wp.vec3(0.0)
+        if kind == SHAPE_SPHERE:
+            s, nl = intersect_sphere_local(ol, dl, sz[0])
+        elif kind == SHAPE_BOX:
+            s, nl = intersect_box_local(ol, dl, sz)
+        elif kind == SHAPE_CAPSULE:
+            s, nl = intersect_capsule_local(ol, dl, sz[0], sz[1])
+        elif kind == SHAPE_CYLINDER:
+            s, nl = intersect_cylinder_local(ol, dl, sz[0], sz[1])
+        elif kind == SHAPE_ELLIPSOID:
+            # the unit sphere in coordinates divided by the semi-axes; s keeps its meaning
+            ou = wp.cw_div(ol, sz)
+            du = wp.cw_div(dl, sz)
+            a = wp.dot(du, du)
+            b = wp.dot(ou, du)
+            disc = b * b - a * (wp.dot(ou, ou) - 1.0)
+            if disc >= 0.0:
+                t = (-b - wp.sqrt(disc)) / a
+                if t > 0.0:
+                    s = t
+                    nl = wp.normalize(wp.cw_div(ou + du * t, sz))
+        elif kind == SHAPE_MESH:
+            hit = wp.mesh_query_ray(shape_mesh[j], wp.cw_div(ol, sz), wp.cw_div(dl, sz), best)
+            if hit.result:
+                s = hit.t
+                nl = wp.normalize(wp.cw_div(hit.normal, sz))
+        if s < best:
+            best = s
+            nrm = wp.quat_rotate(q, nl)
+            best_k = j
+    out = wp.vec4(0.0, 0.0, 0.0, NO_HIT)
+    if best_k >= 0:
+        shade = 0.25 + 0.75 * wp.abs(wp.dot(wp.normalize(nrm), dw))
+        col = shape_color[best_k] * shade
+        out = wp.vec4(col[0], col[1], col[2], best * dc[2])
+    solid[c, py, px] = out
+
+
 @wp.kernel
 def rasterize_gaussians(
     # In:
@@ -291,6 +489,8 @@ def rasterize_gaussians(
     sphere_radii: wp.array[float],
     spheres_per_camera: int,
     sphere_color: wp.vec3,
+    solid: wp.array3d[wp.vec4],
+    has_solid: int,
     background: wp.vec3,
     width: int,
     height: int,
@@ -326,6 +526,13 @@ def rasterize_gaussians(
     z_sphere = float(1.0e30)
     if sk >= 0:
         z_sphere = s_hit * dc[2]
+    # an opaque rigid shape nearer than the nearest sphere (cast_rigid_shapes) takes its place
+    solid_px = wp.vec4(0.0, 0.0, 0.0, NO_HIT)
+    if has_solid != 0:
+        solid_px = solid[c, py, px]
+        if solid_px[3] < z_sphere:
+            z_sphere = solid_px[3]
+            sk = -2
     T = float(1.0)
     acc = wp.vec3(0.0)
     acc_z = float(0.0)
@@ -357,6 +564,10 @@ def rasterize_gaussians(
         nrm = wp.normalize(pw - sphere_centers[sk])
         shade = 0.25 + 0.75 * wp.max(0.0, -wp.dot(nrm, dw))
         acc = acc + sphere_color * (shade * T)
+        acc_z = acc_z + z_sphere * T
+        T = 0.0
+    elif sk == -2 and done != 1:  # a rigid shape, opaque, shaded by cast_rigid_shapes
+        acc = acc + wp.vec3(solid_px[0], solid_px[1], solid_px[2]) * T
         acc_z = acc_z + z_sphere * T
         T = 0.0
     rgb[c, py, px] = acc + background * T

@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 GROUPS = ["Model", "State in", "In", "State out", "Out"]
 HEADER = re.compile(r"^#\s*(Model|State in|In|State out|Out)(\s*\([^)]*\))?:\s*$")
 VERBS = {
-    "accumulate", "add", "advance", "apply", "begin", "bind", "blend", "collide", "combine", "compute", "count",
+    "accumulate", "add", "advance", "apply", "begin", "bind", "blend", "cast", "collide", "combine", "compute", "count",
     "detect", "emit", "evaluate",
     "find", "gather", "integrate", "mark", "measure", "multiply", "pack", "project", "rasterize", "relax", "reset",
     "resolve", "sample", "scatter", "skin", "smooth", "solve", "sum", "transform", "update",

@@ -32,7 +32,9 @@ LAYERS = [
     {"convert"},
     {"scene"},
     # engines and tools over a scene
-    {"newton_adapter", "evaluate", "batch", "render"},
+    {"newton_adapter", "evaluate", "batch"},
+    # the renderer over either engine (its CLI builds a Newton world for a newton: scene)
+    {"render"},
     {"viewer", "envs"},
     # Ray actors over the envs
     {"distributed"},

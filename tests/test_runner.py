@@ -62,6 +62,9 @@ class Ballistic:
     def sphere_positions(self):
         return np.zeros((0, 3))
 
+    def rigid_shapes(self):
+        return []
+
     def sphere_radii(self):
         return np.zeros(0)
 
