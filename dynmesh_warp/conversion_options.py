@@ -105,7 +105,7 @@ class GraphOptions(_Options, _FineStage):
     predict: Float = Field(1.0, ge=0.0)
     #: start poses tried per frame: the prediction scaled by k / (n - 1), k = 0 .. n - 1 (0: the
     #: previous pose), the one with the lowest two-sided fit score kept (1: the prediction alone)
-    predict_candidates: Int = Field(3, ge=1)
+    predict_candidates: Int = Field(1, ge=1)
     #: samples per side of that score
     reinit_samples: Int = Field(1024, ge=1)
     restart_threshold: Float = Field(0.02, ge=0.0)
@@ -122,6 +122,12 @@ class GraphOptions(_Options, _FineStage):
     # (issue 12's protocol: horse_collapse +17 % -> +13 % CD)
     iterations: Int = Field(4, ge=0)
     pull_fraction: Fraction = 1.0
+    # less smoothing of the fine stage's displacements (10 -> 3 passes) and one tangential
+    # relaxation (was 3): the template reaches the parts the input has (issue 12's protocol, CPU:
+    # chicken_crossing +24 -> +14 %, pcow +67 -> +38 %, horse_collapse +13 -> +10 %,
+    # horse_gallop +3 -> +1 %, articulated figure -2 -> -2 %; docs/conversion.md)
+    smooth_iterations: Int = Field(3, ge=0)
+    relax_iterations: Int = Field(1, ge=0)
 
 
 ConversionOptions = Annotated[Union[ProjectionOptions, TrackingOptions, RegularizedOptions, GraphOptions],
