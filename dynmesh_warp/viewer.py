@@ -123,7 +123,7 @@ class Viewer:
         self._build_scene(V0, show_mesh)
         self._build_gui(show_mesh)
         if not world.editable:  # reset, seeking and dropping spheres are the built-in world's
-            for name in ("gui_reset", "gui_drop", "gui_time"):
+            for name in ("gui_reset", "gui_replay", "gui_drop", "gui_time"):
                 getattr(self, name).disabled = True
         self._serializer = self.server.get_scene_serializer() if self.record_path else None
         self._closed = False
@@ -229,6 +229,7 @@ class Viewer:
         self.gui_time = gui.add_slider("Time [s]", min=0.0, max=round(self.duration, 3), step=0.01, initial_value=0.0)
         self.gui_speed = gui.add_slider("Speed", min=0.0, max=4.0, step=0.05, initial_value=self.speed)
         self.gui_reset = gui.add_button("Reset")
+        self.gui_replay = gui.add_button("Replay drop")
         self.gui_drop = gui.add_button("Drop sphere")
         self.gui_show_splats = gui.add_checkbox("Show splats", self.gaussians is not None)
         self.gui_show_mesh = gui.add_checkbox("Show mesh", show_mesh)
@@ -242,6 +243,7 @@ class Viewer:
         self.gui_play.on_update(lambda e: self._queue("play", self.gui_play.value))
         self.gui_speed.on_update(lambda e: self._queue("speed", self.gui_speed.value))
         self.gui_reset.on_click(lambda e: self._queue("reset"))
+        self.gui_replay.on_click(lambda e: self._queue("replay"))
         self.gui_drop.on_click(lambda e: self._queue("drop"))
         self.gui_show_splats.on_update(lambda e: self._queue("show", "splats", self.gui_show_splats.value))
         self.gui_show_mesh.on_update(lambda e: self._queue("show", "mesh", self.gui_show_mesh.value))
@@ -266,6 +268,13 @@ class Viewer:
         self._refresh_gaussians()
         self._owed = 0.0
         self._send_spheres(force=True)
+
+    def replay(self):
+        """The scene's moment again: back to the start (``reset``) and playing, so the spheres
+        drop onto the surface as they did when the page opened."""
+        self.reset()
+        self.playing = True
+        self.gui_play.value = True
 
     def seek(self, t: float):
         """Move the surface to time ``t`` [s] (spheres keep their state)."""
@@ -299,6 +308,8 @@ class Viewer:
                 self.speed = float(args[0])
             elif name == "reset":
                 self.reset()
+            elif name == "replay":
+                self.replay()
             elif name == "drop":
                 self.drop_sphere()
             elif name == "seek":

@@ -158,6 +158,14 @@ def test_clock_follows_the_wall_and_gaussians_update_once_per_frame(device, monk
         assert len(near) and p[2] > near[:, 2].max()  # above the surface at its x, y
         v.reset()
         assert world.model.spheres.count == n0 and world.time == world.t0
+        # "Replay drop" (by its button's action): paused, a sphere dropped and time moved on ->
+        # back to the scene's own spheres at t0, and playing again
+        v.drop_sphere()
+        world.step()
+        v.playing = v.gui_play.value = False
+        v._queue("replay")
+        v._apply_actions()
+        assert world.model.spheres.count == n0 and world.time == world.t0 and v.playing and v.gui_play.value
     finally:
         v.close()
 
