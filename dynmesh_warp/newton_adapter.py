@@ -316,12 +316,15 @@ class NewtonWorld:
         return np.zeros((0, 3), np.float32)  # the bodies are Newton's (body_transforms)
 
     def rigid_shapes(self) -> list:
-        """The bodies' collision shapes (``shapes()``) with their world poses now (``pose``),
-        for rendering; the deforming surface and static planes left out."""
+        """The bodies' visible shapes (``shapes()`` with Newton's VISIBLE flag, sites left out)
+        with their world poses now (``pose``), for rendering; the deforming surface and static
+        planes left out."""
+        newton = _import_newton()
+        visible, site = int(newton.ShapeFlags.VISIBLE), int(newton.ShapeFlags.SITE)
         X = self.shape_transforms()
         out = []
         for sh in self.shapes():
-            if sh["type"] == "plane":
+            if sh["type"] == "plane" or not sh["flags"] & visible or sh["flags"] & site:
                 continue
             out.append({**sh, "pose": X[sh["index"]]})
         return out

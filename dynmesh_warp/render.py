@@ -130,8 +130,14 @@ class RigidShapes:
 
     def __init__(self, shapes: list, device=None, color=(0.35, 0.5, 0.85)):
         self.device = wp.get_device(device)
-        keep = [s for s in shapes if s["type"] in SHAPE_KINDS]
-        self.skipped = sorted({str(s["type"]) for s in shapes if s["type"] not in SHAPE_KINDS})
+        def drawable(s):
+            return s["type"] in SHAPE_KINDS and (SHAPE_KINDS[s["type"]] != int(SHAPE_MESH) or "vertices" in s)
+
+        #: indices into ``shapes`` of the shapes drawn (the order ``set_poses`` takes)
+        self.kept = [i for i, s in enumerate(shapes) if drawable(s)]
+        keep = [shapes[i] for i in self.kept]
+        self.skipped = sorted({str(s["type"]) + ("" if s["type"] not in SHAPE_KINDS else " (no vertices)")
+                               for s in shapes if not drawable(s)})
         self.count = len(keep)
         d = self.device
         self._meshes = []  # kept alive: the kernel holds their ids
@@ -350,7 +356,7 @@ def render_world(sim, gaussians, cameras: list[Camera], renderer: Renderer | Non
             renderer._shapes = RigidShapes(rigid, sim.device)
             renderer._shapes_key = key
         shapes = renderer._shapes
-        shapes.set_poses([r["pose"] for r in rigid if r["type"] in SHAPE_KINDS])
+        shapes.set_poses([rigid[i]["pose"] for i in shapes.kept])
     return renderer.render(gaussians.state.centers, gaussians.state.covariances, sh, op, cameras,
                            spheres=(pos, rad) if len(rad) else None, shapes=shapes, **kw)
 

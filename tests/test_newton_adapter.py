@@ -421,3 +421,20 @@ def test_render_cli_renders_a_newton_scene_with_its_bodies(tmp_path, device):
     img = np.asarray(Image.open(fig)).astype(float) / 255.0
     blue = (img[..., 2] > img[..., 0] + 0.2)  # the body colour (0.35, 0.5, 0.85) shaded; the splats are beige
     assert blue.sum() > 20
+
+
+def test_rigid_shapes_leave_out_sites_and_invisible_shapes():
+    """What the renderer draws of a Newton world: visible shapes only (an MJCF's sites and
+    collision-only shapes are not drawn), each with its world pose (body pose x local transform)."""
+    seq = rising_sheet(8)
+    b = newton.ModelBuilder()
+    body = b.add_body(xform=wp.transform(wp.vec3(0.1, 0.2, 0.5), wp.quat_identity()))
+    b.add_shape_box(body, hx=0.1, hy=0.1, hz=0.1, xform=wp.transform(wp.vec3(0.0, 0.0, 0.05), wp.quat_identity()))
+    b.add_shape_sphere(body, radius=0.05, as_site=True)
+    hidden = newton.ModelBuilder.ShapeConfig(is_visible=False)
+    b.add_shape_capsule(body, radius=0.02, half_height=0.1, cfg=hidden)
+    nw = NewtonWorld(SurfaceModel(seq, "cpu", playback="clamp"), b)
+    shapes = nw.rigid_shapes()
+    assert [s["type"] for s in shapes] == ["box"]
+    np.testing.assert_allclose(shapes[0]["pose"][:3], [0.1, 0.2, 0.55], atol=1e-6)
+    assert len(nw.shapes()) == 3  # all three exist; two are not for display

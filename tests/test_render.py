@@ -197,7 +197,9 @@ def test_rigid_shapes_equal_sphere_traced_sdfs(device):
 
     shapes = _shape_list()
     rs = RigidShapes(shapes, device, color=(0.4, 0.6, 0.8))
-    assert rs.count == 4 and rs.skipped == ["cone"]
+    assert rs.count == 4 and rs.skipped == ["cone"] and rs.kept == [0, 1, 2, 3]
+    no_mesh = RigidShapes([{"type": "mesh", "scale": [1, 1, 1], "pose": [0, 0, 0, 0, 0, 0, 1]}], device)
+    assert no_mesh.count == 0 and no_mesh.skipped == ["mesh (no vertices)"]
     cam = look_at([2.2, -1.6, 1.4], [0, 0.05, 0], width=64, height=48, fov_y_deg=30)
     empty = (np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 1, 3)), np.zeros(0))
     out = Renderer(device).render(*empty, [cam], shapes=rs, background=(0.0, 0.0, 0.0))
