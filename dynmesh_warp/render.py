@@ -125,13 +125,15 @@ class RigidShapes:
     (r, -, -); box half extents; capsule and cylinder (r, half height, -) along local z;
     ellipsoid semi-axes; mesh the scale of its vertices), ``pose`` (7,) world position and
     quaternion (x, y, z, w), and for meshes ``vertices`` (N, 3) / ``indices`` (M, 3) in the
-    shape frame. Other types (cones, height fields, planes) are not drawn and are listed in
+    shape frame (or ``wp_mesh``: a ``wp.Mesh`` on the device, used as it is). Other types
+    (cones, height fields, planes) are not drawn and are listed in
     ``skipped``. ``set_poses`` updates the poses (one upload); the geometry is uploaded once."""
 
     def __init__(self, shapes: list, device=None, color=(0.35, 0.5, 0.85)):
         self.device = wp.get_device(device)
         def drawable(s):
-            return s["type"] in SHAPE_KINDS and (SHAPE_KINDS[s["type"]] != int(SHAPE_MESH) or "vertices" in s)
+            return s["type"] in SHAPE_KINDS and (SHAPE_KINDS[s["type"]] != int(SHAPE_MESH) or "vertices" in s
+                                                 or "wp_mesh" in s)
 
         #: indices into ``shapes`` of the shapes drawn (the order ``set_poses`` takes)
         self.kept = [i for i, s in enumerate(shapes) if drawable(s)]
@@ -143,7 +145,10 @@ class RigidShapes:
         self._meshes = []  # kept alive: the kernel holds their ids
         ids = np.zeros(self.count, np.uint64)
         for j, sh in enumerate(keep):
-            if SHAPE_KINDS[sh["type"]] == int(SHAPE_MESH):
+            if "wp_mesh" in sh:  # a device mesh kept up to date by the caller (the physics surface)
+                self._meshes.append(sh["wp_mesh"])
+                ids[j] = sh["wp_mesh"].id
+            elif SHAPE_KINDS[sh["type"]] == int(SHAPE_MESH):
                 V = np.asarray(sh["vertices"], np.float32).reshape(-1, 3)
                 F = np.asarray(sh["indices"], np.int32).reshape(-1)
                 m = wp.Mesh(points=wp.array(V, dtype=wp.vec3, device=d), indices=wp.array(F, dtype=wp.int32, device=d))
@@ -330,14 +335,35 @@ class Renderer:
 
 
 def render_world(sim, gaussians, cameras: list[Camera], renderer: Renderer | None = None, shade: bool = True,
-                 **kw) -> RenderResult:
+                 splats: bool = True, mesh: bool = False, mesh_color=(0.78, 0.74, 0.66), **kw) -> RenderResult:
     """The simulation's bound Gaussians (``gaussians.Gaussians``, updated to its current
     surface), its spheres and its other rigid shapes (``sim.rigid_shapes()``: a Newton world's
     boxes, capsules, meshes ...), from ``cameras``. ``shade``: each Gaussian's colour times
     0.35 + 0.65 |n . l|, n its flat axis (the smallest scale: the surface normal for Gaussians
     bound to faces), l from the first camera towards the scene and a little from above, so the
-    shape reads (the colours of the binding are unlit)."""
+    shape reads (the colours of the binding are unlit). ``mesh``: the physics mesh itself drawn
+    too, opaque and shaded like the bodies (for debugging: where the splats and the collision
+    surface differ); ``splats=False`` leaves the Gaussians out (``gaussians`` may then be None)."""
     renderer = renderer or Renderer(sim.device)
+    rigid = list(sim.rigid_shapes())
+    if mesh:
+        rigid.append({"type": "mesh", "scale": [1.0, 1.0, 1.0], "pose": [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
+                      "wp_mesh": _surface_mesh(renderer, sim), "color": mesh_color})
+    shapes = None
+    if rigid:  # a Newton world's bodies, the physics mesh: geometry uploaded once, poses every call
+        key = (id(sim), len(rigid), id(rigid[-1].get("wp_mesh")))
+        if getattr(renderer, "_shapes_key", None) != key:
+            renderer._shapes = RigidShapes(rigid, sim.device)
+            renderer._shapes_key = key
+        shapes = renderer._shapes
+        shapes.set_poses([rigid[i]["pose"] for i in shapes.kept])
+    pos, rad = sim.sphere_positions(), sim.sphere_radii()
+    spheres = (pos, rad) if len(rad) else None
+    if not splats:
+        d = sim.device
+        none = (wp.zeros(0, dtype=wp.vec3, device=d), wp.zeros(0, dtype=wp.mat33, device=d),
+                wp.zeros((0, 1, 3), dtype=float, device=d), wp.zeros(0, dtype=float, device=d))
+        return renderer.render(*none, cameras, spheres=spheres, shapes=shapes, **kw)
     b = gaussians.binding
     rgb = b.rgb
     if shade:
@@ -347,18 +373,23 @@ def render_world(sim, gaussians, cameras: list[Camera], renderer: Renderer | Non
         rgb = shaded_rgb(gaussians, view + np.array([0.0, 0.0, -0.5]))
     sh = wp.array(rgb_to_sh(rgb), dtype=float, device=sim.device)
     op = wp.array(b.opacity, dtype=float, device=sim.device)
-    pos, rad = sim.sphere_positions(), sim.sphere_radii()
-    rigid = sim.rigid_shapes()
-    shapes = None
-    if rigid:  # a Newton world's bodies: geometry uploaded once per renderer, poses every call
-        key = (id(sim), len(rigid))
-        if getattr(renderer, "_shapes_key", None) != key:
-            renderer._shapes = RigidShapes(rigid, sim.device)
-            renderer._shapes_key = key
-        shapes = renderer._shapes
-        shapes.set_poses([rigid[i]["pose"] for i in shapes.kept])
     return renderer.render(gaussians.state.centers, gaussians.state.covariances, sh, op, cameras,
-                           spheres=(pos, rad) if len(rad) else None, shapes=shapes, **kw)
+                           spheres=spheres, shapes=shapes, **kw)
+
+
+def _surface_mesh(renderer: Renderer, sim) -> wp.Mesh:
+    """A ``wp.Mesh`` of the simulation's current surface, kept on the renderer: its points
+    copied in and the tree refit on each call; rebuilt when the index buffer changes (varying
+    topology)."""
+    pts, idx = sim.surface_points(), sim.surface_indices()
+    m, key = getattr(renderer, "_surface", (None, None))
+    if m is None or key != (id(sim), id(idx), pts.shape[0], idx.shape[0]):
+        m = wp.Mesh(points=wp.clone(pts), indices=wp.clone(idx))
+        renderer._surface = (m, (id(sim), id(idx), pts.shape[0], idx.shape[0]))
+    else:
+        wp.copy(m.points, pts)
+        m.refit()
+    return m
 
 
 def render_envs(batch, gaussians, cameras, renderer: Renderer | None = None, **kw) -> RenderResult:
@@ -443,6 +474,8 @@ def main(argv=None) -> int:
     p.add_argument("--width", type=int, default=640)
     p.add_argument("--height", type=int, default=480)
     p.add_argument("--device", default=None)
+    p.add_argument("--mesh", action="store_true", help="draw the physics mesh too (opaque, shaded): for debugging")
+    p.add_argument("--no-splats", action="store_true", help="leave the Gaussians out (with --mesh: the mesh alone)")
     p.add_argument("--no-progress", action="store_true")
     a = p.parse_args(argv)
     if not a.out and not a.figure and not a.video:
@@ -493,9 +526,10 @@ def main(argv=None) -> int:
     except ImportError:  # pragma: no cover
         it = range(last + 1)
     for f in it:
-        gs.update(world.surface_points(), world.surface_indices())
+        if not a.no_splats:
+            gs.update(world.surface_points(), world.surface_indices())
         cam = orbit_cameras(centre, 1.05 * diag, 1, 20.0, a.width, a.height, start_deg=30.0 + 90.0 * f / max(last, 1))
-        img = _to_uint8(render_world(world, gs, cam, renderer).rgb.numpy()[0])
+        img = _to_uint8(render_world(world, gs, cam, renderer, splats=not a.no_splats, mesh=a.mesh).rgb.numpy()[0])
         if a.out and f < total:
             _write_png(Path(a.out) / f"frame_{f:04d}.png", img)
         if a.video and f < total:

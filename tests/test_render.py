@@ -171,6 +171,12 @@ def test_render_cli_writes_frames_and_a_figure(tmp_path):
     assert gif.n_frames == 3 and gif.size == (64, 48)
     with pytest.raises(SystemExit):
         main(["--video", str(tmp_path / "run.avi"), "--device", "cpu"])  # a format it cannot write
+    # --mesh --no-splats: the physics mesh alone, in its colour (no splat colours)
+    assert main(["--figure", str(tmp_path / "mesh.png"), "--moments", "1", "--mesh", "--no-splats", "--width", "64",
+                 "--height", "48", "--no-progress", "--device", "cpu"]) == 0
+    m = np.asarray(Image.open(tmp_path / "mesh.png")).astype(float)
+    fg = np.abs(m - 255).max(axis=-1) > 10  # not background
+    assert fg.mean() > 0.05 and not np.array_equal(m, img.astype(float))
 
 
 def _shape_list():
@@ -277,3 +283,38 @@ def test_rigid_mesh_shape_equals_brute_force_ray_casting(device):
     assert (hit_ref != (alpha > 0.5)).mean() < 0.01
     both = (hit_ref & (alpha > 0.5)).reshape(-1)
     np.testing.assert_allclose(depth.reshape(-1)[both], (s * dc[:, 2])[both], atol=1e-4)
+
+
+def test_render_world_draws_the_physics_mesh_where_a_ray_meets_it(device):
+    """``render_world(mesh=True, splats=False)``: the physics mesh at the world's current time,
+    opaque; the depth of every pixel equals a brute-force ray cast of the surface's current
+    triangles, also after the surface has moved (the mesh is refit, not stale)."""
+    from reference import ray_cast_triangles
+
+    from dynmesh_warp import build_world, load_scene_config
+    from dynmesh_warp.render import Renderer, look_at, render_world
+
+    cfg = load_scene_config(data={"name": "m", "device": device, "spheres": [],
+                                  "surface": {"source": "builtin:pulsing_blob", "params": {"subdivisions": 2}}})
+    world = build_world(cfg)
+    r = Renderer(world.device)
+    cam = look_at([2.0, -1.5, 1.2], [0, 0, 0], width=24, height=18, fov_y_deg=40)
+    R, t = np.asarray(cam.R, np.float64), np.asarray(cam.t, np.float64)
+    ys, xs = np.mgrid[0:18, 0:24]
+    dc = np.stack([(xs + 0.5 - cam.cx) / cam.fx, (ys + 0.5 - cam.cy) / cam.fy, np.ones_like(xs, float)], -1).reshape(-1, 3)
+    dc /= np.linalg.norm(dc, axis=1, keepdims=True)
+    depths = []
+    for _ in range(2):
+        out = render_world(world, None, [cam], r, splats=False, mesh=True)
+        P = world.surface_points().numpy()
+        F = world.surface_indices().numpy().reshape(-1, 3)
+        s = ray_cast_triangles(-(R.T @ t), dc @ R, P, F)
+        hit = np.isfinite(s)
+        alpha, depth = out.alpha.numpy()[0].reshape(-1), out.depth.numpy()[0].reshape(-1)
+        assert 0.1 < hit.mean() < 0.9 and ((alpha > 0.5) != hit).mean() < 0.02
+        both = hit & (alpha > 0.5)
+        np.testing.assert_allclose(depth[both], (s * dc[:, 2])[both], atol=1e-4)
+        depths.append(depth.copy())
+        for _ in range(60):  # the blob pulses: a quarter second later the picture differs
+            world.step()
+    assert np.abs(depths[0] - depths[1]).max() > 1e-3
