@@ -27,6 +27,8 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 from common import describe_device, write_json  # noqa: E402
 
+from dynmesh_warp.kernels.render import pixel_ray  # noqa: E402
+
 RESULTS = ROOT / "bench" / "results"
 
 
@@ -43,11 +45,7 @@ def cast_silhouette(
     """1 where the pixel's ray meets the mesh (launch (C, H, W); OpenCV pinhole, world-to-camera
     R, t; intrinsics fx, fy, cx, cy [px])."""
     c, py, px = wp.tid()
-    k = intrinsics[c]
-    R = view_rotation[c]
-    dc = wp.normalize(wp.vec3((float(px) + 0.5 - k[2]) / k[0], (float(py) + 0.5 - k[3]) / k[1], 1.0))
-    o = -(wp.transpose(R) * view_translation[c])
-    d = wp.transpose(R) * dc
+    o, d, dc = pixel_ray(intrinsics[c], view_rotation[c], view_translation[c], px, py)
     q = wp.mesh_query_ray(mesh, o, d, 1.0e6)
     hit[c, py, px] = wp.where(q.result, 1, 0)
 

@@ -278,6 +278,17 @@ def nearest_sphere(o: wp.vec3, d: wp.vec3, centers: wp.array[wp.vec3], radii: wp
     return best, hit
 
 
+@wp.func
+def pixel_ray(intrinsics: wp.vec4, view_rotation: wp.mat33, view_translation: wp.vec3, px: int, py: int):
+    """The ray through pixel (px, py)'s centre of a pinhole camera (OpenCV convention;
+    intrinsics fx, fy, cx, cy [px]; world-to-camera R, t): (origin [m], unit direction in world,
+    unit direction in the camera frame)."""
+    dc = wp.normalize(wp.vec3((float(px) + 0.5 - intrinsics[2]) / intrinsics[0],
+                              (float(py) + 0.5 - intrinsics[3]) / intrinsics[1], 1.0))
+    o = -(wp.transpose(view_rotation) * view_translation)
+    return o, wp.transpose(view_rotation) * dc, dc
+
+
 #: rigid shape kinds of ``cast_rigid_shapes`` (``render.RigidShapes``); sizes [m] per kind:
 #: sphere (r, -, -), box half extents, capsule / cylinder (r, half height, -) along local z,
 #: ellipsoid semi-axes, mesh the scale of its vertices
@@ -343,9 +354,9 @@ def intersect_box_local(o: wp.vec3, d: wp.vec3, h: wp.vec3):
 
 
 @wp.func
-def intersect_capsule_local(o: wp.vec3, d: wp.vec3, r: float, h: float):
-    """Ray o + s d against the capsule of radius r around the segment z in [-h, h]: (s, normal)."""
-    # the infinite cylinder x^2 + y^2 = r^2, kept where |z| <= h
+def intersect_cylinder_side(o: wp.vec3, d: wp.vec3, r: float, h: float):
+    """Ray o + s d against the side x^2 + y^2 = r^2 of a cylinder along z, kept where |z| <= h:
+    (s, outward normal); NO_HIT if missed."""
     s = float(NO_HIT)
     n = wp.vec3(0.0)
     a = d[0] * d[0] + d[1] * d[1]
@@ -360,6 +371,13 @@ def intersect_capsule_local(o: wp.vec3, d: wp.vec3, r: float, h: float):
                 s = t
                 p = o + d * t
                 n = wp.vec3(p[0], p[1], 0.0) / r
+    return s, n
+
+
+@wp.func
+def intersect_capsule_local(o: wp.vec3, d: wp.vec3, r: float, h: float):
+    """Ray o + s d against the capsule of radius r around the segment z in [-h, h]: (s, normal)."""
+    s, n = intersect_cylinder_side(o, d, r, h)
     # the end spheres
     for k in range(2):
         cz = h * (2.0 * float(k) - 1.0)
@@ -374,20 +392,7 @@ def intersect_capsule_local(o: wp.vec3, d: wp.vec3, r: float, h: float):
 @wp.func
 def intersect_cylinder_local(o: wp.vec3, d: wp.vec3, r: float, h: float):
     """Ray o + s d against the closed cylinder x^2 + y^2 <= r^2, |z| <= h: (s, normal)."""
-    s = float(NO_HIT)
-    n = wp.vec3(0.0)
-    a = d[0] * d[0] + d[1] * d[1]
-    if a > 1.0e-12:
-        b = o[0] * d[0] + o[1] * d[1]
-        c = o[0] * o[0] + o[1] * o[1] - r * r
-        disc = b * b - a * c
-        if disc >= 0.0:
-            t = (-b - wp.sqrt(disc)) / a
-            z = o[2] + t * d[2]
-            if t > 0.0 and wp.abs(z) <= h:
-                s = t
-                p = o + d * t
-                n = wp.vec3(p[0], p[1], 0.0) / r
+    s, n = intersect_cylinder_side(o, d, r, h)
     if wp.abs(d[2]) > 1.0e-12:
         for k in range(2):
             cz = h * (2.0 * float(k) - 1.0)
@@ -420,11 +425,7 @@ def cast_rigid_shapes(
     position [m] + unit quaternion); sizes and kinds as the SHAPE_* constants say; a mesh shape
     by ``wp.mesh_query_ray`` on its vertices divided by its scale."""
     c, py, px = wp.tid()
-    k = intrinsics[c]
-    R = view_rotation[c]
-    dc = wp.normalize(wp.vec3((float(px) + 0.5 - k[2]) / k[0], (float(py) + 0.5 - k[3]) / k[1], 1.0))
-    o = -(wp.transpose(R) * view_translation[c])
-    dw = wp.transpose(R) * dc
+    o, dw, dc = pixel_ray(intrinsics[c], view_rotation[c], view_translation[c], px, py)
     best = float(NO_HIT)
     nrm = wp.vec3(0.0)
     best_k = int(-1)
@@ -512,11 +513,7 @@ def rasterize_gaussians(
     x = float(px) + 0.5
     y = float(py) + 0.5
     # the pixel's ray in world, for the spheres: camera z along the ray per unit length
-    k = intrinsics[c]
-    R = view_rotation[c]
-    dc = wp.normalize(wp.vec3((x - k[2]) / k[0], (y - k[3]) / k[1], 1.0))
-    o = -(wp.transpose(R) * view_translation[c])
-    dw = wp.transpose(R) * dc
+    o, dw, dc = pixel_ray(intrinsics[c], view_rotation[c], view_translation[c], px, py)
     first = int(0)
     count = sphere_centers.shape[0]
     if spheres_per_camera > 0:
