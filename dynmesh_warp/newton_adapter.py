@@ -358,6 +358,7 @@ class NewtonWorld:
             "surface": {"frames": self.surface.num_frames, "fps": self.surface.fps,
                         "vertices": self.surface.num_vertices, "faces": self.surface.num_faces},
             "bodies": self.model.body_count,
+            "num_envs": self.num_envs,  # Newton worlds (ModelBuilder.replicate), one clock
             "entries": self.records,
             "final": {"finite": bool(np.isfinite(final).all()), "body_q": final, "body_labels": self.body_labels()},
         }
@@ -552,5 +553,6 @@ def build_newton_world(cfg, device=None, sequence=None, num_worlds: int = 1, **o
         raise SceneError(f"newton.solver {cfg.newton.solver!r}: {e}") from e
     except TypeError as e:  # a constructor argument the solver does not take
         raise SceneError(f"newton.solver_options: {e}") from e
-    world.records = records
+    world.records = records  # the bodies of world 0 (world w's are offset by w x its body count)
+    world.num_envs = int(num_worlds)
     return world

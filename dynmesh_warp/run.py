@@ -127,13 +127,17 @@ def run_scene(cfg, device=None, steps: int | None = None, collider: str | None =
                               f"{steps:,} steps; give more (--steps, --duration, run.steps) to continue it")
     every = int(ckpt.checkpoint_every if (ckpt is not None and checkpoint_every is None) else (checkpoint_every or 0))
     check_total_work(cfg, steps, cfg.physics.substeps)  # before loading: the configured sub-steps
-    if newton and cfg.envs.count > 1:
-        raise SceneError("envs.count > 1 with a newton: section: batched envs run the built-in world only "
-                         "(docs/envs.md)")
     if newton:
         from .newton_adapter import build_newton_world
 
-        sim = build_newton_world(cfg, device=device)
+        E = cfg.envs.count
+        if E > 1 and (("time_offset" in cfg.envs.model_fields_set and cfg.envs.time_offset != 0)
+                      or tuple(cfg.envs.rate) != (1.0, 1.0)):
+            raise SceneError("envs.time_offset / envs.rate with a newton: section: Newton's own batching "
+                             "(ModelBuilder.replicate) has one clock for every world; leave envs.time_offset "
+                             "unset or 0 and envs.rate [1, 1], or drop the newton: section for the built-in "
+                             "world's per-env clocks (docs/envs.md)")
+        sim = build_newton_world(cfg, device=device, num_worlds=E)
     elif cfg.envs.count > 1:  # batched environments (docs/envs.md)
         from .batch import build_batched_world
 
@@ -235,6 +239,9 @@ def main(argv=None) -> int:
             raise SceneError(f"--envs must be at least 1, got {args.envs}")
         overrides = list(args.overrides) + ([f"envs.count={args.envs}"] if args.envs is not None else [])
         cfg = load_scene_config(args.scene, overrides=overrides)
+        if args.view_envs is not None and cfg.newton is not None:
+            raise SceneError("--view-envs: a newton: scene's worlds share one clock and one place; "
+                             "the viewer shows world 0")
         if args.view_envs is not None and max(args.view_envs) >= cfg.envs.count:
             raise SceneError(f"--view-envs: env {max(args.view_envs)} does not exist (the scene has "
                              f"{cfg.envs.count} env{'s' if cfg.envs.count != 1 else ''}; --envs N to batch)")

@@ -438,3 +438,36 @@ def test_rigid_shapes_leave_out_sites_and_invisible_shapes():
     assert [s["type"] for s in shapes] == ["box"]
     np.testing.assert_allclose(shapes[0]["pose"][:3], [0.1, 0.2, 0.55], atol=1e-6)
     assert len(nw.shapes()) == 3  # all three exist; two are not for display
+
+
+def test_run_newton_scene_with_envs_uses_newtons_own_batching(tmp_path, device):
+    """``run --envs 3`` on a newton: scene: three replicated Newton worlds (one clock), each
+    resting where the one-world run rests; env-steps/s reported; per-env clocks, which Newton's
+    batching cannot give, are refused naming the fields; --view-envs too."""
+    import yaml
+
+    from dynmesh_warp.config import SceneError, load_scene_config
+    from dynmesh_warp.run import main, run_scene
+
+    seq = rising_sheet(12, rise=0.0, frames=2)
+    npz = tmp_path / "sheet.npz"
+    np.savez(npz, V=seq.V, F=seq.F, fps=FPS)
+    scene = {"name": "ne", "device": device, "surface": {"source": str(npz)},
+             "spheres": [{"position": [0.5, 0.5, 0.3], "radius": 0.05, "mass": 1.0}],
+             "newton": {"solver": "xpbd", "bodies": [
+                 {"type": "box", "position": [-0.3, 0.0, 0.3], "half_extents": [0.1, 0.1, 0.05]}]},
+             "envs": {"count": 3}, "run": {"steps": 120, "output": str(tmp_path / "out")}}
+    path = tmp_path / "ne.yaml"
+    path.write_text(yaml.safe_dump(scene))
+    summary = run_scene(load_scene_config(path), progress=False, log=lambda *a: None)
+    q = np.asarray(summary["final"]["body_q"])
+    assert q.shape == (6, 7) and summary["num_envs"] == 3 and summary["env_steps_per_second"] > 0
+    np.testing.assert_allclose(q[0::2, 2], 0.05, atol=5e-3)  # each world's box on the sheet
+    np.testing.assert_allclose(q[1::2, 2], 0.05, atol=5e-3)  # and its sphere
+    np.testing.assert_allclose(q[:2], q[2:4], atol=1e-6)  # the worlds are copies
+    for bad in ({"time_offset": "random"}, {"rate": [0.5, 1.5]}):
+        scene["envs"] = {"count": 3, **bad}
+        path.write_text(yaml.safe_dump(scene))
+        with pytest.raises(SceneError, match="one clock"):
+            run_scene(load_scene_config(path), progress=False, log=lambda *a: None, overwrite=True)
+    assert main([str(path), "--view-envs", "1", "--viewer", "none"]) == 2
