@@ -241,7 +241,7 @@ class Renderer:
     def render(self, means, covariances, sh, opacities, cameras: list[Camera], sh_degree: int | None = None,
                spheres=None, sphere_color=(0.85, 0.25, 0.2), background=(1.0, 1.0, 1.0),
                near: float = 0.01, per_camera: bool = False, capacity: int | None = None,
-               shapes: RigidShapes | None = None) -> RenderResult:
+               shapes: RigidShapes | None = None, shade: float | None = None) -> RenderResult:
         """Render for every camera (all of one size). means (G,) vec3 / (G, 3) [m]; covariances
         (G,) mat33 / (G, 3, 3) [m^2]; sh (G, K, 3) SH coefficients (K = 1, 4, 9 or 16; degree
         from K unless given); opacities (G,) in [0, 1]; spheres: (centres (S, 3), radii (S,))
@@ -252,7 +252,9 @@ class Renderer:
         captured in a CUDA graph (``wp.ScopedCapture``) with array inputs; entries beyond it are
         dropped and counted in ``result.overflow`` (check it, and raise the capacity, when the
         picture must be complete). None: the exact count is read back (one small host read).
-        ``shapes``: :class:`RigidShapes` seen by every camera (opaque, composited by depth)."""
+        ``shapes``: :class:`RigidShapes` seen by every camera (opaque, composited by depth).
+        ``shade``: an ambient level in [0, 1]: each Gaussian's colour shaded by a head light of
+        its camera from its flat axis (``project_gaussians``); None: unlit."""
         d = self.device
         if not cameras:
             raise ValueError("render: no cameras")
@@ -280,7 +282,8 @@ class Renderer:
         mean2d, conic, depth, radius, touched, color, offsets = (b[k] for k in (
             "mean2d", "conic", "depth", "radius", "touched", "color", "offsets"))
         wp.launch(project_gaussians, (C, G), inputs=[means, covs, sh, degree, Rs, ts, ks, W, H, near,
-                                                     G if per_camera else 0],
+                                                     G if per_camera else 0,
+                                                     -1.0 if shade is None else float(shade)],
                   outputs=[mean2d, conic, depth, radius, touched, color], device=d)
         wp.utils.array_scan(touched, offsets, inclusive=False)
         start, end = b["start"], b["end"]
@@ -339,9 +342,9 @@ def render_world(sim, gaussians, cameras: list[Camera], renderer: Renderer | Non
     """The simulation's bound Gaussians (``gaussians.Gaussians``, updated to its current
     surface), its spheres and its other rigid shapes (``sim.rigid_shapes()``: a Newton world's
     boxes, capsules, meshes ...), from ``cameras``. ``shade``: each Gaussian's colour times
-    0.35 + 0.65 |n . l|, n its flat axis (the smallest scale: the surface normal for Gaussians
-    bound to faces), l from the first camera towards the scene and a little from above, so the
-    shape reads (the colours of the binding are unlit). ``mesh``: the physics mesh itself drawn
+    0.35 + 0.65 |n . l|, n its flat axis (the surface normal for Gaussians bound to faces), l a
+    head light of each camera tilted down, so the shape reads (the binding's colours are unlit;
+    computed in ``project_gaussians``, nothing on the host per frame). ``mesh``: the physics mesh itself drawn
     too, opaque and shaded like the bodies (for debugging: where the splats and the collision
     surface differ); ``splats=False`` leaves the Gaussians out (``gaussians`` may then be None)."""
     renderer = renderer or Renderer(sim.device)
@@ -364,17 +367,23 @@ def render_world(sim, gaussians, cameras: list[Camera], renderer: Renderer | Non
         none = (wp.zeros(0, dtype=wp.vec3, device=d), wp.zeros(0, dtype=wp.mat33, device=d),
                 wp.zeros((0, 1, 3), dtype=float, device=d), wp.zeros(0, dtype=float, device=d))
         return renderer.render(*none, cameras, spheres=spheres, shapes=shapes, **kw)
-    b = gaussians.binding
-    rgb = b.rgb
-    if shade:
-        from .gaussians import shaded_rgb
-
-        view = np.asarray(cameras[0].R, np.float64)[2]  # the first camera's viewing direction
-        rgb = shaded_rgb(gaussians, view + np.array([0.0, 0.0, -0.5]))
-    sh = wp.array(rgb_to_sh(rgb), dtype=float, device=sim.device)
-    op = wp.array(b.opacity, dtype=float, device=sim.device)
+    sh, op = _binding_colours(renderer, gaussians.binding, sim.device)
     return renderer.render(gaussians.state.centers, gaussians.state.covariances, sh, op, cameras,
-                           spheres=spheres, shapes=shapes, **kw)
+                           spheres=spheres, shapes=shapes, shade=SHADE_AMBIENT if shade else None, **kw)
+
+
+#: ambient level of the splats' head-light shading in render_world / render_envs
+SHADE_AMBIENT = 0.35
+
+
+def _binding_colours(renderer: Renderer, binding, device):
+    """The binding's colours as SH DC coefficients and its opacities on the device, uploaded once
+    per binding and kept on the renderer."""
+    if getattr(renderer, "_colour_binding", None) is not binding:
+        renderer._colours = (wp.array(rgb_to_sh(binding.rgb), dtype=float, device=device),
+                             wp.array(binding.opacity, dtype=float, device=device))
+        renderer._colour_binding = binding
+    return renderer._colours
 
 
 def _surface_mesh(renderer: Renderer, sim) -> wp.Mesh:
@@ -392,7 +401,8 @@ def _surface_mesh(renderer: Renderer, sim) -> wp.Mesh:
     return m
 
 
-def render_envs(batch, gaussians, cameras, renderer: Renderer | None = None, **kw) -> RenderResult:
+def render_envs(batch, gaussians, cameras, renderer: Renderer | None = None, shade: bool = True,
+                **kw) -> RenderResult:
     """Camera observations of a batch: one image per env, env e seen by ``cameras[e]`` (a list of
     E cameras of one size, or one camera for every env) with the Gaussians bound to the shared
     surface posed at **env e's own time** (its clock, rate and playback mode:
@@ -400,8 +410,9 @@ def render_envs(batch, gaussians, cameras, renderer: Renderer | None = None, **k
     renderer's device arrays, rgb (E, H, W) vec3 etc. (``wp.to_torch`` for zero-copy torch).
 
     ``batch``: a ``batch.BatchedWorld``; ``gaussians``: the ``gaussians.Gaussians`` bound to its
-    surface (their binding is used, not their state). Colours are the binding's, unlit (the
-    head-light shading of :func:`render_world` needs each env's normals). ``capacity=`` (passed
+    surface (their binding is used, not their state). ``shade``: the binding's colours shaded by
+    each camera's head light from each Gaussian's flat axis at its env's pose (as
+    :func:`render_world`); False: unlit. ``capacity=`` (passed
     on to :meth:`Renderer.render`): no host read, for a CUDA graph; with the same cameras and
     Gaussians as the call before, nothing is uploaded either."""
     from .kernels.gaussians import update_env_gaussians
@@ -426,13 +437,10 @@ def render_envs(batch, gaussians, cameras, renderer: Renderer | None = None, **k
                   inputs=[surf.frames, surf.indices, surf.fps, int(surf.interpolate), st.env_time, st.env_playback,
                           b.face, b.bary, b.offset, b.local_rotation, b.local_scale],
                   outputs=[means, covs], device=d)
-    if getattr(renderer, "_env_binding", None) is not b:  # colours uploaded once per binding
-        renderer._env_sh = wp.array(rgb_to_sh(b.rgb), dtype=float, device=d)
-        renderer._env_op = wp.array(b.opacity, dtype=float, device=d)
-        renderer._env_binding = b
-    sh, op = renderer._env_sh, renderer._env_op
+    sh, op = _binding_colours(renderer, b, d)  # uploaded once per binding
     spheres = (st.sphere_pos, batch.model.spheres.radius) if batch.model.spheres_per_env else None
-    return renderer.render(means, covs, sh, op, cams, spheres=spheres, per_camera=True, **kw)
+    return renderer.render(means, covs, sh, op, cams, spheres=spheres, per_camera=True,
+                           shade=SHADE_AMBIENT if shade else None, **kw)
 
 
 def _to_uint8(rgb: np.ndarray) -> np.ndarray:

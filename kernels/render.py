@@ -83,6 +83,7 @@ def project_gaussians(
     height: int,
     near: float,
     camera_stride: int,
+    shade_ambient: float,
     # Out:
     mean2d: wp.array2d[wp.vec2],
     conic: wp.array2d[wp.vec3],
@@ -97,7 +98,11 @@ def project_gaussians(
     means [m] and covariances [m^2] in world: (G,), seen by every camera (camera_stride 0), or
     (C * G,) with camera c's own G at c * camera_stride (camera_stride = G: one scene per camera,
     e.g. per env); sh (G, K, 3) shared; view_rotation / view_translation (C,) world-to-camera;
-    intrinsics (C,) (fx, fy, cx, cy) [px]."""
+    intrinsics (C,) (fx, fy, cx, cy) [px]. ``shade_ambient`` in [0, 1]: the colour times
+    ambient + (1 - ambient) |n . l|, n the Gaussian's flat axis (the eigenvector of its smallest
+    covariance eigenvalue: the face normal for Gaussians bound to faces, at their current pose),
+    l a head light along the camera's viewing direction tilted down (so the shape reads);
+    negative: unlit."""
     c, g = wp.tid()
     G = mean2d.shape[1]
     j = c * camera_stride + g
@@ -152,7 +157,18 @@ def project_gaussians(
     tiles_touched[c * G + g] = n
     # view direction from the camera centre (world): centre = -R^T t
     centre = -(wp.transpose(R) * view_translation[c])
-    color[c, g] = evaluate_sh(sh, g, sh_degree, wp.normalize(means[j] - centre))
+    col = evaluate_sh(sh, g, sh_degree, wp.normalize(means[j] - centre))
+    if shade_ambient >= 0.0:
+        Q, ev = wp.eig3(covariances[j])
+        m = int(0)
+        if ev[1] < ev[m]:
+            m = 1
+        if ev[2] < ev[m]:
+            m = 2
+        nrm = wp.vec3(Q[0, m], Q[1, m], Q[2, m])
+        light = wp.normalize(wp.vec3(R[2, 0], R[2, 1], R[2, 2] - 0.5))
+        col = col * (shade_ambient + (1.0 - shade_ambient) * wp.abs(wp.dot(nrm, light)))
+    color[c, g] = col
 
 
 @wp.kernel

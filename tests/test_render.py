@@ -64,7 +64,7 @@ def test_render_envs_equals_each_env_rendered_alone(device, playback):
     updated from it (the tested single-scene path), only its spheres, its camera."""
     from dynmesh_warp.batch import BatchedWorld, BatchModel, BatchState, EnvView
     from dynmesh_warp.gaussians import generate_gaussians
-    from dynmesh_warp.render import render_envs
+    from dynmesh_warp.render import SHADE_AMBIENT, render_envs
     from dynmesh_warp.scenes import wave_bowl
     from dynmesh_warp.world import PhysicsParams, SurfaceModel
 
@@ -90,7 +90,7 @@ def test_render_envs_equals_each_env_rendered_alone(device, playback):
         view = EnvView(bw, e)
         g.update(view.surface_points(), view.surface_indices())
         one = Renderer(device).render(g.state.centers, g.state.covariances, sh, op, [cams[e]],
-                                      spheres=(view.sphere_positions(), view.sphere_radii()))
+                                      spheres=(view.sphere_positions(), view.sphere_radii()), shade=SHADE_AMBIENT)
         np.testing.assert_allclose(rgb[e], one.rgb.numpy()[0], atol=1e-5)
         np.testing.assert_allclose(alpha[e], one.alpha.numpy()[0], atol=1e-5)
         np.testing.assert_allclose(depth[e], one.depth.numpy()[0], atol=1e-4)
@@ -318,3 +318,42 @@ def test_render_world_draws_the_physics_mesh_where_a_ray_meets_it(device):
         for _ in range(60):  # the blob pulses: a quarter second later the picture differs
             world.step()
     assert np.abs(depths[0] - depths[1]).max() > 1e-3
+
+
+def test_kernel_shading_equals_the_host_shading_of_the_flat_axis(device):
+    """The head-light shading computed in ``project_gaussians`` (flat axis = eigenvector of the
+    smallest covariance eigenvalue) gives the picture of the host reference
+    ``gaussians.shaded_rgb`` (flat axis from each Gaussian's rotation and scales) baked into the
+    colours of an unlit render, for the same light; and it changes the picture."""
+    from dynmesh_warp.gaussians import generate_gaussians, shaded_rgb
+    from dynmesh_warp.render import SHADE_AMBIENT
+    from dynmesh_warp.scenes import wave_bowl
+
+    seq = wave_bowl(n=16, frames=4)
+    g = generate_gaussians(seq.V[2], seq.F, count=800, seed=3, device=device)
+    g.update(_warp_points(seq.V[2], device), _warp_indices(seq.F, device))
+    cam = look_at([1.5, -1.3, 1.1], [0, 0, 0], width=48, height=36)
+    R = np.asarray(cam.R, np.float64)
+    light = R[2] + np.array([0.0, 0.0, -0.5])
+    op = g.binding.opacity
+    host = Renderer(device).render(g.state.centers, g.state.covariances, rgb_to_sh(shaded_rgb(g, light, SHADE_AMBIENT)),
+                                   op, [cam]).rgb.numpy()[0]
+    kern = Renderer(device).render(g.state.centers, g.state.covariances, rgb_to_sh(g.binding.rgb), op, [cam],
+                                   shade=SHADE_AMBIENT).rgb.numpy()[0]
+    unlit = Renderer(device).render(g.state.centers, g.state.covariances, rgb_to_sh(g.binding.rgb), op,
+                                    [cam]).rgb.numpy()[0]
+    err = np.abs(host - kern).max(axis=-1)
+    assert np.quantile(err, 0.99) < 2e-3 and err.max() < 2e-2, err.max()
+    assert np.abs(unlit - kern).max() > 0.05
+
+
+def _warp_points(V, device):
+    import warp as wp
+
+    return wp.array(np.asarray(V, np.float32), dtype=wp.vec3, device=device)
+
+
+def _warp_indices(F, device):
+    import warp as wp
+
+    return wp.array(np.asarray(F, np.int32).reshape(-1), dtype=wp.int32, device=device)
