@@ -17,6 +17,7 @@ the timed loop (warm-up, then the median of repeats). On CUDA the fixed step is 
 from __future__ import annotations
 
 import argparse
+import gc
 import sys
 import time
 from pathlib import Path
@@ -161,6 +162,10 @@ def scaling(device, verts, spheres, colliders, steps, repeats):
             for col in colliders:
                 if col.startswith("rebuild") and wp.get_device(device).is_cpu and nv > 2e5:
                     continue
+                # free the previous row's world first: it was still alive during the next build
+                # and its release between m0 and m1 made the H100 figures negative in some rows
+                w = None
+                gc.collect()
                 wp.synchronize_device(device)
                 m0 = mem_used(device)
                 w, comp = timed_build(seq, device, col.split("/")[0], spheres=ns, radius=radius,
