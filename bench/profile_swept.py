@@ -59,7 +59,7 @@ def main(argv=None):
         reach = r + w.model.params.margin + (v + w.extra_speed) * w.sub_dt
         cnt = c.cand_count.numpy()
         out_of_ball = np.linalg.norm(p - c.cand_center.numpy(), axis=1) + reach + c.epsilon > c.cand_radius.numpy()
-        info = {"candidates": cnt.tolist(), "overflow": (cnt > c.max_candidates).tolist(),
+        info = {"candidates": cnt.tolist(), "overflow": (c.cand_start.numpy() < 0).tolist(),
                 "left_ball": out_of_ball.tolist(), "in_contact": (w.contacts.face.numpy() >= 0).tolist()}
         print(info)
     result = {"machine": describe_device(device), "sequence": seq.name, "from_shared_data": shared,

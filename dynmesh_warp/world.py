@@ -26,6 +26,7 @@ from .kernels.swept import (
     compute_swept_bounds,
     detect_frame_change,
     evaluate_sphere_candidates,
+    find_closest_candidates,
     gather_sphere_candidates,
     resolve_sphere_candidates,
 )
@@ -607,10 +608,13 @@ class SweptCollider(ColliderBase):
     triangles itself. No per-step vertex copy or BVH refit.
 
     ``parallel`` (default on CUDA): at each frame change every sphere gathers the faces its
-    reach can meet during the frame interval (at most ``max_candidates``); each step evaluates
-    all (sphere, candidate) pairs in parallel and resolves the closest feature per sphere. A
-    sphere that leaves its gathered ball or overflows its list takes the serial BVH walk, so the
-    result is the same either way. On the CPU one thread per sphere walks the BVH (serial).
+    reach can meet during the frame interval into one pool (``max_candidates`` entries per
+    sphere on average, at least ``SWEPT_MIN_POOL``; a sphere may take thousands); each step
+    evaluates every pooled (sphere, face) pair in parallel and reduces them per sphere (an
+    atomic minimum of the distance, then the first pair at it and the pseudo-normal over the
+    ties) — no thread walks a sphere's candidates one by one (issue 14). A sphere that leaves its
+    gathered ball or finds the pool full takes the serial BVH walk, so the result is that of the
+    serial rule either way. On the CPU one thread per sphere walks the BVH (serial).
     """
 
     name = "swept"
@@ -618,11 +622,12 @@ class SweptCollider(ColliderBase):
     needs_points = False
 
     def __init__(self, model: Model, state: State, ctx: StepContext, parallel: bool | None = None,
-                 max_candidates: int | None = None):
+                 max_candidates: int | None = None, pool_size: int | None = None):
         surf = model.surface
         d = ctx.device
         self.parallel = d.is_cuda if parallel is None else bool(parallel)
         self.max_candidates = int(max_candidates or SWEPT_MAX_CANDIDATES)
+        self.pool_size = None if pool_size is None else int(pool_size)  # entries; None: from the sphere count
         self.lowers = wp.zeros(surf.num_faces, dtype=wp.vec3, device=d)
         self.uppers = wp.zeros(surf.num_faces, dtype=wp.vec3, device=d)
         self.compute_bounds(model, state, ctx)
@@ -632,17 +637,35 @@ class SweptCollider(ColliderBase):
         self.resize(model, state, ctx)
 
     def resize(self, model: Model, state: State, ctx: StepContext):
-        """(Re)allocate the per-sphere candidate lists and gather them (after spheres change)."""
-        S, K, d = model.spheres.count, self.max_candidates, ctx.device
-        self.cand_face = wp.zeros((S, K), dtype=wp.int32, device=d)
-        self.cand_count = wp.full(S, K + 1, dtype=wp.int32, device=d)
+        """(Re)allocate the candidate pool and the per-sphere arrays and gather (after spheres
+        change)."""
+        S, d = model.spheres.count, ctx.device
+        P = (self.pool_size or max(S * self.max_candidates, SWEPT_MIN_POOL)) if self.parallel else 1
+        self._allocate_pool(P, d)
+        self.pool_used = wp.zeros(1, dtype=wp.int32, device=d)
+        self.cand_start = wp.full(S, -1, dtype=wp.int32, device=d)
+        self.cand_count = wp.zeros(S, dtype=wp.int32, device=d)
         self.cand_center = wp.zeros(S, dtype=wp.vec3, device=d)
         self.cand_radius = wp.zeros(S, dtype=float, device=d)
-        self.cand_dist = wp.zeros((S, K), dtype=float, device=d)
-        self.cand_w = wp.zeros((S, K), dtype=wp.vec3, device=d)
-        self.cand_wn = wp.zeros((S, K), dtype=wp.vec3, device=d)
+        # the pair passes' per-sphere accumulators, reset by the resolve kernel after each use
+        self.min_dist = wp.full(S, 1.0e30, dtype=float, device=d)
+        self.min_pair = wp.full(S, 2147483647, dtype=wp.int32, device=d)
+        self.acc_normal = wp.zeros(S, dtype=wp.vec3, device=d)
         if self.parallel:
             self.gather(model, state, ctx)
+            if self.pool_size is None:  # sized from what the spheres gather now (one host read, at build)
+                need = 2 * int(self.pool_used.numpy()[0])
+                if need > P:
+                    self._allocate_pool(min(need, SWEPT_MAX_POOL), d)
+                    self.gather(model, state, ctx)
+
+    def _allocate_pool(self, P: int, d):
+        """The candidate pool: P (sphere, face) entries, 36 B each."""
+        self.cand_face = wp.zeros(P, dtype=wp.int32, device=d)
+        self.cand_sphere = wp.zeros(P, dtype=wp.int32, device=d)
+        self.cand_dist = wp.zeros(P, dtype=float, device=d)
+        self.cand_w = wp.zeros(P, dtype=wp.vec3, device=d)
+        self.cand_wn = wp.zeros(P, dtype=wp.vec3, device=d)
 
     def compute_bounds(self, model: Model, state: State, ctx: StepContext):
         surf = model.surface
@@ -654,10 +677,12 @@ class SweptCollider(ColliderBase):
         m, s = model, state
         g = float(np.linalg.norm(m.params.gravity))
         step_reach = m.params.margin + 2.0 * g * ctx.sub_dt * ctx.sub_dt + self.epsilon
+        self.pool_used.zero_()
         ctx.launch(gather_sphere_candidates, m.spheres.count,
                       [m.spheres.radius, s.sphere_pos, s.sphere_vel, self.bvh.id, 1.0 / m.surface.fps, g,
                        step_reach],
-                      [self.cand_face, self.cand_count, self.cand_center, self.cand_radius])
+                      [self.cand_face, self.cand_sphere, self.cand_start, self.cand_count, self.cand_center,
+                       self.cand_radius, self.pool_used])
 
     def spheres_moved(self, model: Model, state: State, ctx: StepContext):
         """Spheres set between steps: gather their candidate lists again (parallel path)."""
@@ -676,10 +701,11 @@ class SweptCollider(ColliderBase):
         wp.capture_if(state.frame_changed, on_true=self.refit_frame, model=model, state=state, ctx=ctx)
 
     #: per-frame state a step reads before writing it again: the swept bounds (the BVH is refit
-    #: from them) and the candidate lists gathered at the last frame change (parallel path); the
-    #: candidates' distances and weights are recomputed every sub-step. (The frame pair and the
-    #: pending-refit flag are the clock's: State.frame_key / frame_changed.)
-    CHECKPOINT_ARRAYS = ("lowers", "uppers", "cand_face", "cand_count", "cand_center", "cand_radius")
+    #: from them). The candidate pool of the parallel path is gathered again on restore: it only
+    #: chooses which faces are evaluated (a sphere outside its ball walks the BVH), so the
+    #: contacts are the same. (The frame pair and the pending-refit flag are the clock's:
+    #: State.frame_key / frame_changed.)
+    CHECKPOINT_ARRAYS = ("lowers", "uppers")
 
     def checkpoint_state(self) -> dict:
         return {k: getattr(self, k).numpy().copy() for k in self.CHECKPOINT_ARRAYS}
@@ -701,19 +727,32 @@ class SweptCollider(ColliderBase):
                            self.bvh.id, self.lowers, self.uppers, *frame_args, ctx.sub_dt, ctx.extra_speed,
                            m.params.margin], outputs)
             return
-        ctx.launch(evaluate_sphere_candidates, (m.spheres.count, self.max_candidates),
-                      [surf.frames, surf.indices, s.sim_time, s.sphere_pos, *frame_args, self.cand_face,
-                       self.cand_count],
-                      [self.cand_dist, self.cand_w, self.cand_wn])
-        ctx.launch(resolve_sphere_candidates, m.spheres.count,
+        S = m.spheres.count
+        # threads striding over the pool's used entries: as many as the old per-sphere lists had
+        # (S x max_candidates), so a scene with few candidates pays no more than before
+        T = max(1, min(self.cand_face.shape[0], S * self.max_candidates))
+        step_args = [ctx.sub_dt, ctx.extra_speed, m.params.margin]
+        ctx.launch(evaluate_sphere_candidates, T,
                       [surf.frames, surf.indices, m.spheres.radius, s.sim_time, s.sphere_pos, s.sphere_vel,
-                       self.bvh.id, self.lowers, self.uppers, *frame_args, ctx.sub_dt, ctx.extra_speed,
-                       m.params.margin, self.cand_face,
-                       self.cand_count, self.cand_center, self.cand_radius, self.cand_dist, self.cand_w,
-                       self.cand_wn], outputs)
+                       *frame_args, *step_args, self.cand_face, self.cand_sphere, self.cand_start, self.pool_used,
+                       self.lowers, self.uppers, T],
+                      [self.cand_dist, self.cand_w, self.cand_wn, self.min_dist])
+        ctx.launch(find_closest_candidates, T,
+                      [self.epsilon, self.cand_sphere, self.cand_dist, self.cand_wn, self.pool_used, self.min_dist, T],
+                      [self.min_pair, self.acc_normal])
+        ctx.launch(resolve_sphere_candidates, S,
+                      [surf.frames, surf.indices, m.spheres.radius, s.sim_time, s.sphere_pos, s.sphere_vel,
+                       self.bvh.id, self.lowers, self.uppers, *frame_args, self.cand_face, self.cand_start,
+                       self.cand_center, self.cand_radius, self.cand_w, *step_args],
+                      [self.min_dist, self.min_pair, self.acc_normal, *outputs])
 
 
 SWEPT_MAX_CANDIDATES = 256
+#: the smallest candidate pool of the parallel swept path (entries; 36 B each): a few spheres on
+#: a fine mesh may gather tens of thousands of faces (docs/benchmarks.md)
+SWEPT_MIN_POOL = 1 << 18
+#: the largest pool sized at build (twice what the spheres gather then): 2^25 entries, 1.2 GB
+SWEPT_MAX_POOL = 1 << 25
 COLLIDERS = {"refit": RefitCollider, "swept": SweptCollider, "rebuild": RebuildCollider}
 COLLIDER_CHOICES = tuple(values(Collider))
 #: the measured choice of ``fixed`` (docs/physics.md#the-automatic-collider): each candidate runs
@@ -1077,6 +1116,7 @@ class World:
         self.substep_count = int(st["substep_count"])
         self.collider.restore_checkpoint_state({k[len("collider_"):]: v for k, v in st.items()
                                                 if k.startswith("collider_")})
+        self.collider.spheres_moved(self.model, self.state, self.ctx)  # per-sphere caches from the restored state
         self._graph = None
 
     def _apply_substep_rule(self, stacklevel: int):

@@ -264,7 +264,11 @@ def collide_sphere_swept(
                         contact_face, contact_point, contact_normal, contact_depth, contact_velocity)
 
 
-# --- parallel path (GPU): candidate faces gathered once per frame, evaluated in parallel -----
+# --- parallel path (GPU): candidates gathered once per frame into one pool, evaluated and
+# reduced over (sphere, candidate) pairs, so a sphere with thousands of candidates does not walk
+# them in one thread (issue 14) ---------------------------------------------------------------
+
+NO_PAIR = wp.constant(2147483647)
 
 
 @wp.kernel
@@ -280,33 +284,49 @@ def gather_sphere_candidates(
     gravity: float,
     margin: float,
     # Out:
-    cand_face: wp.array2d[wp.int32],
+    cand_face: wp.array[wp.int32],
+    cand_sphere: wp.array[wp.int32],
+    cand_start: wp.array[wp.int32],
     cand_count: wp.array[wp.int32],
     cand_center: wp.array[wp.vec3],
     cand_radius: wp.array[float],
+    pool_used: wp.array[wp.int32],
 ):
     """Faces whose swept box lies within the sphere's reach over the next ``horizon`` seconds
     (one frame interval): R = radius + margin + 1.25 (|v| T + g T^2 / 2) + (one step's reach,
-    folded into margin by the caller). cand_face (S, K); cand_count (S,) number found, K + 1 on
-    overflow (then the sphere takes the serial path). A sphere that travels farther than this
+    folded into margin by the caller). Each sphere counts its faces, reserves that many entries
+    of the pool (cand_face, cand_sphere (P,); ``pool_used`` (1,) zeroed before: the entries asked
+    for, which may exceed P; only the first P are used) and writes them
+    in BVH order: cand_start (S,) its first entry, -1 if the pool was full (then the sphere takes
+    the serial path); cand_count (S,) the faces found. A sphere that travels farther than this
     ball allows during the interval also takes the serial path (checked every step)."""
     s = wp.tid()
     p = sphere_pos_in[s]
     T = horizon
     R = sphere_radius[s] + margin + 1.25 * (wp.length(sphere_vel_in[s]) * T + 0.5 * gravity * T * T)
-    K = cand_face.shape[1]
-    query = wp.bvh_query_aabb(bvh, p - wp.vec3(R), p + wp.vec3(R))
+    lo = p - wp.vec3(R)
+    hi = p + wp.vec3(R)
+    query = wp.bvh_query_aabb(bvh, lo, hi)
     f = int(0)
     n = int(0)
     while wp.bvh_query_next(query, f):
-        if n < K:
-            cand_face[s, n] = f
         n += 1
-        if n > K:
-            break
     cand_count[s] = n
     cand_center[s] = p
     cand_radius[s] = R
+    base = wp.atomic_add(pool_used, 0, n)
+    if base + n > cand_face.shape[0]:
+        cand_start[s] = -1
+        for k in range(base, cand_face.shape[0]):  # the part of its range inside the pool: unused
+            cand_sphere[k] = -1
+        return
+    cand_start[s] = base
+    query = wp.bvh_query_aabb(bvh, lo, hi)
+    j = int(0)
+    while wp.bvh_query_next(query, f):
+        cand_face[base + j] = f
+        cand_sphere[base + j] = s
+        j += 1
 
 
 @wp.kernel
@@ -314,31 +334,85 @@ def evaluate_sphere_candidates(
     # Model:
     frames: wp.array2d[wp.vec3],
     indices: wp.array[wp.int32],
+    sphere_radius: wp.array[float],
     # State in:
     sim_time_in: wp.array[wp.float64],
     sphere_pos_in: wp.array[wp.vec3],
+    sphere_vel_in: wp.array[wp.vec3],
     # In:
     fps: wp.float64,
     mode: int,
     interpolate: int,
     epsilon: float,
-    cand_face: wp.array2d[wp.int32],
-    cand_count: wp.array[wp.int32],
+    dt: float,
+    extra_speed: float,
+    margin: float,
+    cand_face: wp.array[wp.int32],
+    cand_sphere: wp.array[wp.int32],
+    cand_start: wp.array[wp.int32],
+    pool_used: wp.array[wp.int32],
+    lowers: wp.array[wp.vec3],
+    uppers: wp.array[wp.vec3],
+    threads: int,
     # Out:
-    cand_dist: wp.array2d[float],
-    cand_w: wp.array2d[wp.vec3],
-    cand_wn: wp.array2d[wp.vec3],
+    cand_dist: wp.array[float],
+    cand_w: wp.array[wp.vec3],
+    cand_wn: wp.array[wp.vec3],
+    min_dist: wp.array[float],
 ):
-    """Distance, closest-point weights and pseudo-normal term of every gathered candidate (S, K)."""
-    s, j = wp.tid()
-    if j >= cand_count[s]:
-        return
+    """Distance, closest-point weights and pseudo-normal term of every pooled (sphere, face)
+    pair (launch (threads,), each thread striding over the pool's used entries), and each
+    sphere's minimum distance below its reach (atomic; ``min_dist`` holds 1e30 between steps).
+    A face whose swept box lies beyond the reach is skipped (distance 1e30)."""
+    t = wp.tid()
     k0, k1, alpha = blend_pair(sim_time_in[0], fps, frames.shape[0], mode, interpolate)
-    a, b, e = interpolated_triangle(frames, indices, cand_face[s, j], k0, k1, alpha)
-    dist, w, wn = face_candidate(sphere_pos_in[s], a, b, e, epsilon)
-    cand_dist[s, j] = dist
-    cand_w[s, j] = w
-    cand_wn[s, j] = wn
+    for i in range(t, wp.min(pool_used[0], cand_sphere.shape[0]), threads):
+        cand_dist[i] = 1.0e30
+        s = cand_sphere[i]
+        if s >= 0 and cand_start[s] >= 0:
+            f = cand_face[i]
+            p = sphere_pos_in[s]
+            reach = contact_reach(sphere_radius[s], sphere_vel_in[s], extra_speed, dt, margin)
+            if box_distance(p, lowers[f], uppers[f]) < reach + epsilon:
+                a, b, e = interpolated_triangle(frames, indices, f, k0, k1, alpha)
+                dist, w, wn = face_candidate(p, a, b, e, epsilon)
+                cand_dist[i] = dist
+                cand_w[i] = w
+                cand_wn[i] = wn
+                if dist < reach:
+                    wp.atomic_min(min_dist, s, dist)
+
+
+@wp.kernel
+def find_closest_candidates(
+    # In:
+    epsilon: float,
+    cand_sphere: wp.array[wp.int32],
+    cand_dist: wp.array[float],
+    cand_wn: wp.array[wp.vec3],
+    pool_used: wp.array[wp.int32],
+    min_dist: wp.array[float],
+    threads: int,
+    # Out:
+    min_pair: wp.array[wp.int32],
+    acc_normal: wp.array[wp.vec3],
+):
+    """Per pooled pair (launch (threads,), striding): the first pair in gather order at its
+    sphere's minimum distance is the closest feature (the serial rule keeps the first of equal
+    distances; ``min_pair`` holds NO_PAIR between steps), and every pair within ``epsilon`` of
+    the minimum adds its pseudo-normal term (the tie rule of wp.mesh_query_point_sign_normal,
+    taken against the final minimum)."""
+    t = wp.tid()
+    for i in range(t, wp.min(pool_used[0], cand_sphere.shape[0]), threads):
+        d = cand_dist[i]
+        if d < 1.0e30:
+            s = cand_sphere[i]
+            m = min_dist[s]
+            if m < 1.0e30:
+                if d < m + epsilon:
+                    wp.atomic_add(acc_normal, s, cand_wn[i])
+                if d == m:
+                    wp.atomic_min(min_pair, s, i)
 
 
 @wp.kernel
@@ -359,44 +433,47 @@ def resolve_sphere_candidates(
     mode: int,
     interpolate: int,
     epsilon: float,
+    cand_face: wp.array[wp.int32],
+    cand_start: wp.array[wp.int32],
+    cand_center: wp.array[wp.vec3],
+    cand_radius: wp.array[float],
+    cand_w: wp.array[wp.vec3],
     dt: float,
     extra_speed: float,
     margin: float,
-    cand_face: wp.array2d[wp.int32],
-    cand_count: wp.array[wp.int32],
-    cand_center: wp.array[wp.vec3],
-    cand_radius: wp.array[float],
-    cand_dist: wp.array2d[float],
-    cand_w: wp.array2d[wp.vec3],
-    cand_wn: wp.array2d[wp.vec3],
     # Out:
+    min_dist: wp.array[float],
+    min_pair: wp.array[wp.int32],
+    acc_normal: wp.array[wp.vec3],
     contact_face: wp.array[wp.int32],
     contact_point: wp.array[wp.vec3],
     contact_normal: wp.array[wp.vec3],
     contact_depth: wp.array[float],
     contact_velocity: wp.array[wp.vec3],
 ):
-    """Closest feature from the evaluated candidates, in gather order (the same sequential rule
-    as the serial path); a sphere whose reach left its gathered ball, or whose list overflowed,
-    falls back to the serial BVH walk. Same outputs as ``collide_sphere_mesh``."""
+    """Closest feature per sphere from the pair passes; a sphere whose reach left its gathered
+    ball, or that found the pool full, walks the BVH serially. Same outputs as
+    ``collide_sphere_mesh``. Resets the sphere's pair-pass accumulators for the next step."""
     s = wp.tid()
     p = sphere_pos_in[s]
     r = sphere_radius[s]
     reach = contact_reach(r, sphere_vel_in[s], extra_speed, dt, margin)
     k0, k1, alpha = blend_pair(sim_time_in[0], fps, frames.shape[0], mode, interpolate)
-    n = cand_count[s]
-    min_dist = reach
-    min_face = int(-1)
-    min_w = wp.vec3(0.0)
-    acc_n = wp.vec3(0.0)
-    if n > cand_face.shape[1] or wp.length(p - cand_center[s]) + reach + epsilon > cand_radius[s]:
-        min_dist, min_face, min_w, acc_n = closest_on_swept_bvh(bvh, lowers, uppers, frames, indices, k0, k1, alpha, p,
-                                                            reach, epsilon)
+    md = reach
+    mf = int(-1)
+    mw = wp.vec3(0.0)
+    an = wp.vec3(0.0)
+    if cand_start[s] < 0 or wp.length(p - cand_center[s]) + reach + epsilon > cand_radius[s]:
+        md, mf, mw, an = closest_on_swept_bvh(bvh, lowers, uppers, frames, indices, k0, k1, alpha, p, reach, epsilon)
     else:
-        for j in range(n):
-            d = cand_dist[s, j]
-            if d < min_dist + epsilon:
-                min_dist, min_face, min_w, acc_n = keep_closest(
-                    d, cand_face[s, j], cand_w[s, j], cand_wn[s, j], epsilon, min_dist, min_face, min_w, acc_n)
-    write_swept_contact(s, p, r, reach, min_dist, min_face, min_w, acc_n, frames, indices, k0, k1, alpha, fps,
+        i = min_pair[s]
+        if i != NO_PAIR:
+            md = min_dist[s]
+            mf = cand_face[i]
+            mw = cand_w[i]
+            an = acc_normal[s]
+    min_dist[s] = 1.0e30
+    min_pair[s] = NO_PAIR
+    acc_normal[s] = wp.vec3(0.0)
+    write_swept_contact(s, p, r, reach, md, mf, mw, an, frames, indices, k0, k1, alpha, fps,
                         contact_face, contact_point, contact_normal, contact_depth, contact_velocity)

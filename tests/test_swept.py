@@ -43,10 +43,11 @@ def test_swept_contacts_equal_refit_reference(make_seq):
         pos = base + rng.normal(scale=0.04, size=(S, 3))
         vel = rng.normal(scale=0.5, size=(S, 3))
         radius = rng.uniform(0.02, 0.06, S).astype(np.float32)
-        ref, serial, par = _worlds(seq, pos, vel, radius, t0, [("refit", None), ("swept", {"parallel": False}),
-                                                                ("swept", {"parallel": True, "max_candidates": 64})])
+        ref, serial, par, full = _worlds(seq, pos, vel, radius, t0, [
+            ("refit", None), ("swept", {"parallel": False}), ("swept", {"parallel": True, "max_candidates": 64}),
+            ("swept", {"parallel": True, "pool_size": 40})])  # a full pool: most spheres walk serially
         c_ref = _contacts_at(ref)
-        for w in (serial, par):
+        for w in (serial, par, full):
             c = _contacts_at(w)
             np.testing.assert_array_equal(c["face"] >= 0, c_ref["face"] >= 0)
             m = c_ref["face"] >= 0
@@ -186,3 +187,36 @@ def test_no_tunnelling_over_1e5_steps(scene):
     # not vacuous: the spheres were on the moving surface (bowl: riding the waves, often airborne;
     # blob: riding its top until its breathing, at about g, throws them off onto the ground)
     assert touched >= (0.1 * S * 2000 if scene == "wave_bowl" else 10)
+
+
+def test_swept_pairs_reduce_hundreds_of_candidates_per_sphere():
+    """A fine sheet (120 x 120) and wide spheres: each sphere gathers 480-720 faces, more than the old
+    256-entry lists held (they walked serially); the pair passes reduce them in parallel and
+    give the refit reference's contacts, and the spheres really used the pool."""
+    from dynmesh_warp.scenes import grid_sheet
+    from dynmesh_warp.sequence import FixedTopologySequence
+
+    V0, F = grid_sheet(120, 2.0)
+    frames = 6
+    V = np.repeat(V0[None], frames, 0).astype(np.float32)
+    for t in range(frames):
+        V[t, :, 2] = 0.05 * np.sin(3 * V0[:, 0] + 2 * np.pi * t / frames)
+    seq = FixedTopologySequence(V, F, fps=24.0, name="fine")
+    rng = np.random.default_rng(5)
+    S = 12
+    xy = rng.uniform(-0.8, 0.8, (S, 2))
+    z = 0.05 * np.sin(3 * xy[:, 0]) + rng.uniform(-0.03, 0.12, S)
+    pos = np.c_[xy, z].astype(np.float32)
+    vel = rng.normal(scale=0.3, size=(S, 3)).astype(np.float32)
+    radius = np.full(S, 0.1, np.float32)
+    ref, par = _worlds(seq, pos, vel, radius, 0.0, [("refit", None), ("swept", {"parallel": True})])
+    c_ref, c = _contacts_at(ref), _contacts_at(par)
+    counts, start = par.collider.cand_count.numpy(), par.collider.cand_start.numpy()
+    assert counts.min() > 256 and (start >= 0).all()  # more than the old lists held, all in the pool
+    m = c_ref["face"] >= 0
+    assert m.sum() >= 4
+    np.testing.assert_array_equal(c["face"] >= 0, m)
+    np.testing.assert_allclose(c["point"][m], c_ref["point"][m], atol=2e-5)
+    np.testing.assert_allclose(c["depth"][m], c_ref["depth"][m], atol=2e-5)
+    far = m & (np.linalg.norm(pos - c_ref["point"], axis=1) > 1e-3)
+    np.testing.assert_allclose(c["normal"][far], c_ref["normal"][far], atol=2e-3)
