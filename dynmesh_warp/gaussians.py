@@ -291,7 +291,11 @@ def gaussians_for_surface(seq, cfg=None, device=None) -> Gaussians:
     return generate_gaussians(seq.V[0], seq.F, device=device, **kw)
 
 
-def shaded_rgb(gaussians: "Gaussians", light_dir, ambient: float = 0.35) -> np.ndarray:
+#: ambient level of the splats' shading (the viewer's key light, the renderer's head light)
+SHADE_AMBIENT = 0.35
+
+
+def shaded_rgb(gaussians: "Gaussians", light_dir, ambient: float = SHADE_AMBIENT) -> np.ndarray:
     """(G, 3) colours of ``gaussians`` shaded by ambient + (1 - ambient) |n . l|: n each
     Gaussian's flat axis (its smallest scale: the face normal for Gaussians bound to faces, at
     the current state), l the unit ``light_dir`` towards the scene. The binding's colours are

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
+from .gaussians import SHADE_AMBIENT
 from .kernels.render import (
     EMPTY_KEY,
     SH_C0,
@@ -131,6 +132,7 @@ class RigidShapes:
 
     def __init__(self, shapes: list, device=None, color=(0.35, 0.5, 0.85)):
         self.device = wp.get_device(device)
+
         def drawable(s):
             return s["type"] in SHAPE_KINDS and (SHAPE_KINDS[s["type"]] != int(SHAPE_MESH) or "vertices" in s
                                                  or "wp_mesh" in s)
@@ -196,6 +198,8 @@ class Renderer:
         self._overflow = wp.zeros(1, dtype=wp.int32, device=self.device)
         self._no_spheres = (wp.zeros(0, dtype=wp.vec3, device=self.device), wp.zeros(0, dtype=float, device=self.device))
         self._no_solid = wp.zeros((1, 1, 1), dtype=wp.vec4, device=self.device)
+        self._no_splats = (wp.zeros(0, dtype=wp.vec3, device=self.device), wp.zeros(0, dtype=wp.mat33, device=self.device),
+                           wp.zeros((0, 1, 3), dtype=float, device=self.device), wp.zeros(0, dtype=float, device=self.device))
         self._cams = (None, None)  # (the cameras' values, their device arrays): reused while unchanged
 
     def _camera_arrays(self, cameras):
@@ -363,17 +367,11 @@ def render_world(sim, gaussians, cameras: list[Camera], renderer: Renderer | Non
     pos, rad = sim.sphere_positions(), sim.sphere_radii()
     spheres = (pos, rad) if len(rad) else None
     if not splats:
-        d = sim.device
-        none = (wp.zeros(0, dtype=wp.vec3, device=d), wp.zeros(0, dtype=wp.mat33, device=d),
-                wp.zeros((0, 1, 3), dtype=float, device=d), wp.zeros(0, dtype=float, device=d))
-        return renderer.render(*none, cameras, spheres=spheres, shapes=shapes, **kw)
+        return renderer.render(*renderer._no_splats, cameras, spheres=spheres, shapes=shapes, **kw)
     sh, op = _binding_colours(renderer, gaussians.binding, sim.device)
     return renderer.render(gaussians.state.centers, gaussians.state.covariances, sh, op, cameras,
                            spheres=spheres, shapes=shapes, shade=SHADE_AMBIENT if shade else None, **kw)
 
-
-#: ambient level of the splats' head-light shading in render_world / render_envs
-SHADE_AMBIENT = 0.35
 
 
 def _binding_colours(renderer: Renderer, binding, device):

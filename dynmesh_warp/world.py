@@ -22,6 +22,8 @@ from .kernels.frames import update_frame_vertices
 from .kernels.geometry import compute_face_normals
 from .kernels.integrate import integrate_spheres
 from .kernels.swept import (
+    NO_DIST,
+    NO_PAIR,
     collide_sphere_swept,
     compute_swept_bounds,
     detect_frame_change,
@@ -648,8 +650,8 @@ class SweptCollider(ColliderBase):
         self.cand_center = wp.zeros(S, dtype=wp.vec3, device=d)
         self.cand_radius = wp.zeros(S, dtype=float, device=d)
         # the pair passes' per-sphere accumulators, reset by the resolve kernel after each use
-        self.min_dist = wp.full(S, 1.0e30, dtype=float, device=d)
-        self.min_pair = wp.full(S, 2147483647, dtype=wp.int32, device=d)
+        self.min_dist = wp.full(S, float(NO_DIST), dtype=float, device=d)
+        self.min_pair = wp.full(S, int(NO_PAIR), dtype=wp.int32, device=d)
         self.acc_normal = wp.zeros(S, dtype=wp.vec3, device=d)
         if self.parallel:
             self.gather(model, state, ctx)

@@ -275,26 +275,6 @@ def gather_sorted_splats(
 
 
 @wp.func
-def nearest_sphere(o: wp.vec3, d: wp.vec3, centers: wp.array[wp.vec3], radii: wp.array[float], first: int,
-                   count: int):
-    """Ray o + s d (d unit) against spheres first .. first + count - 1: (s of the nearest hit,
-    its index; -1 if none)."""
-    best = float(1.0e30)
-    hit = int(-1)
-    for k in range(first, first + count):
-        oc = o - centers[k]
-        b = wp.dot(oc, d)
-        cc = wp.dot(oc, oc) - radii[k] * radii[k]
-        disc = b * b - cc
-        if disc >= 0.0:
-            s = -b - wp.sqrt(disc)
-            if s > 0.0 and s < best:
-                best = s
-                hit = k
-    return best, hit
-
-
-@wp.func
 def pixel_ray(intrinsics: wp.vec4, view_rotation: wp.mat33, view_translation: wp.vec3, px: int, py: int):
     """The ray through pixel (px, py)'s centre of a pinhole camera (OpenCV convention;
     intrinsics fx, fy, cx, cy [px]; world-to-camera R, t): (origin [m], unit direction in world,
@@ -331,6 +311,21 @@ def intersect_sphere_local(o: wp.vec3, d: wp.vec3, r: float):
             s = s0
             n = (o + d * s0) / r
     return s, n
+
+
+@wp.func
+def nearest_sphere(o: wp.vec3, d: wp.vec3, centers: wp.array[wp.vec3], radii: wp.array[float], first: int,
+                   count: int):
+    """Ray o + s d (d unit) against spheres first .. first + count - 1: (s of the nearest hit,
+    its index; -1 if none)."""
+    best = float(NO_HIT)
+    hit = int(-1)
+    for k in range(first, first + count):
+        s, n = intersect_sphere_local(o - centers[k], d, radii[k])
+        if s < best:
+            best = s
+            hit = k
+    return best, hit
 
 
 @wp.func

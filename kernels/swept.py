@@ -17,6 +17,10 @@ from .frames import blend_pair, frame_pair, store_frame_key
 from .geometry import closest_point_on_triangle
 
 
+#: the distance of a candidate that is not one (a sliver, a face beyond reach) [m]
+NO_DIST = wp.constant(1.0e30)
+
+
 @wp.kernel
 def detect_frame_change(
     # State in:
@@ -121,7 +125,7 @@ def face_candidate(p: wp.vec3, a: wp.vec3, b: wp.vec3, e: wp.vec3, epsilon: floa
     e2 = e - b
     nrm = wp.cross(e0, e1)
     if wp.length(nrm) / (wp.dot(e0, e0) + wp.dot(e1, e1) + wp.dot(e2, e2)) < 1.0e-6:
-        return float(1.0e30), wp.vec3(0.0), wp.vec3(0.0)
+        return float(NO_DIST), wp.vec3(0.0), wp.vec3(0.0)
     w = closest_point_on_triangle(p, a, b, e)
     c = w[0] * a + w[1] * b + w[2] * e
     weight = vertex_weight_angle(c, a, b, e, epsilon * epsilon)
@@ -268,6 +272,7 @@ def collide_sphere_swept(
 # reduced over (sphere, candidate) pairs, so a sphere with thousands of candidates does not walk
 # them in one thread (issue 14) ---------------------------------------------------------------
 
+#: no candidate pair yet / no distance yet: the pair passes' accumulators between steps
 NO_PAIR = wp.constant(2147483647)
 
 
@@ -362,12 +367,12 @@ def evaluate_sphere_candidates(
 ):
     """Distance, closest-point weights and pseudo-normal term of every pooled (sphere, face)
     pair (launch (threads,), each thread striding over the pool's used entries), and each
-    sphere's minimum distance below its reach (atomic; ``min_dist`` holds 1e30 between steps).
-    A face whose swept box lies beyond the reach is skipped (distance 1e30)."""
+    sphere's minimum distance below its reach (atomic; ``min_dist`` holds NO_DIST between steps).
+    A face whose swept box lies beyond the reach is skipped (distance NO_DIST)."""
     t = wp.tid()
     k0, k1, alpha = blend_pair(sim_time_in[0], fps, frames.shape[0], mode, interpolate)
     for i in range(t, wp.min(pool_used[0], cand_sphere.shape[0]), threads):
-        cand_dist[i] = 1.0e30
+        cand_dist[i] = NO_DIST
         s = cand_sphere[i]
         if s >= 0 and cand_start[s] >= 0:
             f = cand_face[i]
@@ -405,10 +410,10 @@ def find_closest_candidates(
     t = wp.tid()
     for i in range(t, wp.min(pool_used[0], cand_sphere.shape[0]), threads):
         d = cand_dist[i]
-        if d < 1.0e30:
+        if d < NO_DIST:
             s = cand_sphere[i]
             m = min_dist[s]
-            if m < 1.0e30:
+            if m < NO_DIST:
                 if d < m + epsilon:
                     wp.atomic_add(acc_normal, s, cand_wn[i])
                 if d == m:
@@ -472,7 +477,7 @@ def resolve_sphere_candidates(
             mf = cand_face[i]
             mw = cand_w[i]
             an = acc_normal[s]
-    min_dist[s] = 1.0e30
+    min_dist[s] = NO_DIST
     min_pair[s] = NO_PAIR
     acc_normal[s] = wp.vec3(0.0)
     write_swept_contact(s, p, r, reach, md, mf, mw, an, frames, indices, k0, k1, alpha, fps,

@@ -64,7 +64,8 @@ def test_render_envs_equals_each_env_rendered_alone(device, playback):
     updated from it (the tested single-scene path), only its spheres, its camera."""
     from dynmesh_warp.batch import BatchedWorld, BatchModel, BatchState, EnvView
     from dynmesh_warp.gaussians import generate_gaussians
-    from dynmesh_warp.render import SHADE_AMBIENT, render_envs
+    from dynmesh_warp.gaussians import SHADE_AMBIENT
+    from dynmesh_warp.render import render_envs
     from dynmesh_warp.scenes import wave_bowl
     from dynmesh_warp.world import PhysicsParams, SurfaceModel
 
@@ -325,8 +326,7 @@ def test_kernel_shading_equals_the_host_shading_of_the_flat_axis(device):
     smallest covariance eigenvalue) gives the picture of the host reference
     ``gaussians.shaded_rgb`` (flat axis from each Gaussian's rotation and scales) baked into the
     colours of an unlit render, for the same light; and it changes the picture."""
-    from dynmesh_warp.gaussians import generate_gaussians, shaded_rgb
-    from dynmesh_warp.render import SHADE_AMBIENT
+    from dynmesh_warp.gaussians import SHADE_AMBIENT, generate_gaussians, shaded_rgb
     from dynmesh_warp.scenes import wave_bowl
 
     seq = wave_bowl(n=16, frames=4)
