@@ -136,7 +136,7 @@ def test_clock_follows_the_wall_and_gaussians_update_once_per_frame(device, monk
     calls = []
     real_update = g.update
     monkeypatch.setattr(g, "update", lambda *a: (calls.append(world.time), real_update(*a))[1])
-    clock = iter([0.0, 0.1, 0.2, 0.3, 1.5, 1.6])  # wall times of six frames; a 1.2 s stall before the 5th
+    clock = iter([0.0, 0.1, 0.2, 0.3, 1.5, 1.6, 1.7])  # wall times of seven frames; a 1.2 s stall before the 5th
     monkeypatch.setattr(vw.time, "perf_counter", lambda: next(clock))
     v = vw.Viewer(world, g, port=0, realtime=True, speed=2.0, log=lambda *a: None, hold_until_client=False)
     try:
@@ -158,14 +158,17 @@ def test_clock_follows_the_wall_and_gaussians_update_once_per_frame(device, monk
         assert len(near) and p[2] > near[:, 2].max()  # above the surface at its x, y
         v.reset()
         assert world.model.spheres.count == n0 and world.time == world.t0
-        # "Replay drop" (by its button's action): paused, a sphere dropped and time moved on ->
-        # back to the scene's own spheres at t0, and playing again
+        # "Replay drop" (by its button's action, applied by the next frame): paused, a sphere
+        # dropped and time moved on -> the scene's own spheres from t0, playing again (that frame
+        # simulates its 0.1 s of wall time at speed 2)
         v.drop_sphere()
-        world.step()
+        for _ in range(30):
+            world.step()
         v.playing = v.gui_play.value = False
         v._queue("replay")
-        v._apply_actions()
-        assert world.model.spheres.count == n0 and world.time == world.t0 and v.playing and v.gui_play.value
+        v.update()
+        assert world.model.spheres.count == n0 and v.playing and v.gui_play.value
+        assert world.time == pytest.approx(world.t0 + 0.2, abs=world.dt + 1e-9)
     finally:
         v.close()
 
