@@ -482,6 +482,8 @@ def main(argv=None) -> int:
     p.add_argument("--device", default=None)
     p.add_argument("--mesh", action="store_true", help="draw the physics mesh too (opaque, shaded): for debugging")
     p.add_argument("--no-splats", action="store_true", help="leave the Gaussians out (with --mesh: the mesh alone)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an existing --figure / --video file, or frames in a non-empty --out folder")
     p.add_argument("--no-progress", action="store_true")
     a = p.parse_args(argv)
     if not a.out and not a.figure and not a.video:
@@ -502,8 +504,19 @@ def main(argv=None) -> int:
     from .gaussians import gaussians_for_surface
     from .scene import build_world
 
+    from .outputs import add_to_manifest, check_output
+
     try:
         cfg = load_scene_config(a.scene)
+        # the outputs, before any work: never one of the scene's inputs, nothing replaced unasked
+        ins = cfg.inputs()
+        if a.figure:
+            check_output(a.figure, kind="file", what="--figure", inputs=ins, overwrite=a.overwrite, suffixes={".png"})
+        if a.video:
+            check_output(a.video, kind="file", what="--video", inputs=ins, overwrite=a.overwrite)
+        if a.out:
+            check_output(a.out, kind="folder", what="--out", inputs=ins, overwrite=a.overwrite,
+                         writes=("frame_*.png",))
         if cfg.newton is not None:  # a newton: scene renders the Newton world, its bodies drawn in
             from .newton_adapter import build_newton_world
 
@@ -538,6 +551,7 @@ def main(argv=None) -> int:
         img = _to_uint8(render_world(world, gs, cam, renderer, splats=not a.no_splats, mesh=a.mesh).rgb.numpy()[0])
         if a.out and f < total:
             _write_png(Path(a.out) / f"frame_{f:04d}.png", img)
+            add_to_manifest(a.out, f"frame_{f:04d}.png")  # written by this tool: --overwrite may replace it
         if a.video and f < total:
             video.append(img)
         if a.figure and f in moments:

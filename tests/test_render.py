@@ -357,3 +357,38 @@ def _warp_indices(F, device):
     import warp as wp
 
     return wp.array(np.asarray(F, np.int32).reshape(-1), dtype=wp.int32, device=device)
+
+
+def test_render_cli_never_writes_over_its_inputs_or_users_files(tmp_path, capsys):
+    """Outputs checked before any work: --figure at the scene file, --video into an existing file,
+    --out into a folder with a user's frame_0000.png are refused (exit 2, the field named) and
+    leave every file byte-identical; --overwrite replaces only what the tool wrote."""
+    import yaml
+
+    from dynmesh_warp.render import main
+
+    scene = tmp_path / "s.yaml"
+    scene.write_text(yaml.safe_dump({"name": "s", "surface": {"source": "builtin:pulsing_blob",
+                                                                "params": {"subdivisions": 1}},
+                                     "spheres": [], "gaussians": {"count": 200}}))
+    before = scene.read_bytes()
+    small = ["--width", "32", "--height", "24", "--frames", "1", "--moments", "1", "--no-progress", "--device", "cpu"]
+    assert main([str(scene), "--figure", str(scene)] + small) == 2
+    assert "--figure" in capsys.readouterr().err and scene.read_bytes() == before
+    gif = tmp_path / "old.gif"
+    gif.write_bytes(b"not mine")
+    assert main([str(scene), "--video", str(gif)] + small) == 2
+    assert "--video" in capsys.readouterr().err and gif.read_bytes() == b"not mine"
+    user = tmp_path / "photos"
+    user.mkdir()
+    (user / "frame_0000.png").write_bytes(b"a user's picture")
+    for extra in ([], ["--overwrite"]):
+        assert main([str(scene), "--out", str(user)] + small + extra) == 2
+        assert "--out" in capsys.readouterr().err
+    assert (user / "frame_0000.png").read_bytes() == b"a user's picture"
+    # the tool's own frames: a second run replaces them with --overwrite only
+    out = tmp_path / "frames"
+    assert main([str(scene), "--out", str(out)] + small) == 0
+    assert main([str(scene), "--out", str(out)] + small) == 2
+    assert main([str(scene), "--out", str(out), "--overwrite"] + small) == 0
+    assert (out / "frame_0000.png").read_bytes()[:4] == b"\x89PNG"
