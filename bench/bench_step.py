@@ -30,7 +30,7 @@ from common import RESULTS, describe_device, load_paper_sequence, time_loop, wri
 
 
 def make_world(seq, device, collider, spheres=5, radius=0.05, rebuild_every="step", seed=0, spread=0.6,
-               interpolate=True):
+               interpolate=True, swept_search=None):
     from dynmesh_warp.config import SpawnConfig, spawn_positions
     from dynmesh_warp.world import Model, PhysicsParams, SphereModel, State, SurfaceModel, World
 
@@ -39,7 +39,8 @@ def make_world(seq, device, collider, spheres=5, radius=0.05, rebuild_every="ste
     if spheres > 50:  # many spheres: a single layer just above the surface, not a tall column
         pos[:, 2] = seq.V[0][:, 2].max() + radius * (1.0 + np.random.default_rng(seed).random(spheres))
     model = Model(surf, SphereModel(np.full(spheres, radius, np.float32), 1.0, device),
-                  PhysicsParams(dt=1.0 / 240.0, auto_substeps=False, ground_height=float(seq.V[:, :, 2].min())))
+                  PhysicsParams(dt=1.0 / 240.0, auto_substeps=False, ground_height=float(seq.V[:, :, 2].min()),
+                                swept_search=swept_search))
     return World(model, State(model, pos), collider=collider, rebuild_every=rebuild_every)
 
 
@@ -168,8 +169,10 @@ def scaling(device, verts, spheres, colliders, steps, repeats):
                 gc.collect()
                 wp.synchronize_device(device)
                 m0 = mem_used(device)
-                w, comp = timed_build(seq, device, col.split("/")[0], spheres=ns, radius=radius,
-                                      spread=0.9, rebuild_every="step")
+                # "swept/serial": the swept collider with that search (physics.swept_search)
+                base, _, search = col.partition("/")
+                w, comp = timed_build(seq, device, base, spheres=ns, radius=radius, spread=0.9,
+                                      rebuild_every="step", swept_search=search or None)
                 m1 = mem_used(device)
                 nsteps = steps if not col.startswith("rebuild") else max(3, steps // 20)
                 if wp.get_device(device).is_cpu:
@@ -181,6 +184,8 @@ def scaling(device, verts, spheres, colliders, steps, repeats):
                 rows.append({"vertices": n * n, "faces": 2 * (n - 1) ** 2, "spheres": ns, "collider": col,
                              "steps_per_s": t["steps_per_s"], "us_per_step": t["us_per_step"],
                              "device_mem_bytes": None if m0 is None else m1 - m0, **comp})
+                if w.collider.name == "swept":
+                    rows[-1]["swept_search"] = str(w.collider.search)
                 if col == "fixed":  # the automatic choice: what it measured and kept
                     rows[-1]["chosen"] = w.collider.name
                     rows[-1]["measured_steps_per_s"] = {k: 1.0 / v for k, v in (w.collider_costs or {}).items()}
@@ -198,7 +203,8 @@ def fixed_vs_best(rows) -> list:
         grp = {r["collider"]: r for r in rows if (r["vertices"], r["spheres"]) == key}
         if "fixed" not in grp:
             continue
-        best = max((r for c, r in grp.items() if c != "fixed"), key=lambda r: r["steps_per_s"])
+        # the colliders a scene can name (the swept searches beside them are reported, not compared)
+        best = max((r for c, r in grp.items() if c != "fixed" and "/" not in c), key=lambda r: r["steps_per_s"])
         out.append({"vertices": key[0], "spheres": key[1], "chosen": grp["fixed"].get("chosen"),
                     "best": best["collider"], "fixed_steps_per_s": grp["fixed"]["steps_per_s"],
                     "best_steps_per_s": best["steps_per_s"],
@@ -218,6 +224,8 @@ def main(argv=None):
     ap.add_argument("--scaling-only", action="store_true", help="skip the paper scene and the stage breakdown")
     ap.add_argument("--verts", default=None, help="comma-separated vertex counts of the scaling table")
     ap.add_argument("--spheres", default=None, help="comma-separated sphere counts of the scaling table")
+    ap.add_argument("--colliders", default=None, help="comma-separated colliders of the scaling table "
+                    "(fixed, swept, swept/serial, swept/tiled, swept/pairs, refit, rebuild)")
     args = ap.parse_args(argv)
     import warp as wp
 
@@ -233,12 +241,16 @@ def main(argv=None):
         "interpolate": True}}
     print(f"device {device} ({result['machine']['device_name']}), paper scene {seq.name}", flush=True)
     paper = {}
+    variants = [("swept/serial", None), ("swept/pairs", None)] if device.is_cuda else []
     for col, every in ([] if args.scaling_only else
-                       [("fixed", None), ("swept", None), ("refit", None), ("rebuild", "step"), ("rebuild", "frame")]):
+                       [("fixed", None), ("swept", None), *variants, ("refit", None), ("rebuild", "step"),
+                        ("rebuild", "frame")]):
         name = col if every is None else f"rebuild_every_{every}"
+        base, _, search = col.partition("/")
         # rebuilding only on frame change is valid when the surface changes only per frame:
         # that variant runs with interpolation off (frames held), as a varying-topology method would
-        w, comp = timed_build(seq, device, col, rebuild_every=every or "step", interpolate=every != "frame")
+        w, comp = timed_build(seq, device, base, rebuild_every=every or "step", interpolate=every != "frame",
+                              swept_search=search or None)
         n = args.steps if col != "rebuild" else max(20, args.steps // (20 if every == "step" else 4))
         t = time_loop(w.step, device, n, args.repeats)
         paper[name] = {**t, **comp, "cuda_graph": bool(w.use_graph), "interpolate": bool(w.model.surface.interpolate)}
@@ -246,6 +258,9 @@ def main(argv=None):
         paper[name]["final_finite"] = bool(np.isfinite(pos).all())
         if col == "fixed":
             paper[name]["chosen"] = w.collider.name
+            paper[name]["measured_steps_per_s"] = {k: 1.0 / v for k, v in (w.collider_costs or {}).items()}
+        if w.collider.name == "swept":
+            paper[name]["swept_search"] = str(w.collider.search)
         print(f"  {name:<22} {t['steps_per_s']:>10.0f} steps/s  ({t['us_per_step']:.1f} us)", flush=True)
         del w
     for k in ("swept", "refit") if paper else ():
@@ -275,6 +290,9 @@ def main(argv=None):
         verts = [int(float(v)) for v in args.verts.split(",")] if args.verts else verts
         sph = [int(float(v)) for v in args.spheres.split(",")] if args.spheres else sph
         cols = ["fixed", "swept", "refit", "rebuild"]
+        if device.is_cuda:  # the swept collider's other searches (the default is tiled on CUDA)
+            cols[2:2] = ["swept/serial", "swept/pairs"]
+        cols = args.colliders.split(",") if args.colliders else cols
         result["scaling"] = scaling(device, verts, sph, cols, st, 3)
         result["fixed_vs_best"] = fixed_vs_best(result["scaling"])
     write_json(out, result)

@@ -1,69 +1,112 @@
-"""Per-kernel profile of the swept step in the paper scene's steady state (spheres landed).
+"""Per-kernel device time of the swept step, in the paper scene and on the scaling grids.
 
-    python bench/profile_swept.py --device cuda:0 [--out file.json]
+    python bench/profile_swept.py --device cuda:0 [--rows paper,1e5x5,...] [--out file.json]
 
-Each part is captured alone as a CUDA graph (eager on the CPU) and replayed; also reports how
-many spheres took the serial fallback (left their gathered ball or overflowed their list).
+Each row builds a swept world (each ``--searches``: tiled, serial, pairs, in turn), lets the
+spheres settle for ``--settle`` steps (graph), then runs ``--steps`` eager steps under Warp's
+activity timing (``wp.timing_begin``: CUDA events around every kernel, memset and copy) and
+sums the device time per kernel over those steps. Eager launches carry more host overhead than
+the graph, but the device time of each kernel is the same; the graph step's wall time is
+reported beside it. Also: the pool's size and use, faces per sphere, spheres on the serial
+fallback (pool full or left their gathered ball).
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
 import warp as wp
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_step import graph_or_eager, make_world  # noqa: E402
+from bench_step import make_world, wave_grid  # noqa: E402
 from common import describe_device, load_paper_sequence, time_loop, write_json  # noqa: E402
+
+ROWS = {"paper": None, "1e4x5": (10_000, 5), "1e5x5": (100_000, 5), "1e5x1000": (100_000, 1_000),
+        "1e6x5": (1_000_000, 5), "1e6x1e5": (1_000_000, 100_000)}
+
+
+def fallback_info(w) -> dict:
+    c = w.collider
+    if not c.parallel:
+        return {}
+    p = w.state.sphere_pos.numpy()
+    v = np.linalg.norm(w.state.sphere_vel.numpy(), axis=1)
+    r = w.model.spheres.radius.numpy()
+    reach = r + w.model.params.margin + v * w.ctx.sub_dt
+    cnt = c.cand_count.numpy()
+    left = np.linalg.norm(p - c.cand_center.numpy(), axis=1) + reach + c.epsilon > c.cand_radius.numpy()
+    return {"pool_entries": int(c.cand_face.shape[0]), "pool_used": int(c.pool_used.numpy()[0]),
+            "faces_per_sphere_median": float(np.median(cnt)), "faces_per_sphere_max": int(cnt.max()),
+            "pool_full_spheres": int((c.cand_start.numpy() < 0).sum()), "left_ball_spheres": int(left.sum()),
+            "in_contact": int((w.contacts.face.numpy() >= 0).sum())}
+
+
+def profile_row(name, device, search, settle, steps, tile_threads=None):
+    import dynmesh_warp.world as W
+
+    W.SWEPT_TILE_THREADS = tile_threads or W.SWEPT_TILE_THREADS
+    if ROWS[name] is None:
+        seq, _ = load_paper_sequence()
+        w = make_world(seq, device, "swept", swept_search=search)
+    else:
+        nv, ns = ROWS[name]
+        n = int(round(np.sqrt(nv)))
+        w = make_world(wave_grid(n), device, "swept", spheres=ns, radius=float(min(0.05, 0.5 / np.sqrt(ns))),
+                       spread=0.9, swept_search=search)
+    for _ in range(settle):
+        w.step()
+    graph = time_loop(w.step, device, steps, 3, warmup=3)
+    info = fallback_info(w)
+    w._graph, w.use_graph = None, False
+    w.step()
+    wp.timing_begin(cuda_filter=wp.TIMING_ALL)
+    for _ in range(steps):
+        w.step()
+    res = wp.timing_end()
+    per = defaultdict(lambda: [0.0, 0])
+    for r in res:
+        key = r.name.split("(")[0][:60]
+        per[key][0] += r.elapsed * 1e3 / steps  # ms -> us per step
+        per[key][1] += 1
+    kernels = {k: {"us_per_step": v[0], "launches": v[1]} for k, v in sorted(per.items(), key=lambda kv: -kv[1][0])}
+    total = sum(v[0] for v in per.values())
+    return {"row": name, "search": search, "tile_threads": w.collider.tile_threads if search == "tiled" else None, "graph_us_per_step": graph["us_per_step"],
+            "device_us_per_step_eager": total, "kernels": kernels, "state": info}
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser()
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--device", default=None)
-    ap.add_argument("--settle", type=int, default=600)
+    ap.add_argument("--rows", default="paper,1e5x5,1e6x5,1e5x1000,1e6x1e5")
+    ap.add_argument("--searches", default="tiled,serial,pairs")
+    ap.add_argument("--tile-threads", default=None, help="comma-separated block sizes of the tiled search")
+    ap.add_argument("--settle", type=int, default=240)
+    ap.add_argument("--steps", type=int, default=40)
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     wp.config.quiet = True
     device = wp.get_device(args.device)
-    seq, shared = load_paper_sequence()
-    w = make_world(seq, device, "swept")
-    for _ in range(args.settle):
-        w.step()
-    wp.synchronize_device(device)
-    c = w.collider
-    parts = {
-        "full_step": w.step,
-        "conditional refit node (not taken)": lambda: c.update(w),
-        "collide (evaluate+resolve or serial)": lambda: c.collide(w),
-        "integrate + clock + frame test": w.integrate,
-        "per_frame: bounds+bvh_refit+gather": lambda: c.refit_frame(w),
-        "per_frame: bounds only": lambda: c.compute_bounds(w),
-        "per_frame: bvh_refit only": lambda: c.bvh.refit(),
-    }
-    if c.parallel:
-        parts["per_frame: gather only"] = lambda: c.gather(w)
-    res = {}
-    for k, f in parts.items():
-        fn = f if k == "full_step" else graph_or_eager(f, device)
-        res[k] = time_loop(fn, device, 500, 5)["us_per_step"]
-        print(f"{k:<40} {res[k]:8.2f} us", flush=True)
-    # which spheres take the serial path now
-    info = {}
-    if c.parallel:
-        p = w.state.sphere_pos.numpy()
-        v = np.linalg.norm(w.state.sphere_vel.numpy(), axis=1)
-        r = w.model.spheres.radius.numpy()
-        reach = r + w.model.params.margin + (v + w.extra_speed) * w.sub_dt
-        cnt = c.cand_count.numpy()
-        out_of_ball = np.linalg.norm(p - c.cand_center.numpy(), axis=1) + reach + c.epsilon > c.cand_radius.numpy()
-        info = {"candidates": cnt.tolist(), "overflow": (c.cand_start.numpy() < 0).tolist(),
-                "left_ball": out_of_ball.tolist(), "in_contact": (w.contacts.face.numpy() >= 0).tolist()}
-        print(info)
-    result = {"machine": describe_device(device), "sequence": seq.name, "from_shared_data": shared,
-              "parallel": c.parallel, "us": res, "state": info}
+    out = []
+    for name in args.rows.split(","):
+        import dynmesh_warp.world as W
+
+        default_threads = W.SWEPT_TILE_THREADS
+        runs = [(s, None) for s in args.searches.split(",") if s != "tiled"]
+        if "tiled" in args.searches.split(","):
+            runs[:0] = [("tiled", int(t)) for t in (args.tile_threads or str(default_threads)).split(",")]
+        for search, threads in runs:
+            r = profile_row(name, device, search, args.settle, args.steps, threads or default_threads)
+            out.append(r)
+            search = search + (f"/{threads}" if threads else "")
+            top = ", ".join(f"{k} {v['us_per_step']:.1f}" for k, v in list(r["kernels"].items())[:5])
+            print(f"{name:<9} {search:<10} graph {r['graph_us_per_step']:8.1f} us/step, device "
+                  f"{r['device_us_per_step_eager']:8.1f} us/step: {top}  {r['state']}", flush=True)
+    result = {"machine": describe_device(device), "settle_steps": args.settle, "profiled_steps": args.steps,
+              "rows": out}
     if args.out:
         write_json(Path(args.out), result)
 

@@ -16,8 +16,9 @@ from __future__ import annotations
 
 import enum
 
-__all__ = ["StrEnum", "Collider", "RebuildEvery", "Playback", "FrameOrder", "Orientation", "UpAxis", "Strategy",
-           "NewtonSolver", "PLAYBACK_CODES", "DEFAULT_COLLIDER", "DEFAULT_REBUILD_EVERY", "DEFAULT_PLAYBACK",
+__all__ = ["StrEnum", "Collider", "SweptSearch", "RebuildEvery", "Playback", "FrameOrder", "Orientation", "UpAxis",
+           "Strategy", "NewtonSolver", "PLAYBACK_CODES", "DEFAULT_COLLIDER", "DEFAULT_REBUILD_EVERY",
+           "DEFAULT_SWEPT_SEARCH", "SWEPT_MEASURED_SEARCHES", "SWEPT_TILE_THREADS", "DEFAULT_PLAYBACK",
            "DEFAULT_FRAME_ORDER", "DEFAULT_ORIENTATION", "DEFAULT_UP_AXIS", "DEFAULT_STRATEGY",
            "DEFAULT_NEWTON_SOLVER", "STRATEGIES", "values", "parse"]
 
@@ -43,6 +44,17 @@ class Collider(StrEnum):
     SWEPT = "swept"
     #: a new BVH every sub-step or frame (varying topology)
     REBUILD = "rebuild"
+
+
+class SweptSearch(StrEnum):
+    """How the swept collider searches a sphere's faces each step (docs/physics.md#the-swept-collider)."""
+
+    #: one thread per sphere walks its box query (the CPU's path)
+    SERIAL = "serial"
+    #: one thread block per sphere walks the query together and reduces (the CUDA default)
+    TILED = "tiled"
+    #: candidates pooled once per frame, every (sphere, face) pair evaluated in parallel each step
+    PAIRS = "pairs"
 
 
 class RebuildEvery(StrEnum):
@@ -104,6 +116,12 @@ class NewtonSolver(StrEnum):
 
 DEFAULT_COLLIDER = Collider.FIXED
 DEFAULT_REBUILD_EVERY = RebuildEvery.STEP
+#: the swept collider's search per device kind (a CPU thread block is one thread: serial there)
+DEFAULT_SWEPT_SEARCH = {"cpu": SweptSearch.SERIAL, "cuda": SweptSearch.TILED}
+#: the searches ``collider: fixed`` measures as candidates per device kind (none: the default)
+SWEPT_MEASURED_SEARCHES = {"cpu": (), "cuda": (SweptSearch.TILED, SweptSearch.SERIAL)}
+#: threads per sphere of the tiled search
+SWEPT_TILE_THREADS = 64
 DEFAULT_PLAYBACK = Playback.LOOP
 DEFAULT_FRAME_ORDER = FrameOrder.STORED
 DEFAULT_ORIENTATION = Orientation.AUTO

@@ -31,6 +31,7 @@ from .choices import (
     RebuildEvery,
     Strategy,
     UpAxis,
+    SweptSearch,
 )
 
 __all__ = ["SceneConfig", "SceneError", "load_scene_config", "apply_overrides", "DEFAULT_SCENE", "DEFAULT_SCENE_FILE",
@@ -125,6 +126,9 @@ class PhysicsCore(_Strict):
     friction: float = Field(default=0.5, ge=0)
     rest_speed: float = Field(default=0.2, ge=0)
     margin: float = Field(default=1.0e-3, ge=0)
+    # how the swept collider searches a sphere's faces (None: the device's default,
+    # choices.DEFAULT_SWEPT_SEARCH); docs/physics.md#the-swept-collider
+    swept_search: Optional[SweptSearch] = None
 
     @model_validator(mode="after")
     def _substeps_within_bound(self):

@@ -25,6 +25,7 @@ from .kernels.swept import (
     NO_DIST,
     NO_PAIR,
     collide_sphere_swept,
+    collide_sphere_swept_tiled,
     compute_swept_bounds,
     detect_frame_change,
     evaluate_sphere_candidates,
@@ -36,10 +37,14 @@ from .choices import (
     DEFAULT_COLLIDER,
     DEFAULT_PLAYBACK,
     DEFAULT_REBUILD_EVERY,
+    DEFAULT_SWEPT_SEARCH,
     PLAYBACK_CODES,
+    SWEPT_MEASURED_SEARCHES,
+    SWEPT_TILE_THREADS,
     Collider,
     Playback,
     RebuildEvery,
+    SweptSearch,
     parse,
     values,
 )
@@ -105,7 +110,8 @@ class PhysicsParams(PhysicsCore):
     restitution in [0, 1]; friction: Coulomb coefficient; rest_speed: normal approach speed [m/s]
     below which an impact does not bounce; margin: extra contact query distance [m];
     auto_substeps: raise substeps so the surface moves less than half the smallest sphere radius
-    per sub-step; ground_height: optional static ground plane z = ground_height [m] (None: no ground).
+    per sub-step; swept_search: the swept collider's search (None: the device's default);
+    ground_height: optional static ground plane z = ground_height [m] (None: no ground).
     """
 
     ground_height: Optional[float] = None
@@ -609,25 +615,33 @@ class SweptCollider(ColliderBase):
     test and a conditional graph node), and a contact kernel that evaluates the interpolated
     triangles itself. No per-step vertex copy or BVH refit.
 
-    ``parallel`` (default on CUDA): at each frame change every sphere gathers the faces its
-    reach can meet during the frame interval into one pool (``max_candidates`` entries per
-    sphere on average, at least ``SWEPT_MIN_POOL``; a sphere may take thousands); each step
-    evaluates every pooled (sphere, face) pair in parallel and reduces them per sphere (an
-    atomic minimum of the distance, then the first pair at it and the pseudo-normal over the
-    ties) — no thread walks a sphere's candidates one by one (issue 14). A sphere that leaves its
-    gathered ball or finds the pool full takes the serial BVH walk, so the result is that of the
-    serial rule either way. On the CPU one thread per sphere walks the BVH (serial).
+    ``search`` (:class:`~dynmesh_warp.choices.SweptSearch`; default per device kind,
+    ``DEFAULT_SWEPT_SEARCH``): how each step finds a sphere's closest feature among the faces
+    its box query returns. ``serial``: one thread per sphere walks them (the CPU's path).
+    ``tiled`` (CUDA default): one block of ``tile_threads`` threads per sphere walks the query
+    together and reduces (``wp.tile_bvh_query_aabb``), so a sphere with thousands of faces in
+    reach costs tens of dependent loads, not thousands (issue 14). ``pairs``: at each frame
+    change every sphere gathers the faces its reach can meet during the frame interval into one
+    pool (``max_candidates`` entries per sphere on average, at least ``SWEPT_MIN_POOL``), and
+    each step evaluates every pooled (sphere, face) pair in parallel and reduces them per
+    sphere; a sphere that leaves its gathered ball or finds the pool full walks serially. All
+    three give the serial rule's contacts (the tiled one picks the lowest face index among
+    exactly equal distances). Measured per path: docs/benchmarks.md.
     """
 
     name = "swept"
     capturable = True
     needs_points = False
 
-    def __init__(self, model: Model, state: State, ctx: StepContext, parallel: bool | None = None,
-                 max_candidates: int | None = None, pool_size: int | None = None):
+    def __init__(self, model: Model, state: State, ctx: StepContext, search: str | None = None,
+                 max_candidates: int | None = None, pool_size: int | None = None, tile_threads: int | None = None):
         surf = model.surface
         d = ctx.device
-        self.parallel = d.is_cuda if parallel is None else bool(parallel)
+        search = model.params.swept_search if search is None else search
+        self.search = (DEFAULT_SWEPT_SEARCH["cuda" if d.is_cuda else "cpu"] if search is None
+                       else parse(SweptSearch, search, "swept_search"))
+        self.parallel = self.search == SweptSearch.PAIRS  # the candidate pool is used
+        self.tile_threads = int(tile_threads or SWEPT_TILE_THREADS)
         self.max_candidates = int(max_candidates or SWEPT_MAX_CANDIDATES)
         self.pool_size = None if pool_size is None else int(pool_size)  # entries; None: from the sphere count
         self.lowers = wp.zeros(surf.num_faces, dtype=wp.vec3, device=d)
@@ -724,10 +738,15 @@ class SweptCollider(ColliderBase):
         frame_args = [surf.fps, surf.playback, int(surf.interpolate), self.epsilon]
         outputs = [c.face, c.point, c.normal, c.depth, c.velocity]
         if not self.parallel:
-            ctx.launch(collide_sphere_swept, m.spheres.count,
-                          [surf.frames, surf.indices, m.spheres.radius, s.sim_time, s.sphere_pos, s.sphere_vel,
-                           self.bvh.id, self.lowers, self.uppers, *frame_args, ctx.sub_dt, ctx.extra_speed,
-                           m.params.margin], outputs)
+            inputs = [surf.frames, surf.indices, m.spheres.radius, s.sim_time, s.sphere_pos, s.sphere_vel,
+                      self.bvh.id, self.lowers, self.uppers, *frame_args, ctx.sub_dt, ctx.extra_speed,
+                      m.params.margin]
+            if self.search == SweptSearch.TILED:
+                if m.spheres.count:
+                    wp.launch_tiled(collide_sphere_swept_tiled, dim=m.spheres.count, inputs=inputs, outputs=outputs,
+                                    block_dim=self.tile_threads, device=ctx.device)
+            else:
+                ctx.launch(collide_sphere_swept, m.spheres.count, inputs, outputs)
             return
         S = m.spheres.count
         # threads striding over the pool's used entries: as many as the old per-sphere lists had
@@ -763,6 +782,7 @@ COLLIDER_CHOICES = tuple(values(Collider))
 CHOICE_HORIZON = 2.0
 CHOICE_SECONDS = 0.5
 CHOICE_WARMUP = 4
+CHOICE_UNTIMED = 2  # of the warm-up steps: the eager step and the capture (compile, module load)
 CHOICE_ROUND_MAX = 120  # steps per timed round
 
 
@@ -787,17 +807,22 @@ def measure_colliders(model: Model, state: State, candidates, horizon: float | N
     for name in candidates:
         with warnings.catch_warnings():  # the scene's own notes come from the real world
             warnings.simplefilter("ignore")
-            w = World(model, State(model, pos, vel, t0=t0), collider=name, render_state=False)
-        warm = []  # the warm-up steps' times; a step that alone outlasts the budget ends the trial there
+            base, _, search = name.partition("/")  # "swept/serial": the swept collider with that search
+            w = World(model, State(model, pos, vel, t0=t0), collider=base, render_state=False,
+                      swept_search=search or None)
+        # the warm-up steps' times; the first CHOICE_UNTIMED (eager: compiles; capture: may load
+        # modules on a cold kernel cache) never count. Replays that alone outlast the budget end
+        # the trial there
+        warm = []
         for _ in range(CHOICE_WARMUP):
             start = time.perf_counter()
             w.step()
             wp.synchronize_device(w.device)
             warm.append(time.perf_counter() - start)
-            if sum(warm[1:]) > budget_s:
+            if sum(warm[CHOICE_UNTIMED:]) > budget_s:
                 break
-        if sum(warm[1:]) > budget_s:
-            cost[name] = sum(warm[1:]) / len(warm[1:])
+        if sum(warm[CHOICE_UNTIMED:]) > budget_s:
+            cost[name] = sum(warm[CHOICE_UNTIMED:]) / len(warm[CHOICE_UNTIMED:])
             continue
         n, spent = 0, 0.0
         while n < total and spent < budget_s:
@@ -820,9 +845,9 @@ class World:
     advance the device clock. After the sub-steps the face normals (render state) are updated
     and the post-step hooks run.
 
-    Colliders: ``fixed`` runs ``swept`` and ``refit`` on trial copies of the state when
-    interpolation is on and keeps the faster (:func:`measure_colliders`; ``collider_costs``),
-    else ``refit``;
+    Colliders: ``fixed`` runs ``swept`` (on CUDA once per search: tiled, serial) and ``refit``
+    on trial copies of the state when interpolation is on and keeps the fastest
+    (:func:`measure_colliders`; ``collider_costs``, ``swept_search``), else ``refit``;
     ``refit`` (BVH refit every sub-step, the reference), ``swept`` (refit once per frame),
     ``rebuild`` (varying-topology baseline, new BVH every sub-step or frame).
 
@@ -834,7 +859,7 @@ class World:
 
     def __init__(self, model: Model, state: State, collider: str = DEFAULT_COLLIDER,
                  rebuild_every: str = DEFAULT_REBUILD_EVERY,
-                 use_graph: bool | None = None, render_state: bool | None = None):
+                 use_graph: bool | None = None, render_state: bool | None = None, swept_search: str | None = None):
         self.model = model
         self.state = state
         self.device = model.device
@@ -848,6 +873,7 @@ class World:
                 f"{' or '.join(map(repr, surf.colliders))} (or convert it to fixed topology first)"
             )
         self.collider_costs = None  # seconds per step of each candidate when ``fixed`` measured them
+        self.swept_search = swept_search  # the swept collider's search (None: physics.swept_search or the default)
         collider = surf.resolve_collider(collider, lambda cands: self._choose_measured(model, state, cands))
         self.substeps = max(1, int(p.substeps))
         self.t0 = float(state.sim_time.numpy()[0])
@@ -861,6 +887,7 @@ class World:
         self.update_surface()
         m, st, ctx = self.model, self.state, self.ctx
         self.collider = (RebuildCollider(m, st, ctx, rebuild_every) if collider == "rebuild"
+                         else SweptCollider(m, st, ctx, search=self.swept_search) if collider == "swept"
                          else COLLIDERS[collider](m, st, ctx))
         self._catch_up_collider()
         self.compute_normals()
@@ -879,9 +906,20 @@ class World:
 
     def _choose_measured(self, model: Model, state: State, candidates) -> str:
         """The candidate with the least measured time per step (:func:`measure_colliders`);
-        the first candidate on a tie. Records the costs in ``collider_costs``."""
-        self.collider_costs = measure_colliders(model, state, candidates)
-        return min(candidates, key=lambda c: self.collider_costs[c])
+        the first candidate on a tie. On CUDA the swept collider is measured once per search of
+        ``SWEPT_MEASURED_SEARCHES`` (``swept/tiled``, ``swept/serial``) unless
+        ``physics.swept_search`` names one; the chosen search is kept (``swept_search``).
+        Records the costs in ``collider_costs``."""
+        searches = () if model.params.swept_search is not None else \
+            SWEPT_MEASURED_SEARCHES["cuda" if self.device.is_cuda else "cpu"]
+        trials = []
+        for c in candidates:
+            trials += [f"{c}/{s}" for s in searches] if c == Collider.SWEPT and searches else [c]
+        self.collider_costs = measure_colliders(model, state, trials)
+        best = min(trials, key=lambda c: self.collider_costs[c])
+        name, _, search = best.partition("/")
+        self.swept_search = search or None
+        return name
 
     def add_post_step_hook(self, hook, needs_surface: bool = True):
         """Run ``hook(world)`` after every step; it must only launch kernels (no allocation, no
@@ -1229,6 +1267,7 @@ class World:
         gap = self._surface_gaps()
         return {
             "collider": self.collider.name + (f"/{self.collider.every}" if self.collider.name == "rebuild" else ""),
+            "swept_search": str(self.collider.search) if self.collider.name == "swept" else None,
             "collider_choice": (None if self.collider_costs is None else
                                 {"measured_steps_per_s": {k: 1.0 / max(v, 1e-12) for k, v in self.collider_costs.items()}}),
             "surface": {"frames": surf.num_frames, "fps": surf.fps,

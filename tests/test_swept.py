@@ -32,7 +32,7 @@ def test_swept_contacts_equal_refit_reference(make_seq):
     seq = make_seq()
     rng = np.random.default_rng(3)
     S = 64
-    checked = 0
+    checked = beyond = 0
     for trial in range(6):
         t0 = float(rng.uniform(0, seq.num_frames / seq.fps * 1.5))  # includes loop wrap
         # sphere centres near the interpolated surface, on both sides of it
@@ -43,11 +43,12 @@ def test_swept_contacts_equal_refit_reference(make_seq):
         pos = base + rng.normal(scale=0.04, size=(S, 3))
         vel = rng.normal(scale=0.5, size=(S, 3))
         radius = rng.uniform(0.02, 0.06, S).astype(np.float32)
-        ref, serial, par, full = _worlds(seq, pos, vel, radius, t0, [
-            ("refit", None), ("swept", {"parallel": False}), ("swept", {"parallel": True, "max_candidates": 64}),
-            ("swept", {"parallel": True, "pool_size": 40})])  # a full pool: most spheres walk serially
+        ref, *swept = _worlds(seq, pos, vel, radius, t0, [
+            ("refit", None), ("swept", {"search": "serial"}), ("swept", {"search": "pairs", "max_candidates": 64}),
+            ("swept", {"search": "pairs", "pool_size": 40}),  # a full pool: most spheres walk serially
+            ("swept", {"search": "tiled", "tile_threads": 8}), ("swept", {"search": "tiled", "tile_threads": 1})])
         c_ref = _contacts_at(ref)
-        for w in (serial, par, full):
+        for w in swept:
             c = _contacts_at(w)
             np.testing.assert_array_equal(c["face"] >= 0, c_ref["face"] >= 0)
             m = c_ref["face"] >= 0
@@ -61,7 +62,10 @@ def test_swept_contacts_equal_refit_reference(make_seq):
             np.testing.assert_allclose(c["velocity"][m], c_ref["velocity"][m],
                                        atol=2e-3 * max(1.0, np.abs(c_ref["velocity"]).max()))
             checked += int(m.sum())
+            # closest feature beyond r + margin (found by the second, reach-wide box query)
+            beyond += int((m & (np.linalg.norm(pos - c_ref["point"], axis=1) > radius + 1.5e-3)).sum())
     assert checked > 50  # the states really produced contacts
+    assert beyond > 10  # and the second search box was needed for some
 
 
 def test_swept_parallel_fallback_when_sphere_leaves_its_ball():
@@ -69,7 +73,7 @@ def test_swept_parallel_fallback_when_sphere_leaves_its_ball():
     seq = wave_bowl(n=24, frames=12)
     pos = np.array([[0.0, 0.0, 1.0], [0.5, 0.5, 1.0]], np.float32)
     ref, par = _worlds(seq, pos, None, np.array([0.05, 0.05], np.float32), 0.01,
-                       [("refit", None), ("swept", {"parallel": True, "max_candidates": 4})])
+                       [("refit", None), ("swept", {"search": "pairs", "max_candidates": 4})])
     V = seq.V[0]
     targets = [V[np.argmin(np.linalg.norm(V[:, :2] - xy, axis=1))] + [0, 0, 0.03] for xy in ([0.2, -0.3], [-0.4, 0.1])]
     for w in (ref, par):
@@ -190,7 +194,7 @@ def test_no_tunnelling_over_1e5_steps(scene):
 
 
 def test_swept_pairs_reduce_hundreds_of_candidates_per_sphere():
-    """A fine sheet (120 x 120) and wide spheres: each sphere gathers 480-720 faces, more than the old
+    """(Pairs and tiled search.) A fine sheet (120 x 120) and wide spheres: each sphere gathers 480-720 faces, more than the old
     256-entry lists held (they walked serially); the pair passes reduce them in parallel and
     give the refit reference's contacts, and the spheres really used the pool."""
     from dynmesh_warp.scenes import grid_sheet
@@ -209,14 +213,70 @@ def test_swept_pairs_reduce_hundreds_of_candidates_per_sphere():
     pos = np.c_[xy, z].astype(np.float32)
     vel = rng.normal(scale=0.3, size=(S, 3)).astype(np.float32)
     radius = np.full(S, 0.1, np.float32)
-    ref, par = _worlds(seq, pos, vel, radius, 0.0, [("refit", None), ("swept", {"parallel": True})])
-    c_ref, c = _contacts_at(ref), _contacts_at(par)
+    ref, par, tiled = _worlds(seq, pos, vel, radius, 0.0, [("refit", None), ("swept", {"search": "pairs"}),
+                                                           ("swept", {"search": "tiled", "tile_threads": 16})])
+    c_ref = _contacts_at(ref)
     counts, start = par.collider.cand_count.numpy(), par.collider.cand_start.numpy()
-    assert counts.min() > 256 and (start >= 0).all()  # more than the old lists held, all in the pool
     m = c_ref["face"] >= 0
     assert m.sum() >= 4
-    np.testing.assert_array_equal(c["face"] >= 0, m)
-    np.testing.assert_allclose(c["point"][m], c_ref["point"][m], atol=2e-5)
-    np.testing.assert_allclose(c["depth"][m], c_ref["depth"][m], atol=2e-5)
-    far = m & (np.linalg.norm(pos - c_ref["point"], axis=1) > 1e-3)
-    np.testing.assert_allclose(c["normal"][far], c_ref["normal"][far], atol=2e-3)
+    for w in (par, tiled):
+        c = _contacts_at(w)
+        if w is par:
+            assert counts.min() > 256 and (start >= 0).all()  # more than the old lists held, all in the pool
+        np.testing.assert_array_equal(c["face"] >= 0, m)
+        np.testing.assert_allclose(c["point"][m], c_ref["point"][m], atol=2e-5)
+        np.testing.assert_allclose(c["depth"][m], c_ref["depth"][m], atol=2e-5)
+        far = m & (np.linalg.norm(pos - c_ref["point"], axis=1) > 1e-3)
+        np.testing.assert_allclose(c["normal"][far], c_ref["normal"][far], atol=2e-3)
+
+
+def _blob_model():
+    seq = pulsing_blob(subdivisions=2, frames=12)
+    return Model(SurfaceModel(seq, TEST_DEVICE, interpolate=True), SphereModel([0.05, 0.05], 1.0, TEST_DEVICE),
+                 PhysicsParams())
+
+
+def test_fixed_measures_each_swept_search_and_keeps_the_fastest(monkeypatch):
+    """Where several searches are measured (CUDA: tiled, serial), ``fixed`` runs a trial of each
+    and the world keeps the chosen one; a search named in physics.swept_search is the only one."""
+    import dynmesh_warp.world as world_mod
+
+    monkeypatch.setitem(world_mod.SWEPT_MEASURED_SEARCHES, TEST_DEVICE.split(":")[0], ("tiled", "serial"))
+    seen = []
+    for fake, search in (({"swept/tiled": 2.0, "swept/serial": 1.0, "refit": 3.0}, "serial"),
+                         ({"swept/tiled": 1.0, "swept/serial": 2.0, "refit": 3.0}, "tiled")):
+        monkeypatch.setattr(world_mod, "measure_colliders", lambda m, s, c, fake=fake: (seen.append(tuple(c)), fake)[1])
+        model = _blob_model()
+        w = World(model, State(model, [[0, 0, 1], [0.2, 0, 1]]))
+        assert seen[-1] == ("swept/tiled", "swept/serial", "refit")
+        assert w.collider.name == "swept" and w.collider.search == search and w.swept_search == search
+        assert w.run_summary()["swept_search"] == search
+    model = _blob_model()
+    model.params.swept_search = "serial"
+    monkeypatch.setattr(world_mod, "measure_colliders", lambda m, s, c: (seen.append(tuple(c)), {"swept": 1.0, "refit": 2.0})[1])
+    w = World(model, State(model, [[0, 0, 1], [0.2, 0, 1]]))
+    assert seen[-1] == ("swept", "refit") and w.collider.search == "serial"
+
+
+def test_measured_choice_does_not_count_the_compile_steps(monkeypatch):
+    """The eager step (kernel compile) and the capture (module loads on a cold kernel cache) are
+    not timed: a cold cache made the swept trial look 1 s per step on an H100 and ``fixed``
+    chose refit at a third of swept's speed."""
+    import time as _time
+
+    import dynmesh_warp.world as world_mod
+
+    calls = {}
+    orig = world_mod.World.step
+
+    def slow_first_two(self):
+        calls[id(self)] = calls.get(id(self), 0) + 1
+        if calls[id(self)] <= 2:
+            _time.sleep(0.6)  # a compile
+        return orig(self)
+
+    monkeypatch.setattr(world_mod.World, "step", slow_first_two)
+    model = _blob_model()
+    costs = world_mod.measure_colliders(model, State(model, [[0, 0, 1], [0.2, 0, 1]], t0=0.1), ["swept", "refit"],
+                                        horizon=0.05, budget_s=0.3)
+    assert set(costs) == {"swept", "refit"} and all(0 < v < 0.1 for v in costs.values())
