@@ -163,61 +163,26 @@ def box_distance(p: wp.vec3, lo: wp.vec3, hi: wp.vec3) -> float:
 
 
 @wp.func
-def near_box(p: wp.vec3, near: float, epsilon: float):
-    """The first search box of a sphere: p +- (near + epsilon), ``near`` = r + margin (a
-    resting sphere's closest feature lies inside it)."""
-    ext = wp.vec3(near + epsilon)
-    return p - ext, p + ext
-
-
-@wp.func
-def inside_near_box(lo: wp.vec3, hi: wp.vec3, near_lo: wp.vec3, near_hi: wp.vec3, tol: float) -> bool:
-    """The face box [lo, hi] overlaps the first search box by more than ``tol`` on every axis,
-    so the first query surely returned it: the second query skips it (a box that only touches
-    the first box is evaluated again, never missed)."""
-    return (lo[0] < near_hi[0] - tol and hi[0] > near_lo[0] + tol and lo[1] < near_hi[1] - tol
-            and hi[1] > near_lo[1] + tol and lo[2] < near_hi[2] - tol and hi[2] > near_lo[2] + tol)
-
-
-@wp.func
 def closest_on_swept_bvh(
     bvh: wp.uint64, lowers: wp.array[wp.vec3], uppers: wp.array[wp.vec3], frames: wp.array2d[wp.vec3],
-    indices: wp.array[wp.int32], k0: int, k1: int, alpha: float, p: wp.vec3, near: float, reach: float,
-    epsilon: float,
+    indices: wp.array[wp.int32], k0: int, k1: int, alpha: float, p: wp.vec3, reach: float, epsilon: float,
 ):
-    """Closest feature of the interpolated surface within ``reach`` of p (serial box queries). A
+    """Closest feature of the interpolated surface within ``reach`` of p (serial box query). A
     face whose swept box (``lowers``/``uppers``, which contain it at every blend of the pair) is
     farther than the closest feature so far + epsilon is skipped unevaluated: it could neither be
-    closer nor tie, so the result is that of evaluating every candidate.
-
-    Two boxes: first p +- (near + epsilon) (``near_box``); when the closest feature found there
-    is within near (min + epsilon <= near + epsilon), every face that could be closer or tie has
-    a box meeting that first box, so the search is complete; else the rest of the reach box
-    (faces of the first box skipped). A sphere resting on a fine mesh enumerates the faces under
-    it, not every face within its step's reach."""
+    closer nor tie, so the result is that of evaluating every candidate."""
+    ext = wp.vec3(reach + epsilon)
+    query = wp.bvh_query_aabb(bvh, p - ext, p + ext)
+    f = int(0)
     min_dist = reach
     min_face = int(-1)
     min_w = wp.vec3(0.0)
     acc_n = wp.vec3(0.0)
-    f = int(0)
-    near_lo, near_hi = near_box(p, wp.min(near, reach), epsilon)
-    query = wp.bvh_query_aabb(bvh, near_lo, near_hi)
     while wp.bvh_query_next(query, f):
         if box_distance(p, lowers[f], uppers[f]) < min_dist + epsilon:
             a, b, e = interpolated_triangle(frames, indices, f, k0, k1, alpha)
             dist, w, wn = face_candidate(p, a, b, e, epsilon)
             min_dist, min_face, min_w, acc_n = keep_closest(dist, f, w, wn, epsilon, min_dist, min_face, min_w, acc_n)
-    if min_dist <= near or near >= reach:
-        return min_dist, min_face, min_w, acc_n
-    ext = wp.vec3(reach + epsilon)
-    query = wp.bvh_query_aabb(bvh, p - ext, p + ext)
-    while wp.bvh_query_next(query, f):
-        if not inside_near_box(lowers[f], uppers[f], near_lo, near_hi, epsilon):
-            if box_distance(p, lowers[f], uppers[f]) < min_dist + epsilon:
-                a, b, e = interpolated_triangle(frames, indices, f, k0, k1, alpha)
-                dist, w, wn = face_candidate(p, a, b, e, epsilon)
-                min_dist, min_face, min_w, acc_n = keep_closest(dist, f, w, wn, epsilon, min_dist, min_face, min_w,
-                                                                acc_n)
     return min_dist, min_face, min_w, acc_n
 
 
@@ -300,7 +265,7 @@ def collide_sphere_swept(
     reach = contact_reach(r, sphere_vel_in[s], extra_speed, dt, margin)
     k0, k1, alpha = blend_pair(sim_time_in[0], fps, frames.shape[0], mode, interpolate)
     min_dist, min_face, min_w, acc_n = closest_on_swept_bvh(bvh, lowers, uppers, frames, indices, k0, k1, alpha, p,
-                                                            r + margin, reach, epsilon)
+                                                            reach, epsilon)
     write_swept_contact(s, p, r, reach, min_dist, min_face, min_w, acc_n, frames, indices, k0, k1, alpha, fps,
                         contact_face, contact_point, contact_normal, contact_depth, contact_velocity)
 
@@ -338,23 +303,19 @@ def collide_sphere_swept_tiled(
     evaluating the faces handed to it with the serial rule (``keep_closest``, box prune against
     its own closest so far); then the block's minimum distance, the lowest face index at it
     (deterministic whatever the hand-out order) and the pseudo-normal terms of the threads whose
-    own closest lies within ``epsilon`` of that minimum. The two boxes of
-    ``closest_on_swept_bvh`` (the second only when the first's minimum, uniform over the block,
-    leaves it incomplete). A sphere with thousands of faces in reach is no longer one thread's
-    serial loop (issue 14)."""
+    own closest lies within ``epsilon`` of that minimum. A sphere with thousands of faces in
+    reach is no longer one thread's serial loop (issue 14)."""
     s, lane = wp.tid()
     p = sphere_pos_in[s]
     r = sphere_radius[s]
     reach = contact_reach(r, sphere_vel_in[s], extra_speed, dt, margin)
     k0, k1, alpha = blend_pair(sim_time_in[0], fps, frames.shape[0], mode, interpolate)
-    near = wp.min(r + margin, reach)
+    ext = wp.vec3(reach + epsilon)
     min_dist = reach
     min_face = int(-1)
     min_w = wp.vec3(0.0)
     acc_n = wp.vec3(0.0)
-    # the two boxes of closest_on_swept_bvh, each walked by the whole block
-    near_lo, near_hi = near_box(p, near, epsilon)
-    query = wp.tile_bvh_query_aabb(bvh, near_lo, near_hi)
+    query = wp.tile_bvh_query_aabb(bvh, p - ext, p + ext)
     while wp.tile_query_valid(query):
         f = wp.untile(wp.tile_bvh_query_next(query))
         if f >= 0:
@@ -364,19 +325,6 @@ def collide_sphere_swept_tiled(
                 min_dist, min_face, min_w, acc_n = keep_closest(dist, f, w, wn, epsilon, min_dist, min_face, min_w,
                                                                 acc_n)
     m = wp.tile_min(wp.tile(min_dist))[0]
-    if m > near and near < reach:
-        ext = wp.vec3(reach + epsilon)
-        query = wp.tile_bvh_query_aabb(bvh, p - ext, p + ext)
-        while wp.tile_query_valid(query):
-            f = wp.untile(wp.tile_bvh_query_next(query))
-            if f >= 0:
-                if not inside_near_box(lowers[f], uppers[f], near_lo, near_hi, epsilon):
-                    if box_distance(p, lowers[f], uppers[f]) < min_dist + epsilon:
-                        a, b, e = interpolated_triangle(frames, indices, f, k0, k1, alpha)
-                        dist, w, wn = face_candidate(p, a, b, e, epsilon)
-                        min_dist, min_face, min_w, acc_n = keep_closest(dist, f, w, wn, epsilon, min_dist, min_face,
-                                                                        min_w, acc_n)
-        m = wp.tile_min(wp.tile(min_dist))[0]
     first = NO_PAIR
     if min_face >= 0 and min_dist == m:
         first = min_face
@@ -593,8 +541,7 @@ def resolve_sphere_candidates(
     mw = wp.vec3(0.0)
     an = wp.vec3(0.0)
     if cand_start[s] < 0 or wp.length(p - cand_center[s]) + reach + epsilon > cand_radius[s]:
-        md, mf, mw, an = closest_on_swept_bvh(bvh, lowers, uppers, frames, indices, k0, k1, alpha, p, r + margin,
-                                              reach, epsilon)
+        md, mf, mw, an = closest_on_swept_bvh(bvh, lowers, uppers, frames, indices, k0, k1, alpha, p, reach, epsilon)
     else:
         i = min_pair[s]
         if i != NO_PAIR:

@@ -215,10 +215,10 @@ def test_resume_keeps_the_collider_fixed_chose(tmp_path, monkeypatch):
     import dynmesh_warp.world as world_mod
 
     a, b = tmp_path / "a", tmp_path / "b"
-    monkeypatch.setattr(world_mod, "measure_colliders", lambda m, s, c: {"swept": 1.0, "refit": 2.0})
+    monkeypatch.setattr(world_mod, "measure_colliders", lambda m, s, c: {k: 2.0 if k == "refit" else 1.0 for k in c})
     assert _run_inprocess(["--steps", "60", "--checkpoint-every", "30", "--output", str(a)]) == 0
     assert json.loads(str(np.load(a / "checkpoint.npz")["meta"]))["fingerprint"]["physics.collider"] == "swept"
-    monkeypatch.setattr(world_mod, "measure_colliders", lambda m, s, c: {"swept": 2.0, "refit": 1.0})
+    monkeypatch.setattr(world_mod, "measure_colliders", lambda m, s, c: {k: 1.0 if k == "refit" else 2.0 for k in c})
     assert _run_inprocess(["--steps", "90", "--resume", str(a / "checkpoint.npz"), "--output", str(b)]) == 0
     assert json.loads((b / "summary.json").read_text())["collider"] == "swept"
 
