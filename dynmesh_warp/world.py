@@ -25,13 +25,17 @@ from .kernels.swept import (
     NO_DIST,
     NO_PAIR,
     collide_sphere_swept,
+    collide_sphere_swept_nearest,
     collide_sphere_swept_tiled,
     compute_swept_bounds,
     detect_frame_change,
     evaluate_sphere_candidates,
     find_closest_candidates,
     gather_sphere_candidates,
+    refit_tree_leaves,
+    refit_tree_level,
     resolve_sphere_candidates,
+    TREE_LEAF_SIZE,
 )
 from .choices import (
     DEFAULT_COLLIDER,
@@ -647,7 +651,11 @@ class SweptCollider(ColliderBase):
         self.lowers = wp.zeros(surf.num_faces, dtype=wp.vec3, device=d)
         self.uppers = wp.zeros(surf.num_faces, dtype=wp.vec3, device=d)
         self.compute_bounds(model, state, ctx)
-        self.bvh = wp.Bvh(self.lowers, self.uppers, leaf_size=4)  # cheaper per-frame refit on CPU
+        if self.search == SweptSearch.NEAREST:
+            self.bvh = None
+            self._build_tree(d)
+        else:
+            self.bvh = wp.Bvh(self.lowers, self.uppers, leaf_size=4)  # cheaper per-frame refit on CPU
         # tie tolerance of the closest-feature search, as wp.Mesh: 1e-3 x average edge length
         self.epsilon = 1.0e-3 * float(surf.average_edge_length.mean())
         self.resize(model, state, ctx)
@@ -674,6 +682,51 @@ class SweptCollider(ColliderBase):
                 if need > P:
                     self._allocate_pool(min(need, SWEPT_MAX_POOL), d)
                     self.gather(model, state, ctx)
+
+    def _build_tree(self, d):
+        """The nearest search's tree (kernels/swept.py): faces sorted by the 30-bit Morton code
+        of their swept box centres now, TREE_LEAF_SIZE per leaf, leaves padded to a power of two;
+        ``node_lower``/``node_upper`` (2 x leaves - 1,) boxes [m] in heap order, refit per frame."""
+        lo, hi = self.lowers.numpy(), self.uppers.numpy()
+        c = 0.5 * (lo + hi)
+        mn = c.min(axis=0) if len(c) else np.zeros(3, np.float32)
+        ext = np.maximum(c.max(axis=0) - mn, 1e-30) if len(c) else np.ones(3, np.float32)
+        q = np.clip(((c - mn) / ext * 1023.0).astype(np.int64), 0, 1023).astype(np.uint64)
+
+        def spread(x):  # 10 bits -> every third bit of 30
+            x = (x | (x << np.uint64(16))) & np.uint64(0x030000FF)
+            x = (x | (x << np.uint64(8))) & np.uint64(0x0300F00F)
+            x = (x | (x << np.uint64(4))) & np.uint64(0x030C30C3)
+            return (x | (x << np.uint64(2))) & np.uint64(0x09249249)
+
+        code = spread(q[:, 0]) | (spread(q[:, 1]) << np.uint64(1)) | (spread(q[:, 2]) << np.uint64(2))
+        order = np.argsort(code, kind="stable").astype(np.int32)
+        L = int(TREE_LEAF_SIZE)
+        leaves = 1 << max(0, int(math.ceil(math.log2(max(1, -(-len(order) // L))))))
+        face_order = np.full(leaves * L, -1, np.int32)
+        face_order[:len(order)] = order
+        self.tree_leaves = leaves
+        self.tree_first_leaf = leaves - 1
+        self.face_order = wp.array(face_order, dtype=wp.int32, device=d)
+        self.node_lower = wp.zeros(2 * leaves - 1, dtype=wp.vec3, device=d)
+        self.node_upper = wp.zeros(2 * leaves - 1, dtype=wp.vec3, device=d)
+        self._refit_tree(d)
+
+    def _refit_tree(self, d):
+        """Leaf boxes, then one launch per level of inner nodes, bottom up."""
+        wp.launch(refit_tree_leaves, self.tree_leaves, inputs=[self.face_order, self.lowers, self.uppers,
+                                                               self.tree_first_leaf],
+                  outputs=[self.node_lower, self.node_upper], device=d)
+        level = self.tree_leaves // 2
+        while level >= 1:
+            wp.launch(refit_tree_level, level, inputs=[level - 1], outputs=[self.node_lower, self.node_upper], device=d)
+            level //= 2
+
+    def _refit_boxes(self, d):
+        if self.bvh is None:
+            self._refit_tree(d)
+        else:
+            self.bvh.refit()
 
     def _allocate_pool(self, P: int, d):
         """The candidate pool: P (sphere, face) entries, 36 B each."""
@@ -707,7 +760,7 @@ class SweptCollider(ColliderBase):
 
     def refit_frame(self, model: Model, state: State, ctx: StepContext):
         self.compute_bounds(model, state, ctx)
-        self.bvh.refit()
+        self._refit_boxes(ctx.device)
         if self.parallel:
             self.gather(model, state, ctx)
 
@@ -729,7 +782,7 @@ class SweptCollider(ColliderBase):
     def restore_checkpoint_state(self, st: dict):
         for k in self.CHECKPOINT_ARRAYS:
             getattr(self, k).assign(st[k])
-        self.bvh.refit()  # the tree's topology comes from the build at the initial time, as in the run
+        self._refit_boxes(self.lowers.device)  # the tree's topology comes from the build at the initial time, as in the run
 
     def collide(self, model: Model, state: State, contacts: "Contacts", ctx: StepContext):
         m, s, c = model, state, contacts
@@ -737,10 +790,16 @@ class SweptCollider(ColliderBase):
         # kernel argument groups (kernels/swept.py): Model, State in, In, Out
         frame_args = [surf.fps, surf.playback, int(surf.interpolate), self.epsilon]
         outputs = [c.face, c.point, c.normal, c.depth, c.velocity]
+        step_args = [ctx.sub_dt, ctx.extra_speed, m.params.margin]
+        if self.search == SweptSearch.NEAREST:
+            ctx.launch(collide_sphere_swept_nearest, m.spheres.count,
+                       [surf.frames, surf.indices, m.spheres.radius, s.sim_time, s.sphere_pos, s.sphere_vel,
+                        self.node_lower, self.node_upper, self.face_order, self.tree_first_leaf, self.lowers,
+                        self.uppers, *frame_args, *step_args], outputs)
+            return
         if not self.parallel:
             inputs = [surf.frames, surf.indices, m.spheres.radius, s.sim_time, s.sphere_pos, s.sphere_vel,
-                      self.bvh.id, self.lowers, self.uppers, *frame_args, ctx.sub_dt, ctx.extra_speed,
-                      m.params.margin]
+                      self.bvh.id, self.lowers, self.uppers, *frame_args, *step_args]
             if self.search == SweptSearch.TILED:
                 if m.spheres.count:
                     wp.launch_tiled(collide_sphere_swept_tiled, dim=m.spheres.count, inputs=inputs, outputs=outputs,
@@ -752,7 +811,6 @@ class SweptCollider(ColliderBase):
         # threads striding over the pool's used entries: as many as the old per-sphere lists had
         # (S x max_candidates), so a scene with few candidates pays no more than before
         T = max(1, min(self.cand_face.shape[0], S * self.max_candidates))
-        step_args = [ctx.sub_dt, ctx.extra_speed, m.params.margin]
         ctx.launch(evaluate_sphere_candidates, T,
                       [surf.frames, surf.indices, m.spheres.radius, s.sim_time, s.sphere_pos, s.sphere_vel,
                        *frame_args, *step_args, self.cand_face, self.cand_sphere, self.cand_start, self.pool_used,

@@ -342,6 +342,159 @@ def collide_sphere_swept_tiled(
                             contact_face, contact_point, contact_normal, contact_depth, contact_velocity)
 
 
+# --- nearest-first search: our own tree over the swept boxes ---------------------------------
+# An implicit, balanced binary tree (heap layout: node n has children 2n+1 and 2n+2) over the
+# faces sorted by the Morton code of their swept boxes at build, TREE_LEAF_SIZE faces per leaf,
+# the leaves padded to a power of two (face -1, empty box). Refit bottom-up one level per launch
+# when the frame pair changes; each sphere walks it nearest child first and prunes every node
+# whose box is farther than the closest feature so far (+ epsilon), as wp.mesh_query_point does
+# for a triangle mesh: a sphere resting on a fine mesh evaluates the few faces under it, not
+# every face in its reach box.
+
+TREE_LEAF_SIZE = wp.constant(4)
+#: the walk's stack: the tree is balanced, so its depth is log2(leaves) <= 31 and the stack holds
+#: at most depth + 1 entries
+TREE_STACK = 64
+tree_stack_t = wp.types.vector(length=TREE_STACK, dtype=wp.int32)
+
+
+@wp.kernel
+def refit_tree_leaves(
+    # In:
+    face_order: wp.array[wp.int32],
+    lowers: wp.array[wp.vec3],
+    uppers: wp.array[wp.vec3],
+    first_leaf: int,
+    # Out:
+    node_lower: wp.array[wp.vec3],
+    node_upper: wp.array[wp.vec3],
+):
+    """Box of each leaf (launch (leaves,)): the union of its faces' swept boxes [m]; an empty
+    (padding) leaf gets an inverted box, farther than anything."""
+    j = wp.tid()
+    lo = wp.vec3(1.0e30)
+    hi = wp.vec3(-1.0e30)
+    for k in range(TREE_LEAF_SIZE):
+        f = face_order[j * TREE_LEAF_SIZE + k]
+        if f >= 0:
+            lo = wp.min(lo, lowers[f])
+            hi = wp.max(hi, uppers[f])
+    node_lower[first_leaf + j] = lo
+    node_upper[first_leaf + j] = hi
+
+
+@wp.kernel
+def refit_tree_level(
+    # In:
+    level_start: int,
+    # Out:
+    node_lower: wp.array[wp.vec3],
+    node_upper: wp.array[wp.vec3],
+):
+    """Boxes of one level of inner nodes (launch (2^level,)) from their children's."""
+    n = level_start + wp.tid()
+    node_lower[n] = wp.min(node_lower[2 * n + 1], node_lower[2 * n + 2])
+    node_upper[n] = wp.max(node_upper[2 * n + 1], node_upper[2 * n + 2])
+
+
+@wp.func
+def closest_on_swept_tree(
+    node_lower: wp.array[wp.vec3], node_upper: wp.array[wp.vec3], face_order: wp.array[wp.int32], first_leaf: int,
+    lowers: wp.array[wp.vec3], uppers: wp.array[wp.vec3], frames: wp.array2d[wp.vec3],
+    indices: wp.array[wp.int32], k0: int, k1: int, alpha: float, p: wp.vec3, reach: float, epsilon: float,
+):
+    """``closest_on_swept_bvh``'s answer by a nearest-first walk of the tree: a node (or face)
+    whose box is farther than the closest feature so far + epsilon holds nothing closer and no
+    tie, so it is skipped; children are visited nearest first so the bound tightens early."""
+    min_dist = reach
+    min_face = int(-1)
+    min_w = wp.vec3(0.0)
+    acc_n = wp.vec3(0.0)
+    stack = tree_stack_t()
+    stack[0] = 0
+    top = int(1)
+    while top > 0:
+        top -= 1
+        n = stack[top]
+        if box_distance(p, node_lower[n], node_upper[n]) < min_dist + epsilon:
+            if n >= first_leaf:
+                base = (n - first_leaf) * TREE_LEAF_SIZE
+                for k in range(TREE_LEAF_SIZE):
+                    f = face_order[base + k]
+                    if f >= 0:
+                        if box_distance(p, lowers[f], uppers[f]) < min_dist + epsilon:
+                            a, b, e = interpolated_triangle(frames, indices, f, k0, k1, alpha)
+                            dist, w, wn = face_candidate(p, a, b, e, epsilon)
+                            min_dist, min_face, min_w, acc_n = keep_closest(dist, f, w, wn, epsilon, min_dist,
+                                                                            min_face, min_w, acc_n)
+            else:
+                c0 = 2 * n + 1
+                c1 = 2 * n + 2
+                d0 = box_distance(p, node_lower[c0], node_upper[c0])
+                d1 = box_distance(p, node_lower[c1], node_upper[c1])
+                near = c0
+                far = c1
+                dn = d0
+                df = d1
+                if d1 < d0:
+                    near = c1
+                    far = c0
+                    dn = d1
+                    df = d0
+                if df < min_dist + epsilon:  # farther child below, popped after the nearer one
+                    stack[top] = far
+                    top += 1
+                if dn < min_dist + epsilon:
+                    stack[top] = near
+                    top += 1
+    return min_dist, min_face, min_w, acc_n
+
+
+@wp.kernel
+def collide_sphere_swept_nearest(
+    # Model:
+    frames: wp.array2d[wp.vec3],
+    indices: wp.array[wp.int32],
+    sphere_radius: wp.array[float],
+    # State in:
+    sim_time_in: wp.array[wp.float64],
+    sphere_pos_in: wp.array[wp.vec3],
+    sphere_vel_in: wp.array[wp.vec3],
+    # In:
+    node_lower: wp.array[wp.vec3],
+    node_upper: wp.array[wp.vec3],
+    face_order: wp.array[wp.int32],
+    first_leaf: int,
+    lowers: wp.array[wp.vec3],
+    uppers: wp.array[wp.vec3],
+    fps: wp.float64,
+    mode: int,
+    interpolate: int,
+    epsilon: float,
+    dt: float,
+    extra_speed: float,
+    margin: float,
+    # Out:
+    contact_face: wp.array[wp.int32],
+    contact_point: wp.array[wp.vec3],
+    contact_normal: wp.array[wp.vec3],
+    contact_depth: wp.array[float],
+    contact_velocity: wp.array[wp.vec3],
+):
+    """``collide_sphere_swept`` with the nearest-first walk of the swept-box tree
+    (``closest_on_swept_tree``), one thread per sphere."""
+    s = wp.tid()
+    p = sphere_pos_in[s]
+    r = sphere_radius[s]
+    reach = contact_reach(r, sphere_vel_in[s], extra_speed, dt, margin)
+    k0, k1, alpha = blend_pair(sim_time_in[0], fps, frames.shape[0], mode, interpolate)
+    min_dist, min_face, min_w, acc_n = closest_on_swept_tree(node_lower, node_upper, face_order, first_leaf, lowers,
+                                                             uppers, frames, indices, k0, k1, alpha, p, reach,
+                                                             epsilon)
+    write_swept_contact(s, p, r, reach, min_dist, min_face, min_w, acc_n, frames, indices, k0, k1, alpha, fps,
+                        contact_face, contact_point, contact_normal, contact_depth, contact_velocity)
+
+
 # --- parallel path (GPU): candidates gathered once per frame into one pool, evaluated and
 # reduced over (sphere, candidate) pairs, so a sphere with thousands of candidates does not walk
 # them in one thread (issue 14) ---------------------------------------------------------------

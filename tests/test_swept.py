@@ -46,7 +46,8 @@ def test_swept_contacts_equal_refit_reference(make_seq):
         ref, *swept = _worlds(seq, pos, vel, radius, t0, [
             ("refit", None), ("swept", {"search": "serial"}), ("swept", {"search": "pairs", "max_candidates": 64}),
             ("swept", {"search": "pairs", "pool_size": 40}),  # a full pool: most spheres walk serially
-            ("swept", {"search": "tiled", "tile_threads": 8}), ("swept", {"search": "tiled", "tile_threads": 1})])
+            ("swept", {"search": "tiled", "tile_threads": 8}), ("swept", {"search": "tiled", "tile_threads": 1}),
+            ("swept", {"search": "nearest"})])
         c_ref = _contacts_at(ref)
         for w in swept:
             c = _contacts_at(w)
@@ -84,11 +85,14 @@ def test_swept_parallel_fallback_when_sphere_leaves_its_ball():
     np.testing.assert_allclose(c["depth"], c_ref["depth"], atol=2e-5)
 
 
-def test_swept_world_matches_refit_world_trajectories():
+@pytest.mark.parametrize("search", [None, "nearest"])
+def test_swept_world_matches_refit_world_trajectories(search):
+    """Over 240 steps (24 frame changes: the swept boxes and their tree refit each time)."""
     seq = wave_bowl(n=24, frames=12)
     rng = np.random.default_rng(0)
     pos = np.c_[rng.uniform(-0.5, 0.5, (4, 2)), np.full(4, 0.5)]
-    ref, sw = _worlds(seq, pos, None, np.full(4, 0.06, np.float32), 0.0, [("refit", None), ("swept", None)])
+    ref, sw = _worlds(seq, pos, None, np.full(4, 0.06, np.float32), 0.0,
+                      [("refit", None), ("swept", None if search is None else {"search": search})])
     touched = 0
     for _ in range(240):
         ref.step()
@@ -216,13 +220,14 @@ def test_swept_pairs_reduce_hundreds_of_candidates_per_sphere():
     pos = np.c_[xy, z].astype(np.float32)
     vel = rng.normal(scale=0.3, size=(S, 3)).astype(np.float32)
     radius = np.full(S, 0.1, np.float32)
-    ref, par, tiled = _worlds(seq, pos, vel, radius, 0.0, [("refit", None), ("swept", {"search": "pairs"}),
-                                                           ("swept", {"search": "tiled", "tile_threads": 16})])
+    ref, par, tiled, nearest = _worlds(seq, pos, vel, radius, 0.0, [
+        ("refit", None), ("swept", {"search": "pairs"}), ("swept", {"search": "tiled", "tile_threads": 16}),
+        ("swept", {"search": "nearest"})])
     c_ref = _contacts_at(ref)
     counts, start = par.collider.cand_count.numpy(), par.collider.cand_start.numpy()
     m = c_ref["face"] >= 0
     assert m.sum() >= 4
-    for w in (par, tiled):
+    for w in (par, tiled, nearest):
         c = _contacts_at(w)
         if w is par:
             assert counts.min() > 256 and (start >= 0).all()  # more than the old lists held, all in the pool
@@ -283,3 +288,31 @@ def test_measured_choice_does_not_count_the_compile_steps(monkeypatch):
     costs = world_mod.measure_colliders(model, State(model, [[0, 0, 1], [0.2, 0, 1]], t0=0.1), ["swept", "refit"],
                                         horizon=0.05, budget_s=0.3)
     assert set(costs) == {"swept", "refit"} and all(0 < v < 0.1 for v in costs.values())
+
+
+def test_nearest_search_tree_bounds_contain_their_faces():
+    """The nearest search's tree after a refit: every face in exactly one leaf, each node's box
+    the union of its children's (brute force over the heap), the root's the union of all."""
+    seq = wave_bowl(n=20, frames=6)
+    model = Model(SurfaceModel(seq, TEST_DEVICE, interpolate=True), SphereModel([0.05], 1.0, TEST_DEVICE),
+                  PhysicsParams(swept_search="nearest"))
+    w = World(model, State(model, [[0, 0, 1]], t0=0.13), collider="swept")
+    c = w.collider
+    assert c.search == "nearest" and c.bvh is None
+    order = c.face_order.numpy()
+    F = seq.F.shape[0]
+    np.testing.assert_array_equal(np.sort(order[order >= 0]), np.arange(F))
+    lo, hi = c.lowers.numpy(), c.uppers.numpy()
+    nlo, nhi = c.node_lower.numpy(), c.node_upper.numpy()
+    L, first = 4, c.tree_first_leaf
+    for j in range(c.tree_leaves):
+        faces = order[j * L:(j + 1) * L]
+        faces = faces[faces >= 0]
+        if len(faces):
+            np.testing.assert_array_equal(nlo[first + j], lo[faces].min(0))
+            np.testing.assert_array_equal(nhi[first + j], hi[faces].max(0))
+    for n in range(first):
+        np.testing.assert_array_equal(nlo[n], np.minimum(nlo[2 * n + 1], nlo[2 * n + 2]))
+        np.testing.assert_array_equal(nhi[n], np.maximum(nhi[2 * n + 1], nhi[2 * n + 2]))
+    np.testing.assert_allclose(nlo[0], lo.min(0))
+    np.testing.assert_allclose(nhi[0], hi.max(0))
