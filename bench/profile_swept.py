@@ -74,7 +74,8 @@ def profile_row(name, device, search, settle, steps, tile_threads=None):
         per[key][1] += 1
     kernels = {k: {"us_per_step": v[0], "launches": v[1]} for k, v in sorted(per.items(), key=lambda kv: -kv[1][0])}
     total = sum(v[0] for v in per.values())
-    return {"row": name, "search": search, "tile_threads": w.collider.tile_threads if search == "tiled" else None, "graph_us_per_step": graph["us_per_step"],
+    return {"row": name, "search": search, "tile_threads": w.collider.tile_threads if search == "tiled" else None,
+            "graph_us_per_step": graph["us_per_step"],
             "device_us_per_step_eager": total, "kernels": kernels, "state": info}
 
 
