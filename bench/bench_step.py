@@ -225,7 +225,7 @@ def main(argv=None):
     ap.add_argument("--verts", default=None, help="comma-separated vertex counts of the scaling table")
     ap.add_argument("--spheres", default=None, help="comma-separated sphere counts of the scaling table")
     ap.add_argument("--colliders", default=None, help="comma-separated colliders of the scaling table "
-                    "(fixed, swept, swept/serial, swept/tiled, swept/pairs, refit, rebuild)")
+                    "(fixed, swept, swept/serial, swept/tiled, refit, rebuild)")
     args = ap.parse_args(argv)
     import warp as wp
 
@@ -241,7 +241,7 @@ def main(argv=None):
         "interpolate": True}}
     print(f"device {device} ({result['machine']['device_name']}), paper scene {seq.name}", flush=True)
     paper = {}
-    variants = [("swept/serial", None), ("swept/pairs", None)] if device.is_cuda else []
+    variants = [("swept/serial", None)] if device.is_cuda else []
     for col, every in ([] if args.scaling_only else
                        [("fixed", None), ("swept", None), *variants, ("refit", None), ("rebuild", "step"),
                         ("rebuild", "frame")]):
@@ -290,8 +290,8 @@ def main(argv=None):
         verts = [int(float(v)) for v in args.verts.split(",")] if args.verts else verts
         sph = [int(float(v)) for v in args.spheres.split(",")] if args.spheres else sph
         cols = ["fixed", "swept", "refit", "rebuild"]
-        if device.is_cuda:  # the swept collider's other searches (the default is tiled on CUDA)
-            cols[2:2] = ["swept/serial", "swept/pairs"]
+        if device.is_cuda:  # the swept collider's other search (the default is tiled on CUDA)
+            cols[2:2] = ["swept/serial"]
         cols = args.colliders.split(",") if args.colliders else cols
         result["scaling"] = scaling(device, verts, sph, cols, st, 3)
         result["fixed_vs_best"] = fixed_vs_best(result["scaling"])

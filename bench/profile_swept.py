@@ -2,13 +2,14 @@
 
     python bench/profile_swept.py --device cuda:0 [--rows paper,1e5x5,...] [--out file.json]
 
-Each row builds a swept world (each ``--searches``: tiled, serial, pairs, in turn), lets the
+Each row builds a swept world (each ``--searches``: tiled, serial, in turn), lets the
 spheres settle for ``--settle`` steps (graph), then runs ``--steps`` eager steps under Warp's
 activity timing (``wp.timing_begin``: CUDA events around every kernel, memset and copy) and
 sums the device time per kernel over those steps. Eager launches carry more host overhead than
 the graph, but the device time of each kernel is the same; the graph step's wall time is
-reported beside it. Also: the pool's size and use, faces per sphere, spheres on the serial
-fallback (pool full or left their gathered ball).
+reported beside it. Also: the spheres in contact and the faces in their one-step reach box
+(what a search walks). Rows of earlier searches (pairs, nearest; dropped) are in
+bench/results/profile_swept_cuda_*.json.
 """
 
 from __future__ import annotations
@@ -29,20 +30,20 @@ ROWS = {"paper": None, "1e4x5": (10_000, 5), "1e5x5": (100_000, 5), "1e5x1000": 
         "1e6x5": (1_000_000, 5), "1e6x1e5": (1_000_000, 100_000)}
 
 
-def fallback_info(w) -> dict:
+def reach_info(w) -> dict:
+    """Faces in each sphere's one-step reach box (what a search walks) and spheres in contact."""
     c = w.collider
-    if not c.parallel:
-        return {}
+    lo, hi = c.lowers.numpy(), c.uppers.numpy()
     p = w.state.sphere_pos.numpy()
     v = np.linalg.norm(w.state.sphere_vel.numpy(), axis=1)
     r = w.model.spheres.radius.numpy()
-    reach = r + w.model.params.margin + v * w.ctx.sub_dt
-    cnt = c.cand_count.numpy()
-    left = np.linalg.norm(p - c.cand_center.numpy(), axis=1) + reach + c.epsilon > c.cand_radius.numpy()
-    return {"pool_entries": int(c.cand_face.shape[0]), "pool_used": int(c.pool_used.numpy()[0]),
-            "faces_per_sphere_median": float(np.median(cnt)), "faces_per_sphere_max": int(cnt.max()),
-            "pool_full_spheres": int((c.cand_start.numpy() < 0).sum()), "left_ball_spheres": int(left.sum()),
-            "in_contact": int((w.contacts.face.numpy() >= 0).sum())}
+    reach = r + w.model.params.margin + (v + w.ctx.extra_speed) * w.ctx.sub_dt + c.epsilon
+    contact = w.contacts.face.numpy() >= 0
+    touching = np.flatnonzero(contact)[:64]  # the counts of at most 64 touching spheres
+    counts = [int(np.all((lo <= p[s] + reach[s]) & (hi >= p[s] - reach[s]), axis=1).sum()) for s in touching]
+    return {"in_contact": int(contact.sum()),
+            "faces_in_reach_box_touching_median": float(np.median(counts)) if counts else 0.0,
+            "faces_in_reach_box_touching_max": int(max(counts)) if counts else 0}
 
 
 def profile_row(name, device, search, settle, steps, tile_threads=None):
@@ -60,7 +61,7 @@ def profile_row(name, device, search, settle, steps, tile_threads=None):
     for _ in range(settle):
         w.step()
     graph = time_loop(w.step, device, steps, 3, warmup=3)
-    info = fallback_info(w)
+    info = reach_info(w)
     w._graph, w.use_graph = None, False
     w.step()
     wp.timing_begin(cuda_filter=wp.TIMING_ALL)
@@ -83,7 +84,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--device", default=None)
     ap.add_argument("--rows", default="paper,1e5x5,1e6x5,1e5x1000,1e6x1e5")
-    ap.add_argument("--searches", default="tiled,serial,pairs")
+    ap.add_argument("--searches", default="tiled,serial")
     ap.add_argument("--tile-threads", default=None, help="comma-separated block sizes of the tiled search")
     ap.add_argument("--settle", type=int, default=240)
     ap.add_argument("--steps", type=int, default=40)

@@ -1,9 +1,10 @@
 """How many faces each sphere's swept query must walk on the scaling grids (issue 14).
 
-The swept collider's parallel path gathers, at each frame change, the faces whose swept box
-(a face's box over the frame interval) lies in the ball a sphere can reach during that
-interval; before this round at most ``SWEPT_MAX_CANDIDATES`` (256) per sphere, a sphere with
-more walking the BVH serially (now one pool, reduced over pairs). This counts, on the wave
+The swept collider's former gathered-candidate paths (the 256-entry lists, then the pool of
+pairs; both dropped after measuring, docs/benchmarks.md) gathered, at each frame change, the
+faces whose swept box (a face's box over the frame interval) lies in the ball a sphere can reach
+during that interval: R = r + margin + 1.25 (|v| T + g T^2 / 2), T = 1 / fps. This counts
+them with the same rule (a BVH query per sphere, ``count_ball_faces`` below), on the wave
 grids of ``bench_step.py --scaling`` after 30 steps (spheres falling onto the sheet), the
 candidates per sphere and the share of spheres that would overflow 256. Counts are the same
 on every device (they are geometry); run on the CPU.
@@ -25,9 +26,26 @@ from bench_step import make_world, wave_grid  # noqa: E402
 from common import RESULTS, describe_device, write_json  # noqa: E402
 
 
-def main():
-    from dynmesh_warp.world import SWEPT_MAX_CANDIDATES
+#: the per-sphere list length of the first gathered path
+SWEPT_MAX_CANDIDATES = 256
 
+
+@wp.kernel
+def count_ball_faces(radius: wp.array[float], pos: wp.array[wp.vec3], vel: wp.array[wp.vec3], bvh: wp.uint64,
+                     horizon: float, gravity: float, margin: float, count: wp.array[wp.int32]):
+    """Faces whose swept box meets the box of the ball a sphere reaches in ``horizon`` seconds."""
+    s = wp.tid()
+    T = horizon
+    R = radius[s] + margin + 1.25 * (wp.length(vel[s]) * T + 0.5 * gravity * T * T)
+    query = wp.bvh_query_aabb(bvh, pos[s] - wp.vec3(R), pos[s] + wp.vec3(R))
+    f = int(0)
+    n = int(0)
+    while wp.bvh_query_next(query, f):
+        n += 1
+    count[s] = n
+
+
+def main():
     wp.config.quiet = True
     rows = []
     for nv in (1024, 10000, 99856, 1000000):
@@ -38,10 +56,14 @@ def main():
             w = make_world(seq, "cpu", "swept", spheres=ns, radius=radius, spread=0.9)
             for _ in range(30):
                 w.step()
-            col = w.collider
-            col.parallel = True
-            col.resize(w.model, w.state, w.ctx)  # the gather counts every face, whatever the pool holds
-            c = col.cand_count.numpy()
+            col, m = w.collider, w.model
+            cnt = wp.zeros(ns, dtype=wp.int32, device="cpu")
+            g = float(np.linalg.norm(m.params.gravity))
+            step_reach = m.params.margin + 2.0 * g * w.ctx.sub_dt ** 2 + col.epsilon
+            wp.launch(count_ball_faces, ns, inputs=[m.spheres.radius, w.state.sphere_pos, w.state.sphere_vel,
+                                                    col.bvh.id, 1.0 / m.surface.fps, g, step_reach],
+                      outputs=[cnt], device="cpu")
+            c = cnt.numpy()
             edge = float(w.model.surface.average_edge_length.mean())
             row = {"vertices": n * n, "faces": int(seq.F.shape[0]), "spheres": ns, "radius": radius,
                    "mean_edge": edge, "candidates_median": float(np.median(c)), "candidates_max": int(c.max()),

@@ -53,11 +53,6 @@ class SweptSearch(StrEnum):
     SERIAL = "serial"
     #: one thread block per sphere walks the query together and reduces (the CUDA default)
     TILED = "tiled"
-    #: candidates pooled once per frame, every (sphere, face) pair evaluated in parallel each step
-    PAIRS = "pairs"
-    #: one thread per sphere walks our own tree of the swept boxes nearest child first, pruning
-    #: by box distance (evaluates the faces under a resting sphere, not its whole reach box)
-    NEAREST = "nearest"
 
 
 class RebuildEvery(StrEnum):

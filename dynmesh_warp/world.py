@@ -22,20 +22,10 @@ from .kernels.frames import update_frame_vertices
 from .kernels.geometry import compute_face_normals
 from .kernels.integrate import integrate_spheres
 from .kernels.swept import (
-    NO_DIST,
-    NO_PAIR,
     collide_sphere_swept,
-    collide_sphere_swept_nearest,
     collide_sphere_swept_tiled,
     compute_swept_bounds,
     detect_frame_change,
-    evaluate_sphere_candidates,
-    find_closest_candidates,
-    gather_sphere_candidates,
-    refit_tree_leaves,
-    refit_tree_level,
-    resolve_sphere_candidates,
-    TREE_LEAF_SIZE,
 )
 from .choices import (
     DEFAULT_COLLIDER,
@@ -624,13 +614,9 @@ class SweptCollider(ColliderBase):
     its box query returns. ``serial``: one thread per sphere walks them (the CPU's path).
     ``tiled`` (CUDA default): one block of ``tile_threads`` threads per sphere walks the query
     together and reduces (``wp.tile_bvh_query_aabb``), so a sphere with thousands of faces in
-    reach costs tens of dependent loads, not thousands (issue 14). ``pairs``: at each frame
-    change every sphere gathers the faces its reach can meet during the frame interval into one
-    pool (``max_candidates`` entries per sphere on average, at least ``SWEPT_MIN_POOL``), and
-    each step evaluates every pooled (sphere, face) pair in parallel and reduces them per
-    sphere; a sphere that leaves its gathered ball or finds the pool full walks serially. All
-    three give the serial rule's contacts (the tiled one picks the lowest face index among
-    exactly equal distances). Measured per path: docs/benchmarks.md.
+    reach costs tens of dependent loads, not thousands (issue 14). Both give the serial rule's
+    contacts (the tiled one picks the lowest face index among exactly equal distances).
+    Measured per search, and the searches tried and dropped: docs/benchmarks.md.
     """
 
     name = "swept"
@@ -638,103 +624,19 @@ class SweptCollider(ColliderBase):
     needs_points = False
 
     def __init__(self, model: Model, state: State, ctx: StepContext, search: str | None = None,
-                 max_candidates: int | None = None, pool_size: int | None = None, tile_threads: int | None = None):
+                 tile_threads: int | None = None):
         surf = model.surface
         d = ctx.device
         search = model.params.swept_search if search is None else search
         self.search = (DEFAULT_SWEPT_SEARCH["cuda" if d.is_cuda else "cpu"] if search is None
                        else parse(SweptSearch, search, "swept_search"))
-        self.parallel = self.search == SweptSearch.PAIRS  # the candidate pool is used
         self.tile_threads = int(tile_threads or SWEPT_TILE_THREADS)
-        self.max_candidates = int(max_candidates or SWEPT_MAX_CANDIDATES)
-        self.pool_size = None if pool_size is None else int(pool_size)  # entries; None: from the sphere count
         self.lowers = wp.zeros(surf.num_faces, dtype=wp.vec3, device=d)
         self.uppers = wp.zeros(surf.num_faces, dtype=wp.vec3, device=d)
         self.compute_bounds(model, state, ctx)
-        if self.search == SweptSearch.NEAREST:
-            self.bvh = None
-            self._build_tree(d)
-        else:
-            self.bvh = wp.Bvh(self.lowers, self.uppers, leaf_size=4)  # cheaper per-frame refit on CPU
+        self.bvh = wp.Bvh(self.lowers, self.uppers, leaf_size=4)  # cheaper per-frame refit on CPU
         # tie tolerance of the closest-feature search, as wp.Mesh: 1e-3 x average edge length
         self.epsilon = 1.0e-3 * float(surf.average_edge_length.mean())
-        self.resize(model, state, ctx)
-
-    def resize(self, model: Model, state: State, ctx: StepContext):
-        """(Re)allocate the candidate pool and the per-sphere arrays and gather (after spheres
-        change)."""
-        S, d = model.spheres.count, ctx.device
-        P = (self.pool_size or max(S * self.max_candidates, SWEPT_MIN_POOL)) if self.parallel else 1
-        self._allocate_pool(P, d)
-        self.pool_used = wp.zeros(1, dtype=wp.int32, device=d)
-        self.cand_start = wp.full(S, -1, dtype=wp.int32, device=d)
-        self.cand_count = wp.zeros(S, dtype=wp.int32, device=d)
-        self.cand_center = wp.zeros(S, dtype=wp.vec3, device=d)
-        self.cand_radius = wp.zeros(S, dtype=float, device=d)
-        # the pair passes' per-sphere accumulators, reset by the resolve kernel after each use
-        self.min_dist = wp.full(S, float(NO_DIST), dtype=float, device=d)
-        self.min_pair = wp.full(S, int(NO_PAIR), dtype=wp.int32, device=d)
-        self.acc_normal = wp.zeros(S, dtype=wp.vec3, device=d)
-        if self.parallel:
-            self.gather(model, state, ctx)
-            if self.pool_size is None:  # sized from what the spheres gather now (one host read, at build)
-                need = 2 * int(self.pool_used.numpy()[0])
-                if need > P:
-                    self._allocate_pool(min(need, SWEPT_MAX_POOL), d)
-                    self.gather(model, state, ctx)
-
-    def _build_tree(self, d):
-        """The nearest search's tree (kernels/swept.py): faces sorted by the 30-bit Morton code
-        of their swept box centres now, TREE_LEAF_SIZE per leaf, leaves padded to a power of two;
-        ``node_lower``/``node_upper`` (2 x leaves - 1,) boxes [m] in heap order, refit per frame."""
-        lo, hi = self.lowers.numpy(), self.uppers.numpy()
-        c = 0.5 * (lo + hi)
-        mn = c.min(axis=0) if len(c) else np.zeros(3, np.float32)
-        ext = np.maximum(c.max(axis=0) - mn, 1e-30) if len(c) else np.ones(3, np.float32)
-        q = np.clip(((c - mn) / ext * 1023.0).astype(np.int64), 0, 1023).astype(np.uint64)
-
-        def spread(x):  # 10 bits -> every third bit of 30
-            x = (x | (x << np.uint64(16))) & np.uint64(0x030000FF)
-            x = (x | (x << np.uint64(8))) & np.uint64(0x0300F00F)
-            x = (x | (x << np.uint64(4))) & np.uint64(0x030C30C3)
-            return (x | (x << np.uint64(2))) & np.uint64(0x09249249)
-
-        code = spread(q[:, 0]) | (spread(q[:, 1]) << np.uint64(1)) | (spread(q[:, 2]) << np.uint64(2))
-        order = np.argsort(code, kind="stable").astype(np.int32)
-        L = int(TREE_LEAF_SIZE)
-        leaves = 1 << max(0, int(math.ceil(math.log2(max(1, -(-len(order) // L))))))
-        face_order = np.full(leaves * L, -1, np.int32)
-        face_order[:len(order)] = order
-        self.tree_leaves = leaves
-        self.tree_first_leaf = leaves - 1
-        self.face_order = wp.array(face_order, dtype=wp.int32, device=d)
-        self.node_lower = wp.zeros(2 * leaves - 1, dtype=wp.vec3, device=d)
-        self.node_upper = wp.zeros(2 * leaves - 1, dtype=wp.vec3, device=d)
-        self._refit_tree(d)
-
-    def _refit_tree(self, d):
-        """Leaf boxes, then one launch per level of inner nodes, bottom up."""
-        wp.launch(refit_tree_leaves, self.tree_leaves, inputs=[self.face_order, self.lowers, self.uppers,
-                                                               self.tree_first_leaf],
-                  outputs=[self.node_lower, self.node_upper], device=d)
-        level = self.tree_leaves // 2
-        while level >= 1:
-            wp.launch(refit_tree_level, level, inputs=[level - 1], outputs=[self.node_lower, self.node_upper], device=d)
-            level //= 2
-
-    def _refit_boxes(self, d):
-        if self.bvh is None:
-            self._refit_tree(d)
-        else:
-            self.bvh.refit()
-
-    def _allocate_pool(self, P: int, d):
-        """The candidate pool: P (sphere, face) entries, 36 B each."""
-        self.cand_face = wp.zeros(P, dtype=wp.int32, device=d)
-        self.cand_sphere = wp.zeros(P, dtype=wp.int32, device=d)
-        self.cand_dist = wp.zeros(P, dtype=float, device=d)
-        self.cand_w = wp.zeros(P, dtype=wp.vec3, device=d)
-        self.cand_wn = wp.zeros(P, dtype=wp.vec3, device=d)
 
     def compute_bounds(self, model: Model, state: State, ctx: StepContext):
         surf = model.surface
@@ -742,27 +644,9 @@ class SweptCollider(ColliderBase):
                       [surf.frames, surf.indices, state.sim_time, surf.fps, surf.playback],
                       [self.lowers, self.uppers])
 
-    def gather(self, model: Model, state: State, ctx: StepContext):
-        m, s = model, state
-        g = float(np.linalg.norm(m.params.gravity))
-        step_reach = m.params.margin + 2.0 * g * ctx.sub_dt * ctx.sub_dt + self.epsilon
-        self.pool_used.zero_()
-        ctx.launch(gather_sphere_candidates, m.spheres.count,
-                      [m.spheres.radius, s.sphere_pos, s.sphere_vel, self.bvh.id, 1.0 / m.surface.fps, g,
-                       step_reach],
-                      [self.cand_face, self.cand_sphere, self.cand_start, self.cand_count, self.cand_center,
-                       self.cand_radius, self.pool_used])
-
-    def spheres_moved(self, model: Model, state: State, ctx: StepContext):
-        """Spheres set between steps: gather their candidate lists again (parallel path)."""
-        if self.parallel:
-            self.gather(model, state, ctx)
-
     def refit_frame(self, model: Model, state: State, ctx: StepContext):
         self.compute_bounds(model, state, ctx)
-        self._refit_boxes(ctx.device)
-        if self.parallel:
-            self.gather(model, state, ctx)
+        self.bvh.refit()
 
     def update(self, model: Model, state: State, ctx: StepContext):
         """Refit if the clock's frame pair changed (``State.frame_changed``: set by the previous
@@ -770,9 +654,7 @@ class SweptCollider(ColliderBase):
         wp.capture_if(state.frame_changed, on_true=self.refit_frame, model=model, state=state, ctx=ctx)
 
     #: per-frame state a step reads before writing it again: the swept bounds (the BVH is refit
-    #: from them). The candidate pool of the parallel path is gathered again on restore: it only
-    #: chooses which faces are evaluated (a sphere outside its ball walks the BVH), so the
-    #: contacts are the same. (The frame pair and the pending-refit flag are the clock's:
+    #: from them). (The frame pair and the pending-refit flag are the clock's:
     #: State.frame_key / frame_changed.)
     CHECKPOINT_ARRAYS = ("lowers", "uppers")
 
@@ -782,56 +664,24 @@ class SweptCollider(ColliderBase):
     def restore_checkpoint_state(self, st: dict):
         for k in self.CHECKPOINT_ARRAYS:
             getattr(self, k).assign(st[k])
-        self._refit_boxes(self.lowers.device)  # the tree's topology comes from the build at the initial time, as in the run
+        self.bvh.refit()  # the tree's topology comes from the build at the initial time, as in the run
 
     def collide(self, model: Model, state: State, contacts: "Contacts", ctx: StepContext):
         m, s, c = model, state, contacts
         surf = m.surface
         # kernel argument groups (kernels/swept.py): Model, State in, In, Out
-        frame_args = [surf.fps, surf.playback, int(surf.interpolate), self.epsilon]
+        inputs = [surf.frames, surf.indices, m.spheres.radius, s.sim_time, s.sphere_pos, s.sphere_vel,
+                  self.bvh.id, self.lowers, self.uppers, surf.fps, surf.playback, int(surf.interpolate),
+                  self.epsilon, ctx.sub_dt, ctx.extra_speed, m.params.margin]
         outputs = [c.face, c.point, c.normal, c.depth, c.velocity]
-        step_args = [ctx.sub_dt, ctx.extra_speed, m.params.margin]
-        if self.search == SweptSearch.NEAREST:
-            ctx.launch(collide_sphere_swept_nearest, m.spheres.count,
-                       [surf.frames, surf.indices, m.spheres.radius, s.sim_time, s.sphere_pos, s.sphere_vel,
-                        self.node_lower, self.node_upper, self.face_order, self.tree_first_leaf, self.lowers,
-                        self.uppers, *frame_args, *step_args], outputs)
-            return
-        if not self.parallel:
-            inputs = [surf.frames, surf.indices, m.spheres.radius, s.sim_time, s.sphere_pos, s.sphere_vel,
-                      self.bvh.id, self.lowers, self.uppers, *frame_args, *step_args]
-            if self.search == SweptSearch.TILED:
-                if m.spheres.count:
-                    wp.launch_tiled(collide_sphere_swept_tiled, dim=m.spheres.count, inputs=inputs, outputs=outputs,
-                                    block_dim=self.tile_threads, device=ctx.device)
-            else:
-                ctx.launch(collide_sphere_swept, m.spheres.count, inputs, outputs)
-            return
-        S = m.spheres.count
-        # threads striding over the pool's used entries: as many as the old per-sphere lists had
-        # (S x max_candidates), so a scene with few candidates pays no more than before
-        T = max(1, min(self.cand_face.shape[0], S * self.max_candidates))
-        ctx.launch(evaluate_sphere_candidates, T,
-                      [surf.frames, surf.indices, m.spheres.radius, s.sim_time, s.sphere_pos, s.sphere_vel,
-                       *frame_args, *step_args, self.cand_face, self.cand_sphere, self.cand_start, self.pool_used,
-                       self.lowers, self.uppers, T],
-                      [self.cand_dist, self.cand_w, self.cand_wn, self.min_dist])
-        ctx.launch(find_closest_candidates, T,
-                      [self.epsilon, self.cand_sphere, self.cand_dist, self.cand_wn, self.pool_used, self.min_dist, T],
-                      [self.min_pair, self.acc_normal])
-        ctx.launch(resolve_sphere_candidates, S,
-                      [surf.frames, surf.indices, m.spheres.radius, s.sim_time, s.sphere_pos, s.sphere_vel,
-                       self.bvh.id, self.lowers, self.uppers, *frame_args, self.cand_face, self.cand_start,
-                       self.cand_center, self.cand_radius, self.cand_w, *step_args],
-                      [self.min_dist, self.min_pair, self.acc_normal, *outputs])
+        if self.search == SweptSearch.TILED:
+            if m.spheres.count:
+                wp.launch_tiled(collide_sphere_swept_tiled, dim=m.spheres.count, inputs=inputs, outputs=outputs,
+                                block_dim=self.tile_threads, device=ctx.device)
+        else:
+            ctx.launch(collide_sphere_swept, m.spheres.count, inputs, outputs)
 
 
-SWEPT_MAX_CANDIDATES = 256
-#: the smallest candidate pool of the parallel swept path (entries; 36 B each): a few spheres on
-#: a fine mesh may gather tens of thousands of faces (docs/benchmarks.md)
-SWEPT_MIN_POOL = 1 << 18
-#: the largest pool sized at build (twice what the spheres gather then): 2^25 entries, 1.2 GB
-SWEPT_MAX_POOL = 1 << 25
 COLLIDERS = {"refit": RefitCollider, "swept": SweptCollider, "rebuild": RebuildCollider}
 COLLIDER_CHOICES = tuple(values(Collider))
 #: the measured choice of ``fixed`` (docs/physics.md#the-automatic-collider): each candidate runs
