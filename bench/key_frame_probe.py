@@ -5,7 +5,11 @@ the keys where both fit the input best), and the better of A / transferred B kep
 a GT-free score (99.5th percentile of input -> output distance). Reports CD vs the input for A,
 transferred B, the per-frame choice and the oracle choice.
 
-    python bench/key_frame_probe.py pcow 30    # -> bench/results/key_frame_probe_pcow_30_cpu.json
+    python bench/key_frame_probe.py pcow 30 [pose|fine]   # -> bench/results/key_frame_probe_pcow_30_<mode>_cpu.json
+
+Then a third run, A guided by transferred B on the frames on B's side of the handover: "pose"
+fits A's graph to the transferred surface and A's fit of the real frame starts from that pose;
+"fine" starts A's fine stage from the transferred vertices; the better coverage kept per frame.
 """
 import json
 import sys
@@ -69,3 +73,63 @@ res = {"machine": describe_device("cpu"), "sequence": name, "key_frames": [int(k
                      "cd_B": cB.tolist(), "cd_B_transferred": cBA.tolist(), "cd_input": cin.tolist()}}
 print(json.dumps(res["cd_vs_input_pct"]), "handover", h, "frames choosing B", int(choose.sum()))
 write_json(RESULTS / f"key_frame_probe_{name}_{K2}_cpu.json", res)
+
+# --- A guided: A's own tracking run again, with the transferred B pose as one more start pose
+# on the frames on B's side of the handover (A fits the real frame from the guide's pose; the
+# better coverage kept), so A's own fine stage distributes its vertices
+import dynmesh_warp.convert as cv  # noqa: E402
+
+MODE = sys.argv[3] if len(sys.argv) > 3 else "fine"
+side = range(0, h) if kB < h else range(h + 1, T)
+GUIDE = {t: VBA[t] for t in side}
+orig_step = cv._Converter.step_graph
+accepted = []
+trace = []  # (frame, A's coverage, the guide's, the guide's after the fine stage) [m], mode "fine"
+
+
+def guided_step(self, frame, t):
+    r = orig_step(self, frame, t)
+    if t not in GUIDE or not self.history:
+        return r
+    X_prev = wp.clone(self.X)
+    if MODE == "pose":  # the graph pose of the guide surface, then A's fit of the real frame from it
+        o, gf = self.opts, self.gf
+        its, lam0, lam1, mu = (int(o["graph_iterations"]), float(o["stiffness"]), float(o["stiffness_end"]),
+                               float(o["damping"]))
+        R0, P0 = self.history[-1]
+        Rg, Pg = gf.fit(self._graph_frame(cv._device_frame(GUIDE[t], A.F, self.device)), R0, P0, its, lam0, lam1, mu)
+        R2, P2 = gf.fit(self._graph_frame(frame), Rg, Pg, its, lam1, lam1, mu)
+        sc = self._graph_finish(frame, R2, P2)
+    else:  # "fine": the transferred vertices themselves, then A's fine stage (fit + relaxation)
+        self.X.assign(GUIDE[t].astype(np.float32))
+        sc0 = self.coverage(frame)
+        for _ in range(2 * int(self.opts["iterations"])):
+            self.fit_nonrigid(frame)
+        for _ in range(3):
+            self.relax_and_project(frame)
+        sc = self.coverage(frame)
+        trace.append((t, self.scores[-1], sc0, sc))
+    if sc < self.scores[-1]:
+        accepted.append(t)
+        self.scores[-1] = sc
+        self.frame_coverage = sc
+        if MODE == "pose":
+            self.history[-1] = (R2, P2)
+            self.frame_states[t] = (R2, P2)
+    else:
+        wp.copy(self.X, X_prev)
+    return r
+
+
+cv._Converter.step_graph = guided_step
+G = to_fixed_topology(var, strategy="graph", device="cpu")
+cv._Converter.step_graph = orig_step
+cG = cd(G.V)
+res["cd_vs_input_pct"][f"A guided by transferred B ({MODE})"] = pct(cG)
+res["guided_frames_accepted"] = len(accepted)
+res["worst_frame_ratio_guided"] = float((cG / cin).max())
+res["per_frame"]["cd_A_guided"] = cG.tolist()
+res["guided_mode"] = MODE
+res["fine_mode_coverage_trace"] = trace
+print("guided", pct(cG), "accepted", len(accepted), "worst", round(float((cG / cin).max()), 2))
+write_json(RESULTS / f"key_frame_probe_{name}_{K2}_{MODE}_cpu.json", res)
