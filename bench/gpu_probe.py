@@ -5,6 +5,7 @@ goes and dumping the Python stacks every 60 s if stuck. Writes a JSON naming mac
     python bench/gpu_probe.py --device cuda:0 --frames 20 --out bench/results/graph_probe_cuda.json
 """
 import argparse
+import json
 import faulthandler
 import sys
 import time
@@ -56,6 +57,7 @@ def main():
     ap.add_argument("--device", default="cuda:0")
     ap.add_argument("--frames", type=int, default=20)
     ap.add_argument("--out", default=None)
+    ap.add_argument("--options", default=None, help='graph options as JSON, e.g. \'{"restart_fits": 2}\'')
     ap.add_argument("--breakdown", action="store_true",
                     help="time the conversion's parts (synchronising around each: adds a little)")
     a = ap.parse_args()
@@ -71,7 +73,8 @@ def main():
     compile_s = time.perf_counter() - t
     parts = _instrument() if a.breakdown else None
     t = time.perf_counter()
-    r = to_fixed_topology(VaryingTopologySequence(seq.frames[:a.frames]), strategy="graph", device=a.device)
+    opts = json.loads(a.options) if a.options else {}
+    r = to_fixed_topology(VaryingTopologySequence(seq.frames[:a.frames]), strategy="graph", device=a.device, **opts)
     wp.synchronize()
     s = time.perf_counter() - t
     fs = np.array(r.conversion.frame_seconds)
@@ -82,7 +85,7 @@ def main():
            "frame_ms_max": 1e3 * float(fs.max()), "recovered_frames": len(r.conversion.recovered_frames),
            "unrecovered_frames": len(r.conversion.unrecovered_frames),
            "coverage_mean": float(np.mean(r.conversion.coverage)), "coverage_max": float(np.max(r.conversion.coverage)),
-           "key_frame": r.conversion.key_frame}
+           "key_frame": r.conversion.key_frame, "options": opts}
     if parts is not None:
         calls = parts.pop("calls")
         res["breakdown_s"] = {k: round(v, 4) for k, v in parts.items()}

@@ -109,6 +109,12 @@ class GraphOptions(_Options, _FineStage):
     #: samples per side of that score
     reinit_samples: Int = Field(1024, ge=1)
     restart_threshold: Float = Field(0.02, ge=0.0)
+    #: restart candidates fitted in full: the ones whose start pose already fits the frame best
+    #: (two-sided score); 0: every candidate (previous pose, the last 3 banked states, the template).
+    #: 2 (was 0): the same accuracy on every sequence of issue 12's protocol (pcow +38 -> +36 %,
+    #: others unchanged; noise-free too) and 14 % less time on the restart-heavy speed input (CPU:
+    #: 181 -> 156 s for 200 frames); 1 lost pcow (+60 %). docs/conversion.md
+    restart_fits: Int = Field(2, ge=0)
     refine_rounds: Int = Field(2, ge=0)
     # bidirectional repair: re-track runs of poorly covered frames from the other side (off: on
     # pcow it lowered the worst uncovered vertex 13.6 -> 12.3 % but not the CD, +58 -> +60 %)

@@ -505,9 +505,16 @@ class _Converter:
             cands += [(f"frame {tb}", (Rb, Pb), True) for tb, Rb, Pb in self.graph_bank[-3:]]
             cands.append(("template", rest, True))
             cen = frame[1].numpy().mean(axis=0)
+            starts = []
             for name, (Rc, Pc), shift in cands:
                 if shift:
                     Pc = Pc + (cen - gf.skin(Rc, Pc).numpy().mean(axis=0))
+                starts.append((name, Rc, Pc))
+            keep = int(o["restart_fits"])
+            if 0 < keep < len(starts):  # fit only the starts that already fit the frame best
+                pre = [self.fit_score(frame, gf.skin(Rc, Pc)) for _, Rc, Pc in starts]
+                starts = best_starts(starts, pre, keep)
+            for name, Rc, Pc in starts:
                 R2, P2 = gf.fit(gframe, Rc, Pc, its, lam0, lam1, mu)
                 sc = self._graph_finish(frame, R2, P2)
                 if sc < best[0]:
@@ -733,6 +740,14 @@ def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info,
     if hasattr(order, "close"):
         order.close()
     return out, lo, hi, seconds, coverage
+
+
+def best_starts(starts: list, scores, keep: int) -> list:
+    """The ``keep`` starts with the lowest scores, in their original order (ties: the earlier
+    first); all of them when ``keep`` is 0 or not smaller than their number."""
+    if keep <= 0 or keep >= len(starts):
+        return list(starts)
+    return [starts[i] for i in sorted(np.argsort(np.asarray(scores, float), kind="stable")[:keep])]
 
 
 def _poor_runs(coverage: np.ndarray, K: int, threshold: float) -> list:

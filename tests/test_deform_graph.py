@@ -298,3 +298,46 @@ def test_predict_candidates_start_from_the_better_pose_when_motion_reverses():
                               refine_rounds=0, graph_iterations=3, iterations=1, key_frame=0)
         cov[n] = np.asarray(r.conversion.coverage)[2:] / diag  # frames 0, 1 have no prediction
     assert (cov[3] < cov[1]).all() and cov[3].mean() < 0.85 * cov[1].mean(), cov
+
+
+def test_best_starts_keeps_the_lowest_scores_in_their_order():
+    from dynmesh_warp.convert import best_starts
+
+    starts = ["previous", "frame 10", "frame 20", "frame 30", "template"]
+    assert best_starts(starts, [0.5, 0.1, 0.9, 0.1, 0.3], 2) == ["frame 10", "frame 30"]  # ties: the earlier
+    assert best_starts(starts, [0.5, 0.1, 0.9, 0.2, 0.3], 3) == ["frame 10", "frame 30", "template"]
+    assert best_starts(starts, [0.5, 0.1, 0.9, 0.2, 0.3], 0) == starts
+    assert best_starts(starts, [0.5, 0.1, 0.9, 0.2, 0.3], 5) == starts
+
+
+def test_restart_fits_only_the_best_screened_starts_and_still_recovers(monkeypatch):
+    """A rigidly moving body with one frame teleported by three diagonals: the frames after it
+    are poorly covered and restart (a low ``restart_threshold``). With ``restart_fits`` 2 every
+    restart scores all its candidate starts (previous pose, banked states, template) and fits
+    the best two; the restarted frames are recovered as well as when every start is fitted."""
+    import dynmesh_warp.convert as cv
+    from dynmesh_warp.convert import to_fixed_topology
+    from dynmesh_warp.remesh import remesh_sequence
+    from dynmesh_warp.scenes import rigid_motion
+
+    var = remesh_sequence(rigid_motion(frames=16), resolution=40, device=DEV)
+    frames = [(v.copy(), f) for v, f in var.frames]
+    diag = float(np.linalg.norm(np.ptp(frames[0][0], axis=0)))
+    frames[10] = (frames[10][0] + np.float32(3 * diag), frames[10][1])
+    picked, orig = [], cv.best_starts
+    monkeypatch.setattr(cv, "best_starts", lambda s, sc, k: (picked.append((len(s), k)), orig(s, sc, k))[1])
+    cov, rec = {}, {}
+    for rf in (0, 2):
+        picked.clear()
+        r = to_fixed_topology(frames, strategy="graph", device=DEV, key_frame=0, restart_fits=rf,
+                              restart_threshold=0.001)
+        cov[rf] = np.asarray(r.conversion.coverage) / diag
+        rec[rf] = [t for t, _ in r.conversion.recovered_frames]
+        if rf == 2:
+            assert picked and all(n > 2 and k == 2 for n, k in picked)  # screened, two fitted
+        else:
+            assert not picked  # 0: every start fitted, none screened
+    for rf in (0, 2):
+        assert 11 in rec[rf] and np.isfinite(cov[rf]).all()
+        assert cov[rf][11:].max() < 3 * np.median(cov[rf][1:10])  # recovered: covered like before the jump
+    assert cov[2][10:].max() < 1.5 * cov[0][10:].max() + 1e-4
