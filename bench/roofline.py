@@ -21,6 +21,10 @@ Bandwidth: the H100 SXM's nominal HBM3 bandwidth, 3.35 TB/s (``--peak-tb-s``); a
 device-to-device copy reaches about 90 % of it, so a fraction near 0.9 is the floor.
 
     python bench/roofline.py bench/results/step_fixed_choice_cuda_h100.json
+    python bench/roofline.py bench/results/step_cuda_h100_tiled.json --out bench/results/roofline_cuda_h100_tiled.json
+
+(The swept searches, serial or tiled, move the same lower-bound bytes: they differ in how many
+dependent loads one sphere's query waits on, not in the bytes that must move.)
 """
 
 from __future__ import annotations
@@ -79,7 +83,7 @@ def main(argv=None):
         col = r["collider"]
         if col.startswith("rebuild"):
             continue
-        model = r.get("chosen", col) if col == "fixed" else col
+        model = (r.get("chosen", col) if col == "fixed" else col).partition("/")[0]  # swept/serial: swept's bytes
         b = step_bytes(model, int(r["vertices"]), int(r["faces"]), int(r["spheres"]), a.steps_per_frame)
         floor_us = 1e6 * b / peak
         out.append({"vertices": r["vertices"], "faces": r["faces"], "spheres": r["spheres"], "collider": col,
