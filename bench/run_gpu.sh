@@ -2,7 +2,8 @@
 # GPU benchmarks and the GPU test pass, for the GPU machine (see ../shared/gpu/README.md).
 # Usage: bash bench/run_gpu.sh PHASE OUTDIR   (Warp and the wheels already installed in /root/site)
 #   PHASE: step (tests, swept profile, step benchmark) | other (gaussians, metrics, convert,
-#          newton) | eval (full evaluation table) | table (conversion table) | soak (10^6 steps, paper scene)
+#          newton) | probe (graph conversion, 200 frames, the issue-12 10 s target) | eval (full
+#          evaluation table) | table (conversion table) | soak (10^6 steps, paper scene)
 set -u
 phase=${1:-step}
 out=${2:-bench/results}
@@ -11,8 +12,9 @@ export PYTHONPATH=${PYTHONPATH:-/root/site}
 case "$phase" in
 step)
   nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv > "$out/gpu.txt" 2>&1
-  DYNMESH_TEST_DEVICE=cuda:0 python3 -m pytest -q -p no:cacheprovider tests/test_kernels.py tests/test_world.py \
-      tests/test_swept.py tests/test_gaussians.py tests/test_metrics.py tests/test_shared_data.py > "$out/gpu_tests.log" 2>&1
+  DYNMESH_TEST_DEVICES=cuda:0 python3 -m pytest -q -p no:cacheprovider tests/test_kernels.py tests/test_world.py \
+      tests/test_swept.py tests/test_render.py tests/test_gaussians.py tests/test_metrics.py tests/test_shared_data.py \
+      > "$out/gpu_tests.log" 2>&1
   tail -5 "$out/gpu_tests.log"
   python3 bench/profile_swept.py --device cuda:0 --out "$out/profile_swept_cuda.json" 2>&1 | grep -v "^Module" | tail -14
   python3 bench/bench_step.py --device cuda:0 --out "$out/step_cuda.json" 2>&1 | grep -v "^Module" | tail -50 ;;
@@ -21,6 +23,8 @@ other)
   python3 bench/bench_metrics.py --device cuda:0 --out "$out/metrics_cuda.json" 2>&1 | grep -v "^Module" | tail -6
   python3 bench/bench_convert.py --device cuda:0 --out "$out/convert_cuda.json" 2>&1 | grep -v "^Module" | tail -8
   python3 bench/bench_newton.py --device cuda:0 --out "$out/newton_cuda.json" 2>&1 | grep -v "^Module" | tail -8 ;;
+probe)
+  python3 bench/gpu_probe.py --device cuda:0 --frames 200 --out "$out/graph_probe_cuda_200.json" 2>&1 | grep -v "^Module" | tail -3 ;;
 eval)
   timeout 540 python3 -m dynmesh_warp.evaluate ../shared/data/horse_gallop.npz ../shared/data/horse_collapse.npz \
       ../shared/data/pcow.npz --num-frames 200 --frame-order auto --device cuda:0 --no-progress \
