@@ -5,11 +5,15 @@ the keys where both fit the input best), and the better of A / transferred B kep
 a GT-free score (99.5th percentile of input -> output distance). Reports CD vs the input for A,
 transferred B, the per-frame choice and the oracle choice.
 
-    python bench/key_frame_probe.py pcow 30 [pose|fine]   # -> bench/results/key_frame_probe_pcow_30_<mode>_cpu.json
+    python bench/key_frame_probe.py pcow 30          # -> bench/results/key_frame_probe_pcow_30_cpu.json
+    python bench/key_frame_probe.py pcow 30 pose     # + ..._pose_cpu.json (or fine)
 
-Then a third run, A guided by transferred B on the frames on B's side of the handover: "pose"
-fits A's graph to the transferred surface and A's fit of the real frame starts from that pose;
-"fine" starts A's fine stage from the transferred vertices; the better coverage kept per frame.
+With a mode, a third run: A guided by transferred B on the frames on B's side of the handover:
+"pose" fits A's graph to the transferred surface and A's fit of the real frame starts from that
+pose; "fine" starts A's fine stage from the transferred vertices; the better coverage kept per
+frame. That run is an experiment on the converter's internals (it wraps the private
+``convert._Converter.step_graph`` and calls its private helpers), not a use of the public API:
+it may break with the converter, and both modes were measured worse (docs/conversion.md).
 """
 import json
 import sys
@@ -31,6 +35,9 @@ from dynmesh_warp.metrics import chamfer_distance  # noqa: E402
 def main():
     name = sys.argv[1] if len(sys.argv) > 1 else "pcow"
     K2 = int(sys.argv[2]) if len(sys.argv) > 2 else 30
+    MODE = sys.argv[3] if len(sys.argv) > 3 else None  # the guided third run (below), before any work
+    if MODE not in (None, "pose", "fine"):
+        raise SystemExit(f"mode {MODE!r}: pose or fine")
     gt = ground_truth(name, None)
     var = varying_input(gt, 96, 0.01, "cpu", Path("out/cache"))
     T = gt.num_frames
@@ -82,7 +89,8 @@ def main():
     # on the frames on B's side of the handover (A fits the real frame from the guide's pose; the
     # better coverage kept), so A's own fine stage distributes its vertices
 
-    MODE = sys.argv[3] if len(sys.argv) > 3 else "fine"
+    if MODE is None:
+        return
     side = range(0, h) if kB < h else range(h + 1, T)
     GUIDE = {t: VBA[t] for t in side}
     orig_step = cv._Converter.step_graph

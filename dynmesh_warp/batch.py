@@ -541,10 +541,6 @@ class EnvGrid(EnvView):
         pos = self.batch.sphere_positions()
         return np.concatenate([pos[e] + o for e, o in zip(self.envs, self.offsets)]).astype(np.float32)
 
-    def rigid_shapes(self) -> list:
-        """Rigid shapes other than the built-in spheres, for rendering: none here."""
-        return []
-
     def sphere_radii(self) -> np.ndarray:
         S = self.model.spheres_per_env
         r = self.model.spheres.radius_np

@@ -30,8 +30,8 @@ from .choices import (
     Playback,
     RebuildEvery,
     Strategy,
-    UpAxis,
     SweptSearch,
+    UpAxis,
 )
 
 __all__ = ["SceneConfig", "SceneError", "load_scene_config", "apply_overrides", "DEFAULT_SCENE", "DEFAULT_SCENE_FILE",

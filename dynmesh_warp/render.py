@@ -346,11 +346,12 @@ def render_world(sim, gaussians, cameras: list[Camera], renderer: Renderer | Non
     """The simulation's bound Gaussians (``gaussians.Gaussians``, updated to its current
     surface), its spheres and its other rigid shapes (``sim.rigid_shapes()``: a Newton world's
     boxes, capsules, meshes ...), from ``cameras``. ``shade``: each Gaussian's colour times
-    0.35 + 0.65 |n . l|, n its flat axis (the surface normal for Gaussians bound to faces), l a
-    head light of each camera tilted down, so the shape reads (the binding's colours are unlit;
-    computed in ``project_gaussians``, nothing on the host per frame). ``mesh``: the physics mesh itself drawn
-    too, opaque and shaded like the bodies (for debugging: where the splats and the collision
-    surface differ); ``splats=False`` leaves the Gaussians out (``gaussians`` may then be None)."""
+    a + (1 - a) |n . l| (a = ``gaussians.SHADE_AMBIENT``), n its flat axis (the surface normal
+    for Gaussians bound to faces), l a head light of each camera tilted down, so the shape reads
+    (the binding's colours are unlit; computed in ``project_gaussians``, nothing on the host per
+    frame). ``mesh``: the physics mesh itself drawn too, opaque and shaded like the bodies (for
+    debugging: where the splats and the collision surface differ); ``splats=False`` leaves the
+    Gaussians out (``gaussians`` may then be None)."""
     renderer = renderer or Renderer(sim.device)
     rigid = list(sim.rigid_shapes())
     if mesh:
@@ -371,7 +372,6 @@ def render_world(sim, gaussians, cameras: list[Camera], renderer: Renderer | Non
     sh, op = _binding_colours(renderer, gaussians.binding, sim.device)
     return renderer.render(gaussians.state.centers, gaussians.state.covariances, sh, op, cameras,
                            spheres=spheres, shapes=shapes, shade=SHADE_AMBIENT if shade else None, **kw)
-
 
 
 def _binding_colours(renderer: Renderer, binding, device):

@@ -531,7 +531,7 @@ def rasterize_gaussians(
         first = c * spheres_per_camera
         count = spheres_per_camera
     s_hit, sk = nearest_sphere(o, dw, sphere_centers, sphere_radii, first, count)
-    z_sphere = float(1.0e30)
+    z_sphere = float(NO_HIT)
     if sk >= 0:
         z_sphere = s_hit * dc[2]
     # an opaque rigid shape nearer than the nearest sphere (cast_rigid_shapes) takes its place
