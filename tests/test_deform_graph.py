@@ -341,3 +341,13 @@ def test_restart_fits_only_the_best_screened_starts_and_still_recovers(monkeypat
         assert 11 in rec[rf] and np.isfinite(cov[rf]).all()
         assert cov[rf][11:].max() < 3 * np.median(cov[rf][1:10])  # recovered: covered like before the jump
     assert cov[2][10:].max() < 1.5 * cov[0][10:].max() + 1e-4
+
+
+def test_bad_restart_fits_is_refused_naming_the_option():
+    import pytest
+
+    from dynmesh_warp.convert import to_fixed_topology
+
+    V, F = icosphere(2, 1.0)
+    with pytest.raises(ValueError, match="restart_fits"):
+        to_fixed_topology([(V, F), (V, F)], strategy="graph", device=DEV, restart_fits=-1)

@@ -270,3 +270,12 @@ def test_measured_choice_does_not_count_the_compile_steps(monkeypatch):
     costs = world_mod.measure_colliders(model, State(model, [[0, 0, 1], [0.2, 0, 1]], t0=0.1), ["swept", "refit"],
                                         horizon=0.05, budget_s=0.3)
     assert set(costs) == {"swept", "refit"} and all(0 < v < 0.1 for v in costs.values())
+
+
+def test_bad_swept_search_is_refused_naming_the_field():
+    with pytest.raises(ValueError, match="swept_search"):
+        PhysicsParams(swept_search="nearest")
+    model = _blob_model()
+    with pytest.raises(ValueError, match="swept_search"):
+        SweptCollider(model, State(model, [[0, 0, 1], [0.2, 0, 1]]), World(model, State(model, [[0, 0, 1], [0.2, 0, 1]]),
+                                                                             collider="refit").ctx, search="pairs")
