@@ -23,11 +23,12 @@ import warnings
 import numpy as np
 import warp as wp
 
-from .choices import PLAYBACK_CODES, Playback, parse
+from .choices import DEFAULT_BATCH_SWEPT_SEARCH, PLAYBACK_CODES, SWEPT_TILE_THREADS, Playback, SweptSearch, parse
 from .kernels.batch import (
     advance_env_clocks,
     collide_and_integrate_env_spheres,
     collide_env_sphere_lanes,
+    collide_env_sphere_tiled,
     compute_pair_bounds,
     resolve_and_integrate_env_spheres,
     reset_env_clocks,
@@ -184,11 +185,14 @@ class ContactLanes:
 
 
 def step_envs(model: BatchModel, state: BatchState, contacts: Contacts, sub_dt: float, substeps: int,
-              extra_speed: float, lanes: ContactLanes | None = None):
+              extra_speed: float, lanes: ContactLanes | None = None, search: SweptSearch = SweptSearch.SERIAL,
+              tile_threads: int = SWEPT_TILE_THREADS):
     """The step of every env: ``substeps`` sub-steps of contact + integration at each env's
-    own time, each followed by the env clocks' advance. With ``lanes`` the contact query of each
-    sphere is split over that many threads (the GPU path: a sphere near a finely meshed surface
-    has hundreds of candidate faces); else one thread per sphere. Device work only (capturable)."""
+    own time, each followed by the env clocks' advance. The contact query of a sphere: with
+    ``search`` tiled, one block of ``tile_threads`` threads per sphere walks it together
+    (``lanes``: a one-lane scratch); with ``lanes`` of more than one lane it is split over
+    that many threads; else one thread per sphere (a sphere near a finely meshed surface has
+    hundreds of candidate faces). Device work only (capturable)."""
     m, s, c, p = model, state, contacts, model.params
     surf = m.surface
     ground = int(p.ground_height is not None)
@@ -196,8 +200,25 @@ def step_envs(model: BatchModel, state: BatchState, contacts: Contacts, sub_dt: 
     g = wp.vec3(*[float(x) for x in p.gravity])
     n = m.spheres.count
     physics = [g, p.restitution, p.friction, p.rest_speed, ground, gh, surf.fps, int(surf.interpolate)]
+    query = [surf.frames, surf.indices, m.pair_bvh, m.pair_lowers, m.pair_uppers, m.spheres.radius, m.sphere_env,
+             surf.fps, int(surf.interpolate), m.time_slices, s.env_time, s.env_playback, s.sphere_pos, s.sphere_vel]
+    tiled = search == SweptSearch.TILED
+    if tiled and lanes is None:
+        raise ValueError("the tiled search needs a one-lane ContactLanes scratch")
     for _ in range(substeps):
-        if lanes is None or lanes.lanes <= 1:
+        if tiled:
+            if n:
+                wp.launch_tiled(collide_env_sphere_tiled, dim=n,
+                                inputs=[*query, sub_dt, extra_speed, p.margin, m.epsilon],
+                                outputs=[lanes.dist, lanes.face, lanes.w, lanes.n], block_dim=int(tile_threads),
+                                device=m.device)
+            wp.launch(resolve_and_integrate_env_spheres, n,
+                      inputs=[surf.frames, surf.indices, m.spheres.radius, m.spheres.inv_mass, m.sphere_env,
+                              *physics, s.env_time, s.env_rate, s.env_playback, 1, lanes.dist,
+                              lanes.face, lanes.w, lanes.n, sub_dt, extra_speed, p.margin, m.epsilon],
+                      outputs=[s.sphere_pos, s.sphere_vel, c.face, c.point, c.normal, c.depth, c.velocity],
+                      device=m.device)
+        elif lanes is None or lanes.lanes <= 1:
             wp.launch(collide_and_integrate_env_spheres, n,
                       inputs=[surf.frames, surf.indices, m.pair_bvh, m.pair_lowers, m.pair_uppers, m.spheres.radius,
                               m.spheres.inv_mass, m.sphere_env, *physics, m.time_slices, s.env_time, s.env_rate, s.env_playback,
@@ -206,10 +227,7 @@ def step_envs(model: BatchModel, state: BatchState, contacts: Contacts, sub_dt: 
                       device=m.device)
         else:
             wp.launch(collide_env_sphere_lanes, n * lanes.lanes,
-                      inputs=[surf.frames, surf.indices, m.pair_bvh, m.pair_lowers, m.pair_uppers, m.spheres.radius,
-                              m.sphere_env, surf.fps,
-                              int(surf.interpolate), m.time_slices, s.env_time, s.env_playback, s.sphere_pos,
-                              s.sphere_vel, lanes.lanes, sub_dt, extra_speed, p.margin, m.epsilon],
+                      inputs=[*query, lanes.lanes, sub_dt, extra_speed, p.margin, m.epsilon],
                       outputs=[lanes.dist, lanes.face, lanes.w, lanes.n], device=m.device)
             wp.launch(resolve_and_integrate_env_spheres, n,
                       inputs=[surf.frames, surf.indices, m.spheres.radius, m.spheres.inv_mass, m.sphere_env,
@@ -224,10 +242,16 @@ def step_envs(model: BatchModel, state: BatchState, contacts: Contacts, sub_dt: 
 class BatchedWorld:
     """E envs stepped together: one CUDA graph per step on a GPU (the first step eager, as the
     single world); the sub-step count follows the single world's rule at the fastest env rate
-    (``max_rate``). ``reset`` sets chosen envs' spheres and clocks on the device."""
+    (``max_rate``). ``reset`` sets chosen envs' spheres and clocks on the device.
+
+    ``search``: the contact query's search (``choices.SweptSearch``; None: ``physics.swept_search``
+    or ``DEFAULT_BATCH_SWEPT_SEARCH`` for the device); ``tile_threads``: the tiled search's block;
+    ``contact_lanes``: threads per sphere of the serial search (None: the measured rule,
+    ``CONTACT_LANES`` up to ``LANES_UP_TO`` spheres on a GPU)."""
 
     def __init__(self, model: BatchModel, state: BatchState, max_rate: float | None = None,
-                 use_graph: bool | None = None, contact_lanes: int | None = None):
+                 use_graph: bool | None = None, contact_lanes: int | None = None,
+                 search: str | SweptSearch | None = None, tile_threads: int | None = None):
         self.model, self.state = model, state
         self.device = model.device
         p = model.params
@@ -246,12 +270,22 @@ class BatchedWorld:
         self.sub_dt = p.dt / self.substeps
         self.extra_speed = float(np.linalg.norm(p.gravity)) * self.sub_dt
         self.contacts = Contacts(model.spheres.count, device=self.device)
-        if contact_lanes is None:  # measured (docs/envs.md): lanes pay off until the GPU is full of spheres
-            contact_lanes = CONTACT_LANES if (self.device.is_cuda and model.spheres.count <= LANES_UP_TO) else 1
-        lanes = int(contact_lanes)
-        if lanes < 1:
-            raise ValueError(f"contact_lanes must be >= 1, got {contact_lanes}")
-        self.lanes = ContactLanes(model.spheres.count, lanes, self.device) if lanes > 1 else None
+        search = search if search is not None else p.swept_search
+        self.search = (DEFAULT_BATCH_SWEPT_SEARCH["cuda" if self.device.is_cuda else "cpu"] if search is None
+                       else parse(SweptSearch, search, "swept_search"))
+        self.tile_threads = int(SWEPT_TILE_THREADS if tile_threads is None else tile_threads)
+        if self.tile_threads < 1:
+            raise ValueError(f"tile_threads must be >= 1, got {tile_threads}")
+        if self.search == SweptSearch.TILED:
+            lanes = 1
+        else:
+            if contact_lanes is None:  # measured (docs/envs.md): lanes pay off until the GPU is full of spheres
+                contact_lanes = CONTACT_LANES if (self.device.is_cuda and model.spheres.count <= LANES_UP_TO) else 1
+            lanes = int(contact_lanes)
+            if lanes < 1:
+                raise ValueError(f"contact_lanes must be >= 1, got {contact_lanes}")
+        self.lanes = (ContactLanes(model.spheres.count, lanes, self.device)
+                      if lanes > 1 or self.search == SweptSearch.TILED else None)
         self.use_graph = self.device.is_cuda if use_graph is None else bool(use_graph) and self.device.is_cuda
         self._graph = None
         self.step_count = 0
@@ -268,7 +302,8 @@ class BatchedWorld:
         return self.model.params.dt
 
     def _step_body(self):
-        step_envs(self.model, self.state, self.contacts, self.sub_dt, self.substeps, self.extra_speed, self.lanes)
+        step_envs(self.model, self.state, self.contacts, self.sub_dt, self.substeps, self.extra_speed, self.lanes,
+                  self.search, self.tile_threads)
 
     def capture(self):
         if not self.use_graph or self._graph is not None:
@@ -370,7 +405,7 @@ class BatchedWorld:
     def run_summary(self) -> dict:
         pos, vel = self.state.sphere_pos.numpy(), self.state.sphere_vel.numpy()
         surf = self.model.surface
-        return {"collider": "swept (pair BVHs, batched)", "num_envs": self.num_envs,
+        return {"collider": "swept (pair BVHs, batched)", "swept_search": str(self.search), "num_envs": self.num_envs,
                 "spheres_per_env": self.model.spheres_per_env,
                 "surface": {"frames": surf.num_frames, "fps": surf.fps, "faces": surf.num_faces},
                 "memory_bytes": self.model.memory_bytes,

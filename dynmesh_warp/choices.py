@@ -18,7 +18,8 @@ import enum
 
 __all__ = ["StrEnum", "Collider", "SweptSearch", "RebuildEvery", "Playback", "FrameOrder", "Orientation", "UpAxis",
            "Strategy", "NewtonSolver", "PLAYBACK_CODES", "DEFAULT_COLLIDER", "DEFAULT_REBUILD_EVERY",
-           "DEFAULT_SWEPT_SEARCH", "SWEPT_MEASURED_SEARCHES", "SWEPT_TILE_THREADS", "DEFAULT_PLAYBACK",
+           "DEFAULT_SWEPT_SEARCH", "DEFAULT_BATCH_SWEPT_SEARCH", "SWEPT_MEASURED_SEARCHES", "SWEPT_TILE_THREADS",
+           "DEFAULT_PLAYBACK",
            "DEFAULT_FRAME_ORDER", "DEFAULT_ORIENTATION", "DEFAULT_UP_AXIS", "DEFAULT_STRATEGY",
            "DEFAULT_NEWTON_SOLVER", "STRATEGIES", "values", "parse"]
 
@@ -118,6 +119,8 @@ DEFAULT_REBUILD_EVERY = RebuildEvery.STEP
 DEFAULT_SWEPT_SEARCH = {"cpu": SweptSearch.SERIAL, "cuda": SweptSearch.TILED}
 #: the searches ``collider: fixed`` measures as candidates per device kind (none: the default)
 SWEPT_MEASURED_SEARCHES = {"cpu": (), "cuda": (SweptSearch.TILED, SweptSearch.SERIAL)}
+#: the batched world's contact search per device kind (batch.BatchedWorld; docs/envs.md)
+DEFAULT_BATCH_SWEPT_SEARCH = {"cpu": SweptSearch.SERIAL, "cuda": SweptSearch.SERIAL}
 #: threads per sphere of the tiled search
 SWEPT_TILE_THREADS = 64
 DEFAULT_PLAYBACK = Playback.LOOP

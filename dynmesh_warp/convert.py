@@ -654,19 +654,24 @@ def _key_frame(seq: VaryingTopologySequence, key, has_template: bool) -> int:
 def _topology(F: np.ndarray) -> tuple:
     """(connected parts, genus) of a closed triangle mesh given by its faces (genus from the
     Euler characteristic per part: chi = V - E + F = 2 parts - 2 genus; approximate for open
-    meshes)."""
+    meshes). Vertices no face uses are not counted (each would be a part of its own)."""
     import scipy.sparse as sp
     from scipy.sparse.csgraph import connected_components
 
-    F = np.asarray(F, np.int64)
-    used = np.unique(F)
-    e = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
-    ne = len(np.unique(e[:, 0] * (int(used.max()) + 1) + e[:, 1])) if len(F) else 0
-    n = int(used.max()) + 1 if len(used) else 0
-    g = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
-    parts = connected_components(g, directed=False)[1][used]
-    c = len(np.unique(parts))
-    chi = len(used) - ne + len(F)
+    F = np.asarray(F, np.int64).reshape(-1, 3)
+    if not len(F):
+        return 0, 0
+    n = int(F.max()) + 1
+    used = np.zeros(n, bool)
+    used[F.ravel()] = True
+    a = F.T.ravel()  # edges (0,1), (1,2), (2,0) of every face
+    b = F[:, [1, 2, 0]].T.ravel()
+    key = np.minimum(a, b) * n + np.maximum(a, b)
+    key.sort()
+    ne = int(np.count_nonzero(np.diff(key))) + 1
+    g = sp.csr_matrix((np.ones(len(a), np.int8), (a, b)), shape=(n, n))
+    c = connected_components(g, directed=False)[0] - int(n - used.sum())  # unused vertices: parts of their own
+    chi = int(used.sum()) - ne + len(F)
     return c, max(0, (2 * c - chi) // 2)
 
 

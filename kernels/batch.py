@@ -16,7 +16,7 @@ import warp as wp
 from .collide import contact_reach
 from .frames import PLAYBACK_LOOP, blend_pair, wrap_frame
 from .integrate import advance_sphere
-from .swept import box_distance, face_candidate, interpolated_triangle, keep_closest, write_swept_contact
+from .swept import NO_PAIR, box_distance, face_candidate, interpolated_triangle, keep_closest, write_swept_contact
 
 
 @wp.func
@@ -228,6 +228,85 @@ def collide_env_sphere_lanes(
     lane_face[tid] = min_face
     lane_w[tid] = min_w
     lane_n[tid] = acc_n
+
+
+@wp.kernel
+def collide_env_sphere_tiled(
+    # Model:
+    frames: wp.array2d[wp.vec3],
+    indices: wp.array[wp.int32],
+    pair_bvh: wp.array[wp.uint64],
+    pair_lowers: wp.array2d[wp.vec3],
+    pair_uppers: wp.array2d[wp.vec3],
+    sphere_radius: wp.array[float],
+    sphere_env: wp.array[wp.int32],
+    fps: wp.float64,
+    interpolate: int,
+    slices: int,
+    # State in:
+    env_time_in: wp.array[wp.float64],
+    env_playback_in: wp.array[wp.int32],
+    sphere_pos_in: wp.array[wp.vec3],
+    sphere_vel_in: wp.array[wp.vec3],
+    # In:
+    dt: float,
+    extra_speed: float,
+    margin: float,
+    epsilon: float,
+    # Out:
+    lane_dist: wp.array[float],
+    lane_face: wp.array[wp.int32],
+    lane_w: wp.array[wp.vec3],
+    lane_n: wp.array[wp.vec3],
+):
+    """The contact query of each sphere by one thread block (``wp.launch_tiled``, dim (E * S,)),
+    as the single world's ``collide_sphere_swept_tiled``: the block walks the sphere's box query
+    in its env's pair BVH together (``wp.tile_bvh_query_aabb``), each thread evaluates the faces
+    handed to it with the serial rule (box prune against its own closest so far), then the
+    block's minimum distance, the lowest face index at it and the tie-normal sum of the threads
+    within ``epsilon`` of it. Writes one record per sphere ((E * S,) arrays, face -1 when nothing
+    is within reach), resolved by ``resolve_and_integrate_env_spheres`` with one lane."""
+    s, lane = wp.tid()
+    e = sphere_env[s]
+    T = frames.shape[0]
+    k0, k1, alpha = blend_pair(env_time_in[e], fps, T, env_playback_in[e], interpolate)
+    p = sphere_pos_in[s]
+    reach = contact_reach(sphere_radius[s], sphere_vel_in[s], extra_speed, dt, margin)
+    slot = pair_slot(k0, k1, alpha, T, slices)
+    ext = wp.vec3(reach + epsilon)
+    min_dist = reach
+    min_face = int(-1)
+    min_w = wp.vec3(0.0)
+    acc_n = wp.vec3(0.0)
+    query = wp.tile_bvh_query_aabb(pair_bvh[slot], p - ext, p + ext)
+    while wp.tile_query_valid(query):
+        f = wp.untile(wp.tile_bvh_query_next(query))
+        if f >= 0:
+            if box_distance(p, pair_lowers[slot, f], pair_uppers[slot, f]) < min_dist + epsilon:
+                a, b, g = interpolated_triangle(frames, indices, f, k0, k1, alpha)
+                dist, w, wn = face_candidate(p, a, b, g, epsilon)
+                min_dist, min_face, min_w, acc_n = keep_closest(dist, f, w, wn, epsilon, min_dist, min_face, min_w,
+                                                                acc_n)
+    m = wp.tile_min(wp.tile(min_dist))[0]
+    first = NO_PAIR
+    if min_face >= 0 and min_dist == m:
+        first = min_face
+    face = wp.tile_min(wp.tile(first))[0]
+    tie = wp.vec3(0.0)
+    if min_face >= 0 and min_dist < m + epsilon:
+        tie = acc_n
+    n = wp.tile_sum(wp.tile(tie, preserve_type=True))[0]
+    if face == NO_PAIR:
+        if lane == 0:  # nothing within reach
+            lane_dist[s] = reach
+            lane_face[s] = -1
+            lane_w[s] = wp.vec3(0.0)
+            lane_n[s] = wp.vec3(0.0)
+    elif min_face == face and min_dist == m:
+        lane_dist[s] = m
+        lane_face[s] = face
+        lane_w[s] = min_w
+        lane_n[s] = n
 
 
 @wp.kernel

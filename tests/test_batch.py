@@ -24,9 +24,12 @@ def _params():
     return PhysicsParams(restitution=0.3, friction=0.5, ground_height=-0.4)
 
 
-@pytest.mark.parametrize("playback,lanes", [("loop", 1), ("pingpong", 1), ("clamp", 1), ("loop", 4)])
-def test_batched_envs_equal_single_worlds(device, playback, lanes):
-    """... also with the contact query split over lanes (the GPU path), merged in lane order."""
+@pytest.mark.parametrize("playback,lanes,search", [("loop", 1, "serial"), ("pingpong", 1, "serial"),
+                                                   ("clamp", 1, "serial"), ("loop", 4, "serial"),
+                                                   ("loop", 1, "tiled"), ("pingpong", 1, "tiled")])
+def test_batched_envs_equal_single_worlds(device, playback, lanes, search):
+    """... also with the contact query split over lanes (merged in lane order) and with the tiled
+    search (a block per sphere; the single worlds keep the serial search, the reference)."""
     seq = wave_bowl(n=20, frames=10)
     rng = np.random.default_rng(5)
     E, S = 4, 6
@@ -35,11 +38,13 @@ def test_batched_envs_equal_single_worlds(device, playback, lanes):
     times = np.array([0.0, 0.13, 0.37, 0.41 + 10 / 24.0])  # includes a time past the end (loop / turn / hold)
     surf = SurfaceModel(seq, device, playback=playback)
     bm = BatchModel(surf, E, radius, 1.0, _params())
-    bw = BatchedWorld(bm, BatchState(bm, pos, vel, times=times), contact_lanes=lanes)
+    bw = BatchedWorld(bm, BatchState(bm, pos, vel, times=times), contact_lanes=lanes, search=search,
+                      tile_threads=8)
+    assert bw.search == search
     singles = []
     for e in range(E):
         m = Model(SurfaceModel(seq, device, playback=playback), SphereModel(radius, 1.0, device), _params())
-        w = World(m, State(m, pos, vel, t0=float(times[e])), collider="swept")
+        w = World(m, State(m, pos, vel, t0=float(times[e])), collider="swept", swept_search="serial")
         assert w.substeps == bw.substeps
         singles.append(w)
     touched = 0
@@ -145,6 +150,13 @@ def test_batch_needs_a_fixed_surface_and_spheres(device):
     with pytest.raises(ValueError, match="non-finite"):
         BatchState(bm, [[0.0, 0.0, np.nan]])
     assert wp.get_device(bm.device) == wp.get_device(device)
+    st = BatchState(bm, [[0.0, 0.0, 0.5]])
+    with pytest.raises(ValueError, match="swept_search"):
+        BatchedWorld(bm, st, search="nearest")
+    with pytest.raises(ValueError, match="tile_threads"):
+        BatchedWorld(bm, st, search="tiled", tile_threads=0)
+    bm_tiled = BatchModel(SurfaceModel(seq, device), 2, [0.05], 1.0, PhysicsParams(swept_search="tiled"))
+    assert BatchedWorld(bm_tiled, BatchState(bm_tiled, [[0.0, 0.0, 0.5]])).search == "tiled"  # physics.swept_search
 
 
 def test_env_view_shows_one_env_at_its_own_time(device):

@@ -407,6 +407,14 @@ def test_topology_events_name_parts_and_genus():
     t = trimesh.creation.torus(1.0, 0.3)
     two = np.vstack([s.faces, s.faces + len(s.vertices)])
     assert _topology(s.faces) == (1, 0) and _topology(t.faces) == (1, 1) and _topology(two) == (2, 0)
+    # a sphere and a torus, with vertices no face uses between and after them (not parts):
+    # trimesh's own connected components and Euler number as the reference
+    gap = 5
+    mixed = np.vstack([s.faces, t.faces + len(s.vertices) + gap])
+    m = trimesh.Trimesh(np.zeros((int(mixed.max()) + 1 + gap, 3)), mixed, process=False)
+    parts = trimesh.graph.connected_components(m.face_adjacency, min_len=1)
+    chi = len(np.unique(mixed)) - len(m.edges_unique) + len(mixed)
+    assert _topology(mixed) == (len(parts), (2 * len(parts) - chi) // 2) == (2, 1)
     frames = [(s.vertices, s.faces), (np.vstack([s.vertices, s.vertices + 3]), two), (t.vertices, t.faces)]
     ev = _topology_events(VaryingTopologySequence(frames, name="x"))
     assert ev == [(1, "parts 1 -> 2"), (2, "parts 2 -> 1, genus 0 -> 1")]
