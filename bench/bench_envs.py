@@ -39,9 +39,10 @@ def main(argv=None):
     ap.add_argument("--warmup", type=int, default=480,
                     help="steps before timing (2 s: the spheres have landed and ride the surface)")
     ap.add_argument("--time-slices", type=int, default=None, help="slices per frame pair (default: batch.TIME_SLICES)")
-    ap.add_argument("--lanes", type=int, default=None, help="threads per sphere of the contact query (default: batch's)")
-    ap.add_argument("--search", default=None, help="the contact search, serial or tiled (default: the batch's)")
-    ap.add_argument("--tile-threads", type=int, default=None, help="threads per sphere of the tiled search")
+    ap.add_argument("--search", default=None, help="the contact search: serial, tiled, hybrid (default: the batch's)")
+    ap.add_argument("--tile-threads", type=int, default=None, help="threads per block of the tiled/hybrid search")
+    ap.add_argument("--budget", type=int, default=None, help="the hybrid's candidate budget per thread")
+    ap.add_argument("--blocks", type=int, default=None, help="the hybrid's thread blocks")
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
     wp.init()
@@ -60,8 +61,8 @@ def main(argv=None):
         bm = BatchModel(surf, E, np.full(S, r), 1.0, params,
                         **({"time_slices": a.time_slices} if a.time_slices else {}))
         times = np.random.default_rng(1).uniform(0.0, seq.num_frames / seq.fps, E)
-        w = BatchedWorld(bm, BatchState(bm, pos, times=times), contact_lanes=a.lanes, search=a.search,
-                         tile_threads=a.tile_threads)
+        w = BatchedWorld(bm, BatchState(bm, pos, times=times), search=a.search,
+                         tile_threads=a.tile_threads, budget=a.budget, blocks=a.blocks)
         w.step()
         w.capture()
         wp.synchronize_device(device)
@@ -71,8 +72,9 @@ def main(argv=None):
         row = {"num_envs": E, **t, "env_steps_per_s": t["steps_per_s"] * E, "build_s": build_s,
                "cuda_graph": w.graph_captured, "final_finite": bool(np.isfinite(P).all()),
                "in_contact_final": w.contact_count(), "time_slices": bm.time_slices,
-               "contact_lanes": w.lanes.lanes if w.lanes is not None else 1, "swept_search": str(w.search),
-               "tile_threads": w.tile_threads if str(w.search) == "tiled" else None, "memory_bytes": bm.memory_bytes}
+               "swept_search": str(w.search), "tile_threads": w.tile_threads if w.query is not None else None,
+               "hybrid_budget": w.budget if str(w.search) == "hybrid" else None,
+               "hybrid_blocks": w.blocks if str(w.search) == "hybrid" else None, "memory_bytes": bm.memory_bytes}
         res["rows"].append(row)
         print(f"E={E:>6}: {t['steps_per_s']:>10,.0f} steps/s  {row['env_steps_per_s']:>14,.0f} env-steps/s  "
               f"mem/env {bm.memory_bytes['per_env']} B", flush=True)

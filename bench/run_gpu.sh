@@ -3,7 +3,8 @@
 # Usage: bash bench/run_gpu.sh PHASE OUTDIR   (Warp and the wheels already installed in /root/site)
 #   PHASE: step (tests, swept profile, step benchmark) | other (gaussians, metrics, convert,
 #          newton) | probe (graph conversion, 200 frames, the issue-12 10 s target) | eval (full
-#          evaluation table) | table (conversion table) | soak (10^6 steps, paper scene)
+#          evaluation table) | table (conversion table) | soak (10^6 steps, paper scene) |
+#          envs (batched envs: tests, the serial / tiled / hybrid searches in the landing window and after it)
 set -u
 phase=${1:-step}
 out=${2:-bench/results}
@@ -36,6 +37,18 @@ soak)
   resume=""; [ -f "$out/soak_ck.npz" ] && resume="--resume $out/soak_ck.npz"
   timeout -s TERM 540 python3 bench/soak.py --device cuda:0 --steps 1000000 --scenes paper --check-every 1000 \
       --recycle oldest --checkpoint "$out/soak_ck.npz" $resume --out "$out/soak_cuda.json" 2>&1 | grep -v "^Module" | tail -8 ;;
+envs)
+  DYNMESH_TEST_DEVICES=cuda:0 python3 -m pytest -q -p no:cacheprovider tests/test_batch.py > "$out/gpu_tests_batch.log" 2>&1
+  tail -3 "$out/gpu_tests_batch.log"
+  E=1,64,1024,4096,16384,65536
+  for search in serial tiled hybrid; do
+    python3 bench/bench_envs.py --device cuda:0 --envs $E --warmup 40 --steps 80 --search $search \
+        --out "$out/envs_cuda_landing_$search.json" 2>&1 | grep -v "^Module" | tail -7
+  done
+  for search in serial tiled hybrid; do
+    python3 bench/bench_envs.py --device cuda:0 --envs $E --steps 300 --search $search \
+        --out "$out/envs_cuda_$search.json" 2>&1 | grep -v "^Module" | tail -7
+  done ;;
 table)
   python3 bench/conversion_table.py --device cuda:0 --out "$out/conversion_table_cuda.json" 2>&1 | grep -v "^Module" | tail -30 ;;
 esac

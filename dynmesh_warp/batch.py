@@ -23,12 +23,13 @@ import warnings
 import numpy as np
 import warp as wp
 
-from .choices import DEFAULT_BATCH_SWEPT_SEARCH, PLAYBACK_CODES, SWEPT_TILE_THREADS, Playback, SweptSearch, parse
+from .choices import DEFAULT_BATCH_SWEPT_SEARCH, PLAYBACK_CODES, Playback, SweptSearch, parse
 from .kernels.batch import (
     advance_env_clocks,
     collide_and_integrate_env_spheres,
-    collide_env_sphere_lanes,
+    collide_env_heavy_spheres_tiled,
     collide_env_sphere_tiled,
+    collide_env_spheres_bounded,
     compute_pair_bounds,
     resolve_and_integrate_env_spheres,
     reset_env_clocks,
@@ -38,7 +39,8 @@ from .kernels.frames import add_points_offset, update_frame_vertices
 from .world import Contacts, PhysicsParams, SphereModel, SurfaceModel, check_substep_budget
 
 __all__ = ["BatchModel", "BatchState", "BatchedWorld", "step_envs", "required_substeps", "env_clocks", "TIME_SLICES",
-           "CONTACT_LANES", "ContactLanes", "build_batched_world", "EnvView", "EnvGrid"]
+           "BATCH_TILE_THREADS", "HYBRID_BUDGET", "HYBRID_BLOCKS", "ContactQuery",
+           "build_batched_world", "EnvView", "EnvGrid"]
 
 
 #: time slices per frame pair of the pair BVHs: a face's box covers 1/TIME_SLICES of its motion
@@ -47,10 +49,14 @@ __all__ = ["BatchModel", "BatchState", "BatchedWorld", "step_envs", "required_su
 #: and cost 4x the memory (docs/envs.md)
 TIME_SLICES = 1
 
-#: threads per sphere of the contact query on a GPU (collide_env_sphere_lanes) up to
-#: LANES_UP_TO spheres; 1 beyond (the GPU is full of spheres already) and on the CPU
-CONTACT_LANES = 8
-LANES_UP_TO = 8192
+#: threads per sphere of the batch's tiled search (measured on an H100, docs/envs.md: 32 beat
+#: 8, 16 and 64 from 1,024 envs up in the landing window)
+BATCH_TILE_THREADS = 32
+#: the hybrid search: a thread walking a sphere's query hands the sphere to a thread block once
+#: it meets more than HYBRID_BUDGET candidate faces; HYBRID_BLOCKS blocks take the handed-over
+#: spheres (a fixed launch, so the step stays one graph)
+HYBRID_BUDGET = 32
+HYBRID_BLOCKS = 4096
 
 
 def required_substeps(max_speed: float, dt: float, r_min: float) -> int:
@@ -171,28 +177,38 @@ def _clocks(model: BatchModel, times, rates, playback):
     return t, r, m
 
 
-class ContactLanes:
-    """Scratch of the lane-split contact query (GPU path): per sphere and lane the closest
-    feature found, its weights and tie-normal sum ((E * S * lanes,) arrays)."""
+def _at_least(value, default: int, name: str, lo: int) -> int:
+    v = int(default if value is None else value)
+    if v < lo:
+        raise ValueError(f"{name} must be >= {lo}, got {value}")
+    return v
 
-    def __init__(self, count: int, lanes: int, device):
-        n = max(count * lanes, 1)
-        self.lanes = int(lanes)
+
+class ContactQuery:
+    """Scratch of the split contact query (tiled and hybrid searches): per sphere the closest
+    feature found, its weights and tie-normal sum ((E * S,) arrays); the hybrid's handed-over
+    spheres (``heavy``, count in ``heavy_count[0]``)."""
+
+    def __init__(self, count: int, device):
+        n = max(count, 1)
         self.dist = wp.zeros(n, dtype=float, device=device)
         self.face = wp.zeros(n, dtype=wp.int32, device=device)
         self.w = wp.zeros(n, dtype=wp.vec3, device=device)
         self.n = wp.zeros(n, dtype=wp.vec3, device=device)
+        self.heavy = wp.zeros(n, dtype=wp.int32, device=device)
+        self.heavy_count = wp.zeros(1, dtype=wp.int32, device=device)
 
 
 def step_envs(model: BatchModel, state: BatchState, contacts: Contacts, sub_dt: float, substeps: int,
-              extra_speed: float, lanes: ContactLanes | None = None, search: SweptSearch = SweptSearch.SERIAL,
-              tile_threads: int = SWEPT_TILE_THREADS):
+              extra_speed: float, search: SweptSearch = SweptSearch.SERIAL, query: ContactQuery | None = None,
+              tile_threads: int = BATCH_TILE_THREADS, budget: int = HYBRID_BUDGET, blocks: int = HYBRID_BLOCKS):
     """The step of every env: ``substeps`` sub-steps of contact + integration at each env's
-    own time, each followed by the env clocks' advance. The contact query of a sphere: with
-    ``search`` tiled, one block of ``tile_threads`` threads per sphere walks it together
-    (``lanes``: a one-lane scratch); with ``lanes`` of more than one lane it is split over
-    that many threads; else one thread per sphere (a sphere near a finely meshed surface has
-    hundreds of candidate faces). Device work only (capturable)."""
+    own time, each followed by the env clocks' advance. The contact query of a sphere (a sphere
+    near a finely meshed surface has hundreds of candidate faces): ``serial``, one thread per
+    sphere (fused with the integration); ``tiled``, one block of ``tile_threads`` threads per
+    sphere; ``hybrid``, one thread per sphere, and a sphere with more than ``budget`` candidates
+    handed to one of ``blocks`` blocks. The split searches need ``query`` (scratch). Device work
+    only (capturable)."""
     m, s, c, p = model, state, contacts, model.params
     surf = m.surface
     ground = int(p.ground_height is not None)
@@ -200,39 +216,35 @@ def step_envs(model: BatchModel, state: BatchState, contacts: Contacts, sub_dt: 
     g = wp.vec3(*[float(x) for x in p.gravity])
     n = m.spheres.count
     physics = [g, p.restitution, p.friction, p.rest_speed, ground, gh, surf.fps, int(surf.interpolate)]
-    query = [surf.frames, surf.indices, m.pair_bvh, m.pair_lowers, m.pair_uppers, m.spheres.radius, m.sphere_env,
-             surf.fps, int(surf.interpolate), m.time_slices, s.env_time, s.env_playback, s.sphere_pos, s.sphere_vel]
-    tiled = search == SweptSearch.TILED
-    if tiled and lanes is None:
-        raise ValueError("the tiled search needs a one-lane ContactLanes scratch")
+    args = [surf.frames, surf.indices, m.pair_bvh, m.pair_lowers, m.pair_uppers, m.spheres.radius, m.sphere_env,
+            surf.fps, int(surf.interpolate), m.time_slices, s.env_time, s.env_playback, s.sphere_pos, s.sphere_vel]
+    tail = [sub_dt, extra_speed, p.margin, m.epsilon]
+    if search != SweptSearch.SERIAL and query is None:
+        raise ValueError(f"the {search} search needs a ContactQuery scratch")
     for _ in range(substeps):
-        if tiled:
-            if n:
-                wp.launch_tiled(collide_env_sphere_tiled, dim=n,
-                                inputs=[*query, sub_dt, extra_speed, p.margin, m.epsilon],
-                                outputs=[lanes.dist, lanes.face, lanes.w, lanes.n], block_dim=int(tile_threads),
-                                device=m.device)
-            wp.launch(resolve_and_integrate_env_spheres, n,
-                      inputs=[surf.frames, surf.indices, m.spheres.radius, m.spheres.inv_mass, m.sphere_env,
-                              *physics, s.env_time, s.env_rate, s.env_playback, 1, lanes.dist,
-                              lanes.face, lanes.w, lanes.n, sub_dt, extra_speed, p.margin, m.epsilon],
-                      outputs=[s.sphere_pos, s.sphere_vel, c.face, c.point, c.normal, c.depth, c.velocity],
-                      device=m.device)
-        elif lanes is None or lanes.lanes <= 1:
+        if search == SweptSearch.SERIAL:
             wp.launch(collide_and_integrate_env_spheres, n,
                       inputs=[surf.frames, surf.indices, m.pair_bvh, m.pair_lowers, m.pair_uppers, m.spheres.radius,
-                              m.spheres.inv_mass, m.sphere_env, *physics, m.time_slices, s.env_time, s.env_rate, s.env_playback,
-                              sub_dt, extra_speed, p.margin, m.epsilon],
+                              m.spheres.inv_mass, m.sphere_env, *physics, m.time_slices, s.env_time, s.env_rate,
+                              s.env_playback, *tail],
                       outputs=[s.sphere_pos, s.sphere_vel, c.face, c.point, c.normal, c.depth, c.velocity],
                       device=m.device)
         else:
-            wp.launch(collide_env_sphere_lanes, n * lanes.lanes,
-                      inputs=[*query, lanes.lanes, sub_dt, extra_speed, p.margin, m.epsilon],
-                      outputs=[lanes.dist, lanes.face, lanes.w, lanes.n], device=m.device)
+            records = [query.dist, query.face, query.w, query.n]
+            if search == SweptSearch.TILED:
+                wp.launch_tiled(collide_env_sphere_tiled, dim=n, inputs=[*args, *tail], outputs=records,
+                                block_dim=int(tile_threads), device=m.device)
+            else:
+                query.heavy_count.zero_()
+                wp.launch(collide_env_spheres_bounded, n, inputs=[*args, int(budget), *tail],
+                          outputs=[*records, query.heavy_count, query.heavy], device=m.device)
+                nb = max(1, min(int(blocks), n))
+                wp.launch_tiled(collide_env_heavy_spheres_tiled, dim=nb,
+                                inputs=[*args, query.heavy_count, query.heavy, nb, *tail], outputs=records,
+                                block_dim=int(tile_threads), device=m.device)
             wp.launch(resolve_and_integrate_env_spheres, n,
                       inputs=[surf.frames, surf.indices, m.spheres.radius, m.spheres.inv_mass, m.sphere_env,
-                              *physics, s.env_time, s.env_rate, s.env_playback, lanes.lanes, lanes.dist,
-                              lanes.face, lanes.w, lanes.n, sub_dt, extra_speed, p.margin, m.epsilon],
+                              *physics, s.env_time, s.env_rate, s.env_playback, *records, *tail],
                       outputs=[s.sphere_pos, s.sphere_vel, c.face, c.point, c.normal, c.depth, c.velocity],
                       device=m.device)
         wp.launch(advance_env_clocks, m.num_envs, inputs=[s.env_rate, wp.float64(sub_dt)], outputs=[s.env_time],
@@ -245,13 +257,12 @@ class BatchedWorld:
     (``max_rate``). ``reset`` sets chosen envs' spheres and clocks on the device.
 
     ``search``: the contact query's search (``choices.SweptSearch``; None: ``physics.swept_search``
-    or ``DEFAULT_BATCH_SWEPT_SEARCH`` for the device); ``tile_threads``: the tiled search's block;
-    ``contact_lanes``: threads per sphere of the serial search (None: the measured rule,
-    ``CONTACT_LANES`` up to ``LANES_UP_TO`` spheres on a GPU)."""
+    or ``DEFAULT_BATCH_SWEPT_SEARCH`` for the device); ``tile_threads`` (the tiled and hybrid
+    searches' block), ``budget`` and ``blocks`` (the hybrid's hand-over): see :func:`step_envs`."""
 
     def __init__(self, model: BatchModel, state: BatchState, max_rate: float | None = None,
-                 use_graph: bool | None = None, contact_lanes: int | None = None,
-                 search: str | SweptSearch | None = None, tile_threads: int | None = None):
+                 use_graph: bool | None = None, search: str | SweptSearch | None = None,
+                 tile_threads: int | None = None, budget: int | None = None, blocks: int | None = None):
         self.model, self.state = model, state
         self.device = model.device
         p = model.params
@@ -273,19 +284,10 @@ class BatchedWorld:
         search = search if search is not None else p.swept_search
         self.search = (DEFAULT_BATCH_SWEPT_SEARCH["cuda" if self.device.is_cuda else "cpu"] if search is None
                        else parse(SweptSearch, search, "swept_search"))
-        self.tile_threads = int(SWEPT_TILE_THREADS if tile_threads is None else tile_threads)
-        if self.tile_threads < 1:
-            raise ValueError(f"tile_threads must be >= 1, got {tile_threads}")
-        if self.search == SweptSearch.TILED:
-            lanes = 1
-        else:
-            if contact_lanes is None:  # measured (docs/envs.md): lanes pay off until the GPU is full of spheres
-                contact_lanes = CONTACT_LANES if (self.device.is_cuda and model.spheres.count <= LANES_UP_TO) else 1
-            lanes = int(contact_lanes)
-            if lanes < 1:
-                raise ValueError(f"contact_lanes must be >= 1, got {contact_lanes}")
-        self.lanes = (ContactLanes(model.spheres.count, lanes, self.device)
-                      if lanes > 1 or self.search == SweptSearch.TILED else None)
+        self.tile_threads = _at_least(tile_threads, BATCH_TILE_THREADS, "tile_threads", 1)
+        self.budget = _at_least(budget, HYBRID_BUDGET, "budget", 0)
+        self.blocks = _at_least(blocks, HYBRID_BLOCKS, "blocks", 1)
+        self.query = ContactQuery(model.spheres.count, self.device) if self.search != SweptSearch.SERIAL else None
         self.use_graph = self.device.is_cuda if use_graph is None else bool(use_graph) and self.device.is_cuda
         self._graph = None
         self.step_count = 0
@@ -302,8 +304,8 @@ class BatchedWorld:
         return self.model.params.dt
 
     def _step_body(self):
-        step_envs(self.model, self.state, self.contacts, self.sub_dt, self.substeps, self.extra_speed, self.lanes,
-                  self.search, self.tile_threads)
+        step_envs(self.model, self.state, self.contacts, self.sub_dt, self.substeps, self.extra_speed, self.search,
+                  self.query, self.tile_threads, self.budget, self.blocks)
 
     def capture(self):
         if not self.use_graph or self._graph is not None:

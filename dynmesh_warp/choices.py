@@ -54,6 +54,9 @@ class SweptSearch(StrEnum):
     SERIAL = "serial"
     #: one thread block per sphere walks the query together and reduces (the CUDA default)
     TILED = "tiled"
+    #: one thread per sphere; a sphere with more candidate faces than a budget is handed to a
+    #: thread block (batched worlds only: docs/envs.md)
+    HYBRID = "hybrid"
 
 
 class RebuildEvery(StrEnum):

@@ -630,6 +630,9 @@ class SweptCollider(ColliderBase):
         search = model.params.swept_search if search is None else search
         self.search = (DEFAULT_SWEPT_SEARCH["cuda" if d.is_cuda else "cpu"] if search is None
                        else parse(SweptSearch, search, "swept_search"))
+        if self.search == SweptSearch.HYBRID:
+            raise ValueError("swept_search 'hybrid' is a batched world's search (envs); a single world's swept "
+                             "collider searches 'serial' or 'tiled'")
         self.tile_threads = int(tile_threads or SWEPT_TILE_THREADS)
         self.lowers = wp.zeros(surf.num_faces, dtype=wp.vec3, device=d)
         self.uppers = wp.zeros(surf.num_faces, dtype=wp.vec3, device=d)

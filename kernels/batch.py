@@ -54,28 +54,24 @@ def pair_slot(k0: int, k1: int, alpha: float, num_frames: int, slices: int) -> i
 def closest_on_pair_bvh(
     bvh: wp.uint64, lowers: wp.array2d[wp.vec3], uppers: wp.array2d[wp.vec3], slot: int,
     frames: wp.array2d[wp.vec3], indices: wp.array[wp.int32], k0: int, k1: int, alpha: float, p: wp.vec3,
-    reach: float, epsilon: float, lanes: int, lane: int,
+    reach: float, epsilon: float,
 ):
     """Closest feature of the interpolated surface within ``reach`` of p over the candidates of
-    slot's BVH (every lanes-th one from ``lane``), skipping a face whose box is farther than the
+    slot's BVH, skipping a face whose box is farther than the
     closest feature so far (+ epsilon): the box contains the face at every blend of the slot,
     so a skipped face could neither be closer nor tie; the result is that of evaluating all."""
     ext = wp.vec3(reach + epsilon)
     query = wp.bvh_query_aabb(bvh, p - ext, p + ext)
     f = int(0)
-    c = int(0)
     min_dist = reach
     min_face = int(-1)
     min_w = wp.vec3(0.0)
     acc_n = wp.vec3(0.0)
     while wp.bvh_query_next(query, f):
-        if c % lanes == lane:
-            if box_distance(p, lowers[slot, f], uppers[slot, f]) < min_dist + epsilon:
-                a, b, g = interpolated_triangle(frames, indices, f, k0, k1, alpha)
-                dist, w, wn = face_candidate(p, a, b, g, epsilon)
-                min_dist, min_face, min_w, acc_n = keep_closest(dist, f, w, wn, epsilon, min_dist, min_face, min_w,
-                                                                acc_n)
-        c += 1
+        if box_distance(p, lowers[slot, f], uppers[slot, f]) < min_dist + epsilon:
+            a, b, g = interpolated_triangle(frames, indices, f, k0, k1, alpha)
+            dist, w, wn = face_candidate(p, a, b, g, epsilon)
+            min_dist, min_face, min_w, acc_n = keep_closest(dist, f, w, wn, epsilon, min_dist, min_face, min_w, acc_n)
     return min_dist, min_face, min_w, acc_n
 
 
@@ -169,7 +165,7 @@ def collide_and_integrate_env_spheres(
     reach = contact_reach(r, v, extra_speed, dt, margin)
     slot = pair_slot(k0, k1, alpha, T, slices)
     min_dist, min_face, min_w, acc_n = closest_on_pair_bvh(pair_bvh[slot], pair_lowers, pair_uppers, slot, frames,
-                                                           indices, k0, k1, alpha, p, reach, epsilon, 1, 0)
+                                                           indices, k0, k1, alpha, p, reach, epsilon)
     write_swept_contact(s, p, r, reach, min_dist, min_face, min_w, acc_n, frames, indices, k0, k1, alpha,
                         fps * wp.float64(rate), contact_face, contact_point, contact_normal, contact_depth,
                         contact_velocity)
@@ -179,94 +175,24 @@ def collide_and_integrate_env_spheres(
     sphere_vel_out[s] = v
 
 
-@wp.kernel
-def collide_env_sphere_lanes(
-    # Model:
-    frames: wp.array2d[wp.vec3],
-    indices: wp.array[wp.int32],
-    pair_bvh: wp.array[wp.uint64],
-    pair_lowers: wp.array2d[wp.vec3],
-    pair_uppers: wp.array2d[wp.vec3],
-    sphere_radius: wp.array[float],
-    sphere_env: wp.array[wp.int32],
-    fps: wp.float64,
-    interpolate: int,
-    slices: int,
-    # State in:
-    env_time_in: wp.array[wp.float64],
-    env_playback_in: wp.array[wp.int32],
-    sphere_pos_in: wp.array[wp.vec3],
-    sphere_vel_in: wp.array[wp.vec3],
-    # In:
-    lanes: int,
-    dt: float,
-    extra_speed: float,
-    margin: float,
-    epsilon: float,
-    # Out:
-    lane_dist: wp.array[float],
-    lane_face: wp.array[wp.int32],
-    lane_w: wp.array[wp.vec3],
-    lane_n: wp.array[wp.vec3],
+@wp.func
+def find_closest_tiled(
+    s: int, lane: int,
+    frames: wp.array2d[wp.vec3], indices: wp.array[wp.int32], pair_bvh: wp.array[wp.uint64],
+    pair_lowers: wp.array2d[wp.vec3], pair_uppers: wp.array2d[wp.vec3], sphere_radius: wp.array[float],
+    sphere_env: wp.array[wp.int32], fps: wp.float64, interpolate: int, slices: int,
+    env_time_in: wp.array[wp.float64], env_playback_in: wp.array[wp.int32], sphere_pos_in: wp.array[wp.vec3],
+    sphere_vel_in: wp.array[wp.vec3], dt: float, extra_speed: float, margin: float, epsilon: float,
+    query_dist: wp.array[float], query_face: wp.array[wp.int32], query_w: wp.array[wp.vec3],
+    query_n: wp.array[wp.vec3],
 ):
-    """The contact query of each sphere split over ``lanes`` threads (GPU path): every lane walks
-    the same BVH query (neighbouring threads: the same memory, no divergence) and evaluates every
-    lanes-th candidate face, keeping its closest feature and tie-normal sum. (E * S * lanes,)
-    outputs, merged in lane order by ``resolve_and_integrate_env_spheres``."""
-    tid = wp.tid()
-    s = tid / lanes
-    lane = tid - s * lanes
-    e = sphere_env[s]
-    T = frames.shape[0]
-    k0, k1, alpha = blend_pair(env_time_in[e], fps, T, env_playback_in[e], interpolate)
-    p = sphere_pos_in[s]
-    reach = contact_reach(sphere_radius[s], sphere_vel_in[s], extra_speed, dt, margin)
-    slot = pair_slot(k0, k1, alpha, T, slices)
-    min_dist, min_face, min_w, acc_n = closest_on_pair_bvh(pair_bvh[slot], pair_lowers, pair_uppers, slot, frames,
-                                                           indices, k0, k1, alpha, p, reach, epsilon, lanes, lane)
-    lane_dist[tid] = min_dist
-    lane_face[tid] = min_face
-    lane_w[tid] = min_w
-    lane_n[tid] = acc_n
-
-
-@wp.kernel
-def collide_env_sphere_tiled(
-    # Model:
-    frames: wp.array2d[wp.vec3],
-    indices: wp.array[wp.int32],
-    pair_bvh: wp.array[wp.uint64],
-    pair_lowers: wp.array2d[wp.vec3],
-    pair_uppers: wp.array2d[wp.vec3],
-    sphere_radius: wp.array[float],
-    sphere_env: wp.array[wp.int32],
-    fps: wp.float64,
-    interpolate: int,
-    slices: int,
-    # State in:
-    env_time_in: wp.array[wp.float64],
-    env_playback_in: wp.array[wp.int32],
-    sphere_pos_in: wp.array[wp.vec3],
-    sphere_vel_in: wp.array[wp.vec3],
-    # In:
-    dt: float,
-    extra_speed: float,
-    margin: float,
-    epsilon: float,
-    # Out:
-    lane_dist: wp.array[float],
-    lane_face: wp.array[wp.int32],
-    lane_w: wp.array[wp.vec3],
-    lane_n: wp.array[wp.vec3],
-):
-    """The contact query of each sphere by one thread block (``wp.launch_tiled``, dim (E * S,)),
-    as the single world's ``collide_sphere_swept_tiled``: the block walks the sphere's box query
-    in its env's pair BVH together (``wp.tile_bvh_query_aabb``), each thread evaluates the faces
-    handed to it with the serial rule (box prune against its own closest so far), then the
-    block's minimum distance, the lowest face index at it and the tie-normal sum of the threads
-    within ``epsilon`` of it. Writes one record per sphere ((E * S,) arrays, face -1 when nothing
-    is within reach), resolved by ``resolve_and_integrate_env_spheres`` with one lane."""
-    s, lane = wp.tid()
+    """Sphere s's contact query by the calling thread block (``lane`` = the thread's index in
+    it; every thread of the block calls this for the same s): as the single world's
+    ``collide_sphere_swept_tiled`` the block walks the box query in s's env's pair BVH together
+    (``wp.tile_bvh_query_aabb``), each thread evaluates the faces handed to it with the serial
+    rule (box prune against its own closest so far), then the block's minimum distance, the
+    lowest face index at it and the tie-normal sum of the threads within ``epsilon`` of it are
+    written to s's record (face -1 when nothing is within reach)."""
     e = sphere_env[s]
     T = frames.shape[0]
     k0, k1, alpha = blend_pair(env_time_in[e], fps, T, env_playback_in[e], interpolate)
@@ -298,15 +224,166 @@ def collide_env_sphere_tiled(
     n = wp.tile_sum(wp.tile(tie, preserve_type=True))[0]
     if face == NO_PAIR:
         if lane == 0:  # nothing within reach
-            lane_dist[s] = reach
-            lane_face[s] = -1
-            lane_w[s] = wp.vec3(0.0)
-            lane_n[s] = wp.vec3(0.0)
+            query_dist[s] = reach
+            query_face[s] = -1
+            query_w[s] = wp.vec3(0.0)
+            query_n[s] = wp.vec3(0.0)
     elif min_face == face and min_dist == m:
-        lane_dist[s] = m
-        lane_face[s] = face
-        lane_w[s] = min_w
-        lane_n[s] = n
+        query_dist[s] = m
+        query_face[s] = face
+        query_w[s] = min_w
+        query_n[s] = n
+
+
+@wp.kernel
+def collide_env_sphere_tiled(
+    # Model:
+    frames: wp.array2d[wp.vec3],
+    indices: wp.array[wp.int32],
+    pair_bvh: wp.array[wp.uint64],
+    pair_lowers: wp.array2d[wp.vec3],
+    pair_uppers: wp.array2d[wp.vec3],
+    sphere_radius: wp.array[float],
+    sphere_env: wp.array[wp.int32],
+    fps: wp.float64,
+    interpolate: int,
+    slices: int,
+    # State in:
+    env_time_in: wp.array[wp.float64],
+    env_playback_in: wp.array[wp.int32],
+    sphere_pos_in: wp.array[wp.vec3],
+    sphere_vel_in: wp.array[wp.vec3],
+    # In:
+    dt: float,
+    extra_speed: float,
+    margin: float,
+    epsilon: float,
+    # Out:
+    query_dist: wp.array[float],
+    query_face: wp.array[wp.int32],
+    query_w: wp.array[wp.vec3],
+    query_n: wp.array[wp.vec3],
+):
+    """The contact query of every sphere by one thread block each (``wp.launch_tiled``, dim
+    (E * S,)): ``find_closest_tiled``; the records are resolved by
+    ``resolve_and_integrate_env_spheres``."""
+    s, lane = wp.tid()
+    find_closest_tiled(s, lane, frames, indices, pair_bvh, pair_lowers, pair_uppers, sphere_radius, sphere_env, fps,
+                       interpolate, slices, env_time_in, env_playback_in, sphere_pos_in, sphere_vel_in, dt,
+                       extra_speed, margin, epsilon, query_dist, query_face, query_w, query_n)
+
+
+@wp.kernel
+def collide_env_spheres_bounded(
+    # Model:
+    frames: wp.array2d[wp.vec3],
+    indices: wp.array[wp.int32],
+    pair_bvh: wp.array[wp.uint64],
+    pair_lowers: wp.array2d[wp.vec3],
+    pair_uppers: wp.array2d[wp.vec3],
+    sphere_radius: wp.array[float],
+    sphere_env: wp.array[wp.int32],
+    fps: wp.float64,
+    interpolate: int,
+    slices: int,
+    # State in:
+    env_time_in: wp.array[wp.float64],
+    env_playback_in: wp.array[wp.int32],
+    sphere_pos_in: wp.array[wp.vec3],
+    sphere_vel_in: wp.array[wp.vec3],
+    # In:
+    budget: int,
+    dt: float,
+    extra_speed: float,
+    margin: float,
+    epsilon: float,
+    # Out:
+    query_dist: wp.array[float],
+    query_face: wp.array[wp.int32],
+    query_w: wp.array[wp.vec3],
+    query_n: wp.array[wp.vec3],
+    heavy_count: wp.array[wp.int32],
+    heavy: wp.array[wp.int32],
+):
+    """The contact query of each sphere by one thread (serial), for the spheres whose box query
+    holds at most ``budget`` candidate faces; a sphere with more stops at the first one over
+    and is appended to ``heavy`` (count in ``heavy_count[0]``, zeroed before the launch) for
+    ``collide_env_heavy_spheres_tiled``. (E * S,) records as ``collide_env_sphere_tiled``."""
+    s = wp.tid()
+    e = sphere_env[s]
+    T = frames.shape[0]
+    k0, k1, alpha = blend_pair(env_time_in[e], fps, T, env_playback_in[e], interpolate)
+    p = sphere_pos_in[s]
+    reach = contact_reach(sphere_radius[s], sphere_vel_in[s], extra_speed, dt, margin)
+    slot = pair_slot(k0, k1, alpha, T, slices)
+    ext = wp.vec3(reach + epsilon)
+    query = wp.bvh_query_aabb(pair_bvh[slot], p - ext, p + ext)
+    f = int(0)
+    c = int(0)
+    min_dist = reach
+    min_face = int(-1)
+    min_w = wp.vec3(0.0)
+    acc_n = wp.vec3(0.0)
+    while wp.bvh_query_next(query, f):
+        c += 1
+        if c > budget:
+            break
+        if box_distance(p, pair_lowers[slot, f], pair_uppers[slot, f]) < min_dist + epsilon:
+            a, b, g = interpolated_triangle(frames, indices, f, k0, k1, alpha)
+            dist, w, wn = face_candidate(p, a, b, g, epsilon)
+            min_dist, min_face, min_w, acc_n = keep_closest(dist, f, w, wn, epsilon, min_dist, min_face, min_w, acc_n)
+    if c > budget:
+        heavy[wp.atomic_add(heavy_count, 0, 1)] = s
+    else:
+        query_dist[s] = min_dist
+        query_face[s] = min_face
+        query_w[s] = min_w
+        query_n[s] = acc_n
+
+
+@wp.kernel
+def collide_env_heavy_spheres_tiled(
+    # Model:
+    frames: wp.array2d[wp.vec3],
+    indices: wp.array[wp.int32],
+    pair_bvh: wp.array[wp.uint64],
+    pair_lowers: wp.array2d[wp.vec3],
+    pair_uppers: wp.array2d[wp.vec3],
+    sphere_radius: wp.array[float],
+    sphere_env: wp.array[wp.int32],
+    fps: wp.float64,
+    interpolate: int,
+    slices: int,
+    # State in:
+    env_time_in: wp.array[wp.float64],
+    env_playback_in: wp.array[wp.int32],
+    sphere_pos_in: wp.array[wp.vec3],
+    sphere_vel_in: wp.array[wp.vec3],
+    # In:
+    heavy_count: wp.array[wp.int32],
+    heavy: wp.array[wp.int32],
+    num_blocks: int,
+    dt: float,
+    extra_speed: float,
+    margin: float,
+    epsilon: float,
+    # Out:
+    query_dist: wp.array[float],
+    query_face: wp.array[wp.int32],
+    query_w: wp.array[wp.vec3],
+    query_n: wp.array[wp.vec3],
+):
+    """The contact query of the spheres ``collide_env_spheres_bounded`` left (``heavy``), by
+    ``num_blocks`` thread blocks (``wp.launch_tiled``, dim (num_blocks,)) each taking every
+    num_blocks-th of them: ``find_closest_tiled``. A fixed launch whatever the count (capturable)."""
+    b, lane = wp.tid()
+    count = heavy_count[0]
+    i = b
+    while i < count:
+        find_closest_tiled(heavy[i], lane, frames, indices, pair_bvh, pair_lowers, pair_uppers, sphere_radius,
+                           sphere_env, fps, interpolate, slices, env_time_in, env_playback_in, sphere_pos_in,
+                           sphere_vel_in, dt, extra_speed, margin, epsilon, query_dist, query_face, query_w, query_n)
+        i += num_blocks
 
 
 @wp.kernel
@@ -330,11 +407,10 @@ def resolve_and_integrate_env_spheres(
     env_rate_in: wp.array[float],
     env_playback_in: wp.array[wp.int32],
     # In:
-    lanes: int,
-    lane_dist: wp.array[float],
-    lane_face: wp.array[wp.int32],
-    lane_w: wp.array[wp.vec3],
-    lane_n: wp.array[wp.vec3],
+    query_dist: wp.array[float],
+    query_face: wp.array[wp.int32],
+    query_w: wp.array[wp.vec3],
+    query_n: wp.array[wp.vec3],
     dt: float,
     extra_speed: float,
     margin: float,
@@ -349,9 +425,9 @@ def resolve_and_integrate_env_spheres(
     contact_depth: wp.array[float],
     contact_velocity: wp.array[wp.vec3],
 ):
-    """Merge each sphere's lanes in lane order with the sequential tie rule (a lane's result is a
-    candidate whose normal term is the lane's tie sum), then the contact and the continuous
-    response, as ``collide_and_integrate_env_spheres``. One thread per sphere."""
+    """The contact of each sphere from its query record (``collide_env_sphere_tiled`` or the
+    hybrid pair ``collide_env_spheres_bounded`` / ``collide_env_heavy_spheres_tiled``), then the
+    continuous response, as ``collide_and_integrate_env_spheres``. One thread per sphere."""
     s = wp.tid()
     e = sphere_env[s]
     T = frames.shape[0]
@@ -360,18 +436,9 @@ def resolve_and_integrate_env_spheres(
     v = sphere_vel_out[s]
     r = sphere_radius[s]
     reach = contact_reach(r, v, extra_speed, dt, margin)
-    min_dist = reach
-    min_face = int(-1)
-    min_w = wp.vec3(0.0)
-    acc_n = wp.vec3(0.0)
-    for lane in range(lanes):
-        j = s * lanes + lane
-        if lane_face[j] >= 0:
-            min_dist, min_face, min_w, acc_n = keep_closest(
-                lane_dist[j], lane_face[j], lane_w[j], lane_n[j], epsilon, min_dist, min_face, min_w, acc_n)
-    write_swept_contact(s, p, r, reach, min_dist, min_face, min_w, acc_n, frames, indices, k0, k1, alpha,
-                        fps * wp.float64(env_rate_in[e]), contact_face, contact_point, contact_normal, contact_depth,
-                        contact_velocity)
+    write_swept_contact(s, p, r, reach, query_dist[s], query_face[s], query_w[s], query_n[s], frames, indices, k0, k1,
+                        alpha, fps * wp.float64(env_rate_in[e]), contact_face, contact_point, contact_normal,
+                        contact_depth, contact_velocity)
     p, v = advance_sphere(p, v, inv_mass[s], r, gravity, dt, restitution, friction, rest_speed, ground,
                           ground_height, contact_face[s], contact_normal[s], contact_depth[s], contact_velocity[s])
     sphere_pos_out[s] = p

@@ -24,12 +24,14 @@ def _params():
     return PhysicsParams(restitution=0.3, friction=0.5, ground_height=-0.4)
 
 
-@pytest.mark.parametrize("playback,lanes,search", [("loop", 1, "serial"), ("pingpong", 1, "serial"),
-                                                   ("clamp", 1, "serial"), ("loop", 4, "serial"),
-                                                   ("loop", 1, "tiled"), ("pingpong", 1, "tiled")])
-def test_batched_envs_equal_single_worlds(device, playback, lanes, search):
-    """... also with the contact query split over lanes (merged in lane order) and with the tiled
-    search (a block per sphere; the single worlds keep the serial search, the reference)."""
+@pytest.mark.parametrize("playback,search,budget", [("loop", "serial", None), ("pingpong", "serial", None),
+                                                    ("clamp", "serial", None), ("loop", "tiled", None),
+                                                    ("pingpong", "tiled", None), ("loop", "hybrid", 2),
+                                                    ("clamp", "hybrid", 0)])
+def test_batched_envs_equal_single_worlds(device, playback, search, budget):
+    """... with each search: serial, tiled (a block per sphere) and hybrid (a thread per sphere,
+    handing a sphere with more than ``budget`` candidate faces to a block; budget 0 hands over
+    every sphere near the surface). The single worlds keep the serial search, the reference."""
     seq = wave_bowl(n=20, frames=10)
     rng = np.random.default_rng(5)
     E, S = 4, 6
@@ -38,8 +40,8 @@ def test_batched_envs_equal_single_worlds(device, playback, lanes, search):
     times = np.array([0.0, 0.13, 0.37, 0.41 + 10 / 24.0])  # includes a time past the end (loop / turn / hold)
     surf = SurfaceModel(seq, device, playback=playback)
     bm = BatchModel(surf, E, radius, 1.0, _params())
-    bw = BatchedWorld(bm, BatchState(bm, pos, vel, times=times), contact_lanes=lanes, search=search,
-                      tile_threads=8)
+    bw = BatchedWorld(bm, BatchState(bm, pos, vel, times=times), search=search, tile_threads=8,
+                      budget=budget, blocks=3)
     assert bw.search == search
     singles = []
     for e in range(E):
@@ -47,13 +49,15 @@ def test_batched_envs_equal_single_worlds(device, playback, lanes, search):
         w = World(m, State(m, pos, vel, t0=float(times[e])), collider="swept", swept_search="serial")
         assert w.substeps == bw.substeps
         singles.append(w)
-    touched = 0
+    touched = handed = 0
     for i in range(150):
         bw.step()
         for w in singles:
             w.step()
         if i % 10 == 9:
             touched += int((bw.contacts.face.numpy() >= 0).sum())
+        if search == "hybrid":
+            handed += int(bw.query.heavy_count.numpy()[0])
     P = bw.sphere_positions()
     for e, w in enumerate(singles):
         np.testing.assert_allclose(P[e], w.sphere_positions(), atol=2e-5, err_msg=f"env {e}")
@@ -61,6 +65,8 @@ def test_batched_envs_equal_single_worlds(device, playback, lanes, search):
         assert bw.env_times()[e] == pytest.approx(w.time, abs=1e-12)
     assert touched > 0  # the spheres did meet the moving surface
     assert not np.allclose(P[0], P[1])  # different clocks, different outcomes
+    if search == "hybrid":
+        assert handed > 0  # spheres did go to the blocks
 
 
 def test_reset_touches_only_the_named_envs(device):
