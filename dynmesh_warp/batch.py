@@ -39,7 +39,7 @@ from .kernels.frames import add_points_offset, update_frame_vertices
 from .world import Contacts, PhysicsParams, SphereModel, SurfaceModel, check_substep_budget
 
 __all__ = ["BatchModel", "BatchState", "BatchedWorld", "step_envs", "required_substeps", "env_clocks", "TIME_SLICES",
-           "BATCH_TILE_THREADS", "HYBRID_BUDGET", "HYBRID_BLOCKS", "ContactQuery",
+           "BATCH_TILE_THREADS", "HYBRID_BUDGET", "default_batch_search", "HYBRID_BLOCKS", "ContactQuery",
            "build_batched_world", "EnvView", "EnvGrid"]
 
 
@@ -53,9 +53,9 @@ TIME_SLICES = 1
 #: 8, 16 and 64 from 1,024 envs up in the landing window)
 BATCH_TILE_THREADS = 32
 #: the hybrid search: a thread walking a sphere's query hands the sphere to a thread block once
-#: it meets more than HYBRID_BUDGET candidate faces; HYBRID_BLOCKS blocks take the handed-over
-#: spheres (a fixed launch, so the step stays one graph)
-HYBRID_BUDGET = 32
+#: it meets more than HYBRID_BUDGET candidate faces (8 beat 32 and 128 in the landing window,
+#: H100); HYBRID_BLOCKS blocks take the handed-over spheres (a fixed launch: one graph)
+HYBRID_BUDGET = 8
 HYBRID_BLOCKS = 4096
 
 
@@ -177,6 +177,15 @@ def _clocks(model: BatchModel, times, rates, playback):
     return t, r, m
 
 
+def default_batch_search(kind: str, spheres: int) -> SweptSearch:
+    """The batch's contact search for ``spheres`` spheres on a device of ``kind`` ("cpu" or
+    "cuda"): the first row of ``DEFAULT_BATCH_SWEPT_SEARCH[kind]`` that fits."""
+    for up_to, search in DEFAULT_BATCH_SWEPT_SEARCH[kind]:
+        if up_to is None or spheres <= up_to:
+            return search
+    raise AssertionError("DEFAULT_BATCH_SWEPT_SEARCH has no catch-all row")
+
+
 def _at_least(value, default: int, name: str, lo: int) -> int:
     v = int(default if value is None else value)
     if v < lo:
@@ -282,7 +291,7 @@ class BatchedWorld:
         self.extra_speed = float(np.linalg.norm(p.gravity)) * self.sub_dt
         self.contacts = Contacts(model.spheres.count, device=self.device)
         search = search if search is not None else p.swept_search
-        self.search = (DEFAULT_BATCH_SWEPT_SEARCH["cuda" if self.device.is_cuda else "cpu"] if search is None
+        self.search = (default_batch_search("cuda" if self.device.is_cuda else "cpu", model.spheres.count) if search is None
                        else parse(SweptSearch, search, "swept_search"))
         self.tile_threads = _at_least(tile_threads, BATCH_TILE_THREADS, "tile_threads", 1)
         self.budget = _at_least(budget, HYBRID_BUDGET, "budget", 0)

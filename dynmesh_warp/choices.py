@@ -122,8 +122,14 @@ DEFAULT_REBUILD_EVERY = RebuildEvery.STEP
 DEFAULT_SWEPT_SEARCH = {"cpu": SweptSearch.SERIAL, "cuda": SweptSearch.TILED}
 #: the searches ``collider: fixed`` measures as candidates per device kind (none: the default)
 SWEPT_MEASURED_SEARCHES = {"cpu": (), "cuda": (SweptSearch.TILED, SweptSearch.SERIAL)}
-#: the batched world's contact search per device kind (batch.BatchedWorld; docs/envs.md)
-DEFAULT_BATCH_SWEPT_SEARCH = {"cpu": SweptSearch.SERIAL, "cuda": SweptSearch.SERIAL}
+#: the batched world's contact search per device kind by its sphere count (batch.BatchedWorld):
+#: (up to this many spheres or None for any, search) rows, the first that fits. Measured on an
+#: H100 (docs/envs.md): the tiled search is 1.9-4x serial while the spheres touch the horse and
+#: 0.54-0.89x when they are off it; from 8,192 spheres on, the hybrid is 1.8x / 0.89x serial
+#: (20,480 spheres); from 32,768 on serial is fastest in both
+DEFAULT_BATCH_SWEPT_SEARCH = {"cpu": ((None, SweptSearch.SERIAL),),
+                              "cuda": ((8192, SweptSearch.TILED), (32768, SweptSearch.HYBRID),
+                                       (None, SweptSearch.SERIAL))}
 #: threads per sphere of the tiled search
 SWEPT_TILE_THREADS = 64
 DEFAULT_PLAYBACK = Playback.LOOP

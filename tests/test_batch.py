@@ -146,6 +146,17 @@ def _wrap(k, T, playback):
     return k % T
 
 
+def test_default_search_follows_the_sphere_count():
+    from dynmesh_warp.batch import default_batch_search
+    from dynmesh_warp.choices import DEFAULT_BATCH_SWEPT_SEARCH
+
+    assert all(default_batch_search("cpu", n) == "serial" for n in (1, 10**4, 10**6))
+    rows = DEFAULT_BATCH_SWEPT_SEARCH["cuda"]
+    assert rows[-1][0] is None  # a catch-all row
+    for (up_to, search), (_, after) in zip(rows, rows[1:]):
+        assert default_batch_search("cuda", up_to) == search and default_batch_search("cuda", up_to + 1) == after
+
+
 def test_batch_needs_a_fixed_surface_and_spheres(device):
     seq = wave_bowl(n=8, frames=4)
     with pytest.raises(ValueError, match="num_envs"):
