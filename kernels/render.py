@@ -512,15 +512,25 @@ def rasterize_gaussians(
     expected_depth: wp.array3d[float],
 ):
     """Front-to-back compositing of the depth-sorted splats of each pixel's tile (launch
-    (C, H, W); the splats in key order from ``gather_sorted_splats``); the nearest ray-cast
+    (C, tiles_y * tiles_x * TILE * TILE): one thread per pixel in tile-major order; the splats
+    in key order from ``gather_sorted_splats``); the nearest ray-cast
     sphere, if any, is opaque at its depth (Lambert-shaded from the camera) and hides what lies
     behind it. rgb (C, H, W) in [0, 1] over ``background``; alpha = 1 - transmittance;
     expected_depth = sum(w z) / sum(w) [m] (0 where nothing). spheres_per_camera 0: every
     camera sees every sphere; S > 0: camera c sees spheres c * S .. c * S + S - 1 (per env)."""
-    c, py, px = wp.tid()
+    c, k = wp.tid()
     tiles_x = (width + TILE - 1) / TILE
     tiles_y = (height + TILE - 1) / TILE
-    tile = c * tiles_x * tiles_y + (py / TILE) * tiles_x + (px / TILE)
+    # tile-major pixel order: each run of TILE * TILE threads (a 256-thread block) is one tile,
+    # so a warp's threads walk the same splat list (the same loads, the same trip count)
+    t = k / (TILE * TILE)
+    local = k - t * (TILE * TILE)
+    ty = t / tiles_x
+    px = (t - ty * tiles_x) * TILE + local % TILE
+    py = ty * TILE + local / TILE
+    if px >= width or py >= height:
+        return
+    tile = c * tiles_x * tiles_y + t
     x = float(px) + 0.5
     y = float(py) + 0.5
     # the pixel's ray in world, for the spheres: camera z along the ray per unit length
