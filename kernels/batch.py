@@ -16,7 +16,15 @@ import warp as wp
 from .collide import contact_reach
 from .frames import PLAYBACK_LOOP, blend_pair, wrap_frame
 from .integrate import advance_sphere
-from .swept import NO_PAIR, box_distance, face_candidate, interpolated_triangle, keep_closest, write_swept_contact
+from .swept import (
+    NO_PAIR,
+    box_distance,
+    face_candidate,
+    interpolated_triangle,
+    keep_closest,
+    reduce_closest_over_block,
+    write_swept_contact,
+)
 
 
 @wp.func
@@ -213,15 +221,7 @@ def find_closest_tiled(
                 dist, w, wn = face_candidate(p, a, b, g, epsilon)
                 min_dist, min_face, min_w, acc_n = keep_closest(dist, f, w, wn, epsilon, min_dist, min_face, min_w,
                                                                 acc_n)
-    m = wp.tile_min(wp.tile(min_dist))[0]
-    first = NO_PAIR
-    if min_face >= 0 and min_dist == m:
-        first = min_face
-    face = wp.tile_min(wp.tile(first))[0]
-    tie = wp.vec3(0.0)
-    if min_face >= 0 and min_dist < m + epsilon:
-        tie = acc_n
-    n = wp.tile_sum(wp.tile(tie, preserve_type=True))[0]
+    m, face, n = reduce_closest_over_block(min_dist, min_face, acc_n, epsilon)
     if face == NO_PAIR:
         if lane == 0:  # nothing within reach
             query_dist[s] = reach

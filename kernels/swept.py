@@ -187,6 +187,25 @@ def closest_on_swept_bvh(
 
 
 @wp.func
+def reduce_closest_over_block(min_dist: float, min_face: int, acc_n: wp.vec3, epsilon: float):
+    """The tiled searches' block reduction (every thread of the block calls it with its own
+    closest so far): (the block's minimum distance, the lowest face index at exactly that
+    distance or NO_PAIR when no thread found a face, the sum of the tie-normal terms of the
+    threads whose closest lies within ``epsilon`` of the minimum). The thread whose
+    ``min_face`` equals the returned face holds that face's weights."""
+    m = wp.tile_min(wp.tile(min_dist))[0]
+    first = NO_PAIR
+    if min_face >= 0 and min_dist == m:
+        first = min_face
+    face = wp.tile_min(wp.tile(first))[0]
+    tie = wp.vec3(0.0)
+    if min_face >= 0 and min_dist < m + epsilon:
+        tie = acc_n
+    n = wp.tile_sum(wp.tile(tie, preserve_type=True))[0]
+    return m, face, n
+
+
+@wp.func
 def write_swept_contact(
     s: int, p: wp.vec3, r: float, reach: float, min_dist: float, min_face: int, min_w: wp.vec3, acc_n: wp.vec3,
     frames: wp.array2d[wp.vec3], indices: wp.array[wp.int32], k0: int, k1: int, alpha: float,
@@ -324,15 +343,7 @@ def collide_sphere_swept_tiled(
                 dist, w, wn = face_candidate(p, a, b, e, epsilon)
                 min_dist, min_face, min_w, acc_n = keep_closest(dist, f, w, wn, epsilon, min_dist, min_face, min_w,
                                                                 acc_n)
-    m = wp.tile_min(wp.tile(min_dist))[0]
-    first = NO_PAIR
-    if min_face >= 0 and min_dist == m:
-        first = min_face
-    face = wp.tile_min(wp.tile(first))[0]
-    tie = wp.vec3(0.0)
-    if min_face >= 0 and min_dist < m + epsilon:
-        tie = acc_n
-    n = wp.tile_sum(wp.tile(tie, preserve_type=True))[0]
+    m, face, n = reduce_closest_over_block(min_dist, min_face, acc_n, epsilon)
     if face == NO_PAIR:
         if lane == 0:  # nothing within reach: the no-contact record
             write_swept_contact(s, p, r, reach, reach, -1, min_w, n, frames, indices, k0, k1, alpha, fps,
