@@ -279,3 +279,10 @@ def test_bad_swept_search_is_refused_naming_the_field():
     with pytest.raises(ValueError, match="swept_search"):
         SweptCollider(model, State(model, [[0, 0, 1], [0.2, 0, 1]]), World(model, State(model, [[0, 0, 1], [0.2, 0, 1]]),
                                                                              collider="refit").ctx, search="pairs")
+    # the batch's hybrid search is not a single world's: refused naming the field, also from
+    # the scene's physics.swept_search
+    with pytest.raises(ValueError, match="swept_search 'hybrid'"):
+        World(model, State(model, [[0, 0, 1], [0.2, 0, 1]]), collider="swept", swept_search="hybrid")
+    model.params.swept_search = "hybrid"
+    with pytest.raises(ValueError, match="swept_search 'hybrid'"):
+        World(model, State(model, [[0, 0, 1], [0.2, 0, 1]]), collider="swept")
