@@ -18,7 +18,8 @@ import enum
 
 __all__ = ["StrEnum", "Collider", "SweptSearch", "RebuildEvery", "Playback", "FrameOrder", "Orientation", "UpAxis",
            "Strategy", "NewtonSolver", "PLAYBACK_CODES", "DEFAULT_COLLIDER", "DEFAULT_REBUILD_EVERY",
-           "DEFAULT_SWEPT_SEARCH", "DEFAULT_BATCH_SWEPT_SEARCH", "SWEPT_MEASURED_SEARCHES", "SWEPT_TILE_THREADS",
+           "DEFAULT_SWEPT_SEARCH", "DEFAULT_BATCH_SWEPT_SEARCH", "SWEPT_MEASURED_SEARCHES", "SWEPT_FACES_MAX_SPHERES",
+           "SWEPT_TILE_THREADS",
            "DEFAULT_PLAYBACK",
            "DEFAULT_FRAME_ORDER", "DEFAULT_ORIENTATION", "DEFAULT_UP_AXIS", "DEFAULT_STRATEGY",
            "DEFAULT_NEWTON_SOLVER", "STRATEGIES", "values", "parse"]
@@ -57,6 +58,9 @@ class SweptSearch(StrEnum):
     #: one thread per sphere; a sphere with more candidate faces than a budget is handed to a
     #: thread block (batched worlds only: docs/envs.md)
     HYBRID = "hybrid"
+    #: one thread per face tests every sphere (no BVH walk: few spheres on large meshes; single
+    #: worlds only)
+    FACES = "faces"
 
 
 class RebuildEvery(StrEnum):
@@ -121,7 +125,10 @@ DEFAULT_REBUILD_EVERY = RebuildEvery.STEP
 #: the swept collider's search per device kind (a CPU thread block is one thread: serial there)
 DEFAULT_SWEPT_SEARCH = {"cpu": SweptSearch.SERIAL, "cuda": SweptSearch.TILED}
 #: the searches ``collider: fixed`` measures as candidates per device kind (none: the default)
-SWEPT_MEASURED_SEARCHES = {"cpu": (), "cuda": (SweptSearch.TILED, SweptSearch.SERIAL)}
+SWEPT_MEASURED_SEARCHES = {"cpu": (), "cuda": (SweptSearch.TILED, SweptSearch.SERIAL, SweptSearch.FACES)}
+#: the face-parallel search is measured by ``fixed`` only up to this many spheres (its work is
+#: faces x spheres per step)
+SWEPT_FACES_MAX_SPHERES = 64
 #: the batched world's contact search per device kind by its sphere count (batch.BatchedWorld):
 #: (up to this many spheres or None for any, search) rows, the first that fits. Measured on an
 #: H100 (docs/envs.md): the tiled search is 1.9-4x serial while the spheres touch the horse and

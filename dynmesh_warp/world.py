@@ -22,10 +22,14 @@ from .kernels.frames import update_frame_vertices
 from .kernels.geometry import compute_face_normals
 from .kernels.integrate import integrate_spheres
 from .kernels.swept import (
+    NO_KEY,
     collide_sphere_swept,
     collide_sphere_swept_tiled,
     compute_swept_bounds,
     detect_frame_change,
+    find_closest_per_face,
+    sum_tie_normals_per_face,
+    write_closest_per_sphere,
 )
 from .choices import (
     DEFAULT_COLLIDER,
@@ -33,6 +37,7 @@ from .choices import (
     DEFAULT_REBUILD_EVERY,
     DEFAULT_SWEPT_SEARCH,
     PLAYBACK_CODES,
+    SWEPT_FACES_MAX_SPHERES,
     SWEPT_MEASURED_SEARCHES,
     SWEPT_TILE_THREADS,
     Collider,
@@ -616,6 +621,11 @@ class SweptCollider(ColliderBase):
     together and reduces (``wp.tile_bvh_query_aabb``), so a sphere with thousands of faces in
     reach costs tens of dependent loads, not thousands (issue 14). Both give the serial rule's
     contacts (the tiled one picks the lowest face index among exactly equal distances).
+    ``faces``: no BVH walk; one thread per face tests every sphere and the closest candidate per
+    sphere is an atomic minimum (three launches: ``find_closest_per_face``,
+    ``sum_tie_normals_per_face``, ``write_closest_per_sphere``); its work is one pass over the
+    faces' boxes per step times the sphere count, for few spheres on large meshes, where a
+    sphere's box holds hundreds of faces; the BVH is not refit then.
     Measured per search, and the searches tried and dropped: docs/benchmarks.md.
     """
 
@@ -634,6 +644,7 @@ class SweptCollider(ColliderBase):
             raise ValueError("swept_search 'hybrid' is a batched world's search (envs); a single world's swept "
                              "collider searches 'serial' or 'tiled'")
         self.tile_threads = int(tile_threads or SWEPT_TILE_THREADS)
+        self.resize(model, state, ctx)
         self.lowers = wp.zeros(surf.num_faces, dtype=wp.vec3, device=d)
         self.uppers = wp.zeros(surf.num_faces, dtype=wp.vec3, device=d)
         self.compute_bounds(model, state, ctx)
@@ -649,7 +660,15 @@ class SweptCollider(ColliderBase):
 
     def refit_frame(self, model: Model, state: State, ctx: StepContext):
         self.compute_bounds(model, state, ctx)
-        self.bvh.refit()
+        if self.search != SweptSearch.FACES:  # the face-parallel search reads the boxes only
+            self.bvh.refit()
+
+    def resize(self, model: Model, state: State, ctx: StepContext):
+        """The face-parallel search's per-sphere scratch: the closest key (NO_KEY between steps)
+        and the tie-normal sum."""
+        n = max(model.spheres.count, 1) if self.search == SweptSearch.FACES else 0
+        self.best_key = wp.full(n, NO_KEY, dtype=wp.int64, device=ctx.device)
+        self.tie_normal = wp.zeros(n, dtype=wp.vec3, device=ctx.device)
 
     def update(self, model: Model, state: State, ctx: StepContext):
         """Refit if the clock's frame pair changed (``State.frame_changed``: set by the previous
@@ -677,7 +696,17 @@ class SweptCollider(ColliderBase):
                   self.bvh.id, self.lowers, self.uppers, surf.fps, surf.playback, int(surf.interpolate),
                   self.epsilon, ctx.sub_dt, ctx.extra_speed, m.params.margin]
         outputs = [c.face, c.point, c.normal, c.depth, c.velocity]
-        if self.search == SweptSearch.TILED:
+        if self.search == SweptSearch.FACES:
+            faces = [surf.frames, surf.indices, m.spheres.radius, s.sim_time, s.sphere_pos, s.sphere_vel,
+                     self.lowers, self.uppers, surf.fps, surf.playback, int(surf.interpolate), self.epsilon,
+                     ctx.sub_dt, ctx.extra_speed, m.params.margin]
+            ctx.launch(find_closest_per_face, surf.num_faces, faces, [self.best_key])
+            ctx.launch(sum_tie_normals_per_face, surf.num_faces, [*faces, self.best_key], [self.tie_normal])
+            ctx.launch(write_closest_per_sphere, m.spheres.count,
+                       [surf.frames, surf.indices, m.spheres.radius, s.sim_time, s.sphere_pos, s.sphere_vel, surf.fps,
+                        surf.playback, int(surf.interpolate), self.epsilon, ctx.sub_dt, ctx.extra_speed,
+                        m.params.margin, self.best_key, self.tie_normal], outputs)
+        elif self.search == SweptSearch.TILED:
             if m.spheres.count:
                 wp.launch_tiled(collide_sphere_swept_tiled, dim=m.spheres.count, inputs=inputs, outputs=outputs,
                                 block_dim=self.tile_threads, device=ctx.device)
@@ -823,6 +852,8 @@ class World:
         Records the costs in ``collider_costs``."""
         searches = () if model.params.swept_search is not None else \
             SWEPT_MEASURED_SEARCHES["cuda" if self.device.is_cuda else "cpu"]
+        if model.spheres.count > SWEPT_FACES_MAX_SPHERES:  # its work grows as faces x spheres
+            searches = tuple(x for x in searches if x != SweptSearch.FACES)
         trials = []
         for c in candidates:
             trials += [f"{c}/{s}" for s in searches] if c == Collider.SWEPT and searches else [c]

@@ -21,6 +21,13 @@ from .geometry import closest_point_on_triangle
 NO_DIST = wp.constant(1.0e30)
 #: no face at the minimum (the tiled search's block reduction over face indices)
 NO_PAIR = wp.constant(2147483647)
+#: no candidate in a sphere's key (the face-parallel search's per-sphere atomic minimum)
+NO_KEY = wp.constant(wp.int64(9223372036854775807))
+#: the face-parallel key: a candidate's distance in KEY_QUANTA steps of the sphere's reach, then
+#: its face index in the low FACE_BITS bits (the minimum key: the least distance, then the
+#: lowest face index; distances closer than reach / 2^30 count as equal)
+KEY_QUANTA = wp.constant(wp.float64(1073741824.0))
+FACE_BITS = wp.constant(wp.int64(4294967296))
 
 
 @wp.kernel
@@ -287,6 +294,162 @@ def collide_sphere_swept(
                                                             reach, epsilon)
     write_swept_contact(s, p, r, reach, min_dist, min_face, min_w, acc_n, frames, indices, k0, k1, alpha, fps,
                         contact_face, contact_point, contact_normal, contact_depth, contact_velocity)
+
+
+@wp.func
+def face_key(dist: float, reach: float, f: int) -> wp.int64:
+    """The face-parallel search's key of candidate face f at ``dist`` < ``reach`` [m]."""
+    q = wp.int64(wp.float64(dist) / wp.float64(reach) * KEY_QUANTA)
+    return q * FACE_BITS + wp.int64(f)
+
+
+@wp.kernel
+def find_closest_per_face(
+    # Model:
+    frames: wp.array2d[wp.vec3],
+    indices: wp.array[wp.int32],
+    sphere_radius: wp.array[float],
+    # State in:
+    sim_time_in: wp.array[wp.float64],
+    sphere_pos_in: wp.array[wp.vec3],
+    sphere_vel_in: wp.array[wp.vec3],
+    # In:
+    lowers: wp.array[wp.vec3],
+    uppers: wp.array[wp.vec3],
+    fps: wp.float64,
+    mode: int,
+    interpolate: int,
+    epsilon: float,
+    dt: float,
+    extra_speed: float,
+    margin: float,
+    # Out:
+    best_key: wp.array[wp.int64],
+):
+    """The face-parallel search, pass 1 (launch (M,), for few spheres on large meshes): each
+    face tests every sphere; where its swept box is within the sphere's reach (+ epsilon) the
+    interpolated triangle is evaluated and, closer than the reach, its ``face_key`` goes into the
+    sphere's atomic minimum ``best_key`` (S,) (NO_KEY before the pass). No BVH: the work is one
+    read of the faces' boxes, whatever the spheres' neighbourhood holds."""
+    f = wp.tid()
+    lo = lowers[f]
+    hi = uppers[f]
+    k0, k1, alpha = blend_pair(sim_time_in[0], fps, frames.shape[0], mode, interpolate)
+    have = int(0)
+    a = wp.vec3(0.0)
+    b = wp.vec3(0.0)
+    e = wp.vec3(0.0)
+    for s in range(sphere_pos_in.shape[0]):
+        p = sphere_pos_in[s]
+        reach = contact_reach(sphere_radius[s], sphere_vel_in[s], extra_speed, dt, margin)
+        if box_distance(p, lo, hi) < reach + epsilon:
+            if have == 0:
+                a, b, e = interpolated_triangle(frames, indices, f, k0, k1, alpha)
+                have = 1
+            dist, w, wn = face_candidate(p, a, b, e, epsilon)
+            if dist < reach:
+                wp.atomic_min(best_key, s, face_key(dist, reach, f))
+
+
+@wp.kernel
+def sum_tie_normals_per_face(
+    # Model:
+    frames: wp.array2d[wp.vec3],
+    indices: wp.array[wp.int32],
+    sphere_radius: wp.array[float],
+    # State in:
+    sim_time_in: wp.array[wp.float64],
+    sphere_pos_in: wp.array[wp.vec3],
+    sphere_vel_in: wp.array[wp.vec3],
+    # In:
+    lowers: wp.array[wp.vec3],
+    uppers: wp.array[wp.vec3],
+    fps: wp.float64,
+    mode: int,
+    interpolate: int,
+    epsilon: float,
+    dt: float,
+    extra_speed: float,
+    margin: float,
+    best_key: wp.array[wp.int64],
+    # Out:
+    tie_normal: wp.array[wp.vec3],
+):
+    """The face-parallel search, pass 2 (launch (M,)): every face within ``epsilon`` of a
+    sphere's closest distance (pass 1's key; the key's quantum, reach / 2^30, added) adds its
+    angle-weighted normal term to the sphere's ``tie_normal`` (S,) (zero before the pass): the
+    pseudo-normal of the serial rule's ties."""
+    f = wp.tid()
+    lo = lowers[f]
+    hi = uppers[f]
+    k0, k1, alpha = blend_pair(sim_time_in[0], fps, frames.shape[0], mode, interpolate)
+    have = int(0)
+    a = wp.vec3(0.0)
+    b = wp.vec3(0.0)
+    e = wp.vec3(0.0)
+    for s in range(sphere_pos_in.shape[0]):
+        key = best_key[s]
+        if key != NO_KEY:
+            p = sphere_pos_in[s]
+            reach = contact_reach(sphere_radius[s], sphere_vel_in[s], extra_speed, dt, margin)
+            if box_distance(p, lo, hi) < reach + epsilon:
+                if have == 0:
+                    a, b, e = interpolated_triangle(frames, indices, f, k0, k1, alpha)
+                    have = 1
+                dist, w, wn = face_candidate(p, a, b, e, epsilon)
+                bound = wp.float64(key / FACE_BITS + wp.int64(1)) / KEY_QUANTA * wp.float64(reach)
+                if wp.float64(dist) < bound + wp.float64(epsilon):
+                    wp.atomic_add(tie_normal, s, wn)
+
+
+@wp.kernel
+def write_closest_per_sphere(
+    # Model:
+    frames: wp.array2d[wp.vec3],
+    indices: wp.array[wp.int32],
+    sphere_radius: wp.array[float],
+    # State in:
+    sim_time_in: wp.array[wp.float64],
+    sphere_pos_in: wp.array[wp.vec3],
+    sphere_vel_in: wp.array[wp.vec3],
+    # In:
+    fps: wp.float64,
+    mode: int,
+    interpolate: int,
+    epsilon: float,
+    dt: float,
+    extra_speed: float,
+    margin: float,
+    # In, reset for the next step:
+    best_key_in_out: wp.array[wp.int64],
+    tie_normal_in_out: wp.array[wp.vec3],
+    # Out:
+    contact_face: wp.array[wp.int32],
+    contact_point: wp.array[wp.vec3],
+    contact_normal: wp.array[wp.vec3],
+    contact_depth: wp.array[float],
+    contact_velocity: wp.array[wp.vec3],
+):
+    """The face-parallel search, pass 3 (launch (S,)): each sphere's contact from its key's
+    face (the closest point recomputed) and tie-normal sum, as ``collide_sphere_swept``; then
+    the key and the sum are reset (NO_KEY, zero) for the next step's passes."""
+    s = wp.tid()
+    p = sphere_pos_in[s]
+    r = sphere_radius[s]
+    reach = contact_reach(r, sphere_vel_in[s], extra_speed, dt, margin)
+    k0, k1, alpha = blend_pair(sim_time_in[0], fps, frames.shape[0], mode, interpolate)
+    key = best_key_in_out[s]
+    face = int(-1)
+    dist = reach
+    w = wp.vec3(0.0)
+    if key != NO_KEY:
+        face = int(key - (key / FACE_BITS) * FACE_BITS)
+        a, b, e = interpolated_triangle(frames, indices, face, k0, k1, alpha)
+        dist, w, wn = face_candidate(p, a, b, e, epsilon)
+    write_swept_contact(s, p, r, reach, dist, face, w, tie_normal_in_out[s], frames, indices, k0, k1, alpha, fps,
+                        contact_face, contact_point, contact_normal, contact_depth, contact_velocity)
+    best_key_in_out[s] = NO_KEY
+    tie_normal_in_out[s] = wp.vec3(0.0)
 
 
 @wp.kernel

@@ -45,7 +45,8 @@ def test_swept_contacts_equal_refit_reference(make_seq):
         radius = rng.uniform(0.02, 0.06, S).astype(np.float32)
         ref, *swept = _worlds(seq, pos, vel, radius, t0, [
             ("refit", None), ("swept", {"search": "serial"}), ("swept", {"search": "tiled", "tile_threads": 64}),
-            ("swept", {"search": "tiled", "tile_threads": 8}), ("swept", {"search": "tiled", "tile_threads": 1})])
+            ("swept", {"search": "tiled", "tile_threads": 8}), ("swept", {"search": "tiled", "tile_threads": 1}),
+            ("swept", {"search": "faces"})])
         c_ref = _contacts_at(ref)
         for w in swept:
             c = _contacts_at(w)
@@ -67,7 +68,7 @@ def test_swept_contacts_equal_refit_reference(make_seq):
     assert beyond > 10  # and the second search box was needed for some
 
 
-@pytest.mark.parametrize("search", [None, "serial", "tiled"])
+@pytest.mark.parametrize("search", [None, "serial", "tiled", "faces"])
 def test_swept_world_matches_refit_world_trajectories(search):
     """Over 240 steps (24 frame changes: the swept boxes and their tree refit each time)."""
     seq = wave_bowl(n=24, frames=12)
@@ -202,8 +203,9 @@ def test_swept_search_with_hundreds_of_faces_per_sphere():
     pos = np.c_[xy, z].astype(np.float32)
     vel = rng.normal(scale=0.3, size=(S, 3)).astype(np.float32)
     radius = np.full(S, 0.1, np.float32)
-    ref, serial, tiled = _worlds(seq, pos, vel, radius, 0.0, [
-        ("refit", None), ("swept", {"search": "serial"}), ("swept", {"search": "tiled", "tile_threads": 16})])
+    ref, serial, tiled, faces = _worlds(seq, pos, vel, radius, 0.0, [
+        ("refit", None), ("swept", {"search": "serial"}), ("swept", {"search": "tiled", "tile_threads": 16}),
+        ("swept", {"search": "faces"})])
     c_ref = _contacts_at(ref)
     lo, hi = serial.collider.lowers.numpy(), serial.collider.uppers.numpy()
     reach = radius + 1e-3
@@ -211,7 +213,7 @@ def test_swept_search_with_hundreds_of_faces_per_sphere():
     assert min(in_box) > 256  # hundreds of faces in every sphere's reach box
     m = c_ref["face"] >= 0
     assert m.sum() >= 4
-    for w in (serial, tiled):
+    for w in (serial, tiled, faces):
         c = _contacts_at(w)
         np.testing.assert_array_equal(c["face"] >= 0, m)
         np.testing.assert_allclose(c["point"][m], c_ref["point"][m], atol=2e-5)
@@ -241,6 +243,14 @@ def test_fixed_measures_each_swept_search_and_keeps_the_fastest(monkeypatch):
         assert seen[-1] == ("swept/tiled", "swept/serial", "refit")
         assert w.collider.name == "swept" and w.collider.search == search and w.swept_search == search
         assert w.run_summary()["swept_search"] == search
+    # the face-parallel search is a candidate only up to SWEPT_FACES_MAX_SPHERES spheres
+    monkeypatch.setitem(world_mod.SWEPT_MEASURED_SEARCHES, TEST_DEVICE.split(":")[0], ("tiled", "faces"))
+    monkeypatch.setattr(world_mod, "measure_colliders", lambda m, s, c: (seen.append(tuple(c)), {k: 1.0 for k in c})[1])
+    World(_blob_model(), State(_blob_model(), [[0, 0, 1], [0.2, 0, 1]]))
+    assert seen[-1] == ("swept/tiled", "swept/faces", "refit")
+    monkeypatch.setattr(world_mod, "SWEPT_FACES_MAX_SPHERES", 1)
+    World(_blob_model(), State(_blob_model(), [[0, 0, 1], [0.2, 0, 1]]))
+    assert seen[-1] == ("swept/tiled", "refit")
     model = _blob_model()
     model.params.swept_search = "serial"
     monkeypatch.setattr(world_mod, "measure_colliders", lambda m, s, c: (seen.append(tuple(c)), {"swept": 1.0, "refit": 2.0})[1])
