@@ -15,7 +15,10 @@ float32 / int32; nothing for caches, atomics or launch overhead), per collider:
   triangles read from two frames) and the integration; once per reconstruction frame (every
   ``steps_per_frame`` steps, amortised): the swept boxes (read 2 x 12 N + 12 M, write 24 M) and
   the pair BVH's refit (as above);
-- ``fixed``: the collider it chose.
+- ``swept/faces`` (the face-parallel search): every step two reads of the M swept boxes (24 B
+  each: the closest-key pass and the tie-normal pass) and the integration; once per frame the
+  swept boxes as above, with no tree refit;
+- ``fixed``: the collider (and swept search) it chose.
 
 Bandwidth: the H100 SXM's nominal HBM3 bandwidth, 3.35 TB/s (``--peak-tb-s``); a plain
 device-to-device copy reaches about 90 % of it, so a fraction near 0.9 is the floor.
@@ -23,7 +26,7 @@ device-to-device copy reaches about 90 % of it, so a fraction near 0.9 is the fl
     python bench/roofline.py bench/results/step_fixed_choice_cuda_h100.json
     python bench/roofline.py bench/results/step_cuda_h100_tiled.json --out bench/results/roofline_cuda_h100_tiled.json
 
-(The swept searches, serial or tiled, move the same lower-bound bytes: they differ in how many
+(The tree searches, serial or tiled, move the same lower-bound bytes: they differ in how many
 dependent loads one sphere's query waits on, not in the bytes that must move.)
 """
 
@@ -37,6 +40,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
+sys.path.insert(0, str(ROOT))
 
 from common import RESULTS, write_json  # noqa: E402
 
@@ -64,6 +68,9 @@ def step_bytes(collider: str, N: int, M: int, S: int, steps_per_frame: float) ->
     if collider == "swept":
         per_frame = (24.0 * N + 12.0 * M + 24.0 * M) + (24.0 * M + tree_bytes(M))
         return per_frame / steps_per_frame + S * query_bytes(M, True) + integrate
+    if collider == "swept/faces":
+        per_frame = 24.0 * N + 12.0 * M + 24.0 * M
+        return per_frame / steps_per_frame + 2 * 24.0 * M + integrate
     raise ValueError(collider)
 
 
@@ -83,7 +90,12 @@ def main(argv=None):
         col = r["collider"]
         if col.startswith("rebuild"):
             continue
-        model = (r.get("chosen", col) if col == "fixed" else col).partition("/")[0]  # swept/serial: swept's bytes
+        if col == "fixed":
+            col_model = r.get("chosen", col) + (f"/{r['swept_search']}" if r.get("swept_search") else "")
+        else:
+            col_model = col
+        # swept/serial, swept/tiled: the tree searches' bytes (swept); swept/faces its own
+        model = col_model if col_model == "swept/faces" else col_model.partition("/")[0]
         b = step_bytes(model, int(r["vertices"]), int(r["faces"]), int(r["spheres"]), a.steps_per_frame)
         floor_us = 1e6 * b / peak
         out.append({"vertices": r["vertices"], "faces": r["faces"], "spheres": r["spheres"], "collider": col,
