@@ -29,7 +29,7 @@ from .kernels.swept import (
     detect_frame_change,
     find_closest_per_face,
     sum_tie_normals_per_face,
-    write_closest_per_sphere,
+    resolve_closest_per_sphere,
 )
 from .choices import (
     DEFAULT_COLLIDER,
@@ -623,7 +623,7 @@ class SweptCollider(ColliderBase):
     contacts (the tiled one picks the lowest face index among exactly equal distances).
     ``faces``: no BVH walk; one thread per face tests every sphere and the closest candidate per
     sphere is an atomic minimum (three launches: ``find_closest_per_face``,
-    ``sum_tie_normals_per_face``, ``write_closest_per_sphere``); its work is one pass over the
+    ``sum_tie_normals_per_face``, ``resolve_closest_per_sphere``); its work is one pass over the
     faces' boxes per step times the sphere count, for few spheres on large meshes, where a
     sphere's box holds hundreds of faces; the BVH is not refit then.
     Measured per search, and the searches tried and dropped: docs/benchmarks.md.
@@ -702,7 +702,7 @@ class SweptCollider(ColliderBase):
                      ctx.sub_dt, ctx.extra_speed, m.params.margin]
             ctx.launch(find_closest_per_face, surf.num_faces, faces, [self.best_key])
             ctx.launch(sum_tie_normals_per_face, surf.num_faces, [*faces, self.best_key], [self.tie_normal])
-            ctx.launch(write_closest_per_sphere, m.spheres.count,
+            ctx.launch(resolve_closest_per_sphere, m.spheres.count,
                        [surf.frames, surf.indices, m.spheres.radius, s.sim_time, s.sphere_pos, s.sphere_vel, surf.fps,
                         surf.playback, int(surf.interpolate), self.epsilon, ctx.sub_dt, ctx.extra_speed,
                         m.params.margin, self.best_key, self.tie_normal], outputs)

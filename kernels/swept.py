@@ -403,7 +403,7 @@ def sum_tie_normals_per_face(
 
 
 @wp.kernel
-def write_closest_per_sphere(
+def resolve_closest_per_sphere(
     # Model:
     frames: wp.array2d[wp.vec3],
     indices: wp.array[wp.int32],
@@ -420,10 +420,9 @@ def write_closest_per_sphere(
     dt: float,
     extra_speed: float,
     margin: float,
-    # In, reset for the next step:
+    # Out (read, then reset for the next step's passes):
     best_key_in_out: wp.array[wp.int64],
     tie_normal_in_out: wp.array[wp.vec3],
-    # Out:
     contact_face: wp.array[wp.int32],
     contact_point: wp.array[wp.vec3],
     contact_normal: wp.array[wp.vec3],
