@@ -172,6 +172,10 @@ def test_batch_needs_a_fixed_surface_and_spheres(device):
         BatchedWorld(bm, st, search="nearest")
     with pytest.raises(ValueError, match="tile_threads"):
         BatchedWorld(bm, st, search="tiled", tile_threads=0)
+    with pytest.raises(ValueError, match="swept_search 'faces'"):  # a single world's search
+        BatchedWorld(bm, st, search="faces")
+    with pytest.raises(ValueError, match="budget"):
+        BatchedWorld(bm, st, search="hybrid", budget=-1)
     bm_tiled = BatchModel(SurfaceModel(seq, device), 2, [0.05], 1.0, PhysicsParams(swept_search="tiled"))
     assert BatchedWorld(bm_tiled, BatchState(bm_tiled, [[0.0, 0.0, 0.5]])).search == "tiled"  # physics.swept_search
 
