@@ -28,7 +28,6 @@ from .kernels.swept import (
     compute_swept_bounds,
     detect_frame_change,
     find_closest_per_face,
-    sum_tie_normals_per_face,
     resolve_closest_per_sphere,
 )
 from .choices import (
@@ -622,9 +621,9 @@ class SweptCollider(ColliderBase):
     reach costs tens of dependent loads, not thousands (issue 14). Both give the serial rule's
     contacts (the tiled one picks the lowest face index among exactly equal distances).
     ``faces``: no BVH walk; one thread per face tests every sphere and the closest candidate per
-    sphere is an atomic minimum (three launches: ``find_closest_per_face``,
-    ``sum_tie_normals_per_face``, ``resolve_closest_per_sphere``); its work is one pass over the
-    faces' boxes per step times the sphere count, for few spheres on large meshes, where a
+    sphere is an atomic minimum (three launches: ``find_closest_per_face`` twice, the closest key
+    then the tie normals at it, and ``resolve_closest_per_sphere``); its work is two passes over
+    the faces' boxes per step times the sphere count, for few spheres on large meshes, where a
     sphere's box holds hundreds of faces; the BVH is not refit then.
     Measured per search, and the searches tried and dropped: docs/benchmarks.md.
     """
@@ -700,8 +699,8 @@ class SweptCollider(ColliderBase):
             faces = [surf.frames, surf.indices, m.spheres.radius, s.sim_time, s.sphere_pos, s.sphere_vel,
                      self.lowers, self.uppers, surf.fps, surf.playback, int(surf.interpolate), self.epsilon,
                      ctx.sub_dt, ctx.extra_speed, m.params.margin]
-            ctx.launch(find_closest_per_face, surf.num_faces, faces, [self.best_key])
-            ctx.launch(sum_tie_normals_per_face, surf.num_faces, [*faces, self.best_key], [self.tie_normal])
+            for tie_pass in (0, 1):  # the closest key per sphere, then the tie normals at it
+                ctx.launch(find_closest_per_face, surf.num_faces, [*faces, tie_pass], [self.best_key, self.tie_normal])
             ctx.launch(resolve_closest_per_sphere, m.spheres.count,
                        [surf.frames, surf.indices, m.spheres.radius, s.sim_time, s.sphere_pos, s.sphere_vel, surf.fps,
                         surf.playback, int(surf.interpolate), self.epsilon, ctx.sub_dt, ctx.extra_speed,

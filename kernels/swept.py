@@ -323,62 +323,19 @@ def find_closest_per_face(
     dt: float,
     extra_speed: float,
     margin: float,
-    # Out:
+    tie_pass: int,
+    # Out (the first pass writes best_key, the tie pass reads it and writes tie_normal):
     best_key: wp.array[wp.int64],
-):
-    """The face-parallel search, pass 1 (launch (M,), for few spheres on large meshes): each
-    face tests every sphere; where its swept box is within the sphere's reach (+ epsilon) the
-    interpolated triangle is evaluated and, closer than the reach, its ``face_key`` goes into the
-    sphere's atomic minimum ``best_key`` (S,) (NO_KEY before the pass). No BVH: the work is one
-    read of the faces' boxes, whatever the spheres' neighbourhood holds."""
-    f = wp.tid()
-    lo = lowers[f]
-    hi = uppers[f]
-    k0, k1, alpha = blend_pair(sim_time_in[0], fps, frames.shape[0], mode, interpolate)
-    have = int(0)
-    a = wp.vec3(0.0)
-    b = wp.vec3(0.0)
-    e = wp.vec3(0.0)
-    for s in range(sphere_pos_in.shape[0]):
-        p = sphere_pos_in[s]
-        reach = contact_reach(sphere_radius[s], sphere_vel_in[s], extra_speed, dt, margin)
-        if box_distance(p, lo, hi) < reach + epsilon:
-            if have == 0:
-                a, b, e = interpolated_triangle(frames, indices, f, k0, k1, alpha)
-                have = 1
-            dist, w, wn = face_candidate(p, a, b, e, epsilon)
-            if dist < reach:
-                wp.atomic_min(best_key, s, face_key(dist, reach, f))
-
-
-@wp.kernel
-def sum_tie_normals_per_face(
-    # Model:
-    frames: wp.array2d[wp.vec3],
-    indices: wp.array[wp.int32],
-    sphere_radius: wp.array[float],
-    # State in:
-    sim_time_in: wp.array[wp.float64],
-    sphere_pos_in: wp.array[wp.vec3],
-    sphere_vel_in: wp.array[wp.vec3],
-    # In:
-    lowers: wp.array[wp.vec3],
-    uppers: wp.array[wp.vec3],
-    fps: wp.float64,
-    mode: int,
-    interpolate: int,
-    epsilon: float,
-    dt: float,
-    extra_speed: float,
-    margin: float,
-    best_key: wp.array[wp.int64],
-    # Out:
     tie_normal: wp.array[wp.vec3],
 ):
-    """The face-parallel search, pass 2 (launch (M,)): every face within ``epsilon`` of a
-    sphere's closest distance (pass 1's key; the key's quantum, reach / 2^30, added) adds its
-    angle-weighted normal term to the sphere's ``tie_normal`` (S,) (zero before the pass): the
-    pseudo-normal of the serial rule's ties."""
+    """The face-parallel search (launch (M,), twice per step; for few spheres on large meshes):
+    each face tests every sphere; where its swept box is within the sphere's reach (+ epsilon)
+    the interpolated triangle is evaluated. First pass (``tie_pass`` 0): a candidate closer than
+    the reach puts its ``face_key`` into the sphere's atomic minimum ``best_key`` (S,) (NO_KEY
+    before). Tie pass (1): a face within ``epsilon`` of that minimum (the key's quantum,
+    reach / 2^30, added) adds its angle-weighted normal term to ``tie_normal`` (S,) (zero
+    before): the pseudo-normal of the serial rule's ties. No BVH: the work is one read of the
+    faces' boxes per pass, whatever the spheres' neighbourhood holds."""
     f = wp.tid()
     lo = lowers[f]
     hi = uppers[f]
@@ -389,7 +346,7 @@ def sum_tie_normals_per_face(
     e = wp.vec3(0.0)
     for s in range(sphere_pos_in.shape[0]):
         key = best_key[s]
-        if key != NO_KEY:
+        if tie_pass == 0 or key != NO_KEY:
             p = sphere_pos_in[s]
             reach = contact_reach(sphere_radius[s], sphere_vel_in[s], extra_speed, dt, margin)
             if box_distance(p, lo, hi) < reach + epsilon:
@@ -397,9 +354,13 @@ def sum_tie_normals_per_face(
                     a, b, e = interpolated_triangle(frames, indices, f, k0, k1, alpha)
                     have = 1
                 dist, w, wn = face_candidate(p, a, b, e, epsilon)
-                bound = wp.float64(key / FACE_BITS + wp.int64(1)) / KEY_QUANTA * wp.float64(reach)
-                if wp.float64(dist) < bound + wp.float64(epsilon):
-                    wp.atomic_add(tie_normal, s, wn)
+                if tie_pass == 0:
+                    if dist < reach:
+                        wp.atomic_min(best_key, s, face_key(dist, reach, f))
+                else:
+                    bound = wp.float64(key / FACE_BITS + wp.int64(1)) / KEY_QUANTA * wp.float64(reach)
+                    if wp.float64(dist) < bound + wp.float64(epsilon):
+                        wp.atomic_add(tie_normal, s, wn)
 
 
 @wp.kernel
