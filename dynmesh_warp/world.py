@@ -621,9 +621,10 @@ class SweptCollider(ColliderBase):
     reach costs tens of dependent loads, not thousands (issue 14). Both give the serial rule's
     contacts (the tiled one picks the lowest face index among exactly equal distances).
     ``faces``: no BVH walk; one thread per face tests every sphere and the closest candidate per
-    sphere is an atomic minimum (three launches: ``find_closest_per_face`` twice, the closest key
-    then the tie normals at it, and ``resolve_closest_per_sphere``); its work is two passes over
-    the faces' boxes per step times the sphere count, for few spheres on large meshes, where a
+    sphere is an atomic minimum (``find_closest_per_face``), then each sphere's contact with the
+    ties looked for around the winning face's vertices (``resolve_closest_per_sphere``); its
+    work is one pass over the faces' boxes per step times the sphere count, for few spheres on
+    large meshes, where a
     sphere's box holds hundreds of faces; the BVH is not refit then.
     Measured per search, and the searches tried and dropped: docs/benchmarks.md.
     """
@@ -644,6 +645,12 @@ class SweptCollider(ColliderBase):
                              "collider searches 'serial' or 'tiled'")
         self.tile_threads = int(tile_threads or SWEPT_TILE_THREADS)
         self.resize(model, state, ctx)
+        # the faces around each vertex (CSR), where the face-parallel search looks for its ties
+        F = surf.faces() if self.search == SweptSearch.FACES else np.zeros((0, 3), np.int32)
+        order = np.argsort(F.ravel(), kind="stable")
+        counts = np.bincount(F.ravel(), minlength=surf.num_vertices if len(F) else 0)
+        self.vertex_face_offsets = wp.array(np.concatenate([[0], np.cumsum(counts)]).astype(np.int32), device=d)
+        self.vertex_faces = wp.array((order // 3).astype(np.int32), device=d)
         self.lowers = wp.zeros(surf.num_faces, dtype=wp.vec3, device=d)
         self.uppers = wp.zeros(surf.num_faces, dtype=wp.vec3, device=d)
         self.compute_bounds(model, state, ctx)
@@ -663,11 +670,9 @@ class SweptCollider(ColliderBase):
             self.bvh.refit()
 
     def resize(self, model: Model, state: State, ctx: StepContext):
-        """The face-parallel search's per-sphere scratch: the closest key (NO_KEY between steps)
-        and the tie-normal sum."""
+        """The face-parallel search's per-sphere scratch: the closest key (NO_KEY between steps)."""
         n = max(model.spheres.count, 1) if self.search == SweptSearch.FACES else 0
         self.best_key = wp.full(n, NO_KEY, dtype=wp.int64, device=ctx.device)
-        self.tie_normal = wp.zeros(n, dtype=wp.vec3, device=ctx.device)
 
     def update(self, model: Model, state: State, ctx: StepContext):
         """Refit if the clock's frame pair changed (``State.frame_changed``: set by the previous
@@ -699,12 +704,11 @@ class SweptCollider(ColliderBase):
             faces = [surf.frames, surf.indices, m.spheres.radius, s.sim_time, s.sphere_pos, s.sphere_vel,
                      self.lowers, self.uppers, surf.fps, surf.playback, int(surf.interpolate), self.epsilon,
                      ctx.sub_dt, ctx.extra_speed, m.params.margin]
-            for tie_pass in (0, 1):  # the closest key per sphere, then the tie normals at it
-                ctx.launch(find_closest_per_face, surf.num_faces, [*faces, tie_pass], [self.best_key, self.tie_normal])
+            ctx.launch(find_closest_per_face, surf.num_faces, faces, [self.best_key])
             ctx.launch(resolve_closest_per_sphere, m.spheres.count,
-                       [surf.frames, surf.indices, m.spheres.radius, s.sim_time, s.sphere_pos, s.sphere_vel, surf.fps,
-                        surf.playback, int(surf.interpolate), self.epsilon, ctx.sub_dt, ctx.extra_speed,
-                        m.params.margin, self.best_key, self.tie_normal], outputs)
+                       [surf.frames, surf.indices, m.spheres.radius, self.vertex_face_offsets, self.vertex_faces,
+                        s.sim_time, s.sphere_pos, s.sphere_vel, surf.fps, surf.playback, int(surf.interpolate),
+                        self.epsilon, ctx.sub_dt, ctx.extra_speed, m.params.margin], [self.best_key, *outputs])
         elif self.search == SweptSearch.TILED:
             if m.spheres.count:
                 wp.launch_tiled(collide_sphere_swept_tiled, dim=m.spheres.count, inputs=inputs, outputs=outputs,

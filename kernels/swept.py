@@ -323,19 +323,14 @@ def find_closest_per_face(
     dt: float,
     extra_speed: float,
     margin: float,
-    tie_pass: int,
-    # Out (the first pass writes best_key, the tie pass reads it and writes tie_normal):
+    # Out:
     best_key: wp.array[wp.int64],
-    tie_normal: wp.array[wp.vec3],
 ):
-    """The face-parallel search (launch (M,), twice per step; for few spheres on large meshes):
-    each face tests every sphere; where its swept box is within the sphere's reach (+ epsilon)
-    the interpolated triangle is evaluated. First pass (``tie_pass`` 0): a candidate closer than
-    the reach puts its ``face_key`` into the sphere's atomic minimum ``best_key`` (S,) (NO_KEY
-    before). Tie pass (1): a face within ``epsilon`` of that minimum (the key's quantum,
-    reach / 2^30, added) adds its angle-weighted normal term to ``tie_normal`` (S,) (zero
-    before): the pseudo-normal of the serial rule's ties. No BVH: the work is one read of the
-    faces' boxes per pass, whatever the spheres' neighbourhood holds."""
+    """The face-parallel search, first pass (launch (M,); for few spheres on large meshes): each
+    face tests every sphere; where its swept box is within the sphere's reach (+ epsilon) the
+    interpolated triangle is evaluated, and a candidate closer than the reach puts its
+    ``face_key`` into the sphere's atomic minimum ``best_key`` (S,) (NO_KEY before the pass).
+    No BVH: the work is one read of the faces' boxes, whatever the spheres' neighbourhood holds."""
     f = wp.tid()
     lo = lowers[f]
     hi = uppers[f]
@@ -345,22 +340,15 @@ def find_closest_per_face(
     b = wp.vec3(0.0)
     e = wp.vec3(0.0)
     for s in range(sphere_pos_in.shape[0]):
-        key = best_key[s]
-        if tie_pass == 0 or key != NO_KEY:
-            p = sphere_pos_in[s]
-            reach = contact_reach(sphere_radius[s], sphere_vel_in[s], extra_speed, dt, margin)
-            if box_distance(p, lo, hi) < reach + epsilon:
-                if have == 0:
-                    a, b, e = interpolated_triangle(frames, indices, f, k0, k1, alpha)
-                    have = 1
-                dist, w, wn = face_candidate(p, a, b, e, epsilon)
-                if tie_pass == 0:
-                    if dist < reach:
-                        wp.atomic_min(best_key, s, face_key(dist, reach, f))
-                else:
-                    bound = wp.float64(key / FACE_BITS + wp.int64(1)) / KEY_QUANTA * wp.float64(reach)
-                    if wp.float64(dist) < bound + wp.float64(epsilon):
-                        wp.atomic_add(tie_normal, s, wn)
+        p = sphere_pos_in[s]
+        reach = contact_reach(sphere_radius[s], sphere_vel_in[s], extra_speed, dt, margin)
+        if box_distance(p, lo, hi) < reach + epsilon:
+            if have == 0:
+                a, b, e = interpolated_triangle(frames, indices, f, k0, k1, alpha)
+                have = 1
+            dist, w, wn = face_candidate(p, a, b, e, epsilon)
+            if dist < reach:
+                wp.atomic_min(best_key, s, face_key(dist, reach, f))
 
 
 @wp.kernel
@@ -369,6 +357,8 @@ def resolve_closest_per_sphere(
     frames: wp.array2d[wp.vec3],
     indices: wp.array[wp.int32],
     sphere_radius: wp.array[float],
+    vertex_face_offsets: wp.array[wp.int32],
+    vertex_faces: wp.array[wp.int32],
     # State in:
     sim_time_in: wp.array[wp.float64],
     sphere_pos_in: wp.array[wp.vec3],
@@ -381,18 +371,21 @@ def resolve_closest_per_sphere(
     dt: float,
     extra_speed: float,
     margin: float,
-    # Out (read, then reset for the next step's passes):
+    # Out (read, then reset to NO_KEY for the next step's pass):
     best_key_in_out: wp.array[wp.int64],
-    tie_normal_in_out: wp.array[wp.vec3],
     contact_face: wp.array[wp.int32],
     contact_point: wp.array[wp.vec3],
     contact_normal: wp.array[wp.vec3],
     contact_depth: wp.array[float],
     contact_velocity: wp.array[wp.vec3],
 ):
-    """The face-parallel search, pass 3 (launch (S,)): each sphere's contact from its key's
-    face (the closest point recomputed) and tie-normal sum, as ``collide_sphere_swept``; then
-    the key and the sum are reset (NO_KEY, zero) for the next step's passes."""
+    """The face-parallel search, second pass (launch (S,)): each sphere's contact from its
+    key's face (the closest point recomputed), as ``collide_sphere_swept``. The pseudo-normal's
+    ties are looked for among the faces around the winning face's three vertices (CSR
+    ``vertex_face_offsets`` (N+1,) / ``vertex_faces`` (3M,)): each such face within ``epsilon``
+    of the closest distance adds its angle-weighted normal term, as the serial rule's ties do
+    (a tie shares the closest vertex or edge; a face elsewhere that happens to lie within
+    epsilon is not looked for). The key is reset for the next step."""
     s = wp.tid()
     p = sphere_pos_in[s]
     r = sphere_radius[s]
@@ -402,14 +395,28 @@ def resolve_closest_per_sphere(
     face = int(-1)
     dist = reach
     w = wp.vec3(0.0)
+    acc_n = wp.vec3(0.0)
     if key != NO_KEY:
         face = int(key - (key / FACE_BITS) * FACE_BITS)
         a, b, e = interpolated_triangle(frames, indices, face, k0, k1, alpha)
         dist, w, wn = face_candidate(p, a, b, e, epsilon)
-    write_swept_contact(s, p, r, reach, dist, face, w, tie_normal_in_out[s], frames, indices, k0, k1, alpha, fps,
+        for i in range(3):
+            v = indices[3 * face + i]
+            for j in range(vertex_face_offsets[v], vertex_face_offsets[v + 1]):
+                g = vertex_faces[j]
+                seen = int(0)  # g also holds an earlier vertex of the face: already counted
+                for c in range(3):
+                    for h in range(i):
+                        if indices[3 * g + c] == indices[3 * face + h]:
+                            seen = 1
+                if seen == 0:
+                    ga, gb, ge = interpolated_triangle(frames, indices, g, k0, k1, alpha)
+                    gd, gw, gn = face_candidate(p, ga, gb, ge, epsilon)
+                    if gd < dist + epsilon:
+                        acc_n = acc_n + gn
+    write_swept_contact(s, p, r, reach, dist, face, w, acc_n, frames, indices, k0, k1, alpha, fps,
                         contact_face, contact_point, contact_normal, contact_depth, contact_velocity)
     best_key_in_out[s] = NO_KEY
-    tie_normal_in_out[s] = wp.vec3(0.0)
 
 
 @wp.kernel

@@ -296,3 +296,33 @@ def test_bad_swept_search_is_refused_naming_the_field():
     model.params.swept_search = "hybrid"
     with pytest.raises(ValueError, match="swept_search 'hybrid'"):
         World(model, State(model, [[0, 0, 1], [0.2, 0, 1]]), collider="swept")
+
+
+def test_every_search_finds_the_outside_beyond_a_sharp_edge():
+    """Beyond the sharp edge of a thin wedge (6 degrees) one face's normal points away from a
+    slightly off-axis centre: only the pseudo-normal of the tied faces (both faces of the edge)
+    tells outside from inside. Every search equals the refit reference there; with a face's own
+    normal alone the spheres would be deep inside."""
+    from dynmesh_warp.sequence import FixedTopologySequence
+
+    h = np.tan(np.radians(3.0))
+    ring = np.array([[1.0, 0.0], [0.0, h], [0.0, -h]])  # tip, base corners (counter-clockwise)
+    V0 = np.array([[x, y, z] for z in (-0.5, 0.5) for x, y in ring], np.float32)
+    F = np.array([[0, 1, 4], [0, 4, 3], [1, 2, 5], [1, 5, 4], [2, 0, 3], [2, 3, 5],  # sides
+                  [0, 2, 1], [3, 4, 5]], np.int32)  # end caps
+    seq = FixedTopologySequence(np.stack([V0, V0]), F, fps=24.0, name="wedge")
+    d = np.array([0.01, 0.02, 0.03, 0.015])
+    pos = np.c_[1.0 + d, np.array([0.5, -0.5, 0.6, -0.4]) * d, np.zeros(4)].astype(np.float32)
+    radius = np.full(4, 0.05, np.float32)
+    ref, *others = _worlds(seq, pos, None, radius, 0.0, [("refit", None), ("swept", {"search": "serial"}),
+                                                         ("swept", {"search": "tiled", "tile_threads": 8}),
+                                                         ("swept", {"search": "faces"})])
+    c_ref = _contacts_at(ref)
+    dist = np.hypot(d, pos[:, 1])
+    assert (c_ref["face"] >= 0).all()
+    np.testing.assert_allclose(c_ref["depth"], radius - dist, atol=1e-5)  # outside: r - distance
+    for w in others:
+        c = _contacts_at(w)
+        np.testing.assert_array_equal(c["face"] >= 0, True)
+        np.testing.assert_allclose(c["depth"], c_ref["depth"], atol=1e-5)
+        np.testing.assert_allclose(c["normal"], c_ref["normal"], atol=1e-4)
