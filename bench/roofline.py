@@ -15,9 +15,8 @@ float32 / int32; nothing for caches, atomics or launch overhead), per collider:
   triangles read from two frames) and the integration; once per reconstruction frame (every
   ``steps_per_frame`` steps, amortised): the swept boxes (read 2 x 12 N + 12 M, write 24 M) and
   the pair BVH's refit (as above);
-- ``swept/faces`` (the face-parallel search): every step two reads of the M swept boxes (24 B
-  each: the closest-key pass and the tie-normal pass) and the integration; once per frame the
-  swept boxes as above, with no tree refit;
+- ``swept/faces`` (the face-parallel search): every step one read of the M swept boxes (24 B
+  each) and the integration; once per frame the swept boxes as above, with no tree refit;
 - ``fixed``: the collider (and swept search) it chose.
 
 Bandwidth: the H100 SXM's nominal HBM3 bandwidth, 3.35 TB/s (``--peak-tb-s``); a plain
@@ -70,7 +69,7 @@ def step_bytes(collider: str, N: int, M: int, S: int, steps_per_frame: float) ->
         return per_frame / steps_per_frame + S * query_bytes(M, True) + integrate
     if collider == "swept/faces":
         per_frame = 24.0 * N + 12.0 * M + 24.0 * M
-        return per_frame / steps_per_frame + 2 * 24.0 * M + integrate
+        return per_frame / steps_per_frame + 24.0 * M + integrate
     raise ValueError(collider)
 
 
