@@ -182,7 +182,8 @@ def build_model(cfg: SceneConfig, seq, device=None) -> tuple[Model, State]:
     p = cfg.physics
     params = PhysicsParams(dt=p.dt, substeps=p.substeps, max_substeps=p.max_substeps, gravity=p.gravity,
                            restitution=p.restitution, friction=p.friction, rest_speed=p.rest_speed, margin=p.margin,
-                           auto_substeps=p.auto_substeps, ground_height=scene_ground(cfg, seq))
+                           auto_substeps=p.auto_substeps, ground_height=scene_ground(cfg, seq),
+                           swept_search=p.swept_search)
     model = Model(surface, SphereModel(radius, mass, device), params)
     return model, State(model, pos, vel)
 

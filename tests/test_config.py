@@ -223,3 +223,23 @@ def test_set_overrides_apply_before_validation(tmp_path, capsys):
     assert len(s["final"]["position"]) == 2 and s["steps"] == 20
     assert main(["--viewer", "none", "--steps", "5", "--output", str(tmp_path / "p"), "--set", "physics.dt=0"]) == 2
     assert "physics.dt" in capsys.readouterr().err and not (tmp_path / "p").exists()
+
+
+def test_scene_swept_search_reaches_the_world_and_the_batch(tmp_path, capsys):
+    """physics.swept_search is the search the run uses (single world and --envs); a batch-only
+    search in a single world is refused naming the field, exit 2, before any step."""
+    data = {**TINY_SCENE, "physics": {**TINY_SCENE.get("physics", {}), "collider": "swept", "swept_search": "faces"}}
+    scene = write_yaml(tmp_path, data, "faces.yaml")
+    rc = main([str(scene), "--steps", "20", "--device", "cpu", "--no-progress", "--output", str(tmp_path / "f")])
+    assert rc == 0, capsys.readouterr().err
+    assert json.loads((tmp_path / "f" / "summary.json").read_text())["swept_search"] == "faces"
+    data["physics"]["swept_search"] = "hybrid"
+    scene = write_yaml(tmp_path, data, "hybrid.yaml")
+    rc = main([str(scene), "--steps", "20", "--device", "cpu", "--no-progress", "--envs", "2",
+               "--output", str(tmp_path / "h")])
+    assert rc == 0, capsys.readouterr().err
+    assert json.loads((tmp_path / "h" / "summary.json").read_text())["swept_search"] == "hybrid"
+    rc = main([str(scene), "--steps", "20", "--device", "cpu", "--no-progress", "--output", str(tmp_path / "s")])
+    assert rc == 2
+    assert "swept_search" in capsys.readouterr().err
+    assert not (tmp_path / "s" / "summary.json").exists()
