@@ -6,7 +6,7 @@ import warnings
 
 import numpy as np
 
-from .config import SceneConfig, SceneError, spawn_positions
+from .config import PhysicsCore, SceneConfig, SceneError, spawn_positions
 from .runtime import scene_device
 from .geometry import mesh_orientation
 from .sequence import FixedTopologySequence, MeshDataError, TopologyMismatchError, VaryingTopologySequence
@@ -180,10 +180,9 @@ def build_model(cfg: SceneConfig, seq, device=None) -> tuple[Model, State]:
     surface = surface_model(seq, device, playback=cfg.surface.playback, interpolate=cfg.surface.interpolate)
     radius, mass, pos, vel = scene_spheres(cfg, seq.frame(0)[0])
     p = cfg.physics
-    params = PhysicsParams(dt=p.dt, substeps=p.substeps, max_substeps=p.max_substeps, gravity=p.gravity,
-                           restitution=p.restitution, friction=p.friction, rest_speed=p.rest_speed, margin=p.margin,
-                           auto_substeps=p.auto_substeps, ground_height=scene_ground(cfg, seq),
-                           swept_search=p.swept_search)
+    # every field the scene's physics section shares with PhysicsParams (PhysicsCore), so a new
+    # setting cannot be validated by the schema and then dropped here
+    params = PhysicsParams(**{k: getattr(p, k) for k in PhysicsCore.model_fields}, ground_height=scene_ground(cfg, seq))
     model = Model(surface, SphereModel(radius, mass, device), params)
     return model, State(model, pos, vel)
 
