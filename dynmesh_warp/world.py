@@ -642,7 +642,7 @@ class SweptCollider(ColliderBase):
                        else parse(SweptSearch, search, "swept_search"))
         if self.search == SweptSearch.HYBRID:
             raise ValueError("swept_search 'hybrid' is a batched world's search (envs); a single world's swept "
-                             "collider searches 'serial' or 'tiled'")
+                             "collider searches 'serial', 'tiled' or 'faces'")
         self.tile_threads = int(tile_threads or SWEPT_TILE_THREADS)
         self.resize(model, state, ctx)
         # the faces around each vertex (CSR), where the face-parallel search looks for its ties
