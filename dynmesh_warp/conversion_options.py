@@ -116,6 +116,12 @@ class GraphOptions(_Options, _FineStage):
     #: 181 -> 156 s for 200 frames); 1 lost pcow (+60 %). docs/conversion.md
     restart_fits: Int = Field(2, ge=0)
     refine_rounds: Int = Field(2, ge=0)
+    #: when the run from the automatic key frame leaves a frame poorly covered (coverage above
+    #: convert.POOR_COVERAGE), the conversion is run again from this many key frames spread
+    #: evenly over the sequence (frame T (i + 1/2) / n) and the run with the least mean coverage
+    #: is kept (the GT-free score that ranks the runs like their true error; docs/conversion.md);
+    #: 0: never. Not with a chosen key_frame or a given template.
+    key_candidates: Int = Field(4, ge=0)
     # bidirectional repair: re-track runs of poorly covered frames from the other side (off: on
     # pcow it lowered the worst uncovered vertex 13.6 -> 12.3 % but not the CD, +58 -> +60 %)
     repair_passes: Int = Field(0, ge=0)

@@ -185,7 +185,12 @@ class ConversionInfo:
     genus) differs from the previous frame's: parts touching or separating, a hole closing.
     The conversion keeps one template through them (one segment): the fixed topology follows
     parts into contact; what it cannot do is tear a part the template has fused, which is why
-    the key frame is the one with the most surface (parts most apart)."""
+    the key frame is the one with the most surface (parts most apart).
+    key_trials: ``(key frame, mean coverage, seconds)`` of every run when the run from the
+    automatic key frame covered some frame poorly and the conversion was run again from other
+    key frames (``key_candidates``); the kept run is the one of least mean coverage (its key is
+    ``key_frame``). Empty when there was one run.
+    """
 
     strategy: str
     options: dict
@@ -200,6 +205,7 @@ class ConversionInfo:
     first_frame: int = 0  # the result holds input frames first_frame.. (not 0 only when stopped early)
     repaired_frames: list = field(default_factory=list)
     unrecovered_frames: list = field(default_factory=list)
+    key_trials: list = field(default_factory=list)
 
 
 class _Converter:
@@ -847,9 +853,8 @@ def to_fixed_topology(seq, strategy: str = DEFAULT_STRATEGY, template=None, devi
         validate_mesh(v, f, src, t)
     T = vseq.num_frames
     K = _key_frame(vseq, o["key_frame"], template is not None)
-    if template is None:
-        TV, TF = vseq.frames[K]
-    else:
+    given = template is not None
+    if given:
         if isinstance(template, (str, bytes)) or hasattr(template, "__fspath__"):
             from .io import read_mesh
 
@@ -858,18 +863,9 @@ def to_fixed_topology(seq, strategy: str = DEFAULT_STRATEGY, template=None, devi
             tv, tf = template
         except (TypeError, ValueError):
             raise MeshDataError("template: expected a (V, F) pair or a mesh file path") from None
-        TV, TF = validate_mesh(tv, tf, "template")
-    TV = np.ascontiguousarray(TV, np.float32)
-    TF = np.ascontiguousarray(TF, np.int32)
+        template = validate_mesh(tv, tf, "template")
     device = wp.get_device(device)
     _check_scales(vseq, float(o["scale_tolerance"]))
-    if template is not None:
-        _check_reach(TV, TF, *vseq.frames[K], float(o["max_template_distance"]), device, K)
-
-    all_diag = max(max(_bbox_diag(v) for v, _ in vseq.frames), _bbox_diag(TV), 1e-6)
-    conv = _Converter(TV, TF, device, 10.0 * all_diag, o)
-    step = getattr(conv, f"step_{strategy}")
-    info = ConversionInfo(strategy, {k: v for k, v in o.items() if k != "strategy"}, T, len(TV), key_frame=K)
     # the topology report is host work that does not steer the conversion: a worker thread does
     # it while the main thread waits on the device (NumPy and SciPy release the GIL in its sorts)
     from concurrent.futures import ThreadPoolExecutor
@@ -877,13 +873,63 @@ def to_fixed_topology(seq, strategy: str = DEFAULT_STRATEGY, template=None, devi
     pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="topology")
     try:
         topology = pool.submit(_topology_events, vseq)
-        out, lo, hi, seconds, coverage = _convert_frames(vseq, conv, step, K, progress, should_stop, info,
-                                                         strategy, where, TV)
-        if strategy == "graph" and (lo, hi) == (0, T - 1) and int(o["repair_passes"]) > 0:
-            info.repaired_frames = _repair_poor_runs(vseq, conv, out, coverage, seconds, K, o, should_stop)
-        info.topology_events = [e for e in topology.result() if lo <= e[0] <= hi]
+        res = _convert_from_key(vseq, strategy, o, K, template, device, progress, should_stop, where)
+        trials = _key_candidates(vseq, strategy, o, K, given, res)
+        if trials:
+            tried = [(K, float(np.mean(res.conversion.coverage)), float(np.sum(res.conversion.frame_seconds)))]
+            for k in trials:
+                if should_stop is not None and should_stop():
+                    break
+                r = _convert_from_key(vseq, strategy, o, k, None, device, progress, should_stop, where)
+                if len(r.conversion.coverage) < T:  # stopped during this run: keep the finished ones
+                    break
+                tried.append((k, float(np.mean(r.conversion.coverage)), float(np.sum(r.conversion.frame_seconds))))
+                if tried[-1][1] < float(np.mean(res.conversion.coverage)):
+                    res = r
+            res.conversion.key_trials = tried
+        info = res.conversion
+        info.topology_events = [e for e in topology.result()
+                                if info.first_frame <= e[0] < info.first_frame + len(info.coverage)]
     finally:
         pool.shutdown(wait=False, cancel_futures=True)
+    return res
+
+
+def _key_candidates(vseq, strategy: str, o: dict, K: int, given: bool, res) -> list:
+    """The key frames to try after the run from the automatic key frame ``K`` (``res``): when
+    that run is complete, covers some frame poorly (> POOR_COVERAGE) and the key frame was not
+    chosen by the user, ``key_candidates`` frames spread evenly over the sequence (other than K)."""
+    n = int(o.get("key_candidates", 0) or 0)
+    T = vseq.num_frames
+    info = res.conversion
+    if (n <= 0 or given or o["key_frame"] not in ("auto", None) or T < 3 or len(info.coverage) < T
+            or max(info.coverage) <= POOR_COVERAGE):
+        return []
+    keys = [min(T - 1, int(T * (i + 0.5) / n)) for i in range(n)]
+    return [k for i, k in enumerate(keys) if k != K and k not in keys[:i]]
+
+
+def _convert_from_key(vseq, strategy: str, o: dict, K: int, template, device, progress, should_stop,
+                      where) -> FixedTopologySequence:
+    """One conversion run: the template is ``template`` (validated (V, F)) or key frame K's
+    mesh, tracked from frame K to both ends."""
+    T = vseq.num_frames
+    if template is None:
+        TV, TF = vseq.frames[K]
+    else:
+        TV, TF = template
+    TV = np.ascontiguousarray(TV, np.float32)
+    TF = np.ascontiguousarray(TF, np.int32)
+    if template is not None:
+        _check_reach(TV, TF, *vseq.frames[K], float(o["max_template_distance"]), device, K)
+    all_diag = max(max(_bbox_diag(v) for v, _ in vseq.frames), _bbox_diag(TV), 1e-6)
+    conv = _Converter(TV, TF, device, 10.0 * all_diag, o)
+    step = getattr(conv, f"step_{strategy}")
+    info = ConversionInfo(strategy, {k: v for k, v in o.items() if k != "strategy"}, T, len(TV), key_frame=K)
+    out, lo, hi, seconds, coverage = _convert_frames(vseq, conv, step, K, progress, should_stop, info,
+                                                     strategy, where, TV)
+    if strategy == "graph" and (lo, hi) == (0, T - 1) and int(o["repair_passes"]) > 0:
+        info.repaired_frames = _repair_poor_runs(vseq, conv, out, coverage, seconds, K, o, should_stop)
     info.frame_seconds = seconds.tolist()
     info.coverage = coverage.tolist()
     info.reanchored_frames.sort()
@@ -915,6 +961,10 @@ def conversion_summary(info: ConversionInfo) -> list:
     lines = [f"conversion ({info.strategy}): template from frame {info.key_frame}, tracked "
              + (f"frames {info.key_frame}..{T - 1} then {info.key_frame - 1}..0" if info.key_frame else f"0..{T - 1}")
              + f"; {sum(info.frame_seconds):.2f} s"]
+    if info.key_trials:
+        tried = ", ".join(f"{k} ({100 * c:.2f}%)" for k, c, _ in info.key_trials)
+        lines.append(f"key frames tried (mean coverage), as a frame was poorly covered: {tried}; kept "
+                     f"{info.key_frame}; {sum(x[2] for x in info.key_trials):.2f} s in all")
     if cov.size:
         w = int(np.argmax(cov))
         lines.append(f"coverage (99.5th pct. input -> converted distance / bbox diagonal): mean "

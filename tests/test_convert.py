@@ -489,3 +489,33 @@ def test_strategy_options_are_one_typed_model_per_strategy():
     cfg = load_scene_config(data={"surface": {"source": "builtin:wave_bowl", "conversion": {
         "strategy": "tracking", "options": {"tracked_weight": 0.25}}}})
     assert cfg.surface.conversion.options == {"tracked_weight": 0.25}
+
+
+def test_key_candidates_rerun_from_spread_keys_and_keep_the_best_covered(monkeypatch):
+    """When the run from the automatic key frame covers a frame poorly, the conversion is run
+    again from key frames spread over the sequence and the run of least mean coverage is kept,
+    with its own template (each frame here is shuffled, so the faces tell which run was kept)."""
+    import dynmesh_warp.convert as convert_mod
+    from dynmesh_warp.convert import conversion_summary
+
+    rng = np.random.default_rng(4)
+    radii = [1.0, 1.05, 1.1, 1.3, 1.15, 1.05]
+    frames = [_shuffled(V, F, rng) for V, F in _sphere_frames(radii)]
+    seq = VaryingTopologySequence(frames, name="grow")
+    one = to_fixed_topology(seq, strategy="graph", device=DEV)
+    assert one.conversion.key_trials == []  # every frame well covered: one run
+    monkeypatch.setattr(convert_mod, "POOR_COVERAGE", -1.0)  # every frame "poor": the candidates run
+    res = to_fixed_topology(seq, strategy="graph", device=DEV, key_candidates=2)
+    tried = res.conversion.key_trials
+    assert [k for k, _, _ in tried] == [3, 1, 4]  # the automatic key, then frames 6 (i + 1/2) / 2
+    kept = min(tried, key=lambda x: x[1])[0]
+    assert res.conversion.key_frame == kept
+    np.testing.assert_array_equal(res.F, frames[kept][1])  # the kept run's own template
+    assert np.isclose(np.mean(res.conversion.coverage), min(c for _, c, _ in tried))
+    assert np.allclose(np.linalg.norm(res.V, axis=2).mean(axis=1), radii, rtol=0.02)
+    assert any(ln.startswith("key frames tried") and f"kept {kept}" in ln for ln in conversion_summary(res.conversion))
+    # a key frame the user chose, a given template, or key_candidates 0: one run
+    for kw in ({"key_frame": 2}, {"template": frames[0]}, {"key_candidates": 0}):
+        assert to_fixed_topology(seq, strategy="graph", device=DEV, **kw).conversion.key_trials == []
+    with pytest.raises(ValueError, match="key_candidates"):
+        to_fixed_topology(seq, strategy="graph", device=DEV, key_candidates=-1)
