@@ -116,8 +116,9 @@ class GraphOptions(_Options, _FineStage):
     #: 181 -> 156 s for 200 frames); 1 lost pcow (+60 %). docs/conversion.md
     restart_fits: Int = Field(2, ge=0)
     refine_rounds: Int = Field(2, ge=0)
-    #: when the run from the automatic key frame leaves a frame poorly covered (coverage above
-    #: convert.POOR_COVERAGE), the conversion is run again from this many key frames spread
+    #: when the run from the automatic key frame leaves frames poorly covered (coverage above
+    #: convert.POOR_COVERAGE on convert.KEY_RETRY_POOR_SHARE of them), the conversion is run
+    #: again from this many key frames spread
     #: evenly over the sequence (frame T (i + 1/2) / n) and the run with the least mean coverage
     #: is kept (the GT-free score that ranks the runs like their true error; docs/conversion.md);
     #: 0: never. Not with a chosen key_frame or a given template.

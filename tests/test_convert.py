@@ -519,3 +519,27 @@ def test_key_candidates_rerun_from_spread_keys_and_keep_the_best_covered(monkeyp
         assert to_fixed_topology(seq, strategy="graph", device=DEV, **kw).conversion.key_trials == []
     with pytest.raises(ValueError, match="key_candidates"):
         to_fixed_topology(seq, strategy="graph", device=DEV, key_candidates=-1)
+
+
+def test_key_candidates_need_a_share_of_poor_frames():
+    """A lone poorly covered frame is an outlier: the other key frames are tried only when at
+    least KEY_RETRY_POOR_SHARE of the frames (and 2) are poor."""
+    from types import SimpleNamespace
+
+    from dynmesh_warp.convert import KEY_RETRY_POOR_SHARE, POOR_COVERAGE, _key_candidates
+
+    T = 200
+    seq = SimpleNamespace(num_frames=T)
+    o = {"key_candidates": 4, "key_frame": "auto"}
+
+    def res(poor):
+        cov = np.full(T, 0.5 * POOR_COVERAGE)
+        cov[:poor] = 2 * POOR_COVERAGE
+        return SimpleNamespace(conversion=SimpleNamespace(coverage=cov.tolist()))
+
+    need = int(np.ceil(KEY_RETRY_POOR_SHARE * T))
+    assert _key_candidates(seq, "graph", o, 102, False, res(need - 1)) == []
+    assert _key_candidates(seq, "graph", o, 102, False, res(need)) == [25, 75, 125, 175]
+    assert _key_candidates(seq, "graph", o, 75, False, res(need)) == [25, 125, 175]  # the key itself once
+    assert _key_candidates(seq, "graph", {**o, "key_frame": 7}, 7, False, res(T)) == []
+    assert _key_candidates(seq, "graph", o, 102, True, res(T)) == []  # a given template
