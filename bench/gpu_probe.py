@@ -85,7 +85,8 @@ def main():
            "frame_ms_max": 1e3 * float(fs.max()), "recovered_frames": len(r.conversion.recovered_frames),
            "unrecovered_frames": len(r.conversion.unrecovered_frames),
            "coverage_mean": float(np.mean(r.conversion.coverage)), "coverage_max": float(np.max(r.conversion.coverage)),
-           "key_frame": r.conversion.key_frame, "options": opts}
+           "key_frame": r.conversion.key_frame, "key_trials": [list(x) for x in r.conversion.key_trials],
+           "options": opts}
     if parts is not None:
         calls = parts.pop("calls")
         res["breakdown_s"] = {k: round(v, 4) for k, v in parts.items()}
