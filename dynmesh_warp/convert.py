@@ -876,6 +876,9 @@ def to_fixed_topology(seq, strategy: str = DEFAULT_STRATEGY, template=None, devi
         res = _convert_from_key(vseq, strategy, o, K, template, device, progress, should_stop, where)
         trials = _key_candidates(vseq, strategy, o, K, given, res)
         if trials:
+            if progress:  # the run goes on: say why
+                print(f"conversion: frames poorly covered from key frame {K}; trying key frames "
+                      f"{', '.join(map(str, trials))} (key_candidates)", file=sys.stderr, flush=True)
             tried = [(K, float(np.mean(res.conversion.coverage)), float(np.sum(res.conversion.frame_seconds)))]
             for k in trials:
                 if should_stop is not None and should_stop():
