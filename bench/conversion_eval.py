@@ -128,6 +128,7 @@ def evaluate(name, strategies, args, device) -> dict | None:
         out["strategies"][s] = {"summary": summ, "seconds": sec, "per_frame": per,
                                 "key_frame": info.key_frame, "coverage": info.coverage,
                                 "recovered_frames": [list(r) for r in info.recovered_frames],
+                                "key_trials": [list(x) for x in info.key_trials],
                                 "options": {k: v for k, v in info.options.items()}}
         print(f"{name:18s} {s:12s} CD in {out['input']['cd_mean'] * 1e3:.4f} out {summ['cd_mean'] * 1e3:.4f} "
               f"({summ['cd_increase_pct']:+.0f}%), worst frame ratio {summ['worst_frame_cd_ratio']:.2f}, "
