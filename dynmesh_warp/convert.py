@@ -874,21 +874,26 @@ def to_fixed_topology(seq, strategy: str = DEFAULT_STRATEGY, template=None, devi
     try:
         topology = pool.submit(_topology_events, vseq)
         res = _convert_from_key(vseq, strategy, o, K, template, device, progress, should_stop, where)
-        trials = _key_candidates(vseq, strategy, o, K, given, res)
+        trials = _key_candidates(vseq, o, K, given, res)
         if trials:
             if progress:  # the run goes on: say why
                 print(f"conversion: frames poorly covered from key frame {K}; trying key frames "
                       f"{', '.join(map(str, trials))} (key_candidates)", file=sys.stderr, flush=True)
-            tried = [(K, float(np.mean(res.conversion.coverage)), float(np.sum(res.conversion.frame_seconds)))]
+
+            def trial(k, r):  # (key frame, mean coverage, seconds) of a run
+                return k, float(np.mean(r.conversion.coverage)), float(np.sum(r.conversion.frame_seconds))
+
+            tried = [trial(K, res)]
+            best = tried[0][1]
             for k in trials:
                 if should_stop is not None and should_stop():
                     break
                 r = _convert_from_key(vseq, strategy, o, k, None, device, progress, should_stop, where)
                 if len(r.conversion.coverage) < T:  # stopped during this run: keep the finished ones
                     break
-                tried.append((k, float(np.mean(r.conversion.coverage)), float(np.sum(r.conversion.frame_seconds))))
-                if tried[-1][1] < float(np.mean(res.conversion.coverage)):
-                    res = r
+                tried.append(trial(k, r))
+                if tried[-1][1] < best:
+                    res, best = r, tried[-1][1]
             res.conversion.key_trials = tried
         info = res.conversion
         info.topology_events = [e for e in topology.result()
@@ -898,7 +903,7 @@ def to_fixed_topology(seq, strategy: str = DEFAULT_STRATEGY, template=None, devi
     return res
 
 
-def _key_candidates(vseq, strategy: str, o: dict, K: int, given: bool, res) -> list:
+def _key_candidates(vseq, o: dict, K: int, given: bool, res) -> list:
     """The key frames to try after the run from the automatic key frame ``K`` (``res``): when
     that run is complete, covers at least KEY_RETRY_POOR_SHARE of the frames (and 2) poorly
     (> POOR_COVERAGE) and the key frame was not chosen by the user, ``key_candidates`` frames

@@ -334,8 +334,7 @@ class Renderer:
                                                             shapes.pose, Rs, ts, ks], outputs=[solid], device=d)
         else:
             solid = self._no_solid
-        tiles = ((W + TILE - 1) // TILE) * ((H + TILE - 1) // TILE)
-        wp.launch(rasterize_gaussians, (C, tiles * TILE * TILE),
+        wp.launch(rasterize_gaussians, (C, (tiles // C) * TILE * TILE),  # a thread per pixel of each tile
                   inputs=[self._s_xyo, self._s_conic, self._s_cd, start, end, Rs, ts, ks, sc, sr, s_per,
                           wp.vec3(*sphere_color), solid, int(has_solid), wp.vec3(*background), W, H],
                   outputs=[rgb, alpha, zbuf], device=d)

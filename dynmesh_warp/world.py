@@ -624,8 +624,7 @@ class SweptCollider(ColliderBase):
     sphere is an atomic minimum (``find_closest_per_face``), then each sphere's contact with the
     ties looked for around the winning face's vertices (``resolve_closest_per_sphere``); its
     work is one pass over the faces' boxes per step times the sphere count, for few spheres on
-    large meshes, where a
-    sphere's box holds hundreds of faces; the BVH is not refit then.
+    large meshes, where a sphere's box holds hundreds of faces; the BVH is not refit then.
     Measured per search, and the searches tried and dropped: docs/benchmarks.md.
     """
 
@@ -645,12 +644,12 @@ class SweptCollider(ColliderBase):
                              "collider searches 'serial', 'tiled' or 'faces'")
         self.tile_threads = int(tile_threads or SWEPT_TILE_THREADS)
         self.resize(model, state, ctx)
-        # the faces around each vertex (CSR), where the face-parallel search looks for its ties
-        F = surf.faces() if self.search == SweptSearch.FACES else np.zeros((0, 3), np.int32)
-        order = np.argsort(F.ravel(), kind="stable")
-        counts = np.bincount(F.ravel(), minlength=surf.num_vertices if len(F) else 0)
-        self.vertex_face_offsets = wp.array(np.concatenate([[0], np.cumsum(counts)]).astype(np.int32), device=d)
-        self.vertex_faces = wp.array((order // 3).astype(np.int32), device=d)
+        self.vertex_face_offsets = self.vertex_faces = None
+        if self.search == SweptSearch.FACES:  # the faces around each vertex (CSR), where it looks for ties
+            F = surf.faces().ravel()
+            counts = np.bincount(F, minlength=surf.num_vertices)
+            self.vertex_face_offsets = wp.array(np.concatenate([[0], np.cumsum(counts)]).astype(np.int32), device=d)
+            self.vertex_faces = wp.array((np.argsort(F, kind="stable") // 3).astype(np.int32), device=d)
         self.lowers = wp.zeros(surf.num_faces, dtype=wp.vec3, device=d)
         self.uppers = wp.zeros(surf.num_faces, dtype=wp.vec3, device=d)
         self.compute_bounds(model, state, ctx)
@@ -696,19 +695,18 @@ class SweptCollider(ColliderBase):
         m, s, c = model, state, contacts
         surf = m.surface
         # kernel argument groups (kernels/swept.py): Model, State in, In, Out
-        inputs = [surf.frames, surf.indices, m.spheres.radius, s.sim_time, s.sphere_pos, s.sphere_vel,
-                  self.bvh.id, self.lowers, self.uppers, surf.fps, surf.playback, int(surf.interpolate),
-                  self.epsilon, ctx.sub_dt, ctx.extra_speed, m.params.margin]
+        model_in = [surf.frames, surf.indices, m.spheres.radius]
+        state_in = [s.sim_time, s.sphere_pos, s.sphere_vel]
+        step_in = [surf.fps, surf.playback, int(surf.interpolate), self.epsilon, ctx.sub_dt, ctx.extra_speed,
+                   m.params.margin]
+        inputs = [*model_in, *state_in, self.bvh.id, self.lowers, self.uppers, *step_in]
         outputs = [c.face, c.point, c.normal, c.depth, c.velocity]
         if self.search == SweptSearch.FACES:
-            faces = [surf.frames, surf.indices, m.spheres.radius, s.sim_time, s.sphere_pos, s.sphere_vel,
-                     self.lowers, self.uppers, surf.fps, surf.playback, int(surf.interpolate), self.epsilon,
-                     ctx.sub_dt, ctx.extra_speed, m.params.margin]
-            ctx.launch(find_closest_per_face, surf.num_faces, faces, [self.best_key])
+            ctx.launch(find_closest_per_face, surf.num_faces, [*model_in, *state_in, self.lowers, self.uppers, *step_in],
+                       [self.best_key])
             ctx.launch(resolve_closest_per_sphere, m.spheres.count,
-                       [surf.frames, surf.indices, m.spheres.radius, self.vertex_face_offsets, self.vertex_faces,
-                        s.sim_time, s.sphere_pos, s.sphere_vel, surf.fps, surf.playback, int(surf.interpolate),
-                        self.epsilon, ctx.sub_dt, ctx.extra_speed, m.params.margin], [self.best_key, *outputs])
+                       [*model_in, self.vertex_face_offsets, self.vertex_faces, *state_in, *step_in],
+                       [self.best_key, *outputs])
         elif self.search == SweptSearch.TILED:
             if m.spheres.count:
                 wp.launch_tiled(collide_sphere_swept_tiled, dim=m.spheres.count, inputs=inputs, outputs=outputs,

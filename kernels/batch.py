@@ -27,6 +27,10 @@ from .swept import (
 )
 
 
+#: a candidate budget no query reaches (``closest_on_pair_bvh`` walks every candidate)
+NO_BUDGET = wp.constant(2147483647)
+
+
 @wp.func
 def pair_slot(k0: int, k1: int, alpha: float, num_frames: int, slices: int) -> int:
     """The BVH slot of the surface between frames k0 and k1 at blend ``alpha``: frame pair p =
@@ -62,25 +66,32 @@ def pair_slot(k0: int, k1: int, alpha: float, num_frames: int, slices: int) -> i
 def closest_on_pair_bvh(
     bvh: wp.uint64, lowers: wp.array2d[wp.vec3], uppers: wp.array2d[wp.vec3], slot: int,
     frames: wp.array2d[wp.vec3], indices: wp.array[wp.int32], k0: int, k1: int, alpha: float, p: wp.vec3,
-    reach: float, epsilon: float,
+    reach: float, epsilon: float, budget: int,
 ):
     """Closest feature of the interpolated surface within ``reach`` of p over the candidates of
-    slot's BVH, skipping a face whose box is farther than the
-    closest feature so far (+ epsilon): the box contains the face at every blend of the slot,
-    so a skipped face could neither be closer nor tie; the result is that of evaluating all."""
+    slot's BVH, skipping a face whose box is farther than the closest feature so far
+    (+ epsilon): the box contains the face at every blend of the slot, so a skipped face could
+    neither be closer nor tie; the result is that of evaluating all. The walk stops at the
+    first candidate over ``budget`` (the last value returned is then 1 and the rest incomplete)."""
     ext = wp.vec3(reach + epsilon)
     query = wp.bvh_query_aabb(bvh, p - ext, p + ext)
     f = int(0)
+    c = int(0)
+    over = int(0)
     min_dist = reach
     min_face = int(-1)
     min_w = wp.vec3(0.0)
     acc_n = wp.vec3(0.0)
     while wp.bvh_query_next(query, f):
+        c += 1
+        if c > budget:
+            over = 1
+            break
         if box_distance(p, lowers[slot, f], uppers[slot, f]) < min_dist + epsilon:
             a, b, g = interpolated_triangle(frames, indices, f, k0, k1, alpha)
             dist, w, wn = face_candidate(p, a, b, g, epsilon)
             min_dist, min_face, min_w, acc_n = keep_closest(dist, f, w, wn, epsilon, min_dist, min_face, min_w, acc_n)
-    return min_dist, min_face, min_w, acc_n
+    return min_dist, min_face, min_w, acc_n, over
 
 
 @wp.kernel
@@ -172,8 +183,9 @@ def collide_and_integrate_env_spheres(
     r = sphere_radius[s]
     reach = contact_reach(r, v, extra_speed, dt, margin)
     slot = pair_slot(k0, k1, alpha, T, slices)
-    min_dist, min_face, min_w, acc_n = closest_on_pair_bvh(pair_bvh[slot], pair_lowers, pair_uppers, slot, frames,
-                                                           indices, k0, k1, alpha, p, reach, epsilon)
+    min_dist, min_face, min_w, acc_n, over = closest_on_pair_bvh(pair_bvh[slot], pair_lowers, pair_uppers, slot,
+                                                                 frames, indices, k0, k1, alpha, p, reach, epsilon,
+                                                                 NO_BUDGET)
     write_swept_contact(s, p, r, reach, min_dist, min_face, min_w, acc_n, frames, indices, k0, k1, alpha,
                         fps * wp.float64(rate), contact_face, contact_point, contact_normal, contact_depth,
                         contact_velocity)
@@ -316,23 +328,10 @@ def collide_env_spheres_bounded(
     p = sphere_pos_in[s]
     reach = contact_reach(sphere_radius[s], sphere_vel_in[s], extra_speed, dt, margin)
     slot = pair_slot(k0, k1, alpha, T, slices)
-    ext = wp.vec3(reach + epsilon)
-    query = wp.bvh_query_aabb(pair_bvh[slot], p - ext, p + ext)
-    f = int(0)
-    c = int(0)
-    min_dist = reach
-    min_face = int(-1)
-    min_w = wp.vec3(0.0)
-    acc_n = wp.vec3(0.0)
-    while wp.bvh_query_next(query, f):
-        c += 1
-        if c > budget:
-            break
-        if box_distance(p, pair_lowers[slot, f], pair_uppers[slot, f]) < min_dist + epsilon:
-            a, b, g = interpolated_triangle(frames, indices, f, k0, k1, alpha)
-            dist, w, wn = face_candidate(p, a, b, g, epsilon)
-            min_dist, min_face, min_w, acc_n = keep_closest(dist, f, w, wn, epsilon, min_dist, min_face, min_w, acc_n)
-    if c > budget:
+    min_dist, min_face, min_w, acc_n, over = closest_on_pair_bvh(pair_bvh[slot], pair_lowers, pair_uppers, slot,
+                                                                 frames, indices, k0, k1, alpha, p, reach, epsilon,
+                                                                 budget)
+    if over != 0:
         heavy[wp.atomic_add(heavy_count, 0, 1)] = s
     else:
         query_dist[s] = min_dist

@@ -538,8 +538,8 @@ def test_key_candidates_need_a_share_of_poor_frames():
         return SimpleNamespace(conversion=SimpleNamespace(coverage=cov.tolist()))
 
     need = int(np.ceil(KEY_RETRY_POOR_SHARE * T))
-    assert _key_candidates(seq, "graph", o, 102, False, res(need - 1)) == []
-    assert _key_candidates(seq, "graph", o, 102, False, res(need)) == [25, 75, 125, 175]
-    assert _key_candidates(seq, "graph", o, 75, False, res(need)) == [25, 125, 175]  # the key itself once
-    assert _key_candidates(seq, "graph", {**o, "key_frame": 7}, 7, False, res(T)) == []
-    assert _key_candidates(seq, "graph", o, 102, True, res(T)) == []  # a given template
+    assert _key_candidates(seq, o, 102, False, res(need - 1)) == []
+    assert _key_candidates(seq, o, 102, False, res(need)) == [25, 75, 125, 175]
+    assert _key_candidates(seq, o, 75, False, res(need)) == [25, 125, 175]  # the key itself once
+    assert _key_candidates(seq, {**o, "key_frame": 7}, 7, False, res(T)) == []
+    assert _key_candidates(seq, o, 102, True, res(T)) == []  # a given template
