@@ -19,7 +19,7 @@ import enum
 __all__ = ["StrEnum", "Collider", "SweptSearch", "RebuildEvery", "Playback", "FrameOrder", "Orientation", "UpAxis",
            "Strategy", "NewtonSolver", "PLAYBACK_CODES", "DEFAULT_COLLIDER", "DEFAULT_REBUILD_EVERY",
            "DEFAULT_SWEPT_SEARCH", "DEFAULT_BATCH_SWEPT_SEARCH", "SWEPT_MEASURED_SEARCHES", "SWEPT_FACES_MAX_SPHERES",
-           "SWEPT_TILE_THREADS",
+           "SWEPT_RESOLVE_THREADS", "SWEPT_TILE_THREADS",
            "DEFAULT_PLAYBACK",
            "DEFAULT_FRAME_ORDER", "DEFAULT_ORIENTATION", "DEFAULT_UP_AXIS", "DEFAULT_STRATEGY",
            "DEFAULT_NEWTON_SOLVER", "STRATEGIES", "values", "parse"]
@@ -139,6 +139,9 @@ DEFAULT_BATCH_SWEPT_SEARCH = {"cpu": ((None, SweptSearch.SERIAL),),
                                        (None, SweptSearch.SERIAL))}
 #: threads per sphere of the tiled search
 SWEPT_TILE_THREADS = 64
+#: threads per sphere of the face-parallel search's second pass (the faces around the winning
+#: face's three vertices, ~18 on a regular mesh, taken in parallel)
+SWEPT_RESOLVE_THREADS = 32
 DEFAULT_PLAYBACK = Playback.LOOP
 DEFAULT_FRAME_ORDER = FrameOrder.STORED
 DEFAULT_ORIENTATION = Orientation.AUTO

@@ -38,6 +38,7 @@ from .choices import (
     PLAYBACK_CODES,
     SWEPT_FACES_MAX_SPHERES,
     SWEPT_MEASURED_SEARCHES,
+    SWEPT_RESOLVE_THREADS,
     SWEPT_TILE_THREADS,
     Collider,
     Playback,
@@ -704,9 +705,10 @@ class SweptCollider(ColliderBase):
         if self.search == SweptSearch.FACES:
             ctx.launch(find_closest_per_face, surf.num_faces, [*model_in, *state_in, self.lowers, self.uppers, *step_in],
                        [self.best_key])
-            ctx.launch(resolve_closest_per_sphere, m.spheres.count,
-                       [*model_in, self.vertex_face_offsets, self.vertex_faces, *state_in, *step_in],
-                       [self.best_key, *outputs])
+            if m.spheres.count:
+                wp.launch_tiled(resolve_closest_per_sphere, dim=m.spheres.count,
+                                inputs=[*model_in, self.vertex_face_offsets, self.vertex_faces, *state_in, *step_in],
+                                outputs=[self.best_key, *outputs], block_dim=SWEPT_RESOLVE_THREADS, device=ctx.device)
         elif self.search == SweptSearch.TILED:
             if m.spheres.count:
                 wp.launch_tiled(collide_sphere_swept_tiled, dim=m.spheres.count, inputs=inputs, outputs=outputs,

@@ -379,14 +379,16 @@ def resolve_closest_per_sphere(
     contact_depth: wp.array[float],
     contact_velocity: wp.array[wp.vec3],
 ):
-    """The face-parallel search, second pass (launch (S,)): each sphere's contact from its
-    key's face (the closest point recomputed), as ``collide_sphere_swept``. The pseudo-normal's
-    ties are looked for among the faces around the winning face's three vertices (CSR
-    ``vertex_face_offsets`` (N+1,) / ``vertex_faces`` (3M,)): each such face within ``epsilon``
-    of the closest distance adds its angle-weighted normal term, as the serial rule's ties do
-    (a tie shares the closest vertex or edge; a face elsewhere that happens to lie within
-    epsilon is not looked for). The key is reset for the next step."""
-    s = wp.tid()
+    """The face-parallel search, second pass (``wp.launch_tiled``, dim (S,), a block of threads
+    per sphere): each sphere's contact from its key's face (the closest point recomputed), as
+    ``collide_sphere_swept``. The pseudo-normal's ties are looked for among the faces around the
+    winning face's three vertices (CSR ``vertex_face_offsets`` (N+1,) / ``vertex_faces`` (3M,)),
+    the block's threads taking the entries of the three lists in parallel (lane j: entries j,
+    j + block, ...): each such face within ``epsilon`` of the closest distance adds its
+    angle-weighted normal term (summed over the block), as the serial rule's ties do (a tie
+    shares the closest vertex or edge; a face elsewhere that happens to lie within epsilon is
+    not looked for). Thread 0 writes the contact and resets the key for the next step."""
+    s, lane = wp.tid()
     p = sphere_pos_in[s]
     r = sphere_radius[s]
     reach = contact_reach(r, sphere_vel_in[s], extra_speed, dt, margin)
@@ -395,28 +397,45 @@ def resolve_closest_per_sphere(
     face = int(-1)
     dist = reach
     w = wp.vec3(0.0)
-    acc_n = wp.vec3(0.0)
+    tie = wp.vec3(0.0)
     if key != NO_KEY:
         face = int(key - (key / FACE_BITS) * FACE_BITS)
         a, b, e = interpolated_triangle(frames, indices, face, k0, k1, alpha)
         dist, w, wn = face_candidate(p, a, b, e, epsilon)
-        for i in range(3):
-            v = indices[3 * face + i]
-            for j in range(vertex_face_offsets[v], vertex_face_offsets[v + 1]):
-                g = vertex_faces[j]
-                seen = int(0)  # g also holds an earlier vertex of the face: already counted
-                for c in range(3):
-                    for h in range(i):
-                        if indices[3 * g + c] == indices[3 * face + h]:
-                            seen = 1
-                if seen == 0:
-                    ga, gb, ge = interpolated_triangle(frames, indices, g, k0, k1, alpha)
-                    gd, gw, gn = face_candidate(p, ga, gb, ge, epsilon)
-                    if gd < dist + epsilon:
-                        acc_n = acc_n + gn
-    write_swept_contact(s, p, r, reach, dist, face, w, acc_n, frames, indices, k0, k1, alpha, fps,
-                        contact_face, contact_point, contact_normal, contact_depth, contact_velocity)
-    best_key_in_out[s] = NO_KEY
+        v0 = indices[3 * face + 0]
+        v1 = indices[3 * face + 1]
+        v2 = indices[3 * face + 2]
+        n0 = vertex_face_offsets[v0 + 1] - vertex_face_offsets[v0]
+        n1 = vertex_face_offsets[v1 + 1] - vertex_face_offsets[v1]
+        n2 = vertex_face_offsets[v2 + 1] - vertex_face_offsets[v2]
+        j = lane
+        while j < n0 + n1 + n2:
+            i = int(0)  # entry j of vertex i's list
+            g = int(0)
+            if j < n0:
+                g = vertex_faces[vertex_face_offsets[v0] + j]
+            elif j < n0 + n1:
+                i = 1
+                g = vertex_faces[vertex_face_offsets[v1] + j - n0]
+            else:
+                i = 2
+                g = vertex_faces[vertex_face_offsets[v2] + j - n0 - n1]
+            seen = int(0)  # g also holds an earlier vertex of the face: counted in that vertex's list
+            for c in range(3):
+                u = indices[3 * g + c]
+                if (i > 0 and u == v0) or (i > 1 and u == v1):
+                    seen = 1
+            if seen == 0:
+                ga, gb, ge = interpolated_triangle(frames, indices, g, k0, k1, alpha)
+                gd, gw, gn = face_candidate(p, ga, gb, ge, epsilon)
+                if gd < dist + epsilon:
+                    tie = tie + gn
+            j += wp.block_dim()
+    acc_n = wp.tile_sum(wp.tile(tie, preserve_type=True))[0]
+    if lane == 0:
+        write_swept_contact(s, p, r, reach, dist, face, w, acc_n, frames, indices, k0, k1, alpha, fps,
+                            contact_face, contact_point, contact_normal, contact_depth, contact_velocity)
+        best_key_in_out[s] = NO_KEY
 
 
 @wp.kernel
