@@ -98,6 +98,7 @@ def main(argv=None):
     ap.add_argument("--height", type=int, default=1080)
     ap.add_argument("--batch", type=int, default=1024, help="cameras of the RL-observation batch (128 x 128; 0: none)")
     ap.add_argument("--scale", type=float, default=1.0, help="factor on the random Gaussians' scales (a sparser scene)")
+    ap.add_argument("--wide-keys", action="store_true", help="sort 64-bit keys even where compact 32-bit ones fit")
     ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--profile", action="store_true", help="also time each stage (synchronised after each)")
     ap.add_argument("--out", default=None)
@@ -106,13 +107,14 @@ def main(argv=None):
     device = wp.get_device(a.device)
     means, q, scales, covs, sh, op = scene(a.gaussians, a.degree, scale=a.scale)
     cam = look_at([2.2, 1.6, 1.2], [0, 0, 0], width=a.width, height=a.height, fov_y_deg=50)
-    r = Renderer(device)
+    r = Renderer(device, compact_keys=not a.wide_keys)
     dm = wp.array(means, dtype=wp.vec3, device=device)
     dc = wp.array(covs, dtype=wp.mat33, device=device)
     ds = wp.array(sh, dtype=float, device=device)
     do = wp.array(op, dtype=float, device=device)
     res = {"machine": describe_device(device), "gaussians": a.gaussians, "sh_degree": a.degree,
-           "image": [a.width, a.height], "scale": a.scale}
+           "image": [a.width, a.height], "scale": a.scale,
+           "sort_keys": "64-bit" if a.wide_keys else "compact 32-bit where they fit"}
     out = {}
     t = timed(lambda: out.__setitem__("r", r.render(dm, dc, ds, do, [cam], background=(0, 0, 0))), device, a.repeats)
     ours = out["r"].rgb.numpy()[0]

@@ -26,6 +26,7 @@ import warp as wp
 from .gaussians import SHADE_AMBIENT
 from .kernels.render import (
     EMPTY_KEY,
+    EMPTY_KEY32,
     SH_C0,
     SHAPE_BOX,
     SHAPE_CAPSULE,
@@ -40,6 +41,8 @@ from .kernels.render import (
     gather_sorted_splats,
     project_gaussians,
     rasterize_gaussians,
+    scatter_depth_rank,
+    write_depth_keys,
 )
 
 __all__ = ["Camera", "look_at", "orbit_cameras", "Renderer", "RenderResult", "RigidShapes", "rgb_to_sh", "render_world",
@@ -190,10 +193,15 @@ class Renderer:
     a :class:`RenderResult` are this renderer's own: valid until its next ``render`` (copy them
     to keep them)."""
 
-    def __init__(self, device=None):
+    def __init__(self, device=None, compact_keys: bool = True):
+        """``compact_keys``: sort 32-bit (tile, depth rank) keys where the camera tiles and the
+        (camera, Gaussian) ranks fit in 32 bits (one more, small sort of the depths first); off,
+        or where they do not fit, 64-bit (tile, depth) keys. The two give the same picture up
+        to the order of splats whose depths differ by less than a micrometre."""
         self.device = wp.get_device(device)
+        self.compact_keys = bool(compact_keys)
         self._cap = 0
-        self._keys = self._values = None
+        self._keys = self._keys32 = self._values = None
         self._bkey, self._b = None, {}
         self._overflow = wp.zeros(1, dtype=wp.int32, device=self.device)
         self._no_spheres = (wp.zeros(0, dtype=wp.vec3, device=self.device), wp.zeros(0, dtype=float, device=self.device))
@@ -236,11 +244,45 @@ class Renderer:
     def _grow(self, n: int):
         if n > self._cap:
             self._cap = max(n, int(self._cap * 1.5), 1024)
-            self._keys = wp.zeros(2 * self._cap, dtype=wp.int64, device=self.device)
+            self._keys = self._keys32 = None  # the kind a render needs is made by _sort_keys
             self._values = wp.zeros(2 * self._cap, dtype=wp.int32, device=self.device)
             self._s_xyo = wp.zeros(self._cap, dtype=wp.vec3, device=self.device)  # splats in key order
             self._s_conic = wp.zeros(self._cap, dtype=wp.vec3, device=self.device)
             self._s_cd = wp.zeros(self._cap, dtype=wp.vec4, device=self.device)
+
+    def key_layout(self, C: int, G: int, tiles: int) -> tuple[bool, int]:
+        """(compact, shift) of the sort keys of C cameras x G Gaussians over ``tiles`` (camera,
+        tile) bins: compact 32-bit keys where the bin and the depth rank among C x G fit in 32
+        bits (decided from the sizes alone: nothing read back), the bin above ``shift`` bits."""
+        rank_bits = max(C * G - 1, 1).bit_length()
+        compact = self.compact_keys and max(tiles - 1, 1).bit_length() + rank_bits <= 32
+        return compact, (rank_bits if compact else 32)
+
+    def _sort_keys(self, compact: bool):
+        """The (key, value) arrays of this render's kind (2 x capacity entries, for the radix
+        sort), allocated on first use at the current capacity."""
+        if compact:
+            if self._keys32 is None:
+                self._keys32 = wp.zeros(2 * self._cap, dtype=wp.uint32, device=self.device)
+            return self._keys32
+        if self._keys is None:
+            self._keys = wp.zeros(2 * self._cap, dtype=wp.int64, device=self.device)
+        return self._keys
+
+    def _depth_rank(self, C: int, G: int, depth, radius):
+        """Each (camera, Gaussian)'s position in the depth order of all C x G (culled ones
+        last): the compact keys' low bits (``write_depth_keys``, a float radix sort,
+        ``scatter_depth_rank``)."""
+        b, d = self._b, self.device
+        if "depth_keys" not in b:
+            b["depth_keys"] = wp.zeros(2 * C * G, dtype=float, device=d)
+            b["depth_order"] = wp.zeros(2 * C * G, dtype=wp.int32, device=d)
+            b["depth_rank"] = wp.zeros(C * G, dtype=wp.int32, device=d)
+        wp.launch(write_depth_keys, (C, G), inputs=[depth, radius], outputs=[b["depth_keys"], b["depth_order"]],
+                  device=d)
+        wp.utils.radix_sort_pairs(b["depth_keys"], b["depth_order"], C * G)
+        wp.launch(scatter_depth_rank, C * G, inputs=[b["depth_order"]], outputs=[b["depth_rank"]], device=d)
+        return b["depth_rank"]
 
     def render(self, means, covariances, sh, opacities, cameras: list[Camera], sh_degree: int | None = None,
                spheres=None, sphere_color=(0.85, 0.25, 0.2), background=(1.0, 1.0, 1.0),
@@ -294,23 +336,28 @@ class Renderer:
         start.zero_()
         end.zero_()
         tiles = start.shape[0]
+        compact, shift = self.key_layout(C, G, tiles)
         self._overflow.zero_()
         if capacity is not None:  # fixed capacity: nothing read back (capturable); the unused tail sorts last
             n = int(capacity)
             if n < 1:
                 raise ValueError(f"render: capacity must be >= 1, got {capacity}")
             self._grow(n)
-            self._keys.fill_(EMPTY_KEY)
+            keys = self._sort_keys(compact)
+            keys.fill_(EMPTY_KEY32 if compact else EMPTY_KEY)
         else:
             n = int(offsets[-1:].numpy()[0] + touched[-1:].numpy()[0]) if C * G else 0  # one host read: the list size
             self._grow(max(n, 1))
+            keys = self._sort_keys(compact)
         if n:
-            wp.launch(emit_tile_keys, (C, G), inputs=[mean2d, depth, radius, offsets, W, H, n],
-                      outputs=[self._keys, self._values, self._overflow], device=d)
-            wp.utils.radix_sort_pairs(self._keys, self._values, n)
-            wp.launch(find_tile_ranges, n, inputs=[self._keys, n], outputs=[start, end], device=d)
+            rank = self._depth_rank(C, G, depth, radius) if compact else b.setdefault(
+                "no_rank", wp.zeros(0, dtype=wp.int32, device=d))
+            wp.launch(emit_tile_keys, (C, G), inputs=[mean2d, depth, radius, offsets, rank, shift, W, H, n],
+                      outputs=[keys, self._values, self._overflow], device=d)
+            wp.utils.radix_sort_pairs(keys, self._values, n)
+            wp.launch(find_tile_ranges, n, inputs=[keys, shift, n], outputs=[start, end], device=d)
             wp.launch(gather_sorted_splats, n,
-                      inputs=[self._keys, self._values, tiles // C, mean2d, conic, depth, color, op],
+                      inputs=[keys, self._values, shift, tiles // C, mean2d, conic, depth, color, op],
                       outputs=[self._s_xyo, self._s_conic, self._s_cd], device=d)
         if spheres is None:
             sc, sr = self._no_spheres

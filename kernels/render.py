@@ -13,11 +13,23 @@ rigid shapes (Newton's boxes, capsules, cylinders, ellipsoids, meshes) are cast 
 ``cast_rigid_shapes`` into an opaque layer the compositing treats the same way.
 """
 
+from typing import Any
+
 import warp as wp
 
+# the compositing's exp and divisions in fast-math form (as gsplat's CUDA build): the images
+# differ from exact float maths by float rounding only (tests/test_render.py: the NumPy
+# reference's tolerance)
+wp.set_module_options({"fast_math": True})
+
 TILE = wp.constant(16)
-#: the key of an unused entry of a fixed-capacity render (sorts after every real key)
+#: the key of an unused entry of a fixed-capacity render (sorts after every real key): the
+#: 64-bit keys' (tile << 32 | depth in micrometres) ...
 EMPTY_KEY = wp.constant(wp.int64(9223372036854775807))
+#: ... and the compact 32-bit keys' (tile << rank bits | depth rank), unsigned
+EMPTY_KEY32 = wp.constant(wp.uint32(4294967295))
+#: the compact keys' depth rank: no depth (a culled Gaussian sorts after every visible one)
+NO_DEPTH = wp.constant(3.0e38)
 
 SH_C0 = wp.constant(0.28209479177387814)
 SH_C1 = wp.constant(0.4886025119029199)
@@ -171,6 +183,65 @@ def project_gaussians(
     color[c, g] = col
 
 
+@wp.func
+def store_key(keys: wp.array[wp.int64], i: int, key: wp.int64):
+    """Key i of a sort (overloaded per key width: 64-bit, or compact uint32)."""
+    keys[i] = key
+
+
+@wp.func
+def store_key(keys: wp.array[wp.uint32], i: int, key: wp.int64):  # noqa: F811 (a Warp overload)
+    keys[i] = wp.uint32(key)
+
+
+@wp.func
+def load_key(keys: wp.array[wp.int64], i: int) -> wp.int64:
+    """Key i of a sort as 64 bits (overloaded per key width)."""
+    return keys[i]
+
+
+@wp.func
+def load_key(keys: wp.array[wp.uint32], i: int) -> wp.int64:  # noqa: F811 (a Warp overload)
+    """A compact key widened (EMPTY_KEY32 -> EMPTY_KEY), so one code path reads both kinds."""
+    k = keys[i]
+    if k == EMPTY_KEY32:
+        return EMPTY_KEY
+    return wp.int64(k)
+
+
+@wp.kernel
+def write_depth_keys(
+    # In:
+    depth: wp.array2d[float],
+    radius: wp.array2d[wp.int32],
+    # Out:
+    depth_keys: wp.array[float],
+    depth_order: wp.array[wp.int32],
+):
+    """The compact keys' first sort's input (launch (C, G)): each (camera, Gaussian)'s camera
+    depth [m] (NO_DEPTH where culled) and its flat index c * G + g."""
+    c, g = wp.tid()
+    i = c * depth.shape[1] + g
+    z = NO_DEPTH
+    if radius[c, g] > 0:
+        z = depth[c, g]
+    depth_keys[i] = z
+    depth_order[i] = i
+
+
+@wp.kernel
+def scatter_depth_rank(
+    # In:
+    depth_order: wp.array[wp.int32],
+    # Out:
+    depth_rank: wp.array[wp.int32],
+):
+    """depth_rank[c * G + g] = the position of (c, g) in the depth-sorted order (launch (C G,)):
+    a rank orders the Gaussians of each camera by depth like the depth itself."""
+    j = wp.tid()
+    depth_rank[depth_order[j]] = j
+
+
 @wp.kernel
 def emit_tile_keys(
     # In:
@@ -178,18 +249,22 @@ def emit_tile_keys(
     depth: wp.array2d[float],
     radius: wp.array2d[wp.int32],
     offsets: wp.array[wp.int32],
+    depth_rank: wp.array[wp.int32],
+    shift: int,
     width: int,
     height: int,
     capacity: int,
     # Out:
-    keys: wp.array[wp.int64],
+    keys: wp.array[Any],
     values: wp.array[wp.int32],
     overflow: wp.array[wp.int32],
 ):
-    """One (key, value) per (Gaussian, touched tile): key = (camera * tiles + tile) << 32 | the
-    depth in micrometres (31 bits: up to 2,147 m), value = the Gaussian; written from the
-    exclusive prefix sum ``offsets`` of the tile counts. Launch (C, G). Entries at or beyond
-    ``capacity`` are not written; overflow[0] counts them (a fixed-capacity render)."""
+    """One (key, value) per (Gaussian, touched tile), value = the Gaussian, written from the
+    exclusive prefix sum ``offsets`` of the tile counts. Launch (C, G). The key is
+    (camera * tiles + tile) << ``shift`` | the depth's order: 64-bit keys (``shift`` 32, no
+    ``depth_rank``): the depth in micrometres (31 bits: up to 2,147 m); compact uint32 keys:
+    ``depth_rank`` (C G,) of ``scatter_depth_rank`` in the low ``shift`` bits. Entries at or
+    beyond ``capacity`` are not written; overflow[0] counts them (a fixed-capacity render)."""
     c, g = wp.tid()
     r = radius[c, g]
     if r <= 0:
@@ -202,13 +277,17 @@ def emit_tile_keys(
     x1 = wp.clamp(int(wp.floor((m[0] + float(r)) / float(TILE))) + 1, 0, tiles_x)
     y0 = wp.clamp(int(wp.floor((m[1] - float(r)) / float(TILE))), 0, tiles_y)
     y1 = wp.clamp(int(wp.floor((m[1] + float(r)) / float(TILE))) + 1, 0, tiles_y)
-    dbits = wp.int64(wp.min(depth[c, g] * 1.0e6, 2147483647.0))
+    low = wp.int64(0)
+    if depth_rank.shape[0] > 0:
+        low = wp.int64(depth_rank[c * G + g])
+    else:
+        low = wp.int64(wp.min(depth[c, g] * 1.0e6, 2147483647.0))
     i = offsets[c * G + g]
     for ty in range(y0, y1):
         for tx in range(x0, x1):
             if i < capacity:
                 tile = wp.int64(c * tiles_x * tiles_y + ty * tiles_x + tx)
-                keys[i] = (tile << wp.int64(32)) | dbits
+                store_key(keys, i, (tile << wp.int64(shift)) | low)
                 values[i] = g
             else:
                 wp.atomic_add(overflow, 0, 1)
@@ -218,25 +297,29 @@ def emit_tile_keys(
 @wp.kernel
 def find_tile_ranges(
     # In:
-    keys: wp.array[wp.int64],
+    keys: wp.array[Any],
+    shift: int,
     count: int,
     # Out:
     tile_start: wp.array[wp.int32],
     tile_end: wp.array[wp.int32],
 ):
     """[tile_start, tile_end) of each (camera, tile) in the sorted keys (untouched tiles keep
-    0, 0). Launch (count,). Keys equal to EMPTY_KEY (the unused tail of a fixed-capacity
-    render, sorted last) end the list."""
+    0, 0; the tile is the key >> ``shift``). Launch (count,). Empty keys (the unused tail of a
+    fixed-capacity render, sorted last) end the list."""
     i = wp.tid()
-    if keys[i] == EMPTY_KEY:
-        if i > 0 and keys[i - 1] != EMPTY_KEY:
-            tile_end[int(keys[i - 1] >> wp.int64(32))] = i
+    key = load_key(keys, i)
+    if key == EMPTY_KEY:
+        if i > 0:
+            prev_key = load_key(keys, i - 1)
+            if prev_key != EMPTY_KEY:
+                tile_end[int(prev_key >> wp.int64(shift))] = i
         return
-    tile = int(keys[i] >> wp.int64(32))
+    tile = int(key >> wp.int64(shift))
     if i == 0:
         tile_start[tile] = 0
     else:
-        prev = int(keys[i - 1] >> wp.int64(32))
+        prev = int(load_key(keys, i - 1) >> wp.int64(shift))
         if prev != tile:
             tile_start[tile] = i
             tile_end[prev] = i
@@ -247,8 +330,9 @@ def find_tile_ranges(
 @wp.kernel
 def gather_sorted_splats(
     # In:
-    keys: wp.array[wp.int64],
+    keys: wp.array[Any],
     values: wp.array[wp.int32],
+    shift: int,
     tiles_per_camera: int,
     mean2d: wp.array2d[wp.vec2],
     conic: wp.array2d[wp.vec3],
@@ -263,9 +347,10 @@ def gather_sorted_splats(
     """Each sorted key's splat data in key order (launch (count,)): the rasteriser then reads a
     tile's splats as one contiguous run instead of through the Gaussian index."""
     i = wp.tid()
-    if keys[i] == EMPTY_KEY:
+    key = load_key(keys, i)
+    if key == EMPTY_KEY:
         return
-    c = int(keys[i] >> wp.int64(32)) / tiles_per_camera
+    c = int(key >> wp.int64(shift)) / tiles_per_camera
     g = values[i]
     m = mean2d[c, g]
     sorted_xy_opacity[i] = wp.vec3(m[0], m[1], opacity[g])

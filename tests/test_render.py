@@ -123,6 +123,31 @@ def test_fixed_capacity_render_equals_the_exact_one_and_counts_what_it_drops(dev
         r.render(means, covs, sh, op, cams, capacity=0)
 
 
+def test_compact_sort_keys_give_the_wide_keys_picture(device):
+    """The compact 32-bit (tile, depth rank) keys sort the splats like the 64-bit (tile, depth)
+    ones: the same picture, exactly sized and with a fixed capacity; the layout falls back to
+    64-bit keys where the bins and ranks do not fit in 32 bits."""
+    means, covs, sh, op = _scene(300, 11, 1)
+    cams = orbit_cameras([0, 0, 0], 3.5, 3, width=40, height=32)
+    spheres = (np.array([[0.2, 0.1, 0.0]]), np.array([0.3]))
+    compact, wide = Renderer(device), Renderer(device, compact_keys=False)
+    for kw in ({}, {"capacity": 100_000}):
+        a = compact.render(means, covs, sh, op, cams, spheres=spheres, **kw)
+        a_rgb, a_alpha, a_depth = a.rgb.numpy().copy(), a.alpha.numpy().copy(), a.depth.numpy().copy()
+        b = wide.render(means, covs, sh, op, cams, spheres=spheres, **kw)
+        np.testing.assert_array_equal(a_rgb, b.rgb.numpy())
+        np.testing.assert_array_equal(a_alpha, b.alpha.numpy())
+        np.testing.assert_array_equal(a_depth, b.depth.numpy())
+        assert 0.05 < a_alpha.mean() < 0.99
+    assert compact._keys32 is not None and compact._keys is None  # each took its own path
+    assert wide._keys is not None and wide._keys32 is None
+    # 1080p, one camera, 100k Gaussians: 8,160 bins (13 bits) + ranks of 10^5 (17 bits)
+    assert compact.key_layout(1, 100_000, 8160) == (True, 17)
+    # 1,024 cameras of 128 x 128 (65,536 bins) x 5,000 Gaussians: 16 + 23 bits, 64-bit keys
+    assert compact.key_layout(1024, 5000, 65536) == (False, 32)
+    assert wide.key_layout(1, 100, 4) == (False, 32)
+
+
 def test_fixed_capacity_render_is_captured_in_a_cuda_graph(cuda_device):
     """Camera observations inside a CUDA graph: render_envs with a capacity, after one warm-up
     call (cameras and colours uploaded, modules loaded), captured and replayed after the envs
