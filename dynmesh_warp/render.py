@@ -42,7 +42,7 @@ from .kernels.render import (
     project_gaussians,
     rasterize_gaussians,
     scatter_depth_rank,
-    write_depth_keys,
+    emit_depth_keys,
 )
 
 __all__ = ["Camera", "look_at", "orbit_cameras", "Renderer", "RenderResult", "RigidShapes", "rgb_to_sh", "render_world",
@@ -271,14 +271,14 @@ class Renderer:
 
     def _depth_rank(self, C: int, G: int, depth, radius):
         """Each (camera, Gaussian)'s position in the depth order of all C x G (culled ones
-        last): the compact keys' low bits (``write_depth_keys``, a float radix sort,
+        last): the compact keys' low bits (``emit_depth_keys``, a float radix sort,
         ``scatter_depth_rank``)."""
         b, d = self._b, self.device
         if "depth_keys" not in b:
             b["depth_keys"] = wp.zeros(2 * C * G, dtype=float, device=d)
             b["depth_order"] = wp.zeros(2 * C * G, dtype=wp.int32, device=d)
             b["depth_rank"] = wp.zeros(C * G, dtype=wp.int32, device=d)
-        wp.launch(write_depth_keys, (C, G), inputs=[depth, radius], outputs=[b["depth_keys"], b["depth_order"]],
+        wp.launch(emit_depth_keys, (C, G), inputs=[depth, radius], outputs=[b["depth_keys"], b["depth_order"]],
                   device=d)
         wp.utils.radix_sort_pairs(b["depth_keys"], b["depth_order"], C * G)
         wp.launch(scatter_depth_rank, C * G, inputs=[b["depth_order"]], outputs=[b["depth_rank"]], device=d)

@@ -210,7 +210,7 @@ def load_key(keys: wp.array[wp.uint32], i: int) -> wp.int64:  # noqa: F811 (a Wa
 
 
 @wp.kernel
-def write_depth_keys(
+def emit_depth_keys(
     # In:
     depth: wp.array2d[float],
     radius: wp.array2d[wp.int32],
