@@ -107,7 +107,7 @@ def main(argv=None):
     device = wp.get_device(a.device)
     means, q, scales, covs, sh, op = scene(a.gaussians, a.degree, scale=a.scale)
     cam = look_at([2.2, 1.6, 1.2], [0, 0, 0], width=a.width, height=a.height, fov_y_deg=50)
-    r = Renderer(device, compact_keys=not a.wide_keys)
+    r = Renderer(device, compact_keys=False) if a.wide_keys else Renderer(device)
     dm = wp.array(means, dtype=wp.vec3, device=device)
     dc = wp.array(covs, dtype=wp.mat33, device=device)
     ds = wp.array(sh, dtype=float, device=device)

@@ -27,6 +27,7 @@ from .gaussians import SHADE_AMBIENT
 from .kernels.render import (
     EMPTY_KEY,
     EMPTY_KEY32,
+    KEY_KERNELS,
     SH_C0,
     SHAPE_BOX,
     SHAPE_CAPSULE,
@@ -36,9 +37,6 @@ from .kernels.render import (
     SHAPE_SPHERE,
     TILE,
     cast_rigid_shapes,
-    emit_tile_keys,
-    find_tile_ranges,
-    gather_sorted_splats,
     project_gaussians,
     rasterize_gaussians,
     scatter_depth_rank,
@@ -233,8 +231,10 @@ class Renderer:
             self._b = {
                 "mean2d": wp.zeros((C, G), dtype=wp.vec2, device=d), "conic": wp.zeros((C, G), dtype=wp.vec3, device=d),
                 "depth": wp.zeros((C, G), dtype=float, device=d), "radius": wp.zeros((C, G), dtype=wp.int32, device=d),
-                "touched": wp.zeros(C * G, dtype=wp.int32, device=d), "color": wp.zeros((C, G), dtype=wp.vec3, device=d),
-                "offsets": wp.zeros(C * G, dtype=wp.int32, device=d),
+                # one entry more than the (camera, Gaussian) pairs, 0 in touched: the exclusive scan's
+                # last offset is the entry count (one host read)
+                "touched": wp.zeros(C * G + 1, dtype=wp.int32, device=d), "color": wp.zeros((C, G), dtype=wp.vec3, device=d),
+                "offsets": wp.zeros(C * G + 1, dtype=wp.int32, device=d),
                 "start": wp.zeros(tiles, dtype=wp.int32, device=d), "end": wp.zeros(tiles, dtype=wp.int32, device=d),
                 "rgb": wp.zeros((C, H, W), dtype=wp.vec3, device=d), "alpha": wp.zeros((C, H, W), dtype=float, device=d),
                 "depth_image": wp.zeros((C, H, W), dtype=float, device=d)}
@@ -346,12 +346,13 @@ class Renderer:
             keys = self._sort_keys(compact)
             keys.fill_(EMPTY_KEY32 if compact else EMPTY_KEY)
         else:
-            n = int(offsets[-1:].numpy()[0] + touched[-1:].numpy()[0]) if C * G else 0  # one host read: the list size
+            n = int(offsets[C * G:].numpy()[0])  # one host read: the list size
             self._grow(max(n, 1))
             keys = self._sort_keys(compact)
         if n:
             rank = self._depth_rank(C, G, depth, radius) if compact else b.setdefault(
                 "no_rank", wp.zeros(0, dtype=wp.int32, device=d))
+            emit_tile_keys, find_tile_ranges, gather_sorted_splats = KEY_KERNELS[keys.dtype]
             wp.launch(emit_tile_keys, (C, G), inputs=[mean2d, depth, radius, offsets, rank, shift, W, H, n],
                       outputs=[keys, self._values, self._overflow], device=d)
             wp.utils.radix_sort_pairs(keys, self._values, n)
