@@ -246,9 +246,9 @@ class Renderer:
             self._cap = max(n, int(self._cap * 1.5), 1024)
             self._keys = self._keys32 = None  # the kind a render needs is made by _sort_keys
             self._values = wp.zeros(2 * self._cap, dtype=wp.int32, device=self.device)
-            self._s_xyo = wp.zeros(self._cap, dtype=wp.vec3, device=self.device)  # splats in key order
+            self._s_xyod = wp.zeros(self._cap, dtype=wp.vec4, device=self.device)  # splats in key order
             self._s_conic = wp.zeros(self._cap, dtype=wp.vec3, device=self.device)
-            self._s_cd = wp.zeros(self._cap, dtype=wp.vec4, device=self.device)
+            self._s_color = wp.zeros(self._cap, dtype=wp.vec3, device=self.device)
 
     def key_layout(self, C: int, G: int, tiles: int) -> tuple[bool, int]:
         """(compact, shift) of the sort keys of C cameras x G Gaussians over ``tiles`` (camera,
@@ -359,7 +359,7 @@ class Renderer:
             wp.launch(find_tile_ranges, n, inputs=[keys, shift, n], outputs=[start, end], device=d)
             wp.launch(gather_sorted_splats, n,
                       inputs=[keys, self._values, shift, tiles // C, mean2d, conic, depth, color, op],
-                      outputs=[self._s_xyo, self._s_conic, self._s_cd], device=d)
+                      outputs=[self._s_xyod, self._s_conic, self._s_color], device=d)
         if spheres is None:
             sc, sr = self._no_spheres
         else:
@@ -383,7 +383,7 @@ class Renderer:
         else:
             solid = self._no_solid
         wp.launch(rasterize_gaussians, (C, (tiles // C) * TILE * TILE),  # a thread per pixel of each tile
-                  inputs=[self._s_xyo, self._s_conic, self._s_cd, start, end, Rs, ts, ks, sc, sr, s_per,
+                  inputs=[self._s_xyod, self._s_conic, self._s_color, start, end, Rs, ts, ks, sc, sr, s_per,
                           wp.vec3(*sphere_color), solid, int(has_solid), wp.vec3(*background), W, H],
                   outputs=[rgb, alpha, zbuf], device=d)
         return RenderResult(rgb, alpha, zbuf, self._overflow)

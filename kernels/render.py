@@ -340,12 +340,14 @@ def gather_sorted_splats(
     color: wp.array2d[wp.vec3],
     opacity: wp.array[float],
     # Out:
-    sorted_xy_opacity: wp.array[wp.vec3],
+    sorted_xy_opacity_depth: wp.array[wp.vec4],
     sorted_conic: wp.array[wp.vec3],
-    sorted_color_depth: wp.array[wp.vec4],
+    sorted_color: wp.array[wp.vec3],
 ):
     """Each sorted key's splat data in key order (launch (count,)): the rasteriser then reads a
-    tile's splats as one contiguous run instead of through the Gaussian index."""
+    tile's splats as one contiguous run instead of through the Gaussian index: the centre [px],
+    opacity and depth [m] together (what every splat's test reads), the conic, and the colour
+    (read only for a splat that is composited)."""
     i = wp.tid()
     key = load_key(keys, i)
     if key == EMPTY_KEY:
@@ -353,10 +355,9 @@ def gather_sorted_splats(
     c = int(key >> wp.int64(shift)) / tiles_per_camera
     g = values[i]
     m = mean2d[c, g]
-    sorted_xy_opacity[i] = wp.vec3(m[0], m[1], opacity[g])
+    sorted_xy_opacity_depth[i] = wp.vec4(m[0], m[1], opacity[g], depth[c, g])
     sorted_conic[i] = conic[c, g]
-    col = color[c, g]
-    sorted_color_depth[i] = wp.vec4(col[0], col[1], col[2], depth[c, g])
+    sorted_color[i] = color[c, g]
 
 
 #: the key kernels' concrete overloads per key width (wp.int64 or wp.uint32): (emit_tile_keys,
@@ -582,9 +583,9 @@ def cast_rigid_shapes(
 @wp.kernel
 def rasterize_gaussians(
     # In:
-    sorted_xy_opacity: wp.array[wp.vec3],
+    sorted_xy_opacity_depth: wp.array[wp.vec4],
     sorted_conic: wp.array[wp.vec3],
-    sorted_color_depth: wp.array[wp.vec4],
+    sorted_color: wp.array[wp.vec3],
     tile_start: wp.array[wp.int32],
     tile_end: wp.array[wp.int32],
     view_rotation: wp.array[wp.mat33],
@@ -649,11 +650,10 @@ def rasterize_gaussians(
     acc_z = float(0.0)
     done = int(0)
     for i in range(tile_start[tile], tile_end[tile]):
-        cd = sorted_color_depth[i]
-        zg = cd[3]
+        mo = sorted_xy_opacity_depth[i]
+        zg = mo[3]
         if zg > z_sphere:
             break
-        mo = sorted_xy_opacity[i]
         q = sorted_conic[i]
         dx = mo[0] - x
         dy = mo[1] - y
@@ -667,7 +667,7 @@ def rasterize_gaussians(
         if next_t <= 1.0e-4:
             done = 1
             break
-        acc = acc + wp.vec3(cd[0], cd[1], cd[2]) * (a * T)
+        acc = acc + sorted_color[i] * (a * T)
         acc_z = acc_z + zg * (a * T)
         T = next_t
     if sk >= 0 and done != 1:  # the sphere, opaque, behind the splats composited so far
