@@ -117,7 +117,7 @@ class GraphOptions(_Options, _FineStage):
     restart_fits: Int = Field(2, ge=0)
     refine_rounds: Int = Field(2, ge=0)
     #: when the run from the automatic key frame leaves frames poorly covered (coverage above
-    #: convert.POOR_COVERAGE on convert.KEY_RETRY_POOR_SHARE of them), the conversion is run
+    #: convert.POOR_COVERAGE on convert.KEY_RETRY_POOR_FRAMES of them), the conversion is run
     #: again from this many key frames spread
     #: evenly over the sequence (frame T (i + 1/2) / n) and the run with the least mean coverage
     #: is kept (the GT-free score that ranks the runs like their true error; docs/conversion.md);
@@ -131,15 +131,15 @@ class GraphOptions(_Options, _FineStage):
     bank_interval: Int = Field(10, ge=0)
     cg_iterations: Int = Field(CG_ITERATIONS, ge=1)
     cg_tolerance: Float = Field(CG_TOLERANCE, ge=0.0)
-    # fine stage: 4 iterations, the backward (coverage) pull alone where a vertex has one
-    # (issue 12's protocol: horse_collapse +17 % -> +13 % CD)
-    iterations: Int = Field(4, ge=0)
+    # fine stage: 6 iterations (was 4), the backward (coverage) pull alone where a vertex has
+    # one, each smoothed by 1 pass (was 3; 10 before that), one tangential relaxation (was 3).
+    # Issue 12's protocol, CPU, each sequence from its automatic key frame (docs/conversion.md):
+    # 4 -> 6 iterations with 3 -> 1 passes: chicken_crossing +14.2 -> +11.4 %, pcow +35.8 ->
+    # +30.2 %, horse_collapse +10.0 -> +8.9 %, horse_gallop +1.2 -> +0.8 %, figure -2.3 -> -2.4 %
+    # (at 0-20 % more time); the round before: chicken +24 -> +14 %, pcow +67 -> +38 %
+    iterations: Int = Field(6, ge=0)
     pull_fraction: Fraction = 1.0
-    # less smoothing of the fine stage's displacements (10 -> 3 passes) and one tangential
-    # relaxation (was 3): the template reaches the parts the input has (issue 12's protocol, CPU:
-    # chicken_crossing +24 -> +14 %, pcow +67 -> +38 %, horse_collapse +13 -> +10 %,
-    # horse_gallop +3 -> +1 %, articulated figure -2 -> -2 %; docs/conversion.md)
-    smooth_iterations: Int = Field(3, ge=0)
+    smooth_iterations: Int = Field(1, ge=0)
     relax_iterations: Int = Field(1, ge=0)
 
 

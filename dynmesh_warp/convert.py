@@ -905,15 +905,15 @@ def to_fixed_topology(seq, strategy: str = DEFAULT_STRATEGY, template=None, devi
 
 def _key_candidates(vseq, o: dict, K: int, given: bool, res) -> list:
     """The key frames to try after the run from the automatic key frame ``K`` (``res``): when
-    that run is complete, covers at least KEY_RETRY_POOR_SHARE of the frames (and 2) poorly
-    (> POOR_COVERAGE) and the key frame was not chosen by the user, ``key_candidates`` frames
+    that run is complete, covers at least KEY_RETRY_POOR_FRAMES frames poorly (> POOR_COVERAGE:
+    the frames the poor-fit warning names) and the key frame was not chosen by the user, ``key_candidates`` frames
     spread evenly over the sequence (other than K)."""
     n = int(o.get("key_candidates", 0) or 0)
     T = vseq.num_frames
     info = res.conversion
     poor = int(np.count_nonzero(np.asarray(info.coverage) > POOR_COVERAGE))
     if (n <= 0 or given or o["key_frame"] not in ("auto", None) or T < 3 or len(info.coverage) < T
-            or poor < max(2, KEY_RETRY_POOR_SHARE * T)):
+            or poor < KEY_RETRY_POOR_FRAMES):
         return []
     keys = [min(T - 1, int(T * (i + 0.5) / n)) for i in range(n)]
     return [k for i, k in enumerate(keys) if k != K and k not in keys[:i]]
@@ -960,10 +960,13 @@ def _convert_from_key(vseq, strategy: str, o: dict, K: int, template, device, pr
 # --------------------------------------------------------------------------- CLI
 
 POOR_COVERAGE = 0.05  # coverage (fraction of the bbox diagonal) above which a frame counts as poorly fit
-#: the share of poorly covered frames (and at least 2) at which the graph conversion tries other
-#: key frames (``key_candidates``): a lone poor frame is an outlier, a share of them a lost track
-#: (pcow: 3.9 % of its frames, chicken_crossing 8.5 %; the 200-frame speed input at most 1 frame)
-KEY_RETRY_POOR_SHARE = 0.02
+#: poorly covered frames (each named by the poor-fit warning) from which the graph conversion
+#: tries other key frames (``key_candidates``): a lone poor frame is an outlier, two or more a
+#: lost part. Was 2 % of the frames (and 2): pcow's first run on the CPU with this round's
+#: fine-stage defaults had 4 of 204 poor frames (1.96 %), stayed at +28 % CD where the retry
+#: gives +11 % (docs/conversion.md); the 200-frame speed input has 0-1 (coverage max 4.4-4.5 %
+#: on the H100)
+KEY_RETRY_POOR_FRAMES = 2
 
 
 def conversion_summary(info: ConversionInfo) -> list:

@@ -521,12 +521,12 @@ def test_key_candidates_rerun_from_spread_keys_and_keep_the_best_covered(monkeyp
         to_fixed_topology(seq, strategy="graph", device=DEV, key_candidates=-1)
 
 
-def test_key_candidates_need_a_share_of_poor_frames():
+def test_key_candidates_need_more_than_one_poor_frame():
     """A lone poorly covered frame is an outlier: the other key frames are tried only when at
-    least KEY_RETRY_POOR_SHARE of the frames (and 2) are poor."""
+    least KEY_RETRY_POOR_FRAMES (2) frames are poor."""
     from types import SimpleNamespace
 
-    from dynmesh_warp.convert import KEY_RETRY_POOR_SHARE, POOR_COVERAGE, _key_candidates
+    from dynmesh_warp.convert import KEY_RETRY_POOR_FRAMES, POOR_COVERAGE, _key_candidates
 
     T = 200
     seq = SimpleNamespace(num_frames=T)
@@ -537,7 +537,8 @@ def test_key_candidates_need_a_share_of_poor_frames():
         cov[:poor] = 2 * POOR_COVERAGE
         return SimpleNamespace(conversion=SimpleNamespace(coverage=cov.tolist()))
 
-    need = int(np.ceil(KEY_RETRY_POOR_SHARE * T))
+    need = KEY_RETRY_POOR_FRAMES
+    assert need == 2
     assert _key_candidates(seq, o, 102, False, res(need - 1)) == []
     assert _key_candidates(seq, o, 102, False, res(need)) == [25, 75, 125, 175]
     assert _key_candidates(seq, o, 75, False, res(need)) == [25, 125, 175]  # the key itself once
