@@ -58,7 +58,14 @@ def main(argv=None):
         strain = [float(np.mean(np.abs(np.log((np.linalg.norm(fx.V[t][E[:, 0]] - fx.V[t][E[:, 1]], axis=1)
                                                + 1e-12) / L0)))) for t in range(T)]
         cov = np.asarray(fx.conversion.coverage)
+        # GT-free two-sided scores: the output's Chamfer distance to the input frames (DG-Mesh
+        # convention) and the 99.5th percentile of output vertex -> input surface / diagonal
+        cd_input = np.mean([ce.chamfer_distance(fx.V[t], var.frames[t][0], squared=True, device=a.device).value
+                            for t in range(T)])
+        off = np.mean([np.percentile(ce.nearest_surface(var.frames[t], fx.V[t], device=a.device).dist, 99.5)
+                       for t in range(T)]) / ce._diag(gt.V[0])
         runs[k] = {"key": key, "cd_inc": float(100 * (cd / inp - 1)), "cov_mean": float(cov.mean()),
+                   "cd_to_input": float(cd_input), "off_input_p995_mean": float(off),
                    "cov_p90": float(np.percentile(cov, 90)), "strain_mean": float(np.mean(strain)), "s": sec,
                    "recovered": len(fx.conversion.recovered_frames)}
         print(k, runs[k], flush=True)

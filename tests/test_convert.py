@@ -17,6 +17,7 @@ from dynmesh_warp.convert import (
     vertex_adjacency,
     main as convert_main,
 )
+from dynmesh_warp.metrics import chamfer_distance
 from dynmesh_warp.scenes import icosphere, rigid_motion
 from dynmesh_warp.sequence import FixedTopologySequence, MeshDataError, VaryingTopologySequence
 
@@ -491,10 +492,12 @@ def test_strategy_options_are_one_typed_model_per_strategy():
     assert cfg.surface.conversion.options == {"tracked_weight": 0.25}
 
 
-def test_key_candidates_rerun_from_spread_keys_and_keep_the_best_covered(monkeypatch):
-    """When the run from the automatic key frame covers a frame poorly, the conversion is run
-    again from key frames spread over the sequence and the run of least mean coverage is kept,
-    with its own template (each frame here is shuffled, so the faces tell which run was kept)."""
+def test_key_candidates_rerun_from_spread_keys_and_keep_the_closest_to_the_input(monkeypatch):
+    """When the run from the automatic key frame covers frames poorly, the conversion is run
+    again from key frames spread over the sequence and the run of least mean Chamfer distance to
+    the input frames is kept, with its own template (each frame here is shuffled, so the faces
+    tell which run was kept); the recorded score is that distance, checked against
+    metrics.chamfer_distance."""
     import dynmesh_warp.convert as convert_mod
     from dynmesh_warp.convert import conversion_summary
 
@@ -507,11 +510,13 @@ def test_key_candidates_rerun_from_spread_keys_and_keep_the_best_covered(monkeyp
     monkeypatch.setattr(convert_mod, "POOR_COVERAGE", -1.0)  # every frame "poor": the candidates run
     res = to_fixed_topology(seq, strategy="graph", device=DEV, key_candidates=2)
     tried = res.conversion.key_trials
-    assert [k for k, _, _ in tried] == [3, 1, 4]  # the automatic key, then frames 6 (i + 1/2) / 2
-    kept = min(tried, key=lambda x: x[1])[0]
+    assert [k for k, _, _, _ in tried] == [3, 1, 4]  # the automatic key, then frames 6 (i + 1/2) / 2
+    kept = min(tried, key=lambda x: x[2])[0]
     assert res.conversion.key_frame == kept
     np.testing.assert_array_equal(res.F, frames[kept][1])  # the kept run's own template
-    assert np.isclose(np.mean(res.conversion.coverage), min(c for _, c, _ in tried))
+    assert np.isclose(np.mean(res.conversion.coverage), [c for k, c, _, _ in tried if k == kept][0])
+    score = np.mean([chamfer_distance(res.V[t], frames[t][0], squared=True, device=DEV).value for t in range(6)])
+    assert np.isclose(score, min(d for _, _, d, _ in tried), rtol=1e-6)
     assert np.allclose(np.linalg.norm(res.V, axis=2).mean(axis=1), radii, rtol=0.02)
     assert any(ln.startswith("key frames tried") and f"kept {kept}" in ln for ln in conversion_summary(res.conversion))
     # a key frame the user chose, a given template, or key_candidates 0: one run
