@@ -119,8 +119,9 @@ class GraphOptions(_Options, _FineStage):
     #: when the run from the automatic key frame leaves frames poorly covered (coverage above
     #: convert.POOR_COVERAGE on convert.KEY_RETRY_POOR_FRAMES of them), the conversion is run
     #: again from this many key frames spread
-    #: evenly over the sequence (frame T (i + 1/2) / n) and the run with the least mean coverage
-    #: is kept (the GT-free score that ranks the runs like their true error; docs/conversion.md);
+    #: evenly over the sequence (frame T (i + 1/2) / n) and the run with the least mean Chamfer
+    #: distance to the input frames is kept (a GT-free score that ranks the runs like their true
+    #: error; docs/conversion.md);
     #: 0: never. Not with a chosen key_frame or a given template.
     key_candidates: Int = Field(4, ge=0)
     # bidirectional repair: re-track runs of poorly covered frames from the other side (off: on
