@@ -281,7 +281,9 @@ def test_predict_candidates_start_from_the_better_pose_when_motion_reverses():
     """A body jumping back and forth by 12 % of its size every frame: constant-velocity
     prediction overshoots by two steps on every frame; ``predict_candidates`` 3 (the prediction
     scaled by 0, 0.5, 1, the start with the lowest two-sided fit score kept) starts nearer, so
-    with few iterations the fits cover the input better on every predicted frame."""
+    with few iterations the fits cover the input better on every predicted frame. (The fine
+    stage is pinned, 1 iteration with 3 smoothing passes: with the default single pass the
+    fine stage closes most of the gap itself and one frame ties, 2.235 vs 2.232 %.)"""
     from dynmesh_warp.convert import to_fixed_topology
     from dynmesh_warp.remesh import remesh_sequence
     from dynmesh_warp.scenes import articulated_figure
@@ -295,7 +297,7 @@ def test_predict_candidates_start_from_the_better_pose_when_motion_reverses():
     cov = {}
     for n in (1, 3):
         r = to_fixed_topology(var, strategy="graph", device=DEV, predict_candidates=n, restart_threshold=0.0,
-                              refine_rounds=0, graph_iterations=3, iterations=1, key_frame=0)
+                              refine_rounds=0, graph_iterations=3, iterations=1, smooth_iterations=3, key_frame=0)
         cov[n] = np.asarray(r.conversion.coverage)[2:] / diag  # frames 0, 1 have no prediction
     assert (cov[3] < cov[1]).all() and cov[3].mean() < 0.85 * cov[1].mean(), cov
 
