@@ -526,6 +526,27 @@ def test_key_candidates_rerun_from_spread_keys_and_keep_the_closest_to_the_input
         to_fixed_topology(seq, strategy="graph", device=DEV, key_candidates=-1)
 
 
+def test_key_trial_score_is_the_chamfer_distance_to_the_input_on_capped_points(monkeypatch):
+    """The key trials' score: the mean over frames of the Chamfer distance between the converted
+    and the input frame, each side cut to at most SCORE_POINTS points by a fixed stride."""
+    from types import SimpleNamespace
+
+    import dynmesh_warp.convert as convert_mod
+
+    rng = np.random.default_rng(2)
+    out = rng.normal(size=(3, 120, 3)).astype(np.float32)
+    inp = [(rng.normal(size=(n, 3)).astype(np.float32), None) for n in (90, 130, 61)]
+    res = SimpleNamespace(V=out, conversion=SimpleNamespace(first_frame=0))
+    seq = SimpleNamespace(frames=inp)
+    full = np.mean([chamfer_distance(out[t], inp[t][0], device=DEV).value for t in range(3)])
+    assert np.isclose(convert_mod._chamfer_to_input(res, seq, DEV), full, rtol=1e-6)
+    monkeypatch.setattr(convert_mod, "SCORE_POINTS", 50)  # strides 3 / 2, 3 / 3, 3 / 2
+    cut = np.mean([chamfer_distance(out[t][::3], inp[t][0][::s], device=DEV).value
+                   for t, s in zip(range(3), (2, 3, 2))])
+    assert np.isclose(convert_mod._chamfer_to_input(res, seq, DEV), cut, rtol=1e-6)
+    assert not np.isclose(cut, full, rtol=1e-3)
+
+
 def test_key_candidates_need_more_than_one_poor_frame():
     """A lone poorly covered frame is an outlier: the other key frames are tried only when at
     least KEY_RETRY_POOR_FRAMES (2) frames are poor."""
