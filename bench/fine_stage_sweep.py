@@ -26,9 +26,8 @@ from conversion_eval import ground_truth, varying_input  # noqa: E402
 
 
 def main(argv=None):
-    from scipy.spatial import cKDTree
-
     from dynmesh_warp.convert import to_fixed_topology
+    from dynmesh_warp.metrics import chamfer_distance
 
     ap = argparse.ArgumentParser()
     ap.add_argument("sequence")
@@ -45,7 +44,7 @@ def main(argv=None):
     var = varying_input(gt, 96, 0.01, a.device, Path(a.cache))
 
     def cd(A, B):
-        return 0.5 * ((cKDTree(B).query(A)[0] ** 2).mean() + (cKDTree(A).query(B)[0] ** 2).mean())
+        return chamfer_distance(A, B, squared=True, device=a.device).value
 
     ts = range(0, gt.num_frames, 3)
     cin = float(np.mean([cd(var.frames[t][0], gt.V[t]) for t in ts]))

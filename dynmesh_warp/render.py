@@ -37,10 +37,10 @@ from .kernels.render import (
     SHAPE_SPHERE,
     TILE,
     cast_rigid_shapes,
+    emit_depth_keys,
     project_gaussians,
     rasterize_gaussians,
     scatter_depth_rank,
-    emit_depth_keys,
 )
 
 __all__ = ["Camera", "look_at", "orbit_cameras", "Renderer", "RenderResult", "RigidShapes", "rgb_to_sh", "render_world",
@@ -343,12 +343,12 @@ class Renderer:
             if n < 1:
                 raise ValueError(f"render: capacity must be >= 1, got {capacity}")
             self._grow(n)
-            keys = self._sort_keys(compact)
-            keys.fill_(EMPTY_KEY32 if compact else EMPTY_KEY)
         else:
             n = int(offsets[C * G:].numpy()[0])  # one host read: the list size
             self._grow(max(n, 1))
-            keys = self._sort_keys(compact)
+        keys = self._sort_keys(compact)
+        if capacity is not None:
+            keys.fill_(EMPTY_KEY32 if compact else EMPTY_KEY)
         if n:
             rank = self._depth_rank(C, G, depth, radius) if compact else b.setdefault(
                 "no_rank", wp.zeros(0, dtype=wp.int32, device=d))
