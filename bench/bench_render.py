@@ -144,11 +144,11 @@ def main(argv=None):
         finally:
             R.wp.launch, R.wp.utils.radix_sort_pairs, R.wp.utils.array_scan = launch, sort, scan
         res["stages_ms"] = {k: v / a.repeats for k, v in stages.items()}
-        res["keys"] = int(r._cap)
+        res["keys"] = int(r.capacity)
         print("stages (ms):", {k: round(v, 3) for k, v in res["stages_ms"].items()}, flush=True)
     print(f"ours {a.width}x{a.height}, {a.gaussians} Gaussians: {t * 1e3:.2f} ms ({1 / t:,.0f} frames/s)", flush=True)
     if device.is_cuda:  # the same render replayed from a CUDA graph (fixed capacity): device time, no host launches
-        n = r._cap  # the exact render above sized the buffers: room for every entry
+        n = r.capacity  # the exact render above sized the buffers: room for every entry
         r.render(dm, dc, ds, do, [cam], background=(0, 0, 0), capacity=n)  # allocate outside the capture
         with wp.ScopedCapture(device) as capture:
             r.render(dm, dc, ds, do, [cam], background=(0, 0, 0), capacity=n)

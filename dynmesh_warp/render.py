@@ -250,6 +250,12 @@ class Renderer:
             self._s_conic = wp.zeros(self._cap, dtype=wp.vec3, device=self.device)
             self._s_color = wp.zeros(self._cap, dtype=wp.vec3, device=self.device)
 
+    @property
+    def capacity(self) -> int:
+        """(Gaussian, tile) entries the sort buffers hold now (grown by renders; 0 before the
+        first): a ``capacity=`` that the last exactly sized render fits in."""
+        return self._cap
+
     def key_layout(self, C: int, G: int, tiles: int) -> tuple[bool, int]:
         """(compact, shift) of the sort keys of C cameras x G Gaussians over ``tiles`` (camera,
         tile) bins: compact 32-bit keys where the bin and the depth rank among C x G fit in 32

@@ -113,6 +113,10 @@ def test_fixed_capacity_render_equals_the_exact_one_and_counts_what_it_drops(dev
     exact = r.render(means, covs, sh, op, cams)
     ref = exact.rgb.numpy().copy()
     assert int(exact.overflow.numpy()[0]) == 0
+    assert r.capacity >= 1  # the exact render sized the buffers; rendering at that capacity drops nothing
+    fits = r.render(means, covs, sh, op, cams, capacity=r.capacity)
+    assert int(fits.overflow.numpy()[0]) == 0
+    np.testing.assert_array_equal(fits.rgb.numpy(), ref)
     roomy = r.render(means, covs, sh, op, cams, capacity=200_000)
     np.testing.assert_array_equal(roomy.rgb.numpy(), ref)
     assert int(roomy.overflow.numpy()[0]) == 0
