@@ -88,6 +88,7 @@ def psnr(a, b):
 
 
 def main(argv=None):
+    from dynmesh_warp.choices import Rasteriser, values
     from dynmesh_warp.render import Renderer, look_at, orbit_cameras
 
     ap = argparse.ArgumentParser()
@@ -99,6 +100,8 @@ def main(argv=None):
     ap.add_argument("--batch", type=int, default=1024, help="cameras of the RL-observation batch (128 x 128; 0: none)")
     ap.add_argument("--scale", type=float, default=1.0, help="factor on the random Gaussians' scales (a sparser scene)")
     ap.add_argument("--wide-keys", action="store_true", help="sort 64-bit keys even where compact 32-bit ones fit")
+    ap.add_argument("--rasteriser", choices=values(Rasteriser), default=None,
+                    help="the rasteriser (default: the device kind's, choices.DEFAULT_RASTERISER)")
     ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--profile", action="store_true", help="also time each stage (synchronised after each)")
     ap.add_argument("--out", default=None)
@@ -107,14 +110,14 @@ def main(argv=None):
     device = wp.get_device(a.device)
     means, q, scales, covs, sh, op = scene(a.gaussians, a.degree, scale=a.scale)
     cam = look_at([2.2, 1.6, 1.2], [0, 0, 0], width=a.width, height=a.height, fov_y_deg=50)
-    r = Renderer(device, compact_keys=False) if a.wide_keys else Renderer(device)
+    r = Renderer(device, compact_keys=not a.wide_keys, rasteriser=a.rasteriser)
     dm = wp.array(means, dtype=wp.vec3, device=device)
     dc = wp.array(covs, dtype=wp.mat33, device=device)
     ds = wp.array(sh, dtype=float, device=device)
     do = wp.array(op, dtype=float, device=device)
     res = {"machine": describe_device(device), "gaussians": a.gaussians, "sh_degree": a.degree,
            "image": [a.width, a.height], "scale": a.scale,
-           "sort_keys": "64-bit" if a.wide_keys else "compact 32-bit where they fit"}
+           "sort_keys": "64-bit" if a.wide_keys else "compact 32-bit where they fit", "rasteriser": str(r.rasteriser)}
     out = {}
     t = timed(lambda: out.__setitem__("r", r.render(dm, dc, ds, do, [cam], background=(0, 0, 0))), device, a.repeats)
     ours = out["r"].rgb.numpy()[0]
@@ -123,7 +126,7 @@ def main(argv=None):
         import dynmesh_warp.render as R
 
         stages: dict = {}
-        launch, sort, scan = R.wp.launch, R.wp.utils.radix_sort_pairs, R.wp.utils.array_scan
+        launch, tiled, sort, scan = R.wp.launch, R.wp.launch_tiled, R.wp.utils.radix_sort_pairs, R.wp.utils.array_scan
 
         def wrap(name, fn):
             def call(*args, **kw):
@@ -136,13 +139,13 @@ def main(argv=None):
                 return out
             return call
 
-        R.wp.launch, R.wp.utils.radix_sort_pairs, R.wp.utils.array_scan = (
-            wrap("launch", launch), wrap("radix_sort_pairs", sort), wrap("array_scan", scan))
+        R.wp.launch, R.wp.launch_tiled, R.wp.utils.radix_sort_pairs, R.wp.utils.array_scan = (
+            wrap("launch", launch), wrap("launch", tiled), wrap("radix_sort_pairs", sort), wrap("array_scan", scan))
         try:
             for _ in range(a.repeats):
                 r.render(dm, dc, ds, do, [cam], background=(0, 0, 0))
         finally:
-            R.wp.launch, R.wp.utils.radix_sort_pairs, R.wp.utils.array_scan = launch, sort, scan
+            R.wp.launch, R.wp.launch_tiled, R.wp.utils.radix_sort_pairs, R.wp.utils.array_scan = launch, tiled, sort, scan
         res["stages_ms"] = {k: v / a.repeats for k, v in stages.items()}
         res["keys"] = int(r.capacity)
         print("stages (ms):", {k: round(v, 3) for k, v in res["stages_ms"].items()}, flush=True)

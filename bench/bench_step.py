@@ -226,7 +226,15 @@ def main(argv=None):
     ap.add_argument("--spheres", default=None, help="comma-separated sphere counts of the scaling table")
     ap.add_argument("--colliders", default=None, help="comma-separated colliders of the scaling table "
                     "(fixed, swept, swept/serial, swept/tiled, refit, rebuild)")
+    ap.add_argument("--refit-bvh", default=None, metavar="CTOR:LEAF",
+                    help="the refit collider's BVH for this run, e.g. sah:8 (default: choices.REFIT_BVH)")
     args = ap.parse_args(argv)
+    if args.refit_bvh:  # an A/B of the refit path's tree: set for this process only
+        from dynmesh_warp import choices
+
+        ctor, _, leaf = args.refit_bvh.partition(":")
+        for kind in choices.REFIT_BVH:
+            choices.REFIT_BVH[kind] = (ctor, int(leaf or 4))
     import warp as wp
 
     wp.config.quiet = True
@@ -235,7 +243,10 @@ def main(argv=None):
     dev_key = "cuda" if device.is_cuda else "cpu"
     out = Path(args.out) if args.out else RESULTS / f"step_{dev_key}.json"
     seq, shared = load_paper_sequence()
-    result = {"machine": describe_device(device), "paper_scene": {
+    from dynmesh_warp.choices import REFIT_BVH
+
+    result = {"machine": describe_device(device), "refit_bvh": list(REFIT_BVH["cuda" if device.is_cuda else "cpu"]),
+              "paper_scene": {
         "sequence": seq.name, "from_shared_data": shared, "vertices": seq.num_vertices, "faces": seq.num_faces,
         "frames": seq.num_frames, "fps": seq.fps, "spheres": 5, "radius": 0.05, "dt": 1 / 240, "substeps": 1,
         "interpolate": True}}

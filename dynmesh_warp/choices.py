@@ -17,7 +17,8 @@ from __future__ import annotations
 import enum
 
 __all__ = ["StrEnum", "Collider", "SweptSearch", "RebuildEvery", "Playback", "FrameOrder", "Orientation", "UpAxis",
-           "Strategy", "NewtonSolver", "PLAYBACK_CODES", "DEFAULT_COLLIDER", "DEFAULT_REBUILD_EVERY",
+           "Strategy", "NewtonSolver", "Rasteriser", "PLAYBACK_CODES", "DEFAULT_RASTERISER", "DEFAULT_COLLIDER",
+           "DEFAULT_REBUILD_EVERY", "REFIT_BVH",
            "DEFAULT_SWEPT_SEARCH", "DEFAULT_BATCH_SWEPT_SEARCH", "SWEPT_MEASURED_SEARCHES", "SWEPT_FACES_MAX_SPHERES",
            "SWEPT_RESOLVE_THREADS", "SWEPT_TILE_THREADS",
            "DEFAULT_PLAYBACK",
@@ -110,6 +111,16 @@ class Strategy(StrEnum):
     GRAPH = "graph"
 
 
+class Rasteriser(StrEnum):
+    """How the splat renderer composites a tile's sorted splats (docs/rendering.md)."""
+
+    #: one thread per pixel reads the tile's splats from global memory (the CPU's rasteriser)
+    PER_PIXEL = "per_pixel"
+    #: one block per tile stages the splats in shared memory in batches (the CUDA default;
+    #: on the CPU a block is one thread, which walks the tile's pixels in turn: correct, slower)
+    SHARED = "shared"
+
+
 class NewtonSolver(StrEnum):
     """Newton solvers the adapter can create (docs/newton.md)."""
 
@@ -121,7 +132,13 @@ class NewtonSolver(StrEnum):
 
 
 DEFAULT_COLLIDER = Collider.FIXED
+#: the rasteriser per device kind: measured on an H100, 1080p, 100k Gaussians, the shared-memory
+#: rasteriser is 2.3x / 1.9x the per-pixel one at the default / a sparse density (docs/rendering.md)
+DEFAULT_RASTERISER = {"cpu": Rasteriser.PER_PIXEL, "cuda": Rasteriser.SHARED}
 DEFAULT_REBUILD_EVERY = RebuildEvery.STEP
+#: the refit collider's ``wp.Mesh`` BVH per device kind: (constructor, primitives per leaf),
+#: Warp's own defaults unless a measurement says otherwise (docs/physics.md)
+REFIT_BVH = {"cpu": ("sah", 4), "cuda": ("lbvh", 4)}
 #: the swept collider's search per device kind (a CPU thread block is one thread: serial there)
 DEFAULT_SWEPT_SEARCH = {"cpu": SweptSearch.SERIAL, "cuda": SweptSearch.TILED}
 #: the searches ``collider: fixed`` measures as candidates per device kind (none: the default)

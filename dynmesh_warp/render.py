@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
+from .choices import DEFAULT_RASTERISER, Rasteriser, parse
 from .gaussians import SHADE_AMBIENT
 from .kernels.render import (
     EMPTY_KEY,
@@ -40,6 +41,7 @@ from .kernels.render import (
     emit_depth_keys,
     project_gaussians,
     rasterize_gaussians,
+    rasterize_gaussians_shared,
     scatter_depth_rank,
 )
 
@@ -191,13 +193,17 @@ class Renderer:
     a :class:`RenderResult` are this renderer's own: valid until its next ``render`` (copy them
     to keep them)."""
 
-    def __init__(self, device=None, compact_keys: bool = True):
+    def __init__(self, device=None, compact_keys: bool = True, rasteriser: Rasteriser | str | None = None):
         """``compact_keys``: sort 32-bit (tile, depth rank) keys where the camera tiles and the
         (camera, Gaussian) ranks fit in 32 bits (one more, small sort of the depths first); off,
         or where they do not fit, 64-bit (tile, depth) keys. The two give the same picture up
-        to the order of splats whose depths differ by less than a micrometre."""
+        to the order of splats whose depths differ by less than a micrometre. ``rasteriser``: a
+        :class:`~dynmesh_warp.choices.Rasteriser` (None: the device kind's default,
+        ``choices.DEFAULT_RASTERISER``); both give the same images bit for bit."""
         self.device = wp.get_device(device)
         self.compact_keys = bool(compact_keys)
+        self.rasteriser = (DEFAULT_RASTERISER["cuda" if self.device.is_cuda else "cpu"] if rasteriser is None
+                           else parse(Rasteriser, rasteriser, "Renderer rasteriser"))
         self._cap = 0
         self._keys = self._keys32 = self._values = None
         self._bkey, self._b = None, {}
@@ -388,10 +394,14 @@ class Renderer:
                                                             shapes.pose, Rs, ts, ks], outputs=[solid], device=d)
         else:
             solid = self._no_solid
-        wp.launch(rasterize_gaussians, (C, (tiles // C) * TILE * TILE),  # a thread per pixel of each tile
-                  inputs=[self._s_xyod, self._s_conic, self._s_color, start, end, Rs, ts, ks, sc, sr, s_per,
-                          wp.vec3(*sphere_color), solid, int(has_solid), wp.vec3(*background), W, H],
-                  outputs=[rgb, alpha, zbuf], device=d)
+        raster_in = [self._s_xyod, self._s_conic, self._s_color, start, end, Rs, ts, ks, sc, sr, s_per,
+                     wp.vec3(*sphere_color), solid, int(has_solid), wp.vec3(*background), W, H]
+        if self.rasteriser == Rasteriser.SHARED:  # a block per tile, a thread per pixel
+            wp.launch_tiled(rasterize_gaussians_shared, dim=(tiles,), inputs=raster_in, outputs=[rgb, alpha, zbuf],
+                            block_dim=TILE * TILE, device=d)
+        else:  # a thread per pixel of each tile
+            wp.launch(rasterize_gaussians, (C, (tiles // C) * TILE * TILE), inputs=raster_in,
+                      outputs=[rgb, alpha, zbuf], device=d)
         return RenderResult(rgb, alpha, zbuf, self._overflow)
 
 

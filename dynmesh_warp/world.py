@@ -36,6 +36,7 @@ from .choices import (
     DEFAULT_REBUILD_EVERY,
     DEFAULT_SWEPT_SEARCH,
     PLAYBACK_CODES,
+    REFIT_BVH,
     SWEPT_FACES_MAX_SPHERES,
     SWEPT_MEASURED_SEARCHES,
     SWEPT_RESOLVE_THREADS,
@@ -571,7 +572,9 @@ class RefitCollider(ColliderBase):
     needs_points = True
 
     def __init__(self, model: Model, state: State, ctx: StepContext):
-        self.mesh = wp.Mesh(points=state.points, indices=model.surface.indices, velocities=state.velocities)
+        ctor, leaf = REFIT_BVH["cuda" if state.points.device.is_cuda else "cpu"]
+        self.mesh = wp.Mesh(points=state.points, indices=model.surface.indices, velocities=state.velocities,
+                            bvh_constructor=ctor, bvh_leaf_size=leaf)
 
     def update(self, model: Model, state: State, ctx: StepContext):
         self.mesh.refit()

@@ -580,6 +580,104 @@ def cast_rigid_shapes(
     solid[c, py, px] = out
 
 
+#: splats a tile's block loads into shared memory per round (``rasterize_gaussians_shared``):
+#: one per thread of the TILE x TILE block
+RASTER_BATCH = wp.constant(256)
+
+
+@wp.func
+def occluder_at_pixel(
+    c: int,
+    px: int,
+    py: int,
+    view_rotation: wp.array[wp.mat33],
+    view_translation: wp.array[wp.vec3],
+    intrinsics: wp.array[wp.vec4],
+    sphere_centers: wp.array[wp.vec3],
+    sphere_radii: wp.array[float],
+    spheres_per_camera: int,
+    solid: wp.array3d[wp.vec4],
+    has_solid: int,
+):
+    """What is opaque at pixel (px, py) of camera c: the nearest ray-cast sphere of the
+    camera's range, or a rigid shape of ``solid`` nearer than it. Returns (its camera depth z
+    [m], NO_HIT if none; the sphere index, -1 none, -2 a rigid shape; the ray's s at the sphere
+    [m]; the ray origin and unit direction in world; the shape layer's texel)."""
+    o, dw, dc = pixel_ray(intrinsics[c], view_rotation[c], view_translation[c], px, py)
+    first = int(0)
+    count = sphere_centers.shape[0]
+    if spheres_per_camera > 0:
+        first = c * spheres_per_camera
+        count = spheres_per_camera
+    s_hit, sk = nearest_sphere(o, dw, sphere_centers, sphere_radii, first, count)
+    z_sphere = float(NO_HIT)
+    if sk >= 0:
+        z_sphere = s_hit * dc[2]
+    # an opaque rigid shape nearer than the nearest sphere (cast_rigid_shapes) takes its place
+    solid_px = wp.vec4(0.0, 0.0, 0.0, NO_HIT)
+    if has_solid != 0:
+        solid_px = solid[c, py, px]
+        if solid_px[3] < z_sphere:
+            z_sphere = solid_px[3]
+            sk = -2
+    return z_sphere, sk, s_hit, o, dw, solid_px
+
+
+@wp.func
+def splat_alpha(xy_opacity_depth: wp.vec4, conic: wp.vec3, x: float, y: float) -> float:
+    """A splat's alpha at pixel centre (x, y) [px]: min(0.999, opacity exp(-sigma)), 0 where
+    sigma < 0 (a degenerate conic)."""
+    dx = xy_opacity_depth[0] - x
+    dy = xy_opacity_depth[1] - y
+    sigma = 0.5 * (conic[0] * dx * dx + conic[2] * dy * dy) + conic[1] * dx * dy
+    if sigma < 0.0:
+        return 0.0
+    return wp.min(0.999, xy_opacity_depth[2] * wp.exp(-sigma))
+
+
+@wp.func
+def write_pixel(
+    c: int,
+    px: int,
+    py: int,
+    T: float,
+    acc: wp.vec3,
+    acc_z: float,
+    saturated: int,
+    z_sphere: float,
+    sk: int,
+    s_hit: float,
+    o: wp.vec3,
+    dw: wp.vec3,
+    solid_px: wp.vec4,
+    sphere_centers: wp.array[wp.vec3],
+    sphere_color: wp.vec3,
+    background: wp.vec3,
+    rgb: wp.array3d[wp.vec3],
+    alpha: wp.array3d[float],
+    expected_depth: wp.array3d[float],
+):
+    """A pixel's splats composited (transmittance T, colour and depth sums) closed by its
+    opaque occluder (``occluder_at_pixel``) unless the splats saturated it, over the background."""
+    if sk >= 0 and saturated != 1:  # the sphere, opaque, behind the splats composited so far
+        pw = o + dw * s_hit
+        nrm = wp.normalize(pw - sphere_centers[sk])
+        shade = 0.25 + 0.75 * wp.max(0.0, -wp.dot(nrm, dw))
+        acc = acc + sphere_color * (shade * T)
+        acc_z = acc_z + z_sphere * T
+        T = 0.0
+    elif sk == -2 and saturated != 1:  # a rigid shape, opaque, shaded by cast_rigid_shapes
+        acc = acc + wp.vec3(solid_px[0], solid_px[1], solid_px[2]) * T
+        acc_z = acc_z + z_sphere * T
+        T = 0.0
+    rgb[c, py, px] = acc + background * T
+    alpha[c, py, px] = 1.0 - T
+    ez = float(0.0)
+    if T < 1.0:
+        ez = acc_z / (1.0 - T)
+    expected_depth[c, py, px] = ez
+
+
 @wp.kernel
 def rasterize_gaussians(
     # In:
@@ -605,9 +703,10 @@ def rasterize_gaussians(
     alpha: wp.array3d[float],
     expected_depth: wp.array3d[float],
 ):
-    """Front-to-back compositing of the depth-sorted splats of each pixel's tile (launch
-    (C, tiles_y * tiles_x * TILE * TILE): one thread per pixel in tile-major order; the splats
-    in key order from ``gather_sorted_splats``); the nearest ray-cast
+    """Front-to-back compositing of the depth-sorted splats of each pixel's tile, one thread per
+    pixel reading the splats from global memory (the CPU's rasteriser; launch
+    (C, tiles_y * tiles_x * TILE * TILE) in tile-major order; the splats in key order from
+    ``gather_sorted_splats``); the nearest ray-cast
     sphere, if any, is opaque at its depth (Lambert-shaded from the camera) and hides what lies
     behind it. rgb (C, H, W) in [0, 1] over ``background``; alpha = 1 - transmittance;
     expected_depth = sum(w z) / sum(w) [m] (0 where nothing). spheres_per_camera 0: every
@@ -627,63 +726,123 @@ def rasterize_gaussians(
     tile = c * tiles_x * tiles_y + t
     x = float(px) + 0.5
     y = float(py) + 0.5
-    # the pixel's ray in world, for the spheres: camera z along the ray per unit length
-    o, dw, dc = pixel_ray(intrinsics[c], view_rotation[c], view_translation[c], px, py)
-    first = int(0)
-    count = sphere_centers.shape[0]
-    if spheres_per_camera > 0:
-        first = c * spheres_per_camera
-        count = spheres_per_camera
-    s_hit, sk = nearest_sphere(o, dw, sphere_centers, sphere_radii, first, count)
-    z_sphere = float(NO_HIT)
-    if sk >= 0:
-        z_sphere = s_hit * dc[2]
-    # an opaque rigid shape nearer than the nearest sphere (cast_rigid_shapes) takes its place
-    solid_px = wp.vec4(0.0, 0.0, 0.0, NO_HIT)
-    if has_solid != 0:
-        solid_px = solid[c, py, px]
-        if solid_px[3] < z_sphere:
-            z_sphere = solid_px[3]
-            sk = -2
+    z_sphere, sk, s_hit, o, dw, solid_px = occluder_at_pixel(c, px, py, view_rotation, view_translation, intrinsics,
+                                                             sphere_centers, sphere_radii, spheres_per_camera, solid,
+                                                             has_solid)
     T = float(1.0)
     acc = wp.vec3(0.0)
     acc_z = float(0.0)
-    done = int(0)
+    saturated = int(0)
     for i in range(tile_start[tile], tile_end[tile]):
         mo = sorted_xy_opacity_depth[i]
         zg = mo[3]
         if zg > z_sphere:
             break
-        q = sorted_conic[i]
-        dx = mo[0] - x
-        dy = mo[1] - y
-        sigma = 0.5 * (q[0] * dx * dx + q[2] * dy * dy) + q[1] * dx * dy
-        if sigma < 0.0:
-            continue
-        a = wp.min(0.999, mo[2] * wp.exp(-sigma))
+        a = splat_alpha(mo, sorted_conic[i], x, y)
         if a < 1.0 / 255.0:
             continue
         next_t = T * (1.0 - a)
         if next_t <= 1.0e-4:
-            done = 1
+            saturated = 1
             break
         acc = acc + sorted_color[i] * (a * T)
         acc_z = acc_z + zg * (a * T)
         T = next_t
-    if sk >= 0 and done != 1:  # the sphere, opaque, behind the splats composited so far
-        pw = o + dw * s_hit
-        nrm = wp.normalize(pw - sphere_centers[sk])
-        shade = 0.25 + 0.75 * wp.max(0.0, -wp.dot(nrm, dw))
-        acc = acc + sphere_color * (shade * T)
-        acc_z = acc_z + z_sphere * T
-        T = 0.0
-    elif sk == -2 and done != 1:  # a rigid shape, opaque, shaded by cast_rigid_shapes
-        acc = acc + wp.vec3(solid_px[0], solid_px[1], solid_px[2]) * T
-        acc_z = acc_z + z_sphere * T
-        T = 0.0
-    rgb[c, py, px] = acc + background * T
-    alpha[c, py, px] = 1.0 - T
-    ez = float(0.0)
-    if T < 1.0:
-        ez = acc_z / (1.0 - T)
-    expected_depth[c, py, px] = ez
+    write_pixel(c, px, py, T, acc, acc_z, saturated, z_sphere, sk, s_hit, o, dw, solid_px, sphere_centers,
+                sphere_color, background, rgb, alpha, expected_depth)
+
+
+@wp.kernel
+def rasterize_gaussians_shared(
+    # In:
+    sorted_xy_opacity_depth: wp.array[wp.vec4],
+    sorted_conic: wp.array[wp.vec3],
+    sorted_color: wp.array[wp.vec3],
+    tile_start: wp.array[wp.int32],
+    tile_end: wp.array[wp.int32],
+    view_rotation: wp.array[wp.mat33],
+    view_translation: wp.array[wp.vec3],
+    intrinsics: wp.array[wp.vec4],
+    sphere_centers: wp.array[wp.vec3],
+    sphere_radii: wp.array[float],
+    spheres_per_camera: int,
+    sphere_color: wp.vec3,
+    solid: wp.array3d[wp.vec4],
+    has_solid: int,
+    background: wp.vec3,
+    width: int,
+    height: int,
+    # Out:
+    rgb: wp.array3d[wp.vec3],
+    alpha: wp.array3d[float],
+    expected_depth: wp.array3d[float],
+):
+    """``rasterize_gaussians``' compositing with the tile's splats staged in shared memory (the
+    CUDA rasteriser; ``wp.launch_tiled`` over (C * tiles_y * tiles_x,) with a block of
+    TILE * TILE threads, one per pixel of the tile): each round the block loads RASTER_BATCH
+    sorted splats together (one coalesced load per thread), then every thread composites them
+    for its pixel from shared memory; the block stops once no pixel of the tile takes more
+    splats (saturated, or past its occluder). The same maths in the same order: the images
+    equal ``rasterize_gaussians``' bit for bit. A block of one thread (Warp's CPU tiles) walks
+    the tile's pixels in turn, so the kernel gives the same images there too (tested)."""
+    blk, lane = wp.tid()
+    tiles_x = (width + TILE - 1) / TILE
+    tiles_y = (height + TILE - 1) / TILE
+    c = blk / (tiles_x * tiles_y)
+    t = blk - c * (tiles_x * tiles_y)
+    ty = t / tiles_x
+    start = tile_start[blk]
+    end = tile_end[blk]
+    # on CUDA each thread takes exactly one pixel (block_dim = TILE * TILE), so every thread
+    # meets the block's collective loads and sums the same number of times
+    for local in range(lane, TILE * TILE, wp.block_dim()):
+        px = (t - ty * tiles_x) * TILE + local % TILE
+        py = ty * TILE + local / TILE
+        inside = px < width and py < height
+        x = float(px) + 0.5
+        y = float(py) + 0.5
+        z_sphere = float(NO_HIT)
+        sk = int(-1)
+        s_hit = float(NO_HIT)
+        o = wp.vec3(0.0)
+        dw = wp.vec3(0.0)
+        solid_px = wp.vec4(0.0, 0.0, 0.0, NO_HIT)
+        running = int(0)  # takes more splats
+        if inside:
+            z_sphere, sk, s_hit, o, dw, solid_px = occluder_at_pixel(c, px, py, view_rotation, view_translation,
+                                                                     intrinsics, sphere_centers, sphere_radii,
+                                                                     spheres_per_camera, solid, has_solid)
+            running = 1
+        T = float(1.0)
+        acc = wp.vec3(0.0)
+        acc_z = float(0.0)
+        saturated = int(0)
+        b = start
+        while b < end:
+            s_xyod = wp.tile_load(sorted_xy_opacity_depth, shape=(RASTER_BATCH,), offset=(b,), storage="shared")
+            s_conic = wp.tile_load(sorted_conic, shape=(RASTER_BATCH,), offset=(b,), storage="shared")
+            s_color = wp.tile_load(sorted_color, shape=(RASTER_BATCH,), offset=(b,), storage="shared")
+            if running != 0:
+                for j in range(wp.min(RASTER_BATCH, end - b)):
+                    mo = s_xyod[j]
+                    zg = mo[3]
+                    if zg > z_sphere:
+                        running = 0
+                        break
+                    a = splat_alpha(mo, s_conic[j], x, y)
+                    if a < 1.0 / 255.0:
+                        continue
+                    next_t = T * (1.0 - a)
+                    if next_t <= 1.0e-4:
+                        saturated = 1
+                        running = 0
+                        break
+                    acc = acc + s_color[j] * (a * T)
+                    acc_z = acc_z + zg * (a * T)
+                    T = next_t
+            if wp.tile_sum(wp.tile(running))[0] == 0:
+                break
+            b = b + RASTER_BATCH
+        if inside:
+            write_pixel(c, px, py, T, acc, acc_z, saturated, z_sphere, sk, s_hit, o, dw, solid_px, sphere_centers,
+                        sphere_color, background, rgb, alpha, expected_depth)

@@ -152,6 +152,34 @@ def test_compact_sort_keys_give_the_wide_keys_picture(device):
     assert wide.key_layout(1, 100, 4) == (False, 32)
 
 
+def test_shared_memory_rasteriser_equals_the_per_pixel_one(device):
+    """The block-per-tile rasteriser (splats staged in shared memory in batches of 256, the
+    CUDA default) gives the per-pixel rasteriser's images bit for bit: tiles with several
+    batches of splats, saturated pixels, a sphere and a box composited by depth, partial tiles
+    at the image's edges, two cameras, exactly sized and with a fixed capacity."""
+    from dynmesh_warp.choices import DEFAULT_RASTERISER, Rasteriser
+    from dynmesh_warp.render import RigidShapes
+
+    means, covs, sh, op = _scene(2500, 5, 1)
+    cams = orbit_cameras([0, 0, 0], 3.5, 2, width=40, height=36)  # 36 rows: a partial tile row
+    spheres = (np.array([[0.2, 0.1, 0.0], [-0.4, 0.2, 0.3]]), np.array([0.3, 0.25]))
+    box = RigidShapes([{"type": "box", "scale": [0.2, 0.3, 0.2], "pose": [0.5, -0.3, 0.1, 0, 0, 0, 1]}], device)
+    shared, per_pixel = Renderer(device, rasteriser="shared"), Renderer(device, rasteriser=Rasteriser.PER_PIXEL)
+    assert Renderer(device).rasteriser == DEFAULT_RASTERISER["cuda" if shared.device.is_cuda else "cpu"]
+    for kw in ({}, {"capacity": 200_000}):
+        a = shared.render(means, covs, sh, op, cams, spheres=spheres, shapes=box, **kw)
+        a_rgb, a_alpha, a_depth = a.rgb.numpy().copy(), a.alpha.numpy().copy(), a.depth.numpy().copy()
+        b = per_pixel.render(means, covs, sh, op, cams, spheres=spheres, shapes=box, **kw)
+        np.testing.assert_array_equal(a_rgb, b.rgb.numpy())
+        np.testing.assert_array_equal(a_alpha, b.alpha.numpy())
+        np.testing.assert_array_equal(a_depth, b.depth.numpy())
+    runs = shared._b["end"].numpy() - shared._b["start"].numpy()
+    assert runs.max() > 3 * 256  # tiles of several shared-memory batches
+    assert (a_alpha > 0.99).mean() > 0.3 and (a_alpha < 0.9).any()  # near-saturated pixels, and others
+    with pytest.raises(ValueError, match="rasteriser must be one of"):
+        Renderer(device, rasteriser="warp")
+
+
 def test_fixed_capacity_render_is_captured_in_a_cuda_graph(cuda_device):
     """Camera observations inside a CUDA graph: render_envs with a capacity, after one warm-up
     call (cameras and colours uploaded, modules loaded), captured and replayed after the envs
