@@ -24,7 +24,18 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench_render import scene  # noqa: E402
 from common import describe_device, write_json  # noqa: E402
 
-from kernels.render import NO_HIT, TILE, nearest_sphere, pixel_ray, rasterize_gaussians  # noqa: E402
+from kernels.render import (  # noqa: E402
+    NO_HIT,
+    RASTER_BATCH,
+    TILE,
+    nearest_sphere,
+    occluder_at_pixel,
+    pixel_ray,
+    rasterize_gaussians,
+    RASTERIZE_SHARED,
+    splat_alpha,
+    write_pixel,
+)
 
 wp.set_module_options({"fast_math": True})  # as kernels/render.py
 
@@ -243,6 +254,91 @@ def rasterize_pairs(
         expected_depth[c, py1, px] = e1
 
 
+@wp.kernel
+def rasterize_shared_one_pixel(
+    sorted_xy_opacity_depth: wp.array[wp.vec4],
+    sorted_conic: wp.array[wp.vec3],
+    sorted_color: wp.array[wp.vec3],
+    tile_start: wp.array[wp.int32],
+    tile_end: wp.array[wp.int32],
+    view_rotation: wp.array[wp.mat33],
+    view_translation: wp.array[wp.vec3],
+    intrinsics: wp.array[wp.vec4],
+    sphere_centers: wp.array[wp.vec3],
+    sphere_radii: wp.array[float],
+    spheres_per_camera: int,
+    sphere_color: wp.vec3,
+    solid: wp.array3d[wp.vec4],
+    has_solid: int,
+    background: wp.vec3,
+    width: int,
+    height: int,
+    rgb: wp.array3d[wp.vec3],
+    alpha: wp.array3d[float],
+    expected_depth: wp.array3d[float],
+):
+    """kernels.render.rasterize_gaussians_shared without the loop over a block's pixels (one
+    pixel per thread: CUDA only)."""
+    blk, lane = wp.tid()
+    tiles_x = (width + TILE - 1) / TILE
+    tiles_y = (height + TILE - 1) / TILE
+    c = blk / (tiles_x * tiles_y)
+    t = blk - c * (tiles_x * tiles_y)
+    ty = t / tiles_x
+    start = tile_start[blk]
+    end = tile_end[blk]
+    px = (t - ty * tiles_x) * TILE + lane % TILE
+    py = ty * TILE + lane / TILE
+    inside = px < width and py < height
+    x = float(px) + 0.5
+    y = float(py) + 0.5
+    z_sphere = float(NO_HIT)
+    sk = int(-1)
+    s_hit = float(NO_HIT)
+    o = wp.vec3(0.0)
+    dw = wp.vec3(0.0)
+    solid_px = wp.vec4(0.0, 0.0, 0.0, NO_HIT)
+    running = int(0)
+    if inside:
+        z_sphere, sk, s_hit, o, dw, solid_px = occluder_at_pixel(c, px, py, view_rotation, view_translation,
+                                                                 intrinsics, sphere_centers, sphere_radii,
+                                                                 spheres_per_camera, solid, has_solid)
+        running = 1
+    T = float(1.0)
+    acc = wp.vec3(0.0)
+    acc_z = float(0.0)
+    saturated = int(0)
+    b = start
+    while b < end:
+        s_xyod = wp.tile_load(sorted_xy_opacity_depth, shape=(RASTER_BATCH,), offset=(b,), storage="shared")
+        s_conic = wp.tile_load(sorted_conic, shape=(RASTER_BATCH,), offset=(b,), storage="shared")
+        s_color = wp.tile_load(sorted_color, shape=(RASTER_BATCH,), offset=(b,), storage="shared")
+        if running != 0:
+            for j in range(wp.min(RASTER_BATCH, end - b)):
+                mo = s_xyod[j]
+                zg = mo[3]
+                if zg > z_sphere:
+                    running = 0
+                    break
+                a = splat_alpha(mo, s_conic[j], x, y)
+                if a < 1.0 / 255.0:
+                    continue
+                next_t = T * (1.0 - a)
+                if next_t <= 1.0e-4:
+                    saturated = 1
+                    running = 0
+                    break
+                acc = acc + s_color[j] * (a * T)
+                acc_z = acc_z + zg * (a * T)
+                T = next_t
+        if wp.tile_sum(wp.tile(running))[0] == 0:
+            break
+        b = b + RASTER_BATCH
+    if inside:
+        write_pixel(c, px, py, T, acc, acc_z, saturated, z_sphere, sk, s_hit, o, dw, solid_px, sphere_centers,
+                    sphere_color, background, rgb, alpha, expected_depth)
+
+
 def main(argv=None):
     from dynmesh_warp.render import Renderer, look_at
 
@@ -288,8 +384,22 @@ def main(argv=None):
             wp.launch(rasterize_pairs, (C, (tiles // C) * TILE * TILE // 2), inputs=[*common, wp.vec3(0.0), W, H],
                       outputs=[rgb, alpha, zbuf], device=device)
 
+        full = [*common, wp.vec3(1.0), r._no_solid, 0, wp.vec3(0.0), W, H]
+
+        def run_product_shared():
+            wp.launch_tiled(RASTERIZE_SHARED["cuda" if device.is_cuda else "cpu"], dim=(tiles,), inputs=full,
+                            outputs=[rgb, alpha, zbuf], block_dim=TILE * TILE, device=device)
+
+        def run_one_pixel():
+            wp.launch_tiled(rasterize_shared_one_pixel, dim=(tiles,), inputs=full, outputs=[rgb, alpha, zbuf],
+                            block_dim=TILE * TILE, device=device)
+
         row = {"scale": scale, "entries": int(r.capacity), "variants": {}}
-        for name, fn in (("current", run_current), ("shared_batches", run_shared), ("two_pixels", run_pairs)):
+        variants = [("current", run_current), ("shared_batches", run_shared), ("two_pixels", run_pairs),
+                    ("product_shared", run_product_shared), ("product_shared_one_pixel", run_one_pixel)]
+        if not device.is_cuda:  # a block is one thread there: the one-pixel and spheres-only variants are CUDA's
+            variants = [v for v in variants if v[0] in ("current", "two_pixels", "product_shared")]
+        for name, fn in variants:
             for arr in (rgb, alpha, zbuf):
                 arr.zero_()
             fn()

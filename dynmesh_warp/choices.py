@@ -136,9 +136,11 @@ DEFAULT_COLLIDER = Collider.FIXED
 #: rasteriser is 2.3x / 1.9x the per-pixel one at the default / a sparse density (docs/rendering.md)
 DEFAULT_RASTERISER = {"cpu": Rasteriser.PER_PIXEL, "cuda": Rasteriser.SHARED}
 DEFAULT_REBUILD_EVERY = RebuildEvery.STEP
-#: the refit collider's ``wp.Mesh`` BVH per device kind: (constructor, primitives per leaf),
-#: Warp's own defaults unless a measurement says otherwise (docs/physics.md)
-REFIT_BVH = {"cpu": ("sah", 4), "cuda": ("lbvh", 4)}
+#: the refit collider's ``wp.Mesh`` BVH per device kind: (constructor, primitives per leaf).
+#: On CUDA SAH (built on the host at load: +0.8 s at 10^6 vertices) over Warp's default LBVH:
+#: its refit is half as long and its queries faster, the refit step +32-67 % on an H100
+#: (10^5-10^6 vertices x 5-10^5 spheres; docs/physics.md, bench_step --refit-bvh)
+REFIT_BVH = {"cpu": ("sah", 4), "cuda": ("sah", 4)}
 #: the swept collider's search per device kind (a CPU thread block is one thread: serial there)
 DEFAULT_SWEPT_SEARCH = {"cpu": SweptSearch.SERIAL, "cuda": SweptSearch.TILED}
 #: the searches ``collider: fixed`` measures as candidates per device kind (none: the default)

@@ -29,6 +29,7 @@ from .kernels.render import (
     EMPTY_KEY,
     EMPTY_KEY32,
     KEY_KERNELS,
+    RASTERIZE_SHARED,
     SH_C0,
     SHAPE_BOX,
     SHAPE_CAPSULE,
@@ -41,7 +42,6 @@ from .kernels.render import (
     emit_depth_keys,
     project_gaussians,
     rasterize_gaussians,
-    rasterize_gaussians_shared,
     scatter_depth_rank,
 )
 
@@ -397,8 +397,8 @@ class Renderer:
         raster_in = [self._s_xyod, self._s_conic, self._s_color, start, end, Rs, ts, ks, sc, sr, s_per,
                      wp.vec3(*sphere_color), solid, int(has_solid), wp.vec3(*background), W, H]
         if self.rasteriser == Rasteriser.SHARED:  # a block per tile, a thread per pixel
-            wp.launch_tiled(rasterize_gaussians_shared, dim=(tiles,), inputs=raster_in, outputs=[rgb, alpha, zbuf],
-                            block_dim=TILE * TILE, device=d)
+            wp.launch_tiled(RASTERIZE_SHARED["cuda" if d.is_cuda else "cpu"], dim=(tiles,), inputs=raster_in,
+                            outputs=[rgb, alpha, zbuf], block_dim=TILE * TILE, device=d)
         else:  # a thread per pixel of each tile
             wp.launch(rasterize_gaussians, (C, (tiles // C) * TILE * TILE), inputs=raster_in,
                       outputs=[rgb, alpha, zbuf], device=d)

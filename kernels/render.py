@@ -752,9 +752,10 @@ def rasterize_gaussians(
                 sphere_color, background, rgb, alpha, expected_depth)
 
 
-@wp.kernel
-def rasterize_gaussians_shared(
-    # In:
+@wp.func
+def composite_tile_pixel(
+    blk: int,
+    local: int,
     sorted_xy_opacity_depth: wp.array[wp.vec4],
     sorted_conic: wp.array[wp.vec3],
     sorted_color: wp.array[wp.vec3],
@@ -772,77 +773,124 @@ def rasterize_gaussians_shared(
     background: wp.vec3,
     width: int,
     height: int,
-    # Out:
     rgb: wp.array3d[wp.vec3],
     alpha: wp.array3d[float],
     expected_depth: wp.array3d[float],
 ):
-    """``rasterize_gaussians``' compositing with the tile's splats staged in shared memory (the
-    CUDA rasteriser; ``wp.launch_tiled`` over (C * tiles_y * tiles_x,) with a block of
-    TILE * TILE threads, one per pixel of the tile): each round the block loads RASTER_BATCH
-    sorted splats together (one coalesced load per thread), then every thread composites them
-    for its pixel from shared memory; the block stops once no pixel of the tile takes more
-    splats (saturated, or past its occluder). The same maths in the same order: the images
-    equal ``rasterize_gaussians``' bit for bit. A block of one thread (Warp's CPU tiles) walks
-    the tile's pixels in turn, so the kernel gives the same images there too (tested)."""
-    blk, lane = wp.tid()
+    """Pixel ``local`` (row-major in the tile) of tile ``blk`` (camera-major) composited from the
+    tile's splats staged in shared memory RASTER_BATCH at a time; the loads and the block sum are
+    collective: every thread of the block calls this the same number of times."""
     tiles_x = (width + TILE - 1) / TILE
     tiles_y = (height + TILE - 1) / TILE
     c = blk / (tiles_x * tiles_y)
     t = blk - c * (tiles_x * tiles_y)
     ty = t / tiles_x
-    start = tile_start[blk]
     end = tile_end[blk]
-    # on CUDA each thread takes exactly one pixel (block_dim = TILE * TILE), so every thread
-    # meets the block's collective loads and sums the same number of times
-    for local in range(lane, TILE * TILE, wp.block_dim()):
-        px = (t - ty * tiles_x) * TILE + local % TILE
-        py = ty * TILE + local / TILE
-        inside = px < width and py < height
-        x = float(px) + 0.5
-        y = float(py) + 0.5
-        z_sphere = float(NO_HIT)
-        sk = int(-1)
-        s_hit = float(NO_HIT)
-        o = wp.vec3(0.0)
-        dw = wp.vec3(0.0)
-        solid_px = wp.vec4(0.0, 0.0, 0.0, NO_HIT)
-        running = int(0)  # takes more splats
-        if inside:
-            z_sphere, sk, s_hit, o, dw, solid_px = occluder_at_pixel(c, px, py, view_rotation, view_translation,
-                                                                     intrinsics, sphere_centers, sphere_radii,
-                                                                     spheres_per_camera, solid, has_solid)
-            running = 1
-        T = float(1.0)
-        acc = wp.vec3(0.0)
-        acc_z = float(0.0)
-        saturated = int(0)
-        b = start
-        while b < end:
-            s_xyod = wp.tile_load(sorted_xy_opacity_depth, shape=(RASTER_BATCH,), offset=(b,), storage="shared")
-            s_conic = wp.tile_load(sorted_conic, shape=(RASTER_BATCH,), offset=(b,), storage="shared")
-            s_color = wp.tile_load(sorted_color, shape=(RASTER_BATCH,), offset=(b,), storage="shared")
-            if running != 0:
-                for j in range(wp.min(RASTER_BATCH, end - b)):
-                    mo = s_xyod[j]
-                    zg = mo[3]
-                    if zg > z_sphere:
-                        running = 0
-                        break
-                    a = splat_alpha(mo, s_conic[j], x, y)
-                    if a < 1.0 / 255.0:
-                        continue
-                    next_t = T * (1.0 - a)
-                    if next_t <= 1.0e-4:
-                        saturated = 1
-                        running = 0
-                        break
-                    acc = acc + s_color[j] * (a * T)
-                    acc_z = acc_z + zg * (a * T)
-                    T = next_t
-            if wp.tile_sum(wp.tile(running))[0] == 0:
-                break
-            b = b + RASTER_BATCH
-        if inside:
-            write_pixel(c, px, py, T, acc, acc_z, saturated, z_sphere, sk, s_hit, o, dw, solid_px, sphere_centers,
-                        sphere_color, background, rgb, alpha, expected_depth)
+    px = (t - ty * tiles_x) * TILE + local % TILE
+    py = ty * TILE + local / TILE
+    inside = px < width and py < height
+    x = float(px) + 0.5
+    y = float(py) + 0.5
+    # only the occluder's depth stays live through the loop (fewer registers); the rest of it is
+    # cast again for the pixel's last write
+    z_sphere = float(NO_HIT)
+    running = int(0)  # takes more splats
+    if inside:
+        z_sphere, _sk, _s, _o, _d, _texel = occluder_at_pixel(c, px, py, view_rotation, view_translation, intrinsics,
+                                                              sphere_centers, sphere_radii, spheres_per_camera, solid,
+                                                              has_solid)
+        running = 1
+    T = float(1.0)
+    acc = wp.vec3(0.0)
+    acc_z = float(0.0)
+    saturated = int(0)
+    b = tile_start[blk]
+    while b < end:
+        s_xyod = wp.tile_load(sorted_xy_opacity_depth, shape=(RASTER_BATCH,), offset=(b,), storage="shared")
+        s_conic = wp.tile_load(sorted_conic, shape=(RASTER_BATCH,), offset=(b,), storage="shared")
+        s_color = wp.tile_load(sorted_color, shape=(RASTER_BATCH,), offset=(b,), storage="shared")
+        if running != 0:
+            for j in range(wp.min(RASTER_BATCH, end - b)):
+                mo = s_xyod[j]
+                zg = mo[3]
+                if zg > z_sphere:
+                    running = 0
+                    break
+                a = splat_alpha(mo, s_conic[j], x, y)
+                if a < 1.0 / 255.0:
+                    continue
+                next_t = T * (1.0 - a)
+                if next_t <= 1.0e-4:
+                    saturated = 1
+                    running = 0
+                    break
+                acc = acc + s_color[j] * (a * T)
+                acc_z = acc_z + zg * (a * T)
+                T = next_t
+        if wp.tile_sum(wp.tile(running))[0] == 0:
+            break
+        b = b + RASTER_BATCH
+    if inside:
+        z_sphere, sk, s_hit, o, dw, solid_px = occluder_at_pixel(c, px, py, view_rotation, view_translation,
+                                                                 intrinsics, sphere_centers, sphere_radii,
+                                                                 spheres_per_camera, solid, has_solid)
+        write_pixel(c, px, py, T, acc, acc_z, saturated, z_sphere, sk, s_hit, o, dw, solid_px, sphere_centers,
+                    sphere_color, background, rgb, alpha, expected_depth)
+
+
+def _shared_rasteriser(walk_pixels: bool):
+    """The shared-memory rasteriser's kernel: one pixel per thread (``walk_pixels`` False, CUDA,
+    block_dim = TILE * TILE), or each thread walking the block's pixels in turn (True: a CPU
+    block is one thread, which then composites the whole tile; the same images, for tests)."""
+
+    @wp.kernel(module="unique", module_options={"fast_math": True})
+    def rasterize_gaussians_shared(
+        # In:
+        sorted_xy_opacity_depth: wp.array[wp.vec4],
+        sorted_conic: wp.array[wp.vec3],
+        sorted_color: wp.array[wp.vec3],
+        tile_start: wp.array[wp.int32],
+        tile_end: wp.array[wp.int32],
+        view_rotation: wp.array[wp.mat33],
+        view_translation: wp.array[wp.vec3],
+        intrinsics: wp.array[wp.vec4],
+        sphere_centers: wp.array[wp.vec3],
+        sphere_radii: wp.array[float],
+        spheres_per_camera: int,
+        sphere_color: wp.vec3,
+        solid: wp.array3d[wp.vec4],
+        has_solid: int,
+        background: wp.vec3,
+        width: int,
+        height: int,
+        # Out:
+        rgb: wp.array3d[wp.vec3],
+        alpha: wp.array3d[float],
+        expected_depth: wp.array3d[float],
+    ):
+        """``rasterize_gaussians``' compositing with the tile's splats staged in shared memory
+        (``wp.launch_tiled`` over (C * tiles_y * tiles_x,), a block of TILE * TILE threads, one
+        per pixel of the tile): each round the block loads RASTER_BATCH sorted splats together
+        (one coalesced load per thread), then every thread composites them for its pixel from
+        shared memory; the block stops once no pixel of the tile takes more splats (saturated,
+        or past its occluder). The same maths in the same order: the images equal
+        ``rasterize_gaussians``' bit for bit (tested)."""
+        blk, lane = wp.tid()
+        if wp.static(walk_pixels):
+            for local in range(lane, TILE * TILE, wp.block_dim()):
+                composite_tile_pixel(blk, local, sorted_xy_opacity_depth, sorted_conic, sorted_color, tile_start,
+                                     tile_end, view_rotation, view_translation, intrinsics, sphere_centers,
+                                     sphere_radii, spheres_per_camera, sphere_color, solid, has_solid, background,
+                                     width, height, rgb, alpha, expected_depth)
+        else:
+            composite_tile_pixel(blk, lane, sorted_xy_opacity_depth, sorted_conic, sorted_color, tile_start,
+                                 tile_end, view_rotation, view_translation, intrinsics, sphere_centers, sphere_radii,
+                                 spheres_per_camera, sphere_color, solid, has_solid, background, width, height, rgb,
+                                 alpha, expected_depth)
+
+    return rasterize_gaussians_shared
+
+
+#: the shared-memory rasteriser per device kind (``_shared_rasteriser``): a thread per pixel on
+#: CUDA; on the CPU, where a block is one thread, that thread walks the tile's pixels
+RASTERIZE_SHARED = {"cuda": _shared_rasteriser(walk_pixels=False), "cpu": _shared_rasteriser(walk_pixels=True)}
