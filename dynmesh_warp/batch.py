@@ -26,9 +26,7 @@ import warp as wp
 from .choices import DEFAULT_BATCH_SWEPT_SEARCH, PLAYBACK_CODES, Playback, SweptSearch, parse
 from .kernels.batch import (
     advance_env_clocks,
-    TREE_LEAF,
     collide_and_integrate_env_spheres,
-    collide_and_integrate_env_spheres_nearest,
     collide_env_heavy_spheres_tiled,
     collide_env_sphere_tiled,
     collide_env_spheres_bounded,
@@ -42,7 +40,7 @@ from .world import Contacts, PhysicsParams, SphereModel, SurfaceModel, check_sub
 
 __all__ = ["BatchModel", "BatchState", "BatchedWorld", "step_envs", "required_substeps", "env_clocks", "TIME_SLICES",
            "BATCH_TILE_THREADS", "HYBRID_BUDGET", "default_batch_search", "HYBRID_BLOCKS", "ContactQuery",
-           "build_batched_world", "EnvView", "EnvGrid", "build_pair_trees"]
+           "build_batched_world", "EnvView", "EnvGrid"]
 
 
 #: time slices per frame pair of the pair BVHs: a face's box covers 1/TIME_SLICES of its motion
@@ -67,51 +65,6 @@ def required_substeps(max_speed: float, dt: float, r_min: float) -> int:
     if max_speed <= 0 or not math.isfinite(r_min):
         return 1
     return max(1, math.ceil(max_speed * dt / (0.5 * r_min)))
-
-
-def _morton3(q: np.ndarray) -> np.ndarray:
-    """Interleaved bits of three 10-bit integer coordinates (n, 3) -> (n,) uint32 Morton codes."""
-    def spread(x):
-        x = x.astype(np.uint32) & 0x3FF
-        x = (x | (x << 16)) & 0x030000FF
-        x = (x | (x << 8)) & 0x0300F00F
-        x = (x | (x << 4)) & 0x030C30C3
-        return (x | (x << 2)) & 0x09249249
-    return (spread(q[:, 0]) << 2) | (spread(q[:, 1]) << 1) | spread(q[:, 2])
-
-
-def build_pair_trees(lowers: np.ndarray, uppers: np.ndarray, leaf: int = int(TREE_LEAF)):
-    """Static box trees over each slot's face boxes for the nearest search
-    (``kernels.batch.closest_on_pair_tree``), built once on the host: lowers/uppers (slots, M, 3)
-    [m] -> (tree_lowers, tree_uppers (slots, 2P, 3), tree_faces (slots, leaf * P) int32, P). Per
-    slot the faces are ordered along a Morton curve of their box centres and cut into P (a power
-    of two) leaves of ``leaf`` faces (-1 pads the last); node n of the complete heap (root 1,
-    children 2n, 2n + 1, leaves P .. 2P - 1) holds the union of its faces' boxes (an empty node
-    an inverted box that no point is near)."""
-    slots, M = lowers.shape[:2]
-    leaves = max(1, math.ceil(M / leaf))
-    P = 1 << max(0, (leaves - 1).bit_length())
-    t_lo = np.full((slots, 2 * P, 3), np.float32(np.inf), np.float32)
-    t_hi = np.full((slots, 2 * P, 3), np.float32(-np.inf), np.float32)
-    faces = np.full((slots, leaf * P), -1, np.int32)
-    for k in range(slots):
-        lo, hi = lowers[k], uppers[k]
-        c = 0.5 * (lo + hi)
-        c0, ext = c.min(0), np.maximum(c.max(0) - c.min(0), 1e-30)
-        order = np.argsort(_morton3(np.minimum((c - c0) / ext * 1024, 1023)), kind="stable")
-        faces[k, :M] = order
-        blo = np.full((leaf * P, 3), np.inf, np.float32)
-        bhi = np.full((leaf * P, 3), -np.inf, np.float32)
-        blo[:M], bhi[:M] = lo[order], hi[order]
-        t_lo[k, P:] = blo.reshape(P, leaf, 3).min(1)
-        t_hi[k, P:] = bhi.reshape(P, leaf, 3).max(1)
-        n = P // 2
-        while n >= 1:  # one heap level at a time, from the leaves up
-            idx = np.arange(n, 2 * n)
-            t_lo[k, idx] = np.minimum(t_lo[k, 2 * idx], t_lo[k, 2 * idx + 1])
-            t_hi[k, idx] = np.maximum(t_hi[k, 2 * idx], t_hi[k, 2 * idx + 1])
-            n //= 2
-    return t_lo, t_hi, faces, P
 
 
 class BatchModel:
@@ -160,10 +113,6 @@ class BatchModel:
                   outputs=[self.pair_lowers, self.pair_uppers], device=self.device)
         self._bvhs = [wp.Bvh(self.pair_lowers[k], self.pair_uppers[k], leaf_size=4) for k in range(n)]
         self.pair_bvh = wp.array([b.id for b in self._bvhs], dtype=wp.uint64, device=self.device)
-        t_lo, t_hi, t_faces, self.tree_leaves = build_pair_trees(self.pair_lowers.numpy(), self.pair_uppers.numpy())
-        self.tree_lowers = wp.array(t_lo, dtype=wp.vec3, device=self.device)
-        self.tree_uppers = wp.array(t_hi, dtype=wp.vec3, device=self.device)
-        self.tree_faces = wp.array(t_faces, dtype=wp.int32, device=self.device)
         self.epsilon = 1.0e-3 * float(surface.average_edge_length.mean())
 
     @property
@@ -177,11 +126,10 @@ class BatchModel:
         leaves = math.ceil(M / 4)
         boxes = 2 * T * M * 12
         bvh_nodes = T * (2 * leaves - 1) * 32 + T * M * 4  # nodes + primitive indices
-        trees = T * (2 * self.tree_leaves * 24 + TREE_LEAF * self.tree_leaves * 4)  # the nearest search's
         per_sphere = 4 + 4 + 4 + 2 * 12 + (4 + 12 + 12 + 4 + 12)  # radius, inv_mass, env, pos/vel, contacts
         per_env = self.spheres_per_env * per_sphere + 8 + 4 + 4
-        return {"pair_boxes": boxes, "pair_bvh_nodes_estimate": bvh_nodes, "pair_trees": trees, "frames": frames,
-                "per_env": per_env, "total_estimate": boxes + bvh_nodes + trees + frames + per_env * self.num_envs}
+        return {"pair_boxes": boxes, "pair_bvh_nodes_estimate": bvh_nodes, "frames": frames,
+                "per_env": per_env, "total_estimate": boxes + bvh_nodes + frames + per_env * self.num_envs}
 
 
 class BatchState:
@@ -280,16 +228,14 @@ def step_envs(model: BatchModel, state: BatchState, contacts: Contacts, sub_dt: 
     args = [surf.frames, surf.indices, m.pair_bvh, m.pair_lowers, m.pair_uppers, m.spheres.radius, m.sphere_env,
             surf.fps, int(surf.interpolate), m.time_slices, s.env_time, s.env_playback, s.sphere_pos, s.sphere_vel]
     tail = [sub_dt, extra_speed, p.margin, m.epsilon]
-    if search not in (SweptSearch.SERIAL, SweptSearch.NEAREST) and query is None:
+    if search != SweptSearch.SERIAL and query is None:
         raise ValueError(f"the {search} search needs a ContactQuery scratch")
     for _ in range(substeps):
-        if search in (SweptSearch.SERIAL, SweptSearch.NEAREST):
-            kernel = collide_and_integrate_env_spheres_nearest if search == SweptSearch.NEAREST else \
-                collide_and_integrate_env_spheres
-            wp.launch(kernel, n,
-                      inputs=[surf.frames, surf.indices, m.pair_bvh, m.pair_lowers, m.pair_uppers, m.tree_lowers,
-                              m.tree_uppers, m.tree_faces, m.tree_leaves, m.spheres.radius, m.spheres.inv_mass,
-                              m.sphere_env, *physics, m.time_slices, s.env_time, s.env_rate, s.env_playback, *tail],
+        if search == SweptSearch.SERIAL:
+            wp.launch(collide_and_integrate_env_spheres, n,
+                      inputs=[surf.frames, surf.indices, m.pair_bvh, m.pair_lowers, m.pair_uppers, m.spheres.radius,
+                              m.spheres.inv_mass, m.sphere_env, *physics, m.time_slices, s.env_time, s.env_rate,
+                              s.env_playback, *tail],
                       outputs=[s.sphere_pos, s.sphere_vel, c.face, c.point, c.normal, c.depth, c.velocity],
                       device=m.device)
         else:
@@ -349,12 +295,11 @@ class BatchedWorld:
                        else parse(SweptSearch, search, "swept_search"))
         if self.search == SweptSearch.FACES:
             raise ValueError("swept_search 'faces' is a single world's search; a batched world searches 'serial', "
-                             "'tiled', 'hybrid' or 'nearest'")
+                             "'tiled' or 'hybrid'")
         self.tile_threads = _at_least(tile_threads, BATCH_TILE_THREADS, "tile_threads", 1)
         self.budget = _at_least(budget, HYBRID_BUDGET, "budget", 0)
         self.blocks = _at_least(blocks, HYBRID_BLOCKS, "blocks", 1)
-        self.query = (ContactQuery(model.spheres.count, self.device)
-                      if self.search not in (SweptSearch.SERIAL, SweptSearch.NEAREST) else None)
+        self.query = ContactQuery(model.spheres.count, self.device) if self.search != SweptSearch.SERIAL else None
         self.use_graph = self.device.is_cuda if use_graph is None else bool(use_graph) and self.device.is_cuda
         self._graph = None
         self.step_count = 0

@@ -62,9 +62,6 @@ class SweptSearch(StrEnum):
     #: one thread per face tests every sphere (no BVH walk: few spheres on large meshes; single
     #: worlds only)
     FACES = "faces"
-    #: one thread per sphere walks a static tree of its env's frame pair nearest child first, so
-    #: its work follows the closest face, not the query box (batched worlds only: docs/envs.md)
-    NEAREST = "nearest"
 
 
 class RebuildEvery(StrEnum):

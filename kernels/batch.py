@@ -94,61 +94,6 @@ def closest_on_pair_bvh(
     return min_dist, min_face, min_w, acc_n, over
 
 
-#: faces per leaf of the pair trees (``closest_on_pair_tree``; batch.build_pair_trees)
-TREE_LEAF = wp.constant(4)
-
-
-@wp.func
-def closest_on_pair_tree(
-    tree_lowers: wp.array2d[wp.vec3], tree_uppers: wp.array2d[wp.vec3], tree_faces: wp.array2d[wp.int32],
-    tree_leaves: int, lowers: wp.array2d[wp.vec3], uppers: wp.array2d[wp.vec3], slot: int,
-    frames: wp.array2d[wp.vec3], indices: wp.array[wp.int32], k0: int, k1: int, alpha: float, p: wp.vec3,
-    reach: float, epsilon: float, seed_face: int,
-):
-    """Closest feature of the interpolated surface within ``reach`` of p by a walk of slot's
-    pair tree that skips every node whose box is farther than the closest feature so far
-    (+ epsilon) with all its faces. ``seed_face`` (e.g. the sphere's closest face of the previous
-    sub-step; -1 none) is evaluated first, so the bound is tight from the start and the walk's
-    work follows the closest face, not the query box. The tree is a complete binary heap (node
-    n's children 2n and 2n + 1, root 1; ``tree_leaves`` leaves at tree_leaves .. 2 tree_leaves - 1,
-    leaf l holding faces ``tree_faces[slot, l * TREE_LEAF + q]``, -1 padding) whose boxes contain
-    their faces' pair boxes, which contain the faces at every blend of the slot; the walk is
-    stackless (depth first, left child first: after a subtree, climb while on a right child, then
-    step to the right sibling). Each face meets the serial search's rule (its own box against
-    the closest so far), so the result is that of evaluating every candidate, up to the order
-    in which faces within epsilon of each other are met (``keep_closest``)."""
-    min_dist = reach
-    min_face = int(-1)
-    min_w = wp.vec3(0.0)
-    acc_n = wp.vec3(0.0)
-    if seed_face >= 0:
-        a, b, g = interpolated_triangle(frames, indices, seed_face, k0, k1, alpha)
-        dist, w, wn = face_candidate(p, a, b, g, epsilon)
-        min_dist, min_face, min_w, acc_n = keep_closest(dist, seed_face, w, wn, epsilon, min_dist, min_face, min_w,
-                                                        acc_n)
-    node = int(1)
-    while node > 0:
-        descend = box_distance(p, tree_lowers[slot, node], tree_uppers[slot, node]) < min_dist + epsilon
-        if descend and node < tree_leaves:
-            node = 2 * node
-        else:
-            if descend:  # a leaf within the bound: its faces, each with its own box prune
-                base = (node - tree_leaves) * TREE_LEAF
-                for q in range(TREE_LEAF):
-                    f = tree_faces[slot, base + q]
-                    if f >= 0 and f != seed_face:
-                        if box_distance(p, lowers[slot, f], uppers[slot, f]) < min_dist + epsilon:
-                            a, b, g = interpolated_triangle(frames, indices, f, k0, k1, alpha)
-                            dist, w, wn = face_candidate(p, a, b, g, epsilon)
-                            min_dist, min_face, min_w, acc_n = keep_closest(dist, f, w, wn, epsilon, min_dist,
-                                                                            min_face, min_w, acc_n)
-            while node % 2 == 1:  # up while a right child (the root's parent is 0: done)
-                node = node / 2
-            if node > 0:
-                node = node + 1
-    return min_dist, min_face, min_w, acc_n
-
-
 @wp.kernel
 def compute_pair_bounds(
     # Model:
@@ -184,92 +129,70 @@ def compute_pair_bounds(
     uppers[slot, f] = hi
 
 
-def _collide_and_integrate_kernel(tree: bool):
-    """The one-thread-per-sphere step kernel: the box query of the pair BVH (``tree`` False,
-    the serial search) or the nearest-first walk of the pair tree (True, the nearest search)."""
-
-    @wp.kernel(module="unique")
-    def collide_and_integrate_env_spheres(
-        # Model:
-        frames: wp.array2d[wp.vec3],
-        indices: wp.array[wp.int32],
-        pair_bvh: wp.array[wp.uint64],
-        pair_lowers: wp.array2d[wp.vec3],
-        pair_uppers: wp.array2d[wp.vec3],
-        tree_lowers: wp.array2d[wp.vec3],
-        tree_uppers: wp.array2d[wp.vec3],
-        tree_faces: wp.array2d[wp.int32],
-        tree_leaves: int,
-        sphere_radius: wp.array[float],
-        inv_mass: wp.array[float],
-        sphere_env: wp.array[wp.int32],
-        gravity: wp.vec3,
-        restitution: float,
-        friction: float,
-        rest_speed: float,
-        ground: int,
-        ground_height: float,
-        fps: wp.float64,
-        interpolate: int,
-        slices: int,
-        # State in:
-        env_time_in: wp.array[wp.float64],
-        env_rate_in: wp.array[float],
-        env_playback_in: wp.array[wp.int32],
-        # In:
-        dt: float,
-        extra_speed: float,
-        margin: float,
-        epsilon: float,
-        # State out:
-        sphere_pos_out: wp.array[wp.vec3],
-        sphere_vel_out: wp.array[wp.vec3],
-        # Out:
-        contact_face: wp.array[wp.int32],
-        contact_point: wp.array[wp.vec3],
-        contact_normal: wp.array[wp.vec3],
-        contact_depth: wp.array[float],
-        contact_velocity: wp.array[wp.vec3],
-    ):
-        """One sub-step of every sphere of every env: contact with the surface at its env's time
-        (``env_time_in[e]`` [s], played at ``env_rate_in[e]`` x, playback code
-        ``env_playback_in[e]``), then the continuous response of ``integrate_spheres``. The
-        surface velocity at the contact is scaled by the env's rate. One thread per sphere;
-        (E * S,) arrays; dt [s] is the sub-step."""
-        s = wp.tid()
-        e = sphere_env[s]
-        T = frames.shape[0]
-        rate = env_rate_in[e]
-        k0, k1, alpha = blend_pair(env_time_in[e], fps, T, env_playback_in[e], interpolate)
-        p = sphere_pos_out[s]
-        v = sphere_vel_out[s]
-        r = sphere_radius[s]
-        reach = contact_reach(r, v, extra_speed, dt, margin)
-        slot = pair_slot(k0, k1, alpha, T, slices)
-        if wp.static(tree):
-            min_dist, min_face, min_w, acc_n = closest_on_pair_tree(tree_lowers, tree_uppers, tree_faces,
-                                                                    tree_leaves, pair_lowers, pair_uppers, slot,
-                                                                    frames, indices, k0, k1, alpha, p, reach,
-                                                                    epsilon, contact_face[s])
-        else:
-            min_dist, min_face, min_w, acc_n, over = closest_on_pair_bvh(pair_bvh[slot], pair_lowers, pair_uppers,
-                                                                         slot, frames, indices, k0, k1, alpha, p,
-                                                                         reach, epsilon, NO_BUDGET)
-        write_swept_contact(s, p, r, reach, min_dist, min_face, min_w, acc_n, frames, indices, k0, k1, alpha,
-                            fps * wp.float64(rate), contact_face, contact_point, contact_normal, contact_depth,
-                            contact_velocity)
-        p, v = advance_sphere(p, v, inv_mass[s], r, gravity, dt, restitution, friction, rest_speed, ground,
-                              ground_height, contact_face[s], contact_normal[s], contact_depth[s], contact_velocity[s])
-        sphere_pos_out[s] = p
-        sphere_vel_out[s] = v
-
-    return collide_and_integrate_env_spheres
-
-
-#: the batch's fused contact + integration kernel per search: serial (the pair BVH's box
-#: query) and nearest (the pair tree's nearest-first walk)
-collide_and_integrate_env_spheres = _collide_and_integrate_kernel(tree=False)
-collide_and_integrate_env_spheres_nearest = _collide_and_integrate_kernel(tree=True)
+@wp.kernel
+def collide_and_integrate_env_spheres(
+    # Model:
+    frames: wp.array2d[wp.vec3],
+    indices: wp.array[wp.int32],
+    pair_bvh: wp.array[wp.uint64],
+    pair_lowers: wp.array2d[wp.vec3],
+    pair_uppers: wp.array2d[wp.vec3],
+    sphere_radius: wp.array[float],
+    inv_mass: wp.array[float],
+    sphere_env: wp.array[wp.int32],
+    gravity: wp.vec3,
+    restitution: float,
+    friction: float,
+    rest_speed: float,
+    ground: int,
+    ground_height: float,
+    fps: wp.float64,
+    interpolate: int,
+    slices: int,
+    # State in:
+    env_time_in: wp.array[wp.float64],
+    env_rate_in: wp.array[float],
+    env_playback_in: wp.array[wp.int32],
+    # In:
+    dt: float,
+    extra_speed: float,
+    margin: float,
+    epsilon: float,
+    # State out:
+    sphere_pos_out: wp.array[wp.vec3],
+    sphere_vel_out: wp.array[wp.vec3],
+    # Out:
+    contact_face: wp.array[wp.int32],
+    contact_point: wp.array[wp.vec3],
+    contact_normal: wp.array[wp.vec3],
+    contact_depth: wp.array[float],
+    contact_velocity: wp.array[wp.vec3],
+):
+    """One sub-step of every sphere of every env: contact with the surface at its env's time
+    (``env_time_in[e]`` [s], played at ``env_rate_in[e]`` x, playback code
+    ``env_playback_in[e]``), then the continuous response of ``integrate_spheres``. The
+    surface velocity at the contact is scaled by the env's rate. One thread per sphere;
+    (E * S,) arrays; dt [s] is the sub-step."""
+    s = wp.tid()
+    e = sphere_env[s]
+    T = frames.shape[0]
+    rate = env_rate_in[e]
+    k0, k1, alpha = blend_pair(env_time_in[e], fps, T, env_playback_in[e], interpolate)
+    p = sphere_pos_out[s]
+    v = sphere_vel_out[s]
+    r = sphere_radius[s]
+    reach = contact_reach(r, v, extra_speed, dt, margin)
+    slot = pair_slot(k0, k1, alpha, T, slices)
+    min_dist, min_face, min_w, acc_n, over = closest_on_pair_bvh(pair_bvh[slot], pair_lowers, pair_uppers, slot,
+                                                                 frames, indices, k0, k1, alpha, p, reach, epsilon,
+                                                                 NO_BUDGET)
+    write_swept_contact(s, p, r, reach, min_dist, min_face, min_w, acc_n, frames, indices, k0, k1, alpha,
+                        fps * wp.float64(rate), contact_face, contact_point, contact_normal, contact_depth,
+                        contact_velocity)
+    p, v = advance_sphere(p, v, inv_mass[s], r, gravity, dt, restitution, friction, rest_speed, ground,
+                          ground_height, contact_face[s], contact_normal[s], contact_depth[s], contact_velocity[s])
+    sphere_pos_out[s] = p
+    sphere_vel_out[s] = v
 
 
 @wp.func

@@ -27,13 +27,11 @@ def _params():
 @pytest.mark.parametrize("playback,search,budget", [("loop", "serial", None), ("pingpong", "serial", None),
                                                     ("clamp", "serial", None), ("loop", "tiled", None),
                                                     ("pingpong", "tiled", None), ("loop", "hybrid", 2),
-                                                    ("clamp", "hybrid", 0), ("loop", "nearest", None),
-                                                    ("pingpong", "nearest", None)])
+                                                    ("clamp", "hybrid", 0)])
 def test_batched_envs_equal_single_worlds(device, playback, search, budget):
-    """... with each search: serial, tiled (a block per sphere), hybrid (a thread per sphere,
+    """... with each search: serial, tiled (a block per sphere) and hybrid (a thread per sphere,
     handing a sphere with more than ``budget`` candidate faces to a block; budget 0 hands over
-    every sphere near the surface) and nearest (a thread per sphere walking the pair tree
-    nearest child first). The single worlds keep the serial search, the reference."""
+    every sphere near the surface). The single worlds keep the serial search, the reference."""
     seq = wave_bowl(n=20, frames=10)
     rng = np.random.default_rng(5)
     E, S = 4, 6
@@ -69,89 +67,6 @@ def test_batched_envs_equal_single_worlds(device, playback, search, budget):
     assert not np.allclose(P[0], P[1])  # different clocks, different outcomes
     if search == "hybrid":
         assert handed > 0  # spheres did go to the blocks
-
-
-def test_pair_trees_bound_their_faces_and_the_tree_walk_finds_the_brute_force_closest(device):
-    """build_pair_trees: every face of a slot in exactly one leaf, every node's box the union of
-    its children's (a leaf's: of its faces' boxes); and the pruned tree walk's closest face and
-    distance equal brute force over every face of the interpolated surface (NumPy), for points
-    near and away from a moving surface, at blends inside the slot, seeded with a random face
-    or none."""
-    import warp as wp
-
-    from dynmesh_warp.batch import build_pair_trees
-    from dynmesh_warp.kernels.batch import closest_on_pair_tree
-
-    seq = wave_bowl(n=14, frames=4)
-    surf = SurfaceModel(seq, device)
-    bm = BatchModel(surf, 1, np.full(1, 0.05), 1.0, _params(), time_slices=2)
-    lo, hi = bm.pair_lowers.numpy(), bm.pair_uppers.numpy()
-    t_lo, t_hi, faces, P = build_pair_trees(lo, hi)
-    M = lo.shape[1]
-    assert P >= M / 4 and P & (P - 1) == 0
-    for k in range(lo.shape[0]):
-        assert np.array_equal(np.sort(faces[k][faces[k] >= 0]), np.arange(M))
-        leaf_faces = faces[k].reshape(P, 4)
-        for leaf in range(P):
-            f = leaf_faces[leaf][leaf_faces[leaf] >= 0]
-            if len(f):
-                np.testing.assert_array_equal(t_lo[k, P + leaf], lo[k, f].min(0))
-                np.testing.assert_array_equal(t_hi[k, P + leaf], hi[k, f].max(0))
-        n = np.arange(1, P)
-        np.testing.assert_array_equal(t_lo[k, n], np.minimum(t_lo[k, 2 * n], t_lo[k, 2 * n + 1]))
-        np.testing.assert_array_equal(t_hi[k, n], np.maximum(t_hi[k, 2 * n], t_hi[k, 2 * n + 1]))
-
-    @wp.kernel
-    def query(tree_lowers: wp.array2d[wp.vec3], tree_uppers: wp.array2d[wp.vec3], tree_faces: wp.array2d[wp.int32],
-              tree_leaves: int, lowers: wp.array2d[wp.vec3], uppers: wp.array2d[wp.vec3], frames: wp.array2d[wp.vec3],
-              indices: wp.array[wp.int32], slots: wp.array[int], k0s: wp.array[int], alphas: wp.array[float],
-              points: wp.array[wp.vec3], seeds: wp.array[int], reach: float, epsilon: float,
-              out_dist: wp.array[float], out_face: wp.array[int]):
-        i = wp.tid()
-        k0 = k0s[i]
-        d, f, w, n = closest_on_pair_tree(tree_lowers, tree_uppers, tree_faces, tree_leaves, lowers, uppers, slots[i],
-                                          frames, indices, k0, k0 + 1, alphas[i], points[i], reach, epsilon,
-                                          seeds[i])
-        out_dist[i] = d
-        out_face[i] = f
-
-    rng = np.random.default_rng(3)
-    V, F = seq.V.astype(np.float64), seq.F
-    K = 300
-    k0s = rng.integers(0, len(V) - 1, K)
-    alphas = rng.uniform(0, 1, K)
-    slots = k0s * 2 + (alphas >= 0.5)
-    pts = np.empty((K, 3))
-    for i in range(K):  # near a random face of the surface at that time, up to 0.2 m off it
-        Va = V[k0s[i]] * (1 - alphas[i]) + V[k0s[i] + 1] * alphas[i]
-        tri = Va[F[rng.integers(len(F))]]
-        pts[i] = rng.dirichlet([1, 1, 1]) @ tri + rng.normal(0, 0.1, 3)
-    reach = 0.15
-    seeds = np.where(rng.uniform(size=K) < 0.5, rng.integers(0, len(F), K), -1)  # any face seeds it, or none
-    dist = wp.zeros(K, dtype=float, device=device)
-    face = wp.zeros(K, dtype=int, device=device)
-    wp.launch(query, K, inputs=[bm.tree_lowers, bm.tree_uppers, bm.tree_faces, bm.tree_leaves, bm.pair_lowers,
-                                bm.pair_uppers, surf.frames, surf.indices,
-                                wp.array(slots, dtype=int, device=device), wp.array(k0s, dtype=int, device=device),
-                                wp.array(alphas, dtype=float, device=device),
-                                wp.array(pts, dtype=wp.vec3, device=device),
-                                wp.array(seeds, dtype=int, device=device), reach, bm.epsilon],
-              outputs=[dist, face], device=device)
-    dist, face = dist.numpy(), face.numpy()
-    from reference import closest_on_triangles
-
-    hits = 0
-    for i in range(K):
-        Va = V[k0s[i]] * (1 - alphas[i]) + V[k0s[i] + 1] * alphas[i]
-        d_all = np.linalg.norm(closest_on_triangles(pts[i], Va[F[:, 0]], Va[F[:, 1]], Va[F[:, 2]]) - pts[i], axis=1)
-        best = d_all.min()
-        if best < reach - 1e-4:
-            hits += 1
-            assert dist[i] == pytest.approx(best, abs=1e-5)
-            assert d_all[face[i]] <= best + 1e-5
-        elif best > reach + 1e-4:
-            assert face[i] == -1
-    assert 50 < hits < K  # near and away
 
 
 def test_reset_touches_only_the_named_envs(device):
