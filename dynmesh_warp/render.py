@@ -350,6 +350,10 @@ class Renderer:
         tiles = start.shape[0]
         compact, shift = self.key_layout(C, G, tiles)
         self._overflow.zero_()
+        # the depth rank needs no entry count: queued before the count is read, the GPU works on
+        # it while the host waits (an eager render's one sync)
+        rank = self._depth_rank(C, G, depth, radius) if compact else b.setdefault(
+            "no_rank", wp.zeros(0, dtype=wp.int32, device=d))
         if capacity is not None:  # fixed capacity: nothing read back (capturable); the unused tail sorts last
             n = int(capacity)
             if n < 1:
@@ -362,16 +366,13 @@ class Renderer:
         if capacity is not None:
             keys.fill_(EMPTY_KEY32 if compact else EMPTY_KEY)
         if n:
-            rank = self._depth_rank(C, G, depth, radius) if compact else b.setdefault(
-                "no_rank", wp.zeros(0, dtype=wp.int32, device=d))
-            emit_tile_keys, find_tile_ranges, gather_sorted_splats = KEY_KERNELS[keys.dtype]
+            emit_tile_keys, gather_sorted_splats = KEY_KERNELS[keys.dtype]
             wp.launch(emit_tile_keys, (C, G), inputs=[mean2d, depth, radius, offsets, rank, shift, W, H, n],
                       outputs=[keys, self._values, self._overflow], device=d)
             wp.utils.radix_sort_pairs(keys, self._values, n)
-            wp.launch(find_tile_ranges, n, inputs=[keys, shift, n], outputs=[start, end], device=d)
             wp.launch(gather_sorted_splats, n,
-                      inputs=[keys, self._values, shift, tiles // C, mean2d, conic, depth, color, op],
-                      outputs=[self._s_xyod, self._s_conic, self._s_color], device=d)
+                      inputs=[keys, self._values, shift, n, tiles // C, mean2d, conic, depth, color, op],
+                      outputs=[start, end, self._s_xyod, self._s_conic, self._s_color], device=d)
         if spheres is None:
             sc, sr = self._no_spheres
         else:

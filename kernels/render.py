@@ -294,20 +294,13 @@ def emit_tile_keys(
             i += 1
 
 
-@wp.kernel
-def find_tile_ranges(
-    # In:
-    keys: wp.array[Any],
-    shift: int,
-    count: int,
-    # Out:
-    tile_start: wp.array[wp.int32],
-    tile_end: wp.array[wp.int32],
-):
-    """[tile_start, tile_end) of each (camera, tile) in the sorted keys (untouched tiles keep
-    0, 0; the tile is the key >> ``shift``). Launch (count,). Empty keys (the unused tail of a
-    fixed-capacity render, sorted last) end the list."""
-    i = wp.tid()
+@wp.func
+def mark_tile_range(keys: wp.array[Any], i: int, shift: int, count: int, tile_start: wp.array[wp.int32],
+                    tile_end: wp.array[wp.int32]):
+    """Sorted key i's part in [tile_start, tile_end) of each (camera, tile): it starts its
+    tile's run if the key before is of another tile, and ends the run before it (untouched tiles
+    keep 0, 0; the tile is the key >> ``shift``). Empty keys (the unused tail of a fixed-capacity
+    render, sorted last) end the list."""
     key = load_key(keys, i)
     if key == EMPTY_KEY:
         if i > 0:
@@ -333,6 +326,7 @@ def gather_sorted_splats(
     keys: wp.array[Any],
     values: wp.array[wp.int32],
     shift: int,
+    count: int,
     tiles_per_camera: int,
     mean2d: wp.array2d[wp.vec2],
     conic: wp.array2d[wp.vec3],
@@ -340,15 +334,19 @@ def gather_sorted_splats(
     color: wp.array2d[wp.vec3],
     opacity: wp.array[float],
     # Out:
+    tile_start: wp.array[wp.int32],
+    tile_end: wp.array[wp.int32],
     sorted_xy_opacity_depth: wp.array[wp.vec4],
     sorted_conic: wp.array[wp.vec3],
     sorted_color: wp.array[wp.vec3],
 ):
-    """Each sorted key's splat data in key order (launch (count,)): the rasteriser then reads a
-    tile's splats as one contiguous run instead of through the Gaussian index: the centre [px],
-    opacity and depth [m] together (what every splat's test reads), the conic, and the colour
-    (read only for a splat that is composited)."""
+    """Each tile's range of the sorted keys (``mark_tile_range``) and each sorted key's splat
+    data in key order (launch (count,)): the rasteriser then reads a tile's splats as one
+    contiguous run instead of through the Gaussian index: the centre [px], opacity and depth
+    [m] together (what every splat's test reads), the conic, and the colour (read only for a
+    splat that is composited)."""
     i = wp.tid()
+    mark_tile_range(keys, i, shift, count, tile_start, tile_end)
     key = load_key(keys, i)
     if key == EMPTY_KEY:
         return
@@ -361,10 +359,9 @@ def gather_sorted_splats(
 
 
 #: the key kernels' concrete overloads per key width (wp.int64 or wp.uint32): (emit_tile_keys,
-#: find_tile_ranges, gather_sorted_splats). Launching these, not the generic kernels, spares the
-#: per-launch overload lookup on the host (~13 us a launch on the CPU VM)
-KEY_KERNELS = {dt: tuple(wp.overload(k, {"keys": wp.array[dt]})
-                         for k in (emit_tile_keys, find_tile_ranges, gather_sorted_splats))
+#: gather_sorted_splats). Launching these, not the generic kernels, spares the per-launch
+#: overload lookup on the host (~13 us a launch on the CPU VM)
+KEY_KERNELS = {dt: tuple(wp.overload(k, {"keys": wp.array[dt]}) for k in (emit_tile_keys, gather_sorted_splats))
                for dt in (wp.int64, wp.uint32)}
 
 
