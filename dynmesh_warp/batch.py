@@ -241,15 +241,15 @@ def step_envs(model: BatchModel, state: BatchState, contacts: Contacts, sub_dt: 
         else:
             records = [query.dist, query.face, query.w, query.n]
             if search == SweptSearch.TILED:
-                wp.launch_tiled(collide_env_sphere_tiled, dim=n, inputs=[*args, *tail], outputs=records,
+                wp.launch_tiled(collide_env_sphere_tiled, dim=n, inputs=[*args, *tail, c.face], outputs=records,
                                 block_dim=int(tile_threads), device=m.device)
             else:
                 query.heavy_count.zero_()
-                wp.launch(collide_env_spheres_bounded, n, inputs=[*args, int(budget), *tail],
+                wp.launch(collide_env_spheres_bounded, n, inputs=[*args, int(budget), *tail, c.face],
                           outputs=[*records, query.heavy_count, query.heavy], device=m.device)
                 nb = max(1, min(int(blocks), n))
                 wp.launch_tiled(collide_env_heavy_spheres_tiled, dim=nb,
-                                inputs=[*args, query.heavy_count, query.heavy, nb, *tail], outputs=records,
+                                inputs=[*args, query.heavy_count, query.heavy, nb, *tail, c.face], outputs=records,
                                 block_dim=int(tile_threads), device=m.device)
             wp.launch(resolve_and_integrate_env_spheres, n,
                       inputs=[surf.frames, surf.indices, m.spheres.radius, m.spheres.inv_mass, m.sphere_env,

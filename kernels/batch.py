@@ -23,6 +23,7 @@ from .swept import (
     interpolated_triangle,
     keep_closest,
     reduce_closest_over_block,
+    seed_closest,
     write_swept_contact,
 )
 
@@ -66,7 +67,7 @@ def pair_slot(k0: int, k1: int, alpha: float, num_frames: int, slices: int) -> i
 def closest_on_pair_bvh(
     bvh: wp.uint64, lowers: wp.array2d[wp.vec3], uppers: wp.array2d[wp.vec3], slot: int,
     frames: wp.array2d[wp.vec3], indices: wp.array[wp.int32], k0: int, k1: int, alpha: float, p: wp.vec3,
-    reach: float, epsilon: float, budget: int,
+    reach: float, epsilon: float, budget: int, seed_face: int,
 ):
     """Closest feature of the interpolated surface within ``reach`` of p over the candidates of
     slot's BVH, skipping a face whose box is farther than the closest feature so far
@@ -78,16 +79,13 @@ def closest_on_pair_bvh(
     f = int(0)
     c = int(0)
     over = int(0)
-    min_dist = reach
-    min_face = int(-1)
-    min_w = wp.vec3(0.0)
-    acc_n = wp.vec3(0.0)
+    min_dist, min_face, min_w, acc_n = seed_closest(frames, indices, k0, k1, alpha, p, reach, epsilon, seed_face)
     while wp.bvh_query_next(query, f):
         c += 1
         if c > budget:
             over = 1
             break
-        if box_distance(p, lowers[slot, f], uppers[slot, f]) < min_dist + epsilon:
+        if f != seed_face and box_distance(p, lowers[slot, f], uppers[slot, f]) < min_dist + epsilon:
             a, b, g = interpolated_triangle(frames, indices, f, k0, k1, alpha)
             dist, w, wn = face_candidate(p, a, b, g, epsilon)
             min_dist, min_face, min_w, acc_n = keep_closest(dist, f, w, wn, epsilon, min_dist, min_face, min_w, acc_n)
@@ -185,7 +183,7 @@ def collide_and_integrate_env_spheres(
     slot = pair_slot(k0, k1, alpha, T, slices)
     min_dist, min_face, min_w, acc_n, over = closest_on_pair_bvh(pair_bvh[slot], pair_lowers, pair_uppers, slot,
                                                                  frames, indices, k0, k1, alpha, p, reach, epsilon,
-                                                                 NO_BUDGET)
+                                                                 NO_BUDGET, contact_face[s])
     write_swept_contact(s, p, r, reach, min_dist, min_face, min_w, acc_n, frames, indices, k0, k1, alpha,
                         fps * wp.float64(rate), contact_face, contact_point, contact_normal, contact_depth,
                         contact_velocity)
@@ -203,8 +201,8 @@ def find_closest_tiled(
     sphere_env: wp.array[wp.int32], fps: wp.float64, interpolate: int, slices: int,
     env_time_in: wp.array[wp.float64], env_playback_in: wp.array[wp.int32], sphere_pos_in: wp.array[wp.vec3],
     sphere_vel_in: wp.array[wp.vec3], dt: float, extra_speed: float, margin: float, epsilon: float,
-    query_dist: wp.array[float], query_face: wp.array[wp.int32], query_w: wp.array[wp.vec3],
-    query_n: wp.array[wp.vec3],
+    contact_face: wp.array[wp.int32], query_dist: wp.array[float], query_face: wp.array[wp.int32],
+    query_w: wp.array[wp.vec3], query_n: wp.array[wp.vec3],
 ):
     """Sphere s's contact query by the calling thread block (``lane`` = the thread's index in
     it; every thread of the block calls this for the same s): as the single world's
@@ -212,7 +210,9 @@ def find_closest_tiled(
     (``wp.tile_bvh_query_aabb``), each thread evaluates the faces handed to it with the serial
     rule (box prune against its own closest so far), then the block's minimum distance, the
     lowest face index at it and the tie-normal sum of the threads within ``epsilon`` of it are
-    written to s's record (face -1 when nothing is within reach)."""
+    written to s's record (face -1 when nothing is within reach). Seeded with s's previous
+    contact face (``contact_face[s]``, ``seed_closest``): every thread prunes against its
+    distance from the start, the first thread alone records it (the block sums tie normals)."""
     e = sphere_env[s]
     T = frames.shape[0]
     k0, k1, alpha = blend_pair(env_time_in[e], fps, T, env_playback_in[e], interpolate)
@@ -220,15 +220,19 @@ def find_closest_tiled(
     reach = contact_reach(sphere_radius[s], sphere_vel_in[s], extra_speed, dt, margin)
     slot = pair_slot(k0, k1, alpha, T, slices)
     ext = wp.vec3(reach + epsilon)
-    min_dist = reach
-    min_face = int(-1)
-    min_w = wp.vec3(0.0)
-    acc_n = wp.vec3(0.0)
+    seed = contact_face[s]
+    min_dist, min_face, min_w, acc_n = seed_closest(frames, indices, k0, k1, alpha, p, reach, epsilon, seed)
+    bound = min_dist
+    if lane != 0:
+        min_dist = reach
+        min_face = -1
+        min_w = wp.vec3(0.0)
+        acc_n = wp.vec3(0.0)
     query = wp.tile_bvh_query_aabb(pair_bvh[slot], p - ext, p + ext)
     while wp.tile_query_valid(query):
         f = wp.untile(wp.tile_bvh_query_next(query))
-        if f >= 0:
-            if box_distance(p, pair_lowers[slot, f], pair_uppers[slot, f]) < min_dist + epsilon:
+        if f >= 0 and f != seed:
+            if box_distance(p, pair_lowers[slot, f], pair_uppers[slot, f]) < wp.min(min_dist, bound) + epsilon:
                 a, b, g = interpolated_triangle(frames, indices, f, k0, k1, alpha)
                 dist, w, wn = face_candidate(p, a, b, g, epsilon)
                 min_dist, min_face, min_w, acc_n = keep_closest(dist, f, w, wn, epsilon, min_dist, min_face, min_w,
@@ -270,6 +274,7 @@ def collide_env_sphere_tiled(
     extra_speed: float,
     margin: float,
     epsilon: float,
+    contact_face: wp.array[wp.int32],
     # Out:
     query_dist: wp.array[float],
     query_face: wp.array[wp.int32],
@@ -282,7 +287,7 @@ def collide_env_sphere_tiled(
     s, lane = wp.tid()
     find_closest_tiled(s, lane, frames, indices, pair_bvh, pair_lowers, pair_uppers, sphere_radius, sphere_env, fps,
                        interpolate, slices, env_time_in, env_playback_in, sphere_pos_in, sphere_vel_in, dt,
-                       extra_speed, margin, epsilon, query_dist, query_face, query_w, query_n)
+                       extra_speed, margin, epsilon, contact_face, query_dist, query_face, query_w, query_n)
 
 
 @wp.kernel
@@ -309,6 +314,7 @@ def collide_env_spheres_bounded(
     extra_speed: float,
     margin: float,
     epsilon: float,
+    contact_face: wp.array[wp.int32],
     # Out:
     query_dist: wp.array[float],
     query_face: wp.array[wp.int32],
@@ -330,7 +336,7 @@ def collide_env_spheres_bounded(
     slot = pair_slot(k0, k1, alpha, T, slices)
     min_dist, min_face, min_w, acc_n, over = closest_on_pair_bvh(pair_bvh[slot], pair_lowers, pair_uppers, slot,
                                                                  frames, indices, k0, k1, alpha, p, reach, epsilon,
-                                                                 budget)
+                                                                 budget, contact_face[s])
     if over != 0:
         heavy[wp.atomic_add(heavy_count, 0, 1)] = s
     else:
@@ -366,6 +372,7 @@ def collide_env_heavy_spheres_tiled(
     extra_speed: float,
     margin: float,
     epsilon: float,
+    contact_face: wp.array[wp.int32],
     # Out:
     query_dist: wp.array[float],
     query_face: wp.array[wp.int32],
@@ -381,7 +388,8 @@ def collide_env_heavy_spheres_tiled(
     while i < count:
         find_closest_tiled(heavy[i], lane, frames, indices, pair_bvh, pair_lowers, pair_uppers, sphere_radius,
                            sphere_env, fps, interpolate, slices, env_time_in, env_playback_in, sphere_pos_in,
-                           sphere_vel_in, dt, extra_speed, margin, epsilon, query_dist, query_face, query_w, query_n)
+                           sphere_vel_in, dt, extra_speed, margin, epsilon, contact_face, query_dist, query_face,
+                           query_w, query_n)
         i += num_blocks
 
 
