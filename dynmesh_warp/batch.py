@@ -23,7 +23,7 @@ import warnings
 import numpy as np
 import warp as wp
 
-from .choices import DEFAULT_BATCH_SWEPT_SEARCH, PLAYBACK_CODES, Playback, SweptSearch, parse
+from .choices import DEFAULT_BATCH_SWEPT_SEARCH, PLAYBACK_CODES, SEED_PREVIOUS_FACE, Playback, SweptSearch, parse
 from .kernels.batch import (
     advance_env_clocks,
     collide_and_integrate_env_spheres,
@@ -235,21 +235,21 @@ def step_envs(model: BatchModel, state: BatchState, contacts: Contacts, sub_dt: 
             wp.launch(collide_and_integrate_env_spheres, n,
                       inputs=[surf.frames, surf.indices, m.pair_bvh, m.pair_lowers, m.pair_uppers, m.spheres.radius,
                               m.spheres.inv_mass, m.sphere_env, *physics, m.time_slices, s.env_time, s.env_rate,
-                              s.env_playback, *tail],
+                              s.env_playback, *tail, int(SEED_PREVIOUS_FACE["cuda" if m.device.is_cuda else "cpu"])],
                       outputs=[s.sphere_pos, s.sphere_vel, c.face, c.point, c.normal, c.depth, c.velocity],
                       device=m.device)
         else:
             records = [query.dist, query.face, query.w, query.n]
             if search == SweptSearch.TILED:
-                wp.launch_tiled(collide_env_sphere_tiled, dim=n, inputs=[*args, *tail, c.face], outputs=records,
+                wp.launch_tiled(collide_env_sphere_tiled, dim=n, inputs=[*args, *tail], outputs=records,
                                 block_dim=int(tile_threads), device=m.device)
             else:
                 query.heavy_count.zero_()
-                wp.launch(collide_env_spheres_bounded, n, inputs=[*args, int(budget), *tail, c.face],
+                wp.launch(collide_env_spheres_bounded, n, inputs=[*args, int(budget), *tail],
                           outputs=[*records, query.heavy_count, query.heavy], device=m.device)
                 nb = max(1, min(int(blocks), n))
                 wp.launch_tiled(collide_env_heavy_spheres_tiled, dim=nb,
-                                inputs=[*args, query.heavy_count, query.heavy, nb, *tail, c.face], outputs=records,
+                                inputs=[*args, query.heavy_count, query.heavy, nb, *tail], outputs=records,
                                 block_dim=int(tile_threads), device=m.device)
             wp.launch(resolve_and_integrate_env_spheres, n,
                       inputs=[surf.frames, surf.indices, m.spheres.radius, m.spheres.inv_mass, m.sphere_env,

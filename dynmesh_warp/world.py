@@ -37,6 +37,7 @@ from .choices import (
     DEFAULT_SWEPT_SEARCH,
     PLAYBACK_CODES,
     REFIT_BVH,
+    SEED_PREVIOUS_FACE,
     SWEPT_FACES_MAX_SPHERES,
     SWEPT_MEASURED_SEARCHES,
     SWEPT_RESOLVE_THREADS,
@@ -717,7 +718,8 @@ class SweptCollider(ColliderBase):
                 wp.launch_tiled(collide_sphere_swept_tiled, dim=m.spheres.count, inputs=inputs, outputs=outputs,
                                 block_dim=self.tile_threads, device=ctx.device)
         else:
-            ctx.launch(collide_sphere_swept, m.spheres.count, inputs, outputs)
+            seed = int(SEED_PREVIOUS_FACE["cuda" if ctx.device.is_cuda else "cpu"])
+            ctx.launch(collide_sphere_swept, m.spheres.count, [*inputs, seed], outputs)
 
 
 COLLIDERS = {"refit": RefitCollider, "swept": SweptCollider, "rebuild": RebuildCollider}

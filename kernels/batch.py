@@ -73,7 +73,8 @@ def closest_on_pair_bvh(
     slot's BVH, skipping a face whose box is farther than the closest feature so far
     (+ epsilon): the box contains the face at every blend of the slot, so a skipped face could
     neither be closer nor tie; the result is that of evaluating all. The walk stops at the
-    first candidate over ``budget`` (the last value returned is then 1 and the rest incomplete)."""
+    first candidate over ``budget`` (the last value returned is then 1 and the rest incomplete).
+    ``seed_face`` is evaluated first (``seed_closest``; -1 none)."""
     ext = wp.vec3(reach + epsilon)
     query = wp.bvh_query_aabb(bvh, p - ext, p + ext)
     f = int(0)
@@ -156,6 +157,7 @@ def collide_and_integrate_env_spheres(
     extra_speed: float,
     margin: float,
     epsilon: float,
+    seed: int,
     # State out:
     sphere_pos_out: wp.array[wp.vec3],
     sphere_vel_out: wp.array[wp.vec3],
@@ -170,7 +172,8 @@ def collide_and_integrate_env_spheres(
     (``env_time_in[e]`` [s], played at ``env_rate_in[e]`` x, playback code
     ``env_playback_in[e]``), then the continuous response of ``integrate_spheres``. The
     surface velocity at the contact is scaled by the env's rate. One thread per sphere;
-    (E * S,) arrays; dt [s] is the sub-step."""
+    (E * S,) arrays; dt [s] is the sub-step. ``seed`` 1: the sphere's previous contact face
+    (``contact_face``, read before it is written) is evaluated first (``seed_closest``)."""
     s = wp.tid()
     e = sphere_env[s]
     T = frames.shape[0]
@@ -181,9 +184,12 @@ def collide_and_integrate_env_spheres(
     r = sphere_radius[s]
     reach = contact_reach(r, v, extra_speed, dt, margin)
     slot = pair_slot(k0, k1, alpha, T, slices)
+    seed_face = int(-1)
+    if seed != 0:
+        seed_face = contact_face[s]
     min_dist, min_face, min_w, acc_n, over = closest_on_pair_bvh(pair_bvh[slot], pair_lowers, pair_uppers, slot,
                                                                  frames, indices, k0, k1, alpha, p, reach, epsilon,
-                                                                 NO_BUDGET, contact_face[s])
+                                                                 NO_BUDGET, seed_face)
     write_swept_contact(s, p, r, reach, min_dist, min_face, min_w, acc_n, frames, indices, k0, k1, alpha,
                         fps * wp.float64(rate), contact_face, contact_point, contact_normal, contact_depth,
                         contact_velocity)
@@ -201,8 +207,8 @@ def find_closest_tiled(
     sphere_env: wp.array[wp.int32], fps: wp.float64, interpolate: int, slices: int,
     env_time_in: wp.array[wp.float64], env_playback_in: wp.array[wp.int32], sphere_pos_in: wp.array[wp.vec3],
     sphere_vel_in: wp.array[wp.vec3], dt: float, extra_speed: float, margin: float, epsilon: float,
-    contact_face: wp.array[wp.int32], query_dist: wp.array[float], query_face: wp.array[wp.int32],
-    query_w: wp.array[wp.vec3], query_n: wp.array[wp.vec3],
+    query_dist: wp.array[float], query_face: wp.array[wp.int32], query_w: wp.array[wp.vec3],
+    query_n: wp.array[wp.vec3],
 ):
     """Sphere s's contact query by the calling thread block (``lane`` = the thread's index in
     it; every thread of the block calls this for the same s): as the single world's
@@ -210,9 +216,7 @@ def find_closest_tiled(
     (``wp.tile_bvh_query_aabb``), each thread evaluates the faces handed to it with the serial
     rule (box prune against its own closest so far), then the block's minimum distance, the
     lowest face index at it and the tie-normal sum of the threads within ``epsilon`` of it are
-    written to s's record (face -1 when nothing is within reach). Seeded with s's previous
-    contact face (``contact_face[s]``, ``seed_closest``): every thread prunes against its
-    distance from the start, the first thread alone records it (the block sums tie normals)."""
+    written to s's record (face -1 when nothing is within reach)."""
     e = sphere_env[s]
     T = frames.shape[0]
     k0, k1, alpha = blend_pair(env_time_in[e], fps, T, env_playback_in[e], interpolate)
@@ -220,19 +224,15 @@ def find_closest_tiled(
     reach = contact_reach(sphere_radius[s], sphere_vel_in[s], extra_speed, dt, margin)
     slot = pair_slot(k0, k1, alpha, T, slices)
     ext = wp.vec3(reach + epsilon)
-    seed = contact_face[s]
-    min_dist, min_face, min_w, acc_n = seed_closest(frames, indices, k0, k1, alpha, p, reach, epsilon, seed)
-    bound = min_dist
-    if lane != 0:
-        min_dist = reach
-        min_face = -1
-        min_w = wp.vec3(0.0)
-        acc_n = wp.vec3(0.0)
+    min_dist = reach
+    min_face = int(-1)
+    min_w = wp.vec3(0.0)
+    acc_n = wp.vec3(0.0)
     query = wp.tile_bvh_query_aabb(pair_bvh[slot], p - ext, p + ext)
     while wp.tile_query_valid(query):
         f = wp.untile(wp.tile_bvh_query_next(query))
-        if f >= 0 and f != seed:
-            if box_distance(p, pair_lowers[slot, f], pair_uppers[slot, f]) < wp.min(min_dist, bound) + epsilon:
+        if f >= 0:
+            if box_distance(p, pair_lowers[slot, f], pair_uppers[slot, f]) < min_dist + epsilon:
                 a, b, g = interpolated_triangle(frames, indices, f, k0, k1, alpha)
                 dist, w, wn = face_candidate(p, a, b, g, epsilon)
                 min_dist, min_face, min_w, acc_n = keep_closest(dist, f, w, wn, epsilon, min_dist, min_face, min_w,
@@ -274,7 +274,6 @@ def collide_env_sphere_tiled(
     extra_speed: float,
     margin: float,
     epsilon: float,
-    contact_face: wp.array[wp.int32],
     # Out:
     query_dist: wp.array[float],
     query_face: wp.array[wp.int32],
@@ -287,7 +286,7 @@ def collide_env_sphere_tiled(
     s, lane = wp.tid()
     find_closest_tiled(s, lane, frames, indices, pair_bvh, pair_lowers, pair_uppers, sphere_radius, sphere_env, fps,
                        interpolate, slices, env_time_in, env_playback_in, sphere_pos_in, sphere_vel_in, dt,
-                       extra_speed, margin, epsilon, contact_face, query_dist, query_face, query_w, query_n)
+                       extra_speed, margin, epsilon, query_dist, query_face, query_w, query_n)
 
 
 @wp.kernel
@@ -314,7 +313,6 @@ def collide_env_spheres_bounded(
     extra_speed: float,
     margin: float,
     epsilon: float,
-    contact_face: wp.array[wp.int32],
     # Out:
     query_dist: wp.array[float],
     query_face: wp.array[wp.int32],
@@ -336,7 +334,7 @@ def collide_env_spheres_bounded(
     slot = pair_slot(k0, k1, alpha, T, slices)
     min_dist, min_face, min_w, acc_n, over = closest_on_pair_bvh(pair_bvh[slot], pair_lowers, pair_uppers, slot,
                                                                  frames, indices, k0, k1, alpha, p, reach, epsilon,
-                                                                 budget, contact_face[s])
+                                                                 budget, -1)
     if over != 0:
         heavy[wp.atomic_add(heavy_count, 0, 1)] = s
     else:
@@ -372,7 +370,6 @@ def collide_env_heavy_spheres_tiled(
     extra_speed: float,
     margin: float,
     epsilon: float,
-    contact_face: wp.array[wp.int32],
     # Out:
     query_dist: wp.array[float],
     query_face: wp.array[wp.int32],
@@ -388,8 +385,7 @@ def collide_env_heavy_spheres_tiled(
     while i < count:
         find_closest_tiled(heavy[i], lane, frames, indices, pair_bvh, pair_lowers, pair_uppers, sphere_radius,
                            sphere_env, fps, interpolate, slices, env_time_in, env_playback_in, sphere_pos_in,
-                           sphere_vel_in, dt, extra_speed, margin, epsilon, contact_face, query_dist, query_face,
-                           query_w, query_n)
+                           sphere_vel_in, dt, extra_speed, margin, epsilon, query_dist, query_face, query_w, query_n)
         i += num_blocks
 
 

@@ -172,16 +172,17 @@ def box_distance(p: wp.vec3, lo: wp.vec3, hi: wp.vec3) -> float:
 @wp.func
 def seed_closest(frames: wp.array2d[wp.vec3], indices: wp.array[wp.int32], k0: int, k1: int, alpha: float,
                  p: wp.vec3, reach: float, epsilon: float, seed_face: int):
-    """The closest-feature search's start: nothing within ``reach``, or ``seed_face`` (a face
-    near p, e.g. the sphere's closest of the previous sub-step; -1 none) evaluated at the
+    """The serial closest-feature search's start: nothing within ``reach``, or ``seed_face`` (a
+    face near p, the sphere's closest of the previous sub-step; -1 none) evaluated at the
     current blend. A seed tightens the box prune from the first candidate on; the search still
     meets every face under the same rule, so any seed gives the same closest face (up to the
-    order in which faces within epsilon of each other are met); an index out of range is no seed."""
+    order in which faces within epsilon of each other are met); an index out of range (a stale
+    face of another surface) is no seed."""
     min_dist = reach
     min_face = int(-1)
     min_w = wp.vec3(0.0)
     acc_n = wp.vec3(0.0)
-    if seed_face >= 0 and seed_face < indices.shape[0] / 3:  # (a stale face of another surface: no seed)
+    if seed_face >= 0 and seed_face < indices.shape[0] / 3:
         a, b, g = interpolated_triangle(frames, indices, seed_face, k0, k1, alpha)
         dist, w, wn = face_candidate(p, a, b, g, epsilon)
         min_dist, min_face, min_w, acc_n = keep_closest(dist, seed_face, w, wn, epsilon, min_dist, min_face, min_w,
@@ -199,7 +200,7 @@ def closest_on_swept_bvh(
     face whose swept box (``lowers``/``uppers``, which contain it at every blend of the pair) is
     farther than the closest feature so far + epsilon is skipped unevaluated: it could neither be
     closer nor tie, so the result is that of evaluating every candidate. ``seed_face`` is
-    evaluated first (``seed_closest``)."""
+    evaluated first (``seed_closest``; -1 none)."""
     ext = wp.vec3(reach + epsilon)
     query = wp.bvh_query_aabb(bvh, p - ext, p + ext)
     f = int(0)
@@ -294,6 +295,7 @@ def collide_sphere_swept(
     dt: float,
     extra_speed: float,
     margin: float,
+    seed: int,
     # Out:
     contact_face: wp.array[wp.int32],
     contact_point: wp.array[wp.vec3],
@@ -303,15 +305,19 @@ def collide_sphere_swept(
 ):
     """Contact of each sphere with the surface interpolated at sim_time_in (same outputs as
     ``collide_sphere_mesh``), one thread per sphere walking the swept-box BVH (CPU path).
-    ``epsilon`` [m] is the tie distance for the pseudo-normal. ``contact_face`` is read before
-    it is written: the previous sub-step's face seeds the search (``seed_closest``)."""
+    ``epsilon`` [m] is the tie distance for the pseudo-normal. ``seed`` 1: the sphere's previous
+    contact face (``contact_face``, read before it is written) is evaluated first
+    (``seed_closest``; ``choices.SEED_PREVIOUS_FACE``)."""
     s = wp.tid()
     p = sphere_pos_in[s]
     r = sphere_radius[s]
     reach = contact_reach(r, sphere_vel_in[s], extra_speed, dt, margin)
     k0, k1, alpha = blend_pair(sim_time_in[0], fps, frames.shape[0], mode, interpolate)
+    seed_face = int(-1)
+    if seed != 0:
+        seed_face = contact_face[s]
     min_dist, min_face, min_w, acc_n = closest_on_swept_bvh(bvh, lowers, uppers, frames, indices, k0, k1, alpha, p,
-                                                            reach, epsilon, contact_face[s])
+                                                            reach, epsilon, seed_face)
     write_swept_contact(s, p, r, reach, min_dist, min_face, min_w, acc_n, frames, indices, k0, k1, alpha, fps,
                         contact_face, contact_point, contact_normal, contact_depth, contact_velocity)
 
@@ -499,21 +505,15 @@ def collide_sphere_swept_tiled(
     reach = contact_reach(r, sphere_vel_in[s], extra_speed, dt, margin)
     k0, k1, alpha = blend_pair(sim_time_in[0], fps, frames.shape[0], mode, interpolate)
     ext = wp.vec3(reach + epsilon)
-    # seeded with the sphere's previous contact face: every thread prunes against its distance,
-    # the first thread alone records it (the block sums the tie normals)
-    seed = contact_face[s]
-    min_dist, min_face, min_w, acc_n = seed_closest(frames, indices, k0, k1, alpha, p, reach, epsilon, seed)
-    bound = min_dist
-    if lane != 0:
-        min_dist = reach
-        min_face = -1
-        min_w = wp.vec3(0.0)
-        acc_n = wp.vec3(0.0)
+    min_dist = reach
+    min_face = int(-1)
+    min_w = wp.vec3(0.0)
+    acc_n = wp.vec3(0.0)
     query = wp.tile_bvh_query_aabb(bvh, p - ext, p + ext)
     while wp.tile_query_valid(query):
         f = wp.untile(wp.tile_bvh_query_next(query))
-        if f >= 0 and f != seed:
-            if box_distance(p, lowers[f], uppers[f]) < wp.min(min_dist, bound) + epsilon:
+        if f >= 0:
+            if box_distance(p, lowers[f], uppers[f]) < min_dist + epsilon:
                 a, b, e = interpolated_triangle(frames, indices, f, k0, k1, alpha)
                 dist, w, wn = face_candidate(p, a, b, e, epsilon)
                 min_dist, min_face, min_w, acc_n = keep_closest(dist, f, w, wn, epsilon, min_dist, min_face, min_w,

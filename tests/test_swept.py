@@ -87,6 +87,35 @@ def test_swept_world_matches_refit_world_trajectories(search):
     assert touched > 50
 
 
+@pytest.mark.parametrize("seed", [True, False])
+def test_seeded_serial_search_equals_the_unseeded_one(monkeypatch, seed):
+    """choices.SEED_PREVIOUS_FACE (the CPU default seeds each sphere's serial search with its
+    previous contact face, CUDA does not): either way the swept world follows the refit
+    reference over 240 steps with contacts, and the seeded and unseeded runs give the same
+    contact faces and positions."""
+    from dynmesh_warp import choices
+
+    seq = wave_bowl(n=24, frames=12)
+    rng = np.random.default_rng(4)
+    pos = np.c_[rng.uniform(-0.5, 0.5, (5, 2)), np.full(5, 0.5)]
+    runs = {}
+    for flag in (seed, not seed):
+        monkeypatch.setitem(choices.SEED_PREVIOUS_FACE, "cpu", flag)
+        monkeypatch.setitem(choices.SEED_PREVIOUS_FACE, "cuda", flag)
+        ref, sw = _worlds(seq, pos, None, np.full(5, 0.06, np.float32), 0.0,
+                          [("refit", None), ("swept", {"search": "serial"})])
+        faces = []
+        for _ in range(240):
+            ref.step()
+            sw.step()
+            faces.append(sw.contacts.face.numpy().copy())
+        np.testing.assert_allclose(sw.sphere_positions(), ref.sphere_positions(), atol=1e-3)
+        runs[flag] = (np.array(faces), sw.sphere_positions())
+    assert (runs[True][0] >= 0).sum() > 50  # contacts, so the seed was used
+    np.testing.assert_array_equal(runs[True][0], runs[False][0])
+    np.testing.assert_allclose(runs[True][1], runs[False][1], atol=1e-6)
+
+
 def test_fixed_collider_measures_and_keeps_the_faster(monkeypatch):
     """``fixed``: without interpolation refit (nothing measured); with it, both candidates timed
     on trial states (the world's own state untouched) and the faster kept, whichever it is."""
