@@ -3,7 +3,12 @@ rasteriser is 0.81 ms of a 1.21 ms render on an H100).
 
 Renders bench_render's random scene once (exact, 1080p) to fill the renderer's sorted-splat
 buffers, then times each candidate rasterise kernel alone, replayed from a CUDA graph of
-``--launches`` launches, and compares its images with the current kernel's (max |diff|).
+``--launches`` launches, and compares its images with the per-pixel kernel's (max |diff|):
+``current`` (the per-pixel kernel, the CPU's), ``two_pixels`` (two pixels per thread, rejected)
+and ``product_shared`` (the shared-memory kernel, CUDA's default). The session's other probes
+(a spheres-only shared-batch kernel, the shared kernel with and without the loop over a block's
+pixels) were removed once chosen; their figures are in ``raster_variants_cuda*.json`` and
+docs/rendering.md, their code in the history.
 
     python bench/raster_variants.py --device cuda --scale 1 --out bench/results/raster_variants_cuda.json
 """
@@ -26,125 +31,13 @@ from common import describe_device, write_json  # noqa: E402
 
 from kernels.render import (  # noqa: E402
     NO_HIT,
-    RASTER_BATCH,
     TILE,
-    nearest_sphere,
     occluder_at_pixel,
-    pixel_ray,
     rasterize_gaussians,
     RASTERIZE_SHARED,
-    splat_alpha,
-    write_pixel,
 )
 
 wp.set_module_options({"fast_math": True})  # as kernels/render.py
-
-BATCH = 256  # splats loaded into shared memory per round (one per thread of a tile's block)
-
-
-@wp.func
-def pixel_start(px: int, py: int, c: int, intrinsics: wp.array[wp.vec4], view_rotation: wp.array[wp.mat33],
-                view_translation: wp.array[wp.vec3], sphere_centers: wp.array[wp.vec3],
-                sphere_radii: wp.array[float], spheres_per_camera: int):
-    o, dw, dc = pixel_ray(intrinsics[c], view_rotation[c], view_translation[c], px, py)
-    first = int(0)
-    count = sphere_centers.shape[0]
-    if spheres_per_camera > 0:
-        first = c * spheres_per_camera
-        count = spheres_per_camera
-    s_hit, sk = nearest_sphere(o, dw, sphere_centers, sphere_radii, first, count)
-    z_sphere = float(NO_HIT)
-    if sk >= 0:
-        z_sphere = s_hit * dc[2]
-    return z_sphere
-
-
-@wp.kernel
-def rasterize_shared(
-    sorted_xy_opacity_depth: wp.array[wp.vec4],
-    sorted_conic: wp.array[wp.vec3],
-    sorted_color: wp.array[wp.vec3],
-    tile_start: wp.array[wp.int32],
-    tile_end: wp.array[wp.int32],
-    view_rotation: wp.array[wp.mat33],
-    view_translation: wp.array[wp.vec3],
-    intrinsics: wp.array[wp.vec4],
-    sphere_centers: wp.array[wp.vec3],
-    sphere_radii: wp.array[float],
-    spheres_per_camera: int,
-    background: wp.vec3,
-    width: int,
-    height: int,
-    rgb: wp.array3d[wp.vec3],
-    alpha: wp.array3d[float],
-    expected_depth: wp.array3d[float],
-):
-    """One block of TILE * TILE threads per tile (launch_tiled (C * tiles,)): each round the
-    block loads BATCH sorted splats into shared memory, then every thread composites them for
-    its pixel; the block stops when every pixel is saturated or past its sphere. Spheres only
-    (no solid shapes: a timing variant)."""
-    blk, lane = wp.tid()
-    tiles_x = (width + TILE - 1) / TILE
-    tiles_y = (height + TILE - 1) / TILE
-    c = blk / (tiles_x * tiles_y)
-    t = blk - c * tiles_x * tiles_y
-    ty = t / tiles_x
-    px = (t - ty * tiles_x) * TILE + lane % TILE
-    py = ty * TILE + lane / TILE
-    inside = px < width and py < height
-    z_sphere = float(NO_HIT)
-    stop = int(1)
-    if inside:
-        z_sphere = pixel_start(px, py, c, intrinsics, view_rotation, view_translation, sphere_centers, sphere_radii,
-                               spheres_per_camera)
-        stop = 0
-    x = float(px) + 0.5
-    y = float(py) + 0.5
-    T = float(1.0)
-    acc = wp.vec3(0.0)
-    acc_z = float(0.0)
-    b = tile_start[blk]
-    end = tile_end[blk]
-    while b < end:
-        s_xyod = wp.tile_load(sorted_xy_opacity_depth, shape=(BATCH,), offset=(b,), storage="shared")
-        s_conic = wp.tile_load(sorted_conic, shape=(BATCH,), offset=(b,), storage="shared")
-        s_color = wp.tile_load(sorted_color, shape=(BATCH,), offset=(b,), storage="shared")
-        n = wp.min(BATCH, end - b)
-        if stop == 0:
-            for j in range(n):
-                mo = s_xyod[j]
-                zg = mo[3]
-                if zg > z_sphere:
-                    stop = 1
-                    break
-                q = s_conic[j]
-                dx = mo[0] - x
-                dy = mo[1] - y
-                sigma = 0.5 * (q[0] * dx * dx + q[2] * dy * dy) + q[1] * dx * dy
-                if sigma < 0.0:
-                    continue
-                a = wp.min(0.999, mo[2] * wp.exp(-sigma))
-                if a < 1.0 / 255.0:
-                    continue
-                next_t = T * (1.0 - a)
-                if next_t <= 1.0e-4:
-                    stop = 2
-                    break
-                acc = acc + s_color[j] * (a * T)
-                acc_z = acc_z + zg * (a * T)
-                T = next_t
-        running = wp.tile_sum(wp.tile(wp.where(stop == 0, 1, 0)))
-        if running[0] == 0:
-            break
-        b = b + BATCH
-    if inside:
-        rgb[c, py, px] = acc + background * T
-        alpha[c, py, px] = 1.0 - T
-        ez = float(0.0)
-        if T < 1.0:
-            ez = acc_z / (1.0 - T)
-        expected_depth[c, py, px] = ez
-
 
 @wp.kernel
 def rasterize_pairs(
@@ -159,6 +52,9 @@ def rasterize_pairs(
     sphere_centers: wp.array[wp.vec3],
     sphere_radii: wp.array[float],
     spheres_per_camera: int,
+    sphere_color: wp.vec3,
+    solid: wp.array3d[wp.vec4],
+    has_solid: int,
     background: wp.vec3,
     width: int,
     height: int,
@@ -167,7 +63,8 @@ def rasterize_pairs(
     expected_depth: wp.array3d[float],
 ):
     """Two pixels per thread, rows y and y + TILE / 2 of a tile (launch (C, tiles * TILE * TILE / 2)):
-    each splat's loads serve two pixels. Spheres only (a timing variant)."""
+    each splat's loads serve two pixels. No sphere shading (a timing variant: measured slower,
+    0.95 vs 0.75 ms, raster_variants_cuda*.json)."""
     c, k = wp.tid()
     half = TILE * TILE / 2
     tiles_x = (width + TILE - 1) / TILE
@@ -182,13 +79,13 @@ def rasterize_pairs(
     if px >= width or py0 >= height:
         return
     in1 = py1 < height
-    z0 = pixel_start(px, py0, c, intrinsics, view_rotation, view_translation, sphere_centers, sphere_radii,
-                     spheres_per_camera)
+    z0, sk0, sh0, o0, d0, t0 = occluder_at_pixel(c, px, py0, view_rotation, view_translation, intrinsics,
+                                                 sphere_centers, sphere_radii, spheres_per_camera, solid, has_solid)
     z1 = float(NO_HIT)
     s1 = int(1)
     if in1:
-        z1 = pixel_start(px, py1, c, intrinsics, view_rotation, view_translation, sphere_centers, sphere_radii,
-                         spheres_per_camera)
+        z1, sk1, sh1, o1, d1, t1 = occluder_at_pixel(c, px, py1, view_rotation, view_translation, intrinsics,
+                                                     sphere_centers, sphere_radii, spheres_per_camera, solid, has_solid)
         s1 = 0
     s0 = int(0)
     x = float(px) + 0.5
@@ -254,91 +151,6 @@ def rasterize_pairs(
         expected_depth[c, py1, px] = e1
 
 
-@wp.kernel
-def rasterize_shared_one_pixel(
-    sorted_xy_opacity_depth: wp.array[wp.vec4],
-    sorted_conic: wp.array[wp.vec3],
-    sorted_color: wp.array[wp.vec3],
-    tile_start: wp.array[wp.int32],
-    tile_end: wp.array[wp.int32],
-    view_rotation: wp.array[wp.mat33],
-    view_translation: wp.array[wp.vec3],
-    intrinsics: wp.array[wp.vec4],
-    sphere_centers: wp.array[wp.vec3],
-    sphere_radii: wp.array[float],
-    spheres_per_camera: int,
-    sphere_color: wp.vec3,
-    solid: wp.array3d[wp.vec4],
-    has_solid: int,
-    background: wp.vec3,
-    width: int,
-    height: int,
-    rgb: wp.array3d[wp.vec3],
-    alpha: wp.array3d[float],
-    expected_depth: wp.array3d[float],
-):
-    """kernels.render.rasterize_gaussians_shared without the loop over a block's pixels (one
-    pixel per thread: CUDA only)."""
-    blk, lane = wp.tid()
-    tiles_x = (width + TILE - 1) / TILE
-    tiles_y = (height + TILE - 1) / TILE
-    c = blk / (tiles_x * tiles_y)
-    t = blk - c * (tiles_x * tiles_y)
-    ty = t / tiles_x
-    start = tile_start[blk]
-    end = tile_end[blk]
-    px = (t - ty * tiles_x) * TILE + lane % TILE
-    py = ty * TILE + lane / TILE
-    inside = px < width and py < height
-    x = float(px) + 0.5
-    y = float(py) + 0.5
-    z_sphere = float(NO_HIT)
-    sk = int(-1)
-    s_hit = float(NO_HIT)
-    o = wp.vec3(0.0)
-    dw = wp.vec3(0.0)
-    solid_px = wp.vec4(0.0, 0.0, 0.0, NO_HIT)
-    running = int(0)
-    if inside:
-        z_sphere, sk, s_hit, o, dw, solid_px = occluder_at_pixel(c, px, py, view_rotation, view_translation,
-                                                                 intrinsics, sphere_centers, sphere_radii,
-                                                                 spheres_per_camera, solid, has_solid)
-        running = 1
-    T = float(1.0)
-    acc = wp.vec3(0.0)
-    acc_z = float(0.0)
-    saturated = int(0)
-    b = start
-    while b < end:
-        s_xyod = wp.tile_load(sorted_xy_opacity_depth, shape=(RASTER_BATCH,), offset=(b,), storage="shared")
-        s_conic = wp.tile_load(sorted_conic, shape=(RASTER_BATCH,), offset=(b,), storage="shared")
-        s_color = wp.tile_load(sorted_color, shape=(RASTER_BATCH,), offset=(b,), storage="shared")
-        if running != 0:
-            for j in range(wp.min(RASTER_BATCH, end - b)):
-                mo = s_xyod[j]
-                zg = mo[3]
-                if zg > z_sphere:
-                    running = 0
-                    break
-                a = splat_alpha(mo, s_conic[j], x, y)
-                if a < 1.0 / 255.0:
-                    continue
-                next_t = T * (1.0 - a)
-                if next_t <= 1.0e-4:
-                    saturated = 1
-                    running = 0
-                    break
-                acc = acc + s_color[j] * (a * T)
-                acc_z = acc_z + zg * (a * T)
-                T = next_t
-        if wp.tile_sum(wp.tile(running))[0] == 0:
-            break
-        b = b + RASTER_BATCH
-    if inside:
-        write_pixel(c, px, py, T, acc, acc_z, saturated, z_sphere, sk, s_hit, o, dw, solid_px, sphere_centers,
-                    sphere_color, background, rgb, alpha, expected_depth)
-
-
 def main(argv=None):
     from dynmesh_warp.render import Renderer, look_at
 
@@ -376,12 +188,8 @@ def main(argv=None):
                       inputs=[*common, wp.vec3(1.0), r._no_solid, 0, wp.vec3(0.0), W, H],
                       outputs=[rgb, alpha, zbuf], device=device)
 
-        def run_shared():
-            wp.launch_tiled(rasterize_shared, dim=(tiles,), inputs=[*common, wp.vec3(0.0), W, H],
-                            outputs=[rgb, alpha, zbuf], block_dim=TILE * TILE, device=device)
-
         def run_pairs():
-            wp.launch(rasterize_pairs, (C, (tiles // C) * TILE * TILE // 2), inputs=[*common, wp.vec3(0.0), W, H],
+            wp.launch(rasterize_pairs, (C, (tiles // C) * TILE * TILE // 2), inputs=full,
                       outputs=[rgb, alpha, zbuf], device=device)
 
         full = [*common, wp.vec3(1.0), r._no_solid, 0, wp.vec3(0.0), W, H]
@@ -390,15 +198,8 @@ def main(argv=None):
             wp.launch_tiled(RASTERIZE_SHARED["cuda" if device.is_cuda else "cpu"], dim=(tiles,), inputs=full,
                             outputs=[rgb, alpha, zbuf], block_dim=TILE * TILE, device=device)
 
-        def run_one_pixel():
-            wp.launch_tiled(rasterize_shared_one_pixel, dim=(tiles,), inputs=full, outputs=[rgb, alpha, zbuf],
-                            block_dim=TILE * TILE, device=device)
-
         row = {"scale": scale, "entries": int(r.capacity), "variants": {}}
-        variants = [("current", run_current), ("shared_batches", run_shared), ("two_pixels", run_pairs),
-                    ("product_shared", run_product_shared), ("product_shared_one_pixel", run_one_pixel)]
-        if not device.is_cuda:  # a block is one thread there: the one-pixel and spheres-only variants are CUDA's
-            variants = [v for v in variants if v[0] in ("current", "two_pixels", "product_shared")]
+        variants = [("current", run_current), ("two_pixels", run_pairs), ("product_shared", run_product_shared)]
         for name, fn in variants:
             for arr in (rgb, alpha, zbuf):
                 arr.zero_()
