@@ -213,6 +213,37 @@ class Renderer:
         self._no_splats = (wp.zeros(0, dtype=wp.vec3, device=self.device), wp.zeros(0, dtype=wp.mat33, device=self.device),
                            wp.zeros((0, 1, 3), dtype=float, device=self.device), wp.zeros(0, dtype=float, device=self.device))
         self._cams = (None, None)  # (the cameras' values, their device arrays): reused while unchanged
+        self._cmds = {}  # recorded launches per stage, replayed while their arguments are the same
+
+    def _launch(self, stage: str, kernel, dim, inputs, outputs, block_dim: int | None = None, volatile=()):
+        """``wp.launch`` (``wp.launch_tiled`` with ``block_dim``) through a recorded launch
+        (``record_cmd``) kept per stage and replayed while its arguments are the same arrays and
+        values, so a render with the same inputs as the last does not pack every argument again
+        on the host (an eager render's cost is mostly its launches). ``volatile``: indices of
+        scalar inputs that may change per call (set on the recorded launch, as is ``dim``). The
+        record keeps its arrays alive, so an array's address cannot pass to another meanwhile."""
+        args = (*inputs, *outputs)
+        key = (kernel, block_dim, tuple(None if i in volatile else (a.ptr, a.shape) if isinstance(a, wp.array) else a
+                                        for i, a in enumerate(args)))
+        rec = self._cmds.get(stage)
+        if rec is None or rec[0] != key:
+            if block_dim is None:
+                cmd = wp.launch(kernel, dim, inputs=inputs, outputs=outputs, device=self.device, record_cmd=True)
+            else:
+                cmd = wp.launch_tiled(kernel, dim=dim, inputs=inputs, outputs=outputs, block_dim=block_dim,
+                                      device=self.device, record_cmd=True)
+            if cmd is None:  # an empty launch (no Gaussians): nothing to record or run
+                self._cmds.pop(stage, None)
+                return
+            rec = self._cmds[stage] = (key, cmd, args, dim)
+        else:
+            cmd = rec[1]
+            for i in volatile:
+                cmd.set_param_at_index(i, args[i])
+            if dim != rec[3]:
+                cmd.set_dim(dim)
+                self._cmds[stage] = (key, cmd, args, dim)
+        cmd.launch()
 
     def _camera_arrays(self, cameras):
         """Device (R, t, intrinsics) of the cameras, uploaded only when their values change (so a
@@ -290,10 +321,9 @@ class Renderer:
             b["depth_keys"] = wp.zeros(2 * C * G, dtype=float, device=d)
             b["depth_order"] = wp.zeros(2 * C * G, dtype=wp.int32, device=d)
             b["depth_rank"] = wp.zeros(C * G, dtype=wp.int32, device=d)
-        wp.launch(emit_depth_keys, (C, G), inputs=[depth, radius], outputs=[b["depth_keys"], b["depth_order"]],
-                  device=d)
+        self._launch("emit_depth_keys", emit_depth_keys, (C, G), [depth, radius], [b["depth_keys"], b["depth_order"]])
         wp.utils.radix_sort_pairs(b["depth_keys"], b["depth_order"], C * G)
-        wp.launch(scatter_depth_rank, C * G, inputs=[b["depth_order"]], outputs=[b["depth_rank"]], device=d)
+        self._launch("scatter_depth_rank", scatter_depth_rank, C * G, [b["depth_order"]], [b["depth_rank"]])
         return b["depth_rank"]
 
     def render(self, means, covariances, sh, opacities, cameras: list[Camera], sh_degree: int | None = None,
@@ -339,10 +369,9 @@ class Renderer:
         b = self._buffers(C, G, W, H)
         mean2d, conic, depth, radius, touched, color, offsets = (b[k] for k in (
             "mean2d", "conic", "depth", "radius", "touched", "color", "offsets"))
-        wp.launch(project_gaussians, (C, G), inputs=[means, covs, sh, degree, Rs, ts, ks, W, H, near,
-                                                     G if per_camera else 0,
-                                                     -1.0 if shade is None else float(shade)],
-                  outputs=[mean2d, conic, depth, radius, touched, color], device=d)
+        self._launch("project_gaussians", project_gaussians, (C, G),
+                     [means, covs, sh, degree, Rs, ts, ks, W, H, near, G if per_camera else 0,
+                      -1.0 if shade is None else float(shade)], [mean2d, conic, depth, radius, touched, color])
         wp.utils.array_scan(touched, offsets, inclusive=False)
         start, end = b["start"], b["end"]
         start.zero_()
@@ -367,12 +396,12 @@ class Renderer:
             keys.fill_(EMPTY_KEY32 if compact else EMPTY_KEY)
         if n:
             emit_tile_keys, gather_sorted_splats = KEY_KERNELS[keys.dtype]
-            wp.launch(emit_tile_keys, (C, G), inputs=[mean2d, depth, radius, offsets, rank, shift, W, H, n],
-                      outputs=[keys, self._values, self._overflow], device=d)
+            self._launch("emit_tile_keys", emit_tile_keys, (C, G), [mean2d, depth, radius, offsets, rank, shift, W, H, n],
+                         [keys, self._values, self._overflow], volatile=(8,))
             wp.utils.radix_sort_pairs(keys, self._values, n)
-            wp.launch(gather_sorted_splats, n,
-                      inputs=[keys, self._values, shift, n, tiles // C, mean2d, conic, depth, color, op],
-                      outputs=[start, end, self._s_xyod, self._s_conic, self._s_color], device=d)
+            self._launch("gather_sorted_splats", gather_sorted_splats, n,
+                         [keys, self._values, shift, n, tiles // C, mean2d, conic, depth, color, op],
+                         [start, end, self._s_xyod, self._s_conic, self._s_color], volatile=(3,))
         if spheres is None:
             sc, sr = self._no_spheres
         else:
@@ -398,11 +427,11 @@ class Renderer:
         raster_in = [self._s_xyod, self._s_conic, self._s_color, start, end, Rs, ts, ks, sc, sr, s_per,
                      wp.vec3(*sphere_color), solid, int(has_solid), wp.vec3(*background), W, H]
         if self.rasteriser == Rasteriser.SHARED:  # a block per tile, a thread per pixel
-            wp.launch_tiled(RASTERIZE_SHARED["cuda" if d.is_cuda else "cpu"], dim=(tiles,), inputs=raster_in,
-                            outputs=[rgb, alpha, zbuf], block_dim=TILE * TILE, device=d)
+            self._launch("rasterize", RASTERIZE_SHARED["cuda" if d.is_cuda else "cpu"], (tiles,), raster_in,
+                         [rgb, alpha, zbuf], block_dim=TILE * TILE)
         else:  # a thread per pixel of each tile
-            wp.launch(rasterize_gaussians, (C, (tiles // C) * TILE * TILE), inputs=raster_in,
-                      outputs=[rgb, alpha, zbuf], device=d)
+            self._launch("rasterize", rasterize_gaussians, (C, (tiles // C) * TILE * TILE), raster_in,
+                         [rgb, alpha, zbuf])
         return RenderResult(rgb, alpha, zbuf, self._overflow)
 
 

@@ -180,6 +180,36 @@ def test_shared_memory_rasteriser_equals_the_per_pixel_one(device):
         Renderer(device, rasteriser="warp")
 
 
+def test_recorded_launches_follow_changed_inputs(device):
+    """The renderer replays its recorded launches while the arguments are the same arrays: a
+    second scene written into the same arrays (another entry count), a new array, and other
+    cameras each give exactly the picture a fresh renderer gives."""
+    import warp as wp
+
+    a, b = _scene(250, 21, 1), _scene(400, 22, 1)
+    cams = orbit_cameras([0, 0, 0], 3.5, 2, width=40, height=32)
+    G = 400
+    pad = lambda x, n: np.concatenate([x, np.zeros((n - len(x),) + x.shape[1:], x.dtype)])  # noqa: E731
+    # scene a padded to G Gaussians of zero opacity, so both fit the same arrays
+    a = tuple(pad(x, G) for x in a)
+    arrays = [wp.array(a[0], dtype=wp.vec3, device=device), wp.array(a[1], dtype=wp.mat33, device=device),
+              wp.array(a[2], dtype=float, device=device), wp.array(a[3], dtype=float, device=device)]
+    r = Renderer(device)
+    first = r.render(*arrays, cams).rgb.numpy().copy()
+    entries_a = int(r._b["offsets"].numpy()[-1])
+    np.testing.assert_array_equal(first, Renderer(device).render(*a, cams).rgb.numpy())
+    for arr, x in zip(arrays, b):  # the same arrays, new contents
+        arr.assign(x)
+    second = r.render(*arrays, cams).rgb.numpy().copy()
+    assert int(r._b["offsets"].numpy()[-1]) != entries_a
+    np.testing.assert_array_equal(second, Renderer(device).render(*b, cams).rgb.numpy())
+    assert np.abs(second - first).max() > 0.1
+    again = r.render(wp.array(a[0], dtype=wp.vec3, device=device), *arrays[1:], cams)  # one new array
+    np.testing.assert_array_equal(again.rgb.numpy(), Renderer(device).render(a[0], *b[1:], cams).rgb.numpy())
+    other = orbit_cameras([0, 0, 0], 3.0, 2, width=40, height=32)
+    np.testing.assert_array_equal(r.render(*arrays, other).rgb.numpy(), Renderer(device).render(*b, other).rgb.numpy())
+
+
 def test_fixed_capacity_render_is_captured_in_a_cuda_graph(cuda_device):
     """Camera observations inside a CUDA graph: render_envs with a capacity, after one warm-up
     call (cameras and colours uploaded, modules loaded), captured and replayed after the envs
