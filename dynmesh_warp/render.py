@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
-from .choices import DEFAULT_RASTERISER, Rasteriser, parse
+from .choices import DEFAULT_RASTERISER, Rasteriser, parse, values
 from .gaussians import SHADE_AMBIENT
 from .kernels.render import (
     EMPTY_KEY,
@@ -574,6 +574,9 @@ def main(argv=None) -> int:
     p.add_argument("--width", type=int, default=640)
     p.add_argument("--height", type=int, default=480)
     p.add_argument("--device", default=None)
+    p.add_argument("--rasteriser", choices=values(Rasteriser), default=None,
+                   help=f"the splat rasteriser (default: by device, {DEFAULT_RASTERISER['cpu']} on the CPU, "
+                        f"{DEFAULT_RASTERISER['cuda']} on CUDA)")
     p.add_argument("--mesh", action="store_true", help="draw the physics mesh too (opaque, shaded): for debugging")
     p.add_argument("--no-splats", action="store_true", help="leave the Gaussians out (with --mesh: the mesh alone)")
     p.add_argument("--overwrite", action="store_true",
@@ -625,7 +628,7 @@ def main(argv=None) -> int:
     V = world.surface.sequence.V
     lo, hi = V.reshape(-1, 3).min(axis=0), V.reshape(-1, 3).max(axis=0)
     centre, diag = 0.5 * (lo + hi), float(np.linalg.norm(hi - lo))
-    renderer = Renderer(world.device)
+    renderer = Renderer(world.device, rasteriser=a.rasteriser)
     steps_per_frame = max(1, int(round(1.0 / (a.fps * world.dt))))
     total = a.frames if (a.out or a.video) else 0
     video = []

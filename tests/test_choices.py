@@ -81,6 +81,10 @@ def test_cli_help_derives_from_the_enums():
     assert _braces(C.Strategy) in conv and f"default {C.DEFAULT_STRATEGY}" in conv
     ev = _help(evaluate_main)
     assert _braces(C.FrameOrder) in ev
+    from dynmesh_warp.render import main as render_main
+
+    ren = _help(render_main)
+    assert _braces(C.Rasteriser) in ren and f"{C.DEFAULT_RASTERISER['cuda']} on CUDA" in ren
 
 
 def test_kernels_and_world_take_the_codes_from_the_enum():
