@@ -191,7 +191,9 @@ class RigidShapes:
 class Renderer:
     """Reusable buffers for rendering G Gaussians from C cameras of one image size. The arrays of
     a :class:`RenderResult` are this renderer's own: valid until its next ``render`` (copy them
-    to keep them)."""
+    to keep them). Each stage's launch is recorded and replayed while its arguments are the same
+    arrays (``_launch``), so the renderer holds the last call's input arrays until a call with
+    other ones."""
 
     def __init__(self, device=None, compact_keys: bool = True, rasteriser: Rasteriser | str | None = None):
         """``compact_keys``: sort 32-bit (tile, depth rank) keys where the camera tiles and the
