@@ -1,0 +1,89 @@
+"""Where a batched step's time goes (issue 15): each launch of the batched step timed alone
+(device synchronised before and after), in the landing window of bench_envs (horse_gallop, 5
+spheres per env, random phases, ``--warmup`` steps after the drop), per contact search; and, for
+the hybrid, how many spheres its threads hand over to the blocks per sub-step.
+
+    python bench/profile_envs.py --device cuda --envs 4096 --out bench/results/profile_envs_cuda.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from common import describe_device, load_paper_sequence, write_json  # noqa: E402
+
+
+def main(argv=None):
+    import dynmesh_warp.batch as B
+    from dynmesh_warp.config import SpawnConfig, spawn_positions
+    from dynmesh_warp.world import PhysicsParams, SurfaceModel
+
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--envs", type=int, default=4096)
+    ap.add_argument("--warmup", type=int, default=40)
+    ap.add_argument("--steps", type=int, default=80)
+    ap.add_argument("--searches", default="hybrid,tiled,serial")
+    ap.add_argument("--out", default=None)
+    a = ap.parse_args(argv)
+    wp.init()
+    device = wp.get_device(a.device)
+    seq, shared = load_paper_sequence()
+    S, r = 5, 0.05
+    pos = spawn_positions(SpawnConfig(count=S, radius=r, height=0.05, seed=0, spread=0.6), seq.V[0])
+    params = PhysicsParams(dt=1.0 / 240.0, auto_substeps=False, ground_height=float(seq.V[:, :, 2].min()))
+    surf = SurfaceModel(seq, device, playback="loop")
+    res = {"machine": describe_device(device), "sequence": seq.name, "shared_data": shared, "envs": a.envs,
+           "warmup": a.warmup, "steps": a.steps, "searches": {}}
+    for search in a.searches.split(","):
+        bm = B.BatchModel(surf, a.envs, np.full(S, r), 1.0, params)
+        times = np.random.default_rng(1).uniform(0.0, seq.num_frames / seq.fps, a.envs)
+        w = B.BatchedWorld(bm, B.BatchState(bm, pos, times=times), search=search, use_graph=False)
+        for _ in range(a.warmup):
+            w.step()
+        wp.synchronize_device(device)
+        stages: dict = {}
+        launch, tiled = B.wp.launch, B.wp.launch_tiled
+
+        def wrap(fn):
+            def call(kernel, *args, **kw):
+                wp.synchronize_device(device)
+                t0 = time.perf_counter()
+                out = fn(kernel, *args, **kw)
+                wp.synchronize_device(device)
+                stages[kernel.key] = stages.get(kernel.key, 0.0) + (time.perf_counter() - t0) * 1e6
+                return out
+            return call
+
+        handed = []
+        B.wp.launch, B.wp.launch_tiled = wrap(launch), wrap(tiled)
+        try:
+            for _ in range(a.steps):
+                w.step()
+                if w.query is not None and search == "hybrid":
+                    handed.append(int(w.query.heavy_count.numpy()[0]))
+        finally:
+            B.wp.launch, B.wp.launch_tiled = launch, tiled
+        row = {"us_per_step": {k: v / a.steps for k, v in stages.items()},
+               "in_contact": w.contact_count(), "spheres": a.envs * S}
+        if handed:
+            row["handed_to_blocks_mean"] = float(np.mean(handed))
+        res["searches"][search] = row
+        print(search, {k: round(v, 1) for k, v in row["us_per_step"].items()}, "in contact", row["in_contact"],
+              "handed", row.get("handed_to_blocks_mean"), flush=True)
+        del w, bm
+    if a.out:
+        write_json(a.out, res)
+
+
+if __name__ == "__main__":
+    main()
