@@ -28,9 +28,13 @@ from .kernels.batch import (
     advance_env_clocks,
     collide_and_integrate_env_spheres,
     collide_env_heavy_spheres_tiled,
+    collide_env_sphere_grid,
     collide_env_sphere_tiled,
     collide_env_spheres_bounded,
     compute_pair_bounds,
+    count_face_cells,
+    emit_face_cells,
+    find_cell_ranges,
     resolve_and_integrate_env_spheres,
     reset_env_clocks,
     reset_env_spheres,
@@ -57,6 +61,10 @@ BATCH_TILE_THREADS = 32
 #: H100); HYBRID_BLOCKS blocks take the handed-over spheres (a fixed launch: one graph)
 HYBRID_BUDGET = 8
 HYBRID_BLOCKS = 4096
+#: the grid search's cell edge in sphere radii (the largest sphere's), and the most cells a
+#: slot's grid may have (the edge grows until it fits)
+GRID_CELL_RADII = 2.0
+GRID_MAX_CELLS = 1 << 16
 
 
 def required_substeps(max_speed: float, dt: float, r_min: float) -> int:
@@ -114,6 +122,47 @@ class BatchModel:
         self._bvhs = [wp.Bvh(self.pair_lowers[k], self.pair_uppers[k], leaf_size=4) for k in range(n)]
         self.pair_bvh = wp.array([b.id for b in self._bvhs], dtype=wp.uint64, device=self.device)
         self.epsilon = 1.0e-3 * float(surface.average_edge_length.mean())
+        self._build_grids(GRID_CELL_RADII * float(radius.max()))
+
+    def _build_grids(self, cell: float):
+        """Each slot's uniform grid of the faces' pair boxes, for the grid search (built once on
+        the device; kernels/batch.py): grid_origin (slots,) vec3 [m], grid_dims (slots,) vec3i,
+        ``grid_cell`` [m] (grown until a slot has at most GRID_MAX_CELLS cells), cell lists
+        ``cell_faces`` with [cell_start, cell_end) per slot * cells_per_slot + cell."""
+        d = self.device
+        lo = self.pair_lowers.numpy().min(axis=1)
+        hi = self.pair_uppers.numpy().max(axis=1)
+        ext = np.maximum(hi - lo, 1e-9)
+        cell = max(float(cell), 1e-9)
+        while True:
+            dims = np.floor(ext / cell).astype(np.int64) + 1
+            most = int(dims.prod(axis=1).max())
+            if most <= GRID_MAX_CELLS:
+                break
+            cell *= (most / GRID_MAX_CELLS) ** (1.0 / 3.0) * 1.01
+        self.grid_cell = cell
+        self.cells_per_slot = most
+        slots, M = self.pair_lowers.shape
+        self.grid_origin = wp.array(lo.astype(np.float32), dtype=wp.vec3, device=d)
+        self.grid_dims = wp.array(dims.astype(np.int32), dtype=wp.vec3i, device=d)
+        counts = wp.zeros((slots, M), dtype=wp.int32, device=d)
+        wp.launch(count_face_cells, (slots, M), inputs=[self.pair_lowers, self.pair_uppers, self.grid_origin,
+                                                       self.grid_dims, 1.0 / cell], outputs=[counts], device=d)
+        flat = counts.flatten()
+        offsets = wp.zeros(slots * M, dtype=wp.int32, device=d)
+        wp.utils.array_scan(flat, offsets, inclusive=False)
+        total = int(offsets.numpy()[-1] + flat.numpy()[-1])
+        keys = wp.zeros(2 * total, dtype=wp.int32, device=d)
+        values = wp.zeros(2 * total, dtype=wp.int32, device=d)
+        wp.launch(emit_face_cells, (slots, M), inputs=[self.pair_lowers, self.pair_uppers, self.grid_origin,
+                                                      self.grid_dims, 1.0 / cell, most, offsets],
+                  outputs=[keys, values], device=d)
+        wp.utils.radix_sort_pairs(keys, values, total)
+        self.cell_start = wp.zeros(slots * most, dtype=wp.int32, device=d)
+        self.cell_end = wp.zeros(slots * most, dtype=wp.int32, device=d)
+        wp.launch(find_cell_ranges, total, inputs=[keys, total], outputs=[self.cell_start, self.cell_end], device=d)
+        self.cell_faces = values[:total]
+        self._grid_keys = keys  # the cell lists are a view of the sort's values
 
     @property
     def memory_bytes(self) -> dict:
@@ -243,6 +292,13 @@ def step_envs(model: BatchModel, state: BatchState, contacts: Contacts, sub_dt: 
             if search == SweptSearch.TILED:
                 wp.launch_tiled(collide_env_sphere_tiled, dim=n, inputs=[*args, *tail], outputs=records,
                                 block_dim=int(tile_threads), device=m.device)
+            elif search == SweptSearch.GRID:
+                wp.launch_tiled(collide_env_sphere_grid, dim=n,
+                                inputs=[surf.frames, surf.indices, m.pair_lowers, m.pair_uppers, m.grid_origin,
+                                        m.grid_dims, 1.0 / m.grid_cell, m.cells_per_slot, m.cell_start, m.cell_end,
+                                        m.cell_faces, m.spheres.radius, m.sphere_env, surf.fps, int(surf.interpolate),
+                                        m.time_slices, s.env_time, s.env_playback, s.sphere_pos, s.sphere_vel, *tail],
+                                outputs=records, block_dim=int(tile_threads), device=m.device)
             else:
                 query.heavy_count.zero_()
                 wp.launch(collide_env_spheres_bounded, n, inputs=[*args, int(budget), *tail],
@@ -295,7 +351,7 @@ class BatchedWorld:
                        else parse(SweptSearch, search, "swept_search"))
         if self.search == SweptSearch.FACES:
             raise ValueError("swept_search 'faces' is a single world's search; a batched world searches 'serial', "
-                             "'tiled' or 'hybrid'")
+                             "'tiled', 'hybrid' or 'grid'")
         self.tile_threads = _at_least(tile_threads, BATCH_TILE_THREADS, "tile_threads", 1)
         self.budget = _at_least(budget, HYBRID_BUDGET, "budget", 0)
         self.blocks = _at_least(blocks, HYBRID_BLOCKS, "blocks", 1)

@@ -62,6 +62,9 @@ class SweptSearch(StrEnum):
     #: one thread per face tests every sphere (no BVH walk: few spheres on large meshes; single
     #: worlds only)
     FACES = "faces"
+    #: one thread block per sphere walks the cells of a uniform grid of its env's frame pair
+    #: (contiguous cell lists, no tree walk; batched worlds only: docs/envs.md)
+    GRID = "grid"
 
 
 class RebuildEvery(StrEnum):

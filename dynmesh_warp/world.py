@@ -644,8 +644,8 @@ class SweptCollider(ColliderBase):
         search = model.params.swept_search if search is None else search
         self.search = (DEFAULT_SWEPT_SEARCH["cuda" if d.is_cuda else "cpu"] if search is None
                        else parse(SweptSearch, search, "swept_search"))
-        if self.search == SweptSearch.HYBRID:
-            raise ValueError("swept_search 'hybrid' is a batched world's search (envs); a single world's swept "
+        if self.search in (SweptSearch.HYBRID, SweptSearch.GRID):
+            raise ValueError(f"swept_search '{self.search}' is a batched world's search (envs); a single world's swept "
                              "collider searches 'serial', 'tiled' or 'faces'")
         self.tile_threads = int(tile_threads or SWEPT_TILE_THREADS)
         self.resize(model, state, ctx)

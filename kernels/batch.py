@@ -389,6 +389,203 @@ def collide_env_heavy_spheres_tiled(
         i += num_blocks
 
 
+@wp.func
+def grid_cell(x: wp.vec3, origin: wp.vec3, inv_cell: float, dims: wp.vec3i) -> wp.vec3i:
+    """The cell (clamped to the grid) holding point x [m] of a grid from ``origin`` [m] with
+    cells of 1 / ``inv_cell`` [m] and ``dims`` cells a side. The grid's builder and its queries
+    call this one function, so a face is found in every cell a query computes for it."""
+    c = wp.vec3i(0, 0, 0)
+    for a in range(3):
+        c[a] = wp.clamp(int(wp.floor((x[a] - origin[a]) * inv_cell)), 0, dims[a] - 1)
+    return c
+
+
+@wp.kernel
+def count_face_cells(
+    # Model:
+    pair_lowers: wp.array2d[wp.vec3],
+    pair_uppers: wp.array2d[wp.vec3],
+    grid_origin: wp.array[wp.vec3],
+    grid_dims: wp.array[wp.vec3i],
+    inv_cell: float,
+    # Out:
+    counts: wp.array2d[wp.int32],
+):
+    """How many grid cells each face's pair box overlaps in each slot (launch (slots, M))."""
+    slot, f = wp.tid()
+    a = grid_cell(pair_lowers[slot, f], grid_origin[slot], inv_cell, grid_dims[slot])
+    b = grid_cell(pair_uppers[slot, f], grid_origin[slot], inv_cell, grid_dims[slot])
+    counts[slot, f] = (b[0] - a[0] + 1) * (b[1] - a[1] + 1) * (b[2] - a[2] + 1)
+
+
+@wp.kernel
+def emit_face_cells(
+    # Model:
+    pair_lowers: wp.array2d[wp.vec3],
+    pair_uppers: wp.array2d[wp.vec3],
+    grid_origin: wp.array[wp.vec3],
+    grid_dims: wp.array[wp.vec3i],
+    inv_cell: float,
+    cells_per_slot: int,
+    # In:
+    offsets: wp.array[wp.int32],
+    # Out:
+    keys: wp.array[wp.int32],
+    values: wp.array[wp.int32],
+):
+    """One (slot * cells_per_slot + cell, face) pair per cell a face's pair box overlaps, at the
+    face's offset (launch (slots, M)); sorted by key they are the grid's cell lists."""
+    slot, f = wp.tid()
+    d = grid_dims[slot]
+    a = grid_cell(pair_lowers[slot, f], grid_origin[slot], inv_cell, d)
+    b = grid_cell(pair_uppers[slot, f], grid_origin[slot], inv_cell, d)
+    i = offsets[slot * pair_lowers.shape[1] + f]
+    for z in range(a[2], b[2] + 1):
+        for y in range(a[1], b[1] + 1):
+            for x in range(a[0], b[0] + 1):
+                keys[i] = slot * cells_per_slot + (z * d[1] + y) * d[0] + x
+                values[i] = f
+                i += 1
+
+
+@wp.kernel
+def find_cell_ranges(
+    # In:
+    keys: wp.array[wp.int32],
+    count: int,
+    # Out:
+    cell_start: wp.array[wp.int32],
+    cell_end: wp.array[wp.int32],
+):
+    """[cell_start, cell_end) of each (slot, cell) key in the sorted keys (launch (count,);
+    empty cells keep 0, 0)."""
+    i = wp.tid()
+    key = keys[i]
+    if i == 0:
+        cell_start[key] = 0
+    elif keys[i - 1] != key:
+        cell_start[key] = i
+        cell_end[keys[i - 1]] = i
+    if i == count - 1:
+        cell_end[key] = count
+
+
+@wp.func
+def find_closest_grid(
+    s: int, lane: int,
+    frames: wp.array2d[wp.vec3], indices: wp.array[wp.int32], pair_lowers: wp.array2d[wp.vec3],
+    pair_uppers: wp.array2d[wp.vec3], grid_origin: wp.array[wp.vec3], grid_dims: wp.array[wp.vec3i],
+    inv_cell: float, cells_per_slot: int, cell_start: wp.array[wp.int32], cell_end: wp.array[wp.int32],
+    cell_faces: wp.array[wp.int32], sphere_radius: wp.array[float], sphere_env: wp.array[wp.int32],
+    fps: wp.float64, interpolate: int, slices: int, env_time_in: wp.array[wp.float64],
+    env_playback_in: wp.array[wp.int32], sphere_pos_in: wp.array[wp.vec3], sphere_vel_in: wp.array[wp.vec3],
+    dt: float, extra_speed: float, margin: float, epsilon: float, query_dist: wp.array[float],
+    query_face: wp.array[wp.int32], query_w: wp.array[wp.vec3], query_n: wp.array[wp.vec3],
+):
+    """Sphere s's contact query by the calling thread block over a uniform grid of its slot's
+    face boxes (no tree walk: a cell's faces are one contiguous list): the block's threads take
+    the cells of the query box in turn and walk their lists with the serial rule (box prune
+    against the thread's closest so far); a face listed in several cells is evaluated only in
+    the cell holding the low corner of its box's overlap with the query box, so each candidate is
+    met once. Then the block reduction and s's record, as ``find_closest_tiled``."""
+    e = sphere_env[s]
+    T = frames.shape[0]
+    k0, k1, alpha = blend_pair(env_time_in[e], fps, T, env_playback_in[e], interpolate)
+    p = sphere_pos_in[s]
+    reach = contact_reach(sphere_radius[s], sphere_vel_in[s], extra_speed, dt, margin)
+    slot = pair_slot(k0, k1, alpha, T, slices)
+    ext = wp.vec3(reach + epsilon)
+    qlo = p - ext
+    qhi = p + ext
+    o = grid_origin[slot]
+    d = grid_dims[slot]
+    a = grid_cell(qlo, o, inv_cell, d)
+    b = grid_cell(qhi, o, inv_cell, d)
+    nx = b[0] - a[0] + 1
+    ny = b[1] - a[1] + 1
+    ncell = nx * ny * (b[2] - a[2] + 1)
+    min_dist = reach
+    min_face = int(-1)
+    min_w = wp.vec3(0.0)
+    acc_n = wp.vec3(0.0)
+    for c in range(lane, ncell, wp.block_dim()):
+        cx = a[0] + c % nx
+        cy = a[1] + (c / nx) % ny
+        cz = a[2] + c / (nx * ny)
+        cell = slot * cells_per_slot + (cz * d[1] + cy) * d[0] + cx
+        for j in range(cell_start[cell], cell_end[cell]):
+            f = cell_faces[j]
+            flo = pair_lowers[slot, f]
+            fhi = pair_uppers[slot, f]
+            lo = wp.max(flo, qlo)
+            hi = wp.min(fhi, qhi)
+            if lo[0] <= hi[0] and lo[1] <= hi[1] and lo[2] <= hi[2]:
+                owner = grid_cell(lo, o, inv_cell, d)
+                if owner[0] == cx and owner[1] == cy and owner[2] == cz:
+                    if box_distance(p, flo, fhi) < min_dist + epsilon:
+                        ta, tb, tg = interpolated_triangle(frames, indices, f, k0, k1, alpha)
+                        dist, w, wn = face_candidate(p, ta, tb, tg, epsilon)
+                        min_dist, min_face, min_w, acc_n = keep_closest(dist, f, w, wn, epsilon, min_dist, min_face,
+                                                                        min_w, acc_n)
+    m, face, n = reduce_closest_over_block(min_dist, min_face, acc_n, epsilon)
+    if face == NO_PAIR:
+        if lane == 0:  # nothing within reach
+            query_dist[s] = reach
+            query_face[s] = -1
+            query_w[s] = wp.vec3(0.0)
+            query_n[s] = wp.vec3(0.0)
+    elif min_face == face and min_dist == m:
+        query_dist[s] = m
+        query_face[s] = face
+        query_w[s] = min_w
+        query_n[s] = n
+
+
+@wp.kernel
+def collide_env_sphere_grid(
+    # Model:
+    frames: wp.array2d[wp.vec3],
+    indices: wp.array[wp.int32],
+    pair_lowers: wp.array2d[wp.vec3],
+    pair_uppers: wp.array2d[wp.vec3],
+    grid_origin: wp.array[wp.vec3],
+    grid_dims: wp.array[wp.vec3i],
+    inv_cell: float,
+    cells_per_slot: int,
+    cell_start: wp.array[wp.int32],
+    cell_end: wp.array[wp.int32],
+    cell_faces: wp.array[wp.int32],
+    sphere_radius: wp.array[float],
+    sphere_env: wp.array[wp.int32],
+    fps: wp.float64,
+    interpolate: int,
+    slices: int,
+    # State in:
+    env_time_in: wp.array[wp.float64],
+    env_playback_in: wp.array[wp.int32],
+    sphere_pos_in: wp.array[wp.vec3],
+    sphere_vel_in: wp.array[wp.vec3],
+    # In:
+    dt: float,
+    extra_speed: float,
+    margin: float,
+    epsilon: float,
+    # Out:
+    query_dist: wp.array[float],
+    query_face: wp.array[wp.int32],
+    query_w: wp.array[wp.vec3],
+    query_n: wp.array[wp.vec3],
+):
+    """The contact query of every sphere by one thread block each over its slot's face grid
+    (``wp.launch_tiled``, dim (E * S,)): ``find_closest_grid``; the records are resolved by
+    ``resolve_and_integrate_env_spheres``."""
+    s, lane = wp.tid()
+    find_closest_grid(s, lane, frames, indices, pair_lowers, pair_uppers, grid_origin, grid_dims, inv_cell,
+                      cells_per_slot, cell_start, cell_end, cell_faces, sphere_radius, sphere_env, fps, interpolate,
+                      slices, env_time_in, env_playback_in, sphere_pos_in, sphere_vel_in, dt, extra_speed, margin,
+                      epsilon, query_dist, query_face, query_w, query_n)
+
+
 @wp.kernel
 def resolve_and_integrate_env_spheres(
     # Model:

@@ -27,7 +27,8 @@ def _params():
 @pytest.mark.parametrize("playback,search,budget", [("loop", "serial", None), ("pingpong", "serial", None),
                                                     ("clamp", "serial", None), ("loop", "tiled", None),
                                                     ("pingpong", "tiled", None), ("loop", "hybrid", 2),
-                                                    ("clamp", "hybrid", 0)])
+                                                    ("clamp", "hybrid", 0), ("loop", "grid", None),
+                                                    ("pingpong", "grid", None)])
 def test_batched_envs_equal_single_worlds(device, playback, search, budget):
     """... with each search: serial, tiled (a block per sphere) and hybrid (a thread per sphere,
     handing a sphere with more than ``budget`` candidate faces to a block; budget 0 hands over
@@ -67,6 +68,68 @@ def test_batched_envs_equal_single_worlds(device, playback, search, budget):
     assert not np.allclose(P[0], P[1])  # different clocks, different outcomes
     if search == "hybrid":
         assert handed > 0  # spheres did go to the blocks
+
+
+@pytest.mark.parametrize("cell", [None, 0.02])
+def test_grid_search_finds_the_brute_force_closest_face(device, cell):
+    """The grid search (a uniform grid of each slot's face boxes, cells walked by a thread
+    block): its closest distance and face equal brute force over every face of the surface at
+    each env's time (NumPy), for points near and away from the moving surface; with fine cells
+    (0.02 m: faces listed in several cells, each must be met once) and the default ones. Every
+    face is in the cell lists of the cells its box overlaps."""
+    import warp as wp
+    from reference import closest_on_triangles, surface_at
+
+    from dynmesh_warp.batch import ContactQuery
+    from dynmesh_warp.kernels.batch import collide_env_sphere_grid
+
+    seq = wave_bowl(n=14, frames=6)
+    surf = SurfaceModel(seq, device)
+    K = 200
+    rng = np.random.default_rng(7)
+    times = rng.uniform(0, seq.num_frames / seq.fps, K)
+    pts = np.empty((K, 3))
+    for i in range(K):  # near a random face of the surface at that env's time, up to ~0.2 m off it
+        Vt = surface_at(seq, float(times[i]))
+        pts[i] = rng.dirichlet([1, 1, 1]) @ Vt[seq.F[rng.integers(len(seq.F))]] + rng.normal(0, 0.08, 3)
+    r = 0.06
+    bm = BatchModel(surf, K, np.full(1, r), 1.0, _params())
+    if cell is not None:
+        bm._build_grids(cell)
+    # every face is listed in each cell of its box
+    starts, ends, faces = bm.cell_start.numpy(), bm.cell_end.numpy(), bm.cell_faces.numpy()
+    lo = bm.pair_lowers.numpy()
+    org, dims = bm.grid_origin.numpy(), bm.grid_dims.numpy()
+    for slot in (0, lo.shape[0] - 1):
+        for f in rng.integers(0, lo.shape[1], 20):
+            a = np.clip(np.floor((lo[slot, f] - org[slot]) / bm.grid_cell).astype(int), 0, dims[slot] - 1)
+            cz, cy, cx = a[2], a[1], a[0]
+            c = slot * bm.cells_per_slot + (cz * dims[slot][1] + cy) * dims[slot][0] + cx
+            assert f in faces[starts[c]:ends[c]]
+    st = BatchState(bm, pts.reshape(K, 1, 3), times=times)
+    q = ContactQuery(K, device)
+    dt, extra, margin = 1.0 / 240, 0.0, bm.params.margin
+    wp.launch_tiled(collide_env_sphere_grid, dim=K,
+                    inputs=[surf.frames, surf.indices, bm.pair_lowers, bm.pair_uppers, bm.grid_origin, bm.grid_dims,
+                            1.0 / bm.grid_cell, bm.cells_per_slot, bm.cell_start, bm.cell_end, bm.cell_faces,
+                            bm.spheres.radius, bm.sphere_env, surf.fps, int(surf.interpolate), bm.time_slices,
+                            st.env_time, st.env_playback, st.sphere_pos, st.sphere_vel, dt, extra, margin, bm.epsilon],
+                    outputs=[q.dist, q.face, q.w, q.n], block_dim=8, device=device)
+    dist, face = q.dist.numpy(), q.face.numpy()
+    reach = r + margin
+    hits = 0
+    for i in range(K):
+        Vt = surface_at(seq, float(times[i])).astype(np.float64)
+        A, B, C = (Vt[seq.F[:, j]] for j in range(3))
+        d_all = np.linalg.norm(closest_on_triangles(pts[i], A, B, C) - pts[i], axis=1)
+        best = d_all.min()
+        if best < reach - 1e-4:
+            hits += 1
+            assert dist[i] == pytest.approx(best, abs=2e-5), i
+            assert d_all[face[i]] <= best + 2e-5
+        elif best > reach + 1e-4:
+            assert face[i] == -1
+    assert 30 < hits < K
 
 
 def test_reset_touches_only_the_named_envs(device):
