@@ -39,7 +39,7 @@ def main(argv=None):
     ap.add_argument("--warmup", type=int, default=480,
                     help="steps before timing (2 s: the spheres have landed and ride the surface)")
     ap.add_argument("--time-slices", type=int, default=None, help="slices per frame pair (default: batch.TIME_SLICES)")
-    ap.add_argument("--search", default=None, help="the contact search: serial, tiled, hybrid (default: the batch's)")
+    ap.add_argument("--search", default=None, help="the contact search: serial, tiled, hybrid, grid (default: the batch's)")
     ap.add_argument("--tile-threads", type=int, default=None, help="threads per block of the tiled/hybrid search")
     ap.add_argument("--budget", type=int, default=None, help="the hybrid's candidate budget per thread")
     ap.add_argument("--blocks", type=int, default=None, help="the hybrid's thread blocks")
