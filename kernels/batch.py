@@ -483,11 +483,12 @@ def find_closest_grid(
     query_face: wp.array[wp.int32], query_w: wp.array[wp.vec3], query_n: wp.array[wp.vec3],
 ):
     """Sphere s's contact query by the calling thread block over a uniform grid of its slot's
-    face boxes (no tree walk: a cell's faces are one contiguous list): the block's threads take
-    the cells of the query box in turn and walk their lists with the serial rule (box prune
-    against the thread's closest so far); a face listed in several cells is evaluated only in
-    the cell holding the low corner of its box's overlap with the query box, so each candidate is
-    met once. Then the block reduction and s's record, as ``find_closest_tiled``."""
+    face boxes (no tree walk: a cell's faces are one contiguous list): for each cell of the
+    query box the block's threads split its list and apply the serial rule (box prune against
+    the thread's closest so far); a face listed in several cells is evaluated only in the cell
+    holding the low corner of its box's overlap with the query box, so each candidate is met
+    once; a query box outside the slot's grid reads no cell. Then the block reduction and s's
+    record, as ``find_closest_tiled``."""
     e = sphere_env[s]
     T = frames.shape[0]
     k0, k1, alpha = blend_pair(env_time_in[e], fps, T, env_playback_in[e], interpolate)
@@ -504,16 +505,19 @@ def find_closest_grid(
     nx = b[0] - a[0] + 1
     ny = b[1] - a[1] + 1
     ncell = nx * ny * (b[2] - a[2] + 1)
+    top = o + wp.vec3(float(d[0]), float(d[1]), float(d[2])) / inv_cell
+    if qhi[0] < o[0] or qhi[1] < o[1] or qhi[2] < o[2] or qlo[0] > top[0] or qlo[1] > top[1] or qlo[2] > top[2]:
+        ncell = 0  # the query box misses the slot's faces altogether
     min_dist = reach
     min_face = int(-1)
     min_w = wp.vec3(0.0)
     acc_n = wp.vec3(0.0)
-    for c in range(lane, ncell, wp.block_dim()):
+    for c in range(ncell):  # every thread meets every cell; the threads split its list
         cx = a[0] + c % nx
         cy = a[1] + (c / nx) % ny
         cz = a[2] + c / (nx * ny)
         cell = slot * cells_per_slot + (cz * d[1] + cy) * d[0] + cx
-        for j in range(cell_start[cell], cell_end[cell]):
+        for j in range(cell_start[cell] + lane, cell_end[cell], wp.block_dim()):
             f = cell_faces[j]
             flo = pair_lowers[slot, f]
             fhi = pair_uppers[slot, f]
