@@ -177,8 +177,10 @@ class BatchModel:
         bvh_nodes = T * (2 * leaves - 1) * 32 + T * M * 4  # nodes + primitive indices
         per_sphere = 4 + 4 + 4 + 2 * 12 + (4 + 12 + 12 + 4 + 12)  # radius, inv_mass, env, pos/vel, contacts
         per_env = self.spheres_per_env * per_sphere + 8 + 4 + 4
-        return {"pair_boxes": boxes, "pair_bvh_nodes_estimate": bvh_nodes, "frames": frames,
-                "per_env": per_env, "total_estimate": boxes + bvh_nodes + frames + per_env * self.num_envs}
+        grids = self.cell_start.size * 8 + self.cell_faces.size * 4 + T * (12 + 12)  # the grid search's
+        return {"pair_boxes": boxes, "pair_bvh_nodes_estimate": bvh_nodes, "pair_grids": grids, "frames": frames,
+                "per_env": per_env,
+                "total_estimate": boxes + bvh_nodes + grids + frames + per_env * self.num_envs}
 
 
 class BatchState:

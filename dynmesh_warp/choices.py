@@ -160,12 +160,12 @@ SWEPT_MEASURED_SEARCHES = {"cpu": (), "cuda": (SweptSearch.TILED, SweptSearch.SE
 SWEPT_FACES_MAX_SPHERES = 64
 #: the batched world's contact search per device kind by its sphere count (batch.BatchedWorld):
 #: (up to this many spheres or None for any, search) rows, the first that fits. Measured on an
-#: H100 (docs/envs.md): the tiled search is 1.9-4x serial while the spheres touch the horse and
-#: 0.54-0.89x when they are off it; from 8,192 spheres on, the hybrid is 1.8x / 0.89x serial
-#: (20,480 spheres); from 32,768 on serial is fastest in both
+#: H100 (docs/envs.md): the grid search is 1.5-2x the best other search while the spheres land
+#: on the horse (1 to 16,384 envs), and off the surface within 0.84-1.24x of them up to 1,024
+#: envs; from 81,920 spheres on its blocks (one per sphere, most reading empty cells) lose to
+#: serial off the surface (7,726 vs 24,458 steps/s), so serial beyond 32,768
 DEFAULT_BATCH_SWEPT_SEARCH = {"cpu": ((None, SweptSearch.SERIAL),),
-                              "cuda": ((8192, SweptSearch.TILED), (32768, SweptSearch.HYBRID),
-                                       (None, SweptSearch.SERIAL))}
+                              "cuda": ((32768, SweptSearch.GRID), (None, SweptSearch.SERIAL))}
 #: threads per sphere of the tiled search
 SWEPT_TILE_THREADS = 64
 #: threads per sphere of the face-parallel search's second pass (the faces around the winning
