@@ -43,8 +43,14 @@ def main(argv=None):
     ap.add_argument("--tile-threads", type=int, default=None, help="threads per block of the tiled/hybrid search")
     ap.add_argument("--budget", type=int, default=None, help="the hybrid's candidate budget per thread")
     ap.add_argument("--blocks", type=int, default=None, help="the hybrid's thread blocks")
+    ap.add_argument("--grid-cell-radii", type=float, default=None,
+                    help="the grid search's cell edge in sphere radii (default: batch.GRID_CELL_RADII)")
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
+    if a.grid_cell_radii is not None:  # for this process only
+        import dynmesh_warp.batch as batch
+
+        batch.GRID_CELL_RADII = float(a.grid_cell_radii)
     wp.init()
     device = wp.get_device(a.device)
     seq, shared = load_paper_sequence()
@@ -74,7 +80,8 @@ def main(argv=None):
                "in_contact_final": w.contact_count(), "time_slices": bm.time_slices,
                "swept_search": str(w.search), "tile_threads": w.tile_threads if w.query is not None else None,
                "hybrid_budget": w.budget if str(w.search) == "hybrid" else None,
-               "hybrid_blocks": w.blocks if str(w.search) == "hybrid" else None, "memory_bytes": bm.memory_bytes}
+               "hybrid_blocks": w.blocks if str(w.search) == "hybrid" else None, "grid_cell_m": bm.grid_cell,
+               "memory_bytes": bm.memory_bytes}
         res["rows"].append(row)
         print(f"E={E:>6}: {t['steps_per_s']:>10,.0f} steps/s  {row['env_steps_per_s']:>14,.0f} env-steps/s  "
               f"mem/env {bm.memory_bytes['per_env']} B", flush=True)
