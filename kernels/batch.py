@@ -200,6 +200,29 @@ def collide_and_integrate_env_spheres(
 
 
 @wp.func
+def write_block_query(
+    s: int, lane: int, reach: float, min_dist: float, min_face: int, min_w: wp.vec3, acc_n: wp.vec3, epsilon: float,
+    query_dist: wp.array[float], query_face: wp.array[wp.int32], query_w: wp.array[wp.vec3],
+    query_n: wp.array[wp.vec3],
+):
+    """The block searches' end (every thread of the block calls it with its own closest so
+    far): the block reduction (``reduce_closest_over_block``), then sphere s's record written by
+    the thread holding the winning face (its weights), or the no-contact record by the first."""
+    m, face, n = reduce_closest_over_block(min_dist, min_face, acc_n, epsilon)
+    if face == NO_PAIR:
+        if lane == 0:  # nothing within reach
+            query_dist[s] = reach
+            query_face[s] = -1
+            query_w[s] = wp.vec3(0.0)
+            query_n[s] = wp.vec3(0.0)
+    elif min_face == face and min_dist == m:
+        query_dist[s] = m
+        query_face[s] = face
+        query_w[s] = min_w
+        query_n[s] = n
+
+
+@wp.func
 def find_closest_tiled(
     s: int, lane: int,
     frames: wp.array2d[wp.vec3], indices: wp.array[wp.int32], pair_bvh: wp.array[wp.uint64],
@@ -237,18 +260,8 @@ def find_closest_tiled(
                 dist, w, wn = face_candidate(p, a, b, g, epsilon)
                 min_dist, min_face, min_w, acc_n = keep_closest(dist, f, w, wn, epsilon, min_dist, min_face, min_w,
                                                                 acc_n)
-    m, face, n = reduce_closest_over_block(min_dist, min_face, acc_n, epsilon)
-    if face == NO_PAIR:
-        if lane == 0:  # nothing within reach
-            query_dist[s] = reach
-            query_face[s] = -1
-            query_w[s] = wp.vec3(0.0)
-            query_n[s] = wp.vec3(0.0)
-    elif min_face == face and min_dist == m:
-        query_dist[s] = m
-        query_face[s] = face
-        query_w[s] = min_w
-        query_n[s] = n
+    write_block_query(s, lane, reach, min_dist, min_face, min_w, acc_n, epsilon, query_dist, query_face, query_w,
+                      query_n)
 
 
 @wp.kernel
@@ -531,18 +544,8 @@ def find_closest_grid(
                         dist, w, wn = face_candidate(p, ta, tb, tg, epsilon)
                         min_dist, min_face, min_w, acc_n = keep_closest(dist, f, w, wn, epsilon, min_dist, min_face,
                                                                         min_w, acc_n)
-    m, face, n = reduce_closest_over_block(min_dist, min_face, acc_n, epsilon)
-    if face == NO_PAIR:
-        if lane == 0:  # nothing within reach
-            query_dist[s] = reach
-            query_face[s] = -1
-            query_w[s] = wp.vec3(0.0)
-            query_n[s] = wp.vec3(0.0)
-    elif min_face == face and min_dist == m:
-        query_dist[s] = m
-        query_face[s] = face
-        query_w[s] = min_w
-        query_n[s] = n
+    write_block_query(s, lane, reach, min_dist, min_face, min_w, acc_n, epsilon, query_dist, query_face, query_w,
+                      query_n)
 
 
 @wp.kernel
