@@ -1,5 +1,6 @@
-"""Where a batched step's time goes (issue 15): each launch of the batched step timed alone
-(device synchronised before and after), in the landing window of bench_envs (horse_gallop, 5
+"""Where a batched step's time goes (issue 15): each kernel's device time (``wp.timing_begin``,
+CUDA events) and each launch timed alone from the host (synchronised before and after), in the
+landing window of bench_envs (horse_gallop, 5
 spheres per env, random phases, ``--warmup`` steps after the drop), per contact search; and, for
 the hybrid, how many spheres its threads hand over to the blocks per sub-step.
 
@@ -32,7 +33,7 @@ def main(argv=None):
     ap.add_argument("--envs", type=int, default=4096)
     ap.add_argument("--warmup", type=int, default=40)
     ap.add_argument("--steps", type=int, default=80)
-    ap.add_argument("--searches", default="hybrid,tiled,serial")
+    ap.add_argument("--searches", default="grid,hybrid,tiled,serial")
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
     wp.init()
@@ -65,6 +66,13 @@ def main(argv=None):
             return call
 
         handed = []
+        device_us: dict = {}
+        if device.is_cuda:  # device time per kernel (CUDA events around each launch), no host in it
+            wp.timing_begin(cuda_filter=wp.TIMING_KERNEL | wp.TIMING_KERNEL_BUILTIN)
+            for _ in range(a.steps):
+                w.step()
+            for t in wp.timing_end():
+                device_us[t.name] = device_us.get(t.name, 0.0) + t.elapsed * 1e3 / a.steps
         B.wp.launch, B.wp.launch_tiled = wrap(launch), wrap(tiled)
         try:
             for _ in range(a.steps):
@@ -73,13 +81,14 @@ def main(argv=None):
                     handed.append(int(w.query.heavy_count.numpy()[0]))
         finally:
             B.wp.launch, B.wp.launch_tiled = launch, tiled
-        row = {"us_per_step": {k: v / a.steps for k, v in stages.items()},
+        row = {"us_per_step": {k: v / a.steps for k, v in stages.items()}, "device_us_per_step": device_us,
                "in_contact": w.contact_count(), "spheres": a.envs * S}
         if handed:
             row["handed_to_blocks_mean"] = float(np.mean(handed))
         res["searches"][search] = row
         print(search, {k: round(v, 1) for k, v in row["us_per_step"].items()}, "in contact", row["in_contact"],
               "handed", row.get("handed_to_blocks_mean"), flush=True)
+        print("  device us/step:", {k: round(v, 1) for k, v in device_us.items()}, flush=True)
         del w, bm
     if a.out:
         write_json(a.out, res)
