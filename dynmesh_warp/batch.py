@@ -35,6 +35,7 @@ from .kernels.batch import (
     count_face_cells,
     emit_face_cells,
     find_cell_ranges,
+    gather_cell_boxes,
     resolve_and_integrate_env_spheres,
     reset_env_clocks,
     reset_env_spheres,
@@ -163,6 +164,10 @@ class BatchModel:
         wp.launch(find_cell_ranges, total, inputs=[keys, total], outputs=[self.cell_start, self.cell_end], device=d)
         self.cell_faces = values[:total]
         self._grid_keys = keys  # the cell lists are a view of the sort's values
+        self.cell_lowers = wp.zeros(total, dtype=wp.vec3, device=d)  # each entry's face box, inline
+        self.cell_uppers = wp.zeros(total, dtype=wp.vec3, device=d)
+        wp.launch(gather_cell_boxes, total, inputs=[self.pair_lowers, self.pair_uppers, most, keys, self.cell_faces],
+                  outputs=[self.cell_lowers, self.cell_uppers], device=d)
 
     @property
     def memory_bytes(self) -> dict:
@@ -177,7 +182,7 @@ class BatchModel:
         bvh_nodes = T * (2 * leaves - 1) * 32 + T * M * 4  # nodes + primitive indices
         per_sphere = 4 + 4 + 4 + 2 * 12 + (4 + 12 + 12 + 4 + 12)  # radius, inv_mass, env, pos/vel, contacts
         per_env = self.spheres_per_env * per_sphere + 8 + 4 + 4
-        grids = self.cell_start.size * 8 + self.cell_faces.size * 4 + T * (12 + 12)  # the grid search's
+        grids = self.cell_start.size * 8 + self.cell_faces.size * 28 + T * (12 + 12)  # the grid search's
         return {"pair_boxes": boxes, "pair_bvh_nodes_estimate": bvh_nodes, "pair_grids": grids, "frames": frames,
                 "per_env": per_env,
                 "total_estimate": boxes + bvh_nodes + grids + frames + per_env * self.num_envs}
@@ -298,8 +303,9 @@ def step_envs(model: BatchModel, state: BatchState, contacts: Contacts, sub_dt: 
                 wp.launch_tiled(collide_env_sphere_grid, dim=n,
                                 inputs=[surf.frames, surf.indices, m.pair_lowers, m.pair_uppers, m.grid_origin,
                                         m.grid_dims, 1.0 / m.grid_cell, m.cells_per_slot, m.cell_start, m.cell_end,
-                                        m.cell_faces, m.spheres.radius, m.sphere_env, surf.fps, int(surf.interpolate),
-                                        m.time_slices, s.env_time, s.env_playback, s.sphere_pos, s.sphere_vel, *tail],
+                                        m.cell_faces, m.cell_lowers, m.cell_uppers, m.spheres.radius, m.sphere_env,
+                                        surf.fps, int(surf.interpolate), m.time_slices, s.env_time, s.env_playback,
+                                        s.sphere_pos, s.sphere_vel, *tail],
                                 outputs=records, block_dim=int(tile_threads), device=m.device)
             else:
                 query.heavy_count.zero_()

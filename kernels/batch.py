@@ -483,13 +483,36 @@ def find_cell_ranges(
         cell_end[key] = count
 
 
+@wp.kernel
+def gather_cell_boxes(
+    # Model:
+    pair_lowers: wp.array2d[wp.vec3],
+    pair_uppers: wp.array2d[wp.vec3],
+    cells_per_slot: int,
+    # In:
+    keys: wp.array[wp.int32],
+    cell_faces: wp.array[wp.int32],
+    # Out:
+    cell_lowers: wp.array[wp.vec3],
+    cell_uppers: wp.array[wp.vec3],
+):
+    """Each cell-list entry's face box [m] next to it (launch (refs,)): a query reads an entry's
+    box in the same contiguous run as its face index instead of through it."""
+    i = wp.tid()
+    slot = keys[i] / cells_per_slot
+    f = cell_faces[i]
+    cell_lowers[i] = pair_lowers[slot, f]
+    cell_uppers[i] = pair_uppers[slot, f]
+
+
 @wp.func
 def find_closest_grid(
     s: int, lane: int,
     frames: wp.array2d[wp.vec3], indices: wp.array[wp.int32], pair_lowers: wp.array2d[wp.vec3],
     pair_uppers: wp.array2d[wp.vec3], grid_origin: wp.array[wp.vec3], grid_dims: wp.array[wp.vec3i],
     inv_cell: float, cells_per_slot: int, cell_start: wp.array[wp.int32], cell_end: wp.array[wp.int32],
-    cell_faces: wp.array[wp.int32], sphere_radius: wp.array[float], sphere_env: wp.array[wp.int32],
+    cell_faces: wp.array[wp.int32], cell_lowers: wp.array[wp.vec3], cell_uppers: wp.array[wp.vec3],
+    sphere_radius: wp.array[float], sphere_env: wp.array[wp.int32],
     fps: wp.float64, interpolate: int, slices: int, env_time_in: wp.array[wp.float64],
     env_playback_in: wp.array[wp.int32], sphere_pos_in: wp.array[wp.vec3], sphere_vel_in: wp.array[wp.vec3],
     dt: float, extra_speed: float, margin: float, epsilon: float, query_dist: wp.array[float],
@@ -531,15 +554,15 @@ def find_closest_grid(
         cz = a[2] + c / (nx * ny)
         cell = slot * cells_per_slot + (cz * d[1] + cy) * d[0] + cx
         for j in range(cell_start[cell] + lane, cell_end[cell], wp.block_dim()):
-            f = cell_faces[j]
-            flo = pair_lowers[slot, f]
-            fhi = pair_uppers[slot, f]
+            flo = cell_lowers[j]
+            fhi = cell_uppers[j]
             lo = wp.max(flo, qlo)
             hi = wp.min(fhi, qhi)
             if lo[0] <= hi[0] and lo[1] <= hi[1] and lo[2] <= hi[2]:
                 owner = grid_cell(lo, o, inv_cell, d)
                 if owner[0] == cx and owner[1] == cy and owner[2] == cz:
                     if box_distance(p, flo, fhi) < min_dist + epsilon:
+                        f = cell_faces[j]
                         ta, tb, tg = interpolated_triangle(frames, indices, f, k0, k1, alpha)
                         dist, w, wn = face_candidate(p, ta, tb, tg, epsilon)
                         min_dist, min_face, min_w, acc_n = keep_closest(dist, f, w, wn, epsilon, min_dist, min_face,
@@ -562,6 +585,8 @@ def collide_env_sphere_grid(
     cell_start: wp.array[wp.int32],
     cell_end: wp.array[wp.int32],
     cell_faces: wp.array[wp.int32],
+    cell_lowers: wp.array[wp.vec3],
+    cell_uppers: wp.array[wp.vec3],
     sphere_radius: wp.array[float],
     sphere_env: wp.array[wp.int32],
     fps: wp.float64,
@@ -588,7 +613,8 @@ def collide_env_sphere_grid(
     ``resolve_and_integrate_env_spheres``."""
     s, lane = wp.tid()
     find_closest_grid(s, lane, frames, indices, pair_lowers, pair_uppers, grid_origin, grid_dims, inv_cell,
-                      cells_per_slot, cell_start, cell_end, cell_faces, sphere_radius, sphere_env, fps, interpolate,
+                      cells_per_slot, cell_start, cell_end, cell_faces, cell_lowers, cell_uppers, sphere_radius,
+                      sphere_env, fps, interpolate,
                       slices, env_time_in, env_playback_in, sphere_pos_in, sphere_vel_in, dt, extra_speed, margin,
                       epsilon, query_dist, query_face, query_w, query_n)
 

@@ -112,8 +112,9 @@ def test_grid_search_finds_the_brute_force_closest_face(device, cell):
     wp.launch_tiled(collide_env_sphere_grid, dim=K,
                     inputs=[surf.frames, surf.indices, bm.pair_lowers, bm.pair_uppers, bm.grid_origin, bm.grid_dims,
                             1.0 / bm.grid_cell, bm.cells_per_slot, bm.cell_start, bm.cell_end, bm.cell_faces,
-                            bm.spheres.radius, bm.sphere_env, surf.fps, int(surf.interpolate), bm.time_slices,
-                            st.env_time, st.env_playback, st.sphere_pos, st.sphere_vel, dt, extra, margin, bm.epsilon],
+                            bm.cell_lowers, bm.cell_uppers, bm.spheres.radius, bm.sphere_env, surf.fps,
+                            int(surf.interpolate), bm.time_slices, st.env_time, st.env_playback, st.sphere_pos,
+                            st.sphere_vel, dt, extra, margin, bm.epsilon],
                     outputs=[q.dist, q.face, q.w, q.n], block_dim=8, device=device)
     # the same records as the tiled search over the pair BVH, tie normals included (a face met
     # twice would count twice there)
