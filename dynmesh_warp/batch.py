@@ -165,7 +165,7 @@ class BatchModel:
         self.cell_end = wp.zeros(slots * most, dtype=wp.int32, device=d)
         wp.launch(find_cell_ranges, total, inputs=[keys, total], outputs=[self.cell_start, self.cell_end], device=d)
         self.cell_faces = values[:total]
-        self._grid_keys = keys  # the cell lists are a view of the sort's values
+        self._grid_values = values  # the cell lists are a view of the sort's values: kept alive with them
         self.cell_lowers = wp.zeros(total, dtype=wp.vec3, device=d)  # each entry's face box, inline
         self.cell_uppers = wp.zeros(total, dtype=wp.vec3, device=d)
         wp.launch(gather_cell_boxes, total, inputs=[self.pair_lowers, self.pair_uppers, most, keys, self.cell_faces],
