@@ -303,11 +303,10 @@ def step_envs(model: BatchModel, state: BatchState, contacts: Contacts, sub_dt: 
                                 block_dim=int(tile_threads), device=m.device)
             elif search == SweptSearch.GRID:
                 wp.launch_tiled(collide_env_sphere_grid, dim=n,
-                                inputs=[surf.frames, surf.indices, m.pair_lowers, m.pair_uppers, m.grid_origin,
-                                        m.grid_dims, 1.0 / m.grid_cell, m.cells_per_slot, m.cell_start, m.cell_end,
-                                        m.cell_faces, m.cell_lowers, m.cell_uppers, m.spheres.radius, m.sphere_env,
-                                        surf.fps, int(surf.interpolate), m.time_slices, s.env_time, s.env_playback,
-                                        s.sphere_pos, s.sphere_vel, *tail],
+                                inputs=[surf.frames, surf.indices, m.grid_origin, m.grid_dims, 1.0 / m.grid_cell,
+                                        m.cells_per_slot, m.cell_start, m.cell_end, m.cell_faces, m.cell_lowers,
+                                        m.cell_uppers, m.spheres.radius, m.sphere_env, surf.fps, int(surf.interpolate),
+                                        m.time_slices, s.env_time, s.env_playback, s.sphere_pos, s.sphere_vel, *tail],
                                 outputs=records, block_dim=int(tile_threads), device=m.device)
             else:
                 query.heavy_count.zero_()

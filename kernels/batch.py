@@ -200,6 +200,23 @@ def collide_and_integrate_env_spheres(
 
 
 @wp.func
+def locate_sphere_query(
+    s: int, frames: wp.array2d[wp.vec3], sphere_radius: wp.array[float], sphere_env: wp.array[wp.int32],
+    fps: wp.float64, interpolate: int, slices: int, env_time_in: wp.array[wp.float64],
+    env_playback_in: wp.array[wp.int32], sphere_pos_in: wp.array[wp.vec3], sphere_vel_in: wp.array[wp.vec3],
+    dt: float, extra_speed: float, margin: float,
+):
+    """Where sphere s's contact query of the split searches looks: its env's frame pair and
+    blend (k0, k1, alpha), its centre p [m], its one-step reach [m] and the pair BVH / grid slot."""
+    e = sphere_env[s]
+    T = frames.shape[0]
+    k0, k1, alpha = blend_pair(env_time_in[e], fps, T, env_playback_in[e], interpolate)
+    p = sphere_pos_in[s]
+    reach = contact_reach(sphere_radius[s], sphere_vel_in[s], extra_speed, dt, margin)
+    return k0, k1, alpha, p, reach, pair_slot(k0, k1, alpha, T, slices)
+
+
+@wp.func
 def write_block_query(
     s: int, lane: int, reach: float, min_dist: float, min_face: int, min_w: wp.vec3, acc_n: wp.vec3, epsilon: float,
     query_dist: wp.array[float], query_face: wp.array[wp.int32], query_w: wp.array[wp.vec3],
@@ -240,12 +257,9 @@ def find_closest_tiled(
     rule (box prune against its own closest so far), then the block's minimum distance, the
     lowest face index at it and the tie-normal sum of the threads within ``epsilon`` of it are
     written to s's record (face -1 when nothing is within reach)."""
-    e = sphere_env[s]
-    T = frames.shape[0]
-    k0, k1, alpha = blend_pair(env_time_in[e], fps, T, env_playback_in[e], interpolate)
-    p = sphere_pos_in[s]
-    reach = contact_reach(sphere_radius[s], sphere_vel_in[s], extra_speed, dt, margin)
-    slot = pair_slot(k0, k1, alpha, T, slices)
+    k0, k1, alpha, p, reach, slot = locate_sphere_query(s, frames, sphere_radius, sphere_env, fps, interpolate,
+                                                        slices, env_time_in, env_playback_in, sphere_pos_in,
+                                                        sphere_vel_in, dt, extra_speed, margin)
     ext = wp.vec3(reach + epsilon)
     min_dist = reach
     min_face = int(-1)
@@ -339,12 +353,9 @@ def collide_env_spheres_bounded(
     and is appended to ``heavy`` (count in ``heavy_count[0]``, zeroed before the launch) for
     ``collide_env_heavy_spheres_tiled``. (E * S,) records as ``collide_env_sphere_tiled``."""
     s = wp.tid()
-    e = sphere_env[s]
-    T = frames.shape[0]
-    k0, k1, alpha = blend_pair(env_time_in[e], fps, T, env_playback_in[e], interpolate)
-    p = sphere_pos_in[s]
-    reach = contact_reach(sphere_radius[s], sphere_vel_in[s], extra_speed, dt, margin)
-    slot = pair_slot(k0, k1, alpha, T, slices)
+    k0, k1, alpha, p, reach, slot = locate_sphere_query(s, frames, sphere_radius, sphere_env, fps, interpolate,
+                                                        slices, env_time_in, env_playback_in, sphere_pos_in,
+                                                        sphere_vel_in, dt, extra_speed, margin)
     min_dist, min_face, min_w, acc_n, over = closest_on_pair_bvh(pair_bvh[slot], pair_lowers, pair_uppers, slot,
                                                                  frames, indices, k0, k1, alpha, p, reach, epsilon,
                                                                  budget, -1)
@@ -413,6 +424,12 @@ def grid_cell(x: wp.vec3, origin: wp.vec3, inv_cell: float, dims: wp.vec3i) -> w
     return c
 
 
+@wp.func
+def grid_key(slot: int, cells_per_slot: int, dims: wp.vec3i, x: int, y: int, z: int) -> int:
+    """The cell lists' key of cell (x, y, z) of a slot's grid of ``dims`` cells."""
+    return slot * cells_per_slot + (z * dims[1] + y) * dims[0] + x
+
+
 @wp.kernel
 def count_face_cells(
     # Model:
@@ -456,7 +473,7 @@ def emit_face_cells(
     for z in range(a[2], b[2] + 1):
         for y in range(a[1], b[1] + 1):
             for x in range(a[0], b[0] + 1):
-                keys[i] = slot * cells_per_slot + (z * d[1] + y) * d[0] + x
+                keys[i] = grid_key(slot, cells_per_slot, d, x, y, z)
                 values[i] = f
                 i += 1
 
@@ -508,8 +525,8 @@ def gather_cell_boxes(
 @wp.func
 def find_closest_grid(
     s: int, lane: int,
-    frames: wp.array2d[wp.vec3], indices: wp.array[wp.int32], pair_lowers: wp.array2d[wp.vec3],
-    pair_uppers: wp.array2d[wp.vec3], grid_origin: wp.array[wp.vec3], grid_dims: wp.array[wp.vec3i],
+    frames: wp.array2d[wp.vec3], indices: wp.array[wp.int32], grid_origin: wp.array[wp.vec3],
+    grid_dims: wp.array[wp.vec3i],
     inv_cell: float, cells_per_slot: int, cell_start: wp.array[wp.int32], cell_end: wp.array[wp.int32],
     cell_faces: wp.array[wp.int32], cell_lowers: wp.array[wp.vec3], cell_uppers: wp.array[wp.vec3],
     sphere_radius: wp.array[float], sphere_env: wp.array[wp.int32],
@@ -525,12 +542,9 @@ def find_closest_grid(
     holding the low corner of its box's overlap with the query box, so each candidate is met
     once; a query box outside the slot's grid reads no cell. Then the block reduction and s's
     record, as ``find_closest_tiled``."""
-    e = sphere_env[s]
-    T = frames.shape[0]
-    k0, k1, alpha = blend_pair(env_time_in[e], fps, T, env_playback_in[e], interpolate)
-    p = sphere_pos_in[s]
-    reach = contact_reach(sphere_radius[s], sphere_vel_in[s], extra_speed, dt, margin)
-    slot = pair_slot(k0, k1, alpha, T, slices)
+    k0, k1, alpha, p, reach, slot = locate_sphere_query(s, frames, sphere_radius, sphere_env, fps, interpolate,
+                                                        slices, env_time_in, env_playback_in, sphere_pos_in,
+                                                        sphere_vel_in, dt, extra_speed, margin)
     ext = wp.vec3(reach + epsilon)
     qlo = p - ext
     qhi = p + ext
@@ -552,7 +566,7 @@ def find_closest_grid(
         cx = a[0] + c % nx
         cy = a[1] + (c / nx) % ny
         cz = a[2] + c / (nx * ny)
-        cell = slot * cells_per_slot + (cz * d[1] + cy) * d[0] + cx
+        cell = grid_key(slot, cells_per_slot, d, cx, cy, cz)
         for j in range(cell_start[cell] + lane, cell_end[cell], wp.block_dim()):
             flo = cell_lowers[j]
             fhi = cell_uppers[j]
@@ -576,8 +590,6 @@ def collide_env_sphere_grid(
     # Model:
     frames: wp.array2d[wp.vec3],
     indices: wp.array[wp.int32],
-    pair_lowers: wp.array2d[wp.vec3],
-    pair_uppers: wp.array2d[wp.vec3],
     grid_origin: wp.array[wp.vec3],
     grid_dims: wp.array[wp.vec3i],
     inv_cell: float,
@@ -612,7 +624,7 @@ def collide_env_sphere_grid(
     (``wp.launch_tiled``, dim (E * S,)): ``find_closest_grid``; the records are resolved by
     ``resolve_and_integrate_env_spheres``."""
     s, lane = wp.tid()
-    find_closest_grid(s, lane, frames, indices, pair_lowers, pair_uppers, grid_origin, grid_dims, inv_cell,
+    find_closest_grid(s, lane, frames, indices, grid_origin, grid_dims, inv_cell,
                       cells_per_slot, cell_start, cell_end, cell_faces, cell_lowers, cell_uppers, sphere_radius,
                       sphere_env, fps, interpolate,
                       slices, env_time_in, env_playback_in, sphere_pos_in, sphere_vel_in, dt, extra_speed, margin,

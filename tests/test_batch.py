@@ -110,7 +110,7 @@ def test_grid_search_finds_the_brute_force_closest_face(device, cell):
     q = ContactQuery(K, device)
     dt, extra, margin = 1.0 / 240, 0.0, bm.params.margin
     wp.launch_tiled(collide_env_sphere_grid, dim=K,
-                    inputs=[surf.frames, surf.indices, bm.pair_lowers, bm.pair_uppers, bm.grid_origin, bm.grid_dims,
+                    inputs=[surf.frames, surf.indices, bm.grid_origin, bm.grid_dims,
                             1.0 / bm.grid_cell, bm.cells_per_slot, bm.cell_start, bm.cell_end, bm.cell_faces,
                             bm.cell_lowers, bm.cell_uppers, bm.spheres.radius, bm.sphere_env, surf.fps,
                             int(surf.interpolate), bm.time_slices, st.env_time, st.env_playback, st.sphere_pos,
