@@ -154,7 +154,8 @@ class BatchModel:
         flat = counts.flatten()
         offsets = wp.zeros(slots * M, dtype=wp.int32, device=d)
         wp.utils.array_scan(flat, offsets, inclusive=False)
-        total = int(offsets.numpy()[-1] + flat.numpy()[-1])
+        last = slots * M - 1  # the list size: the scan's last entry plus the last count (two values read back)
+        total = int(offsets[last:].numpy()[0] + flat[last:].numpy()[0])
         keys = wp.zeros(2 * total, dtype=wp.int32, device=d)
         values = wp.zeros(2 * total, dtype=wp.int32, device=d)
         wp.launch(emit_face_cells, (slots, M), inputs=[self.pair_lowers, self.pair_uppers, self.grid_origin,
