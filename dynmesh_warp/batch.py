@@ -23,7 +23,15 @@ import warnings
 import numpy as np
 import warp as wp
 
-from .choices import DEFAULT_BATCH_SWEPT_SEARCH, PLAYBACK_CODES, SEED_PREVIOUS_FACE, Playback, SweptSearch, parse
+from .choices import (
+    DEFAULT_BATCH_SWEPT_SEARCH,
+    PLAYBACK_CODES,
+    SEED_PREVIOUS_FACE,
+    Playback,
+    SweptSearch,
+    device_kind,
+    parse,
+)
 from .kernels.batch import (
     advance_env_clocks,
     collide_and_integrate_env_spheres,
@@ -294,7 +302,7 @@ def step_envs(model: BatchModel, state: BatchState, contacts: Contacts, sub_dt: 
             wp.launch(collide_and_integrate_env_spheres, n,
                       inputs=[surf.frames, surf.indices, m.pair_bvh, m.pair_lowers, m.pair_uppers, m.spheres.radius,
                               m.spheres.inv_mass, m.sphere_env, *physics, m.time_slices, s.env_time, s.env_rate,
-                              s.env_playback, *tail, int(SEED_PREVIOUS_FACE["cuda" if m.device.is_cuda else "cpu"])],
+                              s.env_playback, *tail, int(SEED_PREVIOUS_FACE[device_kind(m.device)])],
                       outputs=[s.sphere_pos, s.sphere_vel, c.face, c.point, c.normal, c.depth, c.velocity],
                       device=m.device)
         else:
@@ -357,7 +365,7 @@ class BatchedWorld:
         self.extra_speed = float(np.linalg.norm(p.gravity)) * self.sub_dt
         self.contacts = Contacts(model.spheres.count, device=self.device)
         search = search if search is not None else p.swept_search
-        self.search = (default_batch_search("cuda" if self.device.is_cuda else "cpu", model.spheres.count) if search is None
+        self.search = (default_batch_search(device_kind(self.device), model.spheres.count) if search is None
                        else parse(SweptSearch, search, "swept_search"))
         if self.search == SweptSearch.FACES:
             raise ValueError("swept_search 'faces' is a single world's search; a batched world searches 'serial', "

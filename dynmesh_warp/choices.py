@@ -23,7 +23,7 @@ __all__ = ["StrEnum", "Collider", "SweptSearch", "RebuildEvery", "Playback", "Fr
            "SWEPT_RESOLVE_THREADS", "SWEPT_TILE_THREADS",
            "DEFAULT_PLAYBACK",
            "DEFAULT_FRAME_ORDER", "DEFAULT_ORIENTATION", "DEFAULT_UP_AXIS", "DEFAULT_STRATEGY",
-           "DEFAULT_NEWTON_SOLVER", "STRATEGIES", "values", "parse"]
+           "DEFAULT_NEWTON_SOLVER", "STRATEGIES", "values", "parse", "device_kind"]
 
 
 class StrEnum(str, enum.Enum):
@@ -188,6 +188,12 @@ STRATEGIES = tuple(s.value for s in Strategy)
 def values(choice: type[StrEnum]) -> list[str]:
     """The values of an enum, in order (argparse ``choices=``, messages)."""
     return [m.value for m in choice]
+
+
+def device_kind(device) -> str:
+    """The key of the per-device-kind tables here (``DEFAULT_SWEPT_SEARCH``, ``REFIT_BVH`` ...)
+    for a Warp device: "cuda" or "cpu"."""
+    return "cuda" if device.is_cuda else "cpu"
 
 
 def parse(choice: type[StrEnum], value, field: str):

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
-from .choices import DEFAULT_RASTERISER, Rasteriser, parse, values
+from .choices import DEFAULT_RASTERISER, Rasteriser, device_kind, parse, values
 from .gaussians import SHADE_AMBIENT
 from .kernels.render import (
     EMPTY_KEY,
@@ -204,7 +204,7 @@ class Renderer:
         ``choices.DEFAULT_RASTERISER``); both give the same images bit for bit."""
         self.device = wp.get_device(device)
         self.compact_keys = bool(compact_keys)
-        self.rasteriser = (DEFAULT_RASTERISER["cuda" if self.device.is_cuda else "cpu"] if rasteriser is None
+        self.rasteriser = (DEFAULT_RASTERISER[device_kind(self.device)] if rasteriser is None
                            else parse(Rasteriser, rasteriser, "Renderer rasteriser"))
         self._cap = 0
         self._keys = self._keys32 = self._values = None
@@ -429,7 +429,7 @@ class Renderer:
         raster_in = [self._s_xyod, self._s_conic, self._s_color, start, end, Rs, ts, ks, sc, sr, s_per,
                      wp.vec3(*sphere_color), solid, int(has_solid), wp.vec3(*background), W, H]
         if self.rasteriser == Rasteriser.SHARED:  # a block per tile, a thread per pixel
-            self._launch("rasterize", RASTERIZE_SHARED["cuda" if d.is_cuda else "cpu"], (tiles,), raster_in,
+            self._launch("rasterize", RASTERIZE_SHARED[device_kind(d)], (tiles,), raster_in,
                          [rgb, alpha, zbuf], block_dim=TILE * TILE)
         else:  # a thread per pixel of each tile
             self._launch("rasterize", rasterize_gaussians, (C, (tiles // C) * TILE * TILE), raster_in,

@@ -46,6 +46,7 @@ from .choices import (
     Playback,
     RebuildEvery,
     SweptSearch,
+    device_kind,
     parse,
     values,
 )
@@ -573,7 +574,7 @@ class RefitCollider(ColliderBase):
     needs_points = True
 
     def __init__(self, model: Model, state: State, ctx: StepContext):
-        ctor, leaf = REFIT_BVH["cuda" if state.points.device.is_cuda else "cpu"]
+        ctor, leaf = REFIT_BVH[device_kind(state.points.device)]
         self.mesh = wp.Mesh(points=state.points, indices=model.surface.indices, velocities=state.velocities,
                             bvh_constructor=ctor, bvh_leaf_size=leaf)
 
@@ -642,7 +643,7 @@ class SweptCollider(ColliderBase):
         surf = model.surface
         d = ctx.device
         search = model.params.swept_search if search is None else search
-        self.search = (DEFAULT_SWEPT_SEARCH["cuda" if d.is_cuda else "cpu"] if search is None
+        self.search = (DEFAULT_SWEPT_SEARCH[device_kind(d)] if search is None
                        else parse(SweptSearch, search, "swept_search"))
         if self.search in (SweptSearch.HYBRID, SweptSearch.GRID):
             raise ValueError(f"swept_search '{self.search}' is a batched world's search (envs); a single world's swept "
@@ -718,7 +719,7 @@ class SweptCollider(ColliderBase):
                 wp.launch_tiled(collide_sphere_swept_tiled, dim=m.spheres.count, inputs=inputs, outputs=outputs,
                                 block_dim=self.tile_threads, device=ctx.device)
         else:
-            seed = int(SEED_PREVIOUS_FACE["cuda" if ctx.device.is_cuda else "cpu"])
+            seed = int(SEED_PREVIOUS_FACE[device_kind(ctx.device)])
             ctx.launch(collide_sphere_swept, m.spheres.count, [*inputs, seed], outputs)
 
 
@@ -859,7 +860,7 @@ class World:
         ``physics.swept_search`` names one; the chosen search is kept (``swept_search``).
         Records the costs in ``collider_costs``."""
         searches = () if model.params.swept_search is not None else \
-            SWEPT_MEASURED_SEARCHES["cuda" if self.device.is_cuda else "cpu"]
+            SWEPT_MEASURED_SEARCHES[device_kind(self.device)]
         if model.spheres.count > SWEPT_FACES_MAX_SPHERES:  # its work grows as faces x spheres
             searches = tuple(x for x in searches if x != SweptSearch.FACES)
         trials = []
