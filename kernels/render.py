@@ -295,13 +295,12 @@ def emit_tile_keys(
 
 
 @wp.func
-def mark_tile_range(keys: wp.array[Any], i: int, shift: int, count: int, tile_start: wp.array[wp.int32],
-                    tile_end: wp.array[wp.int32]):
-    """Sorted key i's part in [tile_start, tile_end) of each (camera, tile): it starts its
-    tile's run if the key before is of another tile, and ends the run before it (untouched tiles
-    keep 0, 0; the tile is the key >> ``shift``). Empty keys (the unused tail of a fixed-capacity
-    render, sorted last) end the list."""
-    key = load_key(keys, i)
+def mark_tile_range(keys: wp.array[Any], i: int, key: wp.int64, shift: int, count: int,
+                    tile_start: wp.array[wp.int32], tile_end: wp.array[wp.int32]):
+    """Sorted key i's (``key``, already loaded) part in [tile_start, tile_end) of each (camera,
+    tile): it starts its tile's run if the key before is of another tile, and ends the run before
+    it (untouched tiles keep 0, 0; the tile is the key >> ``shift``). Empty keys (the unused tail
+    of a fixed-capacity render, sorted last) end the list."""
     if key == EMPTY_KEY:
         if i > 0:
             prev_key = load_key(keys, i - 1)
@@ -346,8 +345,8 @@ def gather_sorted_splats(
     [m] together (what every splat's test reads), the conic, and the colour (read only for a
     splat that is composited)."""
     i = wp.tid()
-    mark_tile_range(keys, i, shift, count, tile_start, tile_end)
     key = load_key(keys, i)
+    mark_tile_range(keys, i, key, shift, count, tile_start, tile_end)
     if key == EMPTY_KEY:
         return
     c = int(key >> wp.int64(shift)) / tiles_per_camera
