@@ -47,10 +47,6 @@ def main(argv=None):
                     help="the grid search's cell edge in sphere radii (default: batch.GRID_CELL_RADII)")
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
-    if a.grid_cell_radii is not None:  # for this process only
-        import dynmesh_warp.batch as batch
-
-        batch.GRID_CELL_RADII = float(a.grid_cell_radii)
     wp.init()
     device = wp.get_device(a.device)
     seq, shared = load_paper_sequence()
@@ -65,7 +61,8 @@ def main(argv=None):
     for E in [int(x) for x in a.envs.split(",")]:
         t0 = time.perf_counter()
         bm = BatchModel(surf, E, np.full(S, r), 1.0, params,
-                        **({"time_slices": a.time_slices} if a.time_slices else {}))
+                        **({"time_slices": a.time_slices} if a.time_slices else {}),
+                        **({"grid_cell_radii": a.grid_cell_radii} if a.grid_cell_radii else {}))
         times = np.random.default_rng(1).uniform(0.0, seq.num_frames / seq.fps, E)
         w = BatchedWorld(bm, BatchState(bm, pos, times=times), search=a.search,
                          tile_threads=a.tile_threads, budget=a.budget, blocks=a.blocks)

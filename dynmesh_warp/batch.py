@@ -100,10 +100,12 @@ class BatchModel:
             (k + 1) mod T), slot k * slices + j; pair_bvh: (T * slices,) uint64 ids of one
             ``wp.Bvh`` per slot.
         epsilon: tie distance of the closest-feature search [m] (1e-3 x mean edge length).
+        grid_cell: the grid search's cell edge [m], ``grid_cell_radii`` (``GRID_CELL_RADII``)
+            times the largest sphere radius, or larger where a slot would exceed GRID_MAX_CELLS.
     """
 
     def __init__(self, surface: SurfaceModel, num_envs: int, radius, mass, params: PhysicsParams,
-                 time_slices: int = TIME_SLICES):
+                 time_slices: int = TIME_SLICES, grid_cell_radii: float = GRID_CELL_RADII):
         if int(num_envs) < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
         if not isinstance(surface, SurfaceModel):
@@ -133,7 +135,9 @@ class BatchModel:
         self._bvhs = [wp.Bvh(self.pair_lowers[k], self.pair_uppers[k], leaf_size=4) for k in range(n)]
         self.pair_bvh = wp.array([b.id for b in self._bvhs], dtype=wp.uint64, device=self.device)
         self.epsilon = 1.0e-3 * float(surface.average_edge_length.mean())
-        self._build_grids(GRID_CELL_RADII * float(radius.max()))
+        if not float(grid_cell_radii) > 0:
+            raise ValueError(f"grid_cell_radii must be > 0, got {grid_cell_radii}")
+        self._build_grids(float(grid_cell_radii) * float(radius.max()))
 
     def _build_grids(self, cell: float):
         """Each slot's uniform grid of the faces' pair boxes, for the grid search (built once on

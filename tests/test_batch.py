@@ -93,9 +93,9 @@ def test_grid_search_finds_the_brute_force_closest_face(device, cell):
         Vt = surface_at(seq, float(times[i]))
         pts[i] = rng.dirichlet([1, 1, 1]) @ Vt[seq.F[rng.integers(len(seq.F))]] + rng.normal(0, 0.08, 3)
     r = 0.06
-    bm = BatchModel(surf, K, np.full(1, r), 1.0, _params())
-    if cell is not None:
-        bm._build_grids(cell)
+    bm = BatchModel(surf, K, np.full(1, r), 1.0, _params(), **({} if cell is None else {"grid_cell_radii": cell / r}))
+    if cell is not None:  # fine cells (grown from 0.02 m only as far as GRID_MAX_CELLS asks)
+        assert cell <= bm.grid_cell < 0.05
     # every face is listed in each cell of its box
     starts, ends, faces = bm.cell_start.numpy(), bm.cell_end.numpy(), bm.cell_faces.numpy()
     lo = bm.pair_lowers.numpy()
@@ -238,6 +238,8 @@ def test_batch_needs_a_fixed_surface_and_spheres(device):
     seq = wave_bowl(n=8, frames=4)
     with pytest.raises(ValueError, match="num_envs"):
         BatchModel(SurfaceModel(seq, device), 0, [0.05], 1.0, PhysicsParams())
+    with pytest.raises(ValueError, match="grid_cell_radii"):
+        BatchModel(SurfaceModel(seq, device), 1, [0.05], 1.0, PhysicsParams(), grid_cell_radii=0.0)
     with pytest.raises(ValueError, match="at least one sphere"):
         BatchModel(SurfaceModel(seq, device), 2, [], 1.0, PhysicsParams())
     bm = BatchModel(SurfaceModel(seq, device), 2, [0.05], 1.0, PhysicsParams())
