@@ -137,14 +137,19 @@ class BatchModel:
         self.epsilon = 1.0e-3 * float(surface.average_edge_length.mean())
         if not float(grid_cell_radii) > 0:
             raise ValueError(f"grid_cell_radii must be > 0, got {grid_cell_radii}")
-        self._build_grids(float(grid_cell_radii) * float(radius.max()))
+        self.grid_cell = float(grid_cell_radii) * float(radius.max())
+        self.cell_faces = None  # the grid search's tables: built by build_grids when a world uses it
 
-    def _build_grids(self, cell: float):
+    def build_grids(self):
         """Each slot's uniform grid of the faces' pair boxes, for the grid search (built once on
-        the device; kernels/batch.py): grid_origin (slots,) vec3 [m], grid_dims (slots,) vec3i,
-        ``grid_cell`` [m] (grown until a slot has at most GRID_MAX_CELLS cells), cell lists
-        ``cell_faces`` with [cell_start, cell_end) per slot * cells_per_slot + cell."""
+        the device, the first time a world searches with it; kernels/batch.py): grid_origin
+        (slots,) vec3 [m], grid_dims (slots,) vec3i, ``grid_cell`` [m] (grown until a slot has at
+        most GRID_MAX_CELLS cells), cell lists ``cell_faces`` with their face boxes
+        ``cell_lowers`` / ``cell_uppers`` and [cell_start, cell_end) per slot * cells_per_slot + cell."""
+        if self.cell_faces is not None:
+            return
         d = self.device
+        cell = self.grid_cell
         lo = self.pair_lowers.numpy().min(axis=1)
         hi = self.pair_uppers.numpy().max(axis=1)
         ext = np.maximum(hi - lo, 1e-9)
@@ -197,7 +202,8 @@ class BatchModel:
         bvh_nodes = T * (2 * leaves - 1) * 32 + T * M * 4  # nodes + primitive indices
         per_sphere = 4 + 4 + 4 + 2 * 12 + (4 + 12 + 12 + 4 + 12)  # radius, inv_mass, env, pos/vel, contacts
         per_env = self.spheres_per_env * per_sphere + 8 + 4 + 4
-        grids = self.cell_start.size * 8 + self.cell_faces.size * 28 + T * (12 + 12)  # the grid search's
+        grids = (0 if self.cell_faces is None  # the grid search's, once built
+                 else self.cell_start.size * 8 + self.cell_faces.size * 28 + T * (12 + 12))
         return {"pair_boxes": boxes, "pair_bvh_nodes_estimate": bvh_nodes, "pair_grids": grids, "frames": frames,
                 "per_env": per_env,
                 "total_estimate": boxes + bvh_nodes + grids + frames + per_env * self.num_envs}
@@ -301,6 +307,9 @@ def step_envs(model: BatchModel, state: BatchState, contacts: Contacts, sub_dt: 
     tail = [sub_dt, extra_speed, p.margin, m.epsilon]
     if search != SweptSearch.SERIAL and query is None:
         raise ValueError(f"the {search} search needs a ContactQuery scratch")
+    if search == SweptSearch.GRID and m.cell_faces is None:
+        raise ValueError("the grid search needs the model's grids: call BatchModel.build_grids() first "
+                         "(BatchedWorld does)")
     for _ in range(substeps):
         if search == SweptSearch.SERIAL:
             wp.launch(collide_and_integrate_env_spheres, n,
@@ -378,6 +387,8 @@ class BatchedWorld:
         self.budget = _at_least(budget, HYBRID_BUDGET, "budget", 0)
         self.blocks = _at_least(blocks, HYBRID_BLOCKS, "blocks", 1)
         self.query = ContactQuery(model.spheres.count, self.device) if self.search != SweptSearch.SERIAL else None
+        if self.search == SweptSearch.GRID:
+            model.build_grids()
         self.use_graph = self.device.is_cuda if use_graph is None else bool(use_graph) and self.device.is_cuda
         self._graph = None
         self.step_count = 0

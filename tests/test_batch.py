@@ -94,6 +94,15 @@ def test_grid_search_finds_the_brute_force_closest_face(device, cell):
         pts[i] = rng.dirichlet([1, 1, 1]) @ Vt[seq.F[rng.integers(len(seq.F))]] + rng.normal(0, 0.08, 3)
     r = 0.06
     bm = BatchModel(surf, K, np.full(1, r), 1.0, _params(), **({} if cell is None else {"grid_cell_radii": cell / r}))
+    assert bm.cell_faces is None and bm.memory_bytes["pair_grids"] == 0  # built only when a world uses it
+    from dynmesh_warp.batch import step_envs
+    from dynmesh_warp.world import Contacts
+
+    with pytest.raises(ValueError, match="build_grids"):
+        step_envs(bm, BatchState(bm, pts.reshape(K, 1, 3), times=times), Contacts(K, device), 1.0 / 240, 1, 0.0,
+                  search="grid", query=ContactQuery(K, device))
+    bm.build_grids()
+    assert bm.memory_bytes["pair_grids"] > 0
     if cell is not None:  # fine cells (grown from 0.02 m only as far as GRID_MAX_CELLS asks)
         assert cell <= bm.grid_cell < 0.05
     # every face is listed in each cell of its box
