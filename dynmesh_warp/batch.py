@@ -272,7 +272,8 @@ def _at_least(value, default: int, name: str, lo: int) -> int:
 
 class ContactQuery:
     """Scratch of the split contact query (tiled and hybrid searches): per sphere the closest
-    feature found, its weights and tie-normal sum ((E * S,) arrays); the hybrid's handed-over
+    feature found, its weights and tie-normal sum, and the env time [s] the query read ((E * S,)
+    arrays); the hybrid's handed-over
     spheres (``heavy``, count in ``heavy_count[0]``)."""
 
     def __init__(self, count: int, device):
@@ -281,6 +282,7 @@ class ContactQuery:
         self.face = wp.zeros(n, dtype=wp.int32, device=device)
         self.w = wp.zeros(n, dtype=wp.vec3, device=device)
         self.n = wp.zeros(n, dtype=wp.vec3, device=device)
+        self.time = wp.zeros(n, dtype=wp.float64, device=device)
         self.heavy = wp.zeros(n, dtype=wp.int32, device=device)
         self.heavy_count = wp.zeros(1, dtype=wp.int32, device=device)
 
@@ -319,7 +321,7 @@ def step_envs(model: BatchModel, state: BatchState, contacts: Contacts, sub_dt: 
                       outputs=[s.sphere_pos, s.sphere_vel, c.face, c.point, c.normal, c.depth, c.velocity],
                       device=m.device)
         else:
-            records = [query.dist, query.face, query.w, query.n]
+            records = [query.dist, query.face, query.w, query.n, query.time]
             if search == SweptSearch.TILED:
                 wp.launch_tiled(collide_env_sphere_tiled, dim=n, inputs=[*args, *tail], outputs=records,
                                 block_dim=int(tile_threads), device=m.device)
@@ -338,11 +340,14 @@ def step_envs(model: BatchModel, state: BatchState, contacts: Contacts, sub_dt: 
                 wp.launch_tiled(collide_env_heavy_spheres_tiled, dim=nb,
                                 inputs=[*args, query.heavy_count, query.heavy, nb, *tail], outputs=records,
                                 block_dim=int(tile_threads), device=m.device)
-            wp.launch(resolve_and_integrate_env_spheres, n,
-                      inputs=[surf.frames, surf.indices, m.spheres.radius, m.spheres.inv_mass, m.sphere_env,
-                              *physics, s.env_time, s.env_rate, s.env_playback, *records, *tail],
-                      outputs=[s.sphere_pos, s.sphere_vel, c.face, c.point, c.normal, c.depth, c.velocity],
-                      device=m.device)
+            if n:  # every env has its spheres (sphere_env sorted): the first of each advances its clock
+                wp.launch(resolve_and_integrate_env_spheres, n,
+                          inputs=[surf.frames, surf.indices, m.spheres.radius, m.spheres.inv_mass, m.sphere_env,
+                                  *physics, s.env_rate, s.env_playback, *records, *tail, wp.float64(sub_dt)],
+                          outputs=[s.sphere_pos, s.sphere_vel, s.env_time, c.face, c.point, c.normal, c.depth,
+                                   c.velocity],
+                          device=m.device)
+                continue
         wp.launch(advance_env_clocks, m.num_envs, inputs=[s.env_rate, wp.float64(sub_dt)], outputs=[s.env_time],
                   device=m.device)
 

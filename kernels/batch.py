@@ -128,7 +128,12 @@ def compute_pair_bounds(
     uppers[slot, f] = hi
 
 
-@wp.kernel
+#: the serial search's register cap per thread on CUDA, for the same reason as
+#: GRID_QUERY_MAX_REGISTERS (uncapped: 105 registers, 19 warps an SM).
+SERIAL_QUERY_MAX_REGISTERS = 80
+
+
+@wp.kernel(cuda_max_registers=SERIAL_QUERY_MAX_REGISTERS)
 def collide_and_integrate_env_spheres(
     # Model:
     frames: wp.array2d[wp.vec3],
@@ -201,16 +206,21 @@ def collide_and_integrate_env_spheres(
 
 @wp.func
 def locate_sphere_query(
-    s: int, frames: wp.array2d[wp.vec3], sphere_radius: wp.array[float], sphere_env: wp.array[wp.int32],
+    s: int, lane: int, frames: wp.array2d[wp.vec3], sphere_radius: wp.array[float], sphere_env: wp.array[wp.int32],
     fps: wp.float64, interpolate: int, slices: int, env_time_in: wp.array[wp.float64],
     env_playback_in: wp.array[wp.int32], sphere_pos_in: wp.array[wp.vec3], sphere_vel_in: wp.array[wp.vec3],
-    dt: float, extra_speed: float, margin: float,
+    dt: float, extra_speed: float, margin: float, query_time: wp.array[wp.float64],
 ):
     """Where sphere s's contact query of the split searches looks: its env's frame pair and
-    blend (k0, k1, alpha), its centre p [m], its one-step reach [m] and the pair BVH / grid slot."""
+    blend (k0, k1, alpha), its centre p [m], its one-step reach [m] and the pair BVH / grid slot.
+    The thread of ``lane`` 0 copies the env's time [s] into s's record (``query_time``): the
+    resolve stage reads the blend from there while it advances the clocks."""
     e = sphere_env[s]
     T = frames.shape[0]
-    k0, k1, alpha = blend_pair(env_time_in[e], fps, T, env_playback_in[e], interpolate)
+    t = env_time_in[e]
+    if lane == 0:
+        query_time[s] = t
+    k0, k1, alpha = blend_pair(t, fps, T, env_playback_in[e], interpolate)
     p = sphere_pos_in[s]
     reach = contact_reach(sphere_radius[s], sphere_vel_in[s], extra_speed, dt, margin)
     return k0, k1, alpha, p, reach, pair_slot(k0, k1, alpha, T, slices)
@@ -249,6 +259,7 @@ def find_closest_tiled(
     sphere_vel_in: wp.array[wp.vec3], dt: float, extra_speed: float, margin: float, epsilon: float,
     query_dist: wp.array[float], query_face: wp.array[wp.int32], query_w: wp.array[wp.vec3],
     query_n: wp.array[wp.vec3],
+    query_time: wp.array[wp.float64],
 ):
     """Sphere s's contact query by the calling thread block (``lane`` = the thread's index in
     it; every thread of the block calls this for the same s): as the single world's
@@ -257,9 +268,10 @@ def find_closest_tiled(
     rule (box prune against its own closest so far), then the block's minimum distance, the
     lowest face index at it and the tie-normal sum of the threads within ``epsilon`` of it are
     written to s's record (face -1 when nothing is within reach)."""
-    k0, k1, alpha, p, reach, slot = locate_sphere_query(s, frames, sphere_radius, sphere_env, fps, interpolate,
-                                                        slices, env_time_in, env_playback_in, sphere_pos_in,
-                                                        sphere_vel_in, dt, extra_speed, margin)
+    k0, k1, alpha, p, reach, slot = locate_sphere_query(s, lane, frames, sphere_radius, sphere_env, fps,
+                                                        interpolate, slices, env_time_in, env_playback_in,
+                                                        sphere_pos_in, sphere_vel_in, dt, extra_speed, margin,
+                                                        query_time)
     ext = wp.vec3(reach + epsilon)
     min_dist = reach
     min_face = int(-1)
@@ -306,6 +318,7 @@ def collide_env_sphere_tiled(
     query_face: wp.array[wp.int32],
     query_w: wp.array[wp.vec3],
     query_n: wp.array[wp.vec3],
+    query_time: wp.array[wp.float64],
 ):
     """The contact query of every sphere by one thread block each (``wp.launch_tiled``, dim
     (E * S,)): ``find_closest_tiled``; the records are resolved by
@@ -313,7 +326,8 @@ def collide_env_sphere_tiled(
     s, lane = wp.tid()
     find_closest_tiled(s, lane, frames, indices, pair_bvh, pair_lowers, pair_uppers, sphere_radius, sphere_env, fps,
                        interpolate, slices, env_time_in, env_playback_in, sphere_pos_in, sphere_vel_in, dt,
-                       extra_speed, margin, epsilon, query_dist, query_face, query_w, query_n)
+                       extra_speed, margin, epsilon, query_dist, query_face, query_w, query_n,
+                      query_time)
 
 
 @wp.kernel
@@ -345,6 +359,7 @@ def collide_env_spheres_bounded(
     query_face: wp.array[wp.int32],
     query_w: wp.array[wp.vec3],
     query_n: wp.array[wp.vec3],
+    query_time: wp.array[wp.float64],
     heavy_count: wp.array[wp.int32],
     heavy: wp.array[wp.int32],
 ):
@@ -353,9 +368,10 @@ def collide_env_spheres_bounded(
     and is appended to ``heavy`` (count in ``heavy_count[0]``, zeroed before the launch) for
     ``collide_env_heavy_spheres_tiled``. (E * S,) records as ``collide_env_sphere_tiled``."""
     s = wp.tid()
-    k0, k1, alpha, p, reach, slot = locate_sphere_query(s, frames, sphere_radius, sphere_env, fps, interpolate,
-                                                        slices, env_time_in, env_playback_in, sphere_pos_in,
-                                                        sphere_vel_in, dt, extra_speed, margin)
+    k0, k1, alpha, p, reach, slot = locate_sphere_query(s, 0, frames, sphere_radius, sphere_env, fps,
+                                                        interpolate, slices, env_time_in, env_playback_in,
+                                                        sphere_pos_in, sphere_vel_in, dt, extra_speed, margin,
+                                                        query_time)
     min_dist, min_face, min_w, acc_n, over = closest_on_pair_bvh(pair_bvh[slot], pair_lowers, pair_uppers, slot,
                                                                  frames, indices, k0, k1, alpha, p, reach, epsilon,
                                                                  budget, -1)
@@ -399,6 +415,7 @@ def collide_env_heavy_spheres_tiled(
     query_face: wp.array[wp.int32],
     query_w: wp.array[wp.vec3],
     query_n: wp.array[wp.vec3],
+    query_time: wp.array[wp.float64],
 ):
     """The contact query of the spheres ``collide_env_spheres_bounded`` left (``heavy``), by
     ``num_blocks`` thread blocks (``wp.launch_tiled``, dim (num_blocks,)) each taking every
@@ -409,7 +426,8 @@ def collide_env_heavy_spheres_tiled(
     while i < count:
         find_closest_tiled(heavy[i], lane, frames, indices, pair_bvh, pair_lowers, pair_uppers, sphere_radius,
                            sphere_env, fps, interpolate, slices, env_time_in, env_playback_in, sphere_pos_in,
-                           sphere_vel_in, dt, extra_speed, margin, epsilon, query_dist, query_face, query_w, query_n)
+                           sphere_vel_in, dt, extra_speed, margin, epsilon, query_dist, query_face, query_w, query_n,
+                      query_time)
         i += num_blocks
 
 
@@ -534,6 +552,7 @@ def find_closest_grid(
     env_playback_in: wp.array[wp.int32], sphere_pos_in: wp.array[wp.vec3], sphere_vel_in: wp.array[wp.vec3],
     dt: float, extra_speed: float, margin: float, epsilon: float, query_dist: wp.array[float],
     query_face: wp.array[wp.int32], query_w: wp.array[wp.vec3], query_n: wp.array[wp.vec3],
+    query_time: wp.array[wp.float64],
 ):
     """Sphere s's contact query by the calling thread block over a uniform grid of its slot's
     face boxes (no tree walk: a cell's faces are one contiguous list): for each cell of the
@@ -542,9 +561,10 @@ def find_closest_grid(
     holding the low corner of its box's overlap with the query box, so each candidate is met
     once; a query box outside the slot's grid reads no cell. Then the block reduction and s's
     record, as ``find_closest_tiled``."""
-    k0, k1, alpha, p, reach, slot = locate_sphere_query(s, frames, sphere_radius, sphere_env, fps, interpolate,
-                                                        slices, env_time_in, env_playback_in, sphere_pos_in,
-                                                        sphere_vel_in, dt, extra_speed, margin)
+    k0, k1, alpha, p, reach, slot = locate_sphere_query(s, lane, frames, sphere_radius, sphere_env, fps,
+                                                        interpolate, slices, env_time_in, env_playback_in,
+                                                        sphere_pos_in, sphere_vel_in, dt, extra_speed, margin,
+                                                        query_time)
     ext = wp.vec3(reach + epsilon)
     qlo = p - ext
     qhi = p + ext
@@ -585,7 +605,13 @@ def find_closest_grid(
                       query_n)
 
 
-@wp.kernel
+#: the grid query's register cap per thread on CUDA (``__maxnreg__``): uncapped the compiler
+#: gives it 96, which holds an SM to 21 of its 64 warps; this latency-bound walk runs faster with
+#: more warps in flight despite a few spills (docs/envs.md, H100).
+GRID_QUERY_MAX_REGISTERS = 72
+
+
+@wp.kernel(cuda_max_registers=GRID_QUERY_MAX_REGISTERS)
 def collide_env_sphere_grid(
     # Model:
     frames: wp.array2d[wp.vec3],
@@ -619,6 +645,7 @@ def collide_env_sphere_grid(
     query_face: wp.array[wp.int32],
     query_w: wp.array[wp.vec3],
     query_n: wp.array[wp.vec3],
+    query_time: wp.array[wp.float64],
 ):
     """The contact query of every sphere by one thread block each over its slot's face grid
     (``wp.launch_tiled``, dim (E * S,)): ``find_closest_grid``; the records are resolved by
@@ -628,7 +655,8 @@ def collide_env_sphere_grid(
                       cells_per_slot, cell_start, cell_end, cell_faces, cell_lowers, cell_uppers, sphere_radius,
                       sphere_env, fps, interpolate,
                       slices, env_time_in, env_playback_in, sphere_pos_in, sphere_vel_in, dt, extra_speed, margin,
-                      epsilon, query_dist, query_face, query_w, query_n)
+                      epsilon, query_dist, query_face, query_w, query_n,
+                      query_time)
 
 
 @wp.kernel
@@ -648,7 +676,6 @@ def resolve_and_integrate_env_spheres(
     fps: wp.float64,
     interpolate: int,
     # State in:
-    env_time_in: wp.array[wp.float64],
     env_rate_in: wp.array[float],
     env_playback_in: wp.array[wp.int32],
     # In:
@@ -656,13 +683,16 @@ def resolve_and_integrate_env_spheres(
     query_face: wp.array[wp.int32],
     query_w: wp.array[wp.vec3],
     query_n: wp.array[wp.vec3],
+    query_time: wp.array[wp.float64],
     dt: float,
     extra_speed: float,
     margin: float,
     epsilon: float,
+    clock_dt: wp.float64,
     # State out:
     sphere_pos_out: wp.array[wp.vec3],
     sphere_vel_out: wp.array[wp.vec3],
+    env_time_out: wp.array[wp.float64],
     # Out:
     contact_face: wp.array[wp.int32],
     contact_point: wp.array[wp.vec3],
@@ -670,13 +700,18 @@ def resolve_and_integrate_env_spheres(
     contact_depth: wp.array[float],
     contact_velocity: wp.array[wp.vec3],
 ):
-    """The contact of each sphere from its query record (``collide_env_sphere_tiled`` or the
-    hybrid pair ``collide_env_spheres_bounded`` / ``collide_env_heavy_spheres_tiled``), then the
-    continuous response, as ``collide_and_integrate_env_spheres``. One thread per sphere."""
+    """The contact of each sphere from its query record (``collide_env_sphere_tiled``,
+    ``collide_env_sphere_grid`` or the hybrid pair ``collide_env_spheres_bounded`` /
+    ``collide_env_heavy_spheres_tiled``) at the env time the query read (``query_time``), then
+    the continuous response, as ``collide_and_integrate_env_spheres``; and each env's clock
+    advanced by its first sphere's thread (``env_time_out[e] += env_rate_in[e] * clock_dt`` [s],
+    float64, as ``advance_env_clocks``: no thread of this launch reads a clock). One thread per
+    sphere; (E * S,) arrays sorted by env, every env with at least one sphere."""
     s = wp.tid()
     e = sphere_env[s]
-    T = frames.shape[0]
-    k0, k1, alpha = blend_pair(env_time_in[e], fps, T, env_playback_in[e], interpolate)
+    if s == 0 or sphere_env[s - 1] != e:
+        env_time_out[e] = env_time_out[e] + wp.float64(env_rate_in[e]) * clock_dt
+    k0, k1, alpha = blend_pair(query_time[s], fps, frames.shape[0], env_playback_in[e], interpolate)
     p = sphere_pos_out[s]
     v = sphere_vel_out[s]
     r = sphere_radius[s]

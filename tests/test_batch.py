@@ -124,7 +124,7 @@ def test_grid_search_finds_the_brute_force_closest_face(device, cell):
                             bm.cell_lowers, bm.cell_uppers, bm.spheres.radius, bm.sphere_env, surf.fps,
                             int(surf.interpolate), bm.time_slices, st.env_time, st.env_playback, st.sphere_pos,
                             st.sphere_vel, dt, extra, margin, bm.epsilon],
-                    outputs=[q.dist, q.face, q.w, q.n], block_dim=8, device=device)
+                    outputs=[q.dist, q.face, q.w, q.n, q.time], block_dim=8, device=device)
     # the same records as the tiled search over the pair BVH, tie normals included (a face met
     # twice would count twice there)
     from dynmesh_warp.kernels.batch import collide_env_sphere_tiled
@@ -134,10 +134,11 @@ def test_grid_search_finds_the_brute_force_closest_face(device, cell):
                     inputs=[surf.frames, surf.indices, bm.pair_bvh, bm.pair_lowers, bm.pair_uppers, bm.spheres.radius,
                             bm.sphere_env, surf.fps, int(surf.interpolate), bm.time_slices, st.env_time,
                             st.env_playback, st.sphere_pos, st.sphere_vel, dt, extra, margin, bm.epsilon],
-                    outputs=[qt.dist, qt.face, qt.w, qt.n], block_dim=8, device=device)
+                    outputs=[qt.dist, qt.face, qt.w, qt.n, qt.time], block_dim=8, device=device)
     np.testing.assert_array_equal(q.face.numpy() >= 0, qt.face.numpy() >= 0)  # (tied faces may differ)
     np.testing.assert_allclose(q.dist.numpy(), qt.dist.numpy(), atol=1e-6)
     np.testing.assert_allclose(q.n.numpy(), qt.n.numpy(), atol=1e-5)
+    np.testing.assert_array_equal(q.time.numpy(), times)  # the env time each query read, for the resolve stage
     dist, face = q.dist.numpy(), q.face.numpy()
     reach = r + margin
     hits = 0
