@@ -12,6 +12,11 @@ pushed out to the front; a sphere entirely behind the surface has no contact.
 
 import warp as wp
 
+# CUDA fast math (approximate division and square root), as kernels/batch.py and render.py: the
+# latency-bound contact queries lose the IEEE sequences' registers and slow-path calls; results
+# move by float rounding only (docs/physics.md, "Fast math").
+wp.set_module_options({"fast_math": True})
+
 
 
 @wp.func

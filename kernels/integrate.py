@@ -4,6 +4,11 @@ import warp as wp
 
 from .frames import store_frame_key
 
+# CUDA fast math (approximate division and square root), as kernels/batch.py and render.py: the
+# latency-bound contact queries lose the IEEE sequences' registers and slow-path calls; results
+# move by float rounding only (docs/physics.md, "Fast math").
+wp.set_module_options({"fast_math": True})
+
 
 @wp.func
 def advance_sphere(

@@ -16,6 +16,11 @@ from .collide import contact_reach, make_contact
 from .frames import blend_pair, frame_pair, store_frame_key
 from .geometry import closest_point_on_triangle
 
+# CUDA fast math (approximate division and square root), as kernels/batch.py and render.py: the
+# latency-bound contact queries lose the IEEE sequences' registers and slow-path calls; results
+# move by float rounding only (docs/physics.md, "Fast math").
+wp.set_module_options({"fast_math": True})
+
 
 #: the distance of a candidate that is not one (a sliver, a face beyond reach) [m]
 NO_DIST = wp.constant(1.0e30)
