@@ -173,7 +173,7 @@ def test_shared_memory_rasteriser_equals_the_per_pixel_one(device):
         np.testing.assert_array_equal(a_rgb, b.rgb.numpy())
         np.testing.assert_array_equal(a_alpha, b.alpha.numpy())
         np.testing.assert_array_equal(a_depth, b.depth.numpy())
-    runs = shared._b["end"].numpy() - shared._b["start"].numpy()
+    runs = shared.last_tile_counts()
     assert runs.max() > 3 * 256  # tiles of several shared-memory batches
     assert (a_alpha > 0.99).mean() > 0.3 and (a_alpha < 0.9).any()  # near-saturated pixels, and others
     with pytest.raises(ValueError, match="rasteriser must be one of"):
@@ -195,13 +195,15 @@ def test_recorded_launches_follow_changed_inputs(device):
     arrays = [wp.array(a[0], dtype=wp.vec3, device=device), wp.array(a[1], dtype=wp.mat33, device=device),
               wp.array(a[2], dtype=float, device=device), wp.array(a[3], dtype=float, device=device)]
     r = Renderer(device)
+    with pytest.raises(ValueError, match="nothing rendered yet"):
+        r.last_entry_count()
     first = r.render(*arrays, cams).rgb.numpy().copy()
-    entries_a = int(r._b["offsets"].numpy()[-1])
+    entries_a = r.last_entry_count()
     np.testing.assert_array_equal(first, Renderer(device).render(*a, cams).rgb.numpy())
     for arr, x in zip(arrays, b):  # the same arrays, new contents
         arr.assign(x)
     second = r.render(*arrays, cams).rgb.numpy().copy()
-    assert int(r._b["offsets"].numpy()[-1]) != entries_a
+    assert r.last_entry_count() != entries_a
     np.testing.assert_array_equal(second, Renderer(device).render(*b, cams).rgb.numpy())
     assert np.abs(second - first).max() > 0.1
     again = r.render(wp.array(a[0], dtype=wp.vec3, device=device), *arrays[1:], cams)  # one new array
