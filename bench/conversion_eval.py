@@ -8,7 +8,10 @@ diagonal; 0 = noise-free), then converted back to one fixed topology by each str
   varying input and of the converted output against the GT vertices; the increase in percent;
 * coverage: the distance of every GT vertex to the converted surface; its maximum over the GT
   vertices (the worst uncovered GT vertex) as a fraction of the GT's bbox diagonal;
-* the converted vertices' distance to the GT surface (the other side), 99th percentile.
+* the converted vertices' distance to the GT surface (the other side), 99th percentile;
+* the coverage the conversion lost: per GT vertex, its distance to the converted surface minus
+  its distance to that frame's input surface; the maximum over the GT vertices (a part the input
+  has and the output dropped shows here even where the input itself misses other parts).
 
 Summaries report the mean and the worst frame. Writes bench/results/conversion_eval_<device>.json
 and, next to it, a Markdown table (.md) and a per-frame plot (.png: the worst uncovered GT
@@ -86,14 +89,19 @@ def varying_input(gt, resolution: int, error: float, device, cache: Path | None)
     return var
 
 
-def frame_metrics(gt_V, gt_F, V, F, device) -> dict:
+def frame_metrics(gt_V, gt_F, V, F, device, cov_input=None) -> dict:
+    """One frame's figures (fractions of the GT's diagonal); ``cov_input``: each GT vertex's
+    distance to the input surface of the frame, for the coverage the conversion lost."""
     diag = _diag(gt_V)
     cd = chamfer_distance(V, gt_V, squared=True, device=device)
     cov = nearest_surface((V, F), gt_V, device=device).dist  # GT vertex -> output surface
     acc = nearest_surface((gt_V, gt_F), V, device=device).dist  # output vertex -> GT surface
-    return {"cd": cd.value, "uncovered_max": float(cov.max()) / diag,
-            "uncovered_p99": float(np.percentile(cov, 99)) / diag,
-            "off_surface_p99": float(np.percentile(acc, 99)) / diag}
+    m = {"cd": cd.value, "uncovered_max": float(cov.max()) / diag,
+         "uncovered_p99": float(np.percentile(cov, 99)) / diag,
+         "off_surface_p99": float(np.percentile(acc, 99)) / diag}
+    if cov_input is not None:  # per GT vertex: how much farther the output is than the input
+        m["coverage_loss_max"] = float((cov - cov_input).max()) / diag
+    return m, cov
 
 
 def evaluate(name, strategies, args, device) -> dict | None:
@@ -105,7 +113,8 @@ def evaluate(name, strategies, args, device) -> dict | None:
     var = varying_input(gt, args.resolution, args.error, device, Path(args.cache) if args.cache else None)
     prep = time.perf_counter() - t0
     T = gt.num_frames
-    inp = [frame_metrics(gt.V[t], gt.F, *var.frames[t], device) for t in range(T)]
+    inp, cov_in = zip(*[frame_metrics(gt.V[t], gt.F, *var.frames[t], device) for t in range(T)])
+    inp = list(inp)
     out = {"scene": name, "source": SOURCES.get(name, name), "frames": T, "gt_vertices": int(gt.num_vertices),
            "input_vertices": [int(min(len(v) for v, _ in var.frames)), int(max(len(v) for v, _ in var.frames))],
            "resolution": args.resolution, "error": args.error, "prepare_s": prep,
@@ -120,7 +129,7 @@ def evaluate(name, strategies, args, device) -> dict | None:
         fx = to_fixed_topology(var, strategy=s, device=device, **opts)
         wp.synchronize_device(device)
         sec = time.perf_counter() - t0
-        per = [frame_metrics(gt.V[t], gt.F, fx.V[t], fx.F, device) for t in range(T)]
+        per = [frame_metrics(gt.V[t], gt.F, fx.V[t], fx.F, device, cov_in[t])[0] for t in range(T)]
         info = fx.conversion
         summ = _summ(per)
         summ["cd_increase_pct"] = 100.0 * (summ["cd_mean"] / out["input"]["cd_mean"] - 1.0)
@@ -133,6 +142,7 @@ def evaluate(name, strategies, args, device) -> dict | None:
         print(f"{name:18s} {s:12s} CD in {out['input']['cd_mean'] * 1e3:.4f} out {summ['cd_mean'] * 1e3:.4f} "
               f"({summ['cd_increase_pct']:+.0f}%), worst frame ratio {summ['worst_frame_cd_ratio']:.2f}, "
               f"uncovered max {100 * summ['uncovered_max_max']:.2f}% (mean {100 * summ['uncovered_max_mean']:.2f}%), "
+              f"coverage lost max {100 * summ['coverage_loss_max_max']:.2f}%, "
               f"{sec:.1f} s", flush=True)
     return out
 
@@ -152,17 +162,19 @@ def report(path: Path):
     """Write PATH.md (table: mean and worst) and PATH.png (per-frame worst uncovered GT vertex)."""
     doc = json.loads(Path(path).read_text())
     rows = ["| sequence (frames, GT vertices) | input CD | input worst uncovered | strategy | CD | vs input | "
-            "worst-frame CD ratio | worst uncovered (mean over frames) | key frame | recovered frames | s |",
-            "|---|---|---|---|---|---|---|---|---|---|---|"]
+            "worst-frame CD ratio | worst uncovered (mean over frames) | coverage lost, worst | key frame | "
+            "recovered frames | s |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for sc in doc["scenes"]:
         i = sc["input"]
         for k, v in sc["strategies"].items():
             m = v["summary"]
+            lost = f"{100 * m['coverage_loss_max_max']:.1f}%" if "coverage_loss_max_max" in m else "–"
             rows.append(f"| {sc['scene']} ({sc['frames']}, {sc['gt_vertices']}) | {1e3 * i['cd_mean']:.3f} | "
                         f"{100 * i['uncovered_max_max']:.1f}% | {k} | {1e3 * m['cd_mean']:.3f} | "
                         f"{m['cd_increase_pct']:+.0f}% | {m['worst_frame_cd_ratio']:.2f} | "
                         f"{100 * m['uncovered_max_max']:.1f}% ({100 * m['uncovered_max_mean']:.1f}%) | "
-                        f"{v.get('key_frame', 0)} | {len(v['recovered_frames'])} | {v['seconds']:.1f} |")
+                        f"{lost} | {v.get('key_frame', 0)} | {len(v['recovered_frames'])} | {v['seconds']:.1f} |")
     md = Path(path).with_suffix(".md")
     md.write_text(f"Conversion evaluation on {doc['device_name']} ({doc['device']}), error {doc['args']['error']}, "
                   f"resolution {doc['args']['resolution']}; CD x1e-3 (vertices, squared)\n\n" + "\n".join(rows) + "\n")

@@ -1,0 +1,72 @@
+"""Where the conversion loses coverage the input has (issue 12; docs/evaluation.md): one
+sequence through issue 12's protocol (bench/conversion_eval.py's input), converted by the
+default strategy; per frame and GT vertex the distance to the converted surface minus the
+distance to the input surface (fraction of the diagonal). Writes which GT vertices lose most,
+how often, and how far they lie from the GT's centre (limbs' tips lie far out).
+
+    python bench/coverage_loss_probe.py --sequence chicken_crossing --error 0
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import RESULTS, describe_device, write_json  # noqa: E402
+from conversion_eval import _diag, ground_truth, varying_input  # noqa: E402
+
+from dynmesh_warp.convert import nearest_surface, to_fixed_topology  # noqa: E402
+
+
+def main(argv=None):
+    import warp as wp
+
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--sequence", default="chicken_crossing")
+    ap.add_argument("--error", type=float, default=0.0)
+    ap.add_argument("--resolution", type=int, default=96)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--cache", default=str(Path(__file__).resolve().parents[1] / "out" / "cache"))
+    ap.add_argument("--out", default=None)
+    a = ap.parse_args(argv)
+    wp.init()
+    gt = ground_truth(a.sequence, None)
+    if gt is None:
+        raise SystemExit(f"{a.sequence}: not found")
+    var = varying_input(gt, a.resolution, a.error, a.device, Path(a.cache))
+    fx = to_fixed_topology(var, strategy="graph", device=a.device)
+    T, N = gt.num_frames, gt.num_vertices
+    loss = np.zeros((T, N))
+    for t in range(T):
+        d_in = nearest_surface(var.frames[t], gt.V[t], device=a.device).dist
+        d_out = nearest_surface((fx.V[t], fx.F), gt.V[t], device=a.device).dist
+        loss[t] = (d_out - d_in) / _diag(gt.V[t])
+    radial = np.stack([np.linalg.norm(gt.V[t] - gt.V[t].mean(0), axis=1) / _diag(gt.V[t]) for t in range(T)])
+    worst = loss.argmax(1)
+    over = loss > 0.03
+    counts = over.sum(0)
+    top = np.argsort(-counts)[:20]
+    res = {"machine": describe_device(wp.get_device(a.device)), "sequence": a.sequence, "error": a.error,
+           "frames": T, "gt_vertices": N, "key_frame": fx.conversion.key_frame,
+           "loss_max_per_frame": loss.max(1).tolist(), "worst_vertex_per_frame": worst.tolist(),
+           "vertices_over_3pct_per_frame": over.sum(1).tolist(),
+           "vertices_ever_over_3pct": int((counts > 0).sum()),
+           "most_often_over_3pct": [{"vertex": int(v), "frames": int(counts[v]),
+                                    "radial_fraction_mean": float(radial[:, v].mean()),
+                                    "radial_percentile": float((radial.mean(0) < radial[:, v].mean()).mean() * 100)}
+                                   for v in top],
+           "worst_vertex_radial_percentile_per_frame": [
+               float((radial[t] < radial[t, worst[t]]).mean() * 100) for t in range(T)]}
+    print(f"{a.sequence}: vertices ever > 3 %: {res['vertices_ever_over_3pct']} of {N}; per frame mean "
+          f"{over.sum(1).mean():.1f}; the worst vertex's radial percentile (median over frames) "
+          f"{np.median(res['worst_vertex_radial_percentile_per_frame']):.0f}")
+    write_json(Path(a.out) if a.out else RESULTS / f"coverage_loss_probe_{a.sequence}_e{a.error:g}.json", res)
+
+
+if __name__ == "__main__":
+    main()
