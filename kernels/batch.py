@@ -31,7 +31,7 @@ from .swept import (
 # square root are instruction sequences with a slow-path call, which cost the latency-bound
 # queries registers, stack and issue slots; the approximations are within 2 ulp, far below the
 # float32 geometry's own rounding and the searches' tie tolerance. H100, landing window at
-# 4,096 envs: 9,840-9,848 -> 11,140-11,155 batched steps/s (docs/envs.md).
+# 4,096 envs: 9,831-9,838 -> 11,159-11,184 batched steps/s (docs/envs.md).
 wp.set_module_options({"fast_math": True})
 
 
@@ -136,7 +136,7 @@ def compute_pair_bounds(
 
 
 #: the serial search's register cap per thread on CUDA, for the same reason as
-#: GRID_QUERY_MAX_REGISTERS (uncapped: 105 registers, 19 warps an SM).
+#: GRID_QUERY_MAX_REGISTERS (uncapped: 115 registers, 17 warps an SM).
 SERIAL_QUERY_MAX_REGISTERS = 80
 
 
@@ -333,8 +333,7 @@ def collide_env_sphere_tiled(
     s, lane = wp.tid()
     find_closest_tiled(s, lane, frames, indices, pair_bvh, pair_lowers, pair_uppers, sphere_radius, sphere_env, fps,
                        interpolate, slices, env_time_in, env_playback_in, sphere_pos_in, sphere_vel_in, dt,
-                       extra_speed, margin, epsilon, query_dist, query_face, query_w, query_n,
-                      query_time)
+                       extra_speed, margin, epsilon, query_dist, query_face, query_w, query_n, query_time)
 
 
 @wp.kernel
@@ -434,7 +433,7 @@ def collide_env_heavy_spheres_tiled(
         find_closest_tiled(heavy[i], lane, frames, indices, pair_bvh, pair_lowers, pair_uppers, sphere_radius,
                            sphere_env, fps, interpolate, slices, env_time_in, env_playback_in, sphere_pos_in,
                            sphere_vel_in, dt, extra_speed, margin, epsilon, query_dist, query_face, query_w, query_n,
-                      query_time)
+                           query_time)
         i += num_blocks
 
 
@@ -662,8 +661,7 @@ def collide_env_sphere_grid(
                       cells_per_slot, cell_start, cell_end, cell_faces, cell_lowers, cell_uppers, sphere_radius,
                       sphere_env, fps, interpolate,
                       slices, env_time_in, env_playback_in, sphere_pos_in, sphere_vel_in, dt, extra_speed, margin,
-                      epsilon, query_dist, query_face, query_w, query_n,
-                      query_time)
+                      epsilon, query_dist, query_face, query_w, query_n, query_time)
 
 
 @wp.kernel
