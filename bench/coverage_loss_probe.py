@@ -10,7 +10,6 @@ how often, and how far they lie from the GT's centre (limbs' tips lie far out).
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
