@@ -9,6 +9,7 @@ diagonal; 0 = noise-free), then converted back to one fixed topology by each str
 * coverage: the distance of every GT vertex to the converted surface; its maximum over the GT
   vertices (the worst uncovered GT vertex) as a fraction of the GT's bbox diagonal;
 * the converted vertices' distance to the GT surface (the other side), 99th percentile;
+* triangle quality: the 1st percentile and the minimum of the faces' smallest angles [degrees];
 * the coverage the conversion lost: per GT vertex, its distance to the converted surface minus
   its distance to that frame's input surface; the maximum over the GT vertices (a part the input
   has and the output dropped shows here even where the input itself misses other parts).
@@ -101,7 +102,24 @@ def frame_metrics(gt_V, gt_F, V, F, device, cov_input=None) -> dict:
          "off_surface_p99": float(np.percentile(acc, 99)) / diag}
     if cov_input is not None:  # per GT vertex: how much farther the output is than the input
         m["coverage_loss_max"] = float((cov - cov_input).max()) / diag
+    ang = _min_angles(V, F)  # triangle quality [degrees]: each face's smallest angle
+    m["min_angle_p1"] = float(np.percentile(ang, 1))
+    m["min_angle_min"] = float(ang.min())
     return m, cov
+
+
+def _min_angles(V, F) -> np.ndarray:
+    """Each triangle's smallest interior angle [degrees] (0 for a degenerate one)."""
+    P = np.asarray(V, np.float64)[np.asarray(F)]
+    out = np.full(len(P), 180.0)
+    for i in range(3):
+        u = P[:, (i + 1) % 3] - P[:, i]
+        w = P[:, (i + 2) % 3] - P[:, i]
+        nu, nw = np.linalg.norm(u, axis=1), np.linalg.norm(w, axis=1)
+        c = np.einsum("ij,ij->i", u, w) / np.maximum(nu * nw, 1e-30)
+        a = np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
+        out = np.minimum(out, np.where((nu > 0) & (nw > 0), a, 0.0))
+    return out
 
 
 def evaluate(name, strategies, args, device) -> dict | None:
