@@ -923,14 +923,15 @@ def _chamfer_to_input(res, vseq, device) -> float:
 def _key_candidates(vseq, o: dict, K: int, given: bool, res) -> list:
     """The key frames to try after the run from the automatic key frame ``K`` (``res``): when
     that run is complete, covers at least KEY_RETRY_POOR_FRAMES frames poorly (> POOR_COVERAGE:
-    the frames the poor-fit warning names) and the key frame was not chosen by the user, ``key_candidates`` frames
+    the frames the poor-fit warning names; or always, with ``always_try_keys``) and the key frame
+    was not chosen by the user, ``key_candidates`` frames
     spread evenly over the sequence (other than K)."""
     n = int(o.get("key_candidates", 0) or 0)
     T = vseq.num_frames
     info = res.conversion
     poor = int(np.count_nonzero(np.asarray(info.coverage) > POOR_COVERAGE))
     if (n <= 0 or given or o["key_frame"] not in ("auto", None) or T < 3 or len(info.coverage) < T
-            or poor < KEY_RETRY_POOR_FRAMES):
+            or (poor < KEY_RETRY_POOR_FRAMES and not o.get("always_try_keys"))):
         return []
     keys = [min(T - 1, int(T * (i + 0.5) / n)) for i in range(n)]
     return [k for i, k in enumerate(keys) if k != K and k not in keys[:i]]

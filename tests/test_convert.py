@@ -507,6 +507,9 @@ def test_key_candidates_rerun_from_spread_keys_and_keep_the_closest_to_the_input
     seq = VaryingTopologySequence(frames, name="grow")
     one = to_fixed_topology(seq, strategy="graph", device=DEV)
     assert one.conversion.key_trials == []  # every frame well covered: one run
+    # the accurate mode runs the trials all the same (the automatic key first)
+    always = to_fixed_topology(seq, strategy="graph", device=DEV, key_candidates=2, always_try_keys=True)
+    assert [k for k, _, _, _ in always.conversion.key_trials] == [3, 1, 4]
     monkeypatch.setattr(convert_mod, "POOR_COVERAGE", -1.0)  # every frame "poor": the candidates run
     res = to_fixed_topology(seq, strategy="graph", device=DEV, key_candidates=2)
     tried = res.conversion.key_trials
