@@ -25,11 +25,30 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from common import RESULTS, describe_device, load_paper_sequence, time_loop, write_json  # noqa: E402
 
+#: spheres per env and their radius [m] of the batched paper scene
+SPHERES_PER_ENV, RADIUS = 5, 0.05
+
+
+def paper_envs_scene(device):
+    """The batched benchmarks' scene (this file, profile_envs.py): (sequence, whether it is the
+    shared data, the spawn positions of one env's spheres (S, 3) [m], physics, surface model)."""
+    from dynmesh_warp.config import SpawnConfig, spawn_positions
+    from dynmesh_warp.world import PhysicsParams, SurfaceModel
+
+    seq, shared = load_paper_sequence()
+    pos = spawn_positions(SpawnConfig(count=SPHERES_PER_ENV, radius=RADIUS, height=0.05, seed=0, spread=0.6),
+                          seq.V[0])
+    params = PhysicsParams(dt=1.0 / 240.0, auto_substeps=False, ground_height=float(seq.V[:, :, 2].min()))
+    return seq, shared, pos, params, SurfaceModel(seq, device, playback="loop")
+
+
+def random_phases(seq, num_envs: int) -> np.ndarray:
+    """Each env's start time [s]: uniform over one playback of ``seq`` (seeded, the same every run)."""
+    return np.random.default_rng(1).uniform(0.0, seq.num_frames / seq.fps, num_envs)
+
 
 def main(argv=None):
     from dynmesh_warp.batch import BatchedWorld, BatchModel, BatchState
-    from dynmesh_warp.config import SpawnConfig, spawn_positions
-    from dynmesh_warp.world import PhysicsParams, SurfaceModel
 
     ap = argparse.ArgumentParser()
     ap.add_argument("--device", default="cpu")
@@ -49,11 +68,8 @@ def main(argv=None):
     a = ap.parse_args(argv)
     wp.init()
     device = wp.get_device(a.device)
-    seq, shared = load_paper_sequence()
-    S, r = 5, 0.05
-    pos = spawn_positions(SpawnConfig(count=S, radius=r, height=0.05, seed=0, spread=0.6), seq.V[0])
-    params = PhysicsParams(dt=1.0 / 240.0, auto_substeps=False, ground_height=float(seq.V[:, :, 2].min()))
-    surf = SurfaceModel(seq, device, playback="loop")
+    seq, shared, pos, params, surf = paper_envs_scene(device)
+    S, r = SPHERES_PER_ENV, RADIUS
     res = {"machine": describe_device(device), "scene": {"sequence": seq.name, "shared_data": shared,
            "frames": seq.num_frames, "faces": int(seq.F.shape[0]), "spheres_per_env": S, "radius": r,
            "dt": 1 / 240, "substeps": 1, "phase": "uniform random over one gallop", "warmup_steps": a.warmup,
@@ -63,7 +79,7 @@ def main(argv=None):
         bm = BatchModel(surf, E, np.full(S, r), 1.0, params,
                         **({"time_slices": a.time_slices} if a.time_slices else {}),
                         **({"grid_cell_radii": a.grid_cell_radii} if a.grid_cell_radii else {}))
-        times = np.random.default_rng(1).uniform(0.0, seq.num_frames / seq.fps, E)
+        times = random_phases(seq, E)
         w = BatchedWorld(bm, BatchState(bm, pos, times=times), search=a.search,
                          tile_threads=a.tile_threads, budget=a.budget, blocks=a.blocks)
         w.step()

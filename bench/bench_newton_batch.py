@@ -30,6 +30,7 @@ import warp as wp
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench_envs import random_phases  # noqa: E402
 from common import RESULTS, describe_device, load_paper_sequence, time_loop, write_json  # noqa: E402
 
 
@@ -78,7 +79,7 @@ def main(argv=None):
                          "bodies": int(nw.model.body_count)}
         del nw
         for name, times in (("ours_one_clock", np.zeros(E)),
-                            ("ours_own_clocks", np.random.default_rng(1).uniform(0.0, seq.num_frames / seq.fps, E))):
+                            ("ours_own_clocks", random_phases(seq, E))):
             bm = BatchModel(surf, E, np.full(S, r), 1.0, params)
             w = BatchedWorld(bm, BatchState(bm, pos, times=times))
             w.step()

@@ -20,13 +20,12 @@ import warp as wp
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from common import describe_device, load_paper_sequence, write_json  # noqa: E402
+from bench_envs import RADIUS, SPHERES_PER_ENV, paper_envs_scene, random_phases  # noqa: E402
+from common import describe_device, write_json  # noqa: E402
 
 
 def main(argv=None):
     import dynmesh_warp.batch as B
-    from dynmesh_warp.config import SpawnConfig, spawn_positions
-    from dynmesh_warp.world import PhysicsParams, SurfaceModel
 
     ap = argparse.ArgumentParser()
     ap.add_argument("--device", default="cpu")
@@ -38,16 +37,13 @@ def main(argv=None):
     a = ap.parse_args(argv)
     wp.init()
     device = wp.get_device(a.device)
-    seq, shared = load_paper_sequence()
-    S, r = 5, 0.05
-    pos = spawn_positions(SpawnConfig(count=S, radius=r, height=0.05, seed=0, spread=0.6), seq.V[0])
-    params = PhysicsParams(dt=1.0 / 240.0, auto_substeps=False, ground_height=float(seq.V[:, :, 2].min()))
-    surf = SurfaceModel(seq, device, playback="loop")
+    seq, shared, pos, params, surf = paper_envs_scene(device)
+    S, r = SPHERES_PER_ENV, RADIUS
     res = {"machine": describe_device(device), "sequence": seq.name, "shared_data": shared, "envs": a.envs,
            "warmup": a.warmup, "steps": a.steps, "searches": {}}
     for search in a.searches.split(","):
         bm = B.BatchModel(surf, a.envs, np.full(S, r), 1.0, params)
-        times = np.random.default_rng(1).uniform(0.0, seq.num_frames / seq.fps, a.envs)
+        times = random_phases(seq, a.envs)
         w = B.BatchedWorld(bm, B.BatchState(bm, pos, times=times), search=search, use_graph=False)
         for _ in range(a.warmup):
             w.step()
