@@ -664,6 +664,13 @@ def collide_env_sphere_grid(
                       epsilon, query_dist, query_face, query_w, query_n, query_time)
 
 
+@wp.func
+def advance_env_clock(e: int, env_rate_in: wp.array[float], dt: wp.float64, env_time_out: wp.array[wp.float64]):
+    """env_time_out[e] += env_rate_in[e] * dt [s] (float64, as the single world's clock): the
+    one clock rule of ``advance_env_clocks`` and ``resolve_and_integrate_env_spheres``."""
+    env_time_out[e] = env_time_out[e] + wp.float64(env_rate_in[e]) * dt
+
+
 @wp.kernel
 def resolve_and_integrate_env_spheres(
     # Model:
@@ -715,7 +722,7 @@ def resolve_and_integrate_env_spheres(
     s = wp.tid()
     e = sphere_env[s]
     if s == 0 or sphere_env[s - 1] != e:
-        env_time_out[e] = env_time_out[e] + wp.float64(env_rate_in[e]) * clock_dt
+        advance_env_clock(e, env_rate_in, clock_dt, env_time_out)
     k0, k1, alpha = blend_pair(query_time[s], fps, frames.shape[0], env_playback_in[e], interpolate)
     p = sphere_pos_out[s]
     v = sphere_vel_out[s]
@@ -739,9 +746,8 @@ def advance_env_clocks(
     # State out:
     env_time_out: wp.array[wp.float64],
 ):
-    """env_time_out[e] += env_rate_in[e] * dt [s] (float64, as the single world's clock)."""
-    e = wp.tid()
-    env_time_out[e] = env_time_out[e] + wp.float64(env_rate_in[e]) * dt
+    """Every env's clock advanced one sub-step (``advance_env_clock``); one thread per env."""
+    advance_env_clock(wp.tid(), env_rate_in, dt, env_time_out)
 
 
 @wp.kernel
