@@ -295,18 +295,20 @@ class Renderer:
         first): a ``capacity=`` that the last exactly sized render fits in."""
         return self._cap
 
+    def _last_buffers(self, asked: str) -> dict:
+        if self._bkey is None:
+            raise ValueError(f"{asked}: nothing rendered yet")
+        return self._b
+
     def last_tile_counts(self) -> np.ndarray:
         """Splats listed per (camera, tile) in the last render, (C * tiles,) int (a host copy;
         for diagnostics: a tile's compositing cost follows its count)."""
-        if self._bkey is None:
-            raise ValueError("last_tile_counts: nothing rendered yet")
-        return self._b["end"].numpy() - self._b["start"].numpy()
+        b = self._last_buffers("last_tile_counts")
+        return b["end"].numpy() - b["start"].numpy()
 
     def last_entry_count(self) -> int:
         """(Gaussian, tile) entries of the last render (one host read; for diagnostics)."""
-        if self._bkey is None:
-            raise ValueError("last_entry_count: nothing rendered yet")
-        return int(self._b["offsets"].numpy()[-1])
+        return int(self._last_buffers("last_entry_count")["offsets"].numpy()[-1])
 
     def key_layout(self, C: int, G: int, tiles: int) -> tuple[bool, int]:
         """(compact, shift) of the sort keys of C cameras x G Gaussians over ``tiles`` (camera,
