@@ -170,6 +170,8 @@ def _domain(field) -> str:
             hi = m.le
         if getattr(m, "lt", None) is not None:
             hi, hi_open = m.lt, True
+    if field.annotation is bool:
+        return "be true or false"
     if field.annotation is int:
         kind = "be an integer"
     elif field.annotation is float:

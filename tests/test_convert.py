@@ -527,6 +527,8 @@ def test_key_candidates_rerun_from_spread_keys_and_keep_the_closest_to_the_input
         assert to_fixed_topology(seq, strategy="graph", device=DEV, **kw).conversion.key_trials == []
     with pytest.raises(ValueError, match="key_candidates"):
         to_fixed_topology(seq, strategy="graph", device=DEV, key_candidates=-1)
+    with pytest.raises(ValueError, match="always_try_keys must be true or false, got 'maybe'"):
+        to_fixed_topology(seq, strategy="graph", device=DEV, always_try_keys="maybe")
 
 
 def test_key_trial_score_is_the_chamfer_distance_to_the_input_on_capped_points(monkeypatch):
