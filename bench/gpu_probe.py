@@ -87,11 +87,13 @@ def main():
            "coverage_mean": float(np.mean(r.conversion.coverage)), "coverage_max": float(np.max(r.conversion.coverage)),
            "key_frame": r.conversion.key_frame, "key_trials": [list(x) for x in r.conversion.key_trials],
            "options": opts}
+    if parts is None:  # per frame, after the printed summary (long)
+        res["coverage"] = [round(float(c), 6) for c in r.conversion.coverage]
     if parts is not None:
         calls = parts.pop("calls")
         res["breakdown_s"] = {k: round(v, 4) for k, v in parts.items()}
         res["breakdown_calls"] = calls
-    print(res, flush=True)
+    print({k: v for k, v in res.items() if k != "coverage"}, flush=True)
     if a.out:
         write_json(a.out, res)
 

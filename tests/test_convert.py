@@ -575,3 +575,51 @@ def test_key_candidates_need_more_than_one_poor_frame():
     assert _key_candidates(seq, o, 75, False, res(need)) == [25, 125, 175]  # the key itself once
     assert _key_candidates(seq, {**o, "key_frame": 7}, 7, False, res(T)) == []
     assert _key_candidates(seq, o, 102, True, res(T)) == []  # a given template
+
+
+def test_key_candidates_on_coverage_drift():
+    """No frame poor, but the coverage drifts: the 90th percentile of the frames' coverage above
+    DRIFT_RATIO x its mean next to the key frame (the key itself excluded) and above DRIFT_FLOOR
+    starts the key trials; checked against the rule computed here with NumPy, on both sides of
+    each threshold."""
+    from types import SimpleNamespace
+
+    from dynmesh_warp.convert import (DRIFT_FLOOR, DRIFT_NEIGHBOURS, DRIFT_RATIO, POOR_COVERAGE,
+                                      _key_candidates, _key_retry_reason)
+
+    T, K = 200, 150
+    seq = SimpleNamespace(num_frames=T)
+    o = {"key_candidates": 4, "key_frame": "auto"}
+    rng = np.random.default_rng(0)
+
+    def coverage(near, far):
+        cov = far * (1 + 0.05 * rng.uniform(-1, 1, T))
+        cov[K - DRIFT_NEIGHBOURS:K + DRIFT_NEIGHBOURS + 1] = near
+        cov[K] = 0.0  # the template is the key frame's own mesh
+        return cov
+
+    def oracle(cov):
+        near = np.r_[cov[K - DRIFT_NEIGHBOURS:K], cov[K + 1:K + 1 + DRIFT_NEIGHBOURS]].mean()
+        p90 = np.percentile(cov, 90)
+        return p90 > DRIFT_FLOOR and p90 > DRIFT_RATIO * near
+
+    far = 1.5 * DRIFT_FLOOR
+    assert far < POOR_COVERAGE  # no frame is poor: drift alone decides
+    for near, want in ((far / (1.2 * DRIFT_RATIO), True), (far / (0.8 * DRIFT_RATIO), False)):
+        cov = coverage(near, far)
+        assert oracle(cov) == want
+        got = _key_candidates(seq, o, K, False, SimpleNamespace(conversion=SimpleNamespace(coverage=cov.tolist())))
+        assert got == ([25, 75, 125, 175] if want else [])
+        reason = _key_retry_reason(cov, K)
+        assert (reason is not None) == want
+        if want:
+            assert reason.startswith("coverage drifted") and f"{100 * near:.2f}% next to the key frame" in reason
+    # drift by a large ratio, but every frame within DRIFT_FLOOR: a fit at the noise level, one run
+    cov = coverage(0.1 * DRIFT_FLOOR, 0.8 * DRIFT_FLOOR)
+    assert not oracle(cov) and _key_retry_reason(cov, K) is None
+    # a key at the sequence's start: its neighbours are the frames after it
+    cov = coverage(far / (3 * DRIFT_RATIO), far)
+    cov[:DRIFT_NEIGHBOURS + 1] = far / (3 * DRIFT_RATIO)
+    assert _key_retry_reason(cov, 0) is not None
+    # too few frames to tell drift from motion: no trigger
+    assert _key_retry_reason(np.array([0.0, 0.001, 0.05 - 1e-6, 0.04]), 0) is None
