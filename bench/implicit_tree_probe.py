@@ -1,0 +1,98 @@
+"""Probe for issue 14's last row (10^6 vertices x 10^5 spheres), after cluster_refit_probe.py: the
+pointer-free tree of kernels/tree.py — faces in Morton order, leaves of B faces, the complete
+binary tree over them refit every step from the frames at the step's blend (no vertex buffer),
+a nearest-first query — against the refit path's pieces on the same data (vertex blend,
+wp.Mesh.refit, mesh_query_point). Each piece graph-replayed and timed alone; the query's
+distances checked against wp.mesh_query_point's. A measurement, not a collider yet.
+
+    python bench/implicit_tree_probe.py --device cuda --vertices 1000000 --spheres 100000
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_step import wave_grid  # noqa: E402
+from cluster_refit_probe import blend_points, find_closest_on_mesh, timed  # noqa: E402
+from common import RESULTS, describe_device, write_json  # noqa: E402
+
+from dynmesh_warp.kernels.tree import build_implicit_tree, find_closest_on_tree, refit_tree  # noqa: E402
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--vertices", type=int, default=10_000)
+    ap.add_argument("--spheres", type=int, default=1_000)
+    ap.add_argument("--leaf-faces", default="2,4,8")
+    ap.add_argument("--levels", default="3,4,6", help="tree levels refit per launch")
+    ap.add_argument("--reach", type=float, default=0.0106, help="query reach [m]: r 1.6 mm + margin 1 mm + 8 mm of motion")
+    ap.add_argument("--reps", type=int, default=50)
+    ap.add_argument("--out", default=None)
+    a = ap.parse_args(argv)
+    wp.init()
+    dev = wp.get_device(a.device)
+    n = int(round(np.sqrt(a.vertices)))
+    seq = wave_grid(n)
+    V, F = seq.V.astype(np.float32), seq.F.astype(np.int32)
+    k0, k1, alpha = 1, 2, 0.37
+    Vt = (1 - alpha) * V[k0] + alpha * V[k1]
+    rng = np.random.default_rng(0)
+    fi = rng.integers(0, len(F), a.spheres)
+    bc = rng.dirichlet([1, 1, 1], a.spheres)
+    tri = Vt[F[fi]]
+    nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    pts = (np.einsum("sk,skd->sd", bc, tri) + nrm * rng.uniform(0.0, 0.004, (a.spheres, 1))).astype(np.float32)
+    frames = wp.array(V, dtype=wp.vec3, device=dev)
+    points = wp.array(pts, dtype=wp.vec3, device=dev)
+    eps = 1e-6
+    res = {"machine": describe_device(dev), "vertices": n * n, "faces": len(F), "spheres": a.spheres,
+           "reach_m": a.reach, "rows": []}
+    P_ = wp.zeros(n * n, dtype=wp.vec3, device=dev)
+    wp.launch(blend_points, n * n, inputs=[frames, k0, k1, alpha], outputs=[P_], device=dev)
+    mesh = wp.Mesh(points=P_, indices=wp.array(F.ravel(), dtype=wp.int32, device=dev), bvh_constructor="sah",
+                   bvh_leaf_size=4)
+    ref = wp.zeros(a.spheres, dtype=float, device=dev)
+    t_blend = timed(lambda: wp.launch(blend_points, n * n, inputs=[frames, k0, k1, alpha], outputs=[P_], device=dev),
+                    dev, a.reps)
+    t_refit = timed(mesh.refit, dev, a.reps)
+    t_q = timed(lambda: wp.launch(find_closest_on_mesh, a.spheres, inputs=[mesh.id, points, a.reach], outputs=[ref],
+                                  device=dev), dev, a.reps)
+    res["refit_path_us"] = {"blend_vertices": t_blend, "mesh_refit": t_refit, "mesh_query_point": t_q,
+                            "sum": t_blend + t_refit + t_q}
+    print(f"refit path: blend {t_blend:.1f} + refit {t_refit:.1f} + query {t_q:.1f} = {t_blend + t_refit + t_q:.1f} us",
+          flush=True)
+    d_ref = ref.numpy()
+    for B in [int(x) for x in a.leaf_faces.split(",")]:
+        tree_faces, tree_indices, depth = build_implicit_tree(V[0], F, B)
+        P = 1 << depth
+        tf = wp.array(tree_faces, device=dev)
+        ti = wp.array(tree_indices, device=dev)
+        lo = wp.zeros(2 * P, dtype=wp.vec3, device=dev)
+        hi = wp.zeros(2 * P, dtype=wp.vec3, device=dev)
+        dist = wp.zeros(a.spheres, dtype=float, device=dev)
+        face = wp.zeros(a.spheres, dtype=wp.int32, device=dev)
+        for L in [int(x) for x in a.levels.split(",")]:
+            t_r = timed(lambda: refit_tree(frames, ti, tf, B, depth, k0, k1, alpha, lo, hi, L), dev, a.reps)
+            t_c = timed(lambda: wp.launch(find_closest_on_tree, a.spheres,
+                                          inputs=[frames, ti, tf, lo, hi, B, P, k0, k1, alpha, points, a.reach, eps],
+                                          outputs=[dist, face], device=dev), dev, a.reps)
+            err = float(np.abs(dist.numpy() - d_ref).max())
+            row = {"leaf_faces": B, "depth": depth, "levels_per_launch": L, "tree_refit_us": t_r, "query_us": t_c,
+                   "sum_us": t_r + t_c, "max_abs_diff_vs_mesh_query_m": err,
+                   "tree_bytes": int(2 * P * 24 + tree_faces.nbytes + tree_indices.nbytes)}
+            res["rows"].append(row)
+            print(f"B={B} depth {depth} levels/launch {L}: refit {t_r:.1f} + query {t_c:.1f} = {t_r + t_c:.1f} us "
+                  f"(max |d - mesh| {err:.2e} m)", flush=True)
+    write_json(Path(a.out) if a.out else RESULTS / f"implicit_tree_probe_{'cuda' if dev.is_cuda else 'cpu'}.json", res)
+
+
+if __name__ == "__main__":
+    main()
