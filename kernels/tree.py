@@ -123,21 +123,22 @@ def refit_tree_levels(
     # In:
     top_level: int,
     levels: int,
-    # State out (in place: reads the level top_level + levels, writes the ones above it):
-    node_lower_out: wp.array[wp.vec3],
-    node_upper_out: wp.array[wp.vec3],
+    # Out:
+    node_lower: wp.array[wp.vec3],
+    node_upper: wp.array[wp.vec3],
 ):
     """Boxes [m] of the ``levels`` levels from ``top_level + levels - 1`` up to ``top_level`` of
     the subtree of node 2^top_level + tid, from the level below them (one thread a subtree,
-    level by level)."""
+    level by level). In place: reads level ``top_level + levels`` of node_lower/node_upper and
+    writes the levels above it."""
     t = wp.tid()
     root = (1 << top_level) + t
     for up in range(levels):
         j = levels - 1 - up  # relative depth of the level written now
         first = root << j
         for m in range(first, first + (1 << j)):
-            node_lower_out[m] = wp.min(node_lower_out[2 * m], node_lower_out[2 * m + 1])
-            node_upper_out[m] = wp.max(node_upper_out[2 * m], node_upper_out[2 * m + 1])
+            node_lower[m] = wp.min(node_lower[2 * m], node_lower[2 * m + 1])
+            node_upper[m] = wp.max(node_upper[2 * m], node_upper[2 * m + 1])
 
 
 def refit_tree(frames, tree_indices, tree_faces, leaf_faces: int, depth: int, k0: int, k1: int, alpha: float,
@@ -211,10 +212,9 @@ def find_closest_on_tree(
     frames: wp.array2d[wp.vec3],
     tree_indices: wp.array[wp.int32],
     tree_faces: wp.array[wp.int32],
-    # State in:
+    # In:
     node_lower: wp.array[wp.vec3],
     node_upper: wp.array[wp.vec3],
-    # In:
     leaf_faces: int,
     num_leaves: int,
     k0: int,
