@@ -7,7 +7,7 @@ P and the tree is the complete binary tree over them in heap layout: node 1 is t
 has children 2i and 2i + 1, leaf l is node P + l. Its topology never changes, so there are no
 child pointers and no build per step: a refit is one pass over the faces for the leaf boxes
 (:func:`compute_tree_leaf_bounds`, at the step's blend of frames k and k+1, so no vertex buffer
-is written) and a few launches for the levels above (:func:`refit_tree_levels`, each doing
+is written) and a few launches for the levels above (:func:`compute_tree_level_bounds`, each doing
 several levels in registers).
 
 The query (:func:`closest_on_tree`) walks it nearest child first with a small stack and skips a
@@ -119,7 +119,7 @@ def compute_tree_leaf_bounds(
 
 
 @wp.kernel
-def refit_tree_levels(
+def compute_tree_level_bounds(
     # In:
     top_level: int,
     levels: int,
@@ -153,7 +153,7 @@ def refit_tree(frames, tree_indices, tree_faces, leaf_faces: int, depth: int, k0
     while below > 0:
         n = min(levels_per_launch, below)
         top = below - n
-        wp.launch(refit_tree_levels, 1 << top, inputs=[top, n], outputs=[node_lower, node_upper], device=dev)
+        wp.launch(compute_tree_level_bounds, 1 << top, inputs=[top, n], outputs=[node_lower, node_upper], device=dev)
         below = top
 
 
