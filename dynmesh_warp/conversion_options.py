@@ -127,8 +127,9 @@ class GraphOptions(_Options, _FineStage):
     key_candidates: Int = Field(4, ge=0)
     #: run the key-frame trials whatever the first run's coverage (an accurate mode, off by
     #: default: ~5x the time where the first run covers every frame). Issue 12's protocol, CPU,
-    #: with relax_iterations 0: CD vs the input +0 / +2 / +5 / +7 / -2 % (gallop, collapse, pcow,
-    #: chicken, figure; the defaults +1 / +9 / +13 / +11 / -2 %); docs/evaluation.md
+    #: 1 % error: CD vs the input +0 / +2 / +5 / +7 / -2 % (gallop, collapse, pcow, chicken,
+    #: figure); the defaults, whose drift trigger runs the trials on collapse and pcow only,
+    #: -1 / +2 / +5 / +7 / -2 %; docs/conversion.md
     always_try_keys: bool = False
     # bidirectional repair: re-track runs of poorly covered frames from the other side (off: on
     # pcow it lowered the worst uncovered vertex 13.6 -> 12.3 % but not the CD, +58 -> +60 %)
