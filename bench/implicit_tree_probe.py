@@ -22,7 +22,7 @@ from bench_step import wave_grid  # noqa: E402
 from cluster_refit_probe import blend_points, find_closest_on_mesh, timed  # noqa: E402
 from common import RESULTS, describe_device, write_json  # noqa: E402
 
-from dynmesh_warp.kernels.tree import build_implicit_tree, find_closest_on_tree, refit_tree  # noqa: E402
+from dynmesh_warp.kernels.tree import build_implicit_tree, find_closest_on_tree, morton_codes, refit_tree  # noqa: E402
 
 
 def main(argv=None):
@@ -70,6 +70,15 @@ def main(argv=None):
     print(f"refit path: blend {t_blend:.1f} + refit {t_refit:.1f} + query {t_q:.1f} = {t_blend + t_refit + t_q:.1f} us",
           flush=True)
     d_ref = ref.numpy()
+    # the same query with the points in Morton order (thread t takes the t-th point along the curve)
+    order = np.argsort(morton_codes(pts), kind="stable")
+    points_sorted = wp.array(pts[order], dtype=wp.vec3, device=dev)
+    ref_sorted = wp.zeros(a.spheres, dtype=float, device=dev)
+    t_qs = timed(lambda: wp.launch(find_closest_on_mesh, a.spheres, inputs=[mesh.id, points_sorted, a.reach],
+                                   outputs=[ref_sorted], device=dev), dev, a.reps)
+    res["refit_path_us"]["mesh_query_point_morton_sorted_points"] = t_qs
+    res["sorted_vs_unsorted_max_abs_diff_m"] = float(np.abs(ref_sorted.numpy() - d_ref[order]).max())
+    print(f"mesh_query_point, points in Morton order: {t_qs:.1f} us (unsorted {t_q:.1f})", flush=True)
     for B in [int(x) for x in a.leaf_faces.split(",")]:
         tree_faces, tree_indices, depth = build_implicit_tree(V[0], F, B)
         P = 1 << depth
@@ -85,12 +94,16 @@ def main(argv=None):
                                           inputs=[frames, ti, tf, lo, hi, B, P, k0, k1, alpha, points, a.reach, eps],
                                           outputs=[dist, face], device=dev), dev, a.reps)
             err = float(np.abs(dist.numpy() - d_ref).max())
-            row = {"leaf_faces": B, "depth": depth, "levels_per_launch": L, "tree_refit_us": t_r, "query_us": t_c,
+            t_cs = timed(lambda: wp.launch(find_closest_on_tree, a.spheres,
+                                           inputs=[frames, ti, tf, lo, hi, B, P, k0, k1, alpha, points_sorted, a.reach,
+                                                   eps], outputs=[dist, face], device=dev), dev, a.reps)
+            row = {"query_morton_sorted_points_us": t_cs,
+                   "leaf_faces": B, "depth": depth, "levels_per_launch": L, "tree_refit_us": t_r, "query_us": t_c,
                    "sum_us": t_r + t_c, "max_abs_diff_vs_mesh_query_m": err,
                    "tree_bytes": int(2 * P * 24 + tree_faces.nbytes + tree_indices.nbytes)}
             res["rows"].append(row)
             print(f"B={B} depth {depth} levels/launch {L}: refit {t_r:.1f} + query {t_c:.1f} = {t_r + t_c:.1f} us "
-                  f"(max |d - mesh| {err:.2e} m)", flush=True)
+                  f"(max |d - mesh| {err:.2e} m); query on sorted points {t_cs:.1f} us", flush=True)
     write_json(Path(a.out) if a.out else RESULTS / f"implicit_tree_probe_{'cuda' if dev.is_cuda else 'cpu'}.json", res)
 
 
