@@ -1,8 +1,8 @@
 """Probe: what the refit collider's sphere order (world.SphereOrder) costs and buys in the step,
 one variant at a time on the scaling scene (bench_step.py's wave grid, spheres spawned at random
 over it): the order as shipped (sorted at the start and on every frame change), sorted once at
-the start only, the spawn order through the same indirection (no sort), and each of those
-without the contact kernel, to separate the query from the rest. Writes a JSON naming the machine.
+the start only, the spawn order through the same indirection (no sort); and checks that the
+order is a permutation of the spheres after the timed steps. Writes a JSON naming the machine.
 
     python bench/sphere_order_probe.py --device cuda --verts 100000,1000000 --spheres 100000
 """
