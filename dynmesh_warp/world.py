@@ -17,7 +17,7 @@ from typing import Optional
 import numpy as np
 import warp as wp
 
-from .kernels.collide import collide_sphere_mesh, compute_sphere_order_keys
+from .kernels.collide import collide_sphere_mesh
 from .kernels.frames import update_frame_vertices
 from .kernels.geometry import compute_face_normals
 from .kernels.integrate import integrate_spheres
@@ -156,7 +156,6 @@ class SurfaceModel:
         playback: int code of "loop" | "clamp" | "pingpong" (times past the last frame).
         interpolate: blend frames k and k+1 linearly (else hold frame k).
         max_speed: largest vertex speed over the sequence [m/s] (host float).
-        bounds: (lower, upper) (3,) float32 host arrays, the box of every frame [m].
     """
 
     def __init__(self, seq: FixedTopologySequence, device=None, playback: str = DEFAULT_PLAYBACK, interpolate: bool = True):
@@ -181,7 +180,6 @@ class SurfaceModel:
         F = seq.F
         edges = np.linalg.norm(seq.V[:, F[:, [1, 2, 0]]] - seq.V[:, F], axis=-1)  # (T, M, 3)
         self.average_edge_length = edges.mean(axis=(1, 2)).astype(np.float32)  # (T,) [m], host
-        self.bounds = (seq.V.min(axis=(0, 1)).astype(np.float32), seq.V.max(axis=(0, 1)).astype(np.float32))
 
     # What the rest of the package asks of a surface, answered by each surface class (no type
     # checks elsewhere): the colliders it supports, its state buffers, the indices of a frame,
@@ -243,7 +241,7 @@ class VaryingSurfaceModel:
 
     Attributes:
         frame_points: list of wp.array(vec3) (N_t,) [m]; frame_indices: list of wp.array(int32) (3M_t,).
-        fps, playback, num_frames, bounds: as in :class:`SurfaceModel`. There is no correspondence
+        fps, playback, num_frames: as in :class:`SurfaceModel`. There is no correspondence
         between frames, so the surface velocity is zero and no interpolation is possible.
     """
 
@@ -261,8 +259,6 @@ class VaryingSurfaceModel:
         self.playback_name = playback
         self.playback = PLAYBACK_MODES[playback]
         self.max_frame_step = 0.0
-        self.bounds = (np.min([v.min(axis=0) for v, _ in seq.frames], axis=0).astype(np.float32),
-                       np.max([v.max(axis=0) for v, _ in seq.frames], axis=0).astype(np.float32))
 
     #: without vertex correspondence only a BVH built per frame or step can follow it
     colliders = (Collider.REBUILD.value,)
@@ -488,14 +484,12 @@ def compute_normals(model: Model, state: State, ctx: StepContext):
     ctx.launch(compute_face_normals, idx.shape[0] // 3, [state.points, idx], [state.face_normals])
 
 
-def collide_mesh(model: Model, state: State, contacts: "Contacts", ctx: StepContext, mesh_id, sphere_order):
-    """Stage 3 on a ``wp.Mesh`` over the current vertex buffer (refit / rebuild colliders);
-    ``sphere_order`` (wp.array int32, a permutation of the spheres): the order the threads take
-    them in (:class:`SphereOrder`; any permutation gives the same contacts)."""
+def collide_mesh(model: Model, state: State, contacts: "Contacts", ctx: StepContext, mesh_id):
+    """Stage 3 on a ``wp.Mesh`` over the current vertex buffer (refit / rebuild colliders)."""
     m, s, c = model, state, contacts
     ctx.launch(collide_sphere_mesh, m.spheres.count,
                [ctx.indices(m), m.spheres.radius, s.points, s.velocities, s.sphere_pos, s.sphere_vel,
-                sphere_order, mesh_id, ctx.sub_dt, ctx.extra_speed, m.params.margin],
+                mesh_id, ctx.sub_dt, ctx.extra_speed, m.params.margin],
                [c.face, c.point, c.normal, c.depth, c.velocity])
 
 
@@ -571,60 +565,7 @@ class ColliderBase:
         pass
 
 
-class SphereOrder:
-    """The order in which a contact kernel's threads take the spheres: by the Morton code of
-    their centres in the surface's box, so that neighbouring threads walk the same part of the
-    BVH (cache hits, less divergence). A performance hint only: every sphere's contact is
-    computed on its own, so the contacts do not depend on it (tested). Sorted at construction,
-    on ``resize`` / ``spheres_moved``, and in the step when the clock's frame pair changes (a
-    conditional graph node, as the swept collider's refit), so it follows the spheres at the
-    reconstruction's frame rate; a surface of one frame keeps the order of the last sort.
-    Measured on an H100 (docs/physics.md, "Spheres in spatial order").
-
-    Attributes:
-        order: wp.array(int32) (max(2S, 2),): the first S entries, a permutation of the spheres.
-        keys: wp.array(int32) (max(2S, 2),): the sort's scratch (radix sort needs twice the count).
-    """
-
-    def __init__(self, model: Model, state: State, ctx: StepContext):
-        lo, hi = model.surface.bounds
-        self.lower = wp.vec3(*(float(x) for x in lo))
-        self.inv_extent = 1.0 / max(float(np.max(hi - lo)), 1e-12)
-        self.resize(model, state, ctx)
-
-    def resize(self, model: Model, state: State, ctx: StepContext):
-        n = model.spheres.count
-        self.count = n
-        self.keys = wp.zeros(max(2 * n, 2), dtype=wp.int32, device=ctx.device)
-        self.order = wp.array(np.arange(max(2 * n, 2), dtype=np.int32), device=ctx.device)
-        self.sort(model, state, ctx)
-
-    def sort(self, model: Model, state: State, ctx: StepContext):
-        """Sort the spheres by their current positions (device work; capturable)."""
-        if self.count:
-            ctx.launch(compute_sphere_order_keys, self.count, [state.sphere_pos, self.lower, self.inv_extent],
-                       [self.keys, self.order])
-            wp.utils.radix_sort_pairs(self.keys, self.order, self.count)
-
-    def update(self, model: Model, state: State, ctx: StepContext):
-        """Sort again if the clock's frame pair changed (``State.frame_changed``)."""
-        wp.capture_if(state.frame_changed, on_true=self.sort, model=model, state=state, ctx=ctx)
-
-
-class _MeshCollider(ColliderBase):
-    """A collider that queries a ``wp.Mesh`` (``self.mesh``) with the spheres in spatial order."""
-
-    def resize(self, model: Model, state: State, ctx: StepContext):
-        self.sphere_order.resize(model, state, ctx)
-
-    def spheres_moved(self, model: Model, state: State, ctx: StepContext):
-        self.sphere_order.sort(model, state, ctx)
-
-    def collide(self, model: Model, state: State, contacts: "Contacts", ctx: StepContext):
-        collide_mesh(model, state, contacts, ctx, self.mesh.id, self.sphere_order.order)
-
-
-class RefitCollider(_MeshCollider):
+class RefitCollider(ColliderBase):
     """Fixed topology: one ``wp.Mesh`` BVH built at start, refit to the current vertices each
     sub-step (the reference path: per-step vertex copy/interpolation + refit)."""
 
@@ -636,14 +577,15 @@ class RefitCollider(_MeshCollider):
         ctor, leaf = REFIT_BVH[device_kind(state.points.device)]
         self.mesh = wp.Mesh(points=state.points, indices=model.surface.indices, velocities=state.velocities,
                             bvh_constructor=ctor, bvh_leaf_size=leaf)
-        self.sphere_order = SphereOrder(model, state, ctx)
 
     def update(self, model: Model, state: State, ctx: StepContext):
         self.mesh.refit()
-        self.sphere_order.update(model, state, ctx)
+
+    def collide(self, model: Model, state: State, contacts: "Contacts", ctx: StepContext):
+        collide_mesh(model, state, contacts, ctx, self.mesh.id)
 
 
-class RebuildCollider(_MeshCollider):
+class RebuildCollider(ColliderBase):
     """Varying-topology baseline: a new ``wp.Mesh`` (BVH built from scratch) every sub-step, or
     only when the reconstruction frame changes (``every="frame"``)."""
 
@@ -659,16 +601,16 @@ class RebuildCollider(_MeshCollider):
         self.every = every
         self.mesh = None
         self._key = None
-        self.sphere_order = SphereOrder(model, state, ctx)
 
     def update(self, model: Model, state: State, ctx: StepContext):
         key = ctx.frame_key(model)
-        if key != self._key:  # host-side clock (the rebuild collider is not captured)
-            self.sphere_order.sort(model, state, ctx)
         if self.mesh is not None and self.every == "frame" and key == self._key:
             return
         self.mesh = wp.Mesh(points=state.points, indices=ctx.indices(model), velocities=state.velocities)
         self._key = key
+
+    def collide(self, model: Model, state: State, contacts: "Contacts", ctx: StepContext):
+        collide_mesh(model, state, contacts, ctx, self.mesh.id)
 
 
 class SweptCollider(ColliderBase):
@@ -1029,8 +971,8 @@ class World:
         compute_normals(self.model, self.state, self.ctx)
 
     def collide_mesh(self, mesh_id):
-        """Stage 3 on a wp.Mesh (refit / rebuild colliders; the spheres in the collider's order)."""
-        collide_mesh(self.model, self.state, self.contacts, self.ctx, mesh_id, self.collider.sphere_order.order)
+        """Stage 3 on a wp.Mesh (refit / rebuild colliders)."""
+        collide_mesh(self.model, self.state, self.contacts, self.ctx, mesh_id)
 
     def integrate(self):
         """Stage 4: sphere dynamics; advances the device clock and its frame pair."""

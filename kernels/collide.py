@@ -44,40 +44,6 @@ def contact_reach(r: float, v: wp.vec3, extra_speed: float, dt: float, margin: f
     return r + margin + (wp.length(v) + extra_speed) * dt
 
 
-@wp.func
-def spread_bits_3d(x: int) -> int:
-    """The low 10 bits of x spread to every third bit (bits 0, 3, ..., 27)."""
-    x = (x | (x << 16)) & 0x030000FF
-    x = (x | (x << 8)) & 0x0300F00F
-    x = (x | (x << 4)) & 0x030C30C3
-    return (x | (x << 2)) & 0x09249249
-
-
-@wp.kernel
-def compute_sphere_order_keys(
-    # State in:
-    sphere_pos_in: wp.array[wp.vec3],
-    # In:
-    lower: wp.vec3,
-    inv_extent: float,
-    # Out:
-    order_keys: wp.array[wp.int32],
-    sphere_order: wp.array[wp.int32],
-):
-    """Sort key of each sphere: the 30-bit Morton code of its centre in the cube [lower,
-    lower + 1 / inv_extent] (10 bits an axis, clamped to the cube), and its index.
-
-    sphere_pos_in (S,) [m]; lower [m]; inv_extent [1/m]; order_keys, sphere_order (>= S,).
-    """
-    s = wp.tid()
-    q = (sphere_pos_in[s] - lower) * (inv_extent * 1023.0)
-    x = wp.clamp(int(q[0]), 0, 1023)
-    y = wp.clamp(int(q[1]), 0, 1023)
-    z = wp.clamp(int(q[2]), 0, 1023)
-    order_keys[s] = spread_bits_3d(x) | (spread_bits_3d(y) << 1) | (spread_bits_3d(z) << 2)
-    sphere_order[s] = s
-
-
 @wp.kernel
 def collide_sphere_mesh(
     # Model:
@@ -89,7 +55,6 @@ def collide_sphere_mesh(
     sphere_pos_in: wp.array[wp.vec3],
     sphere_vel_in: wp.array[wp.vec3],
     # In:
-    sphere_order: wp.array[wp.int32],
     mesh: wp.uint64,
     dt: float,
     extra_speed: float,
@@ -105,11 +70,9 @@ def collide_sphere_mesh(
 
     The query reaches radius + margin + (|v| + extra_speed) * dt, where extra_speed bounds the
     velocity gained in one step (gravity), so any surface the sphere's own motion can reach
-    during the step is found (continuous contact in the integrator). Thread t takes sphere
-    ``sphere_order[t]`` (a permutation of the spheres; spatially sorted, neighbouring threads
-    walk the same part of the tree: each sphere's contact does not depend on it).
+    during the step is found (continuous contact in the integrator).
     """
-    s = sphere_order[wp.tid()]
+    s = wp.tid()
     p = sphere_pos_in[s]
     r = sphere_radius[s]
     reach = contact_reach(r, sphere_vel_in[s], extra_speed, dt, margin)
