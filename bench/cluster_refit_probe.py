@@ -24,20 +24,9 @@ from bench_step import wave_grid  # noqa: E402
 from common import RESULTS, describe_device, write_json  # noqa: E402
 
 from dynmesh_warp.kernels.swept import box_distance, face_candidate, interpolated_triangle, keep_closest  # noqa: E402
+from dynmesh_warp.kernels.tree import morton_codes  # noqa: E402
 
 wp.set_module_options({"fast_math": True})
-
-
-def _morton(c: np.ndarray) -> np.ndarray:
-    q = ((c - c.min(0)) / max(float(np.ptp(c, axis=0).max()), 1e-12) * 1023).astype(np.uint64)
-
-    def spread(x):
-        x = (x | (x << np.uint64(16))) & np.uint64(0x030000FF)
-        x = (x | (x << np.uint64(8))) & np.uint64(0x0300F00F)
-        x = (x | (x << np.uint64(4))) & np.uint64(0x030C30C3)
-        return (x | (x << np.uint64(2))) & np.uint64(0x09249249)
-
-    return spread(q[:, 0]) | (spread(q[:, 1]) << np.uint64(1)) | (spread(q[:, 2]) << np.uint64(2))
 
 
 @wp.kernel
@@ -117,6 +106,46 @@ def timed(fn, device, reps: int) -> float:
     return float(np.median(out))
 
 
+def probe_scene(vertices: int, spheres: int, reach: float, reps: int, dev) -> dict:
+    """The probes' data and the refit path's pieces timed on it: the wave grid of ``vertices``
+    (frames V, faces F), ``spheres`` points within 4 mm above its surface at the blend (1, 2,
+    0.37), and blend + ``wp.Mesh.refit`` + ``mesh_query_point`` (SAH, 4 a leaf) graph-replayed.
+    Returns V, F, frames, pts (host), points, blend, mesh, d_ref (the query's distances [m]) and
+    res (the JSON's head, with ``refit_path_us``)."""
+    n = int(round(np.sqrt(vertices)))
+    seq = wave_grid(n)
+    V, F = seq.V.astype(np.float32), seq.F.astype(np.int32)
+    k0, k1, alpha = 1, 2, 0.37
+    Vt = (1 - alpha) * V[k0] + alpha * V[k1]
+    rng = np.random.default_rng(0)
+    fi = rng.integers(0, len(F), spheres)
+    bc = rng.dirichlet([1, 1, 1], spheres)
+    tri = Vt[F[fi]]
+    nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    pts = (np.einsum("sk,skd->sd", bc, tri) + nrm * rng.uniform(0.0, 0.004, (spheres, 1))).astype(np.float32)
+    frames = wp.array(V, dtype=wp.vec3, device=dev)
+    points = wp.array(pts, dtype=wp.vec3, device=dev)
+    res = {"machine": describe_device(dev), "vertices": n * n, "faces": len(F), "spheres": spheres,
+           "reach_m": reach, "rows": []}
+    P = wp.zeros(n * n, dtype=wp.vec3, device=dev)
+    wp.launch(blend_points, n * n, inputs=[frames, k0, k1, alpha], outputs=[P], device=dev)
+    mesh = wp.Mesh(points=P, indices=wp.array(F.ravel(), dtype=wp.int32, device=dev), bvh_constructor="sah",
+                   bvh_leaf_size=4)
+    ref = wp.zeros(spheres, dtype=float, device=dev)
+    t_blend = timed(lambda: wp.launch(blend_points, n * n, inputs=[frames, k0, k1, alpha], outputs=[P], device=dev),
+                    dev, reps)
+    t_refit = timed(mesh.refit, dev, reps)
+    t_q = timed(lambda: wp.launch(find_closest_on_mesh, spheres, inputs=[mesh.id, points, reach], outputs=[ref],
+                                  device=dev), dev, reps)
+    res["refit_path_us"] = {"blend_vertices": t_blend, "mesh_refit": t_refit, "mesh_query_point": t_q,
+                            "sum": t_blend + t_refit + t_q}
+    print(f"refit path: blend {t_blend:.1f} + refit {t_refit:.1f} + query {t_q:.1f} = {t_blend + t_refit + t_q:.1f} us",
+          flush=True)
+    return {"V": V, "F": F, "frames": frames, "pts": pts, "points": points, "blend": (k0, k1, alpha), "mesh": mesh,
+            "d_ref": ref.numpy(), "res": res}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser()
     ap.add_argument("--device", default="cpu")
@@ -129,40 +158,11 @@ def main(argv=None):
     a = ap.parse_args(argv)
     wp.init()
     dev = wp.get_device(a.device)
-    n = int(round(np.sqrt(a.vertices)))
-    seq = wave_grid(n)
-    V, F = seq.V.astype(np.float32), seq.F.astype(np.int32)
-    k0, k1, alpha = 1, 2, 0.37
-    Vt = (1 - alpha) * V[k0] + alpha * V[k1]
-    rng = np.random.default_rng(0)
-    fi = rng.integers(0, len(F), a.spheres)
-    bc = rng.dirichlet([1, 1, 1], a.spheres)
-    tri = Vt[F[fi]]
-    nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
-    pts = (np.einsum("sk,skd->sd", bc, tri) + nrm * rng.uniform(0.0, 0.004, (a.spheres, 1))).astype(np.float32)
-    frames = wp.array(V, dtype=wp.vec3, device=dev)
-    points = wp.array(pts, dtype=wp.vec3, device=dev)
+    d = probe_scene(a.vertices, a.spheres, a.reach, a.reps, dev)
+    V, F, frames, points, (k0, k1, alpha), d_ref, res = (d[k] for k in ("V", "F", "frames", "points", "blend",
+                                                                         "d_ref", "res"))
     eps = 1e-6
-    res = {"machine": describe_device(dev), "vertices": n * n, "faces": len(F), "spheres": a.spheres,
-           "reach_m": a.reach, "rows": []}
-    # the refit path's pieces
-    P = wp.zeros(n * n, dtype=wp.vec3, device=dev)
-    wp.launch(blend_points, n * n, inputs=[frames, k0, k1, alpha], outputs=[P], device=dev)
-    mesh = wp.Mesh(points=P, indices=wp.array(F.ravel(), dtype=wp.int32, device=dev), bvh_constructor="sah",
-                   bvh_leaf_size=4)
-    ref = wp.zeros(a.spheres, dtype=float, device=dev)
-    t_blend = timed(lambda: wp.launch(blend_points, n * n, inputs=[frames, k0, k1, alpha], outputs=[P], device=dev),
-                    dev, a.reps)
-    t_refit = timed(mesh.refit, dev, a.reps)
-    t_q = timed(lambda: wp.launch(find_closest_on_mesh, a.spheres, inputs=[mesh.id, points, a.reach], outputs=[ref],
-                                  device=dev), dev, a.reps)
-    res["refit_path_us"] = {"blend_vertices": t_blend, "mesh_refit": t_refit, "mesh_query_point": t_q,
-                            "sum": t_blend + t_refit + t_q}
-    print(f"refit path: blend {t_blend:.1f} + refit {t_refit:.1f} + query {t_q:.1f} = {t_blend + t_refit + t_q:.1f} us",
-          flush=True)
-    d_ref = ref.numpy()
-    order = np.argsort(_morton(V[0][F].mean(1)), kind="stable")
+    order = np.argsort(morton_codes(V[0][F].mean(1)), kind="stable")
     for K in [int(x) for x in a.clusters.split(",")]:
         C = (len(F) + K - 1) // K
         Fo = F[order]

@@ -18,9 +18,8 @@ import numpy as np
 import warp as wp
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_step import wave_grid  # noqa: E402
-from cluster_refit_probe import blend_points, find_closest_on_mesh, timed  # noqa: E402
-from common import RESULTS, describe_device, write_json  # noqa: E402
+from cluster_refit_probe import find_closest_on_mesh, probe_scene, timed  # noqa: E402
+from common import RESULTS, write_json  # noqa: E402
 
 from dynmesh_warp.kernels.tree import build_implicit_tree, find_closest_on_tree, morton_codes, refit_tree  # noqa: E402
 
@@ -38,38 +37,12 @@ def main(argv=None):
     a = ap.parse_args(argv)
     wp.init()
     dev = wp.get_device(a.device)
-    n = int(round(np.sqrt(a.vertices)))
-    seq = wave_grid(n)
-    V, F = seq.V.astype(np.float32), seq.F.astype(np.int32)
-    k0, k1, alpha = 1, 2, 0.37
-    Vt = (1 - alpha) * V[k0] + alpha * V[k1]
-    rng = np.random.default_rng(0)
-    fi = rng.integers(0, len(F), a.spheres)
-    bc = rng.dirichlet([1, 1, 1], a.spheres)
-    tri = Vt[F[fi]]
-    nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
-    pts = (np.einsum("sk,skd->sd", bc, tri) + nrm * rng.uniform(0.0, 0.004, (a.spheres, 1))).astype(np.float32)
-    frames = wp.array(V, dtype=wp.vec3, device=dev)
-    points = wp.array(pts, dtype=wp.vec3, device=dev)
+    d = probe_scene(a.vertices, a.spheres, a.reach, a.reps, dev)
+    V, F, frames, pts, points, mesh, d_ref, res = (d[k] for k in ("V", "F", "frames", "pts", "points", "mesh", "d_ref",
+                                                                   "res"))
+    k0, k1, alpha = d["blend"]
+    t_q = res["refit_path_us"]["mesh_query_point"]
     eps = 1e-6
-    res = {"machine": describe_device(dev), "vertices": n * n, "faces": len(F), "spheres": a.spheres,
-           "reach_m": a.reach, "rows": []}
-    P_ = wp.zeros(n * n, dtype=wp.vec3, device=dev)
-    wp.launch(blend_points, n * n, inputs=[frames, k0, k1, alpha], outputs=[P_], device=dev)
-    mesh = wp.Mesh(points=P_, indices=wp.array(F.ravel(), dtype=wp.int32, device=dev), bvh_constructor="sah",
-                   bvh_leaf_size=4)
-    ref = wp.zeros(a.spheres, dtype=float, device=dev)
-    t_blend = timed(lambda: wp.launch(blend_points, n * n, inputs=[frames, k0, k1, alpha], outputs=[P_], device=dev),
-                    dev, a.reps)
-    t_refit = timed(mesh.refit, dev, a.reps)
-    t_q = timed(lambda: wp.launch(find_closest_on_mesh, a.spheres, inputs=[mesh.id, points, a.reach], outputs=[ref],
-                                  device=dev), dev, a.reps)
-    res["refit_path_us"] = {"blend_vertices": t_blend, "mesh_refit": t_refit, "mesh_query_point": t_q,
-                            "sum": t_blend + t_refit + t_q}
-    print(f"refit path: blend {t_blend:.1f} + refit {t_refit:.1f} + query {t_q:.1f} = {t_blend + t_refit + t_q:.1f} us",
-          flush=True)
-    d_ref = ref.numpy()
     # the same query with the points in Morton order (thread t takes the t-th point along the curve)
     order = np.argsort(morton_codes(pts), kind="stable")
     points_sorted = wp.array(pts[order], dtype=wp.vec3, device=dev)

@@ -19,7 +19,7 @@ within reach (the rule of ``wp.mesh_query_point_sign_normal``, ties within epsil
 import numpy as np
 import warp as wp
 
-from .swept import box_distance, face_candidate, keep_closest
+from .swept import box_distance, face_candidate, interpolated_triangle, keep_closest
 
 wp.set_module_options({"fast_math": True})
 
@@ -72,19 +72,6 @@ def build_implicit_tree(V: np.ndarray, F: np.ndarray, leaf_faces: int = 4):
     return tree_faces, tree_indices.ravel(), depth
 
 
-@wp.func
-def blended_face(frames: wp.array2d[wp.vec3], tree_indices: wp.array[wp.int32], slot: int, k0: int, k1: int,
-                 alpha: float):
-    """Vertices [m] of the face in tree slot ``slot`` blended between frames k0 and k1."""
-    i0 = tree_indices[3 * slot + 0]
-    i1 = tree_indices[3 * slot + 1]
-    i2 = tree_indices[3 * slot + 2]
-    a = wp.lerp(frames[k0, i0], frames[k1, i0], alpha)
-    b = wp.lerp(frames[k0, i1], frames[k1, i1], alpha)
-    e = wp.lerp(frames[k0, i2], frames[k1, i2], alpha)
-    return a, b, e
-
-
 @wp.kernel
 def compute_tree_leaf_bounds(
     # Model:
@@ -111,7 +98,7 @@ def compute_tree_leaf_bounds(
     for j in range(leaf_faces):
         slot = leaf * leaf_faces + j
         if tree_faces[slot] >= 0:
-            a, b, e = blended_face(frames, tree_indices, slot, k0, k1, alpha)
+            a, b, e = interpolated_triangle(frames, tree_indices, slot, k0, k1, alpha)
             lo = wp.min(lo, wp.min(a, wp.min(b, e)))
             hi = wp.max(hi, wp.max(a, wp.max(b, e)))
     node_lower[num_leaves + leaf] = lo
@@ -183,7 +170,7 @@ def closest_on_tree(
                     slot = leaf * leaf_faces + j
                     f = tree_faces[slot]
                     if f >= 0:
-                        a, b, e = blended_face(frames, tree_indices, slot, k0, k1, alpha)
+                        a, b, e = interpolated_triangle(frames, tree_indices, slot, k0, k1, alpha)
                         dist, w, wn = face_candidate(p, a, b, e, epsilon)
                         min_dist, min_face, min_w, acc_n = keep_closest(dist, f, w, wn, epsilon, min_dist, min_face,
                                                                         min_w, acc_n)
