@@ -106,6 +106,18 @@ def timed(fn, device, reps: int) -> float:
     return float(np.median(out))
 
 
+def probe_arguments() -> argparse.ArgumentParser:
+    """The probes' common options: device, vertices, spheres (query points), reach, reps, out."""
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--vertices", type=int, default=10_000)
+    ap.add_argument("--spheres", type=int, default=1_000)
+    ap.add_argument("--reach", type=float, default=0.0106, help="query reach [m]: r 1.6 mm + margin 1 mm + 8 mm of motion")
+    ap.add_argument("--reps", type=int, default=50)
+    ap.add_argument("--out", default=None)
+    return ap
+
+
 def probe_scene(vertices: int, spheres: int, reach: float, reps: int, dev) -> dict:
     """The probes' data and the refit path's pieces timed on it: the wave grid of ``vertices``
     (frames V, faces F), ``spheres`` points within 4 mm above its surface at the blend (1, 2,
@@ -147,14 +159,8 @@ def probe_scene(vertices: int, spheres: int, reach: float, reps: int, dev) -> di
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--device", default="cpu")
-    ap.add_argument("--vertices", type=int, default=10_000)
-    ap.add_argument("--spheres", type=int, default=1_000)
+    ap = probe_arguments()
     ap.add_argument("--clusters", default="8,16,32")
-    ap.add_argument("--reach", type=float, default=0.0106, help="query reach [m]: r 1.6 mm + margin 1 mm + 8 mm of motion")
-    ap.add_argument("--reps", type=int, default=50)
-    ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
     wp.init()
     dev = wp.get_device(a.device)

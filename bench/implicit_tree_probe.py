@@ -10,7 +10,6 @@ distances checked against wp.mesh_query_point's. A measurement, not a collider y
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -18,22 +17,16 @@ import numpy as np
 import warp as wp
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from cluster_refit_probe import find_closest_on_mesh, probe_scene, timed  # noqa: E402
+from cluster_refit_probe import find_closest_on_mesh, probe_arguments, probe_scene, timed  # noqa: E402
 from common import RESULTS, write_json  # noqa: E402
 
 from dynmesh_warp.kernels.tree import build_implicit_tree, find_closest_on_tree, morton_codes, refit_tree  # noqa: E402
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--device", default="cpu")
-    ap.add_argument("--vertices", type=int, default=10_000)
-    ap.add_argument("--spheres", type=int, default=1_000)
+    ap = probe_arguments()
     ap.add_argument("--leaf-faces", default="2,4,8")
     ap.add_argument("--levels", default="3,4,6", help="tree levels refit per launch")
-    ap.add_argument("--reach", type=float, default=0.0106, help="query reach [m]: r 1.6 mm + margin 1 mm + 8 mm of motion")
-    ap.add_argument("--reps", type=int, default=50)
-    ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
     wp.init()
     dev = wp.get_device(a.device)
