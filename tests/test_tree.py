@@ -7,7 +7,6 @@ import pytest
 import trimesh
 import warp as wp
 
-from conftest import TEST_DEVICE
 from reference import brute_closest_points, brute_nearest
 from dynmesh_warp.kernels.tree import build_implicit_tree, find_closest_on_tree, refit_tree
 
@@ -37,7 +36,7 @@ def _numpy_boxes(Vt, F, tree_faces, leaf_faces, depth):
 
 
 @pytest.mark.parametrize("leaf_faces,levels_per_launch", [(1, 4), (4, 3), (3, 2)])
-def test_tree_refit_equals_numpy_boxes(leaf_faces, levels_per_launch):
+def test_tree_refit_equals_numpy_boxes(device, leaf_faces, levels_per_launch):
     """Every node's box after a refit at a blend equals the box of its faces' blended vertices
     (leaves) and the union of its children's (inner nodes), computed in NumPy; padding leaves
     stay empty; every face appears once in tree order."""
@@ -47,11 +46,11 @@ def test_tree_refit_equals_numpy_boxes(leaf_faces, levels_per_launch):
     assert sorted(tree_faces[tree_faces >= 0].tolist()) == list(range(len(F)))
     assert (1 << depth) * leaf_faces >= len(F) > (1 << (depth - 1)) * leaf_faces or depth == 1
     P = 1 << depth
-    lo = wp.zeros(2 * P, dtype=wp.vec3, device=TEST_DEVICE)
-    hi = wp.zeros(2 * P, dtype=wp.vec3, device=TEST_DEVICE)
+    lo = wp.zeros(2 * P, dtype=wp.vec3, device=device)
+    hi = wp.zeros(2 * P, dtype=wp.vec3, device=device)
     alpha = 0.37
-    refit_tree(wp.array(frames, dtype=wp.vec3, device=TEST_DEVICE), wp.array(tree_indices, device=TEST_DEVICE),
-               wp.array(tree_faces, device=TEST_DEVICE), leaf_faces, depth, 0, 1, alpha, lo, hi, levels_per_launch)
+    refit_tree(wp.array(frames, dtype=wp.vec3, device=device), wp.array(tree_indices, device=device),
+               wp.array(tree_faces, device=device), leaf_faces, depth, 0, 1, alpha, lo, hi, levels_per_launch)
     Vt = (1 - alpha) * frames[0] + alpha * frames[1]
     ref_lo, ref_hi = _numpy_boxes(Vt, F, tree_faces, leaf_faces, depth)
     np.testing.assert_allclose(lo.numpy()[1:], ref_lo[1:], atol=2e-6)
@@ -72,7 +71,7 @@ def _mesh_query(mesh: wp.uint64, points: wp.array[wp.vec3], reach: float, dist: 
     face[s] = f
 
 
-def test_tree_query_equals_brute_force_and_mesh_query():
+def test_tree_query_equals_brute_force_and_mesh_query(device):
     """Closest distance within reach of points near and far from a deforming surface, at a blend
     of two frames: equal to the brute-force closest point over every face (tests/reference.py) (and to reach
     with face -1 beyond it) and to wp.mesh_query_point_sign_normal's distance and face (ties:
@@ -83,7 +82,7 @@ def test_tree_query_equals_brute_force_and_mesh_query():
     Vt = ((1 - alpha) * frames[0] + alpha * frames[1]).astype(np.float32)
     tree_faces, tree_indices, depth = build_implicit_tree(frames[0], F, 4)  # built at another pose
     P = 1 << depth
-    dev = TEST_DEVICE
+    dev = device
     lo = wp.zeros(2 * P, dtype=wp.vec3, device=dev)
     hi = wp.zeros(2 * P, dtype=wp.vec3, device=dev)
     fr = wp.array(frames, dtype=wp.vec3, device=dev)
