@@ -131,9 +131,9 @@ def interpolated_triangle(
 
 
 @wp.func
-def face_distance(p: wp.vec3, a: wp.vec3, b: wp.vec3, e: wp.vec3):
-    """Distance [m] from p to triangle abc, the closest point's weights and the unit face
-    normal; distance +inf for slivers (skipped as by wp.Mesh)."""
+def face_candidate(p: wp.vec3, a: wp.vec3, b: wp.vec3, e: wp.vec3, epsilon: float):
+    """Distance from p to triangle abc, the closest point's weights, and the face's
+    angle-weighted normal contribution; distance is +inf for slivers (skipped as by wp.Mesh)."""
     e0 = b - a
     e1 = e - a
     e2 = e - b
@@ -142,18 +142,8 @@ def face_distance(p: wp.vec3, a: wp.vec3, b: wp.vec3, e: wp.vec3):
         return float(NO_DIST), wp.vec3(0.0), wp.vec3(0.0)
     w = closest_point_on_triangle(p, a, b, e)
     c = w[0] * a + w[1] * b + w[2] * e
-    return wp.length(c - p), w, wp.normalize(nrm)
-
-
-@wp.func
-def face_candidate(p: wp.vec3, a: wp.vec3, b: wp.vec3, e: wp.vec3, epsilon: float):
-    """:func:`face_distance` with the face's angle-weighted normal contribution (the tie
-    pseudo-normal's term) instead of its unit normal."""
-    dist, w, n = face_distance(p, a, b, e)
-    if dist >= NO_DIST:
-        return dist, w, n
-    c = w[0] * a + w[1] * b + w[2] * e
-    return dist, w, vertex_weight_angle(c, a, b, e, epsilon * epsilon) * n
+    weight = vertex_weight_angle(c, a, b, e, epsilon * epsilon)
+    return wp.length(c - p), w, weight * wp.normalize(nrm)
 
 
 @wp.func

@@ -19,7 +19,7 @@ within reach (the rule of ``wp.mesh_query_point_sign_normal``, ties within epsil
 import numpy as np
 import warp as wp
 
-from .swept import box_distance, face_distance, interpolated_triangle, keep_closest, vertex_weight_angle
+from .swept import box_distance, face_candidate, interpolated_triangle, keep_closest
 
 wp.set_module_options({"fast_math": True})
 
@@ -27,7 +27,6 @@ wp.set_module_options({"fast_math": True})
 #: of depth < TREE_STACK - 1 (2^46 leaves) never fills it
 TREE_STACK = 48
 _stack_t = wp.types.vector(length=TREE_STACK, dtype=wp.int32)
-_dist_stack_t = wp.types.vector(length=TREE_STACK, dtype=float)
 #: an empty box (padding leaves): the union's identity, infinitely far from every point
 EMPTY_LO = wp.constant(wp.vec3(1.0e30))
 EMPTY_HI = wp.constant(wp.vec3(-1.0e30))
@@ -159,14 +158,12 @@ def closest_on_tree(
     min_w = wp.vec3(0.0)
     acc_n = wp.vec3(0.0)
     stack = _stack_t()
-    below = _dist_stack_t()  # each entry's box distance, kept with it (no reload when popped)
     stack[0] = 1
-    below[0] = box_distance(p, node_lower[1], node_upper[1])
     sp = int(1)
     while sp > 0:
         sp -= 1
         node = stack[sp]
-        if below[sp] < min_dist + epsilon:
+        if box_distance(p, node_lower[node], node_upper[node]) < min_dist + epsilon:
             if node >= num_leaves:
                 leaf = node - num_leaves
                 for j in range(leaf_faces):
@@ -174,33 +171,25 @@ def closest_on_tree(
                     f = tree_faces[slot]
                     if f >= 0:
                         a, b, e = interpolated_triangle(frames, tree_indices, slot, k0, k1, alpha)
-                        dist, w, nrm = face_distance(p, a, b, e)
-                        if dist < min_dist + epsilon:  # the pseudo-normal term only where it counts
-                            c = w[0] * a + w[1] * b + w[2] * e
-                            wn = vertex_weight_angle(c, a, b, e, epsilon * epsilon) * nrm
-                            min_dist, min_face, min_w, acc_n = keep_closest(dist, f, w, wn, epsilon, min_dist,
-                                                                            min_face, min_w, acc_n)
+                        dist, w, wn = face_candidate(p, a, b, e, epsilon)
+                        min_dist, min_face, min_w, acc_n = keep_closest(dist, f, w, wn, epsilon, min_dist, min_face,
+                                                                        min_w, acc_n)
             else:
                 c0 = 2 * node
                 d0 = box_distance(p, node_lower[c0], node_upper[c0])
                 d1 = box_distance(p, node_lower[c0 + 1], node_upper[c0 + 1])
                 near = c0
                 far = c0 + 1
-                d_near = d0
                 d_far = d1
                 if d1 < d0:
                     near = c0 + 1
                     far = c0
-                    d_near = d1
                     d_far = d0
                 if d_far < min_dist + epsilon:  # the far child first: popped after the near one
                     stack[sp] = far
-                    below[sp] = d_far
                     sp += 1
-                if d_near < min_dist + epsilon:
-                    stack[sp] = near
-                    below[sp] = d_near
-                    sp += 1
+                stack[sp] = near
+                sp += 1
     return min_dist, min_face, min_w, acc_n
 
 
