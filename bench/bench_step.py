@@ -29,6 +29,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import RESULTS, describe_device, load_paper_sequence, time_loop, write_json  # noqa: E402
 
 
+#: number the spawned spheres along a Morton curve of their positions (--spatial-order: what a
+#: user who orders their bodies spatially gets; the default keeps the spawn's random order)
+SPATIAL_ORDER = False
+
+
 def make_world(seq, device, collider, spheres=5, radius=0.05, rebuild_every="step", seed=0, spread=0.6,
                interpolate=True, swept_search=None):
     from dynmesh_warp.config import SpawnConfig, spawn_positions
@@ -38,6 +43,10 @@ def make_world(seq, device, collider, spheres=5, radius=0.05, rebuild_every="ste
     pos = spawn_positions(SpawnConfig(count=spheres, radius=radius, height=0.05, seed=seed, spread=spread), seq.V[0])
     if spheres > 50:  # many spheres: a single layer just above the surface, not a tall column
         pos[:, 2] = seq.V[0][:, 2].max() + radius * (1.0 + np.random.default_rng(seed).random(spheres))
+    if SPATIAL_ORDER:  # the same spheres numbered along a Morton curve (--spatial-order)
+        from dynmesh_warp.kernels.tree import morton_codes
+
+        pos = pos[np.argsort(morton_codes(pos), kind="stable")]
     model = Model(surf, SphereModel(np.full(spheres, radius, np.float32), 1.0, device),
                   PhysicsParams(dt=1.0 / 240.0, auto_substeps=False, ground_height=float(seq.V[:, :, 2].min()),
                                 swept_search=swept_search))
@@ -228,7 +237,11 @@ def main(argv=None):
                     "(fixed, swept, swept/serial, swept/tiled, refit, rebuild)")
     ap.add_argument("--refit-bvh", default=None, metavar="CTOR:LEAF",
                     help="the refit collider's BVH for this run, e.g. sah:8 (default: choices.REFIT_BVH)")
+    ap.add_argument("--spatial-order", action="store_true",
+                    help="number the spheres along a Morton curve of their spawn positions (default: random order)")
     args = ap.parse_args(argv)
+    global SPATIAL_ORDER
+    SPATIAL_ORDER = bool(args.spatial_order)
     if args.refit_bvh:  # an A/B of the refit path's tree: set for this process only
         from dynmesh_warp import choices
 
