@@ -89,7 +89,7 @@ def main():
            "options": opts}
     if parts is None:  # per frame, after the printed summary (long)
         res["coverage"] = [round(float(c), 6) for c in r.conversion.coverage]
-    if parts is not None:
+    else:
         calls = parts.pop("calls")
         res["breakdown_s"] = {k: round(v, 4) for k, v in parts.items()}
         res["breakdown_calls"] = calls

@@ -950,9 +950,9 @@ def _key_retry_reason(coverage, K: int) -> str | None:
     poor = int(np.count_nonzero(cov > POOR_COVERAGE))
     if poor >= KEY_RETRY_POOR_FRAMES:
         return f"{poor} frames poorly covered"
-    near = np.r_[cov[max(0, K - DRIFT_NEIGHBOURS):K], cov[K + 1:K + 1 + DRIFT_NEIGHBOURS]]
-    if near.size == 0 or cov.size < 2 * DRIFT_NEIGHBOURS + 1:
+    if cov.size < 2 * DRIFT_NEIGHBOURS + 1:  # too short to tell drift from motion
         return None
+    near = np.r_[cov[max(0, K - DRIFT_NEIGHBOURS):K], cov[K + 1:K + 1 + DRIFT_NEIGHBOURS]]
     p90, floor = float(np.percentile(cov, 90)), float(np.mean(near))
     if p90 > DRIFT_FLOOR and p90 > DRIFT_RATIO * floor:
         return (f"coverage drifted ({100 * p90:.2f}% of the diagonal on the worst tenth of the frames, "

@@ -4,9 +4,9 @@ import warp as wp
 
 from .frames import store_frame_key
 
-# CUDA fast math (approximate division and square root), as kernels/batch.py and render.py: the
-# latency-bound contact queries lose the IEEE sequences' registers and slow-path calls; results
-# move by float rounding only (docs/physics.md, "Fast math").
+# CUDA fast math (approximate division and square root), as the contact kernels of the same step
+# (kernels/collide.py, swept.py): the sphere update's divisions and square roots lose the IEEE
+# sequences' slow-path calls; results move by float rounding only (docs/physics.md, "Fast math").
 wp.set_module_options({"fast_math": True})
 
 
