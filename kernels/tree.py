@@ -221,3 +221,204 @@ def find_closest_on_tree(
                                  k0, k1, alpha, points[s], reach, epsilon)
     dist_out[s] = d
     face_out[s] = f
+
+
+# --------------------------------------------------------------------------- interpolated boxes
+# The boxes of one tree at two reconstruction frames bound the surface at every blend between
+# them: a coordinate of a blended vertex, (1 - alpha) a_i + alpha b_i, is >= (1 - alpha) min a +
+# alpha min b (and <= the same with max), so lerp(box_k, box_k+1, alpha) contains the node's
+# faces at the blend. The boxes are computed once a frame (slot s holds one frame's, the two
+# slots swap roles as frames advance) and the sub-steps in between do no tree upkeep at all.
+# Layout for the query's loads: node n's boxes are one row of 4 vec4 [lo slot 0, hi slot 0,
+# lo slot 1, hi slot 1] (w unused; 64 bytes, so a node's two children share one 128-byte line),
+# and the faces' vertices are copied per frame in tree order (tree_triangles[slot, 3 j + c]:
+# vertex c of tree slot j), so a leaf's faces are contiguous.
+
+_dstack_t = wp.types.vector(length=TREE_STACK, dtype=wp.float32)
+
+
+@wp.kernel
+def pack_tree_bounds(
+    # In:
+    node_lower: wp.array[wp.vec3],
+    node_upper: wp.array[wp.vec3],
+    slot: int,
+    # Out:
+    node_boxes: wp.array2d[wp.vec4],
+):
+    """Write node n's box [m] (from :func:`refit_tree` at one frame) into frame slot ``slot``
+    (0 or 1) of node_boxes (2P, 4)."""
+    n = wp.tid()
+    lo = node_lower[n]
+    hi = node_upper[n]
+    node_boxes[n, 2 * slot] = wp.vec4(lo[0], lo[1], lo[2], 0.0)
+    node_boxes[n, 2 * slot + 1] = wp.vec4(hi[0], hi[1], hi[2], 0.0)
+
+
+@wp.kernel
+def gather_tree_triangles(
+    # Model:
+    frames: wp.array2d[wp.vec3],
+    tree_indices: wp.array[wp.int32],
+    # In:
+    frame: int,
+    slot: int,
+    # Out:
+    tree_triangles: wp.array2d[wp.vec3],
+):
+    """tree_triangles[slot, i] = frames[frame, tree_indices[i]] [m]: frame ``frame``'s face
+    vertices in tree order (3 P B of them)."""
+    i = wp.tid()
+    tree_triangles[slot, i] = frames[frame, tree_indices[i]]
+
+
+def update_tree_slot(frames, tree_indices, tree_faces, leaf_faces: int, depth: int, frame: int, slot: int,
+                     node_lower, node_upper, node_boxes, tree_triangles, levels_per_launch: int = 4):
+    """Once a reconstruction frame: frame ``frame``'s boxes and triangles into slot ``slot``
+    (node_lower / node_upper are scratch (2P,) arrays)."""
+    refit_tree(frames, tree_indices, tree_faces, leaf_faces, depth, frame, frame, 0.0, node_lower, node_upper,
+               levels_per_launch)
+    dev = node_boxes.device
+    wp.launch(pack_tree_bounds, node_boxes.shape[0], inputs=[node_lower, node_upper, slot], outputs=[node_boxes],
+              device=dev)
+    wp.launch(gather_tree_triangles, tree_indices.shape[0], inputs=[frames, tree_indices, frame, slot],
+              outputs=[tree_triangles], device=dev)
+
+
+@wp.func
+def lerp_box_distance(node_boxes: wp.array2d[wp.vec4], n: int, s0: int, s1: int, alpha: float, p: wp.vec3):
+    """Distance [m] from p to node n's interpolated box (slot s0 weighted 1 - alpha)."""
+    lo = wp.lerp(node_boxes[n, 2 * s0], node_boxes[n, 2 * s1], alpha)
+    hi = wp.lerp(node_boxes[n, 2 * s0 + 1], node_boxes[n, 2 * s1 + 1], alpha)
+    dx = wp.max(wp.max(lo[0] - p[0], p[0] - hi[0]), 0.0)
+    dy = wp.max(wp.max(lo[1] - p[1], p[1] - hi[1]), 0.0)
+    dz = wp.max(wp.max(lo[2] - p[2], p[2] - hi[2]), 0.0)
+    return wp.sqrt(dx * dx + dy * dy + dz * dz)
+
+
+@wp.func
+def walk_lerp_tree(
+    node_boxes: wp.array2d[wp.vec4], tree_triangles: wp.array2d[wp.vec3], leaf_faces: int, num_leaves: int,
+    num_slots: int, s0: int, s1: int, alpha: float, p: wp.vec3, epsilon: float, start: int, d_start: float,
+    min_dist: float, min_slot: int, min_w: wp.vec3, acc_n: wp.vec3,
+):
+    """The nearest-first walk of the subtree at node ``start`` (box distance d_start), folding its
+    faces into the running closest feature (min_dist, min_slot: tree slot, weights, tie normal
+    sum); a node farther than the closest so far + epsilon is skipped."""
+    stack = _stack_t()
+    dists = _dstack_t()
+    stack[0] = start
+    dists[0] = d_start
+    sp = int(1)
+    while sp > 0:
+        sp -= 1
+        node = stack[sp]
+        if dists[sp] < min_dist + epsilon:
+            if node >= num_leaves:
+                first = (node - num_leaves) * leaf_faces
+                for j in range(leaf_faces):
+                    slot = first + j
+                    if slot < num_slots:
+                        a = wp.lerp(tree_triangles[s0, 3 * slot], tree_triangles[s1, 3 * slot], alpha)
+                        b = wp.lerp(tree_triangles[s0, 3 * slot + 1], tree_triangles[s1, 3 * slot + 1], alpha)
+                        e = wp.lerp(tree_triangles[s0, 3 * slot + 2], tree_triangles[s1, 3 * slot + 2], alpha)
+                        dist, w, wn = face_candidate(p, a, b, e, epsilon)
+                        min_dist, min_slot, min_w, acc_n = keep_closest(dist, slot, w, wn, epsilon, min_dist, min_slot,
+                                                                        min_w, acc_n)
+            else:
+                c0 = 2 * node
+                d0 = lerp_box_distance(node_boxes, c0, s0, s1, alpha, p)
+                d1 = lerp_box_distance(node_boxes, c0 + 1, s0, s1, alpha, p)
+                near = c0
+                far = c0 + 1
+                d_near = d0
+                d_far = d1
+                if d1 < d0:
+                    near = c0 + 1
+                    far = c0
+                    d_near = d1
+                    d_far = d0
+                if d_far < min_dist + epsilon:  # the far child first: popped after the near one
+                    stack[sp] = far
+                    dists[sp] = d_far
+                    sp += 1
+                if d_near < min_dist + epsilon:
+                    stack[sp] = near
+                    dists[sp] = d_near
+                    sp += 1
+    return min_dist, min_slot, min_w, acc_n
+
+
+@wp.func
+def closest_on_lerp_tree(
+    node_boxes: wp.array2d[wp.vec4], tree_triangles: wp.array2d[wp.vec3], leaf_faces: int, num_leaves: int,
+    num_slots: int, s0: int, s1: int, alpha: float, p: wp.vec3, reach: float, epsilon: float, seed_slot: int,
+    seed_up: int,
+):
+    """Closest feature of the blended surface within ``reach`` of p [m] over the interpolated
+    boxes: (distance, tree slot or -1, weights, tie normal sum). With a seed (a tree slot near p,
+    e.g. the previous sub-step's closest; -1 none) the walk starts in the subtree ``seed_up``
+    levels above the seed's leaf and then visits the siblings on the way to the root, so every
+    face is still met under the same prune: any seed gives the same closest feature (up to the
+    order of faces within epsilon of each other)."""
+    min_dist = reach
+    min_slot = int(-1)
+    min_w = wp.vec3(0.0)
+    acc_n = wp.vec3(0.0)
+    if seed_slot >= 0 and seed_slot < num_slots:
+        node = (num_leaves + seed_slot // leaf_faces) >> seed_up
+        if node < 1:
+            node = 1
+        min_dist, min_slot, min_w, acc_n = walk_lerp_tree(
+            node_boxes, tree_triangles, leaf_faces, num_leaves, num_slots, s0, s1, alpha, p, epsilon, node,
+            lerp_box_distance(node_boxes, node, s0, s1, alpha, p), min_dist, min_slot, min_w, acc_n)
+        while node > 1:
+            sib = node ^ 1
+            d = lerp_box_distance(node_boxes, sib, s0, s1, alpha, p)
+            if d < min_dist + epsilon:
+                min_dist, min_slot, min_w, acc_n = walk_lerp_tree(
+                    node_boxes, tree_triangles, leaf_faces, num_leaves, num_slots, s0, s1, alpha, p, epsilon, sib, d,
+                    min_dist, min_slot, min_w, acc_n)
+            node = node >> 1
+    else:
+        min_dist, min_slot, min_w, acc_n = walk_lerp_tree(
+            node_boxes, tree_triangles, leaf_faces, num_leaves, num_slots, s0, s1, alpha, p, epsilon, 1,
+            lerp_box_distance(node_boxes, 1, s0, s1, alpha, p), min_dist, min_slot, min_w, acc_n)
+    return min_dist, min_slot, min_w, acc_n
+
+
+@wp.kernel
+def find_closest_on_lerp_tree(
+    # Model:
+    tree_faces: wp.array[wp.int32],
+    # In:
+    node_boxes: wp.array2d[wp.vec4],
+    tree_triangles: wp.array2d[wp.vec3],
+    leaf_faces: int,
+    num_leaves: int,
+    num_slots: int,
+    s0: int,
+    s1: int,
+    alpha: float,
+    points: wp.array[wp.vec3],
+    seed_slots: wp.array[wp.int32],
+    seed_up: int,
+    reach: float,
+    epsilon: float,
+    # Out:
+    dist_out: wp.array[float],
+    slot_out: wp.array[wp.int32],
+    face_out: wp.array[wp.int32],
+):
+    """Distance [m] of each point to the surface blended between the frames in slots s0 and s1
+    (within ``reach``, else reach), its tree slot (a seed for the next query; -1 none) and its
+    original face index (-1 none). seed_slots (n,): each point's seed (-1 none)."""
+    s = wp.tid()
+    d, slot, w, n = closest_on_lerp_tree(node_boxes, tree_triangles, leaf_faces, num_leaves, num_slots, s0, s1, alpha,
+                                         points[s], reach, epsilon, seed_slots[s], seed_up)
+    dist_out[s] = d
+    slot_out[s] = slot
+    f = int(-1)
+    if slot >= 0:
+        f = tree_faces[slot]
+    face_out[s] = f

@@ -8,7 +8,8 @@ import trimesh
 import warp as wp
 
 from reference import brute_closest_points, brute_nearest
-from dynmesh_warp.kernels.tree import build_implicit_tree, find_closest_on_tree, refit_tree
+from dynmesh_warp.kernels.tree import (build_implicit_tree, find_closest_on_lerp_tree, find_closest_on_tree, refit_tree,
+                                       update_tree_slot)
 
 
 def _deforming_mesh(rng, subdivisions=3):
@@ -127,6 +128,62 @@ def test_tree_query_equals_brute_force_and_mesh_query(device):
         a, b, c = (Vt[v][None] for v in F[f_m[i]])
         q = brute_closest_points(pts[i][None], a, b, c)[0, 0]
         assert abs(np.linalg.norm(q - pts[i]) - d_tree[i]) < 2e-5
+
+
+@pytest.mark.parametrize("leaf_faces,swap", [(4, False), (3, True)])
+def test_lerp_tree_query_equals_brute_force(device, leaf_faces, swap):
+    """The interpolated-box query (boxes and triangles of two frames written once, a sub-step's
+    surface bounded by their blend): distance within reach equal to brute force over every face
+    of the blended surface (and reach, face -1, beyond it), the face found at that distance, for
+    frames stored in either slot order; with seeds (random tree slots, the exact answer's slot,
+    one level or five above the seed's leaf) the same distances."""
+    rng = np.random.default_rng(5)
+    frames, F = _deforming_mesh(rng)
+    frames[1] += rng.standard_normal(frames[1].shape).astype(np.float32) * 0.1  # non-rigid: loose boxes
+    alpha = 0.43
+    Vt = ((1 - alpha) * frames[0] + alpha * frames[1]).astype(np.float32)
+    tree_faces, tree_indices, depth = build_implicit_tree(frames[0], F, leaf_faces)
+    P = 1 << depth
+    dev = device
+    fr = wp.array(frames, dtype=wp.vec3, device=dev)
+    ti, tf = wp.array(tree_indices, device=dev), wp.array(tree_faces, device=dev)
+    lo = wp.zeros(2 * P, dtype=wp.vec3, device=dev)
+    hi = wp.zeros(2 * P, dtype=wp.vec3, device=dev)
+    boxes = wp.zeros((2 * P, 4), dtype=wp.vec4, device=dev)
+    tris = wp.zeros((2, len(tree_indices)), dtype=wp.vec3, device=dev)
+    s0, s1 = (1, 0) if swap else (0, 1)
+    update_tree_slot(fr, ti, tf, leaf_faces, depth, 0, s0, lo, hi, boxes, tris)
+    update_tree_slot(fr, ti, tf, leaf_faces, depth, 1, s1, lo, hi, boxes, tris)
+    mesh_t = trimesh.Trimesh(Vt, F, process=False)
+    on, _ = trimesh.sample.sample_surface(mesh_t, 300, seed=6)
+    pts = np.concatenate([on + 0.05 * rng.standard_normal(on.shape),
+                          rng.uniform(-2.5, 2.5, (200, 3))]).astype(np.float32)
+    n, reach = len(pts), 0.3
+    d_bf, _, _ = brute_nearest(pts, Vt, F)
+    within = d_bf < reach
+    assert 100 < within.sum() < n
+
+    def query(seeds, up):
+        d = wp.zeros(n, dtype=float, device=dev)
+        sl = wp.zeros(n, dtype=wp.int32, device=dev)
+        f = wp.zeros(n, dtype=wp.int32, device=dev)
+        wp.launch(find_closest_on_lerp_tree, n,
+                  inputs=[tf, boxes, tris, leaf_faces, P, len(F), s0, s1, alpha, wp.array(pts, dtype=wp.vec3, device=dev),
+                          wp.array(seeds.astype(np.int32), device=dev), up, reach, 1e-6],
+                  outputs=[d, sl, f], device=dev)
+        return d.numpy(), sl.numpy(), f.numpy()
+
+    d, sl, f = query(np.full(n, -1), 0)
+    np.testing.assert_allclose(d[within], d_bf[within], atol=2e-5)
+    assert np.all(d[~within] == np.float32(reach)) and np.all(f[~within] == -1) and np.all(sl[~within] == -1)
+    assert np.all(tree_faces[sl[within]] == f[within])
+    own = np.array([brute_closest_points(q[None], *(Vt[v][None] for v in F[fi]))[0, 0]
+                    for q, fi in zip(pts[within], f[within])])
+    np.testing.assert_allclose(np.linalg.norm(own - pts[within], axis=1), d_bf[within], atol=2e-5)
+    for seeds, up in [(rng.integers(-1, len(F), n), 0), (rng.integers(0, len(F), n), 5), (sl, 0), (sl, 1)]:
+        ds, _, fs = query(seeds, up)
+        np.testing.assert_allclose(ds, d, atol=2e-6)
+        assert np.all((fs >= 0) == (f >= 0))
 
 
 def test_build_refuses_bad_input():

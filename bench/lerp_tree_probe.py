@@ -1,0 +1,97 @@
+"""Probe for issue 14's last row (10^6 vertices x 10^5 spheres), after implicit_tree_probe.py:
+the same pointer-free tree, but with **no per-step upkeep** — its boxes and triangles are
+written once a reconstruction frame into one of two slots, and a sub-step's query bounds the
+blended surface by the blend of the two frames' boxes (kernels/tree.py, "interpolated boxes") —
+and with the query's loads laid out for the GPU (a node's box pair in one 64-byte row, a leaf's
+triangles contiguous). Optionally seeded by each point's previous closest face (the walk starts
+at the seed's leaf and climbs). Timed against the refit path's pieces on the same data (vertex
+blend, wp.Mesh.refit, mesh_query_point); every query's distances checked against
+mesh_query_point's. A measurement, not a collider yet.
+
+    python bench/lerp_tree_probe.py --device cuda --vertices 1000000 --spheres 100000
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from cluster_refit_probe import probe_arguments, probe_scene, timed  # noqa: E402
+from common import RESULTS, write_json  # noqa: E402
+
+from dynmesh_warp.kernels.tree import (build_implicit_tree, find_closest_on_lerp_tree, find_closest_on_tree,  # noqa: E402
+                                       morton_codes, refit_tree, update_tree_slot)
+
+
+def main(argv=None):
+    ap = probe_arguments()
+    ap.add_argument("--leaf-faces", default="2,4,8")
+    ap.add_argument("--seed-up", default="0,2")
+    ap.add_argument("--step-alpha", type=float, default=0.1, help="blend advance a sub-step (24 fps, dt 1/240)")
+    a = ap.parse_args(argv)
+    wp.init()
+    dev = wp.get_device(a.device)
+    d = probe_scene(a.vertices, a.spheres, a.reach, a.reps, dev)
+    V, F, frames, pts, points, d_ref, res = (d[k] for k in ("V", "F", "frames", "pts", "points", "d_ref", "res"))
+    k0, k1, alpha = d["blend"]
+    eps = 1e-6
+    n = a.spheres
+    order = np.argsort(morton_codes(pts), kind="stable")
+    points_sorted = wp.array(pts[order], dtype=wp.vec3, device=dev)
+    res["step_alpha"] = a.step_alpha
+    for B in [int(x) for x in a.leaf_faces.split(",")]:
+        tree_faces, tree_indices, depth = build_implicit_tree(V[0], F, B)
+        P = 1 << depth
+        tf = wp.array(tree_faces, device=dev)
+        ti = wp.array(tree_indices, device=dev)
+        lo = wp.zeros(2 * P, dtype=wp.vec3, device=dev)
+        hi = wp.zeros(2 * P, dtype=wp.vec3, device=dev)
+        boxes = wp.zeros((2 * P, 4), dtype=wp.vec4, device=dev)
+        tris = wp.zeros((2, len(tree_indices)), dtype=wp.vec3, device=dev)
+        dist = wp.zeros(n, dtype=float, device=dev)
+        face = wp.zeros(n, dtype=wp.int32, device=dev)
+        slot = wp.zeros(n, dtype=wp.int32, device=dev)
+        # previous code's query (boxes refit at the blend, separate arrays, triangles through indices)
+        t_old_refit = timed(lambda: refit_tree(frames, ti, tf, B, depth, k0, k1, alpha, lo, hi, 4), dev, a.reps)
+        t_old = timed(lambda: wp.launch(find_closest_on_tree, n, inputs=[frames, ti, tf, lo, hi, B, P, k0, k1, alpha,
+                                                                         points, a.reach, eps],
+                                        outputs=[dist, face], device=dev), dev, a.reps)
+        # once a frame: one slot's boxes and triangles
+        t_slot = timed(lambda: update_tree_slot(frames, ti, tf, B, depth, k1, 1, lo, hi, boxes, tris), dev, a.reps)
+        update_tree_slot(frames, ti, tf, B, depth, k0, 0, lo, hi, boxes, tris)
+        no_seed = wp.full(n, -1, dtype=wp.int32, device=dev)
+
+        def query(pts_arr, seeds, up, al=alpha):
+            return lambda: wp.launch(find_closest_on_lerp_tree, n,
+                                     inputs=[tf, boxes, tris, B, P, len(F), 0, 1, al, pts_arr, seeds, up, a.reach, eps],
+                                     outputs=[dist, slot, face], device=dev)
+
+        row = {"leaf_faces": B, "depth": depth, "previous_tree_refit_us": t_old_refit, "previous_tree_query_us": t_old,
+               "slot_update_per_frame_us": t_slot,
+               "tree_bytes": int(boxes.capacity + tris.capacity + tree_faces.nbytes + tree_indices.nbytes)}
+        t = timed(query(points, no_seed, 0), dev, a.reps)
+        row["query_unseeded_us"] = t
+        row["query_unseeded_max_abs_diff_m"] = float(np.abs(dist.numpy() - d_ref).max())
+        exact = wp.clone(slot)
+        t = timed(query(points_sorted, no_seed, 0), dev, a.reps)
+        row["query_unseeded_sorted_points_us"] = t
+        # seeds: the closest slots of the previous sub-step (same points, blend one step earlier)
+        query(points, no_seed, 0, alpha - a.step_alpha)()
+        prev = wp.clone(slot)
+        row["seed_changed_fraction"] = float(np.mean(prev.numpy() != exact.numpy()))
+        for up in [int(x) for x in a.seed_up.split(",")]:
+            for name, seeds in (("previous_step", prev), ("exact", exact)):
+                t = timed(query(points, seeds, up), dev, a.reps)
+                row[f"query_seeded_{name}_up{up}_us"] = t
+                row[f"query_seeded_{name}_up{up}_max_abs_diff_m"] = float(np.abs(dist.numpy() - d_ref).max())
+        res["rows"].append(row)
+        print(B, {k: (round(v, 2) if isinstance(v, float) and v > 1e-3 else v) for k, v in row.items()}, flush=True)
+    write_json(Path(a.out) if a.out else RESULTS / f"lerp_tree_probe_{'cuda' if dev.is_cuda else 'cpu'}.json", res)
+
+
+if __name__ == "__main__":
+    main()
