@@ -23,8 +23,35 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from cluster_refit_probe import probe_arguments, probe_scene, timed  # noqa: E402
 from common import RESULTS, write_json  # noqa: E402
 
-from dynmesh_warp.kernels.tree import (build_implicit_tree, find_closest_on_lerp_tree, find_closest_on_tree,  # noqa: E402
-                                       morton_codes, refit_tree, update_tree_slot)
+from dynmesh_warp.kernels.tree import (build_implicit_tree, closest_on_lerp_tree,  # noqa: E402
+                                       find_closest_on_lerp_tree, find_closest_on_tree, morton_codes, refit_tree,
+                                       update_tree_slot)
+
+
+def _capped(regs: int):
+    """find_closest_on_lerp_tree with a register cap per thread on CUDA (``__maxnreg__``)."""
+
+    def find_closest_on_lerp_tree_capped(
+        tree_faces: wp.array[wp.int32], node_boxes: wp.array[wp.vec4], tree_triangles: wp.array[wp.vec3],
+        leaf_faces: int, num_leaves: int, num_slots: int, s0: int, s1: int, alpha: float, points: wp.array[wp.vec3],
+        seed_slots: wp.array[wp.int32], seed_up: int, reach: float, epsilon: float, dist_out: wp.array[float],
+        slot_out: wp.array[wp.int32], face_out: wp.array[wp.int32],
+    ):
+        s = wp.tid()
+        d, slot, w, n = closest_on_lerp_tree(node_boxes, tree_triangles, leaf_faces, num_leaves, num_slots, s0, s1,
+                                             alpha, points[s], reach, epsilon, seed_slots[s], seed_up)
+        dist_out[s] = d
+        slot_out[s] = slot
+        f = int(-1)
+        if slot >= 0:
+            f = tree_faces[slot]
+        face_out[s] = f
+
+    return wp.kernel(find_closest_on_lerp_tree_capped, name=f"find_closest_on_lerp_tree_capped_{regs}",
+                     cuda_max_registers=regs)
+
+
+CAPPED = {r: _capped(r) for r in (32, 48, 64, 96)}
 
 
 def main(argv=None):
@@ -50,8 +77,8 @@ def main(argv=None):
         ti = wp.array(tree_indices, device=dev)
         lo = wp.zeros(2 * P, dtype=wp.vec3, device=dev)
         hi = wp.zeros(2 * P, dtype=wp.vec3, device=dev)
-        boxes = wp.zeros((2 * P, 4), dtype=wp.vec4, device=dev)
-        tris = wp.zeros((2, len(tree_indices)), dtype=wp.vec3, device=dev)
+        boxes = wp.zeros(8 * P, dtype=wp.vec4, device=dev)
+        tris = wp.zeros(2 * len(tree_indices), dtype=wp.vec3, device=dev)
         dist = wp.zeros(n, dtype=float, device=dev)
         face = wp.zeros(n, dtype=wp.int32, device=dev)
         slot = wp.zeros(n, dtype=wp.int32, device=dev)
@@ -88,6 +115,12 @@ def main(argv=None):
                 t = timed(query(points, seeds, up), dev, a.reps)
                 row[f"query_seeded_{name}_up{up}_us"] = t
                 row[f"query_seeded_{name}_up{up}_max_abs_diff_m"] = float(np.abs(dist.numpy() - d_ref).max())
+        for r, kern in CAPPED.items():
+            t = timed(lambda: wp.launch(kern, n, inputs=[tf, boxes, tris, B, P, len(F), 0, 1, alpha, points, no_seed, 0,
+                                                        a.reach, eps], outputs=[dist, slot, face], device=dev),
+                      dev, a.reps)
+            row[f"query_unseeded_max_registers_{r}_us"] = t
+            row[f"query_unseeded_max_registers_{r}_max_abs_diff_m"] = float(np.abs(dist.numpy() - d_ref).max())
         res["rows"].append(row)
         print(B, {k: (round(v, 2) if isinstance(v, float) and v > 1e-3 else v) for k, v in row.items()}, flush=True)
     write_json(Path(a.out) if a.out else RESULTS / f"lerp_tree_probe_{'cuda' if dev.is_cuda else 'cpu'}.json", res)

@@ -231,10 +231,37 @@ def find_closest_on_tree(
 # slots swap roles as frames advance) and the sub-steps in between do no tree upkeep at all.
 # Layout for the query's loads: node n's boxes are one row of 4 vec4 [lo slot 0, hi slot 0,
 # lo slot 1, hi slot 1] (w unused; 64 bytes, so a node's two children share one 128-byte line),
-# and the faces' vertices are copied per frame in tree order (tree_triangles[slot, 3 j + c]:
+# and the faces' vertices are copied per frame in tree order (tree_triangles[slot * 3PB + 3 j + c]:
 # vertex c of tree slot j), so a leaf's faces are contiguous.
 
 _dstack_t = wp.types.vector(length=TREE_STACK, dtype=wp.float32)
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+const float4 f = __ldg(reinterpret_cast<const float4*>(a.data) + i);
+return wp::vec4(f.x, f.y, f.z, f.w);
+#else
+return a.data[i];
+#endif
+""")
+def load_vec4(a: wp.array[wp.vec4], i: int) -> wp.vec4:
+    """a[i] through the read-only data path with one 16-byte load on CUDA (as Warp's own BVH
+    loads its nodes); a plain load on the CPU."""
+    ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+const float* f = reinterpret_cast<const float*>(a.data + i);
+return wp::vec3(__ldg(f), __ldg(f + 1), __ldg(f + 2));
+#else
+return a.data[i];
+#endif
+""")
+def load_vec3(a: wp.array[wp.vec3], i: int) -> wp.vec3:
+    """a[i] through the read-only data path on CUDA; a plain load on the CPU."""
+    ...
 
 
 @wp.kernel
@@ -244,15 +271,15 @@ def pack_tree_bounds(
     node_upper: wp.array[wp.vec3],
     slot: int,
     # Out:
-    node_boxes: wp.array2d[wp.vec4],
+    node_boxes: wp.array[wp.vec4],
 ):
     """Write node n's box [m] (from :func:`refit_tree` at one frame) into frame slot ``slot``
-    (0 or 1) of node_boxes (2P, 4)."""
+    (0 or 1) of node_boxes (4 * 2P,: node n's row is entries 4n .. 4n + 3)."""
     n = wp.tid()
     lo = node_lower[n]
     hi = node_upper[n]
-    node_boxes[n, 2 * slot] = wp.vec4(lo[0], lo[1], lo[2], 0.0)
-    node_boxes[n, 2 * slot + 1] = wp.vec4(hi[0], hi[1], hi[2], 0.0)
+    node_boxes[4 * n + 2 * slot] = wp.vec4(lo[0], lo[1], lo[2], 0.0)
+    node_boxes[4 * n + 2 * slot + 1] = wp.vec4(hi[0], hi[1], hi[2], 0.0)
 
 
 @wp.kernel
@@ -264,12 +291,12 @@ def gather_tree_triangles(
     frame: int,
     slot: int,
     # Out:
-    tree_triangles: wp.array2d[wp.vec3],
+    tree_triangles: wp.array[wp.vec3],
 ):
-    """tree_triangles[slot, i] = frames[frame, tree_indices[i]] [m]: frame ``frame``'s face
-    vertices in tree order (3 P B of them)."""
+    """tree_triangles[slot * 3PB + i] = frames[frame, tree_indices[i]] [m]: frame ``frame``'s
+    face vertices in tree order (3 P B of them a slot)."""
     i = wp.tid()
-    tree_triangles[slot, i] = frames[frame, tree_indices[i]]
+    tree_triangles[slot * tree_indices.shape[0] + i] = frames[frame, tree_indices[i]]
 
 
 def update_tree_slot(frames, tree_indices, tree_faces, leaf_faces: int, depth: int, frame: int, slot: int,
@@ -279,30 +306,30 @@ def update_tree_slot(frames, tree_indices, tree_faces, leaf_faces: int, depth: i
     refit_tree(frames, tree_indices, tree_faces, leaf_faces, depth, frame, frame, 0.0, node_lower, node_upper,
                levels_per_launch)
     dev = node_boxes.device
-    wp.launch(pack_tree_bounds, node_boxes.shape[0], inputs=[node_lower, node_upper, slot], outputs=[node_boxes],
+    wp.launch(pack_tree_bounds, node_lower.shape[0], inputs=[node_lower, node_upper, slot], outputs=[node_boxes],
               device=dev)
     wp.launch(gather_tree_triangles, tree_indices.shape[0], inputs=[frames, tree_indices, frame, slot],
               outputs=[tree_triangles], device=dev)
 
 
 @wp.func
-def lerp_box_distance(node_boxes: wp.array2d[wp.vec4], n: int, s0: int, s1: int, alpha: float, p: wp.vec3):
-    """Distance [m] from p to node n's interpolated box (slot s0 weighted 1 - alpha)."""
-    lo = wp.lerp(node_boxes[n, 2 * s0], node_boxes[n, 2 * s1], alpha)
-    hi = wp.lerp(node_boxes[n, 2 * s0 + 1], node_boxes[n, 2 * s1 + 1], alpha)
+def lerp_box_distance(node_boxes: wp.array[wp.vec4], n: int, s0: int, s1: int, alpha: float, p: wp.vec3):
+    """Squared distance [m^2] from p to node n's interpolated box (slot s0 weighted 1 - alpha)."""
+    lo = wp.lerp(load_vec4(node_boxes, 4 * n + 2 * s0), load_vec4(node_boxes, 4 * n + 2 * s1), alpha)
+    hi = wp.lerp(load_vec4(node_boxes, 4 * n + 2 * s0 + 1), load_vec4(node_boxes, 4 * n + 2 * s1 + 1), alpha)
     dx = wp.max(wp.max(lo[0] - p[0], p[0] - hi[0]), 0.0)
     dy = wp.max(wp.max(lo[1] - p[1], p[1] - hi[1]), 0.0)
     dz = wp.max(wp.max(lo[2] - p[2], p[2] - hi[2]), 0.0)
-    return wp.sqrt(dx * dx + dy * dy + dz * dz)
+    return dx * dx + dy * dy + dz * dz
 
 
 @wp.func
 def walk_lerp_tree(
-    node_boxes: wp.array2d[wp.vec4], tree_triangles: wp.array2d[wp.vec3], leaf_faces: int, num_leaves: int,
+    node_boxes: wp.array[wp.vec4], tree_triangles: wp.array[wp.vec3], leaf_faces: int, num_leaves: int,
     num_slots: int, s0: int, s1: int, alpha: float, p: wp.vec3, epsilon: float, start: int, d_start: float,
     min_dist: float, min_slot: int, min_w: wp.vec3, acc_n: wp.vec3,
 ):
-    """The nearest-first walk of the subtree at node ``start`` (box distance d_start), folding its
+    """The nearest-first walk of the subtree at node ``start`` (squared box distance d_start), folding its
     faces into the running closest feature (min_dist, min_slot: tree slot, weights, tie normal
     sum); a node farther than the closest so far + epsilon is skipped."""
     stack = _stack_t()
@@ -310,18 +337,24 @@ def walk_lerp_tree(
     stack[0] = start
     dists[0] = d_start
     sp = int(1)
+    o0 = s0 * 3 * num_leaves * leaf_faces
+    o1 = s1 * 3 * num_leaves * leaf_faces
     while sp > 0:
         sp -= 1
         node = stack[sp]
-        if dists[sp] < min_dist + epsilon:
+        bound = min_dist + epsilon
+        if dists[sp] < bound * bound:
             if node >= num_leaves:
                 first = (node - num_leaves) * leaf_faces
                 for j in range(leaf_faces):
                     slot = first + j
                     if slot < num_slots:
-                        a = wp.lerp(tree_triangles[s0, 3 * slot], tree_triangles[s1, 3 * slot], alpha)
-                        b = wp.lerp(tree_triangles[s0, 3 * slot + 1], tree_triangles[s1, 3 * slot + 1], alpha)
-                        e = wp.lerp(tree_triangles[s0, 3 * slot + 2], tree_triangles[s1, 3 * slot + 2], alpha)
+                        a = wp.lerp(load_vec3(tree_triangles, o0 + 3 * slot), load_vec3(tree_triangles, o1 + 3 * slot),
+                                    alpha)
+                        b = wp.lerp(load_vec3(tree_triangles, o0 + 3 * slot + 1),
+                                    load_vec3(tree_triangles, o1 + 3 * slot + 1), alpha)
+                        e = wp.lerp(load_vec3(tree_triangles, o0 + 3 * slot + 2),
+                                    load_vec3(tree_triangles, o1 + 3 * slot + 2), alpha)
                         dist, w, wn = face_candidate(p, a, b, e, epsilon)
                         min_dist, min_slot, min_w, acc_n = keep_closest(dist, slot, w, wn, epsilon, min_dist, min_slot,
                                                                         min_w, acc_n)
@@ -338,11 +371,11 @@ def walk_lerp_tree(
                     far = c0
                     d_near = d1
                     d_far = d0
-                if d_far < min_dist + epsilon:  # the far child first: popped after the near one
+                if d_far < bound * bound:  # the far child first: popped after the near one
                     stack[sp] = far
                     dists[sp] = d_far
                     sp += 1
-                if d_near < min_dist + epsilon:
+                if d_near < bound * bound:
                     stack[sp] = near
                     dists[sp] = d_near
                     sp += 1
@@ -351,7 +384,7 @@ def walk_lerp_tree(
 
 @wp.func
 def closest_on_lerp_tree(
-    node_boxes: wp.array2d[wp.vec4], tree_triangles: wp.array2d[wp.vec3], leaf_faces: int, num_leaves: int,
+    node_boxes: wp.array[wp.vec4], tree_triangles: wp.array[wp.vec3], leaf_faces: int, num_leaves: int,
     num_slots: int, s0: int, s1: int, alpha: float, p: wp.vec3, reach: float, epsilon: float, seed_slot: int,
     seed_up: int,
 ):
@@ -375,7 +408,7 @@ def closest_on_lerp_tree(
         while node > 1:
             sib = node ^ 1
             d = lerp_box_distance(node_boxes, sib, s0, s1, alpha, p)
-            if d < min_dist + epsilon:
+            if d < (min_dist + epsilon) * (min_dist + epsilon):
                 min_dist, min_slot, min_w, acc_n = walk_lerp_tree(
                     node_boxes, tree_triangles, leaf_faces, num_leaves, num_slots, s0, s1, alpha, p, epsilon, sib, d,
                     min_dist, min_slot, min_w, acc_n)
@@ -392,8 +425,8 @@ def find_closest_on_lerp_tree(
     # Model:
     tree_faces: wp.array[wp.int32],
     # In:
-    node_boxes: wp.array2d[wp.vec4],
-    tree_triangles: wp.array2d[wp.vec3],
+    node_boxes: wp.array[wp.vec4],
+    tree_triangles: wp.array[wp.vec3],
     leaf_faces: int,
     num_leaves: int,
     num_slots: int,
