@@ -192,6 +192,10 @@ class ConversionInfo:
     the conversion was run again from other key frames (``key_candidates``); the kept run is
     the one of least Chamfer distance to the input (its key is ``key_frame``). Empty when there
     was one run.
+    dropped_unused: ``(frame, vertices, faces)`` for input frames holding vertices that no face
+    uses (left over after a face filter, stray points) or faces that repeat a vertex: dropped
+    before the conversion, so they neither pull the template nor count in the coverage, the
+    scale check or the template (whose faces are then the key frame's without them).
     """
 
     strategy: str
@@ -208,6 +212,33 @@ class ConversionInfo:
     repaired_frames: list = field(default_factory=list)
     unrecovered_frames: list = field(default_factory=list)
     key_trials: list = field(default_factory=list)
+    dropped_unused: list = field(default_factory=list)
+
+
+def _drop_unused(vseq: VaryingTopologySequence):
+    """(vseq without faces that repeat a vertex (no area in any pose) and without the vertices
+    no face uses, [(frame, vertices dropped, faces dropped)]): the input is not modified; frames
+    with neither are kept as they are. Raises MeshDataError for a frame left without faces."""
+    frames, dropped = [], []
+    for t, (v, f) in enumerate(vseq.frames):
+        f = np.asarray(f)
+        keep = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
+        used = np.zeros(len(v), bool)
+        used[f[keep].ravel()] = True
+        nv, nf = int(len(v) - np.count_nonzero(used)), int(len(f) - np.count_nonzero(keep))
+        if nv == 0 and nf == 0:
+            frames.append((v, f))
+            continue
+        if not keep.any():
+            src = vseq.frame_sources[t] if vseq.frame_sources else (vseq.source or vseq.name)
+            raise MeshDataError(f"{src}, frame {t}: every face repeats a vertex (no surface)")
+        remap = np.cumsum(used) - 1
+        frames.append((v[used], remap[f[keep]].astype(np.int32)))
+        dropped.append((t, nv, nf))
+    if not dropped:
+        return vseq, dropped
+    return VaryingTopologySequence(frames, fps=vseq.fps, name=vseq.name, source=vseq.source,
+                                   frame_sources=vseq.frame_sources), dropped
 
 
 class _Converter:
@@ -853,6 +884,7 @@ def to_fixed_topology(seq, strategy: str = DEFAULT_STRATEGY, template=None, devi
     for t, (v, f) in enumerate(vseq.frames):  # frames may have been mutated after construction
         src = vseq.frame_sources[t] if vseq.frame_sources else where
         validate_mesh(v, f, src, t)
+    vseq, unused = _drop_unused(vseq)
     T = vseq.num_frames
     K = _key_frame(vseq, o["key_frame"], template is not None)
     given = template is not None
@@ -900,6 +932,7 @@ def to_fixed_topology(seq, strategy: str = DEFAULT_STRATEGY, template=None, devi
                     res, best = r, tried[-1][2]
             res.conversion.key_trials = tried
         info = res.conversion
+        info.dropped_unused = unused
         info.topology_events = [e for e in topology.result()
                                 if info.first_frame <= e[0] < info.first_frame + len(info.coverage)]
     finally:
@@ -1054,6 +1087,11 @@ def conversion_summary(info: ConversionInfo) -> list:
         u = info.unrecovered_frames
         lines.append(f"restart found no better fit at {len(u)} frame(s): {', '.join(map(str, u[:12]))}"
                      + (" ..." if len(u) > 12 else ""))
+    un = info.dropped_unused
+    if un:
+        lines.append(f"note: dropped {sum(x[1] for x in un)} input vertices that no face uses and "
+                     f"{sum(x[2] for x in un)} faces that repeat a vertex, in {len(un)} frame(s) (first: frame "
+                     f"{un[0][0]}); they are not part of the surface")
     ev = info.topology_events
     if ev:
         shown = ", ".join(f"{t} ({what})" for t, what in ev[:8])

@@ -13,6 +13,7 @@ from dynmesh_warp.convert import (
     STRATEGIES,
     nearest_surface,
     surface_deviation,
+    conversion_summary,
     to_fixed_topology,
     vertex_adjacency,
     main as convert_main,
@@ -623,3 +624,34 @@ def test_key_candidates_on_coverage_drift():
     assert _key_retry_reason(cov, 0) is not None
     # too few frames to tell drift from motion: no trigger
     assert _key_retry_reason(np.array([0.0, 0.001, 0.05 - 1e-6, 0.04]), 0) is None
+
+
+def test_unused_vertices_and_faces_of_the_input_are_dropped(rigid_varying):
+    """Stray vertices no face uses (far from the surface) and faces that repeat a vertex, added
+    to every remeshed frame, change nothing: the graph conversion gives the same mesh as on the
+    clean input (vertex for vertex), the coverage is the clean run's, the summary says what was
+    dropped; the input is left as it was; a frame whose every face repeats a vertex is refused."""
+    _, _, clean = rigid_varying
+    clean = VaryingTopologySequence(clean.frames[:8])
+    rng = np.random.default_rng(3)
+    junk = []
+    for v, f in clean.frames:
+        far = v.mean(0) + 5 * _diag(v) * rng.standard_normal((7, 3))
+        v2 = np.concatenate([far[:3], v, far[3:]]).astype(np.float32)  # strays before and after
+        f2 = np.concatenate([f + 3, [[3, 3, 4], [5, 6, 5]], [[0, 1, 2]]]).astype(np.int32)  # last: strays only
+        junk.append((v2, f2[:-1]))  # the face of strays would make them surface: keep them unused
+    junk_seq = VaryingTopologySequence(junk)
+    before = [v.copy() for v, _ in junk_seq.frames]
+    a = to_fixed_topology(clean, device=DEV)
+    b = to_fixed_topology(junk_seq, device=DEV)
+    assert a.V.shape == b.V.shape and np.array_equal(a.F, b.F)
+    np.testing.assert_allclose(b.V, a.V, atol=1e-6)
+    np.testing.assert_allclose(b.conversion.coverage, a.conversion.coverage, atol=1e-7)
+    assert b.conversion.dropped_unused == [(t, 7, 2) for t in range(8)] and a.conversion.dropped_unused == []
+    assert any("dropped 56 input vertices that no face uses and 16 faces" in ln
+               for ln in conversion_summary(b.conversion))
+    assert all(np.array_equal(v, w) for (v, _), w in zip(junk_seq.frames, before))
+    bad = list(clean.frames)
+    bad[2] = (bad[2][0], np.array([[0, 0, 1], [2, 3, 3]], np.int32))
+    with pytest.raises(MeshDataError, match="frame 2: every face repeats a vertex"):
+        to_fixed_topology(VaryingTopologySequence(bad), device=DEV)
