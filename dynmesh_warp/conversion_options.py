@@ -57,6 +57,14 @@ class _Options(BaseModel):
     scale_tolerance: Float = Field(4.0, gt=0.0)
     #: the frame the template comes from and tracking starts at: "auto" (largest surface area) or an index
     key_frame: KeyFrame = "auto"
+    #: input parts (connected components) with less than this fraction of the frame's surface area
+    #: that lie wholly farther than ``far_part_gap`` from the previous converted frame are left out
+    #: of the fit (floaters: the template has no part for them, a pull would grow a spike); 0 (the
+    #: default): never, since fragments of a thin part the fit has lost look the same and their
+    #: pull is what recovers it (docs/conversion.md#floaters); 0.05 for floater-laden input
+    far_part_area: Fraction = 0.0
+    #: the gap for ``far_part_area`` (fraction of the converted mesh's bbox diagonal)
+    far_part_gap: Float = Field(0.10, gt=0.0)
 
 
 class _FineStage(BaseModel):

@@ -196,6 +196,10 @@ class ConversionInfo:
     uses (left over after a face filter, stray points) or faces that repeat a vertex: dropped
     before the conversion, so they neither pull the template nor count in the coverage, the
     scale check or the template (whose faces are then the key frame's without them).
+    ignored_parts: ``{frame: (parts, vertices)}``: small input parts left out of that frame's
+    fit and coverage because they lie wholly far from the converted surface (options
+    ``far_part_area``, ``far_part_gap``): floaters of a reconstruction, for which the template
+    has no part (pulled, they would grow a spike from it).
     """
 
     strategy: str
@@ -213,6 +217,7 @@ class ConversionInfo:
     unrecovered_frames: list = field(default_factory=list)
     key_trials: list = field(default_factory=list)
     dropped_unused: list = field(default_factory=list)
+    ignored_parts: dict = field(default_factory=dict)
 
 
 def _drop_unused(vseq: VaryingTopologySequence):
@@ -747,7 +752,73 @@ def _check_reach(TV, TF, V0, F0, limit: float, device, frame: int = 0):
             f"bounding-box diagonal from frame {frame}'s surface", UserWarning, stacklevel=3)
 
 
-def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info, strategy: str, where: str, TV):
+def _part_labels(F: np.ndarray, n: int) -> tuple:
+    """(number of parts, part of each face) of the faces F over n vertices (parts: connected
+    components of the face graph through shared vertices)."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    F = np.asarray(F, np.int64)
+    a = F.T.ravel()
+    b = F[:, [1, 2, 0]].T.ravel()
+    g = sp.csr_matrix((np.ones(len(a), np.int8), (a, b)), shape=(n, n))
+    k, lab = connected_components(g, directed=False)
+    return k, lab[F[:, 0]]
+
+
+def _far_parts(v: np.ndarray, f: np.ndarray, X: np.ndarray, TF: np.ndarray, area_frac: float, gap_frac: float,
+               device) -> tuple:
+    """The input frame (v, f) without its small parts far from the previous converted frame
+    (X on the template faces TF): parts of less than ``area_frac`` of the frame's surface area
+    whose every vertex lies farther than ``gap_frac`` x X's bbox diagonal from X's surface (a
+    floater of the reconstruction: the template has no part for it). The largest part is always
+    kept. Returns (v, f, parts dropped, vertices dropped); (v, f, 0, 0) when none."""
+    if area_frac <= 0:
+        return v, f, 0, 0
+    k, lab = _part_labels(f, len(v))
+    if k < 2:
+        return v, f, 0, 0
+    tri = v[f].astype(np.float64)
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    part_area = np.bincount(lab, weights=area, minlength=k)
+    small = np.flatnonzero(part_area < area_frac * part_area.sum())
+    small = small[small != np.argmax(part_area)]
+    if small.size == 0:
+        return v, f, 0, 0
+    in_small = np.isin(lab, small)
+    verts = np.unique(f[in_small])
+    d = nearest_surface((X, TF), v[verts], device=device).dist
+    vert_part = np.full(len(v), -1)
+    vert_part[f.ravel()] = np.repeat(lab, 3)
+    near = np.zeros(k, bool)
+    near[vert_part[verts][d <= gap_frac * max(_bbox_diag(X), 1e-12)]] = True
+    drop = small[~near[small]]
+    if drop.size == 0:
+        return v, f, 0, 0
+    keep_face = ~np.isin(lab, drop)
+    used = np.zeros(len(v), bool)
+    used[f[keep_face].ravel()] = True
+    remap = np.cumsum(used) - 1
+    return v[used], remap[f[keep_face]].astype(np.int32), int(drop.size), int(len(v) - used.sum())
+
+
+def _frame_for_fit(vseq, conv, t: int, K: int, o: dict, TF: np.ndarray, info) -> tuple:
+    """Input frame t as the fit sees it: without far small parts (:func:`_far_parts`, noted in
+    ``info.ignored_parts``), except at the key frame (the template is that frame)."""
+    v, f = vseq.frames[t]
+    if t == K or float(o.get("far_part_area", 0.0)) <= 0:
+        return v, f
+    v2, f2, parts, nv = _far_parts(v, f, conv.X.numpy(), TF, float(o["far_part_area"]), float(o["far_part_gap"]),
+                                   conv.device)
+    if parts:
+        info.ignored_parts[t] = (parts, nv)
+    else:
+        info.ignored_parts.pop(t, None)
+    return v2, f2
+
+
+def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info, strategy: str, where: str, TV,
+                    TF):
     """The frame loop of to_fixed_topology: the key frame forward to the end, then backward to
     frame 0. Returns (out (T, N, 3), lo, hi (the converted frames lo..hi), seconds, coverage)."""
     T = vseq.num_frames
@@ -767,7 +838,7 @@ def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info,
         t0 = time.perf_counter()
         if t == K - 1:
             conv.rewind(out[K], K, K + 1)
-        v, f = vseq.frames[t]
+        v, f = _frame_for_fit(vseq, conv, t, K, info.options, TF, info)
         frame = _device_frame(v, f, device)
         if step(frame, t):
             info.reanchored_frames.append(t)
@@ -818,7 +889,7 @@ def _poor_runs(coverage: np.ndarray, K: int, threshold: float) -> list:
     return runs
 
 
-def _repair_poor_runs(vseq, conv, out, coverage, seconds, K: int, o: dict, should_stop) -> list:
+def _repair_poor_runs(vseq, conv, out, coverage, seconds, K: int, o: dict, should_stop, TF, info) -> list:
     """Bidirectional repair (``graph``): re-track every run of poorly covered frames from the good
     frame on its other side, keeping per frame whichever result covers the input better. Up to
     ``repair_passes`` passes (each sees the previous one's coverage). Returns the improved frames."""
@@ -839,7 +910,7 @@ def _repair_poor_runs(vseq, conv, out, coverage, seconds, K: int, o: dict, shoul
             conv.failed_restart = None
             for t in frames:
                 t0 = time.perf_counter()
-                v, f = vseq.frames[t]
+                v, f = _frame_for_fit(vseq, conv, t, K, o, TF, info)
                 old_state = conv.frame_states.get(t)
                 conv.step_graph(_device_frame(v, f, device), t)
                 cov = conv.frame_coverage / max(_bbox_diag(v), 1e-12)
@@ -1011,9 +1082,10 @@ def _convert_from_key(vseq, strategy: str, o: dict, K: int, template, device, pr
     step = getattr(conv, f"step_{strategy}")
     info = ConversionInfo(strategy, {k: v for k, v in o.items() if k != "strategy"}, T, len(TV), key_frame=K)
     out, lo, hi, seconds, coverage = _convert_frames(vseq, conv, step, K, progress, should_stop, info,
-                                                     strategy, where, TV)
+                                                     strategy, where, TV, TF)
     if strategy == "graph" and (lo, hi) == (0, T - 1) and int(o["repair_passes"]) > 0:
-        info.repaired_frames = _repair_poor_runs(vseq, conv, out, coverage, seconds, K, o, should_stop)
+        info.repaired_frames = _repair_poor_runs(vseq, conv, out, coverage, seconds, K, o, should_stop, TF, info)
+    info.ignored_parts = {t: x for t, x in sorted(info.ignored_parts.items()) if lo <= t <= hi}
     info.frame_seconds = seconds.tolist()
     info.coverage = coverage.tolist()
     info.reanchored_frames.sort()
@@ -1087,6 +1159,12 @@ def conversion_summary(info: ConversionInfo) -> list:
         u = info.unrecovered_frames
         lines.append(f"restart found no better fit at {len(u)} frame(s): {', '.join(map(str, u[:12]))}"
                      + (" ..." if len(u) > 12 else ""))
+    ig = info.ignored_parts
+    if ig:
+        fr = sorted(ig)
+        lines.append(f"note: left out {sum(p for p, _ in ig.values())} small input part(s) lying far from the "
+                     f"converted surface (floaters?) on {len(fr)} frame(s): {', '.join(map(str, fr[:12]))}"
+                     + (" ..." if len(fr) > 12 else "") + "; they have no part in the template")
     un = info.dropped_unused
     if un:
         lines.append(f"note: dropped {sum(x[1] for x in un)} input vertices that no face uses and "
@@ -1102,7 +1180,10 @@ def conversion_summary(info: ConversionInfo) -> list:
         lines.append(f"warning: poor fit on {bad.size} frame(s) ({', '.join(map(str, bad[:12]))}"
                      + (" ..." if bad.size > 12 else "") + f"): input surface farther than "
                      f"{100 * POOR_COVERAGE:.0f}% of the diagonal from the converted mesh (a lost part?)"
-                     + ("; try --strategy graph" if info.strategy != "graph" else "; try another --key-frame"))
+                     + ("; try --strategy graph" if info.strategy != "graph" else "; try another --key-frame")
+                     + ("; if the input has floaters (small separate blobs off the surface), --option "
+                        "far_part_area=0.05 leaves them out" if not float(info.options.get("far_part_area", 0) or 0)
+                        else ""))
     return lines
 
 

@@ -432,6 +432,9 @@ def test_conversion_summary_warns_on_poor_coverage():
     assert any(ln.startswith("recovered") and "2 (from template)" in ln for ln in lines)
     warn = [ln for ln in lines if ln.startswith("warning:")]
     assert len(warn) == 1 and "(2)" in warn[0] and "--strategy graph" in warn[0]
+    assert "far_part_area=0.05" in warn[0]  # the floater hint while that filter is off
+    info.options = {"far_part_area": 0.05}
+    assert "far_part_area" not in [ln for ln in conversion_summary(info) if ln.startswith("warning:")][0]
     info.coverage = [0.01] * 4
     assert not any(ln.startswith("warning:") for ln in conversion_summary(info))
 
@@ -655,3 +658,61 @@ def test_unused_vertices_and_faces_of_the_input_are_dropped(rigid_varying):
     bad[2] = (bad[2][0], np.array([[0, 0, 1], [2, 3, 3]], np.int32))
     with pytest.raises(MeshDataError, match="frame 2: every face repeats a vertex"):
         to_fixed_topology(VaryingTopologySequence(bad), device=DEV)
+
+
+def _with_blob(V, F, centre, radius):
+    import trimesh
+
+    b = trimesh.creation.icosphere(subdivisions=1)
+    return (np.concatenate([V, b.vertices * radius + centre]).astype(np.float32),
+            np.concatenate([F, b.faces + len(V)]).astype(np.int32))
+
+
+def test_far_small_parts_are_left_out_of_the_fit():
+    """With far_part_area 0.05, a floater (a small separate blob 0.6 radii off a breathing sphere)
+    on three frames is left out of those frames' fit, so the converted sphere grows no spike
+    towards it (max radius within 2 % of the input sphere's; with the default, off: > 1.3 radii),
+    named in ConversionInfo and the summary. A small blob near the surface (within far_part_gap)
+    is not left out."""
+    import trimesh
+
+    frames = []
+    for t in range(10):
+        s = trimesh.creation.icosphere(subdivisions=3 if t % 2 else 2)
+        V, F = s.vertices * (1 + 0.04 * np.sin(t)), s.faces
+        if t in (3, 4, 7):
+            V, F = _with_blob(V, F, np.array([1.6, 0.1 * t, 0.2]), 0.05)
+        if t == 6:
+            V, F = _with_blob(V, F, np.array([0.0, 1.08, 0.0]), 0.04)  # near: 1.5 % of the diagonal off
+        frames.append((V, F))
+    seq = VaryingTopologySequence(frames)
+    r = to_fixed_topology(seq, device=DEV, far_part_area=0.05)
+    radius = np.linalg.norm(r.V, axis=2).max(1)
+    sphere = np.array([1 + 0.04 * np.sin(t) for t in range(10)])
+    assert np.all(radius[[3, 4, 7]] < 1.02 * sphere[[3, 4, 7]]), radius
+    assert sorted(r.conversion.ignored_parts) == [3, 4, 7]
+    assert all(p == 1 and n == 42 for p, n in r.conversion.ignored_parts.values())
+    assert any("left out 3 small input part(s)" in ln and "3, 4, 7" in ln for ln in conversion_summary(r.conversion))
+    off = to_fixed_topology(seq, device=DEV)  # the default: off
+    assert off.conversion.ignored_parts == {}
+    assert np.linalg.norm(off.V, axis=2).max(1)[[3, 4, 7]].max() > 1.3
+
+
+def test_far_parts_keeps_the_largest_and_near_parts():
+    """_far_parts against a direct check: of three parts (a big sphere, a far small blob, a near
+    small blob) only the far one goes; the kept faces are the input's other faces, remapped."""
+    import trimesh
+
+    from dynmesh_warp.convert import _far_parts
+
+    s = trimesh.creation.icosphere(subdivisions=2)
+    V, F = _with_blob(s.vertices, s.faces, np.array([3.0, 0.0, 0.0]), 0.1)
+    V, F = _with_blob(V, F, np.array([0.0, 0.0, 1.05]), 0.03)
+    v2, f2, parts, nv = _far_parts(V, F, s.vertices.astype(np.float32), s.faces.astype(np.int32), 0.05, 0.1, DEV)
+    assert (parts, nv) == (1, 42) and len(v2) == len(V) - 42
+    np.testing.assert_array_equal(v2[f2], np.concatenate([V[F[:len(s.faces)]], V[F[-80:]]]))
+    # nothing to drop: the same arrays back; area_frac 0: off
+    for args in ((s.vertices, s.faces), (V, F)):
+        out = _far_parts(*args, s.vertices.astype(np.float32), s.faces.astype(np.int32),
+                         0.0 if args[0] is V else 0.05, 0.1, DEV)
+        assert out[2:] == (0, 0) and out[0] is args[0]
