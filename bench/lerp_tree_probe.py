@@ -23,8 +23,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from cluster_refit_probe import probe_arguments, probe_scene, timed  # noqa: E402
 from common import RESULTS, write_json  # noqa: E402
 
-from dynmesh_warp.kernels.tree import (build_implicit_tree, closest_on_lerp_tree,  # noqa: E402
-                                       find_closest_on_lerp_tree, find_closest_on_tree, morton_codes, refit_tree,
+from dynmesh_warp.kernels.tree import (build_implicit_tree, find_closest_on_lerp_tree,  # noqa: E402
+                                       find_closest_on_tree, morton_codes, query_lerp_tree_point, refit_tree,
                                        update_tree_slot)
 
 
@@ -37,15 +37,8 @@ def _capped(regs: int):
         seed_slots: wp.array[wp.int32], seed_up: int, reach: float, epsilon: float, dist_out: wp.array[float],
         slot_out: wp.array[wp.int32], face_out: wp.array[wp.int32],
     ):
-        s = wp.tid()
-        d, slot, w, n = closest_on_lerp_tree(node_boxes, tree_triangles, leaf_faces, num_leaves, num_slots, s0, s1,
-                                             alpha, points[s], reach, epsilon, seed_slots[s], seed_up)
-        dist_out[s] = d
-        slot_out[s] = slot
-        f = int(-1)
-        if slot >= 0:
-            f = tree_faces[slot]
-        face_out[s] = f
+        query_lerp_tree_point(wp.tid(), tree_faces, node_boxes, tree_triangles, leaf_faces, num_leaves, num_slots, s0,
+                              s1, alpha, points, seed_slots, seed_up, reach, epsilon, dist_out, slot_out, face_out)
 
     return wp.kernel(find_closest_on_lerp_tree_capped, name=f"find_closest_on_lerp_tree_capped_{regs}",
                      cuda_max_registers=regs)

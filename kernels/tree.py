@@ -420,6 +420,25 @@ def closest_on_lerp_tree(
     return min_dist, min_slot, min_w, acc_n
 
 
+@wp.func
+def query_lerp_tree_point(
+    s: int, tree_faces: wp.array[wp.int32], node_boxes: wp.array[wp.vec4], tree_triangles: wp.array[wp.vec3],
+    leaf_faces: int, num_leaves: int, num_slots: int, s0: int, s1: int, alpha: float, points: wp.array[wp.vec3],
+    seed_slots: wp.array[wp.int32], seed_up: int, reach: float, epsilon: float, dist_out: wp.array[float],
+    slot_out: wp.array[wp.int32], face_out: wp.array[wp.int32],
+):
+    """Point s's query of :func:`find_closest_on_lerp_tree` (its body, shared with the probe's
+    register-capped copies)."""
+    d, slot, w, n = closest_on_lerp_tree(node_boxes, tree_triangles, leaf_faces, num_leaves, num_slots, s0, s1, alpha,
+                                         points[s], reach, epsilon, seed_slots[s], seed_up)
+    dist_out[s] = d
+    slot_out[s] = slot
+    f = int(-1)
+    if slot >= 0:
+        f = tree_faces[slot]
+    face_out[s] = f
+
+
 @wp.kernel
 def find_closest_on_lerp_tree(
     # Model:
@@ -446,12 +465,5 @@ def find_closest_on_lerp_tree(
     """Distance [m] of each point to the surface blended between the frames in slots s0 and s1
     (within ``reach``, else reach), its tree slot (a seed for the next query; -1 none) and its
     original face index (-1 none). seed_slots (n,): each point's seed (-1 none)."""
-    s = wp.tid()
-    d, slot, w, n = closest_on_lerp_tree(node_boxes, tree_triangles, leaf_faces, num_leaves, num_slots, s0, s1, alpha,
-                                         points[s], reach, epsilon, seed_slots[s], seed_up)
-    dist_out[s] = d
-    slot_out[s] = slot
-    f = int(-1)
-    if slot >= 0:
-        f = tree_faces[slot]
-    face_out[s] = f
+    query_lerp_tree_point(wp.tid(), tree_faces, node_boxes, tree_triangles, leaf_faces, num_leaves, num_slots, s0, s1,
+                          alpha, points, seed_slots, seed_up, reach, epsilon, dist_out, slot_out, face_out)
