@@ -46,6 +46,108 @@ def _capped(regs: int):
 
 CAPPED = {r: _capped(r) for r in (32, 48, 64, 96)}
 
+# The same walk written as plain CUDA C++ (a C array stack, float4 read-only loads, squared
+# distances, the unsigned closest point as wp.mesh_query_point_no_sign computes it): tells the
+# cost of the algorithm and layout from the cost of how the Warp-Python walk is compiled.
+_NATIVE_WALK = """
+const float4* nb = reinterpret_cast<const float4*>(node_boxes.data);
+const float* tv = reinterpret_cast<const float*>(tree_triangles.data);
+const float a1 = alpha;
+const float a0 = 1.0f - alpha;
+const int S = 3 * num_leaves * leaf_faces;
+int stack[48];
+float sd[48];
+int sp = 1;
+stack[0] = 1;
+sd[0] = 0.0f;
+float best = reach * reach;
+int best_slot = -1;
+while (sp > 0) {
+    --sp;
+    const int node = stack[sp];
+    if (sd[sp] >= best) continue;
+    if (node >= num_leaves) {
+        const int first = (node - num_leaves) * leaf_faces;
+        for (int j = 0; j < leaf_faces; ++j) {
+            const int slot = first + j;
+            if (slot >= num_slots) break;
+            wp::vec3 v[3];
+            for (int c = 0; c < 3; ++c) {
+                const float* q0 = tv + 3 * (s0 * S + 3 * slot + c);
+                const float* q1 = tv + 3 * (s1 * S + 3 * slot + c);
+#if defined(__CUDA_ARCH__)
+                v[c] = wp::vec3(a0 * __ldg(q0) + a1 * __ldg(q1), a0 * __ldg(q0 + 1) + a1 * __ldg(q1 + 1),
+                                a0 * __ldg(q0 + 2) + a1 * __ldg(q1 + 2));
+#else
+                v[c] = wp::vec3(a0 * q0[0] + a1 * q1[0], a0 * q0[1] + a1 * q1[1], a0 * q0[2] + a1 * q1[2]);
+#endif
+            }
+            const wp::vec3 e0 = v[1] - v[0];
+            const wp::vec3 e1 = v[2] - v[0];
+            const wp::vec3 e2 = v[2] - v[1];
+            if (wp::length(wp::cross(e0, e1)) / (wp::dot(e0, e0) + wp::dot(e1, e1) + wp::dot(e2, e2)) < 1.e-6f)
+                continue;
+            const wp::vec2 b = wp::closest_point_to_triangle(v[0], v[1], v[2], p);
+            const wp::vec3 c = b[0] * v[0] + b[1] * v[1] + (1.0f - b[0] - b[1]) * v[2];
+            const float d2 = wp::length_sq(c - p);
+            if (d2 < best) {
+                best = d2;
+                best_slot = slot;
+            }
+        }
+    } else {
+        float d[2];
+        for (int k = 0; k < 2; ++k) {
+            const int row = 4 * (2 * node + k);
+#if defined(__CUDA_ARCH__)
+            const float4 l0 = __ldg(nb + row + 2 * s0), l1 = __ldg(nb + row + 2 * s1);
+            const float4 h0 = __ldg(nb + row + 2 * s0 + 1), h1 = __ldg(nb + row + 2 * s1 + 1);
+#else
+            const float4 l0 = nb[row + 2 * s0], l1 = nb[row + 2 * s1];
+            const float4 h0 = nb[row + 2 * s0 + 1], h1 = nb[row + 2 * s1 + 1];
+#endif
+            const float dx = wp::max(wp::max(a0 * l0.x + a1 * l1.x - p[0], p[0] - a0 * h0.x - a1 * h1.x), 0.0f);
+            const float dy = wp::max(wp::max(a0 * l0.y + a1 * l1.y - p[1], p[1] - a0 * h0.y - a1 * h1.y), 0.0f);
+            const float dz = wp::max(wp::max(a0 * l0.z + a1 * l1.z - p[2], p[2] - a0 * h0.z - a1 * h1.z), 0.0f);
+            d[k] = dx * dx + dy * dy + dz * dz;
+        }
+        const int near = d[1] < d[0] ? 1 : 0;
+        if (d[1 - near] < best && sp < 48) {
+            stack[sp] = 2 * node + 1 - near;
+            sd[sp] = d[1 - near];
+            ++sp;
+        }
+        if (d[near] < best && sp < 48) {
+            stack[sp] = 2 * node + near;
+            sd[sp] = d[near];
+            ++sp;
+        }
+    }
+}
+return wp::vec2(wp::sqrt(best), static_cast<float>(best_slot));
+"""
+
+
+@wp.func_native(_NATIVE_WALK)
+def closest_on_lerp_tree_native(node_boxes: wp.array[wp.vec4], tree_triangles: wp.array[wp.vec3], leaf_faces: int,
+                                num_leaves: int, num_slots: int, s0: int, s1: int, alpha: float, p: wp.vec3,
+                                reach: float) -> wp.vec2:
+    """(distance [m] within reach, tree slot as a float or -1) of the unsigned closest point."""
+    ...
+
+
+@wp.kernel
+def find_closest_on_lerp_tree_native(
+    node_boxes: wp.array[wp.vec4], tree_triangles: wp.array[wp.vec3], leaf_faces: int, num_leaves: int,
+    num_slots: int, s0: int, s1: int, alpha: float, points: wp.array[wp.vec3], reach: float,
+    dist_out: wp.array[float], slot_out: wp.array[wp.int32],
+):
+    s = wp.tid()
+    r = closest_on_lerp_tree_native(node_boxes, tree_triangles, leaf_faces, num_leaves, num_slots, s0, s1, alpha,
+                                    points[s], reach)
+    dist_out[s] = r[0]
+    slot_out[s] = int(r[1])
+
 
 def main(argv=None):
     ap = probe_arguments()
@@ -108,6 +210,15 @@ def main(argv=None):
                 t = timed(query(points, seeds, up), dev, a.reps)
                 row[f"query_seeded_{name}_up{up}_us"] = t
                 row[f"query_seeded_{name}_up{up}_max_abs_diff_m"] = float(np.abs(dist.numpy() - d_ref).max())
+        t = timed(lambda: wp.launch(find_closest_on_lerp_tree_native, n,
+                                    inputs=[boxes, tris, B, P, len(F), 0, 1, alpha, points, a.reach],
+                                    outputs=[dist, slot], device=dev), dev, a.reps)
+        row["query_native_cpp_unsigned_us"] = t
+        row["query_native_cpp_unsigned_max_abs_diff_m"] = float(np.abs(dist.numpy() - d_ref).max())
+        t = timed(lambda: wp.launch(find_closest_on_lerp_tree_native, n,
+                                    inputs=[boxes, tris, B, P, len(F), 0, 1, alpha, points_sorted, a.reach],
+                                    outputs=[dist, slot], device=dev), dev, a.reps)
+        row["query_native_cpp_unsigned_sorted_points_us"] = t
         for r, kern in CAPPED.items():
             t = timed(lambda: wp.launch(kern, n, inputs=[tf, boxes, tris, B, P, len(F), 0, 1, alpha, points, no_seed, 0,
                                                         a.reach, eps], outputs=[dist, slot, face], device=dev),
