@@ -219,6 +219,12 @@ def main(argv=None):
                                     inputs=[boxes, tris, B, P, len(F), 0, 1, alpha, points_sorted, a.reach],
                                     outputs=[dist, slot], device=dev), dev, a.reps)
         row["query_native_cpp_unsigned_sorted_points_us"] = t
+        # one frame only (both slots the same: every load hits the same line twice), against
+        # frame k0's surface: the cost of the walk without the second frame's bytes
+        t = timed(lambda: wp.launch(find_closest_on_lerp_tree_native, n,
+                                    inputs=[boxes, tris, B, P, len(F), 0, 0, 0.0, points, a.reach],
+                                    outputs=[dist, slot], device=dev), dev, a.reps)
+        row["query_native_cpp_unsigned_one_frame_us"] = t
         for r, kern in CAPPED.items():
             t = timed(lambda: wp.launch(kern, n, inputs=[tf, boxes, tris, B, P, len(F), 0, 1, alpha, points, no_seed, 0,
                                                         a.reach, eps], outputs=[dist, slot, face], device=dev),
