@@ -699,9 +699,6 @@ def _topology(F: np.ndarray) -> tuple:
     """(connected parts, genus) of a closed triangle mesh given by its faces (genus from the
     Euler characteristic per part: chi = V - E + F = 2 parts - 2 genus; approximate for open
     meshes). Vertices no face uses are not counted (each would be a part of its own)."""
-    import scipy.sparse as sp
-    from scipy.sparse.csgraph import connected_components
-
     F = np.asarray(F, np.int64).reshape(-1, 3)
     if not len(F):
         return 0, 0
@@ -713,8 +710,7 @@ def _topology(F: np.ndarray) -> tuple:
     key = np.minimum(a, b) * n + np.maximum(a, b)
     key.sort()
     ne = int(np.count_nonzero(np.diff(key))) + 1
-    g = sp.csr_matrix((np.ones(len(a), np.int8), (a, b)), shape=(n, n))
-    c = connected_components(g, directed=False)[0] - int(n - used.sum())  # unused vertices: parts of their own
+    c = _part_labels(F, n)[0] - int(n - used.sum())  # unused vertices: parts of their own
     chi = int(used.sum()) - ne + len(F)
     return c, max(0, (2 * c - chi) // 2)
 
@@ -802,14 +798,14 @@ def _far_parts(v: np.ndarray, f: np.ndarray, X: np.ndarray, TF: np.ndarray, area
     return v[used], remap[f[keep_face]].astype(np.int32), int(drop.size), int(len(v) - used.sum())
 
 
-def _frame_for_fit(vseq, conv, t: int, K: int, o: dict, TF: np.ndarray, info) -> tuple:
-    """Input frame t as the fit sees it: without far small parts (:func:`_far_parts`, noted in
-    ``info.ignored_parts``), except at the key frame (the template is that frame)."""
+def _frame_for_fit(vseq, t: int, K: int, o: dict, X_ref, TF: np.ndarray, device, info) -> tuple:
+    """Input frame t as the fit sees it: without small parts far from ``X_ref`` (the converted
+    neighbour frame it is tracked from; :func:`_far_parts`, noted in ``info.ignored_parts``),
+    except at the key frame (the template is that frame) and while ``far_part_area`` is 0."""
     v, f = vseq.frames[t]
     if t == K or float(o.get("far_part_area", 0.0)) <= 0:
         return v, f
-    v2, f2, parts, nv = _far_parts(v, f, conv.X.numpy(), TF, float(o["far_part_area"]), float(o["far_part_gap"]),
-                                   conv.device)
+    v2, f2, parts, nv = _far_parts(v, f, X_ref, TF, float(o["far_part_area"]), float(o["far_part_gap"]), device)
     if parts:
         info.ignored_parts[t] = (parts, nv)
     else:
@@ -838,7 +834,8 @@ def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info,
         t0 = time.perf_counter()
         if t == K - 1:
             conv.rewind(out[K], K, K + 1)
-        v, f = _frame_for_fit(vseq, conv, t, K, info.options, TF, info)
+        v, f = _frame_for_fit(vseq, t, K, info.options, out[t - 1] if t > K else out[t + 1] if t < K else None, TF, device,
+                              info)
         frame = _device_frame(v, f, device)
         if step(frame, t):
             info.reanchored_frames.append(t)
@@ -910,7 +907,7 @@ def _repair_poor_runs(vseq, conv, out, coverage, seconds, K: int, o: dict, shoul
             conv.failed_restart = None
             for t in frames:
                 t0 = time.perf_counter()
-                v, f = _frame_for_fit(vseq, conv, t, K, o, TF, info)
+                v, f = _frame_for_fit(vseq, t, K, o, out[t - step], TF, device, info)
                 old_state = conv.frame_states.get(t)
                 conv.step_graph(_device_frame(v, f, device), t)
                 cov = conv.frame_coverage / max(_bbox_diag(v), 1e-12)
