@@ -6,7 +6,9 @@ and with the query's loads laid out for the GPU (a node's box pair in one 64-byt
 triangles contiguous). Optionally seeded by each point's previous closest face (the walk starts
 at the seed's leaf and climbs). Timed against the refit path's pieces on the same data (vertex
 blend, wp.Mesh.refit, mesh_query_point); every query's distances checked against
-mesh_query_point's. A measurement, not a collider yet.
+mesh_query_point's. Also: register-capped copies of the query, and the same walk written as
+plain CUDA C++ (func_native), over two frames and over one, to tell the algorithm's and the
+data's cost from the code generation's. A measurement, not a collider.
 
     python bench/lerp_tree_probe.py --device cuda --vertices 1000000 --spheres 100000
 """
