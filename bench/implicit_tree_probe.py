@@ -20,7 +20,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from cluster_refit_probe import find_closest_on_mesh, probe_arguments, probe_scene, timed  # noqa: E402
 from common import RESULTS, write_json  # noqa: E402
 
-from dynmesh_warp.kernels.tree import build_implicit_tree, find_closest_on_tree, morton_codes, refit_tree  # noqa: E402
+from dynmesh_warp.kernels.tree import allocate_implicit_tree, find_closest_on_tree, morton_codes, refit_tree  # noqa: E402
 
 
 def main(argv=None):
@@ -46,12 +46,9 @@ def main(argv=None):
     res["sorted_vs_unsorted_max_abs_diff_m"] = float(np.abs(ref_sorted.numpy() - d_ref[order]).max())
     print(f"mesh_query_point, points in Morton order: {t_qs:.1f} us (unsorted {t_q:.1f})", flush=True)
     for B in [int(x) for x in a.leaf_faces.split(",")]:
-        tree_faces, tree_indices, depth = build_implicit_tree(V[0], F, B)
-        P = 1 << depth
-        tf = wp.array(tree_faces, device=dev)
-        ti = wp.array(tree_indices, device=dev)
-        lo = wp.zeros(2 * P, dtype=wp.vec3, device=dev)
-        hi = wp.zeros(2 * P, dtype=wp.vec3, device=dev)
+        tree = allocate_implicit_tree(V[0], F, B, dev)
+        tree_faces, tree_indices, depth, P = tree.tree_faces, tree.tree_indices, tree.depth, tree.num_leaves
+        tf, ti, lo, hi = tree.faces, tree.indices, tree.node_lower, tree.node_upper
         dist = wp.zeros(a.spheres, dtype=float, device=dev)
         face = wp.zeros(a.spheres, dtype=wp.int32, device=dev)
         for L in [int(x) for x in a.levels.split(",")]:

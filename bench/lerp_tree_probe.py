@@ -25,7 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from cluster_refit_probe import probe_arguments, probe_scene, timed  # noqa: E402
 from common import RESULTS, write_json  # noqa: E402
 
-from dynmesh_warp.kernels.tree import (build_implicit_tree, find_closest_on_lerp_tree,  # noqa: E402
+from dynmesh_warp.kernels.tree import (allocate_implicit_tree, find_closest_on_lerp_tree,  # noqa: E402
                                        find_closest_on_tree, morton_codes, query_lerp_tree_point, refit_tree,
                                        update_tree_slot)
 
@@ -168,12 +168,9 @@ def main(argv=None):
     points_sorted = wp.array(pts[order], dtype=wp.vec3, device=dev)
     res["step_alpha"] = a.step_alpha
     for B in [int(x) for x in a.leaf_faces.split(",")]:
-        tree_faces, tree_indices, depth = build_implicit_tree(V[0], F, B)
-        P = 1 << depth
-        tf = wp.array(tree_faces, device=dev)
-        ti = wp.array(tree_indices, device=dev)
-        lo = wp.zeros(2 * P, dtype=wp.vec3, device=dev)
-        hi = wp.zeros(2 * P, dtype=wp.vec3, device=dev)
+        tree = allocate_implicit_tree(V[0], F, B, dev)
+        tree_faces, tree_indices, depth, P = tree.tree_faces, tree.tree_indices, tree.depth, tree.num_leaves
+        tf, ti, lo, hi = tree.faces, tree.indices, tree.node_lower, tree.node_upper
         boxes = wp.zeros(8 * P, dtype=wp.vec4, device=dev)
         tris = wp.zeros(2 * len(tree_indices), dtype=wp.vec3, device=dev)
         dist = wp.zeros(n, dtype=float, device=dev)

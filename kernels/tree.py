@@ -16,6 +16,8 @@ collider's serial search (kernels/swept.py), so the result is that of evaluating
 within reach (the rule of ``wp.mesh_query_point_sign_normal``, ties within epsilon included).
 """
 
+from dataclasses import dataclass
+
 import numpy as np
 import warp as wp
 
@@ -70,6 +72,34 @@ def build_implicit_tree(V: np.ndarray, F: np.ndarray, leaf_faces: int = 4):
     tree_indices[:M] = F[order]
     tree_indices[M:] = F[order[-1]]
     return tree_faces, tree_indices.ravel(), depth
+
+
+@dataclass
+class ImplicitTree:
+    """A tree built by :func:`build_implicit_tree`, on a device.
+
+    tree_faces (P B,) and tree_indices (3 P B,): the host arrays; faces, indices: the same as
+    wp.int32 arrays; depth D and num_leaves P = 2^D; node_lower / node_upper (2P,) wp.vec3 [m]:
+    the node boxes :func:`refit_tree` writes (:func:`update_tree_slot`'s scratch)."""
+
+    tree_faces: np.ndarray
+    tree_indices: np.ndarray
+    faces: wp.array
+    indices: wp.array
+    depth: int
+    num_leaves: int
+    node_lower: wp.array
+    node_upper: wp.array
+
+
+def allocate_implicit_tree(V: np.ndarray, F: np.ndarray, leaf_faces: int, device) -> ImplicitTree:
+    """:func:`build_implicit_tree` of pose ``V`` [m] and faces ``F``, uploaded to ``device``, with
+    zeroed node box arrays."""
+    tree_faces, tree_indices, depth = build_implicit_tree(V, F, leaf_faces)
+    P = 1 << depth
+    return ImplicitTree(tree_faces, tree_indices, wp.array(tree_faces, dtype=wp.int32, device=device),
+                        wp.array(tree_indices, dtype=wp.int32, device=device), depth, P,
+                        wp.zeros(2 * P, dtype=wp.vec3, device=device), wp.zeros(2 * P, dtype=wp.vec3, device=device))
 
 
 @wp.kernel

@@ -8,8 +8,8 @@ import trimesh
 import warp as wp
 
 from reference import brute_closest_points, brute_nearest
-from dynmesh_warp.kernels.tree import (build_implicit_tree, find_closest_on_lerp_tree, find_closest_on_tree, refit_tree,
-                                       update_tree_slot)
+from dynmesh_warp.kernels.tree import (allocate_implicit_tree, build_implicit_tree, find_closest_on_lerp_tree,
+                                       find_closest_on_tree, refit_tree, update_tree_slot)
 
 
 def _deforming_mesh(rng, subdivisions=3):
@@ -81,13 +81,11 @@ def test_tree_query_equals_brute_force_and_mesh_query(device):
     frames, F = _deforming_mesh(rng)
     alpha = 0.61
     Vt = ((1 - alpha) * frames[0] + alpha * frames[1]).astype(np.float32)
-    tree_faces, tree_indices, depth = build_implicit_tree(frames[0], F, 4)  # built at another pose
-    P = 1 << depth
     dev = device
-    lo = wp.zeros(2 * P, dtype=wp.vec3, device=dev)
-    hi = wp.zeros(2 * P, dtype=wp.vec3, device=dev)
+    tree = allocate_implicit_tree(frames[0], F, 4, dev)  # built at another pose
+    depth, P, lo, hi = tree.depth, tree.num_leaves, tree.node_lower, tree.node_upper
     fr = wp.array(frames, dtype=wp.vec3, device=dev)
-    ti, tf = wp.array(tree_indices, device=dev), wp.array(tree_faces, device=dev)
+    ti, tf = tree.indices, tree.faces
     refit_tree(fr, ti, tf, 4, depth, 0, 1, alpha, lo, hi)
     # points: on / near the surface (both sides) and far away
     mesh_t = trimesh.Trimesh(Vt, F, process=False)
@@ -142,13 +140,11 @@ def test_lerp_tree_query_equals_brute_force(device, leaf_faces, swap):
     frames[1] += rng.standard_normal(frames[1].shape).astype(np.float32) * 0.1  # non-rigid: loose boxes
     alpha = 0.43
     Vt = ((1 - alpha) * frames[0] + alpha * frames[1]).astype(np.float32)
-    tree_faces, tree_indices, depth = build_implicit_tree(frames[0], F, leaf_faces)
-    P = 1 << depth
     dev = device
+    tree = allocate_implicit_tree(frames[0], F, leaf_faces, dev)
+    tree_faces, tree_indices, depth, P = tree.tree_faces, tree.tree_indices, tree.depth, tree.num_leaves
     fr = wp.array(frames, dtype=wp.vec3, device=dev)
-    ti, tf = wp.array(tree_indices, device=dev), wp.array(tree_faces, device=dev)
-    lo = wp.zeros(2 * P, dtype=wp.vec3, device=dev)
-    hi = wp.zeros(2 * P, dtype=wp.vec3, device=dev)
+    ti, tf, lo, hi = tree.indices, tree.faces, tree.node_lower, tree.node_upper
     boxes = wp.zeros(8 * P, dtype=wp.vec4, device=dev)
     tris = wp.zeros(2 * len(tree_indices), dtype=wp.vec3, device=dev)
     s0, s1 = (1, 0) if swap else (0, 1)
