@@ -749,8 +749,8 @@ def _check_reach(TV, TF, V0, F0, limit: float, device, frame: int = 0):
 
 
 def _part_labels(F: np.ndarray, n: int) -> tuple:
-    """(number of parts, part of each face) of the faces F over n vertices (parts: connected
-    components of the face graph through shared vertices)."""
+    """(number of parts, part of each of the n vertices) of the faces F (parts: connected
+    components of the edge graph; a vertex no face uses is a part of its own)."""
     import scipy.sparse as sp
     from scipy.sparse.csgraph import connected_components
 
@@ -758,8 +758,7 @@ def _part_labels(F: np.ndarray, n: int) -> tuple:
     a = F.T.ravel()
     b = F[:, [1, 2, 0]].T.ravel()
     g = sp.csr_matrix((np.ones(len(a), np.int8), (a, b)), shape=(n, n))
-    k, lab = connected_components(g, directed=False)
-    return k, lab[F[:, 0]]
+    return connected_components(g, directed=False)
 
 
 def _far_parts(v: np.ndarray, f: np.ndarray, X: np.ndarray, TF: np.ndarray, area_frac: float, gap_frac: float,
@@ -771,7 +770,8 @@ def _far_parts(v: np.ndarray, f: np.ndarray, X: np.ndarray, TF: np.ndarray, area
     kept. Returns (v, f, parts dropped, vertices dropped); (v, f, 0, 0) when none."""
     if area_frac <= 0:
         return v, f, 0, 0
-    k, lab = _part_labels(f, len(v))
+    k, vert_part = _part_labels(f, len(v))
+    lab = vert_part[f[:, 0]]  # each face's part
     if k < 2:
         return v, f, 0, 0
     tri = v[f].astype(np.float64)
@@ -784,8 +784,6 @@ def _far_parts(v: np.ndarray, f: np.ndarray, X: np.ndarray, TF: np.ndarray, area
     in_small = np.isin(lab, small)
     verts = np.unique(f[in_small])
     d = nearest_surface((X, TF), v[verts], device=device).dist
-    vert_part = np.full(len(v), -1)
-    vert_part[f.ravel()] = np.repeat(lab, 3)
     near = np.zeros(k, bool)
     near[vert_part[verts][d <= gap_frac * max(_bbox_diag(X), 1e-12)]] = True
     drop = small[~near[small]]
