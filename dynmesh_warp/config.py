@@ -79,6 +79,7 @@ class SurfaceConfig(_Strict):
     source: str = "builtin:wave_bowl"
     params: dict = Field(default_factory=dict)  # keyword arguments of a built-in generator
     subdir: Optional[str] = None  # DG-Mesh scene folder: dynamic_mesh | mesh_gt
+    topology: Optional[str] = None  # a .pc2/.mdd point cache's faces: a mesh file (default: <stem>.* next to it)
     fps: Optional[float] = Field(default=None, gt=0)
     frame_order: FrameOrder = DEFAULT_FRAME_ORDER  # text_sorted: undo 1, 10, 11, ..., 2, ...
     playback: Playback = DEFAULT_PLAYBACK
@@ -279,12 +280,14 @@ class SceneConfig(_Strict):
 
     def inputs(self) -> list[Path]:
         """Every file or folder the scene reads (outputs must not touch them): the scene file,
-        surface.source, surface.conversion.template, gaussians.splats, newton body files."""
+        surface.source and .topology, surface.conversion.template, gaussians.splats, newton body files."""
         out = []
         if self.base_dir and self.source_file:
             out.append(Path(self.source_file))
         if not self.surface.source.startswith("builtin:"):
             out.append(self.resolve(self.surface.source))
+        if self.surface.topology:
+            out.append(self.resolve(self.surface.topology))
         if self.surface.conversion and self.surface.conversion.template:
             out.append(self.resolve(self.surface.conversion.template))
         if self.gaussians.splats:
@@ -306,6 +309,14 @@ class SceneConfig(_Strict):
             path = self.resolve(src)
             if not path.exists():
                 raise ValueError(f"surface.source: file or folder not found: {path}")
+        if self.surface.topology:
+            from .animation_formats import CACHE_EXTENSIONS
+
+            if src.startswith("builtin:") or Path(src).suffix.lower() not in CACHE_EXTENSIONS:
+                raise ValueError(f"surface.topology: only for a point-cache source ({', '.join(CACHE_EXTENSIONS)}), "
+                                 f"but surface.source is {src!r}")
+            if not self.resolve(self.surface.topology).is_file():
+                raise ValueError(f"surface.topology: file not found: {self.resolve(self.surface.topology)}")
         if self.surface.conversion and self.surface.conversion.template:
             t = self.resolve(self.surface.conversion.template)
             if not t.exists():

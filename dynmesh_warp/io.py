@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .animation_formats import ANIMATION_EXTENSIONS, CACHE_EXTENSIONS, read_animation, write_animation
 from .choices import FrameOrder, parse
 from .mesh_formats import MESH_EXTENSIONS, read_mesh, write_mesh, write_mesh_file
 from .outputs import OutputFolder, atomic_path
@@ -41,6 +42,7 @@ __all__ = [
     "DEFAULT_FPS",
     "MESH_EXTENSIONS",
     "DGMESH_SUBDIRS",
+    "ANIMATION_EXTENSIONS",
     "frame_index_from_name",
     "load_sequence",
     "read_mesh",
@@ -53,14 +55,17 @@ _KINDS = ("auto", "fixed", "varying")
 
 def load_sequence(
     path, fps: float | None = None, kind: str = "auto", subdir: str | None = None,
-    frame_order: str = "stored",
+    frame_order: str = "stored", topology=None,
 ) -> FixedTopologySequence | VaryingTopologySequence:
-    """Load an animated mesh sequence from a ``.npz`` file, a mesh file or a folder.
+    """Load an animated mesh sequence from a ``.npz`` file, a single-file animation, a mesh
+    file or a folder.
 
     Args:
-        path: a ``.npz`` file, a single mesh file, a folder of per-frame meshes, or a
-            DG-Mesh scene folder (with ``dynamic_mesh/`` and/or ``mesh_gt/``).
-        fps: frame rate; overrides the npz ``fps``. Default: the npz ``fps``, else 24.0.
+        path: a ``.npz`` file, a single-file animation (``.anime`` of DeformingThings4D, a
+            ``.pc2`` or ``.mdd`` point cache), a single mesh file, a folder of per-frame
+            meshes, or a DG-Mesh scene folder (with ``dynamic_mesh/`` and/or ``mesh_gt/``).
+        fps: frame rate; overrides the file's (npz ``fps``, MDD frame times). Default: the
+            file's, else 24.0.
         kind: ``"auto"`` (fixed when all frames share vertex count and faces, else
             varying), ``"fixed"`` (raise :class:`MeshDataError` naming the file and frame
             when they do not) or ``"varying"``.
@@ -70,6 +75,8 @@ def load_sequence(
             they look sorted as text: 1, 10, 11, ..., 2, 20, ...); ``"text_sorted"`` undoes such
             a text sort (frame numbers from 1, or from 0 when that moves less per frame);
             ``"auto"`` undoes it only when detected (with a warning saying so).
+        topology: for a point cache (``.pc2``, ``.mdd``: vertex positions only), the mesh
+            file that gives its faces; default: the mesh next to it with the same stem.
 
     Raises:
         FileNotFoundError: ``path`` (or ``path / subdir``) does not exist.
@@ -84,11 +91,23 @@ def load_sequence(
     if not path.exists():
         raise FileNotFoundError(errno.ENOENT, os.strerror(errno.ENOENT), str(path))
     if path.is_dir():
+        if topology is not None:
+            raise ValueError(f"{path}: topology= applies to point caches ({', '.join(CACHE_EXTENSIONS)}), "
+                             f"but this is a folder")
         folder = resolve_folder(path, subdir)
         return load_folder(folder, fps, kind, name=path.name or str(path))
     if subdir is not None:
         raise ValueError(f"{path}: subdir= applies to folders, but this is a file")
     frame_order = parse(FrameOrder, frame_order, "frame_order").value
+    if path.suffix.lower() in ANIMATION_EXTENSIONS:
+        V, F, file_fps = read_animation(path, topology)
+        fps = fps if fps is not None else (file_fps if file_fps is not None else DEFAULT_FPS)
+        seq = fix_frame_order(FixedTopologySequence(V, F, fps=fps, name=path.stem, source=str(path)),
+                              frame_order, path)
+        return seq.to_varying() if kind == "varying" else seq
+    if topology is not None:
+        raise ValueError(f"{path}: topology= applies to point caches ({', '.join(CACHE_EXTENSIONS)}), "
+                         f"but this is a {path.suffix or 'file'} without that extension")
     if path.suffix.lower() == ".npz":
         return fix_frame_order(load_npz(path, fps, kind), frame_order, path)
     V, F = read_mesh(path)
@@ -120,7 +139,10 @@ def save_sequence(seq, path, fmt: str | None = None, overwrite: bool = False, st
         seq: a :class:`FixedTopologySequence` or :class:`VaryingTopologySequence`.
         path: ``*.npz`` for one file (fixed layout ``V``/``F``/``fps``/``name``, or the
             packed varying layout ``V_packed``/``F_packed``/``V_offsets``/``F_offsets``/
-            ``fps``/``name``); otherwise a folder that receives ``frame_{i:04d}.{fmt}``.
+            ``fps``/``name``); ``*.anime``, ``*.pc2`` or ``*.mdd`` for a single-file animation
+            of a fixed-topology sequence (a point cache also gets its faces as ``<stem>.obj``,
+            :mod:`~dynmesh_warp.animation_formats`); otherwise a folder that receives
+            ``frame_{i:04d}.{fmt}``.
         fmt: ``"ply"`` or ``"obj"`` for a folder (required there); ``None``/``"npz"`` for
             an ``.npz`` path.
 
@@ -138,6 +160,14 @@ def save_sequence(seq, path, fmt: str | None = None, overwrite: bool = False, st
                         f"got {type(seq).__name__}")
     path = Path(path).expanduser()
     fmt = fmt.lower().lstrip(".") if fmt else None
+    if path.suffix.lower() in ANIMATION_EXTENSIONS:
+        if fmt not in (None, path.suffix.lower()[1:]):
+            raise ValueError(f"{path}: fmt={fmt!r} conflicts with the {path.suffix} extension")
+        if not isinstance(seq, FixedTopologySequence):
+            raise ValueError(f"{path}: a {path.suffix} animation holds one set of faces for every frame; this "
+                             f"sequence's topology varies (convert it first, or save a .npz or a folder)")
+        write_animation(path, seq.V, seq.F, seq.fps)
+        return
     if path.suffix.lower() == ".npz":
         if fmt not in (None, "npz"):
             raise ValueError(f"{path}: fmt={fmt!r} conflicts with the .npz extension")

@@ -72,7 +72,8 @@ def load_surface(cfg: SceneConfig):
         from .io import load_sequence
 
         seq = load_sequence(cfg.resolve(s.source), fps=s.fps, frame_order=s.frame_order,
-                            **({"subdir": s.subdir} if s.subdir else {}))
+                            **({"subdir": s.subdir} if s.subdir else {}),
+                            **({"topology": cfg.resolve(s.topology)} if s.topology else {}))
     return prepare_surface(seq, cfg)
 
 

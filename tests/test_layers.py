@@ -18,8 +18,9 @@ LAYERS = [
     # the conversion strategies' typed options (the schema and the converter take them from here);
     # mesh file formats (reader and writer registries)
     {"conversion_options", "mesh_formats"},
-    # sequence layouts on disk (npz layouts, folders of frames, DG-Mesh folders)
-    {"sequence_layouts"},
+    # sequence layouts on disk (npz layouts, folders of frames, DG-Mesh folders); single-file
+    # animations (.anime, .pc2, .mdd)
+    {"sequence_layouts", "animation_formats"},
     # schema, readers/writers, signals and CLI plumbing, built-in surfaces
     {"config", "io", "splat_io", "scenes", "cli"},
     # the simulation core and the geometry stages

@@ -1,0 +1,190 @@
+"""Single-file animations (.anime, .pc2, .mdd; docs/data.md): files written here with ``struct``
+from each format's spec, independently of the package's writers, read back exactly; the writers
+round-trip; every bad file is an error naming it."""
+
+from __future__ import annotations
+
+import struct
+import textwrap
+
+import numpy as np
+import pytest
+
+from dynmesh_warp.io import load_sequence, read_mesh, save_sequence, write_mesh
+from dynmesh_warp.outputs import OutputExistsError
+from dynmesh_warp.sequence import FixedTopologySequence, MeshDataError
+
+# a tetrahedron whose vertices move differently each frame
+F = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], np.int64)
+V0 = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float64)
+T = 5
+V = np.stack([V0 + 0.1 * t * np.array([[0, 0, 0], [1, 0, 0], [0, 2, 0], [0, 0, -1]]) + [0.5 * t, 0, 0]
+              for t in range(T)]).astype(np.float32)
+
+
+def _anime_bytes(V, F) -> bytes:  # DeformingThings4D: little-endian int32 nf, nv, nt; v0; faces; offsets
+    nf, nv = V.shape[:2]
+    out = struct.pack("<3i", nf, nv, len(F))
+    out += struct.pack(f"<{3 * nv}f", *V[0].ravel())
+    out += struct.pack(f"<{3 * len(F)}i", *F.ravel())
+    for t in range(1, nf):
+        out += struct.pack(f"<{3 * nv}f", *(V[t] - V[0]).ravel())
+    return out
+
+
+def _pc2_bytes(V) -> bytes:  # header <12siiffi, then little-endian float32 samples
+    nf, nv = V.shape[:2]
+    out = struct.pack("<12siiffi", b"POINTCACHE2\0", 1, nv, 1.0, 1.0, nf)
+    return out + struct.pack(f"<{V.size}f", *V.ravel())
+
+
+def _mdd_bytes(V, fps, rest=None) -> bytes:  # big-endian int32 frames, points; times [s]; frames
+    nf, nv = V.shape[:2]
+    out = struct.pack(">2i", nf, nv) + struct.pack(f">{nf}f", *[t / fps for t in range(nf)])
+    if rest is not None:  # old Blender exporters: an uncounted rest pose first
+        out += struct.pack(f">{rest.size}f", *rest.ravel())
+    return out + struct.pack(f">{V.size}f", *V.ravel())
+
+
+def test_anime_written_from_the_spec_reads_exactly(tmp_path):
+    p = tmp_path / "bear_run.anime"
+    p.write_bytes(_anime_bytes(V, F))
+    seq = load_sequence(p)
+    assert isinstance(seq, FixedTopologySequence) and seq.name == "bear_run" and seq.fps == 24.0
+    np.testing.assert_array_equal(seq.F, F)
+    # frame t = frame 0 + offset in float32, as the dataset's own loaders compute it
+    np.testing.assert_allclose(seq.V, V, atol=1e-6)
+    assert load_sequence(p, fps=30).fps == 30
+
+
+@pytest.mark.parametrize("ext", [".pc2", ".mdd"])
+def test_point_cache_takes_its_faces_from_the_mesh_next_to_it(tmp_path, ext):
+    p = tmp_path / f"walk{ext}"
+    p.write_bytes(_pc2_bytes(V) if ext == ".pc2" else _mdd_bytes(V, fps=30.0))
+    write_mesh(tmp_path / "walk.ply", V0 * 7, F)  # the rest mesh: its positions are not used
+    seq = load_sequence(p)
+    np.testing.assert_array_equal(seq.V, V)
+    np.testing.assert_array_equal(seq.F, F)
+    assert seq.fps == (24.0 if ext == ".pc2" else 30.0)  # MDD: from its frame times
+
+
+def test_mdd_with_an_uncounted_rest_pose_skips_it(tmp_path):
+    p = tmp_path / "old.mdd"
+    p.write_bytes(_mdd_bytes(V, fps=25.0, rest=V0.astype(np.float32) * 3))
+    write_mesh(tmp_path / "old.obj", V0, F)
+    seq = load_sequence(p)
+    np.testing.assert_array_equal(seq.V, V)
+    assert seq.fps == 25.0
+
+
+def test_point_cache_topology_named_explicitly_and_from_a_scene(tmp_path):
+    (tmp_path / "cache").mkdir()
+    p = tmp_path / "cache" / "take1.pc2"
+    p.write_bytes(_pc2_bytes(V))
+    write_mesh(tmp_path / "body.obj", V0, F)
+    with pytest.raises(MeshDataError, match=r"take1\.pc2: .*point cache holds vertex positions only.*topology"):
+        load_sequence(p)
+    seq = load_sequence(p, topology=tmp_path / "body.obj")
+    np.testing.assert_array_equal(seq.V, V)
+
+    from dynmesh_warp.config import load_scene_config as load_config
+    from dynmesh_warp.scene import load_surface
+
+    scene = tmp_path / "s.yaml"
+    scene.write_text(textwrap.dedent("""
+        surface: {source: cache/take1.pc2, topology: body.obj, up_axis: z}
+        spheres: [{position: [0, 0, 2]}]
+    """))
+    cfg = load_config(scene)
+    assert cfg.resolve(cfg.surface.topology) in cfg.inputs()
+    surf = load_surface(cfg)
+    np.testing.assert_allclose(surf.V, V, atol=1e-6)
+    scene.write_text("surface: {source: cache/take1.pc2, topology: nobody.obj}\n")
+    with pytest.raises(ValueError, match=r"surface.topology: file not found: .*nobody\.obj"):
+        load_config(scene)
+    scene.write_text("surface: {source: 'builtin:wave_bowl', topology: body.obj}\n")
+    with pytest.raises(ValueError, match=r"surface.topology: only for a point-cache source"):
+        load_config(scene)
+
+
+@pytest.mark.parametrize("ext", [".anime", ".pc2", ".mdd"])
+def test_writers_round_trip_and_match_the_spec(tmp_path, ext):
+    seq = FixedTopologySequence(V, F, fps=30.0, name="tet")
+    p = tmp_path / f"tet{ext}"
+    save_sequence(seq, p)
+    back = load_sequence(p)
+    np.testing.assert_allclose(back.V, V, atol=1e-6)
+    np.testing.assert_array_equal(back.F, F)
+    if ext == ".pc2":
+        assert p.read_bytes() == struct.pack("<12siiffi", b"POINTCACHE2\0", 1, 4, 0.0, 1.0, T) + V.astype("<f4").tobytes()
+    elif ext == ".mdd":
+        assert p.read_bytes() == _mdd_bytes(V, fps=30.0) and back.fps == 30.0
+    else:
+        assert p.read_bytes() == _anime_bytes(V, F)
+    if ext != ".anime":  # the faces went next to the cache
+        Vm, Fm = read_mesh(tmp_path / "tet.obj")
+        np.testing.assert_array_equal(Fm, F)
+        np.testing.assert_allclose(Vm, V[0], atol=1e-6)
+
+
+def test_cache_writer_never_replaces_a_foreign_mesh(tmp_path):
+    seq = FixedTopologySequence(V, F, fps=24.0, name="tet")
+    write_mesh(tmp_path / "tet.obj", V0, F[:3])  # someone's mesh, other faces
+    before = (tmp_path / "tet.obj").read_bytes()
+    with pytest.raises(OutputExistsError, match=r"tet\.obj: exists and is not the topology"):
+        save_sequence(seq, tmp_path / "tet.pc2")
+    assert (tmp_path / "tet.obj").read_bytes() == before and not (tmp_path / "tet.pc2").exists()
+    write_mesh(tmp_path / "tet.obj", V0 * 2, F)  # the same faces: kept as it is, the cache written
+    before = (tmp_path / "tet.obj").read_bytes()
+    save_sequence(seq, tmp_path / "tet.pc2")
+    assert (tmp_path / "tet.obj").read_bytes() == before
+    np.testing.assert_array_equal(load_sequence(tmp_path / "tet.pc2").V, V)
+
+
+def test_varying_sequence_cannot_be_saved_as_one_animation(tmp_path):
+    var = FixedTopologySequence(V, F, fps=24.0).to_varying()
+    var.frames[1] = (V[1][:3], F[:1])
+    with pytest.raises(ValueError, match=r"topology varies \(convert it first"):
+        save_sequence(var, tmp_path / "x.anime")
+
+
+def test_bad_files_name_the_file_and_what_disagrees(tmp_path):
+    good = _anime_bytes(V, F)
+    cases = {
+        "short.anime": (good[:-4], r"short\.anime: header: 5 frames x 4 vertices, 4 faces make .* \(truncated\)"),
+        "long.anime": (good + b"\0" * 8, r"long\.anime: .*extra data after the last frame"),
+        "huge.anime": (struct.pack("<3i", 10**9, 10**9, 4) + good[12:],
+                       r"huge\.anime: header: 1000000000 frames x 1000000000 vertices.*truncated"),
+        "neg.anime": (struct.pack("<3i", 5, -4, 4) + good[12:], r"neg\.anime: header: vertices = -4"),
+        "tiny.anime": (b"\1\0", r"tiny\.anime: 2 bytes: too short"),
+        "magic.pc2": (b"POINTCACHE3" + _pc2_bytes(V)[11:], r"magic\.pc2: not a PC2 point cache"),
+        "cut.pc2": (_pc2_bytes(V)[:-1], r"cut\.pc2: header: 5 samples x 4 points make 272 bytes, but the file has 271"),
+        "cut.mdd": (_mdd_bytes(V, 24.0)[:-12], r"cut\.mdd: header: 5 frames x 4 points .* \(truncated\)"),
+    }
+    write_mesh(tmp_path / "cut.obj", V0, F)
+    write_mesh(tmp_path / "magic.obj", V0, F)
+    for name, (data, msg) in cases.items():
+        (tmp_path / name).write_bytes(data)
+        with pytest.raises(MeshDataError, match=msg):
+            load_sequence(tmp_path / name)
+    # a cache and a mesh of another vertex count
+    (tmp_path / "other.pc2").write_bytes(_pc2_bytes(V))
+    write_mesh(tmp_path / "other.obj", np.vstack([V0, V0 + 2]), np.vstack([F, F + 4]))
+    with pytest.raises(MeshDataError, match=r"other\.pc2: 4 points a frame, but its topology .*other\.obj has 8"):
+        load_sequence(tmp_path / "other.pc2")
+    # several candidate meshes
+    write_mesh(tmp_path / "other.ply", V0, F)
+    with pytest.raises(MeshDataError, match=r"several meshes could give its faces \(other\.obj, other\.ply\)"):
+        load_sequence(tmp_path / "other.pc2")
+    # topology= where it does not apply
+    (tmp_path / "ok.anime").write_bytes(good)
+    with pytest.raises(MeshDataError, match=r"ok\.anime: an \.anime file holds its own faces"):
+        load_sequence(tmp_path / "ok.anime", topology=tmp_path / "cut.obj")
+    with pytest.raises(ValueError, match=r"topology= applies to point caches"):
+        load_sequence(tmp_path / "cut.obj", topology=tmp_path / "cut.obj")
+    # out-of-range face indices in an .anime reach validate_mesh: named, not a crash
+    bad_faces = F.copy()
+    bad_faces[2, 1] = 9
+    (tmp_path / "faces.anime").write_bytes(_anime_bytes(V, bad_faces))
+    with pytest.raises(MeshDataError, match=r"faces\.anime.*out of range"):
+        load_sequence(tmp_path / "faces.anime")
