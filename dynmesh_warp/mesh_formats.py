@@ -30,6 +30,11 @@ _TRIMESH_READERS = (".ply", ".stl", ".glb", ".gltf")
 _NOT_FRAME_EXTENSIONS = {".svg", ".xml", ".dat", ".node"}
 
 
+#: animation formats people have that are not read, by extension, for a hint instead of a parse error
+UNREAD_ANIMATIONS = {".abc": "Alembic", ".fbx": "FBX", ".usd": "USD", ".usda": "USD", ".usdc": "USD",
+                     ".usdz": "USD", ".bvh": "BVH (a skeleton without a surface)", ".blend": "Blender"}
+
+
 def _meshio_extensions() -> set[str]:
     try:
         import meshio
@@ -279,6 +284,10 @@ def read_mesh(path, frame: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         raise IsADirectoryError(errno.EISDIR, "expected a mesh file, got a folder", str(path))
     where = f"{path}" if frame is None else f"{path}, frame {frame}"
     ext = mesh_extension(path.name) or path.suffix.lower()
+    if ext in UNREAD_ANIMATIONS and ext not in READERS:
+        raise MeshDataError(f"{where}: {UNREAD_ANIMATIONS[ext]} files are not read (docs/data.md). Export the "
+                            f"animated mesh as a .pc2 or .mdd point cache with its mesh (Blender, Maya, 3ds Max and "
+                            f"Houdini all write one) or as one .obj/.ply per frame")
     try:
         V, F = READERS.get(ext, _read_meshio)(path)
     except _ReadError as e:

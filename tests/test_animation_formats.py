@@ -188,3 +188,10 @@ def test_bad_files_name_the_file_and_what_disagrees(tmp_path):
     (tmp_path / "faces.anime").write_bytes(_anime_bytes(V, bad_faces))
     with pytest.raises(MeshDataError, match=r"faces\.anime.*out of range"):
         load_sequence(tmp_path / "faces.anime")
+
+
+@pytest.mark.parametrize("name, what", [("take.abc", "Alembic"), ("rig.fbx", "FBX"), ("shot.usdc", "USD")])
+def test_unread_animation_formats_say_what_to_export_instead(tmp_path, name, what):
+    (tmp_path / name).write_bytes(b"\0" * 64)
+    with pytest.raises(MeshDataError, match=rf"{name}: {what} files are not read .* \.pc2 or \.mdd point cache"):
+        load_sequence(tmp_path / name)
