@@ -36,7 +36,8 @@ from .mesh_formats import MESH_EXTENSIONS, mesh_extension, read_mesh, write_mesh
 from .outputs import atomic_path
 from .sequence import MeshDataError
 
-__all__ = ["ANIMATION_EXTENSIONS", "CACHE_EXTENSIONS", "read_animation", "write_animation", "find_topology"]
+__all__ = ["ANIMATION_EXTENSIONS", "CACHE_EXTENSIONS", "read_animation", "write_animation", "find_topology",
+           "written_topology"]
 
 #: extensions of single-file animations (lower case, with the dot)
 ANIMATION_EXTENSIONS = (".anime", ".pc2", ".mdd")
@@ -165,12 +166,20 @@ def read_animation(path, topology=None):
     return V, np.asarray(F, np.int64), fps
 
 
-def write_animation(path, V, F, fps: float) -> list[Path]:
+def written_topology(path) -> Path | None:
+    """The mesh file :func:`write_animation` writes next to ``path`` (a point cache's faces:
+    ``<stem>.obj``); None for a format that holds its faces."""
+    path = Path(path)
+    return path.with_suffix(".obj") if path.suffix.lower() in CACHE_EXTENSIONS else None
+
+
+def write_animation(path, V, F, fps: float, overwrite: bool = False) -> list[Path]:
     """Write ``V`` (T, N, 3) on faces ``F`` (M, 3) as ``path`` (``.anime``, ``.pc2`` or ``.mdd``),
-    atomically; a point cache also gets its topology, ``<stem>.obj`` next to it (frame 0),
-    unless that file already holds the same faces on as many vertices (a mesh that is not the
-    cache's topology is never replaced: :class:`~dynmesh_warp.outputs.OutputExistsError`).
-    Returns the files written."""
+    atomically; a point cache also gets its topology, ``<stem>.obj`` next to it (frame 0,
+    :func:`written_topology`), unless that file already holds the same faces on as many
+    vertices. A mesh there that is not the cache's topology is replaced only with
+    ``overwrite`` (else :class:`~dynmesh_warp.outputs.OutputExistsError`, before anything is
+    written). Returns the files written."""
     from .outputs import OutputExistsError
 
     path = Path(path)
@@ -181,17 +190,18 @@ def write_animation(path, V, F, fps: float) -> list[Path]:
     F = np.asarray(F)
     T, n = V.shape[:2]
     written = [path]
-    mesh = path.with_suffix(".obj") if ext in CACHE_EXTENSIONS else None
+    mesh = written_topology(path)
     if mesh is not None and mesh.exists():
         try:
             V0, F0 = read_mesh(mesh)
             same = len(V0) == n and np.array_equal(np.asarray(F0), F)
         except (MeshDataError, OSError):
             same = False
-        if not same:
+        if same:
+            mesh = None  # already there: kept
+        elif not overwrite:
             raise OutputExistsError(f"{mesh}: exists and is not the topology of {path.name} (other faces or "
-                                    f"vertex count); move it, or write the cache under another name")
-        mesh = None  # already there: kept
+                                    f"vertex count); move it, write the cache under another name, or overwrite")
     with atomic_path(path, suffix=ext) as tmp, open(tmp, "wb") as fh:
         if ext == ".anime":
             fh.write(struct.pack("<3i", T, n, len(F)))

@@ -1241,7 +1241,8 @@ def main(argv=None) -> int:
         prog="python -m dynmesh_warp.convert",
         description="Convert a varying-topology mesh sequence into a fixed-topology one.")
     p.add_argument("input", help="sequence: .npz, folder of per-frame meshes, DG-Mesh scene folder")
-    p.add_argument("output", help="output .npz, or a folder (frame_XXXX.ply/.obj, see --fmt)")
+    p.add_argument("output", help="output .npz; a .pc2 or .mdd point cache (its faces written as <stem>.obj) or "
+                                  ".anime; or a folder (frame_XXXX.ply/.obj, see --fmt)")
     p.add_argument("--strategy", choices=STRATEGIES, default=DEFAULT_STRATEGY,
                    help=f"conversion strategy (default {DEFAULT_STRATEGY}; docs/conversion.md)")
     p.add_argument("--template", default=None,
@@ -1265,6 +1266,7 @@ def main(argv=None) -> int:
     from .cli import checking_stops, quiet_warp, stop_reason
 
     quiet_warp(a.device)
+    from .animation_formats import ANIMATION_EXTENSIONS, written_topology
     from .io import MESH_EXTENSIONS, load_sequence, save_sequence
     from .outputs import check_output
 
@@ -1314,15 +1316,19 @@ def main(argv=None) -> int:
             raise ValueError(f"--template {a.template}: file not found")
         inputs = [a.input] + ([a.template] if a.template else [])
         out_suffix = Path(a.output).suffix.lower()
-        if out_suffix == ".npz":
+        if out_suffix == ".npz" or out_suffix in ANIMATION_EXTENSIONS:
             if a.fmt:
                 raise ValueError(f"--fmt {a.fmt}: applies to a folder output, not to {a.output}")
             check_output(a.output, kind="file", what="output", inputs=inputs, overwrite=a.overwrite,
-                         suffixes={".npz"})
+                         suffixes={out_suffix})
+            if written_topology(a.output) is not None:  # a point cache's faces go next to it
+                check_output(written_topology(a.output), kind="file", what=f"output {a.output}: its faces",
+                             inputs=inputs, overwrite=a.overwrite, suffixes={".obj"})
         else:
             if out_suffix in MESH_EXTENSIONS or out_suffix in _FILE_SUFFIXES:
                 raise ValueError(f"output {a.output}: a sequence does not fit in one {out_suffix} file; give a "
-                                 ".npz file, or a folder (frames written as frame_XXXX.ply, or .obj with --fmt obj)")
+                                 ".npz file, a .pc2/.mdd/.anime animation, or a folder (frames written as "
+                                 "frame_XXXX.ply, or .obj with --fmt obj)")
             a.fmt = a.fmt or "ply"
             check_output(a.output, kind="folder", what="output", inputs=inputs, overwrite=a.overwrite,
                          writes=("frame_*.ply", "frame_*.obj"))

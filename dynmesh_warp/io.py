@@ -166,7 +166,7 @@ def save_sequence(seq, path, fmt: str | None = None, overwrite: bool = False, st
         if not isinstance(seq, FixedTopologySequence):
             raise ValueError(f"{path}: a {path.suffix} animation holds one set of faces for every frame; this "
                              f"sequence's topology varies (convert it first, or save a .npz or a folder)")
-        write_animation(path, seq.V, seq.F, seq.fps)
+        write_animation(path, seq.V, seq.F, seq.fps, overwrite=bool(overwrite))
         return
     if path.suffix.lower() == ".npz":
         if fmt not in (None, "npz"):

@@ -125,6 +125,8 @@ BAD = [
     (CONVERT + ["frames", "frames/out.npz"], "inside the input"),
     (CONVERT + ["frames", "gt.npz"], "--overwrite"),
     (CONVERT + ["frames", "out.obj"], ".obj"),
+    (CONVERT + ["frames", "scans/my_scan.pc2"], "my_scan.obj"),  # the cache's faces would replace a scan
+    (CONVERT + ["frames", "x.pc2", "--fmt", "obj"], "--fmt"),
     (CONVERT + ["frames", "x.npz", "--tracked-weight", "nan"], "--tracked-weight"),
     (CONVERT + ["frames", "x.npz", "--fps", "inf"], "--fps"),
     (CONVERT + ["nothere", "x.npz"], "nothere"),
@@ -185,6 +187,19 @@ def test_convert_overwrite_keeps_the_users_files(work, tmp_path, capsys):
     (out / "frame_0009.obj").write_text("mine")
     assert convert.main([str(work / "frames"), str(out), "--fmt", "obj", "--overwrite"]) == 2
     assert "frame_0009.obj" in capsys.readouterr().err
+
+
+def test_convert_to_a_point_cache_reads_back_as_the_npz_output(work, tmp_path):
+    from dynmesh_warp import convert
+    from dynmesh_warp.io import load_sequence
+
+    assert convert.main([str(work / "frames"), str(tmp_path / "c.npz")]) == 0
+    assert convert.main([str(work / "frames"), str(tmp_path / "c.pc2")]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.npz", "c.obj", "c.pc2"]
+    a, b = load_sequence(tmp_path / "c.npz"), load_sequence(tmp_path / "c.pc2")
+    np.testing.assert_array_equal(a.V, b.V)
+    np.testing.assert_array_equal(a.F, b.F)
+    assert convert.main([str(work / "frames"), str(tmp_path / "c.pc2")]) == 2  # exists: --overwrite
 
 
 def _umask() -> int:
