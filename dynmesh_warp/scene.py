@@ -54,6 +54,40 @@ def _check_size(V0: np.ndarray, cfg) -> None:
             "millimetres), and surface.up_axis: y for y-up data", stacklevel=3)
 
 
+#: float32 resolution limits at the scene's farthest coordinate, as fractions of the smallest
+#: sphere radius: above PRECISION_ERROR the scene is refused (positions cannot resolve 1 % of a
+#: radius: at r = 5 cm, coordinates beyond ~4 km), above PRECISION_WARN a warning (~0.5 km)
+PRECISION_ERROR = 1e-2
+PRECISION_WARN = 1e-3
+
+
+def check_precision(lo, hi, positions, radius, where: str, translate=(0.0, 0.0, 0.0)) -> None:
+    """Refuse (:class:`SceneError`) or warn about a scene so far from the origin that float32,
+    the simulation's precision, cannot resolve its contacts: the spacing of float32 numbers at
+    the largest coordinate of the surface (bounds ``lo``, ``hi`` over all frames) or of a
+    sphere (``positions``) against the smallest sphere ``radius``. The message gives the
+    ``surface.translate`` that brings the surface's centre to the origin (``translate``: the
+    one already applied)."""
+    radius = np.asarray(radius, np.float64)
+    if radius.size == 0:
+        return
+    far = max(float(np.abs(lo).max()), float(np.abs(hi).max()),
+              float(np.abs(positions).max()) if np.size(positions) else 0.0)
+    ulp = float(np.spacing(np.float32(far)))
+    r = float(radius.min())
+    if ulp <= PRECISION_WARN * r:
+        return
+    mid = 0.5 * (np.asarray(lo, np.float64) + np.asarray(hi, np.float64))
+    centre = [float(f"{c:.4g}") for c in np.asarray(translate, np.float64) - mid]
+    msg = (f"{where}: coordinates reach {far:.4g} m from the origin, where float32 (the simulation's "
+           f"precision) resolves only {ulp * 1e3:.2g} mm, {100 * ulp / r:.2g} % of the smallest sphere radius "
+           f"({r:g} m). Move the scene to the origin: surface.translate: {centre} (and listed spheres "
+           "by as much)")
+    if ulp > PRECISION_ERROR * r:
+        raise SceneError(msg + "; contacts and motion would be wrong")
+    warnings.warn(msg, stacklevel=3)
+
+
 def load_surface(cfg: SceneConfig):
     """Load (or generate) the scene's surface sequence, transformed to the scene frame.
 
@@ -180,6 +214,7 @@ def build_model(cfg: SceneConfig, seq, device=None) -> tuple[Model, State]:
     device = scene_device(cfg, device)
     surface = surface_model(seq, device, playback=cfg.surface.playback, interpolate=cfg.surface.interpolate)
     radius, mass, pos, vel = scene_spheres(cfg, seq.frame(0)[0])
+    check_precision(*seq.bounds(), pos, radius, f"surface {seq.source or seq.name}", cfg.surface.translate)
     p = cfg.physics
     # every field the scene's physics section shares with PhysicsParams (PhysicsCore), so a new
     # setting cannot be validated by the schema and then dropped here

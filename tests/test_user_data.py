@@ -130,6 +130,37 @@ def test_millimetre_data_warns_and_scale_fixes_it(tmp_path):
     np.testing.assert_allclose(seq.V, V * 0.001, rtol=1e-6)
 
 
+def test_scene_far_from_the_origin_is_refused_or_warned_and_translate_fixes_it():
+    """float32 cannot resolve contacts 100 km out (spacing 7.8 mm there vs a 5 cm radius): the
+    scene is refused with the translate that fixes it; 1 km out it is warned about."""
+    from dynmesh_warp.scene import PRECISION_ERROR, PRECISION_WARN
+
+    r = 0.05
+    for off, expect in ((1.0e5, "error"), (1.0e3, "warn"), (20.0, "ok")):
+        V, F = ico_sequence(center=(off, -off, 0.5))
+        seq = FixedTopologySequence(V, F, fps=30.0, name="far")
+        ulp = float(np.spacing(np.float32(np.abs(V).max())))  # the rule, computed independently
+        assert expect == ("error" if ulp > PRECISION_ERROR * r else "warn" if ulp > PRECISION_WARN * r else "ok")
+        cfg = SceneConfig.model_validate({"surface": {"source": "builtin:wave_bowl"},
+                                          "spheres": {"count": 2, "radius": r}})
+        if expect == "error":
+            with pytest.raises(SceneError, match=r"coordinates reach 1e\+05 m .* resolves only 7\.8 mm.*"
+                                                 r"surface\.translate: \[-100000\.0, 100000\.0, -0\.5\]"):
+                build_world(cfg, device="cpu", sequence=seq)
+            fixed = cfg.model_copy(update={"surface": cfg.surface.model_copy(update={"translate": (-off, off, 0.0)})})
+            with warnings.catch_warnings():
+                warnings.simplefilter("error")
+                world = build_world(fixed, device="cpu", sequence=seq)
+            assert np.abs(world.model.surface.frames.numpy()).max() < 1.0
+        elif expect == "warn":
+            with pytest.warns(UserWarning, match=r"coordinates reach 1000 m .*surface\.translate"):
+                build_world(cfg, device="cpu", sequence=seq)
+        else:
+            with warnings.catch_warnings():
+                warnings.simplefilter("error")
+                build_world(cfg, device="cpu", sequence=seq)
+
+
 def test_build_world_applies_the_surface_section_to_an_in_memory_sequence():
     V, F = ico_sequence(center=(0.0, 500.0, 0.0), radius=400.0)  # y-up millimetres
     seq = FixedTopologySequence(V, F, fps=30.0, name="mine")
