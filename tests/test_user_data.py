@@ -195,6 +195,27 @@ def test_run_cli_one_step_writes_strict_json(tmp_path, capsys):
     assert summary["steps_per_second"] is None and summary["steps"] == 1
 
 
+def test_run_cli_plays_a_sequence_given_instead_of_a_scene(tmp_path, capsys):
+    from dynmesh_warp.io import save_sequence
+    from dynmesh_warp.run import main
+
+    V, F = ico_sequence(T=4)
+    save_sequence(FixedTopologySequence(V, F, fps=24.0), tmp_path / "blob.anime")
+    base = ["--viewer", "none", "--device", "cpu", "--no-progress", "--steps", "3"]
+    assert main([str(tmp_path / "blob.anime"), *base, "--output", str(tmp_path / "o")]) == 0
+    err = capsys.readouterr().err
+    assert "blob.anime is a mesh sequence, not a scene file" in err and "surface.up_axis=y" in err
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert summary["steps"] == 3 and summary["spheres"] == 5 and summary["scene"] == "blob"
+    # --set applies as to a scene file
+    assert main([str(tmp_path / "blob.anime"), *base, "--output", str(tmp_path / "o2"), "--set", "spheres.count=2"]) == 0
+    assert json.loads((tmp_path / "o2" / "summary.json").read_text())["spheres"] == 2
+    # a text file is still read as a scene, with the YAML error
+    (tmp_path / "notes.txt").write_text("not: [a scene\n")
+    assert main([str(tmp_path / "notes.txt"), *base]) == 2
+    assert "cannot read scene YAML" in capsys.readouterr().err
+
+
 @pytest.mark.skipif(wp.is_cuda_available(), reason="needs a machine without a CUDA device")
 def test_run_cli_cuda_without_gpu_is_a_clear_error(capsys):
     from dynmesh_warp.run import main
