@@ -37,7 +37,7 @@ from .outputs import atomic_path
 from .sequence import MeshDataError
 
 __all__ = ["ANIMATION_EXTENSIONS", "CACHE_EXTENSIONS", "read_animation", "write_animation", "find_topology",
-           "written_topology"]
+           "topology_faces", "written_topology"]
 
 #: extensions of single-file animations (lower case, with the dot)
 ANIMATION_EXTENSIONS = (".anime", ".pc2", ".mdd")
@@ -131,11 +131,27 @@ def find_topology(path) -> Path:
         return found[0]
     if not found:
         raise MeshDataError(
-            f"{path}: a {path.suffix} point cache holds vertex positions only; its faces come from a mesh "
+            f"{path}: {'a ' + path.suffix + ' point cache' if path.suffix.lower() in CACHE_EXTENSIONS else 'this file'} "
+            f"holds vertex positions only (no faces: an npz names them F, faces or triangles); its faces come from a mesh "
             f"with the same vertices, and none was found next to it ({path.stem}.obj, .ply, ...). Name one: "
             f"load_sequence(..., topology='mesh.obj') or surface.topology in a scene file")
     raise MeshDataError(f"{path}: several meshes could give its faces ({', '.join(p.name for p in found)}); "
                         f"name one with topology=")
+
+
+def topology_faces(path, num_points: int, topology=None) -> np.ndarray:
+    """The faces (M, 3) of a vertex-only sequence ``path`` with ``num_points`` points a frame
+    (a point cache, an npz or npy of vertices): from the mesh file ``topology``, by default
+    :func:`find_topology`'s; its vertex count must equal ``num_points`` (:class:`MeshDataError`
+    naming both files)."""
+    mesh = Path(topology).expanduser() if topology is not None else find_topology(path)
+    if not mesh.is_file():
+        raise FileNotFoundError(errno.ENOENT, os.strerror(errno.ENOENT), str(mesh))
+    V0, F = read_mesh(mesh)
+    if len(V0) != num_points:
+        raise MeshDataError(f"{path}: {num_points} points a frame, but its topology {mesh} has {len(V0)} "
+                            f"vertices; vertex positions need the mesh they were written from")
+    return np.asarray(F, np.int64)
 
 
 def read_animation(path, topology=None):
@@ -153,16 +169,10 @@ def read_animation(path, topology=None):
         raise FileNotFoundError(errno.ENOENT, os.strerror(errno.ENOENT), str(path))
     V, F, fps = _READERS[ext](path, path.stat().st_size)
     if ext in CACHE_EXTENSIONS:
-        mesh = Path(topology).expanduser() if topology is not None else find_topology(path)
-        if not mesh.is_file():
-            raise FileNotFoundError(errno.ENOENT, os.strerror(errno.ENOENT), str(mesh))
-        V0, F = read_mesh(mesh)
-        if len(V0) != V.shape[1]:
-            raise MeshDataError(f"{path}: {V.shape[1]} points a frame, but its topology {mesh} has {len(V0)} "
-                                f"vertices; a point cache needs the mesh it was written from")
+        F = topology_faces(path, V.shape[1], topology)
     elif topology is not None:
         raise MeshDataError(f"{path}: an {ext} file holds its own faces; topology= is for point caches "
-                            f"({', '.join(CACHE_EXTENSIONS)})")
+                            f"({', '.join(CACHE_EXTENSIONS)}) and vertex-only arrays")
     return V, np.asarray(F, np.int64), fps
 
 

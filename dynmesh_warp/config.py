@@ -79,7 +79,7 @@ class SurfaceConfig(_Strict):
     source: str = "builtin:wave_bowl"
     params: dict = Field(default_factory=dict)  # keyword arguments of a built-in generator
     subdir: Optional[str] = None  # DG-Mesh scene folder: dynamic_mesh | mesh_gt
-    topology: Optional[str] = None  # a .pc2/.mdd point cache's faces: a mesh file (default: <stem>.* next to it)
+    topology: Optional[str] = None  # a vertex-only source's faces (.pc2/.mdd/.npy/npz): a mesh file (default: <stem>.*)
     fps: Optional[float] = Field(default=None, gt=0)
     frame_order: FrameOrder = DEFAULT_FRAME_ORDER  # text_sorted: undo 1, 10, 11, ..., 2, ...
     playback: Playback = DEFAULT_PLAYBACK
@@ -312,9 +312,10 @@ class SceneConfig(_Strict):
         if self.surface.topology:
             from .animation_formats import CACHE_EXTENSIONS
 
-            if src.startswith("builtin:") or Path(src).suffix.lower() not in CACHE_EXTENSIONS:
-                raise ValueError(f"surface.topology: only for a point-cache source ({', '.join(CACHE_EXTENSIONS)}), "
-                                 f"but surface.source is {src!r}")
+            if src.startswith("builtin:") or Path(src).suffix.lower() not in CACHE_EXTENSIONS + (".npz", ".npy"):
+                raise ValueError(f"surface.topology: only for a vertex-only source (a point cache "
+                                 f"{', '.join(CACHE_EXTENSIONS)}, an .npy or an npz of vertices), but surface.source "
+                                 f"is {src!r}")
             if not self.resolve(self.surface.topology).is_file():
                 raise ValueError(f"surface.topology: file not found: {self.resolve(self.surface.topology)}")
         if self.surface.conversion and self.surface.conversion.template:

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .animation_formats import ANIMATION_EXTENSIONS, CACHE_EXTENSIONS, read_animation, write_animation
+from .animation_formats import ANIMATION_EXTENSIONS, CACHE_EXTENSIONS, read_animation, topology_faces, write_animation
 from .choices import FrameOrder, parse
 from .mesh_formats import MESH_EXTENSIONS, read_mesh, write_mesh, write_mesh_file
 from .outputs import OutputFolder, atomic_path
@@ -34,6 +34,7 @@ from .sequence_layouts import (
     frame_index_from_name,
     load_folder,
     load_npz,
+    load_vertex_array,
     npz_arrays,
     resolve_folder,
 )
@@ -75,8 +76,9 @@ def load_sequence(
             they look sorted as text: 1, 10, 11, ..., 2, 20, ...); ``"text_sorted"`` undoes such
             a text sort (frame numbers from 1, or from 0 when that moves less per frame);
             ``"auto"`` undoes it only when detected (with a warning saying so).
-        topology: for a point cache (``.pc2``, ``.mdd``: vertex positions only), the mesh
-            file that gives its faces; default: the mesh next to it with the same stem.
+        topology: for a vertex-only file (a ``.pc2`` / ``.mdd`` point cache, an ``.npy``
+            array (T, N, 3), an npz of vertices without faces), the mesh file that gives its
+            faces; default: the one mesh next to it with the same stem.
 
     Raises:
         FileNotFoundError: ``path`` (or ``path / subdir``) does not exist.
@@ -92,7 +94,8 @@ def load_sequence(
         raise FileNotFoundError(errno.ENOENT, os.strerror(errno.ENOENT), str(path))
     if path.is_dir():
         if topology is not None:
-            raise ValueError(f"{path}: topology= applies to point caches ({', '.join(CACHE_EXTENSIONS)}), "
+            raise ValueError(f"{path}: topology= applies to vertex-only files (point caches "
+                             f"{', '.join(CACHE_EXTENSIONS)}, an .npy or an npz of vertices without faces), "
                              f"but this is a folder")
         folder = resolve_folder(path, subdir)
         return load_folder(folder, fps, kind, name=path.name or str(path))
@@ -105,9 +108,16 @@ def load_sequence(
         seq = fix_frame_order(FixedTopologySequence(V, F, fps=fps, name=path.stem, source=str(path)),
                               frame_order, path)
         return seq.to_varying() if kind == "varying" else seq
+    if path.suffix.lower() in (".npz", ".npy"):
+        V, file_fps, name = load_vertex_array(path)
+        if V is not None:  # vertices only: the faces come from a mesh
+            fps = fps if fps is not None else (file_fps if file_fps is not None else DEFAULT_FPS)
+            F = topology_faces(path, V.shape[1], topology)
+            seq = fix_frame_order(FixedTopologySequence(V, F, fps=fps, name=name, source=str(path)), frame_order, path)
+            return seq.to_varying() if kind == "varying" else seq
     if topology is not None:
-        raise ValueError(f"{path}: topology= applies to point caches ({', '.join(CACHE_EXTENSIONS)}), "
-                         f"but this is a {path.suffix or 'file'} without that extension")
+        raise ValueError(f"{path}: topology= applies to vertex-only files (point caches {', '.join(CACHE_EXTENSIONS)}, "
+                         f"an .npy or an npz of vertices without faces), but this one has its own faces")
     if path.suffix.lower() == ".npz":
         return fix_frame_order(load_npz(path, fps, kind), frame_order, path)
     V, F = read_mesh(path)

@@ -233,7 +233,7 @@ def _scene_source(scene) -> dict:
     path = Path(scene).expanduser()
     suffix = path.suffix.lower()
     if path.is_dir() or (path.is_file() and suffix not in (".yaml", ".yml")
-                         and (suffix == ".npz" or suffix in ANIMATION_EXTENSIONS or suffix in MESH_EXTENSIONS)):
+                         and (suffix in (".npz", ".npy") or suffix in ANIMATION_EXTENSIONS or suffix in MESH_EXTENSIONS)):
         print(f"note: {scene} is a mesh sequence, not a scene file: playing it with 5 spheres dropped on it "
               "(z up; y-up data: --set surface.up_axis=y; more in a scene YAML, docs/scene.md)", file=sys.stderr)
         return {"path": None, "data": {"name": path.resolve().stem or "sequence",

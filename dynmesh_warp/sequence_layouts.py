@@ -20,7 +20,8 @@ import numpy as np
 from .mesh_formats import MESH_EXTENSIONS, mesh_extension, read_mesh
 from .sequence import FixedTopologySequence, MeshDataError, VaryingTopologySequence
 
-__all__ = ["DEFAULT_FPS", "DGMESH_SUBDIRS", "frame_index_from_name", "load_npz", "npz_arrays", "list_frame_files",
+__all__ = ["DEFAULT_FPS", "DGMESH_SUBDIRS", "frame_index_from_name", "load_npz", "load_vertex_array", "npz_arrays",
+           "list_frame_files",
            "load_folder", "resolve_folder", "fix_frame_order", "finish_kind"]
 
 DEFAULT_FPS = 24.0
@@ -109,6 +110,36 @@ def load_npz(path: Path, fps, kind: str):
             raise MeshDataError(f"{path}: cannot read npz data ({type(e).__name__}: {e})") from e
     seq = VaryingTopologySequence(frames, fps=fps, name=name, source=str(path))
     return finish_kind(seq, kind)
+
+
+def load_vertex_array(path: Path):
+    """The vertices of a vertex-only file: an ``.npy`` array, or an npz holding vertices
+    (``V``/``vertices``/``verts``/``points``) but no faces, as SMPL / AMASS exports and
+    simulation caches often do: ``(V (T, N, 3) or None, fps or None, name)``; ``V`` None when
+    the npz has faces (the other layouts). A single frame (N, 3) becomes (1, N, 3)."""
+    if path.suffix.lower() == ".npy":
+        try:
+            V, fps, name = np.load(path, allow_pickle=False), None, path.stem
+        except Exception as e:
+            raise MeshDataError(f"{path}: cannot read npy file ({type(e).__name__}: {e})") from e
+    else:
+        if not zipfile.is_zipfile(path):
+            raise MeshDataError(f"{path}: not an npz file (a zip archive of arrays, as numpy.savez writes)")
+        try:
+            data = np.load(path, allow_pickle=False)
+        except Exception as e:
+            raise MeshDataError(f"{path}: cannot read npz file ({type(e).__name__}: {e})") from e
+        with data:
+            keys = set(data.files)
+            vkey = next((k for k in _NPZ_VERTEX_KEYS if k in keys), None)
+            if vkey is None or any(k in keys for k in _NPZ_FACE_KEYS):
+                return None, None, path.stem
+            V = np.asarray(data[vkey])
+            fps = _npz_scalar(data, "fps", path, float)
+            name = _npz_scalar(data, "name", path, str) or path.stem
+    if V.ndim not in (2, 3) or V.shape[-1] != 3 or not np.issubdtype(V.dtype, np.number):
+        raise MeshDataError(f"{path}: vertex array of shape {V.shape} ({V.dtype}); expected (T, N, 3) or (N, 3) numbers")
+    return (V[None] if V.ndim == 2 else V), fps, name
 
 
 def _unpack_frames(path, Vp, Fp, vo, fo):

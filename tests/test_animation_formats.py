@@ -103,7 +103,7 @@ def test_point_cache_topology_named_explicitly_and_from_a_scene(tmp_path):
     with pytest.raises(ValueError, match=r"surface.topology: file not found: .*nobody\.obj"):
         load_config(scene)
     scene.write_text("surface: {source: 'builtin:wave_bowl', topology: body.obj}\n")
-    with pytest.raises(ValueError, match=r"surface.topology: only for a point-cache source"):
+    with pytest.raises(ValueError, match=r"surface.topology: only for a vertex-only source"):
         load_config(scene)
 
 
@@ -180,7 +180,7 @@ def test_bad_files_name_the_file_and_what_disagrees(tmp_path):
     (tmp_path / "ok.anime").write_bytes(good)
     with pytest.raises(MeshDataError, match=r"ok\.anime: an \.anime file holds its own faces"):
         load_sequence(tmp_path / "ok.anime", topology=tmp_path / "cut.obj")
-    with pytest.raises(ValueError, match=r"topology= applies to point caches"):
+    with pytest.raises(ValueError, match=r"topology= applies to vertex-only files"):
         load_sequence(tmp_path / "cut.obj", topology=tmp_path / "cut.obj")
     # out-of-range face indices in an .anime reach validate_mesh: named, not a crash
     bad_faces = F.copy()
@@ -195,3 +195,27 @@ def test_unread_animation_formats_say_what_to_export_instead(tmp_path, name, wha
     (tmp_path / name).write_bytes(b"\0" * 64)
     with pytest.raises(MeshDataError, match=rf"{name}: {what} files are not read .* \.pc2 or \.mdd point cache"):
         load_sequence(tmp_path / name)
+
+
+def test_vertex_only_npz_and_npy_take_faces_from_a_mesh(tmp_path):
+    """SMPL / AMASS-style exports: vertices (T, N, 3) in an npz without faces, or a bare .npy."""
+    np.savez(tmp_path / "smpl_walk.npz", vertices=V.astype(np.float64), fps=np.float32(30))
+    np.save(tmp_path / "cache.npy", V)
+    write_mesh(tmp_path / "body.obj", V0, F)
+    for name, fps in (("smpl_walk.npz", 30.0), ("cache.npy", 24.0)):
+        with pytest.raises(MeshDataError, match=rf"{name}: this file holds vertex positions only.*topology"):
+            load_sequence(tmp_path / name)
+        seq = load_sequence(tmp_path / name, topology=tmp_path / "body.obj")
+        np.testing.assert_allclose(seq.V, V, atol=1e-6)
+        np.testing.assert_array_equal(seq.F, F)
+        assert seq.fps == fps
+    write_mesh(tmp_path / "cache.ply", V0, F)  # the mesh next to it with the same stem
+    np.testing.assert_allclose(load_sequence(tmp_path / "cache.npy").V, V, atol=1e-6)
+    np.save(tmp_path / "flat.npy", V.reshape(T, -1))  # (T, 3N): not vertices
+    with pytest.raises(MeshDataError, match=r"flat\.npy: vertex array of shape \(5, 12\)"):
+        load_sequence(tmp_path / "flat.npy", topology=tmp_path / "body.obj")
+    # an npz with faces ignores nothing and takes no topology
+    np.savez(tmp_path / "full.npz", V=V, F=F)
+    with pytest.raises(ValueError, match=r"full\.npz: topology= applies to vertex-only files"):
+        load_sequence(tmp_path / "full.npz", topology=tmp_path / "body.obj")
+    np.testing.assert_array_equal(load_sequence(tmp_path / "full.npz").V, V)

@@ -453,8 +453,12 @@ def test_nan_vertex_in_npz_later_frame(tmp_path):
 
 
 def test_unknown_npz_layout(tmp_path):
+    np.savez(tmp_path / "none.npz", colors=np.zeros((3, 3)))
+    with pytest.raises(MeshDataError, match=r"none\.npz.*layout"):
+        load_sequence(tmp_path / "none.npz")
     np.savez(tmp_path / "odd.npz", points=np.zeros((3, 3)))
-    with pytest.raises(MeshDataError, match=r"odd\.npz.*layout"):
+    # vertices without faces: a vertex-only file, whose faces come from a mesh (topology=)
+    with pytest.raises(MeshDataError, match=r"odd\.npz: this file holds vertex positions only \(no faces.*topology="):
         load_sequence(tmp_path / "odd.npz")
 
 
