@@ -24,6 +24,7 @@ import numpy as np
 
 from .animation_formats import ANIMATION_EXTENSIONS, CACHE_EXTENSIONS, read_animation, topology_faces, write_animation
 from .choices import FrameOrder, parse
+from .gltf_animation import GLTF_EXTENSIONS, gltf_has_animation, read_gltf_animation
 from .mesh_formats import MESH_EXTENSIONS, read_mesh, write_mesh, write_mesh_file
 from .outputs import OutputFolder, atomic_path
 from .sequence import FixedTopologySequence, VaryingTopologySequence
@@ -63,8 +64,10 @@ def load_sequence(
 
     Args:
         path: a ``.npz`` file, a single-file animation (``.anime`` of DeformingThings4D, a
-            ``.pc2`` or ``.mdd`` point cache), a single mesh file, a folder of per-frame
-            meshes, or a DG-Mesh scene folder (with ``dynamic_mesh/`` and/or ``mesh_gt/``).
+            ``.pc2`` or ``.mdd`` point cache, an animated ``.glb`` / ``.gltf``: skins, morph
+            targets and node animation sampled at ``fps``), a single mesh file, a folder of
+            per-frame meshes, or a DG-Mesh scene folder (with ``dynamic_mesh/`` and/or
+            ``mesh_gt/``).
         fps: frame rate; overrides the file's (npz ``fps``, MDD frame times). Default: the
             file's, else 24.0.
         kind: ``"auto"`` (fixed when all frames share vertex count and faces, else
@@ -120,6 +123,10 @@ def load_sequence(
                          f"an .npy or an npz of vertices without faces), but this one has its own faces")
     if path.suffix.lower() == ".npz":
         return fix_frame_order(load_npz(path, fps, kind), frame_order, path)
+    if path.suffix.lower() in GLTF_EXTENSIONS and gltf_has_animation(path):
+        V, F, fps = read_gltf_animation(path, fps)
+        seq = FixedTopologySequence(V, F, fps=fps, name=path.stem, source=str(path))
+        return seq.to_varying() if kind == "varying" else seq
     V, F = read_mesh(path)
     fps = DEFAULT_FPS if fps is None else fps
     seq = FixedTopologySequence(V[None], F, fps=fps, name=path.stem, source=str(path))

@@ -20,7 +20,7 @@ LAYERS = [
     {"conversion_options", "mesh_formats"},
     # sequence layouts on disk (npz layouts, folders of frames, DG-Mesh folders); single-file
     # animations (.anime, .pc2, .mdd)
-    {"sequence_layouts", "animation_formats"},
+    {"sequence_layouts", "animation_formats", "gltf_animation"},
     # schema, readers/writers, signals and CLI plumbing, built-in surfaces
     {"config", "io", "splat_io", "scenes", "cli"},
     # the simulation core and the geometry stages
