@@ -68,14 +68,18 @@ def _npz_scalar(data, key, path, cast):
         raise MeshDataError(f"{path}: bad '{key}' entry ({e})") from e
 
 
-def load_npz(path: Path, fps, kind: str):
+def _open_npz(path: Path):
+    """``np.load`` of an npz (no pickles), or a :class:`MeshDataError` naming the file."""
     if not zipfile.is_zipfile(path):
         raise MeshDataError(f"{path}: not an npz file (a zip archive of arrays, as numpy.savez writes)")
     try:
-        data = np.load(path, allow_pickle=False)
+        return np.load(path, allow_pickle=False)
     except Exception as e:
         raise MeshDataError(f"{path}: cannot read npz file ({type(e).__name__}: {e})") from e
-    with data:
+
+
+def load_npz(path: Path, fps, kind: str):
+    with _open_npz(path) as data:
         keys = set(data.files)
         name = _npz_scalar(data, "name", path, str) or path.stem
         file_fps = _npz_scalar(data, "fps", path, float)
@@ -123,13 +127,7 @@ def load_vertex_array(path: Path):
         except Exception as e:
             raise MeshDataError(f"{path}: cannot read npy file ({type(e).__name__}: {e})") from e
     else:
-        if not zipfile.is_zipfile(path):
-            raise MeshDataError(f"{path}: not an npz file (a zip archive of arrays, as numpy.savez writes)")
-        try:
-            data = np.load(path, allow_pickle=False)
-        except Exception as e:
-            raise MeshDataError(f"{path}: cannot read npz file ({type(e).__name__}: {e})") from e
-        with data:
+        with _open_npz(path) as data:
             keys = set(data.files)
             vkey = next((k for k in _NPZ_VERTEX_KEYS if k in keys), None)
             if vkey is None or any(k in keys for k in _NPZ_FACE_KEYS):
