@@ -64,11 +64,13 @@ class _File:
         if not isinstance(doc, dict):
             raise self.error("not a glTF document (its JSON is not an object)")
         self.doc = doc
-        for ext in doc.get("extensionsRequired", []):
+        self._buffers = {}
+
+    def check_extensions(self) -> None:
+        for ext in self.doc.get("extensionsRequired", []):
             if ext in _UNREAD_EXTENSIONS:
                 raise self.error(f"requires {ext} ({_UNREAD_EXTENSIONS[ext]}), which is not read; export it "
                                  "without compression")
-        self._buffers = {}
 
     def error(self, msg: str) -> MeshDataError:
         return MeshDataError(f"{self.path}: {msg}")
@@ -221,7 +223,8 @@ def _triangles(mode: int, idx: np.ndarray) -> np.ndarray:
 
 
 def gltf_has_animation(path) -> bool:
-    """Whether a .glb / .gltf file holds at least one animation with channels."""
+    """Whether a .glb / .gltf file holds at least one animation with channels (its JSON only: a
+    static file goes on to the mesh reader whatever extensions it requires)."""
     doc = _File(Path(path)).doc
     return any(a.get("channels") for a in doc.get("animations", []) or [])
 
@@ -233,6 +236,7 @@ def read_gltf_animation(path, fps: float | None = None, animation=None):
     rate to sample at (default: the keyframes', else 30). Raises :class:`MeshDataError` naming
     the file for what cannot be read (module docstring)."""
     g = _File(Path(path))
+    g.check_extensions()
     doc = g.doc
     nodes = doc.get("nodes", [])
     anims = [a for a in doc.get("animations", []) or []]
