@@ -160,7 +160,8 @@ def test_node_hierarchy_matches_trimesh_at_rest(tmp_path):
     data = b.glb()
     (tmp_path / "h.glb").write_bytes(data)
     seq = load_sequence(tmp_path / "h.glb")
-    ref = trimesh.load(tmp_path / "h.glb", force="scene", process=False).to_geometry()
+    scene = trimesh.load(tmp_path / "h.glb", force="scene", process=False)
+    ref = scene.to_geometry() if hasattr(scene, "to_geometry") else scene.dump(concatenate=True)  # trimesh < 4.6
     order = np.lexsort(np.asarray(ref.vertices).T)  # trimesh may reorder; compare as sets
     for f in range(seq.num_frames):
         got = seq.V[f][np.lexsort(seq.V[f].T)]
