@@ -80,6 +80,7 @@ class SurfaceConfig(_Strict):
     params: dict = Field(default_factory=dict)  # keyword arguments of a built-in generator
     subdir: Optional[str] = None  # DG-Mesh scene folder: dynamic_mesh | mesh_gt
     topology: Optional[str] = None  # a vertex-only source's faces (.pc2/.mdd/.npy/npz): a mesh file (default: <stem>.*)
+    animation: Optional[Union[str, int]] = None  # an animated .glb/.gltf source: the animation's name or index
     fps: Optional[float] = Field(default=None, gt=0)
     frame_order: FrameOrder = DEFAULT_FRAME_ORDER  # text_sorted: undo 1, 10, 11, ..., 2, ...
     playback: Playback = DEFAULT_PLAYBACK
@@ -318,6 +319,10 @@ class SceneConfig(_Strict):
                                  f"is {src!r}")
             if not self.resolve(self.surface.topology).is_file():
                 raise ValueError(f"surface.topology: file not found: {self.resolve(self.surface.topology)}")
+        if self.surface.animation is not None and (src.startswith("builtin:")
+                                                    or Path(src).suffix.lower() not in (".glb", ".gltf")):
+            raise ValueError(f"surface.animation: only for an animated .glb / .gltf source, but surface.source "
+                             f"is {src!r}")
         if self.surface.conversion and self.surface.conversion.template:
             t = self.resolve(self.surface.conversion.template)
             if not t.exists():

@@ -57,7 +57,7 @@ _KINDS = ("auto", "fixed", "varying")
 
 def load_sequence(
     path, fps: float | None = None, kind: str = "auto", subdir: str | None = None,
-    frame_order: str = "stored", topology=None,
+    frame_order: str = "stored", topology=None, animation=None,
 ) -> FixedTopologySequence | VaryingTopologySequence:
     """Load an animated mesh sequence from a ``.npz`` file, a single-file animation, a mesh
     file or a folder.
@@ -82,6 +82,8 @@ def load_sequence(
         topology: for a vertex-only file (a ``.pc2`` / ``.mdd`` point cache, an ``.npy``
             array (T, N, 3), an npz of vertices without faces), the mesh file that gives its
             faces; default: the one mesh next to it with the same stem.
+        animation: for an animated ``.glb`` / ``.gltf``, the name or index of the animation to
+            sample (default: the first).
 
     Raises:
         FileNotFoundError: ``path`` (or ``path / subdir``) does not exist.
@@ -95,6 +97,9 @@ def load_sequence(
     path = Path(path).expanduser()
     if not path.exists():
         raise FileNotFoundError(errno.ENOENT, os.strerror(errno.ENOENT), str(path))
+    if animation is not None and (path.is_dir() or path.suffix.lower() not in GLTF_EXTENSIONS):
+        raise ValueError(f"{path}: animation= picks one animation of an animated .glb / .gltf, but this is "
+                         f"{'a folder' if path.is_dir() else 'a ' + (path.suffix or 'file without extension')}")
     if path.is_dir():
         if topology is not None:
             raise ValueError(f"{path}: topology= applies to vertex-only files (point caches "
@@ -123,8 +128,11 @@ def load_sequence(
                          f"an .npy or an npz of vertices without faces), but this one has its own faces")
     if path.suffix.lower() == ".npz":
         return fix_frame_order(load_npz(path, fps, kind), frame_order, path)
+    if animation is not None and not gltf_has_animation(path):
+        raise ValueError(f"{path}: animation= picks one animation of an animated .glb / .gltf, but this file "
+                         f"has none")
     if path.suffix.lower() in GLTF_EXTENSIONS and gltf_has_animation(path):
-        V, F, fps = read_gltf_animation(path, fps)
+        V, F, fps = read_gltf_animation(path, fps, animation)
         seq = FixedTopologySequence(V, F, fps=fps, name=path.stem, source=str(path))
         return seq.to_varying() if kind == "varying" else seq
     V, F = read_mesh(path)

@@ -111,7 +111,8 @@ def load_surface(cfg: SceneConfig):
 
         seq = load_sequence(cfg.resolve(s.source), fps=s.fps, frame_order=s.frame_order,
                             **({"subdir": s.subdir} if s.subdir else {}),
-                            **({"topology": cfg.resolve(s.topology)} if s.topology else {}))
+                            **({"topology": cfg.resolve(s.topology)} if s.topology else {}),
+                            **({"animation": s.animation} if s.animation is not None else {}))
     return prepare_surface(seq, cfg)
 
 

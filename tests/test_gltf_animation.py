@@ -243,3 +243,34 @@ def test_interleaved_strided_buffer_view_and_normalized_weights(tmp_path):
     seq = load_sequence(tmp_path / "i.glb", fps=2)
     for f, t in enumerate([0.0, 0.5, 1.0]):
         np.testing.assert_allclose(seq.V[f], P + [0, 0, 3 * t], atol=1e-6)
+
+
+def test_an_animation_is_picked_by_name_or_index_also_from_a_scene(tmp_path):
+    from dynmesh_warp.config import load_scene_config
+    from dynmesh_warp.scene import load_surface
+
+    b = Builder()
+    P = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float64)
+    b.doc["meshes"] = [{"primitives": [{"attributes": {"POSITION": b.add(P, "VEC3")}}]}]
+    b.doc["nodes"] = [{"mesh": 0}]
+    b.doc["scenes"][0]["nodes"] = [0]
+    t = b.add([0.0, 1.0], "SCALAR")
+    b.doc["animations"] = [
+        {"name": name, "channels": [{"sampler": 0, "target": {"node": 0, "path": "translation"}}],
+         "samplers": [{"input": t, "output": b.add([[0, 0, 0], [d, 0, 0]], "VEC3")}]}
+        for name, d in (("Walk", 1.0), ("Run", 5.0))]
+    (tmp_path / "fox.glb").write_bytes(b.glb())
+    for pick, d in ((None, 1.0), ("Run", 5.0), (0, 1.0), (1, 5.0)):
+        seq = load_sequence(tmp_path / "fox.glb", fps=1, animation=pick)
+        np.testing.assert_allclose(seq.V[-1], P + [d, 0, 0], atol=1e-6)
+    with pytest.raises(MeshDataError, match=r"fox\.glb: no animation named 'Fly'; it has \['Walk', 'Run'\]"):
+        load_sequence(tmp_path / "fox.glb", animation="Fly")
+    scene = tmp_path / "s.yaml"
+    scene.write_text("surface: {source: fox.glb, animation: Run, fps: 1}\n")
+    np.testing.assert_allclose(load_surface(load_scene_config(scene)).V[-1], P + [5, 0, 0], atol=1e-6)
+    scene.write_text("surface: {source: 'builtin:wave_bowl', animation: Run}\n")
+    with pytest.raises(ValueError, match=r"surface\.animation: only for an animated \.glb / \.gltf source"):
+        load_scene_config(scene)
+    np.save(tmp_path / "x.npy", P[None])
+    with pytest.raises(ValueError, match=r"animation= picks one animation of an animated \.glb"):
+        load_sequence(tmp_path / "x.npy", animation="Run")
