@@ -70,8 +70,12 @@ def main(argv=None):
         med = float(np.median(times))
         res["strategies"][st] = {"seconds_median": med, "seconds_all": times, "frames_per_s": a.frames / med,
                                  "ms_per_frame": 1000 * med / a.frames, "template_vertices": out.num_vertices,
-                                 "compile_and_warmup_s": compile_s, "options": out.conversion.options}
+                                 "compile_and_warmup_s": compile_s, "key_frame": out.conversion.key_frame,
+                                 "key_trials": [list(x) for x in out.conversion.key_trials],
+                                 "recovered_frames": len(out.conversion.recovered_frames),
+                                 "options": out.conversion.options}
         print(f"{st:12s} {med:7.2f} s  {a.frames / med:7.1f} frames/s  ({out.num_vertices} template vertices; "
+              f"key frame {out.conversion.key_frame}, {len(out.conversion.key_trials)} key trials; "
               f"compile+warm-up {compile_s:.2f} s)", flush=True)
     out_path = Path(a.out) if a.out else ROOT / "bench" / "results" / f"convert_{device.alias.replace(':', '')}.json"
     atomic_write_json(out_path, res)
