@@ -36,17 +36,19 @@ def main(argv=None):
     p.add_argument("--frames", type=int, default=100)
     p.add_argument("--resolution", type=int, default=76)
     p.add_argument("--runs", type=int, default=3)
+    p.add_argument("--deterministic", action="store_true", help="the conversion option deterministic=True")
     p.add_argument("--out", required=True)
     a = p.parse_args(argv)
     wp.config.quiet = True
     wp.init()
     device = wp.get_device(a.device)
     seq = torus_to_sphere(frames=a.frames, resolution=a.resolution)
-    to_fixed_topology(VaryingTopologySequence(seq.frames[:2]), device=device)  # compile
+    opts = {"deterministic": True} if a.deterministic else {}
+    to_fixed_topology(VaryingTopologySequence(seq.frames[:2]), device=device, **opts)  # compile
     runs, first = [], None
     for _ in range(a.runs):
         t0 = time.perf_counter()
-        out = to_fixed_topology(seq, device=device)
+        out = to_fixed_topology(seq, device=device, **opts)
         wp.synchronize_device(device)
         row = {"seconds": time.perf_counter() - t0, "key_frame": out.conversion.key_frame,
                "key_trials": len(out.conversion.key_trials), "template_vertices": int(out.num_vertices),
@@ -71,6 +73,7 @@ def main(argv=None):
                                     "device_name": device.name, "machine": platform.node(),
                                     "warp": wp.__version__, "input": {"scene": "torus_to_sphere", "frames": a.frames,
                                                                       "resolution": a.resolution},
+                                    "options": opts,
                                     "runs": runs})
 
 

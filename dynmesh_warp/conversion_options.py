@@ -65,6 +65,12 @@ class _Options(BaseModel):
     far_part_area: Fraction = 0.0
     #: the gap for ``far_part_area`` (fraction of the converted mesh's bbox diagonal)
     far_part_gap: Float = Field(0.10, gt=0.0)
+    #: bit-identical results from run to run on a GPU: the conversion kernels' float atomic sums
+    #: are reduced in a fixed order (Warp's deterministic mode, RUN_TO_RUN: the same GPU model).
+    #: The CPU is deterministic either way. Off by default: 4.3-4.9x the time on an H100 (200
+    #: frames of a 10k-vertex template: 28-32 s against 6.6-6.8 s). docs/conversion.md
+    #: ("Speed with larger templates, and repeatability on the GPU")
+    deterministic: bool = False
 
 
 class _FineStage(BaseModel):

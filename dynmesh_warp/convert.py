@@ -654,6 +654,28 @@ def _as_varying(seq) -> VaryingTopologySequence:
                     f"got {type(seq).__name__}")
 
 
+def set_deterministic(on: bool, nodes_per_vertex: int = 4) -> None:
+    """Compile the conversion's kernel modules (``kernels.convert``, ``kernels.register``) in
+    Warp's deterministic mode (RUN_TO_RUN: their float atomic sums reduced in a fixed order, so
+    a GPU run repeats bit for bit) or in the normal one. Switching recompiles the two modules
+    once; every build stays in Warp's kernel cache. No effect on the CPU's results, which are
+    deterministic either way.
+
+    Warp records each atomic call of a thread; a thread that loops over atomics needs the bound
+    given: the graph system's rows (k + k^2 for a template vertex's k nodes, m + m^2 for a
+    frame point's m <= 3k distinct nodes) and the rigid fit's 6 x 6 system (36 + 6)."""
+    from .kernels import register as kr
+
+    det = wp.DeterministicMode.RUN_TO_RUN if on else wp.DeterministicMode.NOT_GUARANTEED
+    m = min(int(kr.MAX_ROW_NODES), 3 * int(nodes_per_vertex))
+    bounds = {kc: 6 * 6 + 6, kr: max(nodes_per_vertex + nodes_per_vertex ** 2, m + m * m)}
+    for mod, records in bounds.items():
+        want = {"deterministic": det, "deterministic_max_records": records if on else 0}
+        have = wp.get_module_options(mod)
+        if any(have.get(key) != value for key, value in want.items()):
+            wp.set_module_options(want, module=mod)
+
+
 def _resolve_options(strategy: str, options: dict) -> dict:
     """The strategy's options, checked and with the defaults filled in
     (:func:`dynmesh_warp.conversion_options.options_for`), as a dict with ``strategy``."""
@@ -945,6 +967,7 @@ def to_fixed_topology(seq, strategy: str = DEFAULT_STRATEGY, template=None, devi
             surface's reach. Warns (UserWarning) about frames of very different scale.
     """
     o = _resolve_options(strategy, options)
+    set_deterministic(bool(o["deterministic"]), int(o.get("nodes_per_vertex", 4)))
     vseq = _as_varying(seq)
     where = vseq.source or vseq.name
     for t, (v, f) in enumerate(vseq.frames):  # frames may have been mutated after construction

@@ -310,6 +310,7 @@ class GraphFitter:
         self.direction = (wp.zeros(K, dtype=wp.vec3, device=d), wp.zeros(K, dtype=wp.vec3, device=d))
         self.product = wp.zeros(K, dtype=wp.vec3, device=d)
         self.residual_dot = wp.zeros(self.cg_iterations + 1, dtype=float, device=d)
+        self.residual_dot_sum = wp.zeros(self.cg_iterations + 1, dtype=float, device=d)  # accumulated, copied
         self.curvature = wp.zeros(self.cg_iterations, dtype=float, device=d)
         self._cg_graph = None
 
@@ -407,12 +408,13 @@ class GraphFitter:
 
     def _cg_launches(self):
         d, K = self.device, self.K
-        self.residual_dot.zero_()
+        self.residual_dot_sum.zero_()
         self.curvature.zero_()
         wp.launch(kr.begin_conjugate_gradient, dim=K,
                   inputs=[self.row_offsets, self.columns, self.diagonal_slot, self.values, self.rhs,
-                          self.node_position], outputs=[self.residual, self.preconditioned, self.residual_dot],
+                          self.node_position], outputs=[self.residual, self.preconditioned, self.residual_dot_sum],
                   device=d)
+        wp.copy(self.residual_dot, self.residual_dot_sum)
         for it in range(self.cg_iterations):
             p_in, p_out = self.direction[it % 2], self.direction[(it + 1) % 2]
             wp.launch(kr.multiply_search_direction, dim=K,
@@ -420,8 +422,10 @@ class GraphFitter:
                               self.residual_dot, it], outputs=[p_out, self.product, self.curvature], device=d)
             wp.launch(kr.update_conjugate_gradient, dim=K,
                       inputs=[self.diagonal_slot, self.values, p_out, self.product, self.curvature, it,
-                              self.cg_tolerance],
-                      outputs=[self.node_position, self.residual, self.preconditioned, self.residual_dot], device=d)
+                              self.cg_tolerance, self.residual_dot],
+                      outputs=[self.node_position, self.residual, self.preconditioned, self.residual_dot_sum],
+                      device=d)
+            wp.copy(self.residual_dot, self.residual_dot_sum)
 
     def solve(self, serial: bool | None = None):
         """node_position <- the solution of the assembled system (CG warm-started from it).

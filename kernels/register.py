@@ -383,19 +383,21 @@ def begin_conjugate_gradient(
     # Out:
     residual: wp.array[wp.vec3],
     preconditioned: wp.array[wp.vec3],
-    residual_dot: wp.array[float],
+    residual_dot_sum: wp.array[float],
 ):
-    """Preconditioned CG, start: r = b - A x, z = r / diag(A), residual_dot[0] += r . z.
+    """Preconditioned CG, start: r = b - A x, z = r / diag(A), residual_dot_sum[0] += r . z.
 
     The system is A (K x K, CSR) times the (K, 3) unknowns, one CG over all three columns
-    (A kron I3). residual_dot (iterations + 1,) zeroed before [m^2].
+    (A kron I3). residual_dot_sum (iterations + 1,) zeroed before [m^2]; the kernels that read
+    rz take a copy of it (``residual_dot``), so no kernel reads the array it accumulates into
+    (Warp's deterministic mode refuses that).
     """
     i = wp.tid()
     r = rhs[i] - csr_multiply_row(row_offsets, columns, values, solution, i)
     z = r / values[diagonal_slot[i]]
     residual[i] = r
     preconditioned[i] = z
-    wp.atomic_add(residual_dot, 0, wp.dot(r, z))
+    wp.atomic_add(residual_dot_sum, 0, wp.dot(r, z))
 
 
 @wp.kernel
@@ -444,15 +446,17 @@ def update_conjugate_gradient(
     curvature: wp.array[float],
     iteration: int,
     relative_tolerance: float,
+    residual_dot: wp.array[float],
     # Out (in place / accumulated):
     solution_in: wp.array[wp.vec3],
     residual_in: wp.array[wp.vec3],
     preconditioned: wp.array[wp.vec3],
-    residual_dot: wp.array[float],
+    residual_dot_sum: wp.array[float],
 ):
     """CG iteration ``iteration``, second half: alpha = rz_it / (p' . A p'); x += alpha p',
-    r -= alpha q, z = r / diag(A), residual_dot[it + 1] += r . z. Once rz_it <= tol^2 rz_0
-    (converged) alpha is 0 and the iterate stays, so a fixed launch count needs no host check."""
+    r -= alpha q, z = r / diag(A), residual_dot_sum[it + 1] += r . z (``residual_dot``: its copy
+    up to iteration ``it``). Once rz_it <= tol^2 rz_0 (converged) alpha is 0 and the iterate
+    stays, so a fixed launch count needs no host check."""
     i = wp.tid()
     rz = residual_dot[iteration]
     pq = curvature[iteration]
@@ -464,7 +468,7 @@ def update_conjugate_gradient(
     residual_in[i] = r
     z = r / values[diagonal_slot[i]]
     preconditioned[i] = z
-    wp.atomic_add(residual_dot, iteration + 1, wp.dot(r, z))
+    wp.atomic_add(residual_dot_sum, iteration + 1, wp.dot(r, z))
 
 
 @wp.kernel

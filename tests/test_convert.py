@@ -716,3 +716,26 @@ def test_far_parts_keeps_the_largest_and_near_parts():
         out = _far_parts(*args, s.vertices.astype(np.float32), s.faces.astype(np.int32),
                          0.0 if args[0] is V else 0.05, 0.1, DEV)
         assert out[2:] == (0, 0) and out[0] is args[0]
+
+
+def test_deterministic_option_repeats_bit_for_bit_and_sets_warps_mode(device):
+    """``deterministic=True`` compiles the conversion's kernel modules in Warp's deterministic
+    mode, with a record bound for the loops of atomics (k + k^2 and m + m^2, m = 3k distinct
+    nodes of a face; 6 x 6 + 6 for the rigid fit); two runs then agree bit for bit on any
+    device. The option off restores the normal build. On the CPU both agree anyway."""
+    from dynmesh_warp.kernels import convert as kc
+    from dynmesh_warp.kernels import register as kr
+    from dynmesh_warp.scenes import torus_to_sphere
+
+    seq = torus_to_sphere(frames=5, resolution=32)
+    runs = [to_fixed_topology(seq, device=device, deterministic=True) for _ in range(2)]
+    assert wp.get_module_options(kr)["deterministic"] == wp.DeterministicMode.RUN_TO_RUN
+    assert wp.get_module_options(kr)["deterministic_max_records"] == 12 + 12 * 12  # k = 4 (default)
+    assert wp.get_module_options(kc)["deterministic_max_records"] == 42
+    np.testing.assert_array_equal(runs[0].V, runs[1].V)
+    plain = to_fixed_topology(seq, device=device)
+    assert wp.get_module_options(kr)["deterministic"] == wp.DeterministicMode.NOT_GUARANTEED
+    if not wp.get_device(device).is_cuda:
+        np.testing.assert_array_equal(plain.V, runs[0].V)
+    with pytest.raises(ValueError, match="deterministic must be true or false"):
+        to_fixed_topology(seq, device=device, deterministic="maybe")
