@@ -1264,8 +1264,9 @@ def main(argv=None) -> int:
         prog="python -m dynmesh_warp.convert",
         description="Convert a varying-topology mesh sequence into a fixed-topology one.")
     p.add_argument("input", help="sequence: .npz, folder of per-frame meshes, DG-Mesh scene folder")
-    p.add_argument("output", help="output .npz; a .pc2 or .mdd point cache (its faces written as <stem>.obj) or "
-                                  ".anime; or a folder (frame_XXXX.ply/.obj, see --fmt)")
+    p.add_argument("output", help="output .npz; a .pc2 or .mdd point cache (its faces written as <stem>.obj), "
+                                  ".anime, or an animated .glb (morph targets); or a folder (frame_XXXX.ply/.obj, "
+                                  "see --fmt)")
     p.add_argument("--strategy", choices=STRATEGIES, default=DEFAULT_STRATEGY,
                    help=f"conversion strategy (default {DEFAULT_STRATEGY}; docs/conversion.md)")
     p.add_argument("--template", default=None,
@@ -1339,7 +1340,7 @@ def main(argv=None) -> int:
             raise ValueError(f"--template {a.template}: file not found")
         inputs = [a.input] + ([a.template] if a.template else [])
         out_suffix = Path(a.output).suffix.lower()
-        if out_suffix == ".npz" or out_suffix in ANIMATION_EXTENSIONS:
+        if out_suffix == ".npz" or out_suffix in ANIMATION_EXTENSIONS or out_suffix == ".glb":
             if a.fmt:
                 raise ValueError(f"--fmt {a.fmt}: applies to a folder output, not to {a.output}")
             check_output(a.output, kind="file", what="output", inputs=inputs, overwrite=a.overwrite,
@@ -1350,8 +1351,8 @@ def main(argv=None) -> int:
         else:
             if out_suffix in MESH_EXTENSIONS or out_suffix in _FILE_SUFFIXES:
                 raise ValueError(f"output {a.output}: a sequence does not fit in one {out_suffix} file; give a "
-                                 ".npz file, a .pc2/.mdd/.anime animation, or a folder (frames written as "
-                                 "frame_XXXX.ply, or .obj with --fmt obj)")
+                                 ".npz file, a .pc2/.mdd/.anime or animated .glb file, or a folder (frames "
+                                 "written as frame_XXXX.ply, or .obj with --fmt obj)")
             a.fmt = a.fmt or "ply"
             check_output(a.output, kind="folder", what="output", inputs=inputs, overwrite=a.overwrite,
                          writes=("frame_*.ply", "frame_*.obj"))

@@ -21,21 +21,24 @@ Not read, with an error saying so: sparse accessors and the compression extensio
 require (Draco, meshopt). ``read_gltf_animation(path, fps=None, animation=None) -> (V (T, N, 3)
 float32, F (M, 3) int64, fps)``. The frame rate, when not given, is the one the keyframes lie on
 (exporters bake at 24, 25, 30, 60 ...; 1 / the median keyframe spacing, if whole), else 30.
+``write_gltf_animation(path, V, F, fps)`` writes a sequence as an animated GLB (morph targets).
 """
 
 from __future__ import annotations
 
 import base64
 import json
+import os
 import struct
 import urllib.parse
 from pathlib import Path
 
 import numpy as np
 
+from .outputs import atomic_path
 from .sequence import MeshDataError
 
-__all__ = ["GLTF_EXTENSIONS", "read_gltf_animation", "gltf_has_animation"]
+__all__ = ["GLTF_EXTENSIONS", "read_gltf_animation", "gltf_has_animation", "write_gltf_animation"]
 
 GLTF_EXTENSIONS = (".glb", ".gltf")
 _DEFAULT_FPS = 30.0
@@ -394,3 +397,57 @@ def read_gltf_animation(path, fps: float | None = None, animation=None):
             out[off:off + len(P)] = X
             off += len(P)
     return V, F, float(fps)
+
+
+def write_gltf_animation(path, V, F, fps: float) -> None:
+    """Write a fixed-topology sequence ``V`` (T, N, 3) on faces ``F`` (M, 3) as one animated GLB
+    (``path``, atomically): frame 0 is the mesh, frames 1 .. T - 1 are morph targets (position
+    offsets from frame 0), and one animation sets target t - 1's weight to 1 at time t / fps, 0
+    elsewhere, with LINEAR interpolation, so a viewer plays the frames and blends between them
+    as the physics does. Reads back with :func:`read_gltf_animation`; Blender imports the targets
+    as shape keys. float32 positions, uint32 indices."""
+    V = np.asarray(V, np.float32)
+    F = np.asarray(F, np.uint32)
+    T, n = V.shape[:2]
+    blob = bytearray()
+    views, accessors = [], []
+
+    def add(arr, kind: str, ctype: int, minmax: bool = False) -> int:
+        data = np.ascontiguousarray(arr).tobytes()
+        blob.extend(b"\0" * (-len(blob) % 4))
+        views.append({"buffer": 0, "byteOffset": len(blob), "byteLength": len(data)})
+        blob.extend(data)
+        a = np.asarray(arr)
+        acc = {"bufferView": len(views) - 1, "componentType": ctype, "count": int(len(a)), "type": kind}
+        if minmax:  # required for POSITION accessors and animation inputs
+            flat = a.reshape(len(a), -1)
+            acc["min"], acc["max"] = flat.min(axis=0).tolist(), flat.max(axis=0).tolist()
+        accessors.append(acc)
+        return len(accessors) - 1
+
+    prim = {"attributes": {"POSITION": add(V[0], "VEC3", 5126, True)}, "indices": add(F.reshape(-1), "SCALAR", 5125),
+            "mode": 4}
+    doc = {"asset": {"version": "2.0", "generator": "dynmesh_warp"}, "scene": 0, "scenes": [{"nodes": [0]}],
+           "nodes": [{"mesh": 0, "name": "surface"}], "meshes": [{"primitives": [prim], "name": "surface"}]}
+    if T > 1:
+        prim["targets"] = [{"POSITION": add(V[t] - V[0], "VEC3", 5126, True)} for t in range(1, T)]
+        doc["meshes"][0]["weights"] = [0.0] * (T - 1)
+        times = add((np.arange(T) / float(fps)).astype(np.float32), "SCALAR", 5126, True)
+        W = np.zeros((T, T - 1), np.float32)
+        W[np.arange(1, T), np.arange(T - 1)] = 1.0
+        weights = add(W.reshape(-1), "SCALAR", 5126)
+        doc["animations"] = [{"name": "frames", "samplers": [{"input": times, "output": weights,
+                                                                "interpolation": "LINEAR"}],
+                              "channels": [{"sampler": 0, "target": {"node": 0, "path": "weights"}}]}]
+    blob.extend(b"\0" * (-len(blob) % 4))
+    doc["buffers"] = [{"byteLength": len(blob)}]
+    doc["bufferViews"], doc["accessors"] = views, accessors
+    js = json.dumps(doc, separators=(",", ":")).encode()
+    js += b" " * (-len(js) % 4)
+    body = struct.pack("<II", len(js), 0x4E4F534A) + js + struct.pack("<II", len(blob), 0x004E4942) + bytes(blob)
+    path = Path(path)
+    with atomic_path(path, suffix=path.suffix) as tmp:
+        with open(tmp, "wb") as fh:
+            fh.write(struct.pack("<4sII", b"glTF", 2, 12 + len(body)) + body)
+            fh.flush()
+            os.fsync(fh.fileno())

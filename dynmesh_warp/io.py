@@ -24,7 +24,7 @@ import numpy as np
 
 from .animation_formats import ANIMATION_EXTENSIONS, CACHE_EXTENSIONS, read_animation, topology_faces, write_animation
 from .choices import FrameOrder, parse
-from .gltf_animation import GLTF_EXTENSIONS, gltf_has_animation, read_gltf_animation
+from .gltf_animation import GLTF_EXTENSIONS, gltf_has_animation, read_gltf_animation, write_gltf_animation
 from .mesh_formats import MESH_EXTENSIONS, read_mesh, write_mesh, write_mesh_file
 from .outputs import OutputFolder, atomic_path
 from .sequence import FixedTopologySequence, VaryingTopologySequence
@@ -166,7 +166,9 @@ def save_sequence(seq, path, fmt: str | None = None, overwrite: bool = False, st
             packed varying layout ``V_packed``/``F_packed``/``V_offsets``/``F_offsets``/
             ``fps``/``name``); ``*.anime``, ``*.pc2`` or ``*.mdd`` for a single-file animation
             of a fixed-topology sequence (a point cache also gets its faces as ``<stem>.obj``,
-            :mod:`~dynmesh_warp.animation_formats`); otherwise a folder that receives
+            :mod:`~dynmesh_warp.animation_formats`); ``*.glb`` for an animated glTF (frames as
+            morph targets, :func:`~dynmesh_warp.gltf_animation.write_gltf_animation`); otherwise
+            a folder that receives
             ``frame_{i:04d}.{fmt}``.
         fmt: ``"ply"`` or ``"obj"`` for a folder (required there); ``None``/``"npz"`` for
             an ``.npz`` path.
@@ -185,13 +187,16 @@ def save_sequence(seq, path, fmt: str | None = None, overwrite: bool = False, st
                         f"got {type(seq).__name__}")
     path = Path(path).expanduser()
     fmt = fmt.lower().lstrip(".") if fmt else None
-    if path.suffix.lower() in ANIMATION_EXTENSIONS:
+    if path.suffix.lower() in ANIMATION_EXTENSIONS + (".glb",):
         if fmt not in (None, path.suffix.lower()[1:]):
             raise ValueError(f"{path}: fmt={fmt!r} conflicts with the {path.suffix} extension")
         if not isinstance(seq, FixedTopologySequence):
             raise ValueError(f"{path}: a {path.suffix} animation holds one set of faces for every frame; this "
                              f"sequence's topology varies (convert it first, or save a .npz or a folder)")
-        write_animation(path, seq.V, seq.F, seq.fps, overwrite=bool(overwrite))
+        if path.suffix.lower() == ".glb":
+            write_gltf_animation(path, seq.V, seq.F, seq.fps)
+        else:
+            write_animation(path, seq.V, seq.F, seq.fps, overwrite=bool(overwrite))
         return
     if path.suffix.lower() == ".npz":
         if fmt not in (None, "npz"):

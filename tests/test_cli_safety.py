@@ -195,11 +195,13 @@ def test_convert_to_a_point_cache_reads_back_as_the_npz_output(work, tmp_path):
 
     assert convert.main([str(work / "frames"), str(tmp_path / "c.npz")]) == 0
     assert convert.main([str(work / "frames"), str(tmp_path / "c.pc2")]) == 0
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.npz", "c.obj", "c.pc2"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.npz", "c.obj", "c.pc2"]  # the cache's faces
     a, b = load_sequence(tmp_path / "c.npz"), load_sequence(tmp_path / "c.pc2")
     np.testing.assert_array_equal(a.V, b.V)
     np.testing.assert_array_equal(a.F, b.F)
     assert convert.main([str(work / "frames"), str(tmp_path / "c.pc2")]) == 2  # exists: --overwrite
+    assert convert.main([str(work / "frames"), str(tmp_path / "c.glb")]) == 0  # an animated glTF
+    np.testing.assert_allclose(load_sequence(tmp_path / "c.glb").V, a.V, atol=1e-6)
 
 
 def _umask() -> int:
