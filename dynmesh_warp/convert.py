@@ -220,6 +220,15 @@ class ConversionInfo:
     ignored_parts: dict = field(default_factory=dict)
 
 
+def _keep_faces(v: np.ndarray, f: np.ndarray, keep: np.ndarray) -> tuple:
+    """(vertices, faces) of the faces ``keep`` (a mask) and only the vertices they use, the faces
+    renumbered (int32) in the kept vertices' order."""
+    used = np.zeros(len(v), bool)
+    used[f[keep].ravel()] = True
+    remap = np.cumsum(used) - 1
+    return v[used], remap[f[keep]].astype(np.int32)
+
+
 def _drop_unused(vseq: VaryingTopologySequence):
     """(vseq without faces that repeat a vertex (no area in any pose) and without the vertices
     no face uses, [(frame, vertices dropped, faces dropped)]): the input is not modified; frames
@@ -228,17 +237,15 @@ def _drop_unused(vseq: VaryingTopologySequence):
     for t, (v, f) in enumerate(vseq.frames):
         f = np.asarray(f)
         keep = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
-        used = np.zeros(len(v), bool)
-        used[f[keep].ravel()] = True
-        nv, nf = int(len(v) - np.count_nonzero(used)), int(len(f) - np.count_nonzero(keep))
+        v2, f2 = _keep_faces(v, f, keep)
+        nv, nf = len(v) - len(v2), len(f) - len(f2)
         if nv == 0 and nf == 0:
             frames.append((v, f))
             continue
         if not keep.any():
             src = vseq.frame_sources[t] if vseq.frame_sources else (vseq.source or vseq.name)
             raise MeshDataError(f"{src}, frame {t}: every face repeats a vertex (no surface)")
-        remap = np.cumsum(used) - 1
-        frames.append((v[used], remap[f[keep]].astype(np.int32)))
+        frames.append((v2, f2))
         dropped.append((t, nv, nf))
     if not dropped:
         return vseq, dropped
@@ -811,11 +818,8 @@ def _far_parts(v: np.ndarray, f: np.ndarray, X: np.ndarray, TF: np.ndarray, area
     drop = small[~near[small]]
     if drop.size == 0:
         return v, f, 0, 0
-    keep_face = ~np.isin(lab, drop)
-    used = np.zeros(len(v), bool)
-    used[f[keep_face].ravel()] = True
-    remap = np.cumsum(used) - 1
-    return v[used], remap[f[keep_face]].astype(np.int32), int(drop.size), int(len(v) - used.sum())
+    v2, f2 = _keep_faces(v, f, ~np.isin(lab, drop))
+    return v2, f2, int(drop.size), len(v) - len(v2)
 
 
 def _frame_for_fit(vseq, t: int, K: int, o: dict, X_ref, TF: np.ndarray, device, info) -> tuple:
