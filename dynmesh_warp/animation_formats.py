@@ -36,13 +36,16 @@ from .mesh_formats import MESH_EXTENSIONS, mesh_extension, read_mesh, write_mesh
 from .outputs import atomic_path
 from .sequence import MeshDataError
 
-__all__ = ["ANIMATION_EXTENSIONS", "CACHE_EXTENSIONS", "read_animation", "write_animation", "find_topology",
-           "topology_faces", "written_topology"]
+__all__ = ["ANIMATION_EXTENSIONS", "CACHE_EXTENSIONS", "VERTEX_ONLY_EXTENSIONS", "read_animation", "write_animation",
+           "find_topology", "topology_faces", "written_topology"]
 
 #: extensions of single-file animations (lower case, with the dot)
 ANIMATION_EXTENSIONS = (".anime", ".pc2", ".mdd")
 #: those that hold vertices only: their faces come from a mesh file (``topology``)
 CACHE_EXTENSIONS = (".pc2", ".mdd")
+#: every file that may hold vertices only (its faces from ``topology``): point caches, ``.npy``,
+#: and npz files without a face array
+VERTEX_ONLY_EXTENSIONS = CACHE_EXTENSIONS + (".npz", ".npy")
 
 _PC2_HEADER = struct.Struct("<12siiffi")
 _PC2_MAGIC = b"POINTCACHE2\0"

@@ -311,9 +311,9 @@ class SceneConfig(_Strict):
             if not path.exists():
                 raise ValueError(f"surface.source: file or folder not found: {path}")
         if self.surface.topology:
-            from .animation_formats import CACHE_EXTENSIONS
+            from .animation_formats import CACHE_EXTENSIONS, VERTEX_ONLY_EXTENSIONS
 
-            if src.startswith("builtin:") or Path(src).suffix.lower() not in CACHE_EXTENSIONS + (".npz", ".npy"):
+            if src.startswith("builtin:") or Path(src).suffix.lower() not in VERTEX_ONLY_EXTENSIONS:
                 raise ValueError(f"surface.topology: only for a vertex-only source (a point cache "
                                  f"{', '.join(CACHE_EXTENSIONS)}, an .npy or an npz of vertices), but surface.source "
                                  f"is {src!r}")

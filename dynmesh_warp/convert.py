@@ -1294,8 +1294,8 @@ def main(argv=None) -> int:
     from .cli import checking_stops, quiet_warp, stop_reason
 
     quiet_warp(a.device)
-    from .animation_formats import ANIMATION_EXTENSIONS, written_topology
-    from .io import MESH_EXTENSIONS, load_sequence, save_sequence
+    from .animation_formats import written_topology
+    from .io import ANIMATED_FILE_OUTPUTS, MESH_EXTENSIONS, load_sequence, save_sequence
     from .outputs import check_output
 
     opts = {}
@@ -1344,14 +1344,15 @@ def main(argv=None) -> int:
             raise ValueError(f"--template {a.template}: file not found")
         inputs = [a.input] + ([a.template] if a.template else [])
         out_suffix = Path(a.output).suffix.lower()
-        if out_suffix == ".npz" or out_suffix in ANIMATION_EXTENSIONS or out_suffix == ".glb":
+        if out_suffix == ".npz" or out_suffix in ANIMATED_FILE_OUTPUTS:
             if a.fmt:
                 raise ValueError(f"--fmt {a.fmt}: applies to a folder output, not to {a.output}")
             check_output(a.output, kind="file", what="output", inputs=inputs, overwrite=a.overwrite,
                          suffixes={out_suffix})
-            if written_topology(a.output) is not None:  # a point cache's faces go next to it
-                check_output(written_topology(a.output), kind="file", what=f"output {a.output}: its faces",
-                             inputs=inputs, overwrite=a.overwrite, suffixes={".obj"})
+            faces = written_topology(a.output)
+            if faces is not None:  # a point cache's faces go next to it
+                check_output(faces, kind="file", what=f"output {a.output}: its faces", inputs=inputs,
+                             overwrite=a.overwrite, suffixes={".obj"})
         else:
             if out_suffix in MESH_EXTENSIONS or out_suffix in _FILE_SUFFIXES:
                 raise ValueError(f"output {a.output}: a sequence does not fit in one {out_suffix} file; give a "

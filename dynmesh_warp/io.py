@@ -22,7 +22,14 @@ from pathlib import Path
 
 import numpy as np
 
-from .animation_formats import ANIMATION_EXTENSIONS, CACHE_EXTENSIONS, read_animation, topology_faces, write_animation
+from .animation_formats import (
+    ANIMATION_EXTENSIONS,
+    CACHE_EXTENSIONS,
+    VERTEX_ONLY_EXTENSIONS,
+    read_animation,
+    topology_faces,
+    write_animation,
+)
 from .choices import FrameOrder, parse
 from .gltf_animation import GLTF_EXTENSIONS, gltf_has_animation, read_gltf_animation, write_gltf_animation
 from .mesh_formats import MESH_EXTENSIONS, read_mesh, write_mesh, write_mesh_file
@@ -45,6 +52,7 @@ __all__ = [
     "MESH_EXTENSIONS",
     "DGMESH_SUBDIRS",
     "ANIMATION_EXTENSIONS",
+    "ANIMATED_FILE_OUTPUTS",
     "frame_index_from_name",
     "load_sequence",
     "read_mesh",
@@ -53,6 +61,26 @@ __all__ = [
 ]
 
 _KINDS = ("auto", "fixed", "varying")
+
+#: one-file outputs of a fixed-topology sequence besides the npz: the single-file animations
+#: and an animated GLB (``save_sequence``; ``convert`` checks its output against the same list)
+ANIMATED_FILE_OUTPUTS = ANIMATION_EXTENSIONS + (".glb",)
+
+
+def _one_file(V, F, fps, file_fps, name: str, path: Path, kind: str, frame_order: str | None = None):
+    """The fixed sequence of a one-file animation: ``fps`` if given, else the file's, else
+    DEFAULT_FPS; the frame-order check of an npz when ``frame_order`` is given; varying when
+    ``kind`` asks for it."""
+    fps = fps if fps is not None else (file_fps if file_fps is not None else DEFAULT_FPS)
+    seq = FixedTopologySequence(V, F, fps=fps, name=name, source=str(path))
+    if frame_order is not None:
+        seq = fix_frame_order(seq, frame_order, path)
+    return seq.to_varying() if kind == "varying" else seq
+
+
+def _no_topology(path: Path, what: str) -> ValueError:
+    return ValueError(f"{path}: topology= applies to vertex-only files (point caches {', '.join(CACHE_EXTENSIONS)}, "
+                      f"an .npy or an npz of vertices without faces), but {what}")
 
 
 def load_sequence(
@@ -102,39 +130,32 @@ def load_sequence(
                          f"{'a folder' if path.is_dir() else 'a ' + (path.suffix or 'file without extension')}")
     if path.is_dir():
         if topology is not None:
-            raise ValueError(f"{path}: topology= applies to vertex-only files (point caches "
-                             f"{', '.join(CACHE_EXTENSIONS)}, an .npy or an npz of vertices without faces), "
-                             f"but this is a folder")
+            raise _no_topology(path, "this is a folder")
         folder = resolve_folder(path, subdir)
         return load_folder(folder, fps, kind, name=path.name or str(path))
     if subdir is not None:
         raise ValueError(f"{path}: subdir= applies to folders, but this is a file")
     frame_order = parse(FrameOrder, frame_order, "frame_order").value
-    if path.suffix.lower() in ANIMATION_EXTENSIONS:
+    suffix = path.suffix.lower()
+    if suffix in ANIMATION_EXTENSIONS:
         V, F, file_fps = read_animation(path, topology)
-        fps = fps if fps is not None else (file_fps if file_fps is not None else DEFAULT_FPS)
-        seq = fix_frame_order(FixedTopologySequence(V, F, fps=fps, name=path.stem, source=str(path)),
-                              frame_order, path)
-        return seq.to_varying() if kind == "varying" else seq
-    if path.suffix.lower() in (".npz", ".npy"):
+        return _one_file(V, F, fps, file_fps, path.stem, path, kind, frame_order)
+    if suffix in VERTEX_ONLY_EXTENSIONS:  # .npz, .npy: vertices only, or an npz with its faces
         V, file_fps, name = load_vertex_array(path)
         if V is not None:  # vertices only: the faces come from a mesh
-            fps = fps if fps is not None else (file_fps if file_fps is not None else DEFAULT_FPS)
-            F = topology_faces(path, V.shape[1], topology)
-            seq = fix_frame_order(FixedTopologySequence(V, F, fps=fps, name=name, source=str(path)), frame_order, path)
-            return seq.to_varying() if kind == "varying" else seq
+            return _one_file(V, topology_faces(path, V.shape[1], topology), fps, file_fps, name, path, kind,
+                             frame_order)
     if topology is not None:
-        raise ValueError(f"{path}: topology= applies to vertex-only files (point caches {', '.join(CACHE_EXTENSIONS)}, "
-                         f"an .npy or an npz of vertices without faces), but this one has its own faces")
-    if path.suffix.lower() == ".npz":
+        raise _no_topology(path, "this one has its own faces")
+    if suffix == ".npz":
         return fix_frame_order(load_npz(path, fps, kind), frame_order, path)
-    if animation is not None and not gltf_has_animation(path):
+    animated = suffix in GLTF_EXTENSIONS and gltf_has_animation(path)
+    if animation is not None and not animated:
         raise ValueError(f"{path}: animation= picks one animation of an animated .glb / .gltf, but this file "
                          f"has none")
-    if path.suffix.lower() in GLTF_EXTENSIONS and gltf_has_animation(path):
-        V, F, fps = read_gltf_animation(path, fps, animation)
-        seq = FixedTopologySequence(V, F, fps=fps, name=path.stem, source=str(path))
-        return seq.to_varying() if kind == "varying" else seq
+    if animated:
+        V, F, file_fps = read_gltf_animation(path, fps, animation)
+        return _one_file(V, F, None, file_fps, path.stem, path, kind)
     V, F = read_mesh(path)
     fps = DEFAULT_FPS if fps is None else fps
     seq = FixedTopologySequence(V[None], F, fps=fps, name=path.stem, source=str(path))
@@ -187,7 +208,7 @@ def save_sequence(seq, path, fmt: str | None = None, overwrite: bool = False, st
                         f"got {type(seq).__name__}")
     path = Path(path).expanduser()
     fmt = fmt.lower().lstrip(".") if fmt else None
-    if path.suffix.lower() in ANIMATION_EXTENSIONS + (".glb",):
+    if path.suffix.lower() in ANIMATED_FILE_OUTPUTS:
         if fmt not in (None, path.suffix.lower()[1:]):
             raise ValueError(f"{path}: fmt={fmt!r} conflicts with the {path.suffix} extension")
         if not isinstance(seq, FixedTopologySequence):

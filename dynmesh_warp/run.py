@@ -225,7 +225,7 @@ def _scene_source(scene) -> dict:
     mesh sequence (a folder, or a file that is not YAML but a sequence or mesh) becomes a scene
     of its own, the schema's defaults around it (five 5 cm spheres dropped on frame 0), with a
     note saying how to change it (docs/scene.md)."""
-    from .animation_formats import ANIMATION_EXTENSIONS
+    from .animation_formats import ANIMATION_EXTENSIONS, VERTEX_ONLY_EXTENSIONS
     from .mesh_formats import MESH_EXTENSIONS
 
     if scene is None:
@@ -233,7 +233,8 @@ def _scene_source(scene) -> dict:
     path = Path(scene).expanduser()
     suffix = path.suffix.lower()
     if path.is_dir() or (path.is_file() and suffix not in (".yaml", ".yml")
-                         and (suffix in (".npz", ".npy") or suffix in ANIMATION_EXTENSIONS or suffix in MESH_EXTENSIONS)):
+                         and (suffix in VERTEX_ONLY_EXTENSIONS or suffix in ANIMATION_EXTENSIONS
+                              or suffix in MESH_EXTENSIONS)):
         print(f"note: {scene} is a mesh sequence, not a scene file: playing it with 5 spheres dropped on it "
               "(z up; y-up data: --set surface.up_axis=y; more in a scene YAML, docs/scene.md)", file=sys.stderr)
         return {"path": None, "data": {"name": path.resolve().stem or "sequence",
