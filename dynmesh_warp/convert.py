@@ -1294,7 +1294,7 @@ def main(argv=None) -> int:
     from .cli import checking_stops, quiet_warp, stop_reason
 
     quiet_warp(a.device)
-    from .animation_formats import written_topology
+    from .animation_formats import VERTEX_ONLY_EXTENSIONS, find_topology, written_topology
     from .io import ANIMATED_FILE_OUTPUTS, MESH_EXTENSIONS, load_sequence, save_sequence
     from .outputs import check_output
 
@@ -1343,6 +1343,11 @@ def main(argv=None) -> int:
         if a.template is not None and not Path(a.template).expanduser().is_file():
             raise ValueError(f"--template {a.template}: file not found")
         inputs = [a.input] + ([a.template] if a.template else [])
+        if Path(a.input).suffix.lower() in VERTEX_ONLY_EXTENSIONS and Path(a.input).is_file():
+            try:  # a vertex-only input's faces are an input too (a cache output writes <stem>.obj)
+                inputs.append(find_topology(a.input))
+            except MeshDataError:
+                pass  # none found: the load reports it
         out_suffix = Path(a.output).suffix.lower()
         if out_suffix == ".npz" or out_suffix in ANIMATED_FILE_OUTPUTS:
             if a.fmt:

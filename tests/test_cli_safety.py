@@ -204,6 +204,22 @@ def test_convert_to_a_point_cache_reads_back_as_the_npz_output(work, tmp_path):
     np.testing.assert_allclose(load_sequence(tmp_path / "c.glb").V, a.V, atol=1e-6)
 
 
+def test_convert_never_writes_over_the_faces_of_its_point_cache_input(tmp_path, capsys):
+    """A cache output writes <stem>.obj: when that is the input cache's own mesh, refused even
+    with --overwrite, and every input stays byte-identical."""
+    from dynmesh_warp import convert
+    from dynmesh_warp.io import save_sequence
+    from dynmesh_warp.sequence import FixedTopologySequence
+
+    V, F = icosphere(1)
+    save_sequence(FixedTopologySequence(np.stack([V, V * 1.1, V * 1.2]).astype(np.float32), F, fps=10),
+                  tmp_path / "walk.pc2")
+    before = _snapshot(tmp_path)
+    assert convert.main([str(tmp_path / "walk.pc2"), str(tmp_path / "walk.mdd"), "--overwrite"]) == 2
+    assert "this is the input" in capsys.readouterr().err
+    assert _snapshot(tmp_path) == before
+
+
 def _umask() -> int:
     m = os.umask(0)
     os.umask(m)
