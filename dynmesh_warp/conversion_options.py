@@ -57,6 +57,10 @@ class _Options(BaseModel):
     scale_tolerance: Float = Field(4.0, gt=0.0)
     #: the frame the template comes from and tracking starts at: "auto" (largest surface area) or an index
     key_frame: KeyFrame = "auto"
+    #: the most templates ``to_piecewise_fixed`` (and ``convert``) may use: a new one starts where
+    #: one template cannot follow the input (a web across parts it fused, a lost part); 1: one
+    #: template for every frame (``to_fixed_topology`` always keeps one)
+    max_segments: Int = Field(4, ge=1)
     #: input parts (connected components) with less than this fraction of the frame's surface area
     #: that lie wholly farther than ``far_part_gap`` from the previous converted frame are left out
     #: of the fit (floaters: the template has no part for them, a pull would grow a spike); 0 (the

@@ -41,6 +41,7 @@ CLI: ``python -m dynmesh_warp.convert IN OUT --strategy tracking|projection|regu
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 import time
 import warnings
@@ -66,6 +67,8 @@ __all__ = [
     "nearest_surface",
     "vertex_adjacency",
     "to_fixed_topology",
+    "to_piecewise_fixed",
+    "web_fraction",
     "surface_deviation",
     "main",
 ]
@@ -200,6 +203,11 @@ class ConversionInfo:
     fit and coverage because they lie wholly far from the converted surface (options
     ``far_part_area``, ``far_part_gap``): floaters of a reconstruction, for which the template
     has no part (pulled, they would grow a spike from it).
+    web: per frame, the fraction of the converted surface's area that spans a gap of the input
+    (:func:`web_fraction`: faces stretched across where the input has no surface, e.g. parts the
+    template fused that the input pulls apart); a web shows here, not in the coverage.
+    segments: ``(start, stop, key frame, template vertices)`` per template (stop exclusive): one
+    for :func:`to_fixed_topology`; several when :func:`to_piecewise_fixed` started new templates.
     """
 
     strategy: str
@@ -218,6 +226,43 @@ class ConversionInfo:
     key_trials: list = field(default_factory=list)
     dropped_unused: list = field(default_factory=list)
     ignored_parts: dict = field(default_factory=dict)
+    web: list = field(default_factory=list)
+    segments: list = field(default_factory=list)
+
+
+def web_fraction(X: np.ndarray, F: np.ndarray, X_key: np.ndarray, V_ref: np.ndarray, F_ref: np.ndarray,
+                 device=None, stretch: float | None = None, gap: float | None = None) -> float:
+    """The fraction of the surface (X, F)'s area that spans a gap of (V_ref, F_ref): faces whose
+    longest edge is more than ``stretch`` x its length in ``X_key`` (the same faces at the key
+    frame) and whose centroid lies farther than ``gap`` x (V_ref, F_ref)'s bbox diagonal from
+    it. The other side of the coverage: when the template fused two parts that the input later
+    pulls apart, the fit keeps a web of stretched faces across the gap; its vertices all lie on
+    the input, so the coverage and a vertex Chamfer distance stay good, but a sphere would land
+    on it. A part the input merely lost (a thin tip a frame's reconstruction dropped) is far
+    from the input but not stretched, and does not count. Defaults: WEB_STRETCH, WEB_GAP."""
+    stretch = WEB_STRETCH if stretch is None else stretch
+    gap = WEB_GAP if gap is None else gap
+    F = np.asarray(F)
+    tri = np.asarray(X, np.float64)[F]
+    tri0 = np.asarray(X_key, np.float64)[F]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    total = float(area.sum())
+    edge = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(axis=1)
+    edge0 = np.linalg.norm(tri0 - np.roll(tri0, 1, axis=1), axis=2).max(axis=1)
+    cand = np.flatnonzero(edge > stretch * np.maximum(edge0, 1e-30))
+    if not total > 0 or cand.size == 0:
+        return 0.0
+    d = nearest_surface((V_ref, F_ref), tri[cand].mean(axis=1), device=device).dist
+    return float(area[cand][d > gap * _bbox_diag(np.asarray(V_ref))].sum() / total)
+
+
+def _web_per_frame(res, vseq, device) -> list:
+    """:func:`web_fraction` of every converted frame against its input frame
+    (``ConversionInfo.web``)."""
+    info = res.conversion
+    first = info.first_frame
+    key = res.V[min(max(info.key_frame - first, 0), res.num_frames - 1)]
+    return [web_fraction(res.V[t], res.F, key, *vseq.frames[first + t], device=device) for t in range(res.num_frames)]
 
 
 def _keep_faces(v: np.ndarray, f: np.ndarray, keep: np.ndarray) -> tuple:
@@ -1030,7 +1075,137 @@ def to_fixed_topology(seq, strategy: str = DEFAULT_STRATEGY, template=None, devi
                                 if info.first_frame <= e[0] < info.first_frame + len(info.coverage)]
     finally:
         pool.shutdown(wait=False, cancel_futures=True)
+    info.web = _web_per_frame(res, vseq, device)
+    info.segments = [(info.first_frame, info.first_frame + res.num_frames, info.key_frame, res.num_vertices)]
     return res
+
+
+def to_piecewise_fixed(seq, strategy: str = DEFAULT_STRATEGY, template=None, device=None, progress: bool = False,
+                       should_stop=None, **options):
+    """Convert like :func:`to_fixed_topology`, starting a new template where one template cannot
+    follow the input: a piecewise-fixed sequence (issue 12's topology segments).
+
+    The run from the automatic key frame is checked frame by frame: a frame is poor when its
+    coverage exceeds POOR_COVERAGE (a lost part) or its web fraction exceeds POOR_WEB (the
+    template fused parts the input has pulled apart, :func:`web_fraction`). At the first poor
+    frame on either side of the key frame, the frames from the input's last topology change
+    before it (from that frame itself when there is none) to the end on that side are converted
+    again with a template of their own (their automatic key frame), and the new segment is kept
+    when its worst frame is better than those frames were: at most ``max_segments`` segments
+    (option), each checked again. A given ``template`` or ``key_frame`` keeps one template.
+
+    Returns:
+        the :class:`FixedTopologySequence` of :func:`to_fixed_topology` when one template holds
+        (the common case); else a :class:`VaryingTopologySequence` whose frames share one face
+        array within each segment (``seq.segments()`` finds them again after a save and load,
+        and the physics rebuilds its BVH once per segment). Either way ``result.conversion``
+        (:class:`ConversionInfo`) lists the ``segments``.
+    """
+    o = _resolve_options(strategy, options)
+    res = to_fixed_topology(seq, strategy, template, device, progress, should_stop, **options)
+    info = res.conversion
+    vseq = _as_varying(seq)
+    limit = int(o["max_segments"])
+    if (limit <= 1 or template is not None or o["key_frame"] not in ("auto", None)
+            or len(info.coverage) < vseq.num_frames):
+        return res
+    events = info.topology_events
+
+    def convert(lo, hi):
+        sub = VaryingTopologySequence(list(vseq.frames[lo:hi]), fps=vseq.fps, name=vseq.name, source=vseq.source)
+        r = to_fixed_topology(sub, strategy, None, device, progress, should_stop, **options)
+        return r if len(r.conversion.coverage) == hi - lo else None  # None: stopped meanwhile
+
+    segs = _split_segments(0, res, events, limit, convert)
+    if len(segs) == 1:
+        return segs[0][1]
+    return _join_segments(vseq, segs, info)
+
+
+def _badness(info) -> np.ndarray:
+    """Per frame, how poor the fit is: max(coverage / POOR_COVERAGE, web / POOR_WEB); > 1 is poor."""
+    cov = np.asarray(info.coverage, float) / POOR_COVERAGE
+    web = np.asarray(info.web, float) / POOR_WEB if len(info.web) == len(cov) else np.zeros_like(cov)
+    return np.maximum(cov, web)
+
+
+def _segment_cut(info, events: list, lo: int) -> tuple | None:
+    """The frames (a, b) (absolute, b exclusive) a run over frames lo.. should convert again with
+    a template of their own, or None: from the first poor frame after the key frame, the range
+    from the input's last topology change at or before it to the end; else, before the key
+    frame, from frame lo to the first topology change after the last poor frame."""
+    bad = np.flatnonzero(_badness(info) > 1.0) + lo
+    K, hi = lo + info.key_frame, lo + len(info.coverage)
+    after, before = bad[bad > K], bad[bad < K]
+    if after.size:
+        b = int(after[0])
+        ev = [t for t, _ in events if K < t <= b]
+        return (max(ev) if ev else b), hi
+    if before.size:
+        b = int(before[-1])
+        ev = [t for t, _ in events if b < t <= K]
+        return lo, (min(ev) if ev else b + 1)
+    return None
+
+
+def _split_segments(lo: int, res, events: list, budget: int, convert) -> list:
+    """``[(start, result)]`` covering ``res``'s frames (which start at input frame lo): ``res``
+    itself, or split where :func:`_segment_cut` says and the new run is better (at most
+    ``budget`` pieces; each piece is checked again)."""
+    hi = lo + res.num_frames
+    cut = _segment_cut(res.conversion, events, lo) if budget > 1 else None
+    if cut is None or cut == (lo, hi):
+        return [(lo, res)]
+    a, b = cut
+    new = convert(a, b)
+    if new is None or _badness(new.conversion).max() >= _badness(res.conversion)[a - lo:b - lo].max():
+        return [(lo, res)]  # the cut does not help (or the run was stopped): one template here
+    keep_lo, keep_hi = (lo, a) if a > lo else (b, hi)
+    left = _split_segments(keep_lo, _slice_result(res, keep_lo, keep_hi, lo), events, budget - 1, convert)
+    right = _split_segments(a, new, events, budget - len(left), convert)
+    return sorted(left + right, key=lambda x: x[0])
+
+
+def _slice_result(res, a: int, b: int, lo: int):
+    """The frames a..b-1 (absolute; ``res`` starts at input frame lo) of a conversion result,
+    its per-frame info sliced to match (frame indices become relative to the slice)."""
+    info = res.conversion
+    i, j = a - lo, b - lo
+    out = FixedTopologySequence(res.V[i:j], res.F, fps=res.fps, name=res.name, source=res.source)
+    sliced = dataclasses.replace(info, num_frames=j - i, key_frame=info.key_frame - i,
+                                 coverage=list(info.coverage[i:j]), web=list(info.web[i:j]),
+                                 frame_seconds=list(info.frame_seconds[i:j]))
+    for name in ("reanchored_frames", "repaired_frames", "unrecovered_frames"):
+        setattr(sliced, name, [t - i for t in getattr(info, name) if i <= t < j])
+    sliced.recovered_frames = [(t - i, src) for t, src in info.recovered_frames if i <= t < j]
+    sliced.ignored_parts = {t - i: x for t, x in info.ignored_parts.items() if i <= t < j}
+    out.conversion = sliced
+    return out
+
+
+def _join_segments(vseq, segs: list, whole) -> VaryingTopologySequence:
+    """One sequence of the segments' frames (``[(start, result)]``, in order), each segment's
+    frames sharing its template's face array; ``conversion`` merges the segments' infos (frame
+    indices absolute) with the whole run's topology events and dropped vertices."""
+    frames = [(v, r.F) for _, r in segs for v in r.V]
+    out = VaryingTopologySequence(frames, fps=vseq.fps, name=vseq.name, source=vseq.source)
+    first = segs[0][1].conversion
+    info = ConversionInfo(first.strategy, first.options, vseq.num_frames,
+                          max(r.num_vertices for _, r in segs), key_frame=first.key_frame + segs[0][0])
+    for lo, r in segs:
+        c = r.conversion
+        info.coverage += c.coverage
+        info.web += c.web
+        info.frame_seconds += c.frame_seconds
+        for name in ("reanchored_frames", "repaired_frames", "unrecovered_frames"):
+            getattr(info, name).extend(t + lo for t in getattr(c, name))
+        info.recovered_frames += [(t + lo, src) for t, src in c.recovered_frames]
+        info.ignored_parts.update({t + lo: x for t, x in c.ignored_parts.items()})
+        info.key_trials += [(k + lo, *rest) for k, *rest in c.key_trials]
+        info.segments.append((lo, lo + r.num_frames, c.key_frame + lo, r.num_vertices))
+    info.topology_events, info.dropped_unused = whole.topology_events, whole.dropped_unused
+    out.conversion = info
+    return out
 
 
 def _chamfer_to_input(res, vseq, device) -> float:
@@ -1128,6 +1303,13 @@ def _convert_from_key(vseq, strategy: str, o: dict, K: int, template, device, pr
 # --------------------------------------------------------------------------- CLI
 
 POOR_COVERAGE = 0.05  # coverage (fraction of the bbox diagonal) above which a frame counts as poorly fit
+#: a web (:func:`web_fraction`): faces whose longest edge grew more than WEB_STRETCH x since the
+#: key frame and whose centroid lies farther than WEB_GAP x the input's bbox diagonal from the
+#: input; a frame whose web covers more than POOR_WEB of the converted surface's area counts as
+#: poorly fit (docs/conversion.md: how these were set)
+WEB_STRETCH = 3.0
+WEB_GAP = 0.02
+POOR_WEB = 0.01
 #: poorly covered frames (each named by the poor-fit warning) from which the graph conversion
 #: tries other key frames (``key_candidates``): a lone poor frame is an outlier, two or more a
 #: lost part. Was 2 % of the frames (and 2): pcow's first run on the CPU with this round's
@@ -1152,14 +1334,22 @@ SCORE_POINTS = 20000
 
 
 def conversion_summary(info: ConversionInfo) -> list:
-    """Lines that tell the user what a conversion did and where it may have failed: key frame,
-    time, coverage (worst frame), recovered frames, topology changes; a warning line (starting
-    "warning:") for frames whose coverage exceeds POOR_COVERAGE."""
+    """Lines that tell the user what a conversion did and where it may have failed: key frame
+    (or the segments), time, coverage (worst frame), recovered frames, topology changes, the
+    web; warning lines (starting "warning:") for frames whose coverage exceeds POOR_COVERAGE or
+    whose web exceeds POOR_WEB."""
     T = info.num_frames
     cov = np.asarray(info.coverage, float)
-    lines = [f"conversion ({info.strategy}): template from frame {info.key_frame}, tracked "
-             + (f"frames {info.key_frame}..{T - 1} then {info.key_frame - 1}..0" if info.key_frame else f"0..{T - 1}")
-             + f"; {sum(info.frame_seconds):.2f} s"]
+    segs = info.segments if len(info.segments) > 1 else []
+    if segs:
+        lines = [f"conversion ({info.strategy}): {len(segs)} templates (segments; the physics rebuilds its BVH "
+                 "once per segment): " + ", ".join(f"frames {a}..{b - 1} from frame {k} ({n} vertices)"
+                                                    for a, b, k, n in segs)
+                 + f"; {sum(info.frame_seconds):.2f} s"]
+    else:
+        lines = [f"conversion ({info.strategy}): template from frame {info.key_frame}, tracked "
+                 + (f"frames {info.key_frame}..{T - 1} then {info.key_frame - 1}..0" if info.key_frame
+                    else f"0..{T - 1}") + f"; {sum(info.frame_seconds):.2f} s"]
     if info.key_trials:
         tried = ", ".join(f"{k} ({100 * c:.2f}%, {d:.3g})" for k, c, d, _ in info.key_trials)
         lines.append(f"key frames tried (mean coverage, mean Chamfer distance to the input), as the first run "
@@ -1196,7 +1386,18 @@ def conversion_summary(info: ConversionInfo) -> list:
     if ev:
         shown = ", ".join(f"{t} ({what})" for t, what in ev[:8])
         lines.append(f"input topology changes at {len(ev)} frame(s): {shown}" + (" ..." if len(ev) > 8 else "")
-                     + "; one template kept through them (1 segment)")
+                     + (f"; {len(segs)} segments" if segs else "; one template kept through them (1 segment)"))
+    web = np.asarray(info.web, float)
+    if web.size and web.max() > 0:
+        w = int(np.argmax(web))
+        lines.append(f"web (converted surface stretched across gaps of the input, fraction of its area): worst "
+                     f"{100 * web[w]:.2f}% at frame {w}, on {int(np.count_nonzero(web))} frame(s)")
+    poor_web = np.flatnonzero(web > POOR_WEB)
+    if poor_web.size:
+        lines.append(f"warning: web on {poor_web.size} frame(s) ({', '.join(map(str, poor_web[:12]))}"
+                     + (" ..." if poor_web.size > 12 else "") + f"): over {100 * POOR_WEB:.0f}% of the converted "
+                     "surface is stretched across a gap of the input (parts the template fused have moved apart; "
+                     "a sphere would land on it)" + ("" if segs else "; allow new templates: --option max_segments=4"))
     bad = np.flatnonzero(cov > POOR_COVERAGE)
     if bad.size:
         lines.append(f"warning: poor fit on {bad.size} frame(s) ({', '.join(map(str, bad[:12]))}"
@@ -1372,13 +1573,18 @@ def main(argv=None) -> int:
                   "anyway (it can be simulated as it is)", file=sys.stderr)
             seq = seq.to_varying()
         seq.frames = _TimedFrames(seq.frames, device, a.strategy)
+        # an animation file holds one set of faces: one template; else new templates (segments)
+        # where one cannot follow the input (to_piecewise_fixed; max_segments)
+        one_file = out_suffix in ANIMATED_FILE_OUTPUTS
+        run = to_fixed_topology if one_file else to_piecewise_fixed
         with checking_stops():  # Ctrl-C / SIGTERM: stop between frames, write the frames done
-            res = to_fixed_topology(seq, strategy=a.strategy, template=a.template, device=device,
-                                    progress=True, should_stop=stop_reason, **opts)
+            res = run(seq, strategy=a.strategy, template=a.template, device=device,
+                      progress=True, should_stop=stop_reason, **opts)
             reason = stop_reason() if res.num_frames < seq.num_frames else None
             status = {"complete": not reason, "frames": res.num_frames, "input_frames": seq.num_frames,
                       "first_frame": res.conversion.first_frame,
-                      "interrupted_by": reason, "strategy": a.strategy}
+                      "interrupted_by": reason, "strategy": a.strategy,
+                      "segments": [list(x) for x in res.conversion.segments]}
             save_sequence(res, a.output, fmt=a.fmt, overwrite=a.overwrite, status=status)
     except (MeshDataError, FileNotFoundError, ValueError, TypeError) as e:
         print(f"error: {e}", file=sys.stderr)
@@ -1390,9 +1596,17 @@ def main(argv=None) -> int:
         import signal
 
         return 128 + int(getattr(signal, reason, signal.SIGINT))
-    print(f"wrote {a.output}: {res.num_frames} frames x {res.num_vertices} vertices, {res.num_faces} faces")
+    segs = res.conversion.segments
+    if len(segs) > 1:
+        print(f"wrote {a.output}: {res.num_frames} frames in {len(segs)} segments of fixed topology ("
+              + ", ".join(f"{n} vertices" for *_, n in segs) + ")")
+    else:
+        print(f"wrote {a.output}: {res.num_frames} frames x {res.num_vertices} vertices, {res.num_faces} faces")
     for line in conversion_summary(res.conversion):
         print(line)
+    if one_file and any(w > POOR_WEB for w in res.conversion.web):
+        print(f"note: a {out_suffix} file holds one template; a .npz or folder output would start new ones "
+              "where this one is stretched (segments)", file=sys.stderr)
     return 0
 
 

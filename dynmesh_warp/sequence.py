@@ -244,6 +244,20 @@ class VaryingTopologySequence:
         return all(v.shape == V0.shape and f.shape == F0.shape and np.array_equal(f, F0)
                    for v, f in self.frames[1:])
 
+    def segments(self) -> list:
+        """``(start, stop)`` frame ranges (stop exclusive) over which the topology stays fixed:
+        maximal runs of consecutive frames with the same vertex count and face array (a
+        piecewise-fixed sequence, as ``convert`` writes when one template cannot follow every
+        frame). A truly varying sequence has one run per frame; a fixed one, one run."""
+        runs, start = [], 0
+        for t in range(1, self.num_frames):
+            (v0, f0), (v1, f1) = self.frames[t - 1], self.frames[t]
+            if not (len(v0) == len(v1) and f0.shape == f1.shape and np.array_equal(f0, f1)):
+                runs.append((start, t))
+                start = t
+        runs.append((start, self.num_frames))
+        return runs
+
     def to_fixed(self) -> FixedTopologySequence:
         """Stack into a fixed-topology sequence; raises if the frames disagree."""
         V0, F0 = self.frames[0]

@@ -18,7 +18,7 @@ import numpy as np
 import warp as wp
 
 from .kernels.collide import collide_sphere_mesh
-from .kernels.frames import update_frame_vertices
+from .kernels.frames import blend_segment_vertices, update_frame_vertices
 from .kernels.geometry import compute_face_normals
 from .kernels.integrate import integrate_spheres
 from .kernels.swept import (
@@ -206,6 +206,10 @@ class SurfaceModel:
         """Device (3M,) indices of ``frame``: the same array for every frame."""
         return self.indices
 
+    def segment_at(self, frame: int) -> int:
+        """One segment: the topology never changes."""
+        return 0
+
     def allocate_state(self, state: "State") -> None:
         """State-owned buffers of the current surface: points, velocities, face normals."""
         d = self.device
@@ -237,28 +241,43 @@ class SurfaceModel:
 
 
 class VaryingSurfaceModel:
-    """Static data of a varying-topology surface: one (points, indices) pair per frame.
+    """Static data of a varying-topology surface, held as segments: maximal runs of frames that
+    share their faces (``VaryingTopologySequence.segments()``: one per frame for a truly varying
+    sequence, a few for a piecewise-fixed one such as ``convert`` writes where one template could
+    not follow the input).
 
     Attributes:
-        frame_points: list of wp.array(vec3) (N_t,) [m]; frame_indices: list of wp.array(int32) (3M_t,).
-        fps, playback, num_frames: as in :class:`SurfaceModel`. There is no correspondence
-        between frames, so the surface velocity is zero and no interpolation is possible.
+        segment_frames: list of wp.array2d(vec3) (T_s, N_s) [m], the vertices of each segment's
+            frames; segment_indices: list of wp.array(int32) (3M_s,), each segment's faces.
+        segment_of: (T,) int host array, the segment of each frame; segment_start: (S,) its first frame.
+        fps, playback, num_frames: as in :class:`SurfaceModel`.
+        interpolate: blend frames k and k+1 when both lie in one segment (there the vertices
+            correspond); across a segment boundary, and between the frames of a truly varying
+            sequence, frame k is held and the surface velocity is zero.
+        max_speed: largest vertex speed within a segment [m/s]; max_frame_step: the same per frame [m].
     """
 
-    interpolate = False
-    max_speed = 0.0
-
-    def __init__(self, seq: VaryingTopologySequence, device=None, playback: str = DEFAULT_PLAYBACK):
+    def __init__(self, seq: VaryingTopologySequence, device=None, playback: str = DEFAULT_PLAYBACK,
+                 interpolate: bool = True):
         playback = parse(Playback, playback, "playback").value
         self.sequence = seq
         self.device = wp.get_device(device)
-        self.frame_points = [wp.array(v, dtype=wp.vec3, device=self.device) for v, _ in seq.frames]
-        self.frame_indices = [wp.array(f.reshape(-1), dtype=wp.int32, device=self.device) for _, f in seq.frames]
+        runs = seq.segments()
+        self.segment_of = np.repeat(np.arange(len(runs)), [b - a for a, b in runs])
+        self.segment_start = np.array([a for a, _ in runs], np.int64)
+        stacks = [np.stack([seq.frames[t][0] for t in range(a, b)]) for a, b in runs]
+        self.segment_frames = [wp.array(V, dtype=wp.vec3, device=self.device) for V in stacks]
+        self.segment_indices = [wp.array(seq.frames[a][1].reshape(-1), dtype=wp.int32, device=self.device)
+                                for a, _ in runs]
         self.fps = float(seq.fps)
         self.num_frames = seq.num_frames
         self.playback_name = playback
         self.playback = PLAYBACK_MODES[playback]
-        self.max_frame_step = 0.0
+        self.interpolate = bool(interpolate) and any(b - a > 1 for a, b in runs)
+        step = max((float(np.linalg.norm(np.diff(V, axis=0), axis=-1).max()) for V in stacks if len(V) > 1),
+                   default=0.0)
+        self.max_frame_step = step  # largest vertex displacement between frames of one segment [m]
+        self.max_speed = step * self.fps
 
     #: without vertex correspondence only a BVH built per frame or step can follow it
     colliders = (Collider.REBUILD.value,)
@@ -272,45 +291,62 @@ class VaryingSurfaceModel:
                          "(convert it to fixed topology first: python -m dynmesh_warp.convert)")
 
     def indices_at(self, frame: int):
-        return self.frame_indices[frame]
+        return self.segment_indices[self.segment_of[frame]]
+
+    def segment_at(self, frame: int) -> int:
+        """The segment of ``frame`` (a rebuild collider's ``rebuild_every: segment`` key)."""
+        return int(self.segment_of[frame])
 
     def allocate_state(self, state: "State") -> None:
-        """Per-step buffers sized to the largest frame; the current frame is copied into their
-        first N_k entries (State never aliases the Model's frames)."""
+        """Per-step buffers sized to the largest segment; the current segment's vertices go in
+        their first N_s entries (State never aliases the Model's frames)."""
         d = self.device
-        n = max(int(p.shape[0]) for p in self.frame_points)
-        m = max(int(i.shape[0]) // 3 for i in self.frame_indices)
+        n = max(int(p.shape[1]) for p in self.segment_frames)
+        m = max(int(i.shape[0]) // 3 for i in self.segment_indices)
         state.points_buffer = wp.zeros(n, dtype=wp.vec3, device=d)
-        state.velocities_buffer = wp.zeros(n, dtype=wp.vec3, device=d)  # no correspondence: zero velocity
+        state.velocities_buffer = wp.zeros(n, dtype=wp.vec3, device=d)
         state.normals_buffer = wp.zeros(m, dtype=wp.vec3, device=d)
-        state.frame_views = {}  # frame -> views of the buffers, made once (launch caches key on them)
-        self.show_frame(state, 0)
+        state.segment_views = {}  # segment -> views of the buffers, made once (launch caches key on them)
+        state.frame_shown = None
+        self.update_state(state, 0.0, None)
 
-    def show_frame(self, state: "State", k: int) -> None:
-        """Copy frame ``k`` into the state's buffers; ``state.points`` / ``velocities`` /
-        ``face_normals`` become views of their first N_k / M_k entries."""
-        views = state.frame_views
-        if k not in views:
-            n = int(self.frame_points[k].shape[0])
-            m = int(self.frame_indices[k].shape[0]) // 3
-            views[k] = (state.points_buffer[:n], state.velocities_buffer[:n], state.normals_buffer[:m])
-        state.points, state.velocities, state.face_normals = views[k]
-        wp.copy(state.points, self.frame_points[k])
-        state.frame_shown = k
+    def _pair(self, time: float) -> tuple[int, int, int, float]:
+        """(segment, k0, k1, alpha) at ``time``: k1 = k0 and alpha = 0 (frame k0 held) unless
+        interpolating within one segment; k0, k1 are indices within the segment."""
+        k0, k1, a = frame_pair_host(time, self.fps, self.num_frames, self.playback)
+        s = int(self.segment_of[k0])
+        start = int(self.segment_start[s])
+        if k1 == k0 or self.segment_of[k1] != s:
+            return s, k0 - start, k0 - start, 0.0
+        return s, k0 - start, k1 - start, (a if self.interpolate else 0.0)
 
     def update_state(self, state: "State", time: float, launch) -> int:
-        """Stage 1 on the host clock ``time`` [s]: frame k held (copied into the state's buffers
-        when it changes); returns k. Not capturable (the frame's size changes the launches)."""
-        k, _, _ = frame_pair_host(time, self.fps, self.num_frames, self.playback)
-        if state.frame_shown != k:
-            self.show_frame(state, k)
-        return k
+        """Stage 1 on the host clock ``time`` [s]: the segment's frames k0, k1 blended (or frame
+        k0 held) into the state's buffers with the velocity (V[k1] - V[k0]) * fps, as the fixed
+        surface does; returns the frame k0. Not capturable (a segment's size changes the launches)."""
+        s, k0, k1, a = self._pair(time)
+        views = state.segment_views
+        if s not in views:
+            n = int(self.segment_frames[s].shape[1])
+            m = int(self.segment_indices[s].shape[0]) // 3
+            views[s] = (state.points_buffer[:n], state.velocities_buffer[:n], state.normals_buffer[:m])
+        state.points, state.velocities, state.face_normals = views[s]
+        key = (s, k0, k1, a)
+        if state.frame_shown != key:
+            wp.launch(blend_segment_vertices, state.points.shape[0],
+                      inputs=[self.segment_frames[s], k0, k1, float(a), float(self.fps)],
+                      outputs=[state.points, state.velocities], device=self.device)
+            state.frame_shown = key
+        return k0 + int(self.segment_start[s])
 
     def host_mesh_at(self, time: float) -> tuple[np.ndarray, np.ndarray]:
-        """(V float64, F) of frame k held at ``time`` (no interpolation without correspondence)."""
-        k, _, _ = frame_pair_host(time, self.fps, self.num_frames, self.playback)
-        v, f = self.sequence.frames[k]
-        return np.asarray(v, np.float64), np.asarray(f)
+        """(V float64, F) at ``time`` as the step plays it: frames k, k+1 of one segment
+        blended when interpolating, else frame k held."""
+        s, k0, k1, a = self._pair(time)
+        start = int(self.segment_start[s])
+        v0 = np.asarray(self.sequence.frames[start + k0][0], np.float64)
+        v1 = np.asarray(self.sequence.frames[start + k1][0], np.float64)
+        return v0 * (1.0 - a) + v1 * a, np.asarray(self.sequence.frames[start + k0][1])
 
     def geometry_digest_inputs(self) -> tuple[list[np.ndarray], int, int]:
         seq = self.sequence
@@ -331,10 +367,7 @@ def surface_model_class(seq) -> type:
 def surface_model(seq, device=None, playback: str = DEFAULT_PLAYBACK, interpolate: bool = True):
     """The surface model of a sequence (frames uploaded to ``device``); varying topology holds
     each frame, so ``interpolate`` applies to fixed topology only."""
-    cls = surface_model_class(seq)
-    if cls is SurfaceModel:
-        return SurfaceModel(seq, device, playback=playback, interpolate=interpolate)
-    return VaryingSurfaceModel(seq, device, playback=playback)
+    return surface_model_class(seq)(seq, device, playback=playback, interpolate=interpolate)
 
 
 def _sphere_rows(name: str, values, count: int, first: int = 0) -> np.ndarray:
@@ -586,8 +619,10 @@ class RefitCollider(ColliderBase):
 
 
 class RebuildCollider(ColliderBase):
-    """Varying-topology baseline: a new ``wp.Mesh`` (BVH built from scratch) every sub-step, or
-    only when the reconstruction frame changes (``every="frame"``)."""
+    """The varying-topology collider: a ``wp.Mesh`` built when the topology changes and refit
+    in between (``every="segment"``, the default: once per segment of a piecewise-fixed
+    sequence, once per frame of a truly varying one); or built from scratch every sub-step (the
+    baseline, ``"step"``) or when the reconstruction frame changes (``"frame"``)."""
 
     name = "rebuild"
     capturable = False
@@ -600,14 +635,22 @@ class RebuildCollider(ColliderBase):
                              "set surface.interpolate: false (with interpolation it changes every step)")
         self.every = every
         self.mesh = None
-        self._key = None
+        self._key = self._shown = None
 
     def update(self, model: Model, state: State, ctx: StepContext):
-        key = ctx.frame_key(model)
-        if self.mesh is not None and self.every == "frame" and key == self._key:
-            return
+        key = model.surface.segment_at(ctx.frame) if self.every == "segment" else ctx.frame_key(model)
+        if self.mesh is not None and self.every != "step" and key == self._key:
+            if self.every == "segment" and self.mesh.points.ptr == state.points.ptr:
+                shown = getattr(state, "frame_shown", None)  # a varying surface's last blend
+                if shown is None or shown != self._shown:
+                    self.mesh.refit()  # same faces, moved vertices (the buffer the mesh was built over)
+                    self._shown = shown
+                return
+            if self.every == "frame":
+                return
         self.mesh = wp.Mesh(points=state.points, indices=ctx.indices(model), velocities=state.velocities)
         self._key = key
+        self._shown = getattr(state, "frame_shown", None)
 
     def collide(self, model: Model, state: State, contacts: "Contacts", ctx: StepContext):
         collide_mesh(model, state, contacts, ctx, self.mesh.id)

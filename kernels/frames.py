@@ -111,6 +111,33 @@ def update_frame_vertices(
 
 
 @wp.kernel
+def blend_segment_vertices(
+    # Model:
+    frames: wp.array2d[wp.vec3],
+    # In:
+    k0: int,
+    k1: int,
+    alpha: float,
+    fps: float,
+    # State out:
+    points_out: wp.array[wp.vec3],
+    velocities_out: wp.array[wp.vec3],
+):
+    """One segment of a piecewise-fixed surface at a time the host resolved: points_out (N,) [m]
+    = frames[k0] + alpha (frames[k1] - frames[k0]); velocities_out (N,) [m/s] = (frames[k1] -
+    frames[k0]) * fps, zero when k1 == k0 (a held frame). frames (T_s, N) [m], k0 / k1 indices
+    within the segment, alpha in [0, 1), fps [1/s]."""
+    i = wp.tid()
+    a = frames[k0, i]
+    b = frames[k1, i]
+    points_out[i] = a + alpha * (b - a)
+    if k1 == k0:
+        velocities_out[i] = wp.vec3(0.0)
+    else:
+        velocities_out[i] = (b - a) * fps
+
+
+@wp.kernel
 def add_points_offset(
     # In:
     points: wp.array[wp.vec3],

@@ -344,8 +344,8 @@ def test_varying_topology_runs_with_rebuild_and_rejects_fixed():
         model = Model(surf, SphereModel([0.05] * 3, 1.0, TEST_DEVICE), PhysicsParams(dt=DT))
         with pytest.raises(ValueError, match="rebuild"):
             World(model, State(model, pos), collider=collider)
-    for every in ("step", "frame"):
-        surf = VaryingSurfaceModel(seq, TEST_DEVICE, playback="pingpong")
+    for every in ("step", "frame", "segment"):
+        surf = VaryingSurfaceModel(seq, TEST_DEVICE, playback="pingpong", interpolate=every != "frame")
         model = Model(surf, SphereModel([0.05] * 3, 1.0, TEST_DEVICE), PhysicsParams(dt=DT, restitution=0.2))
         w = World(model, State(model, pos), collider="rebuild", rebuild_every=every)
         touched = 0
@@ -433,10 +433,10 @@ def test_varying_state_owns_its_buffers_and_shows_the_played_frame():
     """State never aliases Model: the varying surface's current frame is copied into the state's
     own buffers (views of the first N_k entries); writing them leaves the model's frames intact."""
     seq = scenes.torus_to_sphere(frames=6, resolution=14, fps=24.0)
-    surf = VaryingSurfaceModel(seq, TEST_DEVICE, playback="pingpong")
+    surf = VaryingSurfaceModel(seq, TEST_DEVICE, playback="pingpong", interpolate=False)
     model = Model(surf, SphereModel([0.05], 1.0, TEST_DEVICE), PhysicsParams(dt=DT))
     w = World(model, State(model, [[0.0, 0.0, 2.0]]), collider="rebuild", rebuild_every="step")
-    model_ptrs = {a.ptr for a in surf.frame_points}
+    model_ptrs = {a.ptr for a in surf.segment_frames}
     for t in (0.0, 0.05, 0.13, 0.25, 0.41):  # pingpong over 6 frames: 0 1 3 4 1 (after the turn)
         w.set_time(t)
         k = world_mod.frame_pair_host(t, surf.fps, surf.num_frames, surf.playback)[0]
@@ -449,7 +449,8 @@ def test_varying_state_owns_its_buffers_and_shows_the_played_frame():
         np.testing.assert_array_equal(Vh, V.astype(np.float64))
         np.testing.assert_array_equal(Fh, F)
     w.state.points.fill_(7.0)  # the state's copy, not the model's frame
-    np.testing.assert_array_equal(surf.frame_points[k].numpy(), V)
+    s_k = surf.segment_at(k)
+    np.testing.assert_array_equal(surf.segment_frames[s_k].numpy()[k - surf.segment_start[s_k]], V)
 
 
 def test_set_sphere_equals_starting_there():

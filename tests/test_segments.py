@@ -1,0 +1,241 @@
+"""Piecewise-fixed topology (issue 12's template segments): the web a single template leaves when
+the input tears parts it fused, the conversion that starts a new template there, and the
+physics that plays the segments (interpolating within one, a new BVH once per segment).
+
+Oracles: the web fraction against NumPy stretch and brute-force closest points; the converted
+surface against the analytic signed distance of the spheres it was meshed from; the played
+surface against a NumPy blend of the stored frames; the per-segment collider against the
+rebuild-every-step baseline."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+import warp as wp
+
+from dynmesh_warp import world as world_mod
+from dynmesh_warp.convert import (
+    POOR_WEB,
+    WEB_GAP,
+    WEB_STRETCH,
+    conversion_summary,
+    to_fixed_topology,
+    to_piecewise_fixed,
+    web_fraction,
+)
+from dynmesh_warp.io import load_sequence, save_sequence
+from dynmesh_warp.scenes import grid_sheet
+from dynmesh_warp.sequence import FixedTopologySequence, VaryingTopologySequence
+from dynmesh_warp.world import Model, PhysicsParams, SphereModel, State, VaryingSurfaceModel, World
+
+from conftest import TEST_DEVICE
+from reference import brute_nearest
+
+DT = 1.0 / 240.0
+
+
+# --------------------------------------------------------------------------- the sequence
+
+
+def _blobs(t: int, grid: int = 41):
+    """Frame t of four balls (radius 0.5) in two pairs: pair 1 fused at first and pulled apart
+    from frame 12 on; pair 2 apart at first and pushed together from frame 6 on, so that no
+    frame has every ball apart (one template always fuses a pair the input later tears).
+    Returns (V, F, centres)."""
+    from skimage.measure import marching_cubes
+
+    g = np.linspace(-3.0, 3.0, grid)
+    h = g[1] - g[0]
+    X, Y, Z = np.meshgrid(g, g, g, indexing="ij")
+    s1, s2 = np.clip((t - 12) / 6, 0, 1), np.clip((t - 6) / 6, 0, 1)
+    gap1, gap2 = 0.85 + 0.95 * s1, 1.8 - 0.95 * s2
+    centres = np.array([(-1.5, -gap1 / 2, 0), (-1.5, gap1 / 2, 0), (1.5, -gap2 / 2, 0), (1.5, gap2 / 2, 0)])
+    d = np.min([np.sqrt((X - c[0]) ** 2 + (Y - c[1]) ** 2 + (Z - c[2]) ** 2) - 0.5 for c in centres], axis=0)
+    v, f, _, _ = marching_cubes(d, 0.0)
+    return (v * h - 3.0).astype(np.float32), np.ascontiguousarray(f[:, ::-1], np.int32), centres
+
+
+@pytest.fixture(scope="module")
+def tearing():
+    frames, centres = [], []
+    for t in range(24):
+        v, f, c = _blobs(t)
+        frames.append((v, f))
+        centres.append(c)
+    return VaryingTopologySequence(frames, fps=24.0, name="tearing"), centres
+
+
+def _off_surface_area(V, F, centres, gap: float) -> float:
+    """Fraction of (V, F)'s area whose face centroids lie farther than ``gap`` x the balls' bbox
+    diagonal from the union of the balls (analytic: |distance to the nearest centre - 0.5|)."""
+    tri = np.asarray(V, np.float64)[F]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    c = tri.mean(axis=1)
+    d = np.abs(np.min(np.linalg.norm(c[:, None] - centres[None], axis=2), axis=1) - 0.5)
+    lo, hi = centres.min(axis=0) - 0.5, centres.max(axis=0) + 0.5
+    return float(area[d > gap * np.linalg.norm(hi - lo)].sum() / area.sum())
+
+
+# --------------------------------------------------------------------------- the web
+
+
+def test_web_fraction_matches_numpy_brute_force():
+    """Random meshes, a random vertex displacement: the faces stretched past WEB_STRETCH whose
+    centroid lies past WEB_GAP x the reference's diagonal from it (brute-force closest points),
+    as a fraction of the area, equal web_fraction's."""
+    rng = np.random.default_rng(3)
+    ref = trimesh.creation.icosphere(subdivisions=3)
+    key = trimesh.creation.icosphere(subdivisions=2)
+    for trial in range(3):
+        X = key.vertices * (1.0 + rng.uniform(0, 0.2, (len(key.vertices), 1)))
+        X[rng.choice(len(X), 12, replace=False)] *= 2.0 + trial  # spikes: stretched faces off the sphere
+        tri, tri0 = X[key.faces], key.vertices[key.faces]
+        edge = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(axis=1)
+        edge0 = np.linalg.norm(tri0 - np.roll(tri0, 1, axis=1), axis=2).max(axis=1)
+        area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+        dist = brute_nearest(tri.mean(axis=1), ref.vertices, ref.faces)[0]
+        diag = np.linalg.norm(np.ptp(ref.vertices, axis=0))
+        sel = (edge > WEB_STRETCH * edge0) & (dist > WEB_GAP * diag)
+        want = area[sel].sum() / area.sum()
+        got = web_fraction(X, key.faces, key.vertices, ref.vertices, ref.faces, device=TEST_DEVICE)
+        assert sel.any()
+        assert got == pytest.approx(want, rel=1e-4, abs=1e-7)
+    # no stretch, no web: the template itself
+    assert web_fraction(key.vertices, key.faces, key.vertices, ref.vertices, ref.faces, device=TEST_DEVICE) == 0.0
+
+
+def test_one_template_leaves_a_web_that_segments_remove(tearing, tmp_path):
+    """The template of the automatic key frame fuses one pair, which the input later tears: one
+    template stretches a web across the gap (its vertices all on the input, so the coverage
+    stays good); the piecewise conversion starts a new template at the topology change and
+    its surface keeps to the balls (the analytic oracle) on every frame."""
+    seq, centres = tearing
+    one = to_fixed_topology(seq, device=TEST_DEVICE)
+    assert max(one.conversion.coverage) < 0.05  # the coverage does not see it
+    web = np.asarray(one.conversion.web)
+    assert web.max() > POOR_WEB
+    off_one = [_off_surface_area(one.V[t], one.F, centres[t], 0.03) for t in range(seq.num_frames)]
+    assert max(off_one) > 0.01  # the web is real: off the balls
+    assert "warning: web on" in "\n".join(conversion_summary(one.conversion))
+
+    res = to_piecewise_fixed(seq, device=TEST_DEVICE)
+    info = res.conversion
+    assert isinstance(res, VaryingTopologySequence) and len(info.segments) >= 2
+    assert max(info.web) <= POOR_WEB and max(info.coverage) < 0.05
+    assert [(a, b) for a, b, *_ in info.segments] == res.segments()  # each segment shares its faces
+    for (a, b, key, n) in info.segments:
+        assert a <= key < b and all(len(res.frames[t][0]) == n for t in range(a, b))
+    off = [_off_surface_area(*res.frames[t], centres[t], 0.03) for t in range(seq.num_frames)]
+    assert max(off) < 0.002, off
+    lines = "\n".join(conversion_summary(info))
+    assert f"{len(info.segments)} templates" in lines and "warning: web" not in lines
+    # a save and a load keep the segments (the packed npz and a folder)
+    for out in (tmp_path / "seg.npz", tmp_path / "seg"):
+        save_sequence(res, out, fmt=None if out.suffix else "ply")
+        back = load_sequence(out)
+        assert back.segments() == res.segments()
+    # max_segments=1 keeps one template
+    assert isinstance(to_piecewise_fixed(seq, device=TEST_DEVICE, max_segments=1), FixedTopologySequence)
+
+
+def test_one_template_when_it_holds():
+    """A rigid motion needs no new template: to_piecewise_fixed returns to_fixed_topology's result."""
+    from dynmesh_warp.scenes import icosphere, rigid_motion
+
+    V, F = icosphere(2)
+    seq = rigid_motion((V, F), frames=8).to_varying()
+    res = to_piecewise_fixed(seq, device=TEST_DEVICE)
+    assert isinstance(res, FixedTopologySequence)
+    assert res.conversion.segments == [(0, 8, res.conversion.key_frame, res.num_vertices)]
+    assert max(res.conversion.web) == 0.0
+
+
+# --------------------------------------------------------------------------- the physics
+
+
+def _waving_sheet(frames: int = 12, fps: float = 24.0) -> FixedTopologySequence:
+    """A 2 m grid sheet at z = 0.3 with a travelling wave of 5 cm amplitude."""
+    V0, F = grid_sheet(12, 2.0)
+    V = np.repeat(V0[None].astype(np.float64), frames, axis=0)
+    for k in range(frames):
+        V[k, :, 2] = 0.3 + 0.05 * np.sin(3.0 * V0[:, 0] + 2.0 * k / fps)
+    return FixedTopologySequence(V.astype(np.float32), F, fps=fps)
+
+
+def _piecewise_sheet():
+    """The waving sheet in two segments of different triangulations (the second one's faces
+    reversed in order and rotated in their vertices) and a third, truly varying frame (its
+    vertices permuted)."""
+    a = _waving_sheet()
+    V = a.V
+    F2 = np.ascontiguousarray(a.F[::-1][:, [1, 2, 0]])
+    frames = [(V[t], a.F) for t in range(6)] + [(V[t], F2) for t in range(6, 11)]
+    perm = np.random.default_rng(0).permutation(V.shape[1])
+    inv = np.argsort(perm)
+    frames.append((V[11][perm], inv[a.F].astype(np.int32)))
+    return VaryingTopologySequence(frames, fps=24.0, name="piecewise sheet")
+
+
+def test_segments_of_a_sequence():
+    seq = _piecewise_sheet()
+    assert seq.segments() == [(0, 6), (6, 11), (11, 12)]
+    fixed = _waving_sheet(frames=5).to_varying()
+    assert fixed.segments() == [(0, 5)]
+
+
+def test_piecewise_surface_plays_each_segment_interpolated():
+    """Within a segment the surface is the blend of its frames and moves at (V[k+1] - V[k]) fps;
+    at a segment's last frame it is held with zero velocity; the indices are the segment's."""
+    seq = _piecewise_sheet()
+    surf = VaryingSurfaceModel(seq, TEST_DEVICE)
+    assert surf.interpolate
+    want_speed = max(np.linalg.norm(seq.frames[t + 1][0] - seq.frames[t][0], axis=1).max()
+                     for t in list(range(5)) + list(range(6, 10))) * seq.fps
+    assert surf.max_speed == pytest.approx(want_speed, rel=1e-5)
+    model = Model(surf, SphereModel([0.05], 1.0, TEST_DEVICE), PhysicsParams(dt=DT))
+    w = World(model, State(model, [[0.0, 0.0, 2.0]]), collider="rebuild")
+    for t in (0.01, 0.1, 0.2, 0.23, 0.26, 0.3, 0.43, 0.47):
+        w.set_time(t)
+        s = t * seq.fps
+        k, a = int(np.floor(s)), s - np.floor(s)
+        same = k + 1 < seq.num_frames and (k + 1 != 6 and k + 1 != 11)
+        V0 = seq.frames[k][0].astype(np.float64)
+        V1 = seq.frames[k + 1][0].astype(np.float64) if same else V0
+        np.testing.assert_allclose(w.state.points.numpy(), V0 + a * (V1 - V0), atol=2e-6)
+        np.testing.assert_allclose(w.state.velocities.numpy(), (V1 - V0) * seq.fps, atol=2e-4)
+        np.testing.assert_array_equal(w.current_indices().numpy().reshape(-1, 3), seq.frames[k][1])
+        Vh, Fh = surf.host_mesh_at(t)
+        np.testing.assert_allclose(Vh, V0 + a * (V1 - V0), atol=1e-6)
+        np.testing.assert_array_equal(Fh, seq.frames[k][1])
+
+
+def test_rebuild_once_per_segment_gives_the_per_step_contacts(monkeypatch):
+    """rebuild_every 'segment' (the default) builds a BVH at each segment change only and
+    refits it in between, and the spheres move as with a new BVH every sub-step."""
+    seq = _piecewise_sheet()
+    pos = [[0.0, 0.0, 0.45], [0.3, -0.2, 0.5], [-0.25, 0.3, 0.42]]
+    built = []
+    real = wp.Mesh
+
+    def counting(*args, **kwargs):
+        built.append(1)
+        return real(*args, **kwargs)
+
+    runs = {}
+    for every in ("step", "segment"):
+        surf = VaryingSurfaceModel(seq, TEST_DEVICE, playback="clamp")
+        model = Model(surf, SphereModel([0.05] * 3, 1.0, TEST_DEVICE), PhysicsParams(dt=DT, restitution=0.0))
+        w = World(model, State(model, pos), collider="rebuild", rebuild_every=every)
+        built.clear()
+        monkeypatch.setattr(world_mod.wp, "Mesh", counting)
+        touched = 0
+        for _ in range(120):  # 0.5 s: every frame, both segment changes
+            w.step()
+            touched += int((w.contacts.face.numpy() >= 0).sum())
+        monkeypatch.setattr(world_mod.wp, "Mesh", real)
+        runs[every] = (w.sphere_positions(), len(built), touched)
+    assert runs["segment"][2] > 50  # the spheres touched the sheet
+    assert runs["segment"][1] == 2  # frame 0 was built at the start: segments 2 and 3
+    assert runs["step"][1] >= 120
+    np.testing.assert_allclose(runs["segment"][0], runs["step"][0], atol=1e-5)
