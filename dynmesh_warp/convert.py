@@ -208,6 +208,8 @@ class ConversionInfo:
     template fused that the input pulls apart); a web shows here, not in the coverage.
     segments: ``(start, stop, key frame, template vertices)`` per template (stop exclusive): one
     for :func:`to_fixed_topology`; several when :func:`to_piecewise_fixed` started new templates.
+    seconds_all: wall time of the whole call [s], the runs whose frames were not kept (other key
+    frames, segments tried and replaced) included; ``frame_seconds`` counts the kept frames only.
     """
 
     strategy: str
@@ -228,6 +230,7 @@ class ConversionInfo:
     ignored_parts: dict = field(default_factory=dict)
     web: list = field(default_factory=list)
     segments: list = field(default_factory=list)
+    seconds_all: float = 0.0
 
 
 def web_fraction(X: np.ndarray, F: np.ndarray, X_key: np.ndarray, V_ref: np.ndarray, F_ref: np.ndarray,
@@ -1015,6 +1018,7 @@ def to_fixed_topology(seq, strategy: str = DEFAULT_STRATEGY, template=None, devi
         MeshDataError: an empty/invalid frame or template (naming it), a template out of the
             surface's reach. Warns (UserWarning) about frames of very different scale.
     """
+    start = time.perf_counter()
     o = _resolve_options(strategy, options)
     set_deterministic(bool(o["deterministic"]), int(o.get("nodes_per_vertex", 4)))
     vseq = _as_varying(seq)
@@ -1077,6 +1081,7 @@ def to_fixed_topology(seq, strategy: str = DEFAULT_STRATEGY, template=None, devi
         pool.shutdown(wait=False, cancel_futures=True)
     info.web = _web_per_frame(res, vseq, device)
     info.segments = [(info.first_frame, info.first_frame + res.num_frames, info.key_frame, res.num_vertices)]
+    info.seconds_all = time.perf_counter() - start
     return res
 
 
@@ -1101,6 +1106,7 @@ def to_piecewise_fixed(seq, strategy: str = DEFAULT_STRATEGY, template=None, dev
         and the physics rebuilds its BVH once per segment). Either way ``result.conversion``
         (:class:`ConversionInfo`) lists the ``segments``.
     """
+    start = time.perf_counter()
     o = _resolve_options(strategy, options)
     res = to_fixed_topology(seq, strategy, template, device, progress, should_stop, **options)
     info = res.conversion
@@ -1117,9 +1123,9 @@ def to_piecewise_fixed(seq, strategy: str = DEFAULT_STRATEGY, template=None, dev
         return r if len(r.conversion.coverage) == hi - lo else None  # None: stopped meanwhile
 
     segs = _split_segments(0, res, events, limit, convert)
-    if len(segs) == 1:
-        return segs[0][1]
-    return _join_segments(vseq, segs, info)
+    out = segs[0][1] if len(segs) == 1 else _join_segments(vseq, segs, info)
+    out.conversion.seconds_all = time.perf_counter() - start
+    return out
 
 
 def _badness(info) -> np.ndarray:
@@ -1308,7 +1314,7 @@ POOR_COVERAGE = 0.05  # coverage (fraction of the bbox diagonal) above which a f
 #: input; a frame whose web covers more than POOR_WEB of the converted surface's area counts as
 #: poorly fit (docs/conversion.md: how these were set)
 WEB_STRETCH = 3.0
-WEB_GAP = 0.02
+WEB_GAP = 0.05
 POOR_WEB = 0.01
 #: poorly covered frames (each named by the poor-fit warning) from which the graph conversion
 #: tries other key frames (``key_candidates``): a lone poor frame is an outlier, two or more a
@@ -1346,6 +1352,8 @@ def conversion_summary(info: ConversionInfo) -> list:
                  "once per segment): " + ", ".join(f"frames {a}..{b - 1} from frame {k} ({n} vertices)"
                                                     for a, b, k, n in segs)
                  + f"; {sum(info.frame_seconds):.2f} s"]
+        if info.seconds_all > sum(info.frame_seconds):
+            lines[0] += f" ({info.seconds_all:.2f} s in all, with the runs the segments replaced)"
     else:
         lines = [f"conversion ({info.strategy}): template from frame {info.key_frame}, tracked "
                  + (f"frames {info.key_frame}..{T - 1} then {info.key_frame - 1}..0" if info.key_frame

@@ -6,6 +6,7 @@ import warnings
 
 import numpy as np
 
+from .choices import Collider
 from .config import PhysicsCore, SceneConfig, SceneError, spawn_positions
 from .runtime import scene_device
 from .geometry import mesh_orientation
@@ -238,7 +239,12 @@ def build_world(cfg: SceneConfig, device=None, collider: str | None = None,
     seq = load_surface(cfg) if sequence is None else prepare_surface(sequence, cfg)
     p = cfg.physics
     collider = collider or p.collider
-    if collider not in surface_model_class(seq).colliders:  # before the frames go to the device
+    if collider not in surface_model_class(seq).colliders_for(seq):  # before the frames go to the device
+        if Collider.FIXED.value in surface_model_class(seq).colliders_for(seq):  # piecewise-fixed
+            raise SceneError(
+                f"surface {cfg.surface.source}: {len(seq.segments())} segments of fixed topology (piecewise-fixed, "
+                f"as convert writes); physics.collider {collider!r} needs one topology: use fixed (automatic) or "
+                "rebuild (a BVH per segment)")
         try:
             seq.to_fixed()
             why = "frames have different topology"

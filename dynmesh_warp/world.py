@@ -186,6 +186,11 @@ class SurfaceModel:
     # the host mesh at a time, the faces every frame shares, the frame (k0, k1, alpha) it plays.
     #: colliders this surface supports
     colliders = tuple(values(Collider))
+
+    @classmethod
+    def colliders_for(cls, seq) -> tuple:
+        """The colliders a surface of ``seq`` supports (known before any upload)."""
+        return cls.colliders
     #: the topology, for reports (summary, checkpoint fingerprint)
     topology = "fixed"
 
@@ -274,17 +279,27 @@ class VaryingSurfaceModel:
         self.playback_name = playback
         self.playback = PLAYBACK_MODES[playback]
         self.interpolate = bool(interpolate) and any(b - a > 1 for a, b in runs)
+        self.colliders = self.colliders_for(seq)
         step = max((float(np.linalg.norm(np.diff(V, axis=0), axis=-1).max()) for V in stacks if len(V) > 1),
                    default=0.0)
         self.max_frame_step = step  # largest vertex displacement between frames of one segment [m]
         self.max_speed = step * self.fps
 
-    #: without vertex correspondence only a BVH built per frame or step can follow it
+    #: without vertex correspondence only a BVH built per segment, frame or step can follow it
     colliders = (Collider.REBUILD.value,)
     topology = "varying"
 
+    @classmethod
+    def colliders_for(cls, seq) -> tuple:
+        """``rebuild``; also ``fixed`` (the automatic choice, which takes ``rebuild``) for a
+        piecewise-fixed sequence (at most half as many segments as frames, as ``convert``
+        writes): a truly varying one is refused unless asked for by name, so that its user
+        hears that converting it gives interpolation and the faster colliders."""
+        runs = seq.segments()
+        return cls.colliders + ((Collider.FIXED.value,) if len(runs) <= seq.num_frames // 2 else ())
+
     def resolve_collider(self, asked: str, choose) -> str:
-        return asked  # no automatic choice: only "rebuild" follows it
+        return Collider.REBUILD.value  # the automatic choice too: only "rebuild" follows it
 
     def faces(self) -> np.ndarray:
         raise ValueError(f"{self.sequence.name}: a varying-topology surface has no faces shared by every frame "

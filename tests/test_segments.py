@@ -53,7 +53,7 @@ def _blobs(t: int, grid: int = 41):
     centres = np.array([(-1.5, -gap1 / 2, 0), (-1.5, gap1 / 2, 0), (1.5, -gap2 / 2, 0), (1.5, gap2 / 2, 0)])
     d = np.min([np.sqrt((X - c[0]) ** 2 + (Y - c[1]) ** 2 + (Z - c[2]) ** 2) - 0.5 for c in centres], axis=0)
     v, f, _, _ = marching_cubes(d, 0.0)
-    return (v * h - 3.0).astype(np.float32), np.ascontiguousarray(f[:, ::-1], np.int32), centres
+    return (v * h - 3.0).astype(np.float32), np.ascontiguousarray(f, np.int32), centres
 
 
 @pytest.fixture(scope="module")
@@ -239,3 +239,33 @@ def test_rebuild_once_per_segment_gives_the_per_step_contacts(monkeypatch):
     assert runs["segment"][1] == 2  # frame 0 was built at the start: segments 2 and 3
     assert runs["step"][1] >= 120
     np.testing.assert_allclose(runs["segment"][0], runs["step"][0], atol=1e-5)
+
+
+def test_a_piecewise_sequence_plays_in_a_scene_with_the_automatic_collider(tmp_path):
+    """convert's segmented output plays as it is (the automatic collider takes ``rebuild``,
+    once per segment); a collider that needs one topology is refused naming the segments; a
+    truly varying sequence still asks to be converted first."""
+    from dynmesh_warp.config import SceneError, load_scene_config
+    from dynmesh_warp.convert import main as convert_main
+    from dynmesh_warp.scene import build_world
+
+    frames = [_blobs(t)[:2] for t in range(24)]
+    src, out = tmp_path / "tearing.npz", tmp_path / "converted.npz"
+    save_sequence(VaryingTopologySequence(frames, fps=24.0, name="tearing"), src)
+    assert convert_main([str(src), str(out), "--device", TEST_DEVICE]) == 0
+    seq = load_sequence(out)
+    assert isinstance(seq, VaryingTopologySequence) and 2 <= len(seq.segments()) <= 4
+
+    def scene(path, **physics):
+        return load_scene_config(data={"name": "t", "surface": {"source": str(path)},
+                                       "physics": {"ground": None, **physics}})
+
+    w = build_world(scene(out), device=TEST_DEVICE)
+    assert w.collider.name == "rebuild" and w.collider.every == "segment" and w.model.surface.interpolate
+    for _ in range(30):
+        w.step()
+    assert np.isfinite(w.sphere_positions()).all()
+    with pytest.raises(SceneError, match="segments of fixed topology"):
+        build_world(scene(out, collider="swept"), device=TEST_DEVICE)
+    with pytest.raises(SceneError, match="Varying topology needs"):
+        build_world(scene(src), device=TEST_DEVICE)
