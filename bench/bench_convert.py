@@ -23,7 +23,7 @@ import warp as wp
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from dynmesh_warp.convert import STRATEGIES, to_fixed_topology  # noqa: E402
+from dynmesh_warp.convert import STRATEGIES, to_fixed_topology, to_piecewise_fixed  # noqa: E402
 from dynmesh_warp.outputs import atomic_write_json  # noqa: E402
 from dynmesh_warp.scenes import torus_to_sphere  # noqa: E402
 from dynmesh_warp.sequence import VaryingTopologySequence  # noqa: E402
@@ -37,7 +37,10 @@ def main(argv=None):
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--strategies", default=",".join(STRATEGIES))
     p.add_argument("--out", default=None)
+    p.add_argument("--piecewise", action="store_true",
+                   help="time to_piecewise_fixed (what the convert CLI runs: new templates where one cannot follow)")
     a = p.parse_args(argv)
+    run = to_piecewise_fixed if a.piecewise else to_fixed_topology
     wp.config.quiet = True
     wp.init()
     device = wp.get_device(a.device)
@@ -53,7 +56,7 @@ def main(argv=None):
                   "vertices_per_frame_mean": float(np.mean(nverts)), "vertices_per_frame_min": int(min(nverts)),
                   "vertices_per_frame_max": int(max(nverts)), "template_vertices": nverts[0],
                   "template_faces": int(len(seq.frames[0][1])), "generation_s": gen_s},
-        "repeats": a.repeats, "strategies": {},
+        "repeats": a.repeats, "function": run.__name__, "strategies": {},
     }
     warm = VaryingTopologySequence(seq.frames[:2])
     for st in a.strategies.split(","):
@@ -64,17 +67,21 @@ def main(argv=None):
         times = []
         for _ in range(a.repeats):
             t0 = time.perf_counter()
-            out = to_fixed_topology(seq, strategy=st, device=device)
+            out = run(seq, strategy=st, device=device)
             wp.synchronize_device(device)
             times.append(time.perf_counter() - t0)
         med = float(np.median(times))
         res["strategies"][st] = {"seconds_median": med, "seconds_all": times, "frames_per_s": a.frames / med,
-                                 "ms_per_frame": 1000 * med / a.frames, "template_vertices": out.num_vertices,
+                                 "ms_per_frame": 1000 * med / a.frames,
+                                 "template_vertices": [n for *_, n in out.conversion.segments],
+                                 "segments": [list(x) for x in out.conversion.segments],
+                                 "web_max": float(max(out.conversion.web)),
                                  "compile_and_warmup_s": compile_s, "key_frame": out.conversion.key_frame,
                                  "key_trials": [list(x) for x in out.conversion.key_trials],
                                  "recovered_frames": len(out.conversion.recovered_frames),
                                  "options": out.conversion.options}
-        print(f"{st:12s} {med:7.2f} s  {a.frames / med:7.1f} frames/s  ({out.num_vertices} template vertices; "
+        print(f"{st:12s} {med:7.2f} s  {a.frames / med:7.1f} frames/s  ({len(out.conversion.segments)} segment(s), "
+              f"web max {100 * max(out.conversion.web):.2f}%; "
               f"key frame {out.conversion.key_frame}, {len(out.conversion.key_trials)} key trials; "
               f"compile+warm-up {compile_s:.2f} s)", flush=True)
     out_path = Path(a.out) if a.out else ROOT / "bench" / "results" / f"convert_{device.alias.replace(':', '')}.json"

@@ -46,7 +46,7 @@ from .world import (  # noqa: E402
 #: SciPy, scikit-image, viser...): name -> module
 _LAZY = {
     "load_sequence": "io", "save_sequence": "io",
-    "to_fixed_topology": "convert", "ConversionInfo": "convert",
+    "to_fixed_topology": "convert", "to_piecewise_fixed": "convert", "ConversionInfo": "convert",
     "Gaussians": "gaussians", "gaussians_for_world": "gaussians",
     "Viewer": "viewer", "NewtonViewer": "viewer",
     "Simulation": "runtime",
@@ -91,6 +91,7 @@ __all__ = [
     "load_sequence",
     "save_sequence",
     "to_fixed_topology",
+    "to_piecewise_fixed",
     "ConversionInfo",
     "Gaussians",
     "gaussians_for_world",

@@ -647,7 +647,8 @@ class RebuildCollider(ColliderBase):
         every = parse(RebuildEvery, every, "rebuild_every").value
         if every == "frame" and model.surface.interpolate:
             raise ValueError("rebuild_every 'frame' needs a surface that changes only per frame: "
-                             "set surface.interpolate: false (with interpolation it changes every step)")
+                             "set surface.interpolate: false (with interpolation it changes every step), or use "
+                             "rebuild_every: segment (the default: a new BVH when the faces change, refit between)")
         self.every = every
         self.mesh = None
         self._key = self._shown = None
