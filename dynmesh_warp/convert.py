@@ -259,15 +259,6 @@ def web_fraction(X: np.ndarray, F: np.ndarray, X_key: np.ndarray, V_ref: np.ndar
     return float(area[cand][d > gap * _bbox_diag(np.asarray(V_ref))].sum() / total)
 
 
-def _web_per_frame(res, vseq, device) -> list:
-    """:func:`web_fraction` of every converted frame against its input frame
-    (``ConversionInfo.web``)."""
-    info = res.conversion
-    first = info.first_frame
-    key = res.V[min(max(info.key_frame - first, 0), res.num_frames - 1)]
-    return [web_fraction(res.V[t], res.F, key, *vseq.frames[first + t], device=device) for t in range(res.num_frames)]
-
-
 def _keep_faces(v: np.ndarray, f: np.ndarray, keep: np.ndarray) -> tuple:
     """(vertices, faces) of the faces ``keep`` (a mask) and only the vertices they use, the faces
     renumbered (int32) in the kept vertices' order."""
@@ -316,6 +307,10 @@ class _Converter:
         self.T = arr(TV, wp.vec3)
         self.TF = arr(TF.reshape(-1), wp.int32)
         self.X = wp.clone(self.T)
+        tri = np.asarray(TV, np.float64)[np.asarray(TF).reshape(-1, 3)]
+        self.key_edge = arr(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(axis=1).astype(np.float32),
+                            float)  # (M,) each face's longest edge in the template [m] (the web's reference)
+        self.web_area = wp.zeros(2, dtype=float, device=d)
         self.first = True  # the next frame is the first one converted (starts from the template)
         self.frame_coverage = None  # set by a step that already measured its result's coverage [m]
         self.P = wp.empty(n, dtype=wp.vec3, device=d)
@@ -368,6 +363,17 @@ class _Converter:
         self.first = False
         if self.opts.get("strategy") == "graph":
             self.history = ([self.states[t_next]] if t_next in self.states else []) + [self.states[t_key]]
+
+    def web(self, frame, diag: float) -> float:
+        """:func:`web_fraction` of the converted surface (self.X) against the input ``frame``
+        (its wp.Mesh, already built for the fit), relative to the template; ``diag``: the
+        frame's bbox diagonal [m]. One launch, two floats back."""
+        self.web_area.zero_()
+        wp.launch(kc.measure_web_area, dim=self.nf,
+                  inputs=[self.TF, self.key_edge, self.X, frame[0].id, WEB_STRETCH, WEB_GAP * diag],
+                  outputs=[self.web_area], device=self.device)
+        total, web = self.web_area.numpy()
+        return float(web / total) if total > 0 else 0.0
 
     def coverage(self, frame) -> float:
         """99.5th percentile of the distance of the frame's vertices to the converted surface
@@ -888,11 +894,11 @@ def _frame_for_fit(vseq, t: int, K: int, o: dict, X_ref, TF: np.ndarray, device,
 def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info, strategy: str, where: str, TV,
                     TF):
     """The frame loop of to_fixed_topology: the key frame forward to the end, then backward to
-    frame 0. Returns (out (T, N, 3), lo, hi (the converted frames lo..hi), seconds, coverage)."""
+    frame 0. Returns (out (T, N, 3), lo, hi (the converted frames lo..hi), seconds, coverage, web)."""
     T = vseq.num_frames
     device = conv.device
     out = np.empty((T, len(TV), 3), np.float32)
-    seconds, coverage = np.zeros(T), np.zeros(T)
+    seconds, coverage, web = np.zeros(T), np.zeros(T), np.zeros(T)
     # the key frame forward to the end, then backward from it to frame 0
     order = list(range(K, T)) + list(range(K - 1, -1, -1))
     if progress:
@@ -914,6 +920,7 @@ def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info,
         cov = conv.frame_coverage if conv.frame_coverage is not None else conv.coverage(frame)
         conv.frame_coverage = None
         coverage[t] = cov / max(_bbox_diag(v), 1e-12)
+        web[t] = conv.web(frame, _bbox_diag(v))
         conv.first = False
         out[t] = conv.X.numpy()
         seconds[t] = time.perf_counter() - t0
@@ -923,7 +930,7 @@ def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info,
         lo, hi = (t, t) if lo is None else (min(lo, t), max(hi, t))
     if hasattr(order, "close"):
         order.close()
-    return out, lo, hi, seconds, coverage
+    return out, lo, hi, seconds, coverage, web
 
 
 def best_starts(starts: list, scores, keep: int) -> list:
@@ -958,7 +965,7 @@ def _poor_runs(coverage: np.ndarray, K: int, threshold: float) -> list:
     return runs
 
 
-def _repair_poor_runs(vseq, conv, out, coverage, seconds, K: int, o: dict, should_stop, TF, info) -> list:
+def _repair_poor_runs(vseq, conv, out, coverage, web, seconds, K: int, o: dict, should_stop, TF, info) -> list:
     """Bidirectional repair (``graph``): re-track every run of poorly covered frames from the good
     frame on its other side, keeping per frame whichever result covers the input better. Up to
     ``repair_passes`` passes (each sees the previous one's coverage). Returns the improved frames."""
@@ -981,11 +988,13 @@ def _repair_poor_runs(vseq, conv, out, coverage, seconds, K: int, o: dict, shoul
                 t0 = time.perf_counter()
                 v, f = _frame_for_fit(vseq, t, K, o, out[t - step], TF, device, info)
                 old_state = conv.frame_states.get(t)
-                conv.step_graph(_device_frame(v, f, device), t)
+                frame = _device_frame(v, f, device)
+                conv.step_graph(frame, t)
                 cov = conv.frame_coverage / max(_bbox_diag(v), 1e-12)
                 conv.frame_coverage = None
                 if cov < coverage[t]:
                     coverage[t] = cov
+                    web[t] = conv.web(frame, _bbox_diag(v))
                     out[t] = conv.X.numpy()
                     repaired.add(t)
                 elif old_state is not None:
@@ -1079,7 +1088,6 @@ def to_fixed_topology(seq, strategy: str = DEFAULT_STRATEGY, template=None, devi
                                 if info.first_frame <= e[0] < info.first_frame + len(info.coverage)]
     finally:
         pool.shutdown(wait=False, cancel_futures=True)
-    info.web = _web_per_frame(res, vseq, device)
     info.segments = [(info.first_frame, info.first_frame + res.num_frames, info.key_frame, res.num_vertices)]
     info.seconds_all = time.perf_counter() - start
     return res
@@ -1284,13 +1292,15 @@ def _convert_from_key(vseq, strategy: str, o: dict, K: int, template, device, pr
     conv = _Converter(TV, TF, device, 10.0 * all_diag, o)
     step = getattr(conv, f"step_{strategy}")
     info = ConversionInfo(strategy, {k: v for k, v in o.items() if k != "strategy"}, T, len(TV), key_frame=K)
-    out, lo, hi, seconds, coverage = _convert_frames(vseq, conv, step, K, progress, should_stop, info,
-                                                     strategy, where, TV, TF)
+    out, lo, hi, seconds, coverage, web = _convert_frames(vseq, conv, step, K, progress, should_stop, info,
+                                                          strategy, where, TV, TF)
     if strategy == "graph" and (lo, hi) == (0, T - 1) and int(o["repair_passes"]) > 0:
-        info.repaired_frames = _repair_poor_runs(vseq, conv, out, coverage, seconds, K, o, should_stop, TF, info)
+        info.repaired_frames = _repair_poor_runs(vseq, conv, out, coverage, web, seconds, K, o, should_stop, TF,
+                                                 info)
     info.ignored_parts = {t: x for t, x in sorted(info.ignored_parts.items()) if lo <= t <= hi}
     info.frame_seconds = seconds.tolist()
     info.coverage = coverage.tolist()
+    info.web = web.tolist()
     info.reanchored_frames.sort()
     if hasattr(conv, "recovered"):
         info.recovered_frames = sorted(conv.recovered)
@@ -1301,6 +1311,7 @@ def _convert_from_key(vseq, strategy: str, o: dict, K: int, template, device, pr
     info.first_frame = lo
     if (lo, hi) != (0, T - 1):  # stopped early: the frames converted so far
         info.frame_seconds, info.coverage = info.frame_seconds[lo:hi + 1], info.coverage[lo:hi + 1]
+        info.web = info.web[lo:hi + 1]
     res = FixedTopologySequence(out[lo:hi + 1], TF, fps=vseq.fps, name=vseq.name, source=vseq.source)
     res.conversion = info
     return res

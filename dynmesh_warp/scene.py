@@ -240,16 +240,16 @@ def build_world(cfg: SceneConfig, device=None, collider: str | None = None,
     p = cfg.physics
     collider = collider or p.collider
     if collider not in surface_model_class(seq).colliders_for(seq):  # before the frames go to the device
-        if Collider.FIXED.value in surface_model_class(seq).colliders_for(seq):  # piecewise-fixed
-            raise SceneError(
-                f"surface {cfg.surface.source}: {len(seq.segments())} segments of fixed topology (piecewise-fixed, "
-                f"as convert writes); physics.collider {collider!r} needs one topology: use fixed (automatic) or "
-                "rebuild (a BVH per segment)")
         try:
             seq.to_fixed()
             why = "frames have different topology"
         except TopologyMismatchError as e:  # names the first frame that differs from frame 0
             why = e.summary
+        if Collider.FIXED.value in surface_model_class(seq).colliders_for(seq):  # piecewise-fixed
+            raise SceneError(
+                f"surface {cfg.surface.source}: {why}; its {len(seq.segments())} segments of fixed topology "
+                f"(piecewise-fixed, as convert writes) need physics.collider: fixed (automatic) or "
+                f"collider: rebuild (a BVH per segment), not {Collider(collider).value!r}")
         raise SceneError(
             f"surface {cfg.surface.source}: {why}. Varying topology needs "
             "physics.collider: rebuild, or surface.conversion to convert it to fixed topology")

@@ -420,6 +420,40 @@ def distance_to_mesh(mesh: wp.uint64, p: wp.vec3, max_dist: float) -> float:
 
 
 @wp.kernel
+def measure_web_area(
+    # Model:
+    indices: wp.array[wp.int32],
+    key_edge: wp.array[float],
+    # In:
+    points: wp.array[wp.vec3],
+    mesh: wp.uint64,
+    stretch: float,
+    gap: float,
+    # Out:
+    area_out: wp.array[float],
+):
+    """The web of a converted frame (``convert.web_fraction``), one thread per face:
+    area_out[0] += the face's area; area_out[1] += its area when its longest edge exceeds
+    ``stretch`` x key_edge (its longest edge in the template) and its centroid has no point of
+    the input ``mesh`` within ``gap``.
+
+    indices (3M,) template faces; key_edge (M,) [m]; points (N,) converted vertices [m];
+    mesh: the input frame's wp.Mesh; gap [m]; area_out (2,) [m^2], zeroed by the caller.
+    """
+    f = wp.tid()
+    a = points[indices[3 * f]]
+    b = points[indices[3 * f + 1]]
+    c = points[indices[3 * f + 2]]
+    area = 0.5 * wp.length(wp.cross(b - a, c - a))
+    wp.atomic_add(area_out, 0, area)
+    edge = wp.max(wp.max(wp.length(b - a), wp.length(c - b)), wp.length(a - c))
+    if edge > stretch * key_edge[f]:
+        q = wp.mesh_query_point_no_sign(mesh, (a + b + c) / 3.0, gap)
+        if not q.result:
+            wp.atomic_add(area_out, 1, area)
+
+
+@wp.kernel
 def measure_distances_to_mesh(
     # In:
     mesh: wp.uint64,
