@@ -892,9 +892,11 @@ def _frame_for_fit(vseq, t: int, K: int, o: dict, X_ref, TF: np.ndarray, device,
 
 
 def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info, strategy: str, where: str, TV,
-                    TF):
+                    TF, stop_forward=None):
     """The frame loop of to_fixed_topology: the key frame forward to the end, then backward to
-    frame 0. Returns (out (T, N, 3), lo, hi (the converted frames lo..hi), seconds, coverage, web)."""
+    frame 0. ``stop_forward(t, web)``, asked after each frame t > K: true ends the forward pass
+    there (the backward pass still runs). Returns (out (T, N, 3), lo, hi (the converted frames
+    lo..hi), seconds, coverage, web)."""
     T = vseq.num_frames
     device = conv.device
     out = np.empty((T, len(TV), 3), np.float32)
@@ -906,9 +908,12 @@ def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info,
 
         order = tqdm(order, desc=f"convert ({strategy})", unit="frame")
     lo = hi = None  # the converted frames lo..hi (contiguous: the key frame forward, then backward)
+    forward = True
     for t in order:
         if lo is not None and should_stop is not None and should_stop():
             break
+        if t > K and not forward:
+            continue
         t0 = time.perf_counter()
         if t == K - 1:
             conv.rewind(out[K], K, K + 1)
@@ -928,6 +933,8 @@ def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info,
             raise RuntimeError(f"{where}: conversion ({strategy}) produced NaN/inf at frame {t}; "
                                "the input frame may be degenerate")
         lo, hi = (t, t) if lo is None else (min(lo, t), max(hi, t))
+        if t > K and stop_forward is not None and stop_forward(t, web):
+            forward = False
     if hasattr(order, "close"):
         order.close()
     return out, lo, hi, seconds, coverage, web
@@ -1027,6 +1034,12 @@ def to_fixed_topology(seq, strategy: str = DEFAULT_STRATEGY, template=None, devi
         MeshDataError: an empty/invalid frame or template (naming it), a template out of the
             surface's reach. Warns (UserWarning) about frames of very different scale.
     """
+    return _to_fixed(seq, strategy, template, device, progress, should_stop, None, **options)
+
+
+def _to_fixed(seq, strategy, template, device, progress, should_stop, stop_forward, **options):
+    """:func:`to_fixed_topology`, with ``stop_forward`` (:func:`_convert_frames`) for
+    :func:`to_piecewise_fixed`'s first run."""
     start = time.perf_counter()
     o = _resolve_options(strategy, options)
     set_deterministic(bool(o["deterministic"]), int(o.get("nodes_per_vertex", 4)))
@@ -1058,7 +1071,7 @@ def to_fixed_topology(seq, strategy: str = DEFAULT_STRATEGY, template=None, devi
     pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="topology")
     try:
         topology = pool.submit(_topology_events, vseq)
-        res = _convert_from_key(vseq, strategy, o, K, template, device, progress, should_stop, where)
+        res = _convert_from_key(vseq, strategy, o, K, template, device, progress, should_stop, where, stop_forward)
         trials = _key_candidates(vseq, o, K, given, res)
         if trials:
             if progress:  # the run goes on: say why
@@ -1084,7 +1097,8 @@ def to_fixed_topology(seq, strategy: str = DEFAULT_STRATEGY, template=None, devi
             res.conversion.key_trials = tried
         info = res.conversion
         info.dropped_unused = unused
-        info.topology_events = [e for e in topology.result()
+        res.all_topology_events = topology.result()  # every frame's (to_piecewise_fixed after a forward stop)
+        info.topology_events = [e for e in res.all_topology_events
                                 if info.first_frame <= e[0] < info.first_frame + len(info.coverage)]
     finally:
         pool.shutdown(wait=False, cancel_futures=True)
@@ -1106,6 +1120,10 @@ def to_piecewise_fixed(seq, strategy: str = DEFAULT_STRATEGY, template=None, dev
     again with a template of their own (their automatic key frame), and the new segment is kept
     when its worst frame is better than those frames were: at most ``max_segments`` segments
     (option), each checked again. A given ``template`` or ``key_frame`` keeps one template.
+    The first run's forward pass ends at the second poor web frame in a row (the frames after it
+    go to the new template when it is better; when it is not, the whole sequence is converted
+    again with one template, the run without the stop), so that the common cut does not fit
+    those frames twice.
 
     Returns:
         the :class:`FixedTopologySequence` of :func:`to_fixed_topology` when one template holds
@@ -1116,22 +1134,48 @@ def to_piecewise_fixed(seq, strategy: str = DEFAULT_STRATEGY, template=None, dev
     """
     start = time.perf_counter()
     o = _resolve_options(strategy, options)
-    res = to_fixed_topology(seq, strategy, template, device, progress, should_stop, **options)
-    info = res.conversion
     vseq = _as_varying(seq)
+    T = vseq.num_frames
     limit = int(o["max_segments"])
-    if (limit <= 1 or template is not None or o["key_frame"] not in ("auto", None)
-            or len(info.coverage) < vseq.num_frames):
+    if limit <= 1 or template is not None or o["key_frame"] not in ("auto", None):
+        return to_fixed_topology(vseq, strategy, template, device, progress, should_stop, **options)
+    runs = {}
+
+    def convert(lo, hi):  # frames lo..hi-1 with a template of their own; None when stopped meanwhile
+        if (lo, hi) not in runs:
+            sub = VaryingTopologySequence(list(vseq.frames[lo:hi]), fps=vseq.fps, name=vseq.name, source=vseq.source)
+            r = to_fixed_topology(sub, strategy, None, device, progress, should_stop, **options)
+            runs[lo, hi] = r if len(r.conversion.coverage) == hi - lo else None
+        return runs[lo, hi]
+
+    def stopped():
+        return should_stop is not None and bool(should_stop())
+
+    # the first run ends its forward pass at the second poor web frame in a row: the frames after
+    # it would be converted again with a new template (the common cut), so they are not fitted twice
+    first = _to_fixed(vseq, strategy, None, device, progress, should_stop,
+                      lambda t, web: web[t] > POOR_WEB and web[t - 1] > POOR_WEB, **options)
+    events = first.all_topology_events
+    res = first
+    if len(first.conversion.coverage) < T and not stopped():  # the forward pass stopped at frame b
+        K, b = first.conversion.key_frame, first.num_frames - 1
+        ev = [t for t, _ in events if K < t <= b]
+        a = max(ev) if ev else b
+        new = convert(a, T)
+        if new is not None and _badness(new.conversion)[:b + 1 - a].max() < _badness(first.conversion)[a:].max():
+            keep = _slice_result(first, 0, a, 0)
+            left = _split_segments(0, keep, events, limit - 1, convert)
+            segs = left + _split_segments(a, new, events, limit - len(left), convert)
+            out = _join_segments(vseq, sorted(segs, key=lambda x: x[0]), first.conversion)
+            out.conversion.seconds_all = time.perf_counter() - start
+            return out
+        # the new template is not better there: one template for every frame, as without the stop
+        res = to_fixed_topology(vseq, strategy, None, device, progress, should_stop, **options)
+    if len(res.conversion.coverage) < T:  # stopped by the caller
+        res.conversion.seconds_all = time.perf_counter() - start
         return res
-    events = info.topology_events
-
-    def convert(lo, hi):
-        sub = VaryingTopologySequence(list(vseq.frames[lo:hi]), fps=vseq.fps, name=vseq.name, source=vseq.source)
-        r = to_fixed_topology(sub, strategy, None, device, progress, should_stop, **options)
-        return r if len(r.conversion.coverage) == hi - lo else None  # None: stopped meanwhile
-
     segs = _split_segments(0, res, events, limit, convert)
-    out = segs[0][1] if len(segs) == 1 else _join_segments(vseq, segs, info)
+    out = segs[0][1] if len(segs) == 1 else _join_segments(vseq, segs, res.conversion)
     out.conversion.seconds_all = time.perf_counter() - start
     return out
 
@@ -1276,7 +1320,7 @@ def _key_retry_reason(coverage, K: int) -> str | None:
 
 
 def _convert_from_key(vseq, strategy: str, o: dict, K: int, template, device, progress, should_stop,
-                      where) -> FixedTopologySequence:
+                      where, stop_forward=None) -> FixedTopologySequence:
     """One conversion run: the template is ``template`` (validated (V, F)) or key frame K's
     mesh, tracked from frame K to both ends."""
     T = vseq.num_frames
@@ -1293,7 +1337,7 @@ def _convert_from_key(vseq, strategy: str, o: dict, K: int, template, device, pr
     step = getattr(conv, f"step_{strategy}")
     info = ConversionInfo(strategy, {k: v for k, v in o.items() if k != "strategy"}, T, len(TV), key_frame=K)
     out, lo, hi, seconds, coverage, web = _convert_frames(vseq, conv, step, K, progress, should_stop, info,
-                                                          strategy, where, TV, TF)
+                                                          strategy, where, TV, TF, stop_forward)
     if strategy == "graph" and (lo, hi) == (0, T - 1) and int(o["repair_passes"]) > 0:
         info.repaired_frames = _repair_poor_runs(vseq, conv, out, coverage, web, seconds, K, o, should_stop, TF,
                                                  info)
