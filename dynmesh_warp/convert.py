@@ -1166,7 +1166,7 @@ def to_piecewise_fixed(seq, strategy: str = DEFAULT_STRATEGY, template=None, dev
             keep = _slice_result(first, 0, a, 0)
             left = _split_segments(0, keep, events, limit - 1, convert)
             segs = left + _split_segments(a, new, events, limit - len(left), convert)
-            out = _join_segments(vseq, sorted(segs, key=lambda x: x[0]), first.conversion)
+            out = _join_segments(vseq, sorted(segs, key=lambda x: x[0]), first.conversion, events)
             out.conversion.seconds_all = time.perf_counter() - start
             return out
         # the new template is not better there: one template for every frame, as without the stop
@@ -1175,7 +1175,7 @@ def to_piecewise_fixed(seq, strategy: str = DEFAULT_STRATEGY, template=None, dev
         res.conversion.seconds_all = time.perf_counter() - start
         return res
     segs = _split_segments(0, res, events, limit, convert)
-    out = segs[0][1] if len(segs) == 1 else _join_segments(vseq, segs, res.conversion)
+    out = segs[0][1] if len(segs) == 1 else _join_segments(vseq, segs, res.conversion, events)
     out.conversion.seconds_all = time.perf_counter() - start
     return out
 
@@ -1237,14 +1237,16 @@ def _slice_result(res, a: int, b: int, lo: int):
         setattr(sliced, name, [t - i for t in getattr(info, name) if i <= t < j])
     sliced.recovered_frames = [(t - i, src) for t, src in info.recovered_frames if i <= t < j]
     sliced.ignored_parts = {t - i: x for t, x in info.ignored_parts.items() if i <= t < j}
+    sliced.key_trials = [(k - i, *rest) for k, *rest in info.key_trials]  # keys of the whole run's trials
     out.conversion = sliced
     return out
 
 
-def _join_segments(vseq, segs: list, whole) -> VaryingTopologySequence:
+def _join_segments(vseq, segs: list, whole, events: list) -> VaryingTopologySequence:
     """One sequence of the segments' frames (``[(start, result)]``, in order), each segment's
     frames sharing its template's face array; ``conversion`` merges the segments' infos (frame
-    indices absolute) with the whole run's topology events and dropped vertices."""
+    indices absolute) with the input's topology ``events`` and the first run's (``whole``)
+    dropped vertices."""
     frames = [(v, r.F) for _, r in segs for v in r.V]
     out = VaryingTopologySequence(frames, fps=vseq.fps, name=vseq.name, source=vseq.source)
     first = segs[0][1].conversion
@@ -1261,7 +1263,7 @@ def _join_segments(vseq, segs: list, whole) -> VaryingTopologySequence:
         info.ignored_parts.update({t + lo: x for t, x in c.ignored_parts.items()})
         info.key_trials += [(k + lo, *rest) for k, *rest in c.key_trials]
         info.segments.append((lo, lo + r.num_frames, c.key_frame + lo, r.num_vertices))
-    info.topology_events, info.dropped_unused = whole.topology_events, whole.dropped_unused
+    info.topology_events, info.dropped_unused = list(events), whole.dropped_unused
     out.conversion = info
     return out
 

@@ -133,6 +133,7 @@ def test_one_template_leaves_a_web_that_segments_remove(tearing, tmp_path):
         assert a <= key < b and all(len(res.frames[t][0]) == n for t in range(a, b))
     off = [_off_surface_area(*res.frames[t], centres[t], 0.03) for t in range(seq.num_frames)]
     assert max(off) < 0.002, off
+    assert info.topology_events == one.conversion.topology_events  # every frame's, not the first run's part
     lines = "\n".join(conversion_summary(info))
     assert f"{len(info.segments)} templates" in lines and "warning: web" not in lines
     # a save and a load keep the segments (the packed npz and a folder)
@@ -142,6 +143,19 @@ def test_one_template_leaves_a_web_that_segments_remove(tearing, tmp_path):
         assert back.segments() == res.segments()
     # max_segments=1 keeps one template
     assert isinstance(to_piecewise_fixed(seq, device=TEST_DEVICE, max_segments=1), FixedTopologySequence)
+
+
+def test_a_rejected_cut_gives_the_one_template_run(tearing, monkeypatch):
+    """When the new template is no better where it would take over, the first run's stopped
+    forward pass is not kept: the result is to_fixed_topology's, frame for frame."""
+    from dynmesh_warp import convert
+
+    seq, _ = tearing
+    real = convert._badness
+    monkeypatch.setattr(convert, "_badness", lambda info: real(info) + (1e9 if info.num_frames < 24 else 0.0))
+    res = to_piecewise_fixed(seq, device=TEST_DEVICE)
+    assert isinstance(res, FixedTopologySequence) and len(res.conversion.segments) == 1
+    np.testing.assert_array_equal(res.V, to_fixed_topology(seq, device=TEST_DEVICE).V)
 
 
 def test_one_template_when_it_holds():
