@@ -1462,7 +1462,8 @@ def conversion_summary(info: ConversionInfo) -> list:
         lines.append(f"warning: web on {poor_web.size} frame(s) ({', '.join(map(str, poor_web[:12]))}"
                      + (" ..." if poor_web.size > 12 else "") + f"): over {100 * POOR_WEB:.0f}% of the converted "
                      "surface is stretched across a gap of the input (parts the template fused have moved apart; "
-                     "a sphere would land on it)" + ("" if segs else "; allow new templates: --option max_segments=4"))
+                     "a sphere would land on it)" + ("" if segs else "; new templates (segments) start there when "
+                                                     "convert writes a .npz or a folder with max_segments > 1"))
     bad = np.flatnonzero(cov > POOR_COVERAGE)
     if bad.size:
         lines.append(f"warning: poor fit on {bad.size} frame(s) ({', '.join(map(str, bad[:12]))}"

@@ -138,7 +138,7 @@ def prepare_surface(seq, cfg: SceneConfig):
         if seq.is_fixed_topology():
             seq = seq.to_fixed()
         elif s.conversion is not None:
-            from .convert import to_fixed_topology  # noqa: PLC0415 (optional stage)
+            from .convert import conversion_summary, to_fixed_topology  # noqa: PLC0415 (optional stage)
 
             template = None
             if s.conversion.template:
@@ -153,6 +153,9 @@ def prepare_surface(seq, cfg: SceneConfig):
                 raise
             except (TypeError, ValueError) as e:  # unknown or bad strategy options
                 raise SceneError(f"surface.conversion.options: {e}") from e
+            for line in conversion_summary(seq.conversion):  # a poor fit or a web is said, as convert says it
+                if line.startswith("warning: "):
+                    warnings.warn(f"{where}: surface.conversion: {line[len('warning: '):]}", UserWarning, stacklevel=2)
     return seq
 
 

@@ -288,3 +288,9 @@ def test_a_piecewise_sequence_plays_in_a_scene_with_the_automatic_collider(tmp_p
         build_world(scene(out, collider="swept"), device=TEST_DEVICE)
     with pytest.raises(SceneError, match="Varying topology needs"):
         build_world(scene(src), device=TEST_DEVICE)
+    # a scene's own conversion keeps one template, and says where it leaves a web
+    cfg = load_scene_config(data={"name": "t", "surface": {"source": str(src), "conversion": {"strategy": "graph"}},
+                                  "physics": {"ground": None}})
+    with pytest.warns(UserWarning, match="surface.conversion: web on"):
+        w = build_world(cfg, device=TEST_DEVICE)
+    assert w.model.surface.topology == "fixed"
