@@ -7,7 +7,7 @@ Public API
     Batched closest point on a triangle mesh (``wp.Mesh`` or ``(V, F)``): closest point,
     face, barycentric weights of the face's vertices, distance; NumPy arrays.
 
-``to_fixed_topology(seq, strategy="tracking", template=None, device=None, progress=False,
+``to_fixed_topology(seq, strategy="graph", template=None, device=None, progress=False,
 **options) -> FixedTopologySequence``
     Strategies (see docs/conversion.md):
 
@@ -33,7 +33,15 @@ Public API
     this factor).
 
     The result carries ``result.conversion`` (a :class:`ConversionInfo`): strategy, options,
-    re-anchored frames, per-frame time.
+    re-anchored frames, per-frame time, coverage, web, segments.
+
+``to_piecewise_fixed(seq, strategy="graph", ..., **options)``
+    The same, with a new template (a segment) where one cannot follow the input (a web across
+    parts it fused, a lost part; option ``max_segments``): the fixed sequence when one holds,
+    else a varying one whose frames share faces within each segment (docs/conversion.md).
+
+``web_fraction(X, F, X_key, V_ref, F_ref)``
+    The fraction of a converted surface's area stretched across a gap of the input.
 
 CLI: ``python -m dynmesh_warp.convert IN OUT --strategy tracking|projection|regularized
 [--template MESH] [--device cpu] [--reanchor-interval 50] [--tracked-weight 0.8] [--fmt ply]``.
@@ -187,9 +195,10 @@ class ConversionInfo:
     frame_seconds: wall time per frame (host + kernels), in input order.
     topology_events: ``(frame, description)`` where the input's topology (connected parts,
     genus) differs from the previous frame's: parts touching or separating, a hole closing.
-    The conversion keeps one template through them (one segment): the fixed topology follows
-    parts into contact; what it cannot do is tear a part the template has fused, which is why
-    the key frame is the one with the most surface (parts most apart).
+    ``to_fixed_topology`` keeps one template through them: the fixed topology follows parts into
+    contact; what it cannot do is tear a part the template has fused (it leaves a ``web``), which
+    is why the key frame is the one with the most surface (parts most apart), and why
+    :func:`to_piecewise_fixed` starts a new template at such an event.
     key_trials: ``(key frame, mean coverage, mean Chamfer distance to the input [m^2],
     seconds)`` of every run when the run from the automatic key frame covered frames poorly and
     the conversion was run again from other key frames (``key_candidates``); the kept run is
