@@ -1171,6 +1171,9 @@ def to_piecewise_fixed(seq, strategy: str = DEFAULT_STRATEGY, template=None, dev
         ev = [t for t, _ in events if K < t <= b]
         a = max(ev) if ev else b
         new = convert(a, T)
+        if new is None and stopped():  # stopped by the caller meanwhile: the frames 0..b done
+            first.conversion.seconds_all = time.perf_counter() - start
+            return first
         if new is not None and _badness(new.conversion)[:b + 1 - a].max() < _badness(first.conversion)[a:].max():
             keep = _slice_result(first, 0, a, 0)
             left = _split_segments(0, keep, events, limit - 1, convert)

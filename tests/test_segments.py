@@ -158,6 +158,25 @@ def test_a_rejected_cut_gives_the_one_template_run(tearing, monkeypatch):
     np.testing.assert_array_equal(res.V, to_fixed_topology(seq, device=TEST_DEVICE).V)
 
 
+def test_a_stop_during_the_new_template_keeps_the_frames_done(tearing, monkeypatch):
+    """Ctrl-C while the new template's run goes: the result is the first run's frames 0..b (the
+    forward pass stopped at b), not a rerun cut short after one frame."""
+    from dynmesh_warp import convert
+
+    seq, _ = tearing
+    flag = []
+    real = convert.to_fixed_topology
+
+    def sub_run(*a, **k):  # the new template's run: the user stops it
+        flag.append(1)
+        return real(*a, **k)
+
+    monkeypatch.setattr(convert, "to_fixed_topology", sub_run)
+    res = to_piecewise_fixed(seq, device=TEST_DEVICE, should_stop=lambda: bool(flag))
+    assert flag and isinstance(res, FixedTopologySequence)
+    assert 12 < res.num_frames < 24 and res.conversion.first_frame == 0  # frames 0..b, b past the tear
+
+
 def test_one_template_when_it_holds():
     """A rigid motion needs no new template: to_piecewise_fixed returns to_fixed_topology's result."""
     from dynmesh_warp.scenes import icosphere, rigid_motion
