@@ -97,10 +97,15 @@ class Viewer:
         self.log = log
         self.record_path = Path(record) if record else None
         surf = world.surface
-        try:
-            self.faces = surf.faces().astype(np.uint32)
-        except ValueError:
-            raise ValueError("the viewer needs a fixed-topology surface (convert the sequence first)") from None
+        if gaussians is not None:
+            try:
+                surf.faces()  # Gaussians are bound to faces every frame shares
+            except ValueError:
+                raise ValueError("Gaussians need a fixed-topology surface (convert the sequence first, "
+                                 "with one template: --option max_segments=1)") from None
+        # the faces shown: the current ones (a piecewise-fixed surface changes them per segment, _send)
+        indices = world.surface_indices()
+        self.faces, self._faces_ptr = indices.numpy().reshape(-1, 3).astype(np.uint32), indices.ptr
         V0, _ = surf.host_mesh_at(0.0)
         self.scene_scale = float(np.linalg.norm(V0.max(0) - V0.min(0))) or 1.0
         self.min_scale = min_scale_rel * self.scene_scale
@@ -377,7 +382,14 @@ class Viewer:
             self._gaussians_stale = False
         with self.server.atomic():
             if (moved or self._stale["mesh"]) and self.mesh.visible:
-                self.mesh.vertices = self._points()
+                indices = w.surface_indices()
+                if indices.ptr != self._faces_ptr:  # a new segment of a piecewise-fixed surface: its faces
+                    self.faces, self._faces_ptr = indices.numpy().reshape(-1, 3).astype(np.uint32), indices.ptr
+                    self.mesh.remove()
+                    self.mesh = self.server.scene.add_mesh_simple("/mesh", self._points(), self.faces,
+                                                                  color=self.mesh_color, side="double")
+                else:
+                    self.mesh.vertices = self._points()
                 self._stale["mesh"] = False
             elif moved:
                 self._stale["mesh"] = True
@@ -759,8 +771,16 @@ def run_viewer(cfg, device=None, viewer: str = "viser", port: int = 8080, host: 
             from .runtime import check_total_work, run_steps
 
             check_total_work(cfg, steps if steps is not None else run_steps(cfg), world.substeps)
-        # not attached to the step: the viewer updates them once per frame it sends
-        g = gaussians_for_surface(world.model.surface.sequence, cfg, world.device)
+        # not attached to the step: the viewer updates them once per frame it sends. A varying
+        # (e.g. piecewise-fixed) surface has no faces every frame shares to bind them to: the mesh
+        # is shown instead, its faces changing per segment
+        g = None
+        if world.model.surface.topology == "fixed":
+            g = gaussians_for_surface(world.model.surface.sequence, cfg, world.device)
+        else:
+            log(f"note: the surface's topology changes ({len(world.model.surface.sequence.segments())} segments): "
+                "showing the mesh without Gaussians, which are bound to one template's faces (convert with "
+                "--option max_segments=1 for one template)")
         world.render_state = True  # the vertex buffer current after every step, for the splats and mesh
         v = Viewer(world, g, port=port, host=host, fps=fps, record=record, realtime=(viewer == "viser"), log=log,
                    **kw)
@@ -771,19 +791,20 @@ def run_viewer(cfg, device=None, viewer: str = "viser", port: int = 8080, host: 
 
         steps = run_steps(cfg)
     max_frames = None if steps is None else max(1, int(np.ceil(steps * dt / v.frame_dt)))
+    count = g.count if g is not None else 0
     if record and max_frames is not None:  # what a long recording will cost, before it is made
         grouped = v.stream is not None
-        splats = v.stream.K * 64 if grouped else g.count * 32  # per frame: the groups' poses, or the buffer
-        per_frame = splats + (world.surface.num_vertices * 12 if v.mesh.visible else 0) + \
+        splats = v.stream.K * 64 if grouped else count * 32  # per frame: the groups' poses, or the buffer
+        per_frame = splats + (len(v._points()) * 12 if v.mesh.visible else 0) + \
             len(world.sphere_radii()) * 12
-        est = max_frames * per_frame + (g.count * 32 if grouped else 0)
-        what = (f"the splats once ({g.count * 32 / 2**20:,.1f} MB) and the poses of {v.stream.K} groups per frame"
-                if grouped else f"{g.count:,} splats x 32 B per frame")
+        est = max_frames * per_frame + (count * 32 if grouped else 0)
+        what = (f"the splats once ({count * 32 / 2**20:,.1f} MB) and the poses of {v.stream.K} groups per frame"
+                if grouped else f"{count:,} splats x 32 B per frame")
         log(f"recording {max_frames:,} frames at {v.fps:g} fps: up to {est / 2**20:,.1f} MB before compression "
             f"({what}{', the mesh' if v.mesh.visible else ''}, the spheres)")
     if viewer == "viser":
         log(f"viewer: http://{'localhost' if host in ('0.0.0.0', '127.0.0.1') else host}:{v.port} "
-            f"({g.count} Gaussians, {what}); Ctrl-C to quit")
+            f"({count} Gaussians, {what}); Ctrl-C to quit")
     from .cli import checking_stops
 
     try:
@@ -791,5 +812,5 @@ def run_viewer(cfg, device=None, viewer: str = "viser", port: int = 8080, host: 
     finally:
         with checking_stops():  # the recording is written whole, the server stopped, even on a signal
             v.close()
-    return {"frames": v.frame, "sim_time_s": world.time, "gaussians": g.count, "port": v.port,
+    return {"frames": v.frame, "sim_time_s": world.time, "gaussians": count, "port": v.port,
             "record": str(record) if record else None, "interrupted_by": reason}

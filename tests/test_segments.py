@@ -313,3 +313,36 @@ def test_a_piecewise_sequence_plays_in_a_scene_with_the_automatic_collider(tmp_p
     with pytest.warns(UserWarning, match="surface.conversion: web on"):
         w = build_world(cfg, device=TEST_DEVICE)
     assert w.model.surface.topology == "fixed"
+
+
+def test_the_viewer_shows_each_segments_faces(tmp_path):
+    """A recording of a piecewise-fixed surface: the mesh node is replaced at the segment change
+    (the replayed scene ends on the second segment's faces and vertices); no Gaussians (they are
+    bound to one template's faces)."""
+    pytest.importorskip("viser")
+    from dynmesh_warp.config import load_scene_config
+    from dynmesh_warp.viewer import SceneStateTracker, decode_viser_recording, run_viewer
+
+    seq = _piecewise_sheet()
+    src = tmp_path / "sheet.npz"
+    save_sequence(seq, src)
+    cfg = load_scene_config(data={"name": "t", "surface": {"source": str(src), "playback": "clamp"},
+                                  "physics": {"ground": None}, "spheres": [{"position": [0.0, 0.0, 0.6],
+                                                                            "radius": 0.05}]})
+    rec = tmp_path / "rec.viser"
+    out = run_viewer(cfg, device=TEST_DEVICE, viewer="none", record=str(rec), steps=96, log=lambda *a: None)
+    assert out["gaussians"] == 0
+    replay = SceneStateTracker()
+    faces_seen = []
+    for _, m in decode_viser_recording(rec.read_bytes())["messages"]:
+        replay.apply(m)
+        if "/mesh" in replay.nodes and "faces" in replay.nodes["/mesh"]:
+            f = replay.nodes["/mesh"]["faces"].reshape(-1, 3)
+            if not faces_seen or not np.array_equal(faces_seen[-1], f):
+                faces_seen.append(f.copy())
+    # 0.4 s at 24 fps: frames 0..9, segments (0, 6) and (6, 11)
+    assert len(faces_seen) == 2
+    np.testing.assert_array_equal(faces_seen[0], seq.frames[0][1])
+    np.testing.assert_array_equal(faces_seen[1], seq.frames[6][1])
+    k = int(np.floor(out["sim_time_s"] * seq.fps))
+    assert 6 <= k < 11
