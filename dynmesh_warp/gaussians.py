@@ -120,7 +120,8 @@ class Gaussians:
         try:
             world.model.surface.faces()  # Gaussians are bound to faces every frame shares
         except ValueError:
-            raise ValueError("Gaussians need a fixed-topology surface (convert the sequence first)") from None
+            raise ValueError("Gaussians need a fixed-topology surface (convert the sequence first; a piecewise-fixed "
+                             "one, with template segments, with one template: --option max_segments=1)") from None
         if world.device != self.device:
             raise ValueError(f"Gaussians are on {self.device}, the world on {world.device}")
         self.update(world.state.points, world.current_indices())
@@ -282,7 +283,8 @@ def gaussians_for_surface(seq, cfg=None, device=None) -> Gaussians:
     from .splat_io import read_splat_ply
 
     if not hasattr(seq, "V"):
-        raise ValueError("Gaussians need a fixed-topology surface (convert the sequence first)")
+        raise ValueError("Gaussians need a fixed-topology surface (convert the sequence first; a piecewise-fixed "
+                         "one, with template segments, with one template: --option max_segments=1)")
     gcfg = getattr(cfg, "gaussians", None) if cfg is not None else None
     if gcfg is not None and gcfg.splats:
         return bind_splats(read_splat_ply(cfg.resolve(gcfg.splats)), seq.V[0], seq.F, device=device)
