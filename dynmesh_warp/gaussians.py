@@ -27,6 +27,8 @@ __all__ = [
     "GaussianState",
     "Gaussians",
     "bind_splats",
+    "rebind",
+    "SegmentedGaussians",
     "generate_gaussians",
     "gaussians_for_surface",
     "gaussians_for_world",
@@ -196,33 +198,104 @@ def bind_splats(cloud: SplatCloud, V, F, device=None, max_dist: float = 1.0e30) 
     V, F = validate_mesh(V, F, source="bind_splats mesh")
     device = wp.get_device(device)
     _check_splats(cloud)
-    G = len(cloud)
-    pts = wp.array(V, dtype=wp.vec3, device=device)
-    idx = wp.array(F.reshape(-1), dtype=wp.int32, device=device)
-    centers = wp.array(cloud.positions.astype(np.float32), dtype=wp.vec3, device=device)
+    bound = _bind_world(cloud.positions, quat_wxyz_to_xyzw(cloud.rotations_wxyz()), cloud.scales(), V, F, device,
+                        cloud.source, max_dist)
+    binding = GaussianBinding(*bound, cloud.rgb(), cloud.opacities(), num_faces=F.shape[0], f_rest=cloud.f_rest,
+                              device=device)
+    return Gaussians(binding)
+
+
+def _bind_world(centers, rotations_xyzw, scales, V, F, device, source: str, max_dist: float = 1.0e30) -> tuple:
+    """World Gaussians (centres (G, 3) [m], rotations (G, 4) quat x, y, z, w, std devs (G, 3) [m])
+    bound to the mesh (V, F): each to its nearest face, in that face's frame. Returns the
+    binding's (face, bary, offset, local rotation, local scale) as NumPy arrays."""
+    G = len(centers)
+    pts = wp.array(np.asarray(V, np.float32), dtype=wp.vec3, device=device)
+    idx = wp.array(np.asarray(F, np.int32).reshape(-1), dtype=wp.int32, device=device)
+    c = wp.array(np.asarray(centers, np.float32), dtype=wp.vec3, device=device)
     face = wp.zeros(G, dtype=wp.int32, device=device)
     bary = wp.zeros(G, dtype=wp.vec3, device=device)
     if G:
         mesh = wp.Mesh(points=pts, indices=idx)
         closest = wp.zeros(G, dtype=wp.vec3, device=device)
         dist = wp.zeros(G, dtype=float, device=device)
-        wp.launch(project_points_to_mesh, dim=G, inputs=[mesh.id, centers, float(max_dist)],
+        wp.launch(project_points_to_mesh, dim=G, inputs=[mesh.id, c, float(max_dist)],
                   outputs=[closest, face, bary, dist], device=device)
         f = face.numpy()
         if (f < 0).any():
-            raise ValueError(f"{cloud.source}: {(f < 0).sum()} splats are farther than {max_dist} from the mesh")
-    rot = wp.array(quat_wxyz_to_xyzw(cloud.rotations_wxyz()).astype(np.float32), dtype=wp.quat, device=device)
-    scl = wp.array(cloud.scales().astype(np.float32), dtype=wp.vec3, device=device)
+            raise ValueError(f"{source}: {(f < 0).sum()} splats are farther than {max_dist} from the mesh")
+    rot = wp.array(np.asarray(rotations_xyzw, np.float32), dtype=wp.quat, device=device)
+    scl = wp.array(np.asarray(scales, np.float32), dtype=wp.vec3, device=device)
     offset = wp.zeros(G, dtype=float, device=device)
     lrot = wp.zeros(G, dtype=wp.quat, device=device)
     lscl = wp.zeros(G, dtype=wp.vec3, device=device)
     if G:
-        wp.launch(bind_gaussians_to_faces, dim=G, inputs=[pts, idx, face, centers, rot, scl],
+        wp.launch(bind_gaussians_to_faces, dim=G, inputs=[pts, idx, face, c, rot, scl],
                   outputs=[bary, offset, lrot, lscl], device=device)
-    binding = GaussianBinding(face.numpy(), bary.numpy(), offset.numpy(), lrot.numpy(), lscl.numpy(),
-                              cloud.rgb(), cloud.opacities(), num_faces=F.shape[0], f_rest=cloud.f_rest,
-                              device=device)
-    return Gaussians(binding)
+    return face.numpy(), bary.numpy(), offset.numpy(), lrot.numpy(), lscl.numpy()
+
+
+def rebind(gaussians: Gaussians, V_from, F_from, V_to, F_to) -> Gaussians:
+    """The same Gaussians on another mesh: posed on (V_from, F_from) (the mesh they are bound to,
+    at some frame), then each bound to its nearest face of (V_to, F_to) with its world rotation
+    and scale kept; colours, opacities and SH carried over. So splats continue across a change
+    of template (a new segment of a piecewise-fixed sequence): at the frame where both meshes
+    show the surface, the rebound Gaussians are where the old ones were (to the offset along the
+    normal that the new face's frame takes up)."""
+    d = gaussians.device
+    F_from = np.asarray(F_from, np.int32)
+    gaussians.update(wp.array(np.asarray(V_from, np.float32), dtype=wp.vec3, device=d),
+                     wp.array(F_from.reshape(-1), dtype=wp.int32, device=d))
+    s, b = gaussians.state, gaussians.binding
+    V_to, F_to = validate_mesh(V_to, F_to, source="rebind mesh")
+    bound = _bind_world(s.centers.numpy(), s.rotations.numpy(), s.scales.numpy(), V_to, F_to, d, "rebind")
+    return Gaussians(GaussianBinding(*bound, b.rgb, b.opacity, num_faces=F_to.shape[0], f_rest=b.f_rest, device=d))
+
+
+class SegmentedGaussians:
+    """Gaussians over a piecewise-fixed sequence (template segments, ``convert``'s output where
+    one template could not follow): one :class:`Gaussians` per segment, each carried over from
+    the previous segment's last frame onto its own first frame (:func:`rebind`). ``update(points,
+    indices)`` takes the segment whose faces ``indices`` are (found once per index buffer) and
+    poses it; every other attribute (``count``, ``state``, ``binding``, ...) is the current
+    segment's. The count, colours and opacities are the same in every segment."""
+
+    def __init__(self, seq, first: Gaussians):
+        runs = seq.segments()
+        self.parts = [first]
+        for (_, b), (c, _) in zip(runs, runs[1:]):
+            self.parts.append(rebind(self.parts[-1], *seq.frames[b - 1], *seq.frames[c]))
+        self.faces = [np.asarray(seq.frames[a][1]) for a, _ in runs]
+        self.current = first
+        self._by_ptr = {}
+
+    def __getattr__(self, name):
+        return getattr(self.__dict__["current"], name)
+
+    def segment_of(self, indices: wp.array) -> int:
+        """The segment whose faces the index buffer holds (compared once per buffer)."""
+        key = (indices.ptr, indices.shape[0])
+        if key not in self._by_ptr:
+            F = indices.numpy().reshape(-1, 3)
+            hits = [k for k, f in enumerate(self.faces) if f.shape == F.shape and np.array_equal(f, F)]
+            if not hits:
+                raise ValueError("SegmentedGaussians.update: these faces are no segment's of the sequence")
+            # the buffer is kept alive with its answer, so that its address is not reused by another
+            self._by_ptr[key] = (indices, hits[0])
+        return self._by_ptr[key][1]
+
+    def update(self, points: wp.array, indices: wp.array):
+        self.current = self.parts[self.segment_of(indices)]
+        self.current.update(points, indices)
+
+    def attach(self, world) -> "SegmentedGaussians":
+        """Update after every step of ``world`` (a post-step hook; a piecewise-fixed surface is
+        stepped eagerly, its index buffer changing per segment)."""
+        if world.device != self.device:
+            raise ValueError(f"Gaussians are on {self.device}, the world on {world.device}")
+        self.update(world.state.points, world.current_indices())
+        world.add_post_step_hook(lambda w: self.update(w.state.points, w.current_indices()))
+        return self
 
 
 def generate_gaussians(V, F, count: int = 20000, seed: int = 0, vertex_colors=None, color=DEFAULT_COLOR,
@@ -279,18 +352,23 @@ def gaussians_for_world(world, cfg=None) -> Gaussians:
 
 def gaussians_for_surface(seq, cfg=None, device=None) -> Gaussians:
     """Gaussians for a fixed-topology sequence as a scene asks (``cfg.gaussians``): bound to, or
-    generated on, its first frame. Not attached: call ``update(points, indices)`` yourself."""
+    generated on, its first frame. Not attached: call ``update(points, indices)`` yourself. A
+    piecewise-fixed sequence (template segments) gets :class:`SegmentedGaussians`: the same
+    Gaussians carried from segment to segment."""
     from .splat_io import read_splat_ply
 
-    if not hasattr(seq, "V"):
-        raise ValueError("Gaussians need a fixed-topology surface (convert the sequence first; a piecewise-fixed "
-                         "one, with template segments, with one template: --option max_segments=1)")
+    segmented = not hasattr(seq, "V") and len(seq.segments()) <= seq.num_frames // 2
+    if not hasattr(seq, "V") and not segmented:
+        raise ValueError("Gaussians need a fixed-topology surface (convert the sequence first)")
+    V0, F0 = seq.frame(0)
     gcfg = getattr(cfg, "gaussians", None) if cfg is not None else None
     if gcfg is not None and gcfg.splats:
-        return bind_splats(read_splat_ply(cfg.resolve(gcfg.splats)), seq.V[0], seq.F, device=device)
-    kw = {} if gcfg is None else {"count": gcfg.count, "seed": gcfg.seed, "color": gcfg.color,
-                                  "opacity": gcfg.opacity}
-    return generate_gaussians(seq.V[0], seq.F, device=device, **kw)
+        g = bind_splats(read_splat_ply(cfg.resolve(gcfg.splats)), V0, F0, device=device)
+    else:
+        kw = {} if gcfg is None else {"count": gcfg.count, "seed": gcfg.seed, "color": gcfg.color,
+                                      "opacity": gcfg.opacity}
+        g = generate_gaussians(V0, F0, device=device, **kw)
+    return SegmentedGaussians(seq, g) if segmented else g
 
 
 #: ambient level of the splats' shading (the viewer's key light, the renderer's head light)

@@ -97,12 +97,14 @@ class Viewer:
         self.log = log
         self.record_path = Path(record) if record else None
         surf = world.surface
-        if gaussians is not None:
+        from .gaussians import SegmentedGaussians
+
+        if gaussians is not None and not isinstance(gaussians, SegmentedGaussians):
             try:
-                surf.faces()  # Gaussians are bound to faces every frame shares
+                surf.faces()  # Gaussians are bound to faces every frame shares (or carried per segment)
             except ValueError:
-                raise ValueError("Gaussians need a fixed-topology surface (convert the sequence first, "
-                                 "with one template: --option max_segments=1)") from None
+                raise ValueError("Gaussians need a fixed-topology surface, or SegmentedGaussians for a piecewise-"
+                                 "fixed one (gaussians_for_surface)") from None
         # the faces shown: the current ones (a piecewise-fixed surface changes them per segment, _send)
         indices = world.surface_indices()
         self.faces, self._faces_ptr = indices.numpy().reshape(-1, 3).astype(np.uint32), indices.ptr
@@ -774,13 +776,12 @@ def run_viewer(cfg, device=None, viewer: str = "viser", port: int = 8080, host: 
         # not attached to the step: the viewer updates them once per frame it sends. A varying
         # (e.g. piecewise-fixed) surface has no faces every frame shares to bind them to: the mesh
         # is shown instead, its faces changing per segment
-        g = None
-        if world.model.surface.topology == "fixed":
+        try:
             g = gaussians_for_surface(world.model.surface.sequence, cfg, world.device)
-        else:
-            log(f"note: the surface's topology changes ({len(world.model.surface.sequence.segments())} segments): "
-                "showing the mesh without Gaussians, which are bound to one template's faces (convert with "
-                "--option max_segments=1 for one template)")
+        except ValueError:  # a truly varying surface: no faces to bind them to from frame to frame
+            g = None
+            log("note: the surface's topology changes every frame: showing the mesh without Gaussians "
+                "(convert the sequence to bind them)")
         world.render_state = True  # the vertex buffer current after every step, for the splats and mesh
         v = Viewer(world, g, port=port, host=host, fps=fps, record=record, realtime=(viewer == "viser"), log=log,
                    **kw)

@@ -316,12 +316,13 @@ def test_a_piecewise_sequence_plays_in_a_scene_with_the_automatic_collider(tmp_p
 
 
 def test_the_viewer_shows_each_segments_faces(tmp_path):
-    """A recording of a piecewise-fixed surface: the mesh node is replaced at the segment change
-    (the replayed scene ends on the second segment's faces and vertices); no Gaussians (they are
-    bound to one template's faces)."""
+    """A recording of a piecewise-fixed surface: its Gaussians are carried from segment to
+    segment; with the mesh shown, the mesh node is replaced at the segment change (the replayed
+    scene shows the first, then the second segment's faces)."""
     pytest.importorskip("viser")
     from dynmesh_warp.config import load_scene_config
-    from dynmesh_warp.viewer import SceneStateTracker, decode_viser_recording, run_viewer
+    from dynmesh_warp.scene import build_world
+    from dynmesh_warp.viewer import SceneStateTracker, Viewer, decode_viser_recording, run_viewer
 
     seq = _piecewise_sheet()
     src = tmp_path / "sheet.npz"
@@ -329,9 +330,17 @@ def test_the_viewer_shows_each_segments_faces(tmp_path):
     cfg = load_scene_config(data={"name": "t", "surface": {"source": str(src), "playback": "clamp"},
                                   "physics": {"ground": None}, "spheres": [{"position": [0.0, 0.0, 0.6],
                                                                             "radius": 0.05}]})
-    rec = tmp_path / "rec.viser"
-    out = run_viewer(cfg, device=TEST_DEVICE, viewer="none", record=str(rec), steps=96, log=lambda *a: None)
-    assert out["gaussians"] == 0
+    out = run_viewer(cfg, device=TEST_DEVICE, viewer="none", record=str(tmp_path / "g.viser"), steps=96,
+                     log=lambda *a: None)
+    assert out["gaussians"] == cfg.gaussians.count  # carried from segment to segment (SegmentedGaussians)
+    world = build_world(cfg, device=TEST_DEVICE)
+    world.render_state = True
+    rec = tmp_path / "mesh.viser"
+    v = Viewer(world, None, port=0, record=str(rec), realtime=False, log=lambda *a: None)
+    try:
+        v.run(max_frames=12)  # 0.4 s at 30 fps: frames 0..9, segments (0, 6) and (6, 11)
+    finally:
+        v.close()
     replay = SceneStateTracker()
     faces_seen = []
     for _, m in decode_viser_recording(rec.read_bytes())["messages"]:
@@ -340,9 +349,65 @@ def test_the_viewer_shows_each_segments_faces(tmp_path):
             f = replay.nodes["/mesh"]["faces"].reshape(-1, 3)
             if not faces_seen or not np.array_equal(faces_seen[-1], f):
                 faces_seen.append(f.copy())
-    # 0.4 s at 24 fps: frames 0..9, segments (0, 6) and (6, 11)
     assert len(faces_seen) == 2
     np.testing.assert_array_equal(faces_seen[0], seq.frames[0][1])
     np.testing.assert_array_equal(faces_seen[1], seq.frames[6][1])
-    k = int(np.floor(out["sim_time_s"] * seq.fps))
-    assert 6 <= k < 11
+    assert 6 <= int(np.floor(world.time * seq.fps)) < 11
+
+
+def test_rebind_keeps_the_world_gaussians_and_segments_carry_them():
+    """rebind onto the same surface with its faces reordered (and their vertices rotated) gives the
+    same world Gaussians (centres, covariances); SegmentedGaussians poses the segment whose faces
+    it is given, with one count, and is continuous at a segment change where the two templates
+    show the same surface."""
+    from dynmesh_warp.gaussians import SegmentedGaussians, generate_gaussians, rebind
+
+    V0, F = grid_sheet(9, 2.0)
+    V = V0.astype(np.float32).copy()
+    V[:, 2] = 0.1 * np.sin(2.0 * V[:, 0]) * np.cos(1.5 * V[:, 1])
+    perm = np.random.default_rng(1).permutation(len(F))
+    F2 = np.ascontiguousarray(F[perm][:, [2, 0, 1]])
+    g = generate_gaussians(V, F, count=300, seed=3, device=TEST_DEVICE)
+    pts = wp.array(V, dtype=wp.vec3, device=TEST_DEVICE)
+    g.update(pts, wp.array(F.reshape(-1), dtype=wp.int32, device=TEST_DEVICE))
+    want = g.numpy()
+    h = rebind(g, V, F, V, F2)
+    h.update(pts, wp.array(F2.reshape(-1), dtype=wp.int32, device=TEST_DEVICE))
+    got = h.numpy()
+    assert h.count == g.count and np.array_equal(h.binding.rgb, g.binding.rgb)
+    np.testing.assert_allclose(got["centers"], want["centers"], atol=1e-5)
+    np.testing.assert_allclose(got["covariances"], want["covariances"], atol=1e-6)
+    # a sequence whose two segments show the same surface at the boundary (frames 2 and 3)
+    seq = VaryingTopologySequence([(V, F), (V + [0, 0, 0.01], F), (V + [0, 0, 0.02], F),
+                                   (V + [0, 0, 0.02], F2), (V + [0, 0, 0.03], F2)], fps=24.0)
+    sg = SegmentedGaussians(seq, generate_gaussians(V, F, count=300, seed=3, device=TEST_DEVICE))
+    centres = []
+    for t in (2, 3):
+        v, f = seq.frames[t]
+        sg.update(wp.array(v, dtype=wp.vec3, device=TEST_DEVICE), wp.array(f.reshape(-1), dtype=wp.int32,
+                                                                          device=TEST_DEVICE))
+        assert sg.current is sg.parts[0 if t < 3 else 1] and sg.count == 300
+        centres.append(sg.numpy()["centers"])
+    np.testing.assert_allclose(centres[1], centres[0], atol=1e-5)
+
+
+def test_gaussians_follow_a_piecewise_world_across_its_segments():
+    """gaussians_for_world on a segmented surface: one count throughout, the segment's own
+    binding after each change, the centres on the current surface."""
+    from dynmesh_warp.gaussians import SegmentedGaussians, gaussians_for_world
+
+    seq = _piecewise_sheet()
+    surf = VaryingSurfaceModel(seq, TEST_DEVICE, playback="clamp")
+    model = Model(surf, SphereModel([0.05], 1.0, TEST_DEVICE), PhysicsParams(dt=DT))
+    w = World(model, State(model, [[0.0, 0.0, 0.8]]), collider="rebuild")
+    g = gaussians_for_world(w)
+    assert isinstance(g, SegmentedGaussians) and len(g.parts) == 3
+    seen = set()
+    for _ in range(120):  # 0.5 s: frames 0..11, all three segments
+        w.step()
+        seen.add(g.parts.index(g.current))
+        c = g.numpy()["centers"]
+        V, F = surf.host_mesh_at(w.time)
+        d = brute_nearest(c[::25], V, F)[0]
+        assert g.count == g.parts[0].count and np.isfinite(c).all() and d.max() < 0.05
+    assert seen == {0, 1, 2}
