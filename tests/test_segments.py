@@ -153,9 +153,11 @@ def test_a_rejected_cut_gives_the_one_template_run(tearing, monkeypatch):
     seq, _ = tearing
     real = convert._badness
     monkeypatch.setattr(convert, "_badness", lambda info: real(info) + (1e9 if info.num_frames < 24 else 0.0))
-    res = to_piecewise_fixed(seq, device=TEST_DEVICE)
+    # a GPU fit sums with float atomics: its deterministic mode makes two runs comparable to the bit
+    opts = {"deterministic": True} if str(TEST_DEVICE).startswith("cuda") else {}
+    res = to_piecewise_fixed(seq, device=TEST_DEVICE, **opts)
     assert isinstance(res, FixedTopologySequence) and len(res.conversion.segments) == 1
-    np.testing.assert_array_equal(res.V, to_fixed_topology(seq, device=TEST_DEVICE).V)
+    np.testing.assert_array_equal(res.V, to_fixed_topology(seq, device=TEST_DEVICE, **opts).V)
 
 
 def test_a_stop_during_the_new_template_keeps_the_frames_done(tearing, monkeypatch):
