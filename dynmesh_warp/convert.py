@@ -62,7 +62,7 @@ import warp as wp
 from .choices import DEFAULT_STRATEGY, STRATEGIES
 from .conversion_options import options_for
 from .deform_graph import GraphFitter, build_deformation_graph, extrapolate_rotations
-from .geometry import surface_area
+from .geometry import face_areas, surface_area
 from .kernels import convert as kc
 from .kernels.geometry import project_points_to_mesh
 from .metrics import chamfer_distance
@@ -255,17 +255,19 @@ def web_fraction(X: np.ndarray, F: np.ndarray, X_key: np.ndarray, V_ref: np.ndar
     stretch = WEB_STRETCH if stretch is None else stretch
     gap = WEB_GAP if gap is None else gap
     F = np.asarray(F)
-    tri = np.asarray(X, np.float64)[F]
-    tri0 = np.asarray(X_key, np.float64)[F]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    area = face_areas(X, F)
     total = float(area.sum())
-    edge = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(axis=1)
-    edge0 = np.linalg.norm(tri0 - np.roll(tri0, 1, axis=1), axis=2).max(axis=1)
-    cand = np.flatnonzero(edge > stretch * np.maximum(edge0, 1e-30))
+    cand = np.flatnonzero(_longest_edges(X, F) > stretch * np.maximum(_longest_edges(X_key, F), 1e-30))
     if not total > 0 or cand.size == 0:
         return 0.0
-    d = nearest_surface((V_ref, F_ref), tri[cand].mean(axis=1), device=device).dist
+    d = nearest_surface((V_ref, F_ref), np.asarray(X, np.float64)[F[cand]].mean(axis=1), device=device).dist
     return float(area[cand][d > gap * _bbox_diag(np.asarray(V_ref))].sum() / total)
+
+
+def _longest_edges(V, F) -> np.ndarray:
+    """(M,) the longest edge of each triangle of (V, F) [units of V]."""
+    tri = np.asarray(V, np.float64)[np.asarray(F).reshape(-1, 3)]
+    return np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(axis=1)
 
 
 def _keep_faces(v: np.ndarray, f: np.ndarray, keep: np.ndarray) -> tuple:
@@ -316,9 +318,8 @@ class _Converter:
         self.T = arr(TV, wp.vec3)
         self.TF = arr(TF.reshape(-1), wp.int32)
         self.X = wp.clone(self.T)
-        tri = np.asarray(TV, np.float64)[np.asarray(TF).reshape(-1, 3)]
-        self.key_edge = arr(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(axis=1).astype(np.float32),
-                            float)  # (M,) each face's longest edge in the template [m] (the web's reference)
+        # (M,) each face's longest edge in the template [m] (the web's reference)
+        self.key_edge = arr(_longest_edges(TV, TF).astype(np.float32), float)
         self.web_area = wp.zeros(2, dtype=float, device=d)
         self.first = True  # the next frame is the first one converted (starts from the template)
         self.frame_coverage = None  # set by a step that already measured its result's coverage [m]
@@ -1142,6 +1143,13 @@ def to_piecewise_fixed(seq, strategy: str = DEFAULT_STRATEGY, template=None, dev
         (:class:`ConversionInfo`) lists the ``segments``.
     """
     start = time.perf_counter()
+    res = _to_piecewise(seq, strategy, template, device, progress, should_stop, options)
+    res.conversion.seconds_all = time.perf_counter() - start
+    return res
+
+
+def _to_piecewise(seq, strategy, template, device, progress, should_stop, options: dict):
+    """The body of :func:`to_piecewise_fixed` (which times it)."""
     o = _resolve_options(strategy, options)
     vseq = _as_varying(seq)
     T = vseq.num_frames
@@ -1172,31 +1180,23 @@ def to_piecewise_fixed(seq, strategy: str = DEFAULT_STRATEGY, template=None, dev
         a = max(ev) if ev else b
         new = convert(a, T)
         if new is None and stopped():  # stopped by the caller meanwhile: the frames 0..b done
-            first.conversion.seconds_all = time.perf_counter() - start
             return first
         if new is not None and _badness(new.conversion)[:b + 1 - a].max() < _badness(first.conversion)[a:].max():
             keep = _slice_result(first, 0, a, 0)
             left = _split_segments(0, keep, events, limit - 1, convert)
             segs = left + _split_segments(a, new, events, limit - len(left), convert)
-            out = _join_segments(vseq, sorted(segs, key=lambda x: x[0]), first.conversion, events)
-            out.conversion.seconds_all = time.perf_counter() - start
-            return out
+            return _join_segments(vseq, sorted(segs, key=lambda x: x[0]), first.conversion, events)
         # the new template is not better there: one template for every frame, as without the stop
         res = to_fixed_topology(vseq, strategy, None, device, progress, should_stop, **options)
     if len(res.conversion.coverage) < T:  # stopped by the caller
-        res.conversion.seconds_all = time.perf_counter() - start
         return res
     segs = _split_segments(0, res, events, limit, convert)
-    out = segs[0][1] if len(segs) == 1 else _join_segments(vseq, segs, res.conversion, events)
-    out.conversion.seconds_all = time.perf_counter() - start
-    return out
+    return segs[0][1] if len(segs) == 1 else _join_segments(vseq, segs, res.conversion, events)
 
 
 def _badness(info) -> np.ndarray:
     """Per frame, how poor the fit is: max(coverage / POOR_COVERAGE, web / POOR_WEB); > 1 is poor."""
-    cov = np.asarray(info.coverage, float) / POOR_COVERAGE
-    web = np.asarray(info.web, float) / POOR_WEB if len(info.web) == len(cov) else np.zeros_like(cov)
-    return np.maximum(cov, web)
+    return np.maximum(np.asarray(info.coverage, float) / POOR_COVERAGE, np.asarray(info.web, float) / POOR_WEB)
 
 
 def _segment_cut(info, events: list, lo: int) -> tuple | None:
@@ -1242,15 +1242,24 @@ def _slice_result(res, a: int, b: int, lo: int):
     info = res.conversion
     i, j = a - lo, b - lo
     out = FixedTopologySequence(res.V[i:j], res.F, fps=res.fps, name=res.name, source=res.source)
-    sliced = dataclasses.replace(info, num_frames=j - i, key_frame=info.key_frame - i,
-                                 coverage=list(info.coverage[i:j]), web=list(info.web[i:j]),
-                                 frame_seconds=list(info.frame_seconds[i:j]))
-    for name in ("reanchored_frames", "repaired_frames", "unrecovered_frames"):
-        setattr(sliced, name, [t - i for t in getattr(info, name) if i <= t < j])
-    sliced.recovered_frames = [(t - i, src) for t, src in info.recovered_frames if i <= t < j]
-    sliced.ignored_parts = {t - i: x for t, x in info.ignored_parts.items() if i <= t < j}
-    sliced.key_trials = [(k - i, *rest) for k, *rest in info.key_trials]  # keys of the whole run's trials
-    out.conversion = sliced
+    out.conversion = dataclasses.replace(info, num_frames=j - i, key_frame=info.key_frame - i,
+                                         coverage=list(info.coverage[i:j]), web=list(info.web[i:j]),
+                                         frame_seconds=list(info.frame_seconds[i:j]), **_frame_fields(info, -i, i, j))
+    return out
+
+
+def _frame_fields(info, shift: int, lo: int | None = None, hi: int | None = None) -> dict:
+    """``info``'s fields that name frames, each frame index moved by ``shift`` (those of frames
+    lo..hi-1 only, when given; the key trials' key frames all): what a slice of a result or a
+    segment placed in a longer sequence carries."""
+    def kept(t):
+        return lo is None or lo <= t < hi
+
+    out = {name: [t + shift for t in getattr(info, name) if kept(t)]
+           for name in ("reanchored_frames", "repaired_frames", "unrecovered_frames")}
+    out["recovered_frames"] = [(t + shift, src) for t, src in info.recovered_frames if kept(t)]
+    out["ignored_parts"] = {t + shift: x for t, x in info.ignored_parts.items() if kept(t)}
+    out["key_trials"] = [(k + shift, *rest) for k, *rest in info.key_trials]
     return out
 
 
@@ -1269,11 +1278,11 @@ def _join_segments(vseq, segs: list, whole, events: list) -> VaryingTopologySequ
         info.coverage += c.coverage
         info.web += c.web
         info.frame_seconds += c.frame_seconds
-        for name in ("reanchored_frames", "repaired_frames", "unrecovered_frames"):
-            getattr(info, name).extend(t + lo for t in getattr(c, name))
-        info.recovered_frames += [(t + lo, src) for t, src in c.recovered_frames]
-        info.ignored_parts.update({t + lo: x for t, x in c.ignored_parts.items()})
-        info.key_trials += [(k + lo, *rest) for k, *rest in c.key_trials]
+        for name, value in _frame_fields(c, lo).items():
+            if isinstance(value, dict):
+                getattr(info, name).update(value)
+            else:
+                getattr(info, name).extend(value)
         info.segments.append((lo, lo + r.num_frames, c.key_frame + lo, r.num_vertices))
     info.topology_events, info.dropped_unused = list(events), whole.dropped_unused
     out.conversion = info
