@@ -357,7 +357,7 @@ def gaussians_for_surface(seq, cfg=None, device=None) -> Gaussians:
     Gaussians carried from segment to segment."""
     from .splat_io import read_splat_ply
 
-    segmented = not hasattr(seq, "V") and len(seq.segments()) <= seq.num_frames // 2
+    segmented = not hasattr(seq, "V") and seq.is_piecewise_fixed()
     if not hasattr(seq, "V") and not segmented:
         raise ValueError("Gaussians need a fixed-topology surface (convert the sequence first)")
     V0, F0 = seq.frame(0)

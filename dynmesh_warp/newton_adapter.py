@@ -522,9 +522,8 @@ def build_newton_world(cfg, device=None, sequence=None, num_worlds: int = 1, **o
         raise SceneError(f"newton: {e}") from e
     seq = load_surface(cfg) if sequence is None else prepare_surface(sequence, cfg)
     if not isinstance(seq, FixedTopologySequence):
-        runs = len(seq.segments())
-        what = (f"it has {runs} segments of fixed topology (convert's piecewise-fixed output); convert it with "
-                "--option max_segments=1 for one template, or " if runs <= seq.num_frames // 2 else "")
+        what = (f"it has {len(seq.segments())} segments of fixed topology (convert's piecewise-fixed output); "
+                "convert it with --option max_segments=1 for one template, or " if seq.is_piecewise_fixed() else "")
         raise SceneError(f"surface {cfg.surface.source}: the Newton path needs a fixed-topology surface; "
                          f"{what}set surface.conversion to convert it")
     # the one builder (scene.build_model): the surface on the device, the spheres, the ground

@@ -248,7 +248,7 @@ def build_world(cfg: SceneConfig, device=None, collider: str | None = None,
             why = "frames have different topology"
         except TopologyMismatchError as e:  # names the first frame that differs from frame 0
             why = e.summary
-        if Collider.FIXED.value in surface_model_class(seq).colliders_for(seq):  # piecewise-fixed
+        if isinstance(seq, VaryingTopologySequence) and seq.is_piecewise_fixed():
             raise SceneError(
                 f"surface {cfg.surface.source}: {why}; its {len(seq.segments())} segments of fixed topology "
                 f"(piecewise-fixed, as convert writes) need physics.collider: fixed (automatic) or "

@@ -258,6 +258,11 @@ class VaryingTopologySequence:
         runs.append((start, self.num_frames))
         return runs
 
+    def is_piecewise_fixed(self, runs: list | None = None) -> bool:
+        """At most half as many segments (``runs``, default :meth:`segments`) as frames: the
+        piecewise-fixed output ``convert`` writes, not a new mesh every frame."""
+        return len(self.segments() if runs is None else runs) <= self.num_frames // 2
+
     def to_fixed(self) -> FixedTopologySequence:
         """Stack into a fixed-topology sequence; raises if the frames disagree."""
         V0, F0 = self.frames[0]

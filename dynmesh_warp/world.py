@@ -186,13 +186,13 @@ class SurfaceModel:
     # the host mesh at a time, the faces every frame shares, the frame (k0, k1, alpha) it plays.
     #: colliders this surface supports
     colliders = tuple(values(Collider))
+    #: the topology, for reports (summary, checkpoint fingerprint)
+    topology = "fixed"
 
     @classmethod
     def colliders_for(cls, seq) -> tuple:
         """The colliders a surface of ``seq`` supports (known before any upload)."""
         return cls.colliders
-    #: the topology, for reports (summary, checkpoint fingerprint)
-    topology = "fixed"
 
     def resolve_collider(self, asked: str, choose) -> str:
         """``fixed`` (automatic): ``choose((swept, refit))`` (the measured faster one) when
@@ -279,7 +279,7 @@ class VaryingSurfaceModel:
         self.playback_name = playback
         self.playback = PLAYBACK_MODES[playback]
         self.interpolate = bool(interpolate) and any(b - a > 1 for a, b in runs)
-        self.colliders = self.colliders_for(seq)
+        self.colliders = self.colliders_for(seq, runs)
         step = max((float(np.linalg.norm(np.diff(V, axis=0), axis=-1).max()) for V in stacks if len(V) > 1),
                    default=0.0)
         self.max_frame_step = step  # largest vertex displacement between frames of one segment [m]
@@ -290,13 +290,12 @@ class VaryingSurfaceModel:
     topology = "varying"
 
     @classmethod
-    def colliders_for(cls, seq) -> tuple:
+    def colliders_for(cls, seq, runs: list | None = None) -> tuple:
         """``rebuild``; also ``fixed`` (the automatic choice, which takes ``rebuild``) for a
-        piecewise-fixed sequence (at most half as many segments as frames, as ``convert``
-        writes): a truly varying one is refused unless asked for by name, so that its user
+        piecewise-fixed sequence (``seq.is_piecewise_fixed()``; ``runs``: its segments when
+        known): a truly varying one is refused unless asked for by name, so that its user
         hears that converting it gives interpolation and the faster colliders."""
-        runs = seq.segments()
-        return cls.colliders + ((Collider.FIXED.value,) if len(runs) <= seq.num_frames // 2 else ())
+        return cls.colliders + ((Collider.FIXED.value,) if seq.is_piecewise_fixed(runs) else ())
 
     def resolve_collider(self, asked: str, choose) -> str:
         return Collider.REBUILD.value  # the automatic choice too: only "rebuild" follows it
@@ -655,18 +654,13 @@ class RebuildCollider(ColliderBase):
 
     def update(self, model: Model, state: State, ctx: StepContext):
         key = model.surface.segment_at(ctx.frame) if self.every == "segment" else ctx.frame_key(model)
-        if self.mesh is not None and self.every != "step" and key == self._key:
-            if self.every == "segment" and self.mesh.points.ptr == state.points.ptr:
-                shown = getattr(state, "frame_shown", None)  # a varying surface's last blend
-                if shown is None or shown != self._shown:
-                    self.mesh.refit()  # same faces, moved vertices (the buffer the mesh was built over)
-                    self._shown = shown
-                return
-            if self.every == "frame":
-                return
-        self.mesh = wp.Mesh(points=state.points, indices=ctx.indices(model), velocities=state.velocities)
-        self._key = key
-        self._shown = getattr(state, "frame_shown", None)
+        shown = getattr(state, "frame_shown", None)  # a varying surface's last blend (a fixed one moves every step)
+        if self.mesh is None or self.every == "step" or key != self._key:
+            self.mesh = wp.Mesh(points=state.points, indices=ctx.indices(model), velocities=state.velocities)
+            self._key, self._shown = key, shown
+        elif self.every == "segment" and (shown is None or shown != self._shown):
+            self.mesh.refit()  # the segment's faces, its vertices moved in the buffer the mesh was built over
+            self._shown = shown
 
     def collide(self, model: Model, state: State, contacts: "Contacts", ctx: StepContext):
         collide_mesh(model, state, contacts, ctx, self.mesh.id)
