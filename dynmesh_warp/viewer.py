@@ -105,9 +105,7 @@ class Viewer:
             except ValueError:
                 raise ValueError("Gaussians need a fixed-topology surface, or SegmentedGaussians for a piecewise-"
                                  "fixed one (gaussians_for_surface)") from None
-        # the faces shown: the current ones (a piecewise-fixed surface changes them per segment, _send)
-        indices = world.surface_indices()
-        self.faces, self._faces_ptr = indices.numpy().reshape(-1, 3).astype(np.uint32), indices.ptr
+        self._take_faces()  # the current faces (a piecewise-fixed surface changes them per segment, _send)
         V0, _ = surf.host_mesh_at(0.0)
         self.scene_scale = float(np.linalg.norm(V0.max(0) - V0.min(0))) or 1.0
         self.min_scale = min_scale_rel * self.scene_scale
@@ -136,6 +134,18 @@ class Viewer:
         self._closed = False
 
     # -- scene ---------------------------------------------------------------------------------
+    def _take_faces(self) -> bool:
+        """Keep the world's current faces (``faces``); true when they are new (a new segment)."""
+        indices = self.world.surface_indices()
+        if indices.ptr == getattr(self, "_faces_ptr", None):
+            return False
+        self.faces, self._faces_ptr = indices.numpy().reshape(-1, 3).astype(np.uint32), indices.ptr
+        return True
+
+    def _add_mesh(self, visible: bool = True):
+        self.mesh = self.server.scene.add_mesh_simple("/mesh", self._points(), self.faces, color=self.mesh_color,
+                                                      side="double", visible=visible)
+
     def _points(self) -> np.ndarray:
         return np.array(self.world.surface_points().numpy(), dtype=np.float32, copy=True)
 
@@ -169,9 +179,7 @@ class Viewer:
         cam.look_at = tuple(float(x) for x in c)
         cam.position = tuple(float(x) for x in c + np.array([1.2, -1.6, 1.0]) * self.scene_scale * 0.5)
         cam.up = (0.0, 0.0, 1.0)
-        P = self._points()
-        self.mesh = sc.add_mesh_simple("/mesh", P, self.faces, color=self.mesh_color, side="double",
-                                       visible=show_mesh)
+        self._add_mesh(show_mesh)
         params = getattr(getattr(self.world, "model", None), "params", None)
         gz = getattr(params, "ground_height", None)
         self.ground = None
@@ -384,12 +392,9 @@ class Viewer:
             self._gaussians_stale = False
         with self.server.atomic():
             if (moved or self._stale["mesh"]) and self.mesh.visible:
-                indices = w.surface_indices()
-                if indices.ptr != self._faces_ptr:  # a new segment of a piecewise-fixed surface: its faces
-                    self.faces, self._faces_ptr = indices.numpy().reshape(-1, 3).astype(np.uint32), indices.ptr
+                if self._take_faces():  # a new segment of a piecewise-fixed surface: its faces
                     self.mesh.remove()
-                    self.mesh = self.server.scene.add_mesh_simple("/mesh", self._points(), self.faces,
-                                                                  color=self.mesh_color, side="double")
+                    self._add_mesh()
                 else:
                     self.mesh.vertices = self._points()
                 self._stale["mesh"] = False
@@ -796,7 +801,7 @@ def run_viewer(cfg, device=None, viewer: str = "viser", port: int = 8080, host: 
     if record and max_frames is not None:  # what a long recording will cost, before it is made
         grouped = v.stream is not None
         splats = v.stream.K * 64 if grouped else count * 32  # per frame: the groups' poses, or the buffer
-        per_frame = splats + (len(v._points()) * 12 if v.mesh.visible else 0) + \
+        per_frame = splats + (world.surface_points().shape[0] * 12 if v.mesh.visible else 0) + \
             len(world.sphere_radii()) * 12
         est = max_frames * per_frame + (count * 32 if grouped else 0)
         what = (f"the splats once ({count * 32 / 2**20:,.1f} MB) and the poses of {v.stream.K} groups per frame"
