@@ -151,8 +151,15 @@ def test_a_rejected_cut_gives_the_one_template_run(tearing, monkeypatch):
     from dynmesh_warp import convert
 
     seq, _ = tearing
-    real = convert._badness
-    monkeypatch.setattr(convert, "_badness", lambda info: real(info) + (1e9 if info.num_frames < 24 else 0.0))
+    real = convert.to_fixed_topology
+
+    def worse_sub_runs(sub, *a, **k):  # the new template's run (fewer frames) fits every frame poorly
+        r = real(sub, *a, **k)
+        if r.num_frames < seq.num_frames:
+            r.conversion.web = [1.0] * r.num_frames
+        return r
+
+    monkeypatch.setattr(convert, "to_fixed_topology", worse_sub_runs)
     # a GPU fit sums with float atomics: its deterministic mode makes two runs comparable to the bit
     opts = {"deterministic": True} if str(TEST_DEVICE).startswith("cuda") else {}
     res = to_piecewise_fixed(seq, device=TEST_DEVICE, **opts)
