@@ -95,7 +95,8 @@ class FrameOrder(StrEnum):
 
 
 class Orientation(StrEnum):
-    """Triangle orientation of a loaded surface: ``auto`` flips a closed mesh whose triangles face inward."""
+    """Triangle orientation of a loaded surface: ``auto`` winds each piece consistently, turns a
+    closed one outward and a sheet up (``geometry.orient_faces``); ``keep``; ``flip`` all."""
 
     AUTO = "auto"
     KEEP = "keep"

@@ -62,7 +62,7 @@ import warp as wp
 from .choices import DEFAULT_STRATEGY, STRATEGIES
 from .conversion_options import options_for
 from .deform_graph import GraphFitter, build_deformation_graph, extrapolate_rotations
-from .geometry import face_areas, surface_area
+from .geometry import face_areas, surface_area, weld_vertices
 from .kernels import convert as kc
 from .kernels.geometry import project_points_to_mesh
 from .metrics import chamfer_distance
@@ -204,6 +204,9 @@ class ConversionInfo:
     the conversion was run again from other key frames (``key_candidates``); the kept run is
     the one of least Chamfer distance to the input (its key is ``key_frame``). Empty when there
     was one run.
+    welded: ``(frame, vertices)`` for input frames with vertices at one position (a triangle
+    soup, seams), welded into one before the conversion (so the template of such a key frame is
+    a connected mesh).
     dropped_unused: ``(frame, vertices, faces)`` for input frames holding vertices that no face
     uses (left over after a face filter, stray points) or faces that repeat a vertex: dropped
     before the conversion, so they neither pull the template nor count in the coverage, the
@@ -236,6 +239,7 @@ class ConversionInfo:
     unrecovered_frames: list = field(default_factory=list)
     key_trials: list = field(default_factory=list)
     dropped_unused: list = field(default_factory=list)
+    welded: list = field(default_factory=list)
     ignored_parts: dict = field(default_factory=dict)
     web: list = field(default_factory=list)
     segments: list = field(default_factory=list)
@@ -280,12 +284,17 @@ def _keep_faces(v: np.ndarray, f: np.ndarray, keep: np.ndarray) -> tuple:
 
 
 def _drop_unused(vseq: VaryingTopologySequence):
-    """(vseq without faces that repeat a vertex (no area in any pose) and without the vertices
-    no face uses, [(frame, vertices dropped, faces dropped)]): the input is not modified; frames
-    with neither are kept as they are. Raises MeshDataError for a frame left without faces."""
-    frames, dropped = [], []
+    """(vseq cleaned, [(frame, vertices dropped, faces dropped)], [(frame, vertices welded)]):
+    vertices at one position welded into one (:func:`~dynmesh_warp.geometry.weld_vertices`: a
+    triangle soup, or seams, would otherwise be thousands of separate parts to the fit and to the
+    topology report), then faces that repeat a vertex (no area in any pose) and vertices no face
+    uses dropped. The input is not modified; frames needing none of it are kept as they are.
+    Raises MeshDataError for a frame left without faces."""
+    frames, dropped, welded = [], [], []
     for t, (v, f) in enumerate(vseq.frames):
-        f = np.asarray(f)
+        v, f, merged = weld_vertices(v, np.asarray(f))
+        if merged:
+            welded.append((t, merged))
         keep = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
         v2, f2 = _keep_faces(v, f, keep)
         nv, nf = len(v) - len(v2), len(f) - len(f2)
@@ -297,10 +306,10 @@ def _drop_unused(vseq: VaryingTopologySequence):
             raise MeshDataError(f"{src}, frame {t}: every face repeats a vertex (no surface)")
         frames.append((v2, f2))
         dropped.append((t, nv, nf))
-    if not dropped:
-        return vseq, dropped
+    if not dropped and not welded:
+        return vseq, dropped, welded
     return VaryingTopologySequence(frames, fps=vseq.fps, name=vseq.name, source=vseq.source,
-                                   frame_sources=vseq.frame_sources), dropped
+                                   frame_sources=vseq.frame_sources), dropped, welded
 
 
 class _Converter:
@@ -1058,7 +1067,7 @@ def _to_fixed(seq, strategy, template, device, progress, should_stop, stop_forwa
     for t, (v, f) in enumerate(vseq.frames):  # frames may have been mutated after construction
         src = vseq.frame_sources[t] if vseq.frame_sources else where
         validate_mesh(v, f, src, t)
-    vseq, unused = _drop_unused(vseq)
+    vseq, unused, welded = _drop_unused(vseq)
     T = vseq.num_frames
     K = _key_frame(vseq, o["key_frame"], template is not None)
     given = template is not None
@@ -1106,7 +1115,7 @@ def _to_fixed(seq, strategy, template, device, progress, should_stop, stop_forwa
                     res, best = r, tried[-1][2]
             res.conversion.key_trials = tried
         info = res.conversion
-        info.dropped_unused = unused
+        info.dropped_unused, info.welded = unused, welded
         res.all_topology_events = topology.result()  # every frame's (to_piecewise_fixed after a forward stop)
         info.topology_events = [e for e in res.all_topology_events
                                 if info.first_frame <= e[0] < info.first_frame + len(info.coverage)]
@@ -1284,7 +1293,7 @@ def _join_segments(vseq, segs: list, whole, events: list) -> VaryingTopologySequ
             else:
                 getattr(info, name).extend(value)
         info.segments.append((lo, lo + r.num_frames, c.key_frame + lo, r.num_vertices))
-    info.topology_events, info.dropped_unused = list(events), whole.dropped_unused
+    info.topology_events, info.dropped_unused, info.welded = list(events), whole.dropped_unused, whole.welded
     out.conversion = info
     return out
 
@@ -1463,6 +1472,10 @@ def conversion_summary(info: ConversionInfo) -> list:
         lines.append(f"note: left out {sum(p for p, _ in ig.values())} small input part(s) lying far from the "
                      f"converted surface (floaters?) on {len(fr)} frame(s): {', '.join(map(str, fr[:12]))}"
                      + (" ..." if len(fr) > 12 else "") + "; they have no part in the template")
+    we = info.welded
+    if we:
+        lines.append(f"note: welded {sum(x[1] for x in we)} input vertices that repeat another's position (a "
+                     f"triangle soup or seams) in {len(we)} frame(s) (first: frame {we[0][0]})")
     un = info.dropped_unused
     if un:
         lines.append(f"note: dropped {sum(x[1] for x in un)} input vertices that no face uses and "

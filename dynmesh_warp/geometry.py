@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["face_areas", "surface_area", "signed_volume", "orient_outward", "mesh_orientation", "motion_groups",
-           "fit_group_motions", "rotation_to_wxyz"]
+__all__ = ["face_areas", "surface_area", "signed_volume", "orient_outward", "mesh_orientation", "orient_faces",
+           "weld_vertices", "motion_groups", "fit_group_motions", "rotation_to_wxyz"]
 
 
 def face_areas(V, F) -> np.ndarray:
@@ -37,25 +37,154 @@ def orient_outward(V, F) -> np.ndarray:
     return np.ascontiguousarray(F[:, ::-1]) if signed_volume(V, F) < 0 else F
 
 
-def mesh_orientation(V, F, max_boundary: float = 0.01) -> str:
+#: a mesh (or patch) *has an inside* when at most this fraction of its edges lie on a boundary ...
+CLOSED_MAX_BOUNDARY = 0.1
+#: ... and its holes are small: the norm of its vector area (zero for a closed surface, the
+#: area itself for a flat sheet) at most this fraction of its area
+CLOSED_MAX_OPENING = 0.1
+
+
+def _has_inside(boundary_edges, edges, vector_area_norm, area):
+    """The one "closed" rule (:func:`mesh_orientation`, :func:`orient_faces`): few boundary edges
+    and small holes, so that a scan or reconstruction with holes still has an inside while a
+    sheet of any size (whose boundary is a small fraction of a fine mesh's edges) has not."""
+    return ((np.asarray(boundary_edges) <= CLOSED_MAX_BOUNDARY * np.asarray(edges))
+            & (np.asarray(vector_area_norm) <= CLOSED_MAX_OPENING * np.asarray(area)))
+
+
+def mesh_orientation(V, F) -> str:
     """How the triangles of a mesh face.
 
-    ``"outward"`` / ``"inward"``: a closed mesh, or one with a few small holes (at most
-    ``max_boundary`` of its edges on a boundary, as in a scan or reconstruction), with
-    consistent winding; the sign of its volume about the vertex centroid decides.
-    ``"open"``: more boundary than that (a sheet, a terrain), or an edge shared by more than two
-    faces: no inside to tell. ``"inconsistent"``: two faces run through a shared edge in the same
-    direction."""
+    ``"outward"`` / ``"inward"``: a mesh with an inside (closed, or with holes that are small:
+    :func:`_has_inside`), with consistent winding; the sign of its volume about the vertex
+    centroid decides. ``"open"``: a sheet, a terrain, a large hole, or an edge shared by more
+    than two faces: no inside to tell. ``"inconsistent"``: two faces run through a shared edge in
+    the same direction."""
     F = np.asarray(F, np.int64)
+    V = np.asarray(V, np.float64)
     directed = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
     n = int(max(int(F.max()) + 1, 1))
     undirected = np.sort(directed, axis=1)
     _, counts = np.unique(undirected[:, 0] * n + undirected[:, 1], return_counts=True)
-    if np.any(counts > 2) or np.count_nonzero(counts == 1) > max_boundary * len(counts):
+    cr = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    if np.any(counts > 2) or not _has_inside(np.count_nonzero(counts == 1), len(counts),
+                                             np.linalg.norm(cr.sum(axis=0)), np.linalg.norm(cr, axis=1).sum()):
         return "open"
     if len(np.unique(directed[:, 0] * n + directed[:, 1])) != len(directed):
         return "inconsistent"
     return "outward" if signed_volume(V, F) > 0 else "inward"
+
+
+def _patches(F: np.ndarray) -> tuple:
+    """Faces joined through edges shared by exactly two faces (a *patch*: a manifold piece).
+
+    Returns ``(patch label (M,), number of patches, rewind (M,) bool, orientable (M,) bool,
+    boundary edges per patch, edges per patch)``. ``rewind`` marks the faces to flip so that
+    every patch's winding is consistent (neighbours run through their shared edge in opposite
+    directions), the side kept being the one of larger face count; ``orientable`` is False on
+    patches with no consistent winding (a Moebius strip), whose faces are never marked.
+    Edges shared by one face, or by more than two (non-manifold), bound a patch."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    F = np.asarray(F, np.int64)
+    M = len(F)
+    n = int(F.max()) + 1 if M else 1
+    d = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])  # half-edges, face i at rows i, M+i, 2M+i
+    face = np.tile(np.arange(M), 3)
+    key = np.minimum(d[:, 0], d[:, 1]) * n + np.maximum(d[:, 0], d[:, 1])
+    order = np.argsort(key, kind="stable")
+    k = key[order]
+    start = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
+    count = np.diff(np.r_[start, len(k)])
+    pair = start[count == 2]  # manifold edges: half-edges order[pair], order[pair + 1]
+    ha, hb = order[pair], order[pair + 1]
+    fa, fb = face[ha], face[hb]
+    same = d[ha, 0] == d[hb, 0]  # the two faces run through the edge the same way: one must flip
+    # the double cover: node f (side kept) and M + f (side flipped); a consistent pair joins
+    # (a, b) and (a', b'), a clashing pair joins (a, b') and (a', b)
+    r = np.concatenate([fa, fa + M])
+    c = np.concatenate([np.where(same, fb + M, fb), np.where(same, fb, fb + M)])
+    g = coo_matrix((np.ones(len(r), np.int8), (r, c)), shape=(2 * M, 2 * M))
+    _, cover = connected_components(g, directed=False)
+    a, b = cover[:M], cover[M:]
+    orientable = a != b
+    size = np.bincount(a, minlength=2 * M)  # faces per side class
+    rewind = orientable & ((size[a] < size[b]) | ((size[a] == size[b]) & (a > b)))
+    pg = coo_matrix((np.ones(len(fa), np.int8), (fa, fb)), shape=(M, M))
+    npatch, label = connected_components(pg, directed=False)
+    edges_of = face[order[start]]  # one face of each undirected edge
+    boundary = np.bincount(label[edges_of[count != 2]], minlength=npatch)
+    edges = np.bincount(label[edges_of], minlength=npatch)
+    return label, npatch, rewind, orientable, boundary, edges
+
+
+def orient_faces(V, F, up=(0.0, 0.0, 1.0), down_fraction: float = 0.25) -> tuple:
+    """``(F', report)``: the faces ``F`` wound so that one-sided contacts hold, patch by patch
+    (manifold pieces, see :func:`_patches`, of the mesh with coincident vertices welded):
+
+    1. every patch's winding is made consistent (the minority of its faces flipped);
+    2. a patch with an inside (closed, or with small holes as a scan: :func:`_has_inside`) faces
+       outward: flipped when its volume (about its own centroid) is negative;
+    3. an open patch (a sheet, a terrain) faces ``up`` (against gravity, where falling bodies come
+       from) when its area-weighted normal points down by more than ``down_fraction`` of its
+       area; one with no clear up or down side (a wall, a flag) is left as it is.
+
+    ``report``: ``{"rewound": faces flipped by 1, "inward": closed patches flipped, "down": open
+    patches flipped, "non_orientable": patches with no consistent winding (left as they are),
+    "patches": number of patches}``. ``F`` is returned itself when nothing changes."""
+    F = np.asarray(F)
+    V = np.asarray(V, np.float64)
+    report = {"rewound": 0, "inward": 0, "down": 0, "non_orientable": 0, "patches": 0}
+    if len(F) == 0:
+        return F, report
+    # pieces by position, not by index: a triangle soup or a mesh with seams is one piece
+    label, npatch, rewind, orientable, boundary, edges = _patches(weld_vertices(V, F)[1])
+    report["patches"] = int(npatch)
+    report["rewound"] = int(rewind.sum())
+    report["non_orientable"] = int(len(np.unique(label[~orientable])))
+    G = np.where(rewind[:, None], F[:, ::-1], F)
+    a, b, c = V[G[:, 0]], V[G[:, 1]], V[G[:, 2]]
+    cr = np.cross(b - a, c - a)  # twice the vector area of each face
+    # volume about each patch's vertex centroid (a small hole biases it little)
+    w = np.bincount(label, minlength=npatch).astype(np.float64)
+    cen = np.stack([np.bincount(label, (a + b + c)[:, i], minlength=npatch) for i in range(3)], 1) / (3 * w[:, None])
+    o = cen[label]
+    vol = np.bincount(label, np.einsum("ij,ij->i", a - o, np.cross(b - o, c - o)), minlength=npatch)
+    up = np.asarray(up, np.float64)
+    up = up / (np.linalg.norm(up) or 1.0)
+    facing = np.bincount(label, cr @ up, minlength=npatch)
+    area = np.bincount(label, np.linalg.norm(cr, axis=1), minlength=npatch)
+    opening = np.linalg.norm(np.stack([np.bincount(label, cr[:, i], minlength=npatch) for i in range(3)], 1), axis=1)
+    closed = _has_inside(boundary, edges, opening, area)
+    ok = np.bincount(label, ~orientable, minlength=npatch) == 0
+    inward = ok & closed & (vol < 0)
+    down = ok & ~closed & (facing < -down_fraction * area)
+    report["inward"], report["down"] = int(inward.sum()), int(down.sum())
+    flip = (inward | down)[label]
+    if not (rewind.any() or flip.any()):
+        return F, report
+    G = np.where(flip[:, None], G[:, ::-1], G)
+    return np.ascontiguousarray(G, dtype=F.dtype), report
+
+
+def weld_vertices(V, F) -> tuple:
+    """``(V', F', merged)``: vertices at exactly the same position merged into one, the first of
+    each kept in its order, the faces renumbered. A triangle soup (every face with its own three
+    vertices, as STL or some OBJ exporters write it) becomes a connected mesh again; ``merged``
+    is how many vertices went. Only exact repeats are merged: marching cubes makes distinct
+    vertices closer than any tolerance would be safe for. ``V`` and ``F`` are returned themselves
+    when no two vertices coincide."""
+    V = np.asarray(V)
+    F = np.asarray(F)
+    if len(V) < 2:
+        return V, F, 0
+    _, first, inverse = np.unique(V, axis=0, return_index=True, return_inverse=True)
+    if len(first) == len(V):
+        return V, F, 0
+    keep = np.sort(first)  # the first vertex of each position, in input order
+    remap = np.searchsorted(keep, first)[inverse.reshape(-1)]  # each position's new index
+    return V[keep], remap[F].astype(F.dtype), len(V) - len(keep)
 
 
 def motion_groups(V, F, groups: int, frames: int = 16, sample: int = 20000, iterations: int = 12,

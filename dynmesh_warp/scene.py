@@ -9,7 +9,7 @@ import numpy as np
 from .choices import Collider
 from .config import PhysicsCore, SceneConfig, SceneError, spawn_positions
 from .runtime import scene_device
-from .geometry import mesh_orientation
+from .geometry import mesh_orientation, orient_faces
 from .sequence import FixedTopologySequence, MeshDataError, TopologyMismatchError, VaryingTopologySequence
 from .world import Model, PhysicsParams, SphereModel, State, World, surface_model, surface_model_class
 
@@ -26,23 +26,49 @@ def _transform(V: np.ndarray, cfg) -> np.ndarray:
     return (V * cfg.scale + np.asarray(cfg.translate)).astype(np.float32)
 
 
-def _orient(V: np.ndarray, F: np.ndarray, cfg, where: str) -> np.ndarray:
-    """Faces as ``surface.orientation`` asks: contacts are one-sided (the side the triangle
-    normals point to), so a closed mesh must face outward."""
+def _orient(V: np.ndarray, F: np.ndarray, cfg, up) -> tuple:
+    """``(faces, report)`` as ``surface.orientation`` asks: contacts are one-sided (the side the
+    triangle normals point to), so ``auto`` winds every manifold piece consistently, turns a
+    closed one outward and an open one (a sheet, a terrain) up, against gravity
+    (:func:`~dynmesh_warp.geometry.orient_faces`); report None for ``keep`` and ``flip``."""
     if cfg.orientation == "flip":
-        return F[:, ::-1].copy()
+        return F[:, ::-1].copy(), None
     if cfg.orientation == "keep":
-        return F
-    state = mesh_orientation(V, F)
-    if state == "inward":
-        warnings.warn(f"{where}: closed mesh whose triangles face inward (negative volume): flipped them "
-                      "to face outward (surface.orientation: keep to leave them)", stacklevel=3)
-        return F[:, ::-1].copy()
-    if state == "inconsistent":
-        warnings.warn(f"{where}: closed mesh with inconsistent winding (neighbouring triangles face "
-                      "opposite ways); contacts are one-sided, so some faces may let spheres through",
+        return F, None
+    return orient_faces(V, F, up)
+
+
+def _say_orientation(reports: list, where: str) -> None:
+    """One warning per kind of change :func:`_orient` made, over a sequence's frames
+    (``reports``: ``(frame or None, report)``)."""
+    def frames(key):
+        hit = [t for t, r in reports if r and r[key]]
+        if not hit or hit == [None]:
+            return ""
+        return f" (frame{'s' if len(hit) > 1 else ''} {', '.join(map(str, hit[:8]))}{' ...' if len(hit) > 8 else ''})"
+
+    tail = " (surface.orientation: keep to leave them)"
+    total = {k: sum(r[k] for _, r in reports if r) for k in ("rewound", "inward", "down", "non_orientable")}
+    if total["rewound"]:
+        warnings.warn(f"{where}{frames('rewound')}: inconsistent winding (neighbouring triangles faced opposite "
+                      f"ways): flipped {total['rewound']} triangle(s) to agree with their neighbours" + tail,
                       stacklevel=3)
-    return F
+    if total["inward"]:
+        warnings.warn(f"{where}{frames('inward')}: closed mesh whose triangles face inward (negative volume): "
+                      "flipped them to face outward" + tail, stacklevel=3)
+    if total["down"]:
+        warnings.warn(f"{where}{frames('down')}: open surface whose triangles face down, away from where falling "
+                      "bodies come from (contacts are one-sided): flipped them to face up, against gravity" + tail,
+                      stacklevel=3)
+    if total["non_orientable"]:
+        warnings.warn(f"{where}{frames('non_orientable')}: a part with no consistent winding (a Moebius-like "
+                      "strip); contacts are one-sided, so some of its faces may let spheres through", stacklevel=3)
+
+
+def _up(cfg) -> np.ndarray:
+    """The scene's up: against ``physics.gravity`` (+z without gravity)."""
+    g = np.asarray(cfg.physics.gravity, np.float64)
+    return -g if np.linalg.norm(g) > 0 else np.array([0.0, 0.0, 1.0])
 
 
 def _check_size(V0: np.ndarray, cfg) -> None:
@@ -128,11 +154,18 @@ def prepare_surface(seq, cfg: SceneConfig):
     where = seq.source or seq.name
     if isinstance(seq, FixedTopologySequence):
         V = _transform(seq.V, s)
-        seq = FixedTopologySequence(V, _orient(V[0], seq.F, s, where), fps, seq.name, seq.source)
+        F, report = _orient(V[0], seq.F, s, _up(cfg))
+        _say_orientation([(None, report)], where)
+        seq = FixedTopologySequence(V, F, fps, seq.name, seq.source)
         _check_size(seq.V[0], s)
     else:
-        frames = [(_transform(v, s), f) for v, f in seq.frames]
-        frames = [(v, _orient(v, f, s, f"{where} (frame {t})")) for t, (v, f) in enumerate(frames)]
+        frames, reports = [], []
+        for t, (v, f) in enumerate(seq.frames):
+            v = _transform(v, s)
+            f, report = _orient(v, f, s, _up(cfg))
+            frames.append((v, f))
+            reports.append((t, report))
+        _say_orientation(reports, where)
         _check_size(frames[0][0], s)
         seq = VaryingTopologySequence(frames, fps, seq.name, seq.source, seq.frame_sources)
         if seq.is_fixed_topology():

@@ -78,7 +78,9 @@ def test_mesh_orientation_against_trimesh():
     assert m.volume > 0 and mesh_orientation(V, F) == "outward"
     flipped = trimesh.Trimesh(V, F[:, ::-1], process=False)
     assert flipped.volume < 0 and mesh_orientation(V, F[:, ::-1]) == "inward"
-    assert mesh_orientation(V, F[:-3]) == "open"  # 9 of 480 edges on holes: > 1 %
+    assert mesh_orientation(V, F[:-3]) == "outward"  # a small hole (3 of 320 faces): still an inside
+    top = m.triangles_center[:, 2] < 0.5  # a cap of ~25 % of the area gone: a bowl, no inside
+    assert mesh_orientation(V, F[top]) == "open"
     # a scan with one small hole (3 of 1920 edges) still has an inside
     m3 = trimesh.creation.icosphere(subdivisions=3)
     assert mesh_orientation(m3.vertices, m3.faces[1:]) == "outward"
@@ -86,6 +88,13 @@ def test_mesh_orientation_against_trimesh():
     g = trimesh.creation.box().subdivide()
     sheet = g.faces[g.triangles_center[:, 2] > 0.49]  # the top of a box only: a sheet
     assert mesh_orientation(g.vertices, sheet) == "open"
+    # a fine sheet: its boundary is 0.45 % of its edges, but its holes are all of it
+    n = 300
+    x, y = np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float))
+    i = (np.arange(n - 1)[:, None] * n + np.arange(n - 1)[None]).ravel()
+    grid_F = np.concatenate([np.stack([i, i + 1, i + n + 1], 1), np.stack([i, i + n + 1, i + n], 1)])
+    grid_V = np.stack([x.ravel(), y.ravel(), np.zeros(n * n)], 1)
+    assert mesh_orientation(grid_V, grid_F) == "open"
     F_mixed = F.copy()
     F_mixed[0] = F_mixed[0, ::-1]
     assert not trimesh.Trimesh(V, F_mixed, process=False).is_winding_consistent
@@ -112,6 +121,111 @@ def test_inside_out_closed_mesh_is_flipped_and_holds_a_sphere(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # keep: no warning and no flip
         np.testing.assert_array_equal(load_surface(keep).F, F[:, ::-1])
+
+
+def _grid_sheet(n: int = 12, size: float = 2.0, z: float = 0.0):
+    x, y = np.meshgrid(np.linspace(-size / 2, size / 2, n), np.linspace(-size / 2, size / 2, n))
+    i = (np.arange(n - 1)[:, None] * n + np.arange(n - 1)[None]).ravel()
+    F = np.concatenate([np.stack([i, i + 1, i + n + 1], 1), np.stack([i, i + n + 1, i + n], 1)]).astype(np.int32)
+    return np.stack([x.ravel(), y.ravel(), np.full(n * n, z)], 1), F
+
+
+def test_orient_faces_repairs_winding_piece_by_piece_against_trimesh():
+    """geometry.orient_faces against trimesh's own checks (winding consistency, volume, face
+    normals): scrambled winding, one inside-out piece of two, a triangle soup, a sheet facing
+    down, a wall, and a Moebius strip (left alone and reported)."""
+    from dynmesh_warp.geometry import orient_faces
+
+    rng = np.random.default_rng(3)
+    m = trimesh.creation.icosphere(subdivisions=2)
+    V, F = np.asarray(m.vertices), np.asarray(m.faces)
+    scrambled = F.copy()
+    pick = rng.choice(len(F), 60, replace=False)
+    scrambled[pick] = scrambled[pick, ::-1]
+    G, r = orient_faces(V, scrambled)
+    assert r["rewound"] == 60 and r["inward"] == 0
+    out = trimesh.Trimesh(V, G, process=False)
+    assert out.is_winding_consistent and out.volume == pytest.approx(m.volume)
+    # two balls, the second inside out: only that one is turned
+    V2 = np.concatenate([V, V + [3.0, 0.0, 0.0]])
+    F2 = np.concatenate([F, F[:, ::-1] + len(V)])
+    G, r = orient_faces(V2, F2)
+    assert r == {"rewound": 0, "inward": 1, "down": 0, "non_orientable": 0, "patches": 2}
+    np.testing.assert_array_equal(G, np.concatenate([F, F + len(V)]))
+    # a triangle soup (no shared vertex index) inside out: pieces are found by position
+    soup_V = V[F[:, ::-1].reshape(-1)]
+    soup_F = np.arange(len(soup_V)).reshape(-1, 3)
+    G, r = orient_faces(soup_V, soup_F)
+    assert r["inward"] == 1 and trimesh.Trimesh(soup_V, G, process=False).volume == pytest.approx(m.volume)
+    # a sheet facing down is turned up (against gravity); a wall (no up or down side) is kept
+    Vs, Fs = _grid_sheet()
+    G, r = orient_faces(Vs, Fs[:, ::-1])
+    assert r["down"] == 1 and (trimesh.Trimesh(Vs, G, process=False).face_normals[:, 2] > 0.99).all()
+    G, r = orient_faces(Vs, Fs[:, ::-1], up=(0.0, 0.0, -1.0))  # gravity up: down is up
+    assert r["down"] == 0 and G is not None
+    wall = Vs[:, [0, 2, 1]]
+    G, r = orient_faces(wall, Fs)
+    assert r["down"] == 0 and G is Fs
+    # a Moebius strip: no consistent winding exists; nothing is changed, and it is said
+    t = np.linspace(0, 2 * np.pi, 41)[:-1]
+    P = np.array([[(1 + s * np.cos(a / 2)) * np.cos(a), (1 + s * np.cos(a / 2)) * np.sin(a), s * np.sin(a / 2)]
+                  for a in t for s in (-0.2, 0.2)])
+    quads = [(2 * i, 2 * i + 1, 2 * ((i + 1) % 40), 2 * ((i + 1) % 40) + 1) for i in range(40)]
+    MF = np.array([f for a, b, c, d in quads for f in ((a, b, d), (a, d, c)) if (a, b, c, d) != quads[-1]]
+                  + [[78, 79, 0], [78, 0, 1]])  # the last quad joins the start with a half twist
+    G, r = orient_faces(P, MF)
+    assert r["non_orientable"] == 1 and G is MF
+
+
+def test_sheet_facing_down_is_turned_up_and_holds_spheres(tmp_path):
+    """An open surface whose triangles face down let every dropped sphere through before (0/5 in
+    contact, spheres falling forever); loaded with orientation auto it holds them."""
+    V, F = _grid_sheet(n=24)
+    np.savez(tmp_path / "sheet.npz", V=np.stack([V, V]).astype(np.float32), F=F[:, ::-1].copy(), fps=np.float32(24))
+    spheres = [{"position": [0.3 * k - 0.3, 0.1, 0.3], "radius": 0.05} for k in range(3)]
+    cfg = SceneConfig.model_validate({"surface": {"source": str(tmp_path / "sheet.npz")}, "spheres": spheres,
+                                      "physics": {"restitution": 0.0}})
+    with pytest.warns(UserWarning, match="face down.*flipped them to face up"):
+        world = build_world(cfg, device="cpu")
+    for _ in range(240):
+        world.step()
+    np.testing.assert_allclose(world.sphere_positions()[:, 2], 0.05, atol=0.01)
+    keep = cfg.model_copy(update={"surface": cfg.surface.model_copy(update={"orientation": "keep"})})
+    world = build_world(keep, device="cpu")
+    for _ in range(240):
+        world.step()
+    assert (world.sphere_positions()[:, 2] < -0.5).all()  # one-sided contacts: kept facing down, it lets them fall
+
+
+def test_weld_vertices_and_soup_conversion(tmp_path):
+    """A triangle soup (per-face vertices, as STL and some OBJ exporters write) welds back into
+    the connected mesh (trimesh checks), and `convert` of a soup folder gives a connected template
+    (it failed before: one deformation-graph node per separate triangle)."""
+    from dynmesh_warp.convert import conversion_summary, to_fixed_topology
+    from dynmesh_warp.geometry import weld_vertices
+    from dynmesh_warp.sequence import VaryingTopologySequence
+
+    m = trimesh.creation.icosphere(subdivisions=2)
+    V, F = np.asarray(m.vertices, np.float32), np.asarray(m.faces, np.int32)
+    soup_V = V[F.reshape(-1)]
+    soup_F = np.arange(len(soup_V), dtype=np.int32).reshape(-1, 3)
+    W, WF, merged = weld_vertices(soup_V, soup_F)
+    assert len(W) == len(V) and merged == len(soup_V) - len(V) and WF.dtype == np.int32
+    np.testing.assert_array_equal(W[WF], soup_V[soup_F])  # the same triangles
+    assert trimesh.Trimesh(W, WF, process=False).is_watertight
+    assert weld_vertices(V, F)[2] == 0
+    frames = []
+    for t in range(4):
+        mt = trimesh.creation.icosphere(subdivisions=2 + (t % 2), radius=0.5 + 0.02 * t)
+        v, f = np.asarray(mt.vertices, np.float32), np.asarray(mt.faces, np.int32)
+        sv = v[f.reshape(-1)]
+        frames.append((sv, np.arange(len(sv), dtype=np.int32).reshape(-1, 3)))
+    res = to_fixed_topology(VaryingTopologySequence(frames, fps=24.0, name="soup"), device="cpu")
+    K = res.conversion.key_frame
+    assert res.num_vertices == len(weld_vertices(*frames[K])[0])
+    assert trimesh.Trimesh(res.V[0], res.F, process=False).is_watertight
+    assert max(res.conversion.coverage) < 0.01
+    assert any("welded" in line for line in conversion_summary(res.conversion))
 
 
 # --------------------------------------------------------------------------- units and in-memory data
