@@ -79,7 +79,7 @@ def ground_truth(name: str, frames: int | None) -> FixedTopologySequence | None:
         return articulated_figure(frames=frames or 60, resolution=72)
     from dynmesh_warp.io import load_sequence
 
-    path = DATA / f"{name}.npz"
+    path = Path(name) if name.endswith(".npz") else DATA / f"{name}.npz"  # a path: any fixed-topology npz
     if not path.exists():
         return None
     gt = load_sequence(path)

@@ -288,7 +288,9 @@ def build_world(cfg: SceneConfig, device=None, collider: str | None = None,
                 f"collider: rebuild (a BVH per segment), not {Collider(collider).value!r}")
         raise SceneError(
             f"surface {cfg.surface.source}: {why}. Varying topology needs "
-            "physics.collider: rebuild, or surface.conversion to convert it to fixed topology")
+            "physics.collider: rebuild, or surface.conversion to convert it to fixed topology (on the "
+            "command line: --collider rebuild, or --set surface.conversion.strategy=graph; or convert it "
+            f"once, python -m dynmesh_warp.convert {cfg.surface.source} OUT.npz, and run OUT.npz)")
     if isinstance(cfg.spheres, list):  # listed spheres must start outside a closed surface
         V0, F0 = seq.frame(0)
         _refuse_spheres_inside(V0, F0, [sp.position for sp in cfg.spheres], [sp.radius for sp in cfg.spheres])
