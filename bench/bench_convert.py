@@ -39,7 +39,12 @@ def main(argv=None):
     p.add_argument("--out", default=None)
     p.add_argument("--piecewise", action="store_true",
                    help="time to_piecewise_fixed (what the convert CLI runs: new templates where one cannot follow)")
+    p.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                   help="a strategy option (YAML value), repeatable, e.g. --option restart_on_web=false")
     a = p.parse_args(argv)
+    import yaml
+
+    opts = {k: yaml.safe_load(v) for k, v in (o.split("=", 1) for o in a.option)}
     run = to_piecewise_fixed if a.piecewise else to_fixed_topology
     wp.config.quiet = True
     wp.init()
@@ -56,7 +61,7 @@ def main(argv=None):
                   "vertices_per_frame_mean": float(np.mean(nverts)), "vertices_per_frame_min": int(min(nverts)),
                   "vertices_per_frame_max": int(max(nverts)), "template_vertices": nverts[0],
                   "template_faces": int(len(seq.frames[0][1])), "generation_s": gen_s},
-        "repeats": a.repeats, "function": run.__name__, "strategies": {},
+        "repeats": a.repeats, "function": run.__name__, "given_options": opts, "strategies": {},
     }
     warm = VaryingTopologySequence(seq.frames[:2])
     for st in a.strategies.split(","):
@@ -67,7 +72,7 @@ def main(argv=None):
         times = []
         for _ in range(a.repeats):
             t0 = time.perf_counter()
-            out = run(seq, strategy=st, device=device)
+            out = run(seq, strategy=st, device=device, **opts)
             wp.synchronize_device(device)
             times.append(time.perf_counter() - t0)
         med = float(np.median(times))

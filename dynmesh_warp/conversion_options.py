@@ -127,6 +127,10 @@ class GraphOptions(_Options, _FineStage):
     #: samples per side of that score
     reinit_samples: Int = Field(1024, ge=1)
     restart_threshold: Float = Field(0.02, ge=0.0)
+    #: the drift control also restarts a frame whose fit stretches more than convert.POOR_WEB of
+    #: its area across a gap of the input (the web: the residual of the other side, which the
+    #: coverage does not see); candidates are then ranked by the worse of the two. docs/conversion.md
+    restart_on_web: bool = True
     #: restart candidates fitted in full: the ones whose start pose already fits the frame best
     #: (two-sided score); 0: every candidate (previous pose, the last 3 banked states, the template).
     #: 2 (was 0): the same accuracy on every sequence of issue 12's protocol (pcow +38 -> +36 %,

@@ -332,6 +332,7 @@ class _Converter:
         self.web_area = wp.zeros(2, dtype=float, device=d)
         self.first = True  # the next frame is the first one converted (starts from the template)
         self.frame_coverage = None  # set by a step that already measured its result's coverage [m]
+        self.frame_web = None  # ... and its web
         self.P = wp.empty(n, dtype=wp.vec3, device=d)
         self.tmp = wp.empty(n, dtype=wp.vec3, device=d)
         self.closest = wp.empty(n, dtype=wp.vec3, device=d)
@@ -614,17 +615,26 @@ class _Converter:
                 break
         restarted = False
         # drift control: a fit that leaves part of the input uncovered (well above this sequence's
-        # coverage so far) restarts from stored states and keeps the best
+        # coverage so far), or that stretches faces across a gap of the input (a web: the other
+        # side's residual), restarts from stored states and keeps the least poor
         thr = float(o["restart_threshold"]) * diag
         floor = 3.0 * float(np.median(self.scores)) if len(self.scores) >= 3 else 0.0
-        poor = thr > 0 and score > max(thr, floor)
+        web_on = bool(o["restart_on_web"]) and thr > 0
+
+        def badness(sc):  # (> 1: poor, its web or None) of the fit in self.X, whose coverage is sc [m]
+            b = sc / max(thr, floor) if thr > 0 else 0.0
+            w = self.web(frame, diag) if web_on else None
+            return (max(b, w / POOR_WEB) if web_on else b), w
+
+        bad, web = badness(score)
+        poor = bad > 1.0
         if not poor:
             self.failed_restart = None
         # after a restart that found nothing better (e.g. the input changed topology and no
         # state of this template covers it), try again only once the fit is 1.5x worse still
-        retry = self.failed_restart is None or score > 1.5 * self.failed_restart
+        retry = self.failed_restart is None or bad > 1.5 * self.failed_restart
         if poor and retry and self.history:
-            best = (score, None, R, P, wp.clone(self.X))
+            best = (bad, None, R, P, wp.clone(self.X), score, web)
             cands = [("previous frame", self.history[-1], False)]
             cands += [(f"frame {tb}", (Rb, Pb), True) for tb, Rb, Pb in self.graph_bank[-3:]]
             cands.append(("template", rest, True))
@@ -641,26 +651,29 @@ class _Converter:
             for name, Rc, Pc in starts:
                 R2, P2 = gf.fit(gframe, Rc, Pc, its, lam0, lam1, mu)
                 sc = self._graph_finish(frame, R2, P2)
-                if sc < best[0]:
-                    best = (sc, name, R2, P2, wp.clone(self.X))
+                b, w = badness(sc)
+                if b < best[0]:
+                    best = (b, name, R2, P2, wp.clone(self.X), sc, w)
             if best[1] is not None:  # the winner gets a second round of iterations, at the final stiffness
                 R2, P2 = gf.fit(gframe, best[2], best[3], its, lam1, lam1, mu)
                 sc = self._graph_finish(frame, R2, P2)
-                if sc < best[0]:
-                    best = (sc, best[1], R2, P2, wp.clone(self.X))
-            before = score
-            score, name, R, P, X = best
+                b, w = badness(sc)
+                if b < best[0]:
+                    best = (b, best[1], R2, P2, wp.clone(self.X), sc, w)
+            before = bad
+            bad, name, R, P, X, score, web = best
             wp.copy(self.X, X)
             if name is not None:
                 restarted = True
                 self.recovered.append((t, name))
-            if score < 0.9 * before:
+            if bad < 0.9 * before:
                 self.failed_restart = None
             else:  # nothing fitted clearly better (10 %): do not retry on every frame
-                self.failed_restart = score
+                self.failed_restart = bad
                 self.restarts_failed.append(t)
         self.scores.append(score)
         self.frame_coverage = score
+        self.frame_web = web  # measured on the kept fit (None: not measured here)
         self.history = (self.history + [(R, P)])[-2:]
         self.frame_states[t] = (R, P)
         if len(self.states) < 2:  # the key frame and the one after it
@@ -944,7 +957,8 @@ def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info,
         cov = conv.frame_coverage if conv.frame_coverage is not None else conv.coverage(frame)
         conv.frame_coverage = None
         coverage[t] = cov / max(_bbox_diag(v), 1e-12)
-        web[t] = conv.web(frame, _bbox_diag(v))
+        web[t] = conv.frame_web if conv.frame_web is not None else conv.web(frame, _bbox_diag(v))
+        conv.frame_web = None
         conv.first = False
         out[t] = conv.X.numpy()
         seconds[t] = time.perf_counter() - t0
@@ -1017,10 +1031,11 @@ def _repair_poor_runs(vseq, conv, out, coverage, web, seconds, K: int, o: dict, 
                 frame = _device_frame(v, f, device)
                 conv.step_graph(frame, t)
                 cov = conv.frame_coverage / max(_bbox_diag(v), 1e-12)
-                conv.frame_coverage = None
+                w = conv.frame_web
+                conv.frame_coverage = conv.frame_web = None
                 if cov < coverage[t]:
                     coverage[t] = cov
-                    web[t] = conv.web(frame, _bbox_diag(v))
+                    web[t] = w if w is not None else conv.web(frame, _bbox_diag(v))
                     out[t] = conv.X.numpy()
                     repaired.add(t)
                 elif old_state is not None:

@@ -9,6 +9,8 @@
 - ``rigid_motion`` fixed topology: a mesh under a rotation + translation (for conversion tests).
 - ``articulated_figure`` fixed topology: a capsule person doing jumping jacks, arms starting
   3 cm from the torso (the conversion's articulated-motion test).
+- ``starfish`` fixed topology: five thin arms bending into arcs and back, out of phase (an
+  unseen-motion check of the conversion; ``curl`` > 1.5 makes loops).
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ import numpy as np
 from .geometry import orient_outward
 from .sequence import FixedTopologySequence, VaryingTopologySequence
 
-__all__ = ["wave_bowl", "pulsing_blob", "torus_to_sphere", "rigid_motion", "articulated_figure", "FIGURE_BONES",
+__all__ = ["wave_bowl", "pulsing_blob", "torus_to_sphere", "rigid_motion", "articulated_figure", "starfish", "FIGURE_BONES",
            "grid_sheet", "icosphere",
            "BUILTIN_SCENES", "builtin_sequence"]
 
@@ -208,11 +210,56 @@ def articulated_figure(frames: int = 60, fps: float = 30.0, resolution: int = 56
                                  source="builtin:articulated_figure")
 
 
+def starfish(frames: int = 48, fps: float = 24.0, arms: int = 5, resolution: int = 96, arm_length: float = 0.8,
+             arm_radius: float = 0.06, body_radius: float = 0.22, curl: float = 1.0) -> FixedTopologySequence:
+    """A starfish whose ``arms`` thin, tapered arms bend (not rotate) into an arc and back, out of
+    phase (fixed topology; a conversion test motion no default was tuned on, docs/evaluation.md).
+
+    The rest mesh is marching cubes (``resolution`` cells over 2.4 m) of a flattened body ball
+    and capsules tapering to half their radius. Frame t bends each arm about the axis across it
+    at the body's edge: the arm's centreline becomes a circular arc of curvature
+    ``curl * pi / arm_length * sin(2 pi t / frames + 2 pi k / arms)`` and each point keeps its
+    offset from it (an exact bend: volume kept). ``curl`` 1: up to a half circle (tips ~2 m/s at
+    48 frames); above ~1.5 the tips curl back onto their own arms (loops: genus changes)."""
+    from skimage.measure import marching_cubes
+
+    half = 1.2
+    g = np.linspace(-half, half, int(resolution))
+    P = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1)
+    sdf = np.linalg.norm(P * [1.0, 1.0, 1.6], axis=-1) - body_radius
+    dirs = [np.array([np.cos(a), np.sin(a), 0.0]) for a in 2 * np.pi * np.arange(arms) / arms]
+    for d in dirs:
+        s_ = np.clip(P @ d, 0.0, body_radius + arm_length)
+        r = arm_radius * (1.0 - 0.5 * s_ / (body_radius + arm_length))
+        sdf = np.minimum(sdf, np.linalg.norm(P - s_[..., None] * d, axis=-1) - r)
+    v, f, _, _ = marching_cubes(sdf, 0.0, spacing=(g[1] - g[0],) * 3)
+    V0 = v - half
+    F = orient_outward(V0, f.astype(np.int32))
+    up = np.array([0.0, 0.0, 1.0])
+    out = np.empty((frames, len(V0), 3), np.float32)
+    for t in range(frames):
+        Vt = V0.copy()
+        for k, d in enumerate(dirs):
+            e = np.cross(up, d)
+            along = V0 @ d
+            arm = (along > body_radius) & (np.abs(V0 @ e) < 2 * arm_radius)
+            kappa = curl * np.pi / arm_length * np.sin(2 * np.pi * t / frames + 2 * np.pi * k / arms)
+            if abs(kappa) < 1e-9:
+                continue
+            th = kappa * (along[arm] - body_radius)
+            c = body_radius * d + (np.sin(th) / kappa)[:, None] * d + ((1 - np.cos(th)) / kappa)[:, None] * up
+            n = -np.sin(th)[:, None] * d + np.cos(th)[:, None] * up
+            Vt[arm] = c + (V0[arm] @ e)[:, None] * e + V0[arm, 2:3] * n
+        out[t] = Vt
+    return FixedTopologySequence(out, F, fps=fps, name="starfish", source="builtin:starfish")
+
+
 BUILTIN_SCENES = {
     "wave_bowl": wave_bowl,
     "pulsing_blob": pulsing_blob,
     "torus_to_sphere": torus_to_sphere,
     "rigid_motion": rigid_motion,
+    "starfish": starfish,
     "articulated_figure": articulated_figure,
 }
 
