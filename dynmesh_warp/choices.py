@@ -22,7 +22,7 @@ __all__ = ["StrEnum", "Collider", "SweptSearch", "RebuildEvery", "Playback", "Fr
            "DEFAULT_SWEPT_SEARCH", "DEFAULT_BATCH_SWEPT_SEARCH", "SWEPT_MEASURED_SEARCHES", "SWEPT_FACES_MAX_SPHERES",
            "SWEPT_RESOLVE_THREADS", "SWEPT_TILE_THREADS",
            "DEFAULT_PLAYBACK",
-           "DEFAULT_FRAME_ORDER", "DEFAULT_ORIENTATION", "DEFAULT_UP_AXIS", "DEFAULT_STRATEGY",
+           "DEFAULT_FRAME_ORDER", "DEFAULT_ORIENTATION", "DEFAULT_UP_AXIS", "Y_UP_FORMATS", "DEFAULT_STRATEGY",
            "DEFAULT_NEWTON_SOLVER", "STRATEGIES", "values", "parse", "device_kind"]
 
 
@@ -104,8 +104,16 @@ class Orientation(StrEnum):
 
 
 class UpAxis(StrEnum):
+    """The loaded data's up axis (the scene is z-up): ``auto`` is ``y`` for formats whose
+    specification fixes +Y up (glTF: ``.glb``/``.gltf``, a file or a folder of them), else ``z``."""
+
+    AUTO = "auto"
     Z = "z"
     Y = "y"
+
+
+#: file formats whose specification fixes +Y up (what ``up_axis: auto`` reads as y-up)
+Y_UP_FORMATS = (".glb", ".gltf")
 
 
 class Strategy(StrEnum):
@@ -180,7 +188,7 @@ SWEPT_RESOLVE_THREADS = 32
 DEFAULT_PLAYBACK = Playback.LOOP
 DEFAULT_FRAME_ORDER = FrameOrder.STORED
 DEFAULT_ORIENTATION = Orientation.AUTO
-DEFAULT_UP_AXIS = UpAxis.Z
+DEFAULT_UP_AXIS = UpAxis.AUTO
 DEFAULT_STRATEGY = Strategy.GRAPH
 DEFAULT_NEWTON_SOLVER = NewtonSolver.XPBD
 

@@ -236,7 +236,8 @@ def _scene_source(scene) -> dict:
                          and (suffix in VERTEX_ONLY_EXTENSIONS or suffix in ANIMATION_EXTENSIONS
                               or suffix in MESH_EXTENSIONS)):
         print(f"note: {scene} is a mesh sequence, not a scene file: playing it with 5 spheres dropped on it "
-              "(z up; y-up data: --set surface.up_axis=y; more in a scene YAML, docs/scene.md)", file=sys.stderr)
+              "(up axis auto: y for glTF, else z; other data: --set surface.up_axis=y or z; more in a scene YAML, "
+              "docs/scene.md)", file=sys.stderr)
         return {"path": None, "data": {"name": path.resolve().stem or "sequence",
                                        "surface": {"source": str(path.resolve())}}}
     return {"path": path}

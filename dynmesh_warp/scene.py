@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import warnings
+from pathlib import Path
 
 import numpy as np
 
-from .choices import Collider
+from .choices import Y_UP_FORMATS, Collider, UpAxis
 from .config import PhysicsCore, SceneConfig, SceneError, spawn_positions
 from .runtime import scene_device
 from .geometry import mesh_orientation, orient_faces
+from .mesh_formats import MESH_EXTENSIONS
 from .sequence import FixedTopologySequence, MeshDataError, TopologyMismatchError, VaryingTopologySequence
 from .world import Model, PhysicsParams, SphereModel, State, World, surface_model, surface_model_class
 
@@ -19,9 +21,24 @@ __all__ = ["load_surface", "prepare_surface", "scene_spheres", "scene_ground", "
 _Y_TO_Z = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
 
 
-def _transform(V: np.ndarray, cfg) -> np.ndarray:
+def up_axis_of(cfg, source) -> str:
+    """``surface.up_axis`` resolved for the loaded ``source`` (a path, or None for data built in
+    memory): ``auto`` is ``y`` for glTF (a ``.glb``/``.gltf`` file, or a folder whose frames are),
+    whose specification fixes +Y up, else ``z``."""
+    if cfg.up_axis != UpAxis.AUTO:
+        return str(cfg.up_axis)
+    if not source or str(source).startswith("builtin:"):
+        return "z"
+    path = Path(str(source))
+    if path.is_dir():
+        exts = {q.suffix.lower() for q in path.iterdir() if q.is_file() and not q.name.startswith(".")}
+        return "y" if exts & set(Y_UP_FORMATS) and not exts & set(MESH_EXTENSIONS) - set(Y_UP_FORMATS) else "z"
+    return "y" if path.suffix.lower() in Y_UP_FORMATS else "z"
+
+
+def _transform(V: np.ndarray, cfg, up_axis: str) -> np.ndarray:
     V = V.astype(np.float64)
-    if cfg.up_axis == "y":
+    if up_axis == "y":
         V = V @ _Y_TO_Z.T
     return (V * cfg.scale + np.asarray(cfg.translate)).astype(np.float32)
 
@@ -152,8 +169,9 @@ def prepare_surface(seq, cfg: SceneConfig):
         raise TypeError(f"expected a FixedTopologySequence or VaryingTopologySequence, got {type(seq).__name__}")
     fps = float(s.fps) if s.fps is not None else seq.fps  # a new sequence: the caller's is untouched
     where = seq.source or seq.name
+    up = up_axis_of(s, seq.source)
     if isinstance(seq, FixedTopologySequence):
-        V = _transform(seq.V, s)
+        V = _transform(seq.V, s, up)
         F, report = _orient(V[0], seq.F, s, _up(cfg))
         _say_orientation([(None, report)], where)
         seq = FixedTopologySequence(V, F, fps, seq.name, seq.source)
@@ -161,7 +179,7 @@ def prepare_surface(seq, cfg: SceneConfig):
     else:
         frames, reports = [], []
         for t, (v, f) in enumerate(seq.frames):
-            v = _transform(v, s)
+            v = _transform(v, s, up)
             f, report = _orient(v, f, s, _up(cfg))
             frames.append((v, f))
             reports.append((t, report))
@@ -178,7 +196,7 @@ def prepare_surface(seq, cfg: SceneConfig):
                 from .io import read_mesh
 
                 V, F = read_mesh(cfg.resolve(s.conversion.template))
-                template = (_transform(V, s), F)
+                template = (_transform(V, s, up), F)
             try:
                 seq = to_fixed_topology(seq, strategy=s.conversion.strategy, template=template,
                                         **s.conversion.options)

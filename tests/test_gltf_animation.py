@@ -266,8 +266,17 @@ def test_an_animation_is_picked_by_name_or_index_also_from_a_scene(tmp_path):
     with pytest.raises(MeshDataError, match=r"fox\.glb: no animation named 'Fly'; it has \['Walk', 'Run'\]"):
         load_sequence(tmp_path / "fox.glb", animation="Fly")
     scene = tmp_path / "s.yaml"
-    scene.write_text("surface: {source: fox.glb, animation: Run, fps: 1}\n")
+    scene.write_text("surface: {source: fox.glb, animation: Run, fps: 1, up_axis: z}\n")
     np.testing.assert_allclose(load_surface(load_scene_config(scene)).V[-1], P + [5, 0, 0], atol=1e-6)
+    # up_axis auto (the default): glTF is +Y up by its specification, so it is turned z-up,
+    # (x, y, z) -> (x, -z, y); other formats stay as they are
+    scene.write_text("surface: {source: fox.glb, animation: Run, fps: 1}\n")
+    Q = P + [5, 0, 0]
+    np.testing.assert_allclose(load_surface(load_scene_config(scene)).V[-1], np.c_[Q[:, 0], -Q[:, 2], Q[:, 1]],
+                               atol=1e-6)
+    np.savez(tmp_path / "fox_faces.npz", V=P[None], F=np.array([[0, 1, 2]]))
+    scene.write_text("surface: {source: fox_faces.npz}\n")
+    np.testing.assert_allclose(load_surface(load_scene_config(scene)).V[-1], P, atol=1e-6)
     scene.write_text("surface: {source: 'builtin:wave_bowl', animation: Run}\n")
     with pytest.raises(ValueError, match=r"surface\.animation: only for an animated \.glb / \.gltf source"):
         load_scene_config(scene)
