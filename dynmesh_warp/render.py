@@ -580,7 +580,10 @@ def _write_video(path: Path, frames: list, fps: float) -> None:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m dynmesh_warp.render", description=__doc__.splitlines()[0])
-    p.add_argument("scene", nargs="?", help="scene YAML (default: the built-in default scene)")
+    p.add_argument("scene", nargs="?", help="scene YAML (default: the built-in default scene); or a mesh sequence "
+                   "(.npz, .glb, a folder of frames, ...), played with spheres dropped on it as `run` plays it")
+    p.add_argument("--set", action="append", default=[], metavar="KEY.PATH=VALUE", dest="overrides",
+                   help="override a scene field (YAML value), as for run, e.g. --set surface.scale=0.001; repeatable")
     p.add_argument("--out", help="folder for frame_NNNN.png (written atomically, one per frame)")
     p.add_argument("--figure", help="a PNG strip of --moments moments side by side")
     p.add_argument("--video", help="a video of the frames: .gif (imageio with Pillow) or .mp4 (needs imageio-ffmpeg); "
@@ -614,6 +617,7 @@ def main(argv=None) -> int:
                         "or write a .gif, or PNG frames with --out")
     if a.frames < 1 or a.moments < 1 or a.width < 16 or a.height < 16 or not a.fps > 0:
         p.error("--frames, --moments >= 1, --width, --height >= 16, --fps > 0")
+    from .cli import scene_source
     from .config import SceneError, load_scene_config
     from .gaussians import gaussians_for_surface
     from .scene import build_world
@@ -621,7 +625,7 @@ def main(argv=None) -> int:
     from .outputs import add_to_manifest, check_output
 
     try:
-        cfg = load_scene_config(a.scene)
+        cfg = load_scene_config(**scene_source(a.scene), overrides=a.overrides)
         # the outputs, before any work: never one of the scene's inputs, nothing replaced unasked
         ins = cfg.inputs()
         if a.figure:
@@ -638,12 +642,19 @@ def main(argv=None) -> int:
         else:
             world = build_world(cfg, device=a.device)
             world.render_state = True
+        seq = world.surface.sequence
+        gs = None
+        if not a.no_splats:
+            if not hasattr(seq, "V") and not seq.is_piecewise_fixed():
+                raise ValueError(f"surface {cfg.surface.source}: its topology changes from frame to frame, and "
+                                 "Gaussians are bound to one mesh (or to a piecewise-fixed one, as convert writes): "
+                                 "convert it first (python -m dynmesh_warp.convert SOURCE OUT.npz) and render OUT.npz, "
+                                 "or draw the mesh alone with --mesh --no-splats")
+            gs = gaussians_for_surface(seq, cfg, world.device)  # updated once per frame below
     except (SceneError, ValueError, FileNotFoundError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    gs = gaussians_for_surface(world.surface.sequence, cfg, world.device)  # updated once per frame below
-    V = world.surface.sequence.V
-    lo, hi = V.reshape(-1, 3).min(axis=0), V.reshape(-1, 3).max(axis=0)
+    lo, hi = (np.asarray(b, np.float64) for b in seq.bounds())
     centre, diag = 0.5 * (lo + hi), float(np.linalg.norm(hi - lo))
     renderer = Renderer(world.device, rasteriser=a.rasteriser)
     steps_per_frame = max(1, int(round(1.0 / (a.fps * world.dt))))

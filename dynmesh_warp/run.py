@@ -18,7 +18,7 @@ import warnings
 from pathlib import Path
 
 
-from .cli import interruptible_main
+from .cli import interruptible_main, scene_source
 from .runtime import (
     NonFiniteStateError,
     check_record_output,
@@ -220,29 +220,6 @@ def _interrupted_line(summary: dict) -> str:
     return line
 
 
-def _scene_source(scene) -> dict:
-    """``load_scene_config``'s arguments for the positional ``scene``: a YAML file as it is; a
-    mesh sequence (a folder, or a file that is not YAML but a sequence or mesh) becomes a scene
-    of its own, the schema's defaults around it (five 5 cm spheres dropped on frame 0), with a
-    note saying how to change it (docs/scene.md)."""
-    from .animation_formats import ANIMATION_EXTENSIONS, VERTEX_ONLY_EXTENSIONS
-    from .mesh_formats import MESH_EXTENSIONS
-
-    if scene is None:
-        return {"path": None}
-    path = Path(scene).expanduser()
-    suffix = path.suffix.lower()
-    if path.is_dir() or (path.is_file() and suffix not in (".yaml", ".yml")
-                         and (suffix in VERTEX_ONLY_EXTENSIONS or suffix in ANIMATION_EXTENSIONS
-                              or suffix in MESH_EXTENSIONS)):
-        print(f"note: {scene} is a mesh sequence, not a scene file: playing it with 5 spheres dropped on it "
-              "(up axis auto: y for glTF, else z; other data: --set surface.up_axis=y or z; more in a scene YAML, "
-              "docs/scene.md)", file=sys.stderr)
-        return {"path": None, "data": {"name": path.resolve().stem or "sequence",
-                                       "surface": {"source": str(path.resolve())}}}
-    return {"path": path}
-
-
 @interruptible_main
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
@@ -262,7 +239,7 @@ def main(argv=None) -> int:
         if args.envs is not None and args.envs < 1:
             raise SceneError(f"--envs must be at least 1, got {args.envs}")
         overrides = list(args.overrides) + ([f"envs.count={args.envs}"] if args.envs is not None else [])
-        cfg = load_scene_config(**_scene_source(args.scene), overrides=overrides)
+        cfg = load_scene_config(**scene_source(args.scene), overrides=overrides)
         if args.view_envs is not None and cfg.newton is not None:
             raise SceneError("--view-envs: a newton: scene's worlds share one clock and one place; "
                              "the viewer shows world 0")

@@ -269,6 +269,42 @@ def test_render_cli_writes_frames_and_a_figure(tmp_path):
     assert fg.mean() > 0.05 and not np.array_equal(m, img.astype(float))
 
 
+def test_render_cli_takes_a_sequence_as_run_does(tmp_path, capsys):
+    """`render SEQUENCE` (not only a scene YAML) plays it with spheres dropped on it, as `run`
+    does, with --set; a segmented output of `convert` renders (its bounds came from `.V`,
+    which it has not: an AttributeError before); a varying one asks for a conversion, or draws
+    the mesh alone with --mesh --no-splats."""
+    from PIL import Image
+
+    from dynmesh_warp.io import save_sequence
+    from dynmesh_warp.render import main
+    from dynmesh_warp.scenes import pulsing_blob
+    from dynmesh_warp.sequence import VaryingTopologySequence
+
+    blob = pulsing_blob(subdivisions=2, frames=4)
+    V, F = blob.V, blob.F
+    save_sequence(blob, tmp_path / "blob.npz")
+    args = ["--moments", "1", "--width", "48", "--height", "32", "--no-progress", "--device", "cpu"]
+    assert main([str(tmp_path / "blob.npz"), "--figure", str(tmp_path / "a.png"), "--set", "spheres.count=2"]
+                + args) == 0
+    assert "mesh sequence, not a scene file" in capsys.readouterr().err
+    assert np.asarray(Image.open(tmp_path / "a.png")).std() > 5
+    # two segments of fixed topology (faces reordered in the second), as convert writes them
+    perm = np.random.default_rng(0).permutation(len(F))
+    frames = [(V[t], F) for t in range(2)] + [(V[t], F[perm]) for t in range(2, 4)]
+    save_sequence(VaryingTopologySequence(frames, fps=24.0, name="seg"), tmp_path / "seg.npz")
+    assert main([str(tmp_path / "seg.npz"), "--figure", str(tmp_path / "b.png")] + args) == 0
+    # truly varying: a clear error (exit 2), or the mesh alone
+    varying = [(V[t], F) if t % 2 == 0 else (np.concatenate([V[t], V[t][:1]]), F) for t in range(4)]  # a stray vertex
+    save_sequence(VaryingTopologySequence(varying, fps=24.0, name="var"), tmp_path / "var.npz")
+    capsys.readouterr()
+    assert main([str(tmp_path / "var.npz"), "--figure", str(tmp_path / "c.png"), "--set", "physics.collider=rebuild"]
+                + args) == 2
+    assert "convert it first" in capsys.readouterr().err
+    assert main([str(tmp_path / "var.npz"), "--figure", str(tmp_path / "c.png"), "--set", "physics.collider=rebuild",
+                 "--mesh", "--no-splats"] + args) == 0
+
+
 def _shape_list():
     from scipy.spatial.transform import Rotation
 
