@@ -287,8 +287,8 @@ def _drop_unused(vseq: VaryingTopologySequence):
     """(vseq cleaned, [(frame, vertices dropped, faces dropped)], [(frame, vertices welded)]):
     vertices at one position welded into one (:func:`~dynmesh_warp.geometry.weld_vertices`: a
     triangle soup, or seams, would otherwise be thousands of separate parts to the fit and to the
-    topology report), then faces that repeat a vertex (no area in any pose) and vertices no face
-    uses dropped. The input is not modified; frames needing none of it are kept as they are.
+    topology report), then faces that repeat a vertex (no area in any pose), faces listed again
+    (either winding: the template would carry them twice) and vertices no face uses dropped. The input is not modified; frames needing none of it are kept as they are.
     Raises MeshDataError for a frame left without faces."""
     frames, dropped, welded = [], [], []
     for t, (v, f) in enumerate(vseq.frames):
@@ -296,6 +296,11 @@ def _drop_unused(vseq: VaryingTopologySequence):
         if merged:
             welded.append((t, merged))
         keep = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
+        _, first = np.unique(np.sort(f, axis=1), axis=0, return_index=True)
+        if len(first) < len(f):  # a face listed again (either winding): the first copy kept
+            once = np.zeros(len(f), bool)
+            once[first] = True
+            keep &= once
         v2, f2 = _keep_faces(v, f, keep)
         nv, nf = len(v) - len(v2), len(f) - len(f2)
         if nv == 0 and nf == 0:
@@ -1494,8 +1499,8 @@ def conversion_summary(info: ConversionInfo) -> list:
     un = info.dropped_unused
     if un:
         lines.append(f"note: dropped {sum(x[1] for x in un)} input vertices that no face uses and "
-                     f"{sum(x[2] for x in un)} faces that repeat a vertex, in {len(un)} frame(s) (first: frame "
-                     f"{un[0][0]}); they are not part of the surface")
+                     f"{sum(x[2] for x in un)} faces that repeat a vertex or another face, in {len(un)} frame(s) (first: "
+                     f"frame {un[0][0]}); they add no surface")
     ev = info.topology_events
     if ev:
         shown = ", ".join(f"{t} ({what})" for t, what in ev[:8])

@@ -138,12 +138,17 @@ def orient_faces(V, F, up=(0.0, 0.0, 1.0), down_fraction: float = 0.25) -> tuple
     report = {"rewound": 0, "inward": 0, "down": 0, "non_orientable": 0, "patches": 0}
     if len(F) == 0:
         return F, report
-    # pieces by position, not by index: a triangle soup or a mesh with seams is one piece
-    label, npatch, rewind, orientable, boundary, edges = _patches(weld_vertices(V, F)[1])
+    # pieces by position, not by index: a triangle soup or a mesh with seams is one piece; a face
+    # listed twice (either winding) is decided once, its copies wound as the first
+    W = weld_vertices(V, F)[1]
+    _, first, copy_of = np.unique(np.sort(W, axis=1), axis=0, return_index=True, return_inverse=True)
+    copy_of = copy_of.reshape(-1)
+    Fu = F[first]
+    label, npatch, rewind, orientable, boundary, edges = _patches(W[first])
     report["patches"] = int(npatch)
     report["rewound"] = int(rewind.sum())
     report["non_orientable"] = int(len(np.unique(label[~orientable])))
-    G = np.where(rewind[:, None], F[:, ::-1], F)
+    G = np.where(rewind[:, None], Fu[:, ::-1], Fu)
     a, b, c = V[G[:, 0]], V[G[:, 1]], V[G[:, 2]]
     cr = np.cross(b - a, c - a)  # twice the vector area of each face
     # volume about each patch's vertex centroid (a small hole biases it little)
@@ -161,11 +166,21 @@ def orient_faces(V, F, up=(0.0, 0.0, 1.0), down_fraction: float = 0.25) -> tuple
     inward = ok & closed & (vol < 0)
     down = ok & ~closed & (facing < -down_fraction * area)
     report["inward"], report["down"] = int(inward.sum()), int(down.sum())
-    flip = (inward | down)[label]
-    if not (rewind.any() or flip.any()):
+    # each face (every copy) turned to the winding its unique face ends with
+    wanted = _winding(W[first]) ^ rewind ^ (inward | down)[label]
+    turn = _winding(W) != wanted[copy_of]
+    if not turn.any():
         return F, report
-    G = np.where(flip[:, None], G[:, ::-1], G)
-    return np.ascontiguousarray(G, dtype=F.dtype), report
+    return np.ascontiguousarray(np.where(turn[:, None], F[:, ::-1], F), dtype=F.dtype), report
+
+
+def _winding(F: np.ndarray) -> np.ndarray:
+    """(M,) bool: the cyclic order of each face's vertex indices, (i, j, k) with i the smallest:
+    True when j < k. Two listings of one triangle wind the same way iff these agree."""
+    F = np.asarray(F)
+    r = np.argmin(F, axis=1)[:, None]
+    rolled = np.take_along_axis(F, (r + np.arange(3)) % 3, axis=1)
+    return rolled[:, 1] < rolled[:, 2]
 
 
 def weld_vertices(V, F) -> tuple:

@@ -632,8 +632,8 @@ def test_key_candidates_on_coverage_drift():
 
 
 def test_unused_vertices_and_faces_of_the_input_are_dropped(rigid_varying):
-    """Stray vertices no face uses (far from the surface) and faces that repeat a vertex, added
-    to every remeshed frame, change nothing: the graph conversion gives the same mesh as on the
+    """Stray vertices no face uses (far from the surface), faces that repeat a vertex and faces
+    listed twice, added to every remeshed frame, change nothing: the graph conversion gives the same mesh as on the
     clean input (vertex for vertex), the coverage is the clean run's, the summary says what was
     dropped; the input is left as it was; a frame whose every face repeats a vertex is refused."""
     _, _, clean = rigid_varying
@@ -643,7 +643,8 @@ def test_unused_vertices_and_faces_of_the_input_are_dropped(rigid_varying):
     for v, f in clean.frames:
         far = v.mean(0) + 5 * _diag(v) * rng.standard_normal((7, 3))
         v2 = np.concatenate([far[:3], v, far[3:]]).astype(np.float32)  # strays before and after
-        f2 = np.concatenate([f + 3, [[3, 3, 4], [5, 6, 5]], [[0, 1, 2]]]).astype(np.int32)  # last: strays only
+        again = (f[:2] + 3)[:, ::-1]  # two faces listed again, back to back (as some exporters do)
+        f2 = np.concatenate([f + 3, [[3, 3, 4], [5, 6, 5]], again, [[0, 1, 2]]]).astype(np.int32)  # last: strays only
         junk.append((v2, f2[:-1]))  # the face of strays would make them surface: keep them unused
     junk_seq = VaryingTopologySequence(junk)
     before = [v.copy() for v, _ in junk_seq.frames]
@@ -652,8 +653,8 @@ def test_unused_vertices_and_faces_of_the_input_are_dropped(rigid_varying):
     assert a.V.shape == b.V.shape and np.array_equal(a.F, b.F)
     np.testing.assert_allclose(b.V, a.V, atol=1e-6)
     np.testing.assert_allclose(b.conversion.coverage, a.conversion.coverage, atol=1e-7)
-    assert b.conversion.dropped_unused == [(t, 7, 2) for t in range(8)] and a.conversion.dropped_unused == []
-    assert any("dropped 56 input vertices that no face uses and 16 faces" in ln
+    assert b.conversion.dropped_unused == [(t, 7, 4) for t in range(8)] and a.conversion.dropped_unused == []
+    assert any("dropped 56 input vertices that no face uses and 32 faces that repeat a vertex or another face" in ln
                for ln in conversion_summary(b.conversion))
     assert all(np.array_equal(v, w) for (v, _), w in zip(junk_seq.frames, before))
     bad = list(clean.frames)

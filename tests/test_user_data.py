@@ -157,6 +157,17 @@ def test_orient_faces_repairs_winding_piece_by_piece_against_trimesh():
     soup_F = np.arange(len(soup_V)).reshape(-1, 3)
     G, r = orient_faces(soup_V, soup_F)
     assert r["inward"] == 1 and trimesh.Trimesh(soup_V, G, process=False).volume == pytest.approx(m.volume)
+    # faces listed twice (some back to back, as some exporters write them) follow their first
+    # copy: on a ball only the back-to-back copies turn, and on an inside-out one every face
+    dup = np.concatenate([F, F[:40], F[40:50, ::-1]])
+    G, r = orient_faces(V, dup)
+    assert r["down"] == 0 and r["inward"] == 0
+    np.testing.assert_array_equal(G, np.concatenate([F, F[:40], F[40:50]]))
+    G, r = orient_faces(V, dup[:, ::-1])
+    assert r["inward"] == 1
+    n = trimesh.Trimesh(V, G, process=False).face_normals
+    centres = V[G].mean(axis=1)
+    assert (np.einsum("ij,ij->i", n, centres) > 0).all()  # every face, every copy, faces outward
     # a sheet facing down is turned up (against gravity); a wall (no up or down side) is kept
     Vs, Fs = _grid_sheet()
     G, r = orient_faces(Vs, Fs[:, ::-1])
