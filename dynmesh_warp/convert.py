@@ -288,8 +288,9 @@ def _drop_unused(vseq: VaryingTopologySequence):
     vertices at one position welded into one (:func:`~dynmesh_warp.geometry.weld_vertices`: a
     triangle soup, or seams, would otherwise be thousands of separate parts to the fit and to the
     topology report), then faces that repeat a vertex (no area in any pose), faces listed again
-    (either winding: the template would carry them twice) and vertices no face uses dropped. The input is not modified; frames needing none of it are kept as they are.
-    Raises MeshDataError for a frame left without faces."""
+    (either winding: the template would carry them twice) and vertices no face uses dropped. The
+    input is not modified; frames needing none of it are kept as they are. Raises MeshDataError
+    for a frame left without faces."""
     frames, dropped, welded = [], [], []
     for t, (v, f) in enumerate(vseq.frames):
         v, f, merged = weld_vertices(v, np.asarray(f))
