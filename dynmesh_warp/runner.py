@@ -44,7 +44,7 @@ def _check_finite(sample: dict, sim, step: int, every: int, out) -> None:
     """The first non-finite row of any sampled array, as a NonFiniteStateError naming it."""
     for name, a in sample.items():
         a = np.asarray(a)
-        if a.ndim == 0 or a.dtype.kind != "f":
+        if a.ndim == 0 or a.dtype.kind != "f" or a.size == 0:  # no bodies (spheres.count 0): nothing to check
             continue
         rows = a.reshape(a.shape[0], -1)
         bad = np.flatnonzero(~np.isfinite(rows).all(axis=1))

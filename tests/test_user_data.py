@@ -341,6 +341,19 @@ def test_run_cli_plays_a_sequence_given_instead_of_a_scene(tmp_path, capsys):
     assert "cannot read scene YAML" in capsys.readouterr().err
 
 
+def test_a_scene_without_spheres_plays_the_surface(tmp_path, capsys):
+    """spheres.count: 0 (the schema allows it: a surface played or recorded alone) ran and then
+    failed in the finite-state check with "cannot reshape array of size 0" (exit 2)."""
+    from dynmesh_warp.run import main
+
+    out = tmp_path / "out"
+    assert main(["--viewer", "none", "--device", "cpu", "--no-progress", "--steps", "20", "--output", str(out),
+                 "--set", "spheres.count=0"]) == 0
+    assert "0/0 spheres in contact" in capsys.readouterr().out
+    traj = np.load(out / "trajectories.npz")
+    assert traj["position"].shape[1:] == (0, 3) and len(traj["time"]) > 1
+
+
 @pytest.mark.skipif(wp.is_cuda_available(), reason="needs a machine without a CUDA device")
 def test_run_cli_cuda_without_gpu_is_a_clear_error(capsys):
     from dynmesh_warp.run import main
