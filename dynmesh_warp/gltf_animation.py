@@ -232,6 +232,21 @@ def gltf_has_animation(path) -> bool:
     return any(a.get("channels") for a in doc.get("animations", []) or [])
 
 
+#: ``asset.generator`` of the files :func:`write_gltf_animation` writes: they hold the input's
+#: coordinates as they were (no up axis is known to the writer), so ``up_axis: auto`` reads them
+#: back unturned
+GENERATOR = "dynmesh_warp"
+
+
+def gltf_generator(path) -> str:
+    """The ``asset.generator`` of a .glb / .gltf file ("" when absent or unreadable: its JSON only)."""
+    try:
+        g = _File(Path(path)).doc.get("asset", {}).get("generator", "")
+    except (MeshDataError, OSError, AttributeError):
+        return ""
+    return g if isinstance(g, str) else ""
+
+
 def read_gltf_animation(path, fps: float | None = None, animation=None):
     """Sample an animated glTF scene: ``(V (T, N, 3) float32, F (M, 3) int64, fps)``.
 
@@ -427,7 +442,7 @@ def write_gltf_animation(path, V, F, fps: float) -> None:
 
     prim = {"attributes": {"POSITION": add(V[0], "VEC3", 5126, True)}, "indices": add(F.reshape(-1), "SCALAR", 5125),
             "mode": 4}
-    doc = {"asset": {"version": "2.0", "generator": "dynmesh_warp"}, "scene": 0, "scenes": [{"nodes": [0]}],
+    doc = {"asset": {"version": "2.0", "generator": GENERATOR}, "scene": 0, "scenes": [{"nodes": [0]}],
            "nodes": [{"mesh": 0, "name": "surface"}], "meshes": [{"primitives": [prim], "name": "surface"}]}
     if T > 1:
         prim["targets"] = [{"POSITION": add(V[t] - V[0], "VEC3", 5126, True)} for t in range(1, T)]

@@ -24,16 +24,25 @@ _Y_TO_Z = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
 def up_axis_of(cfg, source) -> str:
     """``surface.up_axis`` resolved for the loaded ``source`` (a path, or None for data built in
     memory): ``auto`` is ``y`` for glTF (a ``.glb``/``.gltf`` file, or a folder whose frames are),
-    whose specification fixes +Y up, else ``z``."""
+    whose specification fixes +Y up, unless this project wrote it (its ``asset.generator``:
+    written with the input's coordinates unturned), else ``z``."""
+    from .gltf_animation import GENERATOR, gltf_generator
+
     if cfg.up_axis != UpAxis.AUTO:
         return str(cfg.up_axis)
     if not source or str(source).startswith("builtin:"):
         return "z"
     path = Path(str(source))
     if path.is_dir():
-        exts = {q.suffix.lower() for q in path.iterdir() if q.is_file() and not q.name.startswith(".")}
-        return "y" if exts & set(Y_UP_FORMATS) and not exts & set(MESH_EXTENSIONS) - set(Y_UP_FORMATS) else "z"
-    return "y" if path.suffix.lower() in Y_UP_FORMATS else "z"
+        files = sorted(q for q in path.iterdir() if q.is_file() and not q.name.startswith("."))
+        exts = {q.suffix.lower() for q in files}
+        if not exts & set(Y_UP_FORMATS) or exts & set(MESH_EXTENSIONS) - set(Y_UP_FORMATS):
+            return "z"
+        path = next(q for q in files if q.suffix.lower() in Y_UP_FORMATS)
+    elif path.suffix.lower() not in Y_UP_FORMATS:
+        return "z"
+    # a file this project wrote holds its input's coordinates as they were: read back unturned
+    return "z" if gltf_generator(path).startswith(GENERATOR) else "y"
 
 
 def _transform(V: np.ndarray, cfg, up_axis: str) -> np.ndarray:

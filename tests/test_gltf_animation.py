@@ -277,6 +277,15 @@ def test_an_animation_is_picked_by_name_or_index_also_from_a_scene(tmp_path):
     np.savez(tmp_path / "fox_faces.npz", V=P[None], F=np.array([[0, 1, 2]]))
     scene.write_text("surface: {source: fox_faces.npz}\n")
     np.testing.assert_allclose(load_surface(load_scene_config(scene)).V[-1], P, atol=1e-6)
+    # a .glb this project wrote (convert's output) holds its input's coordinates unturned: auto
+    # reads it back as it was written, so `run in.npz` and `run out.glb` agree
+    from dynmesh_warp.io import save_sequence
+    from dynmesh_warp.sequence import FixedTopologySequence
+
+    save_sequence(FixedTopologySequence(np.stack([P, P + [0, 0, 1]]).astype(np.float32), np.array([[0, 1, 2]]),
+                                        fps=24.0), tmp_path / "ours.glb")
+    scene.write_text("surface: {source: ours.glb}\n")
+    np.testing.assert_allclose(load_surface(load_scene_config(scene)).V[-1], P + [0, 0, 1], atol=1e-6)
     scene.write_text("surface: {source: 'builtin:wave_bowl', animation: Run}\n")
     with pytest.raises(ValueError, match=r"surface\.animation: only for an animated \.glb / \.gltf source"):
         load_scene_config(scene)
