@@ -187,10 +187,15 @@ def prepare_surface(seq, cfg: SceneConfig):
         _check_size(seq.V[0], s)
     else:
         frames, reports = [], []
+        prev = None  # (input faces, oriented faces) of the frame before
         for t, (v, f) in enumerate(seq.frames):
             v = _transform(v, s, up)
-            f, report = _orient(v, f, s, _up(cfg))
-            frames.append((v, f))
+            if prev is not None and prev[0].shape == f.shape and np.array_equal(prev[0], f):
+                frames.append((v, prev[1]))  # a run of frames on one set of faces (a segment) stays one
+                continue
+            g, report = _orient(v, f, s, _up(cfg))
+            prev = (f, g)
+            frames.append((v, g))
             reports.append((t, report))
         _say_orientation(reports, where)
         _check_size(frames[0][0], s)

@@ -208,6 +208,27 @@ def test_sheet_facing_down_is_turned_up_and_holds_spheres(tmp_path):
     assert (world.sphere_positions()[:, 2] < -0.5).all()  # one-sided contacts: kept facing down, it lets them fall
 
 
+def test_orientation_is_decided_once_per_segment():
+    """A varying sequence is oriented frame by frame, but a run of frames on one set of faces (a
+    segment, as convert writes) is decided on its first frame and stays one set: a sheet that
+    turns over within a segment would otherwise be turned on some of its frames and not on
+    others, and the segment would fall apart into frames of different faces."""
+    from dynmesh_warp.scene import prepare_surface
+    from dynmesh_warp.sequence import VaryingTopologySequence
+
+    Vs, F = _grid_sheet(n=8)
+    frames = []
+    for t in range(6):
+        a = np.pi * (t % 3) / 2  # in each segment it turns over about the x axis: up, a wall, down
+        V = np.stack([Vs[:, 0], Vs[:, 1] * np.cos(a), Vs[:, 1] * np.sin(a)], 1).astype(np.float32)
+        frames.append((V, F if t < 3 else F[::-1].copy()))
+    cfg = SceneConfig.model_validate({"surface": {"source": "builtin:wave_bowl"}})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        out = prepare_surface(VaryingTopologySequence(frames, fps=24.0, name="turning"), cfg)
+    assert out.is_piecewise_fixed() and [b - a for a, b in out.segments()] == [3, 3]
+
+
 def test_weld_vertices_and_soup_conversion(tmp_path):
     """A triangle soup (per-face vertices, as STL and some OBJ exporters write) welds back into
     the connected mesh (trimesh checks), and `convert` of a soup folder gives a connected template
