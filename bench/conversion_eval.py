@@ -157,7 +157,8 @@ def evaluate(name, strategies, args, device) -> dict | None:
     for label in strategies:
         s, _, mode = label.partition("/")
         run = to_piecewise_fixed if mode == "piecewise" else to_fixed_topology
-        opts = json.loads(args.options).get(s, {}) if args.options else {}
+        given = json.loads(args.options) if args.options else {}
+        opts = given.get(label, given.get(s, {}))  # keyed by the label (graph/piecewise) or the strategy (graph)
         # warm-up (kernel compilation) on 2 frames (a chosen key frame is the run's, not the warm-up's)
         to_fixed_topology(type(var)(var.frames[:2], fps=var.fps, name=var.name), strategy=s, device=device,
                           **{k: v for k, v in opts.items() if k != "key_frame"})
@@ -252,7 +253,8 @@ def main():
     ap.add_argument("--frames", type=int, default=None, help="resample time to this many frames")
     ap.add_argument("--resolution", type=int, default=96)
     ap.add_argument("--error", type=float, default=0.01)
-    ap.add_argument("--options", default=None, help='JSON {strategy: {option: value}}')
+    ap.add_argument("--options", default=None,
+                    help='JSON {strategy or label: {option: value}}, e.g. {"graph": {"iterations": 4}}')
     ap.add_argument("--cache", default=str(ROOT / "out" / "cache"))
     ap.add_argument("--out", default=None)
     ap.add_argument("--plot-only", default=None, help="redraw the table and plot of this result JSON")
