@@ -141,8 +141,14 @@ def orient_faces(V, F, up=(0.0, 0.0, 1.0), down_fraction: float = 0.25) -> tuple
     # pieces by position, not by index: a triangle soup or a mesh with seams is one piece; a face
     # listed twice (either winding) is decided once, its copies wound as the first
     W = weld_vertices(V, F)[1]
-    _, first, copy_of = np.unique(np.sort(W, axis=1), axis=0, return_index=True, return_inverse=True)
+    # faces that repeat a vertex have no area and no winding: left as they are (their self-edges
+    # would tie the pieces in knots)
+    live = np.flatnonzero((W[:, 0] != W[:, 1]) & (W[:, 1] != W[:, 2]) & (W[:, 0] != W[:, 2]))
+    if len(live) == 0:
+        return F, report
+    _, first, copy_of = np.unique(np.sort(W[live], axis=1), axis=0, return_index=True, return_inverse=True)
     copy_of = copy_of.reshape(-1)
+    first = live[first]
     Fu = F[first]
     label, npatch, rewind, orientable, boundary, edges = _patches(W[first])
     report["patches"] = int(npatch)
@@ -168,7 +174,8 @@ def orient_faces(V, F, up=(0.0, 0.0, 1.0), down_fraction: float = 0.25) -> tuple
     report["inward"], report["down"] = int(inward.sum()), int(down.sum())
     # each face (every copy) turned to the winding its unique face ends with
     wanted = _winding(W[first]) ^ rewind ^ (inward | down)[label]
-    turn = _winding(W) != wanted[copy_of]
+    turn = np.zeros(len(F), bool)
+    turn[live] = _winding(W[live]) != wanted[copy_of]
     if not turn.any():
         return F, report
     return np.ascontiguousarray(np.where(turn[:, None], F[:, ::-1], F), dtype=F.dtype), report

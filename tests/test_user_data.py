@@ -188,6 +188,34 @@ def test_orient_faces_repairs_winding_piece_by_piece_against_trimesh():
     assert r["non_orientable"] == 1 and G is MF
 
 
+def test_orient_faces_only_reverses_faces_and_is_idempotent():
+    """On random face soups (faces that repeat a vertex, faces listed twice, non-manifold edges)
+    and on balls with random faces reversed: orient_faces only reverses faces, a second pass
+    changes nothing (faces that repeat a vertex once made the pieces flip back and forth), and a
+    ball comes out consistently wound and outward (trimesh)."""
+    from dynmesh_warp.geometry import orient_faces
+
+    rng = np.random.default_rng(7)
+    for it in range(120):
+        if it % 2:
+            n = int(rng.integers(3, 30))
+            V, F = rng.random((n, 3)), rng.integers(0, n, (int(rng.integers(1, 40)), 3))
+        else:
+            m = trimesh.creation.icosphere(subdivisions=int(rng.integers(0, 3)))
+            V, F = np.asarray(m.vertices), np.asarray(m.faces).copy()
+        flip = rng.random(len(F)) < 0.3
+        F[flip] = F[flip, ::-1]
+        G, _ = orient_faces(V, F)
+        np.testing.assert_array_equal(np.sort(G, axis=1), np.sort(F, axis=1))
+        same = (G == F).all(axis=1) | (G == F[:, ::-1]).all(axis=1)
+        assert same.all()  # each face kept or reversed, in place
+        G2, r2 = orient_faces(V, G)
+        assert G2 is G and r2["rewound"] == r2["inward"] == r2["down"] == 0
+        if it % 2 == 0:
+            out = trimesh.Trimesh(V, G, process=False)
+            assert out.is_winding_consistent and out.volume > 0
+
+
 def test_sheet_facing_down_is_turned_up_and_holds_spheres(tmp_path):
     """An open surface whose triangles face down let every dropped sphere through before (0/5 in
     contact, spheres falling forever); loaded with orientation auto it holds them."""
