@@ -67,6 +67,10 @@ class _Options(BaseModel):
     #: default): never, since fragments of a thin part the fit has lost look the same and their
     #: pull is what recovers it (docs/conversion.md#floaters); 0.05 for floater-laden input
     far_part_area: Fraction = 0.0
+    #: with far_part_area 0: when the web of some frames reaches out to small separate input parts
+    #: (convert._floater_webs: a floater pulls a spike of stretched faces, a real part's fragment
+    #: does not), convert again with far_part_area = convert.FLOATER_AREA and keep the less poor run
+    floater_retry: bool = True
     #: the gap for ``far_part_area`` (fraction of the converted mesh's bbox diagonal)
     far_part_gap: Float = Field(0.10, gt=0.0)
     #: bit-identical results from run to run on a GPU: the conversion kernels' float atomic sums

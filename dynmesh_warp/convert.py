@@ -204,6 +204,12 @@ class ConversionInfo:
     the conversion was run again from other key frames (``key_candidates``); the kept run is
     the one of least Chamfer distance to the input (its key is ``key_frame``). Empty when there
     was one run.
+    floater_webs: frames whose web (above ``POOR_WEB``) is pulled by small separate parts of the
+    input (most of such a part's vertices nearest to stretched faces): floaters of a
+    reconstruction, which ``far_part_area`` leaves out (off by default); the summary says so.
+    floater_retry: the ``floater_webs`` of a first run, when the conversion was run again with
+    ``far_part_area`` = ``FLOATER_AREA`` (option ``floater_retry``) and that run, less poor, was
+    kept (its ``ignored_parts`` name what it left out); floater_retry_rejected: it ran and was not.
     welded: ``(frame, vertices)`` for input frames with vertices at one position (a triangle
     soup, seams), welded into one before the conversion (so the template of such a key frame is
     a connected mesh).
@@ -240,6 +246,9 @@ class ConversionInfo:
     key_trials: list = field(default_factory=list)
     dropped_unused: list = field(default_factory=list)
     welded: list = field(default_factory=list)
+    floater_webs: list = field(default_factory=list)
+    floater_retry: list = field(default_factory=list)
+    floater_retry_rejected: bool = False
     ignored_parts: dict = field(default_factory=dict)
     web: list = field(default_factory=list)
     segments: list = field(default_factory=list)
@@ -914,6 +923,43 @@ def _far_parts(v: np.ndarray, f: np.ndarray, X: np.ndarray, TF: np.ndarray, area
     return v2, f2, int(drop.size), len(v) - len(v2)
 
 
+#: a poor web frame counts as pulled by a floater when a separate input part of less than this
+#: fraction of the frame's area has most of its vertices nearest to stretched faces
+FLOATER_AREA = 0.05
+
+
+def _floater_webs(vseq, res, device) -> list:
+    """The frames of ``res`` (a full run over ``vseq``'s frames) whose web is above ``POOR_WEB``
+    and is pulled by a small separate input part: more than half of that part's vertices have
+    their nearest converted point on a face stretched more than ``WEB_STRETCH`` x since the key
+    frame. A fragment of a real thin part the fit follows is met by unstretched faces instead."""
+    info = res.conversion
+    out = []
+    poor = np.flatnonzero(np.asarray(info.web) > POOR_WEB)
+    if not poor.size or info.first_frame != 0 or len(info.coverage) != vseq.num_frames:
+        return out
+    key_edge = _longest_edges(res.V[info.key_frame], res.F)
+    for t in poor.tolist():
+        v, f = vseq.frames[t]
+        k, vert_part = _part_labels(f, len(v))
+        if k < 2:
+            continue
+        lab = vert_part[f[:, 0]]
+        part_area = np.bincount(lab, weights=face_areas(v, f), minlength=k)
+        small = np.flatnonzero(part_area < FLOATER_AREA * part_area.sum())
+        small = small[small != np.argmax(part_area)]
+        if not small.size:
+            continue
+        verts = np.unique(f[np.isin(lab, small)])
+        hit = nearest_surface((res.V[t], res.F), v[verts], device=device).face
+        stretched = _longest_edges(res.V[t], res.F) > WEB_STRETCH * key_edge
+        on_web = np.bincount(vert_part[verts], weights=stretched[np.maximum(hit, 0)] & (hit >= 0), minlength=k)
+        count = np.bincount(vert_part[verts], minlength=k)
+        if np.any(on_web[small] > 0.5 * np.maximum(count[small], 1)):
+            out.append(t)
+    return out
+
+
 def _frame_for_fit(vseq, t: int, K: int, o: dict, X_ref, TF: np.ndarray, device, info) -> tuple:
     """Input frame t as the fit sees it: without small parts far from ``X_ref`` (the converted
     neighbour frame it is tracked from; :func:`_far_parts`, noted in ``info.ignored_parts``),
@@ -1137,12 +1183,32 @@ def _to_fixed(seq, strategy, template, device, progress, should_stop, stop_forwa
             res.conversion.key_trials = tried
         info = res.conversion
         info.dropped_unused, info.welded = unused, welded
+        if float(o["far_part_area"]) <= 0:
+            info.floater_webs = _floater_webs(vseq, res, device)
         res.all_topology_events = topology.result()  # every frame's (to_piecewise_fixed after a forward stop)
         info.topology_events = [e for e in res.all_topology_events
                                 if info.first_frame <= e[0] < info.first_frame + len(info.coverage)]
     finally:
         pool.shutdown(wait=False, cancel_futures=True)
     info.segments = [(info.first_frame, info.first_frame + res.num_frames, info.key_frame, res.num_vertices)]
+    fl = info.floater_webs
+    if fl and bool(o["floater_retry"]) and not (should_stop is not None and should_stop()):
+        # the web reaches out to small separate input parts: floaters, by that evidence (a real thin
+        # part's fragments meet unstretched faces); converted again without them, kept if less poor
+        if progress:
+            print(f"conversion: the web on frame(s) {', '.join(map(str, fl[:8]))} reaches out to small separate "
+                  f"input parts (floaters?); converting again without them (far_part_area={FLOATER_AREA})",
+                  file=sys.stderr, flush=True)
+        retry = _to_fixed(seq, strategy, template, device, progress, should_stop, stop_forward,
+                          **{**options, "far_part_area": FLOATER_AREA})
+        r = retry.conversion
+        if len(r.coverage) == len(info.coverage) and _badness(r).max() < _badness(info).max():
+            r.floater_retry = fl
+            res = retry
+        else:
+            info.floater_retry_rejected = True
+        res.conversion.seconds_all = time.perf_counter() - start
+        return res
     info.seconds_all = time.perf_counter() - start
     return res
 
@@ -1286,7 +1352,8 @@ def _frame_fields(info, shift: int, lo: int | None = None, hi: int | None = None
         return lo is None or lo <= t < hi
 
     out = {name: [t + shift for t in getattr(info, name) if kept(t)]
-           for name in ("reanchored_frames", "repaired_frames", "unrecovered_frames")}
+           for name in ("reanchored_frames", "repaired_frames", "unrecovered_frames", "floater_webs",
+                        "floater_retry")}
     out["recovered_frames"] = [(t + shift, src) for t, src in info.recovered_frames if kept(t)]
     out["ignored_parts"] = {t + shift: x for t, x in info.ignored_parts.items() if kept(t)}
     out["key_trials"] = [(k + shift, *rest) for k, *rest in info.key_trials]
@@ -1519,6 +1586,21 @@ def conversion_summary(info: ConversionInfo) -> list:
                      "surface is stretched across a gap of the input (parts the template fused have moved apart; "
                      "a sphere would land on it)" + ("" if segs else "; new templates (segments) start there when "
                                                      "convert writes a .npz or a folder with max_segments > 1"))
+    if info.floater_retry:
+        fr = info.floater_retry
+        lines.append(f"note: the first run's web on {len(fr)} frame(s) ({', '.join(map(str, fr[:12]))}"
+                     + (" ..." if len(fr) > 12 else "") + f") reached out to small separate input parts (floaters of the "
+                     f"reconstruction?); converted again leaving such parts out (far_part_area={FLOATER_AREA}), "
+                     "which fitted better: kept")
+    fl = info.floater_webs
+    if fl:
+        lines.append(f"warning: on {len(fl)} of these frame(s) ({', '.join(map(str, fl[:12]))}"
+                     + (" ..." if len(fl) > 12 else "") + ") the web reaches out to small separate parts of the "
+                     "input (floaters of the reconstruction?): " + (
+                         f"a run leaving them out (far_part_area={FLOATER_AREA}) fitted no better, so this one was kept"
+                         if info.floater_retry_rejected else
+                         f"--option far_part_area={FLOATER_AREA} leaves such parts out of the fit")
+                     + " (docs/conversion.md, Floaters)")
     bad = np.flatnonzero(cov > POOR_COVERAGE)
     if bad.size:
         lines.append(f"warning: poor fit on {bad.size} frame(s) ({', '.join(map(str, bad[:12]))}"
