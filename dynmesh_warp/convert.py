@@ -928,11 +928,12 @@ def _far_parts(v: np.ndarray, f: np.ndarray, X: np.ndarray, TF: np.ndarray, area
 FLOATER_AREA = 0.05
 
 
-def _floater_webs(vseq, res, device) -> list:
+def _floater_webs(vseq, res, device, far_gap: float) -> list:
     """The frames of ``res`` (a full run over ``vseq``'s frames) whose web is above ``POOR_WEB``
     and is pulled by a small separate input part: more than half of that part's vertices have
     their nearest converted point on a face stretched more than ``WEB_STRETCH`` x since the key
-    frame. A fragment of a real thin part the fit follows is met by unstretched faces instead."""
+    frame, and every vertex of it lies farther than ``far_gap`` x the diagonal from the faces that
+    are not. A fragment of a real thin part lies by the rest of that part instead."""
     info = res.conversion
     out = []
     poor = np.flatnonzero(np.asarray(info.web) > POOR_WEB)
@@ -955,7 +956,18 @@ def _floater_webs(vseq, res, device) -> list:
         stretched = _longest_edges(res.V[t], res.F) > WEB_STRETCH * key_edge
         on_web = np.bincount(vert_part[verts], weights=stretched[np.maximum(hit, 0)] & (hit >= 0), minlength=k)
         count = np.bincount(vert_part[verts], minlength=k)
-        if np.any(on_web[small] > 0.5 * np.maximum(count[small], 1)):
+        pulled = small[on_web[small] > 0.5 * np.maximum(count[small], 1)]
+        if not pulled.size or stretched.all():
+            continue
+        # ... and detached: every vertex of the part farther than far_part_gap from the faces that
+        # are not stretched (a fragment of a real part lies by the rest of that part)
+        keep = ~stretched
+        gap = float(far_gap) * max(_bbox_diag(res.V[t]), 1e-12)
+        pv = verts[np.isin(vert_part[verts], pulled)]
+        d = nearest_surface((res.V[t], res.F[keep]), v[pv], device=device).dist
+        near = np.zeros(k, bool)
+        near[vert_part[pv][d <= gap]] = True
+        if np.any(~near[pulled]):
             out.append(t)
     return out
 
@@ -1184,7 +1196,7 @@ def _to_fixed(seq, strategy, template, device, progress, should_stop, stop_forwa
         info = res.conversion
         info.dropped_unused, info.welded = unused, welded
         if float(o["far_part_area"]) <= 0:
-            info.floater_webs = _floater_webs(vseq, res, device)
+            info.floater_webs = _floater_webs(vseq, res, device, float(o["far_part_gap"]))
         res.all_topology_events = topology.result()  # every frame's (to_piecewise_fixed after a forward stop)
         info.topology_events = [e for e in res.all_topology_events
                                 if info.first_frame <= e[0] < info.first_frame + len(info.coverage)]
