@@ -1214,7 +1214,9 @@ def _to_fixed(seq, strategy, template, device, progress, should_stop, stop_forwa
         retry = _to_fixed(seq, strategy, template, device, progress, should_stop, stop_forward,
                           **{**options, "far_part_area": FLOATER_AREA})
         r = retry.conversion
-        if len(r.coverage) == len(info.coverage) and _badness(r).max() < _badness(info).max():
+        if len(r.coverage) < len(info.coverage):
+            pass  # stopped by the caller during the second run: the first, complete, is kept
+        elif _badness(r).max() < _badness(info).max():
             r.floater_retry = fl
             res = retry
         else:
