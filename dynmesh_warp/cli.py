@@ -27,6 +27,7 @@ import os
 import signal
 import sys
 import threading
+from pathlib import Path
 
 __all__ = ["Parser", "quiet_warp", "Interrupted", "interruptible_main", "checking_stops", "raising_stops",
            "stop_requested", "stop_reason", "stop_signal", "signal_name", "STOP_SIGNALS"]
@@ -318,8 +319,6 @@ def scene_source(scene) -> dict:
     note saying how to change it (docs/scene.md). ``run`` and ``render`` take their scene so."""
     from .animation_formats import ANIMATION_EXTENSIONS, VERTEX_ONLY_EXTENSIONS
     from .mesh_formats import MESH_EXTENSIONS
-
-    from pathlib import Path
 
     if scene is None:
         return {"path": None}

@@ -62,7 +62,7 @@ import warp as wp
 from .choices import DEFAULT_STRATEGY, STRATEGIES
 from .conversion_options import options_for
 from .deform_graph import GraphFitter, build_deformation_graph, extrapolate_rotations
-from .geometry import face_areas, surface_area, weld_vertices
+from .geometry import distinct_faces, face_areas, surface_area, weld_vertices
 from .kernels import convert as kc
 from .kernels.geometry import project_points_to_mesh
 from .metrics import chamfer_distance
@@ -305,12 +305,8 @@ def _drop_unused(vseq: VaryingTopologySequence):
         v, f, merged = weld_vertices(v, np.asarray(f))
         if merged:
             welded.append((t, merged))
-        keep = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
-        _, first = np.unique(np.sort(f, axis=1), axis=0, return_index=True)
-        if len(first) < len(f):  # a face listed again (either winding): the first copy kept
-            once = np.zeros(len(f), bool)
-            once[first] = True
-            keep &= once
+        keep = np.zeros(len(f), bool)
+        keep[distinct_faces(f)[1]] = True  # not a face that repeats a vertex, nor one listed again
         v2, f2 = _keep_faces(v, f, keep)
         nv, nf = len(v) - len(v2), len(f) - len(f2)
         if nv == 0 and nf == 0:
@@ -1221,9 +1217,7 @@ def _to_fixed(seq, strategy, template, device, progress, should_stop, stop_forwa
             res = retry
         else:
             info.floater_retry_rejected = True
-        res.conversion.seconds_all = time.perf_counter() - start
-        return res
-    info.seconds_all = time.perf_counter() - start
+    res.conversion.seconds_all = time.perf_counter() - start
     return res
 
 
@@ -1528,6 +1522,12 @@ DRIFT_FLOOR = 0.01
 SCORE_POINTS = 20000
 
 
+def _frames_text(frames, limit: int = 12) -> str:
+    """``"a, b, c"`` of the first ``limit`` frames, `` ...`` after them when there are more."""
+    frames = list(frames)
+    return ", ".join(map(str, frames[:limit])) + (" ..." if len(frames) > limit else "")
+
+
 def conversion_summary(info: ConversionInfo) -> list:
     """Lines that tell the user what a conversion did and where it may have failed: key frame
     (or the segments), time, coverage (worst frame), recovered frames, topology changes, the
@@ -1558,22 +1558,21 @@ def conversion_summary(info: ConversionInfo) -> list:
                      f"{100 * cov.mean():.2f}%, worst {100 * cov[w]:.2f}% at frame {w}")
     rec = info.recovered_frames or [(t, "") for t in info.reanchored_frames]
     if rec:
-        shown = ", ".join(f"{t}" + (f" (from {src})" if src else "") for t, src in rec[:12])
-        lines.append(f"recovered/re-anchored {len(rec)} frame(s): {shown}" + (" ..." if len(rec) > 12 else ""))
+        shown = _frames_text(f"{t}" + (f" (from {src})" if src else "") for t, src in rec)
+        lines.append(f"recovered/re-anchored {len(rec)} frame(s): {shown}")
     if info.repaired_frames:
         r = info.repaired_frames
         lines.append(f"repair pass (re-tracked from the other side) improved {len(r)} frame(s): "
-                     f"{', '.join(map(str, r[:12]))}" + (" ..." if len(r) > 12 else ""))
+                     f"{_frames_text(r)}")
     if info.unrecovered_frames:
         u = info.unrecovered_frames
-        lines.append(f"restart found no better fit at {len(u)} frame(s): {', '.join(map(str, u[:12]))}"
-                     + (" ..." if len(u) > 12 else ""))
+        lines.append(f"restart found no better fit at {len(u)} frame(s): {_frames_text(u)}")
     ig = info.ignored_parts
     if ig:
         fr = sorted(ig)
         lines.append(f"note: left out {sum(p for p, _ in ig.values())} small input part(s) lying far from the "
-                     f"converted surface (floaters?) on {len(fr)} frame(s): {', '.join(map(str, fr[:12]))}"
-                     + (" ..." if len(fr) > 12 else "") + "; they have no part in the template")
+                     f"converted surface (floaters?) on {len(fr)} frame(s): {_frames_text(fr)}"
+                     "; they have no part in the template")
     we = info.welded
     if we:
         lines.append(f"note: welded {sum(x[1] for x in we)} input vertices that repeat another's position (a "
@@ -1595,30 +1594,28 @@ def conversion_summary(info: ConversionInfo) -> list:
                      f"{100 * web[w]:.2f}% at frame {w}, on {int(np.count_nonzero(web))} frame(s)")
     poor_web = np.flatnonzero(web > POOR_WEB)
     if poor_web.size:
-        lines.append(f"warning: web on {poor_web.size} frame(s) ({', '.join(map(str, poor_web[:12]))}"
-                     + (" ..." if poor_web.size > 12 else "") + f"): over {100 * POOR_WEB:.0f}% of the converted "
-                     "surface is stretched across a gap of the input (parts the template fused have moved apart; "
+        lines.append(f"warning: web on {poor_web.size} frame(s) ({_frames_text(poor_web)}): over "
+                     f"{100 * POOR_WEB:.0f}% of the converted surface is stretched across a gap of the input (parts "
+                     "the template fused have moved apart; "
                      "a sphere would land on it)" + ("" if segs else "; new templates (segments) start there when "
                                                      "convert writes a .npz or a folder with max_segments > 1"))
     if info.floater_retry:
         fr = info.floater_retry
-        lines.append(f"note: the first run's web on {len(fr)} frame(s) ({', '.join(map(str, fr[:12]))}"
-                     + (" ..." if len(fr) > 12 else "") + f") reached out to small separate input parts (floaters of the "
-                     f"reconstruction?); converted again leaving such parts out (far_part_area={FLOATER_AREA}), "
+        lines.append(f"note: the first run's web on {len(fr)} frame(s) ({_frames_text(fr)}) reached out to small "
+                     "separate input parts (floaters of the reconstruction?); converted again leaving such parts "
+                     f"out (far_part_area={FLOATER_AREA}), "
                      "which fitted better: kept")
     fl = info.floater_webs
     if fl:
-        lines.append(f"warning: on {len(fl)} of these frame(s) ({', '.join(map(str, fl[:12]))}"
-                     + (" ..." if len(fl) > 12 else "") + ") the web reaches out to small separate parts of the "
-                     "input (floaters of the reconstruction?): " + (
+        lines.append(f"warning: on {len(fl)} of these frame(s) ({_frames_text(fl)}) the web reaches out to small "
+                     "separate parts of the input (floaters of the reconstruction?): " + (
                          f"a run leaving them out (far_part_area={FLOATER_AREA}) fitted no better, so this one was kept"
                          if info.floater_retry_rejected else
                          f"--option far_part_area={FLOATER_AREA} leaves such parts out of the fit")
                      + " (docs/conversion.md, Floaters)")
     bad = np.flatnonzero(cov > POOR_COVERAGE)
     if bad.size:
-        lines.append(f"warning: poor fit on {bad.size} frame(s) ({', '.join(map(str, bad[:12]))}"
-                     + (" ..." if bad.size > 12 else "") + f"): input surface farther than "
+        lines.append(f"warning: poor fit on {bad.size} frame(s) ({_frames_text(bad)}): input surface farther than "
                      f"{100 * POOR_COVERAGE:.0f}% of the diagonal from the converted mesh (a lost part?)"
                      + ("; try --strategy graph" if info.strategy != "graph" else "; try another --key-frame")
                      + ("; if the input has floaters (small separate blobs off the surface), --option "

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["face_areas", "surface_area", "signed_volume", "orient_outward", "mesh_orientation", "orient_faces",
-           "weld_vertices", "motion_groups", "fit_group_motions", "rotation_to_wxyz"]
+           "distinct_faces", "weld_vertices", "motion_groups", "fit_group_motions", "rotation_to_wxyz"]
 
 
 def face_areas(V, F) -> np.ndarray:
@@ -119,6 +119,24 @@ def _patches(F: np.ndarray) -> tuple:
     return label, npatch, rewind, orientable, boundary, edges
 
 
+def distinct_faces(F) -> tuple:
+    """``(live, first, copy_of)`` of the faces ``F`` (M, 3): ``live`` the indices of the faces
+    with three different vertices (one that repeats a vertex has no area in any pose);
+    ``first`` the index of the first listing of each different triangle among them (a face
+    listed again, in either winding, is one triangle); ``copy_of`` (len(live),) the position in
+    ``first`` of each live face's triangle. The one rule of ``convert`` (which drops the others)
+    and :func:`orient_faces` (which winds every copy as the first)."""
+    F = np.asarray(F)
+    live = np.flatnonzero((F[:, 0] != F[:, 1]) & (F[:, 1] != F[:, 2]) & (F[:, 0] != F[:, 2]))
+    _, first, copy_of = np.unique(np.sort(F[live], axis=1), axis=0, return_index=True, return_inverse=True)
+    return live, live[first], copy_of.reshape(-1)
+
+
+def _sum_by(label: np.ndarray, X: np.ndarray, n: int) -> np.ndarray:
+    """(n, 3) the rows of ``X`` (M, 3) summed per ``label`` (M,)."""
+    return np.stack([np.bincount(label, X[:, i], minlength=n) for i in range(3)], 1)
+
+
 def orient_faces(V, F, up=(0.0, 0.0, 1.0), down_fraction: float = 0.25) -> tuple:
     """``(F', report)``: the faces ``F`` wound so that one-sided contacts hold, patch by patch
     (manifold pieces, see :func:`_patches`, of the mesh with coincident vertices welded):
@@ -143,12 +161,9 @@ def orient_faces(V, F, up=(0.0, 0.0, 1.0), down_fraction: float = 0.25) -> tuple
     W = weld_vertices(V, F)[1]
     # faces that repeat a vertex have no area and no winding: left as they are (their self-edges
     # would tie the pieces in knots)
-    live = np.flatnonzero((W[:, 0] != W[:, 1]) & (W[:, 1] != W[:, 2]) & (W[:, 0] != W[:, 2]))
+    live, first, copy_of = distinct_faces(W)
     if len(live) == 0:
         return F, report
-    _, first, copy_of = np.unique(np.sort(W[live], axis=1), axis=0, return_index=True, return_inverse=True)
-    copy_of = copy_of.reshape(-1)
-    first = live[first]
     Fu = F[first]
     label, npatch, rewind, orientable, boundary, edges = _patches(W[first])
     report["patches"] = int(npatch)
@@ -159,14 +174,13 @@ def orient_faces(V, F, up=(0.0, 0.0, 1.0), down_fraction: float = 0.25) -> tuple
     cr = np.cross(b - a, c - a)  # twice the vector area of each face
     # volume about each patch's vertex centroid (a small hole biases it little)
     w = np.bincount(label, minlength=npatch).astype(np.float64)
-    cen = np.stack([np.bincount(label, (a + b + c)[:, i], minlength=npatch) for i in range(3)], 1) / (3 * w[:, None])
-    o = cen[label]
+    o = (_sum_by(label, a + b + c, npatch) / (3 * w[:, None]))[label]
     vol = np.bincount(label, np.einsum("ij,ij->i", a - o, np.cross(b - o, c - o)), minlength=npatch)
     up = np.asarray(up, np.float64)
     up = up / (np.linalg.norm(up) or 1.0)
     facing = np.bincount(label, cr @ up, minlength=npatch)
     area = np.bincount(label, np.linalg.norm(cr, axis=1), minlength=npatch)
-    opening = np.linalg.norm(np.stack([np.bincount(label, cr[:, i], minlength=npatch) for i in range(3)], 1), axis=1)
+    opening = np.linalg.norm(_sum_by(label, cr, npatch), axis=1)
     closed = _has_inside(boundary, edges, opening, area)
     ok = np.bincount(label, ~orientable, minlength=npatch) == 0
     inward = ok & closed & (vol < 0)

@@ -11,7 +11,7 @@ from .choices import Y_UP_FORMATS, Collider, UpAxis
 from .config import PhysicsCore, SceneConfig, SceneError, spawn_positions
 from .runtime import scene_device
 from .geometry import mesh_orientation, orient_faces
-from .mesh_formats import MESH_EXTENSIONS
+from .mesh_formats import mesh_extension
 from .sequence import FixedTopologySequence, MeshDataError, TopologyMismatchError, VaryingTopologySequence
 from .world import Model, PhysicsParams, SphereModel, State, World, surface_model, surface_model_class
 
@@ -33,13 +33,13 @@ def up_axis_of(cfg, source) -> str:
     if not source or str(source).startswith("builtin:"):
         return "z"
     path = Path(str(source))
-    if path.is_dir():
-        files = sorted(q for q in path.iterdir() if q.is_file() and not q.name.startswith("."))
-        exts = {q.suffix.lower() for q in files}
-        if not exts & set(Y_UP_FORMATS) or exts & set(MESH_EXTENSIONS) - set(Y_UP_FORMATS):
+    if path.is_dir():  # its frames, by the folder loader's own rule (sequence_layouts.list_frame_files)
+        frames = sorted(q for q in path.iterdir()
+                        if q.is_file() and not q.name.startswith(".") and mesh_extension(q.name))
+        if not frames or any(mesh_extension(q.name) not in Y_UP_FORMATS for q in frames):
             return "z"
-        path = next(q for q in files if q.suffix.lower() in Y_UP_FORMATS)
-    elif path.suffix.lower() not in Y_UP_FORMATS:
+        path = frames[0]
+    elif mesh_extension(path.name) not in Y_UP_FORMATS:
         return "z"
     # a file this project wrote holds its input's coordinates as they were: read back unturned
     return "z" if gltf_generator(path).startswith(GENERATOR) else "y"
@@ -178,10 +178,10 @@ def prepare_surface(seq, cfg: SceneConfig):
         raise TypeError(f"expected a FixedTopologySequence or VaryingTopologySequence, got {type(seq).__name__}")
     fps = float(s.fps) if s.fps is not None else seq.fps  # a new sequence: the caller's is untouched
     where = seq.source or seq.name
-    up = up_axis_of(s, seq.source)
+    axis, up = up_axis_of(s, seq.source), _up(cfg)
     if isinstance(seq, FixedTopologySequence):
-        V = _transform(seq.V, s, up)
-        F, report = _orient(V[0], seq.F, s, _up(cfg))
+        V = _transform(seq.V, s, axis)
+        F, report = _orient(V[0], seq.F, s, up)
         _say_orientation([(None, report)], where)
         seq = FixedTopologySequence(V, F, fps, seq.name, seq.source)
         _check_size(seq.V[0], s)
@@ -189,11 +189,11 @@ def prepare_surface(seq, cfg: SceneConfig):
         frames, reports = [], []
         prev = None  # (input faces, oriented faces) of the frame before
         for t, (v, f) in enumerate(seq.frames):
-            v = _transform(v, s, up)
+            v = _transform(v, s, axis)
             if prev is not None and prev[0].shape == f.shape and np.array_equal(prev[0], f):
                 frames.append((v, prev[1]))  # a run of frames on one set of faces (a segment) stays one
                 continue
-            g, report = _orient(v, f, s, _up(cfg))
+            g, report = _orient(v, f, s, up)
             prev = (f, g)
             frames.append((v, g))
             reports.append((t, report))
@@ -210,7 +210,7 @@ def prepare_surface(seq, cfg: SceneConfig):
                 from .io import read_mesh
 
                 V, F = read_mesh(cfg.resolve(s.conversion.template))
-                template = (_transform(V, s, up), F)
+                template = (_transform(V, s, axis), F)
             try:
                 seq = to_fixed_topology(seq, strategy=s.conversion.strategy, template=template,
                                         **s.conversion.options)
