@@ -709,13 +709,10 @@ def build_batched_world(cfg, device=None, num_envs: int | None = None, sequence=
     """A :class:`BatchedWorld` of a scene: the one builder (``scene.build_model``) gives the
     surface, spheres and physics; ``envs:`` (or ``num_envs``) the count and clocks."""
     from .config import SceneError
-    from .scene import build_model, load_surface, prepare_surface
-    from .sequence import FixedTopologySequence
+    from .scene import build_model, load_surface, prepare_surface, require_fixed_topology
 
     seq = load_surface(cfg) if sequence is None else prepare_surface(sequence, cfg)
-    if not isinstance(seq, FixedTopologySequence):
-        raise SceneError(f"surface {cfg.surface.source}: batched envs need a fixed-topology surface; set "
-                         "surface.conversion to convert it")
+    require_fixed_topology(cfg, seq, "batched envs need")
     model, state = build_model(cfg, seq, device)
     envs = cfg.envs if num_envs is None else cfg.envs.model_copy(update={"count": int(num_envs)})
     if envs.count < 1:

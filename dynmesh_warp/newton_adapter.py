@@ -38,7 +38,6 @@ from .config import PhysicsCore
 from .kernels.frames import update_frame_vertices
 from .kernels.integrate import advance_time
 from .kernels.newton_adapter import accumulate_shape_bounds, reset_shape_bounds
-from .sequence import FixedTopologySequence
 from .world import SurfaceModel
 
 __all__ = ["newton_available", "DeformingMeshShape", "NewtonWorld", "SOLVERS", "make_solver"]
@@ -512,7 +511,7 @@ def build_newton_world(cfg, device=None, sequence=None, num_worlds: int = 1, **o
     and the ground are global (world -1), shared by every world, so all worlds see the surface
     at one time (Newton has one clock; per-world clocks would need one mesh per world)."""
     from .config import SceneError  # noqa: PLC0415
-    from .scene import build_model, load_surface, prepare_surface  # noqa: PLC0415
+    from .scene import build_model, load_surface, prepare_surface, require_fixed_topology  # noqa: PLC0415
 
     if cfg.newton is None:
         raise SceneError("the scene has no 'newton:' section")
@@ -521,11 +520,7 @@ def build_newton_world(cfg, device=None, sequence=None, num_worlds: int = 1, **o
     except ImportError as e:
         raise SceneError(f"newton: {e}") from e
     seq = load_surface(cfg) if sequence is None else prepare_surface(sequence, cfg)
-    if not isinstance(seq, FixedTopologySequence):
-        what = (f"it has {len(seq.segments())} segments of fixed topology (convert's piecewise-fixed output); "
-                "convert it with --option max_segments=1 for one template, or " if seq.is_piecewise_fixed() else "")
-        raise SceneError(f"surface {cfg.surface.source}: the Newton path needs a fixed-topology surface; "
-                         f"{what}set surface.conversion to convert it")
+    require_fixed_topology(cfg, seq, "the Newton path needs")
     # the one builder (scene.build_model): the surface on the device, the spheres, the ground
     model, state = build_model(cfg, seq, device)
     surface, sp = model.surface, model.spheres

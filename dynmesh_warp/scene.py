@@ -280,6 +280,23 @@ def scene_ground(cfg: SceneConfig, seq) -> float | None:
     return float(seq.bounds()[0][2]) if g == "auto" else (None if g is None else float(g))
 
 
+def require_fixed_topology(cfg, seq, who: str):
+    """``seq`` when it has fixed topology; else a :class:`SceneError` saying that ``who`` (e.g.
+    "batched envs need", "the Newton path needs") with its verb needs one, and how to get it: one template
+    (``max_segments=1``) for convert's piecewise-fixed output, ``surface.conversion`` otherwise."""
+    if isinstance(seq, FixedTopologySequence):
+        return seq
+    src = cfg.surface.source
+    if isinstance(seq, VaryingTopologySequence) and seq.is_piecewise_fixed():
+        how = (f"it has {len(seq.segments())} segments of fixed topology (convert's piecewise-fixed output, "
+               f"played by a single world with collider: fixed or rebuild); convert it to one template, "
+               f"python -m dynmesh_warp.convert INPUT OUT.npz --option max_segments=1, or set surface.conversion")
+    else:
+        how = ("set surface.conversion to convert it (on the command line: "
+               "--set surface.conversion.strategy=graph), or convert it once with python -m dynmesh_warp.convert")
+    raise SceneError(f"surface {src}: {who} a fixed-topology surface; {how}")
+
+
 def build_model(cfg: SceneConfig, seq, device=None) -> tuple[Model, State]:
     """The one builder of a scene's :class:`~dynmesh_warp.world.Model` (surface, spheres,
     physics) and its initial :class:`~dynmesh_warp.world.State`, from a sequence already in the

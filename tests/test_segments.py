@@ -458,3 +458,31 @@ def test_web_restarts_the_fit_on_fast_curling_arms():
     assert w_on < 0.6 * w_off
     assert len(on.conversion.recovered_frames) > len(off.conversion.recovered_frames)
     assert max(on.conversion.coverage) < 1.5 * max(off.conversion.coverage)  # not bought with coverage
+
+
+def test_batched_envs_and_newton_refuse_segments_with_the_one_template_hint(tmp_path):
+    """Batched envs and the Newton path play one fixed topology. Given convert's piecewise-fixed
+    output they say it has segments and how to get one template (max_segments=1); given a truly
+    varying input they name surface.conversion. Both before any work on the device."""
+    from dynmesh_warp.batch import build_batched_world
+    from dynmesh_warp.config import SceneError, load_scene_config
+    from dynmesh_warp.newton_adapter import build_newton_world, newton_available
+
+    a = _waving_sheet()
+    F2 = np.ascontiguousarray(a.F[::-1][:, [1, 2, 0]])
+    segmented = VaryingTopologySequence([(a.V[t], a.F) for t in range(6)] + [(a.V[t], F2) for t in range(6, 12)],
+                                        fps=24.0, name="two segments")
+    path = tmp_path / "segments.npz"
+    save_sequence(segmented, path)
+    cfg = load_scene_config(data={"device": TEST_DEVICE, "surface": {"source": str(path)}, "spheres": {"count": 1},
+                                  "newton": {"bodies": [{"type": "sphere", "position": [0, 0, 1], "radius": 0.1}]}})
+    builders = [("batched envs need", lambda c, s: build_batched_world(c, num_envs=2, sequence=s))]
+    if newton_available():
+        builders.append(("the Newton path needs", lambda c, s: build_newton_world(c, sequence=s)))
+    for who, build in builders:
+        with pytest.raises(SceneError, match=rf"{who} a fixed-topology surface; it has 2 segments .*max_segments=1"):
+            build(cfg, None)
+        varying = VaryingTopologySequence([(a.V[t], (a.F, F2)[t % 2]) for t in range(12)], fps=24.0,
+                                          name="new faces every frame")  # no segments to keep
+        with pytest.raises(SceneError, match=rf"{who} a fixed-topology surface; set surface\.conversion"):
+            build(cfg, varying)
