@@ -225,10 +225,31 @@ def _triangles(mode: int, idx: np.ndarray) -> np.ndarray:
     return np.zeros((0, 3), np.int64)  # points, lines
 
 
+def gltf_document(path) -> dict:
+    """The JSON document of a .glb / .gltf file, reading only a .glb's header and its JSON chunk
+    (which the specification puts first), not its binary buffer; a file that is not laid out so
+    is read whole by :class:`_File`, which names what is wrong with it."""
+    path = Path(path)
+    with open(path, "rb") as fh:
+        head = fh.read(20)
+        if head[:4] == b"glTF" and len(head) == 20:
+            size, kind = struct.unpack_from("<II", head, 12)
+            if kind == 0x4E4F534A:  # JSON
+                chunk = fh.read(size)
+                if len(chunk) == size:
+                    try:
+                        doc = json.loads(chunk.decode("utf-8"))
+                    except (UnicodeDecodeError, json.JSONDecodeError):
+                        doc = None
+                    if isinstance(doc, dict):
+                        return doc
+    return _File(path).doc
+
+
 def gltf_has_animation(path) -> bool:
     """Whether a .glb / .gltf file holds at least one animation with channels (its JSON only: a
     static file goes on to the mesh reader whatever extensions it requires)."""
-    doc = _File(Path(path)).doc
+    doc = gltf_document(path)
     return any(a.get("channels") for a in doc.get("animations", []) or [])
 
 
@@ -241,7 +262,7 @@ GENERATOR = "dynmesh_warp"
 def gltf_generator(path) -> str:
     """The ``asset.generator`` of a .glb / .gltf file ("" when absent or unreadable: its JSON only)."""
     try:
-        g = _File(Path(path)).doc.get("asset", {}).get("generator", "")
+        g = gltf_document(path).get("asset", {}).get("generator", "")
     except (MeshDataError, OSError, AttributeError):
         return ""
     return g if isinstance(g, str) else ""

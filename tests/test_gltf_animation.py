@@ -322,3 +322,34 @@ def test_sequence_written_as_an_animated_glb_reads_back_and_blends_like_the_phys
         var = seq.to_varying()
         var.frames[1] = (V[1][:3], F[:1])
         save_sequence(var, tmp_path / "v.glb")
+
+
+def test_the_up_axis_and_animation_checks_read_only_the_json_chunk(tmp_path, monkeypatch):
+    """``up_axis: auto`` (asset.generator) and the animated-or-static choice read a .glb's JSON
+    chunk, not its whole file: a large capture is read once, by the loader. A file cut inside its
+    binary buffer still answers them, and the loader names the truncation; a .gltf answers too."""
+    from dynmesh_warp import gltf_animation as ga
+
+    b = Builder()
+    P, F = _bar()
+    b.doc["asset"]["generator"] = "SomeExporter 1.0"
+    b.doc["meshes"] = [{"primitives": [{"attributes": {"POSITION": b.add(P, "VEC3")}}]}]
+    b.doc["nodes"] = [{"mesh": 0}]
+    b.doc["scenes"][0]["nodes"] = [0]
+    b.doc["animations"] = [{"channels": [{"sampler": 0, "target": {"node": 0, "path": "translation"}}],
+                            "samplers": [{"input": b.add([0.0, 1.0], "SCALAR"),
+                                          "output": b.add([[0, 0, 0], [1, 0, 0]], "VEC3")}]}]
+    cut = tmp_path / "cut.glb"
+    cut.write_bytes(b.glb()[:-40])
+    monkeypatch.setattr(ga._File, "__init__", lambda *a, **k: pytest.fail("read the whole file"))
+    assert ga.gltf_generator(cut) == "SomeExporter 1.0"
+    assert ga.gltf_has_animation(cut)
+    monkeypatch.undo()
+    with pytest.raises(MeshDataError, match=r"cut\.glb: GLB header says .* bytes, but the file has .* \(truncated\)"):
+        load_sequence(cut)
+    static = tmp_path / "static.gltf"
+    static.write_text(json.dumps({"asset": {"version": "2.0"}}))
+    assert not ga.gltf_has_animation(static) and ga.gltf_generator(static) == ""
+    (tmp_path / "bad.glb").write_bytes(b"glTF\x02\x00\x00\x00" + b"\x00" * 4)  # a header and nothing else
+    with pytest.raises(MeshDataError, match=r"bad\.glb"):
+        ga.gltf_has_animation(tmp_path / "bad.glb")
