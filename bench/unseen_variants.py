@@ -8,7 +8,9 @@ round, and may be in millimetres (docs/evaluation.md, "Unseen placements").
 
 ``--walk W``: the body's centre travels W x its rest bbox diagonal along x over the sequence;
 ``--turn A``: it turns by A radians about the vertical through its centre (linear in time);
-``--scale S``, ``--offset D``: every coordinate times S, then D x the diagonal added to each axis.
+``--scale S``, ``--offset D``: every coordinate times S, then D x the diagonal added to each axis;
+``--floor S``: a static slab S x the diagonal wide under the lowest point of the sequence, as a
+reconstruction of a real capture keeps the floor the subject stands on (its feet touch it).
 """
 
 from __future__ import annotations
@@ -58,10 +60,14 @@ def main() -> int:
     ap.add_argument("--turn", type=float, default=0.0)
     ap.add_argument("--scale", type=float, default=1.0)
     ap.add_argument("--offset", type=float, default=0.0)
+    ap.add_argument("--floor", type=float, default=0.0)
     ap.add_argument("--up", type=int, default=2, help="vertical axis index (default 2: z)")
     ap.add_argument("--out", required=True)
     a = ap.parse_args()
     V, F, fps = load(a.sequence)
+    if a.floor > 0:
+        from dynmesh_warp.scenes import with_floor
+        V, F = with_floor(V, F, a.floor, a.up)
     W = place(V, a.walk, a.turn, a.scale, a.offset, a.up).astype(np.float32)
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     np.savez(a.out, V=W, F=F.astype(np.int32), fps=np.float32(fps), name=Path(a.out).stem)

@@ -118,6 +118,10 @@ class GraphOptions(_Options, _FineStage):
     strategy: Literal["graph"] = "graph"
     # the deformation graph (dynmesh_warp.deform_graph)
     node_spacing: Float = Field(0.03, gt=0.0, le=1.0)
+    #: node spacing from the diagonal of the part that moves (within its box) where that part is
+    #: much smaller than the whole template: a capture's static floor or background otherwise
+    #: coarsens the graph on the subject (docs/conversion.md, "A static floor in the capture")
+    adaptive_spacing: bool = True
     nodes_per_vertex: Int = Field(4, ge=1, le=MAX_NODES_PER_VERTEX)
     graph_iterations: Int = Field(8, ge=1)
     stiffness: Float = Field(10.0, ge=0.0)

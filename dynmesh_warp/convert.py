@@ -228,6 +228,9 @@ class ConversionInfo:
     for :func:`to_fixed_topology`; several when :func:`to_piecewise_fixed` started new templates.
     seconds_all: wall time of the whole call [s], the runs whose frames were not kept (other key
     frames, segments tried and replaced) included; ``frame_seconds`` counts the kept frames only.
+    moving_part: ``(diagonal [m], template vertices)`` of the part of the template that moves,
+    when it is much smaller than the whole (a static floor or background) and set the graph's
+    node spacing within its box (option ``adaptive_spacing``); None otherwise.
     """
 
     strategy: str
@@ -253,6 +256,7 @@ class ConversionInfo:
     web: list = field(default_factory=list)
     segments: list = field(default_factory=list)
     seconds_all: float = 0.0
+    moving_part: tuple | None = None
 
 
 def web_fraction(X: np.ndarray, F: np.ndarray, X_key: np.ndarray, V_ref: np.ndarray, F_ref: np.ndarray,
@@ -326,7 +330,9 @@ def _drop_unused(vseq: VaryingTopologySequence):
 class _Converter:
     """Template-side device arrays, allocated once; one wp.Mesh per input frame."""
 
-    def __init__(self, TV: np.ndarray, TF: np.ndarray, device, max_dist: float, opts: dict):
+    def __init__(self, TV: np.ndarray, TF: np.ndarray, device, max_dist: float, opts: dict, node_spacing=None):
+        """``node_spacing``: the graph's node spacing [m], a float or one per template vertex
+        (:func:`_node_spacing`); default ``node_spacing`` x the template's bbox diagonal."""
         self.device = device
         self.opts = opts
         self.max_dist = float(max_dist)
@@ -373,8 +379,8 @@ class _Converter:
             self.bank = []  # (frame, positions (N,) wp.vec3, centroid (3,)) of earlier results
             self.reinit_sources = []  # (frame, source frame or -1 = template)
         if opts.get("strategy") == "graph":
-            self.graph = build_deformation_graph(TV, TF, float(opts["node_spacing"]) * max(_bbox_diag(TV), 1e-12),
-                                                 int(opts["nodes_per_vertex"]))
+            spacing = float(opts["node_spacing"]) * max(_bbox_diag(TV), 1e-12) if node_spacing is None else node_spacing
+            self.graph = build_deformation_graph(TV, TF, spacing, int(opts["nodes_per_vertex"]))
             self.gf = GraphFitter(self.graph, TV, TF, d, self.max_dist, opts)
             self.history = []  # graph states (R, P) of the last two frames
             self.states = {}  # frame -> graph state (R, P) of the first two frames: where the backward pass starts
@@ -1447,6 +1453,53 @@ def _key_retry_reason(coverage, K: int) -> str | None:
     return None
 
 
+#: a template vertex "moves" when some sampled input frame lies farther than this fraction of
+#: the template's diagonal from it (well above a reconstruction's error, ~1 % RMS)
+MOVING_GAP = 0.05
+#: the moving part's box sets the node spacing only when its diagonal is below this fraction of
+#: the template's (a floor or background much larger than the subject)
+MOVING_PART_MAX = 0.7
+#: input frames sampled to find what moves
+MOVING_SAMPLES = 8
+
+
+def _node_spacing(vseq, K: int, TV: np.ndarray, TF: np.ndarray, o: dict, device) -> tuple:
+    """The graph's node spacing for template TV (key frame K): (spacing, moving part).
+
+    ``node_spacing`` x the template's bbox diagonal, unless (``adaptive_spacing``) the part of
+    the template that moves is much smaller than the whole, as a subject on a static floor or in
+    front of a static background is: then ``node_spacing`` x the moving part's diagonal for the
+    vertices within its box (grown by the coarse spacing), the coarse spacing elsewhere, so the
+    static part neither coarsens the subject's graph nor fills the node budget. A vertex moves
+    when one of ``MOVING_SAMPLES`` frames spread over the sequence lies farther than
+    ``MOVING_GAP`` x the diagonal from it, or it is a corner of the template face nearest to
+    such a frame's vertex that far from the template. Moving part: None, or ``(diagonal [m], vertices)``."""
+    diag = max(_bbox_diag(TV), 1e-12)
+    coarse = float(o["node_spacing"]) * diag
+    T = vseq.num_frames
+    if not o.get("adaptive_spacing", False) or T < 2:
+        return coarse, None
+    frames = sorted(set(np.linspace(0, T - 1, min(MOVING_SAMPLES + 1, T)).round().astype(int).tolist()) - {K})
+    far = MOVING_GAP * diag
+    moving = np.zeros(len(TV), bool)
+    for t in frames:
+        # both ways: a template vertex far from the frame, and the template face nearest to a
+        # frame vertex far from the template (a foot that slides along the floor stays near the
+        # frame's surface; the leg that spreads from it shows the other way)
+        moving |= nearest_surface(vseq.frames[t], TV, device=device).dist > far
+        back = nearest_surface((TV, TF), vseq.frames[t][0], device=device)
+        hit = (back.dist > far) & (back.face >= 0)
+        moving[TF[back.face[hit]].reshape(-1)] = True
+    if moving.sum() < max(8, 0.01 * len(TV)):
+        return coarse, None
+    lo, hi = TV[moving].min(axis=0), TV[moving].max(axis=0)
+    mdiag = float(np.linalg.norm(hi - lo))
+    if mdiag >= MOVING_PART_MAX * diag:
+        return coarse, None
+    inside = np.all((TV >= lo - coarse) & (TV <= hi + coarse), axis=1)
+    return np.where(inside, float(o["node_spacing"]) * mdiag, coarse), (mdiag, int(moving.sum()))
+
+
 def _convert_from_key(vseq, strategy: str, o: dict, K: int, template, device, progress, should_stop,
                       where, stop_forward=None) -> FixedTopologySequence:
     """One conversion run: the template is ``template`` (validated (V, F)) or key frame K's
@@ -1461,9 +1514,11 @@ def _convert_from_key(vseq, strategy: str, o: dict, K: int, template, device, pr
     if template is not None:
         _check_reach(TV, TF, *vseq.frames[K], float(o["max_template_distance"]), device, K)
     all_diag = max(max(_bbox_diag(v) for v, _ in vseq.frames), _bbox_diag(TV), 1e-6)
-    conv = _Converter(TV, TF, device, 10.0 * all_diag, o)
+    spacing, moving = _node_spacing(vseq, K, TV, TF, o, device) if strategy == "graph" else (None, None)
+    conv = _Converter(TV, TF, device, 10.0 * all_diag, o, spacing)
     step = getattr(conv, f"step_{strategy}")
     info = ConversionInfo(strategy, {k: v for k, v in o.items() if k != "strategy"}, T, len(TV), key_frame=K)
+    info.moving_part = moving
     out, lo, hi, seconds, coverage, web = _convert_frames(vseq, conv, step, K, progress, should_stop, info,
                                                           strategy, where, TV, TF, stop_forward)
     if strategy == "graph" and (lo, hi) == (0, T - 1) and int(o["repair_passes"]) > 0:

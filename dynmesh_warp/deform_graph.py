@@ -5,7 +5,9 @@ degrees of freedom, so that a limb moves as a whole instead of sliding vertex by
 ``build_deformation_graph(V, F, spacing, k=4) -> DeformationGraph``
     Nodes: template vertices picked by farthest-point sampling until every vertex lies within
     ``spacing`` of a node, per connected component, then more nodes until every vertex is within
-    2 x ``spacing`` of one along the surface (geodesic, Dijkstra on the edge graph). Each vertex
+    2 x ``spacing`` of one along the surface (geodesic, Dijkstra on the edge graph). ``spacing``
+    may be one per vertex (finer nodes where the surface moves, convert's ``adaptive_spacing``):
+    each bound then holds with the vertex's own spacing. Each vertex
     binds to its ``k`` geodesically nearest nodes with Sumner's weights (1 - d / d_max)^2
     (d_max: the distance to the (k+1)-th nearest), so an arm vertex never binds to a torso node
     that is near in space but far along the surface. Nodes sharing a vertex are graph edges.
@@ -73,15 +75,19 @@ def _edge_graph(V: np.ndarray, F: np.ndarray):
     return G.tocsr()
 
 
-def _farthest_points(P: np.ndarray, spacing: float, start: int) -> list:
+def _farthest_points(P: np.ndarray, spacing, start: int) -> list:
+    """Farthest-point sampling of P from index ``start`` until every point lies within its
+    ``spacing`` (a float or one per point) of a sample: each next sample is the point farthest
+    from the samples relative to its own spacing."""
     d = np.full(len(P), np.inf)
     out = []
     i = start
     while True:
         out.append(i)
         d = np.minimum(d, np.linalg.norm(P - P[i], axis=1))
-        i = int(np.argmax(d))
-        if d[i] <= spacing:
+        r = d / spacing
+        i = int(np.argmax(r))
+        if r[i] <= 1.0:
             return out
 
 
@@ -89,7 +95,7 @@ def build_deformation_graph(V, F, spacing: float, k: int = 4, max_nodes: int = 4
     """The embedded deformation graph of mesh (V, F) (module docstring).
 
     Args:
-        spacing: node spacing [m] (farthest-point sampling radius).
+        spacing: node spacing [m] (farthest-point sampling radius): a float, or (N,) one per vertex.
         k: nodes per vertex (1 .. kernels.register.MAX_NODES_PER_VERTEX).
         max_nodes: refuse (ValueError) a spacing that would need more nodes than this.
     """
@@ -99,8 +105,13 @@ def build_deformation_graph(V, F, spacing: float, k: int = 4, max_nodes: int = 4
     V = np.asarray(V, np.float64)
     F = np.asarray(F, np.int64)
     n = len(V)
-    if not spacing > 0:
-        raise ValueError(f"node spacing must be > 0, got {spacing}")
+    sp = np.asarray(spacing, np.float64)
+    if sp.ndim > 1 or (sp.ndim == 1 and sp.shape[0] != n):
+        raise ValueError(f"node spacing: one value or one per vertex ({n}), got shape {sp.shape}")
+    if not (sp.size and np.all(np.isfinite(sp)) and np.all(sp > 0)):
+        raise ValueError(f"node spacing must be > 0, got {spacing if sp.ndim == 0 else 'a value <= 0 or not finite'}")
+    sp = np.broadcast_to(sp, (n,))
+    spacing = float(sp.min())  # named in the errors below
     k = int(k)
     if not 1 <= k <= kr.MAX_NODES_PER_VERTEX:
         raise ValueError(f"nodes per vertex must lie in [1, {kr.MAX_NODES_PER_VERTEX}], got {k}")
@@ -113,17 +124,17 @@ def build_deformation_graph(V, F, spacing: float, k: int = 4, max_nodes: int = 4
         idx = np.flatnonzero((labels == c) & used)
         if len(idx) == 0:
             continue
-        sub = _farthest_points(V[idx], spacing, 0)
+        sub = _farthest_points(V[idx], sp[idx], 0)
         nodes.extend(idx[sub].tolist())
         if len(nodes) > max_nodes:
             raise ValueError(f"deformation graph: node spacing {spacing:.4g} needs more than {max_nodes} "
                              "nodes; raise the spacing")
-    # geodesic coverage: every vertex within 2 x spacing of a node along the surface
+    # geodesic coverage: every vertex within 2 x its spacing of a node along the surface
     for _ in range(max_nodes):
-        dist = dijkstra(G, directed=False, indices=nodes, min_only=True)
+        dist = dijkstra(G, directed=False, indices=nodes, min_only=True) / sp
         dist[~used] = 0.0
         far = int(np.argmax(dist))
-        if dist[far] <= 2.0 * spacing:
+        if dist[far] <= 2.0:
             break
         nodes.append(far)
     nodes = np.asarray(nodes, np.int64)
@@ -132,7 +143,7 @@ def build_deformation_graph(V, F, spacing: float, k: int = 4, max_nodes: int = 4
         raise ValueError(f"deformation graph: node spacing {spacing:.4g} needs more than {max_nodes} nodes; "
                          "raise the spacing")
     # k+1 geodesically nearest nodes per vertex (chunks of sources, limited search radius)
-    limit = 4.0 * spacing
+    limit = 4.0 * float(sp.max())
     best_d = np.full((n, k + 1), np.inf)
     best_i = np.zeros((n, k + 1), np.int64)
     chunk = max(1, int(2e7 // max(n, 1)))
@@ -174,7 +185,7 @@ def build_deformation_graph(V, F, spacing: float, k: int = 4, max_nodes: int = 4
     e = np.sort(e, axis=1)
     e = np.unique(e[e[:, 0] != e[:, 1]], axis=0) if len(e) else e
     return DeformationGraph(nodes, V[nodes].copy(), idx.astype(np.int32), w.astype(np.float32),
-                            e.astype(np.int64), float(spacing))
+                            e.astype(np.int64), float(sp.max()))
 
 
 def polar_rotations(C: np.ndarray) -> np.ndarray:

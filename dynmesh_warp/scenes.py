@@ -254,6 +254,30 @@ def starfish(frames: int = 48, fps: float = 24.0, arms: int = 5, resolution: int
     return FixedTopologySequence(out, F, fps=fps, name="starfish", source="builtin:starfish")
 
 
+def with_floor(V: np.ndarray, F: np.ndarray, size: float = 1.5, up: int = 2, thickness: float = 0.03,
+               gap: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """A fixed-topology sequence (V (T, N, 3), F) with a static slab added, as the reconstruction
+    of a real capture keeps the floor its subject stands on: ``size`` x frame 0's bbox diagonal
+    wide, ``thickness`` x it thick, its top ``gap`` x it below the lowest point of the sequence
+    (0: the feet touch it), centred under frame 0, and subdivided to about twice the sequence's
+    mean edge (so vertex-based metrics count it). ``up``: the vertical axis index. Returns
+    (V (T, N + N_floor, 3) float32, F int32), the slab's vertices and faces last."""
+    import trimesh
+
+    V = np.asarray(V, np.float64)
+    F = np.asarray(F, np.int64)
+    diag = float(np.linalg.norm(V[0].max(0) - V[0].min(0)))
+    ext = np.full(3, float(size) * diag)
+    ext[up] = float(thickness) * diag
+    box = trimesh.creation.box(extents=ext)
+    edge = float(np.linalg.norm(V[0][F[:, 0]] - V[0][F[:, 1]], axis=1).mean())
+    bv, bf = trimesh.remesh.subdivide_to_size(box.vertices, box.faces, max_edge=2.0 * edge, max_iter=20)
+    c = V[0].mean(0)
+    c[up] = V[:, :, up].min() - (float(gap) + 0.5 * float(thickness)) * diag
+    W = np.concatenate([V, np.broadcast_to(bv + c, (len(V),) + bv.shape)], axis=1)
+    return W.astype(np.float32), np.concatenate([F, bf + V.shape[1]]).astype(np.int32)
+
+
 BUILTIN_SCENES = {
     "wave_bowl": wave_bowl,
     "pulsing_blob": pulsing_blob,

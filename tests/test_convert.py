@@ -750,3 +750,43 @@ def test_deterministic_option_repeats_bit_for_bit_and_sets_warps_mode(device):
         np.testing.assert_array_equal(plain.V, runs[0].V)
     with pytest.raises(ValueError, match="deterministic must be true or false"):
         to_fixed_topology(seq, device=device, deterministic="maybe")
+
+
+def test_a_static_floor_does_not_coarsen_the_graph_on_the_subject():
+    """A capture's reconstruction keeps the floor the subject stands on; its slab, 1.5x the
+    figure's diagonal wide, doubles the template's diagonal. The node spacing, a fraction of that
+    diagonal, then leaves the jumping figure's arms too few nodes: they are lost. With
+    ``adaptive_spacing`` (default) the spacing within the moving part's box comes from that part's
+    own diagonal (the floor keeps the coarse one) and the arms are kept. The protocol's sequences,
+    where everything moves, keep one spacing (checked on the figure alone)."""
+    from dynmesh_warp.conversion_options import option_defaults
+    from dynmesh_warp.convert import _node_spacing
+    from dynmesh_warp.scenes import articulated_figure, with_floor
+
+    fig = articulated_figure(frames=24, resolution=32)
+    n = fig.V.shape[1]
+    V, F = with_floor(fig.V, fig.F, 1.5)
+    var = FixedTopologySequence(V, F, fps=30.0, name="figure on a floor").to_varying()
+    worst, info = {}, {}
+    for adaptive in (True, False):
+        fx = to_fixed_topology(var, strategy="graph", device=DEV, adaptive_spacing=adaptive)
+        worst[adaptive] = max(float(nearest_surface((fx.V[t], fx.F), fig.V[t], device=DEV).dist.max())
+                              / _diag(fig.V[t]) for t in range(fig.num_frames))
+        info[adaptive] = fx.conversion
+    assert worst[False] > 0.06  # without it an arm is lost by > 6 % of the figure's diagonal
+    assert worst[True] < 0.6 * worst[False] and worst[True] < 0.05
+    mdiag, nmov = info[True].moving_part
+    assert 0.4 * _diag(V[0]) < mdiag < 0.7 * _diag(V[0]) and nmov > 100  # the figure, not the floor
+    assert info[False].moving_part is None
+    # the spacing: finer on the figure, the coarse one at the floor's far corners
+    o = option_defaults("graph")
+    K = info[True].key_frame
+    TV, TF = var.frames[K]
+    sp, _ = _node_spacing(var, K, TV, TF, o, DEV)
+    coarse = o["node_spacing"] * _diag(TV)
+    assert sp[:n].max() == pytest.approx(o["node_spacing"] * mdiag, rel=1e-6) and sp[:n].max() < 0.7 * coarse
+    corners = np.argsort(-np.linalg.norm(TV[n:, :2] - TV[:n, :2].mean(0), axis=1))[:10] + n
+    assert np.all(sp[corners] == pytest.approx(coarse))
+    alone = fig.to_varying()
+    sp1, moving1 = _node_spacing(alone, 0, fig.V[0], fig.F, o, DEV)
+    assert moving1 is None and np.ndim(sp1) == 0
