@@ -9,8 +9,9 @@ round, and may be in millimetres (docs/evaluation.md, "Unseen placements").
 ``--walk W``: the body's centre travels W x its rest bbox diagonal along x over the sequence;
 ``--turn A``: it turns by A radians about the vertical through its centre (linear in time);
 ``--scale S``, ``--offset D``: every coordinate times S, then D x the diagonal added to each axis;
-``--floor S``: a static slab S x the diagonal wide under the lowest point of the sequence, as a
-reconstruction of a real capture keeps the floor the subject stands on (its feet touch it).
+``--floor S``: a static slab S x the diagonal wide under the lowest point of the sequence, centred
+under frame 0 (``scenes.with_floor``), as a reconstruction of a real capture keeps the floor the
+subject stands on (its feet touch it); the walk and the turn move the subject, not the floor.
 """
 
 from __future__ import annotations
@@ -65,10 +66,11 @@ def main() -> int:
     ap.add_argument("--out", required=True)
     a = ap.parse_args()
     V, F, fps = load(a.sequence)
+    W = place(V, a.walk, a.turn, 1.0, 0.0, a.up)  # the subject moves; a floor stays where frame 0 stands
     if a.floor > 0:
         from dynmesh_warp.scenes import with_floor
-        V, F = with_floor(V, F, a.floor, a.up)
-    W = place(V, a.walk, a.turn, a.scale, a.offset, a.up).astype(np.float32)
+        W, F = with_floor(W, F, a.floor, a.up)
+    W = place(W, scale=a.scale, offset=a.offset, up=a.up).astype(np.float32)
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     np.savez(a.out, V=W, F=F.astype(np.int32), fps=np.float32(fps), name=Path(a.out).stem)
     print(f"wrote {a.out}: {W.shape[0]} frames x {W.shape[1]} vertices; extent {np.ptp(W.reshape(-1, 3), 0)}")

@@ -1458,9 +1458,14 @@ def _key_retry_reason(coverage, K: int) -> str | None:
 MOVING_GAP = 0.05
 #: the moving part's box sets the node spacing only when its diagonal is below this fraction of
 #: the template's (a floor or background much larger than the subject)
-MOVING_PART_MAX = 0.7
+MOVING_PART_MAX = 0.6
 #: input frames sampled to find what moves
 MOVING_SAMPLES = 8
+#: fewer moving vertices than this fraction of the template's: nothing moves (noise)
+MOVING_MIN = 0.002
+#: the finer spacing is at least this fraction of the coarse one (a small moving part would
+#: otherwise ask for more nodes than the graph may have)
+MOVING_SPACING_MIN = 0.25
 
 
 def _node_spacing(vseq, K: int, TV: np.ndarray, TF: np.ndarray, o: dict, device) -> tuple:
@@ -1469,7 +1474,8 @@ def _node_spacing(vseq, K: int, TV: np.ndarray, TF: np.ndarray, o: dict, device)
     ``node_spacing`` x the template's bbox diagonal, unless (``adaptive_spacing``) the part of
     the template that moves is much smaller than the whole, as a subject on a static floor or in
     front of a static background is: then ``node_spacing`` x the moving part's diagonal for the
-    vertices within its box (grown by the coarse spacing), the coarse spacing elsewhere, so the
+    vertices within its box (grown by the coarse spacing; at least ``MOVING_SPACING_MIN`` x the
+    coarse spacing), the coarse spacing elsewhere, so the
     static part neither coarsens the subject's graph nor fills the node budget. A vertex moves
     when one of ``MOVING_SAMPLES`` frames spread over the sequence lies farther than
     ``MOVING_GAP`` x the diagonal from it, or it is a corner of the template face nearest to
@@ -1490,14 +1496,15 @@ def _node_spacing(vseq, K: int, TV: np.ndarray, TF: np.ndarray, o: dict, device)
         back = nearest_surface((TV, TF), vseq.frames[t][0], device=device)
         hit = (back.dist > far) & (back.face >= 0)
         moving[TF[back.face[hit]].reshape(-1)] = True
-    if moving.sum() < max(8, 0.01 * len(TV)):
+    if moving.sum() < max(8, MOVING_MIN * len(TV)):
         return coarse, None
     lo, hi = TV[moving].min(axis=0), TV[moving].max(axis=0)
     mdiag = float(np.linalg.norm(hi - lo))
     if mdiag >= MOVING_PART_MAX * diag:
         return coarse, None
     inside = np.all((TV >= lo - coarse) & (TV <= hi + coarse), axis=1)
-    return np.where(inside, float(o["node_spacing"]) * mdiag, coarse), (mdiag, int(moving.sum()))
+    fine = max(float(o["node_spacing"]) * mdiag, MOVING_SPACING_MIN * coarse)
+    return np.where(inside, fine, coarse), (mdiag, int(moving.sum()))
 
 
 def _convert_from_key(vseq, strategy: str, o: dict, K: int, template, device, progress, should_stop,
@@ -1607,6 +1614,10 @@ def conversion_summary(info: ConversionInfo) -> list:
         lines.append(f"key frames tried (mean coverage, mean Chamfer distance to the input), as the first run "
                      f"covered frames poorly or drifted: {tried}; kept {info.key_frame}; "
                      f"{sum(x[3] for x in info.key_trials):.2f} s in all")
+    if info.moving_part is not None:
+        lines.append(f"the moving part ({info.moving_part[1]} template vertices, {info.moving_part[0]:.4g} m across) "
+                     "is much smaller than the whole (a static floor or background): its graph nodes are spaced "
+                     "from its own size (option adaptive_spacing)")
     if cov.size:
         w = int(np.argmax(cov))
         lines.append(f"coverage (99.5th pct. input -> converted distance / bbox diagonal): mean "
