@@ -1488,14 +1488,14 @@ def _node_spacing(vseq, K: int, TV: np.ndarray, TF: np.ndarray, o: dict, device)
     frames = sorted(set(np.linspace(0, T - 1, min(MOVING_SAMPLES + 1, T)).round().astype(int).tolist()) - {K})
     far = MOVING_GAP * diag
     moving = np.zeros(len(TV), bool)
+    # both ways: a template vertex far from a frame, and the template face nearest to a frame
+    # vertex far from the template (a foot that slides along the floor stays near the frame's
+    # surface; the leg that spreads from it shows the other way); the second in one query
     for t in frames:
-        # both ways: a template vertex far from the frame, and the template face nearest to a
-        # frame vertex far from the template (a foot that slides along the floor stays near the
-        # frame's surface; the leg that spreads from it shows the other way)
         moving |= nearest_surface(vseq.frames[t], TV, device=device).dist > far
-        back = nearest_surface((TV, TF), vseq.frames[t][0], device=device)
-        hit = (back.dist > far) & (back.face >= 0)
-        moving[TF[back.face[hit]].reshape(-1)] = True
+    back = nearest_surface((TV, TF), np.concatenate([vseq.frames[t][0] for t in frames]), device=device)
+    hit = (back.dist > far) & (back.face >= 0)
+    moving[TF[back.face[hit]].reshape(-1)] = True
     if moving.sum() < max(8, MOVING_MIN * len(TV)):
         return coarse, None
     lo, hi = TV[moving].min(axis=0), TV[moving].max(axis=0)

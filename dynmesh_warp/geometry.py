@@ -128,8 +128,32 @@ def distinct_faces(F) -> tuple:
     and :func:`orient_faces` (which winds every copy as the first)."""
     F = np.asarray(F)
     live = np.flatnonzero((F[:, 0] != F[:, 1]) & (F[:, 1] != F[:, 2]) & (F[:, 0] != F[:, 2]))
-    _, first, copy_of = np.unique(np.sort(F[live], axis=1), axis=0, return_index=True, return_inverse=True)
+    L = F[live].astype(np.int64)
+    a, b, c = L[:, 0], L[:, 1], L[:, 2]
+    lo, hi = np.minimum(np.minimum(a, b), c), np.maximum(np.maximum(a, b), c)
+    if len(L) and 0 <= lo.min() and hi.max() < 1 << 21:  # one int64 key a row (its vertices sorted), in
+        # the sorted rows' lexicographic order: a 1-D unique, ~10x faster than the row-wise one (convert
+        # runs it on every frame)
+        mid = a + b + c - lo - hi
+        _, first, copy_of = np.unique((lo << 42) | (mid << 21) | hi, return_index=True, return_inverse=True)
+    else:
+        _, first, copy_of = np.unique(np.sort(L, axis=1), axis=0, return_index=True, return_inverse=True)
     return live, live[first], copy_of.reshape(-1)
+
+
+def _may_repeat_rows(A: np.ndarray) -> bool:
+    """False when no two rows of ``A`` (N, k) are bit for bit equal, decided by a 64-bit hash of
+    each row (1-D sort); True when two hashes meet (then the rows may be equal)."""
+    B = np.ascontiguousarray(A)
+    words = B.view(np.uint8).reshape(len(B), -1)
+    if words.shape[1] % 4:
+        return True
+    u = words.view(np.uint32).astype(np.uint64)
+    h = np.zeros(len(B), np.uint64)
+    for j in range(u.shape[1]):
+        h = (h ^ u[:, j]) * np.uint64(0x100000001B3) + np.uint64(j + 1)
+    h.sort()
+    return bool(np.any(h[1:] == h[:-1]))
 
 
 def _sum_by(label: np.ndarray, X: np.ndarray, n: int) -> np.ndarray:
@@ -213,7 +237,7 @@ def weld_vertices(V, F) -> tuple:
     when no two vertices coincide."""
     V = np.asarray(V)
     F = np.asarray(F)
-    if len(V) < 2:
+    if len(V) < 2 or not _may_repeat_rows(V):  # the common case, without the row-wise unique
         return V, F, 0
     _, first, inverse = np.unique(V, axis=0, return_index=True, return_inverse=True)
     if len(first) == len(V):

@@ -559,3 +559,35 @@ def test_one_orientation_rule_and_face_areas_match_trimesh():
     G = orient_outward(V, F[:, ::-1])
     np.testing.assert_array_equal(G, F)
     assert G.flags["C_CONTIGUOUS"]
+
+
+def test_face_and_vertex_repeat_rules_equal_their_row_wise_reference():
+    """``distinct_faces`` keys each face on one int64 and ``weld_vertices`` first asks a 64-bit
+    row hash whether any position repeats (both run on every frame a conversion reads); each
+    gives what NumPy's row-wise unique gives: random faces with repeats in either winding and
+    faces that repeat a vertex, vertex indices past 2**21 (the row-wise path), and vertices on a
+    coarse grid so that positions repeat."""
+    from dynmesh_warp.geometry import distinct_faces, weld_vertices
+
+    def faces_ref(F):
+        live = np.flatnonzero((F[:, 0] != F[:, 1]) & (F[:, 1] != F[:, 2]) & (F[:, 0] != F[:, 2]))
+        _, first, copy_of = np.unique(np.sort(F[live], axis=1), axis=0, return_index=True, return_inverse=True)
+        return live, live[first], copy_of.reshape(-1)
+
+    rng = np.random.default_rng(7)
+    for trial in range(120):
+        n, m = int(rng.integers(3, 60)), int(rng.integers(1, 150))
+        hi = (1 << 22) if trial % 10 == 0 else n
+        F = rng.integers(0, hi, (m, 3))
+        F = np.concatenate([F, F[rng.integers(0, m, m // 2)][:, [2, 1, 0]]]).astype(np.int32)
+        for got, want in zip(distinct_faces(F), faces_ref(F)):
+            np.testing.assert_array_equal(got, want)
+        V = rng.integers(0, 3, (n, 3)).astype(np.float32) * np.float32(0.5)
+        G = rng.integers(0, n, (m, 3)).astype(np.int32)
+        W, WF, merged = weld_vertices(V, G)
+        keep = np.sort(np.unique(V, axis=0, return_index=True)[1])
+        assert merged == n - len(keep)
+        np.testing.assert_array_equal(W, V[keep])
+        np.testing.assert_array_equal(W[WF], V[G])  # every face keeps its corners' positions
+    V = rng.random((500, 3)).astype(np.float32)
+    assert weld_vertices(V, G)[0] is V  # no repeat: the input itself, no row-wise unique
