@@ -311,6 +311,9 @@ def _drop_unused(vseq: VaryingTopologySequence):
             welded.append((t, merged))
         keep = np.zeros(len(f), bool)
         keep[distinct_faces(f)[1]] = True  # not a face that repeats a vertex, nor one listed again
+        if keep.all() and np.bincount(f.reshape(-1), minlength=len(v)).all():  # the usual frame: as it is
+            frames.append((v, f))
+            continue
         v2, f2 = _keep_faces(v, f, keep)
         nv, nf = len(v) - len(v2), len(f) - len(f2)
         if nv == 0 and nf == 0:
