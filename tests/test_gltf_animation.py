@@ -181,7 +181,8 @@ def test_static_glb_still_reads_as_one_mesh(tmp_path):
     np.testing.assert_allclose(seq.V[0], P, atol=1e-6)
 
 
-def test_bad_gltf_files_name_the_file_and_the_problem(tmp_path):
+def _sliding_bar() -> "Builder":
+    """The bar as one node translated by 1 along x over a second (a LINEAR channel)."""
     b = Builder()
     P, F = _bar()
     b.doc["meshes"] = [{"primitives": [{"attributes": {"POSITION": b.add(P, "VEC3")}}]}]
@@ -190,6 +191,11 @@ def test_bad_gltf_files_name_the_file_and_the_problem(tmp_path):
     b.doc["animations"] = [{"channels": [{"sampler": 0, "target": {"node": 0, "path": "translation"}}],
                             "samplers": [{"input": b.add([0.0, 1.0], "SCALAR"),
                                           "output": b.add([[0, 0, 0], [1, 0, 0]], "VEC3")}]}]
+    return b
+
+
+def test_bad_gltf_files_name_the_file_and_the_problem(tmp_path):
+    b = _sliding_bar()
     good = b.glb()
     (tmp_path / "cut.glb").write_bytes(good[:-40])
     with pytest.raises(MeshDataError, match=r"cut\.glb: GLB header says .* bytes, but the file has .* \(truncated\)"):
@@ -330,15 +336,8 @@ def test_the_up_axis_and_animation_checks_read_only_the_json_chunk(tmp_path, mon
     binary buffer still answers them, and the loader names the truncation; a .gltf answers too."""
     from dynmesh_warp import gltf_animation as ga
 
-    b = Builder()
-    P, F = _bar()
+    b = _sliding_bar()
     b.doc["asset"]["generator"] = "SomeExporter 1.0"
-    b.doc["meshes"] = [{"primitives": [{"attributes": {"POSITION": b.add(P, "VEC3")}}]}]
-    b.doc["nodes"] = [{"mesh": 0}]
-    b.doc["scenes"][0]["nodes"] = [0]
-    b.doc["animations"] = [{"channels": [{"sampler": 0, "target": {"node": 0, "path": "translation"}}],
-                            "samplers": [{"input": b.add([0.0, 1.0], "SCALAR"),
-                                          "output": b.add([[0, 0, 0], [1, 0, 0]], "VEC3")}]}]
     cut = tmp_path / "cut.glb"
     cut.write_bytes(b.glb()[:-40])
     monkeypatch.setattr(ga._File, "__init__", lambda *a, **k: pytest.fail("read the whole file"))
