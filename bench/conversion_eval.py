@@ -102,6 +102,32 @@ def varying_input(gt, resolution: int, error: float, device, cache: Path | None)
     return var
 
 
+def add_input_args(ap, sequence: str | None, error: float) -> None:
+    """The arguments of a probe that takes one sequence through this protocol's input:
+    --sequence (a name or a GT npz; required when ``sequence`` is None), --error, --resolution,
+    --device, --cache, --out."""
+    if sequence is None:
+        ap.add_argument("--sequence", required=True, help="a sequence name or a GT npz (V, F, fps)")
+    else:
+        ap.add_argument("--sequence", default=sequence)
+    ap.add_argument("--error", type=float, default=error)
+    ap.add_argument("--resolution", type=int, default=96)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--cache", default=str(Path(__file__).resolve().parents[1] / "out" / "cache"))
+    ap.add_argument("--out", default=None)
+
+
+def probe_input(a) -> tuple:
+    """(GT, varying input) of the parsed :func:`add_input_args` arguments ``a`` (Warp initialised)."""
+    import warp as wp
+
+    wp.init()
+    gt = ground_truth(a.sequence, None)
+    if gt is None:
+        raise SystemExit(f"{a.sequence}: not found")
+    return gt, varying_input(gt, a.resolution, a.error, a.device, Path(a.cache))
+
+
 def frame_metrics(gt_V, gt_F, V, F, device, cov_input=None) -> dict:
     """One frame's figures (fractions of the GT's diagonal); ``cov_input``: each GT vertex's
     distance to the input surface of the frame, for the coverage the conversion lost."""

@@ -17,7 +17,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import RESULTS, describe_device, write_json  # noqa: E402
-from conversion_eval import _diag, ground_truth, varying_input  # noqa: E402
+from conversion_eval import _diag, add_input_args, probe_input  # noqa: E402
 
 from dynmesh_warp.convert import nearest_surface, to_fixed_topology  # noqa: E402
 
@@ -26,18 +26,9 @@ def main(argv=None):
     import warp as wp
 
     ap = argparse.ArgumentParser()
-    ap.add_argument("--sequence", default="chicken_crossing")
-    ap.add_argument("--error", type=float, default=0.0)
-    ap.add_argument("--resolution", type=int, default=96)
-    ap.add_argument("--device", default="cpu")
-    ap.add_argument("--cache", default=str(Path(__file__).resolve().parents[1] / "out" / "cache"))
-    ap.add_argument("--out", default=None)
+    add_input_args(ap, "chicken_crossing", 0.0)
     a = ap.parse_args(argv)
-    wp.init()
-    gt = ground_truth(a.sequence, None)
-    if gt is None:
-        raise SystemExit(f"{a.sequence}: not found")
-    var = varying_input(gt, a.resolution, a.error, a.device, Path(a.cache))
+    gt, var = probe_input(a)
     fx = to_fixed_topology(var, strategy="graph", device=a.device)
     T, N = gt.num_frames, gt.num_vertices
     K = fx.conversion.key_frame

@@ -23,7 +23,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import RESULTS, describe_device, write_json  # noqa: E402
-from conversion_eval import ground_truth, varying_input  # noqa: E402
+from conversion_eval import add_input_args, probe_input  # noqa: E402
 
 from dynmesh_warp.convert import nearest_surface, to_piecewise_fixed  # noqa: E402
 
@@ -32,20 +32,11 @@ def main(argv=None):
     import warp as wp
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--sequence", required=True)
+    add_input_args(ap, None, 0.01)
     ap.add_argument("--subject", type=int, required=True, help="the subject's GT vertices are the first SUBJECT")
     ap.add_argument("--runs", default='{"defaults": {}}', help="JSON {label: {option: value}}")
-    ap.add_argument("--error", type=float, default=0.01)
-    ap.add_argument("--resolution", type=int, default=96)
-    ap.add_argument("--device", default="cpu")
-    ap.add_argument("--cache", default=str(Path(__file__).resolve().parents[1] / "out" / "cache"))
-    ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
-    wp.init()
-    gt = ground_truth(a.sequence, None)
-    if gt is None:
-        raise SystemExit(f"{a.sequence}: not found")
-    var = varying_input(gt, a.resolution, a.error, a.device, Path(a.cache))
+    gt, var = probe_input(a)
     n = int(a.subject)
     T = gt.num_frames
     d_in = np.stack([nearest_surface(var.frames[t], gt.V[t], device=a.device).dist for t in range(T)])

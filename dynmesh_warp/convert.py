@@ -1464,6 +1464,8 @@ MOVING_GAP = 0.05
 MOVING_PART_MAX = 0.6
 #: input frames sampled to find what moves
 MOVING_SAMPLES = 8
+#: at most about this many points of the template and of each sampled frame are asked
+MOVING_POINTS = 8192
 #: fewer moving vertices than this fraction of the template's: nothing moves (noise)
 MOVING_MIN = 0.002
 #: the finer spacing is at least this fraction of the coarse one (a small moving part would
@@ -1493,10 +1495,14 @@ def _node_spacing(vseq, K: int, TV: np.ndarray, TF: np.ndarray, o: dict, device)
     moving = np.zeros(len(TV), bool)
     # both ways: a template vertex far from a frame, and the template face nearest to a frame
     # vertex far from the template (a foot that slides along the floor stays near the frame's
-    # surface; the leg that spreads from it shows the other way); the second in one query
+    # surface; the leg that spreads from it shows the other way); the second in one query. Above
+    # MOVING_POINTS vertices, every k-th (a box needs no more; a large input stays quick)
+    ks = -(-len(TV) // MOVING_POINTS)
     for t in frames:
-        moving |= nearest_surface(vseq.frames[t], TV, device=device).dist > far
-    back = nearest_surface((TV, TF), np.concatenate([vseq.frames[t][0] for t in frames]), device=device)
+        moving[::ks] |= nearest_surface(vseq.frames[t], TV[::ks], device=device).dist > far
+    pts = [vseq.frames[t][0] for t in frames]
+    pts = np.concatenate([p[::-(-len(p) // MOVING_POINTS)] for p in pts])
+    back = nearest_surface((TV, TF), pts, device=device)
     hit = (back.dist > far) & (back.face >= 0)
     moving[TF[back.face[hit]].reshape(-1)] = True
     if moving.sum() < max(8, MOVING_MIN * len(TV)):
