@@ -316,9 +316,6 @@ def _drop_unused(vseq: VaryingTopologySequence):
             continue
         v2, f2 = _keep_faces(v, f, keep)
         nv, nf = len(v) - len(v2), len(f) - len(f2)
-        if nv == 0 and nf == 0:
-            frames.append((v, f))
-            continue
         if not keep.any():
             src = vseq.frame_sources[t] if vseq.frame_sources else (vseq.source or vseq.name)
             raise MeshDataError(f"{src}, frame {t}: every face repeats a vertex (no surface)")
@@ -334,8 +331,8 @@ class _Converter:
     """Template-side device arrays, allocated once; one wp.Mesh per input frame."""
 
     def __init__(self, TV: np.ndarray, TF: np.ndarray, device, max_dist: float, opts: dict, node_spacing=None):
-        """``node_spacing``: the graph's node spacing [m], a float or one per template vertex
-        (:func:`_node_spacing`); default ``node_spacing`` x the template's bbox diagonal."""
+        """``node_spacing``: the graph's node spacing [m] (``graph`` only), a float or one per
+        template vertex, from :func:`_node_spacing`."""
         self.device = device
         self.opts = opts
         self.max_dist = float(max_dist)
@@ -382,8 +379,7 @@ class _Converter:
             self.bank = []  # (frame, positions (N,) wp.vec3, centroid (3,)) of earlier results
             self.reinit_sources = []  # (frame, source frame or -1 = template)
         if opts.get("strategy") == "graph":
-            spacing = float(opts["node_spacing"]) * max(_bbox_diag(TV), 1e-12) if node_spacing is None else node_spacing
-            self.graph = build_deformation_graph(TV, TF, spacing, int(opts["nodes_per_vertex"]))
+            self.graph = build_deformation_graph(TV, TF, node_spacing, int(opts["nodes_per_vertex"]))
             self.gf = GraphFitter(self.graph, TV, TF, d, self.max_dist, opts)
             self.history = []  # graph states (R, P) of the last two frames
             self.states = {}  # frame -> graph state (R, P) of the first two frames: where the backward pass starts
