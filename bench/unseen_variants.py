@@ -65,14 +65,18 @@ def main() -> int:
     ap.add_argument("--up", type=int, default=2, help="vertical axis index (default 2: z)")
     ap.add_argument("--out", required=True)
     a = ap.parse_args()
+    if Path(a.sequence).exists() and Path(a.out).resolve() == Path(a.sequence).resolve():
+        raise SystemExit(f"--out {a.out} is the input sequence; name another file")
     V, F, fps = load(a.sequence)
     W = place(V, a.walk, a.turn, 1.0, 0.0, a.up)  # the subject moves; a floor stays where frame 0 stands
     if a.floor > 0:
         from dynmesh_warp.scenes import with_floor
         W, F = with_floor(W, F, a.floor, a.up)
     W = place(W, scale=a.scale, offset=a.offset, up=a.up).astype(np.float32)
+    from dynmesh_warp.outputs import atomic_write_npz
+
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-    np.savez(a.out, V=W, F=F.astype(np.int32), fps=np.float32(fps), name=Path(a.out).stem)
+    atomic_write_npz(a.out, V=W, F=F.astype(np.int32), fps=np.float32(fps), name=Path(a.out).stem)
     print(f"wrote {a.out}: {W.shape[0]} frames x {W.shape[1]} vertices; extent {np.ptp(W.reshape(-1, 3), 0)}")
     return 0
 
