@@ -58,7 +58,8 @@ def main(argv=None):
                               "subject_lost_mean_over_frames": float(sub.mean()),
                               "rest_lost_max": float(rest.max()), "subject_lost_per_frame": sub.tolist(),
                               "key_frame": info.key_frame, "moving_part": getattr(info, "moving_part", None),
-                              "segments": info.segments}
+                              "segments": info.segments, "key_trials": info.key_trials,
+                              "recovered_frames": info.recovered_frames}
         print(f"{label}: the subject's worst lost GT vertex {100 * sub.max():.1f} % of its diagonal (frame "
               f"{sub.argmax()}), frames over 3 %: {np.nonzero(sub > 0.03)[0].tolist()}, mean of the per-frame "
               f"worst {100 * sub.mean():.2f} %; the rest {100 * rest.max():.1f} %; moving part "

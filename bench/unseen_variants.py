@@ -11,12 +11,17 @@ round, and may be in millimetres (docs/evaluation.md, "Unseen placements").
 ``--scale S``, ``--offset D``: every coordinate times S, then D x the diagonal added to each axis;
 ``--floor S``: a static slab S x the diagonal wide under the lowest point of the sequence, centred
 under frame 0 (``scenes.with_floor``), as a reconstruction of a real capture keeps the floor the
-subject stands on (its feet touch it); the walk and the turn move the subject, not the floor.
+subject stands on (its feet touch it); the walk and the turn move the subject, not the floor;
+``--hold``: the vertices on the negative side of the rest pose's first horizontal axis keep
+frame 0's position (a person who stands still and moves one arm: the moving part is small, with
+no floor); ``--scene-args JSON``: keyword arguments of a built-in scene, e.g.
+``'{"arm_swing": 1.2, "leg_swing": 0, "sway": 0}'`` for ``articulated_figure``.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -25,10 +30,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 
-def load(name: str):
+def load(name: str, scene_args: dict | None = None):
     from dynmesh_warp.scenes import BUILTIN_SCENES, builtin_sequence
     if name in BUILTIN_SCENES:
-        s = builtin_sequence(name)
+        s = builtin_sequence(name, **(scene_args or {}))
         return np.asarray(s.V, np.float64), np.asarray(s.F), float(s.fps)
     z = np.load(name)
     return np.asarray(z["V"], np.float64), np.asarray(z["F"]), float(z["fps"]) if "fps" in z else 24.0
@@ -62,12 +67,17 @@ def main() -> int:
     ap.add_argument("--scale", type=float, default=1.0)
     ap.add_argument("--offset", type=float, default=0.0)
     ap.add_argument("--floor", type=float, default=0.0)
+    ap.add_argument("--hold", action="store_true", help="the negative half keeps frame 0's position")
+    ap.add_argument("--scene-args", default=None, help="JSON keyword arguments of a built-in scene")
     ap.add_argument("--up", type=int, default=2, help="vertical axis index (default 2: z)")
     ap.add_argument("--out", required=True)
     a = ap.parse_args()
     if Path(a.sequence).exists() and Path(a.out).resolve() == Path(a.sequence).resolve():
         raise SystemExit(f"--out {a.out} is the input sequence; name another file")
-    V, F, fps = load(a.sequence)
+    V, F, fps = load(a.sequence, json.loads(a.scene_args) if a.scene_args else None)
+    if a.hold:
+        h = [x for x in range(3) if x != a.up][0]
+        V = np.where((V[0][:, h] < V[0][:, h].mean())[None, :, None], V[:1], V)
     W = place(V, a.walk, a.turn, 1.0, 0.0, a.up)  # the subject moves; a floor stays where frame 0 stands
     if a.floor > 0:
         from dynmesh_warp.scenes import with_floor

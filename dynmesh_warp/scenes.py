@@ -153,7 +153,7 @@ FIGURE_BONES = {
 
 
 def articulated_figure(frames: int = 60, fps: float = 30.0, resolution: int = 56,
-                       arm_swing: float = 2.6, leg_swing: float = 0.5, cycles: float = 1.0
+                       arm_swing: float = 2.6, leg_swing: float = 0.5, cycles: float = 1.0, sway: float = 1.0
                        ) -> FixedTopologySequence:
     """A stick-figure person doing jumping jacks (fixed topology; the conversion's articulated test).
 
@@ -161,7 +161,8 @@ def articulated_figure(frames: int = 60, fps: float = 30.0, resolution: int = 56
     capsules (:data:`FIGURE_BONES`: torso, head, two arms joined at the shoulders and hanging
     ~3 cm from the torso, two legs). Frame k poses it by linear blend skinning: the arms swing up and out about the
     shoulders by up to ``arm_swing`` rad, the legs spread by ``leg_swing`` rad, the whole body
-    hops and turns a little; ``cycles`` full cycles over the sequence. With the defaults the
+    hops and turns a little (``sway`` x the default hop and turn; 0: the body stays where it
+    stands); ``cycles`` full cycles over the sequence. With the defaults the
     hands travel ~1.3 m (the bbox diagonal is ~2 m) and an arm moves ~0.1 m per frame.
     """
     from skimage.measure import marching_cubes
@@ -203,8 +204,8 @@ def articulated_figure(frames: int = 60, fps: float = 30.0, resolution: int = 56
             else:
                 R = np.eye(3)
             Vt += W[:, j:j + 1] * ((V0 - a) @ R.T + a)
-        turn = _axis_rotation((0, 0, 1), 0.4 * np.sin(2 * np.pi * u))
-        Vt = Vt @ turn.T + np.array([0.15 * np.sin(np.pi * u), 0.0, 0.12 * s])
+        turn = _axis_rotation((0, 0, 1), sway * 0.4 * np.sin(2 * np.pi * u))
+        Vt = Vt @ turn.T + sway * np.array([0.15 * np.sin(np.pi * u), 0.0, 0.12 * s])
         out[t] = Vt
     return FixedTopologySequence(out.astype(np.float32), F, fps=fps, name="articulated_figure",
                                  source="builtin:articulated_figure")
