@@ -122,8 +122,6 @@ class GraphOptions(_Options, _FineStage):
     #: much smaller than the whole template: a capture's static floor or background otherwise
     #: coarsens the graph on the subject (docs/conversion.md, "A static floor in the capture")
     adaptive_spacing: bool = True
-    #: EXPERIMENT (removed in the next commit): coverage measured on the moving part
-    moving_coverage: bool = False
     nodes_per_vertex: Int = Field(4, ge=1, le=MAX_NODES_PER_VERTEX)
     graph_iterations: Int = Field(8, ge=1)
     stiffness: Float = Field(10.0, ge=0.0)

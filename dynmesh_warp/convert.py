@@ -350,10 +350,6 @@ class _Converter:
         self.first = True  # the next frame is the first one converted (starts from the template)
         self.frame_coverage = None  # set by a step that already measured its result's coverage [m]
         self.frame_web = None  # ... and its web
-        # what the coverage measures (set_coverage_part): the percentile of the frame's vertices'
-        # distances, and the fraction of the frame's bbox diagonal it is compared with
-        self.coverage_pct = 99.5
-        self.coverage_diag = 1.0
         self.P = wp.empty(n, dtype=wp.vec3, device=d)
         self.tmp = wp.empty(n, dtype=wp.vec3, device=d)
         self.closest = wp.empty(n, dtype=wp.vec3, device=d)
@@ -415,14 +411,6 @@ class _Converter:
         total, web = self.web_area.numpy()
         return float(web / total) if total > 0 else 0.0
 
-    def set_coverage_part(self, diag_fraction: float, vertex_fraction: float):
-        """Measure the coverage on the moving part of a capture (``moving_coverage``)."""
-        self.coverage_pct = 100.0 - 0.5 * min(max(vertex_fraction, 1e-3), 1.0)
-        self.coverage_diag = min(max(diag_fraction, 1e-3), 1.0)
-
-    def reference_diag(self, v) -> float:
-        return max(_bbox_diag(v) * self.coverage_diag, 1e-12)
-
     def coverage(self, frame) -> float:
         """99.5th percentile of the distance of the frame's vertices to the converted surface
         (the template at self.X) [m]."""
@@ -434,7 +422,7 @@ class _Converter:
         dist = wp.empty(q, dtype=float, device=self.device)
         wp.launch(kc.measure_distances_to_mesh, dim=q, inputs=[mesh.id, pts, self.max_dist], outputs=[dist],
                   device=self.device)
-        return float(np.percentile(dist.numpy(), self.coverage_pct))
+        return float(np.percentile(dist.numpy(), 99.5))
 
     # --- building blocks
     def project(self, frame, src, dst):
@@ -601,8 +589,7 @@ class _Converter:
     def step_graph(self, frame, t):
         o, gf = self.opts, self.gf
         gframe = self._graph_frame(frame)
-        fdiag = _bbox_diag(frame[1].numpy())
-        diag = self.reference_diag(frame[1].numpy())
+        diag = _bbox_diag(frame[1].numpy())
         rest = (np.repeat(np.eye(3)[None], gf.K, axis=0), self.graph.node_rest.copy())
         gam = float(o["predict"])
         if not self.history:
@@ -652,7 +639,7 @@ class _Converter:
 
         def badness(sc):  # (> 1: poor, its web or None) of the fit in self.X, whose coverage is sc [m]
             b = sc / max(thr, floor) if thr > 0 else 0.0
-            w = self.web(frame, fdiag) if web_on else None
+            w = self.web(frame, diag) if web_on else None
             return (max(b, w / POOR_WEB) if web_on else b), w
 
         bad, web = badness(score)
@@ -1034,7 +1021,7 @@ def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info,
             info.reanchored_frames.append(t)
         cov = conv.frame_coverage if conv.frame_coverage is not None else conv.coverage(frame)
         conv.frame_coverage = None
-        coverage[t] = cov / conv.reference_diag(v)
+        coverage[t] = cov / max(_bbox_diag(v), 1e-12)
         web[t] = conv.frame_web if conv.frame_web is not None else conv.web(frame, _bbox_diag(v))
         conv.frame_web = None
         conv.first = False
@@ -1108,7 +1095,7 @@ def _repair_poor_runs(vseq, conv, out, coverage, web, seconds, K: int, o: dict, 
                 old_state = conv.frame_states.get(t)
                 frame = _device_frame(v, f, device)
                 conv.step_graph(frame, t)
-                cov = conv.frame_coverage / conv.reference_diag(v)
+                cov = conv.frame_coverage / max(_bbox_diag(v), 1e-12)
                 w = conv.frame_web
                 conv.frame_coverage = conv.frame_web = None
                 if cov < coverage[t]:
@@ -1522,7 +1509,7 @@ def _node_spacing(vseq, K: int, TV: np.ndarray, TF: np.ndarray, o: dict, device)
         return coarse, None
     inside = np.all((TV >= lo - coarse) & (TV <= hi + coarse), axis=1)
     fine = max(float(o["node_spacing"]) * mdiag, MOVING_SPACING_MIN * coarse)
-    return np.where(inside, fine, coarse), (mdiag, int(moving.sum()), float(inside.mean()), mdiag / diag)
+    return np.where(inside, fine, coarse), (mdiag, int(moving.sum()))
 
 
 def _convert_from_key(vseq, strategy: str, o: dict, K: int, template, device, progress, should_stop,
@@ -1541,11 +1528,9 @@ def _convert_from_key(vseq, strategy: str, o: dict, K: int, template, device, pr
     all_diag = max(max(_bbox_diag(v) for v, _ in vseq.frames), _bbox_diag(TV), 1e-6)
     spacing, moving = _node_spacing(vseq, K, TV, TF, o, device) if strategy == "graph" else (None, None)
     conv = _Converter(TV, TF, device, 10.0 * all_diag, o, spacing)
-    if moving is not None and o.get("moving_coverage", False):
-        conv.set_coverage_part(diag_fraction=moving[3], vertex_fraction=moving[2])
     step = getattr(conv, f"step_{strategy}")
     info = ConversionInfo(strategy, {k: v for k, v in o.items() if k != "strategy"}, T, len(TV), key_frame=K)
-    info.moving_part = None if moving is None else moving[:2]
+    info.moving_part = moving
     out, lo, hi, seconds, coverage, web = _convert_frames(vseq, conv, step, K, progress, should_stop, info,
                                                           strategy, where, TV, TF, stop_forward)
     if strategy == "graph" and (lo, hi) == (0, T - 1) and int(o["repair_passes"]) > 0:

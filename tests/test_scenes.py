@@ -111,3 +111,21 @@ def test_builtin_sequence_lookup():
     assert seq.num_frames == 3 and seq.num_vertices == 64
     with pytest.raises(ValueError, match="wave_bowl"):  # lists the choices
         scenes.builtin_sequence("wavy_bowl")
+
+
+def test_articulated_figure_sway_zero_keeps_the_body_in_place():
+    """``sway=0`` drops the hop and the turn: the torso and head stay where frame 0 has them while
+    the arms swing (the one-arm wave of bench/unseen_variants.py); the default sway moves them."""
+    from dynmesh_warp.scenes import FIGURE_BONES, articulated_figure
+
+    still = articulated_figure(frames=6, resolution=24, leg_swing=0.0, sway=0.0)
+    moving = articulated_figure(frames=6, resolution=24, leg_swing=0.0)
+    V0 = still.V[0]
+    a, b, r = FIGURE_BONES["torso"]
+    core = (np.abs(V0[:, 0]) < 0.5 * r) & (V0[:, 2] > a[2]) & (V0[:, 2] < b[2])  # the torso's middle
+    assert core.sum() > 10
+    assert np.abs(still.V[:, core] - V0[core]).max() < 1e-4  # (the arms' skinning weights reach it faintly)
+    assert np.abs(moving.V[:, core] - moving.V[0][core]).max() > 0.05
+    hand = np.argmin(V0[:, 2] - 10 * V0[:, 0])  # low on the +x side: the left hand
+    assert np.linalg.norm(still.V[3, hand] - V0[hand]) > 0.3
+    np.testing.assert_array_equal(still.F, moving.F)
