@@ -1501,7 +1501,7 @@ def _node_spacing(vseq, K: int, TV: np.ndarray, TF: np.ndarray, o: dict, device)
     back = nearest_surface((TV, TF), pts, device=device)
     hit = (back.dist > far) & (back.face >= 0)
     moving[TF[back.face[hit]].reshape(-1)] = True
-    if moving.sum() < max(8, MOVING_MIN * len(TV)):
+    if moving.sum() < max(8, MOVING_MIN * len(TV) / ks):  # (of the vertices asked: every ks-th)
         return coarse, None
     lo, hi = TV[moving].min(axis=0), TV[moving].max(axis=0)
     mdiag = float(np.linalg.norm(hi - lo))

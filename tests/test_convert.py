@@ -792,3 +792,31 @@ def test_a_static_floor_does_not_coarsen_the_graph_on_the_subject():
     alone = fig.to_varying()
     sp1, moving1 = _node_spacing(alone, 0, fig.V[0], fig.F, o, DEV)
     assert moving1 is None and np.ndim(sp1) == 0
+
+
+def test_the_moving_part_is_found_on_a_large_template_as_with_every_vertex(monkeypatch):
+    """``_node_spacing`` asks every k-th vertex of a template above MOVING_POINTS vertices; the
+    minimum count of moving vertices is a fraction of those asked. A ball moving over a
+    62,500-vertex static sheet (0.07 % of the vertices): asked at every vertex (the reference)
+    the part is found, and so it must be when sampled (it was not while the minimum counted every
+    vertex: 53 sampled against 125)."""
+    from dynmesh_warp import convert as cv
+    from dynmesh_warp.conversion_options import option_defaults
+    from dynmesh_warp.scenes import grid_sheet
+
+    G, GF = grid_sheet(250, 4.0)
+    S, SF = icosphere(1, 0.1)
+    V = np.empty((9, len(G) + len(S), 3), np.float32)
+    for t in range(9):
+        V[t, :len(G)] = G
+        V[t, len(G):] = S + [0.1 * t, 0.0, 0.5]
+    var = FixedTopologySequence(V, np.concatenate([GF, SF + len(G)]), fps=24.0).to_varying()
+    TV, TF = var.frames[0]
+    o = option_defaults("graph")
+    assert len(TV) > 4 * cv.MOVING_POINTS
+    sampled = cv._node_spacing(var, 0, TV, TF, o, DEV)[1]
+    monkeypatch.setattr(cv, "MOVING_POINTS", 10 ** 7)
+    full = cv._node_spacing(var, 0, TV, TF, o, DEV)[1]
+    assert full is not None and sampled is not None
+    assert sampled[0] == pytest.approx(full[0], rel=0.1)  # the same box: the ball's path
+    assert 0.9 < full[0] < 1.3  # 0.8 m along x, the ball 0.2 m across
