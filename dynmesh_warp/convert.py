@@ -228,9 +228,10 @@ class ConversionInfo:
     for :func:`to_fixed_topology`; several when :func:`to_piecewise_fixed` started new templates.
     seconds_all: wall time of the whole call [s], the runs whose frames were not kept (other key
     frames, segments tried and replaced) included; ``frame_seconds`` counts the kept frames only.
-    moving_part: ``(diagonal [m], template vertices)`` of the part of the template that moves,
-    when it is much smaller than the whole (a static floor or background) and set the graph's
-    node spacing within its box (option ``adaptive_spacing``); None otherwise.
+    moving_part: ``(diagonal [m], template vertices in its box)`` of the part of the template
+    that moves, when it is much smaller than the whole (a static floor or background) and set
+    the graph's node spacing within its box (option ``adaptive_spacing``: the vertices counted
+    here get the finer spacing); None otherwise.
     """
 
     strategy: str
@@ -1480,7 +1481,8 @@ def _node_spacing(vseq, K: int, TV: np.ndarray, TF: np.ndarray, o: dict, device)
     static part neither coarsens the subject's graph nor fills the node budget. A vertex moves
     when one of ``MOVING_SAMPLES`` frames spread over the sequence lies farther than
     ``MOVING_GAP`` x the diagonal from it, or it is a corner of the template face nearest to
-    such a frame's vertex that far from the template. Moving part: None, or ``(diagonal [m], vertices)``."""
+    such a frame's vertex that far from the template. Moving part: None, or ``(diagonal [m],
+    template vertices in the grown box)``."""
     diag = max(_bbox_diag(TV), 1e-12)
     coarse = float(o["node_spacing"]) * diag
     T = vseq.num_frames
@@ -1509,7 +1511,7 @@ def _node_spacing(vseq, K: int, TV: np.ndarray, TF: np.ndarray, o: dict, device)
         return coarse, None
     inside = np.all((TV >= lo - coarse) & (TV <= hi + coarse), axis=1)
     fine = max(float(o["node_spacing"]) * mdiag, MOVING_SPACING_MIN * coarse)
-    return np.where(inside, fine, coarse), (mdiag, int(moving.sum()))
+    return np.where(inside, fine, coarse), (mdiag, int(inside.sum()))
 
 
 def _convert_from_key(vseq, strategy: str, o: dict, K: int, template, device, progress, should_stop,
@@ -1620,7 +1622,7 @@ def conversion_summary(info: ConversionInfo) -> list:
                      f"covered frames poorly or drifted: {tried}; kept {info.key_frame}; "
                      f"{sum(x[3] for x in info.key_trials):.2f} s in all")
     if info.moving_part is not None:
-        lines.append(f"the moving part ({info.moving_part[1]} template vertices, {info.moving_part[0]:.4g} m across) "
+        lines.append(f"the moving part ({info.moving_part[0]:.4g} m across; {info.moving_part[1]} template vertices in its box) "
                      "is much smaller than the whole (a static floor or background): its graph nodes are spaced "
                      "from its own size (option adaptive_spacing)")
     if cov.size:

@@ -776,7 +776,8 @@ def test_a_static_floor_does_not_coarsen_the_graph_on_the_subject():
     assert worst[False] > 0.06  # without it an arm is lost by > 6 % of the figure's diagonal
     assert worst[True] < 0.6 * worst[False] and worst[True] < 0.05
     mdiag, nmov = info[True].moving_part
-    assert 0.4 * _diag(V[0]) < mdiag < 0.6 * _diag(V[0]) and nmov > 100  # the figure, not the floor
+    assert 0.4 * _diag(V[0]) < mdiag < 0.6 * _diag(V[0])  # the figure, not the floor
+    assert 0.9 * n < nmov < 0.5 * V.shape[1]  # the template vertices in its box: the figure, some floor
     assert info[False].moving_part is None
     assert any("moving part" in line for line in conversion_summary(info[True]))
     assert not any("moving part" in line for line in conversion_summary(info[False]))
