@@ -12,7 +12,7 @@ round, and may be in millimetres (docs/evaluation.md, "Unseen placements").
 ``--floor S``: a static slab S x the diagonal wide under the lowest point of the sequence, centred
 under frame 0 (``scenes.with_floor``), as a reconstruction of a real capture keeps the floor the
 subject stands on (its feet touch it); the walk and the turn move the subject, not the floor;
-``--hold``: the vertices on the negative side of the rest pose's first horizontal axis keep
+``--hold``: the vertices below frame 0's centroid along the first horizontal axis keep
 frame 0's position (a person who stands still and moves one arm: the moving part is small, with
 no floor); ``--scene-args JSON``: keyword arguments of a built-in scene, e.g.
 ``'{"arm_swing": 1.2, "leg_swing": 0, "sway": 0}'`` for ``articulated_figure``.
@@ -39,13 +39,18 @@ def load(name: str, scene_args: dict | None = None):
     return np.asarray(z["V"], np.float64), np.asarray(z["F"]), float(z["fps"]) if "fps" in z else 24.0
 
 
+def horizontal(up: int) -> list:
+    """The two horizontal axes (indices) when ``up`` is the vertical one."""
+    return [a for a in range(3) if a != up]
+
+
 def place(V: np.ndarray, walk: float = 0.0, turn: float = 0.0, scale: float = 1.0, offset: float = 0.0,
           up: int = 2) -> np.ndarray:
     """The moved copy of V (T, N, 3): turn about the vertical through each frame's centroid,
     then walk along the first horizontal axis, then scale and offset (see the module doc)."""
     T = len(V)
     diag = float(np.linalg.norm(V[0].max(0) - V[0].min(0)))
-    h = [a for a in range(3) if a != up]
+    h = horizontal(up)
     out = np.empty_like(V)
     for t in range(T):
         u = t / max(T - 1, 1)
@@ -74,9 +79,23 @@ def main() -> int:
     a = ap.parse_args()
     if Path(a.sequence).exists() and Path(a.out).resolve() == Path(a.sequence).resolve():
         raise SystemExit(f"--out {a.out} is the input sequence; name another file")
-    V, F, fps = load(a.sequence, json.loads(a.scene_args) if a.scene_args else None)
+    scene_args = None
+    if a.scene_args:
+        from dynmesh_warp.scenes import BUILTIN_SCENES
+        if a.sequence not in BUILTIN_SCENES:
+            raise SystemExit(f"--scene-args: {a.sequence} is not a built-in scene ({sorted(BUILTIN_SCENES)})")
+        try:
+            scene_args = json.loads(a.scene_args)
+        except json.JSONDecodeError as e:
+            raise SystemExit(f"--scene-args: not JSON ({e})") from None
+        if not isinstance(scene_args, dict):
+            raise SystemExit(f"--scene-args: expected a JSON object of keyword arguments, got {a.scene_args}")
+    try:
+        V, F, fps = load(a.sequence, scene_args)
+    except TypeError as e:  # an argument the scene does not take
+        raise SystemExit(f"--scene-args: {e}") from None
     if a.hold:
-        h = [x for x in range(3) if x != a.up][0]
+        h = horizontal(a.up)[0]
         V = np.where((V[0][:, h] < V[0][:, h].mean())[None, :, None], V[:1], V)
     W = place(V, a.walk, a.turn, 1.0, 0.0, a.up)  # the subject moves; a floor stays where frame 0 stands
     if a.floor > 0:

@@ -1495,11 +1495,13 @@ def _node_spacing(vseq, K: int, TV: np.ndarray, TF: np.ndarray, o: dict, device)
     # vertex far from the template (a foot that slides along the floor stays near the frame's
     # surface; the leg that spreads from it shows the other way); the second in one query. Above
     # MOVING_POINTS vertices, every k-th (a box needs no more; a large input stays quick)
-    ks = -(-len(TV) // MOVING_POINTS)
+    def stride(n):  # every k-th of n points: about MOVING_POINTS of them
+        return -(-n // MOVING_POINTS)
+
+    ks = stride(len(TV))
     for t in frames:
         moving[::ks] |= nearest_surface(vseq.frames[t], TV[::ks], device=device).dist > far
-    pts = [vseq.frames[t][0] for t in frames]
-    pts = np.concatenate([p[::-(-len(p) // MOVING_POINTS)] for p in pts])
+    pts = np.concatenate([p[::stride(len(p))] for p in (vseq.frames[t][0] for t in frames)])
     back = nearest_surface((TV, TF), pts, device=device)
     hit = (back.dist > far) & (back.face >= 0)
     moving[TF[back.face[hit]].reshape(-1)] = True
