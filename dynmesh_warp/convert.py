@@ -199,11 +199,15 @@ class ConversionInfo:
     contact; what it cannot do is tear a part the template has fused (it leaves a ``web``), which
     is why the key frame is the one with the most surface (parts most apart), and why
     :func:`to_piecewise_fixed` starts a new template at such an event.
-    key_trials: ``(key frame, mean coverage, mean Chamfer distance to the input [m^2],
-    seconds)`` of every run when the run from the automatic key frame covered frames poorly and
-    the conversion was run again from other key frames (``key_candidates``); the kept run is
-    the one of least Chamfer distance to the input (its key is ``key_frame``). Empty when there
-    was one run.
+    key_trials: ``(key frame, mean coverage, score [m^2], seconds)`` of every run when the run
+    from the automatic key frame covered frames poorly, drifted, or moves a part in static
+    surroundings, and the conversion was run again from other key frames (``key_candidates``);
+    the kept run is the one of least score (its key is ``key_frame``). Empty when there was one
+    run. key_score: what the score is: ``"chamfer"``, the mean Chamfer distance to the input
+    (:func:`_chamfer_to_input`), or ``"moving"`` when the first run found a moving part
+    (``moving_part``), the mean squared distance from the input's moving points to the output
+    (:func:`_moving_score`: the static surroundings would outweigh the subject in the Chamfer
+    distance).
     floater_webs: frames whose web (above ``POOR_WEB``) is pulled by small separate parts of the
     input (most of such a part's vertices nearest to stretched faces): floaters of a
     reconstruction, which ``far_part_area`` leaves out (off by default); the summary says so.
@@ -258,6 +262,7 @@ class ConversionInfo:
     segments: list = field(default_factory=list)
     seconds_all: float = 0.0
     moving_part: tuple | None = None
+    key_score: str = ""
 
 
 def web_fraction(X: np.ndarray, F: np.ndarray, X_key: np.ndarray, V_ref: np.ndarray, F_ref: np.ndarray,
@@ -1175,13 +1180,16 @@ def _to_fixed(seq, strategy, template, device, progress, should_stop, stop_forwa
         trials = _key_candidates(vseq, o, K, given, res)
         if trials:
             if progress:  # the run goes on: say why
-                why = _key_retry_reason(res.conversion.coverage, K) or "always_try_keys"
+                why = _key_retry_reason(res.conversion.coverage, K, res.conversion.moving_part) or "always_try_keys"
                 print(f"conversion: {why} from key frame {K}; trying key frames "
                       f"{', '.join(map(str, trials))} (key_candidates)", file=sys.stderr, flush=True)
+            # with static surroundings the Chamfer distance is mostly theirs: the moving points rank
+            moving = _moving_points(vseq, device) if res.conversion.moving_part is not None else None
+            key_score = "chamfer" if moving is None else "moving"
 
-            def trial(k, r):  # (key frame, mean coverage, mean Chamfer distance to the input, seconds)
-                return (k, float(np.mean(r.conversion.coverage)), _chamfer_to_input(r, vseq, device),
-                        float(np.sum(r.conversion.frame_seconds)))
+            def trial(k, r):  # (key frame, mean coverage, score, seconds)
+                score = _chamfer_to_input(r, vseq, device) if moving is None else _moving_score(r, vseq, moving, device)
+                return (k, float(np.mean(r.conversion.coverage)), score, float(np.sum(r.conversion.frame_seconds)))
 
             tried = [trial(K, res)]
             best = tried[0][2]
@@ -1194,7 +1202,7 @@ def _to_fixed(seq, strategy, template, device, progress, should_stop, stop_forwa
                 tried.append(trial(k, r))
                 if tried[-1][2] < best:
                     res, best = r, tried[-1][2]
-            res.conversion.key_trials = tried
+            res.conversion.key_trials, res.conversion.key_score = tried, key_score
         info = res.conversion
         info.dropped_unused, info.welded = unused, welded
         if float(o["far_part_area"]) <= 0:
@@ -1395,6 +1403,7 @@ def _join_segments(vseq, segs: list, whole, events: list) -> VaryingTopologySequ
             else:
                 getattr(info, name).extend(value)
         info.segments.append((lo, lo + r.num_frames, c.key_frame + lo, r.num_vertices))
+    info.key_score = "+".join(sorted({r.conversion.key_score for _, r in segs} - {""}))
     info.topology_events, info.dropped_unused, info.welded = list(events), whole.dropped_unused, whole.welded
     out.conversion = info
     return out
@@ -1414,6 +1423,43 @@ def _chamfer_to_input(res, vseq, device) -> float:
                                            squared=True, device=device).value for t in range(len(res.V))]))
 
 
+def _moving_points(vseq, device) -> list:
+    """Per input frame, the indices of its moving points: of at most ``SCORE_POINTS`` vertices
+    (a fixed stride), those farther than ``MOVING_GAP`` x the frame's bbox diagonal from one of
+    the frames :func:`_sample_frames` spreads over the sequence (as :func:`_node_spacing` finds
+    the template's moving part). The static surroundings of a subject have none; the same
+    points for every key trial (they come from the input alone)."""
+    T = vseq.num_frames
+    samples = _sample_frames(T)
+    meshes = {s: _wp_mesh(*vseq.frames[s], device) for s in samples}
+    reach = 10.0 * max(_bbox_diag(np.concatenate([v for v, _ in vseq.frames])), 1e-6)
+    out = []
+    for t, (v, _) in enumerate(vseq.frames):
+        idx = np.arange(0, len(v), -(-len(v) // SCORE_POINTS))
+        far = MOVING_GAP * _bbox_diag(v)
+        moves = np.zeros(len(idx), bool)
+        for s, mesh in meshes.items():
+            if s != t:
+                moves |= nearest_surface(mesh, v[idx], device=device, max_dist=reach).dist > far
+        out.append(idx[moves])
+    return out
+
+
+def _moving_score(res, vseq, moving: list, device) -> float:
+    """A run's GT-free score among key trials when the capture has static surroundings (a
+    floor, a background): the mean over frames of the mean squared distance from the input
+    frame's moving points (:func:`_moving_points`) to the converted surface [m^2] (a frame with
+    none counts 0). The surroundings fit alike in every run and, being most of the frame, would
+    outweigh the subject in :func:`_chamfer_to_input`; a limb the run lost leaves its input
+    points far from the output here (docs/conversion.md, "Ranking the key trials")."""
+    vals = []
+    for t in range(len(res.V)):
+        v, idx = vseq.frames[res.conversion.first_frame + t][0], moving[res.conversion.first_frame + t]
+        vals.append(float(np.mean(nearest_surface((res.V[t], res.F), v[idx], device=device).dist ** 2))
+                    if len(idx) else 0.0)
+    return float(np.mean(vals)) if vals else 0.0
+
+
 def _key_candidates(vseq, o: dict, K: int, given: bool, res) -> list:
     """The key frames to try after the run from the automatic key frame ``K`` (``res``): when
     that run is complete, :func:`_key_retry_reason` finds it worth retrying (or always, with
@@ -1423,17 +1469,18 @@ def _key_candidates(vseq, o: dict, K: int, given: bool, res) -> list:
     T = vseq.num_frames
     info = res.conversion
     if (n <= 0 or given or o["key_frame"] not in ("auto", None) or T < 3 or len(info.coverage) < T
-            or (_key_retry_reason(info.coverage, K) is None and not o.get("always_try_keys"))):
+            or (_key_retry_reason(info.coverage, K, info.moving_part) is None and not o.get("always_try_keys"))):
         return []
     keys = [min(T - 1, int(T * (i + 0.5) / n)) for i in range(n)]
     return [k for i, k in enumerate(keys) if k != K and k not in keys[:i]]
 
 
-def _key_retry_reason(coverage, K: int) -> str | None:
+def _key_retry_reason(coverage, K: int, moving_part=None) -> str | None:
     """Why a run from key frame ``K`` with these per-frame coverages (fractions of the bbox
-    diagonal) is worth repeating from other key frames, in words; None when it is not. Two
-    GT-free signs: at least KEY_RETRY_POOR_FRAMES frames poorly covered (> POOR_COVERAGE: a lost
-    part), or drift: the 90th percentile of the frames' coverage above both DRIFT_FLOOR and
+    diagonal) and this ``moving_part`` (:func:`_node_spacing`) is worth repeating from other key
+    frames, in words; None when it is not. Two GT-free signs: at least KEY_RETRY_POOR_FRAMES
+    frames poorly covered (> POOR_COVERAGE: a lost part), or drift: the 90th percentile of the
+    frames' coverage above both DRIFT_FLOOR and
     DRIFT_RATIO x the mean coverage of the frames next to the key frame (within DRIFT_NEIGHBOURS,
     the key itself excluded), where the template is fresh and the coverage is the input's own
     fitting floor. Drift without a lost part is what a run from a badly placed key frame does
@@ -1443,13 +1490,15 @@ def _key_retry_reason(coverage, K: int) -> str | None:
     poor = int(np.count_nonzero(cov > POOR_COVERAGE))
     if poor >= KEY_RETRY_POOR_FRAMES:
         return f"{poor} frames poorly covered"
-    if cov.size < 2 * DRIFT_NEIGHBOURS + 1:  # too short to tell drift from motion
-        return None
-    near = np.r_[cov[max(0, K - DRIFT_NEIGHBOURS):K], cov[K + 1:K + 1 + DRIFT_NEIGHBOURS]]
-    p90, floor = float(np.percentile(cov, 90)), float(np.mean(near))
-    if p90 > DRIFT_FLOOR and p90 > DRIFT_RATIO * floor:
-        return (f"coverage drifted ({100 * p90:.2f}% of the diagonal on the worst tenth of the frames, "
-                f"{100 * floor:.2f}% next to the key frame)")
+    if cov.size >= 2 * DRIFT_NEIGHBOURS + 1:  # shorter: too short to tell drift from motion
+        near = np.r_[cov[max(0, K - DRIFT_NEIGHBOURS):K], cov[K + 1:K + 1 + DRIFT_NEIGHBOURS]]
+        p90, floor = float(np.percentile(cov, 90)), float(np.mean(near))
+        if p90 > DRIFT_FLOOR and p90 > DRIFT_RATIO * floor:
+            return (f"coverage drifted ({100 * p90:.2f}% of the diagonal on the worst tenth of the frames, "
+                    f"{100 * floor:.2f}% next to the key frame)")
+    if moving_part is not None:
+        return (f"the moving part ({moving_part[0]:.3g} m across) has static surroundings, which hide its coverage "
+                "(the trials are ranked on the moving points)")
     return None
 
 
@@ -1470,6 +1519,11 @@ MOVING_MIN = 0.002
 MOVING_SPACING_MIN = 0.25
 
 
+def _sample_frames(T: int) -> list:
+    """The frames that tell what moves: ``MOVING_SAMPLES`` + 1 spread evenly over T frames."""
+    return sorted(set(np.linspace(0, T - 1, min(MOVING_SAMPLES + 1, T)).round().astype(int).tolist()))
+
+
 def _node_spacing(vseq, K: int, TV: np.ndarray, TF: np.ndarray, o: dict, device) -> tuple:
     """The graph's node spacing for template TV (key frame K): (spacing, moving part).
 
@@ -1488,7 +1542,7 @@ def _node_spacing(vseq, K: int, TV: np.ndarray, TF: np.ndarray, o: dict, device)
     T = vseq.num_frames
     if not o.get("adaptive_spacing", False) or T < 2:
         return coarse, None
-    frames = sorted(set(np.linspace(0, T - 1, min(MOVING_SAMPLES + 1, T)).round().astype(int).tolist()) - {K})
+    frames = [t for t in _sample_frames(T) if t != K]
     far = MOVING_GAP * diag
     moving = np.zeros(len(TV), bool)
     # both ways: a template vertex far from a frame, and the template face nearest to a frame
@@ -1620,8 +1674,11 @@ def conversion_summary(info: ConversionInfo) -> list:
                     else f"0..{T - 1}") + f"; {sum(info.frame_seconds):.2f} s"]
     if info.key_trials:
         tried = ", ".join(f"{k} ({100 * c:.2f}%, {d:.3g})" for k, c, d, _ in info.key_trials)
-        lines.append(f"key frames tried (mean coverage, mean Chamfer distance to the input), as the first run "
-                     f"covered frames poorly or drifted: {tried}; kept {info.key_frame}; "
+        score, why = {"chamfer": ("mean Chamfer distance to the input", "the first run covered frames poorly or "
+                                  "drifted"),
+                      "moving": ("mean squared distance of the input's moving points to the output", "the moving "
+                                 "part has static surroundings")}.get(info.key_score, ("score", "per segment"))
+        lines.append(f"key frames tried (mean coverage, {score}), as {why}: {tried}; kept {info.key_frame}; "
                      f"{sum(x[3] for x in info.key_trials):.2f} s in all")
     if info.moving_part is not None:
         lines.append(f"the moving part ({info.moving_part[0]:.4g} m across; {info.moving_part[1]} template vertices in its box) "

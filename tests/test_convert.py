@@ -779,6 +779,12 @@ def test_a_static_floor_does_not_coarsen_the_graph_on_the_subject():
     assert 0.4 * _diag(V[0]) < mdiag < 0.6 * _diag(V[0])  # the figure, not the floor
     assert 0.9 * n < nmov < 0.5 * V.shape[1]  # the template vertices in its box: the figure, some floor
     assert info[False].moving_part is None
+    # the floor hides the figure's coverage: the key trials run, ranked on the moving points
+    trials = info[True].key_trials
+    assert info[True].key_score == "moving" and len(trials) >= 3
+    assert min(trials, key=lambda x: x[2])[0] == info[True].key_frame
+    assert any("static surroundings" in line for line in conversion_summary(info[True]))
+    assert info[False].key_score in ("", "chamfer")
     assert any("moving part" in line for line in conversion_summary(info[True]))
     assert not any("moving part" in line for line in conversion_summary(info[False]))
     # the spacing: finer on the figure, the coarse one at the floor's far corners
@@ -793,6 +799,48 @@ def test_a_static_floor_does_not_coarsen_the_graph_on_the_subject():
     alone = fig.to_varying()
     sp1, moving1 = _node_spacing(alone, 0, fig.V[0], fig.F, o, DEV)
     assert moving1 is None and np.ndim(sp1) == 0
+
+
+def _ball_over_floor(frames: int = 9, radius: float = 0.2):
+    """A ball floating 0.6 m over a static 4 m floor, moved 3 m along x over ``frames`` frames:
+    (V (T, N, 3), F, indices of the ball's vertices)."""
+    from dynmesh_warp.scenes import grid_sheet
+
+    fv, ff = grid_sheet(21, 4.0)
+    bv, bf = icosphere(2, radius)
+    F = np.concatenate([ff, bf + len(fv)]).astype(np.int32)
+    V = np.stack([np.concatenate([fv, bv + [x, 0.0, 0.6]]) for x in np.linspace(-1.5, 1.5, frames)]).astype(np.float32)
+    return V, F, np.arange(len(fv), len(V[0]))
+
+
+def test_the_key_trials_score_sees_the_moving_points_not_the_static_surroundings():
+    """With static surroundings the key trials rank runs by :func:`_moving_score`, over the
+    input's moving points (:func:`_moving_points`). Oracles in closed form: a ball floating over
+    a static floor, 0.6 m up and moved 3 m, is wholly farther than MOVING_GAP x the diagonal from
+    the frames where it is elsewhere, and the floor is where it is in every frame, so the moving
+    points are the ball's vertices exactly; an output equal to the input scores 0; one whose
+    floor is off by 0.1 m still 0 (the Chamfer distance, mostly floor, rises); one whose ball
+    shrinks to half its radius (a lost part) scores (radius / 2)^2."""
+    from dynmesh_warp.convert import ConversionInfo, _as_varying, _chamfer_to_input, _moving_points, _moving_score
+
+    V, F, ball = _ball_over_floor()
+    var = _as_varying(FixedTopologySequence(V, F).to_varying())
+    moving = _moving_points(var, DEV)
+    assert all(np.array_equal(m, ball) for m in moving)
+
+    def out(W):
+        r = FixedTopologySequence(W, F)
+        r.conversion = ConversionInfo("graph", {}, len(W), W.shape[1])
+        return r
+
+    exact, floor_off, shrunk = V.copy(), V.copy(), V.copy()
+    floor_off[:, :ball[0], 2] -= 0.1
+    centre = shrunk[:, ball].mean(axis=1, keepdims=True)
+    shrunk[:, ball] = centre + 0.5 * (shrunk[:, ball] - centre)
+    assert _moving_score(out(exact), var, moving, DEV) < 1e-10
+    assert _moving_score(out(floor_off), var, moving, DEV) < 1e-10
+    assert _chamfer_to_input(out(floor_off), var, DEV) > 100 * _chamfer_to_input(out(exact), var, DEV) + 1e-4
+    assert _moving_score(out(shrunk), var, moving, DEV) == pytest.approx(0.1 ** 2, rel=0.1)
 
 
 def test_the_moving_part_is_found_on_a_large_template_as_with_every_vertex(monkeypatch):

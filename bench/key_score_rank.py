@@ -1,0 +1,72 @@
+"""Rank the runs stored by ``key_score_probe.py`` by the key trials' two GT-free scores (the mean
+Chamfer distance to the input, ``convert._chamfer_to_input``, and the moving points' score,
+``convert._moving_score``) and set each score's pick against the ground truth (the subject's
+worst lost GT vertex, frames over 3 %, the mean of the per-frame worst; docs/conversion.md,
+"Ranking the key trials on the moving points").
+
+    python bench/key_score_rank.py out/keyscore/figure_floor_walk out/keyscore/figure_floor25 \\
+        --out bench/results/key_score_rank_cpu.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import describe_device, write_json  # noqa: E402
+from conversion_eval import ground_truth, varying_input  # noqa: E402
+
+from dynmesh_warp.convert import ConversionInfo, _as_varying, _moving_points, _moving_score  # noqa: E402
+from dynmesh_warp.sequence import FixedTopologySequence  # noqa: E402
+
+
+def main(argv=None):
+    import warp as wp
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("stores", nargs="+", help="key_score_probe.py --store folders (their .json beside them)")
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--cache", default=str(Path(__file__).resolve().parents[1] / "out" / "cache"))
+    ap.add_argument("--out", default=None)
+    a = ap.parse_args(argv)
+    wp.init()
+    res = {"machine": describe_device(wp.get_device(a.device)), "scenes": {}}
+    for folder in map(Path, a.stores):
+        meta = json.loads(Path(f"{folder}.json").read_text())
+        gt = ground_truth(meta["sequence"], None)
+        var = _as_varying(varying_input(gt, meta["resolution"], meta["error"], a.device, Path(a.cache)))
+        t0 = time.perf_counter()
+        moving = _moving_points(var, a.device)
+        seconds_points = time.perf_counter() - t0
+        runs = {}
+        for k in meta["keys"]:
+            z = np.load(folder / f"k{k}.npz")
+            out = FixedTopologySequence(z["V"], z["F"])
+            out.conversion = ConversionInfo("graph", {}, len(z["V"]), z["V"].shape[1])
+            r = meta["runs"][str(k)]
+            runs[k] = {"moving_score": _moving_score(out, var, moving, a.device), "chamfer": r["chamfer_to_input"],
+                       "gt_worst": r["subject_lost_max"], "gt_frames_over_3pct": len(r["subject_frames_lost_over_3pct"]),
+                       "gt_mean": r["subject_lost_mean_over_frames"]}
+        auto = meta["keys"][0]
+        picks = {s: min(runs, key=lambda k: runs[k][s]) for s in ("moving_score", "chamfer")}
+        res["scenes"][folder.name] = {"sequence": meta["sequence"], "automatic_key": auto, "runs": runs,
+                                      "kept_by": picks, "moving_points_per_frame": float(np.mean([len(m) for m in moving])),
+                                      "seconds_moving_points": seconds_points}
+        print(f"{folder.name} ({np.mean([len(m) for m in moving]):.0f} moving points a frame): GT worst / frames "
+              "over 3 % / mean of the per-frame worst")
+        for k, r in runs.items():
+            tags = [s for s, p in picks.items() if p == k] + (["automatic"] if k == auto else [])
+            print(f"  key {k:3d}: moving {r['moving_score']:.3e}, chamfer {r['chamfer']:.3e} | {100 * r['gt_worst']:.1f} % / "
+                  f"{r['gt_frames_over_3pct']} / {100 * r['gt_mean']:.2f} %  {' '.join(tags)}")
+    if a.out:
+        write_json(Path(a.out), res)
+
+
+if __name__ == "__main__":
+    main()
