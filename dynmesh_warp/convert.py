@@ -1181,7 +1181,7 @@ def _to_fixed(seq, strategy, template, device, progress, should_stop, stop_forwa
         if trials:
             if progress:  # the run goes on: say why
                 why = _key_retry_reason(res.conversion.coverage, K, res.conversion.moving_part) or "always_try_keys"
-                print(f"conversion: {why} from key frame {K}; trying key frames "
+                print(f"conversion: the run from key frame {K}: {why}; trying key frames "
                       f"{', '.join(map(str, trials))} (key_candidates)", file=sys.stderr, flush=True)
             # with static surroundings the Chamfer distance is mostly theirs: the moving points rank
             moving = _moving_points(vseq, device) if res.conversion.moving_part is not None else None
@@ -1497,8 +1497,8 @@ def _key_retry_reason(coverage, K: int, moving_part=None) -> str | None:
             return (f"coverage drifted ({100 * p90:.2f}% of the diagonal on the worst tenth of the frames, "
                     f"{100 * floor:.2f}% next to the key frame)")
     if moving_part is not None:
-        return (f"the moving part ({moving_part[0]:.3g} m across) has static surroundings, which hide its coverage "
-                "(the trials are ranked on the moving points)")
+        return (f"its moving part ({moving_part[0]:.3g} m across) has static surroundings, which hide its coverage "
+                "(the runs are ranked on the moving points)")
     return None
 
 
