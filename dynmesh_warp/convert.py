@@ -1178,13 +1178,21 @@ def _to_fixed(seq, strategy, template, device, progress, should_stop, stop_forwa
         topology = pool.submit(_topology_events, vseq)
         res = _convert_from_key(vseq, strategy, o, K, template, device, progress, should_stop, where, stop_forward)
         trials = _key_candidates(vseq, o, K, given, res)
+        part, moving = res.conversion.moving_part, None
+        if trials and part is not None:
+            # with static surroundings the Chamfer distance is mostly theirs: the moving points
+            # rank; unless they show on fewer than MOVING_FRAMES of the frames (what comes and
+            # goes, as a reconstruction's floaters do, is no subject in static surroundings)
+            moving = _moving_points(vseq, device)
+            if sum(len(m) > 0 for m in moving) < MOVING_FRAMES * T:
+                part = moving = None
+                if _key_retry_reason(res.conversion.coverage, K) is None and not o.get("always_try_keys"):
+                    trials = []
         if trials:
             if progress:  # the run goes on: say why
-                why = _key_retry_reason(res.conversion.coverage, K, res.conversion.moving_part) or "always_try_keys"
+                why = _key_retry_reason(res.conversion.coverage, K, part) or "always_try_keys"
                 print(f"conversion: the run from key frame {K}: {why}; trying key frames "
                       f"{', '.join(map(str, trials))} (key_candidates)", file=sys.stderr, flush=True)
-            # with static surroundings the Chamfer distance is mostly theirs: the moving points rank
-            moving = _moving_points(vseq, device) if res.conversion.moving_part is not None else None
             key_score = "chamfer" if moving is None else "moving"
 
             def trial(k, r):  # (key frame, mean coverage, score, seconds)
@@ -1514,6 +1522,10 @@ MOVING_SAMPLES = 8
 MOVING_POINTS = 8192
 #: fewer moving vertices than this fraction of the template's: nothing moves (noise)
 MOVING_MIN = 0.002
+#: the key trials are ranked on the moving points (:func:`_moving_points`) only when they show on
+#: at least this fraction of the frames (a subject in static surroundings: 87-100 % of the frames
+#: on seven floor scenes; floaters on three frames of ten do not count)
+MOVING_FRAMES = 0.5
 #: the finer spacing is at least this fraction of the coarse one (a small moving part would
 #: otherwise ask for more nodes than the graph may have)
 MOVING_SPACING_MIN = 0.25

@@ -569,10 +569,10 @@ def test_key_candidates_need_more_than_one_poor_frame():
     seq = SimpleNamespace(num_frames=T)
     o = {"key_candidates": 4, "key_frame": "auto"}
 
-    def res(poor):
+    def res(poor, moving_part=None):
         cov = np.full(T, 0.5 * POOR_COVERAGE)
         cov[:poor] = 2 * POOR_COVERAGE
-        return SimpleNamespace(conversion=SimpleNamespace(coverage=cov.tolist()))
+        return SimpleNamespace(conversion=SimpleNamespace(coverage=cov.tolist(), moving_part=moving_part))
 
     need = KEY_RETRY_POOR_FRAMES
     assert need == 2
@@ -581,6 +581,9 @@ def test_key_candidates_need_more_than_one_poor_frame():
     assert _key_candidates(seq, o, 75, False, res(need)) == [25, 125, 175]  # the key itself once
     assert _key_candidates(seq, {**o, "key_frame": 7}, 7, False, res(T)) == []
     assert _key_candidates(seq, o, 102, True, res(T)) == []  # a given template
+    # a moving part in static surroundings: tried without a poor frame (the surroundings hide it)
+    assert _key_candidates(seq, o, 102, False, res(0, (1.0, 100))) == [25, 75, 125, 175]
+    assert _key_candidates(seq, {**o, "key_candidates": 0}, 102, False, res(0, (1.0, 100))) == []
 
 
 def test_key_candidates_on_coverage_drift():
@@ -614,7 +617,8 @@ def test_key_candidates_on_coverage_drift():
     for near, want in ((far / (1.2 * DRIFT_RATIO), True), (far / (0.8 * DRIFT_RATIO), False)):
         cov = coverage(near, far)
         assert oracle(cov) == want
-        got = _key_candidates(seq, o, K, False, SimpleNamespace(conversion=SimpleNamespace(coverage=cov.tolist())))
+        got = _key_candidates(seq, o, K, False,
+                              SimpleNamespace(conversion=SimpleNamespace(coverage=cov.tolist(), moving_part=None)))
         assert got == ([25, 75, 125, 175] if want else [])
         reason = _key_retry_reason(cov, K)
         assert (reason is not None) == want
@@ -695,6 +699,9 @@ def test_far_small_parts_are_left_out_of_the_fit():
     sphere = np.array([1 + 0.04 * np.sin(t) for t in range(10)])
     assert np.all(radius[[3, 4, 7]] < 1.02 * sphere[[3, 4, 7]]), radius
     assert sorted(r.conversion.ignored_parts) == [3, 4, 7]
+    # the blobs come and go: their "moving part" shows on 3 of 10 frames (< MOVING_FRAMES), so no
+    # key trials ranked on it (they kept the key frame whose template has a blob: 1.7 radii)
+    assert r.conversion.moving_part is not None and r.conversion.key_trials == []
     assert all(p == 1 and n == 42 for p, n in r.conversion.ignored_parts.values())
     assert any("left out 3 small input part(s)" in ln and "3, 4, 7" in ln for ln in conversion_summary(r.conversion))
     off = to_fixed_topology(seq, device=DEV, floater_retry=False)  # off entirely
