@@ -1493,7 +1493,9 @@ def _key_retry_reason(coverage, K: int, moving_part=None) -> str | None:
     the key itself excluded), where the template is fresh and the coverage is the input's own
     fitting floor. Drift without a lost part is what a run from a badly placed key frame does
     when no frame crosses POOR_COVERAGE (pcow at 1 % error, no tangential relaxation: key 163
-    covers every frame within 3.1 %, CD +21 %; key 25 +5 %; docs/conversion.md)."""
+    covers every frame within 3.1 %, CD +21 %; key 25 +5 %; docs/conversion.md). A third reason,
+    not a sign of a poor fit: a ``moving_part`` in static surroundings, which hide a lost limb
+    from both signs (docs/conversion.md, "Ranking the key trials on the moving points")."""
     cov = np.asarray(coverage, float)
     poor = int(np.count_nonzero(cov > POOR_COVERAGE))
     if poor >= KEY_RETRY_POOR_FRAMES:
