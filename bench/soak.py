@@ -210,16 +210,21 @@ def is_soak_checkpoint(path) -> bool:
 
 
 def soak_scene(name: str, device, steps: int, check_every: int, drop_every: int, max_spheres: int,
-               seed: int, stop_flag: dict, log=print, recycle: str = "lowest", checkpoint=None, resume=None) -> dict:
+               seed: int, stop_flag: dict, log=print, recycle: str = "lowest", checkpoint=None, resume=None,
+               collider: str | None = None) -> dict:
     import warp as wp
 
     from dynmesh_warp.scene import build_world
 
     cfg = scene_config(name)
+    if resume is not None and collider is None:  # the automatic collider is measured (timings differ
+        # between calls): a resumed soak keeps the one its checkpoint was written with, as run.py does
+        with np.load(resume, allow_pickle=False) as z:
+            collider = json.loads(str(z["soak"])).get("collider")
     t_build = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the sub-step rule's notes
-        world = build_world(cfg, device=device)
+        world = build_world(cfg, device=device, collider=collider)
         world.step()  # compile (and capture) outside the timed loop
         wp.synchronize_device(world.device)
     build_s = time.perf_counter() - t_build
@@ -355,6 +360,7 @@ def soak_scene(name: str, device, steps: int, check_every: int, drop_every: int,
                    "max_depth": max_depth, "done": done, "next_drop": next_drop,
                    "worst": worst if math.isfinite(worst) else None}
         meta = {"scene": name, "args": [drop_every, max_spheres, seed, recycle, check_every], "segments": segments,
+                "collider": world.collider.name,
                 "dropper": {"dropped": dropper.dropped, "touched_done": dropper.touched_done,
                             "next_slot": dropper.next_slot, "rng": dropper.rng.bit_generator.state},
                 "tallies": tallies}

@@ -98,17 +98,20 @@ class _StopAfter(dict):
         return "SIGTERM" if self.n < 0 else default
 
 
-@pytest.mark.parametrize("recycle", ["oldest", "lowest"])
-def test_soak_stopped_and_resumed_equals_one_run(soak, tmp_path, recycle):
+@pytest.mark.parametrize("recycle, collider", [("oldest", "swept"), ("lowest", "refit")])
+def test_soak_stopped_and_resumed_equals_one_run(soak, tmp_path, recycle, collider):
     """A soak stopped early writes a checkpoint; resumed in a new call it ends with the same
-    tallies as the run that was never stopped (CPU: bit-identical steps, the same drops)."""
+    tallies as the run that was never stopped (CPU: bit-identical steps, the same drops). The
+    resumed call, not told the collider, keeps the checkpoint's: the automatic choice is measured
+    and can differ between calls (a resume once met a checkpoint of the other collider, KeyError)."""
     kw = dict(steps=1500, check_every=50, drop_every=40, max_spheres=8, seed=3, log=lambda *_: None,
               recycle=recycle)
-    whole = soak.soak_scene("pulsing_blob", "cpu", stop_flag={}, **kw)
+    whole = soak.soak_scene("pulsing_blob", "cpu", stop_flag={}, collider=collider, **kw)
     ck = tmp_path / "ck.npz"
-    first = soak.soak_scene("pulsing_blob", "cpu", stop_flag=_StopAfter(17), checkpoint=ck, **kw)
+    first = soak.soak_scene("pulsing_blob", "cpu", stop_flag=_StopAfter(17), checkpoint=ck, collider=collider, **kw)
     assert first["interrupted"] and 1 < first["steps"] < 1500 and ck.is_file()
     rest = soak.soak_scene("pulsing_blob", "cpu", stop_flag={}, resume=ck, **kw)
+    assert whole["collider"] == first["collider"] == rest["collider"] == collider
     assert rest["steps"] == 1500 and not rest["interrupted"] and len(rest["segments"]) == 2
     assert rest["segments"][0]["to_step"] == rest["segments"][1]["from_step"] == first["steps"]
     for k in ("checks", "sphere_checks", "sphere_checks_in_contact", "spheres_dropped", "max_winding_number",
