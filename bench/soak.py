@@ -217,10 +217,16 @@ def soak_scene(name: str, device, steps: int, check_every: int, drop_every: int,
     from dynmesh_warp.scene import build_world
 
     cfg = scene_config(name)
-    if resume is not None and collider is None:  # the automatic collider is measured (timings differ
-        # between calls): a resumed soak keeps the one its checkpoint was written with, as run.py does
+    saved = None
+    if resume is not None:  # the checkpoint's record, checked before any work
         with np.load(resume, allow_pickle=False) as z:
-            collider = json.loads(str(z["soak"])).get("collider")
+            saved = json.loads(str(z["soak"]))
+        if saved["scene"] != name or saved["args"] != [drop_every, max_spheres, seed, recycle, check_every]:
+            raise SystemExit(f"--resume {resume}: written for scene {saved['scene']} with (drop_every, "
+                             f"max_spheres, seed, recycle, check_every) = {saved['args']}")
+        # the automatic collider is measured (timings differ between calls): a resumed soak keeps
+        # the one its checkpoint was written with, as run.py does
+        collider = collider or saved.get("collider")
     t_build = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the sub-step rule's notes
@@ -263,10 +269,6 @@ def soak_scene(name: str, device, steps: int, check_every: int, drop_every: int,
     segments = []
     if resume is not None:  # continue a run stopped with --checkpoint: the world, the dropper and the tallies
         with np.load(resume, allow_pickle=False) as z:
-            saved = json.loads(str(z["soak"]))
-            if saved["scene"] != name or saved["args"] != [drop_every, max_spheres, seed, recycle, check_every]:
-                raise SystemExit(f"--resume {resume}: written for scene {saved['scene']} with (drop_every, "
-                                 f"max_spheres, seed, recycle, check_every) = {saved['args']}")
             extra = int(z["world_sphere_pos"].shape[0]) - world.model.spheres.count
             if extra > 0:
                 world.add_spheres(np.zeros((extra, 3), np.float32), radius, 1.0)
