@@ -24,7 +24,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import RESULTS, describe_device, write_json  # noqa: E402
 from conversion_eval import add_input_args, probe_input  # noqa: E402
 
-from dynmesh_warp.convert import _chamfer_to_input, _key_frame, _as_varying, nearest_surface, to_fixed_topology  # noqa: E402
+from dynmesh_warp.conversion_options import option_defaults  # noqa: E402
+from dynmesh_warp.convert import (_as_varying, _chamfer_to_input, _key_frame, _candidate_keys, nearest_surface,  # noqa: E402
+                                  to_fixed_topology)
 
 
 def main(argv=None):
@@ -44,8 +46,7 @@ def main(argv=None):
         keys = [int(k) for k in a.keys.split(",")]
     else:
         K = _key_frame(vseq, "auto", False)
-        cand = [min(T - 1, int(T * (i + 0.5) / 4)) for i in range(4)]
-        keys = [K] + [k for k in cand if k != K]
+        keys = [K] + _candidate_keys(T, int(option_defaults("graph")["key_candidates"]), K)
     store = Path(a.store)
     store.mkdir(parents=True, exist_ok=True)
     d_in = np.stack([nearest_surface(var.frames[t], gt.V[t], device=a.device).dist for t in range(T)])

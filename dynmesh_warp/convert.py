@@ -1186,8 +1186,7 @@ def _to_fixed(seq, strategy, template, device, progress, should_stop, stop_forwa
             moving = _moving_points(vseq, device)
             if sum(len(m) > 0 for m in moving) < MOVING_FRAMES * T:
                 part = moving = None
-                if _key_retry_reason(res.conversion.coverage, K) is None and not o.get("always_try_keys"):
-                    trials = []
+                trials = _key_candidates(vseq, o, K, given, res, moving_part=None)
         if trials:
             if progress:  # the run goes on: say why
                 why = _key_retry_reason(res.conversion.coverage, K, part) or "always_try_keys"
@@ -1417,6 +1416,11 @@ def _join_segments(vseq, segs: list, whole, events: list) -> VaryingTopologySequ
     return out
 
 
+def _stride(n: int, most: int) -> int:
+    """The k for which every k-th of n points is at most ``most`` of them (at least 1)."""
+    return max(-(-n // most), 1)
+
+
 def _chamfer_to_input(res, vseq, device) -> float:
     """A run's GT-free score among key trials: the mean over frames of the converted frame's
     Chamfer distance to the input frame (vertices, squared, the DG-Mesh convention) [m^2]. Both
@@ -1425,7 +1429,7 @@ def _chamfer_to_input(res, vseq, device) -> float:
     true CD with Spearman 0.98; the one-sided mean coverage 0.73, and that chose +30 % over
     +13 % between two runs 0.75 % apart (docs/conversion.md)."""
     def few(P):  # at most SCORE_POINTS points, by a fixed stride: the same subset for every run
-        return P[::-(-len(P) // SCORE_POINTS)]
+        return P[::_stride(len(P), SCORE_POINTS)]
 
     return float(np.mean([chamfer_distance(few(res.V[t]), few(vseq.frames[res.conversion.first_frame + t][0]),
                                            squared=True, device=device).value for t in range(len(res.V))]))
@@ -1440,10 +1444,12 @@ def _moving_points(vseq, device) -> list:
     T = vseq.num_frames
     samples = _sample_frames(T)
     meshes = {s: _wp_mesh(*vseq.frames[s], device) for s in samples}
-    reach = 10.0 * max(_bbox_diag(np.concatenate([v for v, _ in vseq.frames])), 1e-6)
+    lo = np.min([v.min(axis=0) for v, _ in vseq.frames], axis=0)  # the box of every frame (no copy of them all)
+    hi = np.max([v.max(axis=0) for v, _ in vseq.frames], axis=0)
+    reach = 10.0 * max(float(np.linalg.norm(hi - lo)), 1e-6)
     out = []
     for t, (v, _) in enumerate(vseq.frames):
-        idx = np.arange(0, len(v), -(-len(v) // SCORE_POINTS))
+        idx = np.arange(0, len(v), _stride(len(v), SCORE_POINTS))
         far = MOVING_GAP * _bbox_diag(v)
         moves = np.zeros(len(idx), bool)
         for s, mesh in meshes.items():
@@ -1468,18 +1474,25 @@ def _moving_score(res, vseq, moving: list, device) -> float:
     return float(np.mean(vals)) if vals else 0.0
 
 
-def _key_candidates(vseq, o: dict, K: int, given: bool, res) -> list:
+def _key_candidates(vseq, o: dict, K: int, given: bool, res, moving_part=...) -> list:
     """The key frames to try after the run from the automatic key frame ``K`` (``res``): when
     that run is complete, :func:`_key_retry_reason` finds it worth retrying (or always, with
-    ``always_try_keys``) and the key frame was not chosen by the user, ``key_candidates`` frames
-    spread evenly over the sequence (other than K)."""
-    n = int(o.get("key_candidates", 0) or 0)
+    ``always_try_keys``) and the key frame was not chosen by the user, :func:`_candidate_keys`.
+    ``moving_part``: the run's (default), or None where its moving part is no subject in static
+    surroundings (:data:`MOVING_FRAMES`)."""
     T = vseq.num_frames
     info = res.conversion
-    if (n <= 0 or given or o["key_frame"] not in ("auto", None) or T < 3 or len(info.coverage) < T
-            or (_key_retry_reason(info.coverage, K, info.moving_part) is None and not o.get("always_try_keys"))):
+    part = info.moving_part if moving_part is ... else moving_part
+    if (given or o["key_frame"] not in ("auto", None) or T < 3 or len(info.coverage) < T
+            or (_key_retry_reason(info.coverage, K, part) is None and not o.get("always_try_keys"))):
         return []
-    keys = [min(T - 1, int(T * (i + 0.5) / n)) for i in range(n)]
+    return _candidate_keys(T, int(o.get("key_candidates", 0) or 0), K)
+
+
+def _candidate_keys(T: int, n: int, K: int) -> list:
+    """The ``n`` key frames the trials try besides ``K`` in T frames: spread evenly (frame
+    T (i + 1/2) / n), K and repeats left out."""
+    keys = [min(T - 1, int(T * (i + 0.5) / n)) for i in range(max(n, 0))]
     return [k for i, k in enumerate(keys) if k != K and k not in keys[:i]]
 
 
@@ -1564,7 +1577,7 @@ def _node_spacing(vseq, K: int, TV: np.ndarray, TF: np.ndarray, o: dict, device)
     # surface; the leg that spreads from it shows the other way); the second in one query. Above
     # MOVING_POINTS vertices, every k-th (a box needs no more; a large input stays quick)
     def stride(n):  # every k-th of n points: about MOVING_POINTS of them
-        return -(-n // MOVING_POINTS)
+        return _stride(n, MOVING_POINTS)
 
     ks = stride(len(TV))
     for t in frames:
