@@ -60,6 +60,19 @@ def time_loop(fn, device, steps: int, repeats: int = 5, warmup: int = 20) -> dic
             "min_us": min(per_step) * 1e6, "max_us": max(per_step) * 1e6}
 
 
+def checked_output(path, kind: str, what: str, inputs=(), writes=()) -> Path:
+    """``outputs.check_output`` for a probe's output, before any work: never the probe's input,
+    inside it or holding it; a folder never has a file of a name in ``writes`` that this tool did
+    not write. A result is replaced (``overwrite``), as benchmarks rerun. Refused: SystemExit
+    with the check's one line."""
+    from dynmesh_warp.outputs import OutputError, check_output
+
+    try:
+        return check_output(path, kind=kind, what=what, inputs=inputs, overwrite=True, writes=writes)
+    except OutputError as e:
+        raise SystemExit(str(e)) from None
+
+
 def write_json(path: Path, obj: dict):
     from dynmesh_warp.outputs import atomic_write_json
 

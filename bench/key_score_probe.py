@@ -21,10 +21,11 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS, describe_device, write_json  # noqa: E402
+from common import RESULTS, checked_output, describe_device, write_json  # noqa: E402
 from conversion_eval import add_input_args, probe_input  # noqa: E402
 
 from dynmesh_warp.conversion_options import option_defaults  # noqa: E402
+from dynmesh_warp.outputs import add_to_manifest, atomic_write_npz  # noqa: E402
 from dynmesh_warp.convert import (_as_varying, _chamfer_to_input, _key_frame, _candidate_keys, nearest_surface,  # noqa: E402
                                   to_fixed_topology)
 
@@ -39,6 +40,10 @@ def main(argv=None):
                     "the key_candidates the trials try)")
     ap.add_argument("--store", required=True, help="folder for each run's per-frame distances (npz)")
     a = ap.parse_args(argv)
+    out = Path(a.out) if a.out else RESULTS / f"key_score_probe_{Path(a.sequence).stem}.json"
+    inputs = [a.sequence if Path(a.sequence).exists() else None, a.cache]
+    store = checked_output(a.store, "folder", "--store", inputs, writes=["k*.npz"])
+    checked_output(out, "file", "--out", [*inputs, store])
     gt, var = probe_input(a)
     vseq = _as_varying(var)
     n, T = int(a.subject), gt.num_frames
@@ -47,7 +52,6 @@ def main(argv=None):
     else:
         K = _key_frame(vseq, "auto", False)
         keys = [K] + _candidate_keys(T, int(option_defaults("graph")["key_candidates"]), K)
-    store = Path(a.store)
     store.mkdir(parents=True, exist_ok=True)
     d_in = np.stack([nearest_surface(var.frames[t], gt.V[t], device=a.device).dist for t in range(T)])
     diag = np.array([np.linalg.norm(np.ptp(gt.V[t][:n], 0)) for t in range(T)])
@@ -61,10 +65,10 @@ def main(argv=None):
         sub = (lost[:, :n] / diag[:, None]).max(1)
         d_io = [nearest_surface((fx.V[t], fx.F), var.frames[t][0], device=a.device).dist for t in range(T)]
         d_oi = [nearest_surface(var.frames[t], fx.V[t], device=a.device).dist for t in range(T)]
-        np.savez_compressed(store / f"k{k}.npz", V=fx.V, F=fx.F, subject_lost=sub,
-                            d_io=np.concatenate(d_io).astype(np.float32), n_io=[len(x) for x in d_io],
-                            d_oi=np.stack(d_oi).astype(np.float32), coverage=fx.conversion.coverage,
-                            web=fx.conversion.web)
+        atomic_write_npz(store / f"k{k}.npz", V=fx.V, F=fx.F, subject_lost=sub,
+                         d_io=np.concatenate(d_io).astype(np.float32), n_io=[len(x) for x in d_io],
+                         d_oi=np.stack(d_oi).astype(np.float32), coverage=fx.conversion.coverage, web=fx.conversion.web)
+        add_to_manifest(store, f"k{k}.npz")  # written by this tool: a rerun may replace it
         info = fx.conversion
         res["runs"][str(k)] = {"seconds": s, "subject_lost_max": float(sub.max()),
                                "subject_lost_mean_over_frames": float(sub.mean()),
@@ -77,7 +81,7 @@ def main(argv=None):
         print(f"key {k}: subject worst {100 * sub.max():.2f} %, mean {100 * sub.mean():.2f} %, "
               f"frames over 3 % {len(r['subject_frames_lost_over_3pct'])}; chamfer {r['chamfer_to_input']:.4e}, "
               f"coverage mean {100 * r['coverage_mean']:.3f} %; {s:.0f} s", flush=True)
-    write_json(Path(a.out) if a.out else RESULTS / f"key_score_probe_{Path(a.sequence).stem}.json", res)
+    write_json(out, res)
 
 
 if __name__ == "__main__":

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import describe_device, write_json  # noqa: E402
+from common import checked_output, describe_device, write_json  # noqa: E402
 from conversion_eval import ground_truth, varying_input  # noqa: E402
 
 from dynmesh_warp.convert import ConversionInfo, _as_varying, _moving_points, _moving_score  # noqa: E402
@@ -35,6 +35,8 @@ def main(argv=None):
     ap.add_argument("--cache", default=str(Path(__file__).resolve().parents[1] / "out" / "cache"))
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
+    if a.out:
+        checked_output(a.out, "file", "--out", [*a.stores, *(f"{f}.json" for f in a.stores), a.cache])
     wp.init()
     res = {"machine": describe_device(wp.get_device(a.device)), "scenes": {}}
     for folder in map(Path, a.stores):

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS, describe_device, write_json  # noqa: E402
+from common import RESULTS, checked_output, describe_device, write_json  # noqa: E402
 from conversion_eval import add_input_args, probe_input  # noqa: E402
 
 from dynmesh_warp.convert import nearest_surface, to_piecewise_fixed  # noqa: E402
@@ -36,6 +36,8 @@ def main(argv=None):
     ap.add_argument("--subject", type=int, required=True, help="the subject's GT vertices are the first SUBJECT")
     ap.add_argument("--runs", default='{"defaults": {}}', help="JSON {label: {option: value}}")
     a = ap.parse_args(argv)
+    out = Path(a.out) if a.out else RESULTS / f"subject_coverage_probe_{Path(a.sequence).stem}.json"
+    checked_output(out, "file", "--out", [a.sequence if Path(a.sequence).exists() else None, a.cache])
     gt, var = probe_input(a)
     n = int(a.subject)
     T = gt.num_frames
@@ -64,7 +66,7 @@ def main(argv=None):
               f"{sub.argmax()}), frames over 3 %: {np.nonzero(sub > 0.03)[0].tolist()}, mean of the per-frame "
               f"worst {100 * sub.mean():.2f} %; the rest {100 * rest.max():.1f} %; moving part "
               f"{getattr(info, 'moving_part', None)}; {s:.1f} s")
-    write_json(Path(a.out) if a.out else RESULTS / f"subject_coverage_probe_{Path(a.sequence).stem}.json", res)
+    write_json(out, res)
 
 
 if __name__ == "__main__":
