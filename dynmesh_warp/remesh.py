@@ -67,6 +67,10 @@ def grid_for(frames_V, resolution: int, pad: int = 2):
     return origin, h, dims
 
 
+#: a grid point whose signed distance is exactly 0 gets this fraction of a cell instead (outside)
+ON_SURFACE_NUDGE = 1e-3
+
+
 def remesh_frame(V, F, origin, h, dims, band: float = 2.0, device=None):
     """Marching-cubes re-mesh of one (V, F) on the given grid: (V' float32, F' int32), outward."""
     from scipy import ndimage
@@ -127,6 +131,10 @@ def remesh_frame(V, F, origin, h, dims, band: float = 2.0, device=None):
     if field.min() >= 0 or field.max() <= 0:
         raise MeshDataError("remesh: no surface found on the grid (mesh inside-out or too thin for "
                             "the resolution?)")
+    # a grid point exactly on the surface (a planar face on a grid plane: an axis-aligned box's
+    # faces at the grid's edges) would put marching-cubes vertices on the grid point from every
+    # cell around it, duplicates that leave non-manifold edges; count it as just outside
+    field[field == 0.0] = ON_SURFACE_NUDGE * h
     verts, faces, _, _ = marching_cubes(field, level=0.0, spacing=(h, h, h))
     verts = (verts + origin).astype(np.float32)
     faces = orient_outward(verts, faces.astype(np.int32))

@@ -49,12 +49,19 @@ def _where(source: str | None, frame: int | None) -> str:
     return ", ".join(parts) if parts else "mesh"
 
 
+#: the largest coordinate magnitude a mesh may have (in its own units). float32, the geometry's
+#: precision, resolves 64 units there, and squared lengths of such coordinates overflow float32
+#: (1e30 crashed the step); data beyond it is in a wrong unit or is garbage
+MAX_COORDINATE = 1.0e9
+
+
 def validate_mesh(
     vertices, faces, source: str | None = None, frame: int | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Check one triangle mesh and return it as (float32 (N,3), int32 (M,3)) arrays.
 
-    Raises :class:`MeshDataError` for: vertices not (N,3), no vertices, NaN/inf coordinates,
+    Raises :class:`MeshDataError` for: vertices not (N,3), no vertices, NaN/inf coordinates or
+    ones beyond ``MAX_COORDINATE``,
     faces not (M,3) integer triangles, no faces, and face indices outside [0, N).
     """
     where = _where(source, frame)
@@ -68,12 +75,13 @@ def validate_mesh(
         raise MeshDataError(f"{where}: vertices must be real numbers, got dtype {V.dtype}")
     with np.errstate(over="ignore", invalid="ignore"):
         V32 = V.astype(np.float32)  # a finite float64 beyond float32's range becomes inf here
-    bad = ~np.isfinite(V32).all(axis=1)
+    bad = ~(np.abs(V32) <= MAX_COORDINATE).all(axis=1)  # NaN compares False: bad too
     if bad.any():
         idx = np.flatnonzero(bad)
         raise MeshDataError(
-            f"{where}: {idx.size} vertices have NaN/inf coordinates or ones beyond float32's "
-            f"range (first: vertex {idx[0]}: {V[idx[0]].tolist()})"
+            f"{where}: {idx.size} vertices have NaN/inf coordinates or ones beyond {MAX_COORDINATE:.0e} "
+            f"(first: vertex {idx[0]}: {V[idx[0]].tolist()}): float32 geometry cannot resolve such a mesh; "
+            "wrong units or garbage data?"
         )
     if F.ndim != 2 or F.shape[1] != 3:
         raise MeshDataError(
@@ -130,7 +138,7 @@ class FixedTopologySequence:
         _, F = validate_mesh(V[0], self.F, where, 0)
         with np.errstate(over="ignore", invalid="ignore"):
             V32 = np.ascontiguousarray(V, dtype=np.float32)  # beyond float32's range -> inf
-        finite = np.isfinite(V32).all(axis=(1, 2))
+        finite = (np.abs(V32) <= MAX_COORDINATE).all(axis=(1, 2))  # NaN compares False
         if not finite.all():
             t = int(np.flatnonzero(~finite)[0])
             validate_mesh(V[t], F, where, t)  # raises, naming the frame

@@ -89,6 +89,9 @@ def load_npz(path: Path, fps, kind: str):
         try:
             if vkey and fkey:
                 V, F = np.asarray(data[vkey]), np.asarray(data[fkey])
+                if V.ndim not in (2, 3) or V.shape[-1] != 3:
+                    raise MeshDataError(f"{path}: array '{vkey}' has shape {V.shape}; expected (T, N, 3) "
+                                        "(frames of N vertices) or (N, 3) (one frame)")
                 if V.ndim == 2:  # one frame (N, 3): a static mesh
                     V = V[None]
                 if F.ndim == 2 and F.shape[1] == 4:  # quads: two triangles each, as for files

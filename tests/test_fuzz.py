@@ -727,8 +727,33 @@ def test_fuzz_splat_values(case):
 def test_found_coordinates_beyond_float32_are_refused(tmp_path, name, text):
     p = tmp_path / name
     p.write_text(text)
-    with pytest.raises(ValueError, match=f"{name}: 1 vertices have NaN/inf coordinates or ones beyond float32"):
+    with pytest.raises(ValueError, match=f"{name}: 1 vertices have NaN/inf coordinates or ones beyond 1e\\+09"):
         read_mesh(p)
+
+
+def test_npz_vertex_array_of_a_wrong_shape_is_named_as_stored(tmp_path):
+    """A (T, N*3) vertex array: the message gives the file's own shape, not a reshaped one."""
+    np.savez(tmp_path / "flat.npz", V=np.zeros((4, 486), np.float32), F=np.array([[0, 1, 2]]))
+    with pytest.raises(ValueError, match=r"flat\.npz: array 'V' has shape \(4, 486\); expected \(T, N, 3\)"):
+        load_sequence(tmp_path / "flat.npz")
+
+
+@pytest.mark.parametrize("scale", [1e30, 1e10])
+def test_huge_finite_coordinates_are_refused_at_load(tmp_path, scale):
+    """Finite float32 coordinates far beyond any unit a mesh is in (1e30 crashed the step with an
+    OverflowError; squared lengths overflow float32) are refused where the data enters, naming
+    the file and the frame; 1e9 and below load."""
+    V = np.zeros((2, 3, 3), np.float32)
+    V[:, 1, 0], V[:, 2, 1] = 1, 1
+    np.savez(tmp_path / "ok.npz", V=V * np.float32(1e9), F=np.array([[0, 1, 2]]))
+    assert load_sequence(tmp_path / "ok.npz").num_frames == 2
+    W = V.copy()
+    W[1] *= np.float32(scale)
+    np.savez(tmp_path / "s.npz", V=W, F=np.array([[0, 1, 2]]))
+    with pytest.raises(ValueError, match=r"s\.npz, frame 1: 2 vertices have NaN/inf coordinates or ones beyond 1e\+09"):
+        load_sequence(tmp_path / "s.npz")
+    with pytest.raises(ValueError, match=r"frame 1: 2 vertices .* wrong units or garbage data"):
+        FixedTopologySequence(W, np.array([[0, 1, 2]]))
 
 
 def test_found_npz_beyond_float32_names_the_frame(tmp_path):

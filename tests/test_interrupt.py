@@ -361,6 +361,33 @@ def test_convert_interrupted_writes_the_frames_done(tmp_path, varying_npz, sig, 
     capsys.readouterr()
 
 
+def test_convert_interrupted_keeps_an_existing_output(tmp_path, varying_npz, capsys):
+    """An interrupted ``convert --overwrite`` does not replace the output that was there (an
+    earlier run's, maybe complete): the frames done go beside it, ``<stem>.partial.npz``."""
+    from dynmesh_warp.io import load_sequence
+
+    out = tmp_path / "out.npz"
+    out.write_bytes(b"an earlier run's output")
+    (tmp_path / "out.partial.npz").write_bytes(b"another file")  # taken: the next free name is used
+    pr = Proc([sys.executable, "-m", "dynmesh_warp.convert", str(varying_npz), str(out), "--strategy",
+               "regularized", "--device", "cpu", "--overwrite"], tmp_path)
+    pr.wait_for(b"frame/s")
+    pr.p.send_signal(signal.SIGINT)
+    rc, _, err = pr.finish()
+    assert rc == 130 and "Traceback" not in err, err[-2000:]
+    partial = tmp_path / "out.partial-2.npz"
+    line = _last_line(err)
+    assert line.startswith(f"interrupted by SIGINT: wrote {partial} with input frames "), line
+    assert line.endswith(f"{out}, which was there before, is unchanged"), line
+    assert out.read_bytes() == b"an earlier run's output"
+    assert (tmp_path / "out.partial.npz").read_bytes() == b"another file"
+    got = load_sequence(partial)
+    assert 1 <= got.num_frames < 120
+    assert json.loads(str(np.load(partial)["status"]))["complete"] is False
+    assert _leftovers(tmp_path) == []
+    capsys.readouterr()
+
+
 @pytest.fixture(scope="module")
 def small_gt(tmp_path_factory) -> Path:
     from dynmesh_warp.io import save_sequence

@@ -47,6 +47,30 @@ def test_remesh_close_to_input_and_outward():
         assert m.is_watertight and m.is_winding_consistent
 
 
+def test_remesh_of_faces_on_grid_planes_is_a_closed_manifold():
+    """An axis-aligned box's faces lie on the grid's planes (the grid starts at the bounding box
+    and the longest side is a whole number of cells), so grid points lie exactly on the surface;
+    marching cubes then made coincident vertices and edges shared by more than two faces (41
+    open and 29 non-manifold edges on this slab, 2,366 repeated vertices). Counted as just outside, the result is one
+    closed, consistently wound surface with no repeated vertex, close to the box."""
+    from dynmesh_warp.remesh import grid_for, remesh_frame
+
+    box = trimesh.creation.box(extents=[2.0, 2.0, 0.3]).subdivide().subdivide()
+    V, F = box.vertices.astype(np.float32), box.faces.astype(np.int32)
+    origin, h, dims = grid_for([V], 48)
+    cells = (V[:, 0].min() - origin[0]) / h
+    assert abs(cells - round(cells)) < 1e-6  # a face on a grid plane
+    Vo, Fo = remesh_frame(V, F, origin, h, dims, device=DEV)
+    assert len(np.unique(Vo, axis=0)) == len(Vo)
+    edges = np.sort(np.concatenate([Fo[:, [0, 1]], Fo[:, [1, 2]], Fo[:, [2, 0]]]), axis=1)
+    assert (np.unique(edges, axis=0, return_counts=True)[1] == 2).all()
+    m = trimesh.Trimesh(Vo, Fo, process=False)
+    assert m.is_watertight and m.is_winding_consistent
+    assert _signed_volume(Vo, Fo) == pytest.approx(1.2, rel=0.02)
+    assert nearest_surface((V, F), Vo, device=DEV).dist.max() < 0.5 * h
+    assert nearest_surface((Vo, Fo), V, device=DEV).dist.max() < 1.5 * h  # marching cubes cuts the corners
+
+
 def test_remesh_open_mesh_with_a_slit_uses_robust_sign():
     """A closed sphere with a small hole (a few faces removed): the winding-number sign still
     gives the closed, outward surface with the right volume."""
