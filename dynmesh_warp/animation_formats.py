@@ -124,12 +124,25 @@ def _read_mdd(path: Path, size: int):
 _READERS = {".anime": _read_anime, ".pc2": _read_pc2, ".mdd": _read_mdd}
 
 
-def find_topology(path) -> Path:
+def find_topology(path, num_points: int | None = None) -> Path:
     """The mesh file that gives a point cache its faces when none is named: the one file next
-    to it with the same stem and a mesh extension (``walk.pc2`` -> ``walk.obj``)."""
+    to it with the same stem and a mesh extension (``walk.pc2`` -> ``walk.obj``). Where there are
+    several (a ``walk.glb`` written beside ``walk.pc2`` and its ``walk.obj``), those with
+    ``num_points`` vertices (when given), and of those the ``<stem>.obj`` that ``write_animation``
+    writes beside a point cache; else an error naming them."""
     path = Path(path)
     found = sorted(p for p in path.parent.glob(f"{path.stem}.*")
                    if p != path and p.is_file() and mesh_extension(p.name))
+    if len(found) > 1 and num_points is not None:
+        fits = []
+        for p in found:
+            try:
+                if len(read_mesh(p)[0]) == num_points:
+                    fits.append(p)
+            except (MeshDataError, OSError, ValueError):
+                pass  # an unreadable candidate gives no faces
+        own = path.with_suffix(".obj")
+        found = [own] if own in fits and len(fits) > 1 else fits or found
     if len(found) == 1:
         return found[0]
     if not found:
@@ -147,7 +160,7 @@ def topology_faces(path, num_points: int, topology=None) -> np.ndarray:
     (a point cache, an npz or npy of vertices): from the mesh file ``topology``, by default
     :func:`find_topology`'s; its vertex count must equal ``num_points`` (:class:`MeshDataError`
     naming both files)."""
-    mesh = Path(topology).expanduser() if topology is not None else find_topology(path)
+    mesh = Path(topology).expanduser() if topology is not None else find_topology(path, num_points)
     if not mesh.is_file():
         raise FileNotFoundError(errno.ENOENT, os.strerror(errno.ENOENT), str(mesh))
     V0, F = read_mesh(mesh)

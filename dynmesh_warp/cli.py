@@ -27,6 +27,7 @@ import os
 import signal
 import sys
 import threading
+import warnings
 from pathlib import Path
 
 __all__ = ["Parser", "quiet_warp", "Interrupted", "interruptible_main", "checking_stops", "raising_stops",
@@ -294,6 +295,25 @@ def handle_stop_signals():
         _state.installed = False
 
 
+@contextlib.contextmanager
+def user_warnings():
+    """While a command line runs, its own warnings (``UserWarning``: what the data or the scene
+    may get wrong) print as one line, ``warning: <message>``, without Python's file, line and
+    source line; other categories (a library's ``RuntimeWarning`` ...) keep Python's format."""
+    shown = warnings.formatwarning
+
+    def short(message, category, filename, lineno, line=None):
+        if issubclass(category, UserWarning):
+            return f"warning: {message}\n"
+        return shown(message, category, filename, lineno, line)
+
+    warnings.formatwarning = short
+    try:
+        yield
+    finally:
+        warnings.formatwarning = shown
+
+
 def interruptible_main(fn):
     """Decorate a CLI's ``main(argv)``: stop handlers installed while it runs; an
     :class:`Interrupted` that reaches it (a signal outside a checking region, before anything
@@ -301,7 +321,7 @@ def interruptible_main(fn):
 
     @functools.wraps(fn)
     def main(argv=None) -> int:
-        with handle_stop_signals():
+        with handle_stop_signals(), user_warnings():
             try:
                 return fn(argv)
             except Interrupted as e:

@@ -121,10 +121,27 @@ def _read_obj_fast(text: str):
     return V, F - 1
 
 
+def _obj_records(lines):
+    """(line number, record) of OBJ text: a line ending in a backslash continues on the next
+    (the format's line continuation), and a ``#`` starts a comment to the end of the line."""
+    pending, start = "", 0
+    for lineno, line in enumerate(lines, 1):
+        line = line.split("#", 1)[0]
+        if not pending:
+            start = lineno
+        if line.rstrip().endswith("\\"):
+            pending += line.rstrip()[:-1] + " "
+            continue
+        yield start, pending + line
+        pending = ""
+    if pending:
+        yield start, pending
+
+
 def _read_obj_lines(lines) -> tuple[np.ndarray, np.ndarray]:
     verts: list[list[float]] = []
     polys: list[list[int]] = []
-    for lineno, line in enumerate(lines, 1):
+    for lineno, line in _obj_records(lines):
         line = line.lstrip()
         if not line or line[0] not in "vf":  # fast skip of vt/vn/#/g/usemtl/l/...
             continue

@@ -141,6 +141,19 @@ def test_cache_writer_never_replaces_a_foreign_mesh(tmp_path):
     np.testing.assert_array_equal(load_sequence(tmp_path / "tet.pc2").V, V)
 
 
+def test_a_cache_beside_another_animation_of_the_same_stem_reads(tmp_path):
+    """save_sequence to walk.mdd (its faces in walk.obj) and then to walk.glb beside it: both
+    meshes have the cache's vertex count; the cache takes its writer's walk.obj (it was refused
+    as ambiguous), and the .glb reads as itself."""
+    seq = FixedTopologySequence(V.astype(np.float32), F, fps=24.0)
+    save_sequence(seq, tmp_path / "walk.mdd")
+    save_sequence(seq, tmp_path / "walk.glb")
+    for name in ("walk.mdd", "walk.glb"):
+        got = load_sequence(tmp_path / name)
+        np.testing.assert_allclose(got.V, V, atol=1e-6)
+        np.testing.assert_array_equal(got.F, F)
+
+
 def test_varying_sequence_cannot_be_saved_as_one_animation(tmp_path):
     var = FixedTopologySequence(V, F, fps=24.0).to_varying()
     var.frames[1] = (V[1][:3], F[:1])
@@ -172,9 +185,12 @@ def test_bad_files_name_the_file_and_what_disagrees(tmp_path):
     write_mesh(tmp_path / "other.obj", np.vstack([V0, V0 + 2]), np.vstack([F, F + 4]))
     with pytest.raises(MeshDataError, match=r"other\.pc2: 4 points a frame, but its topology .*other\.obj has 8"):
         load_sequence(tmp_path / "other.pc2")
-    # several candidate meshes
-    write_mesh(tmp_path / "other.ply", V0, F)
-    with pytest.raises(MeshDataError, match=r"several meshes could give its faces \(other\.obj, other\.ply\)"):
+    # several candidate meshes: the one with the cache's vertex count gives the faces; several
+    # such (none the <stem>.obj a cache writer writes) are an error naming them
+    write_mesh(tmp_path / "other.ply", V0, F[:, ::-1])
+    np.testing.assert_array_equal(load_sequence(tmp_path / "other.pc2").F, F[:, ::-1])
+    write_mesh(tmp_path / "other.off", V0, F)
+    with pytest.raises(MeshDataError, match=r"several meshes could give its faces \(other\.off, other\.ply\)"):
         load_sequence(tmp_path / "other.pc2")
     # topology= where it does not apply
     (tmp_path / "ok.anime").write_bytes(good)

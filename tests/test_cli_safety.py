@@ -396,3 +396,20 @@ def test_convert_refuses_a_bad_key_frame_before_writing(work, tmp_path, capsys):
     assert list(tmp_path.iterdir()) == []  # nothing written
     assert convert.main([str(work / "frames"), str(out), "--key-frame", "-1", "--strategy", "tracking"]) == 0
     assert "template from frame 3" in capsys.readouterr().out
+
+
+def test_command_lines_print_their_warnings_as_one_line():
+    """While a command line runs (``cli.user_warnings``), a ``UserWarning`` prints as
+    ``warning: <message>`` without Python's file, line and source line; other categories keep
+    Python's format; the format is restored afterwards."""
+    import warnings
+
+    from dynmesh_warp.cli import user_warnings
+
+    before = warnings.formatwarning
+    with user_warnings():
+        assert warnings.formatwarning("the data is odd", UserWarning, "/x/scene.py", 7, "src()") == \
+            "warning: the data is odd\n"
+        other = warnings.formatwarning("overflow", RuntimeWarning, "/x/k.py", 3, "a * b")
+        assert "RuntimeWarning" in other and "/x/k.py:3" in other
+    assert warnings.formatwarning is before

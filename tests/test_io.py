@@ -280,6 +280,20 @@ def test_obj_index_forms(tmp_path):
     assert V.shape == (4, 3) and V[0, 0] == 9
 
 
+def test_obj_comments_and_line_continuation(tmp_path):
+    """A ``#`` comment after a record and a backslash continuing a record on the next line (both
+    in the OBJ format) read as the plain file does; the error for a bad record names its line."""
+    plain = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3 4\n"
+    ref = read_mesh(write_obj_text(tmp_path / "plain.obj", plain))
+    for name, text in [("comment.obj", "v 0 0 0 # origin\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3 4  # a quad\n"),
+                       ("continued.obj", "v 0 0 0\nv 1 0 0\nv 1 1 \\\n 0\nv 0 1 0\nf 1 2 \\\n  3 4\n")]:
+        V, F = read_mesh(write_obj_text(tmp_path / name, text))
+        np.testing.assert_array_equal(V, ref[0])
+        np.testing.assert_array_equal(F, ref[1])
+    with pytest.raises(MeshDataError, match="line 5: bad face index 'x'"):
+        read_mesh(write_obj_text(tmp_path / "bad.obj", "v 0 0 0\nv 1 0 0\nv 1 1 \\\n 0\nf 1 2 \\\n 3 x\n"))
+
+
 def test_folder_fixed_vs_varying(tmp_path):
     varying_seq_ = varying_seq()
     save_sequence(varying_seq_, tmp_path / "vary", fmt="ply")
