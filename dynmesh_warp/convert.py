@@ -1559,9 +1559,10 @@ MOVING_MIN = 0.002
 MOVING_FRAMES = 0.5
 #: the key trials' moving score (:func:`_moving_score`) is the mean of this largest fraction of
 #: the moving points' distances to the output, pooled over the frames. Measured on seven floor
-#: scenes' stored key runs (CPU; docs/conversion.md): the runs that lost a limb on 3-24 frames
-#: score 1.43-1.46x the best run that lost none (the mean squared distance over frames: 1.11x
-#: on one scene, which GPU noise then flipped); 0.3-1 % gave 1.28x or more
+#: scenes' stored key runs (CPU; docs/conversion.md): the best run that lost a part on 3 or more
+#: frames scores 1.44-1.46x the best that lost one on at most 1 (the mean squared distance over
+#: frames, the previous score: 1.11x on one scene, which GPU noise then flipped); 0.3-1 % gave
+#: 1.31x or more
 MOVING_SCORE_TAIL = 0.005
 #: the finer spacing is at least this fraction of the coarse one (a small moving part would
 #: otherwise ask for more nodes than the graph may have)
