@@ -1858,6 +1858,23 @@ _FILE_SUFFIXES = {".json", ".txt", ".csv", ".zip", ".npy", ".png", ".yaml", ".ym
 from .cli import interruptible_main  # noqa: E402 (the CLI section's own import)
 
 
+def _say_frame_numbers(seq) -> None:
+    """A note when the input's files are numbered otherwise than 0, 1, ...: the messages (key
+    frame, poor frames, segments) count the frames in the input's order from 0."""
+    from .sequence_layouts import frame_index_from_name
+
+    src = getattr(seq, "frame_sources", None)
+    if not src:
+        return
+    try:
+        numbers = [frame_index_from_name(f) for f in (src[0], src[-1])]
+    except MeshDataError:
+        return
+    if numbers != [0, len(src) - 1]:
+        print(f"note: frames are counted 0..{len(src) - 1} in the input's order: frame 0 is {Path(src[0]).name}, "
+              f"frame {len(src) - 1} is {Path(src[-1]).name}", file=sys.stderr)
+
+
 def _holds_output(output) -> bool:
     """Whether ``output`` holds a sequence already: the file exists, or the folder has frames."""
     p = Path(output).expanduser()
@@ -1992,6 +2009,7 @@ def main(argv=None) -> int:
             print(f"note: {a.input} already has fixed topology ({seq.num_frames} frames); converting it "
                   "anyway (it can be simulated as it is)", file=sys.stderr)
             seq = seq.to_varying()
+        _say_frame_numbers(seq)
         seq.frames = _TimedFrames(seq.frames, device, a.strategy)
         # an animation file holds one set of faces: one template; else new templates (segments)
         # where one cannot follow the input (to_piecewise_fixed; max_segments)

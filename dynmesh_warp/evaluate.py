@@ -31,6 +31,7 @@ import io as _io
 import platform
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -165,6 +166,24 @@ def evaluate_rows(gt_frames, rows: dict, frames, protocols=("dgmesh", "paper"), 
     return out
 
 
+#: ``--compare`` warns when a prediction's first frame is this many times larger or smaller than
+#: the ground truth's (bounding-box diagonals): meshes in other units (mm against m) or of
+#: another scene, whose distances would be meaningless
+SCALE_MISMATCH = 10.0
+
+
+def _check_scales(index, gt_file, pred_file) -> None:
+    """Warn when the paired first frames differ in size by SCALE_MISMATCH or more."""
+    from .io import read_mesh
+
+    d = [float(np.linalg.norm(np.ptp(read_mesh(f)[0], axis=0))) for f in (gt_file, pred_file)]
+    ratio = d[1] / d[0] if d[0] > 0 else np.inf
+    if not (1.0 / SCALE_MISMATCH < ratio < SCALE_MISMATCH):
+        warnings.warn(f"--compare: the prediction's frame {index} ({pred_file}) is {d[1]:.4g} across, the ground "
+                      f"truth's ({gt_file}) {d[0]:.4g} ({ratio:.3g}x): other units (mm against m?) or another scene; "
+                      "the distances compare them as they are", stacklevel=3)
+
+
 def evaluate_folders(gt_dir, pred_dir, protocols=("dgmesh", "paper"), frame_stride: int = 1,
                      emd: bool = True, seed: int = 0, device=None, progress: bool = False,
                      pair: str = "index", should_stop=None) -> dict:
@@ -193,6 +212,8 @@ def evaluate_folders(gt_dir, pred_dir, protocols=("dgmesh", "paper"), frame_stri
             return read_mesh(name)
 
     idx = [p[0] for p in pairs]
+    if pairs:
+        _check_scales(*pairs[0])
     res = evaluate_rows(_Lazy(1), {"prediction": _Lazy(2)}, idx, protocols,
                         emd_frames=None if emd else [], seed=seed, device=device,
                         progress=progress, desc=Path(pred_dir).name, should_stop=should_stop)

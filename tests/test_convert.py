@@ -345,6 +345,24 @@ def test_cli_roundtrip(tmp_path, blob):
     assert convert_main([str(tmp_path / "missing.npz"), str(out)]) == 2
 
 
+def test_cli_says_how_frames_are_counted_when_files_are_numbered_otherwise(tmp_path, blob, capsys):
+    """Files frame_1 .. frame_3: the messages count frames 0..2 in the input's order, and a note
+    says which file frame 0 is; files numbered from 0 get no note."""
+    from dynmesh_warp.io import write_mesh
+
+    V, F = blob
+    rng = np.random.default_rng(5)
+    for first, folder in ((1, "from1"), (0, "from0")):
+        (tmp_path / folder).mkdir()
+        for i in range(3):
+            write_mesh(tmp_path / folder / f"frame_{first + i}.obj", *_shuffled(V, F, rng))
+        assert convert_main([str(tmp_path / folder), str(tmp_path / f"{folder}.npz"), "--strategy", "tracking",
+                             "--device", "cpu"]) == 0
+        err = capsys.readouterr().err
+        note = "note: frames are counted 0..2 in the input's order: frame 0 is frame_1.obj, frame 2 is frame_3.obj"
+        assert (note in err) == (first == 1), err
+
+
 def test_regularized_restarts_after_a_teleported_frame(rigid_varying):
     """One frame of a rigidly moving sequence is moved 3 diagonals away (a jump no closest-point
     method can follow). With restarts (default) the frames after the jump recover the rigid

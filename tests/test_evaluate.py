@@ -51,6 +51,24 @@ def test_evaluate_folders_pairs_gt10_with_frame10(tmp_path, device):
     assert d["cd_mean"] == pytest.approx(0.005, rel=1e-5)
 
 
+def test_evaluate_folders_warns_of_a_prediction_in_other_units(tmp_path, device):
+    """A prediction 1000x the ground truth's size (millimetres against metres) is compared as it
+    is, with a warning naming both files and the ratio; the same sizes give none."""
+    import warnings
+
+    for d in ("gt", "mm", "m"):
+        (tmp_path / d).mkdir()
+    write_mesh(tmp_path / "gt" / "gt0.obj", TETRA_V, TETRA_F)
+    write_mesh(tmp_path / "mm" / "frame_0000.obj", 1000 * TETRA_V, TETRA_F)
+    write_mesh(tmp_path / "m" / "frame_0000.obj", 1.5 * TETRA_V, TETRA_F)
+    with pytest.warns(UserWarning, match=r"frame 0 .*frame_0000\.obj\) is 1732 across.* \(1e\+03x\): other units"):
+        r = E.evaluate_folders(tmp_path / "gt", tmp_path / "mm", protocols=("dgmesh",), emd=False, device=device)
+    assert r["results"]["dgmesh"]["cd"][0] > 1e5
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        E.evaluate_folders(tmp_path / "gt", tmp_path / "m", protocols=("dgmesh",), emd=False, device=device)
+
+
 def test_evaluate_folders_pair_by_order_for_differently_numbered_frames(tmp_path, device):
     """Ground truth numbered from 1, prediction from 0 (what convert writes): pairing by index
     fails with a hint, pairing by order pairs gt1 with frame_0000 and gt2 with frame_0001."""
