@@ -1516,7 +1516,8 @@ def _key_retry_reason(coverage, K: int, moving_part=None) -> str | None:
     """Why a run from key frame ``K`` with these per-frame coverages (fractions of the bbox
     diagonal) and this ``moving_part`` (:func:`_node_spacing`) is worth repeating from other key
     frames, in words; None when it is not. Two GT-free signs: at least KEY_RETRY_POOR_FRAMES
-    frames poorly covered (> POOR_COVERAGE: a lost part), or drift: the 90th percentile of the
+    frames poorly covered (> POOR_COVERAGE: a lost part; one in a run of at most
+    KEY_RETRY_SHORT frames), or drift: the 90th percentile of the
     frames' coverage above both DRIFT_FLOOR and
     DRIFT_RATIO x the mean coverage of the frames next to the key frame (within DRIFT_NEIGHBOURS,
     the key itself excluded), where the template is fresh and the coverage is the input's own
@@ -1527,8 +1528,8 @@ def _key_retry_reason(coverage, K: int, moving_part=None) -> str | None:
     from both signs (docs/conversion.md, "Ranking the key trials on the moving points")."""
     cov = np.asarray(coverage, float)
     poor = int(np.count_nonzero(cov > POOR_COVERAGE))
-    if poor >= KEY_RETRY_POOR_FRAMES:
-        return f"{poor} frames poorly covered"
+    if poor >= (1 if cov.size <= KEY_RETRY_SHORT else KEY_RETRY_POOR_FRAMES):
+        return f"{poor} frame{'s' if poor > 1 else ''} poorly covered"
     if cov.size >= 2 * DRIFT_NEIGHBOURS + 1:  # shorter: too short to tell drift from motion
         near = np.r_[cov[max(0, K - DRIFT_NEIGHBOURS):K], cov[K + 1:K + 1 + DRIFT_NEIGHBOURS]]
         p90, floor = float(np.percentile(cov, 90)), float(np.mean(near))
@@ -1681,6 +1682,11 @@ POOR_WEB = 0.01
 #: gives +11 % (docs/conversion.md); the 200-frame speed input has 0-1 (coverage max 4.4-4.5 %
 #: on the H100)
 KEY_RETRY_POOR_FRAMES = 2
+#: a sequence of at most this many frames tries other key frames on one poorly covered frame:
+#: there the trials cost seconds, one frame is 5 % or more of the run, and the drift sign needs
+#: 2 DRIFT_NEIGHBOURS + 1 frames. A new user's 10-frame input (chicken_crossing every 12th
+#: frame, re-meshed at 40) kept a run with one frame at 7.0 %; its trials keep 2.8 % (2.6 s)
+KEY_RETRY_SHORT = 20
 #: the drift trigger of the key trials (:func:`_key_retry_reason`): the 90th percentile of the
 #: frames' coverage over DRIFT_RATIO x its mean next to the key frame (DRIFT_NEIGHBOURS frames
 #: each side) and over DRIFT_FLOOR (1 % of the diagonal: the reconstruction error level issue

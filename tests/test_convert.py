@@ -653,6 +653,25 @@ def test_key_candidates_on_coverage_drift():
     assert _key_retry_reason(np.array([0.0, 0.001, 0.05 - 1e-6, 0.04]), 0) is None
 
 
+def test_a_short_run_tries_other_keys_on_one_poor_frame():
+    """One frame poorly covered (> POOR_COVERAGE) starts the key trials in a run of at most
+    KEY_RETRY_SHORT frames (the trials cost seconds there, and such a run is too short for the
+    drift sign); in a longer one it takes KEY_RETRY_POOR_FRAMES, a lone poor frame being an
+    outlier there. Both sides of each threshold, with every other frame at the noise level."""
+    from dynmesh_warp.convert import KEY_RETRY_POOR_FRAMES, KEY_RETRY_SHORT, POOR_COVERAGE, _key_retry_reason
+
+    assert KEY_RETRY_POOR_FRAMES == 2
+    for T in (10, KEY_RETRY_SHORT, KEY_RETRY_SHORT + 1, 200):
+        cov = np.full(T, 0.005)
+        cov[0] = 0.0
+        cov[T // 2] = POOR_COVERAGE + 1e-3
+        assert (_key_retry_reason(cov, 0) == "1 frame poorly covered") == (T <= KEY_RETRY_SHORT), T
+        cov[T // 2] = POOR_COVERAGE  # not over: nothing
+        assert _key_retry_reason(cov, 0) is None
+        cov[T // 2] = cov[T // 3] = POOR_COVERAGE + 1e-3
+        assert _key_retry_reason(cov, 0) == "2 frames poorly covered"
+
+
 def test_unused_vertices_and_faces_of_the_input_are_dropped(rigid_varying):
     """Stray vertices no face uses (far from the surface), faces that repeat a vertex and faces
     listed twice, added to every remeshed frame, change nothing: the graph conversion gives the same mesh as on the
