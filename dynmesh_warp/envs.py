@@ -181,17 +181,25 @@ class RideSurfaceEnv(VectorEnv):
             self.env_episode.zero_()
         self.actions.zero_()
         self._reset_envs(self._all)
-        self._evaluate()
+        self._evaluate(self._all)  # the episodes' first observations (in contact: 0)
         return self._out(self.obs), {}
 
     def step(self, actions):
         """Apply the actions (E, 2), take ``decimation`` physics steps, and return (obs, reward,
         terminated, truncated, info); finished envs are reset in the same step."""
+        E = self.num_envs
+        shape = tuple(actions.shape) if hasattr(actions, "shape") else np.shape(actions)
+        if shape != (E, 2):
+            raise ValueError(f"actions must have shape ({E}, 2) (one (x, y) per env), got {shape}")
         if self.backend == "torch" and not isinstance(actions, np.ndarray):
-            a = wp.from_torch(actions.detach().to(dtype=__import__("torch").float32).contiguous())
-            wp.copy(self.actions, a.reshape((self.num_envs, 2)) if a.ndim == 1 else a)
+            # no host check here (it would wait for the device every step): a non-finite action
+            # counts as 0 (kernels/envs.py: applied_action)
+            wp.copy(self.actions, wp.from_torch(actions.detach().to(dtype=__import__("torch").float32).contiguous()))
         else:
-            a = np.asarray(actions, np.float32).reshape(self.num_envs, 2)
+            a = np.asarray(actions, np.float32)
+            if not np.isfinite(a).all():
+                bad = np.flatnonzero(~np.isfinite(a).all(axis=1))
+                raise ValueError(f"actions of env(s) {bad[:8].tolist()} are NaN or infinite")
             self.actions.assign(a)
         w = self.world
         wp.launch(apply_env_actions, self.num_envs,

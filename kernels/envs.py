@@ -63,6 +63,15 @@ def surface_height_at(
     return top - best, found
 
 
+@wp.func
+def applied_action(a: float) -> float:
+    """An action component as the physics and the reward take it: clipped to the action space
+    [-1, 1]; a non-finite one (which the NumPy backend refuses before the step) counts as 0."""
+    if not wp.isfinite(a):
+        return 0.0
+    return wp.clamp(a, -1.0, 1.0)
+
+
 @wp.kernel
 def apply_env_actions(
     # Model:
@@ -75,10 +84,11 @@ def apply_env_actions(
     sphere_vel_out: wp.array[wp.vec3],
 ):
     """Each env's action (E, 2) in [-1, 1] as a horizontal acceleration of its ball: the velocity
-    gains clip(action) * accel [m/s^2] * duration [s]. One thread per env (ball = first sphere)."""
+    gains ``applied_action(action)`` * accel [m/s^2] * duration [s]. One thread per env (ball =
+    first sphere)."""
     e = wp.tid()
-    ax = wp.clamp(actions[e, 0], -1.0, 1.0)
-    ay = wp.clamp(actions[e, 1], -1.0, 1.0)
+    ax = applied_action(actions[e, 0])
+    ay = applied_action(actions[e, 1])
     s = e * spheres_per_env
     sphere_vel_out[s] = sphere_vel_out[s] + wp.vec3(ax, ay, 0.0) * (accel * duration)
 
@@ -119,7 +129,8 @@ def evaluate_ball_task(
 ):
     """Observation (E, OBS_DIM), reward, terminated and truncated flags of each env after its
     step. Reward: 1 while the ball is up, minus its squared horizontal distance to the target
-    over max_distance [m], minus 0.01 |action|^2. Terminated: the ball left the target's
+    over max_distance [m], minus 0.01 |action|^2 (the action as applied: ``applied_action``). In
+    contact (obs 15) is 0 in an episode's first observation (``obs_only``). Terminated: the ball left the target's
     reach or fell to the ground; truncated: env_steps reached max_steps. Only envs with
     env_mask[e] != 0; with obs_only the observation alone (the first of an episode just reset)."""
     e = wp.tid()
@@ -149,7 +160,7 @@ def evaluate_ball_task(
             obs[e, j] = h - p[2]
             j += 1
     contact = float(0.0)
-    if contact_face[s] >= 0:
+    if obs_only == 0 and contact_face[s] >= 0:  # an episode's first observation: no step has touched it
         contact = 1.0
     obs[e, 15] = contact
     phase = float(env_time_in[e] * fps) / float(T) * 6.283185307179586
@@ -158,7 +169,9 @@ def evaluate_ball_task(
     if obs_only != 0:
         return
     d2 = (rel[0] * rel[0] + rel[1] * rel[1]) / (max_distance * max_distance)
-    a2 = actions[e, 0] * actions[e, 0] + actions[e, 1] * actions[e, 1]
+    ax = applied_action(actions[e, 0])
+    ay = applied_action(actions[e, 1])
+    a2 = ax * ax + ay * ay
     fell = p[2] - radius < ground_height + 0.25 * radius
     gone = d2 > 1.0
     term = int(0)

@@ -41,6 +41,44 @@ def test_spaces_reset_and_step_follow_the_vector_api(device):
     assert not np.allclose(o3, obs)
 
 
+def test_actions_are_taken_as_applied_and_checked(device):
+    """The reward's action penalty uses the action as the physics applies it (clipped to the
+    action space): an action of 1000 gives the rollout and the reward of 1.0. NaN or infinite
+    actions and any shape but (E, 2) (a (2, E) array was reshaped, scrambling the envs) are
+    refused, naming the envs or the shape."""
+    E = 4
+    ones, big = np.ones((E, 2), np.float32), np.full((E, 2), 1000.0, np.float32)
+    out = []
+    for a in (ones, big):
+        env = _env(device, num_envs=E)
+        env.reset(seed=3)
+        out.append(env.step(a))
+    np.testing.assert_array_equal(out[0][0], out[1][0])
+    np.testing.assert_array_equal(out[0][1], out[1][1])
+    bad = ones.copy()
+    bad[2, 1] = np.nan
+    bad[3, 0] = np.inf
+    with pytest.raises(ValueError, match=r"actions of env\(s\) \[2, 3\] are NaN or infinite"):
+        env.step(bad)
+    with pytest.raises(ValueError, match=r"actions must have shape \(4, 2\) .* got \(2, 4\)"):
+        env.step(np.zeros((2, E), np.float32))
+
+
+def test_a_reset_episode_starts_out_of_contact(device):
+    """An episode's first observation does not carry the last step's contact (obs 15): a reset
+    with the same seed gives the same first observation after a rollout as before it."""
+    env = _env(device, num_envs=4)
+    o1, _ = env.reset(seed=3)
+    a = np.zeros((4, 2), np.float32)
+    contact = False
+    for _ in range(40):
+        contact |= bool(env.step(a)[0][:, 15].any())
+    assert contact  # the balls touched the surface meanwhile
+    o2, _ = env.reset(seed=3)
+    np.testing.assert_array_equal(o1, o2)
+    assert not o2[:, 15].any()
+
+
 def test_render_images_one_per_env_at_its_own_phase(device):
     """Camera observations when asked: (E, H, W, 3) images in [0, 1], the surface drawn, each
     env's picture its own (own phase); equal to render_envs on the env's batch (tested against
