@@ -109,6 +109,16 @@ class Checkpoint:
     def contact_samples(self) -> int:
         return int(self.meta["contact_samples"])
 
+    def check_record_every(self, record_every: int) -> None:
+        """Refuse a resumed run that samples its trajectory at another ``run.record_every`` than
+        the checkpoint's samples (a trajectory of mixed spacing); checkpoints that predate the
+        field are not checked."""
+        have = self.meta.get("record_every")
+        if have is not None and int(have) != int(record_every):
+            raise CheckpointError(f"--resume {self.path}: its trajectory is sampled every {have} steps "
+                                  f"(run.record_every), this run asks {record_every}; resume with "
+                                  f"run.record_every={have}")
+
     def check(self, world) -> None:
         """Refuse (:class:`CheckpointError`) a checkpoint written for another scene, naming the
         first field that differs and both values."""
@@ -146,7 +156,7 @@ class Checkpoint:
 
 
 def save_checkpoint(path, world, *, scene: str, step: int, steps: int, checkpoint_every: int,
-                    contact_samples: int, times, positions, velocities) -> None:
+                    contact_samples: int, times, positions, velocities, record_every: int | None = None) -> None:
     """Write ``world``'s state at ``step`` and the trajectory samples so far to ``path``
     (atomically; the old file stays until the new one is complete)."""
     from .outputs import atomic_write_npz
@@ -156,6 +166,8 @@ def save_checkpoint(path, world, *, scene: str, step: int, steps: int, checkpoin
     meta = {"scene": scene, "step": int(step), "steps": int(steps), "checkpoint_every": int(checkpoint_every),
             "device": str(world.device), "contact_samples": int(contact_samples),
             "fingerprint": scene_fingerprint(world)}
+    if record_every is not None:  # the trajectory's sampling: a resumed run must keep it
+        meta["record_every"] = int(record_every)
     atomic_write_npz(
         path, format=np.asarray(FORMAT), meta=np.asarray(json.dumps(meta)), **state,
         radius=world.model.spheres.radius_np, inv_mass=world.model.spheres.inv_mass.numpy(),
@@ -206,6 +218,9 @@ def load_checkpoint(path) -> Checkpoint:
         if not isinstance(v, typ) or isinstance(v, bool) or (typ is int and v < 0):
             raise CheckpointError(f"{where}: field 'meta.{k}' is {v!r}, expected "
                                   + ("a non-negative integer" if typ is int else "an object"))
+    v = meta.get("record_every")  # optional (checkpoints that predate it have none)
+    if v is not None and (not isinstance(v, int) or isinstance(v, bool) or v < 1):
+        raise CheckpointError(f"{where}: field 'meta.record_every' is {v!r}, expected a positive integer")
     if meta["step"] < 1:
         raise CheckpointError(f"{where}: field 'meta.step' is {meta['step']}, expected at least 1")
     S = meta["fingerprint"].get("spheres.count")

@@ -346,7 +346,13 @@ def generate_gaussians(V, F, count: int = 20000, seed: int = 0, vertex_colors=No
 
 def gaussians_for_world(world, cfg=None) -> Gaussians:
     """Gaussians for a world built from a scene: bind ``cfg.gaussians.splats`` (a 3DGS .ply in
-    the scene frame) if set, else generate ``cfg.gaussians.count`` on the first frame. Attached."""
+    the scene frame) if set, else generate ``cfg.gaussians.count`` on the first frame. Attached
+    (updated after every step), so ``world`` is a :class:`~dynmesh_warp.world.World`; for another
+    simulation (a ``NewtonWorld``) a ``TypeError`` says what to call instead."""
+    if not hasattr(world, "add_post_step_hook") or not hasattr(getattr(world, "model", None), "surface"):
+        raise TypeError(f"gaussians_for_world: a {type(world).__name__} takes no step hooks; use "
+                        "gaussians_for_surface(world.surface.sequence, cfg, world.device) and update the Gaussians "
+                        "yourself (update(points, indices) with the surface at the time you render)")
     return gaussians_for_surface(world.model.surface.sequence, cfg, world.device).attach(world)
 
 

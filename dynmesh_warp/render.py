@@ -78,6 +78,8 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0), width: int = 640, height: int = 480
     """A camera at ``eye`` looking at ``target`` with ``up`` roughly up in the image."""
     eye, target, up = (np.asarray(v, np.float64) for v in (eye, target, up))
     z = target - eye
+    if not (np.isfinite(z).all() and np.linalg.norm(z) > 0):
+        raise ValueError(f"look_at: eye {eye.tolist()} and target {target.tolist()} must be finite and apart")
     z /= np.linalg.norm(z)
     x = np.cross(z, up)
     if np.linalg.norm(x) < 1e-9:
@@ -372,7 +374,11 @@ class Renderer:
         sh = sh if isinstance(sh, wp.array) else wp.array(np.asarray(sh, np.float32), dtype=float, device=d)
         if sh.ndim != 3 or sh.shape[2] != 3 or sh.shape[1] not in (1, 4, 9, 16):
             raise ValueError(f"sh: expected (G, K, 3) with K in 1, 4, 9, 16, got {tuple(sh.shape)}")
-        degree = int(round(math.sqrt(sh.shape[1]))) - 1 if sh_degree is None else int(sh_degree)
+        most = int(round(math.sqrt(sh.shape[1]))) - 1  # the degree the coefficients hold
+        degree = most if sh_degree is None else int(sh_degree)
+        if not 0 <= degree <= most:
+            raise ValueError(f"sh_degree {sh_degree}: the sh array holds {sh.shape[1]} coefficient(s) a colour, enough "
+                             f"for degrees 0..{most}")
         op = opacities if isinstance(opacities, wp.array) else wp.array(np.asarray(opacities, np.float32), dtype=float,
                                                                         device=d)
         C = len(cameras)

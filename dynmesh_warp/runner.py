@@ -78,6 +78,7 @@ def run_simulation(sim, cfg, *, steps: int, out: Path, t_build: float, progress:
     samples: dict[str, list] = {}
     contact_samples, start = 0, 0
     if ckpt is not None:
+        ckpt.check_record_every(rec)
         ckpt.restore(sim)  # checked against the scene first (CheckpointError naming the field)
         times = list(ckpt.times)
         samples = {"position": list(ckpt.positions), "velocity": list(ckpt.velocities)}
@@ -107,7 +108,7 @@ def run_simulation(sim, cfg, *, steps: int, out: Path, t_build: float, progress:
         # a checkpointable simulation samples "position" and "velocity" (the checkpoint's layout)
         save_checkpoint(out / CHECKPOINT_NAME, sim, scene=cfg.name, step=step, steps=steps,
                         checkpoint_every=every, contact_samples=contact_samples, times=times,
-                        positions=samples["position"], velocities=samples["velocity"])
+                        positions=samples["position"], velocities=samples["velocity"], record_every=rec)
         add_to_manifest(out, CHECKPOINT_NAME)
         marks["checkpoint"] = step
 

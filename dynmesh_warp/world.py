@@ -1197,8 +1197,9 @@ class World:
 
     def add_spheres(self, positions, radius, mass=1.0, velocities=None):
         """Add spheres (between steps). Reallocates the sphere arrays and drops the graph."""
-        positions = np.asarray(positions, np.float32).reshape(-1, 3)
-        n = positions.shape[0]
+        first = self.model.spheres.count
+        n = np.asarray(positions, np.float32).reshape(-1, 3).shape[0]
+        positions = _sphere_rows("position", positions, n, first)
         radius = np.broadcast_to(np.asarray(radius, np.float32), (n,))
         surf, p = self.model.surface, self.model.params
         if n and surf.max_speed > 0 and surf.interpolate and p.auto_substeps and np.all(radius > 0):
@@ -1208,7 +1209,7 @@ class World:
         old_mass = np.where(old.inv_mass.numpy() > 0, 1.0 / np.maximum(old.inv_mass.numpy(), 1e-30), np.inf)
         new_r = np.concatenate([old.radius_np, radius])
         new_m = np.concatenate([old_mass, np.broadcast_to(np.asarray(mass, np.float64), (n,))])
-        vel = np.zeros((n, 3), np.float32) if velocities is None else np.asarray(velocities, np.float32).reshape(n, 3)
+        vel = np.zeros((n, 3), np.float32) if velocities is None else _sphere_rows("velocity", velocities, n, first)
         pos_all = np.concatenate([self.state.sphere_pos.numpy(), positions])
         vel_all = np.concatenate([self.state.sphere_vel.numpy(), vel])
         self._initial = (np.concatenate([self._initial[0], positions]), np.concatenate([self._initial[1], vel]))

@@ -233,3 +233,16 @@ def test_shading_follows_the_surface_normal(device):
     g.update(wp.array((V @ Rx.T).astype(np.float32), dtype=wp.vec3, device=device),
              wp.array(F.reshape(-1), dtype=wp.int32, device=device))
     np.testing.assert_allclose(shaded_rgb(g, (0, 0, -1)), (0.35 + 0.65 * np.cos(tilt)) * g.binding.rgb, atol=1e-3)
+
+
+def test_gaussians_for_world_names_what_to_call_for_another_simulation():
+    """gaussians_for_world attaches to a World's step hooks; a simulation without them (a
+    NewtonWorld failed with AttributeError 'Model' object has no attribute 'surface') gets a
+    TypeError naming gaussians_for_surface."""
+    from types import SimpleNamespace
+
+    from dynmesh_warp.gaussians import gaussians_for_world
+
+    newtonish = SimpleNamespace(model=SimpleNamespace(), surface=SimpleNamespace(sequence=None), device="cpu")
+    with pytest.raises(TypeError, match=r"a SimpleNamespace takes no step hooks; use gaussians_for_surface\(world"):
+        gaussians_for_world(newtonish)

@@ -257,6 +257,9 @@ def test_checkpoint_of_another_scene_or_a_broken_file_is_refused(tmp_path, capsy
         ([str(six), "--steps", "40", "--resume", str(ck)], ["spheres.count", "5 in the checkpoint", "6 here", str(ck)]),
         (["--steps", "40", "--collider", "refit", "--resume", str(ck)], ["physics.collider", "'swept'", "'refit'"]),
         (["--steps", "10", "--resume", str(ck)], ["step 20", "10 steps", "give more"]),
+        # the trajectory's sampling (a resumed run at another record_every mixed two spacings)
+        (["--steps", "40", "--set", "run.record_every=7", "--resume", str(ck)],
+         ["sampled every 4 steps", "asks 7", "run.record_every=4"]),
         (["--resume", str(tmp_path / "none.npz")], ["none.npz", "not found"]),
     ]
     junk = tmp_path / "junk.npz"

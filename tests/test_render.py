@@ -517,3 +517,26 @@ def test_render_cli_never_writes_over_its_inputs_or_users_files(tmp_path, capsys
     assert main([str(scene), "--out", str(out)] + small) == 2
     assert main([str(scene), "--out", str(out), "--overwrite"] + small) == 0
     assert (out / "frame_0000.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_an_sh_degree_beyond_the_coefficients_and_a_camera_at_its_target_are_refused():
+    """sh_degree above what the (G, K, 3) coefficients hold read past each Gaussian's own
+    (colours of 1e36 on the CPU); a look_at camera whose eye is its target has no direction
+    (a NaN camera, a blank image). Both are ValueErrors naming the values; degrees up to the
+    coefficients' render."""
+    import re
+
+    from dynmesh_warp.render import Renderer, look_at, rgb_to_sh
+
+    rng = np.random.default_rng(0)
+    G = 20
+    means = rng.uniform(-0.5, 0.5, (G, 3)).astype(np.float32)
+    covs = np.tile(np.eye(3, dtype=np.float32) * 0.02 ** 2, (G, 1, 1))
+    sh, op = rgb_to_sh(rng.uniform(0, 1, (G, 3))), np.full(G, 0.9, np.float32)
+    cam = look_at([2, 0, 0.5], [0, 0, 0], width=16, height=16)
+    r = Renderer("cpu")
+    with pytest.raises(ValueError, match=re.escape("sh_degree 3: the sh array holds 1 coefficient(s)")):
+        r.render(means, covs, sh, op, [cam], sh_degree=3)
+    assert np.isfinite(r.render(means, covs, sh, op, [cam], sh_degree=0).rgb.numpy()).all()
+    with pytest.raises(ValueError, match=r"look_at: eye \[1.0, 0.0, 0.0\] and target \[1.0, 0.0, 0.0\]"):
+        look_at([1, 0, 0], [1, 0, 0])

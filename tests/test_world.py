@@ -386,6 +386,20 @@ def test_reset_reproduces_the_trajectory():
     np.testing.assert_array_equal(p1, p2)
 
 
+def test_add_spheres_refuses_non_finite_positions_and_velocities():
+    """A NaN position or an infinite velocity given to add_spheres (which turned the world NaN)
+    is a ValueError naming the new sphere's index; the world is left as it was."""
+    seq = moving_sheet((0.0, 0.0, 0.0), frames=8)
+    w = make_world(seq, [[0.0, 0.0, 0.3]], radius=0.1)
+    before = w.sphere_positions().copy()
+    with pytest.raises(ValueError, match=r"sphere 2: position \[nan, 0.0, 1.0\] is not finite"):
+        w.add_spheres([[0.1, 0.0, 1.0], [np.nan, 0.0, 1.0]], 0.05)
+    with pytest.raises(ValueError, match=r"sphere 1: velocity \[inf, 0.0, 0.0\] is not finite"):
+        w.add_spheres([[0.1, 0.0, 1.0]], 0.05, velocities=[[np.inf, 0.0, 0.0]])
+    assert w.model.spheres.count == 1
+    np.testing.assert_array_equal(w.sphere_positions(), before)
+
+
 def test_add_spheres_applies_the_substep_rule():
     """Smaller spheres added while running get the same sub-step rule as spheres given at the
     start (the surface moves < r/2 per sub-step), and stay on the right side of the surface."""
