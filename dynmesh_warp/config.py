@@ -415,6 +415,10 @@ def parse_assignment(item, origin: str, expected: str) -> tuple[list[str], objec
     parts = key.strip().split(".")
     if not sep or not all(p.strip() for p in parts):
         raise SceneError(f"{origin} {item!r}: expected {expected}")
+    indexed = next((p for p in parts if "[" in p or "]" in p), None)
+    if indexed is not None:  # a list item: not a key path (it read as an unknown key at the top)
+        raise SceneError(f"{origin} {item!r}: {indexed.strip()!r} addresses a list item, which {origin} cannot set; "
+                         "edit the list in the scene file (or set the whole list: KEY.PATH=[...])")
     try:
         value = load_yaml(text) if text.strip() else ""
     except yaml.YAMLError as e:

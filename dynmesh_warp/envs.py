@@ -78,6 +78,19 @@ class RideSurfaceEnv(VectorEnv):
             raise ImportError("RideSurfaceEnv needs gymnasium >= 1.0: pip install 'dynmesh_warp[rl]'")
         if backend not in ("numpy", "torch"):
             raise ValueError(f"backend must be 'numpy' or 'torch', got {backend!r}")
+        if backend == "torch":
+            try:
+                import torch  # noqa: F401
+            except ImportError:
+                raise ImportError("RideSurfaceEnv(backend='torch') needs PyTorch (pip install torch); or use "
+                                  "backend='numpy'") from None
+        for name, value, low in (("num_envs", num_envs, 1), ("max_steps", max_steps, 1), ("decimation", decimation, 1)):
+            if isinstance(value, bool) or int(value) != value or value < low:
+                raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
+        for name, value in (("radius", radius), ("accel", accel), ("push", push)):
+            if not (np.isfinite(value) and value >= (0.0 if name == "push" else 1e-12)):
+                raise ValueError(f"{name} must be a finite {'non-negative' if name == 'push' else 'positive'} number, "
+                                 f"got {value!r}")
         from .config import load_scene_config
         from .scene import build_model, load_surface
 
@@ -176,7 +189,11 @@ class RideSurfaceEnv(VectorEnv):
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         """Start a new episode in every env (``seed`` makes the phases, spawn points and pushes
         reproducible). Returns (obs (E, 18), info {})."""
+        self._check_open()
         if seed is not None:
+            if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
+                raise ValueError(f"seed: one integer for the batch (each env draws its own stream from it and its "
+                                 f"index), got {seed!r}")
             self._seed = int(seed)
             self.env_episode.zero_()
         self.actions.zero_()
@@ -187,6 +204,7 @@ class RideSurfaceEnv(VectorEnv):
     def step(self, actions):
         """Apply the actions (E, 2), take ``decimation`` physics steps, and return (obs, reward,
         terminated, truncated, info); finished envs are reset in the same step."""
+        self._check_open()
         E = self.num_envs
         shape = tuple(actions.shape) if hasattr(actions, "shape") else np.shape(actions)
         if shape != (E, 2):
@@ -223,5 +241,11 @@ class RideSurfaceEnv(VectorEnv):
         return wp.to_torch(self.obs), wp.to_torch(self.reward), term.bool(), trunc.bool(), info
 
     def close(self, **kwargs):
-        pass
+        """Release the env; ``reset`` and ``step`` refuse afterwards."""
+        self._closed = True
+        self._camera_state = None
+
+    def _check_open(self):
+        if getattr(self, "_closed", False):
+            raise RuntimeError("RideSurfaceEnv: the env is closed")
 

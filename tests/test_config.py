@@ -213,7 +213,9 @@ def test_set_overrides_apply_before_validation(tmp_path, capsys):
     for bad, msg in [("physics.dtt=1", r"physics\.dtt: unknown key"),
                      ("physics.dt=-1", r"physics\.dt: Input should be greater than 0"),
                      ("surface.source.x=1", r"surface\.source is a str, not a section"),
-                     ("physics.dt", r"expected KEY\.PATH=VALUE"), ("physics.dt=[1", r"not valid YAML")]:
+                     ("physics.dt", r"expected KEY\.PATH=VALUE"), ("physics.dt=[1", r"not valid YAML"),
+                     # a list item (read as "newton: unknown key" before)
+                     ("newton.bodies[0].type=cone", r"'bodies\[0\]' addresses a list item, which --set cannot set")]:
         with pytest.raises(SceneError, match=msg):
             load_scene_config(overrides=[bad])
     out = tmp_path / "o"

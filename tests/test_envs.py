@@ -64,6 +64,25 @@ def test_actions_are_taken_as_applied_and_checked(device):
         env.step(np.zeros((2, E), np.float32))
 
 
+def test_env_arguments_seeds_and_close_are_checked(device):
+    """decimation 0 (no physics ran) and a bad radius are refused at construction; a list of
+    seeds (one seed drives the batch) is a ValueError, not int()'s TypeError; after close(),
+    reset and step refuse."""
+    with pytest.raises(ValueError, match="decimation must be an integer >= 1, got 0"):
+        _env(device, num_envs=2, decimation=0)
+    with pytest.raises(ValueError, match="radius must be a finite positive number"):
+        _env(device, num_envs=2, radius=float("nan"))
+    env = _env(device, num_envs=3)
+    with pytest.raises(ValueError, match=r"seed: one integer for the batch .* got \[1, 2, 3\]"):
+        env.reset(seed=[1, 2, 3])
+    env.reset(seed=np.int64(4))
+    env.close()
+    with pytest.raises(RuntimeError, match="closed"):
+        env.step(np.zeros((3, 2), np.float32))
+    with pytest.raises(RuntimeError, match="closed"):
+        env.reset()
+
+
 def test_a_reset_episode_starts_out_of_contact(device):
     """An episode's first observation does not carry the last step's contact (obs 15): a reset
     with the same seed gives the same first observation after a rollout as before it."""
