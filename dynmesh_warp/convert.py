@@ -1487,7 +1487,12 @@ def _moving_score(res, vseq, moving: list, device) -> float:
     here. Pooled and cut to the tail, a limb lost on a few frames counts as it does on every
     frame: a mean over frames would dilute it by the frames and the subject's other points
     (docs/conversion.md, "Ranking the key trials")."""
-    return _tail_mean(np.concatenate(_moving_distances(res, vseq, moving, device)), MOVING_SCORE_TAIL)
+    return _moving_score_of(_moving_distances(res, vseq, moving, device))
+
+
+def _moving_score_of(distances: list) -> float:
+    """:func:`_moving_score` of a run's per-frame moving-point distances (:func:`_moving_distances`)."""
+    return _tail_mean(np.concatenate(distances), MOVING_SCORE_TAIL)
 
 
 def _key_candidates(vseq, o: dict, K: int, given: bool, res, moving_part=...) -> list:
@@ -1881,10 +1886,14 @@ def _say_frame_numbers(seq) -> None:
               f"frame {len(src) - 1} is {Path(src[-1]).name}", file=sys.stderr)
 
 
+#: the names ``convert`` writes into a folder output (and finds an earlier run's frames by)
+_FOLDER_FRAMES = ("frame_*.ply", "frame_*.obj")
+
+
 def _holds_output(output) -> bool:
     """Whether ``output`` holds a sequence already: the file exists, or the folder has frames."""
     p = Path(output).expanduser()
-    return p.is_file() or p.is_dir() and any(p.glob("frame_*.ply")) or p.is_dir() and any(p.glob("frame_*.obj"))
+    return p.is_file() or (p.is_dir() and any(any(p.glob(pattern)) for pattern in _FOLDER_FRAMES))
 
 
 def _partial_path(output) -> Path:
@@ -2009,7 +2018,7 @@ def main(argv=None) -> int:
                                  "written as frame_XXXX.ply, or .obj with --fmt obj)")
             a.fmt = a.fmt or "ply"
             check_output(a.output, kind="folder", what="output", inputs=inputs, overwrite=a.overwrite,
-                         writes=("frame_*.ply", "frame_*.obj"))
+                         writes=_FOLDER_FRAMES)
         seq = load_sequence(a.input, fps=a.fps)
         if isinstance(seq, FixedTopologySequence):
             print(f"note: {a.input} already has fixed topology ({seq.num_frames} frames); converting it "

@@ -1198,7 +1198,8 @@ class World:
     def add_spheres(self, positions, radius, mass=1.0, velocities=None):
         """Add spheres (between steps). Reallocates the sphere arrays and drops the graph."""
         first = self.model.spheres.count
-        n = np.asarray(positions, np.float32).reshape(-1, 3).shape[0]
+        positions = np.asarray(positions, np.float32).reshape(-1, 3)
+        n = positions.shape[0]
         positions = _sphere_rows("position", positions, n, first)
         radius = np.broadcast_to(np.asarray(radius, np.float32), (n,))
         surf, p = self.model.surface, self.model.params
