@@ -72,6 +72,7 @@ def main(argv=None):
     ap.add_argument("--spheres", default="5,1000,100000")
     ap.add_argument("--clusters", default="32/4", help="comma-separated faces a cluster / a sub-box (K/B)")
     ap.add_argument("--extents", default="1.0", help="comma-separated cell edges in median cluster edges (E)")
+    ap.add_argument("--nearest", default="1", help="comma-separated query orders: 1 nearest-first sub-boxes, 0 walk order")
     ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--compare", default="refit,swept", help="whole-step colliders timed alongside")
@@ -100,8 +101,9 @@ def main(argv=None):
             for KB in args.clusters.split(","):
                 K, _, B = KB.partition("/")
                 K, B = int(K), int(B or 4)
-                for E in (float(e) for e in args.extents.split(",")):
+                for E, NF in ((float(e), int(o)) for e in args.extents.split(",") for o in args.nearest.split(",")):
                     cells_mod.CELLS_CLUSTER_FACES, cells_mod.CELLS_SUB_FACES, cells_mod.CELLS_CELL_EXTENTS = K, B, E
+                    cells_mod.CELLS_NEAREST_FIRST = NF
                     t0 = time.perf_counter()
                     w = cells_mod.use_cells_collider(make_world(seq, device, "refit", spheres=ns, radius=radius,
                                                                 spread=0.9))
@@ -111,7 +113,7 @@ def main(argv=None):
                     m, s, c, ctx = w.model, w.state, w.contacts, w.ctx
                     cc = w.collider
                     row = {"vertices": seq.num_vertices, "spheres": ns, "collider": "cells", "cluster_faces": K, "sub_faces": B,
-                           "cell_extents": E, "clusters": cc.cells.num_clusters,
+                           "cell_extents": E, "nearest_first": NF, "clusters": cc.cells.num_clusters,
                            "grid_dims": cc.cells.grid_dims.tolist(), "cell_m": cc.cells.cell,
                            "capacity": cc.cells.capacity, "build_s": build_s,
                            "upkeep_us": graph_time(lambda: cc.update(m, s, ctx), device, args.steps, args.repeats),

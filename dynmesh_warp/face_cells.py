@@ -2,8 +2,8 @@
 collider"): face clusters' boxes at the current time listed in a uniform grid every sub-step, and
 a contact query over the grid (kernels/cells.py). Its contacts equal the refit path's
 (tests/test_cells.py), its per-step upkeep is a third of ``wp.Mesh.refit``'s at 10^6 vertices,
-but its query is 2-3x ``mesh_query_point`` on the scaling table, so on an H200 it is slower than
-the refit collider on every row measured. Not a ``Collider`` choice: ``bench/cells_probe.py``
+but its query is 1.8-3x ``mesh_query_point``'s on the scaling table, so on an H200 it is slower
+than the refit collider on every row measured (0.48-0.68x its steps/s). Not a ``Collider`` choice: ``bench/cells_probe.py``
 and the tests put it into a world (``World.collider``).
 
 A cluster is a leaf of a median-split k-d tree over the faces' centroids on the first frame (each
@@ -41,6 +41,8 @@ CELLS_CLUSTER_FACES = 32
 CELLS_SUB_FACES = 4
 CELLS_CELL_EXTENTS = 1.0
 CELLS_MAX_CELLS = 1 << 22
+#: the query's order: 1 defers the sub-boxes that pass and evaluates them nearest first
+CELLS_NEAREST_FIRST = 1
 
 
 
@@ -201,6 +203,7 @@ class CellsCollider(ColliderBase):
         self.grid = [wp.vec3(*cells.grid_origin.tolist()), wp.vec3i(*cells.grid_dims.tolist()), 1.0 / cells.cell]
         # tie tolerance of the closest-feature search, as wp.Mesh and the swept collider
         self.epsilon = 1.0e-3 * float(surf.average_edge_length.mean())
+        self.nearest_first = int(CELLS_NEAREST_FIRST)
 
     def update(self, model: Model, state: State, ctx: StepContext):
         """The vertices, the sub-boxes' and clusters' boxes at the current time and the grid's
@@ -240,7 +243,7 @@ class CellsCollider(ColliderBase):
                     s.sim_time, s.sphere_pos, s.sphere_vel,
                     self.cluster_points, self.sub_lower, self.sub_upper, self.cluster_lower, self.cluster_upper,
                     self.cell_count, self.cell_start, self.cell_clusters, *self.grid, self.cells.cluster_size,
-                    self.cells.sub_size, surf.fps, surf.playback, int(surf.interpolate),
+                    self.cells.sub_size, self.nearest_first, surf.fps, surf.playback, int(surf.interpolate),
                     self.epsilon, ctx.sub_dt, ctx.extra_speed, m.params.margin],
                    [c.face, c.point, c.normal, c.depth, c.velocity])
 

@@ -29,6 +29,10 @@ wp.set_module_options({"fast_math": True})
 
 #: an empty box's corner (a cluster of padding only never occurs; kept safe)
 EMPTY_BOX = wp.constant(1.0e30)
+#: the nearest-first order's buffer of sub-boxes a sphere defers (more are evaluated at once)
+DEFER_SLOTS = 16
+vec_defer_dist = wp.types.vector(length=DEFER_SLOTS, dtype=wp.float32)
+vec_defer_index = wp.types.vector(length=DEFER_SLOTS, dtype=wp.int32)
 
 
 @wp.func
@@ -176,6 +180,26 @@ def scatter_cluster_cells(
 
 
 @wp.func
+def closest_in_sub_box(
+    frames: wp.array2d[wp.vec3], indices: wp.array[wp.int32], cluster_faces: wp.array[wp.int32],
+    cluster_indices: wp.array[wp.int32], cluster_points: wp.array[wp.vec3], sub_size: int, q: int,
+    p: wp.vec3, epsilon: float, seed_face: int,
+    min_dist: float, min_face: int, min_w: wp.vec3, acc_n: wp.vec3,
+):
+    """``keep_closest`` over the faces of sub-box q (slots q * sub_size ...; the padding ends it)."""
+    for k in range(sub_size):
+        slot = q * sub_size + k
+        f = cluster_faces[slot]
+        if f < 0:  # the cluster's padding: its faces come first
+            break
+        if f != seed_face:
+            a, b, e = slot_triangle(cluster_points, cluster_indices, slot)
+            dist, w, wn = face_candidate(p, a, b, e, epsilon)
+            min_dist, min_face, min_w, acc_n = keep_closest(dist, f, w, wn, epsilon, min_dist, min_face, min_w, acc_n)
+    return min_dist, min_face, min_w, acc_n
+
+
+@wp.func
 def closest_in_cells(
     frames: wp.array2d[wp.vec3], indices: wp.array[wp.int32], cluster_faces: wp.array[wp.int32],
     cluster_indices: wp.array[wp.int32], cluster_points: wp.array[wp.vec3], cluster_size: int, sub_size: int,
@@ -183,14 +207,16 @@ def closest_in_cells(
     cluster_lower: wp.array[wp.vec3], cluster_upper: wp.array[wp.vec3],
     cell_count: wp.array[wp.int32], cell_start: wp.array[wp.int32], cell_clusters: wp.array[wp.int32],
     grid_origin: wp.vec3, grid_dims: wp.vec3i, inv_cell: float,
-    k0: int, k1: int, alpha: float, p: wp.vec3, reach: float, epsilon: float, seed_face: int,
+    k0: int, k1: int, alpha: float, p: wp.vec3, reach: float, epsilon: float, seed_face: int, nearest_first: int,
 ):
     """Closest feature of the interpolated surface within ``reach`` of p, over the clusters listed
     in the cells of p's query box (the seed's distance, or ``reach``, + epsilon). A cluster listed
     in several of them is evaluated in one only, and the order of the cells changes which
     clusters are skipped, never the result. A cluster, then a
     sub-box, whose box is farther than the closest so far + epsilon is skipped unevaluated, so
-    the result is that of evaluating every face within reach (as ``closest_on_swept_bvh``)."""
+    the result is that of evaluating every face within reach (as ``closest_on_swept_bvh``).
+    ``nearest_first`` 1: the sub-boxes that pass are deferred (up to DEFER_SLOTS, any more
+    evaluated at once) and evaluated nearest first after the walk."""
     min_dist, min_face, min_w, acc_n = seed_closest(frames, indices, k0, k1, alpha, p, reach, epsilon, seed_face)
     ext = wp.vec3(min_dist + epsilon)
     qlo = (p - ext - grid_origin) * inv_cell
@@ -200,6 +226,9 @@ def closest_in_cells(
         if qhi[i] < 0.0 or qlo[i] >= float(grid_dims[i]):
             inside = 0
     nsub = cluster_size / sub_size
+    defer_dist = vec_defer_dist()
+    defer_index = vec_defer_index()
+    deferred = int(0)
     if inside == 1:
         lo = cell_coord(p - ext, grid_origin, grid_dims, inv_cell)
         hi = cell_coord(p + ext, grid_origin, grid_dims, inv_cell)
@@ -235,17 +264,31 @@ def closest_in_cells(
                         if same_cell(cell, wp.min(wp.max(home, own), top)):
                             for sb in range(nsub):
                                 q = c * nsub + sb
-                                if box_distance(p, sub_lower[q], sub_upper[q]) < min_dist + epsilon:
-                                    for k in range(sub_size):
-                                        slot = q * sub_size + k
-                                        f = cluster_faces[slot]
-                                        if f < 0:  # the cluster's padding: its faces come first
-                                            break
-                                        if f != seed_face:
-                                            a, b, e = slot_triangle(cluster_points, cluster_indices, slot)
-                                            dist, w, wn = face_candidate(p, a, b, e, epsilon)
-                                            min_dist, min_face, min_w, acc_n = keep_closest(
-                                                dist, f, w, wn, epsilon, min_dist, min_face, min_w, acc_n)
+                                sd = box_distance(p, sub_lower[q], sub_upper[q])
+                                if sd < min_dist + epsilon:
+                                    if nearest_first != 0 and deferred < DEFER_SLOTS:
+                                        defer_dist[deferred] = sd
+                                        defer_index[deferred] = q
+                                        deferred += 1
+                                    else:
+                                        min_dist, min_face, min_w, acc_n = closest_in_sub_box(
+                                            frames, indices, cluster_faces, cluster_indices, cluster_points, sub_size,
+                                            q, p, epsilon, seed_face, min_dist, min_face, min_w, acc_n)
+        # the deferred sub-boxes nearest first: the first sets a tight bound that prunes the rest
+        while deferred > 0:
+            best = int(0)
+            for j in range(1, deferred):
+                if defer_dist[j] < defer_dist[best]:
+                    best = j
+            if defer_dist[best] >= min_dist + epsilon:
+                break
+            q = defer_index[best]
+            deferred -= 1
+            defer_dist[best] = defer_dist[deferred]
+            defer_index[best] = defer_index[deferred]
+            min_dist, min_face, min_w, acc_n = closest_in_sub_box(
+                frames, indices, cluster_faces, cluster_indices, cluster_points, sub_size, q, p, epsilon, seed_face,
+                min_dist, min_face, min_w, acc_n)
     return min_dist, min_face, min_w, acc_n
 
 
@@ -275,6 +318,7 @@ def collide_sphere_cells(
     inv_cell: float,
     cluster_size: int,
     sub_size: int,
+    nearest_first: int,
     fps: wp.float64,
     mode: int,
     interpolate: int,
@@ -301,6 +345,6 @@ def collide_sphere_cells(
     min_dist, min_face, min_w, acc_n = closest_in_cells(
         frames, indices, cluster_faces, cluster_indices, cluster_points, cluster_size, sub_size, sub_lower, sub_upper,
         cluster_lower, cluster_upper, cell_count, cell_start, cell_clusters, grid_origin, grid_dims, inv_cell,
-        k0, k1, alpha, p, reach, epsilon, contact_face[s])
+        k0, k1, alpha, p, reach, epsilon, contact_face[s], nearest_first)
     write_swept_contact(s, p, r, reach, min_dist, min_face, min_w, acc_n, frames, indices, k0, k1, alpha, fps,
                         contact_face, contact_point, contact_normal, contact_depth, contact_velocity)

@@ -21,6 +21,15 @@ def _worlds(seq, pos, vel, radius, t0, colliders, **params):
     return out
 
 
+@pytest.fixture(params=[1, 0], ids=["nearest_first", "walk_order"])
+def order(request, monkeypatch):
+    """Both query orders (face_cells.CELLS_NEAREST_FIRST) give the reference's contacts."""
+    import dynmesh_warp.face_cells as face_cells
+
+    monkeypatch.setattr(face_cells, "CELLS_NEAREST_FIRST", request.param)
+    return request.param
+
+
 def _contacts_at(w):
     w.update_surface()
     w.collider.update(w.model, w.state, w.ctx)
@@ -103,7 +112,7 @@ def test_grid_capacity_bounds_every_steps_entries():
 
 
 @pytest.mark.parametrize("make_seq", [lambda: wave_bowl(n=24, frames=12), lambda: pulsing_blob(subdivisions=2, frames=12)])
-def test_cells_contacts_equal_refit_reference(make_seq):
+def test_cells_contacts_equal_refit_reference(make_seq, order):
     seq = make_seq()
     rng = np.random.default_rng(3)
     S = 64
@@ -124,7 +133,7 @@ def test_cells_contacts_equal_refit_reference(make_seq):
     assert checked > 50
 
 
-def test_cells_with_hundreds_of_faces_per_sphere_and_a_fast_surface():
+def test_cells_with_hundreds_of_faces_per_sphere_and_a_fast_surface(order):
     """A fine sheet moving ~3 cm a step (far more than its 1.7 cm triangles) and wide spheres:
     each sphere's query spans many cells and clusters; the contacts equal the refit reference's
     at several times, and after the cells world stepped 60 times its trajectories follow it."""
@@ -160,7 +169,7 @@ def test_cells_world_matches_refit_world_trajectories():
     assert touched > 50
 
 
-def test_cells_find_the_outside_beyond_a_sharp_edge():
+def test_cells_find_the_outside_beyond_a_sharp_edge(order):
     """The pseudo-normal over tied faces (a 6-degree wedge's edge), as the refit reference."""
     h = np.tan(np.radians(3.0))
     ring = np.array([[1.0, 0.0], [0.0, h], [0.0, -h]])
