@@ -1,10 +1,11 @@
-"""The cells collider, measured for issue 14 and not kept (docs/benchmarks.md, "The cells
-collider"): face clusters' boxes at the current time listed in a uniform grid every sub-step, and
-a contact query over the grid (kernels/cells.py). Its contacts equal the refit path's
-(tests/test_cells.py), its per-step upkeep is a third of ``wp.Mesh.refit``'s at 10^6 vertices,
-but its query is 1.8-3x ``mesh_query_point``'s on the scaling table, so on an H200 it is slower
-than the refit collider on every row measured (0.48-0.68x its steps/s). Not a ``Collider`` choice: ``bench/cells_probe.py``
-and the tests put it into a world (``World.collider``).
+"""The cells collider, measured for issue 14 and not kept (docs/benchmarks.md, "a grid of face
+clusters rebuilt every step"): face clusters' boxes at the current time listed in a uniform grid
+every sub-step, and a contact query over the grid (kernels/cells.py). Its contacts equal the
+refit path's (tests/test_cells.py), its per-step upkeep is a third of ``wp.Mesh.refit``'s at
+10^6 vertices, but its query is 1.8-3x ``mesh_query_point``'s on the scaling table, so on an
+H200 it is slower than the refit collider on every row measured (0.48-0.68x its steps/s). Not a
+``Collider`` choice: ``bench/cells_probe.py`` and the tests put it into a world
+(:func:`use_cells_collider`).
 
 A cluster is a leaf of a median-split k-d tree over the faces' centroids on the first frame (each
 box split across its longest edge, 2^D leaves of at most ``cluster_size`` faces): a compact patch
