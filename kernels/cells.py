@@ -211,12 +211,12 @@ def closest_in_cells(
 ):
     """Closest feature of the interpolated surface within ``reach`` of p, over the clusters listed
     in the cells of p's query box (the seed's distance, or ``reach``, + epsilon). A cluster listed
-    in several of them is evaluated in one only, and the order of the cells changes which
-    clusters are skipped, never the result. A cluster, then a
-    sub-box, whose box is farther than the closest so far + epsilon is skipped unevaluated, so
-    the result is that of evaluating every face within reach (as ``closest_on_swept_bvh``).
-    ``nearest_first`` 1: the sub-boxes that pass are deferred (up to DEFER_SLOTS, any more
-    evaluated at once) and evaluated nearest first after the walk."""
+    in several of them is evaluated in one only; the order of the cells changes which clusters
+    are skipped, never the result. A cell, cluster or sub-box whose box is farther than the
+    closest so far + epsilon is skipped unevaluated, so the result is that of evaluating every
+    face within reach (as ``closest_on_swept_bvh``). ``nearest_first`` 1: the sub-boxes that
+    pass are deferred (up to DEFER_SLOTS, any more evaluated at once) and evaluated nearest
+    first after the walk, so the first sets a tight bound for the rest."""
     min_dist, min_face, min_w, acc_n = seed_closest(frames, indices, k0, k1, alpha, p, reach, epsilon, seed_face)
     ext = wp.vec3(min_dist + epsilon)
     qlo = (p - ext - grid_origin) * inv_cell
