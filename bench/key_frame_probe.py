@@ -33,6 +33,9 @@ from dynmesh_warp.metrics import chamfer_distance  # noqa: E402
 
 
 def main():
+    if len(sys.argv) > 1 and sys.argv[1] in ("-h", "--help"):
+        print(__doc__)
+        return
     name = sys.argv[1] if len(sys.argv) > 1 else "pcow"
     K2 = int(sys.argv[2]) if len(sys.argv) > 2 else 30
     MODE = sys.argv[3] if len(sys.argv) > 3 else None  # the guided third run (below), before any work

@@ -4,7 +4,6 @@ GPU) from bench/results/step_{cpu,cuda}.json -> docs/benchmark_scaling.png."""
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -50,4 +49,8 @@ def main(out: str | None = None):
 
 
 if __name__ == "__main__":
-    main(sys.argv[1] if len(sys.argv) > 1 else None)
+    import argparse
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("out", nargs="?", default=None, help="PNG to write (default docs/benchmark_scaling.png)")
+    main(ap.parse_args().out)

@@ -77,7 +77,9 @@ def scene_config(name: str):
     surface = {"source": f"builtin:{name}", "playback": "loop"}
     if name == "torus_to_sphere":  # varying topology: as examples/torus_to_sphere_rebuild.yaml
         surface.update(params={"frames": 48, "resolution": 32}, playback="pingpong")
-        physics.update(collider="rebuild", rebuild_every="frame", ground=None)
+        # a new BVH when the faces change (every frame here), refit between: the default
+        # rebuild_every (segment); "frame" needs the frames held (interpolate: false)
+        physics.update(collider="rebuild", ground=None)
     return load_scene_config(data={"name": f"soak_{name}", "surface": surface, "spheres": spheres,
                                    "physics": physics})
 

@@ -59,7 +59,7 @@ class ConversionConfig(_Strict):
     """Turn a varying-topology input into a fixed-topology mesh before simulating."""
 
     strategy: Strategy = DEFAULT_STRATEGY
-    template: Optional[str] = None  # a mesh file; default: the first frame
+    template: Optional[str] = None  # a mesh file; default: the key frame (options.key_frame; auto: largest area)
     #: the strategy's options (conversion_options: names, defaults and ranges), checked here
     options: dict = Field(default_factory=dict)
 
@@ -471,7 +471,9 @@ def load_scene_config(path: str | Path | None = None, data: dict | None = None, 
         if raw is None:
             raw = {}
         if not isinstance(raw, dict):
-            raise SceneError(f"{path}: the top level of a scene must be a mapping, got {type(raw).__name__}")
+            raise SceneError(f"{path}: a scene file is a YAML mapping of sections (surface:, spheres:, physics:, ...; "
+                             f"docs/scene.md), this file's top level is a {type(raw).__name__}. A mesh sequence is given "
+                             "as its file (.npz, .obj, .ply, .glb, ...) or a folder of frames")
         raw.setdefault("name", path.stem)
         base = str(path.parent.resolve())
     if overrides:

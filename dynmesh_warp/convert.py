@@ -1920,7 +1920,8 @@ def main(argv=None) -> int:
     p = Parser(
         prog="python -m dynmesh_warp.convert",
         description="Convert a varying-topology mesh sequence into a fixed-topology one.")
-    p.add_argument("input", help="sequence: .npz, folder of per-frame meshes, DG-Mesh scene folder")
+    p.add_argument("input", help="sequence: .npz, a folder of per-frame meshes (.obj, .ply, .off, ...), a DG-Mesh "
+                   "scene folder, an animated .glb/.gltf, or a point cache (.pc2, .mdd, .anime; docs/data.md)")
     p.add_argument("output", help="output .npz; a .pc2 or .mdd point cache (its faces written as <stem>.obj), "
                                   ".anime, or an animated .glb (morph targets); or a folder (frame_XXXX.ply/.obj, "
                                   "see --fmt)")
@@ -1932,6 +1933,7 @@ def main(argv=None) -> int:
                    help="frame the template comes from and tracking starts at, forward then backward "
                         "(default 'auto': the frame of largest surface area; frame 0 with --template)")
     p.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar (as run, evaluate and render)")
     p.add_argument("--reanchor-interval", type=int, default=None, help="tracking: frames between re-anchors (0: never)")
     p.add_argument("--tracked-weight", type=float, default=None, help="tracking: weight of the tracked positions at a re-anchor")
     p.add_argument("--iterations", type=int, default=None, help="regularized: outer iterations per frame")
@@ -2032,7 +2034,7 @@ def main(argv=None) -> int:
         run = to_fixed_topology if one_file else to_piecewise_fixed
         with checking_stops():  # Ctrl-C / SIGTERM: stop between frames, write the frames done
             res = run(seq, strategy=a.strategy, template=a.template, device=device,
-                      progress=True, should_stop=stop_reason, **opts)
+                      progress=not a.no_progress, should_stop=stop_reason, **opts)
             reason = stop_reason() if res.num_frames < seq.num_frames else None
             status = {"complete": not reason, "frames": res.num_frames, "input_frames": seq.num_frames,
                       "first_frame": res.conversion.first_frame,

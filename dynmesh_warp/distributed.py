@@ -133,7 +133,9 @@ def main(argv=None) -> int:
     res = run_rollouts(tasks, a.actors, a.envs, scene=a.scene, address=a.address, device=a.device)
     wall = time.perf_counter() - t0
     for r in res:
-        print(f"kp={r['kp']:g} kd={r['kd']:g} seed={r['seed']}: mean return {r['mean_return']}, "
+        ret = ("no episode ended (raise --steps)" if r["mean_return"] is None
+               else f"mean return {r['mean_return']:.4g}")
+        print(f"kp={r['kp']:g} kd={r['kd']:g} seed={r['seed']}: {ret}, "
               f"{r['episodes']} episodes, {r['env_steps_per_s']:,.0f} env-steps/s on {r['device']}")
     total = sum(a.steps * a.envs for _ in res)
     print(f"{len(res)} tasks on {a.actors} actors: {total / wall:,.0f} env-steps/s overall ({wall:.1f} s with start-up)")

@@ -563,7 +563,7 @@ def main(argv=None) -> int:
                     help="compare two folders of meshes, paired by frame index (see --pair)")
     ap.add_argument("--pair", choices=["index", "order"], default="index",
                     help="--compare: pair files by the integer in their names (index) or by position (order)")
-    ap.add_argument("--out", default="eval_out", help="output folder")
+    ap.add_argument("--out", default="eval_out", help="output folder (default eval_out)")
     ap.add_argument("--protocol", nargs="+", default=["dgmesh", "paper"], choices=sorted(M.PROTOCOLS))
     ap.add_argument("--strategies", nargs="+", default=None, help="default: all of convert.STRATEGIES")
     ap.add_argument("--num-frames", type=int, default=0,

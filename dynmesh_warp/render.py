@@ -14,7 +14,6 @@ compositing with early termination). Runs on the CPU and on CUDA.
 
 from __future__ import annotations
 
-import argparse
 import math
 import sys
 from dataclasses import dataclass
@@ -585,7 +584,17 @@ def _write_video(path: Path, frames: list, fps: float) -> None:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m dynmesh_warp.render", description=__doc__.splitlines()[0])
+    """The render CLI: its own warnings as one ``warning:`` line each, as the other CLIs."""
+    from .cli import user_warnings
+
+    with user_warnings():
+        return _main(argv)
+
+
+def _main(argv=None) -> int:
+    from .cli import Parser, quiet_warp
+
+    p = Parser(prog="python -m dynmesh_warp.render", description=__doc__.splitlines()[0])
     p.add_argument("scene", nargs="?", help="scene YAML (default: the built-in default scene); or a mesh sequence "
                    "(.npz, .glb, a folder of frames, ...), played with spheres dropped on it as `run` plays it")
     p.add_argument("--set", action="append", default=[], metavar="KEY.PATH=VALUE", dest="overrides",
@@ -609,6 +618,7 @@ def main(argv=None) -> int:
                    help="replace an existing --figure / --video file, or frames in a non-empty --out folder")
     p.add_argument("--no-progress", action="store_true")
     a = p.parse_args(argv)
+    quiet_warp(a.device)
     if not a.out and not a.figure and not a.video:
         p.error("give --out FOLDER, --video RUN.gif|RUN.mp4 and/or --figure STRIP.png")
     if a.video:

@@ -250,7 +250,8 @@ def _refuse_spheres_inside(V0, F0, positions, radius) -> None:
         i = int(inside[0])
         top = float(np.asarray(V0)[:, 2].max())
         raise SceneError(
-            f"spheres.{i}: position {list(np.round(np.asarray(positions[i], float), 6))} starts inside the closed "
+            f"spheres.{i}: position {[round(float(x), 6) for x in np.asarray(positions[i], float)]} starts inside "
+            "the closed "
             f"surface (frame 0); contacts are one-sided, so it would fall out through it. Move it outside, "
             f"e.g. z >= {top + float(radius[i]):.4g} above the surface"
             + (f" ({inside.size} spheres are inside)" if inside.size > 1 else ""))
@@ -338,8 +339,9 @@ def build_world(cfg: SceneConfig, device=None, collider: str | None = None,
         raise SceneError(
             f"surface {cfg.surface.source}: {why}. Varying topology needs "
             "physics.collider: rebuild, or surface.conversion to convert it to fixed topology (on the "
-            "command line: --collider rebuild, or --set surface.conversion.strategy=graph; or convert it "
-            f"once, python -m dynmesh_warp.convert {cfg.surface.source} OUT.npz, and run OUT.npz)")
+            "command line: --set physics.collider=rebuild (run: --collider rebuild), or --set "
+            "surface.conversion.strategy=graph; or convert it once, python -m dynmesh_warp.convert "
+            f"{cfg.surface.source} OUT.npz, and run OUT.npz)")
     if isinstance(cfg.spheres, list):  # listed spheres must start outside a closed surface
         V0, F0 = seq.frame(0)
         _refuse_spheres_inside(V0, F0, [sp.position for sp in cfg.spheres], [sp.radius for sp in cfg.spheres])

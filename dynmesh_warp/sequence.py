@@ -286,7 +286,9 @@ class VaryingTopologySequence:
             if f.shape != F0.shape or not np.array_equal(f, F0):
                 raise TopologyMismatchError(
                     frame=t, source=str(src), what="faces",
-                    detail=f"faces differ from frame 0 ({src0}) ({len(f)} vs {len(F0)} faces)",
+                    detail=(f"faces differ from frame 0 ({src0}) ({len(f)} vs {len(F0)} faces)" if len(f) != len(F0)
+                            else f"faces differ from frame 0 ({src0}): the same number ({len(f)}), other "
+                                 f"vertex indices (first at face {int(np.flatnonzero((f != F0).any(axis=1))[0])})"),
                     advice="a fixed-topology sequence needs identical faces in every frame (convert a "
                            "varying-topology one with dynmesh_warp.convert)")
         return FixedTopologySequence(

@@ -245,3 +245,16 @@ def test_scene_swept_search_reaches_the_world_and_the_batch(tmp_path, capsys):
     assert rc == 2
     assert "swept_search" in capsys.readouterr().err
     assert not (tmp_path / "s" / "summary.json").exists()
+
+
+def test_a_scene_file_that_is_not_a_mapping_says_what_a_scene_is(tmp_path):
+    """A .txt (or any YAML whose top level is a string or a list) is named as not a scene, with
+    what a scene is and how a mesh sequence is given instead."""
+    from dynmesh_warp import load_scene_config
+    from dynmesh_warp.config import SceneError
+
+    p = tmp_path / "notes.txt"
+    p.write_text("just some words\n")
+    with pytest.raises(SceneError, match=r"notes\.txt: a scene file is a YAML mapping of sections") as e:
+        load_scene_config(p)
+    assert "top level is a str" in str(e.value) and "folder of frames" in str(e.value)

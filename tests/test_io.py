@@ -323,8 +323,10 @@ def test_kind_fixed_on_differing_faces(tmp_path):
     V, F = icosphere(0)
     write_mesh(tmp_path / "m0.obj", V, F)
     write_mesh(tmp_path / "m1.obj", V, F[:, [0, 2, 1]])
-    with pytest.raises(MeshDataError, match=r"m1\.obj.*frame 1.*faces differ"):
+    with pytest.raises(MeshDataError, match=r"m1\.obj.*frame 1.*faces differ") as e:
         load_sequence(tmp_path, kind="fixed")
+    # the same count: the message says so (it read "(20 vs 20 faces)", a seeming contradiction)
+    assert f"the same number ({len(F)}), other vertex indices (first at face 0)" in str(e.value)
 
 
 # --------------------------------------------------------------------------- bad input

@@ -540,3 +540,32 @@ def test_an_sh_degree_beyond_the_coefficients_and_a_camera_at_its_target_are_ref
     assert np.isfinite(r.render(means, covs, sh, op, [cam], sh_degree=0).rgb.numpy()).all()
     with pytest.raises(ValueError, match=r"look_at: eye \[1.0, 0.0, 0.0\] and target \[1.0, 0.0, 0.0\]"):
         look_at([1, 0, 0], [1, 0, 0])
+
+
+def test_render_cli_speaks_like_the_other_clis(tmp_path, capsys):
+    """A bad argument is one ``error:`` line (no usage block), as run / convert / evaluate; a
+    truly varying mesh sequence renders as a mesh with the rebuild collider set by --set, and
+    the refusal without it names that --set (render has no --collider flag)."""
+    import subprocess
+    import sys
+
+    from dynmesh_warp.render import main
+    from dynmesh_warp.scenes import torus_to_sphere
+
+    with pytest.raises(SystemExit) as e:
+        main(["--bogus"])
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: unrecognized arguments: --bogus") and "usage:" not in err
+    from dynmesh_warp.io import save_sequence
+
+    folder = tmp_path / "frames"
+    save_sequence(torus_to_sphere(frames=6, resolution=16), folder, fmt="ply")
+    cmd = [sys.executable, "-m", "dynmesh_warp.render", str(folder), "--mesh", "--no-splats", "--figure",
+           str(tmp_path / "f.png"), "--moments", "1", "--width", "32", "--height", "24", "--no-progress",
+           "--device", "cpu"]
+    r = subprocess.run(cmd, capture_output=True, text=True)
+    assert r.returncode != 0 and "--set physics.collider=rebuild" in r.stderr and "Module " not in r.stderr
+    r = subprocess.run(cmd + ["--set", "physics.collider=rebuild"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "f.png").exists() and "Module " not in r.stdout + r.stderr and "Warp " not in r.stdout
