@@ -260,6 +260,9 @@ def use_cells_collider(world):
     (``render_state``), as for the swept collider. Returns the world."""
     if world.graph_captured:
         raise ValueError("use_cells_collider: the world has captured its step already; call it before the first step")
+    if world.model.surface.topology != "fixed":
+        raise ValueError(f"use_cells_collider: a {world.model.surface.topology}-topology surface; the cells collider "
+                         "plays one fixed topology (convert the sequence first)")
     world.collider = CellsCollider(world.model, world.state, world.ctx)
     world.render_state = False
     return world

@@ -7,7 +7,7 @@ import pytest
 from dynmesh_warp.face_cells import build_face_cells, kd_clusters, use_cells_collider
 from dynmesh_warp.scenes import grid_sheet, pulsing_blob, wave_bowl
 from dynmesh_warp.sequence import FixedTopologySequence
-from dynmesh_warp.world import Model, PhysicsParams, SphereModel, State, SurfaceModel, World
+from dynmesh_warp.world import Model, PhysicsParams, SphereModel, State, SurfaceModel, World, surface_model_class
 from conftest import TEST_DEVICE
 
 
@@ -190,3 +190,22 @@ def test_build_face_cells_refuses_a_cluster_size_below_two():
     seq = _wave_sheet(n=5, frames=2)
     with pytest.raises(ValueError, match="cluster_size 1"):
         build_face_cells(seq.V, seq.F, 1, 1.0, 1 << 10)
+
+
+def test_cells_collider_refuses_a_varying_surface_and_plays_a_single_face():
+    """Put into a varying-topology world it is refused by name (it reads one face array); a
+    one-triangle surface (one cluster, one sub-box) gives the refit reference's contact."""
+    from dynmesh_warp.scenes import torus_to_sphere
+
+    seq = torus_to_sphere(frames=4, resolution=12)
+    model = Model(surface_model_class(seq)(seq, TEST_DEVICE), SphereModel([0.05], 1.0, TEST_DEVICE), PhysicsParams())
+    w = World(model, State(model, np.array([[0.0, 0.0, 3.0]])), collider="rebuild")
+    with pytest.raises(ValueError, match="varying-topology surface"):
+        use_cells_collider(w)
+    V = np.array([[[0, 0, 0], [1, 0, 0], [0, 1, 0]]] * 2, np.float32)
+    tri = FixedTopologySequence(V, np.array([[0, 1, 2]], np.int32), fps=24.0, name="tri")
+    pos = np.array([[0.2, 0.2, 0.03], [0.2, 0.2, -0.03], [2.0, 2.0, 0.0]], np.float32)
+    ref, cells = _worlds(tri, pos, None, np.full(3, 0.05, np.float32), 0.0, ["refit", "cells"])
+    c_ref, c = _contacts_at(ref), _contacts_at(cells)
+    assert (c_ref["face"] == [0, 0, -1]).all()
+    _assert_same_contacts(c, c_ref, pos)
