@@ -46,7 +46,6 @@ CELLS_MAX_CELLS = 1 << 22
 CELLS_NEAREST_FIRST = 1
 
 
-
 @dataclass(frozen=True)
 class FaceCells:
     """cluster_faces (C * cluster_size,) int32 face indices (each cluster's faces, then -1);
@@ -151,16 +150,16 @@ def build_face_cells(V: np.ndarray, F: np.ndarray, cluster_size: int, cell_exten
     cell = float(cell_extents) * float(np.median(ext.max(axis=1)))
     cell = max(cell, float(span.max()) * 1e-6, 1e-9)
     while True:
-        dims = np.floor(span / cell).astype(np.int64) + 1
+        # the origin half a cell below the lowest vertex (float rounding at the box's faces stays
+        # inside), so the grid spans span + cell
+        dims = np.floor((span + cell) / cell).astype(np.int64) + 1
         if int(np.prod(dims)) <= max_cells:
             break
         cell *= (float(np.prod(dims)) / max_cells) ** (1.0 / 3.0) * 1.01
+    origin = lo - 0.5 * cell
     # a box of edge e overlaps at most floor(e / cell) + 2 cells an axis (and never more than the grid's)
     per_axis = np.minimum(np.floor(ext / cell).astype(np.int64) + 2, dims[None, :])
     capacity = int(np.prod(per_axis, axis=1).sum())
-    # the origin half a cell below the lowest vertex: float rounding at the box's faces stays inside
-    origin = lo - 0.5 * cell
-    dims = np.floor((span + cell) / cell).astype(np.int64) + 1
     if int(np.prod(dims)) > 2**31 - 1 or capacity > 2**31 - 1:
         raise ValueError(f"build_face_cells: {int(np.prod(dims))} cells / {capacity} entries exceed int32")
     return FaceCells(cluster_faces, cluster_indices, order, K, B, origin.astype(np.float32), dims.astype(np.int32),
@@ -248,10 +247,6 @@ class CellsCollider(ColliderBase):
                     self.epsilon, ctx.sub_dt, ctx.extra_speed, m.params.margin],
                    [c.face, c.point, c.normal, c.depth, c.velocity])
 
-
-#: an empty box's corners (the cells collider's per-step reset of the cells' content boxes) [m]
-EMPTY_LOWER = wp.vec3(1.0e30)
-EMPTY_UPPER = wp.vec3(-1.0e30)
 
 
 def use_cells_collider(world):

@@ -233,21 +233,21 @@ def closest_in_cells(
         lo = cell_coord(p - ext, grid_origin, grid_dims, inv_cell)
         hi = cell_coord(p + ext, grid_origin, grid_dims, inv_cell)
         home = cell_coord(p, grid_origin, grid_dims, inv_cell)
+        nx = hi[0] - lo[0] + 1
+        ny = hi[1] - lo[1] + 1
+        edge = 1.0 / inv_cell
+        slack = wp.vec3(1.0e-4 * edge)
         # the cell holding p first (its clusters are the likeliest nearest: the bound falls
         # early), then the rest of the query box's cells, z, y, x
-        for it in range(-1, (hi[2] - lo[2] + 1) * (hi[1] - lo[1] + 1) * (hi[0] - lo[0] + 1)):
+        for it in range(-1, (hi[2] - lo[2] + 1) * ny * nx):
             cell = home
             if it >= 0:
-                nx = hi[0] - lo[0] + 1
-                ny = hi[1] - lo[1] + 1
                 cell = wp.vec3i(lo[0] + it % nx, lo[1] + (it / nx) % ny, lo[2] + it / (nx * ny))
             # a cell farther than the closest so far (+ epsilon) holds no cluster evaluated in it
             # that could be nearer: the cell a cluster is evaluated in is, axis by axis, at
             # least as near p's as the cell holding the cluster's point nearest p (the cell's box
-            # grown by 1e-4 of its edge: the float rounding of the cell a point is counted in)
-            edge = 1.0 / inv_cell
+            # grown by 1e-4 of its edge (slack): the float rounding of the cell a point is counted in)
             cell_lo = grid_origin + wp.vec3(float(cell[0]), float(cell[1]), float(cell[2])) * edge
-            slack = wp.vec3(1.0e-4 * edge)
             near = box_distance(p, cell_lo - slack, cell_lo + wp.vec3(edge) + slack) < min_dist + epsilon
             if it < 0 or (near and not same_cell(cell, home)):
                 g = cell_index(cell[0], cell[1], cell[2], grid_dims)

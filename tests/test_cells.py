@@ -186,6 +186,17 @@ def test_cells_find_the_outside_beyond_a_sharp_edge(order):
     np.testing.assert_allclose(c["normal"], c_ref["normal"], atol=1e-4)
 
 
+def test_grid_keeps_to_its_most_cells():
+    """``max_cells`` bounds the grid it builds (the cell edge grows until it fits; the grid spans
+    the vertices' box plus half a cell each side, which the bound counts)."""
+    seq = _wave_sheet(n=100, frames=3)
+    for most in (1 << 10, 1 << 14, 1 << 22):
+        fc = build_face_cells(seq.V, seq.F, 32, 1.0, most)
+        assert fc.num_cells <= most
+        assert (fc.grid_origin + fc.grid_dims * fc.cell >= seq.V.reshape(-1, 3).max(axis=0)).all()
+        assert (fc.grid_origin <= seq.V.reshape(-1, 3).min(axis=0)).all()
+
+
 def test_build_face_cells_refuses_a_cluster_size_below_two():
     seq = _wave_sheet(n=5, frames=2)
     with pytest.raises(ValueError, match="cluster_size 1"):
