@@ -385,9 +385,9 @@ class BatchedWorld:
         search = search if search is not None else p.swept_search
         self.search = (default_batch_search(device_kind(self.device), model.spheres.count) if search is None
                        else parse(SweptSearch, search, "swept_search"))
-        if self.search == SweptSearch.FACES:
-            raise ValueError("swept_search 'faces' is a single world's search; a batched world searches 'serial', "
-                             "'tiled', 'hybrid' or 'grid'")
+        if self.search in (SweptSearch.FACES, SweptSearch.SPHERE_GRID):
+            raise ValueError(f"swept_search '{self.search}' is a single world's search; a batched world searches "
+                             "'serial', 'tiled', 'hybrid' or 'grid'")
         self.tile_threads = _at_least(tile_threads, BATCH_TILE_THREADS, "tile_threads", 1)
         self.budget = _at_least(budget, HYBRID_BUDGET, "budget", 0)
         self.blocks = _at_least(blocks, HYBRID_BLOCKS, "blocks", 1)

@@ -20,6 +20,7 @@ __all__ = ["StrEnum", "Collider", "SweptSearch", "RebuildEvery", "Playback", "Fr
            "Strategy", "NewtonSolver", "Rasteriser", "PLAYBACK_CODES", "DEFAULT_RASTERISER", "DEFAULT_COLLIDER",
            "DEFAULT_REBUILD_EVERY", "REFIT_BVH", "SEED_PREVIOUS_FACE",
            "DEFAULT_SWEPT_SEARCH", "DEFAULT_BATCH_SWEPT_SEARCH", "SWEPT_MEASURED_SEARCHES", "SWEPT_FACES_MAX_SPHERES",
+           "SPHERE_GRID_BUCKETS_PER_SPHERE", "SPHERE_GRID_CELL_SCALE",
            "SWEPT_RESOLVE_THREADS", "SWEPT_TILE_THREADS",
            "DEFAULT_PLAYBACK",
            "DEFAULT_FRAME_ORDER", "DEFAULT_ORIENTATION", "DEFAULT_UP_AXIS", "Y_UP_FORMATS", "DEFAULT_STRATEGY",
@@ -65,6 +66,10 @@ class SweptSearch(StrEnum):
     #: one thread block per sphere walks the cells of a uniform grid of its env's frame pair
     #: (contiguous cell lists, no tree walk; batched worlds only: docs/envs.md)
     GRID = "grid"
+    #: the spheres binned every step in a hashed grid by their search radius, one thread per face
+    #: tests the spheres of the cells its triangle overlaps (no BVH walk, no refit: many spheres
+    #: on large meshes; single worlds only)
+    SPHERE_GRID = "sphere_grid"
 
 
 class RebuildEvery(StrEnum):
@@ -168,9 +173,10 @@ SEED_PREVIOUS_FACE = {"cpu": True, "cuda": False}
 #: the swept collider's search per device kind (a CPU thread block is one thread: serial there)
 DEFAULT_SWEPT_SEARCH = {"cpu": SweptSearch.SERIAL, "cuda": SweptSearch.TILED}
 #: the searches ``collider: fixed`` measures as candidates per device kind (none: the default)
-SWEPT_MEASURED_SEARCHES = {"cpu": (), "cuda": (SweptSearch.TILED, SweptSearch.SERIAL, SweptSearch.FACES)}
+SWEPT_MEASURED_SEARCHES = {"cpu": (), "cuda": (SweptSearch.TILED, SweptSearch.SERIAL, SweptSearch.FACES,
+                                               SweptSearch.SPHERE_GRID)}
 #: the face-parallel search is measured by ``fixed`` only up to this many spheres (its work is
-#: faces x spheres per step)
+#: faces x spheres per step), the sphere grid only above it
 SWEPT_FACES_MAX_SPHERES = 64
 #: the batched world's contact search per device kind by its sphere count (batch.BatchedWorld):
 #: (up to this many spheres or None for any, search) rows, the first that fits. Measured on an
@@ -182,6 +188,10 @@ DEFAULT_BATCH_SWEPT_SEARCH = {"cpu": ((None, SweptSearch.SERIAL),),
                               "cuda": ((32768, SweptSearch.GRID), (None, SweptSearch.SERIAL))}
 #: threads per sphere of the tiled search
 SWEPT_TILE_THREADS = 64
+#: the sphere_grid search's hash table: buckets per sphere (rounded up to a power of two)
+SPHERE_GRID_BUCKETS_PER_SPHERE = 8
+#: the sphere_grid search's level-0 cell edge over the spheres' median (radius + margin)
+SPHERE_GRID_CELL_SCALE = 2.0
 #: threads per sphere of the face-parallel search's second pass (the faces around the winning
 #: face's three vertices, ~18 on a regular mesh, taken in parallel)
 SWEPT_RESOLVE_THREADS = 32

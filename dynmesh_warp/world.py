@@ -30,6 +30,7 @@ from .kernels.swept import (
     find_closest_per_face,
     resolve_closest_per_sphere,
 )
+from .kernels.sphere_grid import count_sphere_cells, find_closest_in_sphere_cells, scatter_sphere_cells
 from .choices import (
     DEFAULT_COLLIDER,
     DEFAULT_PLAYBACK,
@@ -38,6 +39,8 @@ from .choices import (
     PLAYBACK_CODES,
     REFIT_BVH,
     SEED_PREVIOUS_FACE,
+    SPHERE_GRID_BUCKETS_PER_SPHERE,
+    SPHERE_GRID_CELL_SCALE,
     SWEPT_FACES_MAX_SPHERES,
     SWEPT_MEASURED_SEARCHES,
     SWEPT_RESOLVE_THREADS,
@@ -684,6 +687,10 @@ class SweptCollider(ColliderBase):
     ties looked for around the winning face's vertices (``resolve_closest_per_sphere``); its
     work is one pass over the faces' boxes per step times the sphere count, for few spheres on
     large meshes, where a sphere's box holds hundreds of faces; the BVH is not refit then.
+    ``sphere_grid``: the face-parallel search for many spheres: each step the spheres are binned
+    in a hashed grid by their search radius (the reach, or the distance to the previous contact
+    face when less) and one thread per face tests the spheres of the cells its triangle at the
+    step's time overlaps (kernels/sphere_grid.py); no BVH walk and no refit either.
     Measured per search, and the searches tried and dropped: docs/benchmarks.md.
     """
 
@@ -700,11 +707,11 @@ class SweptCollider(ColliderBase):
                        else parse(SweptSearch, search, "swept_search"))
         if self.search in (SweptSearch.HYBRID, SweptSearch.GRID):
             raise ValueError(f"swept_search '{self.search}' is a batched world's search (envs); a single world's swept "
-                             "collider searches 'serial', 'tiled' or 'faces'")
+                             "collider searches 'serial', 'tiled', 'faces' or 'sphere_grid'")
         self.tile_threads = int(tile_threads or SWEPT_TILE_THREADS)
         self.resize(model, state, ctx)
         self.vertex_face_offsets = self.vertex_faces = None
-        if self.search == SweptSearch.FACES:  # the faces around each vertex (CSR), where it looks for ties
+        if self.search in (SweptSearch.FACES, SweptSearch.SPHERE_GRID):  # the faces around each vertex (CSR): ties
             F = surf.faces().ravel()
             counts = np.bincount(F, minlength=surf.num_vertices)
             self.vertex_face_offsets = wp.array(np.concatenate([[0], np.cumsum(counts)]).astype(np.int32), device=d)
@@ -724,13 +731,36 @@ class SweptCollider(ColliderBase):
 
     def refit_frame(self, model: Model, state: State, ctx: StepContext):
         self.compute_bounds(model, state, ctx)
-        if self.search != SweptSearch.FACES:  # the face-parallel search reads the boxes only
+        if self.search not in (SweptSearch.FACES, SweptSearch.SPHERE_GRID):  # the face-parallel ones walk no tree
             self.bvh.refit()
 
     def resize(self, model: Model, state: State, ctx: StepContext):
-        """The face-parallel search's per-sphere scratch: the closest key (NO_KEY between steps)."""
-        n = max(model.spheres.count, 1) if self.search == SweptSearch.FACES else 0
-        self.best_key = wp.full(n, NO_KEY, dtype=wp.int64, device=ctx.device)
+        """The face-parallel searches' per-sphere scratch: the closest key (NO_KEY between
+        steps); the sphere grid's arrays (``sphere_grid``)."""
+        d = ctx.device
+        S = model.spheres.count
+        n = max(S, 1) if self.search in (SweptSearch.FACES, SweptSearch.SPHERE_GRID) else 0
+        self.best_key = wp.full(n, NO_KEY, dtype=wp.int64, device=d)
+        if self.search != SweptSearch.SPHERE_GRID:
+            return
+        surf = model.surface
+        V = surf.frames.numpy().reshape(-1, 3)
+        self.surface_lower, self.surface_upper = wp.vec3(*V.min(axis=0)), wp.vec3(*V.max(axis=0))
+        r = model.spheres.radius.numpy() if S else np.zeros(1, np.float32)
+        # level-0 cells: twice a resting sphere's search radius, and no smaller than the faces
+        self.cell_size = float(max(SPHERE_GRID_CELL_SCALE * (np.median(r) + model.params.margin),
+                                   float(surf.average_edge_length.mean()), 1e-9))
+        self.num_buckets = int(max(1024, 1 << int(np.ceil(np.log2(max(S, 1) * SPHERE_GRID_BUCKETS_PER_SPHERE)))))
+        self.sphere_reach = wp.zeros(n, dtype=float, device=d)
+        self.sphere_bound = wp.zeros(n, dtype=float, device=d)
+        self.sphere_level = wp.zeros(n, dtype=wp.int32, device=d)
+        self.bucket_count = wp.zeros(self.num_buckets + 1, dtype=wp.int32, device=d)
+        self.bucket_start = wp.zeros(self.num_buckets + 1, dtype=wp.int32, device=d)
+        # a sphere of level 0 or 1 spans at most CELL_RANGE^3 cells
+        self.cell_spheres = wp.zeros(n * 27, dtype=wp.int32, device=d)
+        self.cell_sphere_balls = wp.zeros(n * 27, dtype=wp.vec4, device=d)
+        self.level_count = wp.zeros(3, dtype=wp.int32, device=d)
+        self.every_face_spheres = wp.zeros(n, dtype=wp.int32, device=d)
 
     def update(self, model: Model, state: State, ctx: StepContext):
         """Refit if the clock's frame pair changed (``State.frame_changed``: set by the previous
@@ -760,7 +790,9 @@ class SweptCollider(ColliderBase):
                    m.params.margin]
         inputs = [*model_in, *state_in, self.bvh.id, self.lowers, self.uppers, *step_in]
         outputs = [c.face, c.point, c.normal, c.depth, c.velocity]
-        if self.search == SweptSearch.FACES:
+        if self.search == SweptSearch.SPHERE_GRID:
+            self.collide_sphere_grid(model, state, contacts, ctx)
+        elif self.search == SweptSearch.FACES:
             ctx.launch(find_closest_per_face, surf.num_faces, [*model_in, *state_in, self.lowers, self.uppers, *step_in],
                        [self.best_key])
             if m.spheres.count:
@@ -774,6 +806,45 @@ class SweptCollider(ColliderBase):
         else:
             seed = int(SEED_PREVIOUS_FACE[device_kind(ctx.device)])
             ctx.launch(collide_sphere_swept, m.spheres.count, [*inputs, seed], outputs)
+
+
+    def bin_spheres(self, model: Model, state: State, contacts: "Contacts", ctx: StepContext):
+        """The ``sphere_grid`` search's binning: each sphere's reach, bound and level, counted
+        into the grid's buckets, the scan, the scatter (kernels/sphere_grid.py)."""
+        m, s = model, state
+        surf = m.surface
+        self.level_count.zero_()
+        ctx.launch(count_sphere_cells, m.spheres.count,
+                   [surf.frames, surf.indices, m.spheres.radius, s.sim_time, s.sphere_pos, s.sphere_vel, contacts.face,
+                    self.surface_lower, self.surface_upper, surf.fps, surf.playback, int(surf.interpolate),
+                    self.epsilon, ctx.sub_dt, ctx.extra_speed, m.params.margin, self.cell_size, self.num_buckets],
+                   [self.sphere_reach, self.sphere_bound, self.sphere_level, self.bucket_count, self.level_count,
+                    self.every_face_spheres])
+        wp.utils.array_scan(self.bucket_count, self.bucket_start, inclusive=False)
+        ctx.launch(scatter_sphere_cells, m.spheres.count,
+                   [s.sphere_pos, self.sphere_bound, self.sphere_level, self.epsilon, self.cell_size, self.num_buckets,
+                    self.bucket_start], [self.bucket_count, self.cell_spheres, self.cell_sphere_balls])
+
+    def collide_sphere_grid(self, model: Model, state: State, contacts: "Contacts", ctx: StepContext):
+        """The ``sphere_grid`` search: bin the spheres, one pass over the faces, then each
+        sphere's contact from its key."""
+        m, s, c = model, state, contacts
+        surf = m.surface
+        S = m.spheres.count
+        if not S:
+            return
+        self.bin_spheres(m, s, c, ctx)
+        clock = [surf.fps, surf.playback, int(surf.interpolate), self.epsilon]
+        ctx.launch(find_closest_in_sphere_cells, surf.num_faces,
+                   [surf.frames, surf.indices, s.sim_time, s.sphere_pos, *clock, self.cell_size, self.num_buckets,
+                    self.sphere_reach, self.sphere_bound, self.bucket_start, self.cell_spheres, self.cell_sphere_balls,
+                    self.level_count, self.every_face_spheres], [self.best_key])
+        wp.launch_tiled(resolve_closest_per_sphere, dim=S,
+                        inputs=[surf.frames, surf.indices, m.spheres.radius, self.vertex_face_offsets,
+                                self.vertex_faces, s.sim_time, s.sphere_pos, s.sphere_vel, *clock, ctx.sub_dt,
+                                ctx.extra_speed, m.params.margin],
+                        outputs=[self.best_key, c.face, c.point, c.normal, c.depth, c.velocity],
+                        block_dim=SWEPT_RESOLVE_THREADS, device=ctx.device)
 
 
 COLLIDERS = {"refit": RefitCollider, "swept": SweptCollider, "rebuild": RebuildCollider}
@@ -913,13 +984,16 @@ class World:
     def _choose_measured(self, model: Model, state: State, candidates) -> str:
         """The candidate with the least measured time per step (:func:`measure_colliders`);
         the first candidate on a tie. On CUDA the swept collider is measured once per search of
-        ``SWEPT_MEASURED_SEARCHES`` (``swept/tiled``, ``swept/serial``) unless
+        ``SWEPT_MEASURED_SEARCHES`` (``swept/tiled``, ``swept/serial`` and ``swept/faces`` or
+        ``swept/sphere_grid`` by the sphere count) unless
         ``physics.swept_search`` names one; the chosen search is kept (``swept_search``).
         Records the costs in ``collider_costs``."""
         searches = () if model.params.swept_search is not None else \
             SWEPT_MEASURED_SEARCHES[device_kind(self.device)]
-        if model.spheres.count > SWEPT_FACES_MAX_SPHERES:  # its work grows as faces x spheres
-            searches = tuple(x for x in searches if x != SweptSearch.FACES)
+        # the face-parallel searches split by the sphere count: faces (work faces x spheres) up to
+        # SWEPT_FACES_MAX_SPHERES, the sphere grid above it (slower than faces on every few-sphere row)
+        drop = SweptSearch.FACES if model.spheres.count > SWEPT_FACES_MAX_SPHERES else SweptSearch.SPHERE_GRID
+        searches = tuple(x for x in searches if x != drop)
         trials = []
         for c in candidates:
             trials += [f"{c}/{s}" for s in searches] if c == Collider.SWEPT and searches else [c]

@@ -261,8 +261,9 @@ def test_batch_needs_a_fixed_surface_and_spheres(device):
         BatchedWorld(bm, st, search="nearest")
     with pytest.raises(ValueError, match="tile_threads"):
         BatchedWorld(bm, st, search="tiled", tile_threads=0)
-    with pytest.raises(ValueError, match="swept_search 'faces'"):  # a single world's search
-        BatchedWorld(bm, st, search="faces")
+    for single in ("faces", "sphere_grid"):  # a single world's searches
+        with pytest.raises(ValueError, match=f"swept_search '{single}'"):
+            BatchedWorld(bm, st, search=single)
     with pytest.raises(ValueError, match="budget"):
         BatchedWorld(bm, st, search="hybrid", budget=-1)
     bm_tiled = BatchModel(SurfaceModel(seq, device), 2, [0.05], 1.0, PhysicsParams(swept_search="tiled"))

@@ -46,7 +46,7 @@ def test_swept_contacts_equal_refit_reference(make_seq):
         ref, *swept = _worlds(seq, pos, vel, radius, t0, [
             ("refit", None), ("swept", {"search": "serial"}), ("swept", {"search": "tiled", "tile_threads": 64}),
             ("swept", {"search": "tiled", "tile_threads": 8}), ("swept", {"search": "tiled", "tile_threads": 1}),
-            ("swept", {"search": "faces"})])
+            ("swept", {"search": "faces"}), ("swept", {"search": "sphere_grid"})])
         c_ref = _contacts_at(ref)
         for w in swept:
             c = _contacts_at(w)
@@ -68,7 +68,7 @@ def test_swept_contacts_equal_refit_reference(make_seq):
     assert beyond > 10  # and the second search box was needed for some
 
 
-@pytest.mark.parametrize("search", [None, "serial", "tiled", "faces"])
+@pytest.mark.parametrize("search", [None, "serial", "tiled", "faces", "sphere_grid"])
 def test_swept_world_matches_refit_world_trajectories(search):
     """Over 240 steps (24 frame changes: the swept boxes and their tree refit each time)."""
     seq = wave_bowl(n=24, frames=12)
@@ -130,7 +130,8 @@ def test_fixed_collider_measures_and_keeps_the_faster(monkeypatch):
     state = State(model, [[0, 0, 1], [0.2, 0, 1]], t0=0.1)
     w = World(model, state)
     costs = w.collider_costs
-    searches = world_mod.SWEPT_MEASURED_SEARCHES[TEST_DEVICE.split(":")[0]]  # CUDA: each search a candidate
+    # CUDA: each search a candidate (with 2 spheres the face-parallel one, not the sphere grid)
+    searches = [s for s in world_mod.SWEPT_MEASURED_SEARCHES[TEST_DEVICE.split(":")[0]] if s != "sphere_grid"]
     assert set(costs) == {"refit", *([f"swept/{s}" for s in searches] or ["swept"])}
     assert all(np.isfinite(v) and v > 0 for v in costs.values())
     assert w.collider.name == min(costs, key=costs.get).partition("/")[0]
@@ -232,9 +233,9 @@ def test_swept_search_with_hundreds_of_faces_per_sphere():
     pos = np.c_[xy, z].astype(np.float32)
     vel = rng.normal(scale=0.3, size=(S, 3)).astype(np.float32)
     radius = np.full(S, 0.1, np.float32)
-    ref, serial, tiled, faces = _worlds(seq, pos, vel, radius, 0.0, [
+    ref, serial, tiled, faces, grid = _worlds(seq, pos, vel, radius, 0.0, [
         ("refit", None), ("swept", {"search": "serial"}), ("swept", {"search": "tiled", "tile_threads": 16}),
-        ("swept", {"search": "faces"})])
+        ("swept", {"search": "faces"}), ("swept", {"search": "sphere_grid"})])
     c_ref = _contacts_at(ref)
     lo, hi = serial.collider.lowers.numpy(), serial.collider.uppers.numpy()
     reach = radius + 1e-3
@@ -242,7 +243,7 @@ def test_swept_search_with_hundreds_of_faces_per_sphere():
     assert min(in_box) > 256  # hundreds of faces in every sphere's reach box
     m = c_ref["face"] >= 0
     assert m.sum() >= 4
-    for w in (serial, tiled, faces):
+    for w in (serial, tiled, faces, grid):
         c = _contacts_at(w)
         np.testing.assert_array_equal(c["face"] >= 0, m)
         np.testing.assert_allclose(c["point"][m], c_ref["point"][m], atol=2e-5)
@@ -272,14 +273,15 @@ def test_fixed_measures_each_swept_search_and_keeps_the_fastest(monkeypatch):
         assert seen[-1] == ("swept/tiled", "swept/serial", "refit")
         assert w.collider.name == "swept" and w.collider.search == search and w.swept_search == search
         assert w.run_summary()["swept_search"] == search
-    # the face-parallel search is a candidate only up to SWEPT_FACES_MAX_SPHERES spheres
-    monkeypatch.setitem(world_mod.SWEPT_MEASURED_SEARCHES, TEST_DEVICE.split(":")[0], ("tiled", "faces"))
+    # the face-parallel search is a candidate only up to SWEPT_FACES_MAX_SPHERES spheres, the
+    # sphere grid only above it
+    monkeypatch.setitem(world_mod.SWEPT_MEASURED_SEARCHES, TEST_DEVICE.split(":")[0], ("tiled", "faces", "sphere_grid"))
     monkeypatch.setattr(world_mod, "measure_colliders", lambda m, s, c: (seen.append(tuple(c)), {k: 1.0 for k in c})[1])
     World(_blob_model(), State(_blob_model(), [[0, 0, 1], [0.2, 0, 1]]))
     assert seen[-1] == ("swept/tiled", "swept/faces", "refit")
     monkeypatch.setattr(world_mod, "SWEPT_FACES_MAX_SPHERES", 1)
     World(_blob_model(), State(_blob_model(), [[0, 0, 1], [0.2, 0, 1]]))
-    assert seen[-1] == ("swept/tiled", "refit")
+    assert seen[-1] == ("swept/tiled", "swept/sphere_grid", "refit")
     model = _blob_model()
     model.params.swept_search = "serial"
     monkeypatch.setattr(world_mod, "measure_colliders", lambda m, s, c: (seen.append(tuple(c)), {"swept": 1.0, "refit": 2.0})[1])
@@ -345,7 +347,8 @@ def test_every_search_finds_the_outside_beyond_a_sharp_edge():
     radius = np.full(4, 0.05, np.float32)
     ref, *others = _worlds(seq, pos, None, radius, 0.0, [("refit", None), ("swept", {"search": "serial"}),
                                                          ("swept", {"search": "tiled", "tile_threads": 8}),
-                                                         ("swept", {"search": "faces"})])
+                                                         ("swept", {"search": "faces"}),
+                                                         ("swept", {"search": "sphere_grid"})])
     c_ref = _contacts_at(ref)
     dist = np.hypot(d, pos[:, 1])
     assert (c_ref["face"] >= 0).all()
@@ -355,3 +358,51 @@ def test_every_search_finds_the_outside_beyond_a_sharp_edge():
         np.testing.assert_array_equal(c["face"] >= 0, True)
         np.testing.assert_allclose(c["depth"], c_ref["depth"], atol=1e-5)
         np.testing.assert_allclose(c["normal"], c_ref["normal"], atol=1e-4)
+
+
+@pytest.mark.parametrize("buckets, cell_size", [(None, None), (1, 0.03), (None, 0.002)],
+                         ids=["default", "one_bucket_fine_cells", "every_face_list"])
+def test_sphere_grid_levels_and_collisions_keep_the_reference_contacts(buckets, cell_size):
+    """The sphere_grid search lists each sphere in the grid level its search radius fits (level 0,
+    the 4x coarser level 1, or the list every face tests) and hashes cells into buckets. Forced
+    into each case (one bucket for every cell: every entry a collision; cells so small that the
+    spheres go to level 1 or to the every-face list), its contacts stay the refit reference's,
+    over a wave sheet with spheres on both sides and moving."""
+    import warp as wp
+
+    from dynmesh_warp.scenes import grid_sheet
+    from dynmesh_warp.sequence import FixedTopologySequence
+
+    V0, F = grid_sheet(40, 2.0)
+    V = np.repeat(V0[None], 6, 0).astype(np.float32)
+    for t in range(6):
+        V[t, :, 2] = 0.05 * np.sin(3 * V0[:, 0] + 2 * np.pi * t / 6)
+    seq = FixedTopologySequence(V, F, fps=24.0, name="sheet")
+    rng = np.random.default_rng(7)
+    S = 48
+    xy = rng.uniform(-0.9, 0.9, (S, 2))
+    pos = np.c_[xy, 0.05 * np.sin(3 * xy[:, 0]) + rng.uniform(-0.08, 0.08, S)].astype(np.float32)
+    vel = rng.normal(scale=1.0, size=(S, 3)).astype(np.float32)
+    radius = rng.uniform(0.02, 0.08, S).astype(np.float32)
+    ref, grid = _worlds(seq, pos, vel, radius, 0.013, [("refit", None), ("swept", {"search": "sphere_grid"})])
+    col = grid.collider
+    if cell_size is not None:
+        col.cell_size = cell_size
+    if buckets == 1:  # every cell in one bucket: every other cell's entry is a collision to skip
+        col.num_buckets = 1
+        col.bucket_count = wp.zeros(2, dtype=wp.int32, device=TEST_DEVICE)
+        col.bucket_start = wp.zeros(2, dtype=wp.int32, device=TEST_DEVICE)
+    levels = set()
+    for _ in range(3):  # the first without a seed, then seeded by the previous contact faces
+        c_ref, c = _contacts_at(ref), _contacts_at(grid)
+        m = c_ref["face"] >= 0
+        np.testing.assert_array_equal(c["face"] >= 0, m)
+        np.testing.assert_allclose(c["point"][m], c_ref["point"][m], atol=2e-5)
+        np.testing.assert_allclose(c["depth"][m], c_ref["depth"][m], atol=2e-5)
+        levels |= set(np.unique(col.sphere_level.numpy()).tolist())
+        assert m.sum() >= 8
+    assert col.bucket_count.numpy().sum() == 0  # counted back down for the next step
+    if buckets == 1:
+        assert col.bucket_start.numpy()[-1] > 100  # every entry in the one bucket
+    expected = {None: {0}, 0.03: {1}, 0.002: {2}}[cell_size]
+    assert expected <= levels, levels

@@ -1,0 +1,128 @@
+"""Issue 14: the swept collider's ``sphere_grid`` search (face-parallel over a hashed grid of the
+spheres rebuilt every step) against the refit collider on bench_step's scaling scenes.
+
+For each (vertices, spheres) row: the scene of ``bench_step.scaling`` (a wave sheet, spheres
+dropped in one layer), run ``--settle`` steps so the spheres land and bounce, then, from the
+same state, the whole step's steps/s of each collider in ``--compare`` and of ``sphere_grid``
+(graph-replayed on CUDA), the sphere_grid stages alone (binning: count + scan + scatter; the
+face pass; the face pass + resolve), and what the grid held (entries, levels, spheres in
+contact, the contacts equal to refit's at that state).
+
+    python bench/sphere_grid_probe.py --device cuda:0 --verts 1000000 --spheres 100000
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_step import graph_or_eager, make_world, wave_grid  # noqa: E402
+from common import RESULTS, checked_output, describe_device, time_loop, write_json  # noqa: E402
+
+
+def _contacts(w):
+    w.update_surface()
+    w.collider.update(w.model, w.state, w.ctx)
+    w.collider.collide(w.model, w.state, w.contacts, w.ctx)
+    return w.contacts.numpy()
+
+
+def row(nv: int, ns: int, device, compare: list, steps: int, repeats: int, settle: int) -> dict:
+    import warp as wp
+
+    from dynmesh_warp.world import State, World
+
+    n = int(round(np.sqrt(nv)))
+    seq = wave_grid(n)
+    radius = float(min(0.05, 0.5 / np.sqrt(ns)))
+    t0 = time.perf_counter()
+    base = make_world(seq, device, "swept", spheres=ns, radius=radius, spread=0.9, swept_search="sphere_grid")
+    build_s = time.perf_counter() - t0
+    for _ in range(settle):
+        base.step()
+    wp.synchronize_device(device)
+    pos, vel = base.sphere_positions(), base.state.sphere_vel.numpy()
+    t = float(base.state.sim_time.numpy()[0])
+    out = {"vertices": n * n, "faces": 2 * (n - 1) ** 2, "spheres": ns, "radius": radius, "settle_steps": settle,
+           "build_s": build_s}
+
+    def world(col):
+        b, _, search = col.partition("/")
+        return World(base.model, State(base.model, pos, vel, t0=t), collider=b, swept_search=search or None)
+
+    g = world("swept/sphere_grid")
+    ref = world("refit")
+    c, c_ref = _contacts(g), _contacts(ref)
+    m = c_ref["face"] >= 0
+    out["in_contact"] = int(m.sum())
+    out["same_contacts"] = bool(np.array_equal(c["face"] >= 0, m))
+    out["max_point_diff_m"] = float(np.abs(c["point"][m] - c_ref["point"][m]).max()) if m.any() else 0.0
+    col = g.collider
+    lv = col.sphere_level.numpy()
+    out["levels"] = {str(k): int((lv == k).sum()) for k in (-1, 0, 1, 2)}
+    out["entries"] = int(col.bucket_start.numpy()[-1])
+    out["buckets"] = col.num_buckets
+    out["cell_size_m"] = col.cell_size
+    out["bound_over_cell"] = [float(x) for x in np.percentile(col.sphere_bound.numpy()[lv >= 0] / col.cell_size,
+                                                                [50, 90, 100])] if (lv >= 0).any() else []
+    # the stages alone, replayed like the step
+    mm, st, cc, ctx = g.model, g.state, g.contacts, g.ctx
+    stages = {}
+    saved = {}
+
+    def binning():
+        col.bin_spheres(mm, st, cc, ctx)
+
+    def collide():
+        col.collide(mm, st, cc, ctx)
+
+    saved["face"] = cc.face.numpy().copy()
+    stages["binning"] = time_loop(graph_or_eager(binning, device), device, steps, repeats)["us_per_step"]
+    stages["collide (binning + face pass + resolve)"] = time_loop(graph_or_eager(collide, device), device, steps,
+                                                                  repeats)["us_per_step"]
+    cc.face.assign(saved["face"])
+    out["sphere_grid_stages_us"] = stages
+    rates = {}
+    for name in ["swept/sphere_grid", *compare]:
+        w = world(name)
+        rates[name] = time_loop(w.step, device, steps, repeats, warmup=5)["steps_per_s"]
+        del w
+    out["steps_per_s"] = rates
+    print(f"N={n * n:>8} S={ns:>6} " + "  ".join(f"{k} {v:,.0f}" for k, v in rates.items())
+          + f"  | stages {', '.join(f'{k} {v:.1f}' for k, v in stages.items())} us | levels {out['levels']} "
+          f"entries {out['entries']} contact {out['in_contact']} same {out['same_contacts']}", flush=True)
+    return out
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--device", default=None)
+    ap.add_argument("--verts", default="100000,1000000")
+    ap.add_argument("--spheres", default="5,1000,100000")
+    ap.add_argument("--compare", default="refit", help="comma-separated colliders timed from the same state")
+    ap.add_argument("--steps", type=int, default=200)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--settle", type=int, default=120, help="steps run before the state is copied")
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args(argv)
+    import warp as wp
+
+    wp.config.quiet = True
+    device = wp.get_device(args.device)
+    out = checked_output(args.out or RESULTS / f"sphere_grid_probe_{'cuda' if device.is_cuda else 'cpu'}.json", "file",
+                         "--out")
+    res = {**describe_device(device), "args": vars(args), "rows": []}
+    for nv in [int(float(v)) for v in args.verts.split(",")]:
+        for ns in [int(float(v)) for v in args.spheres.split(",")]:
+            res["rows"].append(row(nv, ns, device, [c for c in args.compare.split(",") if c], args.steps, args.repeats,
+                                   args.settle))
+            write_json(out, res)
+
+
+if __name__ == "__main__":
+    main()
