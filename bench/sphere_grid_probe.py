@@ -32,9 +32,10 @@ def _contacts(w):
     return w.contacts.numpy()
 
 
-def row(nv: int, ns: int, device, compare: list, steps: int, repeats: int, settle: int) -> dict:
+def row(nv: int, ns: int, device, compare: list, steps: int, repeats: int, settle: int, variants: list) -> dict:
     import warp as wp
 
+    import dynmesh_warp.world as world_mod
     from dynmesh_warp.world import State, World
 
     n = int(round(np.sqrt(nv)))
@@ -49,53 +50,57 @@ def row(nv: int, ns: int, device, compare: list, steps: int, repeats: int, settl
     pos, vel = base.sphere_positions(), base.state.sphere_vel.numpy()
     t = float(base.state.sim_time.numpy()[0])
     out = {"vertices": n * n, "faces": 2 * (n - 1) ** 2, "spheres": ns, "radius": radius, "settle_steps": settle,
-           "build_s": build_s}
+           "build_s": build_s, "variants": []}
 
     def world(col):
         b, _, search = col.partition("/")
         return World(base.model, State(base.model, pos, vel, t0=t), collider=b, swept_search=search or None)
 
-    g = world("swept/sphere_grid")
     ref = world("refit")
-    c, c_ref = _contacts(g), _contacts(ref)
+    c_ref = _contacts(ref)
     m = c_ref["face"] >= 0
     out["in_contact"] = int(m.sum())
-    out["same_contacts"] = bool(np.array_equal(c["face"] >= 0, m))
-    out["max_point_diff_m"] = float(np.abs(c["point"][m] - c_ref["point"][m]).max()) if m.any() else 0.0
-    col = g.collider
-    lv = col.sphere_level.numpy()
-    out["levels"] = {str(k): int((lv == k).sum()) for k in (-1, 0, 1, 2)}
-    out["entries"] = int(col.bucket_start.numpy()[-1])
-    out["buckets"] = col.num_buckets
-    out["cell_size_m"] = col.cell_size
-    out["bound_over_cell"] = [float(x) for x in np.percentile(col.sphere_bound.numpy()[lv >= 0] / col.cell_size,
-                                                                [50, 90, 100])] if (lv >= 0).any() else []
-    # the stages alone, replayed like the step
-    mm, st, cc, ctx = g.model, g.state, g.contacts, g.ctx
-    stages = {}
-    saved = {}
-
-    def binning():
-        col.bin_spheres(mm, st, cc, ctx)
-
-    def collide():
-        col.collide(mm, st, cc, ctx)
-
-    saved["face"] = cc.face.numpy().copy()
-    stages["binning"] = time_loop(graph_or_eager(binning, device), device, steps, repeats)["us_per_step"]
-    stages["collide (binning + face pass + resolve)"] = time_loop(graph_or_eager(collide, device), device, steps,
-                                                                  repeats)["us_per_step"]
-    cc.face.assign(saved["face"])
-    out["sphere_grid_stages_us"] = stages
+    defaults = {k: getattr(world_mod, k) for k in ("SPHERE_GRID_CELL_SCALE", "SPHERE_GRID_LEVEL_SCALE",
+                                                   "SPHERE_GRID_BUCKETS_PER_SPHERE")}
+    for cell_scale, level_scale, buckets in variants:
+        for k, v in zip(defaults, (cell_scale, level_scale, buckets)):
+            setattr(world_mod, k, v)
+        try:
+            g = world("swept/sphere_grid")
+        finally:
+            for k, v in defaults.items():
+                setattr(world_mod, k, v)
+        c = _contacts(g)
+        v = {"cell_scale": cell_scale, "level_scale": level_scale, "buckets_per_sphere": buckets,
+             "same_contacts": bool(np.array_equal(c["face"] >= 0, m)),
+             "max_point_diff_m": float(np.abs(c["point"][m] - c_ref["point"][m]).max()) if m.any() else 0.0}
+        col = g.collider
+        lv = col.sphere_level.numpy()
+        v["levels"] = {str(k): int((lv == k).sum()) for k in (-1, 0, 1, 2)}
+        v["entries"] = int(col.bucket_start.numpy()[-1])
+        v["buckets"] = col.num_buckets
+        v["cell_size_m"] = [float(col.cell_size[0]), float(col.cell_size[1])]
+        mm, st, cc, ctx = g.model, g.state, g.contacts, g.ctx
+        face = cc.face.numpy().copy()
+        stages = {"binning": time_loop(graph_or_eager(lambda: col.bin_spheres(mm, st, cc, ctx), device), device, steps,
+                                       repeats)["us_per_step"],
+                  "collide": time_loop(graph_or_eager(lambda: col.collide(mm, st, cc, ctx), device), device, steps,
+                                       repeats)["us_per_step"]}
+        cc.face.assign(face)
+        v["stages_us"] = stages
+        v["steps_per_s"] = time_loop(g.step, device, steps, repeats, warmup=5)["steps_per_s"]
+        out["variants"].append(v)
+        print(f"N={n * n:>8} S={ns:>6} cell {cell_scale} level {level_scale} buckets {buckets}: "
+              f"{v['steps_per_s']:,.0f} steps/s | binning {stages['binning']:.1f}, collide {stages['collide']:.1f} us "
+              f"| levels {v['levels']} entries {v['entries']} same {v['same_contacts']}", flush=True)
+        del g
     rates = {}
-    for name in ["swept/sphere_grid", *compare]:
+    for name in compare:
         w = world(name)
         rates[name] = time_loop(w.step, device, steps, repeats, warmup=5)["steps_per_s"]
         del w
     out["steps_per_s"] = rates
-    print(f"N={n * n:>8} S={ns:>6} " + "  ".join(f"{k} {v:,.0f}" for k, v in rates.items())
-          + f"  | stages {', '.join(f'{k} {v:.1f}' for k, v in stages.items())} us | levels {out['levels']} "
-          f"entries {out['entries']} contact {out['in_contact']} same {out['same_contacts']}", flush=True)
+    print(f"N={n * n:>8} S={ns:>6} " + "  ".join(f"{k} {v:,.0f}" for k, v in rates.items()), flush=True)
     return out
 
 
@@ -108,6 +113,9 @@ def main(argv=None):
     ap.add_argument("--steps", type=int, default=200)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--settle", type=int, default=120, help="steps run before the state is copied")
+    ap.add_argument("--variants", default="2/4/8",
+                    help="comma-separated CELL/LEVEL/BUCKETS: choices.SPHERE_GRID_CELL_SCALE, _LEVEL_SCALE and "
+                         "_BUCKETS_PER_SPHERE of each sphere_grid variant timed")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     import warp as wp
@@ -119,8 +127,9 @@ def main(argv=None):
     res = {**describe_device(device), "args": vars(args), "rows": []}
     for nv in [int(float(v)) for v in args.verts.split(",")]:
         for ns in [int(float(v)) for v in args.spheres.split(",")]:
+            variants = [tuple(float(x) for x in v.split("/")) for v in args.variants.split(",")]
             res["rows"].append(row(nv, ns, device, [c for c in args.compare.split(",") if c], args.steps, args.repeats,
-                                   args.settle))
+                                   args.settle, variants))
             write_json(out, res)
 
 

@@ -20,7 +20,7 @@ __all__ = ["StrEnum", "Collider", "SweptSearch", "RebuildEvery", "Playback", "Fr
            "Strategy", "NewtonSolver", "Rasteriser", "PLAYBACK_CODES", "DEFAULT_RASTERISER", "DEFAULT_COLLIDER",
            "DEFAULT_REBUILD_EVERY", "REFIT_BVH", "SEED_PREVIOUS_FACE",
            "DEFAULT_SWEPT_SEARCH", "DEFAULT_BATCH_SWEPT_SEARCH", "SWEPT_MEASURED_SEARCHES", "SWEPT_FACES_MAX_SPHERES",
-           "SPHERE_GRID_BUCKETS_PER_SPHERE", "SPHERE_GRID_CELL_SCALE",
+           "SPHERE_GRID_BUCKETS_PER_SPHERE", "SPHERE_GRID_CELL_SCALE", "SPHERE_GRID_LEVEL_SCALE",
            "SWEPT_RESOLVE_THREADS", "SWEPT_TILE_THREADS",
            "DEFAULT_PLAYBACK",
            "DEFAULT_FRAME_ORDER", "DEFAULT_ORIENTATION", "DEFAULT_UP_AXIS", "Y_UP_FORMATS", "DEFAULT_STRATEGY",
@@ -192,6 +192,8 @@ SWEPT_TILE_THREADS = 64
 SPHERE_GRID_BUCKETS_PER_SPHERE = 8
 #: the sphere_grid search's level-0 cell edge over the spheres' median (radius + margin)
 SPHERE_GRID_CELL_SCALE = 2.0
+#: the sphere_grid search's level-1 cell edge over level 0's
+SPHERE_GRID_LEVEL_SCALE = 4.0
 #: threads per sphere of the face-parallel search's second pass (the faces around the winning
 #: face's three vertices, ~18 on a regular mesh, taken in parallel)
 SWEPT_RESOLVE_THREADS = 32

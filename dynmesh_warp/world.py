@@ -41,6 +41,7 @@ from .choices import (
     SEED_PREVIOUS_FACE,
     SPHERE_GRID_BUCKETS_PER_SPHERE,
     SPHERE_GRID_CELL_SCALE,
+    SPHERE_GRID_LEVEL_SCALE,
     SWEPT_FACES_MAX_SPHERES,
     SWEPT_MEASURED_SEARCHES,
     SWEPT_RESOLVE_THREADS,
@@ -748,8 +749,9 @@ class SweptCollider(ColliderBase):
         self.surface_lower, self.surface_upper = wp.vec3(*V.min(axis=0)), wp.vec3(*V.max(axis=0))
         r = model.spheres.radius.numpy() if S else np.zeros(1, np.float32)
         # level-0 cells: twice a resting sphere's search radius, and no smaller than the faces
-        self.cell_size = float(max(SPHERE_GRID_CELL_SCALE * (np.median(r) + model.params.margin),
-                                   float(surf.average_edge_length.mean()), 1e-9))
+        h = float(max(SPHERE_GRID_CELL_SCALE * (np.median(r) + model.params.margin),
+                      float(surf.average_edge_length.mean()), 1e-9))
+        self.cell_size = wp.vec2(h, SPHERE_GRID_LEVEL_SCALE * h)  # levels 0 and 1 [m]
         self.num_buckets = int(max(1024, 1 << int(np.ceil(np.log2(max(S, 1) * SPHERE_GRID_BUCKETS_PER_SPHERE)))))
         self.sphere_reach = wp.zeros(n, dtype=float, device=d)
         self.sphere_bound = wp.zeros(n, dtype=float, device=d)

@@ -8,8 +8,8 @@ Each step:
    contact face evaluated at the step's time (the closest face is no farther). A sphere whose
    ball of radius bound + epsilon misses the box of every frame of the surface has no contact and
    is left out. The others are counted in every cell of a uniform grid that the ball's box
-   overlaps: cells of ``cell_size`` (level 0) or LEVEL_SCALE x that (level 1) where the ball spans
-   more than CELL_RANGE cells an axis at level 0; a sphere wider than that at level 1 too is put
+   overlaps: cells of ``cell_size[0]`` (level 0) or the coarser ``cell_size[1]`` (level 1) where the
+   ball spans more than CELL_RANGE cells an axis at level 0; a sphere wider than that at level 1 too is put
    in a list every face tests (level 2). Cells are hashed into ``num_buckets`` buckets (a
    collision only adds candidates that are then skipped).
 2. An exclusive scan of the buckets' counts (``wp.utils.array_scan``).
@@ -37,8 +37,6 @@ wp.set_module_options({"fast_math": True})
 
 #: cells an axis a sphere's ball may span at a level before it moves to the next (coarser) one
 CELL_RANGE = wp.constant(3)
-#: the cell size of level 1 over level 0's
-LEVEL_SCALE = wp.constant(4.0)
 #: sphere_level of a sphere whose ball misses the surface's box (no entries, no contact)
 LEVEL_NONE = wp.constant(-1)
 #: sphere_level of a sphere too wide for both levels: every face tests it
@@ -46,10 +44,9 @@ LEVEL_EVERY_FACE = wp.constant(2)
 
 
 @wp.func
-def level_cell_size(cell_size: float, level: int) -> float:
-    if level == 0:
-        return cell_size
-    return cell_size * LEVEL_SCALE
+def level_cell_size(cell_size: wp.vec2, level: int) -> float:
+    """``cell_size``: the cell edge of level 0 and of level 1 [m]."""
+    return cell_size[level]
 
 
 @wp.func
@@ -66,7 +63,7 @@ def bucket_of(c: wp.vec3i, level: int, num_buckets: int) -> int:
 
 
 @wp.func
-def sphere_cells(p: wp.vec3, bound: float, epsilon: float, cell_size: float, level: int):
+def sphere_cells(p: wp.vec3, bound: float, epsilon: float, cell_size: wp.vec2, level: int):
     """The first and last cell (at ``level``) of the box of the ball (p, bound + epsilon)."""
     inv_h = 1.0 / level_cell_size(cell_size, level)
     q = wp.vec3(bound + epsilon)
@@ -99,7 +96,7 @@ def count_sphere_cells(
     dt: float,
     extra_speed: float,
     margin: float,
-    cell_size: float,
+    cell_size: wp.vec2,
     num_buckets: int,
     # Out:
     sphere_reach: wp.array[float],
@@ -115,7 +112,7 @@ def count_sphere_cells(
     zero before); ``level_count`` (3,) the spheres of each level (accumulated, zero before);
     spheres too wide for both levels are appended to ``every_face_spheres`` (their count is
     ``level_count[2]``). ``surface_lower``/``upper``: the box of every frame of the surface [m];
-    ``cell_size``: level 0's cell edge [m]."""
+    ``cell_size``: the cell edge of levels 0 and 1 [m]."""
     s = wp.tid()
     p = sphere_pos_in[s]
     reach = contact_reach(sphere_radius[s], sphere_vel_in[s], extra_speed, dt, margin)
@@ -132,7 +129,9 @@ def count_sphere_cells(
     if box_distance(p, surface_lower, surface_upper) <= bound + epsilon:
         level = int(LEVEL_EVERY_FACE)
         for trial in range(2):
-            if level == LEVEL_EVERY_FACE:
+            # (a ball over 1.5 cells wide cannot fit: not even its cells are computed, so a huge
+            # bound never overflows a cell index)
+            if level == LEVEL_EVERY_FACE and bound + epsilon < 1.5 * level_cell_size(cell_size, trial):
                 lo, hi = sphere_cells(p, bound, epsilon, cell_size, trial)
                 if fits_level(lo, hi):
                     level = trial
@@ -154,7 +153,7 @@ def scatter_sphere_cells(
     sphere_bound: wp.array[float],
     sphere_level: wp.array[wp.int32],
     epsilon: float,
-    cell_size: float,
+    cell_size: wp.vec2,
     num_buckets: int,
     bucket_start: wp.array[wp.int32],
     # Out:
@@ -207,7 +206,7 @@ def find_closest_in_sphere_cells(
     mode: int,
     interpolate: int,
     epsilon: float,
-    cell_size: float,
+    cell_size: wp.vec2,
     num_buckets: int,
     sphere_reach: wp.array[float],
     sphere_bound: wp.array[float],

@@ -387,7 +387,7 @@ def test_sphere_grid_levels_and_collisions_keep_the_reference_contacts(buckets, 
     ref, grid = _worlds(seq, pos, vel, radius, 0.013, [("refit", None), ("swept", {"search": "sphere_grid"})])
     col = grid.collider
     if cell_size is not None:
-        col.cell_size = cell_size
+        col.cell_size = wp.vec2(cell_size, 4.0 * cell_size)
     if buckets == 1:  # every cell in one bucket: every other cell's entry is a collision to skip
         col.num_buckets = 1
         col.bucket_count = wp.zeros(2, dtype=wp.int32, device=TEST_DEVICE)
