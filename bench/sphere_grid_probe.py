@@ -32,7 +32,8 @@ def _contacts(w):
     return w.contacts.numpy()
 
 
-def row(nv: int, ns: int, device, compare: list, steps: int, repeats: int, settle: int, variants: list) -> dict:
+def row(nv: int, ns: int, device, compare: list, steps: int, repeats: int, settle: int, variants: list,
+        profile: int = 0) -> dict:
     import warp as wp
 
     import dynmesh_warp.world as world_mod
@@ -86,6 +87,16 @@ def row(nv: int, ns: int, device, compare: list, steps: int, repeats: int, settl
                                        repeats)["us_per_step"],
                   "collide": time_loop(graph_or_eager(lambda: col.collide(mm, st, cc, ctx), device), device, steps,
                                        repeats)["us_per_step"]}
+        if profile and wp.get_device(device).is_cuda:  # each kernel's and memset's device time, eager
+            col.collide(mm, st, cc, ctx)
+            wp.timing_begin(cuda_filter=wp.TIMING_ALL)
+            for _ in range(profile):
+                col.collide(mm, st, cc, ctx)
+            prof = {}
+            for r in wp.timing_end():
+                prof[r.name] = prof.get(r.name, 0.0) + 1e3 * r.elapsed / profile
+            v["profile_us"] = prof
+            print("   profile (us): " + ", ".join(f"{k.split(' ')[-1]} {t:.1f}" for k, t in prof.items()), flush=True)
         cc.face.assign(face)
         v["stages_us"] = stages
         v["steps_per_s"] = time_loop(g.step, device, steps, repeats, warmup=5)["steps_per_s"]
@@ -113,9 +124,10 @@ def main(argv=None):
     ap.add_argument("--steps", type=int, default=200)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--settle", type=int, default=120, help="steps run before the state is copied")
-    ap.add_argument("--variants", default="2/4/8",
+    ap.add_argument("--variants", default="4/4/8",
                     help="comma-separated CELL/LEVEL/BUCKETS: choices.SPHERE_GRID_CELL_SCALE, _LEVEL_SCALE and "
                          "_BUCKETS_PER_SPHERE of each sphere_grid variant timed")
+    ap.add_argument("--profile", type=int, default=0, help="on CUDA: time each kernel of this many eager collides")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     import warp as wp
@@ -129,7 +141,7 @@ def main(argv=None):
         for ns in [int(float(v)) for v in args.spheres.split(",")]:
             variants = [tuple(float(x) for x in v.split("/")) for v in args.variants.split(",")]
             res["rows"].append(row(nv, ns, device, [c for c in args.compare.split(",") if c], args.steps, args.repeats,
-                                   args.settle, variants))
+                                   args.settle, variants, args.profile))
             write_json(out, res)
 
 

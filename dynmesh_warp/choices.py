@@ -191,7 +191,7 @@ SWEPT_TILE_THREADS = 64
 #: the sphere_grid search's hash table: buckets per sphere (rounded up to a power of two)
 SPHERE_GRID_BUCKETS_PER_SPHERE = 8
 #: the sphere_grid search's level-0 cell edge over the spheres' median (radius + margin)
-SPHERE_GRID_CELL_SCALE = 2.0
+SPHERE_GRID_CELL_SCALE = 4.0
 #: the sphere_grid search's level-1 cell edge over level 0's
 SPHERE_GRID_LEVEL_SCALE = 4.0
 #: threads per sphere of the face-parallel search's second pass (the faces around the winning

@@ -29,8 +29,14 @@ from .kernels.swept import (
     detect_frame_change,
     find_closest_per_face,
     resolve_closest_per_sphere,
+    resolve_closest_per_sphere_serial,
 )
-from .kernels.sphere_grid import count_sphere_cells, find_closest_in_sphere_cells, scatter_sphere_cells
+from .kernels.sphere_grid import (
+    compute_sphere_bounds,
+    count_sphere_cells,
+    find_closest_in_sphere_cells,
+    scatter_sphere_cells,
+)
 from .choices import (
     DEFAULT_COLLIDER,
     DEFAULT_PLAYBACK,
@@ -816,16 +822,18 @@ class SweptCollider(ColliderBase):
         m, s = model, state
         surf = m.surface
         self.level_count.zero_()
-        ctx.launch(count_sphere_cells, m.spheres.count,
+        S = m.spheres.count
+        ctx.launch(compute_sphere_bounds, S,
                    [surf.frames, surf.indices, m.spheres.radius, s.sim_time, s.sphere_pos, s.sphere_vel, contacts.face,
                     self.surface_lower, self.surface_upper, surf.fps, surf.playback, int(surf.interpolate),
-                    self.epsilon, ctx.sub_dt, ctx.extra_speed, m.params.margin, self.cell_size, self.num_buckets],
-                   [self.sphere_reach, self.sphere_bound, self.sphere_level, self.bucket_count, self.level_count,
+                    self.epsilon, ctx.sub_dt, ctx.extra_speed, m.params.margin, self.cell_size],
+                   [self.sphere_reach, self.sphere_bound, self.sphere_level, self.level_count,
                     self.every_face_spheres])
+        grid_in = [s.sphere_pos, self.sphere_bound, self.sphere_level, self.epsilon, self.cell_size, self.num_buckets]
+        ctx.launch(count_sphere_cells, (S, 27), grid_in, [self.bucket_count])
         wp.utils.array_scan(self.bucket_count, self.bucket_start, inclusive=False)
-        ctx.launch(scatter_sphere_cells, m.spheres.count,
-                   [s.sphere_pos, self.sphere_bound, self.sphere_level, self.epsilon, self.cell_size, self.num_buckets,
-                    self.bucket_start], [self.bucket_count, self.cell_spheres, self.cell_sphere_balls])
+        ctx.launch(scatter_sphere_cells, (S, 27), [*grid_in, self.bucket_start],
+                   [self.bucket_count, self.cell_spheres, self.cell_sphere_balls])
 
     def collide_sphere_grid(self, model: Model, state: State, contacts: "Contacts", ctx: StepContext):
         """The ``sphere_grid`` search: bin the spheres, one pass over the faces, then each
@@ -841,12 +849,10 @@ class SweptCollider(ColliderBase):
                    [surf.frames, surf.indices, s.sim_time, s.sphere_pos, *clock, self.cell_size, self.num_buckets,
                     self.sphere_reach, self.sphere_bound, self.bucket_start, self.cell_spheres, self.cell_sphere_balls,
                     self.level_count, self.every_face_spheres], [self.best_key])
-        wp.launch_tiled(resolve_closest_per_sphere, dim=S,
-                        inputs=[surf.frames, surf.indices, m.spheres.radius, self.vertex_face_offsets,
-                                self.vertex_faces, s.sim_time, s.sphere_pos, s.sphere_vel, *clock, ctx.sub_dt,
-                                ctx.extra_speed, m.params.margin],
-                        outputs=[self.best_key, c.face, c.point, c.normal, c.depth, c.velocity],
-                        block_dim=SWEPT_RESOLVE_THREADS, device=ctx.device)
+        ctx.launch(resolve_closest_per_sphere_serial, S,
+                   [surf.frames, surf.indices, m.spheres.radius, self.vertex_face_offsets, self.vertex_faces,
+                    s.sim_time, s.sphere_pos, s.sphere_vel, *clock, ctx.sub_dt, ctx.extra_speed, m.params.margin],
+                   [self.best_key, c.face, c.point, c.normal, c.depth, c.velocity])
 
 
 COLLIDERS = {"refit": RefitCollider, "swept": SweptCollider, "rebuild": RebuildCollider}

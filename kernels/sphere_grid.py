@@ -3,24 +3,26 @@ the spheres rebuilt every step, for many spheres on large meshes (issue 14).
 
 Each step:
 
-1. ``count_sphere_cells`` (one thread per sphere): the sphere's search radius, ``bound`` [m], is
-   its reach (r + margin + motion, ``contact_reach``) or, when less, the distance to its previous
-   contact face evaluated at the step's time (the closest face is no farther). A sphere whose
-   ball of radius bound + epsilon misses the box of every frame of the surface has no contact and
-   is left out. The others are counted in every cell of a uniform grid that the ball's box
-   overlaps: cells of ``cell_size[0]`` (level 0) or the coarser ``cell_size[1]`` (level 1) where the
-   ball spans more than CELL_RANGE cells an axis at level 0; a sphere wider than that at level 1 too is put
-   in a list every face tests (level 2). Cells are hashed into ``num_buckets`` buckets (a
-   collision only adds candidates that are then skipped).
+1. ``compute_sphere_bounds`` (one thread per sphere): the sphere's search radius, ``bound``
+   [m], is its reach (r + margin + motion, ``contact_reach``) or, when less, the distance to
+   its previous contact face evaluated at the step's time (the closest face is no farther). A
+   sphere whose ball of radius bound + epsilon misses the box of every frame of the surface has
+   no contact and is left out. The others get a level: 0 (cells of ``cell_size[0]``) where the
+   ball's box spans at most CELL_RANGE cells an axis, else 1 (the coarser ``cell_size[1]``)
+   where it does there, else 2: a list every face tests. ``count_sphere_cells`` (one thread
+   per (sphere, cell)) counts each level-0/1 sphere in every cell its ball's box overlaps.
+   Cells are hashed into ``num_buckets`` buckets (a collision only adds candidates that are
+   then skipped).
 2. An exclusive scan of the buckets' counts (``wp.utils.array_scan``).
-3. ``scatter_sphere_cells``: each sphere written into its cells' bucket ranges; the counts are
-   counted back down to zero, ready for the next step.
+3. ``scatter_sphere_cells`` (one thread per (sphere, cell)): each sphere written into its cells'
+   bucket ranges; the counts are counted back down to zero, ready for the next step.
 4. ``find_closest_in_sphere_cells`` (one thread per face): the triangle at the step's time, its
    box, the cells the box overlaps at each level; each sphere listed there is tested once (in
    the first cell its range and the face's share), and where the box lies within the sphere's
    bound + epsilon the triangle is evaluated and a candidate closer than the reach goes into the
    sphere's atomic minimum of ``face_key`` (as the ``faces`` search).
-5. ``resolve_closest_per_sphere`` (kernels/swept.py): the contact from each sphere's key.
+5. ``resolve_closest_per_sphere_serial`` (kernels/swept.py): the contact from each sphere's key,
+   one thread a sphere.
 
 Exact: every face within a sphere's bound is tested (its box overlaps the sphere's ball, so
 they share a cell), and the closest face lies within the bound. No BVH, no refit; the work
@@ -76,7 +78,7 @@ def fits_level(lo: wp.vec3i, hi: wp.vec3i) -> bool:
 
 
 @wp.kernel
-def count_sphere_cells(
+def compute_sphere_bounds(
     # Model:
     frames: wp.array2d[wp.vec3],
     indices: wp.array[wp.int32],
@@ -97,22 +99,19 @@ def count_sphere_cells(
     extra_speed: float,
     margin: float,
     cell_size: wp.vec2,
-    num_buckets: int,
     # Out:
     sphere_reach: wp.array[float],
     sphere_bound: wp.array[float],
     sphere_level: wp.array[wp.int32],
-    bucket_count: wp.array[wp.int32],
     level_count: wp.array[wp.int32],
     every_face_spheres: wp.array[wp.int32],
 ):
     """Each sphere's reach [m], search radius ``sphere_bound`` [m] (the reach, or the distance
-    to its previous contact face ``contact_face`` at the step's time when less), grid level, and
-    its count in the buckets of the cells its ball overlaps (``bucket_count`` accumulated, all
-    zero before); ``level_count`` (3,) the spheres of each level (accumulated, zero before);
+    to its previous contact face ``contact_face`` at the step's time when less) and grid level
+    (LEVEL_NONE where the ball misses ``surface_lower``/``upper``, the box of every frame of the
+    surface [m]); ``level_count`` (3,) the spheres of each level (accumulated, zero before);
     spheres too wide for both levels are appended to ``every_face_spheres`` (their count is
-    ``level_count[2]``). ``surface_lower``/``upper``: the box of every frame of the surface [m];
-    ``cell_size``: the cell edge of levels 0 and 1 [m]."""
+    ``level_count[2]``). ``cell_size``: the cell edge of levels 0 and 1 [m]."""
     s = wp.tid()
     p = sphere_pos_in[s]
     reach = contact_reach(sphere_radius[s], sphere_vel_in[s], extra_speed, dt, margin)
@@ -135,14 +134,44 @@ def count_sphere_cells(
                 lo, hi = sphere_cells(p, bound, epsilon, cell_size, trial)
                 if fits_level(lo, hi):
                     level = trial
-                    for x in range(lo[0], hi[0] + 1):
-                        for y in range(lo[1], hi[1] + 1):
-                            for z in range(lo[2], hi[2] + 1):
-                                wp.atomic_add(bucket_count, bucket_of(wp.vec3i(x, y, z), trial, num_buckets), 1)
         k = wp.atomic_add(level_count, level, 1)
         if level == LEVEL_EVERY_FACE:
             every_face_spheres[k] = s
     sphere_level[s] = level
+
+
+@wp.func
+def sphere_cell(p: wp.vec3, bound: float, level: int, epsilon: float, cell_size: wp.vec2, c: int):
+    """Cell c (0..26, x-major) of the sphere's range at its level, and whether the range has it."""
+    lo, hi = sphere_cells(p, bound, epsilon, cell_size, level)
+    x = lo[0] + c / 9
+    y = lo[1] + (c / 3) % 3
+    z = lo[2] + c % 3
+    return wp.vec3i(x, y, z), x <= hi[0] and y <= hi[1] and z <= hi[2]
+
+
+@wp.kernel
+def count_sphere_cells(
+    # State in:
+    sphere_pos_in: wp.array[wp.vec3],
+    # In:
+    sphere_bound: wp.array[float],
+    sphere_level: wp.array[wp.int32],
+    epsilon: float,
+    cell_size: wp.vec2,
+    num_buckets: int,
+    # Out:
+    bucket_count: wp.array[wp.int32],
+):
+    """One thread per (sphere, cell of its range) (launch (S, 27): a range of level 0 or 1 spans
+    at most 3 cells an axis): the cell's bucket counted (``bucket_count`` accumulated, all zero
+    before). One atomic a thread, none in series."""
+    s, c = wp.tid()
+    level = sphere_level[s]
+    if level == 0 or level == 1:
+        cell, inside = sphere_cell(sphere_pos_in[s], sphere_bound[s], level, epsilon, cell_size, c)
+        if inside:
+            wp.atomic_add(bucket_count, bucket_of(cell, level, num_buckets), 1)
 
 
 @wp.kernel
@@ -161,24 +190,21 @@ def scatter_sphere_cells(
     cell_spheres: wp.array[wp.int32],
     cell_sphere_balls: wp.array[wp.vec4],
 ):
-    """Each sphere of level 0 or 1 written into the bucket ranges (``bucket_start``: the
-    exclusive scan of the counts) of its cells: its index in ``cell_spheres`` and its centre
-    and bound [m] in ``cell_sphere_balls`` (read by the face pass without a gather);
-    ``bucket_count`` is counted down to zero."""
-    s = wp.tid()
+    """One thread per (sphere, cell of its range) (launch (S, 27)): the sphere written into the
+    cell's bucket range (``bucket_start``: the exclusive scan of the counts): its index in
+    ``cell_spheres`` and its centre and bound [m] in ``cell_sphere_balls`` (read by the face
+    pass without a gather); ``bucket_count`` is counted down to zero."""
+    s, c = wp.tid()
     level = sphere_level[s]
     if level == 0 or level == 1:
         p = sphere_pos_in[s]
         bound = sphere_bound[s]
-        ball = wp.vec4(p[0], p[1], p[2], bound)
-        lo, hi = sphere_cells(p, bound, epsilon, cell_size, level)
-        for x in range(lo[0], hi[0] + 1):
-            for y in range(lo[1], hi[1] + 1):
-                for z in range(lo[2], hi[2] + 1):
-                    bk = bucket_of(wp.vec3i(x, y, z), level, num_buckets)
-                    slot = bucket_start[bk] + wp.atomic_sub(bucket_count, bk, 1) - 1
-                    cell_spheres[slot] = s
-                    cell_sphere_balls[slot] = ball
+        cell, inside = sphere_cell(p, bound, level, epsilon, cell_size, c)
+        if inside:
+            bk = bucket_of(cell, level, num_buckets)
+            slot = bucket_start[bk] + wp.atomic_sub(bucket_count, bk, 1) - 1
+            cell_spheres[slot] = s
+            cell_sphere_balls[slot] = wp.vec4(p[0], p[1], p[2], bound)
 
 
 @wp.func

@@ -382,49 +382,16 @@ def find_closest_per_face(
                 wp.atomic_min(best_key, s, face_key(dist, reach, f))
 
 
-@wp.kernel
-def resolve_closest_per_sphere(
-    # Model:
-    frames: wp.array2d[wp.vec3],
-    indices: wp.array[wp.int32],
-    sphere_radius: wp.array[float],
-    vertex_face_offsets: wp.array[wp.int32],
-    vertex_faces: wp.array[wp.int32],
-    # State in:
-    sim_time_in: wp.array[wp.float64],
-    sphere_pos_in: wp.array[wp.vec3],
-    sphere_vel_in: wp.array[wp.vec3],
-    # In:
-    fps: wp.float64,
-    mode: int,
-    interpolate: int,
-    epsilon: float,
-    dt: float,
-    extra_speed: float,
-    margin: float,
-    # Out (read, then reset to NO_KEY for the next step's pass):
-    best_key_in_out: wp.array[wp.int64],
-    contact_face: wp.array[wp.int32],
-    contact_point: wp.array[wp.vec3],
-    contact_normal: wp.array[wp.vec3],
-    contact_depth: wp.array[float],
-    contact_velocity: wp.array[wp.vec3],
+@wp.func
+def sum_tie_normals(
+    frames: wp.array2d[wp.vec3], indices: wp.array[wp.int32], vertex_face_offsets: wp.array[wp.int32],
+    vertex_faces: wp.array[wp.int32], k0: int, k1: int, alpha: float, p: wp.vec3, reach: float, epsilon: float,
+    key: wp.int64, lane: int, lanes: int,
 ):
-    """The face-parallel search, second pass (``wp.launch_tiled``, dim (S,), a block of threads
-    per sphere): each sphere's contact from its key's face (the closest point recomputed), as
-    ``collide_sphere_swept``. The pseudo-normal's ties are looked for among the faces around the
-    winning face's three vertices (CSR ``vertex_face_offsets`` (N+1,) / ``vertex_faces`` (3M,)),
-    the block's threads taking the entries of the three lists in parallel (lane j: entries j,
-    j + block, ...): each such face within ``epsilon`` of the closest distance adds its
-    angle-weighted normal term (summed over the block), as the serial rule's ties do (a tie
-    shares the closest vertex or edge; a face elsewhere that happens to lie within epsilon is
-    not looked for). Thread 0 writes the contact and resets the key for the next step."""
-    s, lane = wp.tid()
-    p = sphere_pos_in[s]
-    r = sphere_radius[s]
-    reach = contact_reach(r, sphere_vel_in[s], extra_speed, dt, margin)
-    k0, k1, alpha = blend_pair(sim_time_in[0], fps, frames.shape[0], mode, interpolate)
-    key = best_key_in_out[s]
+    """The face-parallel searches' resolve for one sphere: the face of its ``key`` (NO_KEY:
+    none), the closest point on it, and the angle-weighted normal terms of the faces around its
+    three vertices within ``epsilon`` of the closest distance that fall to this lane (entries
+    lane, lane + lanes, ... of the three vertices' lists; each face counted once)."""
     face = int(-1)
     dist = reach
     w = wp.vec3(0.0)
@@ -461,12 +428,102 @@ def resolve_closest_per_sphere(
                 gd, gw, gn = face_candidate(p, ga, gb, ge, epsilon)
                 if gd < dist + epsilon:
                     tie = tie + gn
-            j += wp.block_dim()
+            j += lanes
+    return face, dist, w, tie
+
+
+@wp.kernel
+def resolve_closest_per_sphere(
+    # Model:
+    frames: wp.array2d[wp.vec3],
+    indices: wp.array[wp.int32],
+    sphere_radius: wp.array[float],
+    vertex_face_offsets: wp.array[wp.int32],
+    vertex_faces: wp.array[wp.int32],
+    # State in:
+    sim_time_in: wp.array[wp.float64],
+    sphere_pos_in: wp.array[wp.vec3],
+    sphere_vel_in: wp.array[wp.vec3],
+    # In:
+    fps: wp.float64,
+    mode: int,
+    interpolate: int,
+    epsilon: float,
+    dt: float,
+    extra_speed: float,
+    margin: float,
+    # Out (read, then reset to NO_KEY for the next step's pass):
+    best_key_in_out: wp.array[wp.int64],
+    contact_face: wp.array[wp.int32],
+    contact_point: wp.array[wp.vec3],
+    contact_normal: wp.array[wp.vec3],
+    contact_depth: wp.array[float],
+    contact_velocity: wp.array[wp.vec3],
+):
+    """The face-parallel search, second pass (``wp.launch_tiled``, dim (S,), a block of threads
+    per sphere): each sphere's contact from its key's face (the closest point recomputed), as
+    ``collide_sphere_swept``. The pseudo-normal's ties are looked for among the faces around the
+    winning face's three vertices (CSR ``vertex_face_offsets`` (N+1,) / ``vertex_faces`` (3M,)),
+    the block's threads taking the entries of the three lists in parallel (``sum_tie_normals``):
+    each such face within ``epsilon`` of the closest distance adds its angle-weighted normal
+    term (summed over the block), as the serial rule's ties do (a tie shares the closest vertex
+    or edge; a face elsewhere that happens to lie within epsilon is not looked for). Thread 0
+    writes the contact and resets the key for the next step."""
+    s, lane = wp.tid()
+    p = sphere_pos_in[s]
+    r = sphere_radius[s]
+    reach = contact_reach(r, sphere_vel_in[s], extra_speed, dt, margin)
+    k0, k1, alpha = blend_pair(sim_time_in[0], fps, frames.shape[0], mode, interpolate)
+    face, dist, w, tie = sum_tie_normals(frames, indices, vertex_face_offsets, vertex_faces, k0, k1, alpha, p, reach,
+                                         epsilon, best_key_in_out[s], lane, wp.block_dim())
     acc_n = wp.tile_sum(wp.tile(tie, preserve_type=True))[0]
     if lane == 0:
         write_swept_contact(s, p, r, reach, dist, face, w, acc_n, frames, indices, k0, k1, alpha, fps,
                             contact_face, contact_point, contact_normal, contact_depth, contact_velocity)
         best_key_in_out[s] = NO_KEY
+
+
+@wp.kernel
+def resolve_closest_per_sphere_serial(
+    # Model:
+    frames: wp.array2d[wp.vec3],
+    indices: wp.array[wp.int32],
+    sphere_radius: wp.array[float],
+    vertex_face_offsets: wp.array[wp.int32],
+    vertex_faces: wp.array[wp.int32],
+    # State in:
+    sim_time_in: wp.array[wp.float64],
+    sphere_pos_in: wp.array[wp.vec3],
+    sphere_vel_in: wp.array[wp.vec3],
+    # In:
+    fps: wp.float64,
+    mode: int,
+    interpolate: int,
+    epsilon: float,
+    dt: float,
+    extra_speed: float,
+    margin: float,
+    # Out (read, then reset to NO_KEY for the next step's pass):
+    best_key_in_out: wp.array[wp.int64],
+    contact_face: wp.array[wp.int32],
+    contact_point: wp.array[wp.vec3],
+    contact_normal: wp.array[wp.vec3],
+    contact_depth: wp.array[float],
+    contact_velocity: wp.array[wp.vec3],
+):
+    """``resolve_closest_per_sphere`` with one thread per sphere walking the tie candidates in
+    turn (launch (S,)): for many spheres, where a block per sphere would mostly idle (most
+    spheres have no key) and the spheres themselves fill the device."""
+    s = wp.tid()
+    p = sphere_pos_in[s]
+    r = sphere_radius[s]
+    reach = contact_reach(r, sphere_vel_in[s], extra_speed, dt, margin)
+    k0, k1, alpha = blend_pair(sim_time_in[0], fps, frames.shape[0], mode, interpolate)
+    face, dist, w, tie = sum_tie_normals(frames, indices, vertex_face_offsets, vertex_faces, k0, k1, alpha, p, reach,
+                                         epsilon, best_key_in_out[s], 0, 1)
+    write_swept_contact(s, p, r, reach, dist, face, w, tie, frames, indices, k0, k1, alpha, fps,
+                        contact_face, contact_point, contact_normal, contact_depth, contact_velocity)
+    best_key_in_out[s] = NO_KEY
 
 
 @wp.kernel
