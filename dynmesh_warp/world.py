@@ -48,6 +48,7 @@ from .choices import (
     SPHERE_GRID_BUCKETS_PER_SPHERE,
     SPHERE_GRID_CELL_SCALE,
     SPHERE_GRID_LEVEL_SCALE,
+    SPHERE_GRID_SERIAL_RESOLVE,
     SWEPT_FACES_MAX_SPHERES,
     SWEPT_MEASURED_SEARCHES,
     SWEPT_RESOLVE_THREADS,
@@ -849,10 +850,14 @@ class SweptCollider(ColliderBase):
                    [surf.frames, surf.indices, s.sim_time, s.sphere_pos, *clock, self.cell_size, self.num_buckets,
                     self.sphere_reach, self.sphere_bound, self.bucket_start, self.cell_spheres, self.cell_sphere_balls,
                     self.level_count, self.every_face_spheres], [self.best_key])
-        ctx.launch(resolve_closest_per_sphere_serial, S,
-                   [surf.frames, surf.indices, m.spheres.radius, self.vertex_face_offsets, self.vertex_faces,
-                    s.sim_time, s.sphere_pos, s.sphere_vel, *clock, ctx.sub_dt, ctx.extra_speed, m.params.margin],
-                   [self.best_key, c.face, c.point, c.normal, c.depth, c.velocity])
+        resolve_in = [surf.frames, surf.indices, m.spheres.radius, self.vertex_face_offsets, self.vertex_faces,
+                      s.sim_time, s.sphere_pos, s.sphere_vel, *clock, ctx.sub_dt, ctx.extra_speed, m.params.margin]
+        resolve_out = [self.best_key, c.face, c.point, c.normal, c.depth, c.velocity]
+        if S >= SPHERE_GRID_SERIAL_RESOLVE:
+            ctx.launch(resolve_closest_per_sphere_serial, S, resolve_in, resolve_out)
+        else:
+            wp.launch_tiled(resolve_closest_per_sphere, dim=S, inputs=resolve_in, outputs=resolve_out,
+                            block_dim=SWEPT_RESOLVE_THREADS, device=ctx.device)
 
 
 COLLIDERS = {"refit": RefitCollider, "swept": SweptCollider, "rebuild": RebuildCollider}

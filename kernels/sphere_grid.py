@@ -109,9 +109,9 @@ def compute_sphere_bounds(
     """Each sphere's reach [m], search radius ``sphere_bound`` [m] (the reach, or the distance
     to its previous contact face ``contact_face`` at the step's time when less) and grid level
     (LEVEL_NONE where the ball misses ``surface_lower``/``upper``, the box of every frame of the
-    surface [m]); ``level_count`` (3,) the spheres of each level (accumulated, zero before);
-    spheres too wide for both levels are appended to ``every_face_spheres`` (their count is
-    ``level_count[2]``). ``cell_size``: the cell edge of levels 0 and 1 [m]."""
+    surface [m]); ``level_count`` (3,): [0] and [1] set to 1 where a sphere has level 0 / 1, [2]
+    the count of the spheres too wide for both levels, appended to ``every_face_spheres`` (all
+    zero before). ``cell_size``: the cell edge of levels 0 and 1 [m]."""
     s = wp.tid()
     p = sphere_pos_in[s]
     reach = contact_reach(sphere_radius[s], sphere_vel_in[s], extra_speed, dt, margin)
@@ -134,9 +134,11 @@ def compute_sphere_bounds(
                 lo, hi = sphere_cells(p, bound, epsilon, cell_size, trial)
                 if fits_level(lo, hi):
                     level = trial
-        k = wp.atomic_add(level_count, level, 1)
         if level == LEVEL_EVERY_FACE:
-            every_face_spheres[k] = s
+            every_face_spheres[wp.atomic_add(level_count, level, 1)] = s
+        elif level_count[level] == 0:
+            # levels 0 and 1 are flags (a count would be an atomic on one address from every sphere)
+            level_count[level] = 1
     sphere_level[s] = level
 
 

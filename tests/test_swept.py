@@ -329,7 +329,7 @@ def test_bad_swept_search_is_refused_naming_the_field():
         World(model, State(model, [[0, 0, 1], [0.2, 0, 1]]), collider="swept")
 
 
-def test_every_search_finds_the_outside_beyond_a_sharp_edge():
+def test_every_search_finds_the_outside_beyond_a_sharp_edge(monkeypatch):
     """Beyond the sharp edge of a thin wedge (6 degrees) one face's normal points away from a
     slightly off-axis centre: only the pseudo-normal of the tied faces (both faces of the edge)
     tells outside from inside. Every search equals the refit reference there; with a face's own
@@ -353,24 +353,33 @@ def test_every_search_finds_the_outside_beyond_a_sharp_edge():
     dist = np.hypot(d, pos[:, 1])
     assert (c_ref["face"] >= 0).all()
     np.testing.assert_allclose(c_ref["depth"], radius - dist, atol=1e-5)  # outside: r - distance
-    for w in others:
-        c = _contacts_at(w)
-        np.testing.assert_array_equal(c["face"] >= 0, True)
-        np.testing.assert_allclose(c["depth"], c_ref["depth"], atol=1e-5)
-        np.testing.assert_allclose(c["normal"], c_ref["normal"], atol=1e-4)
+    import dynmesh_warp.world as world_mod
+
+    for serial in (False, True):  # the sphere grid's resolve: a block a sphere, or one thread (many spheres)
+        monkeypatch.setattr(world_mod, "SPHERE_GRID_SERIAL_RESOLVE", 1 if serial else 10**9)
+        for w in others if not serial else others[-1:]:
+            c = _contacts_at(w)
+            np.testing.assert_array_equal(c["face"] >= 0, True)
+            np.testing.assert_allclose(c["depth"], c_ref["depth"], atol=1e-5)
+            np.testing.assert_allclose(c["normal"], c_ref["normal"], atol=1e-4)
 
 
+@pytest.mark.parametrize("serial_resolve", [False, True], ids=["block_resolve", "serial_resolve"])
 @pytest.mark.parametrize("buckets, cell_size", [(None, None), (1, 0.03), (None, 0.002)],
                          ids=["default", "one_bucket_fine_cells", "every_face_list"])
-def test_sphere_grid_levels_and_collisions_keep_the_reference_contacts(buckets, cell_size):
+def test_sphere_grid_levels_and_collisions_keep_the_reference_contacts(monkeypatch, buckets, cell_size, serial_resolve):
     """The sphere_grid search lists each sphere in the grid level its search radius fits (level 0,
     the 4x coarser level 1, or the list every face tests) and hashes cells into buckets. Forced
     into each case (one bucket for every cell: every entry a collision; cells so small that the
     spheres go to level 1 or to the every-face list), its contacts stay the refit reference's,
-    over a wave sheet with spheres on both sides and moving."""
+    over a wave sheet with spheres on both sides and moving; with either resolve kernel (a block
+    a sphere, or one thread a sphere from SPHERE_GRID_SERIAL_RESOLVE spheres on)."""
     import warp as wp
 
+    import dynmesh_warp.world as world_mod
     from dynmesh_warp.scenes import grid_sheet
+
+    monkeypatch.setattr(world_mod, "SPHERE_GRID_SERIAL_RESOLVE", 1 if serial_resolve else 10**9)
     from dynmesh_warp.sequence import FixedTopologySequence
 
     V0, F = grid_sheet(40, 2.0)
