@@ -758,7 +758,10 @@ class SweptCollider(ColliderBase):
         # level-0 cells: twice a resting sphere's search radius, and no smaller than the faces
         h = float(max(SPHERE_GRID_CELL_SCALE * (np.median(r) + model.params.margin),
                       float(surf.average_edge_length.mean()), 1e-9))
-        self.cell_size = wp.vec2(h, SPHERE_GRID_LEVEL_SCALE * h)  # levels 0 and 1 [m]
+        # level 1 holds the largest sphere at rest too (a ball fits a level up to 1.5 cells wide):
+        # with mixed sizes the large spheres go there, not to the list every face tests
+        h1 = max(SPHERE_GRID_LEVEL_SCALE * h, 1.0 * (float(r.max()) + model.params.margin))
+        self.cell_size = wp.vec2(h, h1)  # levels 0 and 1 [m]
         self.num_buckets = int(max(1024, 1 << int(np.ceil(np.log2(max(S, 1) * SPHERE_GRID_BUCKETS_PER_SPHERE)))))
         self.sphere_reach = wp.zeros(n, dtype=float, device=d)
         self.sphere_bound = wp.zeros(n, dtype=float, device=d)

@@ -415,3 +415,32 @@ def test_sphere_grid_levels_and_collisions_keep_the_reference_contacts(monkeypat
         assert col.bucket_start.numpy()[-1] > 100  # every entry in the one bucket
     expected = {None: {0}, 0.03: {1}, 0.002: {2}}[cell_size]
     assert expected <= levels, levels
+
+
+def test_sphere_grid_puts_large_spheres_of_a_mixed_set_on_level_1():
+    """Cells are sized by the median sphere; level 1 is made wide enough for the largest sphere
+    at rest, so a few large spheres among many small ones go to level 1 (not to the list every
+    face tests) and the contacts stay the refit reference's."""
+    from dynmesh_warp.scenes import grid_sheet
+    from dynmesh_warp.sequence import FixedTopologySequence
+
+    V0, F = grid_sheet(40, 2.0)
+    V = np.repeat(V0[None], 4, 0).astype(np.float32)
+    for t in range(4):
+        V[t, :, 2] = 0.05 * np.sin(3 * V0[:, 0] + 2 * np.pi * t / 4)
+    seq = FixedTopologySequence(V, F, fps=24.0, name="sheet")
+    rng = np.random.default_rng(11)
+    S = 40
+    xy = rng.uniform(-0.8, 0.8, (S, 2))
+    radius = np.full(S, 0.01, np.float32)
+    radius[:4] = 0.3  # four large among small ones
+    pos = np.c_[xy, 0.05 * np.sin(3 * xy[:, 0]) + radius + rng.uniform(-0.005, 0.0, S)].astype(np.float32)
+    ref, grid = _worlds(seq, pos, None, radius, 0.0, [("refit", None), ("swept", {"search": "sphere_grid"})])
+    c_ref, c = _contacts_at(ref), _contacts_at(grid)
+    m = c_ref["face"] >= 0
+    assert m[:4].all() and m.sum() >= 20
+    np.testing.assert_array_equal(c["face"] >= 0, m)
+    np.testing.assert_allclose(c["point"][m], c_ref["point"][m], atol=2e-5)
+    np.testing.assert_allclose(c["depth"][m], c_ref["depth"][m], atol=2e-5)
+    level = grid.collider.sphere_level.numpy()
+    assert (level[:4] == 1).all() and (level[4:] == 0).all(), level
