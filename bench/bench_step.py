@@ -242,6 +242,8 @@ def main(argv=None):
                     "(fixed, swept, swept/serial, swept/tiled, refit, rebuild)")
     ap.add_argument("--refit-bvh", default=None, metavar="CTOR:LEAF",
                     help="the refit collider's BVH for this run, e.g. sah:8 (default: choices.REFIT_BVH)")
+    ap.add_argument("--refit-seed", choices=("on", "off"), default=None,
+                    help="the refit collider's seeded query for this run (default: choices.SEED_REFIT_QUERY)")
     ap.add_argument("--spatial-order", action="store_true",
                     help="number the spheres along a Morton curve of their spawn positions (default: random order)")
     args = ap.parse_args(argv)
@@ -253,6 +255,11 @@ def main(argv=None):
         ctor, _, leaf = args.refit_bvh.partition(":")
         for kind in choices.REFIT_BVH:
             choices.REFIT_BVH[kind] = (ctor, int(leaf or 4))
+    if args.refit_seed:  # an A/B of the refit path's seeded query: set for this process only
+        from dynmesh_warp import choices
+
+        for kind in choices.SEED_REFIT_QUERY:
+            choices.SEED_REFIT_QUERY[kind] = args.refit_seed == "on"
     import warp as wp
 
     wp.config.quiet = True
@@ -263,7 +270,10 @@ def main(argv=None):
     seq, shared = load_paper_sequence()
     from dynmesh_warp.choices import REFIT_BVH
 
+    from dynmesh_warp.choices import SEED_REFIT_QUERY
+
     result = {"machine": describe_device(device), "refit_bvh": list(REFIT_BVH["cuda" if device.is_cuda else "cpu"]),
+              "refit_seed": bool(SEED_REFIT_QUERY["cuda" if device.is_cuda else "cpu"]),
               "paper_scene": {
         "sequence": seq.name, "from_shared_data": shared, "vertices": seq.num_vertices, "faces": seq.num_faces,
         "frames": seq.num_frames, "fps": seq.fps, "spheres": 5, "radius": 0.05, "dt": 1 / 240, "substeps": 1,

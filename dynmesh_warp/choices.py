@@ -18,7 +18,7 @@ import enum
 
 __all__ = ["StrEnum", "Collider", "SweptSearch", "RebuildEvery", "Playback", "FrameOrder", "Orientation", "UpAxis",
            "Strategy", "NewtonSolver", "Rasteriser", "PLAYBACK_CODES", "DEFAULT_RASTERISER", "DEFAULT_COLLIDER",
-           "DEFAULT_REBUILD_EVERY", "REFIT_BVH", "SEED_PREVIOUS_FACE",
+           "DEFAULT_REBUILD_EVERY", "REFIT_BVH", "SEED_PREVIOUS_FACE", "SEED_REFIT_QUERY",
            "DEFAULT_SWEPT_SEARCH", "DEFAULT_BATCH_SWEPT_SEARCH", "SWEPT_MEASURED_SEARCHES", "SWEPT_FACES_MAX_SPHERES",
            "SPHERE_GRID_BUCKETS_PER_SPHERE", "SPHERE_GRID_CELL_SCALE", "SPHERE_GRID_LEVEL_SCALE",
            "SPHERE_GRID_SERIAL_RESOLVE",
@@ -171,6 +171,9 @@ REFIT_BVH = {"cpu": ("sah", 4), "cuda": ("sah", 4)}
 #: dependent loads per thread before the walk) and the tiled ones nothing, so CUDA does not
 #: seed (docs/physics.md)
 SEED_PREVIOUS_FACE = {"cpu": True, "cuda": False}
+#: whether the refit collider's query reaches no farther than each sphere's previous contact face
+#: (+ twice Warp's tie epsilon) instead of its whole reach, per device kind (docs/physics.md)
+SEED_REFIT_QUERY = {"cpu": True, "cuda": True}
 #: the swept collider's search per device kind (a CPU thread block is one thread: serial there)
 DEFAULT_SWEPT_SEARCH = {"cpu": SweptSearch.SERIAL, "cuda": SweptSearch.TILED}
 #: the searches ``collider: fixed`` measures as candidates per device kind (none: the default)

@@ -45,6 +45,7 @@ from .choices import (
     PLAYBACK_CODES,
     REFIT_BVH,
     SEED_PREVIOUS_FACE,
+    SEED_REFIT_QUERY,
     SPHERE_GRID_BUCKETS_PER_SPHERE,
     SPHERE_GRID_CELL_SCALE,
     SPHERE_GRID_LEVEL_SCALE,
@@ -542,12 +543,15 @@ def compute_normals(model: Model, state: State, ctx: StepContext):
     ctx.launch(compute_face_normals, idx.shape[0] // 3, [state.points, idx], [state.face_normals])
 
 
-def collide_mesh(model: Model, state: State, contacts: "Contacts", ctx: StepContext, mesh_id):
-    """Stage 3 on a ``wp.Mesh`` over the current vertex buffer (refit / rebuild colliders)."""
+def collide_mesh(model: Model, state: State, contacts: "Contacts", ctx: StepContext, mesh_id, seed: bool = False,
+                 tie_distance: float = 0.0):
+    """Stage 3 on a ``wp.Mesh`` over the current vertex buffer (refit / rebuild colliders).
+    ``seed``: each query reaches no farther than the previous contact face's distance +
+    ``tie_distance`` [m] (``collide_sphere_mesh``; the same contacts)."""
     m, s, c = model, state, contacts
     ctx.launch(collide_sphere_mesh, m.spheres.count,
                [ctx.indices(m), m.spheres.radius, s.points, s.velocities, s.sphere_pos, s.sphere_vel,
-                mesh_id, ctx.sub_dt, ctx.extra_speed, m.params.margin],
+                mesh_id, ctx.sub_dt, ctx.extra_speed, m.params.margin, int(seed), float(tie_distance)],
                [c.face, c.point, c.normal, c.depth, c.velocity])
 
 
@@ -635,12 +639,16 @@ class RefitCollider(ColliderBase):
         ctor, leaf = REFIT_BVH[device_kind(state.points.device)]
         self.mesh = wp.Mesh(points=state.points, indices=model.surface.indices, velocities=state.velocities,
                             bvh_constructor=ctor, bvh_leaf_size=leaf)
+        self.seed = bool(SEED_REFIT_QUERY[device_kind(state.points.device)])
+        # twice Warp's tie epsilon (1e-3 x the mesh's average edge) at the frame of the longest
+        # edges: a blended triangle's edges are no longer than its frames' (triangle inequality)
+        self.tie_distance = 2.0e-3 * float(np.max(model.surface.average_edge_length))
 
     def update(self, model: Model, state: State, ctx: StepContext):
         self.mesh.refit()
 
     def collide(self, model: Model, state: State, contacts: "Contacts", ctx: StepContext):
-        collide_mesh(model, state, contacts, ctx, self.mesh.id)
+        collide_mesh(model, state, contacts, ctx, self.mesh.id, self.seed, self.tie_distance)
 
 
 class RebuildCollider(ColliderBase):

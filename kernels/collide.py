@@ -12,6 +12,8 @@ pushed out to the front; a sphere entirely behind the surface has no contact.
 
 import warp as wp
 
+from .geometry import closest_point_on_triangle
+
 # CUDA fast math (approximate division and square root), as kernels/batch.py and render.py: the
 # latency-bound contact queries lose the IEEE sequences' registers and slow-path calls; results
 # move by float rounding only (docs/physics.md, "Fast math").
@@ -59,6 +61,8 @@ def collide_sphere_mesh(
     dt: float,
     extra_speed: float,
     margin: float,
+    seed: int,
+    tie_distance: float,
     # Out:
     contact_face: wp.array[wp.int32],
     contact_point: wp.array[wp.vec3],
@@ -70,7 +74,11 @@ def collide_sphere_mesh(
 
     The query reaches radius + margin + (|v| + extra_speed) * dt, where extra_speed bounds the
     velocity gained in one step (gravity), so any surface the sphere's own motion can reach
-    during the step is found (continuous contact in the integrator).
+    during the step is found (continuous contact in the integrator). ``seed`` 1: the sphere's
+    previous contact face (``contact_face``, read before it is written) is evaluated first and
+    the query reaches no farther than its distance + ``tie_distance`` [m] (the closest face is
+    no farther, and the faces tied with it within Warp's epsilon are within that), so the tree
+    walk prunes from its first node (``choices.SEED_REFIT_QUERY``).
     """
     s = wp.tid()
     p = sphere_pos_in[s]
@@ -81,7 +89,16 @@ def collide_sphere_mesh(
     n = wp.vec3(0.0)
     depth = float(0.0)
     vs = wp.vec3(0.0)
-    q = wp.mesh_query_point_sign_normal(mesh, p, reach)
+    query = reach
+    if seed != 0:
+        g = contact_face[s]
+        if g >= 0 and g < indices.shape[0] / 3:
+            ga = points_in[indices[3 * g + 0]]
+            gb = points_in[indices[3 * g + 1]]
+            ge = points_in[indices[3 * g + 2]]
+            gw = closest_point_on_triangle(p, ga, gb, ge)
+            query = wp.min(reach, wp.length(gw[0] * ga + gw[1] * gb + gw[2] * ge - p) + tie_distance)
+    q = wp.mesh_query_point_sign_normal(mesh, p, query)
     if q.result:
         i0 = indices[3 * q.face + 0]
         i1 = indices[3 * q.face + 1]

@@ -444,3 +444,33 @@ def test_sphere_grid_puts_large_spheres_of_a_mixed_set_on_level_1():
     np.testing.assert_allclose(c["depth"][m], c_ref["depth"][m], atol=2e-5)
     level = grid.collider.sphere_level.numpy()
     assert (level[:4] == 1).all() and (level[4:] == 0).all(), level
+
+
+def test_seeded_refit_query_gives_the_unseeded_contacts(monkeypatch):
+    """choices.SEED_REFIT_QUERY: the refit collider's query reaches no farther than the previous
+    contact face's distance (+ twice Warp's tie epsilon). Over 240 steps with contacts the
+    seeded and unseeded refit worlds give the same contact faces, points and positions, and the
+    seed was in use (contacts on consecutive steps)."""
+    from dynmesh_warp import choices
+    import dynmesh_warp.world as world_mod
+
+    seq = wave_bowl(n=24, frames=12)
+    rng = np.random.default_rng(8)
+    pos = np.c_[rng.uniform(-0.5, 0.5, (6, 2)), np.full(6, 0.4)]
+    runs = {}
+    for flag in (True, False):
+        monkeypatch.setattr(world_mod, "SEED_REFIT_QUERY", {**choices.SEED_REFIT_QUERY, "cpu": flag, "cuda": flag})
+        (w,) = _worlds(seq, pos, None, np.full(6, 0.06, np.float32), 0.0, [("refit", None)])
+        assert w.collider.seed is flag
+        faces, points = [], []
+        for _ in range(240):
+            w.step()
+            faces.append(w.contacts.face.numpy().copy())
+            points.append(w.contacts.point.numpy().copy())
+        runs[flag] = (np.array(faces), np.array(points), w.sphere_positions())
+    f = runs[True][0]
+    assert ((f[1:] >= 0) & (f[:-1] >= 0)).sum() > 100  # seeded steps
+    np.testing.assert_array_equal(runs[True][0], runs[False][0])
+    m = runs[True][0] >= 0
+    np.testing.assert_allclose(runs[True][1][m], runs[False][1][m], atol=1e-6)
+    np.testing.assert_allclose(runs[True][2], runs[False][2], atol=1e-6)
