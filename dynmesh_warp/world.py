@@ -763,7 +763,8 @@ class SweptCollider(ColliderBase):
         V = surf.frames.numpy().reshape(-1, 3)
         self.surface_lower, self.surface_upper = wp.vec3(*V.min(axis=0)), wp.vec3(*V.max(axis=0))
         r = model.spheres.radius.numpy() if S else np.zeros(1, np.float32)
-        # level-0 cells: twice a resting sphere's search radius, and no smaller than the faces
+        # level-0 cells: SPHERE_GRID_CELL_SCALE x the median sphere's radius + margin (its search
+        # radius at rest), no smaller than the mean edge (H100 sweep of 1-8x: docs/benchmarks.md)
         h = float(max(SPHERE_GRID_CELL_SCALE * (np.median(r) + model.params.margin),
                       float(surf.average_edge_length.mean()), 1e-9))
         # level 1 holds the largest sphere at rest too (a ball fits a level up to 1.5 cells wide):
