@@ -76,15 +76,16 @@ def row(nv: int, ns: int, device, compare: list, steps: int, repeats: int, settl
              "same_contacts": bool(np.array_equal(c["face"] >= 0, m)),
              "max_point_diff_m": float(np.abs(c["point"][m] - c_ref["point"][m]).max()) if m.any() else 0.0}
         col = g.collider
-        lv = col.sphere_level.numpy()
+        grid = col.grid
+        lv = grid.sphere_level.numpy()
         v["levels"] = {str(k): int((lv == k).sum()) for k in (-1, 0, 1, 2)}
-        v["entries"] = int(col.bucket_start.numpy()[-1])
-        v["buckets"] = col.num_buckets
-        v["cell_size_m"] = [float(col.cell_size[0]), float(col.cell_size[1])]
+        v["entries"] = int(grid.bucket_start.numpy()[-1])
+        v["buckets"] = grid.num_buckets
+        v["cell_size_m"] = [float(grid.cell_size[0]), float(grid.cell_size[1])]
         mm, st, cc, ctx = g.model, g.state, g.contacts, g.ctx
         face = cc.face.numpy().copy()
-        stages = {"binning": time_loop(graph_or_eager(lambda: col.bin_spheres(mm, st, cc, ctx), device), device, steps,
-                                       repeats)["us_per_step"],
+        binning = graph_or_eager(lambda: grid.bin_spheres(mm, st, cc, ctx, col.epsilon), device)
+        stages = {"binning": time_loop(binning, device, steps, repeats)["us_per_step"],
                   "collide": time_loop(graph_or_eager(lambda: col.collide(mm, st, cc, ctx), device), device, steps,
                                        repeats)["us_per_step"]}
         if profile and wp.get_device(device).is_cuda:  # each kernel's and memset's device time, eager

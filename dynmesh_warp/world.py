@@ -685,6 +685,92 @@ class RebuildCollider(ColliderBase):
         collide_mesh(model, state, contacts, ctx, self.mesh.id)
 
 
+class SphereGrid:
+    """The swept collider's ``sphere_grid`` search (kernels/sphere_grid.py): the spheres binned
+    every step into a hashed two-level grid by their search radius, then one thread per face.
+
+    Attributes (allocated for ``n`` spheres):
+        cell_size: wp.vec2 the cell edge of levels 0 and 1 [m]: level 0 SPHERE_GRID_CELL_SCALE x
+            the median sphere's radius + margin (no smaller than the mean edge), level 1
+            SPHERE_GRID_LEVEL_SCALE x that and no smaller than the largest sphere's radius + margin.
+        num_buckets: the hash table's size (SPHERE_GRID_BUCKETS_PER_SPHERE a sphere, a power of 2).
+        surface_lower / surface_upper: wp.vec3 the box of every frame of the surface [m].
+        sphere_reach, sphere_bound: (n,) float [m]; sphere_level: (n,) int32 (-1 none, 0, 1, 2).
+        bucket_count, bucket_start: (num_buckets + 1,) int32 (the counts are zero between steps).
+        cell_spheres: (27 n,) int32 and cell_sphere_balls: (27 n,) vec4 (centre [m], bound [m]).
+        level_count: (3,) int32; every_face_spheres: (n,) int32.
+    """
+
+    def __init__(self, model: Model, n: int, device):
+        d = device
+        surf = model.surface
+        V = surf.frames.numpy().reshape(-1, 3)
+        self.surface_lower, self.surface_upper = wp.vec3(*V.min(axis=0)), wp.vec3(*V.max(axis=0))
+        r = model.spheres.radius.numpy() if model.spheres.count else np.zeros(1, np.float32)
+        # level-0 cells: SPHERE_GRID_CELL_SCALE x the median sphere's radius + margin (its search
+        # radius at rest), no smaller than the mean edge (H100 sweep of 1-8x: docs/benchmarks.md)
+        h = float(max(SPHERE_GRID_CELL_SCALE * (np.median(r) + model.params.margin),
+                      float(surf.average_edge_length.mean()), 1e-9))
+        # level 1 holds the largest sphere at rest too (a ball fits a level up to 1.5 cells wide):
+        # with mixed sizes the large spheres go there, not to the list every face tests
+        h1 = max(SPHERE_GRID_LEVEL_SCALE * h, 1.0 * (float(r.max()) + model.params.margin))
+        self.cell_size = wp.vec2(h, h1)
+        self.num_buckets = int(max(1024, 1 << int(np.ceil(np.log2(max(n, 1) * SPHERE_GRID_BUCKETS_PER_SPHERE)))))
+        self.sphere_reach = wp.zeros(n, dtype=float, device=d)
+        self.sphere_bound = wp.zeros(n, dtype=float, device=d)
+        self.sphere_level = wp.zeros(n, dtype=wp.int32, device=d)
+        self.bucket_count = wp.zeros(self.num_buckets + 1, dtype=wp.int32, device=d)
+        self.bucket_start = wp.zeros(self.num_buckets + 1, dtype=wp.int32, device=d)
+        # a sphere of level 0 or 1 spans at most CELL_RANGE^3 = 27 cells
+        self.cell_spheres = wp.zeros(n * 27, dtype=wp.int32, device=d)
+        self.cell_sphere_balls = wp.zeros(n * 27, dtype=wp.vec4, device=d)
+        self.level_count = wp.zeros(3, dtype=wp.int32, device=d)
+        self.every_face_spheres = wp.zeros(n, dtype=wp.int32, device=d)
+
+    def bin_spheres(self, model: Model, state: State, contacts: "Contacts", ctx: StepContext, epsilon: float):
+        """Each sphere's reach, bound and level, counted into the buckets, the scan, the scatter."""
+        m, s = model, state
+        surf = m.surface
+        S = m.spheres.count
+        self.level_count.zero_()
+        ctx.launch(compute_sphere_bounds, S,
+                   [surf.frames, surf.indices, m.spheres.radius, s.sim_time, s.sphere_pos, s.sphere_vel, contacts.face,
+                    self.surface_lower, self.surface_upper, surf.fps, surf.playback, int(surf.interpolate),
+                    epsilon, ctx.sub_dt, ctx.extra_speed, m.params.margin, self.cell_size],
+                   [self.sphere_reach, self.sphere_bound, self.sphere_level, self.level_count,
+                    self.every_face_spheres])
+        grid_in = [s.sphere_pos, self.sphere_bound, self.sphere_level, epsilon, self.cell_size, self.num_buckets]
+        ctx.launch(count_sphere_cells, (S, 27), grid_in, [self.bucket_count])
+        wp.utils.array_scan(self.bucket_count, self.bucket_start, inclusive=False)
+        ctx.launch(scatter_sphere_cells, (S, 27), [*grid_in, self.bucket_start],
+                   [self.bucket_count, self.cell_spheres, self.cell_sphere_balls])
+
+    def collide(self, model: Model, state: State, contacts: "Contacts", ctx: StepContext, epsilon: float,
+                vertex_face_offsets, vertex_faces, best_key):
+        """Bin the spheres, one pass over the faces into ``best_key`` (NO_KEY before), then each
+        sphere's contact from its key (``resolve_closest_per_sphere``: a block a sphere, or one
+        thread a sphere from SPHERE_GRID_SERIAL_RESOLVE spheres on)."""
+        m, s, c = model, state, contacts
+        surf = m.surface
+        S = m.spheres.count
+        if not S:
+            return
+        self.bin_spheres(m, s, c, ctx, epsilon)
+        clock = [surf.fps, surf.playback, int(surf.interpolate), epsilon]
+        ctx.launch(find_closest_in_sphere_cells, surf.num_faces,
+                   [surf.frames, surf.indices, s.sim_time, s.sphere_pos, *clock, self.cell_size, self.num_buckets,
+                    self.sphere_reach, self.sphere_bound, self.bucket_start, self.cell_spheres, self.cell_sphere_balls,
+                    self.level_count, self.every_face_spheres], [best_key])
+        resolve_in = [surf.frames, surf.indices, m.spheres.radius, vertex_face_offsets, vertex_faces,
+                      s.sim_time, s.sphere_pos, s.sphere_vel, *clock, ctx.sub_dt, ctx.extra_speed, m.params.margin]
+        resolve_out = [best_key, c.face, c.point, c.normal, c.depth, c.velocity]
+        if S >= SPHERE_GRID_SERIAL_RESOLVE:
+            ctx.launch(resolve_closest_per_sphere_serial, S, resolve_in, resolve_out)
+        else:
+            wp.launch_tiled(resolve_closest_per_sphere, dim=S, inputs=resolve_in, outputs=resolve_out,
+                            block_dim=SWEPT_RESOLVE_THREADS, device=ctx.device)
+
+
 class SweptCollider(ColliderBase):
     """Fixed topology with interpolation, at per-frame cost: a ``wp.Bvh`` over each face's box
     across the frame interval [k, k+1], refit only when the frame pair changes (a device-side
@@ -752,36 +838,12 @@ class SweptCollider(ColliderBase):
 
     def resize(self, model: Model, state: State, ctx: StepContext):
         """The face-parallel searches' per-sphere scratch: the closest key (NO_KEY between
-        steps); the sphere grid's arrays (``sphere_grid``)."""
+        steps); the sphere grid (``sphere_grid``)."""
         d = ctx.device
         S = model.spheres.count
         n = max(S, 1) if self.search in (SweptSearch.FACES, SweptSearch.SPHERE_GRID) else 0
         self.best_key = wp.full(n, NO_KEY, dtype=wp.int64, device=d)
-        if self.search != SweptSearch.SPHERE_GRID:
-            return
-        surf = model.surface
-        V = surf.frames.numpy().reshape(-1, 3)
-        self.surface_lower, self.surface_upper = wp.vec3(*V.min(axis=0)), wp.vec3(*V.max(axis=0))
-        r = model.spheres.radius.numpy() if S else np.zeros(1, np.float32)
-        # level-0 cells: SPHERE_GRID_CELL_SCALE x the median sphere's radius + margin (its search
-        # radius at rest), no smaller than the mean edge (H100 sweep of 1-8x: docs/benchmarks.md)
-        h = float(max(SPHERE_GRID_CELL_SCALE * (np.median(r) + model.params.margin),
-                      float(surf.average_edge_length.mean()), 1e-9))
-        # level 1 holds the largest sphere at rest too (a ball fits a level up to 1.5 cells wide):
-        # with mixed sizes the large spheres go there, not to the list every face tests
-        h1 = max(SPHERE_GRID_LEVEL_SCALE * h, 1.0 * (float(r.max()) + model.params.margin))
-        self.cell_size = wp.vec2(h, h1)  # levels 0 and 1 [m]
-        self.num_buckets = int(max(1024, 1 << int(np.ceil(np.log2(max(S, 1) * SPHERE_GRID_BUCKETS_PER_SPHERE)))))
-        self.sphere_reach = wp.zeros(n, dtype=float, device=d)
-        self.sphere_bound = wp.zeros(n, dtype=float, device=d)
-        self.sphere_level = wp.zeros(n, dtype=wp.int32, device=d)
-        self.bucket_count = wp.zeros(self.num_buckets + 1, dtype=wp.int32, device=d)
-        self.bucket_start = wp.zeros(self.num_buckets + 1, dtype=wp.int32, device=d)
-        # a sphere of level 0 or 1 spans at most CELL_RANGE^3 cells
-        self.cell_spheres = wp.zeros(n * 27, dtype=wp.int32, device=d)
-        self.cell_sphere_balls = wp.zeros(n * 27, dtype=wp.vec4, device=d)
-        self.level_count = wp.zeros(3, dtype=wp.int32, device=d)
-        self.every_face_spheres = wp.zeros(n, dtype=wp.int32, device=d)
+        self.grid = SphereGrid(model, n, d) if self.search == SweptSearch.SPHERE_GRID else None
 
     def update(self, model: Model, state: State, ctx: StepContext):
         """Refit if the clock's frame pair changed (``State.frame_changed``: set by the previous
@@ -812,7 +874,8 @@ class SweptCollider(ColliderBase):
         inputs = [*model_in, *state_in, self.bvh.id, self.lowers, self.uppers, *step_in]
         outputs = [c.face, c.point, c.normal, c.depth, c.velocity]
         if self.search == SweptSearch.SPHERE_GRID:
-            self.collide_sphere_grid(model, state, contacts, ctx)
+            self.grid.collide(model, state, contacts, ctx, self.epsilon, self.vertex_face_offsets, self.vertex_faces,
+                              self.best_key)
         elif self.search == SweptSearch.FACES:
             ctx.launch(find_closest_per_face, surf.num_faces, [*model_in, *state_in, self.lowers, self.uppers, *step_in],
                        [self.best_key])
@@ -827,49 +890,6 @@ class SweptCollider(ColliderBase):
         else:
             seed = int(SEED_PREVIOUS_FACE[device_kind(ctx.device)])
             ctx.launch(collide_sphere_swept, m.spheres.count, [*inputs, seed], outputs)
-
-
-    def bin_spheres(self, model: Model, state: State, contacts: "Contacts", ctx: StepContext):
-        """The ``sphere_grid`` search's binning: each sphere's reach, bound and level, counted
-        into the grid's buckets, the scan, the scatter (kernels/sphere_grid.py)."""
-        m, s = model, state
-        surf = m.surface
-        self.level_count.zero_()
-        S = m.spheres.count
-        ctx.launch(compute_sphere_bounds, S,
-                   [surf.frames, surf.indices, m.spheres.radius, s.sim_time, s.sphere_pos, s.sphere_vel, contacts.face,
-                    self.surface_lower, self.surface_upper, surf.fps, surf.playback, int(surf.interpolate),
-                    self.epsilon, ctx.sub_dt, ctx.extra_speed, m.params.margin, self.cell_size],
-                   [self.sphere_reach, self.sphere_bound, self.sphere_level, self.level_count,
-                    self.every_face_spheres])
-        grid_in = [s.sphere_pos, self.sphere_bound, self.sphere_level, self.epsilon, self.cell_size, self.num_buckets]
-        ctx.launch(count_sphere_cells, (S, 27), grid_in, [self.bucket_count])
-        wp.utils.array_scan(self.bucket_count, self.bucket_start, inclusive=False)
-        ctx.launch(scatter_sphere_cells, (S, 27), [*grid_in, self.bucket_start],
-                   [self.bucket_count, self.cell_spheres, self.cell_sphere_balls])
-
-    def collide_sphere_grid(self, model: Model, state: State, contacts: "Contacts", ctx: StepContext):
-        """The ``sphere_grid`` search: bin the spheres, one pass over the faces, then each
-        sphere's contact from its key."""
-        m, s, c = model, state, contacts
-        surf = m.surface
-        S = m.spheres.count
-        if not S:
-            return
-        self.bin_spheres(m, s, c, ctx)
-        clock = [surf.fps, surf.playback, int(surf.interpolate), self.epsilon]
-        ctx.launch(find_closest_in_sphere_cells, surf.num_faces,
-                   [surf.frames, surf.indices, s.sim_time, s.sphere_pos, *clock, self.cell_size, self.num_buckets,
-                    self.sphere_reach, self.sphere_bound, self.bucket_start, self.cell_spheres, self.cell_sphere_balls,
-                    self.level_count, self.every_face_spheres], [self.best_key])
-        resolve_in = [surf.frames, surf.indices, m.spheres.radius, self.vertex_face_offsets, self.vertex_faces,
-                      s.sim_time, s.sphere_pos, s.sphere_vel, *clock, ctx.sub_dt, ctx.extra_speed, m.params.margin]
-        resolve_out = [self.best_key, c.face, c.point, c.normal, c.depth, c.velocity]
-        if S >= SPHERE_GRID_SERIAL_RESOLVE:
-            ctx.launch(resolve_closest_per_sphere_serial, S, resolve_in, resolve_out)
-        else:
-            wp.launch_tiled(resolve_closest_per_sphere, dim=S, inputs=resolve_in, outputs=resolve_out,
-                            block_dim=SWEPT_RESOLVE_THREADS, device=ctx.device)
 
 
 COLLIDERS = {"refit": RefitCollider, "swept": SweptCollider, "rebuild": RebuildCollider}

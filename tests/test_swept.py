@@ -396,11 +396,11 @@ def test_sphere_grid_levels_and_collisions_keep_the_reference_contacts(monkeypat
     ref, grid = _worlds(seq, pos, vel, radius, 0.013, [("refit", None), ("swept", {"search": "sphere_grid"})])
     col = grid.collider
     if cell_size is not None:
-        col.cell_size = wp.vec2(cell_size, 4.0 * cell_size)
+        col.grid.cell_size = wp.vec2(cell_size, 4.0 * cell_size)
     if buckets == 1:  # every cell in one bucket: every other cell's entry is a collision to skip
-        col.num_buckets = 1
-        col.bucket_count = wp.zeros(2, dtype=wp.int32, device=TEST_DEVICE)
-        col.bucket_start = wp.zeros(2, dtype=wp.int32, device=TEST_DEVICE)
+        col.grid.num_buckets = 1
+        col.grid.bucket_count = wp.zeros(2, dtype=wp.int32, device=TEST_DEVICE)
+        col.grid.bucket_start = wp.zeros(2, dtype=wp.int32, device=TEST_DEVICE)
     levels = set()
     for _ in range(3):  # the first without a seed, then seeded by the previous contact faces
         c_ref, c = _contacts_at(ref), _contacts_at(grid)
@@ -408,11 +408,11 @@ def test_sphere_grid_levels_and_collisions_keep_the_reference_contacts(monkeypat
         np.testing.assert_array_equal(c["face"] >= 0, m)
         np.testing.assert_allclose(c["point"][m], c_ref["point"][m], atol=2e-5)
         np.testing.assert_allclose(c["depth"][m], c_ref["depth"][m], atol=2e-5)
-        levels |= set(np.unique(col.sphere_level.numpy()).tolist())
+        levels |= set(np.unique(col.grid.sphere_level.numpy()).tolist())
         assert m.sum() >= 8
-    assert col.bucket_count.numpy().sum() == 0  # counted back down for the next step
+    assert col.grid.bucket_count.numpy().sum() == 0  # counted back down for the next step
     if buckets == 1:
-        assert col.bucket_start.numpy()[-1] > 100  # every entry in the one bucket
+        assert col.grid.bucket_start.numpy()[-1] > 100  # every entry in the one bucket
     expected = {None: {0}, 0.03: {1}, 0.002: {2}}[cell_size]
     assert expected <= levels, levels
 
@@ -442,7 +442,7 @@ def test_sphere_grid_puts_large_spheres_of_a_mixed_set_on_level_1():
     np.testing.assert_array_equal(c["face"] >= 0, m)
     np.testing.assert_allclose(c["point"][m], c_ref["point"][m], atol=2e-5)
     np.testing.assert_allclose(c["depth"][m], c_ref["depth"][m], atol=2e-5)
-    level = grid.collider.sphere_level.numpy()
+    level = grid.collider.grid.sphere_level.numpy()
     assert (level[:4] == 1).all() and (level[4:] == 0).all(), level
 
 
