@@ -27,6 +27,18 @@ def _contacts_at(w):
     return w.contacts.numpy()
 
 
+def _wave_sheet(n: int, frames: int, name: str = "sheet"):
+    """A 2 m grid sheet of n x n vertices with a travelling wave (5 cm, one period a loop)."""
+    from dynmesh_warp.scenes import grid_sheet
+    from dynmesh_warp.sequence import FixedTopologySequence
+
+    V0, F = grid_sheet(n, 2.0)
+    V = np.repeat(V0[None], frames, 0).astype(np.float32)
+    for t in range(frames):
+        V[t, :, 2] = 0.05 * np.sin(3 * V0[:, 0] + 2 * np.pi * t / frames)
+    return FixedTopologySequence(V, F, fps=24.0, name=name)
+
+
 @pytest.mark.parametrize("make_seq", [lambda: wave_bowl(n=24, frames=12), lambda: pulsing_blob(subdivisions=2, frames=12)])
 def test_swept_contacts_equal_refit_reference(make_seq):
     seq = make_seq()
@@ -217,15 +229,7 @@ def test_swept_search_with_hundreds_of_faces_per_sphere():
     """A fine sheet (120 x 120) and wide spheres: each sphere has hundreds of faces in its reach
     box (the case the tiled search is for: one thread would walk them all); every search gives
     the refit reference's contacts."""
-    from dynmesh_warp.scenes import grid_sheet
-    from dynmesh_warp.sequence import FixedTopologySequence
-
-    V0, F = grid_sheet(120, 2.0)
-    frames = 6
-    V = np.repeat(V0[None], frames, 0).astype(np.float32)
-    for t in range(frames):
-        V[t, :, 2] = 0.05 * np.sin(3 * V0[:, 0] + 2 * np.pi * t / frames)
-    seq = FixedTopologySequence(V, F, fps=24.0, name="fine")
+    seq = _wave_sheet(120, 6, "fine")
     rng = np.random.default_rng(5)
     S = 12
     xy = rng.uniform(-0.8, 0.8, (S, 2))
@@ -377,16 +381,9 @@ def test_sphere_grid_levels_and_collisions_keep_the_reference_contacts(monkeypat
     import warp as wp
 
     import dynmesh_warp.world as world_mod
-    from dynmesh_warp.scenes import grid_sheet
 
     monkeypatch.setattr(world_mod, "SPHERE_GRID_SERIAL_RESOLVE", 1 if serial_resolve else 10**9)
-    from dynmesh_warp.sequence import FixedTopologySequence
-
-    V0, F = grid_sheet(40, 2.0)
-    V = np.repeat(V0[None], 6, 0).astype(np.float32)
-    for t in range(6):
-        V[t, :, 2] = 0.05 * np.sin(3 * V0[:, 0] + 2 * np.pi * t / 6)
-    seq = FixedTopologySequence(V, F, fps=24.0, name="sheet")
+    seq = _wave_sheet(40, 6)
     rng = np.random.default_rng(7)
     S = 48
     xy = rng.uniform(-0.9, 0.9, (S, 2))
@@ -421,14 +418,7 @@ def test_sphere_grid_puts_large_spheres_of_a_mixed_set_on_level_1():
     """Cells are sized by the median sphere; level 1 is made wide enough for the largest sphere
     at rest, so a few large spheres among many small ones go to level 1 (not to the list every
     face tests) and the contacts stay the refit reference's."""
-    from dynmesh_warp.scenes import grid_sheet
-    from dynmesh_warp.sequence import FixedTopologySequence
-
-    V0, F = grid_sheet(40, 2.0)
-    V = np.repeat(V0[None], 4, 0).astype(np.float32)
-    for t in range(4):
-        V[t, :, 2] = 0.05 * np.sin(3 * V0[:, 0] + 2 * np.pi * t / 4)
-    seq = FixedTopologySequence(V, F, fps=24.0, name="sheet")
+    seq = _wave_sheet(40, 4)
     rng = np.random.default_rng(11)
     S = 40
     xy = rng.uniform(-0.8, 0.8, (S, 2))
