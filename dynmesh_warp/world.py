@@ -168,6 +168,8 @@ class SurfaceModel:
         playback: int code of "loop" | "clamp" | "pingpong" (times past the last frame).
         interpolate: blend frames k and k+1 linearly (else hold frame k).
         max_speed: largest vertex speed over the sequence [m/s] (host float).
+        average_edge_length: (T,) float32 each frame's mean edge length [m] (host).
+        max_abs_coordinate: the largest |coordinate| over the frames [m] (host float).
     """
 
     def __init__(self, seq: FixedTopologySequence, device=None, playback: str = DEFAULT_PLAYBACK, interpolate: bool = True):
@@ -192,6 +194,7 @@ class SurfaceModel:
         F = seq.F
         edges = np.linalg.norm(seq.V[:, F[:, [1, 2, 0]]] - seq.V[:, F], axis=-1)  # (T, M, 3)
         self.average_edge_length = edges.mean(axis=(1, 2)).astype(np.float32)  # (T,) [m], host
+        self.max_abs_coordinate = float(np.abs(seq.V).max())  # [m], host
 
     # What the rest of the package asks of a surface, answered by each surface class (no type
     # checks elsewhere): the colliders it supports, its state buffers, the indices of a frame,
@@ -641,8 +644,10 @@ class RefitCollider(ColliderBase):
                             bvh_constructor=ctor, bvh_leaf_size=leaf)
         self.seed = bool(SEED_REFIT_QUERY[device_kind(state.points.device)])
         # twice Warp's tie epsilon (1e-3 x the mesh's average edge) at the frame of the longest
-        # edges: a blended triangle's edges are no longer than its frames' (triangle inequality)
-        self.tie_distance = 2.0e-3 * float(np.max(model.surface.average_edge_length))
+        # edges (a blended triangle's edges are no longer than its frames': triangle inequality),
+        # plus float32 rounding at the surface's coordinates (~1e-7 relative, kept 10x)
+        surf = model.surface
+        self.tie_distance = 2.0e-3 * float(np.max(surf.average_edge_length)) + 1.0e-6 * surf.max_abs_coordinate
 
     def update(self, model: Model, state: State, ctx: StepContext):
         self.mesh.refit()
@@ -704,7 +709,7 @@ class SphereGrid:
     def __init__(self, model: Model, n: int, device):
         d = device
         surf = model.surface
-        V = surf.frames.numpy().reshape(-1, 3)
+        V = np.asarray(surf.sequence.V).reshape(-1, 3)  # host: every frame
         self.surface_lower, self.surface_upper = wp.vec3(*V.min(axis=0)), wp.vec3(*V.max(axis=0))
         r = model.spheres.radius.numpy() if model.spheres.count else np.zeros(1, np.float32)
         # level-0 cells: SPHERE_GRID_CELL_SCALE x the median sphere's radius + margin (its search
