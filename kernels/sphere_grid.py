@@ -33,7 +33,7 @@ import warp as wp
 
 from .collide import contact_reach
 from .frames import blend_pair
-from .swept import box_distance, face_candidate, face_key, interpolated_triangle
+from .swept import box_distance, face_candidate, face_key, interpolated_triangle, seed_closest
 
 wp.set_module_options({"fast_math": True})
 
@@ -115,13 +115,9 @@ def compute_sphere_bounds(
     s = wp.tid()
     p = sphere_pos_in[s]
     reach = contact_reach(sphere_radius[s], sphere_vel_in[s], extra_speed, dt, margin)
-    bound = reach
-    seed = contact_face[s]
-    if seed >= 0 and seed < indices.shape[0] / 3:
-        k0, k1, alpha = blend_pair(sim_time_in[0], fps, frames.shape[0], mode, interpolate)
-        a, b, e = interpolated_triangle(frames, indices, seed, k0, k1, alpha)
-        dist, w, wn = face_candidate(p, a, b, e, epsilon)
-        bound = wp.min(bound, dist)
+    k0, k1, alpha = blend_pair(sim_time_in[0], fps, frames.shape[0], mode, interpolate)
+    # the reach, or the seed face's distance when less (an index out of range is no seed)
+    bound, seed_face, seed_w, seed_n = seed_closest(frames, indices, k0, k1, alpha, p, reach, epsilon, contact_face[s])
     sphere_reach[s] = reach
     sphere_bound[s] = bound
     level = int(LEVEL_NONE)
