@@ -837,8 +837,10 @@ class SweptCollider(ColliderBase):
                       [self.lowers, self.uppers])
 
     def refit_frame(self, model: Model, state: State, ctx: StepContext):
+        if self.search == SweptSearch.SPHERE_GRID:  # it reads neither the swept boxes nor the tree
+            return
         self.compute_bounds(model, state, ctx)
-        if self.search not in (SweptSearch.FACES, SweptSearch.SPHERE_GRID):  # the face-parallel ones walk no tree
+        if self.search != SweptSearch.FACES:  # the face-parallel search reads the boxes only
             self.bvh.refit()
 
     def resize(self, model: Model, state: State, ctx: StepContext):
