@@ -259,6 +259,48 @@ def _read_trimesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return V.reshape(-1, 3), F
 
 
+def _ply_header(path: Path) -> tuple[str, dict, int]:
+    """(format, {element: count}, byte offset of the data) from a PLY file's header."""
+    with open(path, "rb") as fh:
+        head = fh.read(1 << 16)
+    end = re.search(rb"end_header\r?\n", head)
+    if not head.startswith(b"ply") or end is None:
+        raise _ReadError("not a PLY file, or its header has no end_header line")
+    fmt, counts = "", {}
+    for line in head[:end.start()].decode("latin-1").splitlines():
+        tok = line.split()
+        if len(tok) >= 2 and tok[0] == "format":
+            fmt = tok[1]
+        elif len(tok) == 3 and tok[0] == "element":
+            try:
+                counts[tok[1]] = int(tok[2])
+            except ValueError:
+                raise _ReadError(f"header: element {tok[1]} has a count that is not a whole number: {tok[2]!r}") from None
+    return fmt, counts, end.end()
+
+
+def _read_ply(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """A PLY file through trimesh, checked against its header: an ASCII file cut short (trimesh
+    reads what is there without a word) or a vertex count unlike the header's is an error."""
+    fmt, counts, start = _ply_header(path)
+    nv, nf = counts.get("vertex", 0), counts.get("face", 0)
+    if fmt == "ascii":
+        with open(path, "rb") as fh:
+            fh.seek(start)
+            lines = sum(1 for line in fh if line.strip())
+        need = sum(counts.values())  # an ASCII element is one line each
+        if lines < need:
+            raise _ReadError(f"truncated: the header declares {nv} vertices and {nf} faces"
+                             + (f" ({need} elements in all)" if need != nv + nf else "")
+                             + f" but the file has {lines} data lines")
+    V, F = _read_trimesh(path)
+    if len(V) != nv:
+        raise _ReadError(f"the header declares {nv} vertices but {len(V)} were read (truncated or corrupt)")
+    if len(F) < nf:
+        raise _ReadError(f"the header declares {nf} faces but {len(F)} triangles were read (truncated or corrupt)")
+    return V, F
+
+
 def _read_meshio(path: Path) -> tuple[np.ndarray, np.ndarray]:
     import meshio
 
@@ -276,7 +318,7 @@ def _read_meshio(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return V, F
 
 
-READERS = {".obj": _read_obj, ".off": _read_off, **{e: _read_trimesh for e in _TRIMESH_READERS}}
+READERS = {".obj": _read_obj, ".off": _read_off, **{e: _read_trimesh for e in _TRIMESH_READERS}, ".ply": _read_ply}
 """Extension -> ``reader(path) -> (V (N, 3), F (M, 3))``; other extensions go through meshio.
 A reader raises any exception for a bad file; ``read_mesh`` names the file and frame."""
 

@@ -366,6 +366,27 @@ def test_corrupt_file(tmp_path, name, content):
         load_sequence(p)
 
 
+_TETRA_PLY = ("ply\nformat ascii 1.0\ncomment made by hand\nelement vertex 4\nproperty float x\nproperty float y\n"
+              "property float z\nelement face 4\nproperty list uchar int vertex_indices\nend_header\n"
+              "0 0 0\n1 0 0\n0 1 0\n0 0 1\n3 0 2 1\n3 0 1 3\n3 0 3 2\n3 1 2 3\n")
+
+
+@pytest.mark.parametrize("keep_lines", [0, 2, 4, 5, 7])
+def test_truncated_ascii_ply_is_an_error(tmp_path, keep_lines):
+    """An ASCII PLY cut short (in the vertex or the face list) names the file and what is
+    missing; trimesh alone read the faces that were there without a word (found by a new user)."""
+    head, body = _TETRA_PLY.split("end_header\n")
+    full = tmp_path / "full.ply"
+    full.write_text(_TETRA_PLY)
+    V, F = read_mesh(full)
+    assert V.shape == (4, 3) and F.shape == (4, 3)
+    p = tmp_path / "cut.ply"
+    p.write_text(head + "end_header\n" + "".join(body.splitlines(keepends=True)[:keep_lines]))
+    with pytest.raises(MeshDataError, match=r"cut\.ply: truncated: the header declares 4 vertices and 4 faces "
+                                            rf"but the file has {keep_lines} data lines"):
+        read_mesh(p)
+
+
 def test_corrupt_frame_in_folder_names_file_and_frame(tmp_path):
     write_marked_frames(tmp_path, ["f0.obj", "f1.obj", "f2.obj"], [0, 1, 2])
     (tmp_path / "f1.obj").write_text("v 0 0 zzz\n")
