@@ -27,6 +27,7 @@ import os
 import signal
 import sys
 import threading
+import time
 import warnings
 from pathlib import Path
 
@@ -38,6 +39,11 @@ STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 #: seconds after a first signal before saying that the stop is under way (a quick stop says nothing twice)
 _ACK_AFTER_S = 1.0
+#: a second stop signal this soon after the first is the same stop: coreutils ``timeout`` sends
+#: its signal to the command and then again to its process group, so a command it stops gets it
+#: twice within microseconds (found by a new user: ``timeout -s INT`` exited "at once", writing
+#: nothing); a person's second Ctrl-C comes later (the first says to send it again after 1 s)
+_SAME_STOP_S = 0.3
 
 
 class Parser(argparse.ArgumentParser):
@@ -125,6 +131,7 @@ class _StopState:
 
     def reset(self):
         self.signum = None  # the first stop signal received
+        self.counted_at = 0.0  # when the last one was counted (time.monotonic)
         self.count = 0  # stop signals received (counted by the watcher when it runs)
         self.checking = 0  # depth of checking_stops()
         self.raised = False  # Interrupted was raised once already
@@ -219,7 +226,11 @@ def _first(signum: int) -> int:
             t = threading.Timer(_ACK_AFTER_S, _acknowledge, args=(int(signum),))
             t.daemon = True
             t.start()
+        now = time.monotonic()
+        if _state.count and now - _state.counted_at < _SAME_STOP_S:
+            return _state.count  # the same stop, sent twice (``timeout``: to the command, then its group)
         _state.count += 1
+        _state.counted_at = now
         return _state.count
 
 

@@ -2035,7 +2035,10 @@ def main(argv=None) -> int:
         with checking_stops():  # Ctrl-C / SIGTERM: stop between frames, write the frames done
             res = run(seq, strategy=a.strategy, template=a.template, device=device,
                       progress=not a.no_progress, should_stop=stop_reason, **opts)
-            reason = stop_reason() if res.num_frames < seq.num_frames else None
+            # a stop after every frame was converted (during the key-frame trials, the floater
+            # retry or the segments) still counts: the output is the run so far, not the one an
+            # uninterrupted run would have written
+            reason = stop_reason()
             status = {"complete": not reason, "frames": res.num_frames, "input_frames": seq.num_frames,
                       "first_frame": res.conversion.first_frame,
                       "interrupted_by": reason, "strategy": a.strategy,
@@ -2051,8 +2054,10 @@ def main(argv=None) -> int:
         return 2
     if reason:
         stored = "status: complete false" if out_suffix == ".npz" or a.fmt else "a point cache or animation holds no status"
+        later = ("; every frame was converted, but the later passes (key-frame trials, segments, the "
+                 "floater retry) did not finish: an uninterrupted run may differ") if res.num_frames == seq.num_frames else ""
         print(f"interrupted by {reason}: wrote {written} with input frames {res.conversion.first_frame}.."
-              f"{res.conversion.first_frame + res.num_frames - 1} of 0..{seq.num_frames - 1} ({stored})"
+              f"{res.conversion.first_frame + res.num_frames - 1} of 0..{seq.num_frames - 1} ({stored}){later}"
               + (f"; {kept}, which was there before, is unchanged" if kept else ""), file=sys.stderr)
         import signal
 

@@ -391,6 +391,50 @@ def test_convert_interrupted_keeps_an_existing_output(tmp_path, varying_npz, cap
     capsys.readouterr()
 
 
+def test_convert_signal_sent_twice_at_once_is_one_stop(tmp_path, varying_npz, capsys):
+    """coreutils ``timeout`` sends its signal to the command and again to its process group: two
+    signals microseconds apart are one stop (frames kept, exit 130), not "again: exiting at once"
+    (which wrote nothing; found by a new user)."""
+    out = tmp_path / "out.npz"
+    pr = Proc([sys.executable, "-m", "dynmesh_warp.convert", str(varying_npz), str(out), "--strategy",
+               "regularized", "--device", "cpu"], tmp_path)
+    pr.wait_for(b"frame/s")
+    pr.p.send_signal(signal.SIGINT)
+    time.sleep(0.05)  # handled apart (two bytes for the watcher), well within the same stop
+    pr.p.send_signal(signal.SIGINT)
+    rc, _, err = pr.finish()
+    assert rc == 130 and "again" not in err and "Traceback" not in err, err[-2000:]
+    assert _last_line(err).startswith(f"interrupted by SIGINT: wrote {out} with input frames ")
+    assert json.loads(str(np.load(out)["status"]))["complete"] is False
+    capsys.readouterr()
+
+
+def test_convert_stopped_after_the_last_frame_is_not_complete(tmp_path, varying_npz, monkeypatch, capsys):
+    """A stop during the passes after every frame was converted (key-frame trials, segments, the
+    floater retry) is reported: the output is the run so far, marked interrupted, exit 130; it
+    was written as complete with exit 0 (found by a new user)."""
+    import dynmesh_warp.convert as conv
+    from dynmesh_warp import cli
+
+    real = conv.to_piecewise_fixed
+
+    def stopped_after(seq, **kw):
+        res = real(seq, **kw)
+        cli._first(signal.SIGINT)  # as if Ctrl-C came once every frame was done
+        return res
+
+    monkeypatch.setattr(conv, "to_piecewise_fixed", stopped_after)
+    out = tmp_path / "out.npz"
+    rc = conv.main([str(varying_npz), str(out), "--strategy", "tracking", "--device", "cpu", "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 130
+    line = _last_line(err)
+    assert line.startswith(f"interrupted by SIGINT: wrote {out} with input frames 0..119 of 0..119"), line
+    assert "every frame was converted, but the later passes" in line
+    status = json.loads(str(np.load(out)["status"]))
+    assert status["complete"] is False and status["interrupted_by"] == "SIGINT" and status["frames"] == 120
+
+
 @pytest.fixture(scope="module")
 def small_gt(tmp_path_factory) -> Path:
     from dynmesh_warp.io import save_sequence
