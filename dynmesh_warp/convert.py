@@ -62,7 +62,7 @@ import warp as wp
 from .choices import DEFAULT_STRATEGY, STRATEGIES
 from .conversion_options import options_for
 from .deform_graph import GraphFitter, build_deformation_graph, extrapolate_rotations
-from .geometry import distinct_faces, face_areas, surface_area, weld_vertices
+from .geometry import distinct_faces, face_areas, mesh_orientation, surface_area, weld_vertices
 from .kernels import convert as kc
 from .kernels.geometry import project_points_to_mesh
 from .metrics import chamfer_distance
@@ -217,6 +217,8 @@ class ConversionInfo:
     welded: ``(frame, vertices)`` for input frames with vertices at one position (a triangle
     soup, seams), welded into one before the conversion (so the template of such a key frame is
     a connected mesh).
+    turned_outward: input frames wound inside out (closed, all faces inward), turned before the
+    conversion (the fit compares normals).
     dropped_unused: ``(frame, vertices, faces)`` for input frames holding vertices that no face
     uses (left over after a face filter, stray points) or faces that repeat a vertex: dropped
     before the conversion, so they neither pull the template nor count in the coverage, the
@@ -254,6 +256,7 @@ class ConversionInfo:
     key_trials: list = field(default_factory=list)
     dropped_unused: list = field(default_factory=list)
     welded: list = field(default_factory=list)
+    turned_outward: list = field(default_factory=list)
     floater_webs: list = field(default_factory=list)
     floater_retry: list = field(default_factory=list)
     floater_retry_rejected: bool = False
@@ -303,34 +306,39 @@ def _keep_faces(v: np.ndarray, f: np.ndarray, keep: np.ndarray) -> tuple:
 
 
 def _drop_unused(vseq: VaryingTopologySequence):
-    """(vseq cleaned, [(frame, vertices dropped, faces dropped)], [(frame, vertices welded)]):
+    """(vseq cleaned, [(frame, vertices dropped, faces dropped)], [(frame, vertices welded)],
+    [frames turned outward]):
     vertices at one position welded into one (:func:`~dynmesh_warp.geometry.weld_vertices`: a
     triangle soup, or seams, would otherwise be thousands of separate parts to the fit and to the
     topology report), then faces that repeat a vertex (no area in any pose), faces listed again
     (either winding: the template would carry them twice) and vertices no face uses dropped. The
-    input is not modified; frames needing none of it are kept as they are. Raises MeshDataError
-    for a frame left without faces."""
-    frames, dropped, welded = [], [], []
+    input is not modified; frames needing none of it are kept as they are. Last, a frame wound
+    inside out (closed, consistently wound, negative volume: :func:`~dynmesh_warp.geometry.mesh_orientation`
+    "inward") has all its faces turned: the fit compares normals (``max_normal_angle``), so a
+    reversed frame among outward ones lost its correspondences (found by a new user: +37 % area
+    on such frames, no warning). Raises MeshDataError for a frame left without faces."""
+    frames, dropped, welded, turned = [], [], [], []
     for t, (v, f) in enumerate(vseq.frames):
         v, f, merged = weld_vertices(v, np.asarray(f))
         if merged:
             welded.append((t, merged))
         keep = np.zeros(len(f), bool)
         keep[distinct_faces(f)[1]] = True  # not a face that repeats a vertex, nor one listed again
-        if keep.all() and np.bincount(f.reshape(-1), minlength=len(v)).all():  # the usual frame: as it is
-            frames.append((v, f))
-            continue
-        v2, f2 = _keep_faces(v, f, keep)
-        nv, nf = len(v) - len(v2), len(f) - len(f2)
-        if not keep.any():
-            src = vseq.frame_sources[t] if vseq.frame_sources else (vseq.source or vseq.name)
-            raise MeshDataError(f"{src}, frame {t}: every face repeats a vertex (no surface)")
-        frames.append((v2, f2))
-        dropped.append((t, nv, nf))
-    if not dropped and not welded:
-        return vseq, dropped, welded
+        if not (keep.all() and np.bincount(f.reshape(-1), minlength=len(v)).all()):  # else the usual frame
+            if not keep.any():
+                src = vseq.frame_sources[t] if vseq.frame_sources else (vseq.source or vseq.name)
+                raise MeshDataError(f"{src}, frame {t}: every face repeats a vertex (no surface)")
+            v2, f2 = _keep_faces(v, f, keep)
+            dropped.append((t, len(v) - len(v2), len(f) - len(f2)))
+            v, f = v2, f2
+        if mesh_orientation(v, f) == "inward":
+            f = np.ascontiguousarray(f[:, ::-1])
+            turned.append(t)
+        frames.append((v, f))
+    if not dropped and not welded and not turned:
+        return vseq, dropped, welded, turned
     return VaryingTopologySequence(frames, fps=vseq.fps, name=vseq.name, source=vseq.source,
-                                   frame_sources=vseq.frame_sources), dropped, welded
+                                   frame_sources=vseq.frame_sources), dropped, welded, turned
 
 
 class _Converter:
@@ -1153,7 +1161,7 @@ def _to_fixed(seq, strategy, template, device, progress, should_stop, stop_forwa
     for t, (v, f) in enumerate(vseq.frames):  # frames may have been mutated after construction
         src = vseq.frame_sources[t] if vseq.frame_sources else where
         validate_mesh(v, f, src, t)
-    vseq, unused, welded = _drop_unused(vseq)
+    vseq, unused, welded, turned = _drop_unused(vseq)
     T = vseq.num_frames
     K = _key_frame(vseq, o["key_frame"], template is not None)
     given = template is not None
@@ -1211,7 +1219,7 @@ def _to_fixed(seq, strategy, template, device, progress, should_stop, stop_forwa
                     res, best = r, tried[-1][2]
             res.conversion.key_trials, res.conversion.key_score = tried, key_score
         info = res.conversion
-        info.dropped_unused, info.welded = unused, welded
+        info.dropped_unused, info.welded, info.turned_outward = unused, welded, turned
         if float(o["far_part_area"]) <= 0:
             info.floater_webs = _floater_webs(vseq, res, device, float(o["far_part_gap"]))
         res.all_topology_events = topology.result()  # every frame's (to_piecewise_fixed after a forward stop)
@@ -1412,6 +1420,7 @@ def _join_segments(vseq, segs: list, whole, events: list) -> VaryingTopologySequ
         info.segments.append((lo, lo + r.num_frames, c.key_frame + lo, r.num_vertices))
     info.key_score = "+".join(sorted({r.conversion.key_score for _, r in segs} - {""}))
     info.topology_events, info.dropped_unused, info.welded = list(events), whole.dropped_unused, whole.welded
+    info.turned_outward = whole.turned_outward
     out.conversion = info
     return out
 
@@ -1771,6 +1780,10 @@ def conversion_summary(info: ConversionInfo) -> list:
     if we:
         lines.append(f"note: welded {sum(x[1] for x in we)} input vertices that repeat another's position (a "
                      f"triangle soup or seams) in {len(we)} frame(s) (first: frame {we[0][0]})")
+    to = info.turned_outward
+    if to:
+        lines.append(f"note: turned the faces of {len(to)} input frame(s) wound inside out (closed, facing inward) "
+                     f"outward before the fit: {_frames_text(to)}")
     un = info.dropped_unused
     if un:
         lines.append(f"note: dropped {sum(x[1] for x in un)} input vertices that no face uses and "

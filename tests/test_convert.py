@@ -704,6 +704,32 @@ def test_unused_vertices_and_faces_of_the_input_are_dropped(rigid_varying):
         to_fixed_topology(VaryingTopologySequence(bad), device=DEV)
 
 
+def test_frames_wound_inside_out_are_turned_before_the_fit(rigid_varying):
+    """Input frames whose faces all face inward (an exporter's other marching-cubes convention)
+    among outward ones convert as if they were outward: the same mesh vertex for vertex, the
+    summary names them. Before, the fit's normal test rejected their correspondences (a new
+    user's run: +37 % area on such frames, no warning). An open sheet is never turned."""
+    _, _, clean = rigid_varying
+    clean = VaryingTopologySequence(clean.frames[:8])
+    flipped = VaryingTopologySequence([(v, f[:, ::-1].copy()) if t in (2, 3, 6) else (v, f)
+                                       for t, (v, f) in enumerate(clean.frames)])
+    a = to_fixed_topology(clean, device=DEV)
+    b = to_fixed_topology(flipped, device=DEV)
+    assert a.conversion.turned_outward == [] and b.conversion.turned_outward == [2, 3, 6]
+    assert np.array_equal(a.F, b.F)
+    np.testing.assert_allclose(b.V, a.V, atol=1e-6)
+    assert any("turned the faces of 3 input frame(s) wound inside out" in ln for ln in conversion_summary(b.conversion))
+    # a sheet (open: no inside) is left as it is, whichever way it faces
+    from dynmesh_warp.convert import _drop_unused
+
+    g = np.stack(np.meshgrid(np.linspace(0, 1, 6), np.linspace(0, 1, 6), indexing="ij"), -1).reshape(-1, 2)
+    V = np.c_[g, 0.1 * np.sin(3 * g[:, 0])].astype(np.float32)
+    i = np.arange(5)[:, None] * 6 + np.arange(5)[None, :]
+    F = np.concatenate([np.stack([i, i + 1, i + 7], -1).reshape(-1, 3), np.stack([i, i + 7, i + 6], -1).reshape(-1, 3)])
+    for faces in (F, F[:, ::-1]):
+        assert _drop_unused(VaryingTopologySequence([(V, faces.astype(np.int32))]))[3] == []
+
+
 def _with_blob(V, F, centre, radius):
     import trimesh
 
