@@ -79,6 +79,7 @@ class Viewer:
         # realtime: the clock waits for the first browser, so the scene's moment (spheres landing)
         # is not over before the page has opened
         self.hold_until_client = bool(hold_until_client) and bool(realtime)
+        self.held_frames = 0  # frames spent waiting for the first browser (not counted in self.frame)
         self._client_seen = False
         self.stream = None  # the grouped splat stream (_SplatGroups) when splat_groups > 0
         self.fps = float(fps)
@@ -348,8 +349,10 @@ class Viewer:
         n = 0
         if self.hold_until_client and not self._client_seen:
             if not self.server.get_clients():  # nobody is watching yet: hold the clock
+                # a held frame does not count towards run(max_frames): `run --duration 10` closed
+                # after 10 s of waiting, before anyone had opened the page (found by a new user)
                 self.gui_rate.value = "waiting for a browser"
-                self.frame += 1
+                self.held_frames += 1
                 return 0
             self._client_seen = True
             self._last_wall = None  # the clock starts now, at one frame's worth

@@ -192,6 +192,11 @@ def test_realtime_clock_waits_for_the_first_browser_and_the_ground_is_drawn(devi
         for _ in range(3):
             v.update()
         assert world.time == world.t0 and v.gui_rate.value == "waiting for a browser"
+        # held frames do not count towards a run's length (`run --duration`): the frame loop
+        # keeps waiting instead of ending before anyone watched
+        assert v.frame == 0 and v.held_frames == 3
+        v.run(max_frames=1, stop=lambda: "SIGINT" if v.held_frames >= 6 else None)
+        assert v.frame == 0 and v.held_frames == 6 and world.time == world.t0
         # viser counts a client once its browser sends its first camera message
         v.server.get_clients = lambda: {1: object()}
         for _ in range(3):
