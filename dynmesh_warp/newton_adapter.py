@@ -547,7 +547,7 @@ def build_newton_world(cfg, device=None, sequence=None, num_worlds: int = 1, **o
     try:
         world = NewtonWorld(surface, builder, **kw)
     except ImportError as e:  # e.g. the mujoco solver without mujoco_warp installed
-        raise SceneError(f"newton.solver {cfg.newton.solver!r}: {e}") from e
+        raise SceneError(f"newton.solver {getattr(cfg.newton.solver, 'value', cfg.newton.solver)!r}: {e}") from e
     except TypeError as e:  # a constructor argument the solver does not take
         raise SceneError(f"newton.solver_options: {e}") from e
     world.records = records  # the bodies of world 0 (world w's are offset by w x its body count)

@@ -603,7 +603,8 @@ def _main(argv=None) -> int:
     p.add_argument("--figure", help="a PNG strip of --moments moments side by side")
     p.add_argument("--video", help="a video of the frames: .gif (imageio with Pillow) or .mp4 (needs imageio-ffmpeg); "
                                    "written atomically")
-    p.add_argument("--frames", type=int, default=48, help="frames to render with --out")
+    p.add_argument("--frames", type=int, default=48, help="frames rendered (--out, --video); also the span of time the "
+                   "--figure moments are taken from")
     p.add_argument("--moments", type=int, default=4)
     p.add_argument("--fps", type=float, default=24.0, help="frames per simulated second")
     p.add_argument("--width", type=int, default=640)

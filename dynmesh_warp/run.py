@@ -38,7 +38,8 @@ def _parser() -> argparse.ArgumentParser:
 
     p = Parser(prog="python -m dynmesh_warp.run", description=__doc__.splitlines()[0])
     p.add_argument("scene", nargs="?", help="scene YAML file (default: the built-in default scene); or a mesh "
-                   "sequence (.npz, .anime, .pc2, .mdd, a folder of frames), played with spheres dropped on it")
+                   "sequence (.npz, .anime, .pc2, .mdd, an animated .glb/.gltf, one mesh file, "
+                   "a folder of frames), played with spheres dropped on it")
     p.add_argument("--set", action="append", default=[], metavar="KEY.PATH=VALUE", dest="overrides",
                    help="override a scene field (YAML value), e.g. --set physics.dt=0.002 --set spheres.count=20; "
                         "repeatable, applied before validation")

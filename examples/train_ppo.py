@@ -7,6 +7,8 @@ matplotlib is installed).
 
     python examples/train_ppo.py --envs 1024 --minutes 4 --out out/ppo
 
+PyTorch is not among the project's extras (``.[all]``): install the build for your machine first.
+
 PPO as in Schulman et al. 2017 with GAE (lambda 0.95), clipped ratio 0.2, a Gaussian policy with
 a state-independent log std, separate actor and critic MLPs (64-64, tanh), Adam 3e-4.
 """
@@ -19,8 +21,12 @@ import sys
 import time
 from pathlib import Path
 
-import torch
-import torch.nn as nn
+try:
+    import torch
+    import torch.nn as nn
+except ImportError:  # not among the project's extras (its wheel depends on the machine's CUDA)
+    sys.exit("examples/train_ppo.py needs PyTorch: install it for your machine (https://pytorch.org), "
+             "e.g. python -m pip install torch")
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
