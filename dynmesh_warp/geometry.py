@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["face_areas", "surface_area", "signed_volume", "orient_outward", "mesh_orientation", "orient_faces",
-           "distinct_faces", "weld_vertices", "motion_groups", "fit_group_motions", "rotation_to_wxyz"]
+           "distinct_faces", "flat_faces", "weld_vertices", "motion_groups", "fit_group_motions", "rotation_to_wxyz"]
 
 
 def face_areas(V, F) -> np.ndarray:
@@ -126,15 +126,39 @@ def _patches(F: np.ndarray) -> tuple:
     return label, npatch, rewind, orientable, boundary, edges
 
 
-def distinct_faces(F) -> tuple:
+#: a face is flat (no area: its corners on a line) when its height over its longest edge is at
+#: most this fraction of that edge plus this fraction of the largest |coordinate| (float32
+#: rounding: an edge's midpoint stored in float32 lies up to ~1e-7 x the coordinates off the
+#: edge). Marching-cubes slivers are far thicker (smallest angles >= ~5e-4 rad measured on the
+#: issue-12 inputs, against 1e-6 here plus the rounding term)
+FLAT_FACE = 1e-6
+
+
+def flat_faces(V, F) -> np.ndarray:
+    """(M,) bool: the faces of (V, F) whose three corners lie on a line (``FLAT_FACE``): no area
+    and no winding in this pose (an exporter's degenerate triangles)."""
+    V = np.asarray(V, np.float64)
+    F = np.asarray(F, np.int64)
+    if len(F) == 0:
+        return np.zeros(0, bool)
+    a, b, c = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
+    twice = np.linalg.norm(np.cross(b - a, c - a), axis=1)  # height x longest edge
+    longest = np.sqrt(np.max(np.stack([np.einsum("ij,ij->i", e, e) for e in (b - a, c - b, a - c)]), axis=0))
+    scale = float(np.abs(V[np.unique(F)]).max()) if V.size else 0.0
+    return twice <= FLAT_FACE * longest * (longest + scale)
+
+
+def distinct_faces(F, flat=None) -> tuple:
     """``(live, first, copy_of)`` of the faces ``F`` (M, 3): ``live`` the indices of the faces
-    with three different vertices (one that repeats a vertex has no area in any pose);
+    with three different vertices (one that repeats a vertex has no area in any pose) and, given
+    ``flat`` ((M,) bool, :func:`flat_faces`), not flat;
     ``first`` the index of the first listing of each different triangle among them (a face
     listed again, in either winding, is one triangle); ``copy_of`` (len(live),) the position in
     ``first`` of each live face's triangle. The one rule of ``convert`` (which drops the others)
     and :func:`orient_faces` (which winds every copy as the first)."""
     F = np.asarray(F)
-    live = np.flatnonzero((F[:, 0] != F[:, 1]) & (F[:, 1] != F[:, 2]) & (F[:, 0] != F[:, 2]))
+    ok = (F[:, 0] != F[:, 1]) & (F[:, 1] != F[:, 2]) & (F[:, 0] != F[:, 2])
+    live = np.flatnonzero(ok if flat is None else ok & ~np.asarray(flat, bool))
     L = F[live].astype(np.int64)
     a, b, c = L[:, 0], L[:, 1], L[:, 2]
     lo, hi = np.minimum(np.minimum(a, b), c), np.maximum(np.maximum(a, b), c)
@@ -190,9 +214,10 @@ def orient_faces(V, F, up=(0.0, 0.0, 1.0), down_fraction: float = 0.25) -> tuple
     # pieces by position, not by index: a triangle soup or a mesh with seams is one piece; a face
     # listed twice (either winding) is decided once, its copies wound as the first
     W = weld_vertices(V, F)[1]
-    # faces that repeat a vertex have no area and no winding: left as they are (their self-edges
-    # would tie the pieces in knots)
-    live, first, copy_of = distinct_faces(W)
+    # faces that repeat a vertex or lie flat have no area and no winding: left as they are (their
+    # edges would tie the pieces in knots: a flat face on an edge makes it non-manifold, and the
+    # pieces split there were wound apart; found by a new user)
+    live, first, copy_of = distinct_faces(W, flat_faces(V, F))
     if len(live) == 0:
         return F, report
     Fu = F[first]

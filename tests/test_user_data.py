@@ -216,6 +216,31 @@ def test_orient_faces_only_reverses_faces_and_is_idempotent():
             assert out.is_winding_consistent and out.volume > 0
 
 
+def test_flat_faces_on_edges_do_not_turn_real_faces():
+    """A closed ball with flat faces (corners on a line: an edge's two ends and its midpoint, as
+    some exporters leave) on a few of its edges: those edges are non-manifold, and the pieces
+    split there were wound apart, turning real faces inward (a new user's capture: 5 real faces
+    of an arm). Flat faces have no winding to decide: they are left out of the decision and the
+    real faces stay as they are (outward)."""
+    from dynmesh_warp.geometry import flat_faces, orient_faces
+
+    m = trimesh.creation.icosphere(subdivisions=3)
+    V, F = np.asarray(m.vertices), np.asarray(m.faces)
+    # flat faces on every edge around the fan of the lowest vertex: that fan, cut off by the
+    # non-manifold edges, was an open piece facing down and was turned up (inward)
+    low = int(np.argmin(V[:, 2]))
+    fan = F[(F == low).any(axis=1)]
+    e = np.array([[a for a in f if a != low] for f in fan])
+    mid = len(V) + np.arange(len(e))
+    V2 = np.concatenate([V, 0.5 * (V[e[:, 0]] + V[e[:, 1]])]).astype(np.float32)
+    F2 = np.concatenate([F, np.c_[e, mid]])
+    flat = flat_faces(V2, F2)
+    assert flat[len(F):].all() and not flat[:len(F)].any()
+    G, r = orient_faces(V2, F2)
+    np.testing.assert_array_equal(G[:len(F)], F)  # every real face as it was
+    assert r["inward"] == r["rewound"] == 0
+
+
 def test_sheet_facing_down_is_turned_up_and_holds_spheres(tmp_path):
     """An open surface whose triangles face down let every dropped sphere through before (0/5 in
     contact, spheres falling forever); loaded with orientation auto it holds them."""
