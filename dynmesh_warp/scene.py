@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .choices import Y_UP_FORMATS, Collider, UpAxis
+from .choices import Y_UP_FORMATS, Collider, UpAxis, parse
 from .config import PhysicsCore, SceneConfig, SceneError, spawn_positions
 from .runtime import scene_device
 from .geometry import mesh_orientation, orient_faces
@@ -324,7 +324,7 @@ def build_world(cfg: SceneConfig, device=None, collider: str | None = None,
     orientation, conversion) is applied to it as to a loaded one."""
     seq = load_surface(cfg) if sequence is None else prepare_surface(sequence, cfg)
     p = cfg.physics
-    collider = collider or p.collider
+    collider = parse(Collider, collider or p.collider, "collider").value  # an unknown name: the choices, named
     if collider not in surface_model_class(seq).colliders_for(seq):  # before the frames go to the device
         try:
             seq.to_fixed()

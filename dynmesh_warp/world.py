@@ -400,9 +400,17 @@ def surface_model(seq, device=None, playback: str = DEFAULT_PLAYBACK, interpolat
 
 
 def _sphere_rows(name: str, values, count: int, first: int = 0) -> np.ndarray:
-    """``values`` as (count, 3) float32 rows of spheres ``first``.., refusing a non-finite row
-    (ValueError naming the sphere and ``name``)."""
-    a = np.asarray(values, np.float32).reshape(count, 3)
+    """``values`` as (count, 3) float32 rows of spheres ``first``.., refusing another shape (a
+    (3, S) stack of x, y and z rows was read as scrambled rows: a new user's) or a non-finite row
+    (ValueError naming ``name`` and the sphere). A flat (3 count,) array is taken row by row."""
+    try:
+        a = np.asarray(values, np.float32)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"sphere {name}s: expected numbers, ({count}, 3) [x, y, z] rows ({e})") from None
+    if a.shape != (count, 3) and not (a.ndim == 1 and a.size == 3 * count):
+        raise ValueError(f"sphere {name}s: expected ({count}, 3) [x, y, z] rows, one per sphere"
+                         + (f" from sphere {first}" if first else "") + f", got shape {a.shape}")
+    a = a.reshape(count, 3)
     bad = np.flatnonzero(~np.isfinite(a).all(axis=1))
     if bad.size:
         raise ValueError(f"sphere {first + int(bad[0])}: {name} {a[bad[0]].tolist()} is not finite")
@@ -414,8 +422,15 @@ class SphereModel:
     host twins radius_np (S,) float32 [m] and mass_np (S,) float64 [kg] (0 or inf: kinematic)."""
 
     def __init__(self, radius, mass, device=None):
-        radius = np.asarray(radius, dtype=np.float32).reshape(-1)
-        mass = np.broadcast_to(np.asarray(mass, dtype=np.float64), radius.shape)
+        radius = np.asarray(radius, dtype=np.float32)
+        if radius.ndim > 1:
+            raise ValueError(f"sphere radius: expected one value per sphere, shape (S,), got shape {radius.shape}")
+        radius = radius.reshape(-1)
+        try:
+            mass = np.broadcast_to(np.asarray(mass, dtype=np.float64), radius.shape)
+        except ValueError:
+            raise ValueError(f"sphere mass: expected one value or one per sphere ({radius.size}), got shape "
+                             f"{np.shape(mass)}") from None
         if (radius <= 0).any() or not np.isfinite(radius).all():
             raise ValueError("sphere radius must be positive and finite")
         if (mass < 0).any() or np.isnan(mass).any():
@@ -1324,10 +1339,14 @@ class World:
     def add_spheres(self, positions, radius, mass=1.0, velocities=None):
         """Add spheres (between steps). Reallocates the sphere arrays and drops the graph."""
         first = self.model.spheres.count
-        positions = np.asarray(positions, np.float32).reshape(-1, 3)
-        n = positions.shape[0]
+        positions = np.asarray(positions, np.float32)
+        n = positions.shape[0] if positions.ndim == 2 else positions.size // 3
         positions = _sphere_rows("position", positions, n, first)
-        radius = np.broadcast_to(np.asarray(radius, np.float32), (n,))
+        try:
+            radius = np.broadcast_to(np.asarray(radius, np.float32), (n,))
+        except ValueError:
+            raise ValueError(f"sphere radius: expected one value or one per new sphere ({n}), got shape "
+                             f"{np.shape(radius)}") from None
         surf, p = self.model.surface, self.model.params
         if n and surf.max_speed > 0 and surf.interpolate and p.auto_substeps and np.all(radius > 0):
             r_min = float(min(radius.min(), self.model.spheres.radius_np.min(initial=np.inf)))
@@ -1339,8 +1358,11 @@ class World:
         vel = np.zeros((n, 3), np.float32) if velocities is None else _sphere_rows("velocity", velocities, n, first)
         pos_all = np.concatenate([self.state.sphere_pos.numpy(), positions])
         vel_all = np.concatenate([self.state.sphere_vel.numpy(), vel])
+        spheres = SphereModel(new_r, new_m, self.device)  # checks radius and mass before anything changes
+        self._set_spheres(spheres, pos_all, vel_all, stacklevel=4)
+        # what reset() restores: only once the spheres are in (a refused call changed it, and the
+        # next reset() failed on arrays of different sizes; found by a new user)
         self._initial = (np.concatenate([self._initial[0], positions]), np.concatenate([self._initial[1], vel]))
-        self._set_spheres(SphereModel(new_r, new_m, self.device), pos_all, vel_all, stacklevel=4)
 
     def _set_spheres(self, spheres: SphereModel, pos, vel, stacklevel: int = 3, rederive_substeps: bool = False):
         """Replace the sphere set (model and state arrays, contacts, sub-step rule, collider lists);

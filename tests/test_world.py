@@ -400,6 +400,40 @@ def test_add_spheres_refuses_non_finite_positions_and_velocities():
     np.testing.assert_array_equal(w.sphere_positions(), before)
 
 
+def test_a_refused_add_spheres_leaves_reset_working_and_shapes_are_checked():
+    """A new user's findings: add_spheres refused for a bad radius or mass had already extended
+    what reset() restores (the next reset failed on arrays of different sizes); positions given
+    as (3, S) rows of x, y and z were read as scrambled spheres; an unknown collider name in
+    build_world failed with an AttributeError from another error's path."""
+    from dynmesh_warp import build_world, load_scene_config
+    from dynmesh_warp.world import SphereModel, State
+
+    seq = moving_sheet((0.0, 0.0, 0.0), frames=8)
+    w = make_world(seq, [[0.0, 0.0, 0.3], [0.5, 0.0, 0.3]], radius=0.1)
+    p0 = w.sphere_positions().copy()
+    run(w, 5)
+    for kw in ({"radius": -0.1}, {"radius": 0.0}, {"radius": float("nan")}, {"radius": 0.1, "mass": -1.0}):
+        with pytest.raises(ValueError, match="sphere (radius|mass)"):
+            w.add_spheres([[0.0, 0.3, 1.0]], **kw)
+    assert w.model.spheres.count == 2
+    w.reset()
+    np.testing.assert_array_equal(w.sphere_positions(), p0)
+    w.add_spheres([[0.0, 0.3, 1.0]], 0.05)  # a good one still goes in; reset removes it (the scene's own spheres)
+    assert w.model.spheres.count == 3 and np.allclose(w.sphere_positions()[2], [0.0, 0.3, 1.0])
+    w.reset()
+    assert w.model.spheres.count == 2
+    np.testing.assert_array_equal(w.sphere_positions(), p0)
+    with pytest.raises(ValueError, match=r"sphere positions: expected \(2, 3\) \[x, y, z\] rows, one per sphere, "
+                                         r"got shape \(3, 2\)"):
+        State(w.model, np.array([[0.0, 0.5], [0.0, 0.0], [0.3, 0.3]]))
+    with pytest.raises(ValueError, match=r"sphere radius: expected one value per sphere, shape \(S,\), got shape"):
+        SphereModel(np.full((2, 3), 0.1), 1.0)
+    with pytest.raises(ValueError, match=r"sphere mass: expected one value or one per sphere \(2\)"):
+        SphereModel([0.1, 0.1], [1.0, 2.0, 3.0])
+    with pytest.raises(ValueError, match=r"collider must be one of .*got 'refti'"):
+        build_world(load_scene_config(), device="cpu", collider="refti", sequence=seq)
+
+
 def test_add_spheres_applies_the_substep_rule():
     """Smaller spheres added while running get the same sub-step rule as spheres given at the
     start (the surface moves < r/2 per sub-step), and stay on the right side of the surface."""
