@@ -438,7 +438,13 @@ class BatchedWorld:
         replaced)."""
         m, s = self.model, self.state
         E, S = m.num_envs, m.spheres_per_env
-        mask = np.broadcast_to(np.asarray(env_mask, bool), (E,)).astype(np.int32)
+        given = np.asarray(env_mask)
+        if given.dtype != bool or given.shape not in ((), (E,)):
+            # a list of env indices was read as a mask ([0, 1, 2] left env 0 as it was; found by a
+            # new user): refused, with the conversion to say
+            raise ValueError(f"env_mask: expected booleans, one per env ({E},) or one for all, got dtype {given.dtype} "
+                             f"shape {given.shape}; for env indices idx use a mask: m = np.zeros({E}, bool); m[idx] = True")
+        mask = np.broadcast_to(given, (E,)).astype(np.int32)
         self._mask.assign(mask)
         pos = s.sphere_pos.numpy().reshape(E, S, 3) if positions is None else positions
         vel = s.sphere_vel.numpy().reshape(E, S, 3) if velocities is None else velocities

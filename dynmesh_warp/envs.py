@@ -87,7 +87,8 @@ class RideSurfaceEnv(VectorEnv):
         for name, value, low in (("num_envs", num_envs, 1), ("max_steps", max_steps, 1), ("decimation", decimation, 1)):
             if isinstance(value, bool) or int(value) != value or value < low:
                 raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
-        for name, value in (("radius", radius), ("accel", accel), ("push", push)):
+        opt = () if max_distance is None else (("max_distance", max_distance),)
+        for name, value in (("radius", radius), ("accel", accel), ("push", push), *opt):
             if not (np.isfinite(value) and value >= (0.0 if name == "push" else 1e-12)):
                 raise ValueError(f"{name} must be a finite {'non-negative' if name == 'push' else 'positive'} number, "
                                  f"got {value!r}")
@@ -105,6 +106,10 @@ class RideSurfaceEnv(VectorEnv):
         self.backend = backend
         V0 = seq.V[0]
         diag = float(np.linalg.norm(V0.max(axis=0) - V0.min(axis=0)))
+        if target is not None:  # a new user's bad target failed later, without its name
+            t = np.asarray(target, dtype=np.float64) if np.ndim(target) else None
+            if t is None or t.shape != (3,) or not np.isfinite(t).all():
+                raise ValueError(f"target must be a finite point [x, y, z] [m], got {target!r}")
         self.target = np.asarray(surface_target(V0) if target is None else target, np.float32).reshape(3)
         self.max_distance = float(0.25 * diag if max_distance is None else max_distance)
         self.radius, self.max_steps, self.decimation = float(radius), int(max_steps), int(decimation)

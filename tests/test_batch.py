@@ -185,6 +185,10 @@ def test_reset_touches_only_the_named_envs(device):
     np.testing.assert_array_equal(a.sphere_positions()[~mask], b.sphere_positions()[~mask])
     with pytest.raises(ValueError, match="positions"):
         a.reset(mask, positions=np.zeros((S + 1, 3)))
+    # env indices are not a mask ([0, 1, 2] was read as [False, True, True], leaving env 0 as it was)
+    for bad in ([0, 1, 2], [1, 0, 1, 0, 1], np.ones(4, bool)):
+        with pytest.raises(ValueError, match="env_mask: expected booleans, one per env"):
+            a.reset(bad)
 
 
 def test_pair_slots_bound_the_interpolated_surface(device):

@@ -72,6 +72,14 @@ def test_env_arguments_seeds_and_close_are_checked(device):
         _env(device, num_envs=2, decimation=0)
     with pytest.raises(ValueError, match="radius must be a finite positive number"):
         _env(device, num_envs=2, radius=float("nan"))
+    # a new user's: NaN / inf / 0 / negative max_distance gave NaN rewards, -inf rewards or
+    # episodes that never end; a bad target failed later without its name
+    for bad in (float("nan"), float("inf"), 0.0, -1.0):
+        with pytest.raises(ValueError, match="max_distance must be a finite positive number"):
+            _env(device, num_envs=2, max_distance=bad)
+    for bad in ([0.0, 1.0], [0.0, 0.0, float("nan")], 1.0):
+        with pytest.raises(ValueError, match=r"target must be a finite point \[x, y, z\]"):
+            _env(device, num_envs=2, target=bad)
     env = _env(device, num_envs=3)
     with pytest.raises(ValueError, match=r"seed: one integer for the batch .* got \[1, 2, 3\]"):
         env.reset(seed=[1, 2, 3])
