@@ -22,7 +22,7 @@ import numpy as np
 import warp as wp
 
 from .kernels import metrics as K
-from .sequence import MeshDataError, validate_mesh
+from .sequence import MAX_COORDINATE, MeshDataError, validate_mesh
 
 __all__ = [
     "PROTOCOLS",
@@ -86,6 +86,11 @@ def _points(x, name: str) -> np.ndarray:
     if not np.isfinite(a).all():
         bad = int(np.flatnonzero(~np.isfinite(a).all(axis=1))[0])
         raise ValueError(f"{name}: point {bad} has NaN/inf coordinates")
+    far = ~(np.abs(a) <= MAX_COORDINATE).all(axis=1)
+    if far.any():  # float32 (the kernels') would turn it inf, or its squared distances (a new user's 1e20: 3e38)
+        bad = int(np.flatnonzero(far)[0])
+        raise ValueError(f"{name}: point {bad} {a[bad].tolist()} lies beyond +-{MAX_COORDINATE:g} "
+                         "(sequence.MAX_COORDINATE: wrong units or garbage)")
     return np.ascontiguousarray(a, dtype=np.float32)
 
 
@@ -178,6 +183,7 @@ def chamfer_distance(a, b, squared: bool = True, device=None) -> ChamferResult:
     squared=True uses squared L2 distances (units^2), False plain L2 (units). Means are
     taken in float64 over the per-point float32 distances.
     """
+    a, b = _points(a, "a"), _points(b, "b")  # checked under the names of this call
     d_ab, _ = nearest_neighbors(a, b, device)
     d_ba, _ = nearest_neighbors(b, a, device)
     d_ab = d_ab.astype(np.float64)

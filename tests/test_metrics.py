@@ -205,6 +205,20 @@ def test_emd_rejects_unequal_sizes(device, rng):
         M.approxmatch_emd(np.full((4, 3), np.nan), np.zeros((4, 3)), device=device)
 
 
+def test_points_beyond_float32_range_are_refused_naming_the_set(device):
+    """float64 points of 1e39 (inf in float32) or 1e20 (squared distances past float32's range)
+    gave a finite 3e38 Chamfer distance with at most a NumPy warning (a new user's); refused as
+    mesh vertices are (sequence.MAX_COORDINATE), naming the argument of the call."""
+    for big in (1e39, 1e20, 2e9):
+        far = np.array([[big, 0.0, 0.0], [0.0, 0.0, 0.0]])
+        with pytest.raises(ValueError, match=r"^b: point 0 .* lies beyond \+-1e\+09"):
+            M.chamfer_distance(np.zeros((2, 3)), far, device=device)
+        with pytest.raises(ValueError, match=r"^xyz1: point 0 .* lies beyond"):
+            M.approxmatch_emd(far, np.zeros((2, 3)), device=device)
+    d = M.chamfer_distance(np.array([[1e8, 0.0, 0.0]]), np.zeros((1, 3)), device=device)  # within: fine
+    assert d.value == pytest.approx(1e16, rel=1e-6)
+
+
 # ------------------------------------------------------------------------------ protocols
 
 
