@@ -49,7 +49,7 @@ from .kernels.batch import (
     reset_env_spheres,
 )
 from .kernels.frames import add_points_offset, update_frame_vertices
-from .world import Contacts, PhysicsParams, SphereModel, SurfaceModel, check_substep_budget
+from .world import Contacts, PhysicsParams, SphereModel, SurfaceModel, check_substep_budget, seam_note
 
 __all__ = ["BatchModel", "BatchState", "BatchedWorld", "step_envs", "required_substeps", "env_clocks", "TIME_SLICES",
            "BATCH_TILE_THREADS", "HYBRID_BUDGET", "default_batch_search", "HYBRID_BLOCKS", "ContactQuery",
@@ -375,8 +375,9 @@ class BatchedWorld:
         if p.auto_substeps and model.surface.interpolate:
             need = required_substeps(speed, p.dt, r_min)
             if need > self.substeps:
-                check_substep_budget(need, speed, r_min, p)
-                warnings.warn(f"surface moves up to {speed:.3g} m/s (at rate {rate:g}): raising substeps from "
+                check_substep_budget(need, speed, r_min, p, seam_note(model.surface))
+                warnings.warn(f"surface moves up to {speed:.3g} m/s (at rate {rate:g}){seam_note(model.surface)}: "
+                              "raising substeps from "
                               f"{self.substeps} to {need} so it moves < r/2 per sub-step", stacklevel=2)
                 self.substeps = need
         self.sub_dt = p.dt / self.substeps

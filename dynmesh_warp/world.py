@@ -135,7 +135,20 @@ class PhysicsParams(PhysicsCore):
 _REFERENCE = {"radius": 0.05, "speed": 1.0, "dt": 1.0 / 240.0}
 
 
-def check_substep_budget(need: int, speed: float, r_min: float, p) -> None:
+def seam_note(surface) -> str:
+    """Where the loop's seam (the jump from the last frame back to the first) is what sets the
+    surface's speed, words saying so: most captured animations do not repeat, and under the
+    default ``playback: loop`` a new user's sheet moving at 0.5 m/s was reported at 24 m/s and ran
+    4 sub-steps a step."""
+    seam, motion = float(getattr(surface, "seam_speed", 0.0)), float(getattr(surface, "motion_speed", 0.0))
+    if seam <= 0 or seam < float(surface.max_speed) or seam <= 1.5 * motion:
+        return ""
+    return (f" (the jump from the last frame back to the first under surface.playback: loop; within the "
+            f"animation {motion:.3g} m/s: for an animation that does not repeat, set "
+            "surface.playback: clamp or pingpong)")
+
+
+def check_substep_budget(need: int, speed: float, r_min: float, p, note: str = "") -> None:
     """Raise :class:`WorkBudgetError` when the sub-step rule needs more than ``p.max_substeps``
     sub-steps per step: name the surface speed, the radius and dt, what drives it (the one
     farthest from the default scene's values) and the value of each that would fit."""
@@ -146,7 +159,7 @@ def check_substep_budget(need: int, speed: float, r_min: float, p) -> None:
                "physics.dt": p.dt / _REFERENCE["dt"]}
     driver = max(drivers, key=drivers.get)
     raise WorkBudgetError(
-        f"work budget: the surface moves up to {speed:.3g} m/s and the smallest sphere radius is {r_min:.3g} m, so "
+        f"work budget: the surface moves up to {speed:.3g} m/s{note} and the smallest sphere radius is {r_min:.3g} m, so "
         f"at physics.dt {p.dt:.3g} s a step needs {need:,} sub-steps (surface < r/2 per sub-step), over "
         f"physics.max_substeps {cap}; driven by {driver}. Fits with: radius >= {2 * speed * p.dt / cap:.3g} m, "
         f"or physics.dt <= {cap * 0.5 * r_min / speed:.3g} s, or a surface speed <= {cap * 0.5 * r_min / p.dt:.3g} m/s "
@@ -186,8 +199,11 @@ class SurfaceModel:
         self.playback = PLAYBACK_MODES[playback]
         self.interpolate = bool(interpolate)
         speed = seq.max_vertex_speed()
+        self.motion_speed = speed  # the largest vertex speed within the animation [m/s]
+        self.seam_speed = 0.0  # the loop's jump from the last frame back to the first [m/s] (loop only)
         if playback == "loop" and seq.num_frames > 1:
             wrap = float(np.linalg.norm(seq.V[0] - seq.V[-1], axis=-1).max() * seq.fps)
+            self.seam_speed = wrap
             speed = max(speed, wrap)
         self.max_speed = speed
         self.max_frame_step = speed / self.fps  # largest vertex displacement per frame [m]
@@ -1318,9 +1334,9 @@ class World:
         if surf.max_speed > 0 and math.isfinite(r_min):
             need = math.ceil(surf.max_speed * p.dt / (0.5 * r_min))
             if p.auto_substeps and surf.interpolate and need > self.substeps:
-                check_substep_budget(need, surf.max_speed, r_min, p)
+                check_substep_budget(need, surf.max_speed, r_min, p, seam_note(surf))
                 warnings.warn(
-                    f"surface moves up to {surf.max_speed:.3g} m/s: raising substeps from "
+                    f"surface moves up to {surf.max_speed:.3g} m/s{seam_note(surf)}: raising substeps from "
                     f"{self.substeps} to {need} so it moves < r/2 per sub-step", stacklevel=stacklevel)
                 self.substeps = need
             if not surf.interpolate and surf.max_frame_step > 0.5 * r_min:
@@ -1350,7 +1366,8 @@ class World:
         surf, p = self.model.surface, self.model.params
         if n and surf.max_speed > 0 and surf.interpolate and p.auto_substeps and np.all(radius > 0):
             r_min = float(min(radius.min(), self.model.spheres.radius_np.min(initial=np.inf)))
-            check_substep_budget(math.ceil(surf.max_speed * p.dt / (0.5 * r_min)), surf.max_speed, r_min, p)
+            check_substep_budget(math.ceil(surf.max_speed * p.dt / (0.5 * r_min)), surf.max_speed, r_min, p,
+                                 seam_note(surf))
         old = self.model.spheres
         old_mass = np.where(old.inv_mass.numpy() > 0, 1.0 / np.maximum(old.inv_mass.numpy(), 1e-30), np.inf)
         new_r = np.concatenate([old.radius_np, radius])

@@ -434,6 +434,25 @@ def test_a_refused_add_spheres_leaves_reset_working_and_shapes_are_checked():
         build_world(load_scene_config(), device="cpu", collider="refti", sequence=seq)
 
 
+def test_the_loop_seam_is_named_when_it_sets_the_surface_speed():
+    """A sheet moving at 0.5 m/s for 1 s, played with the default loop: the jump back to frame 0
+    (0.5 m in a frame, 12 m/s) sets the sub-steps, and the warning says so and what to set (a new
+    user's conveyor was reported at 24 m/s with no word of the seam); clamp raises nothing; a
+    periodic motion (the seam no faster than the motion) gets no note."""
+    from dynmesh_warp.world import seam_note
+
+    seq = moving_sheet((0.5, 0.0, 0.0), frames=25)
+    with pytest.warns(UserWarning, match=r"surface moves up to 12 m/s \(the jump from the last frame back to the "
+                                         r"first under surface.playback: loop; within the animation 0.5 m/s: .*clamp"):
+        make_world(seq, [[0.0, 0.0, 0.3]], radius=0.02, playback="loop")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        make_world(seq, [[0.0, 0.0, 0.3]], radius=0.02, playback="clamp")
+    V = np.concatenate([seq.V[:13], seq.V[12::-1][1:]])  # there and back: the seam is a small step
+    back = FixedTopologySequence(V, seq.F, fps=seq.fps)
+    assert seam_note(SurfaceModel(back, TEST_DEVICE, playback="loop")) == ""
+
+
 def test_add_spheres_applies_the_substep_rule():
     """Smaller spheres added while running get the same sub-step rule as spheres given at the
     start (the surface moves < r/2 per sub-step), and stay on the right side of the surface."""
