@@ -49,7 +49,8 @@ from .kernels.batch import (
     reset_env_spheres,
 )
 from .kernels.frames import add_points_offset, update_frame_vertices
-from .world import Contacts, PhysicsParams, SphereModel, SurfaceModel, check_substep_budget, seam_note
+from .world import (Contacts, PhysicsParams, SphereModel, SurfaceModel, check_substep_budget, frame_pair_host,
+                    seam_note)
 
 __all__ = ["BatchModel", "BatchState", "BatchedWorld", "step_envs", "required_substeps", "env_clocks", "TIME_SLICES",
            "BATCH_TILE_THREADS", "HYBRID_BUDGET", "default_batch_search", "HYBRID_BLOCKS", "ContactQuery",
@@ -712,6 +713,36 @@ def env_clocks(envs, duration: float, rng: np.random.Generator | None = None):
     return times, rates.astype(np.float32)
 
 
+def _spheres_for_env_starts(cfg, seq, mode: int, times: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    """The scene's spheres where the envs start at other times than 0 (``envs.time_offset``):
+    placed for frame 0, they could start inside the surface in an env whose clock starts where
+    it has moved there (a new user's raised arm: spheres of 3 of 8 envs fell out through it, with
+    no word). Spawned spheres are dropped above the highest point of any frame instead; a listed
+    sphere inside the closed surface at an env's start frame is refused, naming the env."""
+    from .config import SceneError, spawn_positions
+    from .geometry import mesh_orientation
+    from .scene import _refuse_spheres_inside
+
+    if not isinstance(cfg.spheres, list):
+        return spawn_positions(cfg.spheres, seq.V.reshape(-1, 3))
+    if not len(cfg.spheres) or mesh_orientation(seq.V[0], seq.F) not in ("outward", "inward"):
+        return pos
+    first = {}  # start frame -> first env that starts on it
+    for e, t in enumerate(times):
+        for k in frame_pair_host(float(t), seq.fps, seq.num_frames, mode)[:2]:
+            first.setdefault(k, e)
+    for k in sorted(first):
+        try:
+            _refuse_spheres_inside(seq.V[k], seq.F, [sp.position for sp in cfg.spheres],
+                                   [sp.radius for sp in cfg.spheres], frame=k, closed=True)
+        except SceneError as err:
+            e = first[k]
+            raise SceneError(f"env {e} starts at t = {float(times[e]):.4g} s (envs.time_offset: "
+                             f"{cfg.envs.time_offset}), on frame {k}: {err}; or start every env at the "
+                             "scene's frame 0: envs.time_offset: 0") from None
+    return pos
+
+
 def build_batched_world(cfg, device=None, num_envs: int | None = None, sequence=None) -> BatchedWorld:
     """A :class:`BatchedWorld` of a scene: the one builder (``scene.build_model``) gives the
     surface, spheres and physics; ``envs:`` (or ``num_envs``) the count and clocks."""
@@ -727,5 +758,8 @@ def build_batched_world(cfg, device=None, num_envs: int | None = None, sequence=
     times, rates = env_clocks(envs, seq.num_frames / seq.fps)
     bm = BatchModel(model.surface, envs.count, model.spheres.radius_np, model.spheres.mass_np, model.params)
     vel = state.sphere_vel.numpy()
-    bs = BatchState(bm, state.sphere_pos.numpy(), vel, times=times, rates=rates)
+    pos = state.sphere_pos.numpy()
+    if np.any(times != 0.0) and seq.num_frames > 1:
+        pos = _spheres_for_env_starts(cfg, seq, model.surface.playback, times, pos)
+    bs = BatchState(bm, pos, vel, times=times, rates=rates)
     return BatchedWorld(bm, bs, max_rate=float(max(envs.rate[1], 1e-9)))

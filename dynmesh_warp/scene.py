@@ -134,7 +134,18 @@ def check_precision(lo, hi, positions, radius, where: str, translate=(0.0, 0.0, 
     mid = 0.5 * (np.asarray(lo, np.float64) + np.asarray(hi, np.float64))
     half = 0.5 * float((np.asarray(hi, np.float64) - np.asarray(lo, np.float64)).max())
     if float(np.spacing(np.float32(half))) > PRECISION_WARN * r:
-        return  # not the origin's fault: spheres tiny for the surface (the work budget refuses those)
+        # not the origin's fault: the surface is that large. What matters then is where the
+        # spheres are (a new user's 5 cm sphere 8 km out on a 12 km terrain, 0.98 % of its radius,
+        # was told nothing): warned, with the remedy that helps
+        at = float(np.abs(positions).max()) if np.size(positions) else 0.0
+        sulp = float(np.spacing(np.float32(at)))
+        if sulp > PRECISION_WARN * r:
+            warnings.warn(f"{where}: spheres reach {at:.4g} m from the origin on a surface {2 * half:.4g} m across, "
+                          f"where float32 (the simulation's precision) resolves only {sulp * 1e3:.2g} mm, "
+                          f"{100 * sulp / r:.2g} % of the smallest sphere radius ({r:g} m); moving the surface does "
+                          "not help: crop it to the region the spheres use (and centre that), or use larger spheres",
+                          stacklevel=3)
+        return
     centre = [float(f"{c:.4g}") for c in np.asarray(translate, np.float64) - mid]
     msg = (f"{where}: coordinates reach {far:.4g} m from the origin, where float32 (the simulation's "
            f"precision) resolves only {ulp * 1e3:.2g} mm, {100 * ulp / r:.2g} % of the smallest sphere radius "
@@ -239,10 +250,13 @@ def winding_numbers(V: np.ndarray, F: np.ndarray, P: np.ndarray) -> np.ndarray:
     return out
 
 
-def _refuse_spheres_inside(V0, F0, positions, radius) -> None:
-    """A listed sphere whose centre starts inside a closed surface (frame 0) is refused: contacts
-    are one-sided, so it would fall out through the faces (docs/scene.md)."""
-    if not len(positions) or mesh_orientation(V0, F0) not in ("outward", "inward"):
+def _refuse_spheres_inside(V0, F0, positions, radius, frame: int = 0, closed: bool | None = None) -> None:
+    """A listed sphere whose centre starts inside a closed surface (frame ``frame``, whose
+    vertices are ``V0``) is refused: contacts are one-sided, so it would fall out through the
+    faces (docs/scene.md). ``closed``: whether the surface is closed, when already known."""
+    if closed is None:
+        closed = mesh_orientation(V0, F0) in ("outward", "inward")
+    if not len(positions) or not closed:
         return
     w = winding_numbers(V0, F0, np.asarray(positions, np.float64).reshape(-1, 3))
     inside = np.flatnonzero(np.abs(w) > 0.5)
@@ -252,7 +266,7 @@ def _refuse_spheres_inside(V0, F0, positions, radius) -> None:
         raise SceneError(
             f"spheres.{i}: position {[round(float(x), 6) for x in np.asarray(positions[i], float)]} starts inside "
             "the closed "
-            f"surface (frame 0); contacts are one-sided, so it would fall out through it. Move it outside, "
+            f"surface (frame {frame}); contacts are one-sided, so it would fall out through it. Move it outside, "
             f"e.g. z >= {top + float(radius[i]):.4g} above the surface"
             + (f" ({inside.size} spheres are inside)" if inside.size > 1 else ""))
 

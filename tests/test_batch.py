@@ -330,3 +330,33 @@ def test_env_grid_shows_several_envs_side_by_side(device, tmp_path):
     assert (tmp_path / "grid.viser").stat().st_size > 0
     with pytest.raises(IndexError):
         EnvGrid(bw, [0, 4])
+
+
+def test_batched_envs_starting_later_do_not_start_inside_the_surface():
+    """Envs start at random times (envs.time_offset: random) but every env got the scene's spheres
+    placed for frame 0: a new user's raised arm held spheres of 3 of 8 envs inside it, and they
+    fell out through it with no word. A listed sphere inside the closed surface at an env's start
+    frame is now refused naming the env; spawned spheres are dropped above every frame."""
+    import trimesh
+
+    from dynmesh_warp.batch import build_batched_world
+    from dynmesh_warp.config import SceneConfig, SceneError
+    from dynmesh_warp.sequence import FixedTopologySequence
+
+    m = trimesh.creation.icosphere(subdivisions=2, radius=0.3)
+    V0 = np.asarray(m.vertices, np.float32)
+    lift = np.linspace(0.0, 0.5, 24, dtype=np.float32)  # the ball rises 0.5 m over one second
+    seq = FixedTopologySequence(V0[None] + lift[:, None, None] * np.float32([0, 0, 1]), np.asarray(m.faces), fps=24.0)
+    listed = {"surface": {"source": "builtin:wave_bowl", "playback": "clamp"}, "physics": {"ground": None},
+              "spheres": [{"position": [0.0, 0.0, 0.45], "radius": 0.05}]}  # above the ball at frame 0 only
+    cfg = SceneConfig.model_validate({**listed, "envs": {"count": 8, "time_offset": "random", "seed": 1}})
+    with pytest.raises(SceneError, match=r"env \d+ starts at t = .* on frame \d+: spheres.0: position \[0.0, 0.0, 0.45\] "
+                                         r"starts inside the closed surface \(frame \d+\).*envs.time_offset: 0"):
+        build_batched_world(cfg, device="cpu", sequence=seq)
+    same = SceneConfig.model_validate({**listed, "envs": {"count": 8, "time_offset": 0.0}})
+    assert build_batched_world(same, device="cpu", sequence=seq).model.num_envs == 8
+    spawn = SceneConfig.model_validate({**listed, "spheres": {"count": 3, "radius": 0.05, "height": 0.1},
+                                        "envs": {"count": 8, "time_offset": "random", "seed": 1}})
+    w = build_batched_world(spawn, device="cpu", sequence=seq)
+    z = w.sphere_positions()[..., 2]
+    assert z.min() >= float(seq.V[..., 2].max()) + 0.1  # above the highest point of any frame

@@ -360,6 +360,22 @@ def test_scene_far_from_the_origin_is_refused_or_warned_and_translate_fixes_it()
                 build_world(cfg, device="cpu", sequence=seq)
 
 
+def test_spheres_far_out_on_a_huge_surface_are_warned_about():
+    """A 12 km terrain centred on the origin (moving it does not help) with a 5 cm sphere 5.9 km
+    out: float32 resolves 0.49 mm there, 0.98 % of the radius. A new user was told nothing (the
+    check returned when the surface itself was the cause); warned, with the remedy that helps. The
+    same sphere near the centre is fine."""
+    from dynmesh_warp.scene import check_precision
+
+    lo, hi = np.array([-6000.0, -6000.0, 0.0]), np.array([6000.0, 6000.0, 1.0])
+    with pytest.warns(UserWarning, match=r"spheres reach 5900 m from the origin on a surface 1.2e\+04 m across.*"
+                                         r"0\.49 mm, 0\.98 % .*crop it to the region the spheres use"):
+        check_precision(lo, hi, np.array([[5900.0, 5900.0, 0.5]]), [0.05], "surface huge.npz")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_precision(lo, hi, np.array([[10.0, -20.0, 0.5]]), [0.05], "surface huge.npz")
+
+
 def test_build_world_applies_the_surface_section_to_an_in_memory_sequence():
     V, F = ico_sequence(center=(0.0, 500.0, 0.0), radius=400.0)  # y-up millimetres
     seq = FixedTopologySequence(V, F, fps=30.0, name="mine")
