@@ -25,6 +25,7 @@ import numpy as np
 import warp as wp
 
 from .batch import BatchedWorld, BatchModel, BatchState
+from .metrics import kernel_seed
 from .kernels.envs import (
     OBS_DIM,
     apply_env_actions,
@@ -131,7 +132,7 @@ class RideSurfaceEnv(VectorEnv):
         self.done = wp.zeros(E, dtype=wp.int32, device=d)
         self.actions = wp.zeros((E, 2), dtype=float, device=d)
         self._all = wp.ones(E, dtype=wp.int32, device=d)
-        self._seed = int(seed)
+        self._seed = kernel_seed(seed)
         box = gym.spaces.Box(-np.inf, np.inf, (int(OBS_DIM),), np.float32)
         act = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
         self.single_observation_space, self.single_action_space = box, act
@@ -199,7 +200,7 @@ class RideSurfaceEnv(VectorEnv):
             if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
                 raise ValueError(f"seed: one integer for the batch (each env draws its own stream from it and its "
                                  f"index), got {seed!r}")
-            self._seed = int(seed)
+            self._seed = kernel_seed(seed)
             self.env_episode.zero_()
         self.actions.zero_()
         self._reset_envs(self._all)

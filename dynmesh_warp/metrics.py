@@ -29,6 +29,7 @@ __all__ = [
     "Protocol",
     "ChamferResult",
     "sample_surface",
+    "kernel_seed",
     "nearest_neighbors",
     "chamfer_distance",
     "approxmatch_emd",
@@ -97,6 +98,16 @@ def _points(x, name: str) -> np.ndarray:
 # ----------------------------------------------------------------------------- sampling
 
 
+def kernel_seed(seed) -> int:
+    """A seed for a Warp kernel's random stream (a signed 32-bit int, non-negative): seeds in
+    [0, 2**31) as they are; any other integer mixed, all its bits, by NumPy's SeedSequence, so that
+    2**32 + 5 or 2**40 do not alias 5 or 0 (their low bits were taken; a new user's finding)."""
+    s = int(seed)
+    if 0 <= s < 1 << 31:
+        return s
+    return int(np.random.SeedSequence(abs(s), spawn_key=(1 if s < 0 else 0,)).generate_state(1)[0]) & 0x7FFFFFFF
+
+
 def sample_surface(V, F, num_points: int, seed: int = 0, device=None,
                    return_faces: bool = False, source: str | None = None):
     """Area-weighted uniform random points on a triangle mesh, reproducible for a seed.
@@ -124,7 +135,7 @@ def sample_surface(V, F, num_points: int, seed: int = 0, device=None,
               inputs=[wp.array(V, dtype=wp.vec3, device=dev),
                       wp.array(F.reshape(-1), dtype=wp.int32, device=dev),
                       wp.array(cdf.astype(np.float32), dtype=float, device=dev),
-                      int(seed) & 0x7FFFFFFF],
+                      kernel_seed(seed)],
               outputs=[samples, faces], device=dev)
     if return_faces:
         return samples.numpy(), faces.numpy()

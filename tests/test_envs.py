@@ -84,6 +84,10 @@ def test_env_arguments_seeds_and_close_are_checked(device):
     with pytest.raises(ValueError, match=r"seed: one integer for the batch .* got \[1, 2, 3\]"):
         env.reset(seed=[1, 2, 3])
     env.reset(seed=np.int64(4))
+    # a seed's every bit counts (2**32 + 5 took 5's episodes, 2**40 took 0's: a new user's)
+    obs = {s: env.reset(seed=s)[0].copy() for s in (5, 2**32 + 5, 0, 2**40, -1)}
+    assert not np.array_equal(obs[5], obs[2**32 + 5]) and not np.array_equal(obs[0], obs[2**40])
+    assert np.array_equal(env.reset(seed=2**40)[0], obs[2**40])
     env.close()
     with pytest.raises(RuntimeError, match="closed"):
         env.step(np.zeros((3, 2), np.float32))

@@ -261,3 +261,14 @@ def test_unknown_protocol(device, deformed_icosphere):
     V, F = deformed_icosphere
     with pytest.raises(ValueError, match="unknown protocol"):
         M.evaluate_mesh_pair((V, F), (V, F), "nope", device=device)
+
+
+def test_sampling_seeds_use_every_bit(device):
+    """sample_surface kept a seed's low 31 bits (2**31 + 5 gave seed 5's points, -1 gave
+    2**31 - 1's: a new user's); seeds below 2**31 are as before."""
+    s = trimesh.creation.icosphere(subdivisions=2)
+    V, F = np.asarray(s.vertices), np.asarray(s.faces)
+    pts = {k: M.sample_surface(V, F, 64, seed=k, device=device) for k in (5, 2**31 + 5, 2**31 - 1, -1)}
+    assert not np.array_equal(pts[5], pts[2**31 + 5]) and not np.array_equal(pts[2**31 - 1], pts[-1])
+    np.testing.assert_array_equal(M.sample_surface(V, F, 64, seed=-1, device=device), pts[-1])
+    assert M.kernel_seed(5) == 5 and 0 <= M.kernel_seed(2**40) < 2**31
