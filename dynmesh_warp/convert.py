@@ -50,6 +50,7 @@ CLI: ``python -m dynmesh_warp.convert IN OUT --strategy tracking|projection|regu
 from __future__ import annotations
 
 import dataclasses
+import re
 import sys
 import time
 import warnings
@@ -1976,6 +1977,7 @@ def main(argv=None) -> int:
     quiet_warp(a.device)
     from .animation_formats import VERTEX_ONLY_EXTENSIONS, find_topology, written_topology
     from .io import ANIMATED_FILE_OUTPUTS, MESH_EXTENSIONS, load_sequence, save_sequence
+    from .mesh_formats import UNREAD_ANIMATIONS
     from .outputs import check_output
 
     opts = {}
@@ -2039,10 +2041,23 @@ def main(argv=None) -> int:
                 check_output(faces, kind="file", what=f"output {a.output}: its faces", inputs=inputs,
                              overwrite=a.overwrite, suffixes={".obj"})
         else:
+            formats = (".npz file, a .pc2/.mdd/.anime or animated .glb file, or a folder (frames written as "
+                       "frame_XXXX.ply, or .obj with --fmt obj)")
+            if out_suffix == ".gltf":
+                raise ValueError(f"output {a.output}: an animated glTF is written as one binary .glb file (morph "
+                                 f"targets); give {Path(a.output).with_suffix('.glb').name}")
             if out_suffix in MESH_EXTENSIONS or out_suffix in _FILE_SUFFIXES:
                 raise ValueError(f"output {a.output}: a sequence does not fit in one {out_suffix} file; give a "
-                                 ".npz file, a .pc2/.mdd/.anime or animated .glb file, or a folder (frames "
-                                 "written as frame_XXXX.ply, or .obj with --fmt obj)")
+                                 + formats)
+            if out_suffix in UNREAD_ANIMATIONS:
+                raise ValueError(f"output {a.output}: {UNREAD_ANIMATIONS[out_suffix].split(' (')[0]} files are not "
+                                 "written; give a " + formats + ". A .pc2 or .mdd point cache with its .obj, or "
+                                 "the .glb, imports into Blender, Maya, 3ds Max and Houdini")
+            if out_suffix and not Path(a.output).is_dir() and re.fullmatch(r"\.[a-z0-9]{1,5}", out_suffix):
+                # an unknown file-like name (a typo such as .nzp, or a format not written) became a
+                # folder of frames with exit 0 (a new user's): refused; an existing folder is taken
+                raise ValueError(f"output {a.output}: {out_suffix} is not a format convert writes; give a "
+                                 + formats + " named without an extension (or create the folder first)")
             a.fmt = a.fmt or "ply"
             check_output(a.output, kind="folder", what="output", inputs=inputs, overwrite=a.overwrite,
                          writes=_FOLDER_FRAMES)

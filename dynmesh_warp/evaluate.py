@@ -186,10 +186,12 @@ def _check_scales(index, gt_file, pred_file) -> None:
 
 def evaluate_folders(gt_dir, pred_dir, protocols=("dgmesh", "paper"), frame_stride: int = 1,
                      emd: bool = True, seed: int = 0, device=None, progress: bool = False,
-                     pair: str = "index", should_stop=None) -> dict:
+                     pair: str = "index", should_stop=None, emd_stride: int | None = None) -> dict:
     """Compare a folder of predicted meshes with a folder of ground-truth meshes, pairing files
     by the integer frame index in their names (``pair="index"``) or by position in index order
-    (``pair="order"``). Returns {'pairs': [(index, gt, pred)], 'results':
+    (``pair="order"``). ``emd_stride`` K: EMD only on the pairs at positions 0, K, 2K, ... of the
+    paired list (as the CLI's estimate counts them; it was ignored here, and EMD ran on every
+    pair: a new user's). Returns {'pairs': [(index, gt, pred)], 'results':
     evaluate_rows(...)['prediction']} (frames are the paired indices)."""
     from .io import read_mesh
     from .sequence_layouts import list_frame_files
@@ -200,7 +202,9 @@ def evaluate_folders(gt_dir, pred_dir, protocols=("dgmesh", "paper"), frame_stri
         raise ValueError(f"pair must be 'index' or 'order', got {pair!r}")
     pairing = pair_frames_by_index if pair == "index" else pair_frames_by_order
     pairs = pairing(gt_files, pred_files)
-    pairs = pairs[:: max(1, int(frame_stride))]
+    fs = max(1, int(frame_stride))
+    at = range(0, len(pairs), fs)  # each evaluated pair's position in the whole paired list
+    pairs = pairs[::fs]
 
     class _Lazy(dict):
         def __init__(self, col):
@@ -214,8 +218,10 @@ def evaluate_folders(gt_dir, pred_dir, protocols=("dgmesh", "paper"), frame_stri
     idx = [p[0] for p in pairs]
     if pairs:
         _check_scales(*pairs[0])
+    emd_frames = [] if not emd else None if not emd_stride else \
+        [t for t, k in zip(idx, at) if k % int(emd_stride) == 0]
     res = evaluate_rows(_Lazy(1), {"prediction": _Lazy(2)}, idx, protocols,
-                        emd_frames=None if emd else [], seed=seed, device=device,
+                        emd_frames=emd_frames, seed=seed, device=device,
                         progress=progress, desc=Path(pred_dir).name, should_stop=should_stop)
     return {"pairs": pairs, "results": res["prediction"]}
 
@@ -500,9 +506,17 @@ def _check_options(a, ap_error) -> list:
     if a.compare:
         if a.scenes:
             raise ValueError("give either scenes or --compare GT_DIR PRED_DIR, not both")
+        # options of the scene mode were ignored here without a word (a new user's)
+        for flag, given in (("--num-frames", a.num_frames), ("--strategies", a.strategies)):
+            if given:
+                raise ValueError(f"{flag} applies to a ground-truth scene, not to --compare (which evaluates the "
+                                 "files as they are; --frame-stride and --emd-stride thin them)")
         for d in a.compare:
-            if not Path(d).expanduser().is_dir():
-                raise ValueError(f"--compare {d}: folder not found")
+            p = Path(d).expanduser()
+            if not p.is_dir():
+                raise ValueError(f"--compare {d}: " + ("a file, not a folder of per-frame meshes (a sequence file is "
+                                                       "a ground-truth scene: evaluate GT --inputs PRED)"
+                                                       if p.is_file() else "folder not found"))
         return list(a.compare)
     if not a.scenes:
         ap_error("give scenes to evaluate, or --compare GT_DIR PRED_DIR")
@@ -604,7 +618,7 @@ def main(argv=None) -> int:
             with checking_stops():  # Ctrl-C / SIGTERM: stop between frames, write the frames done
                 r = evaluate_folders(a.compare[0], a.compare[1], a.protocol, a.frame_stride, pair=a.pair,
                                      emd=not a.no_emd, seed=a.seed, device=device, progress=progress,
-                                     should_stop=stop_reason)
+                                     should_stop=stop_reason, emd_stride=a.emd_stride or None)
                 reason = stop_reason()
                 done = len(r["results"][a.protocol[0]]["frames"])
                 if reason and not done:

@@ -51,6 +51,46 @@ def test_evaluate_folders_pairs_gt10_with_frame10(tmp_path, device):
     assert d["cd_mean"] == pytest.approx(0.005, rel=1e-5)
 
 
+def test_compare_takes_the_emd_stride(tmp_path, monkeypatch):
+    """--compare ignored --emd-stride (EMD on every pair, ~1.5 min each on the CPU, while the
+    estimate counted the stride; a new user's): the pairs at positions 0, K, 2K ... get EMD, as
+    the estimate counts them, also with a frame stride and frames numbered from 1."""
+    (tmp_path / "gt").mkdir()
+    (tmp_path / "pred").mkdir()
+    for k in range(1, 8):
+        write_mesh(tmp_path / "gt" / f"gt{k}.obj", TETRA_V, TETRA_F)
+        write_mesh(tmp_path / "pred" / f"frame_{k:04d}.obj", TETRA_V, TETRA_F)
+    seen = []
+
+    def rows(gt, preds, frames, protocols, emd_frames=None, **kw):
+        seen.append((list(frames), emd_frames))
+        return {"prediction": {}}
+
+    monkeypatch.setattr(E, "evaluate_rows", rows)
+    E.evaluate_folders(tmp_path / "gt", tmp_path / "pred", ("dgmesh",), emd_stride=3)
+    E.evaluate_folders(tmp_path / "gt", tmp_path / "pred", ("dgmesh",), frame_stride=2, emd_stride=4)
+    E.evaluate_folders(tmp_path / "gt", tmp_path / "pred", ("dgmesh",))
+    E.evaluate_folders(tmp_path / "gt", tmp_path / "pred", ("dgmesh",), emd=False, emd_stride=3)
+    assert seen == [([1, 2, 3, 4, 5, 6, 7], [1, 4, 7]), ([1, 3, 5, 7], [1, 5]), ([1, 2, 3, 4, 5, 6, 7], None),
+                    ([1, 2, 3, 4, 5, 6, 7], [])]
+
+
+def test_compare_refuses_scene_options_and_a_file(tmp_path, capsys):
+    """--compare silently ignored --num-frames and --strategies, and called an existing npz
+    "folder not found" (a new user's)."""
+    (tmp_path / "gt").mkdir()
+    (tmp_path / "pred").mkdir()
+    (tmp_path / "gt.npz").write_bytes(b"x")
+    base = ["--no-emd", "--no-progress", "--out", str(tmp_path / "o")]
+    cases = ((["--compare", str(tmp_path / "gt"), str(tmp_path / "pred"), "--num-frames", "10"], "--num-frames applies"),
+             (["--compare", str(tmp_path / "gt"), str(tmp_path / "pred"), "--strategies", "graph"], "--strategies applies"),
+             (["--compare", str(tmp_path / "gt.npz"), str(tmp_path / "pred")], "a file, not a folder"))
+    for args, words in cases:
+        assert E.main(args + base) == 2
+        assert words in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
 def test_evaluate_folders_warns_of_a_prediction_in_other_units(tmp_path, device):
     """A prediction 1000x the ground truth's size (millimetres against metres) is compared as it
     is, with a warning naming both files and the ratio; the same sizes give none."""

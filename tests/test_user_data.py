@@ -514,6 +514,15 @@ def test_convert_cli_checks_the_output_path_first(tmp_path, capsys, monkeypatch)
     assert convert.main([str(tmp_path / "frames"), str(tmp_path / "out.obj")]) == 2 and not called
     err = capsys.readouterr().err
     assert "does not fit in one .obj file" in err and len(err.splitlines()) == 1
+    # a name with an extension convert does not write (a typo, FBX, Alembic) became a folder of
+    # frames with exit 0 (a new user's); refused before the work, and nothing is created
+    for name, words in (("out.nzp", ".nzp is not a format convert writes"), ("out.fbx", "FBX files are not written"),
+                        ("out.abc", "Alembic files are not written"), ("out.gltf", "give out.glb")):
+        assert convert.main([str(tmp_path / "frames"), str(tmp_path / name)]) == 2 and not called
+        assert words in capsys.readouterr().err and not (tmp_path / name).exists()
+    (tmp_path / "out.v2").mkdir()  # a folder the user made, with a dot in its name: taken
+    convert.main([str(tmp_path / "frames"), str(tmp_path / "out.v2")])
+    assert "is not a format" not in capsys.readouterr().err
 
 
 def test_union_field_errors_name_only_the_meant_branch():
