@@ -236,7 +236,12 @@ class NewtonWorld:
         self.t0 = float(t0)
         self.sim_time = wp.array([self.t0], dtype=wp.float64, device=self.device)
         self.adapter.bind(self.model, self.sim_time)
-        self.solver = make_solver(self.model, solver, **(solver_options or {}))
+        opts = dict(solver_options or {})
+        if solver == "xpbd" and float(restitution) > 0 and "enable_restitution" not in opts:
+            # Newton's XPBD leaves restitution off unless asked: a new user's restitution 1.0 gave
+            # no bounce at all (0.05 m after a 0.5 m drop; 0.50 m with it on, 0.51 m built-in)
+            opts["enable_restitution"] = True
+        self.solver = make_solver(self.model, solver, **opts)
         newton = _import_newton()
         self.state_0 = self.model.state()
         self.state_1 = self.model.state()
@@ -462,7 +467,10 @@ def add_scene_bodies(builder, cfg, sphere_positions=None) -> list[dict]:
     newton = _import_newton()
     ncfg = cfg.newton
     records = []
-    mu = cfg.physics.friction if ncfg.surface_mu is None else ncfg.surface_mu
+    # the bodies' own friction is physics.friction; newton.surface_mu is the deforming surface's
+    # (Newton combines the two shapes'); it was given to every body too, so surface_mu 0 made a
+    # box with friction 1 slide off a 20-degree slope (a new user's)
+    mu = cfg.physics.friction
     for i, b in enumerate(ncfg.bodies):
         label = b.label or f"{b.type}_{i}"
         xf = wp.transform(wp.vec3(*b.position), wp.normalize(wp.quat(*b.rotation)))
@@ -502,6 +510,30 @@ def add_scene_bodies(builder, cfg, sphere_positions=None) -> list[dict]:
     return records
 
 
+def _refuse_bodies_inside(cfg, seq) -> None:
+    """The built-in world's rule for the Newton path too (docs/scene.md): a listed scene sphere
+    (``include_spheres``) or a box / sphere / capsule body whose centre starts inside the closed
+    surface (frame 0) is refused; contacts with the surface are one-sided, and a new user's
+    sphere fell out through a blob (z 0.6 -> -7.7 in 1 s) where the built-in engine refused it."""
+    from .config import SceneError  # noqa: PLC0415
+    from .geometry import mesh_orientation  # noqa: PLC0415
+    from .scene import _refuse_spheres_inside, winding_numbers  # noqa: PLC0415
+
+    V0, F0 = seq.frame(0)
+    if mesh_orientation(V0, F0) not in ("outward", "inward"):
+        return
+    if cfg.newton.include_spheres and isinstance(cfg.spheres, list):
+        _refuse_spheres_inside(V0, F0, [s.position for s in cfg.spheres], [s.radius for s in cfg.spheres], closed=True)
+    shaped = [(i, b) for i, b in enumerate(cfg.newton.bodies) if b.type in ("box", "sphere", "capsule")]
+    if shaped:
+        w = winding_numbers(V0, F0, np.asarray([b.position for _, b in shaped], np.float64))
+        for (i, b), wi in zip(shaped, w):
+            if abs(wi) > 0.5:
+                raise SceneError(f"newton.bodies.{i}: position {list(b.position)} starts inside the closed surface "
+                                 "(frame 0); contacts with it are one-sided, so the body would fall out through it. "
+                                 f"Move it outside, e.g. above z = {float(np.asarray(V0)[:, 2].max()):.4g}")
+
+
 def build_newton_world(cfg, device=None, sequence=None, num_worlds: int = 1, **overrides) -> NewtonWorld:
     """Create a :class:`NewtonWorld` from a validated scene with a ``newton:`` section.
 
@@ -521,6 +553,7 @@ def build_newton_world(cfg, device=None, sequence=None, num_worlds: int = 1, **o
         raise SceneError(f"newton: {e}") from e
     seq = load_surface(cfg) if sequence is None else prepare_surface(sequence, cfg)
     require_fixed_topology(cfg, seq, "the Newton path needs")
+    _refuse_bodies_inside(cfg, seq)
     # the one builder (scene.build_model): the surface on the device, the spheres, the ground
     model, state = build_model(cfg, seq, device)
     surface, sp = model.surface, model.spheres

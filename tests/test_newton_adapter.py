@@ -471,3 +471,52 @@ def test_run_newton_scene_with_envs_uses_newtons_own_batching(tmp_path, device):
         with pytest.raises(SceneError, match="one clock"):
             run_scene(load_scene_config(path), progress=False, log=lambda *a: None, overwrite=True)
     assert main([str(path), "--view-envs", "1", "--viewer", "none"]) == 2
+
+
+def test_newton_restitution_friction_and_bodies_inside_follow_the_scene(tmp_path, device):
+    """Three findings of a new user, each on the default solver (XPBD):
+    - physics.restitution was ignored (Newton's XPBD leaves it off): a sphere dropped from 0.5 m
+      with restitution 1 did not bounce; it now comes back up;
+    - newton.surface_mu was given to every body as well: with friction 1 on the bodies and
+      surface_mu 0, a box slid down a 20-degree slope as on ice; the combined friction now holds it;
+    - a sphere or box placed inside a closed surface ran and fell out through it (the built-in
+      engine refuses it): now refused, naming the entry."""
+    from dynmesh_warp.config import SceneError, load_scene_config
+    from dynmesh_warp.newton_adapter import build_newton_world
+
+    seq = rising_sheet(16, rise=0.0, frames=2)
+    np.savez(tmp_path / "flat.npz", V=seq.V, F=seq.F, fps=FPS)
+    drop = {"device": device, "surface": {"source": str(tmp_path / "flat.npz")}, "spheres": [],
+            "physics": {"restitution": 1.0},
+            "newton": {"bodies": [{"type": "sphere", "position": [0.0, 0.0, 0.5], "radius": 0.05}]}}
+    w = build_newton_world(load_scene_config(data=drop))
+    z = []
+    for _ in range(180):
+        w.step()
+        z.append(float(w.body_transforms()[0, 2]))
+    bottom = int(np.argmin(z))
+    assert z[bottom] < 0.1 and max(z[bottom:]) > 0.3  # down to the sheet, then back up
+    # a 20-degree slope (x up to the left), friction 1 on the box, 0 on the surface: Newton
+    # combines the two (0.5 > tan 20 = 0.36), so the box stays
+    V = seq.V.astype(np.float64).copy()
+    V[..., 2] = -np.tan(np.radians(20.0)) * V[..., 0]
+    np.savez(tmp_path / "slope.npz", V=V.astype(np.float32), F=seq.F, fps=FPS)
+    slope = {"device": device, "surface": {"source": str(tmp_path / "slope.npz")}, "spheres": [],
+             "physics": {"friction": 1.0, "restitution": 0.0},
+             "newton": {"surface_mu": 0.0, "bodies": [{"type": "box", "position": [0.0, 0.0, 0.06],
+                                                       "half_extents": [0.05, 0.05, 0.05],
+                                                       "rotation": [0.0, float(np.sin(np.radians(10))), 0.0,
+                                                                    float(np.cos(np.radians(10)))]}]}}
+    w = build_newton_world(load_scene_config(data=slope))
+    x0 = float(w.body_transforms()[0, 0])
+    for _ in range(240):
+        w.step()
+    assert abs(float(w.body_transforms()[0, 0]) - x0) < 0.05
+    blob = {"device": device, "surface": {"source": "builtin:pulsing_blob", "params": {"subdivisions": 2}},
+            "spheres": [{"position": [0.0, 0.0, 0.6], "radius": 0.05}], "newton": {}}
+    with pytest.raises(SceneError, match=r"spheres.0: position \[0.0, 0.0, 0.6\] starts inside the closed surface"):
+        build_newton_world(load_scene_config(data=blob))
+    blob["spheres"] = []
+    blob["newton"] = {"bodies": [{"type": "box", "position": [0.0, 0.0, 0.6], "half_extents": [0.05, 0.05, 0.05]}]}
+    with pytest.raises(SceneError, match=r"newton.bodies.0: position \[0.0, 0.0, 0.6\] starts inside the closed"):
+        build_newton_world(load_scene_config(data=blob))
