@@ -34,6 +34,9 @@ LIGHT_DIR = (-0.45, 0.6, -0.65)
 #: the splat buffer goes once, then each frame only the groups' poses; 0 sends the whole buffer
 #: every frame the surface moves
 SPLAT_GROUPS = 128
+#: bytes a recording holds per group and frame (two viser messages, position and orientation,
+#: with their headers; measured on the default scene): the size estimate printed before recording
+GROUP_POSE_BYTES = 192
 #: the groups' buffers are sent again from the current pose when a Gaussian's rigid-fit error
 #: exceeds this fraction of the scene's bounding-box diagonal, at most once per REKEY_INTERVAL [s]
 REKEY_ERROR = 0.05
@@ -803,13 +806,18 @@ def run_viewer(cfg, device=None, viewer: str = "viser", port: int = 8080, host: 
     count = g.count if g is not None else 0
     if record and max_frames is not None:  # what a long recording will cost, before it is made
         grouped = v.stream is not None
-        splats = v.stream.K * 64 if grouped else count * 32  # per frame: the groups' poses, or the buffer
-        per_frame = splats + (world.surface_points().shape[0] * 12 if v.mesh.visible else 0) + \
-            len(world.sphere_radii()) * 12
-        est = max_frames * per_frame + (count * 32 if grouped else 0)
+        # per frame: each group's pose is two viser messages, ~192 B with their headers (measured:
+        # 24.6 kB a frame for 128 groups on the default scene; 64 B counted before, so a new user's
+        # "up to 0.8 MB" recording held 1.85 MB), or the whole splat buffer
+        splats = v.stream.K * GROUP_POSE_BYTES if grouped else count * 32
+        mesh = world.surface_points().shape[0] * 12
+        per_frame = splats + (mesh if v.mesh.visible else 0) + len(world.sphere_radii()) * 64
+        # once: the splats (grouped) and the scene's set-up messages (the surface, the ground,
+        # the GUI: ~0.5 MB on the default scene, taken as 4x the surface's vertex bytes + 0.3 MB)
+        est = max_frames * per_frame + (count * 32 if grouped else 0) + 4 * mesh + 0.3 * 2**20
         what = (f"the splats once ({count * 32 / 2**20:,.1f} MB) and the poses of {v.stream.K} groups per frame"
                 if grouped else f"{count:,} splats x 32 B per frame")
-        log(f"recording {max_frames:,} frames at {v.fps:g} fps: up to {est / 2**20:,.1f} MB before compression "
+        log(f"recording {max_frames:,} frames at {v.fps:g} fps: about {est / 2**20:,.1f} MB before compression "
             f"({what}{', the mesh' if v.mesh.visible else ''}, the spheres)")
     if viewer == "viser":
         log(f"viewer: http://{'localhost' if host in ('0.0.0.0', '127.0.0.1') else host}:{v.port} "
