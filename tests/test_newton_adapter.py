@@ -348,7 +348,9 @@ def test_replicated_newton_worlds_each_equal_the_single_world(device):
     from dynmesh_warp.newton_adapter import build_newton_world
 
     data = {"device": device, "surface": {"source": "builtin:wave_bowl", "params": {"n": 10, "frames": 6}},
-            "spheres": {"count": 2, "radius": 0.06, "seed": 3}, "physics": {"ground": "auto"},
+            # restitution 0: XPBD's restitution pass (on with restitution > 0) is not bit-reproducible
+            # from run to run on CUDA (bench/results/newton_restitution_repro_cuda_h100.json)
+            "spheres": {"count": 2, "radius": 0.06, "seed": 3}, "physics": {"ground": "auto", "restitution": 0.0},
             "newton": {"solver": "xpbd", "bodies": [{"type": "box", "position": [0.1, 0.0, 1.0],
                                                       "half_extents": [0.08, 0.08, 0.05]}]}}
     one = build_newton_world(load_scene_config(data=data))
@@ -456,6 +458,7 @@ def test_run_newton_scene_with_envs_uses_newtons_own_batching(tmp_path, device):
              "spheres": [{"position": [0.5, 0.5, 0.3], "radius": 0.05, "mass": 1.0}],
              "newton": {"solver": "xpbd", "bodies": [
                  {"type": "box", "position": [-0.3, 0.0, 0.3], "half_extents": [0.1, 0.1, 0.05]}]},
+             "physics": {"restitution": 0.0},  # bit-equal copies: see test_replicated_newton_worlds_...
              "envs": {"count": 3}, "run": {"steps": 120, "output": str(tmp_path / "out")}}
     path = tmp_path / "ne.yaml"
     path.write_text(yaml.safe_dump(scene))
@@ -464,7 +467,7 @@ def test_run_newton_scene_with_envs_uses_newtons_own_batching(tmp_path, device):
     assert q.shape == (6, 7) and summary["num_envs"] == 3 and summary["env_steps_per_second"] > 0
     np.testing.assert_allclose(q[0::2, 2], 0.05, atol=5e-3)  # each world's box on the sheet
     np.testing.assert_allclose(q[1::2, 2], 0.05, atol=5e-3)  # and its sphere
-    np.testing.assert_allclose(q[:2], q[2:4], atol=1e-6)  # the worlds are copies
+    np.testing.assert_allclose(q[:2], q[2:4], atol=1e-5)  # the worlds are copies (CUDA: 1.3e-6 apart, float order)
     for bad in ({"time_offset": "random"}, {"rate": [0.5, 1.5]}):
         scene["envs"] = {"count": 3, **bad}
         path.write_text(yaml.safe_dump(scene))
