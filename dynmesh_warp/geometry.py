@@ -33,7 +33,9 @@ def signed_volume(V, F) -> float:
     taken about the vertex centroid so that a small hole biases it little."""
     V = np.asarray(V, np.float64)
     F = np.asarray(F)
-    V = V - V[np.unique(F)].mean(axis=0)
+    used = np.zeros(len(V), bool)  # a mask, not np.unique: convert asks this of every input frame
+    used[F.reshape(-1)] = True
+    V = V - V[used].mean(axis=0)
     a, b, c = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
     return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
 
