@@ -376,8 +376,9 @@ class BatchedWorld:
         if p.auto_substeps and model.surface.interpolate:
             need = required_substeps(speed, p.dt, r_min)
             if need > self.substeps:
-                check_substep_budget(need, speed, r_min, p, seam_note(model.surface))
-                warnings.warn(f"surface moves up to {speed:.3g} m/s (at rate {rate:g}){seam_note(model.surface)}: "
+                note = seam_note(model.surface)
+                check_substep_budget(need, speed, r_min, p, note)
+                warnings.warn(f"surface moves up to {speed:.3g} m/s (at rate {rate:g}){note}: "
                               "raising substeps from "
                               f"{self.substeps} to {need} so it moves < r/2 per sub-step", stacklevel=2)
                 self.substeps = need

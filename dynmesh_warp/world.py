@@ -140,7 +140,7 @@ def seam_note(surface) -> str:
     surface's speed, words saying so: most captured animations do not repeat, and under the
     default ``playback: loop`` a new user's sheet moving at 0.5 m/s was reported at 24 m/s and ran
     4 sub-steps a step."""
-    seam, motion = float(getattr(surface, "seam_speed", 0.0)), float(getattr(surface, "motion_speed", 0.0))
+    seam, motion = float(surface.seam_speed), float(surface.motion_speed)
     if seam <= 0 or seam < float(surface.max_speed) or seam <= 1.5 * motion:
         return ""
     return (f" (the jump from the last frame back to the first under surface.playback: loop; within the "
@@ -180,7 +180,9 @@ class SurfaceModel:
         fps: reconstruction frame rate [1/s]; frame k = floor(t * fps).
         playback: int code of "loop" | "clamp" | "pingpong" (times past the last frame).
         interpolate: blend frames k and k+1 linearly (else hold frame k).
-        max_speed: largest vertex speed over the sequence [m/s] (host float).
+        max_speed: largest vertex speed over the sequence [m/s] (host float): the larger of
+        motion_speed (within the animation) and seam_speed (loop: the jump from the last frame
+        back to the first; 0 otherwise).
         average_edge_length: (T,) float32 each frame's mean edge length [m] (host).
         max_abs_coordinate: the largest |coordinate| over the frames [m] (host float).
     """
@@ -315,6 +317,7 @@ class VaryingSurfaceModel:
                    default=0.0)
         self.max_frame_step = step  # largest vertex displacement between frames of one segment [m]
         self.max_speed = step * self.fps
+        self.motion_speed, self.seam_speed = self.max_speed, 0.0  # as SurfaceModel's (no seam counted here)
 
     #: without vertex correspondence only a BVH built per segment, frame or step can follow it
     colliders = (Collider.REBUILD.value,)
@@ -1334,9 +1337,10 @@ class World:
         if surf.max_speed > 0 and math.isfinite(r_min):
             need = math.ceil(surf.max_speed * p.dt / (0.5 * r_min))
             if p.auto_substeps and surf.interpolate and need > self.substeps:
-                check_substep_budget(need, surf.max_speed, r_min, p, seam_note(surf))
+                note = seam_note(surf)
+                check_substep_budget(need, surf.max_speed, r_min, p, note)
                 warnings.warn(
-                    f"surface moves up to {surf.max_speed:.3g} m/s{seam_note(surf)}: raising substeps from "
+                    f"surface moves up to {surf.max_speed:.3g} m/s{note}: raising substeps from "
                     f"{self.substeps} to {need} so it moves < r/2 per sub-step", stacklevel=stacklevel)
                 self.substeps = need
             if not surf.interpolate and surf.max_frame_step > 0.5 * r_min:
