@@ -722,11 +722,12 @@ def _spheres_for_env_starts(cfg, seq, mode: int, times: np.ndarray, pos: np.ndar
     sphere inside the closed surface at an env's start frame is refused, naming the env."""
     from .config import SceneError, spawn_positions
     from .geometry import mesh_orientation
-    from .scene import _refuse_spheres_inside
+    from .scene import refuse_starts_inside, sphere_entries
 
     if not isinstance(cfg.spheres, list):
         return spawn_positions(cfg.spheres, seq.V.reshape(-1, 3))
-    if not len(cfg.spheres) or mesh_orientation(seq.V[0], seq.F) not in ("outward", "inward"):
+    entries = sphere_entries(cfg)
+    if not entries or mesh_orientation(seq.V[0], seq.F) not in ("outward", "inward"):
         return pos
     first = {}  # start frame -> first env that starts on it
     for e, t in enumerate(times):
@@ -734,8 +735,7 @@ def _spheres_for_env_starts(cfg, seq, mode: int, times: np.ndarray, pos: np.ndar
             first.setdefault(k, e)
     for k in sorted(first):
         try:
-            _refuse_spheres_inside(seq.V[k], seq.F, [sp.position for sp in cfg.spheres],
-                                   [sp.radius for sp in cfg.spheres], frame=k, closed=True)
+            refuse_starts_inside(seq.V[k], seq.F, entries, frame=k, closed=True)
         except SceneError as err:
             e = first[k]
             raise SceneError(f"env {e} starts at t = {float(times[e]):.4g} s (envs.time_offset: "

@@ -515,23 +515,14 @@ def _refuse_bodies_inside(cfg, seq) -> None:
     (``include_spheres``) or a box / sphere / capsule body whose centre starts inside the closed
     surface (frame 0) is refused; contacts with the surface are one-sided, and a new user's
     sphere fell out through a blob (z 0.6 -> -7.7 in 1 s) where the built-in engine refused it."""
-    from .config import SceneError  # noqa: PLC0415
-    from .geometry import mesh_orientation  # noqa: PLC0415
-    from .scene import _refuse_spheres_inside, winding_numbers  # noqa: PLC0415
+    from .scene import refuse_starts_inside, sphere_entries  # noqa: PLC0415
 
-    V0, F0 = seq.frame(0)
-    if mesh_orientation(V0, F0) not in ("outward", "inward"):
-        return
-    if cfg.newton.include_spheres and isinstance(cfg.spheres, list):
-        _refuse_spheres_inside(V0, F0, [s.position for s in cfg.spheres], [s.radius for s in cfg.spheres], closed=True)
-    shaped = [(i, b) for i, b in enumerate(cfg.newton.bodies) if b.type in ("box", "sphere", "capsule")]
-    if shaped:
-        w = winding_numbers(V0, F0, np.asarray([b.position for _, b in shaped], np.float64))
-        for (i, b), wi in zip(shaped, w):
-            if abs(wi) > 0.5:
-                raise SceneError(f"newton.bodies.{i}: position {list(b.position)} starts inside the closed surface "
-                                 "(frame 0); contacts with it are one-sided, so the body would fall out through it. "
-                                 f"Move it outside, e.g. above z = {float(np.asarray(V0)[:, 2].max()):.4g}")
+    def clearance(b):  # how far its surface reaches from its centre [m]
+        return max(b.half_extents) if b.type == "box" else b.radius + (b.half_height or 0.0)
+
+    bodies = [(f"newton.bodies.{i}", b.position, clearance(b)) for i, b in enumerate(cfg.newton.bodies)
+              if b.type in ("box", "sphere", "capsule")]
+    refuse_starts_inside(*seq.frame(0), (sphere_entries(cfg) if cfg.newton.include_spheres else []) + bodies)
 
 
 def build_newton_world(cfg, device=None, sequence=None, num_worlds: int = 1, **overrides) -> NewtonWorld:

@@ -250,25 +250,38 @@ def winding_numbers(V: np.ndarray, F: np.ndarray, P: np.ndarray) -> np.ndarray:
     return out
 
 
-def _refuse_spheres_inside(V0, F0, positions, radius, frame: int = 0, closed: bool | None = None) -> None:
-    """A listed sphere whose centre starts inside a closed surface (frame ``frame``, whose
-    vertices are ``V0``) is refused: contacts are one-sided, so it would fall out through the
-    faces (docs/scene.md). ``closed``: whether the surface is closed, when already known."""
+def refuse_starts_inside(V0, F0, entries, frame: int = 0, closed: bool | None = None) -> None:
+    """Refuse (:class:`SceneError`) a body whose centre starts inside a closed surface (frame
+    ``frame``, whose vertices are ``V0``): contacts with the surface are one-sided, so it would
+    fall out through the faces (docs/scene.md). ``entries``: ``(label, position, clearance)`` per
+    body, the label naming its scene field (``spheres.3``, ``newton.bodies.0``) and the clearance
+    [m] (its radius: how far above the surface the message suggests). ``closed``: whether the
+    surface is closed, when already known. The one rule of the built-in world, the batched envs
+    (at each env's start frame) and the Newton path."""
+    if not len(entries):
+        return
     if closed is None:
         closed = mesh_orientation(V0, F0) in ("outward", "inward")
-    if not len(positions) or not closed:
+    if not closed:
         return
-    w = winding_numbers(V0, F0, np.asarray(positions, np.float64).reshape(-1, 3))
+    w = winding_numbers(V0, F0, np.asarray([pos for _, pos, _ in entries], np.float64).reshape(-1, 3))
     inside = np.flatnonzero(np.abs(w) > 0.5)
     if inside.size:
-        i = int(inside[0])
+        label, pos, clearance = entries[int(inside[0])]
         top = float(np.asarray(V0)[:, 2].max())
         raise SceneError(
-            f"spheres.{i}: position {[round(float(x), 6) for x in np.asarray(positions[i], float)]} starts inside "
-            "the closed "
+            f"{label}: position {[round(float(x), 6) for x in np.asarray(pos, float)]} starts inside the closed "
             f"surface (frame {frame}); contacts are one-sided, so it would fall out through it. Move it outside, "
-            f"e.g. z >= {top + float(radius[i]):.4g} above the surface"
-            + (f" ({inside.size} spheres are inside)" if inside.size > 1 else ""))
+            f"e.g. z >= {top + float(clearance):.4g} above the surface"
+            + (f" ({inside.size} {'spheres' if all(e[0].startswith('spheres.') for e in entries) else 'bodies'} "
+               "are inside)" if inside.size > 1 else ""))
+
+
+def sphere_entries(cfg: SceneConfig) -> list:
+    """:func:`refuse_starts_inside`'s entries of a scene's listed spheres (none when spawned)."""
+    if not isinstance(cfg.spheres, list):
+        return []
+    return [(f"spheres.{i}", sp.position, sp.radius) for i, sp in enumerate(cfg.spheres)]
 
 
 def scene_spheres(cfg: SceneConfig, V0: np.ndarray):
@@ -356,8 +369,6 @@ def build_world(cfg: SceneConfig, device=None, collider: str | None = None,
             "command line: --set physics.collider=rebuild (run: --collider rebuild), or --set "
             "surface.conversion.strategy=graph; or convert it once, python -m dynmesh_warp.convert "
             f"{cfg.surface.source} OUT.npz, and run OUT.npz)")
-    if isinstance(cfg.spheres, list):  # listed spheres must start outside a closed surface
-        V0, F0 = seq.frame(0)
-        _refuse_spheres_inside(V0, F0, [sp.position for sp in cfg.spheres], [sp.radius for sp in cfg.spheres])
+    refuse_starts_inside(*seq.frame(0), sphere_entries(cfg))  # listed spheres must start outside a closed surface
     model, state = build_model(cfg, seq, device)
     return World(model, state, collider=collider, rebuild_every=rebuild_every or p.rebuild_every)
