@@ -6,7 +6,8 @@ A checkpoint is one ``.npz`` file (written atomically, NumPy arrays only, no pic
   written at, the run's step count, the checkpoint interval, the device, the number of contact
   samples so far and the scene's fingerprint (:func:`scene_fingerprint`);
 - the world's state (:meth:`World.checkpoint_state <dynmesh_warp.world.World.checkpoint_state>`):
-  ``time``, ``sim_time``, ``substep_count``, ``sphere_pos``, ``sphere_vel``, ``frame_key``, ``frame_changed`` and the collider's
+  ``time``, ``sim_time``, ``substep_count``, ``sphere_pos``, ``sphere_vel``, ``frame_key``, ``frame_changed``,
+  ``contact_face`` (each sphere's last contact face: the seeded searches read it) and the collider's
   ``collider_*`` arrays;
 - ``radius`` and ``inv_mass`` of the spheres (compared with the scene's, sphere by sphere);
 - ``traj_time``, ``traj_position``, ``traj_velocity``: the trajectory samples taken so far (every
@@ -179,7 +180,7 @@ def save_checkpoint(path, world, *, scene: str, step: int, steps: int, checkpoin
 #: state fields every checkpoint has: name -> (dtype kind, shape with "S" for the sphere count)
 _STATE_FIELDS = {"time": ("f", ()), "sim_time": ("f", (1,)), "substep_count": ("i", ()),
                  "sphere_pos": ("f", ("S", 3)), "sphere_vel": ("f", ("S", 3)),
-                 "frame_key": ("i", (1,)), "frame_changed": ("i", (1,))}
+                 "frame_key": ("i", (1,)), "frame_changed": ("i", (1,)), "contact_face": ("i", ("S",))}
 
 
 def load_checkpoint(path) -> Checkpoint:
