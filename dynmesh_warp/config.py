@@ -76,7 +76,7 @@ class ConversionConfig(_Strict):
 
 
 class SurfaceConfig(_Strict):
-    source: str = "builtin:wave_bowl"
+    source: str = Field(default="builtin:wave_bowl", min_length=1)  # "" resolved to the scene's own folder
     params: dict = Field(default_factory=dict)  # keyword arguments of a built-in generator
     subdir: Optional[str] = None  # DG-Mesh scene folder: dynamic_mesh | mesh_gt
     topology: Optional[str] = None  # a vertex-only source's faces (.pc2/.mdd/.npy/npz): a mesh file (default: <stem>.*)
@@ -356,7 +356,7 @@ def _format_errors(err: ValidationError, origin: str) -> str:
     for e in err.errors():
         loc = [x for x in e["loc"] if not _is_branch_tag(x)]
         msg = "unknown key" if e["type"] == "extra_forbidden" else e["msg"].removeprefix("Value error, ")
-        errs.append((".".join(str(x) for x in loc) or "(top level)", e["type"], msg,
+        errs.append((".".join(str(x) for x in loc), e["type"], msg,  # "": the scene's own checks name their field
                      any(_is_branch_tag(x) for x in e["loc"])))
     keep = [
         e for e in errs
@@ -367,11 +367,12 @@ def _format_errors(err: ValidationError, origin: str) -> str:
     for loc, _, msg, _ in keep:
         if msg not in merged.setdefault(loc, []):
             merged[loc].append(msg)
+    at = {loc: f"{loc}: " if loc else "" for loc in merged}
     if len(merged) == 1:  # one problem: one line
         (loc, msgs), = merged.items()
-        return f"{origin}: {loc}: {'; or: '.join(msgs)}"
+        return f"{origin}: {at[loc]}{'; or: '.join(msgs)}"
     lines = [f"{origin}: invalid scene"]
-    lines += [f"  {loc}: {'; or: '.join(msgs)}" for loc, msgs in merged.items()]
+    lines += [f"  {at[loc]}{'; or: '.join(msgs)}" for loc, msgs in merged.items()]
     return "\n".join(lines)
 
 

@@ -205,12 +205,15 @@ class RideSurfaceEnv(VectorEnv):
         self.actions.zero_()
         self._reset_envs(self._all)
         self._evaluate(self._all)  # the episodes' first observations (in contact: 0)
+        self._was_reset = True
         return self._out(self.obs), {}
 
     def step(self, actions):
         """Apply the actions (E, 2), take ``decimation`` physics steps, and return (obs, reward,
         terminated, truncated, info); finished envs are reset in the same step."""
         self._check_open()
+        if not getattr(self, "_was_reset", False):  # Gymnasium's contract; the envs held their far-away start
+            raise RuntimeError("RideSurfaceEnv: call reset() before the first step()")
         E = self.num_envs
         shape = tuple(actions.shape) if hasattr(actions, "shape") else np.shape(actions)
         if shape != (E, 2):

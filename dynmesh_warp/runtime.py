@@ -103,10 +103,11 @@ class Simulation(Protocol):
         """(S,) built-in sphere radii [m]."""
 
 
-def scene_device(cfg: SceneConfig, device=None):
-    """The device a scene runs on: ``device`` (the CLI's --device) if given, else the scene's
-    ``device`` field, else Warp's default; a :class:`SceneError` names whichever is unavailable."""
-    return resolve_device(device, "--device") if device else resolve_device(cfg.device, "device")
+def scene_device(cfg: SceneConfig, device=None, given_as: str = "--device"):
+    """The device a scene runs on: ``device`` (the CLI's --device, or a library call's argument:
+    ``given_as`` names it) if given, else the scene's ``device`` field, else Warp's default; a
+    :class:`SceneError` names whichever is unavailable."""
+    return resolve_device(device, given_as) if device else resolve_device(cfg.device, "device")
 
 
 def resolve_device(name, field: str = "device"):

@@ -330,7 +330,7 @@ def build_model(cfg: SceneConfig, seq, device=None) -> tuple[Model, State]:
     physics) and its initial :class:`~dynmesh_warp.world.State`, from a sequence already in the
     scene frame (``load_surface`` / ``prepare_surface``). The built-in world runs them; the
     Newton world takes the surface and the spheres from them (``build_newton_world``)."""
-    device = scene_device(cfg, device)
+    device = scene_device(cfg, device, "the device argument")  # the CLI checked its --device before
     surface = surface_model(seq, device, playback=cfg.surface.playback, interpolate=cfg.surface.interpolate)
     radius, mass, pos, vel = scene_spheres(cfg, seq.frame(0)[0])
     check_precision(*seq.bounds(), pos, radius, f"surface {seq.source or seq.name}", cfg.surface.translate)

@@ -107,6 +107,18 @@ def validate_mesh(
     return np.ascontiguousarray(V32), np.ascontiguousarray(F, dtype=np.int32)
 
 
+
+def _checked_fps(fps, where: str) -> float:
+    """``fps`` as a float, or a :class:`MeshDataError` naming ``where`` for anything but a finite
+    positive number (a string or None too: float()'s own message named neither)."""
+    try:
+        value = float(fps)
+    except (TypeError, ValueError):
+        value = float("nan")
+    if isinstance(fps, bool) or not np.isfinite(value) or value <= 0:
+        raise MeshDataError(f"{where}: fps must be a positive number, got {fps!r}")
+    return value
+
 @dataclass(repr=False)
 class FixedTopologySequence:
     """An animated triangle mesh whose faces are the same in every frame.
@@ -144,10 +156,7 @@ class FixedTopologySequence:
             validate_mesh(V[t], F, where, t)  # raises, naming the frame
         self.V = V32
         self.F = F
-        fps = float(self.fps)
-        if not np.isfinite(fps) or fps <= 0:
-            raise MeshDataError(f"{where}: fps must be a positive number, got {self.fps!r}")
-        self.fps = fps
+        self.fps = _checked_fps(self.fps, where)
 
     def __repr__(self) -> str:
         return (f"FixedTopologySequence(name={self.name!r}, frames={self.num_frames}, "
@@ -220,10 +229,7 @@ class VaryingTopologySequence:
             src = self.frame_sources[t] if self.frame_sources else where
             checked.append(validate_mesh(v, f, src, t))
         self.frames = checked
-        fps = float(self.fps)
-        if not np.isfinite(fps) or fps <= 0:
-            raise MeshDataError(f"{where}: fps must be a positive number, got {self.fps!r}")
-        self.fps = fps
+        self.fps = _checked_fps(self.fps, where)
 
     def __repr__(self) -> str:
         nv = [len(v) for v, _ in self.frames]

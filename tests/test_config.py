@@ -84,6 +84,10 @@ def test_missing_surface_file_names_the_path(tmp_path):
     msg = str(ei.value)
     assert "surface.source" in msg
     assert str(tmp_path / "data" / "missing_sequence.npz") in msg  # resolved against the YAML folder
+    assert msg.startswith(f"{path}: surface.source: file or folder not found")  # not "(top level): surface.source"
+    # an empty source resolved to the scene's own folder, which exists
+    with pytest.raises(SceneError, match=r"surface\.source: String should have at least 1 character"):
+        load_scene_config(write_yaml(tmp_path, {"surface": {"source": ""}}))
 
 
 def test_missing_scene_file(tmp_path):

@@ -67,7 +67,7 @@ def test_actions_are_taken_as_applied_and_checked(device):
 def test_env_arguments_seeds_and_close_are_checked(device):
     """decimation 0 (no physics ran) and a bad radius are refused at construction; a list of
     seeds (one seed drives the batch) is a ValueError, not int()'s TypeError; after close(),
-    reset and step refuse."""
+    reset and step refuse, and so does a step before the first reset."""
     with pytest.raises(ValueError, match="decimation must be an integer >= 1, got 0"):
         _env(device, num_envs=2, decimation=0)
     with pytest.raises(ValueError, match="radius must be a finite positive number"):
@@ -81,6 +81,8 @@ def test_env_arguments_seeds_and_close_are_checked(device):
         with pytest.raises(ValueError, match=r"target must be a finite point \[x, y, z\]"):
             _env(device, num_envs=2, target=bad)
     env = _env(device, num_envs=3)
+    with pytest.raises(RuntimeError, match=r"call reset\(\) before the first step\(\)"):
+        env.step(np.zeros((3, 2), np.float32))  # a new user's: it stepped envs never placed
     with pytest.raises(ValueError, match=r"seed: one integer for the batch .* got \[1, 2, 3\]"):
         env.reset(seed=[1, 2, 3])
     env.reset(seed=np.int64(4))

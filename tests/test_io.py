@@ -130,6 +130,18 @@ def test_kind_conversions(tmp_path):
         load_sequence(tmp_path / "f.npz", kind="bogus")
 
 
+def test_a_bad_fps_is_named_for_both_sequence_kinds():
+    """A string, None, a bool, NaN, 0 or a negative fps is a MeshDataError naming the sequence
+    (a new user's "abc" got float()'s message, naming neither the field nor the sequence)."""
+    seq = fixed_seq()
+    for bad in ("abc", None, True, float("nan"), 0.0, -24.0):
+        with pytest.raises(MeshDataError, match=r"cap: fps must be a positive number, got "):
+            FixedTopologySequence(seq.V, seq.F, fps=bad, name="cap")
+        with pytest.raises(MeshDataError, match=r"cap: fps must be a positive number, got "):
+            VaryingTopologySequence(seq.to_varying().frames, fps=bad, name="cap")
+    assert FixedTopologySequence(seq.V, seq.F, fps="30", name="cap").fps == 30.0  # a numeric string as before
+
+
 def test_single_mesh_file(tmp_path):
     V, F = icosphere()
     write_mesh(tmp_path / "one.ply", V, F)

@@ -404,7 +404,8 @@ def test_a_refused_add_spheres_leaves_reset_working_and_shapes_are_checked():
     """A new user's findings: add_spheres refused for a bad radius or mass had already extended
     what reset() restores (the next reset failed on arrays of different sizes); positions given
     as (3, S) rows of x, y and z were read as scrambled spheres; an unknown collider name in
-    build_world failed with an AttributeError from another error's path."""
+    build_world failed with an AttributeError from another error's path; a bad device argument
+    was reported as the CLI's --device."""
     from dynmesh_warp import build_world, load_scene_config
     from dynmesh_warp.world import SphereModel, State
 
@@ -432,6 +433,10 @@ def test_a_refused_add_spheres_leaves_reset_working_and_shapes_are_checked():
         SphereModel([0.1, 0.1], [1.0, 2.0, 3.0])
     with pytest.raises(ValueError, match=r"collider must be one of .*got 'refti'"):
         build_world(load_scene_config(), device="cpu", collider="refti", sequence=seq)
+    from dynmesh_warp.config import SceneError
+
+    with pytest.raises(SceneError, match="the device argument 'nodevice': not available here"):
+        build_world(load_scene_config(), device="nodevice", sequence=seq)  # it named the CLI's --device
 
 
 def test_the_loop_seam_is_named_when_it_sets_the_surface_speed():
