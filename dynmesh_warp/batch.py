@@ -248,7 +248,8 @@ def _clocks(model: BatchModel, times, rates, playback):
     if playback is None:
         m = np.full(E, model.surface.playback, np.int32)
     else:
-        vals = [playback] * E if isinstance(playback, str) else list(playback)
+        one = isinstance(playback, (str, Playback)) or np.ndim(playback) == 0
+        vals = [playback] * E if one else list(playback)  # one mode of another type: parse names it
         if len(vals) != E:
             raise ValueError(f"playback: expected one mode or {E}, got {len(vals)}")
         m = np.array([PLAYBACK_CODES[parse(Playback, v, "playback")] for v in vals], np.int32)
@@ -367,7 +368,7 @@ class BatchedWorld:
                  tile_threads: int | None = None, budget: int | None = None, blocks: int | None = None):
         self.model, self.state = model, state
         self.device = model.device
-        p = model.params
+        p = model.params.freeze()  # the step and its graph are made from these values
         rate = float(state.env_rate.numpy().max()) if max_rate is None else float(max_rate)
         self.max_rate = rate
         r_min = float(model.spheres.radius_np.min())
@@ -746,10 +747,14 @@ def _spheres_for_env_starts(cfg, seq, mode: int, times: np.ndarray, pos: np.ndar
 
 def build_batched_world(cfg, device=None, num_envs: int | None = None, sequence=None) -> BatchedWorld:
     """A :class:`BatchedWorld` of a scene: the one builder (``scene.build_model``) gives the
-    surface, spheres and physics; ``envs:`` (or ``num_envs``) the count and clocks."""
-    from .config import SceneError
+    surface, spheres and physics; ``envs:`` (or ``num_envs``) the count and clocks. ``cfg``: a
+    SceneConfig, a scene YAML's path or a dict of its sections."""
+    from .config import SceneError, scene_config
     from .scene import build_model, load_surface, prepare_surface, require_fixed_topology
 
+    cfg = scene_config(cfg)
+    if num_envs is not None and (isinstance(num_envs, bool) or int(num_envs) != num_envs):
+        raise SceneError(f"num_envs must be a whole number, got {num_envs!r}")  # 2.7 ran 2 envs
     seq = load_surface(cfg) if sequence is None else prepare_surface(sequence, cfg)
     require_fixed_topology(cfg, seq, "batched envs need")
     model, state = build_model(cfg, seq, device)

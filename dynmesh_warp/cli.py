@@ -364,3 +364,19 @@ def scene_source(scene) -> dict:
         return {"path": None, "data": {"name": path.resolve().stem or "sequence",
                                        "surface": {"source": str(path.resolve())}}}
     return {"path": path}
+
+
+#: the command lines, ``python -m dynmesh_warp.<name>`` (README.md)
+COMMANDS = {
+    "run": "a scene (YAML, a mesh sequence, or none: the built-in default) with physics, viewer, outputs",
+    "convert": "a varying-topology sequence to one fixed topology (a template tracked through it)",
+    "evaluate": "the conversion's accuracy against a reference (Chamfer / EMD per frame, the paper's Table 1)",
+    "render": "a scene's Gaussians (and spheres) to images or a video",
+    "distributed": "batched envs across GPUs and machines with Ray",
+}
+
+if __name__ == "__main__":  # a new user's `python -m dynmesh_warp.cli convert ...` did nothing, exit 0
+    print("dynmesh_warp.cli holds the commands' shared helpers; it is not a command. The commands:\n"
+          + "\n".join(f"  python -m dynmesh_warp.{k:<12} {v}" for k, v in COMMANDS.items())
+          + "\n(each with --help)", file=sys.stderr)
+    sys.exit(2)

@@ -34,7 +34,8 @@ from .choices import (
     UpAxis,
 )
 
-__all__ = ["SceneConfig", "SceneError", "load_scene_config", "apply_overrides", "DEFAULT_SCENE", "DEFAULT_SCENE_FILE",
+__all__ = ["SceneConfig", "SceneError", "load_scene_config", "scene_config", "apply_overrides", "DEFAULT_SCENE",
+           "DEFAULT_SCENE_FILE",
            "parse_assignment", "Vec3", "PhysicsCore", "load_yaml",
            "DEFAULT_MAX_SUBSTEPS", "DEFAULT_MAX_TOTAL_SUBSTEPS"]
 
@@ -447,6 +448,23 @@ def apply_overrides(raw: dict, overrides, origin: str = "--set") -> dict:
             node = child
         node[parts[-1]] = value
     return raw
+
+
+def scene_config(scene, default=None) -> SceneConfig:
+    """The :class:`SceneConfig` of what a library call was given as its scene: a SceneConfig, a
+    scene YAML's path or a dict of its sections (``None``: ``default``, a dict, else the
+    built-in default scene); anything else is a ``TypeError`` naming what it got (a new user's
+    path or dict failed with an AttributeError)."""
+    if isinstance(scene, SceneConfig):
+        return scene
+    if scene is None:
+        return load_scene_config(data=default)
+    if isinstance(scene, dict):
+        return load_scene_config(data=scene)
+    if isinstance(scene, (str, Path)):
+        return load_scene_config(scene)
+    raise TypeError(f"scene: expected a SceneConfig (load_scene_config), a scene YAML's path or a dict of its "
+                    f"sections, got {type(scene).__name__}")
 
 
 def load_scene_config(path: str | Path | None = None, data: dict | None = None, overrides=None) -> SceneConfig:

@@ -1918,21 +1918,22 @@ def _holds_output(output) -> bool:
     return p.is_file() or (p.is_dir() and any(any(p.glob(pattern)) for pattern in _FOLDER_FRAMES))
 
 
-def _partial_path(output) -> Path:
-    """Where an interrupted ``convert`` writes its frames when ``output`` exists already: a new
-    name beside it, ``<stem>.partial<suffix>`` (a folder: ``<name>.partial``), numbered
+def _beside_path(output, name: str = "partial") -> Path:
+    """Where ``convert`` writes when ``output`` holds a sequence it may not replace (an
+    interrupted run's frames; ``name`` "new": a run whose output appeared during the work): a
+    new name beside it, ``<stem>.partial<suffix>`` (a folder: ``<name>.partial``), numbered
     ``.partial-2`` ... where that is taken (by it or by a point cache's ``.obj``), so nothing
     there is replaced."""
     from .animation_formats import written_topology
 
     p = Path(output).expanduser()
     for n in range(1, 10 ** 6):
-        tag = ".partial" if n == 1 else f".partial-{n}"
+        tag = f".{name}" if n == 1 else f".{name}-{n}"
         q = p.with_name(p.stem + tag + p.suffix) if p.suffix else p.with_name(p.name + tag)
         faces = written_topology(q)
         if not q.exists() and not q.is_symlink() and (faces is None or not faces.exists()):
             return q
-    raise ValueError(f"output {output}: no free name for the interrupted run's frames beside it")
+    raise ValueError(f"output {output}: no free name for the run's frames beside it")
 
 
 @interruptible_main
@@ -2080,10 +2081,11 @@ def main(argv=None) -> int:
                       "interrupted_by": reason, "strategy": a.strategy,
                       "segments": [list(x) for x in res.conversion.segments]}
             written, kept = a.output, None
-            if reason and _holds_output(a.output):
+            if (reason or not a.overwrite) and _holds_output(a.output):
                 # an interrupted run never replaces what is there (an earlier, maybe complete,
-                # output): the frames done go beside it
-                written, kept = _partial_path(a.output), a.output
+                # output): the frames done go beside it; nor does a run without --overwrite whose
+                # output appeared during the work (another run's: the check before the work passed)
+                written, kept = _beside_path(a.output, "partial" if reason else "new"), a.output
             save_sequence(res, written, fmt=a.fmt, overwrite=a.overwrite, status=status)
     except (MeshDataError, FileNotFoundError, ValueError, TypeError) as e:
         print(f"error: {e}", file=sys.stderr)
@@ -2099,11 +2101,14 @@ def main(argv=None) -> int:
 
         return 128 + int(getattr(signal, reason, signal.SIGINT))
     segs = res.conversion.segments
+    if kept:
+        print(f"warning: {kept} appeared during the work (another run's?) and is kept unchanged (no --overwrite); "
+              f"this run's output is {written}", file=sys.stderr)
     if len(segs) > 1:
-        print(f"wrote {a.output}: {res.num_frames} frames in {len(segs)} segments of fixed topology ("
+        print(f"wrote {written}: {res.num_frames} frames in {len(segs)} segments of fixed topology ("
               + ", ".join(f"{n} vertices" for *_, n in segs) + ")")
     else:
-        print(f"wrote {a.output}: {res.num_frames} frames x {res.num_vertices} vertices, {res.num_faces} faces")
+        print(f"wrote {written}: {res.num_frames} frames x {res.num_vertices} vertices, {res.num_faces} faces")
     for line in conversion_summary(res.conversion):
         print(line)
     if one_file and any(w > POOR_WEB for w in res.conversion.web):

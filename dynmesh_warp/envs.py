@@ -93,11 +93,10 @@ class RideSurfaceEnv(VectorEnv):
             if not (np.isfinite(value) and value >= (0.0 if name == "push" else 1e-12)):
                 raise ValueError(f"{name} must be a finite {'non-negative' if name == 'push' else 'positive'} number, "
                                  f"got {value!r}")
-        from .config import load_scene_config
+        from .config import scene_config
         from .scene import build_model, load_surface
 
-        cfg = scene if hasattr(scene, "surface") else load_scene_config(scene) if scene is not None else \
-            load_scene_config(data={"surface": {"source": "builtin:pulsing_blob"}})
+        cfg = scene_config(scene, default={"surface": {"source": "builtin:pulsing_blob"}})
         cfg = cfg.model_copy(update={"spheres": []})
         seq = load_surface(cfg)
         self._cfg, self._seq = cfg, seq
@@ -193,9 +192,23 @@ class RideSurfaceEnv(VectorEnv):
 
     # -- the Gymnasium API ---------------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None):
-        """Start a new episode in every env (``seed`` makes the phases, spawn points and pushes
-        reproducible). Returns (obs (E, 18), info {})."""
+        """Start a new episode in every env, or with ``options={"reset_mask": m}`` ((E,) booleans,
+        Gymnasium's vector API) in the envs where ``m`` is true (the others go on). ``seed``
+        makes the phases, spawn points and pushes reproducible. Returns (obs (E, 18), info {})."""
         self._check_open()
+        mask = self._all
+        unknown = set(options or {}) - {"reset_mask"}
+        if unknown:  # a typo was ignored and every env reset
+            raise ValueError(f"reset options: unknown {sorted(unknown)}; the one option is 'reset_mask'")
+        if options and options.get("reset_mask") is not None:
+            m = options["reset_mask"]
+            m = m.detach().cpu().numpy() if hasattr(m, "detach") else np.asarray(m)
+            if m.dtype != bool or m.shape != (self.num_envs,):
+                raise ValueError(f"reset_mask: expected ({self.num_envs},) booleans, one per env, got "
+                                 f"{m.dtype} {m.shape}")
+            if not getattr(self, "_was_reset", False) and not m.all():
+                raise RuntimeError("RideSurfaceEnv: the first reset() starts every env (reset_mask all true)")
+            mask = wp.array(m.astype(np.int32), dtype=wp.int32, device=self.device)
         if seed is not None:
             if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
                 raise ValueError(f"seed: one integer for the batch (each env draws its own stream from it and its "
@@ -203,8 +216,8 @@ class RideSurfaceEnv(VectorEnv):
             self._seed = kernel_seed(seed)
             self.env_episode.zero_()
         self.actions.zero_()
-        self._reset_envs(self._all)
-        self._evaluate(self._all)  # the episodes' first observations (in contact: 0)
+        self._reset_envs(mask)
+        self._evaluate(mask)  # the episodes' first observations (in contact: 0)
         self._was_reset = True
         return self._out(self.obs), {}
 

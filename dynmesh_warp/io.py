@@ -33,7 +33,7 @@ from .animation_formats import (
 from .choices import FrameOrder, parse
 from .gltf_animation import GLTF_EXTENSIONS, gltf_has_animation, read_gltf_animation, write_gltf_animation
 from .mesh_formats import MESH_EXTENSIONS, read_mesh, write_mesh, write_mesh_file
-from .outputs import OutputFolder, atomic_path
+from .outputs import OutputExistsError, OutputFolder, atomic_path
 from .sequence import FixedTopologySequence, VaryingTopologySequence
 from .sequence_layouts import (
     DEFAULT_FPS,
@@ -194,10 +194,12 @@ def save_sequence(seq, path, fmt: str | None = None, overwrite: bool = False, st
         fmt: ``"ply"`` or ``"obj"`` for a folder (required there); ``None``/``"npz"`` for
             an ``.npz`` path.
 
-    An existing folder is replaced at the very end, and only when everything in it was written
-    by this tool (listed in its manifest, see :mod:`dynmesh_warp.outputs`); else
-    :class:`FileExistsError`, unless ``overwrite`` (then the files this tool did not write
-    are kept in the new folder).
+    An existing file is replaced only with ``overwrite`` (else
+    :class:`~dynmesh_warp.outputs.OutputExistsError`, a :class:`FileExistsError`, before anything
+    is written). An existing folder is replaced at the very end, and only when everything in it
+    was written by this tool (listed in its manifest, see :mod:`dynmesh_warp.outputs`); else
+    :class:`FileExistsError`, unless ``overwrite`` (then the files this tool did not write are
+    kept in the new folder).
 
     ``status``: a JSON-ready dict saved with the sequence (the npz's ``status`` array, JSON
     text; a folder's manifest, under ``"status"``), e.g. ``convert``'s frame counts and whether it
@@ -208,6 +210,10 @@ def save_sequence(seq, path, fmt: str | None = None, overwrite: bool = False, st
                         f"got {type(seq).__name__}")
     path = Path(path).expanduser()
     fmt = fmt.lower().lstrip(".") if fmt else None
+    single_file = path.suffix.lower() in ANIMATED_FILE_OUTPUTS or path.suffix.lower() == ".npz"
+    if single_file and not overwrite and (path.exists() or path.is_symlink()):
+        # a new user's own .npz was replaced with overwrite=False
+        raise OutputExistsError(f"{path}: exists; pass overwrite=True to replace it")
     if path.suffix.lower() in ANIMATED_FILE_OUTPUTS:
         if fmt not in (None, path.suffix.lower()[1:]):
             raise ValueError(f"{path}: fmt={fmt!r} conflicts with the {path.suffix} extension")

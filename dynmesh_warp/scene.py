@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from .choices import Y_UP_FORMATS, Collider, UpAxis, parse
-from .config import PhysicsCore, SceneConfig, SceneError, spawn_positions
+from .config import PhysicsCore, SceneConfig, SceneError, scene_config, spawn_positions
 from .runtime import scene_device
 from .geometry import mesh_orientation, orient_faces
 from .mesh_formats import mesh_extension
@@ -348,7 +348,9 @@ def build_world(cfg: SceneConfig, device=None, collider: str | None = None,
 
     ``sequence``: a sequence already in memory (e.g. from ``load_sequence``) to use instead of
     ``surface.source``; the rest of the ``surface`` section (fps, up_axis, scale, translate,
-    orientation, conversion) is applied to it as to a loaded one."""
+    orientation, conversion) is applied to it as to a loaded one. ``cfg`` may also be a scene
+    YAML's path or a dict of its sections (:func:`~dynmesh_warp.config.scene_config`)."""
+    cfg = scene_config(cfg)
     seq = load_surface(cfg) if sequence is None else prepare_surface(sequence, cfg)
     p = cfg.physics
     collider = parse(Collider, collider or p.collider, "collider").value  # an unknown name: the choices, named

@@ -15,6 +15,7 @@ import warnings
 from typing import Optional
 
 import numpy as np
+from pydantic import PrivateAttr
 import warp as wp
 
 from .kernels.collide import collide_sphere_mesh
@@ -126,9 +127,34 @@ class PhysicsParams(PhysicsCore):
     auto_substeps: raise substeps so the surface moves less than half the smallest sphere radius
     per sub-step; swept_search: the swept collider's search (None: the device's default);
     ground_height: optional static ground plane z = ground_height [m] (None: no ground).
+
+    A world built from them fixes them (:meth:`freeze`): its sub-steps, gravity and captured
+    CUDA graph were made from the values it saw, so a later assignment is refused rather than
+    ignored. For other values build a new model, e.g. with ``params.model_copy(update={...})``.
     """
 
     ground_height: Optional[float] = None
+    _frozen: bool = PrivateAttr(default=False)
+
+    def freeze(self) -> "PhysicsParams":
+        """Refuse assignments from now on (called by the worlds built from these parameters)."""
+        self._frozen = True
+        return self
+
+    def __setattr__(self, name, value):
+        # a new user's dt / gravity / substeps set on a built world were ignored (and World.dt
+        # reported the new dt while the step kept the old one)
+        if not name.startswith("_") and self._frozen:
+            raise ValueError(f"physics {name}: the parameters are fixed once a world is built from them (its "
+                             f"sub-steps and captured step use them); build a new model with "
+                             f"params.model_copy(update={{{name!r}: ...}})")
+        super().__setattr__(name, value)
+
+    def model_copy(self, *, update=None, deep: bool = False) -> "PhysicsParams":
+        """A copy (``update``: fields to change) that is not frozen: the parameters of a new model."""
+        copy = super().model_copy(update=update, deep=deep)
+        copy._frozen = False
+        return copy
 
 
 #: reference values of the default scene, to name what drives a large sub-step count
@@ -421,13 +447,15 @@ def surface_model(seq, device=None, playback: str = DEFAULT_PLAYBACK, interpolat
 def _sphere_rows(name: str, values, count: int, first: int = 0) -> np.ndarray:
     """``values`` as (count, 3) float32 rows of spheres ``first``.., refusing another shape (a
     (3, S) stack of x, y and z rows was read as scrambled rows: a new user's) or a non-finite row
-    (ValueError naming ``name`` and the sphere). A flat (3 count,) array is taken row by row."""
+    (ValueError naming ``name``, "position" or "velocity", and the sphere). A flat (3 count,)
+    array is taken row by row."""
+    names = {"position": "positions", "velocity": "velocities"}[name]
     try:
         a = np.asarray(values, np.float32)
     except (TypeError, ValueError) as e:
-        raise ValueError(f"sphere {name}s: expected numbers, ({count}, 3) [x, y, z] rows ({e})") from None
+        raise ValueError(f"sphere {names}: expected numbers, ({count}, 3) [x, y, z] rows ({e})") from None
     if a.shape != (count, 3) and not (a.ndim == 1 and a.size == 3 * count):
-        raise ValueError(f"sphere {name}s: expected ({count}, 3) [x, y, z] rows, one per sphere"
+        raise ValueError(f"sphere {names}: expected ({count}, 3) [x, y, z] rows, one per sphere"
                          + (f" from sphere {first}" if first else "") + f", got shape {a.shape}")
     a = a.reshape(count, 3)
     bad = np.flatnonzero(~np.isfinite(a).all(axis=1))
@@ -1022,11 +1050,11 @@ class World:
 
     def __init__(self, model: Model, state: State, collider: str = DEFAULT_COLLIDER,
                  rebuild_every: str = DEFAULT_REBUILD_EVERY,
-                 use_graph: bool | None = None, render_state: bool | None = None, swept_search: str | None = None):
+                 use_graph: bool | None = None, render_state: bool = False, swept_search: str | None = None):
         self.model = model
         self.state = state
         self.device = model.device
-        p = model.params
+        p = model.params.freeze()
         surf = model.surface
         collider = parse(Collider, collider, "collider").value
         rebuild_every = parse(RebuildEvery, rebuild_every, "rebuild_every").value
@@ -1054,9 +1082,11 @@ class World:
                          else COLLIDERS[collider](m, st, ctx))
         self._catch_up_collider()
         self.compute_normals()
-        # the swept collider needs no vertex buffer; keep it (and the normals) current once per
-        # step only when asked (viewer, Gaussians): render_state=True or a hook that needs it
-        self.render_state = (self.collider.needs_points if render_state is None else bool(render_state))
+        # keep the vertex buffer and normals current after each step only when asked (viewer,
+        # Gaussians: render_state=True or a hook that needs it); else surface_points() brings them
+        # up to date when read. (A collider's own buffer is at the last sub-step's start, one
+        # sub-step behind the clock: a new user's renders lagged by it.)
+        self.render_state = bool(render_state)
         if use_graph is None:
             use_graph = self.device.is_cuda and self.collider.capturable
         self.use_graph = bool(use_graph) and self.device.is_cuda and self.collider.capturable
@@ -1135,7 +1165,7 @@ class World:
 
     def surface_points(self):
         """The vertex buffer (N,) at the current time; synchronised first when the step does not
-        keep it (the swept collider without ``render_state``)."""
+        keep it (``render_state`` false, the default)."""
         if not self.render_state:
             self.sync_surface()
         return self.state.points
@@ -1200,8 +1230,7 @@ class World:
 
     def finish_step(self):
         if self.render_state:
-            if not self.collider.needs_points:
-                self.update_surface()
+            self.update_surface()  # at the clock's time: the sub-steps' buffer is one sub-step behind it
             self.compute_normals()
         for hook in self.post_step_hooks:
             hook(self)
@@ -1255,7 +1284,10 @@ class World:
     def set_time(self, t: float):
         """Move the clock (host and device) to ``t`` [s] and the surface with it; spheres keep
         their state. Between steps only."""
-        self.ctx.time = float(t)
+        t = float(t)
+        if not math.isfinite(t):  # a new user's NaN made the surface NaN and the spheres fall through it
+            raise ValueError(f"set_time: the time must be a finite number of seconds, got {t}")
+        self.ctx.time = t
         self.state.sim_time.assign(np.array([self.ctx.time], np.float64))
         self._refresh_surface()
 
@@ -1320,6 +1352,11 @@ class World:
         """Continue from :meth:`checkpoint_state` of a world built the same way (same scene,
         collider and device kind; :mod:`dynmesh_warp.checkpoint` checks that). On the CPU the
         following steps are bit-identical to those of the world that wrote it."""
+        S = self.model.spheres.count
+        have = np.asarray(st["sphere_pos"]).reshape(-1, 3).shape[0]
+        if have != S:  # before anything changes (Warp's copy error named neither)
+            raise ValueError(f"checkpoint state: it holds {have} spheres, this world has {S}: it was written by "
+                             "another scene or after add_spheres")
         self.set_time(float(st["time"]))  # surface and collider at that time, then the exact values
         self.state.sim_time.assign(np.asarray(st["sim_time"], np.float64).reshape(1))
         self.state.sphere_pos.assign(np.asarray(st["sphere_pos"], np.float32).reshape(-1, 3))

@@ -189,6 +189,10 @@ def test_reset_touches_only_the_named_envs(device):
     for bad in ([0, 1, 2], [1, 0, 1, 0, 1], np.ones(4, bool)):
         with pytest.raises(ValueError, match="env_mask: expected booleans, one per env"):
             a.reset(bad)
+    # one playback mode of another type was a TypeError ("'int' object is not iterable")
+    with pytest.raises(ValueError, match=r"playback must be one of \['loop', 'clamp', 'pingpong'\], got 1"):
+        a.reset(mask, playback=1)
+    a.reset(mask, playback="pingpong")
 
 
 def test_pair_slots_bound_the_interpolated_surface(device):

@@ -413,3 +413,45 @@ def test_command_lines_print_their_warnings_as_one_line():
         other = warnings.formatwarning("overflow", RuntimeWarning, "/x/k.py", 3, "a * b")
         assert "RuntimeWarning" in other and "/x/k.py:3" in other
     assert warnings.formatwarning is before
+
+
+def test_the_helpers_module_run_as_a_command_names_the_commands():
+    """A new user's ``python -m dynmesh_warp.cli convert IN OUT`` printed nothing, wrote nothing
+    and exited 0; it now exits 2 naming the real commands, each of which is a module with a
+    --help (so the list cannot name a command that does not exist)."""
+    import importlib
+
+    from dynmesh_warp.cli import COMMANDS
+
+    r = subprocess.run([sys.executable, "-m", "dynmesh_warp.cli", "convert", "a", "b"], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 2 and "it is not a command" in r.stderr
+    for name in COMMANDS:
+        assert f"python -m dynmesh_warp.{name} " in r.stderr
+        assert hasattr(importlib.import_module(f"dynmesh_warp.{name}"), "main")
+
+
+def test_an_output_that_appears_during_convert_is_kept(work, tmp_path, monkeypatch, capsys):
+    """Without --overwrite, an output another run wrote while this one worked (the check before
+    the work passed) is kept unchanged: this run's frames go beside it, ``<stem>.new.npz``, and
+    the user is told. With --overwrite it is replaced, as asked."""
+    from dynmesh_warp import convert
+    from dynmesh_warp.io import load_sequence
+
+    out = tmp_path / "out.npz"
+    real = convert.to_piecewise_fixed
+
+    def other_run_writes_first(*args, **kwargs):
+        out.write_bytes(b"the other run's output")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(convert, "to_piecewise_fixed", other_run_writes_first)
+    assert convert.main([str(work / "frames"), str(out), "--device", "cpu", "--no-progress"]) == 0
+    cap = capsys.readouterr()
+    new = tmp_path / "out.new.npz"
+    assert out.read_bytes() == b"the other run's output"
+    assert f"{out} appeared during the work" in cap.err and f"wrote {new}: " in cap.out
+    assert load_sequence(new).num_frames == 4
+    out.unlink()
+    assert convert.main([str(work / "frames"), str(out), "--device", "cpu", "--no-progress", "--overwrite"]) == 0
+    assert load_sequence(out).num_frames == 4 and not (tmp_path / "out.new-2.npz").exists()

@@ -41,6 +41,26 @@ def test_spaces_reset_and_step_follow_the_vector_api(device):
     assert not np.allclose(o3, obs)
 
 
+def test_reset_mask_resets_only_the_masked_envs(device):
+    """Gymnasium's ``reset(options={"reset_mask": m})``: the masked envs start new episodes (the
+    same first observation as a full reset with that seed gives them), the others go on
+    unchanged; it was ignored and every env reset. A bad mask or an unknown option is refused."""
+    env = _env(device, num_envs=4)
+    first, _ = env.reset(seed=5)
+    a = np.full((4, 2), 0.5, np.float32)
+    for _ in range(3):
+        moved, *_ = env.step(a)
+    m = np.array([True, False, True, False])
+    obs, _ = env.reset(seed=5, options={"reset_mask": m})
+    np.testing.assert_array_equal(obs[m], first[m])
+    np.testing.assert_array_equal(obs[~m], moved[~m])
+    for bad in (np.ones(3, bool), np.ones(4, np.int32)):
+        with pytest.raises(ValueError, match=r"reset_mask: expected \(4,\) booleans"):
+            env.reset(options={"reset_mask": bad})
+    with pytest.raises(ValueError, match=r"reset options: unknown \['reset_msk'\]"):
+        env.reset(options={"reset_msk": m})
+
+
 def test_actions_are_taken_as_applied_and_checked(device):
     """The reward's action penalty uses the action as the physics applies it (clipped to the
     action space): an action of 1000 gives the rollout and the reward of 1.0. NaN or infinite

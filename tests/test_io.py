@@ -163,6 +163,22 @@ def test_write_mesh_formats_preserve_order(tmp_path):
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temp leftovers
 
 
+def test_save_refuses_an_existing_file_without_overwrite(tmp_path):
+    """overwrite=False held for folders only: a new user's own .npz (and an .anime / .glb) was
+    replaced. Now refused before anything is written; overwrite=True replaces it."""
+    from dynmesh_warp.outputs import OutputExistsError
+
+    seq = fixed_seq()
+    for name in ("mine.npz", "mine.anime", "mine.glb", "mine.pc2"):
+        p = tmp_path / name
+        p.write_bytes(b"the user's file")
+        with pytest.raises(OutputExistsError, match=rf"{name}: exists; pass overwrite=True to replace it"):
+            save_sequence(seq, p)
+        assert p.read_bytes() == b"the user's file"
+        save_sequence(seq, p, overwrite=True)
+        assert load_sequence(p).num_frames == seq.num_frames
+
+
 def test_save_replaces_existing_folder_and_refuses_foreign_content(tmp_path):
     save_sequence(fixed_seq(T=5), tmp_path / "out", fmt="ply")
     save_sequence(fixed_seq(T=2), tmp_path / "out", fmt="ply")
@@ -200,7 +216,7 @@ def test_interrupted_save_leaves_no_partial_output(tmp_path, monkeypatch):
         write_mesh(tmp_path / "one.ply", *icosphere())
     monkeypatch.setattr(np, "savez", lambda *a, **k: (_ for _ in ()).throw(OSError("disk full")))
     with pytest.raises(OSError, match="disk full"):
-        save_sequence(fixed_seq(T=5), tmp_path / "s.npz")
+        save_sequence(fixed_seq(T=5), tmp_path / "s.npz", overwrite=True)
     assert sorted(p.name for p in tmp_path.iterdir()) == before  # no temp files or folders
     assert load_sequence(tmp_path / "out").num_frames == 3  # old output intact
     assert load_sequence(tmp_path / "s.npz").num_frames == 3

@@ -328,6 +328,7 @@ def test_bad_swept_search_is_refused_naming_the_field():
     # the scene's physics.swept_search
     with pytest.raises(ValueError, match="swept_search 'hybrid'"):
         World(model, State(model, [[0, 0, 1], [0.2, 0, 1]]), collider="swept", swept_search="hybrid")
+    model = _blob_model()  # a built world's parameters are fixed
     model.params.swept_search = "hybrid"
     with pytest.raises(ValueError, match="swept_search 'hybrid'"):
         World(model, State(model, [[0, 0, 1], [0.2, 0, 1]]), collider="swept")

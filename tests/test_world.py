@@ -437,6 +437,22 @@ def test_a_refused_add_spheres_leaves_reset_working_and_shapes_are_checked():
 
     with pytest.raises(SceneError, match="the device argument 'nodevice': not available here"):
         build_world(load_scene_config(), device="nodevice", sequence=seq)  # it named the CLI's --device
+    # a scene given as a dict or a YAML path, as RideSurfaceEnv takes it (an AttributeError before)
+    from dynmesh_warp.batch import build_batched_world
+
+    scene = {"surface": {"source": "builtin:pulsing_blob", "params": {"subdivisions": 1, "frames": 4}}}
+    assert build_world(scene, device="cpu").model.surface.num_vertices == 42
+    with pytest.raises(TypeError, match="scene: expected a SceneConfig .* got int"):
+        build_world(3, device="cpu")
+    with pytest.raises(SceneError, match="num_envs must be a whole number, got 2.7"):
+        build_batched_world(scene, device="cpu", num_envs=2.7)  # ran 2 envs
+    assert build_batched_world(scene, device="cpu", num_envs=2.0).num_envs == 2
+    with pytest.raises(ValueError, match=r"sphere velocities: expected \(2, 3\)"):
+        State(w.model, p0, np.zeros((3, 3)))
+    # another world's checkpoint (another sphere count): Warp's copy error named neither
+    other = make_world(seq, [[0.0, 0.0, 0.3]], radius=0.1)
+    with pytest.raises(ValueError, match="checkpoint state: it holds 1 spheres, this world has 2"):
+        w.restore_checkpoint_state(other.checkpoint_state())
 
 
 def test_the_loop_seam_is_named_when_it_sets_the_surface_speed():
@@ -589,3 +605,41 @@ def test_restored_state_resumes_bit_for_bit_with_the_seeded_searches():
         for i in range(k, total):
             b.step()
             np.testing.assert_array_equal(b.sphere_velocities(), want[i], err_msg=f"resumed at {k}, step {i + 1}")
+
+
+@pytest.mark.parametrize("collider", ["refit", "swept", "rebuild"])
+@pytest.mark.parametrize("render_state", [False, True])
+def test_the_surface_read_after_a_step_is_at_the_world_time(collider, render_state):
+    """A sheet rising at 0.5 m/s, 2 sub-steps a step: the vertex buffer read after a step
+    (surface_points(), and state.points directly where render_state keeps it) is the sheet at
+    world.time, for every collider. A new user's refit and rebuild worlds returned it one sub-step
+    behind (2 mm here), so renders and Gaussians posed from it lagged the spheres."""
+    seq = moving_sheet((0.0, 0.0, 0.5), frames=24)
+    w = make_world(seq, [[0.0, 0.0, 1.0]], collider=collider, substeps=2)
+    w.render_state = render_state
+    for _ in range(7):
+        w.step()
+        z = seq.V[0, 0, 2] + 0.5 * w.time
+        np.testing.assert_allclose(w.surface_points().numpy()[:, 2], z, atol=1e-6)
+        if render_state:
+            np.testing.assert_allclose(w.state.points.numpy()[:, 2], z, atol=1e-6)
+
+
+def test_a_built_world_refuses_new_physics_parameters_and_a_non_finite_time():
+    """A new user set dt, gravity and substeps on a built world: the step kept the old values
+    while World.dt reported the new dt. Assignment is refused once a world is built from the
+    parameters (a copy for a new model is not frozen); set_time(NaN / inf) is refused (the
+    surface became NaN and the spheres fell through it)."""
+    w = make_world(moving_sheet((0.0, 0.0, 0.0), frames=4), [[0.0, 0.0, 1.0]], collider="refit")
+    p = w.model.params
+    for name, value in (("dt", 1.0 / 120.0), ("gravity", (0.0, 0.0, -1.0)), ("substeps", 3), ("restitution", 0.9)):
+        with pytest.raises(ValueError, match=rf"physics {name}: the parameters are fixed once a world is built"):
+            setattr(p, name, value)
+    assert w.dt == DT and p.substeps == 1
+    q = p.model_copy(update={"dt": 0.01})
+    q.restitution = 0.9
+    assert (q.dt, q.restitution, p.dt, p.restitution) == (0.01, 0.9, DT, 0.3)
+    for bad in (float("nan"), float("inf"), -float("inf")):
+        with pytest.raises(ValueError, match="set_time: the time must be a finite number of seconds"):
+            w.set_time(bad)
+    assert np.isfinite(w.time)
