@@ -8,8 +8,9 @@
   extension, a folder that cannot be created or written.
 - :class:`OutputFolder`: a folder output is written into a temporary sibling folder and
   renamed into place at the end; an existing folder is replaced keeping every entry this tool
-  did not write (the folder's manifest :data:`MANIFEST` lists what it wrote), so
-  ``--overwrite`` never deletes the user's files. On an error the old folder stays as it was.
+  did not write where it is (the folder's manifest :data:`MANIFEST` lists what it wrote), so
+  ``--overwrite`` never deletes or moves the user's files. On an error the old folder stays as
+  it was.
 - The temporaries of writes in progress are registered, so a hard exit (a second Ctrl-C,
   :mod:`dynmesh_warp.cli`) removes them (:func:`abandon_temporaries`) without cutting a
   rename into place in two.
@@ -56,12 +57,17 @@ def temporary(path, folder: bool = False):
 
 def abandon_temporaries(timeout: float = 2.0) -> None:
     """Remove every registered temporary (the process is about to exit at once); a rename into
-    place in progress is let finish first (up to ``timeout`` seconds)."""
+    place in progress is let finish first (up to ``timeout`` seconds). A folder whose rename
+    into place is still going on after that is left where it is: the rename moves files in and
+    out of it, and removing it then lost files (a new user's second Ctrl-C, 0.6 s after the first,
+    deleted the user's files an ``--overwrite`` had been moving, before the commit below stopped
+    moving them)."""
     got = _COMMIT.acquire(timeout=timeout)
     try:
         for p, folder in list(_TEMPORARIES.items()):
             if folder:
-                shutil.rmtree(p, ignore_errors=True)
+                if got:
+                    shutil.rmtree(p, ignore_errors=True)
             else:
                 try:
                     os.unlink(p)
@@ -284,12 +290,24 @@ def check_output(path, *, kind: str, what: str, inputs=(), overwrite: bool = Fal
     return real
 
 
+def _copy_folder_attributes(src: Path, dst: Path) -> None:
+    """Give ``dst`` the permission bits (setgid included) and group of ``src``, where allowed (a
+    replaced output folder came back 0755 root:root from 2775 root:nogroup: a new user's)."""
+    st = os.stat(src)
+    with contextlib.suppress(OSError):
+        os.chown(dst, -1, st.st_gid)
+    with contextlib.suppress(OSError):
+        os.chmod(dst, st.st_mode & 0o7777)
+
+
 class OutputFolder:
     """Write a folder output atomically: ``with OutputFolder(path) as tmp:`` write into ``tmp``
     (a hidden temporary sibling); on success it becomes ``path``, with a manifest of what was
     written. An existing ``path`` is replaced only when everything in it was written by this
-    tool, or with ``overwrite=True``, which keeps the entries this tool did not write (moved
-    into the new folder). On an exception nothing changes (unless ``keep_on_error`` was set,
+    tool (the new folder takes the old one's permission bits and group), or with
+    ``overwrite=True``, which keeps the entries this tool did not write where they are: the
+    tool's old entries move out of the folder and the new ones in (the user's files never move,
+    so no interruption can misplace them). On an exception nothing changes (unless ``keep_on_error`` was set,
     e.g. after partial results worth keeping) and the temporary folder is removed.
     ``status``: a JSON-ready dict stored in the manifest under ``"status"`` (e.g. an
     interrupted conversion's frame counts)."""
@@ -346,22 +364,42 @@ class OutputFolder:
         if not keep and not os.path.lexists(target):
             os.replace(tmp, target)
             return
-        moved = []
+        old = Path(tempfile.mkdtemp(prefix=f".{target.name}.old-", dir=target.parent))
+        cwd = Path.cwd().resolve()
+        if not keep and not (cwd == target or _within(cwd, target)):
+            # only this tool's files: swap the folders (two renames), keeping the folder's mode and
+            # group; not where the process stands (run --output . left the user's shell in a
+            # deleted folder: a new user's), which takes the entry-by-entry path below
+            _copy_folder_attributes(target, tmp)
+            try:
+                os.replace(target, old)  # onto an empty folder: atomic
+            except BaseException:
+                os.rmdir(old)
+                raise
+            try:
+                os.replace(tmp, target)
+            except BaseException:
+                os.replace(old, target)
+                raise
+            shutil.rmtree(old, ignore_errors=True)
+            return
+        # the user's entries stay: this tool's old entries move out, the new ones in (renames)
+        foreign = set(keep)
+        ours = [e for e in os.listdir(target) if e not in foreign]
+        out, into = [], []
         try:
-            for e in keep:  # the user's entries move into the new folder (same file system: renames)
+            for e in ours:
+                os.replace(target / e, old / e)
+                out.append(e)
+            for e in written + [MANIFEST]:
+                os.replace(tmp / e, target / e)
+                into.append(e)
+        except BaseException:
+            for e in into:
                 os.replace(target / e, tmp / e)
-                moved.append(e)
-            old = Path(tempfile.mkdtemp(prefix=f".{target.name}.old-", dir=target.parent))
-            os.replace(target, old)  # onto an empty folder: atomic
-        except BaseException:
-            for e in moved:
-                os.replace(tmp / e, target / e)
-            raise
-        try:
-            os.replace(tmp, target)
-        except BaseException:
-            os.replace(old, target)
-            for e in moved:
-                os.replace(tmp / e, target / e)
+            for e in out:
+                os.replace(old / e, target / e)
+            os.rmdir(old)
             raise
         shutil.rmtree(old, ignore_errors=True)  # only what this tool wrote before
+        shutil.rmtree(tmp, ignore_errors=True)  # empty now

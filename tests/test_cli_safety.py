@@ -276,6 +276,92 @@ def test_output_folder_is_untouched_on_error_and_refuses_foreign_files(tmp_path)
         check_output(out / "x", kind="folder", what="--out", inputs=[out])
 
 
+def test_overwrite_never_moves_the_users_files_and_keeps_the_folder(tmp_path, monkeypatch):
+    """A new user's second Ctrl-C, 0.6 s into an --overwrite commit that was moving 300k of the
+    user's files into the new folder, deleted 140k of them. The user's entries now stay where they
+    are (same inodes), the tool's old entries move out and the new ones in; an interruption in the
+    middle puts every entry back; the folder keeps its mode bits (setgid) and is not replaced
+    where the process stands (run --output . left the shell in a deleted folder)."""
+    import dynmesh_warp.outputs as outputs
+
+    out = tmp_path / "o"
+    with OutputFolder(out) as tmp:
+        (tmp / "frame_0.txt").write_text("old")
+    (out / "user.txt").write_text("u")
+    (out / "data").mkdir()
+    ino = {e: os.stat(out / e).st_ino for e in ("user.txt", "data")}
+    folder_ino = os.stat(out).st_ino
+    real = os.replace
+    calls = []
+
+    def interrupted(a, b):  # the third rename of the commit is interrupted
+        calls.append(a)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real(a, b)
+
+    monkeypatch.setattr(outputs.os, "replace", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        with OutputFolder(out, overwrite=True) as tmp:
+            (tmp / "frame_0.txt").write_text("new")
+            (tmp / "frame_1.txt").write_text("new")
+    monkeypatch.setattr(outputs.os, "replace", real)
+    assert sorted(p.name for p in out.iterdir()) == [MANIFEST, "data", "frame_0.txt", "user.txt"]
+    assert (out / "frame_0.txt").read_text() == "old"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["o"]  # no temporaries left
+    with OutputFolder(out, overwrite=True) as tmp:
+        (tmp / "frame_1.txt").write_text("new")
+    assert sorted(p.name for p in out.iterdir()) == [MANIFEST, "data", "frame_1.txt", "user.txt"]
+    assert {e: os.stat(out / e).st_ino for e in ino} == ino and os.stat(out).st_ino == folder_ino
+    # only the tool's files: the folders are swapped, the new one with the old one's mode bits
+    mine = tmp_path / "m"
+    with OutputFolder(mine) as tmp:
+        (tmp / "a.txt").write_text("1")
+    os.chmod(mine, 0o2750)
+    with OutputFolder(mine) as tmp:
+        (tmp / "a.txt").write_text("2")
+    assert (mine / "a.txt").read_text() == "2" and os.stat(mine).st_mode & 0o7777 == 0o2750
+    # where the process stands, the folder is not replaced (entry by entry, as with the user's files)
+    monkeypatch.chdir(mine)
+    with OutputFolder(mine) as tmp:
+        (tmp / "a.txt").write_text("3")
+    assert os.getcwd() == str(mine) and (Path(os.getcwd()) / "a.txt").read_text() == "3"
+
+
+def test_a_hard_exit_leaves_a_folder_being_committed(tmp_path):
+    """The second signal's clean-up (abandon_temporaries) waits for a commit in progress; when
+    it is still going on after the timeout, the folder it moves entries through is left, not
+    removed; temporaries of writes not being committed are removed."""
+    import threading
+
+    from dynmesh_warp import outputs
+
+    busy, idle = tmp_path / ".o.tmp-1", tmp_path / ".p.tmp-2"
+    busy.mkdir()
+    idle.mkdir()
+    (busy / "user.txt").write_text("u")
+    held, release = threading.Event(), threading.Event()
+
+    def commit():
+        with outputs._COMMIT:
+            held.set()
+            release.wait(10)
+
+    t = threading.Thread(target=commit)
+    t.start()
+    held.wait(10)
+    try:
+        with outputs.temporary(busy, folder=True):
+            outputs.abandon_temporaries(timeout=0.1)
+        assert (busy / "user.txt").read_text() == "u"
+    finally:
+        release.set()
+        t.join()
+    with outputs.temporary(idle, folder=True):
+        outputs.abandon_temporaries(timeout=0.1)
+    assert not idle.exists()
+
+
 # --------------------------------------------------------------------------- the work budget
 
 
