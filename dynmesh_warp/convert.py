@@ -1957,20 +1957,17 @@ def _holds_output(output) -> bool:
 
 def _beside_path(output, name: str = "partial") -> Path:
     """Where ``convert`` writes when ``output`` holds a sequence it may not replace (an
-    interrupted run's frames; ``name`` "new": a run whose output appeared during the work): a
-    new name beside it, ``<stem>.partial<suffix>`` (a folder: ``<name>.partial``), numbered
-    ``.partial-2`` ... where that is taken (by it or by a point cache's ``.obj``), so nothing
-    there is replaced."""
+    interrupted run's frames; ``name`` "new": a run whose output appeared during the work):
+    :func:`~dynmesh_warp.outputs.beside_path`, also skipping names whose point-cache faces file
+    (``<stem>.obj``) is taken, so nothing there is replaced."""
     from .animation_formats import written_topology
+    from .outputs import beside_path
 
-    p = Path(output).expanduser()
-    for n in range(1, 10 ** 6):
-        tag = f".{name}" if n == 1 else f".{name}-{n}"
-        q = p.with_name(p.stem + tag + p.suffix) if p.suffix else p.with_name(p.name + tag)
+    def faces_taken(q):
         faces = written_topology(q)
-        if not q.exists() and not q.is_symlink() and (faces is None or not faces.exists()):
-            return q
-    raise ValueError(f"output {output}: no free name for the run's frames beside it")
+        return faces is not None and faces.exists()
+
+    return beside_path(output, name, faces_taken)
 
 
 @interruptible_main

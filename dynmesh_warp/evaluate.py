@@ -564,6 +564,14 @@ def _emd_estimate(a, device: str) -> str | None:
 from .cli import interruptible_main  # noqa: E402 (the CLI section's own import)
 
 
+def _kept_note(out, folder) -> str:
+    """Words for an output written beside ``out`` (:class:`~dynmesh_warp.outputs.OutputFolder`'s
+    ``written``), else ""."""
+    if folder.written == folder.path:
+        return ""
+    return f"; {out} holds an earlier output or files another run wrote meanwhile: kept as it is"
+
+
 @interruptible_main
 def main(argv=None) -> int:
     from .choices import DEFAULT_FRAME_ORDER, FrameOrder, values
@@ -623,7 +631,8 @@ def main(argv=None) -> int:
                 done = len(r["results"][a.protocol[0]]["frames"])
                 if reason and not done:
                     raise Interrupted(getattr(signal, reason))
-                with OutputFolder(a.out, overwrite=a.overwrite) as tmp:
+                cmp_folder = OutputFolder(a.out, overwrite=a.overwrite, interrupted=bool(reason), beside_new=True)
+                with cmp_folder as tmp:
                     atomic_write_json(tmp / "compare.json", {
                         "ground_truth": a.compare[0], "prediction": a.compare[1], "device": device,
                         "pairs": r["pairs"], "results": r["results"],
@@ -631,13 +640,16 @@ def main(argv=None) -> int:
                         if reason else None})
             if reason:
                 print(f"interrupted by {reason} after {done} of {len(r['pairs'])} frame pairs: wrote "
-                      f"{Path(a.out) / 'compare.json'} with those (\"interrupted\" set)", file=sys.stderr)
+                      f"{cmp_folder.written / 'compare.json'} with those (\"interrupted\" set)"
+                      + _kept_note(a.out, cmp_folder), file=sys.stderr)
                 return 128 + int(getattr(signal, reason))
             for p in a.protocol:
                 d = r["results"][p]
                 emd = "–" if d["emd_mean"] is None else f"{d['emd_mean'] / M.EMD_SCALE:.4f}"
                 print(f"{p}: CD {d['cd_mean'] / M.CD_SCALE:.4f} (1e-3), EMD {emd} (1e-1) "
                       f"over {len(d['frames'])} frames")
+            if cmp_folder.written != cmp_folder.path:
+                print(f"warning: wrote {cmp_folder.written}" + _kept_note(a.out, cmp_folder), file=sys.stderr)
             return 0
         config = {"argv": sys.argv[1:] if argv is None else list(argv), "device": device,
                   "num_frames": a.num_frames or None, "resolution": a.resolution, "noise": a.noise,
@@ -645,7 +657,7 @@ def main(argv=None) -> int:
                   "seed": a.seed, "protocols": a.protocol, "strategies": a.strategies,
                   "frame_order": a.frame_order}
         scenes = []
-        folder = OutputFolder(a.out, overwrite=a.overwrite)
+        folder = OutputFolder(a.out, overwrite=a.overwrite, beside_new=True)
         reason, info = None, None
         with checking_stops(), folder as tmp:  # Ctrl-C / SIGTERM: stop between frames, keep what is done
             for i, s in enumerate(a.scenes):
@@ -675,16 +687,19 @@ def main(argv=None) -> int:
                             "not_evaluated": [str(x) for x in a.scenes[i + (1 if scene is not None else 0):]],
                             "note": (f"{scene['scene']}: the frames evaluated before the stop" if partial else
                                      f"stopped before the metrics of {s}" if scene is None else f"stopped after {s}")}
+                    folder.interrupted = True  # an earlier output there stays: the partial one goes beside it
                     break
                 write_outputs(tmp, scenes, a.protocol, config)  # partial results after each scene
                 folder.keep_on_error = True  # an interruption later keeps the scenes done so far
             doc = write_outputs(tmp, scenes, a.protocol, config, interrupted=info)
         if reason:
-            print(f"interrupted by {reason}: wrote {a.out} with partial results ({info['note']}; "
-                  f"results.json \"interrupted\" lists what is missing)", file=sys.stderr)
+            print(f"interrupted by {reason}: wrote {folder.written} with partial results ({info['note']}; "
+                  f"results.json \"interrupted\" lists what is missing)" + _kept_note(a.out, folder), file=sys.stderr)
             return 128 + int(getattr(signal, reason))
         for p in a.protocol:
             print(format_markdown(doc["summary"][p], p))
+        if folder.written != folder.path:
+            print(f"warning: wrote {folder.written}" + _kept_note(a.out, folder), file=sys.stderr)
         return 0
     except (MeshDataError, FileNotFoundError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)

@@ -31,7 +31,7 @@ import numpy as np
 
 __all__ = ["atomic_write_bytes", "atomic_write_json", "atomic_write_npz", "atomic_path", "OutputError",
            "OutputExistsError", "check_output", "OutputFolder", "MANIFEST", "read_manifest", "apply_umask",
-           "add_to_manifest", "temporary", "abandon_temporaries"]
+           "add_to_manifest", "temporary", "abandon_temporaries", "beside_path"]
 
 #: name of the manifest in every folder this tool writes: JSON {"tool": ..., "files": [names]}
 MANIFEST = ".dynmesh_outputs.json"
@@ -290,6 +290,19 @@ def check_output(path, *, kind: str, what: str, inputs=(), overwrite: bool = Fal
     return real
 
 
+def beside_path(path, name: str = "partial", taken=None) -> Path:
+    """A free name beside ``path`` for an output that may not replace it: ``<stem>.<name><suffix>``
+    (a folder: ``<name>.<name>``), numbered ``.<name>-2`` ... where that is taken (exists, or
+    ``taken(candidate)`` is true: e.g. a point cache's faces file)."""
+    p = Path(path).expanduser()
+    for n in range(1, 10 ** 6):
+        tag = f".{name}" if n == 1 else f".{name}-{n}"
+        q = p.with_name(p.stem + tag + p.suffix) if p.suffix else p.with_name(p.name + tag)
+        if not os.path.lexists(q) and not (taken is not None and taken(q)):
+            return q
+    raise OutputError(f"{path}: no free name beside it for this run's output")
+
+
 def _copy_folder_attributes(src: Path, dst: Path) -> None:
     """Give ``dst`` the permission bits (setgid included) and group of ``src``, where allowed (a
     replaced output folder came back 0755 root:root from 2775 root:nogroup: a new user's)."""
@@ -310,13 +323,25 @@ class OutputFolder:
     so no interruption can misplace them). On an exception nothing changes (unless ``keep_on_error`` was set,
     e.g. after partial results worth keeping) and the temporary folder is removed.
     ``status``: a JSON-ready dict stored in the manifest under ``"status"`` (e.g. an
-    interrupted conversion's frame counts)."""
+    interrupted conversion's frame counts).
 
-    def __init__(self, path, overwrite: bool = False, keep_on_error: bool = False, status: dict | None = None):
+    Where the result goes (``written``, the path after the commit): ``path``, except that a
+    result marked ``interrupted`` (set it before the block ends) never replaces an earlier
+    output of this tool there: it goes beside it, ``<name>.partial`` (a new user's complete
+    30,000-step run became an interrupted one under ``--overwrite``); and with ``beside_new``
+    (a command line that checked the folder before the work) a folder that gained entries this
+    tool did not write meanwhile is left as it is without ``overwrite``: the result goes to
+    ``<name>.new`` (else :class:`OutputExistsError`)."""
+
+    def __init__(self, path, overwrite: bool = False, keep_on_error: bool = False, status: dict | None = None,
+                 interrupted: bool = False, beside_new: bool = False):
         self.path = _real(path)
+        self.written = self.path
         self.overwrite = bool(overwrite)
         self.keep_on_error = keep_on_error
         self.status = status
+        self.interrupted = interrupted
+        self.beside_new = beside_new
         self.tmp = None
 
     def __enter__(self) -> Path:
@@ -348,17 +373,22 @@ class OutputFolder:
         tmp, target = self.tmp, self.path
         written = sorted(e for e in os.listdir(tmp) if e != MANIFEST)
         keep = []
+        if self.interrupted and target.is_dir() and read_manifest(target):
+            target = beside_path(target, "partial")
         if os.path.lexists(target):
             if not target.is_dir():
                 raise OutputExistsError(f"{target}: is a file, a folder is expected")
             keep = _foreign(target)
             if keep and not self.overwrite:
-                raise OutputExistsError(f"{target}: holds {keep[0]}, which this tool did not write; "
-                                        "refusing to replace the folder")
+                if not self.beside_new:
+                    raise OutputExistsError(f"{target}: holds {keep[0]}, which this tool did not write; "
+                                            "refusing to replace the folder")
+                target, keep = beside_path(target, "new"), []
             clash = [e for e in keep if e in written]
             if clash:
                 raise OutputExistsError(f"{target}: holds {clash[0]}, which this tool did not write and "
                                         "would replace")
+        self.written = target
         atomic_write_json(tmp / MANIFEST, {"tool": "dynmesh_warp", "files": written,
                                            **({"status": self.status} if self.status is not None else {})})
         if not keep and not os.path.lexists(target):

@@ -166,11 +166,22 @@ def run_simulation(sim, cfg, *, steps: int, out: Path, t_build: float, progress:
         summary["surface"] = {"source": cfg.surface.source, **summary.get("surface", {})}
         arrays = {k: np.asarray(v) for k, v in samples.items()}
         arrays.update(sim.trajectory_constants())
-        with OutputFolder(out, overwrite=bool(overwrite)) as tmp:
+        # an interrupted run without checkpoints never replaces an earlier output (it goes beside
+        # it, <out>.partial); with them, it stays where its checkpoint is (to resume from there)
+        folder = OutputFolder(out, overwrite=bool(overwrite), beside_new=True,
+                              interrupted=bool(reason) and marks["checkpoint"] is None and ckpt is None)
+        with folder as tmp:
             atomic_write_npz(tmp / "trajectories.npz", time=np.asarray(times), **arrays)
             atomic_write_json(tmp / "summary.json", summary)
             if marks["checkpoint"] is not None:  # the latest checkpoint stays with the outputs
                 _link_or_copy(out / CHECKPOINT_NAME, tmp / CHECKPOINT_NAME)
+    if folder.written != folder.path:
+        import sys
+
+        why = ("holds an earlier output, which an interrupted run does not replace" if reason else
+               "gained files this tool did not write during the run (no --overwrite)")
+        print(f"warning: {out} {why}: kept as it is; this run's outputs are in {folder.written}", file=sys.stderr)
+        out = folder.written
     summary["output"] = str(out)
     if reason:
         return summary  # the CLI says what was written (one line on stderr)

@@ -152,6 +152,49 @@ def test_run_stop_callable_ends_the_loop_within_a_chunk(tmp_path):
     assert len(np.load(tmp_path / "a" / "trajectories.npz")["time"]) == 1 + (k - 1) // 3 + ((k - 1) % 3 > 0)
 
 
+def test_an_interrupted_run_never_replaces_an_earlier_output(tmp_path, capsys):
+    """A new user's complete run became an interrupted one under --overwrite. An interrupted run
+    (no checkpoints) writes beside an earlier output, ``<out>.partial``; a complete one replaces
+    it as asked; files another run put in the folder during a run without --overwrite are kept
+    and the run's outputs go to ``<out>.new`` (the whole run was thrown away)."""
+    from dynmesh_warp import load_scene_config
+    from dynmesh_warp.run import run_scene
+
+    cfg = load_scene_config(data={"name": "s", "spheres": {"count": 2, "radius": 0.08, "seed": 2}})
+    out = tmp_path / "o"
+    quiet = {"device": "cpu", "progress": False, "log": lambda *_: None}
+    run_scene(cfg, steps=20, output=out, **quiet)
+    before = (out / "summary.json").read_bytes()
+    calls = []
+    s = run_scene(cfg, steps=100_000, output=out, overwrite=True, stop=lambda: calls.append(1) or
+                  ("SIGINT" if len(calls) > 3 else None), **quiet)
+    assert s["interrupted"] and s["output"] == str(tmp_path / "o.partial")
+    assert (out / "summary.json").read_bytes() == before
+    assert json.loads((tmp_path / "o.partial" / "summary.json").read_text())["interrupted"]
+    assert "o holds an earlier output, which an interrupted run does not replace" in capsys.readouterr().err
+    run_scene(cfg, steps=30, output=out, overwrite=True, **quiet)  # complete: replaces it
+    assert json.loads((out / "summary.json").read_text())["step_reached"] == 30
+
+    fresh = tmp_path / "f"
+
+    def another_run_writes(sim, *a, **k):  # files appear in the output folder during the run
+        fresh.mkdir()
+        (fresh / "mine.txt").write_text("the other run's")
+        return real(sim, *a, **k)
+
+    import dynmesh_warp.runner as runner
+
+    real = runner.timed_loop
+    try:
+        runner.timed_loop = another_run_writes
+        s = run_scene(cfg, steps=10, output=fresh, overwrite=False, **quiet)  # the CLI without --overwrite
+    finally:
+        runner.timed_loop = real
+    assert s["output"] == str(tmp_path / "f.new") and (tmp_path / "f.new" / "summary.json").is_file()
+    assert sorted(p.name for p in fresh.iterdir()) == ["mine.txt"]
+    assert "gained files this tool did not write during the run" in capsys.readouterr().err
+
+
 def test_newton_run_stops_at_a_step_and_writes_the_prefix(tmp_path):
     """The Newton path of run_scene takes the same stop callable: an interrupted run writes the
     body trajectory of the steps reached, equal to an uninterrupted run of that length."""
@@ -446,15 +489,26 @@ def small_gt(tmp_path_factory) -> Path:
 
 
 def test_evaluate_interrupted_writes_the_frames_done(tmp_path, small_gt):
-    out = tmp_path / "e"
+    """... beside an earlier output of --out, which an interrupted run under --overwrite does not
+    replace (a new user's complete results.json became a partial one): ``<out>.partial``."""
+    from dynmesh_warp.outputs import OutputFolder
+
+    earlier = tmp_path / "e"
+    with OutputFolder(earlier) as tmp:
+        (tmp / "results.json").write_text('{"complete": true}')
+    out = tmp_path / "e.partial"
     pr = Proc([sys.executable, "-m", "dynmesh_warp.evaluate", str(small_gt), "--strategies", "projection",
-               "--no-emd", "--protocol", "paper", "--resolution", "32", "--device", "cpu", "--out", str(out)], tmp_path)
+               "--no-emd", "--protocol", "paper", "--resolution", "32", "--device", "cpu", "--out", str(earlier),
+               "--overwrite"], tmp_path)
     pr.wait_for(b"metrics")  # 160 (row, frame) pairs at ~75/s here: the signal comes in the middle
     time.sleep(0.2)
     pr.p.send_signal(signal.SIGINT)
     rc, _, err = pr.finish()
     assert rc == 130 and "Traceback" not in err, err[-2000:]
-    assert _last_line(err).startswith("interrupted by SIGINT: wrote ")
+    assert _last_line(err).startswith(f"interrupted by SIGINT: wrote {out} ")
+    assert _last_line(err).endswith(f"{earlier} holds an earlier output or files another run wrote meanwhile: "
+                                    "kept as it is")
+    assert (earlier / "results.json").read_text() == '{"complete": true}'
     doc = json.loads((out / "results.json").read_text())
     info = doc["interrupted"]
     assert info["signal"] == "SIGINT" and info["partial_scene"] == "pulsing_blob" and info["not_evaluated"] == []
