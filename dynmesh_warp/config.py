@@ -23,6 +23,7 @@ from .choices import (
     DEFAULT_REBUILD_EVERY,
     DEFAULT_STRATEGY,
     DEFAULT_UP_AXIS,
+    FPS_RANGE,
     Collider,
     FrameOrder,
     NewtonSolver,
@@ -82,7 +83,7 @@ class SurfaceConfig(_Strict):
     subdir: Optional[str] = None  # DG-Mesh scene folder: dynamic_mesh | mesh_gt
     topology: Optional[str] = None  # a vertex-only source's faces (.pc2/.mdd/.npy/npz): a mesh file (default: <stem>.*)
     animation: Optional[Union[str, int]] = None  # an animated .glb/.gltf source: the animation's name or index
-    fps: Optional[float] = Field(default=None, gt=0)
+    fps: Optional[float] = Field(default=None, ge=FPS_RANGE[0], le=FPS_RANGE[1])
     frame_order: FrameOrder = DEFAULT_FRAME_ORDER  # text_sorted: undo 1, 10, 11, ..., 2, ...
     playback: Playback = DEFAULT_PLAYBACK
     interpolate: bool = True

@@ -60,7 +60,7 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
-from .choices import DEFAULT_STRATEGY, STRATEGIES
+from .choices import DEFAULT_STRATEGY, FPS_RANGE, STRATEGIES
 from .conversion_options import options_for
 from .deform_graph import GraphFitter, build_deformation_graph, extrapolate_rotations
 from .geometry import distinct_faces, face_areas, mesh_orientation, signed_volume, surface_area, weld_vertices
@@ -2046,8 +2046,8 @@ def main(argv=None) -> int:
             if name in opts:
                 raise ValueError(f"--{name.replace('_', '-')}: {rest}") from None
             raise ValueError(f"--strategy {a.strategy}: {e}") from None
-        if a.fps is not None and not (np.isfinite(a.fps) and a.fps > 0):
-            raise ValueError(f"--fps must be a positive, finite frame rate, got {a.fps}")
+        if a.fps is not None and not (FPS_RANGE[0] <= a.fps <= FPS_RANGE[1]):
+            raise ValueError(f"--fps must be a frame rate of {FPS_RANGE[0]:g} to {FPS_RANGE[1]:g} frames/s, got {a.fps}")
         from .runtime import resolve_device
 
         device = resolve_device(a.device, "--device")

@@ -109,14 +109,17 @@ def validate_mesh(
 
 
 def _checked_fps(fps, where: str) -> float:
-    """``fps`` as a float, or a :class:`MeshDataError` naming ``where`` for anything but a finite
-    positive number (a string or None too: float()'s own message named neither)."""
+    """``fps`` as a float, or a :class:`MeshDataError` naming ``where`` for anything but a number
+    in ``choices.FPS_RANGE`` (a string or None too: float()'s own message named neither)."""
+    from .choices import FPS_RANGE
+
     try:
         value = float(fps)
     except (TypeError, ValueError):
         value = float("nan")
-    if isinstance(fps, bool) or not np.isfinite(value) or value <= 0:
-        raise MeshDataError(f"{where}: fps must be a positive number, got {fps!r}")
+    if isinstance(fps, bool) or not (FPS_RANGE[0] <= value <= FPS_RANGE[1]):
+        raise MeshDataError(f"{where}: fps must be a positive number, {FPS_RANGE[0]:g} to {FPS_RANGE[1]:g} "
+                            f"frames/s, got {fps!r}")
     return value
 
 @dataclass(repr=False)

@@ -118,11 +118,13 @@ BAD = [
     (RUN + ["substeps.yaml"], "max_substeps"),
     (RUN + ["restitution.yaml"], "physics.restitution"),
     (RUN + ["dt_tiny.yaml"], "work budget"),
+    (RUN + ["--set", "surface.fps=1e300"], "surface.fps"),  # an OverflowError traceback (a new user's)
     # convert
     (CONVERT + ["frames", "frames", "--fmt", "obj"], "input"),
     (CONVERT + ["frames", "frames_link"], "input"),
     (CONVERT + ["frames", "scans", "--fmt", "obj"], "--overwrite"),
     (CONVERT + ["frames", "frames/out.npz"], "inside the input"),
+    (CONVERT + ["frames", "o.npz", "--fps", "1e300"], "--fps must be a frame rate of 0.0001 to 1e+07"),  # fps=inf written
     (CONVERT + ["frames", "gt.npz"], "--overwrite"),
     (CONVERT + ["frames", "out.obj"], ".obj"),
     (CONVERT + ["frames", "scans/my_scan.pc2"], "my_scan.obj"),  # the cache's faces would replace a scan

@@ -131,13 +131,14 @@ def test_kind_conversions(tmp_path):
 
 
 def test_a_bad_fps_is_named_for_both_sequence_kinds():
-    """A string, None, a bool, NaN, 0 or a negative fps is a MeshDataError naming the sequence
-    (a new user's "abc" got float()'s message, naming neither the field nor the sequence)."""
+    """A string, None, a bool, NaN, 0, a negative fps or one outside choices.FPS_RANGE is a
+    MeshDataError naming the sequence (a new user's "abc" got float()'s message, naming neither
+    the field nor the sequence; --fps 1e300 wrote fps=inf, 1e-300 a .glb of non-finite times)."""
     seq = fixed_seq()
-    for bad in ("abc", None, True, float("nan"), 0.0, -24.0):
-        with pytest.raises(MeshDataError, match=r"cap: fps must be a positive number, got "):
+    for bad in ("abc", None, True, float("nan"), 0.0, -24.0, 1e300, 1e-300):  # 1e300: fps=inf written
+        with pytest.raises(MeshDataError, match=r"cap: fps must be a positive number, 0.0001 to 1e\+07 frames/s, got "):
             FixedTopologySequence(seq.V, seq.F, fps=bad, name="cap")
-        with pytest.raises(MeshDataError, match=r"cap: fps must be a positive number, got "):
+        with pytest.raises(MeshDataError, match=r"cap: fps must be a positive number, 0.0001 to 1e\+07 frames/s, got "):
             VaryingTopologySequence(seq.to_varying().frames, fps=bad, name="cap")
     assert FixedTopologySequence(seq.V, seq.F, fps="30", name="cap").fps == 30.0  # a numeric string as before
 
