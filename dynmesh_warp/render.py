@@ -14,7 +14,9 @@ compositing with early termination). Runs on the CPU and on CUDA.
 
 from __future__ import annotations
 
+import contextlib
 import math
+import signal
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -583,16 +585,22 @@ def _write_video(path: Path, frames: list, fps: float) -> None:
             imageio.mimsave(tmp, frames, fps=fps, format="FFMPEG")
 
 
-def main(argv=None) -> int:
-    """The render CLI: its own warnings as one ``warning:`` line each, as the other CLIs."""
-    from .cli import user_warnings
+#: the largest image side --width / --height take [pixels] (a new user's 100000 x 100000 ended in
+#: a RuntimeError traceback after the scene had loaded)
+MAX_IMAGE_SIDE = 16384
 
-    with user_warnings():
-        return _main(argv)
+
+def main(argv=None) -> int:
+    """The render CLI: its own warnings as one ``warning:`` line each, and Ctrl-C / SIGTERM
+    (between frames: the frames done are written, marked, beside an earlier --out), as the other
+    CLIs (it had no stop handling: a traceback, and an --overwrite folder of mixed frames)."""
+    from .cli import interruptible_main
+
+    return interruptible_main(_main)(argv)
 
 
 def _main(argv=None) -> int:
-    from .cli import Parser, quiet_warp
+    from .cli import Interrupted, Parser, checking_stops, quiet_warp, stop_reason
 
     p = Parser(prog="python -m dynmesh_warp.render", description=__doc__.splitlines()[0])
     p.add_argument("scene", nargs="?", help="scene YAML (default: the built-in default scene); or a mesh sequence "
@@ -632,14 +640,15 @@ def _main(argv=None) -> int:
             if importlib.util.find_spec("imageio_ffmpeg") is None:
                 p.error(f"--video {a.video}: .mp4 needs the imageio-ffmpeg package (pip install imageio-ffmpeg); "
                         "or write a .gif, or PNG frames with --out")
-    if a.frames < 1 or a.moments < 1 or a.width < 16 or a.height < 16 or not a.fps > 0:
-        p.error("--frames, --moments >= 1, --width, --height >= 16, --fps > 0")
+    if (a.frames < 1 or a.moments < 1 or not 16 <= a.width <= MAX_IMAGE_SIDE or not 16 <= a.height <= MAX_IMAGE_SIDE
+            or not 0 < a.fps < float("inf")):
+        p.error(f"--frames, --moments >= 1, --width, --height 16..{MAX_IMAGE_SIDE}, --fps > 0")
     from .cli import scene_source
     from .config import SceneError, load_scene_config
     from .gaussians import gaussians_for_surface
     from .scene import build_world
 
-    from .outputs import add_to_manifest, check_output
+    from .outputs import OutputFolder, check_output
 
     try:
         cfg = load_scene_config(**scene_source(a.scene), overrides=a.overrides)
@@ -686,26 +695,51 @@ def _main(argv=None) -> int:
         it = tqdm(range(last + 1), unit="frame", disable=a.no_progress, file=sys.stderr)
     except ImportError:  # pragma: no cover
         it = range(last + 1)
-    for f in it:
-        if not a.no_splats:
-            gs.update(world.surface_points(), world.surface_indices())
-        cam = orbit_cameras(centre, 1.05 * diag, 1, 20.0, a.width, a.height, start_deg=30.0 + 90.0 * f / max(last, 1))
-        img = _to_uint8(render_world(world, gs, cam, renderer, splats=not a.no_splats, mesh=a.mesh).rgb.numpy()[0])
-        if a.out and f < total:
-            _write_png(Path(a.out) / f"frame_{f:04d}.png", img)
-            add_to_manifest(a.out, f"frame_{f:04d}.png")  # written by this tool: --overwrite may replace it
-        if a.video and f < total:
-            video.append(img)
-        if a.figure and f in moments:
-            strip.append(img)
-        for _ in range(steps_per_frame):
-            world.step()
+    # the frames go into a temporary folder renamed into place at the end (they went one by one
+    # into --out, so a stopped --overwrite left old and new frames mixed: a new user's)
+    folder = OutputFolder(a.out, overwrite=a.overwrite, beside_new=True) if a.out else None
+    done, reason = 0, None
+    with checking_stops(), (folder if folder is not None else contextlib.nullcontext()) as tmp:
+        for f in it:
+            if stop_reason():
+                reason = stop_reason()
+                break
+            if not a.no_splats:
+                gs.update(world.surface_points(), world.surface_indices())
+            cam = orbit_cameras(centre, 1.05 * diag, 1, 20.0, a.width, a.height,
+                                start_deg=30.0 + 90.0 * f / max(last, 1))
+            img = _to_uint8(render_world(world, gs, cam, renderer, splats=not a.no_splats, mesh=a.mesh).rgb.numpy()[0])
+            if a.out and f < total:
+                _write_png(tmp / f"frame_{f:04d}.png", img)
+            if a.video and f < total:
+                video.append(img)
+            if a.figure and f in moments:
+                strip.append(img)
+            done = f + 1
+            for _ in range(steps_per_frame):
+                world.step()
+        if folder is not None:
+            folder.interrupted = bool(reason)  # a stopped render never replaces an earlier --out
+            folder.status = {"complete": not reason, "frames": min(done, total), "frames_asked": total,
+                             "interrupted_by": reason}
+            if reason and not done:
+                raise Interrupted(getattr(signal, reason))
+    shown = folder.written if folder is not None else None
+    if reason:
+        print(f"interrupted by {reason} after {done} of {last + 1} frames: "
+              + (f"wrote {shown} with frames 0..{min(done, total) - 1} (manifest status: complete false)"
+                 if a.out else "nothing written") + ("; the --figure and --video need every frame: not written"
+                                                     if a.figure or a.video else ""), file=sys.stderr)
+        return 128 + int(getattr(signal, reason))
     if a.figure:
         _write_png(Path(a.figure), np.concatenate(strip, axis=1))
     if a.video:
         _write_video(Path(a.video), video, a.fps)
+    if folder is not None and shown != folder.path:
+        print(f"warning: {a.out} gained files this tool did not write during the render: kept as it is; the "
+              f"frames are in {shown}", file=sys.stderr)
     print(f"rendered {last + 1} frames of {cfg.name} ({a.width}x{a.height})"
-          + (f"; frames in {a.out}" if a.out else "") + (f"; figure {a.figure}" if a.figure else "")
+          + (f"; frames in {shown}" if a.out else "") + (f"; figure {a.figure}" if a.figure else "")
           + (f"; video {a.video}" if a.video else ""))
     return 0
 

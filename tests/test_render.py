@@ -242,6 +242,38 @@ def test_fixed_capacity_render_is_captured_in_a_cuda_graph(cuda_device):
     assert int(out.overflow.numpy()[0]) == 0
 
 
+def test_a_stopped_render_keeps_its_frames_beside_an_earlier_output(tmp_path, monkeypatch, capsys):
+    """A new user's Ctrl-C gave a KeyboardInterrupt traceback, and a stopped --overwrite left the
+    folder with new frames mixed into old ones of another size. The frames now go through a
+    temporary folder: a stop writes the frames done beside an earlier output (``<out>.partial``,
+    status complete false), exit 130; the earlier frames stay as they were. A side over
+    MAX_IMAGE_SIDE is refused before the work (a RuntimeError traceback after loading)."""
+    import json
+
+    import dynmesh_warp.cli as cli
+    from dynmesh_warp.outputs import MANIFEST
+    from dynmesh_warp.render import MAX_IMAGE_SIDE, main
+
+    out = tmp_path / "fr"
+    small = ["--width", "32", "--height", "24", "--no-progress", "--device", "cpu"]
+    assert main(["--out", str(out), "--frames", "2"] + small) == 0
+    before = {p.name: p.read_bytes() for p in out.glob("frame_*.png")}
+    asked = []
+    # the loop asks once a frame: the 8th answer stops it, after 7 frames
+    monkeypatch.setattr(cli, "stop_reason", lambda: "SIGINT" if len(asked) > 6 or asked.append(1) else None)
+    rc = main(["--out", str(out), "--frames", "9", "--overwrite", "--width", "40", "--height", "30", "--no-progress",
+               "--device", "cpu"])
+    err = capsys.readouterr().err
+    assert rc == 130 and "Traceback" not in err
+    part = tmp_path / "fr.partial"
+    assert f"interrupted by SIGINT after 7 of 9 frames: wrote {part} with frames 0..6" in err
+    assert {p.name: p.read_bytes() for p in out.glob("frame_*.png")} == before
+    assert sorted(p.name for p in part.glob("frame_*.png")) == [f"frame_{f:04d}.png" for f in range(7)]
+    assert json.loads((part / MANIFEST).read_text())["status"]["complete"] is False
+    with pytest.raises(SystemExit):
+        main(["--out", str(tmp_path / "big"), "--width", str(MAX_IMAGE_SIDE + 1)] + small[2:])
+
+
 def test_render_cli_writes_frames_and_a_figure(tmp_path):
     from dynmesh_warp.render import main
 
