@@ -849,20 +849,63 @@ def _check_scales(seq: VaryingTopologySequence, tol: float):
 def _key_frame(seq: VaryingTopologySequence, key, has_template: bool) -> int:
     """The frame the template comes from (or is matched to). "auto": frame 0 with a given
     template; otherwise the frame of largest surface area (median over 3 consecutive frames
-    against single-frame noise): limbs held apart, not fused by
-    the reconstruction. A fixed template can follow two parts into contact but cannot tear
-    one part into two, so tracking starts where the parts are most separate."""
+    against single-frame noise): limbs held apart, not fused by the reconstruction. A fixed
+    template can follow two parts into contact but cannot tear one part into two, so tracking
+    starts where the parts are most separate. Where most frames are closed, a frame with a hole
+    is not taken; nor a frame more than ``KEY_AREA_TOLERANCE`` below its window's median area
+    (a coarser remesh); and a frame of about the same area with ``KEY_FINER`` x the vertices or
+    more is preferred."""
     T = seq.num_frames
     if key is None or (isinstance(key, str) and key == "auto"):
         if has_template or T < 3:
             return 0
         a = np.array([surface_area(v, f) for v, f in seq.frames])
         med = np.array([np.median(a[max(0, t - 1):t + 2]) for t in range(T)])
-        return int(np.argmax(med))
+        # where most frames are closed, the template is too: a frame with a hole gave every
+        # output frame its hole (a new user's blob); asked lazily, from the largest area down
+        sample = _sample_frames(T)
+        closed = {u: _open_edges(seq.frames[u][1]) == 0 for u in sample}
+        need_closed = 2 * sum(closed.values()) >= len(sample)
+
+        def ok(u):
+            if not need_closed:
+                return True
+            if u not in closed:
+                closed[u] = _open_edges(seq.frames[u][1]) == 0
+            return closed[u]
+
+        order = np.argsort(-med, kind="stable")
+        t = next((int(u) for u in order if ok(u)), int(order[0]))
+        tol = KEY_AREA_TOLERANCE
+        window = [u for u in range(max(0, t - 1), min(T, t + 2)) if ok(u)]
+        if a[t] < (1.0 - tol) * med[t]:
+            # the window is the best, its middle frame is not: a coarser remesh, a hole (a new
+            # user's 500-vertex frame between two of 4,000 became every frame's template, +82 %
+            # CD): the window's frame of the median area
+            t = min(window, key=lambda u: abs(a[u] - med[t]))
+        # a frame of about the same area (within tol, alone and in its window) with at least
+        # KEY_FINER x the vertices: the finer template (every output frame has its resolution)
+        nv = np.array([len(v) for v, _ in seq.frames])
+        near = [u for u in range(T) if min(a[u], med[u]) >= (1.0 - tol) * a[t]]
+        fine = max(near, key=lambda u: (nv[u], med[u]), default=t)
+        return int(fine) if nv[fine] >= KEY_FINER * nv[t] and ok(fine) else t
     if isinstance(key, bool) or not isinstance(key, (int, np.integer)) or not -T <= int(key) < T:
         raise ValueError(f"key_frame must be 'auto' or a frame index in [{-T}, {T - 1}] "
                          f"(the sequence has {T} frames), got {key!r}")
     return int(key) % T
+
+
+def _open_edges(F: np.ndarray) -> int:
+    """How many edges of the faces ``F`` belong to one face only (a hole's or a sheet's rim)."""
+    F = np.asarray(F, np.int64).reshape(-1, 3)
+    if not len(F):
+        return 0
+    n = int(F.max()) + 1
+    a, b = F.T.ravel(), F[:, [1, 2, 0]].T.ravel()
+    key = np.sort(np.minimum(a, b) * n + np.maximum(a, b))
+    first = np.r_[True, key[1:] != key[:-1]]
+    counts = np.diff(np.r_[np.flatnonzero(first), key.size])
+    return int(np.count_nonzero(counts == 1))
 
 
 def _topology(F: np.ndarray) -> tuple:
@@ -1710,6 +1753,12 @@ def _convert_from_key(vseq, strategy: str, o: dict, K: int, template, device, pr
 
 # --------------------------------------------------------------------------- CLI
 
+#: the automatic key frame (:func:`_key_frame`): a window's middle frame more than this fraction
+#: below the window's median area is not taken (a hole, a coarser remesh), nor is a frame when one
+#: of about its area (within this fraction) has KEY_FINER x its vertices. The protocol's inputs
+#: (5 sequences at 1 % error, r96; 5 noise-free at r192) keep their key frames.
+KEY_AREA_TOLERANCE = 0.02
+KEY_FINER = 2.0
 POOR_COVERAGE = 0.05  # coverage (fraction of the bbox diagonal) above which a frame counts as poorly fit
 #: the coverage's tail (its 99.9th percentile, ``ConversionInfo.coverage_tail``) above which a
 #: frame is warned about (a thin part's tip left behind): issue 12's 3 % of the diagonal. At 1 %

@@ -979,3 +979,30 @@ def test_the_coverage_and_its_tail_are_the_input_distances_percentiles():
             d = brute_nearest(np.asarray(v, np.float64), fx.V[t].astype(np.float64), fx.F)[0]
             p995, p999 = np.percentile(d, (99.5, 99.9)) / _diag(v)
             np.testing.assert_allclose([info.coverage[t], info.coverage_tail[t]], [p995, p999], rtol=1e-3, atol=1e-6)
+
+
+def test_the_automatic_key_frame_is_neither_holed_nor_coarse():
+    """A new user's closed blob, remeshed at 500 to 4,000 vertices from frame to frame: the key
+    frame was the middle of the best 3-frame window of area even where that frame itself was a
+    500-vertex frame with a hole, and its hole and resolution went to every output frame (+82 %
+    CD). The window's median frame is taken when its middle is > 2 % below, and a frame of about
+    the same area with >= 2x the vertices is preferred; otherwise the rule is as before."""
+    from dynmesh_warp.convert import _key_frame
+
+    def ball(r, subdiv, hole=False):
+        V, F = icosphere(subdivisions=subdiv)
+        if hole:  # a cap of faces removed: 10 % of the diagonal across
+            F = F[V[F].mean(axis=1)[:, 2] < 0.9]
+        return (r * V).astype(np.float32), F.astype(np.int32)
+
+    radius = [1.0, 1.1, 1.2, 1.3, 1.4, 1.38, 1.2, 1.1]  # the most surface at frames 4, 5
+    fine = [ball(r, 4) for r in radius]
+    assert _key_frame(VaryingTopologySequence(fine, name="b"), "auto", False) == 4  # as before
+    holed = list(fine)
+    holed[4] = ball(1.4, 4, hole=True)  # 5 % of its area missing: still its window's median
+    assert _key_frame(VaryingTopologySequence(holed, name="b"), "auto", False) == 5
+    sheets = [(v, f[v[f].mean(axis=1)[:, 2] < 0.9]) for v, f in fine]  # every frame open: no rule on holes
+    assert _key_frame(VaryingTopologySequence(sheets, name="b"), "auto", False) == 4
+    coarse = [ball(r, 2 if t % 2 == 0 else 4) for t, r in enumerate(radius)]  # 162 / 2,562 vertices
+    k = _key_frame(VaryingTopologySequence(coarse, name="b"), "auto", False)
+    assert k in (3, 5) and len(coarse[k][0]) == 2562
