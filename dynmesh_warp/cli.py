@@ -339,6 +339,10 @@ def interruptible_main(fn):
                 print(f"interrupted ({signal_name(e.signum)}) before any output was written; existing "
                       "outputs are unchanged", file=sys.stderr)
                 return e.exit_code
+            except MemoryError:  # a new user's evaluate --resolution 1200: a MemoryError traceback
+                print("error: out of memory; nothing more was written (outputs are atomic). Ask for less: a "
+                      "lower --resolution, fewer --frames / --envs / spheres, or a smaller image", file=sys.stderr)
+                return 1
 
     return main
 

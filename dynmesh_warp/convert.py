@@ -231,6 +231,9 @@ class ConversionInfo:
     fit and coverage because they lie wholly far from the converted surface (options
     ``far_part_area``, ``far_part_gap``): floaters of a reconstruction, for which the template
     has no part (pulled, they would grow a spike from it).
+    flipped: per frame, the fraction of the converted surface's area whose faces point against
+    the input surface nearest to them (a fold-over: the surface doubled back on itself, as a new
+    user's waving flag did on 6 of 24 frames, 13 % of its area, silently).
     web: per frame, the fraction of the converted surface's area that spans a gap of the input
     (:func:`web_fraction`: faces stretched across where the input has no surface, e.g. parts the
     template fused that the input pulls apart); a web shows here, not in the coverage.
@@ -267,6 +270,7 @@ class ConversionInfo:
     floater_retry_rejected: bool = False
     ignored_parts: dict = field(default_factory=dict)
     web: list = field(default_factory=list)
+    flipped: list = field(default_factory=list)
     segments: list = field(default_factory=list)
     seconds_all: float = 0.0
     moving_part: tuple | None = None
@@ -449,6 +453,16 @@ class _Converter:
                   outputs=[self.web_area], device=self.device)
         total, web = self.web_area.numpy()
         return float(web / total) if total > 0 else 0.0
+
+    def flipped(self, frame, diag: float) -> float:
+        """The fraction of the converted surface's area (self.X) whose faces point against the
+        input ``frame``'s surface nearest to them (within ``WEB_GAP`` x ``diag``; a fold-over),
+        :func:`~dynmesh_warp.kernels.convert.measure_flipped_area`. One launch, two floats back."""
+        self.web_area.zero_()
+        wp.launch(kc.measure_flipped_area, dim=self.nf, inputs=[self.TF, self.X, frame[0].id, WEB_GAP * diag],
+                  outputs=[self.web_area], device=self.device)
+        total, flipped = self.web_area.numpy()
+        return float(flipped / total) if total > 0 else 0.0
 
     def coverage(self, frame) -> "_Coverage":
         """99.5th percentile of the distance of the frame's vertices to the converted surface
@@ -1075,11 +1089,11 @@ def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info,
     """The frame loop of to_fixed_topology: the key frame forward to the end, then backward to
     frame 0. ``stop_forward(t, web)``, asked after each frame t > K: true ends the forward pass
     there (the backward pass still runs). Returns (out (T, N, 3), lo, hi (the converted frames
-    lo..hi), seconds, coverage, web, tail (``ConversionInfo.coverage_tail``))."""
+    lo..hi), seconds, coverage, web, tail (``ConversionInfo.coverage_tail``), flipped)."""
     T = vseq.num_frames
     device = conv.device
     out = np.empty((T, len(TV), 3), np.float32)
-    seconds, coverage, web, tail = np.zeros(T), np.zeros(T), np.zeros(T), np.zeros(T)
+    seconds, coverage, web, tail, flipped = np.zeros(T), np.zeros(T), np.zeros(T), np.zeros(T), np.zeros(T)
     # the key frame forward to the end, then backward from it to frame 0
     order = list(range(K, T)) + list(range(K - 1, -1, -1))
     if progress:
@@ -1107,6 +1121,7 @@ def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info,
         tail[t] = cov.tail / max(_bbox_diag(v), 1e-12)
         web[t] = conv.frame_web if conv.frame_web is not None else conv.web(frame, _bbox_diag(v))
         conv.frame_web = None
+        flipped[t] = conv.flipped(frame, _bbox_diag(v))
         conv.first = False
         out[t] = conv.X.numpy()
         seconds[t] = time.perf_counter() - t0
@@ -1118,7 +1133,7 @@ def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info,
             forward = False
     if hasattr(order, "close"):
         order.close()
-    return out, lo, hi, seconds, coverage, web, tail
+    return out, lo, hi, seconds, coverage, web, tail, flipped
 
 
 def best_starts(starts: list, scores, keep: int) -> list:
@@ -1153,7 +1168,8 @@ def _poor_runs(coverage: np.ndarray, K: int, threshold: float) -> list:
     return runs
 
 
-def _repair_poor_runs(vseq, conv, out, coverage, web, tail, seconds, K: int, o: dict, should_stop, TF, info) -> list:
+def _repair_poor_runs(vseq, conv, out, coverage, web, tail, flipped, seconds, K: int, o: dict, should_stop, TF,
+                      info) -> list:
     """Bidirectional repair (``graph``): re-track every run of poorly covered frames from the good
     frame on its other side, keeping per frame whichever result covers the input better. Up to
     ``repair_passes`` passes (each sees the previous one's coverage). Returns the improved frames."""
@@ -1185,6 +1201,7 @@ def _repair_poor_runs(vseq, conv, out, coverage, web, tail, seconds, K: int, o: 
                 if cov < coverage[t]:
                     coverage[t], tail[t] = cov, tl
                     web[t] = w if w is not None else conv.web(frame, _bbox_diag(v))
+                    flipped[t] = conv.flipped(frame, _bbox_diag(v))
                     out[t] = conv.X.numpy()
                     repaired.add(t)
                 elif old_state is not None:
@@ -1447,7 +1464,7 @@ def _slice_result(res, a: int, b: int, lo: int):
     out = FixedTopologySequence(res.V[i:j], res.F, fps=res.fps, name=res.name, source=res.source)
     out.conversion = dataclasses.replace(info, num_frames=j - i, key_frame=info.key_frame - i,
                                          coverage=list(info.coverage[i:j]), web=list(info.web[i:j]),
-                                         coverage_tail=list(info.coverage_tail[i:j]),
+                                         coverage_tail=list(info.coverage_tail[i:j]), flipped=list(info.flipped[i:j]),
                                          frame_seconds=list(info.frame_seconds[i:j]), **_frame_fields(info, -i, i, j))
     return out
 
@@ -1482,6 +1499,7 @@ def _join_segments(vseq, segs: list, whole, events: list) -> VaryingTopologySequ
         c = r.conversion
         info.coverage += c.coverage
         info.coverage_tail += c.coverage_tail
+        info.flipped += c.flipped
         info.web += c.web
         info.frame_seconds += c.frame_seconds
         for name, value in _frame_fields(c, lo).items():
@@ -1726,15 +1744,15 @@ def _convert_from_key(vseq, strategy: str, o: dict, K: int, template, device, pr
     step = getattr(conv, f"step_{strategy}")
     info = ConversionInfo(strategy, {k: v for k, v in o.items() if k != "strategy"}, T, len(TV), key_frame=K)
     info.moving_part = moving
-    out, lo, hi, seconds, coverage, web, tail = _convert_frames(vseq, conv, step, K, progress, should_stop, info,
+    out, lo, hi, seconds, coverage, web, tail, flipped = _convert_frames(vseq, conv, step, K, progress, should_stop, info,
                                                           strategy, where, TV, TF, stop_forward)
     if strategy == "graph" and (lo, hi) == (0, T - 1) and int(o["repair_passes"]) > 0:
-        info.repaired_frames = _repair_poor_runs(vseq, conv, out, coverage, web, tail, seconds, K, o, should_stop, TF,
-                                                 info)
+        info.repaired_frames = _repair_poor_runs(vseq, conv, out, coverage, web, tail, flipped, seconds, K, o,
+                                                 should_stop, TF, info)
     info.ignored_parts = {t: x for t, x in sorted(info.ignored_parts.items()) if lo <= t <= hi}
     info.frame_seconds = seconds.tolist()
     info.coverage, info.coverage_tail = coverage.tolist(), tail.tolist()
-    info.web = web.tolist()
+    info.web, info.flipped = web.tolist(), flipped.tolist()
     info.reanchored_frames.sort()
     if hasattr(conv, "recovered"):
         info.recovered_frames = sorted(conv.recovered)
@@ -1746,6 +1764,7 @@ def _convert_from_key(vseq, strategy: str, o: dict, K: int, template, device, pr
     if (lo, hi) != (0, T - 1):  # stopped early: the frames converted so far
         info.frame_seconds, info.coverage = info.frame_seconds[lo:hi + 1], info.coverage[lo:hi + 1]
         info.web, info.coverage_tail = info.web[lo:hi + 1], info.coverage_tail[lo:hi + 1]
+        info.flipped = info.flipped[lo:hi + 1]
     res = FixedTopologySequence(out[lo:hi + 1], TF, fps=vseq.fps, name=vseq.name, source=vseq.source)
     res.conversion = info
     return res
@@ -1766,6 +1785,11 @@ POOR_COVERAGE = 0.05  # coverage (fraction of the bbox diagonal) above which a f
 #: lost < 2 %), 12 of pcow's 16, a fast-spinning figure's one, none on the horses or the figure
 #: (docs/conversion.md, "Thin parts")
 POOR_TAIL = 0.03
+#: the fraction of the converted surface's area turned against the input (``ConversionInfo.
+#: flipped``: a fold-over) above which a frame is warned about: a new user's waving flag folded
+#: back on 6 of 24 frames at 6-19 %; white noise on the input's vertices gave up to 4 %
+#: (docs/conversion.md, "Folds")
+POOR_FLIPPED = 0.05
 #: a web (:func:`web_fraction`): faces whose longest edge grew more than WEB_STRETCH x since the
 #: key frame and whose centroid lies farther than WEB_GAP x the input's bbox diagonal from the
 #: input; a frame whose web covers more than POOR_WEB of the converted surface's area counts as
@@ -1883,6 +1907,17 @@ def conversion_summary(info: ConversionInfo) -> list:
         shown = ", ".join(f"{t} ({what})" for t, what in ev[:8])
         lines.append(f"input topology changes at {len(ev)} frame(s): {shown}" + (" ..." if len(ev) > 8 else "")
                      + (f"; {len(segs)} segments" if segs else "; one template kept through them (1 segment)"))
+    fl = np.asarray(info.flipped, float)
+    if fl.size == cov.size and fl.size and fl.max() > 0:
+        w = int(np.argmax(fl))
+        lines.append(f"faces turned against the input (fraction of the converted area; a fold-over): mean "
+                     f"{100 * fl.mean():.2f}%, worst {100 * fl[w]:.2f}% at frame {w}")
+        folds = np.flatnonzero(fl > POOR_FLIPPED)
+        if folds.size:
+            lines.append(f"warning: fold-over on {folds.size} frame(s) ({_frames_text(folds)}): over "
+                         f"{100 * POOR_FLIPPED:.0f}% of the converted surface faces against the input (the surface "
+                         "doubled back on itself, e.g. a sheet's free edge); try another --key-frame, one where the "
+                         "surface is least folded")
     web = np.asarray(info.web, float)
     if web.size and web.max() > 0:
         w = int(np.argmax(web))

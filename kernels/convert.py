@@ -454,6 +454,38 @@ def measure_web_area(
 
 
 @wp.kernel
+def measure_flipped_area(
+    # Model:
+    indices: wp.array[wp.int32],
+    # In:
+    points: wp.array[wp.vec3],
+    mesh: wp.uint64,
+    gap: float,
+    # Out:
+    area_out: wp.array[float],
+):
+    """Faces of a converted frame turned against the input (``ConversionInfo.flipped``), one
+    thread per face: area_out[0] += the face's area; area_out[1] += its area when the input
+    ``mesh`` has a point within ``gap`` of its centroid and the face's normal points against the
+    normal of the input face there (a fold-over: the converted surface doubled back on itself).
+
+    indices (3M,) template faces; points (N,) converted vertices [m]; mesh: the input frame's
+    wp.Mesh; gap [m]; area_out (2,) [m^2], zeroed by the caller.
+    """
+    f = wp.tid()
+    a = points[indices[3 * f]]
+    b = points[indices[3 * f + 1]]
+    c = points[indices[3 * f + 2]]
+    n = wp.cross(b - a, c - a)
+    area = 0.5 * wp.length(n)
+    wp.atomic_add(area_out, 0, area)
+    q = wp.mesh_query_point_no_sign(mesh, (a + b + c) / 3.0, gap)
+    if q.result:
+        if wp.dot(n, wp.mesh_eval_face_normal(mesh, q.face)) < 0.0:
+            wp.atomic_add(area_out, 1, area)
+
+
+@wp.kernel
 def measure_distances_to_mesh(
     # In:
     mesh: wp.uint64,

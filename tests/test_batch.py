@@ -364,3 +364,18 @@ def test_batched_envs_starting_later_do_not_start_inside_the_surface():
     w = build_batched_world(spawn, device="cpu", sequence=seq)
     z = w.sphere_positions()[..., 2]
     assert z.min() >= float(seq.V[..., 2].max()) + 0.1  # above the highest point of any frame
+
+
+def test_a_batch_that_cannot_fit_the_free_memory_is_refused_before_it_is_allocated(monkeypatch):
+    """A new user's --envs 100000000 was killed by the out-of-memory killer (24 GB resident on a
+    23 GB machine); the batch's least size (BYTES_PER_ENV, BYTES_PER_SPHERE) against the
+    device's free memory is checked first, naming both."""
+    import dynmesh_warp.batch as batch
+    from dynmesh_warp.config import SceneError
+
+    scene = {"surface": {"source": "builtin:pulsing_blob", "params": {"subdivisions": 1, "frames": 4}}}
+    monkeypatch.setattr(batch, "_free_bytes", lambda device: 1_000_000)
+    with pytest.raises(SceneError, match=r"envs.count 10,000: needs about 3.7 MiB on cpu, 1.0 MiB free; fewer envs"):
+        batch.build_batched_world(scene, device="cpu", num_envs=10_000)  # 10,000 x 384 bytes > 1 MB
+    assert batch.build_batched_world(scene, device="cpu", num_envs=100).num_envs == 100
+    assert batch._free_bytes(wp.get_device("cpu")) > 0  # the host's available memory is known here

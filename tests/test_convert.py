@@ -464,6 +464,10 @@ def test_conversion_summary_warns_on_poor_coverage():
     assert any(ln.startswith("farthest input surface (99.9th pct.") and "worst 7.50% at frame 2" in ln for ln in lines)
     warn = [ln for ln in lines if ln.startswith("warning:")]
     assert len(warn) == 1 and "on 1 frame(s) (2) a small part of the input surface" in warn[0]
+    info.flipped = [0.0, 0.01, 0.0, 0.12]  # a fold-over on frame 3 (a new user's flag: 6-19 %)
+    lines = conversion_summary(info)
+    assert any(ln.startswith("faces turned against the input") and "worst 12.00% at frame 3" in ln for ln in lines)
+    assert any(ln.startswith("warning: fold-over on 1 frame(s) (3)") for ln in lines)
 
 
 @pytest.mark.parametrize("bad,name", [({"node_spacing": 0}, "node_spacing"), ({"graph_iterations": 0}, "graph_iterations"),
@@ -1006,3 +1010,37 @@ def test_the_automatic_key_frame_is_neither_holed_nor_coarse():
     coarse = [ball(r, 2 if t % 2 == 0 else 4) for t, r in enumerate(radius)]  # 162 / 2,562 vertices
     k = _key_frame(VaryingTopologySequence(coarse, name="b"), "auto", False)
     assert k in (3, 5) and len(coarse[k][0]) == 2562
+
+
+def test_the_flipped_area_kernel_against_numpy():
+    """measure_flipped_area: the area of the converted faces whose normal points against the
+    input face nearest to their centroid (within the gap), and the total area; against NumPy on
+    a sphere with a third of its faces' winding reversed and a patch moved beyond the gap."""
+    from reference import brute_nearest
+
+    from dynmesh_warp.kernels import convert as kc
+
+    V, F = icosphere(subdivisions=2)
+    V = V.astype(np.float32)
+    rng = np.random.default_rng(3)
+    out_F = F.copy()
+    rev = rng.random(len(F)) < 0.33
+    out_F[rev] = out_F[rev][:, ::-1]
+    X = V.copy()
+    X[X[:, 2] > 0.8] *= 1.5  # a cap moved 0.4+ away: beyond the gap, counted in the total only
+    gap = 0.2
+    inp = wp.Mesh(points=wp.array(V, dtype=wp.vec3, device=DEV), indices=wp.array(F.reshape(-1), dtype=wp.int32,
+                                                                                    device=DEV))
+    acc = wp.zeros(2, dtype=float, device=DEV)
+    wp.launch(kc.measure_flipped_area, dim=len(F), inputs=[wp.array(out_F.reshape(-1), dtype=wp.int32, device=DEV),
+              wp.array(X, dtype=wp.vec3, device=DEV), inp.id, gap], outputs=[acc], device=DEV)
+    P = X[out_F].astype(np.float64)
+    n = np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
+    area = 0.5 * np.linalg.norm(n, axis=1)
+    d, face, _ = brute_nearest(P.mean(axis=1), V.astype(np.float64), F)
+    Q = V[F[face]].astype(np.float64)
+    n_in = np.cross(Q[:, 1] - Q[:, 0], Q[:, 2] - Q[:, 0])
+    against = (d < gap) & ((n * n_in).sum(axis=1) < 0)
+    total, flipped = acc.numpy()
+    assert 0.2 < against.mean() < 0.4 and (d >= gap).any()
+    np.testing.assert_allclose([total, flipped], [area.sum(), area[against].sum()], rtol=1e-5)

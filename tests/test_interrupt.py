@@ -606,3 +606,16 @@ def test_cpu_run_prints_no_cuda_driver_note_unless_cuda_is_asked(tmp_path):
     assert r.returncode == 2 and "error: --device 'cuda'" in r.stderr
     # Warp's own note comes only where CUDA was asked for (and only if Warp prints one here)
     assert (note in r.stderr) == (note in plain.stderr)
+
+
+def test_out_of_memory_is_one_line_not_a_traceback(capsys):
+    """A new user's evaluate --resolution 1200 ended in a MemoryError traceback; every CLI's
+    main (interruptible_main) turns it into one error line, exit 1."""
+    from dynmesh_warp.cli import interruptible_main
+
+    @interruptible_main
+    def main(argv=None):
+        raise MemoryError
+
+    assert main([]) == 1
+    assert capsys.readouterr().err.startswith("error: out of memory; nothing more was written")
