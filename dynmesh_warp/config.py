@@ -7,6 +7,7 @@ offending field (for example ``physics.dt: Input should be greater than 0``).
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Literal, Optional, Union
 
@@ -113,6 +114,10 @@ class SpawnConfig(_Strict):
     seed: int = 0
 
 
+#: the largest gravity a scene takes [m/s^2] (1,000 g)
+MAX_GRAVITY = 1.0e4
+
+
 class PhysicsCore(_Strict):
     """Physics settings shared by the scene's ``physics:`` section and the Python API's
     :class:`~dynmesh_warp.world.PhysicsParams`: one place for their types, ranges and defaults
@@ -133,6 +138,15 @@ class PhysicsCore(_Strict):
     # how the swept collider searches a sphere's faces (None: the device's default,
     # choices.DEFAULT_SWEPT_SEARCH); docs/physics.md#the-swept-collider
     swept_search: Optional[SweptSearch] = None
+
+    @field_validator("gravity")
+    @classmethod
+    def _gravity_within_bound(cls, g):
+        # a new user's [0, 0, -3e38] ran with exit 0 and positions of 1e37 m
+        if math.hypot(*g) > MAX_GRAVITY:
+            raise ValueError(f"|gravity| {math.hypot(*g):.3g} m/s^2 is over {MAX_GRAVITY:g} m/s^2 (the scene is in "
+                             "metres and seconds: 9.81 is Earth's)")
+        return g
 
     @model_validator(mode="after")
     def _substeps_within_bound(self):
@@ -331,6 +345,9 @@ class SceneConfig(_Strict):
                 raise ValueError(f"surface.conversion.template: file not found: {t}")
         if self.gaussians.splats and not self.resolve(self.gaussians.splats).is_file():
             raise ValueError(f"gaussians.splats: file not found: {self.resolve(self.gaussians.splats)}")
+        if self.gaussians.splats and Path(self.gaussians.splats).suffix.lower() != ".ply":
+            # run took an npz here and render refused it later (a new user's)
+            raise ValueError(f"gaussians.splats: a 3D Gaussian splatting .ply is expected, got {self.gaussians.splats!r}")
         for i, b in enumerate(self.newton.bodies if self.newton else []):
             if b.file and not self.resolve(b.file).is_file():
                 raise ValueError(f"newton.bodies.{i}.file: file not found: {self.resolve(b.file)}")
@@ -488,7 +505,10 @@ def load_scene_config(path: str | Path | None = None, data: dict | None = None, 
             raise SceneError(f"{path}: cannot read scene YAML: nested too deeply") from None
         except Exception as e:  # a constructor's own error, e.g. a bad !!timestamp
             raise SceneError(f"{path}: cannot read scene YAML ({type(e).__name__}: {e})") from None
-        if raw is None:
+        if raw is None:  # an empty file: the schema's defaults, said (it ran the built-in scene silently)
+            import warnings
+
+            warnings.warn(f"{path}: the scene file is empty: the built-in default scene (docs/scene.md)", stacklevel=2)
             raw = {}
         if not isinstance(raw, dict):
             raise SceneError(f"{path}: a scene file is a YAML mapping of sections (surface:, spheres:, physics:, ...; "

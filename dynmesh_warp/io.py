@@ -132,6 +132,7 @@ def load_sequence(
         if topology is not None:
             raise _no_topology(path, "this is a folder")
         folder = resolve_folder(path, subdir)
+        _warn_if_interrupted(folder)
         return load_folder(folder, fps, kind, name=path.name or str(path))
     if subdir is not None:
         raise ValueError(f"{path}: subdir= applies to folders, but this is a file")
@@ -148,6 +149,7 @@ def load_sequence(
     if topology is not None:
         raise _no_topology(path, "this one has its own faces")
     if suffix == ".npz":
+        _warn_if_interrupted(path)
         return fix_frame_order(load_npz(path, fps, kind), frame_order, path)
     animated = suffix in GLTF_EXTENSIONS and gltf_has_animation(path)
     if animation is not None and not animated:
@@ -176,6 +178,31 @@ def _save_folder(seq, folder: Path, fmt: str, overwrite: bool = False, status: d
         for t in range(seq.num_frames):
             V, F = seq.frame(t)
             write_mesh_file(tmp / f"frame_{t:04d}.{fmt}", V, F)
+
+
+def _warn_if_interrupted(path: Path) -> None:
+    """Warn when ``path`` (an npz, or a folder with this tool's manifest) was written by a run
+    that was stopped (its status says ``"complete": false``): a new user's interrupted
+    conversion played in a scene with no word that it held only some of the frames."""
+    import json
+    import warnings
+
+    from .outputs import MANIFEST
+
+    try:
+        if path.is_dir():
+            status = json.loads((path / MANIFEST).read_text()).get("status") if (path / MANIFEST).is_file() else None
+        else:
+            with np.load(path, allow_pickle=False) as z:
+                status = json.loads(str(z["status"])) if "status" in z.files else None
+    except (OSError, ValueError, KeyError, AttributeError):
+        return  # unreadable here: the loader reports what is wrong
+    if isinstance(status, dict) and status.get("complete") is False:
+        first, n = int(status.get("first_frame", 0) or 0), status.get("frames")
+        held = f"input frames {first}..{first + int(n) - 1} of 0..{int(status['input_frames']) - 1}" \
+            if n is not None and status.get("input_frames") is not None else "part of the frames"
+        warnings.warn(f"{path}: written by a run that was stopped ({status.get('interrupted_by') or 'interrupted'}): it "
+                      f"holds {held}", stacklevel=3)
 
 
 def save_sequence(seq, path, fmt: str | None = None, overwrite: bool = False, status: dict | None = None) -> None:

@@ -248,6 +248,13 @@ def check_output(path, *, kind: str, what: str, inputs=(), overwrite: bool = Fal
         raise OutputError(f"{what}: empty path")
     shown = str(path)
     real = _real(path)
+    if os.path.islink(Path(path).expanduser()) and not os.path.exists(Path(path).expanduser()):
+        # a link to nothing: what would be written is the link's target, a path the user did not
+        # name (it was found only after the work, by the write)
+        raise OutputError(f"{what} {shown}: a symbolic link to {os.readlink(Path(path).expanduser())}, which does not "
+                          "exist; remove the link or name the output itself")
+    if kind == "file" and shown.endswith(("/", os.sep)):
+        raise OutputError(f"{what} {shown}: names a folder (trailing '{os.sep}'), a file is expected")
     if kind == "file" and suffixes and real.suffix.lower() not in suffixes and Path(shown).suffix.lower() not in suffixes:
         raise OutputError(f"{what} {shown}: unknown extension {Path(shown).suffix or '(none)'!r}; "
                           f"expected {' or '.join(sorted(suffixes))}")

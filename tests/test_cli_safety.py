@@ -50,6 +50,7 @@ def work(tmp_path_factory) -> Path:
     (w / "dir.viser").mkdir()
     (w / "dir.viser" / "keep").write_text("x")
     (w / "frames_link").symlink_to(w / "frames")
+    (w / "dangling.npz").symlink_to(w / "nowhere" / "x.npz")
     scenes = {
         "ok.yaml": "surface: {source: frames}\nrun: {steps: 2}\n",
         "dt_inf.yaml": "physics: {dt: .inf}\n",
@@ -62,6 +63,7 @@ def work(tmp_path_factory) -> Path:
         "into_input.yaml": "surface: {source: frames}\nrun: {output: frames/out}\n",
         "dt_tiny.yaml": "physics: {dt: 1.0e-12}\n",
         "restitution.yaml": "physics: {restitution: 5}\n",
+        "gravity.yaml": "physics: {gravity: [0, 0, -3.0e+38]}\n",
     }
     for name, text in scenes.items():
         (w / name).write_text(text)
@@ -119,11 +121,14 @@ BAD = [
     (RUN + ["restitution.yaml"], "physics.restitution"),
     (RUN + ["dt_tiny.yaml"], "work budget"),
     (RUN + ["--set", "surface.fps=1e300"], "surface.fps"),  # an OverflowError traceback (a new user's)
+    (RUN + ["gravity.yaml"], "physics.gravity: |gravity| 3e+38 m/s^2 is over"),  # ran to positions of 1e37 m
     # convert
     (CONVERT + ["frames", "frames", "--fmt", "obj"], "input"),
     (CONVERT + ["frames", "frames_link"], "input"),
     (CONVERT + ["frames", "scans", "--fmt", "obj"], "--overwrite"),
     (CONVERT + ["frames", "frames/out.npz"], "inside the input"),
+    (CONVERT + ["frames", "dangling.npz"], "a symbolic link to"),  # refused only after the work
+    (CONVERT + ["frames", "somedir.npz/"], "names a folder (trailing"),  # written as a file
     (CONVERT + ["frames", "o.npz", "--fps", "1e300"], "--fps must be a frame rate of 0.0001 to 1e+07"),  # fps=inf written
     (CONVERT + ["frames", "gt.npz"], "--overwrite"),
     (CONVERT + ["frames", "out.obj"], ".obj"),

@@ -41,8 +41,14 @@ def test_minimal_file_gets_defaults_and_its_name(tmp_path):
 
 
 def test_empty_file_is_the_defaults(tmp_path):
-    cfg = load_scene_config(write_yaml(tmp_path, "", "empty.yaml"))
+    """... and says so (a new user's empty file ran the built-in scene silently); a splats file
+    that is not a .ply is refused with the scene (run took an npz, render refused it later)."""
+    with pytest.warns(UserWarning, match="empty.yaml: the scene file is empty: the built-in default scene"):
+        cfg = load_scene_config(write_yaml(tmp_path, "", "empty.yaml"))
     assert cfg.surface.source == "builtin:wave_bowl"
+    (tmp_path / "g.npz").write_bytes(b"x")
+    with pytest.raises(SceneError, match=r"gaussians.splats: a 3D Gaussian splatting .ply is expected, got 'g.npz'"):
+        load_scene_config(write_yaml(tmp_path, {"gaussians": {"splats": "g.npz"}}, "s.yaml"))
 
 
 @pytest.mark.parametrize("data, must_contain", [
