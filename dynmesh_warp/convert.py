@@ -1865,14 +1865,15 @@ def conversion_summary(info: ConversionInfo) -> list:
                      "is much smaller than the whole (a static floor or background): its graph nodes are spaced "
                      "from its own size (option adaptive_spacing)")
     tail = np.asarray(info.coverage_tail, float)
+
+    def mean_and_worst(label, x):  # "label: mean m%, worst w% at frame t" of per-frame fractions
+        w = int(np.argmax(x))
+        return f"{label}: mean {100 * x.mean():.2f}%, worst {100 * x[w]:.2f}% at frame {w}"
+
     if cov.size:
-        w = int(np.argmax(cov))
-        lines.append(f"coverage (99.5th pct. input -> converted distance / bbox diagonal): mean "
-                     f"{100 * cov.mean():.2f}%, worst {100 * cov[w]:.2f}% at frame {w}")
+        lines.append(mean_and_worst("coverage (99.5th pct. input -> converted distance / bbox diagonal)", cov))
     if tail.size == cov.size and tail.size:  # the worst case next to the mean: a thin part's tip
-        w = int(np.argmax(tail))
-        lines.append(f"farthest input surface (99.9th pct., a thin part's tip shows here): mean {100 * tail.mean():.2f}%, "
-                     f"worst {100 * tail[w]:.2f}% at frame {w}")
+        lines.append(mean_and_worst("farthest input surface (99.9th pct., a thin part's tip shows here)", tail))
     rec = info.recovered_frames or [(t, "") for t in info.reanchored_frames]
     if rec:
         shown = _frames_text(f"{t}" + (f" (from {src})" if src else "") for t, src in rec)
@@ -1910,9 +1911,7 @@ def conversion_summary(info: ConversionInfo) -> list:
                      + (f"; {len(segs)} segments" if segs else "; one template kept through them (1 segment)"))
     fl = np.asarray(info.flipped, float)
     if fl.size == cov.size and fl.size and fl.max() > 0:
-        w = int(np.argmax(fl))
-        lines.append(f"faces turned against the input (fraction of the converted area; a fold-over): mean "
-                     f"{100 * fl.mean():.2f}%, worst {100 * fl[w]:.2f}% at frame {w}")
+        lines.append(mean_and_worst("faces turned against the input (fraction of the converted area; a fold-over)", fl))
         folds = np.flatnonzero(fl > POOR_FLIPPED)
         if folds.size:
             lines.append(f"warning: fold-over on {folds.size} frame(s) ({_frames_text(folds)}): over "
