@@ -299,7 +299,7 @@ def check_output(path, *, kind: str, what: str, inputs=(), overwrite: bool = Fal
 
 def beside_path(path, name: str = "partial", taken=None) -> Path:
     """A free name beside ``path`` for an output that may not replace it: ``<stem>.<name><suffix>``
-    (a folder: ``<name>.<name>``), numbered ``.<name>-2`` ... where that is taken (exists, or
+    (a folder: ``<folder>.<name>``), numbered ``.<name>-2`` ... where that is taken (exists, or
     ``taken(candidate)`` is true: e.g. a point cache's faces file)."""
     p = Path(path).expanduser()
     for n in range(1, 10 ** 6):

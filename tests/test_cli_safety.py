@@ -426,7 +426,8 @@ def test_nan_during_a_run_stops_naming_sphere_and_step_and_keeps_previous_output
 
     out = tmp_path / "o"
     scene = tmp_path / "s.yaml"
-    scene.write_text("spheres: [{position: [0, 0, 2]}]\nphysics: {gravity: [0, 0, -3.0e38]}\n")
+    # (a gravity of -3e38 did this before gravity was bounded: a sphere shot up at 3e38 m/s now)
+    scene.write_text("spheres: [{position: [0, 0, 2], velocity: [0, 0, 3.0e+38]}]\n")
     base = [str(scene), "--viewer", "none", "--device", "cpu", "--no-progress", "--output", str(out)]
     assert main(base + ["--steps", "2"]) == 0
     before = _snapshot(out)
