@@ -204,10 +204,6 @@ SPHERE_GRID_SERIAL_RESOLVE = 16384
 #: threads per sphere of the face-parallel search's second pass (the faces around the winning
 #: face's three vertices, ~18 on a regular mesh, taken in parallel)
 SWEPT_RESOLVE_THREADS = 32
-#: the frame rates a sequence may have [frames/s]: a time-lapse to a high-speed camera. Outside it
-#: the times k / fps overflow (a new user's --fps 1e300 wrote fps=inf, 1e-300 a .glb with
-#: non-finite key times; both read back as errors)
-FPS_RANGE = (1.0e-4, 1.0e7)
 DEFAULT_PLAYBACK = Playback.LOOP
 DEFAULT_FRAME_ORDER = FrameOrder.STORED
 DEFAULT_ORIENTATION = Orientation.AUTO

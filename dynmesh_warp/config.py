@@ -24,7 +24,6 @@ from .choices import (
     DEFAULT_REBUILD_EVERY,
     DEFAULT_STRATEGY,
     DEFAULT_UP_AXIS,
-    FPS_RANGE,
     Collider,
     FrameOrder,
     NewtonSolver,
@@ -35,6 +34,7 @@ from .choices import (
     SweptSearch,
     UpAxis,
 )
+from .sequence import FPS_RANGE
 
 __all__ = ["SceneConfig", "SceneError", "load_scene_config", "scene_config", "apply_overrides", "DEFAULT_SCENE",
            "DEFAULT_SCENE_FILE",

@@ -60,14 +60,14 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
-from .choices import DEFAULT_STRATEGY, FPS_RANGE, STRATEGIES
+from .choices import DEFAULT_STRATEGY, STRATEGIES
 from .conversion_options import options_for
 from .deform_graph import GraphFitter, build_deformation_graph, extrapolate_rotations
 from .geometry import distinct_faces, face_areas, mesh_orientation, signed_volume, surface_area, weld_vertices
 from .kernels import convert as kc
 from .kernels.geometry import project_points_to_mesh
 from .metrics import chamfer_distance
-from .sequence import FixedTopologySequence, MeshDataError, VaryingTopologySequence, validate_mesh
+from .sequence import FPS_RANGE, FixedTopologySequence, MeshDataError, VaryingTopologySequence, validate_mesh
 
 __all__ = [
     "STRATEGIES",

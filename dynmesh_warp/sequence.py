@@ -108,11 +108,15 @@ def validate_mesh(
 
 
 
+#: the frame rates a sequence may have [frames/s]: a time-lapse to a high-speed camera. Outside it
+#: the times k / fps overflow (a new user's --fps 1e300 wrote fps=inf, 1e-300 a .glb with
+#: non-finite key times; both read back as errors). The scene's surface.fps and convert --fps too.
+FPS_RANGE = (1.0e-4, 1.0e7)
+
+
 def _checked_fps(fps, where: str) -> float:
     """``fps`` as a float, or a :class:`MeshDataError` naming ``where`` for anything but a number
-    in ``choices.FPS_RANGE`` (a string or None too: float()'s own message named neither)."""
-    from .choices import FPS_RANGE
-
+    in :data:`FPS_RANGE` (a string or None too: float()'s own message named neither)."""
     try:
         value = float(fps)
     except (TypeError, ValueError):
