@@ -200,7 +200,11 @@ def _hard_exit(signum: int):
     try:
         from .outputs import abandon_temporaries
 
-        abandon_temporaries(timeout=2.0)
+        left = abandon_temporaries(timeout=2.0)
+        if left:  # a rename into place was still going on: say where its files are
+            os.write(2, (f"a write into place was in progress: the output beside {', '.join(left)} may hold part "
+                         "of the old and part of the new files; those hidden folders (and any .old-* beside them) "
+                         "hold the rest of this tool's files (the user's files were not moved)\n").encode())
     except BaseException:  # noqa: BLE001 (exiting whatever happens)
         pass
     os._exit(128 + int(signum))

@@ -31,7 +31,7 @@ import numpy as np
 
 __all__ = ["atomic_write_bytes", "atomic_write_json", "atomic_write_npz", "atomic_path", "OutputError",
            "OutputExistsError", "check_output", "OutputFolder", "MANIFEST", "read_manifest", "apply_umask",
-           "add_to_manifest", "temporary", "abandon_temporaries", "beside_path"]
+           "add_to_manifest", "temporary", "abandon_temporaries", "beside_path", "entries"]
 
 #: name of the manifest in every folder this tool writes: JSON {"tool": ..., "files": [names]}
 MANIFEST = ".dynmesh_outputs.json"
@@ -55,19 +55,22 @@ def temporary(path, folder: bool = False):
         _TEMPORARIES.pop(key, None)
 
 
-def abandon_temporaries(timeout: float = 2.0) -> None:
+def abandon_temporaries(timeout: float = 2.0) -> list:
     """Remove every registered temporary (the process is about to exit at once); a rename into
     place in progress is let finish first (up to ``timeout`` seconds). A folder whose rename
     into place is still going on after that is left where it is: the rename moves files in and
     out of it, and removing it then lost files (a new user's second Ctrl-C, 0.6 s after the first,
     deleted the user's files an ``--overwrite`` had been moving, before the commit below stopped
-    moving them)."""
+    moving them). Returns those folders left (empty when every temporary was removed)."""
     got = _COMMIT.acquire(timeout=timeout)
+    left = []
     try:
         for p, folder in list(_TEMPORARIES.items()):
             if folder:
                 if got:
                     shutil.rmtree(p, ignore_errors=True)
+                else:
+                    left.append(p)
             else:
                 try:
                     os.unlink(p)
@@ -76,6 +79,7 @@ def abandon_temporaries(timeout: float = 2.0) -> None:
     finally:
         if got:
             _COMMIT.release()
+    return left
 
 
 class OutputError(ValueError):
@@ -297,6 +301,13 @@ def check_output(path, *, kind: str, what: str, inputs=(), overwrite: bool = Fal
     return real
 
 
+def entries(folder) -> set:
+    """The names in ``folder`` (empty when it is not a folder): what a command line notes when it
+    checks its output folder, for :class:`OutputFolder`'s ``checked``."""
+    folder = Path(folder).expanduser()
+    return set(os.listdir(folder)) if folder.is_dir() else set()
+
+
 def beside_path(path, name: str = "partial", taken=None) -> Path:
     """A free name beside ``path`` for an output that may not replace it: ``<stem>.<name><suffix>``
     (a folder: ``<folder>.<name>``), numbered ``.<name>-2`` ... where that is taken (exists, or
@@ -335,20 +346,24 @@ class OutputFolder:
     Where the result goes (``written``, the path after the commit): ``path``, except that a
     result marked ``interrupted`` (set it before the block ends) never replaces an earlier
     output of this tool there: it goes beside it, ``<name>.partial`` (a new user's complete
-    30,000-step run became an interrupted one under ``--overwrite``); and with ``beside_new``
-    (a command line that checked the folder before the work) a folder that gained entries this
-    tool did not write meanwhile is left as it is without ``overwrite``: the result goes to
-    ``<name>.new`` (else :class:`OutputExistsError`)."""
+    30,000-step run became an interrupted one under ``--overwrite``); and with ``checked``, the
+    entries the folder held when a command line checked it before the work (:func:`entries`),
+    a folder that gained entries meanwhile (another run's output, the user's files) is left as it
+    is: without ``overwrite`` whatever it gained, with it where a gained entry is not this tool's
+    and has a name the result writes. The result then goes to ``<name>.new`` (a new user's long
+    run silently replaced a short run's output that had appeared meanwhile; one with a user's
+    ``summary.json`` threw the finished work away). Without ``checked``, a folder holding entries
+    this tool did not write is :class:`OutputExistsError` unless ``overwrite``."""
 
     def __init__(self, path, overwrite: bool = False, keep_on_error: bool = False, status: dict | None = None,
-                 interrupted: bool = False, beside_new: bool = False):
+                 interrupted: bool = False, checked: set | None = None):
         self.path = _real(path)
         self.written = self.path
         self.overwrite = bool(overwrite)
         self.keep_on_error = keep_on_error
         self.status = status
         self.interrupted = interrupted
-        self.beside_new = beside_new
+        self.checked = checked
         self.tmp = None
 
     def __enter__(self) -> Path:
@@ -382,15 +397,17 @@ class OutputFolder:
         keep = []
         if self.interrupted and target.is_dir() and read_manifest(target):
             target = beside_path(target, "partial")
+        if self.checked is not None and target.is_dir():
+            gained = entries(target) - set(self.checked)
+            if gained and (not self.overwrite or set(_foreign(target)) & gained & (set(written) | {MANIFEST})):
+                target = beside_path(target, "new")
         if os.path.lexists(target):
             if not target.is_dir():
                 raise OutputExistsError(f"{target}: is a file, a folder is expected")
             keep = _foreign(target)
             if keep and not self.overwrite:
-                if not self.beside_new:
-                    raise OutputExistsError(f"{target}: holds {keep[0]}, which this tool did not write; "
-                                            "refusing to replace the folder")
-                target, keep = beside_path(target, "new"), []
+                raise OutputExistsError(f"{target}: holds {keep[0]}, which this tool did not write; "
+                                        "refusing to replace the folder")
             clash = [e for e in keep if e in written]
             if clash:
                 raise OutputExistsError(f"{target}: holds {clash[0]}, which this tool did not write and "

@@ -648,7 +648,7 @@ def _main(argv=None) -> int:
     from .gaussians import gaussians_for_surface
     from .scene import build_world
 
-    from .outputs import OutputFolder, check_output
+    from .outputs import OutputFolder, check_output, entries
 
     try:
         cfg = load_scene_config(**scene_source(a.scene), overrides=a.overrides)
@@ -661,6 +661,7 @@ def _main(argv=None) -> int:
         if a.out:
             check_output(a.out, kind="folder", what="--out", inputs=ins, overwrite=a.overwrite,
                          writes=("frame_*.png",))
+        out_checked = entries(a.out) if a.out else None  # what appears there meanwhile is not replaced
         if cfg.newton is not None:  # a newton: scene renders the Newton world, its bodies drawn in
             from .newton_adapter import build_newton_world
 
@@ -697,7 +698,7 @@ def _main(argv=None) -> int:
         it = range(last + 1)
     # the frames go into a temporary folder renamed into place at the end (they went one by one
     # into --out, so a stopped --overwrite left old and new frames mixed: a new user's)
-    folder = OutputFolder(a.out, overwrite=a.overwrite, beside_new=True) if a.out else None
+    folder = OutputFolder(a.out, overwrite=a.overwrite, checked=out_checked) if a.out else None
     done, reason = 0, None
     with checking_stops(), (folder if folder is not None else contextlib.nullcontext()) as tmp:
         for f in it:
@@ -728,16 +729,18 @@ def _main(argv=None) -> int:
     if reason:
         print(f"interrupted by {reason} after {done} of {last + 1} frames: "
               + (f"wrote {shown} with frames 0..{min(done, total) - 1} (manifest status: complete false)"
-                 if a.out else "nothing written") + ("; the --figure and --video need every frame: not written"
-                                                     if a.figure or a.video else ""), file=sys.stderr)
+                 if a.out else "nothing written")
+              + (f"; {a.out}, which was there before, is unchanged" if a.out and shown != folder.path else "")
+              + ("; the --figure and --video need every frame: not written" if a.figure or a.video else ""),
+              file=sys.stderr)
         return 128 + int(getattr(signal, reason))
     if a.figure:
         _write_png(Path(a.figure), np.concatenate(strip, axis=1))
     if a.video:
         _write_video(Path(a.video), video, a.fps)
     if folder is not None and shown != folder.path:
-        print(f"warning: {a.out} gained files this tool did not write during the render: kept as it is; the "
-              f"frames are in {shown}", file=sys.stderr)
+        print(f"warning: {a.out} gained files during the render (another run's output, or files of the names it "
+              f"writes): kept as it is; the frames are in {shown}", file=sys.stderr)
     print(f"rendered {last + 1} frames of {cfg.name} ({a.width}x{a.height})"
           + (f"; frames in {shown}" if a.out else "") + (f"; figure {a.figure}" if a.figure else "")
           + (f"; video {a.video}" if a.video else ""))

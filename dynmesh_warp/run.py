@@ -283,7 +283,9 @@ def main(argv=None) -> int:
                 print(f"error: {e}", file=sys.stderr)
                 return 2
             if res.get("interrupted_by"):
-                what = f"wrote the recording {args.record} up to there" if args.record else "viewer closed"
+                what = f"wrote the recording {res['record']} up to there" if args.record else "viewer closed"
+                if args.record and res["record"] != str(Path(args.record)):
+                    what += f"; {args.record}, which was there before, is unchanged"
                 print(f"interrupted by {res['interrupted_by']} after {res['frames']:,} frames "
                       f"(t = {res['sim_time_s']:.3f} s): {what}", file=sys.stderr)
                 return 128 + int(getattr(signal, res["interrupted_by"], signal.SIGINT))

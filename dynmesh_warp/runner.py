@@ -68,9 +68,12 @@ def run_simulation(sim, cfg, *, steps: int, out: Path, t_build: float, progress:
     simulation; ``stop``: a callable checked between steps, see
     :func:`dynmesh_warp.run.run_scene`."""
     from .cli import checking_stops
-    from .outputs import OutputFolder, add_to_manifest, atomic_write_json, atomic_write_npz
+    from .outputs import MANIFEST, OutputFolder, add_to_manifest, atomic_write_json, atomic_write_npz, entries
 
     every = int(checkpoint_every or 0)
+    # the output folder as the caller checked it: what appears in it during the run is not replaced
+    # (OutputFolder's checked); this run's own checkpoint (and the manifest listing it) excepted
+    checked = entries(out) | ({CHECKPOINT_NAME, MANIFEST} if (every or ckpt is not None) else set())
     if (every or ckpt is not None) and not sim.checkpointable:
         raise CheckpointError(f"checkpoints: not available for this simulation ({type(sim).__name__})")
     rec = cfg.run.record_every
@@ -168,7 +171,7 @@ def run_simulation(sim, cfg, *, steps: int, out: Path, t_build: float, progress:
         arrays.update(sim.trajectory_constants())
         # an interrupted run without checkpoints never replaces an earlier output (it goes beside
         # it, <out>.partial); with them, it stays where its checkpoint is (to resume from there)
-        folder = OutputFolder(out, overwrite=bool(overwrite), beside_new=True,
+        folder = OutputFolder(out, overwrite=bool(overwrite), checked=checked,
                               interrupted=bool(reason) and marks["checkpoint"] is None and ckpt is None)
         with folder as tmp:
             atomic_write_npz(tmp / "trajectories.npz", time=np.asarray(times), **arrays)
@@ -178,8 +181,9 @@ def run_simulation(sim, cfg, *, steps: int, out: Path, t_build: float, progress:
     if folder.written != folder.path:
         import sys
 
-        why = ("holds an earlier output, which an interrupted run does not replace" if reason else
-               "gained files this tool did not write during the run (no --overwrite)")
+        why = ("holds an earlier output, which an interrupted run does not replace" if reason and
+               folder.written.name.startswith(folder.path.name + ".partial") else
+               "gained files during the run (another run's output, or files of the names this run writes)")
         print(f"warning: {out} {why}: kept as it is; this run's outputs are in {folder.written}", file=sys.stderr)
         out = folder.written
     summary["output"] = str(out)

@@ -13,6 +13,7 @@ work stays on one thread.
 
 from __future__ import annotations
 
+import sys
 import threading
 import time
 from pathlib import Path
@@ -456,9 +457,14 @@ class Viewer:
         self._closed = True
         try:
             if self._serializer is not None:
-                from .outputs import atomic_write_bytes
+                from .outputs import atomic_write_bytes, beside_path
 
                 data = self._serializer.serialize()
+                if getattr(self, "interrupted", False) and self.record_path.exists():
+                    # a stopped run never replaces an earlier recording (a new user's complete one
+                    # became the stopped one under --overwrite): it goes beside it
+                    self.record_path = beside_path(self.record_path, "partial",
+                                                   lambda q: q.with_suffix(".html").exists())
                 atomic_write_bytes(self.record_path, data)
                 html = self.record_path.with_suffix(".html")
                 atomic_write_bytes(html, recording_html(data).encode("utf-8"))
@@ -824,10 +830,12 @@ def run_viewer(cfg, device=None, viewer: str = "viser", port: int = 8080, host: 
             f"({count} Gaussians, {what}); Ctrl-C to quit")
     from .cli import checking_stops
 
+    reason = None
     try:
         reason = v.run(max_frames=max_frames, stop=stop)
     finally:
+        v.interrupted = reason is not None or sys.exc_info()[0] is not None
         with checking_stops():  # the recording is written whole, the server stopped, even on a signal
             v.close()
     return {"frames": v.frame, "sim_time_s": world.time, "gaussians": count, "port": v.port,
-            "record": str(record) if record else None, "interrupted_by": reason}
+            "record": str(v.record_path) if record else None, "interrupted_by": reason}

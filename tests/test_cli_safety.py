@@ -359,13 +359,13 @@ def test_a_hard_exit_leaves_a_folder_being_committed(tmp_path):
     held.wait(10)
     try:
         with outputs.temporary(busy, folder=True):
-            outputs.abandon_temporaries(timeout=0.1)
+            assert outputs.abandon_temporaries(timeout=0.1) == [str(busy)]  # named to the user
         assert (busy / "user.txt").read_text() == "u"
     finally:
         release.set()
         t.join()
     with outputs.temporary(idle, folder=True):
-        outputs.abandon_temporaries(timeout=0.1)
+        assert outputs.abandon_temporaries(timeout=0.1) == []
     assert not idle.exists()
 
 

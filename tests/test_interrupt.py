@@ -192,7 +192,23 @@ def test_an_interrupted_run_never_replaces_an_earlier_output(tmp_path, capsys):
         runner.timed_loop = real
     assert s["output"] == str(tmp_path / "f.new") and (tmp_path / "f.new" / "summary.json").is_file()
     assert sorted(p.name for p in fresh.iterdir()) == ["mine.txt"]
-    assert "gained files this tool did not write during the run" in capsys.readouterr().err
+    assert "gained files during the run" in capsys.readouterr().err
+    # another run's output that appeared meanwhile (this tool's files) is not replaced either: a new
+    # user's long run silently replaced a short run's finished output
+    other = tmp_path / "g"
+
+    def another_run_finishes_first(sim, *a, **k):
+        runner.timed_loop = real  # the other run steps as usual
+        run_scene(cfg, steps=5, output=other, **quiet)
+        return real(sim, *a, **k)
+
+    try:
+        runner.timed_loop = another_run_finishes_first
+        s = run_scene(cfg, steps=10, output=other, overwrite=False, **quiet)
+    finally:
+        runner.timed_loop = real
+    assert s["output"] == str(tmp_path / "g.new")
+    assert json.loads((other / "summary.json").read_text())["step_reached"] == 5
 
 
 def test_newton_run_stops_at_a_step_and_writes_the_prefix(tmp_path):
@@ -575,20 +591,26 @@ def test_viewer_server_shuts_down_cleanly(tmp_path, sig):
 
 def test_recording_interrupted_keeps_the_frames_so_far(tmp_path):
     """--viewer none --record: SIGTERM ends the frame loop, the recording of the frames so far is
-    written whole and the (headless) server stopped; exit 143, one line naming the frames."""
+    written whole and the (headless) server stopped; exit 143, one line naming the frames. An
+    earlier recording under --overwrite is kept: the stopped one goes beside it (a new user's
+    complete recording was replaced by the stopped one)."""
     pytest.importorskip("viser")
-    pr = Proc(RUN[:3] + ["--viewer", "none", "--device", "cpu", "--record", "r.viser", "--steps", "1000000"],
-              tmp_path)
+    (tmp_path / "r.viser").write_bytes(b"an earlier recording")
+    (tmp_path / "r.html").write_text("its page")
+    pr = Proc(RUN[:3] + ["--viewer", "none", "--device", "cpu", "--record", "r.viser", "--steps", "1000000",
+                         "--overwrite"], tmp_path)
     pr.wait_for(b"note: --record writes")  # printed before the frame loop: give it time for some frames
     time.sleep(3.0)
     pr.p.send_signal(signal.SIGTERM)
     rc, out, err = pr.finish(timeout=60)
     assert rc == 143 and "Traceback" not in err + out, err[-2000:]
     line = _last_line(err)
-    assert line.startswith("interrupted by SIGTERM after ") and "wrote the recording r.viser" in line, line
+    assert line.startswith("interrupted by SIGTERM after ") and "wrote the recording r.partial.viser" in line, line
+    assert line.endswith("r.viser, which was there before, is unchanged"), line
     frames = int(line.split(" after ")[1].split(" frames")[0].replace(",", ""))
     assert frames >= 1
-    assert (tmp_path / "r.viser").stat().st_size > 0 and (tmp_path / "r.html").is_file()
+    assert (tmp_path / "r.viser").read_bytes() == b"an earlier recording" and (tmp_path / "r.html").read_text() == "its page"
+    assert (tmp_path / "r.partial.viser").stat().st_size > 0 and (tmp_path / "r.partial.html").is_file()
     assert _leftovers(tmp_path) == []
 
 
