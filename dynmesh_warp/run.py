@@ -217,7 +217,11 @@ def _interrupted_line(summary: dict) -> str:
             f"wrote {out}/summary.json (\"interrupted\": true) and trajectories.npz up to that step")
     ck = summary.get("checkpoint")
     if ck:
-        line += f" and {ck['file']}; continue with --resume {Path(out) / ck['file']} (same scene and options)"
+        from .outputs import _foreign
+
+        # a folder holding the user's files takes --overwrite to resume into (a new user's hint lacked it)
+        more = " --overwrite" if _foreign(Path(out)) else ""
+        line += f" and {ck['file']}; continue with --resume {Path(out) / ck['file']}{more} (same scene and options)"
     return line
 
 

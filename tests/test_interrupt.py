@@ -305,6 +305,22 @@ def test_interrupted_run_checkpoints_where_it_stops_and_resumes_in_place(tmp_pat
     capsys.readouterr()
 
 
+def test_the_resume_hint_says_overwrite_where_the_folder_holds_the_users_files(tmp_path):
+    """A folder holding the user's files takes --overwrite to resume into: the stop line's hint
+    lacked it, and the command it gave was refused (a new user's)."""
+    from dynmesh_warp.outputs import OutputFolder
+    from dynmesh_warp.run import _interrupted_line
+
+    out = tmp_path / "o"
+    with OutputFolder(out) as tmp:
+        (tmp / "checkpoint.npz").write_bytes(b"x")
+    summary = {"output": str(out), "interrupted_by": "SIGINT", "step_reached": 5, "steps": 10,
+               "checkpoint": {"file": "checkpoint.npz", "step": 5, "every": 5}}
+    assert _interrupted_line(summary).endswith(f"--resume {out / 'checkpoint.npz'} (same scene and options)")
+    (out / "notes.txt").write_text("mine")
+    assert _interrupted_line(summary).endswith(f"--resume {out / 'checkpoint.npz'} --overwrite (same scene and options)")
+
+
 def test_checkpoint_of_another_scene_or_a_broken_file_is_refused(tmp_path, capsys):
     a = tmp_path / "a"
     assert _run_inprocess(["--steps", "20", "--checkpoint-every", "10", "--output", str(a)]) == 0
