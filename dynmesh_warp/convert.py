@@ -2229,6 +2229,12 @@ def main(argv=None) -> int:
         print(f"wrote {written}: {res.num_frames} frames x {res.num_vertices} vertices, {res.num_faces} faces")
     for line in conversion_summary(res.conversion):
         print(line)
+    from .io import DEFAULT_FPS
+
+    if res.fps != DEFAULT_FPS and (a.fmt or out_suffix in (".anime", ".pc2")):
+        # a new user's --fps 30 to a folder read back at 24 fps without a word
+        print(f"note: {written} does not store the frame rate ({res.fps:g} fps): it reads back at {DEFAULT_FPS:g} unless "
+              "given (--fps, surface.fps); a .npz, .mdd or .glb output keeps it", file=sys.stderr)
     if one_file and any(w > POOR_WEB for w in res.conversion.web):
         print(f"note: a {out_suffix} file holds one template; a .npz or folder output would start new ones "
               "where this one is stretched (segments)", file=sys.stderr)
