@@ -915,17 +915,33 @@ def _key_frame(seq: VaryingTopologySequence, key, has_template: bool) -> int:
     return int(key) % T
 
 
+def _small_parts(v: np.ndarray, f: np.ndarray, area_frac: float) -> tuple:
+    """``(parts, each vertex's part, each face's part, small)``: the connected parts of (v, f)
+    and those (``small``, an index array) with less than ``area_frac`` of the surface area, the
+    largest part never among them."""
+    k, vert_part = _part_labels(f, len(v))
+    lab = vert_part[f[:, 0]]  # each face's part
+    if k < 2:
+        return k, vert_part, lab, np.zeros(0, np.int64)
+    part_area = np.bincount(lab, weights=face_areas(v, f), minlength=k)
+    has_faces = np.bincount(lab, minlength=k) > 0  # a vertex no face uses is a part without area
+    small = np.flatnonzero((part_area < area_frac * part_area.sum()) & has_faces)
+    return k, vert_part, lab, small[small != np.argmax(part_area)]
+
+
 def _has_small_part(V: np.ndarray, F: np.ndarray) -> bool:
     """Whether the mesh has a connected part of less than ``FLOATER_AREA`` of its area (a
     reconstruction's floater, a fragment)."""
-    F = np.asarray(F, np.int64).reshape(-1, 3)
-    n, labels = _part_labels(F, len(V))
-    if n < 2:
-        return False
-    area = face_areas(V, F)
-    per_part = np.bincount(labels[F[:, 0]], weights=area, minlength=n)
-    used = np.bincount(labels[F[:, 0]], minlength=n) > 0
-    return bool((per_part[used] < FLOATER_AREA * area.sum()).any())
+    return bool(_small_parts(V, np.asarray(F, np.int64).reshape(-1, 3), FLOATER_AREA)[3].size)
+
+
+def _edge_keys(F: np.ndarray) -> np.ndarray:
+    """The edges (0,1), (1,2), (2,0) of every face of ``F`` (M, 3) int64, each as one sorted
+    int64 key min * n + max (n: the vertex count the faces imply): an edge shared by k faces
+    appears k times in a row."""
+    n = int(F.max()) + 1
+    a, b = F.T.ravel(), F[:, [1, 2, 0]].T.ravel()
+    return np.sort(np.minimum(a, b) * n + np.maximum(a, b))
 
 
 def _open_edges(F: np.ndarray) -> int:
@@ -933,9 +949,7 @@ def _open_edges(F: np.ndarray) -> int:
     F = np.asarray(F, np.int64).reshape(-1, 3)
     if not len(F):
         return 0
-    n = int(F.max()) + 1
-    a, b = F.T.ravel(), F[:, [1, 2, 0]].T.ravel()
-    key = np.sort(np.minimum(a, b) * n + np.maximum(a, b))
+    key = _edge_keys(F)
     first = np.r_[True, key[1:] != key[:-1]]
     counts = np.diff(np.r_[np.flatnonzero(first), key.size])
     return int(np.count_nonzero(counts == 1))
@@ -951,11 +965,7 @@ def _topology(F: np.ndarray) -> tuple:
     n = int(F.max()) + 1
     used = np.zeros(n, bool)
     used[F.ravel()] = True
-    a = F.T.ravel()  # edges (0,1), (1,2), (2,0) of every face
-    b = F[:, [1, 2, 0]].T.ravel()
-    key = np.minimum(a, b) * n + np.maximum(a, b)
-    key.sort()
-    ne = int(np.count_nonzero(np.diff(key))) + 1
+    ne = int(np.count_nonzero(np.diff(_edge_keys(F)))) + 1
     c = _part_labels(F, n)[0] - int(n - used.sum())  # unused vertices: parts of their own
     chi = int(used.sum()) - ne + len(F)
     return c, max(0, (2 * c - chi) // 2)
@@ -1016,15 +1026,7 @@ def _far_parts(v: np.ndarray, f: np.ndarray, X: np.ndarray, TF: np.ndarray, area
     kept. Returns (v, f, parts dropped, vertices dropped); (v, f, 0, 0) when none."""
     if area_frac <= 0:
         return v, f, 0, 0
-    k, vert_part = _part_labels(f, len(v))
-    lab = vert_part[f[:, 0]]  # each face's part
-    if k < 2:
-        return v, f, 0, 0
-    tri = v[f].astype(np.float64)
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    part_area = np.bincount(lab, weights=area, minlength=k)
-    small = np.flatnonzero(part_area < area_frac * part_area.sum())
-    small = small[small != np.argmax(part_area)]
+    k, vert_part, lab, small = _small_parts(v, f, area_frac)
     if small.size == 0:
         return v, f, 0, 0
     in_small = np.isin(lab, small)
@@ -1136,11 +1138,11 @@ def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info,
             info.reanchored_frames.append(t)
         cov = conv.frame_coverage if conv.frame_coverage is not None else conv.coverage(frame)
         conv.frame_coverage = None
-        coverage[t] = cov / max(_bbox_diag(v), 1e-12)
-        tail[t] = cov.tail / max(_bbox_diag(v), 1e-12)
-        web[t] = conv.frame_web if conv.frame_web is not None else conv.web(frame, _bbox_diag(v))
+        diag = _bbox_diag(v)
+        coverage[t], tail[t] = cov / max(diag, 1e-12), cov.tail / max(diag, 1e-12)
+        web[t] = conv.frame_web if conv.frame_web is not None else conv.web(frame, diag)
         conv.frame_web = None
-        flipped[t] = conv.flipped(frame, _bbox_diag(v))
+        flipped[t] = conv.flipped(frame, diag)
         conv.first = False
         out[t] = conv.X.numpy()
         seconds[t] = time.perf_counter() - t0
@@ -1213,14 +1215,14 @@ def _repair_poor_runs(vseq, conv, out, coverage, web, tail, flipped, seconds, K:
                 old_state = conv.frame_states.get(t)
                 frame = _device_frame(v, f, device)
                 conv.step_graph(frame, t)
-                diag = max(_bbox_diag(v), 1e-12)
-                cov, tl = conv.frame_coverage / diag, conv.frame_coverage.tail / diag
+                diag = _bbox_diag(v)
+                cov, tl = conv.frame_coverage / max(diag, 1e-12), conv.frame_coverage.tail / max(diag, 1e-12)
                 w = conv.frame_web
                 conv.frame_coverage = conv.frame_web = None
                 if cov < coverage[t]:
                     coverage[t], tail[t] = cov, tl
-                    web[t] = w if w is not None else conv.web(frame, _bbox_diag(v))
-                    flipped[t] = conv.flipped(frame, _bbox_diag(v))
+                    web[t] = w if w is not None else conv.web(frame, diag)
+                    flipped[t] = conv.flipped(frame, diag)
                     out[t] = conv.X.numpy()
                     repaired.add(t)
                 elif old_state is not None:

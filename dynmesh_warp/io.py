@@ -226,7 +226,7 @@ def save_sequence(seq, path, fmt: str | None = None, overwrite: bool = False, st
     is written). An existing folder is replaced at the very end, and only when everything in it
     was written by this tool (listed in its manifest, see :mod:`dynmesh_warp.outputs`); else
     :class:`FileExistsError`, unless ``overwrite`` (then the files this tool did not write are
-    kept in the new folder).
+    kept where they are).
 
     ``status``: a JSON-ready dict saved with the sequence (the npz's ``status`` array, JSON
     text; a folder's manifest, under ``"status"``), e.g. ``convert``'s frame counts and whether it

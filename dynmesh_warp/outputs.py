@@ -359,6 +359,7 @@ class OutputFolder:
                  interrupted: bool = False, checked: set | None = None):
         self.path = _real(path)
         self.written = self.path
+        self.beside = None  # why the result went beside path: "partial" or "new" (None: it did not)
         self.overwrite = bool(overwrite)
         self.keep_on_error = keep_on_error
         self.status = status
@@ -396,11 +397,13 @@ class OutputFolder:
         written = sorted(e for e in os.listdir(tmp) if e != MANIFEST)
         keep = []
         if self.interrupted and target.is_dir() and read_manifest(target):
-            target = beside_path(target, "partial")
-        if self.checked is not None and target.is_dir():
+            self.beside = "partial"
+        elif self.checked is not None and target.is_dir():
             gained = entries(target) - set(self.checked)
             if gained and (not self.overwrite or set(_foreign(target)) & gained & (set(written) | {MANIFEST})):
-                target = beside_path(target, "new")
+                self.beside = "new"
+        if self.beside:
+            target = beside_path(target, self.beside)
         if os.path.lexists(target):
             if not target.is_dir():
                 raise OutputExistsError(f"{target}: is a file, a folder is expected")

@@ -702,8 +702,8 @@ def _main(argv=None) -> int:
     done, reason = 0, None
     with checking_stops(), (folder if folder is not None else contextlib.nullcontext()) as tmp:
         for f in it:
-            if stop_reason():
-                reason = stop_reason()
+            reason = stop_reason()
+            if reason:
                 break
             if not a.no_splats:
                 gs.update(world.surface_points(), world.surface_indices())

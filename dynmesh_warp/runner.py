@@ -181,8 +181,7 @@ def run_simulation(sim, cfg, *, steps: int, out: Path, t_build: float, progress:
     if folder.written != folder.path:
         import sys
 
-        why = ("holds an earlier output, which an interrupted run does not replace" if reason and
-               folder.written.name.startswith(folder.path.name + ".partial") else
+        why = ("holds an earlier output, which an interrupted run does not replace" if folder.beside == "partial" else
                "gained files during the run (another run's output, or files of the names this run writes)")
         print(f"warning: {out} {why}: kept as it is; this run's outputs are in {folder.written}", file=sys.stderr)
         out = folder.written
