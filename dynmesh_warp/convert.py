@@ -241,6 +241,9 @@ class ConversionInfo:
     for :func:`to_fixed_topology`; several when :func:`to_piecewise_fixed` started new templates.
     seconds_all: wall time of the whole call [s], the runs whose frames were not kept (other key
     frames, segments tried and replaced) included; ``frame_seconds`` counts the kept frames only.
+    open_edges: per segment (in the order of ``segments``), how many of its template's edges
+    belong to one face only: the rim of a hole or of a sheet, which every output frame of that
+    segment keeps (the summary says so; a sphere can pass through a hole).
     moving_part: ``(diagonal [m], template vertices in its box)`` of the part of the template
     that moves, when it is much smaller than the whole (a static floor or background) and set
     the graph's node spacing within its box (option ``adaptive_spacing``: the vertices counted
@@ -272,6 +275,7 @@ class ConversionInfo:
     web: list = field(default_factory=list)
     flipped: list = field(default_factory=list)
     segments: list = field(default_factory=list)
+    open_edges: list = field(default_factory=list)
     seconds_all: float = 0.0
     moving_part: tuple | None = None
     key_score: str = ""
@@ -1336,6 +1340,7 @@ def _to_fixed(seq, strategy, template, device, progress, should_stop, stop_forwa
     finally:
         pool.shutdown(wait=False, cancel_futures=True)
     info.segments = [(info.first_frame, info.first_frame + res.num_frames, info.key_frame, res.num_vertices)]
+    info.open_edges = [_open_edges(res.F)]
     fl = info.floater_webs
     if fl and bool(o["floater_retry"]) and not (should_stop is not None and should_stop()):
         # the web reaches out to small separate input parts: floaters, by that evidence (a real thin
@@ -1529,6 +1534,7 @@ def _join_segments(vseq, segs: list, whole, events: list) -> VaryingTopologySequ
             else:
                 getattr(info, name).extend(value)
         info.segments.append((lo, lo + r.num_frames, c.key_frame + lo, r.num_vertices))
+        info.open_edges += c.open_edges
     info.key_score = "+".join(sorted({r.conversion.key_score for _, r in segs} - {""}))
     info.topology_events, info.dropped_unused, info.welded = list(events), whole.dropped_unused, whole.welded
     info.turned_outward = whole.turned_outward
@@ -1926,6 +1932,13 @@ def conversion_summary(info: ConversionInfo) -> list:
         lines.append(f"note: dropped {sum(x[1] for x in un)} input vertices that no face uses and "
                      f"{sum(x[2] for x in un)} faces that repeat a vertex or another face, in {len(un)} frame(s) (first: "
                      f"frame {un[0][0]}); they add no surface")
+    rims = [(s, n) for s, n in zip(info.segments, info.open_edges) if n]
+    if rims:
+        where = ("the template" if len(info.segments) == 1 else
+                 ", ".join(f"the template of frames {a}..{b - 1}" for (a, b, _k, _n), _ in rims))
+        lines.append(f"note: {where} is open: {', '.join(str(n) for _, n in rims)} edges on the rim of a hole or a "
+                     "sheet's border (as its key frame has them); every output frame keeps them, and a sphere can "
+                     "pass through a hole")
     ev = info.topology_events
     if ev:
         shown = ", ".join(f"{t} ({what})" for t, what in ev[:8])

@@ -420,6 +420,26 @@ def test_key_frame_auto_is_the_largest_surface_and_tracks_both_ways():
         to_fixed_topology(seq, strategy="graph", device=DEV, key_frame="middle")
 
 
+def test_an_open_template_is_said_with_its_rim_edge_count():
+    """A sheet's template is open, and every output frame keeps its rim: ConversionInfo.open_edges
+    counts the template's edges of one face (oracle: NumPy's count of the output's edges used once) and
+    the summary says so; a closed sphere has none and no such note (a new user's open input gave
+    an open output without a word)."""
+    from dynmesh_warp.scenes import grid_sheet
+
+    V, F = grid_sheet(9, 1.0)
+    frames = [(V + [0.0, 0.0, 0.05 * t], F) for t in range(3)]
+    res = to_fixed_topology(VaryingTopologySequence(frames, name="sheet"), strategy="graph", device=DEV)
+    edges = np.sort(np.concatenate([res.F[:, [0, 1]], res.F[:, [1, 2]], res.F[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    rim = int(np.count_nonzero(counts == 1))
+    assert rim == 4 * 8 and res.conversion.open_edges == [rim]
+    assert any(ln.startswith("note: the template is open: 32 edges") for ln in conversion_summary(res.conversion))
+    closed = to_fixed_topology(VaryingTopologySequence(_sphere_frames([1.0, 1.1, 1.2]), name="ball"), device=DEV)
+    assert closed.conversion.open_edges == [0]
+    assert not any("is open" in ln for ln in conversion_summary(closed.conversion))
+
+
 def test_topology_events_name_parts_and_genus():
     import trimesh
 
