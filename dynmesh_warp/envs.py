@@ -13,10 +13,12 @@ with ``backend="numpy"`` (default, Gymnasium's convention) host copies.
 
 Observation (18 per env): ball position relative to the target (3) [m], ball velocity (3)
 [m/s], heights of the surface at a 3 x 3 grid around the ball relative to it (9) [m], in contact
-(1), sin/cos of the env's phase in the sequence (2). Action (2 per env): horizontal acceleration
-in [-1, 1] x ``accel`` [m/s^2]. Reward per step: 1 - (horizontal distance / max_distance)^2 -
-0.01 |action|^2, and -1 on termination (the ball fell to the ground or left ``max_distance``);
-episodes are truncated after ``max_steps``.
+(1), sin/cos of the env's phase in its playback of the sequence (2). A probe that meets no
+surface below reads the floor: the ground, or the sequence's lowest point where the scene has
+none. Action (2 per env): in [-1, 1] x ``accel`` [m/s^2], a horizontal velocity change of
+action x accel x decimation x dt at the start of the env step (an impulse). Reward per step: 1 -
+(horizontal distance / max_distance)^2 - 0.01 |action|^2, and -1 on termination (the ball fell
+to the floor or left ``max_distance``); episodes are truncated after ``max_steps``.
 """
 
 from __future__ import annotations
@@ -116,6 +118,10 @@ class RideSurfaceEnv(VectorEnv):
         self.accel, self.push = float(accel), float(push)
         self.duration = seq.num_frames / seq.fps
         self.top = float(seq.V[..., 2].max()) + 1.0
+        gh = model.params.ground_height
+        # where a probe finds no surface below, and below which the ball has fallen: the ground,
+        # or with none the sequence's lowest point (a probe read -1e6 there before)
+        self.floor = float(seq.V[..., 2].min() if gh is None else gh)
         bm = BatchModel(model.surface, int(num_envs), [self.radius], 1.0, model.params)
         far = np.tile(self.target + np.array([0.0, 0.0, 10.0], np.float32), (1, 1))
         self.world = BatchedWorld(bm, BatchState(bm, far))
@@ -145,7 +151,7 @@ class RideSurfaceEnv(VectorEnv):
         wp.launch(reset_ball_envs, self.num_envs,
                   inputs=[surf.frames, surf.indices, m.pair_bvh, surf.fps, int(surf.interpolate), m.time_slices,
                           m.spheres_per_env, mask, self._seed, wp.vec3(*self.target.tolist()), 0.3 * self.max_distance, self.push,
-                          self.duration, self.top, self.radius],
+                          self.top, self.radius],
                   outputs=[s.env_time, s.env_playback, s.sphere_pos, s.sphere_vel, self.env_steps, self.env_episode],
                   device=self.device)
 
@@ -154,10 +160,9 @@ class RideSurfaceEnv(VectorEnv):
         envs alone (their first after a reset; the finished step's rewards and flags stay)."""
         m, s = self.world.model, self.world.state
         surf = m.surface
-        gh = m.params.ground_height
         wp.launch(evaluate_ball_task, self.num_envs,
                   inputs=[surf.frames, surf.indices, m.pair_bvh, surf.fps, int(surf.interpolate), m.time_slices,
-                          m.spheres_per_env, float(gh if gh is not None else -1.0e6),
+                          m.spheres_per_env, self.floor,
                           s.env_time, s.env_playback, s.sphere_pos, s.sphere_vel,
                           self.world.contacts.face, self.actions, self.env_steps,
                           self._all if mask is None else mask, int(mask is not None), wp.vec3(*self.target.tolist()),
@@ -236,11 +241,11 @@ class RideSurfaceEnv(VectorEnv):
             # counts as 0 (kernels/envs.py: applied_action)
             wp.copy(self.actions, wp.from_torch(actions.detach().to(dtype=__import__("torch").float32).contiguous()))
         else:
-            a = np.asarray(actions, np.float32)
+            a = np.asarray(actions, np.float64)  # checked before the cast: 1e40 is finite, not inf
             if not np.isfinite(a).all():
                 bad = np.flatnonzero(~np.isfinite(a).all(axis=1))
                 raise ValueError(f"actions of env(s) {bad[:8].tolist()} are NaN or infinite")
-            self.actions.assign(a)
+            self.actions.assign(np.clip(a, -1.0, 1.0).astype(np.float32))  # as applied_action takes them
         w = self.world
         wp.launch(apply_env_actions, self.num_envs,
                   inputs=[w.model.spheres_per_env, self.actions, self.accel, self.decimation * w.dt],
@@ -263,11 +268,12 @@ class RideSurfaceEnv(VectorEnv):
         return wp.to_torch(self.obs), wp.to_torch(self.reward), term.bool(), trunc.bool(), info
 
     def close(self, **kwargs):
-        """Release the env; ``reset`` and ``step`` refuse afterwards."""
-        self._closed = True
+        """Release the env; ``reset`` and ``step`` refuse afterwards, and ``closed`` is True
+        (Gymnasium's ``VectorEnv.closed``)."""
+        self.closed = True
         self._camera_state = None
 
     def _check_open(self):
-        if getattr(self, "_closed", False):
+        if getattr(self, "closed", False):
             raise RuntimeError("RideSurfaceEnv: the env is closed")
 

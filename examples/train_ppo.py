@@ -92,7 +92,10 @@ def main(argv=None):
                 buf_o[t], buf_a[t], buf_lp[t], buf_v[t] = obs, act, d.log_prob(act).sum(-1), net.value(obs)
                 nobs, r, term, trunc, info = env.step(act)
                 done = (term | trunc).float()
-                buf_r[t], buf_d[t] = r, done
+                # a truncated episode did not end: bootstrap its last step from the value of its
+                # final observation (same-step autoreset: obs is already the next episode's)
+                boot = gamma * net.value(info["final_obs"]) * trunc.float() if bool(trunc.any()) else 0.0
+                buf_r[t], buf_d[t] = r + boot, done
                 ep_ret += r
                 ep_len += 1
                 if bool(done.any()):

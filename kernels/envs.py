@@ -9,7 +9,7 @@ observation, reward and termination, and the reset of finished envs at a random 
 import warp as wp
 
 from .batch import pair_slot
-from .frames import blend_pair
+from .frames import PLAYBACK_CLAMP, PLAYBACK_PINGPONG, blend_pair
 from .swept import interpolated_triangle
 
 #: probe grid around the ball: PROBE_SIDE x PROBE_SIDE points
@@ -40,6 +40,32 @@ def intersect_down(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
         if u >= 0.0 and v >= 0.0 and u + v <= 1.0 and t >= 0.0:
             hit = 1
     return t, hit
+
+
+@wp.func
+def playback_cycle(num_frames: int, mode: int) -> float:
+    """Frames of one cycle of the surface's playback: ``num_frames`` for loop (frame T wraps to
+    0), 2 (T - 1) for pingpong (forward and back), T - 1 for clamp (played once, then held);
+    at least 1."""
+    T = float(num_frames)
+    c = T
+    if mode == PLAYBACK_PINGPONG:
+        c = 2.0 * (T - 1.0)
+    elif mode == PLAYBACK_CLAMP:
+        c = T - 1.0
+    return wp.max(c, 1.0)
+
+
+@wp.func
+def playback_phase(time: wp.float64, fps: wp.float64, num_frames: int, mode: int) -> float:
+    """The env's phase angle [rad] in its surface's playback at ``time`` [s]: 2 pi x the fraction
+    of the cycle (``playback_cycle``) for loop and pingpong, whose sin and cos then repeat with
+    the surface; pi x the fraction of the sequence played for clamp, held at pi once the last
+    frame holds (a half turn, so each (sin, cos) names one time of the sequence)."""
+    u = float(time * fps) / playback_cycle(num_frames, mode)
+    if mode == PLAYBACK_CLAMP:
+        return 3.141592653589793 * wp.clamp(u, 0.0, 1.0)
+    return 6.283185307179586 * (u - wp.floor(u))
 
 
 @wp.func
@@ -83,9 +109,10 @@ def apply_env_actions(
     # State out:
     sphere_vel_out: wp.array[wp.vec3],
 ):
-    """Each env's action (E, 2) in [-1, 1] as a horizontal acceleration of its ball: the velocity
-    gains ``applied_action(action)`` * accel [m/s^2] * duration [s]. One thread per env (ball =
-    first sphere)."""
+    """Each env's action (E, 2) in [-1, 1] as a horizontal velocity change of its ball at the
+    start of the env step: ``applied_action(action)`` * accel [m/s^2] * duration [s] (the change
+    an acceleration held over ``duration`` would give, applied at once: an impulse). One thread
+    per env (ball = first sphere)."""
     e = wp.tid()
     ax = applied_action(actions[e, 0])
     ay = applied_action(actions[e, 1])
@@ -103,7 +130,7 @@ def evaluate_ball_task(
     interpolate: int,
     slices: int,
     spheres_per_env: int,
-    ground_height: float,
+    floor_height: float,
     # State in:
     env_time_in: wp.array[wp.float64],
     env_playback_in: wp.array[wp.int32],
@@ -131,8 +158,11 @@ def evaluate_ball_task(
     step. Reward: 1 while the ball is up, minus its squared horizontal distance to the target
     over max_distance [m], minus 0.01 |action|^2 (the action as applied: ``applied_action``). In
     contact (obs 15) is 0 in an episode's first observation (``obs_only``). Terminated: the ball left the target's
-    reach or fell to the ground; truncated: env_steps reached max_steps. Only envs with
-    env_mask[e] != 0; with obs_only the observation alone (the first of an episode just reset)."""
+    reach or fell to ``floor_height`` [m] (the ground, or the sequence's lowest point where the
+    scene has none); a height probe that meets no surface below reads ``floor_height`` too (a
+    bounded value: with no ground it read -1e6). Phase (obs 16, 17): sin and cos of
+    ``playback_phase``. Truncated: env_steps reached max_steps. Only envs with env_mask[e] != 0;
+    with obs_only the observation alone (the first of an episode just reset)."""
     e = wp.tid()
     if env_mask[e] == 0:
         return
@@ -156,14 +186,14 @@ def evaluate_ball_task(
             y = p[1] + float(iy - 1) * probe_spacing
             h, found = surface_height_at(bvh, frames, indices, k0, k1, alpha, x, y, top)
             if found == 0:
-                h = ground_height
+                h = floor_height
             obs[e, j] = h - p[2]
             j += 1
     contact = float(0.0)
     if obs_only == 0 and contact_face[s] >= 0:  # an episode's first observation: no step has touched it
         contact = 1.0
     obs[e, 15] = contact
-    phase = float(env_time_in[e] * fps) / float(T) * 6.283185307179586
+    phase = playback_phase(env_time_in[e], fps, T, env_playback_in[e])
     obs[e, 16] = wp.sin(phase)
     obs[e, 17] = wp.cos(phase)
     if obs_only != 0:
@@ -172,7 +202,7 @@ def evaluate_ball_task(
     ax = applied_action(actions[e, 0])
     ay = applied_action(actions[e, 1])
     a2 = ax * ax + ay * ay
-    fell = p[2] - radius < ground_height + 0.25 * radius
+    fell = p[2] - radius < floor_height + 0.25 * radius
     gone = d2 > 1.0
     term = int(0)
     if fell or gone:
@@ -201,7 +231,6 @@ def reset_ball_envs(
     target: wp.vec3,
     spawn_radius: float,
     push: float,
-    duration: float,
     top: float,
     radius: float,
     # State out:
@@ -212,8 +241,9 @@ def reset_ball_envs(
     env_steps_out: wp.array[wp.int32],
     env_episode_out: wp.array[wp.int32],
 ):
-    """Start a new episode in every env with env_mask[e] != 0: a random phase of the sequence
-    (uniform over ``duration`` [s]), the ball over a random point within ``spawn_radius`` [m]
+    """Start a new episode in every env with env_mask[e] != 0: a random time of its playback's
+    cycle (uniform over ``playback_cycle`` / fps [s]: a pingpong env starts going back as often
+    as forth), the ball over a random point within ``spawn_radius`` [m]
     of the target, just above the surface there, with a random horizontal push of at most
     ``push`` [m/s]. Random numbers from (seed, env, episode): reproducible."""
     e = wp.tid()
@@ -222,9 +252,9 @@ def reset_ball_envs(
     ep = env_episode_out[e] + 1
     env_episode_out[e] = ep
     state = wp.rand_init(seed, e * 7919 + ep * 104729)
-    t = wp.float64(wp.randf(state) * duration)
-    env_time_out[e] = t
     T = frames.shape[0]
+    t = wp.float64(wp.randf(state) * playback_cycle(T, env_playback_out[e])) / fps
+    env_time_out[e] = t
     k0, k1, alpha = blend_pair(t, fps, T, env_playback_out[e], interpolate)
     bvh = pair_bvh[pair_slot(k0, k1, alpha, T, slices)]
     ang = wp.randf(state) * 6.283185307179586

@@ -82,6 +82,10 @@ def test_actions_are_taken_as_applied_and_checked(device):
         env.step(bad)
     with pytest.raises(ValueError, match=r"actions must have shape \(4, 2\) .* got \(2, 4\)"):
         env.step(np.zeros((2, E), np.float32))
+    # a finite float64 action beyond float32 (1e40) is clipped like 1000, not refused as infinite
+    huge = _env(device, num_envs=E)
+    huge.reset(seed=3)
+    np.testing.assert_array_equal(huge.step(np.full((E, 2), 1e40))[0], out[0][0])
 
 
 def test_env_arguments_seeds_and_close_are_checked(device):
@@ -110,7 +114,9 @@ def test_env_arguments_seeds_and_close_are_checked(device):
     obs = {s: env.reset(seed=s)[0].copy() for s in (5, 2**32 + 5, 0, 2**40, -1)}
     assert not np.array_equal(obs[5], obs[2**32 + 5]) and not np.array_equal(obs[0], obs[2**40])
     assert np.array_equal(env.reset(seed=2**40)[0], obs[2**40])
+    assert not env.closed
     env.close()
+    assert env.closed  # Gymnasium's VectorEnv.closed
     with pytest.raises(RuntimeError, match="closed"):
         env.step(np.zeros((3, 2), np.float32))
     with pytest.raises(RuntimeError, match="closed"):
@@ -193,7 +199,7 @@ def test_height_probes_equal_the_surface_at_each_envs_time(device):
             for ix in range(3):
                 x, y = P[e, 0] + (ix - 1) * spacing, P[e, 1] + (iy - 1) * spacing
                 h = _ray_down(tri, x, y)
-                want = (h if h is not None else env.world.model.params.ground_height) - P[e, 2]
+                want = (h if h is not None else env.floor) - P[e, 2]
                 assert obs[e, j] == pytest.approx(want, abs=2e-5), (e, ix, iy)
                 j += 1
 
@@ -222,3 +228,47 @@ def test_torch_backend_shares_device_memory(device):
     obs2, r, term, trunc, info = env.step(torch.zeros((3, 2), device=obs.device))
     assert obs2.data_ptr() == env.obs.ptr  # the Warp array itself, no copy
     assert r.shape == (3,) and term.dtype == torch.bool
+
+
+def test_missed_probes_read_the_floor_and_the_phase_follows_the_playback(device):
+    """With no ground (the built-in blob) a height probe that meets no surface below reads the
+    sequence's lowest point (it read -1e6, a new user's silent outlier in 216 of 57,600 heights),
+    and a ball below it has fallen (terminated). The phase's sin/cos follow the surface's own
+    cycle (closed form): pingpong repeats every 2 (T - 1) frames, clamp runs pi x the played
+    fraction and holds at pi (both had cycled every T frames), loop every T frames."""
+    from dynmesh_warp.batch import BatchState
+    from dynmesh_warp.choices import PLAYBACK_CODES, Playback
+
+    env = _env(device, num_envs=3, seed=7)
+    seq = env.world.model.surface.sequence
+    assert env.world.model.params.ground_height is None and env.floor == pytest.approx(float(seq.V[..., 2].min()))
+    env.reset(seed=7)
+    st = env.world.state
+    far = np.asarray(env.target, np.float64) + [10.0 * env.max_distance, 0.0, 0.0]  # no surface below
+    low = far.copy()
+    low[2] = env.floor - 1.0  # under the lowest point: fallen
+    pos = st.sphere_pos.numpy()
+    pos[0], pos[1] = far, low
+    st.sphere_pos.assign(pos)
+    env._evaluate()
+    obs = env.obs.numpy()
+    np.testing.assert_allclose(obs[0, 6:15], env.floor - far[2], atol=1e-5)
+    assert env.terminated.numpy()[1] == 1
+    T, fps = seq.num_frames, float(seq.fps)
+    for mode, cycle, half in (("loop", T, False), ("pingpong", 2 * (T - 1), False), ("clamp", T - 1, True)):
+        times = np.array([0.3, 0.3 + cycle / fps, 2.5 * cycle / fps])
+        st2 = BatchState(env.world.model, st.sphere_pos.numpy().reshape(3, 1, 3), times=times, playback=mode)
+        env.world.state.env_time.assign(st2.env_time.numpy())
+        env.world.state.env_playback.assign(st2.env_playback.numpy())
+        env._evaluate()
+        ph = env.obs.numpy()[:, 16:18]
+        u = times * fps / cycle
+        want = np.pi * np.clip(u, 0, 1) if half else 2 * np.pi * (u % 1.0)
+        np.testing.assert_allclose(ph, np.stack([np.sin(want), np.cos(want)], 1), atol=2e-5, err_msg=mode)
+    # a pingpong env starts anywhere in its cycle: going back as often as forth
+    env.world.state.env_playback.fill_(PLAYBACK_CODES[Playback.PINGPONG])
+    starts = []
+    for s in range(12):
+        env.reset(seed=s)
+        starts += list(env.world.env_times())
+    assert max(starts) > T / fps and max(starts) <= 2 * (T - 1) / fps
