@@ -200,7 +200,8 @@ def evaluate(name, strategies, args, device) -> dict | None:
         summ["worst_frame_cd_ratio"] = max(p["cd"] / max(q["cd"], 1e-30) for p, q in zip(per, inp))
         out["strategies"][label] = {"summary": summ, "seconds": sec, "per_frame": per,
                                 "key_frame": info.key_frame, "coverage": info.coverage,
-                                "web": info.web, "segments": [list(x) for x in info.segments],
+                                "web": info.web, "buried": info.buried,
+                                "segments": [list(x) for x in info.segments],
                                 "recovered_frames": [list(r) for r in info.recovered_frames],
                                 "key_trials": [list(x) for x in info.key_trials],
                                 "options": {k: v for k, v in info.options.items()}}

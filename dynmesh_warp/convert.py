@@ -102,11 +102,27 @@ def _bbox_diag(V: np.ndarray) -> float:
     return float(np.linalg.norm(V.max(axis=0) - V.min(axis=0))) if len(V) else 0.0
 
 
-def _device_frame(V: np.ndarray, F: np.ndarray, device) -> tuple:
+class _Frame(tuple):
+    """An input frame on the device as the strategies take it: (wp.Mesh, points, indices), with
+    ``closed`` (no edge of one face only), computed from the host faces when first asked."""
+
+    def __new__(cls, mesh, pts, idx, faces):
+        self = super().__new__(cls, (mesh, pts, idx))
+        self._faces, self._closed = faces, None
+        return self
+
+    @property
+    def closed(self) -> bool:
+        if self._closed is None:
+            self._closed = _open_edges(self._faces) == 0
+        return self._closed
+
+
+def _device_frame(V: np.ndarray, F: np.ndarray, device) -> _Frame:
     """A mesh on the device as the strategies take an input frame: (wp.Mesh, points, indices)."""
     pts = wp.array(np.ascontiguousarray(V, np.float32), dtype=wp.vec3, device=device)
     idx = wp.array(np.ascontiguousarray(F, np.int32).reshape(-1), dtype=wp.int32, device=device)
-    return wp.Mesh(points=pts, indices=idx), pts, idx
+    return _Frame(wp.Mesh(points=pts, indices=idx), pts, idx, F)
 
 
 def _wp_mesh(V: np.ndarray, F: np.ndarray, device) -> wp.Mesh:
@@ -237,6 +253,13 @@ class ConversionInfo:
     web: per frame, the fraction of the converted surface's area that spans a gap of the input
     (:func:`web_fraction`: faces stretched across where the input has no surface, e.g. parts the
     template fused that the input pulls apart); a web shows here, not in the coverage.
+    buried: per frame, the fraction of the converted surface's area stretched far from a closed
+    input but inside its body: the walls of parts the template keeps apart where the input has
+    them in contact or merged (two bodies touching, a hand on a hip). Not the web (no sphere
+    outside meets them, so the summary notes them instead of warning), or a template crumpled
+    inside the body; restarts and new segments count them with the web.
+    rejected_cuts: ``(start, stop)`` of the frames :func:`to_piecewise_fixed` converted again with
+    a template of their own and did not keep (the new template fitted no better).
     segments: ``(start, stop, key frame, template vertices)`` per template (stop exclusive): one
     for :func:`to_fixed_topology`; several when :func:`to_piecewise_fixed` started new templates.
     seconds_all: wall time of the whole call [s], the runs whose frames were not kept (other key
@@ -273,7 +296,9 @@ class ConversionInfo:
     floater_retry_rejected: bool = False
     ignored_parts: dict = field(default_factory=dict)
     web: list = field(default_factory=list)
+    buried: list = field(default_factory=list)
     flipped: list = field(default_factory=list)
+    rejected_cuts: list = field(default_factory=list)
     segments: list = field(default_factory=list)
     open_edges: list = field(default_factory=list)
     seconds_all: float = 0.0
@@ -282,7 +307,8 @@ class ConversionInfo:
 
 
 def web_fraction(X: np.ndarray, F: np.ndarray, X_key: np.ndarray, V_ref: np.ndarray, F_ref: np.ndarray,
-                 device=None, stretch: float | None = None, gap: float | None = None) -> float:
+                 device=None, stretch: float | None = None, gap: float | None = None,
+                 with_buried: bool = False) -> float | tuple:
     """The fraction of the surface (X, F)'s area that spans a gap of (V_ref, F_ref): faces whose
     longest edge is more than ``stretch`` x its length in ``X_key`` (the same faces at the key
     frame) and whose centroid lies farther than ``gap`` x (V_ref, F_ref)'s bbox diagonal from
@@ -290,7 +316,10 @@ def web_fraction(X: np.ndarray, F: np.ndarray, X_key: np.ndarray, V_ref: np.ndar
     pulls apart, the fit keeps a web of stretched faces across the gap; its vertices all lie on
     the input, so the coverage and a vertex Chamfer distance stay good, but a sphere would land
     on it. A part the input merely lost (a thin tip a frame's reconstruction dropped) is far
-    from the input but not stretched, and does not count. Defaults: WEB_STRETCH, WEB_GAP."""
+    from the input but not stretched, and does not count. Where (V_ref, F_ref) is closed, such
+    faces whose centroid lies inside it are not the web but *buried* (the walls of parts in
+    contact: no sphere outside meets them; inside by the winding number, :func:`winding_numbers`);
+    ``with_buried`` returns (web, buried). Defaults: WEB_STRETCH, WEB_GAP."""
     stretch = WEB_STRETCH if stretch is None else stretch
     gap = WEB_GAP if gap is None else gap
     F = np.asarray(F)
@@ -298,9 +327,30 @@ def web_fraction(X: np.ndarray, F: np.ndarray, X_key: np.ndarray, V_ref: np.ndar
     total = float(area.sum())
     cand = np.flatnonzero(_longest_edges(X, F) > stretch * np.maximum(_longest_edges(X_key, F), 1e-30))
     if not total > 0 or cand.size == 0:
-        return 0.0
-    d = nearest_surface((V_ref, F_ref), np.asarray(X, np.float64)[F[cand]].mean(axis=1), device=device).dist
-    return float(area[cand][d > gap * _bbox_diag(np.asarray(V_ref))].sum() / total)
+        return (0.0, 0.0) if with_buried else 0.0
+    cen = np.asarray(X, np.float64)[F[cand]].mean(axis=1)
+    far = nearest_surface((V_ref, F_ref), cen, device=device).dist > gap * _bbox_diag(np.asarray(V_ref))
+    inside = np.zeros(far.shape, bool)
+    if far.any() and _open_edges(F_ref) == 0:
+        inside[far] = np.abs(winding_numbers(V_ref, F_ref, cen[far])) > 0.5  # either winding
+    web, buried = (float(area[cand][far & ~inside].sum() / total), float(area[cand][far & inside].sum() / total))
+    return (web, buried) if with_buried else web
+
+
+def winding_numbers(V: np.ndarray, F: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """(Q,) the winding number of the triangle mesh (V, F) around each point of P (Q, 3): the
+    solid angles of its faces seen from the point over 4 pi (Van Oosterom and Strackee's formula),
+    about 1 inside a closed surface wound outward and 0 outside. O(Q x faces) on the host."""
+    tri = np.asarray(V, np.float64)[np.asarray(F).reshape(-1, 3)]
+    out = np.empty(len(P))
+    for i, p in enumerate(np.asarray(P, np.float64)):
+        a, b, c = (tri[:, k] - p for k in range(3))
+        la, lb, lc = (np.linalg.norm(x, axis=1) for x in (a, b, c))
+        num = np.einsum("ij,ij->i", a, np.cross(b, c))
+        den = la * lb * lc + np.einsum("ij,ij->i", a, b) * lc + np.einsum("ij,ij->i", b, c) * la \
+            + np.einsum("ij,ij->i", c, a) * lb
+        out[i] = 2.0 * np.arctan2(num, den).sum() / (4.0 * np.pi)
+    return out
 
 
 def _longest_edges(V, F) -> np.ndarray:
@@ -393,10 +443,12 @@ class _Converter:
         self.X = wp.clone(self.T)
         # (M,) each face's longest edge in the template [m] (the web's reference)
         self.key_edge = arr(_longest_edges(TV, TF).astype(np.float32), float)
-        self.web_area = wp.zeros(2, dtype=float, device=d)
+        self.web_area = wp.zeros(3, dtype=float, device=d)
+        self.fold_area = wp.zeros(2, dtype=float, device=d)
+        self.last_buried = 0.0  # the buried fraction of the last web() call
         self.first = True  # the next frame is the first one converted (starts from the template)
         self.frame_coverage = None  # set by a step that already measured its result's coverage [m]
-        self.frame_web = None  # ... and its web
+        self.frame_web = None  # ... and its (web, buried) fractions
         self.P = wp.empty(n, dtype=wp.vec3, device=d)
         self.tmp = wp.empty(n, dtype=wp.vec3, device=d)
         self.closest = wp.empty(n, dtype=wp.vec3, device=d)
@@ -450,22 +502,31 @@ class _Converter:
     def web(self, frame, diag: float) -> float:
         """:func:`web_fraction` of the converted surface (self.X) against the input ``frame``
         (its wp.Mesh, already built for the fit), relative to the template; ``diag``: the
-        frame's bbox diagonal [m]. One launch, two floats back."""
+        frame's bbox diagonal [m]. Stretched faces far from a closed input but inside it (the
+        buried walls of parts in contact, which no sphere outside meets) are not the web: their
+        fraction goes to ``last_buried``. One launch, three floats back; a second only where a
+        frame has far stretched faces and its closedness is not known yet."""
+        total, web, buried = self._web_areas(frame, diag, 0)
+        if web > 0 and frame.closed:
+            total, web, buried = self._web_areas(frame, diag, 1)
+        self.last_buried = float(buried / total) if total > 0 else 0.0
+        return float(web / total) if total > 0 else 0.0
+
+    def _web_areas(self, frame, diag: float, closed: int) -> np.ndarray:
         self.web_area.zero_()
         wp.launch(kc.measure_web_area, dim=self.nf,
-                  inputs=[self.TF, self.key_edge, self.X, frame[0].id, WEB_STRETCH, WEB_GAP * diag],
+                  inputs=[self.TF, self.key_edge, self.X, frame[0].id, WEB_STRETCH, WEB_GAP * diag, closed],
                   outputs=[self.web_area], device=self.device)
-        total, web = self.web_area.numpy()
-        return float(web / total) if total > 0 else 0.0
+        return self.web_area.numpy()
 
     def flipped(self, frame, diag: float) -> float:
         """The fraction of the converted surface's area (self.X) whose faces point against the
         input ``frame``'s surface nearest to them (within ``WEB_GAP`` x ``diag``; a fold-over),
         :func:`~dynmesh_warp.kernels.convert.measure_flipped_area`. One launch, two floats back."""
-        self.web_area.zero_()
+        self.fold_area.zero_()
         wp.launch(kc.measure_flipped_area, dim=self.nf, inputs=[self.TF, self.X, frame[0].id, WEB_GAP * diag],
-                  outputs=[self.web_area], device=self.device)
-        total, flipped = self.web_area.numpy()
+                  outputs=[self.fold_area], device=self.device)
+        total, flipped = self.fold_area.numpy()
         return float(flipped / total) if total > 0 else 0.0
 
     def coverage(self, frame) -> "_Coverage":
@@ -694,10 +755,15 @@ class _Converter:
         floor = 3.0 * float(np.median(self.scores)) if len(self.scores) >= 3 else 0.0
         web_on = bool(o["restart_on_web"]) and thr > 0
 
-        def badness(sc):  # (> 1: poor, its web or None) of the fit in self.X, whose coverage is sc [m]
+        def badness(sc):  # (> 1: poor, (its web, buried) or None) of the fit in self.X, whose coverage is sc [m]
             b = sc / max(thr, floor) if thr > 0 else 0.0
-            w = self.web(frame, diag) if web_on else None
-            return (max(b, w / POOR_WEB) if web_on else b), w
+            if not web_on:
+                return b, None
+            w = self.web(frame, diag)
+            # buried faces count as much as the web here: besides the walls of parts in contact,
+            # they are a template crumpled inside the body, which a restart mends (a new user's
+            # droplet: 12 % of its area inside on 5 frames when they did not count)
+            return max(b, (w + self.last_buried) / POOR_WEB), (w, self.last_buried)
 
         bad, web = badness(score)
         poor = bad > 1.0
@@ -746,7 +812,7 @@ class _Converter:
                 self.restarts_failed.append(t)
         self.scores.append(score)
         self.frame_coverage = score
-        self.frame_web = web  # measured on the kept fit (None: not measured here)
+        self.frame_web = web  # (web, buried) measured on the kept fit (None: not measured here)
         self.history = (self.history + [(R, P)])[-2:]
         self.frame_states[t] = (R, P)
         if len(self.states) < 2:  # the key frame and the one after it
@@ -1051,14 +1117,14 @@ FLOATER_AREA = 0.05
 
 
 def _floater_webs(vseq, res, device, far_gap: float) -> list:
-    """The frames of ``res`` (a full run over ``vseq``'s frames) whose web is above ``POOR_WEB``
+    """The frames of ``res`` (a full run over ``vseq``'s frames) whose web (with buried faces) is above ``POOR_WEB``
     and is pulled by a small separate input part: more than half of that part's vertices have
     their nearest converted point on a face stretched more than ``WEB_STRETCH`` x since the key
     frame, and every vertex of it lies farther than ``far_gap`` x the diagonal from the faces that
     are not. A fragment of a real thin part lies by the rest of that part instead."""
     info = res.conversion
     out = []
-    poor = np.flatnonzero(np.asarray(info.web) > POOR_WEB)
+    poor = np.flatnonzero(np.asarray(info.web) + np.asarray(info.buried) > POOR_WEB)  # as the restarts count
     if not poor.size or info.first_frame != 0 or len(info.coverage) != vseq.num_frames:
         return out
     key_edge = _longest_edges(res.V[info.key_frame], res.F)
@@ -1109,16 +1175,44 @@ def _frame_for_fit(vseq, t: int, K: int, o: dict, X_ref, TF: np.ndarray, device,
     return v2, f2
 
 
+@dataclasses.dataclass
+class _PerFrame:
+    """The per-frame figures of one conversion run, (T,) each, by input frame: wall time [s], and
+    the fractions that ``ConversionInfo`` reports (coverage, coverage_tail, web, buried, flipped)."""
+
+    seconds: np.ndarray
+    coverage: np.ndarray
+    tail: np.ndarray
+    web: np.ndarray
+    buried: np.ndarray
+    flipped: np.ndarray
+
+    @classmethod
+    def zeros(cls, T: int) -> "_PerFrame":
+        return cls(*(np.zeros(T) for _ in dataclasses.fields(cls)))
+
+
+def _record_fit(conv, frame, diag: float, pf: _PerFrame, t: int, cov=None) -> None:
+    """Frame t's coverage (``cov``, or the fit's own), tail, web, buried and flipped fractions of
+    the fit in ``conv.X`` into ``pf`` (the web measured on the kept fit when the fit did)."""
+    cov = conv.frame_coverage if cov is None else cov
+    cov = cov if cov is not None else conv.coverage(frame)
+    pf.coverage[t], pf.tail[t] = cov / max(diag, 1e-12), cov.tail / max(diag, 1e-12)
+    pf.web[t], pf.buried[t] = conv.frame_web if conv.frame_web is not None else (conv.web(frame, diag), conv.last_buried)
+    conv.frame_coverage = conv.frame_web = None
+    pf.flipped[t] = conv.flipped(frame, diag)
+
+
 def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info, strategy: str, where: str, TV,
                     TF, stop_forward=None):
     """The frame loop of to_fixed_topology: the key frame forward to the end, then backward to
     frame 0. ``stop_forward(t, web)``, asked after each frame t > K: true ends the forward pass
     there (the backward pass still runs). Returns (out (T, N, 3), lo, hi (the converted frames
-    lo..hi), seconds, coverage, web, tail (``ConversionInfo.coverage_tail``), flipped)."""
+    lo..hi), the per-frame figures (:class:`_PerFrame`))."""
     T = vseq.num_frames
     device = conv.device
     out = np.empty((T, len(TV), 3), np.float32)
-    seconds, coverage, web, tail, flipped = np.zeros(T), np.zeros(T), np.zeros(T), np.zeros(T), np.zeros(T)
+    pf = _PerFrame.zeros(T)
     # the key frame forward to the end, then backward from it to frame 0
     order = list(range(K, T)) + list(range(K - 1, -1, -1))
     if progress:
@@ -1140,25 +1234,19 @@ def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info,
         frame = _device_frame(v, f, device)
         if step(frame, t):
             info.reanchored_frames.append(t)
-        cov = conv.frame_coverage if conv.frame_coverage is not None else conv.coverage(frame)
-        conv.frame_coverage = None
-        diag = _bbox_diag(v)
-        coverage[t], tail[t] = cov / max(diag, 1e-12), cov.tail / max(diag, 1e-12)
-        web[t] = conv.frame_web if conv.frame_web is not None else conv.web(frame, diag)
-        conv.frame_web = None
-        flipped[t] = conv.flipped(frame, diag)
+        _record_fit(conv, frame, _bbox_diag(v), pf, t)
         conv.first = False
         out[t] = conv.X.numpy()
-        seconds[t] = time.perf_counter() - t0
+        pf.seconds[t] = time.perf_counter() - t0
         if not np.isfinite(out[t]).all():
             raise RuntimeError(f"{where}: conversion ({strategy}) produced NaN/inf at frame {t}; "
                                "the input frame may be degenerate")
         lo, hi = (t, t) if lo is None else (min(lo, t), max(hi, t))
-        if t > K and stop_forward is not None and stop_forward(t, web):
+        if t > K and stop_forward is not None and stop_forward(t, pf.web + pf.buried):
             forward = False
     if hasattr(order, "close"):
         order.close()
-    return out, lo, hi, seconds, coverage, web, tail, flipped
+    return out, lo, hi, pf
 
 
 def best_starts(starts: list, scores, keep: int) -> list:
@@ -1193,17 +1281,16 @@ def _poor_runs(coverage: np.ndarray, K: int, threshold: float) -> list:
     return runs
 
 
-def _repair_poor_runs(vseq, conv, out, coverage, web, tail, flipped, seconds, K: int, o: dict, should_stop, TF,
-                      info) -> list:
+def _repair_poor_runs(vseq, conv, out, pf: _PerFrame, K: int, o: dict, should_stop, TF, info) -> list:
     """Bidirectional repair (``graph``): re-track every run of poorly covered frames from the good
     frame on its other side, keeping per frame whichever result covers the input better. Up to
     ``repair_passes`` passes (each sees the previous one's coverage). Returns the improved frames."""
     device = conv.device
     repaired = set()
     for _ in range(int(o["repair_passes"])):
-        med = float(np.median(coverage))
+        med = float(np.median(pf.coverage))
         thr = float(o["repair_threshold"]) or max(float(o["restart_threshold"]), 2.0 * med)
-        runs = _poor_runs(coverage, K, thr)
+        runs = _poor_runs(pf.coverage, K, thr)
         if not runs:
             break
         for anchor, frames in runs:
@@ -1220,18 +1307,15 @@ def _repair_poor_runs(vseq, conv, out, coverage, web, tail, flipped, seconds, K:
                 frame = _device_frame(v, f, device)
                 conv.step_graph(frame, t)
                 diag = _bbox_diag(v)
-                cov, tl = conv.frame_coverage / max(diag, 1e-12), conv.frame_coverage.tail / max(diag, 1e-12)
-                w = conv.frame_web
-                conv.frame_coverage = conv.frame_web = None
-                if cov < coverage[t]:
-                    coverage[t], tail[t] = cov, tl
-                    web[t] = w if w is not None else conv.web(frame, diag)
-                    flipped[t] = conv.flipped(frame, diag)
+                if conv.frame_coverage / max(diag, 1e-12) < pf.coverage[t]:
+                    _record_fit(conv, frame, diag, pf, t)
                     out[t] = conv.X.numpy()
                     repaired.add(t)
-                elif old_state is not None:
-                    conv.frame_states[t] = old_state  # keep the better state for later anchors
-                seconds[t] += time.perf_counter() - t0
+                else:
+                    conv.frame_coverage = conv.frame_web = None
+                    if old_state is not None:
+                        conv.frame_states[t] = old_state  # keep the better state for later anchors
+                pf.seconds[t] += time.perf_counter() - t0
     return sorted(repaired)
 
 
@@ -1434,6 +1518,8 @@ def _to_piecewise(seq, strategy, template, device, progress, should_stop, option
             return _join_segments(vseq, sorted(segs, key=lambda x: x[0]), first.conversion, events)
         # the new template is not better there: one template for every frame, as without the stop
         res = to_fixed_topology(vseq, strategy, None, device, progress, should_stop, **options)
+        if new is not None:
+            res.conversion.rejected_cuts.append((a, T))
     if len(res.conversion.coverage) < T:  # stopped by the caller
         return res
     segs = _split_segments(0, res, events, limit, convert)
@@ -1441,8 +1527,10 @@ def _to_piecewise(seq, strategy, template, device, progress, should_stop, option
 
 
 def _badness(info) -> np.ndarray:
-    """Per frame, how poor the fit is: max(coverage / POOR_COVERAGE, web / POOR_WEB); > 1 is poor."""
-    return np.maximum(np.asarray(info.coverage, float) / POOR_COVERAGE, np.asarray(info.web, float) / POOR_WEB)
+    """Per frame, how poor the fit is: max(coverage / POOR_COVERAGE, (web + buried) / POOR_WEB);
+    > 1 is poor."""
+    far = np.asarray(info.web, float) + (np.asarray(info.buried, float) if len(info.buried) else 0.0)
+    return np.maximum(np.asarray(info.coverage, float) / POOR_COVERAGE, far / POOR_WEB)
 
 
 def _segment_cut(info, events: list, lo: int) -> tuple | None:
@@ -1475,6 +1563,8 @@ def _split_segments(lo: int, res, events: list, budget: int, convert) -> list:
     a, b = cut
     new = convert(a, b)
     if new is None or _badness(new.conversion).max() >= _badness(res.conversion)[a - lo:b - lo].max():
+        if new is not None:  # the cut does not help: said in the summary
+            res.conversion.rejected_cuts.append((a, b))
         return [(lo, res)]  # the cut does not help (or the run was stopped): one template here
     keep_lo, keep_hi = (lo, a) if a > lo else (b, hi)
     left = _split_segments(keep_lo, _slice_result(res, keep_lo, keep_hi, lo), events, budget - 1, convert)
@@ -1491,6 +1581,7 @@ def _slice_result(res, a: int, b: int, lo: int):
     out.conversion = dataclasses.replace(info, num_frames=j - i, key_frame=info.key_frame - i,
                                          coverage=list(info.coverage[i:j]), web=list(info.web[i:j]),
                                          coverage_tail=list(info.coverage_tail[i:j]), flipped=list(info.flipped[i:j]),
+                                         buried=list(info.buried[i:j]), rejected_cuts=list(info.rejected_cuts),
                                          frame_seconds=list(info.frame_seconds[i:j]), **_frame_fields(info, -i, i, j))
     return out
 
@@ -1527,6 +1618,8 @@ def _join_segments(vseq, segs: list, whole, events: list) -> VaryingTopologySequ
         info.coverage_tail += c.coverage_tail
         info.flipped += c.flipped
         info.web += c.web
+        info.buried += c.buried
+        info.rejected_cuts += [x for x in c.rejected_cuts if x not in info.rejected_cuts]
         info.frame_seconds += c.frame_seconds
         for name, value in _frame_fields(c, lo).items():
             if isinstance(value, dict):
@@ -1771,15 +1864,14 @@ def _convert_from_key(vseq, strategy: str, o: dict, K: int, template, device, pr
     step = getattr(conv, f"step_{strategy}")
     info = ConversionInfo(strategy, {k: v for k, v in o.items() if k != "strategy"}, T, len(TV), key_frame=K)
     info.moving_part = moving
-    out, lo, hi, seconds, coverage, web, tail, flipped = _convert_frames(vseq, conv, step, K, progress, should_stop, info,
-                                                          strategy, where, TV, TF, stop_forward)
+    out, lo, hi, pf = _convert_frames(vseq, conv, step, K, progress, should_stop, info, strategy, where, TV, TF,
+                                      stop_forward)
     if strategy == "graph" and (lo, hi) == (0, T - 1) and int(o["repair_passes"]) > 0:
-        info.repaired_frames = _repair_poor_runs(vseq, conv, out, coverage, web, tail, flipped, seconds, K, o,
-                                                 should_stop, TF, info)
+        info.repaired_frames = _repair_poor_runs(vseq, conv, out, pf, K, o, should_stop, TF, info)
     info.ignored_parts = {t: x for t, x in sorted(info.ignored_parts.items()) if lo <= t <= hi}
-    info.frame_seconds = seconds.tolist()
-    info.coverage, info.coverage_tail = coverage.tolist(), tail.tolist()
-    info.web, info.flipped = web.tolist(), flipped.tolist()
+    info.frame_seconds = pf.seconds.tolist()
+    info.coverage, info.coverage_tail = pf.coverage.tolist(), pf.tail.tolist()
+    info.web, info.buried, info.flipped = pf.web.tolist(), pf.buried.tolist(), pf.flipped.tolist()
     info.reanchored_frames.sort()
     if hasattr(conv, "recovered"):
         info.recovered_frames = sorted(conv.recovered)
@@ -1791,7 +1883,7 @@ def _convert_from_key(vseq, strategy: str, o: dict, K: int, template, device, pr
     if (lo, hi) != (0, T - 1):  # stopped early: the frames converted so far
         info.frame_seconds, info.coverage = info.frame_seconds[lo:hi + 1], info.coverage[lo:hi + 1]
         info.web, info.coverage_tail = info.web[lo:hi + 1], info.coverage_tail[lo:hi + 1]
-        info.flipped = info.flipped[lo:hi + 1]
+        info.flipped, info.buried = info.flipped[lo:hi + 1], info.buried[lo:hi + 1]
     res = FixedTopologySequence(out[lo:hi + 1], TF, fps=vseq.fps, name=vseq.name, source=vseq.source)
     res.conversion = info
     return res
@@ -1959,11 +2051,22 @@ def conversion_summary(info: ConversionInfo) -> list:
                      f"{100 * web[w]:.2f}% at frame {w}, on {int(np.count_nonzero(web))} frame(s)")
     poor_web = np.flatnonzero(web > POOR_WEB)
     if poor_web.size:
+        cuts = info.rejected_cuts
         lines.append(f"warning: web on {poor_web.size} frame(s) ({_frames_text(poor_web)}): over "
-                     f"{100 * POOR_WEB:.0f}% of the converted surface is stretched across a gap of the input (parts "
-                     "the template fused have moved apart; "
-                     "a sphere would land on it)" + ("" if segs else "; new templates (segments) start there when "
-                                                     "convert writes a .npz or a folder with max_segments > 1"))
+                     f"{100 * POOR_WEB:.0f}% of the converted surface is stretched across a gap outside the input "
+                     "(parts the template fused have moved apart, or the fit lost its way there; a sphere would land "
+                     "on it)" + ("" if segs and not cuts else
+                                 "; a new template from frame " + ", ".join(str(a) for a, _ in cuts) + " was tried "
+                                 "and fitted no better, so one was kept" if cuts else
+                                 "; new templates (segments) start there when convert writes a .npz or a folder "
+                                 "with max_segments > 1"))
+    bu = np.asarray(info.buried, float)
+    if bu.size and bu.max() > POOR_WEB:
+        deep = np.flatnonzero(bu > POOR_WEB)
+        lines.append(f"note: on {deep.size} frame(s) ({_frames_text(deep)}) up to {100 * bu.max():.1f}% of the "
+                     "converted surface lies inside the input's body, away from its surface: the walls of parts in "
+                     "contact or merged there, or the template crumpled inside; no sphere outside meets them, but the "
+                     "mesh is not the input's surface there")
     if info.floater_retry:
         fr = info.floater_retry
         lines.append(f"note: the first run's web on {len(fr)} frame(s) ({_frames_text(fr)}) reached out to small "
@@ -2269,7 +2372,7 @@ def main(argv=None) -> int:
         # a new user's --fps 30 to a folder read back at 24 fps without a word
         print(f"note: {written} does not store the frame rate ({res.fps:g} fps): it reads back at {DEFAULT_FPS:g} unless "
               "given (--fps, surface.fps); a .npz, .mdd or .glb output keeps it", file=sys.stderr)
-    if one_file and any(w > POOR_WEB for w in res.conversion.web):
+    if one_file and any(w + b > POOR_WEB for w, b in zip(res.conversion.web, res.conversion.buried)):
         print(f"note: a {out_suffix} file holds one template; a .npz or folder output would start new ones "
               "where this one is stretched (segments)", file=sys.stderr)
     return 0

@@ -429,16 +429,19 @@ def measure_web_area(
     mesh: wp.uint64,
     stretch: float,
     gap: float,
+    closed: int,
     # Out:
     area_out: wp.array[float],
 ):
     """The web of a converted frame (``convert.web_fraction``), one thread per face:
-    area_out[0] += the face's area; area_out[1] += its area when its longest edge exceeds
-    ``stretch`` x key_edge (its longest edge in the template) and its centroid has no point of
-    the input ``mesh`` within ``gap``.
+    area_out[0] += the face's area; for a face whose longest edge exceeds ``stretch`` x key_edge
+    (its longest edge in the template) and whose centroid has no point of the input ``mesh``
+    within ``gap``: area_out[2] += its area when ``closed`` != 0 (the input is a closed surface)
+    and the centroid lies inside it (``wp.mesh_query_point``'s sign: buried walls of parts in
+    contact, which no sphere outside meets), else area_out[1] += its area (the web).
 
     indices (3M,) template faces; key_edge (M,) [m]; points (N,) converted vertices [m];
-    mesh: the input frame's wp.Mesh; gap [m]; area_out (2,) [m^2], zeroed by the caller.
+    mesh: the input frame's wp.Mesh; gap [m]; area_out (3,) [m^2], zeroed by the caller.
     """
     f = wp.tid()
     a = points[indices[3 * f]]
@@ -448,9 +451,15 @@ def measure_web_area(
     wp.atomic_add(area_out, 0, area)
     edge = wp.max(wp.max(wp.length(b - a), wp.length(c - b)), wp.length(a - c))
     if edge > stretch * key_edge[f]:
-        q = wp.mesh_query_point_no_sign(mesh, (a + b + c) / 3.0, gap)
+        centroid = (a + b + c) / 3.0
+        q = wp.mesh_query_point_no_sign(mesh, centroid, gap)
         if not q.result:
-            wp.atomic_add(area_out, 1, area)
+            slot = int(1)
+            if closed != 0:
+                inside = wp.mesh_query_point(mesh, centroid, 1.0e30)
+                if inside.result and inside.sign < 0.0:
+                    slot = 2
+            wp.atomic_add(area_out, slot, area)
 
 
 @wp.kernel

@@ -105,6 +105,56 @@ def test_web_fraction_matches_numpy_brute_force():
     assert web_fraction(key.vertices, key.faces, key.vertices, ref.vertices, ref.faces, device=TEST_DEVICE) == 0.0
 
 
+def test_stretched_faces_inside_a_closed_input_are_buried_not_web():
+    """Faces stretched far from a closed input but inside it (the walls of two bodies the input
+    has in contact: a new user's touching blobs were warned as a web "a sphere would land on")
+    count as buried, not web. Oracle in closed form: the input is the unit icosphere, so a
+    centroid is inside iff |c| < 1 (the far ones lie well away from the facets); the kernel
+    (wp.mesh_query_point's sign), the host function (winding number) and the oracle agree. An
+    open input (the same sphere with a cap cut off) has no inside: everything far is web."""
+    from dynmesh_warp.convert import _device_frame
+    from dynmesh_warp.kernels import convert as kc
+
+    rng = np.random.default_rng(5)
+    ref = trimesh.creation.icosphere(subdivisions=3)
+    key = trimesh.creation.icosphere(subdivisions=3)
+    X = key.vertices * (1.0 + rng.uniform(-0.01, 0.01, (len(key.vertices), 1)))
+    pick = rng.choice(len(X), 24, replace=False)
+    X[pick[:12]] *= 0.2  # pulled in: stretched faces inside the body
+    X[pick[12:]] *= 2.5  # pushed out: a web
+    tri, tri0 = X[key.faces], key.vertices[key.faces]
+    edge = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(axis=1)
+    edge0 = np.linalg.norm(tri0 - np.roll(tri0, 1, axis=1), axis=2).max(axis=1)
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    cen = tri.mean(axis=1)
+    diag = np.linalg.norm(np.ptp(ref.vertices, axis=0))
+    far = (edge > WEB_STRETCH * edge0) & (brute_nearest(cen, ref.vertices, ref.faces)[0] > WEB_GAP * diag)
+    inside = np.linalg.norm(cen, axis=1) < 1.0
+    want = (area[far & ~inside].sum() / area.sum(), area[far & inside].sum() / area.sum())
+    assert want[0] > 0.01 and want[1] > 0.01
+    got = web_fraction(X, key.faces, key.vertices, ref.vertices, ref.faces, device=TEST_DEVICE, with_buried=True)
+    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-7)
+    # the kernel the conversion runs, with the input closed (its sign) and taken as open
+    frame = _device_frame(ref.vertices, ref.faces, TEST_DEVICE)
+    assert frame.closed
+    out = wp.zeros(3, dtype=float, device=TEST_DEVICE)
+    for closed, expect in ((1, want), (0, (want[0] + want[1], 0.0))):
+        out.zero_()
+        wp.launch(kc.measure_web_area, dim=len(key.faces),
+                  inputs=[wp.array(key.faces.reshape(-1).astype(np.int32), dtype=wp.int32, device=TEST_DEVICE),
+                          wp.array(edge0.astype(np.float32), dtype=float, device=TEST_DEVICE),
+                          wp.array(X.astype(np.float32), dtype=wp.vec3, device=TEST_DEVICE), frame[0].id,
+                          WEB_STRETCH, float(WEB_GAP * diag), closed], outputs=[out], device=TEST_DEVICE)
+        total, web, buried = out.numpy()
+        np.testing.assert_allclose((web / total, buried / total), expect, rtol=1e-3, atol=1e-6)
+    # open: a cap cut off the input, so nothing is inside
+    keep = ref.vertices[ref.faces].mean(axis=1)[:, 2] < 0.9
+    cut = ref.faces[keep]
+    assert not _device_frame(ref.vertices, cut, TEST_DEVICE).closed
+    web, buried = web_fraction(X, key.faces, key.vertices, ref.vertices, cut, device=TEST_DEVICE, with_buried=True)
+    assert buried == 0.0 and web > want[0]
+
+
 def test_one_template_leaves_a_web_that_segments_remove(tearing, tmp_path):
     """The template of the automatic key frame fuses one pair, which the input later tears: one
     template stretches a web across the gap (its vertices all on the input, so the coverage
