@@ -276,6 +276,8 @@ class GraphFitter:
         self.node_rotation = wp.empty(K, dtype=wp.mat33, device=d)
         self.node_position = wp.empty(K, dtype=wp.vec3, device=d)
         self.position_prior = wp.empty(K, dtype=wp.vec3, device=d)
+        self.position_prev = wp.empty(K, dtype=wp.vec3, device=d)  # before the last iteration (convergence)
+        self.extra_iterations = 0  # iterations past the schedule in the last fit
         self.points = wp.empty(n, dtype=wp.vec3, device=d)
         # the template BVH: built on the predicted pose by rebuild() at the start of every fit
         # (a tree refit far from the pose it was built on answers queries slowly)
@@ -502,12 +504,34 @@ class GraphFitter:
         wp.copy(self.position_prior, self.node_position)
         self.rebuild()
         wd = float(damping) / self.K
-        for it in range(its):
-            wr = float(lams[it]) / self.num_edges
+
+        def iterate(lam):
+            wr = float(lam) / self.num_edges
             self.skin()
             self.correspondences(frame, min_cos)
             self.assemble(frame, wr, wd)
             self.solve()
             self.update_rotations(wr)
+
+        extra = int(o.get("converge_iterations", 0) or 0)
+        tol = float(o.get("converge_tolerance", 0.0) or 0.0) * float(np.min(self.g.spacing))
+        # each stiffness level of the schedule is held (iterated again) while its iteration still
+        # moved a node by more than converge_tolerance x the node spacing, up to
+        # converge_iterations in all: large motion between frames needs the stiff levels
+        # converged before the stiffness falls (one read-back of the nodes per check)
+        done = 0
+        for it in range(its):
+            while True:
+                if extra > done:
+                    wp.copy(self.position_prev, self.node_position)
+                iterate(lams[it])
+                if extra <= done or self._moved() <= tol:
+                    break
+                done += 1
+        self.extra_iterations = done
         self.skin()
         return self.get_state()
+
+    def _moved(self) -> float:
+        """The largest node displacement [m] of the last iteration (position_prev -> node_position)."""
+        return float(np.linalg.norm(self.node_position.numpy() - self.position_prev.numpy(), axis=1).max())
