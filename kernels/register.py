@@ -629,3 +629,17 @@ def update_node_rotations(
             break
         q = wp.normalize(wp.quat_from_axis_angle(omega / w, w) * q)
     node_rotation_in[j] = wp.quat_to_matrix(q)
+
+
+@wp.kernel
+def measure_node_motion(
+    # In:
+    node_position: wp.array[wp.vec3],
+    position_prev: wp.array[wp.vec3],
+    # Out (accumulated):
+    moved: wp.array[float],
+):
+    """moved[0] = max over nodes j of |node_position_j - position_prev_j| [m] (the caller zeroes
+    it): how far the last graph iteration moved a node (the held-level test of ``fit``)."""
+    j = wp.tid()
+    wp.atomic_max(moved, 0, wp.length(node_position[j] - position_prev[j]))
