@@ -302,6 +302,7 @@ def handle_stop_signals():
         yield
     finally:
         _state.done.set()
+        _state.raised = True  # nothing left to interrupt: a late signal must not raise in the sleep below
         if _state.count:  # a stop: its second signal (timeout's, to the group) may still be coming
             rest = _SAME_STOP_S - (time.monotonic() - _state.counted_at)
             if rest > 0:  # the output was written within the window: the default handler would kill

@@ -659,3 +659,25 @@ def test_out_of_memory_is_one_line_not_a_traceback(capsys):
 
     assert main([]) == 1
     assert capsys.readouterr().err.startswith("error: out of memory; nothing more was written")
+
+
+def test_a_late_signal_of_the_same_stop_does_not_raise_while_the_handlers_wait():
+    """A stop seen in a checking region (no exception raised: the loop wrote its output) leaves
+    the handlers up for the rest of the same-stop window; the stop's second signal (``timeout``'s,
+    to the group) arriving then raised Interrupted out of the handlers' exit: a traceback, exit 1
+    instead of 130 (the fresh suite's load caught it in test_convert_signal_sent_twice_at_once_is_one_stop).
+    In-process, deterministic: the second signal is sent while the exit waits."""
+    import threading
+
+    from dynmesh_warp import cli
+
+    with cli.handle_stop_signals():
+        with cli.checking_stops():
+            os.kill(os.getpid(), signal.SIGINT)
+            deadline = time.monotonic() + 2.0
+            while not cli.stop_requested() and time.monotonic() < deadline:
+                time.sleep(0.001)
+            assert cli.stop_requested()
+        # the output is written; the exit waits out the window, and the second signal comes then
+        threading.Timer(0.1, os.kill, args=(os.getpid(), signal.SIGINT)).start()
+    time.sleep(0.3)  # past the timer: had it raised, the with-block's exit would have
