@@ -809,7 +809,8 @@ class _Converter:
                 self.failed_restart = None
             else:  # nothing fitted clearly better (10 %): do not retry on every frame
                 self.failed_restart = bad
-                self.restarts_failed.append(t)
+                if name is None:  # no start fitted better at all (a better one is a recovered frame)
+                    self.restarts_failed.append(t)
         self.scores.append(score)
         self.frame_coverage = score
         self.frame_web = web  # (web, buried) measured on the kept fit (None: not measured here)
