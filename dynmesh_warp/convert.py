@@ -1193,11 +1193,10 @@ class _PerFrame:
         return cls(*(np.zeros(T) for _ in dataclasses.fields(cls)))
 
 
-def _record_fit(conv, frame, diag: float, pf: _PerFrame, t: int, cov=None) -> None:
-    """Frame t's coverage (``cov``, or the fit's own), tail, web, buried and flipped fractions of
-    the fit in ``conv.X`` into ``pf`` (the web measured on the kept fit when the fit did)."""
-    cov = conv.frame_coverage if cov is None else cov
-    cov = cov if cov is not None else conv.coverage(frame)
+def _record_fit(conv, frame, diag: float, pf: _PerFrame, t: int) -> None:
+    """Frame t's coverage, tail, web, buried and flipped fractions of the fit in ``conv.X`` into
+    ``pf`` (the coverage and web measured on the kept fit when the fit did)."""
+    cov = conv.frame_coverage if conv.frame_coverage is not None else conv.coverage(frame)
     pf.coverage[t], pf.tail[t] = cov / max(diag, 1e-12), cov.tail / max(diag, 1e-12)
     pf.web[t], pf.buried[t] = conv.frame_web if conv.frame_web is not None else (conv.web(frame, diag), conv.last_buried)
     conv.frame_coverage = conv.frame_web = None
