@@ -135,7 +135,10 @@ def load_vertex_array(path: Path):
             vkey = next((k for k in _NPZ_VERTEX_KEYS if k in keys), None)
             if vkey is None or any(k in keys for k in _NPZ_FACE_KEYS):
                 return None, None, path.stem
-            V = np.asarray(data[vkey])
+            try:
+                V = np.asarray(data[vkey])
+            except Exception as e:  # a corrupt member inside the zip (its header, its data)
+                raise MeshDataError(f"{path}: cannot read npz array '{vkey}' ({type(e).__name__}: {e})") from e
             fps = _npz_scalar(data, "fps", path, float)
             name = _npz_scalar(data, "name", path, str) or path.stem
     if V.ndim not in (2, 3) or V.shape[-1] != 3 or not np.issubdtype(V.dtype, np.number):

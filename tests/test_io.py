@@ -631,3 +631,27 @@ def test_a_registered_format_is_read_written_and_found_in_folders(tmp_path):
         mf.WRITERS.pop(".tri", None)
         mf.MESH_EXTENSIONS.discard(".tri")
     assert ".tri" not in mf.MESH_EXTENSIONS
+
+
+@pytest.mark.parametrize("faces", [False, True])
+def test_npz_with_a_corrupt_member_header_names_the_file(tmp_path, faces):
+    """A zip whose central directory is sound but whose member's local header is not (the fuzz
+    test's find: b"PK\\x03\\x04nan..."): reading the vertices raised zipfile.BadZipFile out of
+    load_sequence for a vertex-only npz; now a MeshDataError naming the file, as for the layouts
+    with faces."""
+    import io as _io
+    import zipfile
+
+    buf = _io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as z:
+        for key, a in (("V", np.zeros((2, 3, 3), np.float32)),) + ((("F", np.array([[0, 1, 2]], np.int32)),)
+                                                                     if faces else ()):
+            b = _io.BytesIO()
+            np.lib.format.write_array(b, a, allow_pickle=False)
+            z.writestr(key + ".npy", b.getvalue())
+    data = buf.getvalue()
+    data = data[:4] + b"nan" + data[4:]  # three bytes inserted after the first local signature
+    p = tmp_path / "broken.npz"
+    p.write_bytes(data)
+    with pytest.raises(MeshDataError, match=r"broken\.npz"):
+        load_sequence(p)
