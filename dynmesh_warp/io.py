@@ -195,8 +195,8 @@ def _warn_if_interrupted(path: Path) -> None:
         else:
             with np.load(path, allow_pickle=False) as z:
                 status = json.loads(str(z["status"])) if "status" in z.files else None
-    except (OSError, ValueError, KeyError, AttributeError):
-        return  # unreadable here: the loader reports what is wrong
+    except Exception:  # noqa: BLE001 - unreadable here (a corrupt zip member too): the loader reports what is wrong
+        return
     if isinstance(status, dict) and status.get("complete") is False:
         first, n = int(status.get("first_frame", 0) or 0), status.get("frames")
         held = f"input frames {first}..{first + int(n) - 1} of 0..{int(status['input_frames']) - 1}" \

@@ -655,3 +655,24 @@ def test_npz_with_a_corrupt_member_header_names_the_file(tmp_path, faces):
     p.write_bytes(data)
     with pytest.raises(MeshDataError, match=r"broken\.npz"):
         load_sequence(p)
+
+
+def test_npz_with_a_corrupt_status_member_still_loads(tmp_path):
+    """The stopped-run check reads an npz's ``status`` before the loader: a corrupt status member
+    (its local header shifted, the central directory sound) raised zipfile.BadZipFile out of
+    load_sequence; the check now leaves a file it cannot read to the loader, which reads V and F."""
+    import io as _io
+    import zipfile
+
+    buf = _io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as z:
+        for key, a in (("status", np.asarray('{"complete": false}')), ("V", np.zeros((2, 3, 3), np.float32)),
+                       ("F", np.array([[0, 1, 2]], np.int32))):
+            b = _io.BytesIO()
+            np.lib.format.write_array(b, a, allow_pickle=False)
+            z.writestr(key + ".npy", b.getvalue())
+    data = buf.getvalue()
+    p = tmp_path / "status.npz"
+    p.write_bytes(data[:4] + b"nan" + data[4:])  # the first member (status): header shifted
+    seq = load_sequence(p)
+    assert seq.num_frames == 2
