@@ -117,6 +117,11 @@ class _Frame(tuple):
             self._closed = _open_edges(self._faces) == 0
         return self._closed
 
+    @property
+    def known_closed(self) -> bool | None:
+        """``closed`` if it was asked already, else None (not computed here)."""
+        return self._closed
+
 
 def _device_frame(V: np.ndarray, F: np.ndarray, device) -> _Frame:
     """A mesh on the device as the strategies take an input frame: (wp.Mesh, points, indices)."""
@@ -505,9 +510,10 @@ class _Converter:
         frame's bbox diagonal [m]. Stretched faces far from a closed input but inside it (the
         buried walls of parts in contact, which no sphere outside meets) are not the web: their
         fraction goes to ``last_buried``. One launch, three floats back; a second only where a
-        frame has far stretched faces and its closedness is not known yet."""
-        total, web, buried = self._web_areas(frame, diag, 0)
-        if web > 0 and frame.closed:
+        frame has far stretched faces and its closedness was not known yet (asked then, kept)."""
+        known = frame.known_closed
+        total, web, buried = self._web_areas(frame, diag, int(bool(known)))
+        if known is None and web > 0 and frame.closed:
             total, web, buried = self._web_areas(frame, diag, 1)
         self.last_buried = float(buried / total) if total > 0 else 0.0
         return float(web / total) if total > 0 else 0.0
@@ -1125,19 +1131,13 @@ def _floater_webs(vseq, res, device, far_gap: float) -> list:
     are not. A fragment of a real thin part lies by the rest of that part instead."""
     info = res.conversion
     out = []
-    poor = np.flatnonzero(np.asarray(info.web) + np.asarray(info.buried) > POOR_WEB)  # as the restarts count
+    poor = np.flatnonzero(_stretched_far(info) > POOR_WEB)  # as the restarts count
     if not poor.size or info.first_frame != 0 or len(info.coverage) != vseq.num_frames:
         return out
     key_edge = _longest_edges(res.V[info.key_frame], res.F)
     for t in poor.tolist():
         v, f = vseq.frames[t]
-        k, vert_part = _part_labels(f, len(v))
-        if k < 2:
-            continue
-        lab = vert_part[f[:, 0]]
-        part_area = np.bincount(lab, weights=face_areas(v, f), minlength=k)
-        small = np.flatnonzero(part_area < FLOATER_AREA * part_area.sum())
-        small = small[small != np.argmax(part_area)]
+        k, vert_part, lab, small = _small_parts(v, f, FLOATER_AREA)
         if not small.size:
             continue
         verts = np.unique(f[np.isin(lab, small)])
@@ -1526,11 +1526,17 @@ def _to_piecewise(seq, strategy, template, device, progress, should_stop, option
     return segs[0][1] if len(segs) == 1 else _join_segments(vseq, segs, res.conversion, events)
 
 
+def _stretched_far(info) -> np.ndarray:
+    """Per frame, the fraction of the converted area on stretched faces far from the input, outside
+    it (``web``) or inside it (``buried``): what the restarts, the segment cuts and the floater
+    check weigh (a template crumpled inside the body is mended by them too)."""
+    return np.asarray(info.web, float) + (np.asarray(info.buried, float) if len(info.buried) else 0.0)
+
+
 def _badness(info) -> np.ndarray:
-    """Per frame, how poor the fit is: max(coverage / POOR_COVERAGE, (web + buried) / POOR_WEB);
-    > 1 is poor."""
-    far = np.asarray(info.web, float) + (np.asarray(info.buried, float) if len(info.buried) else 0.0)
-    return np.maximum(np.asarray(info.coverage, float) / POOR_COVERAGE, far / POOR_WEB)
+    """Per frame, how poor the fit is: max(coverage / POOR_COVERAGE, :func:`_stretched_far` /
+    POOR_WEB); > 1 is poor."""
+    return np.maximum(np.asarray(info.coverage, float) / POOR_COVERAGE, _stretched_far(info) / POOR_WEB)
 
 
 def _segment_cut(info, events: list, lo: int) -> tuple | None:
@@ -2051,15 +2057,17 @@ def conversion_summary(info: ConversionInfo) -> list:
                      f"{100 * web[w]:.2f}% at frame {w}, on {int(np.count_nonzero(web))} frame(s)")
     poor_web = np.flatnonzero(web > POOR_WEB)
     if poor_web.size:
-        cuts = info.rejected_cuts
+        if info.rejected_cuts:
+            then = ("; a new template from frame " + ", ".join(str(a) for a, _ in info.rejected_cuts)
+                    + " was tried and fitted no better, so one was kept")
+        elif segs:
+            then = ""
+        else:
+            then = "; new templates (segments) start there when convert writes a .npz or a folder with max_segments > 1"
         lines.append(f"warning: web on {poor_web.size} frame(s) ({_frames_text(poor_web)}): over "
                      f"{100 * POOR_WEB:.0f}% of the converted surface is stretched across a gap outside the input "
                      "(parts the template fused have moved apart, or the fit lost its way there; a sphere would land "
-                     "on it)" + ("" if segs and not cuts else
-                                 "; a new template from frame " + ", ".join(str(a) for a, _ in cuts) + " was tried "
-                                 "and fitted no better, so one was kept" if cuts else
-                                 "; new templates (segments) start there when convert writes a .npz or a folder "
-                                 "with max_segments > 1"))
+                     "on it)" + then)
     bu = np.asarray(info.buried, float)
     if bu.size and bu.max() > POOR_WEB:
         deep = np.flatnonzero(bu > POOR_WEB)
@@ -2372,7 +2380,7 @@ def main(argv=None) -> int:
         # a new user's --fps 30 to a folder read back at 24 fps without a word
         print(f"note: {written} does not store the frame rate ({res.fps:g} fps): it reads back at {DEFAULT_FPS:g} unless "
               "given (--fps, surface.fps); a .npz, .mdd or .glb output keeps it", file=sys.stderr)
-    if one_file and any(w + b > POOR_WEB for w, b in zip(res.conversion.web, res.conversion.buried)):
+    if one_file and (_stretched_far(res.conversion) > POOR_WEB).any():
         print(f"note: a {out_suffix} file holds one template; a .npz or folder output would start new ones "
               "where this one is stretched (segments)", file=sys.stderr)
     return 0

@@ -286,7 +286,6 @@ class GraphFitter:
         self.position_prior = wp.empty(K, dtype=wp.vec3, device=d)
         self.position_prev = wp.empty(K, dtype=wp.vec3, device=d)  # before the last iteration (convergence)
         self.moved = wp.zeros(1, dtype=float, device=d)
-        self.extra_iterations = 0  # iterations past the schedule in the last fit
         self.points = wp.empty(n, dtype=wp.vec3, device=d)
         # the template BVH: built on the predicted pose by rebuild() at the start of every fit
         # (a tree refit far from the pose it was built on answers queries slowly)
@@ -539,7 +538,6 @@ class GraphFitter:
                 if not check or self._moved() <= tol:
                     break
                 done += 1
-        self.extra_iterations = done
         self.skin()
         return self.get_state()
 

@@ -116,7 +116,6 @@ class RideSurfaceEnv(VectorEnv):
         self.max_distance = float(0.25 * diag if max_distance is None else max_distance)
         self.radius, self.max_steps, self.decimation = float(radius), int(max_steps), int(decimation)
         self.accel, self.push = float(accel), float(push)
-        self.duration = seq.num_frames / seq.fps
         self.top = float(seq.V[..., 2].max()) + 1.0
         gh = model.params.ground_height
         # where a probe finds no surface below, and below which the ball has fallen: the ground,

@@ -187,16 +187,16 @@ def _warn_if_interrupted(path: Path) -> None:
     import json
     import warnings
 
-    from .outputs import MANIFEST
+    from .outputs import read_manifest_status
 
-    try:
-        if path.is_dir():
-            status = json.loads((path / MANIFEST).read_text()).get("status") if (path / MANIFEST).is_file() else None
-        else:
+    if path.is_dir():
+        status = read_manifest_status(path)
+    else:
+        try:
             with np.load(path, allow_pickle=False) as z:
                 status = json.loads(str(z["status"])) if "status" in z.files else None
-    except Exception:  # noqa: BLE001 - unreadable here (a corrupt zip member too): the loader reports what is wrong
-        return
+        except Exception:  # noqa: BLE001 - unreadable here (a corrupt zip member too): the loader reports what is wrong
+            return
     if isinstance(status, dict) and status.get("complete") is False:
         first, n = int(status.get("first_frame", 0) or 0), status.get("frames")
         held = f"input frames {first}..{first + int(n) - 1} of 0..{int(status['input_frames']) - 1}" \

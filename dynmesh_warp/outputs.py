@@ -30,7 +30,8 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["atomic_write_bytes", "atomic_write_json", "atomic_write_npz", "atomic_path", "OutputError",
-           "OutputExistsError", "check_output", "OutputFolder", "MANIFEST", "read_manifest", "apply_umask",
+           "OutputExistsError", "check_output", "OutputFolder", "MANIFEST", "read_manifest", "read_manifest_status",
+           "foreign_entries", "apply_umask",
            "add_to_manifest", "temporary", "abandon_temporaries", "beside_path", "entries"]
 
 #: name of the manifest in every folder this tool writes: JSON {"tool": ..., "files": [names]}
@@ -188,30 +189,38 @@ def _within(child: Path, parent: Path) -> bool:
     return child == parent or parent in child.parents
 
 
-def read_manifest(folder) -> set[str]:
-    """Names this tool wrote in ``folder`` (empty when it has no readable manifest)."""
+def _manifest_doc(folder) -> dict:
+    """The JSON object of ``folder``'s manifest ({} when there is none or it is unreadable)."""
     try:
         doc = json.loads((Path(folder) / MANIFEST).read_text())
-        return {str(n) for n in doc.get("files", []) if isinstance(n, str) and "/" not in n}
-    except (OSError, ValueError, AttributeError):
-        return set()
+    except (OSError, ValueError):
+        return {}
+    return doc if isinstance(doc, dict) else {}
+
+
+def read_manifest(folder) -> set[str]:
+    """Names this tool wrote in ``folder`` (empty when it has no readable manifest)."""
+    files = _manifest_doc(folder).get("files", [])
+    return {str(n) for n in files if isinstance(n, str) and "/" not in n} if isinstance(files, list) else set()
+
+
+def read_manifest_status(folder) -> dict | None:
+    """The ``status`` a run stored in ``folder``'s manifest (:class:`OutputFolder`'s ``status``,
+    e.g. ``{"complete": false, ...}`` for a stopped run), or None."""
+    status = _manifest_doc(folder).get("status")
+    return status if isinstance(status, dict) else None
 
 
 def add_to_manifest(folder, name: str) -> None:
     """List ``name`` (a file just written into ``folder`` during a run, e.g. a checkpoint) in the
     folder's manifest, so the folder stays one this tool wrote (``--overwrite`` rules)."""
     folder = Path(folder)
-    try:
-        doc = json.loads((folder / MANIFEST).read_text())
-        if not isinstance(doc, dict):
-            doc = {}
-    except (OSError, ValueError):
-        doc = {}
+    doc = _manifest_doc(folder)
     files = sorted(read_manifest(folder) | {name})
     atomic_write_json(folder / MANIFEST, {**doc, "tool": "dynmesh_warp", "files": files})
 
 
-def _foreign(folder: Path) -> list[str]:
+def foreign_entries(folder: Path) -> list[str]:
     """Entries of an existing ``folder`` that this tool did not write (sorted)."""
     ours = read_manifest(folder)
     return sorted(e for e in os.listdir(folder) if e != MANIFEST and e not in ours)
@@ -278,7 +287,7 @@ def check_output(path, *, kind: str, what: str, inputs=(), overwrite: bool = Fal
                 raise OutputError(f"{what} {shown}: is a file, a folder is expected")
             entries = [e for e in os.listdir(real)]
             if entries and overwrite == "ours":  # replace a folder only this tool wrote (the Python API)
-                foreign = _foreign(real)
+                foreign = foreign_entries(real)
                 if foreign:
                     raise OutputExistsError(f"{what} {shown}: holds {foreign[0]}, which this tool did not "
                                             "write; refusing to replace the folder (pass overwrite=True to "
@@ -286,7 +295,7 @@ def check_output(path, *, kind: str, what: str, inputs=(), overwrite: bool = Fal
             elif entries and not overwrite:
                 raise OutputExistsError(f"{what} {shown}: folder exists and is not empty; add --overwrite to "
                                         "replace what this tool wrote there (other files are kept)")
-            clash = [e for e in _foreign(real) if any(fnmatch.fnmatch(e, w) for w in writes)]
+            clash = [e for e in foreign_entries(real) if any(fnmatch.fnmatch(e, w) for w in writes)]
             if clash:
                 raise OutputExistsError(f"{what} {shown}: holds {clash[0]}, which this tool did not write and "
                                         "would replace; move it away or choose another output")
@@ -400,14 +409,14 @@ class OutputFolder:
             self.beside = "partial"
         elif self.checked is not None and target.is_dir():
             gained = entries(target) - set(self.checked)
-            if gained and (not self.overwrite or set(_foreign(target)) & gained & (set(written) | {MANIFEST})):
+            if gained and (not self.overwrite or set(foreign_entries(target)) & gained & (set(written) | {MANIFEST})):
                 self.beside = "new"
         if self.beside:
             target = beside_path(target, self.beside)
         if os.path.lexists(target):
             if not target.is_dir():
                 raise OutputExistsError(f"{target}: is a file, a folder is expected")
-            keep = _foreign(target)
+            keep = foreign_entries(target)
             if keep and not self.overwrite:
                 raise OutputExistsError(f"{target}: holds {keep[0]}, which this tool did not write; "
                                         "refusing to replace the folder")

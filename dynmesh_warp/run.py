@@ -217,10 +217,10 @@ def _interrupted_line(summary: dict) -> str:
             f"wrote {out}/summary.json (\"interrupted\": true) and trajectories.npz up to that step")
     ck = summary.get("checkpoint")
     if ck:
-        from .outputs import _foreign
+        from .outputs import foreign_entries
 
         # a folder holding the user's files takes --overwrite to resume into (a new user's hint lacked it)
-        more = " --overwrite" if _foreign(Path(out)) else ""
+        more = " --overwrite" if foreign_entries(Path(out)) else ""
         line += f" and {ck['file']}; continue with --resume {Path(out) / ck['file']}{more} (same scene and options)"
     return line
 

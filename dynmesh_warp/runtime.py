@@ -170,12 +170,12 @@ def check_run_output(cfg, output=None, overwrite: bool | str = "ours", what: str
     input of the scene, a folder, creatable and writable, existing only with ``overwrite``.
     Resuming from the checkpoint inside it continues that run: the folder may then be replaced
     without ``overwrite`` when everything in it was written by this tool."""
-    from .outputs import OutputExistsError, _foreign, _real, check_output
+    from .outputs import OutputExistsError, _real, check_output, foreign_entries
 
     path = cfg.output_path(output)
     what = what or ("--output" if output else "run.output")
     if resume is not None and not overwrite and _real(resume).parent == _real(path) and Path(path).is_dir():
-        foreign = _foreign(_real(path))
+        foreign = foreign_entries(_real(path))
         if foreign:
             raise OutputExistsError(f"{what} {path}: holds {foreign[0]}, which this tool did not write; add "
                                     "--overwrite to resume into it (files this tool did not write are kept)")

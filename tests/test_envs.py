@@ -230,45 +230,64 @@ def test_torch_backend_shares_device_memory(device):
     assert r.shape == (3,) and term.dtype == torch.bool
 
 
-def test_missed_probes_read_the_floor_and_the_phase_follows_the_playback(device):
+def _blob_env(device, playback="loop", **kw):
+    from dynmesh_warp.config import load_scene_config
+
+    cfg = load_scene_config(data={"device": device, "surface": {
+        "source": "builtin:pulsing_blob", "playback": playback, "params": {"subdivisions": 2, "frames": 12}}})
+    return RideSurfaceEnv(scene=cfg, **kw)
+
+
+def test_missed_probes_read_the_floor_and_a_ball_below_it_has_fallen(device):
     """With no ground (the built-in blob) a height probe that meets no surface below reads the
     sequence's lowest point (it read -1e6, a new user's silent outlier in 216 of 57,600 heights),
-    and a ball below it has fallen (terminated). The phase's sin/cos follow the surface's own
-    cycle (closed form): pingpong repeats every 2 (T - 1) frames, clamp runs pi x the played
-    fraction and holds at pi (both had cycled every T frames), loop every T frames."""
-    from dynmesh_warp.batch import BatchState
-    from dynmesh_warp.choices import PLAYBACK_CODES, Playback
+    and a ball that drops below it has fallen (terminated, -1). The target is put beside the blob,
+    so the balls spawn with no surface under them."""
+    probe = _blob_env(device, num_envs=3)
+    seq = probe.world.model.surface.sequence
+    V = seq.V.reshape(-1, 3)
+    assert probe.world.model.params.ground_height is None and probe.floor == pytest.approx(float(V[:, 2].min()))
+    diag = float(np.linalg.norm(np.ptp(V, axis=0)))
+    target = [float(V[:, 0].max()) + 2.0 * diag, 0.0, probe.floor + 0.2]
+    env = _blob_env(device, num_envs=3, seed=7, target=target)
+    obs, _ = env.reset(seed=7)
+    z = obs[:, 2] + target[2]  # the balls' heights (obs 0..2: position relative to the target)
+    np.testing.assert_allclose(obs[:, 6:15] - (env.floor - z)[:, None], 0.0, atol=1e-5)
+    fell = np.zeros(3, bool)
+    for _ in range(60):
+        _, r, term, trunc, info = env.step(np.zeros((3, 2), np.float32))
+        last = info["final_obs"]
+        done = term | trunc
+        np.testing.assert_allclose(last[done, 6:15] - (env.floor - (last[done, 2] + target[2]))[:, None], 0.0,
+                                   atol=1e-5)
+        assert (r[term] < 0).all()
+        fell |= term
+    assert fell.all()  # every ball dropped past the floor
 
-    env = _env(device, num_envs=3, seed=7)
+
+@pytest.mark.parametrize("mode", ["loop", "pingpong", "clamp"])
+def test_the_phase_follows_the_playback(device, mode):
+    """The phase's sin/cos (obs 16, 17) follow the surface's own cycle, in closed form from each
+    env's time: loop every T frames, pingpong every 2 (T - 1) frames, clamp pi x the fraction
+    played, held at pi (pingpong and clamp had cycled every T frames); episodes start anywhere in
+    that cycle (a pingpong env goes back as often as forth)."""
+    env = _blob_env(device, playback=mode, num_envs=8, seed=3)
     seq = env.world.model.surface.sequence
-    assert env.world.model.params.ground_height is None and env.floor == pytest.approx(float(seq.V[..., 2].min()))
-    env.reset(seed=7)
-    st = env.world.state
-    far = np.asarray(env.target, np.float64) + [10.0 * env.max_distance, 0.0, 0.0]  # no surface below
-    low = far.copy()
-    low[2] = env.floor - 1.0  # under the lowest point: fallen
-    pos = st.sphere_pos.numpy()
-    pos[0], pos[1] = far, low
-    st.sphere_pos.assign(pos)
-    env._evaluate()
-    obs = env.obs.numpy()
-    np.testing.assert_allclose(obs[0, 6:15], env.floor - far[2], atol=1e-5)
-    assert env.terminated.numpy()[1] == 1
     T, fps = seq.num_frames, float(seq.fps)
-    for mode, cycle, half in (("loop", T, False), ("pingpong", 2 * (T - 1), False), ("clamp", T - 1, True)):
-        times = np.array([0.3, 0.3 + cycle / fps, 2.5 * cycle / fps])
-        st2 = BatchState(env.world.model, st.sphere_pos.numpy().reshape(3, 1, 3), times=times, playback=mode)
-        env.world.state.env_time.assign(st2.env_time.numpy())
-        env.world.state.env_playback.assign(st2.env_playback.numpy())
-        env._evaluate()
-        ph = env.obs.numpy()[:, 16:18]
-        u = times * fps / cycle
+    cycle, half = {"loop": (T, False), "pingpong": (2 * (T - 1), False), "clamp": (T - 1, True)}[mode]
+
+    def check(obs):
+        u = env.world.env_times() * fps / cycle
         want = np.pi * np.clip(u, 0, 1) if half else 2 * np.pi * (u % 1.0)
-        np.testing.assert_allclose(ph, np.stack([np.sin(want), np.cos(want)], 1), atol=2e-5, err_msg=mode)
-    # a pingpong env starts anywhere in its cycle: going back as often as forth
-    env.world.state.env_playback.fill_(PLAYBACK_CODES[Playback.PINGPONG])
-    starts = []
-    for s in range(12):
-        env.reset(seed=s)
-        starts += list(env.world.env_times())
-    assert max(starts) > T / fps and max(starts) <= 2 * (T - 1) / fps
+        np.testing.assert_allclose(obs[:, 16:18], np.stack([np.sin(want), np.cos(want)], 1), atol=2e-5)
+        return u
+
+    seen = [check(env.reset(seed=3)[0])]
+    assert (seen[0] <= 1.0).all()
+    for _ in range(40):  # 40 x decimation x dt: past the end of a clamp's one playback
+        seen.append(check(env.step(np.zeros((8, 2), np.float32))[0]))
+    starts = [check(env.reset(seed=s)[0]) for s in range(6)]
+    if mode == "pingpong":
+        assert np.concatenate(starts).max() > T / cycle  # in the way back
+    if mode == "clamp":
+        assert np.concatenate(seen).max() > 1.0  # held at the last frame meanwhile

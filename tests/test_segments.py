@@ -112,7 +112,6 @@ def test_stretched_faces_inside_a_closed_input_are_buried_not_web():
     centroid is inside iff |c| < 1 (the far ones lie well away from the facets); the kernel
     (wp.mesh_query_point's sign), the host function (winding number) and the oracle agree. An
     open input (the same sphere with a cap cut off) has no inside: everything far is web."""
-    from dynmesh_warp.convert import _device_frame
     from dynmesh_warp.kernels import convert as kc
 
     rng = np.random.default_rng(5)
@@ -135,22 +134,21 @@ def test_stretched_faces_inside_a_closed_input_are_buried_not_web():
     got = web_fraction(X, key.faces, key.vertices, ref.vertices, ref.faces, device=TEST_DEVICE, with_buried=True)
     np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-7)
     # the kernel the conversion runs, with the input closed (its sign) and taken as open
-    frame = _device_frame(ref.vertices, ref.faces, TEST_DEVICE)
-    assert frame.closed
+    mesh = wp.Mesh(points=wp.array(ref.vertices.astype(np.float32), dtype=wp.vec3, device=TEST_DEVICE),
+                   indices=wp.array(ref.faces.reshape(-1).astype(np.int32), dtype=wp.int32, device=TEST_DEVICE))
     out = wp.zeros(3, dtype=float, device=TEST_DEVICE)
     for closed, expect in ((1, want), (0, (want[0] + want[1], 0.0))):
         out.zero_()
         wp.launch(kc.measure_web_area, dim=len(key.faces),
                   inputs=[wp.array(key.faces.reshape(-1).astype(np.int32), dtype=wp.int32, device=TEST_DEVICE),
                           wp.array(edge0.astype(np.float32), dtype=float, device=TEST_DEVICE),
-                          wp.array(X.astype(np.float32), dtype=wp.vec3, device=TEST_DEVICE), frame[0].id,
+                          wp.array(X.astype(np.float32), dtype=wp.vec3, device=TEST_DEVICE), mesh.id,
                           WEB_STRETCH, float(WEB_GAP * diag), closed], outputs=[out], device=TEST_DEVICE)
         total, web, buried = out.numpy()
         np.testing.assert_allclose((web / total, buried / total), expect, rtol=1e-3, atol=1e-6)
     # open: a cap cut off the input, so nothing is inside
     keep = ref.vertices[ref.faces].mean(axis=1)[:, 2] < 0.9
     cut = ref.faces[keep]
-    assert not _device_frame(ref.vertices, cut, TEST_DEVICE).closed
     web, buried = web_fraction(X, key.faces, key.vertices, ref.vertices, cut, device=TEST_DEVICE, with_buried=True)
     assert buried == 0.0 and web > want[0]
 
