@@ -495,7 +495,10 @@ def test_conversion_summary_warns_on_poor_coverage():
 @pytest.mark.parametrize("bad,name", [({"node_spacing": 0}, "node_spacing"), ({"graph_iterations": 0}, "graph_iterations"),
                                       ({"stiffness": float("nan")}, "stiffness"), ({"smooth_weight": 2}, "smooth_weight"),
                                       ({"max_normal_angle": 200}, "max_normal_angle"), ({"key_frame": 1.5}, "key_frame"),
-                                      ({"predict_candidates": 0}, "predict_candidates")])
+                                      ({"predict_candidates": 0}, "predict_candidates"),
+                                      ({"converge_iterations": -1}, "converge_iterations"),
+                                      ({"converge_tolerance": 0}, "converge_tolerance"),
+                                      ({"converge_tolerance": float("inf")}, "converge_tolerance")])
 def test_graph_options_are_range_checked(bad, name):
     from dynmesh_warp.convert import _resolve_options
 
