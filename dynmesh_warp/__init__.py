@@ -52,7 +52,7 @@ _LAZY = {
     "Simulation": "runtime",
     "run_simulation": "runner",
     "BatchedWorld": "batch", "build_batched_world": "batch",
-    "RideSurfaceEnv": "envs",
+    "RideSurfaceEnv": "envs", "RideSurfaceSingleEnv": "envs",
     "Renderer": "render", "Camera": "render", "render_world": "render", "render_envs": "render",
 }
 
@@ -102,6 +102,7 @@ __all__ = [
     "BatchedWorld",
     "build_batched_world",
     "RideSurfaceEnv",
+    "RideSurfaceSingleEnv",
     "Renderer",
     "Camera",
     "render_world",

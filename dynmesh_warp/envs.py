@@ -45,7 +45,13 @@ except ImportError:  # pragma: no cover - reported when an env is made
     VectorEnv = object
     AutoresetMode = None
 
-__all__ = ["RideSurfaceEnv", "surface_target"]
+__all__ = ["ENV_ID", "RideSurfaceEnv", "RideSurfaceSingleEnv", "surface_target"]
+
+#: the Gymnasium id registered when this module is imported: ``gym.make(ENV_ID)`` makes a
+#: :class:`RideSurfaceSingleEnv`, ``gym.make_vec(ENV_ID, num_envs=E)`` a :class:`RideSurfaceEnv`
+#: (its ``vector_entry_point``: one batched world, not E copies); without importing this module
+#: first, ``gym.make("dynmesh_warp.envs:" + ENV_ID)``
+ENV_ID = "dynmesh_warp/RideSurface-v0"
 
 
 def surface_target(V0: np.ndarray, top_fraction: float = 0.1) -> np.ndarray:
@@ -275,4 +281,75 @@ class RideSurfaceEnv(VectorEnv):
     def _check_open(self):
         if getattr(self, "closed", False):
             raise RuntimeError("RideSurfaceEnv: the env is closed")
+
+
+class RideSurfaceSingleEnv(gym.Env if gym is not None else object):
+    """The same task as one ``gymnasium.Env`` (what Stable-Baselines3's ``check_env``, Gymnasium's
+    wrappers and most single-env code expect): a :class:`RideSurfaceEnv` of one env underneath,
+    so the physics, observation, reward and flags are the batch's, step for step.
+
+    Unlike the vector env there is no autoreset: a step that ends the episode returns its last
+    observation, and ``reset()`` starts the next (a ``step`` before it is refused).
+    ``render_mode="rgb_array"``: ``render()`` returns the env's camera image
+    (:meth:`RideSurfaceEnv.render_images`) as (``render_size``) uint8 RGB. Every other keyword
+    argument is :class:`RideSurfaceEnv`'s (``scene``, ``device``, ``radius``, ``max_steps``, ...).
+    """
+
+    metadata = {"render_modes": ["rgb_array"]}
+
+    def __init__(self, render_mode: str | None = None, render_size: tuple[int, int] = (128, 128), **kwargs):
+        if gym is None:
+            raise ImportError("RideSurfaceSingleEnv needs gymnasium >= 1.0: pip install 'dynmesh_warp[rl]'")
+        taken = sorted({"num_envs", "backend"} & set(kwargs))
+        if taken:
+            raise ValueError(f"RideSurfaceSingleEnv: {taken[0]} is fixed for one env (use RideSurfaceEnv for a batch)")
+        if render_mode not in (None, *self.metadata["render_modes"]):
+            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        size = tuple(render_size) if np.ndim(render_size) == 1 else ()
+        if len(size) != 2 or any(isinstance(v, bool) or int(v) != v or v < 1 for v in size):
+            raise ValueError(f"render_size must be (width, height) in pixels, got {render_size!r}")
+        self.vector_env = RideSurfaceEnv(num_envs=1, backend="numpy", **kwargs)
+        self.observation_space = self.vector_env.single_observation_space
+        self.action_space = self.vector_env.single_action_space
+        self.render_mode, self.render_size = render_mode, (int(size[0]), int(size[1]))
+        v = self.vector_env
+        self.metadata = {**self.metadata, "render_fps": 1.0 / (v.decimation * v.world.dt)}
+        self._ended = True  # reset() first
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        """Start an episode; ``seed`` makes it reproducible (as the vector env's). Returns (obs (18,), {})."""
+        super().reset(seed=seed)
+        if options:
+            raise ValueError(f"reset options: RideSurfaceSingleEnv takes none, got {sorted(options)}")
+        obs, _ = self.vector_env.reset(seed=seed)
+        self._ended = False
+        return obs[0], {}
+
+    def step(self, action):
+        """Apply the action (2,) and take ``decimation`` physics steps: (obs, reward, terminated,
+        truncated, info)."""
+        if self._ended:
+            raise RuntimeError("RideSurfaceSingleEnv: the episode has ended (or not begun); call reset()")
+        shape = np.shape(action)
+        if shape != (2,):
+            raise ValueError(f"action must have shape (2,) (a horizontal (x, y) push), got {shape}")
+        obs, reward, term, trunc, info = self.vector_env.step(np.asarray(action, np.float64)[None])
+        self._ended = bool(term[0] or trunc[0])
+        if self._ended:  # the vector env has already started the next episode; its last observation:
+            obs = info["final_obs"]
+        return obs[0], float(reward[0]), bool(term[0]), bool(trunc[0]), {}
+
+    def render(self):
+        """The env's camera image, (height, width, 3) uint8, with ``render_mode="rgb_array"``; else None."""
+        if self.render_mode != "rgb_array":
+            return None
+        rgb = self.vector_env.render_images(*self.render_size)[0]
+        return (np.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+    def close(self):
+        self.vector_env.close()
+
+
+if gym is not None and ENV_ID not in gym.registry:
+    gym.register(ENV_ID, entry_point=f"{__name__}:RideSurfaceSingleEnv", vector_entry_point=f"{__name__}:RideSurfaceEnv")
 

@@ -13,12 +13,15 @@ from dynmesh_warp.envs import RideSurfaceEnv  # noqa: E402
 from reference import surface_at  # noqa: E402
 
 
-def _env(device, **kw):
+def _env_cfg(device):
     from dynmesh_warp.config import load_scene_config
 
-    cfg = load_scene_config(data={"device": device, "surface": {"source": "builtin:pulsing_blob",
-                                                                 "params": {"subdivisions": 2, "frames": 12}}})
-    return RideSurfaceEnv(scene=cfg, **kw)
+    return load_scene_config(data={"device": device, "surface": {"source": "builtin:pulsing_blob",
+                                                                  "params": {"subdivisions": 2, "frames": 12}}})
+
+
+def _env(device, **kw):
+    return RideSurfaceEnv(scene=_env_cfg(device), **kw)
 
 
 def test_spaces_reset_and_step_follow_the_vector_api(device):
@@ -291,3 +294,60 @@ def test_the_phase_follows_the_playback(device, mode):
         assert np.concatenate(starts).max() > T / cycle  # in the way back
     if mode == "clamp":
         assert np.concatenate(seen).max() > 1.0  # held at the last frame meanwhile
+
+
+def test_single_env_is_the_batch_of_one_through_gymnasium_make(device):
+    """``gym.make(ENV_ID)``: a ``gymnasium.Env`` that passes Gymnasium's own checker and gives,
+    step for step, what a :class:`RideSurfaceEnv` of one env gives with the same seed and
+    actions (the oracle); the episode's last step returns its last observation (the batch's
+    ``final_obs``), and a step after it is refused until ``reset``. ``gym.make_vec`` makes the
+    batched class itself."""
+    from gymnasium.utils.env_checker import check_env
+
+    from dynmesh_warp.envs import ENV_ID, RideSurfaceSingleEnv
+
+    cfg = _env_cfg(device)
+    env = gym.make(ENV_ID, scene=cfg, max_steps=6)
+    assert isinstance(env.unwrapped, RideSurfaceSingleEnv)
+    check_env(env.unwrapped, skip_render_check=True)
+    batch = RideSurfaceEnv(num_envs=1, scene=cfg, max_steps=6)
+    rng = np.random.default_rng(0)
+    for seed in (4, 9):
+        o, info = env.reset(seed=seed)
+        ob, _ = batch.reset(seed=seed)
+        assert o.shape == (18,) and info == {} and env.observation_space.contains(o)
+        np.testing.assert_array_equal(o, ob[0])
+        for k in range(6):
+            a = rng.uniform(-1, 1, 2).astype(np.float32)
+            o, r, term, trunc, _ = env.step(a)
+            ob, rb, tb, trb, ib = batch.step(a[None])
+            assert isinstance(r, float) and r == float(rb[0]) and (term, trunc) == (bool(tb[0]), bool(trb[0]))
+            np.testing.assert_array_equal(o, ib["final_obs"][0])
+            if term or trunc:
+                break
+        assert term or (trunc and k == 5)
+        with pytest.raises(RuntimeError, match="call reset"):
+            env.step(np.zeros(2, np.float32))
+    with pytest.raises(ValueError, match=r"action must have shape \(2,\)"):
+        env.reset()
+        env.step(np.zeros((1, 2), np.float32))
+    vec = gym.make_vec(ENV_ID, num_envs=3, scene=cfg)
+    assert isinstance(vec, RideSurfaceEnv) and vec.num_envs == 3
+    with pytest.raises(ValueError, match="num_envs is fixed for one env"):
+        RideSurfaceSingleEnv(scene=cfg, num_envs=2)
+    with pytest.raises(ValueError, match="render_mode must be None or 'rgb_array'"):
+        RideSurfaceSingleEnv(scene=cfg, render_mode="human")
+
+
+def test_single_env_renders_the_batchs_camera_image(device):
+    """``render_mode="rgb_array"``: the env's camera image as uint8 (height, width, 3), the
+    vector env's ``render_images`` of that env rounded to 8 bits."""
+    from dynmesh_warp.envs import RideSurfaceSingleEnv
+
+    env = RideSurfaceSingleEnv(scene=_env_cfg(device), render_mode="rgb_array", render_size=(20, 12))
+    env.reset(seed=2)
+    img = env.render()
+    assert img.shape == (12, 20, 3) and img.dtype == np.uint8 and img.max() > img.min()
+    ref = env.vector_env.render_images(20, 12)[0]
+    np.testing.assert_array_equal(img, (np.clip(ref, 0, 1) * 255 + 0.5).astype(np.uint8))
+    assert RideSurfaceSingleEnv(scene=_env_cfg(device)).render() is None
