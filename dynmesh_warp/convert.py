@@ -2238,7 +2238,7 @@ def main(argv=None) -> int:
     from .animation_formats import VERTEX_ONLY_EXTENSIONS, find_topology, written_topology
     from .io import ANIMATED_FILE_OUTPUTS, MESH_EXTENSIONS, load_sequence, save_sequence
     from .mesh_formats import UNREAD_ANIMATIONS
-    from .outputs import check_output
+    from .outputs import OutputKind, check_output
 
     opts = {}
     if a.key_frame is not None:
@@ -2320,7 +2320,7 @@ def main(argv=None) -> int:
                                  + formats + " named without an extension (or create the folder first)")
             a.fmt = a.fmt or "ply"
             check_output(a.output, kind="folder", what="output", inputs=inputs, overwrite=a.overwrite,
-                         writes=_FOLDER_FRAMES)
+                         writes=_FOLDER_FRAMES, holds=OutputKind.SEQUENCE)
         seq = load_sequence(a.input, fps=a.fps)
         if isinstance(seq, FixedTopologySequence):
             print(f"note: {a.input} already has fixed topology ({seq.num_frames} frames); converting it "

@@ -613,12 +613,13 @@ def main(argv=None) -> int:
     quiet_warp(a.device)
     progress = not a.no_progress
     try:
-        from .outputs import OutputFolder, check_output, entries
+        from .outputs import OutputFolder, OutputKind, check_output, entries
         from .runtime import resolve_device
 
         device = str(resolve_device(a.device, "--device"))
         inputs = _check_options(a, ap.error)
-        check_output(a.out, kind="folder", what="--out", inputs=inputs, overwrite=a.overwrite, writes=EVAL_OUTPUTS)
+        check_output(a.out, kind="folder", what="--out", inputs=inputs, overwrite=a.overwrite, writes=EVAL_OUTPUTS,
+                     holds=OutputKind.EVALUATION)
         checked = entries(a.out)  # what appears there during the work is not replaced (OutputFolder)
         note = _emd_estimate(a, device)
         if note:
@@ -632,7 +633,8 @@ def main(argv=None) -> int:
                 done = len(r["results"][a.protocol[0]]["frames"])
                 if reason and not done:
                     raise Interrupted(getattr(signal, reason))
-                cmp_folder = OutputFolder(a.out, overwrite=a.overwrite, interrupted=bool(reason), checked=checked)
+                cmp_folder = OutputFolder(a.out, overwrite=a.overwrite, interrupted=bool(reason), checked=checked,
+                                          holds=OutputKind.EVALUATION)
                 with cmp_folder as tmp:
                     atomic_write_json(tmp / "compare.json", {
                         "ground_truth": a.compare[0], "prediction": a.compare[1], "device": device,
@@ -658,7 +660,7 @@ def main(argv=None) -> int:
                   "seed": a.seed, "protocols": a.protocol, "strategies": a.strategies,
                   "frame_order": a.frame_order}
         scenes = []
-        folder = OutputFolder(a.out, overwrite=a.overwrite, checked=checked)
+        folder = OutputFolder(a.out, overwrite=a.overwrite, checked=checked, holds=OutputKind.EVALUATION)
         reason, info = None, None
         with checking_stops(), folder as tmp:  # Ctrl-C / SIGTERM: stop between frames, keep what is done
             for i, s in enumerate(a.scenes):

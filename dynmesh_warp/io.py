@@ -33,7 +33,7 @@ from .animation_formats import (
 from .choices import FrameOrder, parse
 from .gltf_animation import GLTF_EXTENSIONS, gltf_has_animation, read_gltf_animation, write_gltf_animation
 from .mesh_formats import MESH_EXTENSIONS, read_mesh, write_mesh, write_mesh_file
-from .outputs import OutputExistsError, OutputFolder, atomic_path
+from .outputs import OutputExistsError, OutputFolder, OutputKind, atomic_path
 from .sequence import FixedTopologySequence, VaryingTopologySequence
 from .sequence_layouts import (
     DEFAULT_FPS,
@@ -174,7 +174,7 @@ def _save_npz(seq, path: Path, status: dict | None = None) -> None:
 
 
 def _save_folder(seq, folder: Path, fmt: str, overwrite: bool = False, status: dict | None = None) -> None:
-    with OutputFolder(folder, overwrite=overwrite, status=status) as tmp:
+    with OutputFolder(folder, overwrite=overwrite, status=status, holds=OutputKind.SEQUENCE) as tmp:
         for t in range(seq.num_frames):
             V, F = seq.frame(t)
             write_mesh_file(tmp / f"frame_{t:04d}.{fmt}", V, F)

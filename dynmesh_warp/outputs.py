@@ -10,7 +10,9 @@
   renamed into place at the end; an existing folder is replaced keeping every entry this tool
   did not write where it is (the folder's manifest :data:`MANIFEST` lists what it wrote), so
   ``--overwrite`` never deletes or moves the user's files. On an error the old folder stays as
-  it was.
+  it was. The manifest also says what the folder holds (:class:`OutputKind`): ``--overwrite``
+  replaces an output of the same kind only (a render into a run's folder replaced the run's
+  trajectories).
 - The temporaries of writes in progress are registered, so a hard exit (a second Ctrl-C,
   :mod:`dynmesh_warp.cli`) removes them (:func:`abandon_temporaries`) without cutting a
   rename into place in two.
@@ -19,6 +21,7 @@
 from __future__ import annotations
 
 import contextlib
+import enum
 import json
 import math
 import os
@@ -31,11 +34,28 @@ import numpy as np
 
 __all__ = ["atomic_write_bytes", "atomic_write_json", "atomic_write_npz", "atomic_path", "OutputError",
            "OutputExistsError", "check_output", "OutputFolder", "MANIFEST", "read_manifest", "read_manifest_status",
-           "foreign_entries", "apply_umask",
+           "foreign_entries", "apply_umask", "OutputKind", "read_manifest_kind",
            "add_to_manifest", "temporary", "abandon_temporaries", "beside_path", "entries"]
 
-#: name of the manifest in every folder this tool writes: JSON {"tool": ..., "files": [names]}
+#: name of the manifest in every folder this tool writes: JSON {"tool": ..., "files": [names],
+#: "holds": an OutputKind's value, "status": {...}}
 MANIFEST = ".dynmesh_outputs.json"
+
+
+class OutputKind(str, enum.Enum):
+    """What a folder output holds (its manifest's ``"holds"``). ``--overwrite`` replaces only an
+    output of the same kind: ``render --out`` into a run's output folder deleted the run's
+    ``trajectories.npz`` and ``summary.json`` (both "this tool's" files) with exit 0."""
+
+    RUN = "run"  #: ``run --output``: summary.json, trajectories.npz, a checkpoint
+    RENDER = "render"  #: ``render --out``: frame_NNNN.png
+    EVALUATION = "evaluation"  #: ``evaluate --out``: results, tables, plots
+    SEQUENCE = "sequence"  #: a sequence of per-frame meshes (``convert``'s folder output, ``io.save_sequence``)
+
+    @property
+    def described(self) -> str:
+        return {"run": "a run's outputs", "render": "rendered frames", "evaluation": "an evaluation's results",
+                "sequence": "a sequence's frames"}[self.value]
 
 
 #: temporary files and folders of writes in progress (path -> is a folder), for a hard exit
@@ -211,13 +231,31 @@ def read_manifest_status(folder) -> dict | None:
     return status if isinstance(status, dict) else None
 
 
-def add_to_manifest(folder, name: str) -> None:
+def read_manifest_kind(folder) -> OutputKind | None:
+    """What ``folder``'s manifest says it holds (None: no manifest, or one written before the
+    manifest said it, or an unknown kind)."""
+    try:
+        return OutputKind(_manifest_doc(folder).get("holds"))
+    except ValueError:
+        return None
+
+
+def _other_kind(folder: Path, holds: OutputKind | None) -> OutputKind | None:
+    """The kind of output ``folder`` holds where it is not ``holds`` and some of it is still there."""
+    other = read_manifest_kind(folder) if holds is not None and folder.is_dir() else None
+    if other is None or other == OutputKind(holds) or not (read_manifest(folder) & set(os.listdir(folder))):
+        return None
+    return other
+
+
+def add_to_manifest(folder, name: str, holds: OutputKind | None = None) -> None:
     """List ``name`` (a file just written into ``folder`` during a run, e.g. a checkpoint) in the
     folder's manifest, so the folder stays one this tool wrote (``--overwrite`` rules)."""
     folder = Path(folder)
     doc = _manifest_doc(folder)
     files = sorted(read_manifest(folder) | {name})
-    atomic_write_json(folder / MANIFEST, {**doc, "tool": "dynmesh_warp", "files": files})
+    kind = {"holds": OutputKind(holds).value} if holds is not None else {}
+    atomic_write_json(folder / MANIFEST, {**doc, "tool": "dynmesh_warp", "files": files, **kind})
 
 
 def foreign_entries(folder: Path) -> list[str]:
@@ -244,7 +282,7 @@ def _check_creatable(real: Path, shown: str, what: str) -> None:
 
 
 def check_output(path, *, kind: str, what: str, inputs=(), overwrite: bool = False, suffixes=None,
-                 writes=()) -> Path:
+                 writes=(), holds: OutputKind | None = None) -> Path:
     """Check an output path before any work; return its real path. Raises :class:`OutputError`
     with one line naming ``what`` (e.g. ``--output``) and the path. Writes nothing.
 
@@ -253,7 +291,9 @@ def check_output(path, *, kind: str, what: str, inputs=(), overwrite: bool = Fal
     kind: ``"folder"`` or ``"file"``; inputs: paths the command reads (files or folders);
     suffixes: allowed file extensions (``kind="file"``); writes: ``fnmatch`` patterns of the
     names the tool will write into a folder (an existing foreign file of such a name would be
-    lost, so it is refused even with ``overwrite``).
+    lost, so it is refused even with ``overwrite``); holds: what the folder will hold
+    (:class:`OutputKind`): a folder holding another kind of output is refused even with
+    ``overwrite`` (only an output of the same kind is replaced).
     """
     import fnmatch
 
@@ -286,6 +326,13 @@ def check_output(path, *, kind: str, what: str, inputs=(), overwrite: bool = Fal
             if not real.is_dir():
                 raise OutputError(f"{what} {shown}: is a file, a folder is expected")
             entries = [e for e in os.listdir(real)]
+            other = _other_kind(real, holds)
+            if other is not None:
+                ours = sorted(read_manifest(real) & set(entries))
+                raise OutputExistsError(f"{what} {shown}: holds {other.described} ({', '.join(ours[:3])}"
+                                        f"{', ...' if len(ours) > 3 else ''}), which --overwrite does not replace with "
+                                        f"{OutputKind(holds).described}; choose another folder (or remove that "
+                                        "output first)")
             if entries and overwrite == "ours":  # replace a folder only this tool wrote (the Python API)
                 foreign = foreign_entries(real)
                 if foreign:
@@ -350,7 +397,9 @@ class OutputFolder:
     so no interruption can misplace them). On an exception nothing changes (unless ``keep_on_error`` was set,
     e.g. after partial results worth keeping) and the temporary folder is removed.
     ``status``: a JSON-ready dict stored in the manifest under ``"status"`` (e.g. an
-    interrupted conversion's frame counts).
+    interrupted conversion's frame counts); ``holds``: what the folder holds
+    (:class:`OutputKind`, stored as ``"holds"``); a folder found holding another kind of output
+    at the commit is not replaced (the result goes to ``<name>.new``).
 
     Where the result goes (``written``, the path after the commit): ``path``, except that a
     result marked ``interrupted`` (set it before the block ends) never replaces an earlier
@@ -365,7 +414,7 @@ class OutputFolder:
     this tool did not write is :class:`OutputExistsError` unless ``overwrite``."""
 
     def __init__(self, path, overwrite: bool = False, keep_on_error: bool = False, status: dict | None = None,
-                 interrupted: bool = False, checked: set | None = None):
+                 interrupted: bool = False, checked: set | None = None, holds: OutputKind | None = None):
         self.path = _real(path)
         self.written = self.path
         self.beside = None  # why the result went beside path: "partial" or "new" (None: it did not)
@@ -374,6 +423,7 @@ class OutputFolder:
         self.status = status
         self.interrupted = interrupted
         self.checked = checked
+        self.holds = None if holds is None else OutputKind(holds)
         self.tmp = None
 
     def __enter__(self) -> Path:
@@ -411,6 +461,8 @@ class OutputFolder:
             gained = entries(target) - set(self.checked)
             if gained and (not self.overwrite or set(foreign_entries(target)) & gained & (set(written) | {MANIFEST})):
                 self.beside = "new"
+        if not self.beside and _other_kind(target, self.holds) is not None:  # another kind of output
+            self.beside = "new"  # appeared there during the work (check_output refuses it before)
         if self.beside:
             target = beside_path(target, self.beside)
         if os.path.lexists(target):
@@ -426,6 +478,7 @@ class OutputFolder:
                                         "would replace")
         self.written = target
         atomic_write_json(tmp / MANIFEST, {"tool": "dynmesh_warp", "files": written,
+                                           **({"holds": self.holds.value} if self.holds is not None else {}),
                                            **({"status": self.status} if self.status is not None else {})})
         if not keep and not os.path.lexists(target):
             os.replace(tmp, target)

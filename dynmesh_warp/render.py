@@ -648,7 +648,7 @@ def _main(argv=None) -> int:
     from .gaussians import gaussians_for_surface
     from .scene import build_world
 
-    from .outputs import OutputFolder, check_output, entries
+    from .outputs import OutputFolder, OutputKind, check_output, entries
 
     try:
         cfg = load_scene_config(**scene_source(a.scene), overrides=a.overrides)
@@ -660,7 +660,7 @@ def _main(argv=None) -> int:
             check_output(a.video, kind="file", what="--video", inputs=ins, overwrite=a.overwrite)
         if a.out:
             check_output(a.out, kind="folder", what="--out", inputs=ins, overwrite=a.overwrite,
-                         writes=("frame_*.png",))
+                         writes=("frame_*.png",), holds=OutputKind.RENDER)
         out_checked = entries(a.out) if a.out else None  # what appears there meanwhile is not replaced
         if cfg.newton is not None:  # a newton: scene renders the Newton world, its bodies drawn in
             from .newton_adapter import build_newton_world
@@ -698,7 +698,7 @@ def _main(argv=None) -> int:
         it = range(last + 1)
     # the frames go into a temporary folder renamed into place at the end (they went one by one
     # into --out, so a stopped --overwrite left old and new frames mixed: a new user's)
-    folder = OutputFolder(a.out, overwrite=a.overwrite, checked=out_checked) if a.out else None
+    folder = OutputFolder(a.out, overwrite=a.overwrite, checked=out_checked, holds=OutputKind.RENDER) if a.out else None
     done, reason = 0, None
     with checking_stops(), (folder if folder is not None else contextlib.nullcontext()) as tmp:
         for f in it:

@@ -68,7 +68,7 @@ def run_simulation(sim, cfg, *, steps: int, out: Path, t_build: float, progress:
     simulation; ``stop``: a callable checked between steps, see
     :func:`dynmesh_warp.run.run_scene`."""
     from .cli import checking_stops
-    from .outputs import MANIFEST, OutputFolder, add_to_manifest, atomic_write_json, atomic_write_npz, entries
+    from .outputs import MANIFEST, OutputFolder, OutputKind, add_to_manifest, atomic_write_json, atomic_write_npz, entries
 
     every = int(checkpoint_every or 0)
     # the output folder as the caller checked it: what appears in it during the run is not replaced
@@ -112,7 +112,7 @@ def run_simulation(sim, cfg, *, steps: int, out: Path, t_build: float, progress:
         save_checkpoint(out / CHECKPOINT_NAME, sim, scene=cfg.name, step=step, steps=steps,
                         checkpoint_every=every, contact_samples=contact_samples, times=times,
                         positions=samples["position"], velocities=samples["velocity"], record_every=rec)
-        add_to_manifest(out, CHECKPOINT_NAME)
+        add_to_manifest(out, CHECKPOINT_NAME, holds=OutputKind.RUN)
         marks["checkpoint"] = step
 
     # warm-up: one eager step (loads the step's modules), then the graph capture, outside the
@@ -171,7 +171,7 @@ def run_simulation(sim, cfg, *, steps: int, out: Path, t_build: float, progress:
         arrays.update(sim.trajectory_constants())
         # an interrupted run without checkpoints never replaces an earlier output (it goes beside
         # it, <out>.partial); with them, it stays where its checkpoint is (to resume from there)
-        folder = OutputFolder(out, overwrite=bool(overwrite), checked=checked,
+        folder = OutputFolder(out, overwrite=bool(overwrite), checked=checked, holds=OutputKind.RUN,
                               interrupted=bool(reason) and marks["checkpoint"] is None and ckpt is None)
         with folder as tmp:
             atomic_write_npz(tmp / "trajectories.npz", time=np.asarray(times), **arrays)

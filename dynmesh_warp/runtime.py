@@ -170,7 +170,7 @@ def check_run_output(cfg, output=None, overwrite: bool | str = "ours", what: str
     input of the scene, a folder, creatable and writable, existing only with ``overwrite``.
     Resuming from the checkpoint inside it continues that run: the folder may then be replaced
     without ``overwrite`` when everything in it was written by this tool."""
-    from .outputs import OutputExistsError, _real, check_output, foreign_entries
+    from .outputs import OutputExistsError, OutputKind, _real, check_output, foreign_entries
 
     path = cfg.output_path(output)
     what = what or ("--output" if output else "run.output")
@@ -180,7 +180,8 @@ def check_run_output(cfg, output=None, overwrite: bool | str = "ours", what: str
             raise OutputExistsError(f"{what} {path}: holds {foreign[0]}, which this tool did not write; add "
                                     "--overwrite to resume into it (files this tool did not write are kept)")
         overwrite = "ours"
-    check_output(path, kind="folder", what=what, inputs=cfg.inputs(), overwrite=overwrite, writes=RUN_OUTPUTS)
+    check_output(path, kind="folder", what=what, inputs=cfg.inputs(), overwrite=overwrite, writes=RUN_OUTPUTS,
+                 holds=OutputKind.RUN)
     return path
 
 

@@ -247,6 +247,42 @@ def test_run_overwrite_keeps_the_users_files_and_nan_keeps_previous_outputs(tmp_
     assert (out / "summary.json").stat().st_mode & 0o777 == 0o666 & ~_umask()
 
 
+def test_overwrite_replaces_only_an_output_of_the_same_kind(tmp_path, capsys):
+    """``render --out`` into a run's output folder with ``--overwrite`` deleted the run's
+    trajectories and summary (both this tool's files) and exited 0. The manifest now says what
+    a folder holds; another command's output is refused before the work, naming it, and stays
+    byte for byte; the same kind is replaced as before, and a manifest written before it said
+    what it holds is replaced as before too."""
+    from dynmesh_warp.outputs import OutputKind, read_manifest_kind
+    from dynmesh_warp.render import main as render
+    from dynmesh_warp.run import main as run
+
+    out, frames = tmp_path / "run", tmp_path / "frames"
+    run_args = ["--viewer", "none", "--device", "cpu", "--no-progress", "--steps", "2"]
+    render_args = ["--device", "cpu", "--no-progress", "--frames", "1", "--width", "32", "--height", "24"]
+    assert run(run_args + ["--output", str(out)]) == 0
+    assert read_manifest_kind(out) == OutputKind.RUN
+    before = _snapshot(out)
+    capsys.readouterr()
+    assert render(render_args + ["--out", str(out), "--overwrite"]) == 2
+    err = capsys.readouterr().err
+    assert "holds a run's outputs (summary.json, trajectories.npz)" in err and "rendered frames" in err
+    assert _snapshot(out) == before
+    assert render(render_args + ["--out", str(frames)]) == 0 and read_manifest_kind(frames) == OutputKind.RENDER
+    assert render(render_args + ["--out", str(frames), "--overwrite"]) == 0  # the same kind: replaced
+    assert run(run_args + ["--output", str(frames), "--overwrite"]) == 2
+    assert "holds rendered frames (frame_0000.png)" in capsys.readouterr().err
+    assert sorted(p.name for p in frames.iterdir()) == [MANIFEST, "frame_0000.png"]
+    # the commit itself: another kind that appeared during the work is not replaced (".new")
+    with OutputFolder(out, overwrite=True, holds=OutputKind.RENDER) as tmp:
+        (tmp / "frame_0000.png").write_bytes(b"x")
+    assert _snapshot(out) == before and (tmp_path / "run.new" / "frame_0000.png").is_file()
+    # a manifest without "holds" (written before it was stored) is replaced as before
+    (out / MANIFEST).write_text('{"tool": "dynmesh_warp", "files": ["summary.json", "trajectories.npz"]}')
+    assert render(render_args + ["--out", str(out), "--overwrite"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == [MANIFEST, "frame_0000.png"]
+
+
 def test_record_onto_an_existing_file_needs_overwrite(tmp_path, capsys):
     from dynmesh_warp.run import main
 
