@@ -1518,6 +1518,10 @@ def _to_piecewise(seq, strategy, template, device, progress, should_stop, option
             return _join_segments(vseq, sorted(segs, key=lambda x: x[0]), first.conversion, events)
         # the new template is not better there: one template for every frame, as without the stop
         res = to_fixed_topology(vseq, strategy, None, device, progress, should_stop, **options)
+        if len(res.conversion.coverage) < len(first.conversion.coverage):
+            # stopped by the caller during that run: the first run's frames 0..b are more (a new
+            # user's stop kept 1 frame of the rerun and threw the first run's 7 away)
+            return first
         if new is not None:
             res.conversion.rejected_cuts.append((a, T))
     if len(res.conversion.coverage) < T:  # stopped by the caller

@@ -234,6 +234,30 @@ def test_a_stop_during_the_new_template_keeps_the_frames_done(tearing, monkeypat
     assert 12 < res.num_frames < 24 and res.conversion.first_frame == 0  # frames 0..b, b past the tear
 
 
+def test_a_stop_during_the_one_template_rerun_keeps_the_first_runs_frames(tearing, monkeypatch):
+    """Ctrl-C while the whole sequence is converted again with one template (the new template
+    was not better): the result is the first run's frames 0..b, not the rerun's few frames (a
+    new user's stop kept 1 frame and threw the first run's 7 away)."""
+    from dynmesh_warp import convert
+
+    seq, _ = tearing
+    flag = []
+    real = convert.to_fixed_topology
+
+    def runs(sub, *a, **k):
+        if sub.num_frames == seq.num_frames:  # the one-template rerun: the user stops it
+            flag.append(1)
+        r = real(sub, *a, **k)
+        if r.num_frames < seq.num_frames and not flag:  # the new template's run fits poorly
+            r.conversion.web = [1.0] * r.num_frames
+        return r
+
+    monkeypatch.setattr(convert, "to_fixed_topology", runs)
+    res = to_piecewise_fixed(seq, device=TEST_DEVICE, should_stop=lambda: bool(flag))
+    assert flag and isinstance(res, FixedTopologySequence)
+    assert 12 < res.num_frames < 24 and res.conversion.first_frame == 0  # frames 0..b, b past the tear
+
+
 def test_one_template_when_it_holds():
     """A rigid motion needs no new template: to_piecewise_fixed returns to_fixed_topology's result."""
     from dynmesh_warp.scenes import icosphere, rigid_motion
