@@ -49,6 +49,7 @@ CLI: ``python -m dynmesh_warp.convert IN OUT --strategy tracking|projection|regu
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import re
 import sys
@@ -921,6 +922,18 @@ def _resolve_options(strategy: str, options: dict) -> dict:
     return options_for(strategy, **options).model_dump()
 
 
+#: the start of the scale check's warning (a regular expression for ``warnings.filterwarnings``)
+SCALE_WARNING = r".*: frames of very different scale"
+
+
+@contextlib.contextmanager
+def _scale_checked():
+    """A run over frames the first run's scale check has seen already: no second warning."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=SCALE_WARNING)
+        yield
+
+
 def _check_scales(seq: VaryingTopologySequence, tol: float):
     diags = np.array([_bbox_diag(v) for v, _ in seq.frames])
     med = float(np.median(diags))
@@ -1491,7 +1504,8 @@ def _to_piecewise(seq, strategy, template, device, progress, should_stop, option
     def convert(lo, hi):  # frames lo..hi-1 with a template of their own; None when stopped meanwhile
         if (lo, hi) not in runs:
             sub = VaryingTopologySequence(list(vseq.frames[lo:hi]), fps=vseq.fps, name=vseq.name, source=vseq.source)
-            r = to_fixed_topology(sub, strategy, None, device, progress, should_stop, **options)
+            with _scale_checked():  # this run's check would number the input's frames from lo
+                r = to_fixed_topology(sub, strategy, None, device, progress, should_stop, **options)
             runs[lo, hi] = r if len(r.conversion.coverage) == hi - lo else None
         return runs[lo, hi]
 
@@ -1517,7 +1531,8 @@ def _to_piecewise(seq, strategy, template, device, progress, should_stop, option
             segs = left + _split_segments(a, new, events, limit - len(left), convert)
             return _join_segments(vseq, sorted(segs, key=lambda x: x[0]), first.conversion, events)
         # the new template is not better there: one template for every frame, as without the stop
-        res = to_fixed_topology(vseq, strategy, None, device, progress, should_stop, **options)
+        with _scale_checked():
+            res = to_fixed_topology(vseq, strategy, None, device, progress, should_stop, **options)
         if len(res.conversion.coverage) < len(first.conversion.coverage):
             # stopped by the caller during that run: the first run's frames 0..b are more (a new
             # user's stop kept 1 frame of the rerun and threw the first run's 7 away)
@@ -1771,8 +1786,8 @@ def _key_retry_reason(coverage, K: int, moving_part=None) -> str | None:
             return (f"coverage drifted ({100 * p90:.2f}% of the diagonal on the worst tenth of the frames, "
                     f"{100 * floor:.2f}% next to the key frame)")
     if moving_part is not None:
-        return (f"its moving part ({moving_part[0]:.3g} m across) has static surroundings, which hide its coverage "
-                "(the runs are ranked on the moving points)")
+        return (f"its moving part ({moving_part[0]:.3g} across, in the input's units) has static surroundings, which "
+                "hide its coverage (the runs are ranked on the moving points)")
     return None
 
 
@@ -1986,12 +2001,13 @@ def conversion_summary(info: ConversionInfo) -> list:
         score, why = {"chamfer": ("mean Chamfer distance to the input", "the first run covered frames poorly or "
                                   "drifted"),
                       "moving": (f"mean of the largest {100 * MOVING_SCORE_TAIL:g} % of the input's moving points' "
-                                 "distances to the output [m]", "the moving part has static surroundings"),
+                                 "distances to the output, in the input's units", "the moving part has static surroundings"),
                       }.get(info.key_score, ("score", "per segment"))
         lines.append(f"key frames tried (mean coverage, {score}), as {why}: {tried}; kept {info.key_frame}; "
                      f"{sum(x[3] for x in info.key_trials):.2f} s in all")
     if info.moving_part is not None:
-        lines.append(f"the moving part ({info.moving_part[0]:.4g} m across; {info.moving_part[1]} template vertices in its box) "
+        lines.append(f"the moving part ({info.moving_part[0]:.4g} across, in the input's units; {info.moving_part[1]} "
+                     "template vertices in its box) "
                      "is much smaller than the whole (a static floor or background): its graph nodes are spaced "
                      "from its own size (option adaptive_spacing)")
     tail = np.asarray(info.coverage_tail, float)

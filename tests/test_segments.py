@@ -258,6 +258,25 @@ def test_a_stop_during_the_one_template_rerun_keeps_the_first_runs_frames(tearin
     assert 12 < res.num_frames < 24 and res.conversion.first_frame == 0  # frames 0..b, b past the tear
 
 
+def test_the_new_templates_runs_do_not_warn_again_with_their_own_frame_numbers(tearing):
+    """The scale check warns once, naming the input's frames: each new template's run warned
+    again numbering the frames from its own first (a new user's collapsed frame 6 was also
+    called frame 4). A low ``scale_tolerance`` flags the frames where the pairs close up."""
+    import warnings
+
+    seq, _ = tearing
+    diag = np.array([np.linalg.norm(np.ptp(v, axis=0)) for v, _ in seq.frames])
+    ratio = diag / np.median(diag)
+    flagged = np.flatnonzero(ratio < 1 / 1.05)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        res = to_piecewise_fixed(seq, device=TEST_DEVICE, scale_tolerance=1.05)
+    scale = [str(w.message) for w in caught if "frames of very different scale" in str(w.message)]
+    assert len(res.conversion.segments) > 1  # new templates' runs happened
+    assert len(scale) == 1, scale
+    assert f"frame(s) {flagged[0]} (x{ratio[flagged[0]]:.3g})" in scale[0]
+
+
 def test_one_template_when_it_holds():
     """A rigid motion needs no new template: to_piecewise_fixed returns to_fixed_topology's result."""
     from dynmesh_warp.scenes import icosphere, rigid_motion
