@@ -1174,14 +1174,52 @@ def _floater_webs(vseq, res, device, far_gap: float) -> list:
     return out
 
 
+def _key_frame_floaters(vseq, K: int, o: dict, device) -> tuple:
+    """Key frame K without its floaters: small parts (under ``far_part_area`` of its area, or
+    ``FLOATER_AREA`` while that is 0) lying farther than ``far_part_gap`` x its diagonal from the
+    rest of it, which no neighbouring frame (K - 1, K + 1) has any surface near either — or with
+    ``far_part_area`` on, all such far small parts. Kept, such a part became a template part that
+    no other frame has, dragged about as flying surface (a new user's 12-vertex fragment of
+    reconstruction debris jumped 1.2 m between frames: 29 m/s for the physics). A small separate
+    part that persists (a ball, a part of a real object) is kept. Returns (v, f, parts, vertices)."""
+    v, f = vseq.frames[K]
+    area_opt, gap = float(o.get("far_part_area", 0.0)), float(o.get("far_part_gap", 0.0))
+    _, vert_part, lab, small = _small_parts(v, f, area_opt if area_opt > 0 else FLOATER_AREA)
+    if not small.size or gap <= 0:
+        return v, f, 0, 0
+    in_small = np.isin(lab, small)
+    verts = np.unique(f[in_small])
+    reach = gap * max(_bbox_diag(v), 1e-12)
+
+    def near(mesh):  # per part: has a vertex within reach of mesh
+        d = nearest_surface(mesh, v[verts], device=device).dist
+        hit = np.zeros(int(vert_part.max()) + 1, bool)
+        hit[vert_part[verts][d <= reach]] = True
+        return hit
+
+    drop = small[~near((v, f[~in_small]))[small]]  # far from the rest of the frame
+    if drop.size and area_opt <= 0:  # ... and, with the filter off, in no neighbouring frame
+        for u in (K - 1, K + 1):
+            if drop.size and 0 <= u < vseq.num_frames:
+                drop = drop[~near(vseq.frames[u])[drop]]
+    if drop.size == 0:
+        return v, f, 0, 0
+    v2, f2 = _keep_faces(v, f, ~np.isin(lab, drop))
+    return v2, f2, int(drop.size), len(v) - len(v2)
+
+
 def _frame_for_fit(vseq, t: int, K: int, o: dict, X_ref, TF: np.ndarray, device, info) -> tuple:
     """Input frame t as the fit sees it: without small parts far from ``X_ref`` (the converted
     neighbour frame it is tracked from; :func:`_far_parts`, noted in ``info.ignored_parts``),
-    except at the key frame (the template is that frame) and while ``far_part_area`` is 0."""
+    at the key frame without its floaters (:func:`_key_frame_floaters`: the template is that
+    frame), and elsewhere as it is while ``far_part_area`` is 0."""
     v, f = vseq.frames[t]
-    if t == K or float(o.get("far_part_area", 0.0)) <= 0:
+    if t == K:
+        v2, f2, parts, nv = _key_frame_floaters(vseq, K, o, device)
+    elif float(o.get("far_part_area", 0.0)) <= 0:
         return v, f
-    v2, f2, parts, nv = _far_parts(v, f, X_ref, TF, float(o["far_part_area"]), float(o["far_part_gap"]), device)
+    else:
+        v2, f2, parts, nv = _far_parts(v, f, X_ref, TF, float(o["far_part_area"]), float(o["far_part_gap"]), device)
     if parts:
         info.ignored_parts[t] = (parts, nv)
     else:
@@ -1875,8 +1913,8 @@ def _convert_from_key(vseq, strategy: str, o: dict, K: int, template, device, pr
     """One conversion run: the template is ``template`` (validated (V, F)) or key frame K's
     mesh, tracked from frame K to both ends."""
     T = vseq.num_frames
-    if template is None:
-        TV, TF = vseq.frames[K]
+    if template is None:  # the key frame, without its floaters
+        TV, TF = _key_frame_floaters(vseq, K, o, device)[:2]
     else:
         TV, TF = template
     TV = np.ascontiguousarray(TV, np.float32)

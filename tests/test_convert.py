@@ -774,6 +774,40 @@ def _with_blob(V, F, centre, radius):
             np.concatenate([F, b.faces + len(V)]).astype(np.int32))
 
 
+def test_a_floater_in_the_key_frame_is_left_out_of_the_template():
+    """A floater in the key frame itself (a small blob 0.6 radii off the sphere that the frames
+    either side do not have) stays out of the template: it was a template part that no other
+    frame has, dragged about as flying surface (a new user's 12-vertex fragment jumped 1.2 m
+    between frames). The template is the sphere alone (the key frame's vertex count less the
+    blob's 42), every output frame stays within 2 % of the input sphere, and the summary names
+    the key frame. A small part that the neighbouring frames have too (a real separate object)
+    is kept; with far_part_area on, every small far part of the key frame is left out."""
+    import trimesh
+
+    def frames(blob_at):
+        out = []
+        for t in range(8):
+            s = trimesh.creation.icosphere(subdivisions=2)
+            V, F = s.vertices * (1 + 0.04 * np.sin(t)), s.faces
+            if t in blob_at:
+                V, F = _with_blob(V, F, np.array([1.6, 0.1 * t if blob_at == (2, 5) else 0.0, 0.2]), 0.05)
+            out.append((V.astype(np.float32), F.astype(np.int32)))
+        return VaryingTopologySequence(out)
+
+    seq = frames((2, 5))
+    sphere = np.array([1 + 0.04 * np.sin(t) for t in range(8)])
+    for opts in ({"floater_retry": False}, {"far_part_area": 0.05}):
+        r = to_fixed_topology(seq, device=DEV, key_frame=2, **opts)
+        assert r.conversion.key_frame == 2 and r.num_vertices == len(seq.frames[2][0]) - 42
+        radius = np.linalg.norm(r.V, axis=2)
+        assert np.all(radius.min(1) > 0.98 * sphere)
+        assert 2 in r.conversion.ignored_parts
+        assert any("left out" in ln and "small input part(s)" in ln for ln in conversion_summary(r.conversion))
+    assert np.all(radius.max(1) < 1.02 * sphere) and sorted(r.conversion.ignored_parts) == [2, 5]
+    kept = to_fixed_topology(frames((1, 2, 3)), device=DEV, key_frame=2, floater_retry=False)  # it persists
+    assert kept.num_vertices == len(seq.frames[2][0]) and kept.conversion.ignored_parts == {}
+
+
 def test_far_small_parts_are_left_out_of_the_fit():
     """With far_part_area 0.05, a floater (a small separate blob 0.6 radii off a breathing sphere)
     on three frames is left out of those frames' fit, so the converted sphere grows no spike
