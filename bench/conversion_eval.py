@@ -16,6 +16,10 @@ diagonal; 0 = noise-free), then converted back to one fixed topology by each str
 * the coverage the conversion lost: per GT vertex, its distance to the converted surface minus
   its distance to that frame's input surface; the maximum over the GT vertices (a part the input
   has and the output dropped shows here even where the input itself misses other parts).
+* the surface velocity against the GT's (``evaluate.surface_velocity_error``): per frame pair
+  within a template segment, each converted vertex's displacement against the GT's at its
+  nearest GT point; 99th percentile and maximum over the vertices (fractions of the diagonal per
+  frame): a template sliding along the surface, which no per-frame figure sees.
 
 A strategy named ``S/piecewise`` (e.g. ``graph/piecewise``) runs ``to_piecewise_fixed`` (new
 template segments where one template cannot follow). Summaries report the mean and the worst
@@ -46,6 +50,7 @@ if not DATA.exists():
     DATA = ROOT / ".gpu" / "data"
 
 from dynmesh_warp.convert import nearest_surface, to_fixed_topology, to_piecewise_fixed  # noqa: E402
+from dynmesh_warp.evaluate import surface_velocity_error  # noqa: E402
 from dynmesh_warp.metrics import chamfer_distance  # noqa: E402
 from dynmesh_warp.sequence import FixedTopologySequence  # noqa: E402
 
@@ -198,7 +203,9 @@ def evaluate(name, strategies, args, device) -> dict | None:
         summ = _summ(per)
         summ["cd_increase_pct"] = 100.0 * (summ["cd_mean"] / out["input"]["cd_mean"] - 1.0)
         summ["worst_frame_cd_ratio"] = max(p["cd"] / max(q["cd"], 1e-30) for p, q in zip(per, inp))
-        out["strategies"][label] = {"summary": summ, "seconds": sec, "per_frame": per,
+        vel = surface_velocity_error(gt, fx, device)  # the surface velocity against the GT's
+        summ.update({f"velocity_error_{k}": v for k, v in vel.items() if k != "pairs"})
+        out["strategies"][label] = {"summary": summ, "seconds": sec, "per_frame": per, "velocity_per_pair": vel["pairs"],
                                 "key_frame": info.key_frame, "coverage": info.coverage,
                                 "web": info.web, "buried": info.buried,
                                 "segments": [list(x) for x in info.segments],
@@ -211,6 +218,9 @@ def evaluate(name, strategies, args, device) -> dict | None:
               f"coverage lost max {100 * summ['coverage_loss_max_max']:.2f}%, "
               f"spurious area >2%/5% max {100 * summ['spurious_area_2_max']:.2f}/{100 * summ['spurious_area_5_max']:.2f}% "
               f"(input {100 * out['input']['spurious_area_2_max']:.2f}/{100 * out['input']['spurious_area_5_max']:.2f}%), "
+              f"surface velocity error p99 mean {100 * (summ['velocity_error_p99_mean'] or np.nan):.2f}% / worst pair "
+              f"{100 * (summ['velocity_error_p99_max'] or np.nan):.2f}% (the GT's own p99 "
+              f"{100 * (summ['velocity_error_gt_p99_mean'] or np.nan):.2f}%), "
               f"{len(info.segments)} segment(s), {sec:.1f} s", flush=True)
     return out
 
