@@ -456,6 +456,7 @@ class _Converter:
         self.key_edge = arr(_longest_edges(TV, TF).astype(np.float32), float)
         self.web_area = wp.zeros(3, dtype=float, device=d)
         self.fold_area = wp.zeros(2, dtype=float, device=d)
+        self.last_area = 0.0  # the converted surface's area [m^2] at the last flipped()
         self.last_buried = 0.0  # the buried fraction of the last web() call
         self.first = True  # the next frame is the first one converted (starts from the template)
         self.frame_coverage = None  # set by a step that already measured its result's coverage [m]
@@ -539,6 +540,7 @@ class _Converter:
         wp.launch(kc.measure_flipped_area, dim=self.nf, inputs=[self.TF, self.X, frame[0].id, WEB_GAP * diag],
                   outputs=[self.fold_area], device=self.device)
         total, flipped = self.fold_area.numpy()
+        self.last_area = float(total)
         return float(flipped / total) if total > 0 else 0.0
 
     def coverage(self, frame) -> "_Coverage":
@@ -968,7 +970,7 @@ def _key_frame(seq: VaryingTopologySequence, key, has_template: bool) -> int:
     if key is None or (isinstance(key, str) and key == "auto"):
         if has_template or T < 3:
             return 0
-        a = np.array([surface_area(v, f) for v, f in seq.frames])
+        a = _frame_areas(seq)
         med = np.array([np.median(a[max(0, t - 1):t + 2]) for t in range(T)])
         # where most frames are closed, the template is too: a frame with a hole gave every
         # output frame its hole (a new user's blob); and where most frames have no small separate
@@ -1235,7 +1237,8 @@ def _frame_for_fit(vseq, t: int, K: int, o: dict, X_ref, TF: np.ndarray, device,
 @dataclasses.dataclass
 class _PerFrame:
     """The per-frame figures of one conversion run, (T,) each, by input frame: wall time [s], and
-    the fractions that ``ConversionInfo`` reports (coverage, coverage_tail, web, buried, flipped)."""
+    the fractions that ``ConversionInfo`` reports (coverage, coverage_tail, web, buried, flipped),
+    and the converted area [m^2]."""
 
     seconds: np.ndarray
     coverage: np.ndarray
@@ -1243,6 +1246,7 @@ class _PerFrame:
     web: np.ndarray
     buried: np.ndarray
     flipped: np.ndarray
+    area: np.ndarray
 
     @classmethod
     def zeros(cls, T: int) -> "_PerFrame":
@@ -1257,6 +1261,7 @@ def _record_fit(conv, frame, diag: float, pf: _PerFrame, t: int) -> None:
     pf.web[t], pf.buried[t] = conv.frame_web if conv.frame_web is not None else (conv.web(frame, diag), conv.last_buried)
     conv.frame_coverage = conv.frame_web = None
     pf.flipped[t] = conv.flipped(frame, diag)
+    pf.area[t] = conv.last_area
 
 
 def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info, strategy: str, where: str, TV,
@@ -1399,7 +1404,7 @@ def to_fixed_topology(seq, strategy: str = DEFAULT_STRATEGY, template=None, devi
         MeshDataError: an empty/invalid frame or template (naming it), a template out of the
             surface's reach. Warns (UserWarning) about frames of very different scale.
     """
-    return _with_area_ratio(_to_fixed(seq, strategy, template, device, progress, should_stop, None, **options), seq)
+    return _to_fixed(seq, strategy, template, device, progress, should_stop, None, **options)
 
 
 def _to_fixed(seq, strategy, template, device, progress, should_stop, stop_forward, **options):
@@ -1529,18 +1534,19 @@ def to_piecewise_fixed(seq, strategy: str = DEFAULT_STRATEGY, template=None, dev
         (:class:`ConversionInfo`) lists the ``segments``.
     """
     start = time.perf_counter()
-    res = _with_area_ratio(_to_piecewise(seq, strategy, template, device, progress, should_stop, options), seq)
+    res = _to_piecewise(seq, strategy, template, device, progress, should_stop, options)
     res.conversion.seconds_all = time.perf_counter() - start
     return res
 
 
-def _with_area_ratio(res, seq):
-    """``res`` with ``conversion.area_ratio``: each result frame's area over its input frame's."""
-    frames = _as_varying(seq).frames
-    lo = res.conversion.first_frame
-    res.conversion.area_ratio = [surface_area(*res.frame(i)) / max(surface_area(*frames[lo + i]), 1e-30)
-                                 for i in range(res.num_frames)]
-    return res
+def _frame_areas(seq: VaryingTopologySequence) -> np.ndarray:
+    """Each frame's surface area (T,), computed once per sequence object (the key frame's choice
+    and the converted area's ratio both ask)."""
+    got = getattr(seq, "_frame_areas", None)
+    if got is None or len(got) != seq.num_frames:
+        got = np.array([surface_area(v, f) for v, f in seq.frames])
+        seq._frame_areas = got
+    return got
 
 
 def _to_piecewise(seq, strategy, template, device, progress, should_stop, options: dict):
@@ -1658,6 +1664,7 @@ def _slice_result(res, a: int, b: int, lo: int):
     out.conversion = dataclasses.replace(info, num_frames=j - i, key_frame=info.key_frame - i,
                                          coverage=list(info.coverage[i:j]), web=list(info.web[i:j]),
                                          coverage_tail=list(info.coverage_tail[i:j]), flipped=list(info.flipped[i:j]),
+                                         area_ratio=list(info.area_ratio[i:j]),
                                          buried=list(info.buried[i:j]), rejected_cuts=list(info.rejected_cuts),
                                          frame_seconds=list(info.frame_seconds[i:j]), **_frame_fields(info, -i, i, j))
     return out
@@ -1694,6 +1701,7 @@ def _join_segments(vseq, segs: list, whole, events: list) -> VaryingTopologySequ
         info.coverage += c.coverage
         info.coverage_tail += c.coverage_tail
         info.flipped += c.flipped
+        info.area_ratio += c.area_ratio
         info.web += c.web
         info.buried += c.buried
         info.rejected_cuts += [x for x in c.rejected_cuts if x not in info.rejected_cuts]
@@ -1949,6 +1957,7 @@ def _convert_from_key(vseq, strategy: str, o: dict, K: int, template, device, pr
     info.frame_seconds = pf.seconds.tolist()
     info.coverage, info.coverage_tail = pf.coverage.tolist(), pf.tail.tolist()
     info.web, info.buried, info.flipped = pf.web.tolist(), pf.buried.tolist(), pf.flipped.tolist()
+    info.area_ratio = (pf.area / np.maximum(_frame_areas(vseq), 1e-30)).tolist()
     info.reanchored_frames.sort()
     if hasattr(conv, "recovered"):
         info.recovered_frames = sorted(conv.recovered)
@@ -1961,6 +1970,7 @@ def _convert_from_key(vseq, strategy: str, o: dict, K: int, template, device, pr
         info.frame_seconds, info.coverage = info.frame_seconds[lo:hi + 1], info.coverage[lo:hi + 1]
         info.web, info.coverage_tail = info.web[lo:hi + 1], info.coverage_tail[lo:hi + 1]
         info.flipped, info.buried = info.flipped[lo:hi + 1], info.buried[lo:hi + 1]
+        info.area_ratio = info.area_ratio[lo:hi + 1]
     res = FixedTopologySequence(out[lo:hi + 1], TF, fps=vseq.fps, name=vseq.name, source=vseq.source)
     res.conversion = info
     return res
