@@ -201,6 +201,8 @@ def test_surface_velocity_error_against_closed_forms(device):
     e = E.surface_velocity_error(still, spin, device=device)
     r_eq = np.linalg.norm(V[:, :2], axis=1).max()
     assert e["max"] == pytest.approx(2 * np.sin(th / 2) * r_eq / diag, rel=1e-4)
+    rho = np.median(np.linalg.norm(V[:, :2], axis=1))  # the median vertex's distance from the axis
+    assert e["p50_mean"] == pytest.approx(2 * np.sin(th / 2) * rho / diag, rel=2e-2)
     assert e["gt_p99_mean"] == pytest.approx(0.0, abs=1e-6) and len(e["pairs"]) == 3
     from dynmesh_warp.convert import nearest_surface
 
