@@ -256,6 +256,11 @@ class ConversionInfo:
     flipped: per frame, the fraction of the converted surface's area whose faces point against
     the input surface nearest to them (a fold-over: the surface doubled back on itself, as a new
     user's waving flag did on 6 of 24 frames, 13 % of its area, silently).
+    frame_motion: per frame t, how far the converted surface moved from frame t - 1: the 99th
+    percentile of its vertices' displacements (at most 4,096 of them) over the frame's bbox
+    diagonal; 0 at the first frame and where a template segment starts. A frame far above its
+    neighbours' is a jump (a restart's new start, a slide along the surface), which the physics
+    sees as the surface moving that far in one frame (a new user's spheres were thrown at 30 m/s).
     area_ratio: per frame, the converted surface's area over the input's (the result's frames;
     above ``POOR_AREA``, a crumpled surface: a new user's balloon, converted from its inflated
     frame, had 2.0-2.4x the input's area on its 16 deflated frames while the vertex Chamfer
@@ -309,6 +314,7 @@ class ConversionInfo:
     buried: list = field(default_factory=list)
     flipped: list = field(default_factory=list)
     area_ratio: list = field(default_factory=list)
+    frame_motion: list = field(default_factory=list)
     rejected_cuts: list = field(default_factory=list)
     segments: list = field(default_factory=list)
     open_edges: list = field(default_factory=list)
@@ -1539,6 +1545,30 @@ def to_piecewise_fixed(seq, strategy: str = DEFAULT_STRATEGY, template=None, dev
     return res
 
 
+def _frame_motion(V: np.ndarray, most: int = 4096) -> list:
+    """``ConversionInfo.frame_motion`` of the frames V (T, N, 3) of one template."""
+    V = np.asarray(V)[:, ::_stride(V.shape[1], most)]
+    out = [0.0]
+    for t in range(1, len(V)):
+        d = np.linalg.norm(V[t] - V[t - 1], axis=1)
+        out.append(float(np.percentile(d, 99)) / max(_bbox_diag(V[t]), 1e-12))
+    return out
+
+
+def _jumps(motion, ratio: float | None = None, least: float | None = None) -> np.ndarray:
+    """The frames whose ``frame_motion`` is over ``ratio`` x the median of their neighbours'
+    (``JUMP_WINDOW`` either side, segment starts left out) and over ``least`` of the diagonal."""
+    m = np.asarray(motion, float)
+    ratio, least = JUMP_RATIO if ratio is None else ratio, JUMP_LEAST if least is None else least
+    out = []
+    for t in np.flatnonzero(m > least):
+        near = np.r_[m[max(0, t - JUMP_WINDOW):t], m[t + 1:t + 1 + JUMP_WINDOW]]
+        near = near[near > 0]
+        if near.size and m[t] > ratio * float(np.median(near)):
+            out.append(int(t))
+    return np.array(out, int)
+
+
 def _frame_areas(seq: VaryingTopologySequence) -> np.ndarray:
     """Each frame's surface area (T,), computed once per sequence object (the key frame's choice
     and the converted area's ratio both ask)."""
@@ -1665,6 +1695,7 @@ def _slice_result(res, a: int, b: int, lo: int):
                                          coverage=list(info.coverage[i:j]), web=list(info.web[i:j]),
                                          coverage_tail=list(info.coverage_tail[i:j]), flipped=list(info.flipped[i:j]),
                                          area_ratio=list(info.area_ratio[i:j]),
+                                         frame_motion=[0.0] + list(info.frame_motion[i + 1:j]),
                                          buried=list(info.buried[i:j]), rejected_cuts=list(info.rejected_cuts),
                                          frame_seconds=list(info.frame_seconds[i:j]), **_frame_fields(info, -i, i, j))
     return out
@@ -1702,6 +1733,7 @@ def _join_segments(vseq, segs: list, whole, events: list) -> VaryingTopologySequ
         info.coverage_tail += c.coverage_tail
         info.flipped += c.flipped
         info.area_ratio += c.area_ratio
+        info.frame_motion += c.frame_motion
         info.web += c.web
         info.buried += c.buried
         info.rejected_cuts += [x for x in c.rejected_cuts if x not in info.rejected_cuts]
@@ -1972,6 +2004,7 @@ def _convert_from_key(vseq, strategy: str, o: dict, K: int, template, device, pr
         info.flipped, info.buried = info.flipped[lo:hi + 1], info.buried[lo:hi + 1]
         info.area_ratio = info.area_ratio[lo:hi + 1]
     res = FixedTopologySequence(out[lo:hi + 1], TF, fps=vseq.fps, name=vseq.name, source=vseq.source)
+    info.frame_motion = _frame_motion(res.V)
     res.conversion = info
     return res
 
@@ -2002,6 +2035,11 @@ POOR_FLIPPED = 0.12
 #: surface: a new user's balloon converted from its inflated frame read 2.0-2.4x on its deflated
 #: frames; the issue-12 protocol's sequences peak at 1.03-1.43x (CPU, 1 % error; docs/conversion.md)
 POOR_AREA = 1.5
+#: a frame whose converted surface moved (``frame_motion``) over JUMP_RATIO x the median of its
+#: JUMP_WINDOW neighbours either side, and over JUMP_LEAST of the diagonal, is warned of as a jump
+JUMP_RATIO = 3.0
+JUMP_WINDOW = 5
+JUMP_LEAST = 0.05
 #: a web (:func:`web_fraction`): faces whose longest edge grew more than WEB_STRETCH x since the
 #: key frame and whose centroid lies farther than WEB_GAP x the input's bbox diagonal from the
 #: input; a frame whose web covers more than POOR_WEB of the converted surface's area counts as
@@ -2136,6 +2174,14 @@ def conversion_summary(info: ConversionInfo) -> list:
             lines.append(f"note: over {100 * POOR_FLIPPED:.0f}% of the converted surface faces against the input on "
                          f"{folds.size} frame(s) ({_frames_text(folds)}): a fold-over (a sheet's free edge doubled "
                          "back), or many thin parts, which read so too; look at those frames")
+    jumps = _jumps(info.frame_motion) if len(info.frame_motion) == cov.size else np.zeros(0, int)
+    if jumps.size:
+        m = np.asarray(info.frame_motion, float)
+        w = int(jumps[np.argmax(m[jumps])])
+        lines.append(f"warning: the converted surface jumps at {jumps.size} frame(s) ({_frames_text(jumps)}): at frame "
+                     f"{w} its vertices move {100 * m[w]:.1f}% of the diagonal from frame {w - 1} (99th pct.), over "
+                     f"{JUMP_RATIO:g}x the frames around it (a restarted fit, or the template sliding along the "
+                     "surface); the physics sees the surface move that far in one frame and throws what touches it")
     ar = np.asarray(info.area_ratio, float)
     crumpled = np.flatnonzero(ar > POOR_AREA) if ar.size == cov.size else np.zeros(0, int)
     if crumpled.size:

@@ -516,6 +516,34 @@ def test_area_ratio_is_each_frames_area_over_the_inputs_and_crumpling_is_warned(
     assert len(warn) == 1 and "2.40x the input's area at frame 2" in warn[0] and "on 2 frame(s): 2, 3" in warn[0]
 
 
+def test_frame_motion_and_jumps_are_measured_and_warned():
+    """``ConversionInfo.frame_motion`` is the 99th percentile of the converted vertices' moves from
+    the frame before, over the diagonal (NumPy as the oracle on a converted translating sphere,
+    whose steady motion is no jump); a frame moving over 3x its neighbours and over 5 % of the
+    diagonal is warned of as a jump, naming it (a new user's merging balls jumped 19-25 % of the
+    diagonal in one frame where the input barely moved, and spheres were thrown at 30 m/s)."""
+    import trimesh
+
+    from dynmesh_warp.convert import ConversionInfo, conversion_summary
+
+    frames = []
+    for t in range(8):
+        s = trimesh.creation.icosphere(subdivisions=3 if t % 2 else 2)
+        frames.append(((s.vertices + [0.06 * t, 0, 0]).astype(np.float32), s.faces.astype(np.int32)))
+    r = to_fixed_topology(VaryingTopologySequence(frames), device=DEV)
+    V = r.V.astype(np.float64)
+    want = [0.0] + [np.percentile(np.linalg.norm(V[t] - V[t - 1], axis=1), 99) / np.linalg.norm(np.ptp(V[t], axis=0))
+                    for t in range(1, 8)]
+    np.testing.assert_allclose(r.conversion.frame_motion, want, rtol=1e-4, atol=1e-7)
+    assert 0.015 < np.median(want[1:]) < 0.03  # 0.06 a frame over a diagonal of 2 sqrt(3)
+    assert not any("jumps" in ln for ln in conversion_summary(r.conversion))
+    motion = [0.0, 0.02, 0.025, 0.02, 0.2, 0.02, 0.03, 0.02, 0.06]  # frame 4 jumps; 8 is 2-3x, not over 3x
+    info = ConversionInfo("graph", {}, 9, 10, frame_seconds=[0.1] * 9, key_frame=0, coverage=[0.01] * 9,
+                          frame_motion=motion)
+    warn = [ln for ln in conversion_summary(info) if ln.startswith("warning:")]
+    assert len(warn) == 1 and "jumps at 1 frame(s) (4)" in warn[0] and "move 20.0% of the diagonal from frame 3" in warn[0]
+
+
 @pytest.mark.parametrize("bad,name", [({"node_spacing": 0}, "node_spacing"), ({"graph_iterations": 0}, "graph_iterations"),
                                       ({"stiffness": float("nan")}, "stiffness"), ({"smooth_weight": 2}, "smooth_weight"),
                                       ({"max_normal_angle": 200}, "max_normal_angle"), ({"key_frame": 1.5}, "key_frame"),
