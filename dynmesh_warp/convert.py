@@ -2180,8 +2180,9 @@ def conversion_summary(info: ConversionInfo) -> list:
         w = int(jumps[np.argmax(m[jumps])])
         lines.append(f"warning: the converted surface jumps at {jumps.size} frame(s) ({_frames_text(jumps)}): at frame "
                      f"{w} its vertices move {100 * m[w]:.1f}% of the diagonal from frame {w - 1} (99th pct.), over "
-                     f"{JUMP_RATIO:g}x the frames around it (a restarted fit, or the template sliding along the "
-                     "surface); the physics sees the surface move that far in one frame and throws what touches it")
+                     f"{JUMP_RATIO:g}x the frames around it (a restarted fit, the template sliding along the "
+                     "surface, or the input itself moving that far there: compare the input's frames); the physics "
+                     "sees the surface move that far in one frame and throws what touches it")
     ar = np.asarray(info.area_ratio, float)
     crumpled = np.flatnonzero(ar > POOR_AREA) if ar.size == cov.size else np.zeros(0, int)
     if crumpled.size:
@@ -2189,8 +2190,8 @@ def conversion_summary(info: ConversionInfo) -> list:
         lines.append(f"warning: the converted surface has {ar[w]:.2f}x the input's area at frame {w} (over "
                      f"{POOR_AREA:g}x on {crumpled.size} frame(s): {_frames_text(crumpled)}): crumpled, as a template "
                      "from a larger pose is when compressed into a smaller one (the vertex Chamfer distance reads the "
-                     "extra vertices as better); a key frame among those frames (--key-frame N) or new templates "
-                     "(a .npz output, max_segments > 1) may follow them better")
+                     "extra vertices as better); a key frame among those frames (--key-frame N) may follow them "
+                     "better")
     web = np.asarray(info.web, float)
     if web.size and web.max() > 0:
         w = int(np.argmax(web))
@@ -2436,11 +2437,11 @@ def main(argv=None) -> int:
             if a.fmt:
                 raise ValueError(f"--fmt {a.fmt}: applies to a folder output, not to {a.output}")
             check_output(a.output, kind="file", what="output", inputs=inputs, overwrite=a.overwrite,
-                         suffixes={out_suffix})
+                         suffixes={out_suffix}, holds=OutputKind.SEQUENCE)
             faces = written_topology(a.output)
             if faces is not None:  # a point cache's faces go next to it
                 check_output(faces, kind="file", what=f"output {a.output}: its faces", inputs=inputs,
-                             overwrite=a.overwrite, suffixes={".obj"})
+                             overwrite=a.overwrite, suffixes={".obj"}, holds=OutputKind.SEQUENCE)
         else:
             formats = (".npz file, a .pc2/.mdd/.anime or animated .glb file, or a folder (frames written as "
                        "frame_XXXX.ply, or .obj with --fmt obj)")

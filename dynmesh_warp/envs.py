@@ -17,8 +17,9 @@ Observation (18 per env): ball position relative to the target (3) [m], ball vel
 surface below reads the floor: the ground, or the sequence's lowest point where the scene has
 none. Action (2 per env): in [-1, 1] x ``accel`` [m/s^2], a horizontal velocity change of
 action x accel x decimation x dt at the start of the env step (an impulse). Reward per step: 1 -
-(horizontal distance / max_distance)^2 - 0.01 |action|^2, and -1 on termination (the ball fell
-to the floor or left ``max_distance``); episodes are truncated after ``max_steps``.
+(horizontal distance / max_distance)^2 - 0.01 |action|^2, less 1 on the step that terminates
+(the ball fell to the floor or left ``max_distance``): that step earns -(distance /
+max_distance)^2 - 0.01 |action|^2; episodes are truncated after ``max_steps``.
 """
 
 from __future__ import annotations
@@ -78,13 +79,20 @@ class RideSurfaceEnv(VectorEnv):
             target: (3,) [m] (default :func:`surface_target`).
     """
 
-    metadata = {"autoreset_mode": AutoresetMode.SAME_STEP if AutoresetMode is not None else "same-step"}
+    metadata = {"autoreset_mode": AutoresetMode.SAME_STEP if AutoresetMode is not None else "same-step",
+                "render_modes": ["rgb_array"]}
 
     def __init__(self, num_envs: int = 64, scene=None, device=None, backend: str = "numpy", radius: float = 0.05,
                  max_steps: int = 500, decimation: int = 4, accel: float = 4.0, push: float = 0.6,
-                 max_distance: float | None = None, target=None, seed: int = 0):
+                 max_distance: float | None = None, target=None, seed: int = 0, render_mode: str | None = None,
+                 max_episode_steps: int | None = None):
         if gym is None:
             raise ImportError("RideSurfaceEnv needs gymnasium >= 1.0: pip install 'dynmesh_warp[rl]'")
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        self.render_mode = render_mode
+        if max_episode_steps is not None:  # Gymnasium's name (gym.make_vec passes it) for max_steps
+            max_steps = max_episode_steps
         if backend not in ("numpy", "torch"):
             raise ValueError(f"backend must be 'numpy' or 'torch', got {backend!r}")
         if backend == "torch":
@@ -194,6 +202,15 @@ class RideSurfaceEnv(VectorEnv):
             self._camera_state = (key, g, Renderer(self.device), look_at(eye, self.target, width=key[0], height=key[1]))
         _, g, r, cam = self._camera_state
         return self._out(render_envs(self.world, g, cam, renderer=r).rgb)
+
+    def render(self):
+        """With ``render_mode="rgb_array"``: every env's camera image (:meth:`render_images`, 128 x 128)
+        as (E, height, width, 3) uint8 NumPy; else None."""
+        if self.render_mode != "rgb_array":
+            return None
+        rgb = self.render_images(128, 128)
+        rgb = rgb.detach().cpu().numpy() if hasattr(rgb, "detach") else rgb
+        return (np.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
 
     def _out(self, a: wp.array):
         if self.backend == "torch":

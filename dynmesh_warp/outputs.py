@@ -293,7 +293,8 @@ def check_output(path, *, kind: str, what: str, inputs=(), overwrite: bool = Fal
     names the tool will write into a folder (an existing foreign file of such a name would be
     lost, so it is refused even with ``overwrite``); holds: what the folder will hold
     (:class:`OutputKind`): a folder holding another kind of output is refused even with
-    ``overwrite`` (only an output of the same kind is replaced).
+    ``overwrite`` (only an output of the same kind is replaced), and so is a file that is part of
+    another kind's folder output.
     """
     import fnmatch
 
@@ -326,6 +327,10 @@ def check_output(path, *, kind: str, what: str, inputs=(), overwrite: bool = Fal
             if not real.is_dir():
                 raise OutputError(f"{what} {shown}: is a file, a folder is expected")
             entries = [e for e in os.listdir(real)]
+            clash = [e for e in foreign_entries(real) if any(fnmatch.fnmatch(e, w) for w in writes)]
+            if clash:  # said first: --overwrite would not help (a new user was told to add it, then refused)
+                raise OutputExistsError(f"{what} {shown}: holds {clash[0]}, which this tool did not write and "
+                                        "would replace; move it away or choose another output")
             other = _other_kind(real, holds)
             if other is not None:
                 ours = sorted(read_manifest(real) & set(entries))
@@ -342,15 +347,18 @@ def check_output(path, *, kind: str, what: str, inputs=(), overwrite: bool = Fal
             elif entries and not overwrite:
                 raise OutputExistsError(f"{what} {shown}: folder exists and is not empty; add --overwrite to "
                                         "replace what this tool wrote there (other files are kept)")
-            clash = [e for e in foreign_entries(real) if any(fnmatch.fnmatch(e, w) for w in writes)]
-            if clash:
-                raise OutputExistsError(f"{what} {shown}: holds {clash[0]}, which this tool did not write and "
-                                        "would replace; move it away or choose another output")
             if not os.access(real, os.W_OK | os.X_OK):
                 raise OutputError(f"{what} {shown}: the folder is not writable")
         else:
             if real.is_dir():
                 raise OutputError(f"{what} {shown}: is a folder, a file is expected")
+            other = read_manifest_kind(real.parent) if holds is not None else None
+            if other is not None and other != OutputKind(holds) and real.name in read_manifest(real.parent):
+                # a file of another command's folder output (convert OUT.npz over a run's
+                # trajectories.npz replaced it with exit 0, and the run's manifest still listed it)
+                raise OutputExistsError(f"{what} {shown}: is one of {other.described} in {real.parent}, which "
+                                        f"--overwrite does not replace with {OutputKind(holds).described}; choose "
+                                        "another path")
             if not overwrite:
                 raise OutputExistsError(f"{what} {shown}: file exists; add --overwrite to replace it")
     _check_creatable(real, shown, what)

@@ -655,9 +655,11 @@ def _main(argv=None) -> int:
         # the outputs, before any work: never one of the scene's inputs, nothing replaced unasked
         ins = cfg.inputs()
         if a.figure:
-            check_output(a.figure, kind="file", what="--figure", inputs=ins, overwrite=a.overwrite, suffixes={".png"})
+            check_output(a.figure, kind="file", what="--figure", inputs=ins, overwrite=a.overwrite, suffixes={".png"},
+                         holds=OutputKind.RENDER)
         if a.video:
-            check_output(a.video, kind="file", what="--video", inputs=ins, overwrite=a.overwrite)
+            check_output(a.video, kind="file", what="--video", inputs=ins, overwrite=a.overwrite,
+                         holds=OutputKind.RENDER)
         if a.out:
             check_output(a.out, kind="folder", what="--out", inputs=ins, overwrite=a.overwrite,
                          writes=("frame_*.png",), holds=OutputKind.RENDER)

@@ -187,12 +187,12 @@ def check_run_output(cfg, output=None, overwrite: bool | str = "ours", what: str
 
 def check_record_output(cfg, record, overwrite: bool) -> None:
     """``--record OUT.viser`` and the ``OUT.html`` next to it, checked before the work."""
-    from .outputs import check_output
+    from .outputs import OutputKind, check_output
 
     check_output(record, kind="file", what="--record", inputs=cfg.inputs(), overwrite=overwrite,
-                 suffixes={".viser"})
+                 suffixes={".viser"}, holds=OutputKind.RUN)
     check_output(Path(record).with_suffix(".html"), kind="file", what="--record (its .html page)",
-                 inputs=cfg.inputs(), overwrite=overwrite)
+                 inputs=cfg.inputs(), overwrite=overwrite, holds=OutputKind.RUN)
 
 
 def timed_loop(world, steps: int, every: int, record, progress: bool, *, start: int = 0, origin: int | None = None,

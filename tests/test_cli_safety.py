@@ -247,7 +247,7 @@ def test_run_overwrite_keeps_the_users_files_and_nan_keeps_previous_outputs(tmp_
     assert (out / "summary.json").stat().st_mode & 0o777 == 0o666 & ~_umask()
 
 
-def test_overwrite_replaces_only_an_output_of_the_same_kind(tmp_path, capsys):
+def test_overwrite_replaces_only_an_output_of_the_same_kind(work, tmp_path, capsys):
     """``render --out`` into a run's output folder with ``--overwrite`` deleted the run's
     trajectories and summary (both this tool's files) and exited 0. The manifest now says what
     a folder holds; another command's output is refused before the work, naming it, and stays
@@ -268,6 +268,12 @@ def test_overwrite_replaces_only_an_output_of_the_same_kind(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "holds a run's outputs (summary.json, trajectories.npz)" in err and "rendered frames" in err
     assert _snapshot(out) == before
+    # nor a file of it: convert OUT.npz over the run's trajectories.npz replaced it with exit 0
+    from dynmesh_warp.convert import main as convert
+
+    assert convert([str(work / "frames"), str(out / "trajectories.npz"), "--device", "cpu", "--overwrite",
+                    "--no-progress"]) == 2
+    assert "is one of a run's outputs" in capsys.readouterr().err and _snapshot(out) == before
     assert render(render_args + ["--out", str(frames)]) == 0 and read_manifest_kind(frames) == OutputKind.RENDER
     assert render(render_args + ["--out", str(frames), "--overwrite"]) == 0  # the same kind: replaced
     assert run(run_args + ["--output", str(frames), "--overwrite"]) == 2

@@ -332,7 +332,15 @@ def test_single_env_is_the_batch_of_one_through_gymnasium_make(device):
         env.reset()
         env.step(np.zeros((1, 2), np.float32))
     vec = gym.make_vec(ENV_ID, num_envs=3, scene=cfg)
-    assert isinstance(vec, RideSurfaceEnv) and vec.num_envs == 3
+    assert isinstance(vec, RideSurfaceEnv) and vec.num_envs == 3 and vec.render() is None
+    # Gymnasium's names, which make_vec passes on (a new user's TypeError): the episode length
+    # and the render mode, one image per env
+    vec = gym.make_vec(ENV_ID, num_envs=2, scene=cfg, max_episode_steps=3, render_mode="rgb_array")
+    vec.reset(seed=0)
+    trunc = [vec.step(np.zeros((2, 2), np.float32))[3] for _ in range(3)]
+    assert vec.max_steps == 3 and trunc[-1].all() and not trunc[0].any()
+    img = vec.render()
+    assert img.shape == (2, 128, 128, 3) and img.dtype == np.uint8
     with pytest.raises(ValueError, match="num_envs is fixed for one env"):
         RideSurfaceSingleEnv(scene=cfg, num_envs=2)
     with pytest.raises(ValueError, match="render_mode must be None or 'rgb_array'"):
