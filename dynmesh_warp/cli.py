@@ -246,7 +246,9 @@ def _on_signal(signum, frame):
     elif _state.signum is None:  # the watcher has not read the byte yet
         with _state.lock:
             _state.signum = _state.signum or int(signum)
-    if _state.checking == 0 and not _state.raised:
+    # a stop a loop has already seen is being handled (its output written): a repeat of it (within
+    # the same-stop window; later ones exit through the watcher) must not raise in the middle of that
+    if _state.checking == 0 and not _state.raised and not _state.seen.is_set():
         _state.raised = True
         _state.seen.set()
         raise Interrupted(_state.signum)

@@ -661,6 +661,24 @@ def test_out_of_memory_is_one_line_not_a_traceback(capsys):
     assert capsys.readouterr().err.startswith("error: out of memory; nothing more was written")
 
 
+def test_the_same_stops_second_signal_during_the_write_does_not_raise():
+    """The stop's second signal (``timeout``'s, to the group) arriving after the loop saw the stop
+    but before the handlers' exit — while the output is written, outside a checking region — raised
+    Interrupted there: a traceback and exit 1 instead of 130 (the fresh-clone CI caught it in
+    test_convert_signal_sent_twice_at_once_is_one_stop). In-process, deterministic."""
+    from dynmesh_warp import cli
+
+    with cli.handle_stop_signals():
+        with cli.checking_stops():
+            os.kill(os.getpid(), signal.SIGINT)
+            deadline = time.monotonic() + 2.0
+            while not cli.stop_requested() and time.monotonic() < deadline:
+                time.sleep(0.001)
+            assert cli.stop_requested()
+        os.kill(os.getpid(), signal.SIGINT)  # "writing the output": the same stop, sent again
+        time.sleep(0.05)  # the handler runs here; it raised Interrupted
+
+
 def test_a_late_signal_of_the_same_stop_does_not_raise_while_the_handlers_wait():
     """A stop seen in a checking region (no exception raised: the loop wrote its output) leaves
     the handlers up for the rest of the same-stop window; the stop's second signal (``timeout``'s,
