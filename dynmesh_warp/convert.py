@@ -261,6 +261,10 @@ class ConversionInfo:
     diagonal; 0 at the first frame and where a template segment starts. A frame far above its
     neighbours' is a jump (a restart's new start, a slide along the surface), which the physics
     sees as the surface moving that far in one frame (a new user's spheres were thrown at 30 m/s).
+    input_motion: per frame, where ``frame_motion`` makes it a jump, how far the input itself moved
+    there: the 99th percentile of input frame t's vertices' distances to frame t - 1's surface, over
+    the diagonal (0 elsewhere); a jump the input makes too is real motion, not warned of (a new
+    user's capture that moves 0.4 m in one frame was warned of as a restart).
     area_ratio: per frame, the converted surface's area over the input's (the result's frames;
     above ``POOR_AREA``, a crumpled surface: a new user's balloon, converted from its inflated
     frame, had 2.0-2.4x the input's area on its 16 deflated frames while the vertex Chamfer
@@ -315,6 +319,7 @@ class ConversionInfo:
     flipped: list = field(default_factory=list)
     area_ratio: list = field(default_factory=list)
     frame_motion: list = field(default_factory=list)
+    input_motion: list = field(default_factory=list)
     rejected_cuts: list = field(default_factory=list)
     segments: list = field(default_factory=list)
     open_edges: list = field(default_factory=list)
@@ -1696,6 +1701,7 @@ def _slice_result(res, a: int, b: int, lo: int):
                                          coverage_tail=list(info.coverage_tail[i:j]), flipped=list(info.flipped[i:j]),
                                          area_ratio=list(info.area_ratio[i:j]),
                                          frame_motion=[0.0] + list(info.frame_motion[i + 1:j]),
+                                         input_motion=[0.0] + list(info.input_motion[i + 1:j]),
                                          buried=list(info.buried[i:j]), rejected_cuts=list(info.rejected_cuts),
                                          frame_seconds=list(info.frame_seconds[i:j]), **_frame_fields(info, -i, i, j))
     return out
@@ -1734,6 +1740,7 @@ def _join_segments(vseq, segs: list, whole, events: list) -> VaryingTopologySequ
         info.flipped += c.flipped
         info.area_ratio += c.area_ratio
         info.frame_motion += c.frame_motion
+        info.input_motion += c.input_motion
         info.web += c.web
         info.buried += c.buried
         info.rejected_cuts += [x for x in c.rejected_cuts if x not in info.rejected_cuts]
@@ -2005,6 +2012,11 @@ def _convert_from_key(vseq, strategy: str, o: dict, K: int, template, device, pr
         info.area_ratio = info.area_ratio[lo:hi + 1]
     res = FixedTopologySequence(out[lo:hi + 1], TF, fps=vseq.fps, name=vseq.name, source=vseq.source)
     info.frame_motion = _frame_motion(res.V)
+    info.input_motion = [0.0] * len(info.frame_motion)
+    for i in _jumps(info.frame_motion).tolist():  # few: each one query of the input's frame against the one before
+        (v1, _), prev = vseq.frames[lo + i], vseq.frames[lo + i - 1]
+        d = nearest_surface(prev, v1[::_stride(len(v1), 4096)], device=device).dist
+        info.input_motion[i] = float(np.percentile(d, 99)) / max(_bbox_diag(v1), 1e-12)
     res.conversion = info
     return res
 
@@ -2040,6 +2052,8 @@ POOR_AREA = 1.5
 JUMP_RATIO = 3.0
 JUMP_WINDOW = 5
 JUMP_LEAST = 0.05
+#: ... unless the input moved (``input_motion``) at least this fraction of that there
+JUMP_INPUT = 0.5
 #: a web (:func:`web_fraction`): faces whose longest edge grew more than WEB_STRETCH x since the
 #: key frame and whose centroid lies farther than WEB_GAP x the input's bbox diagonal from the
 #: input; a frame whose web covers more than POOR_WEB of the converted surface's area counts as
@@ -2175,14 +2189,16 @@ def conversion_summary(info: ConversionInfo) -> list:
                          f"{folds.size} frame(s) ({_frames_text(folds)}): a fold-over (a sheet's free edge doubled "
                          "back), or many thin parts, which read so too; look at those frames")
     jumps = _jumps(info.frame_motion) if len(info.frame_motion) == cov.size else np.zeros(0, int)
+    if jumps.size and len(info.input_motion) == cov.size:  # the input's own jump is motion, not a fault
+        jumps = jumps[np.asarray(info.input_motion, float)[jumps] < JUMP_INPUT * np.asarray(info.frame_motion)[jumps]]
     if jumps.size:
         m = np.asarray(info.frame_motion, float)
         w = int(jumps[np.argmax(m[jumps])])
         lines.append(f"warning: the converted surface jumps at {jumps.size} frame(s) ({_frames_text(jumps)}): at frame "
                      f"{w} its vertices move {100 * m[w]:.1f}% of the diagonal from frame {w - 1} (99th pct.), over "
-                     f"{JUMP_RATIO:g}x the frames around it (a restarted fit, the template sliding along the "
-                     "surface, or the input itself moving that far there: compare the input's frames); the physics "
-                     "sees the surface move that far in one frame and throws what touches it")
+                     f"{JUMP_RATIO:g}x the frames around it, where the input moved less than half as far (a restarted "
+                     "fit, or the template sliding along the surface); the physics sees the surface move that far in "
+                     "one frame and throws what touches it")
     ar = np.asarray(info.area_ratio, float)
     crumpled = np.flatnonzero(ar > POOR_AREA) if ar.size == cov.size else np.zeros(0, int)
     if crumpled.size:

@@ -542,6 +542,23 @@ def test_frame_motion_and_jumps_are_measured_and_warned():
                           frame_motion=motion)
     warn = [ln for ln in conversion_summary(info) if ln.startswith("warning:")]
     assert len(warn) == 1 and "jumps at 1 frame(s) (4)" in warn[0] and "move 20.0% of the diagonal from frame 3" in warn[0]
+    info.input_motion = [0.0] * 4 + [0.15] + [0.0] * 4  # the input moved as far there: motion, not a fault
+    assert not any("jumps" in ln for ln in conversion_summary(info))
+    # a capture that stands still, moves 0.6 (its own size) at frame 4 and stands still again: the
+    # converted surface jumps with it, which the input's own move (measured there) explains
+    teleport = []
+    for t in range(10):
+        s = trimesh.creation.icosphere(subdivisions=3 if t % 2 else 2)
+        teleport.append(((s.vertices + [0.6 * (t >= 4), 0, 0]).astype(np.float32), s.faces.astype(np.int32)))
+    r = to_fixed_topology(VaryingTopologySequence(teleport), device=DEV)
+    m, mi = np.asarray(r.conversion.frame_motion), np.asarray(r.conversion.input_motion)
+    assert m[4] > 0.1 and mi[4] > 0.5 * m[4] and mi[:4].max() < 0.01
+    warned = [ln for ln in conversion_summary(r.conversion) if "jumps" in ln]
+    assert not any("(4)" in ln or ", 4" in ln for ln in warned)
+    # what is warned of, the input standing still there, is the output's own: tracked backwards
+    # from the last frame, the constant-velocity prediction carries the jump on into frames 3 and 2
+    for t in (int(x) for ln in warned for x in ln.split("frame(s) (")[1].split(")")[0].split(", ")):
+        assert t < 4 and m[t] > 0.05
 
 
 @pytest.mark.parametrize("bad,name", [({"node_spacing": 0}, "node_spacing"), ({"graph_iterations": 0}, "graph_iterations"),
