@@ -85,12 +85,15 @@ class RideSurfaceEnv(VectorEnv):
     def __init__(self, num_envs: int = 64, scene=None, device=None, backend: str = "numpy", radius: float = 0.05,
                  max_steps: int = 500, decimation: int = 4, accel: float = 4.0, push: float = 0.6,
                  max_distance: float | None = None, target=None, seed: int = 0, render_mode: str | None = None,
-                 max_episode_steps: int | None = None):
+                 render_size: tuple[int, int] = (128, 128), max_episode_steps: int | None = None):
         if gym is None:
             raise ImportError("RideSurfaceEnv needs gymnasium >= 1.0: pip install 'dynmesh_warp[rl]'")
-        if render_mode not in (None, "rgb_array"):
+        if render_mode not in (None, *self.metadata["render_modes"]):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
-        self.render_mode = render_mode
+        size = tuple(render_size) if np.ndim(render_size) == 1 else ()
+        if len(size) != 2 or any(isinstance(v, bool) or int(v) != v or v < 1 for v in size):
+            raise ValueError(f"render_size must be (width, height) in pixels, got {render_size!r}")
+        self.render_mode, self.render_size = render_mode, (int(size[0]), int(size[1]))
         if max_episode_steps is not None:  # Gymnasium's name (gym.make_vec passes it) for max_steps
             max_steps = max_episode_steps
         if backend not in ("numpy", "torch"):
@@ -204,11 +207,11 @@ class RideSurfaceEnv(VectorEnv):
         return self._out(render_envs(self.world, g, cam, renderer=r).rgb)
 
     def render(self):
-        """With ``render_mode="rgb_array"``: every env's camera image (:meth:`render_images`, 128 x 128)
-        as (E, height, width, 3) uint8 NumPy; else None."""
+        """With ``render_mode="rgb_array"``: every env's camera image (:meth:`render_images` at
+        ``render_size``, default 128 x 128) as (E, height, width, 3) uint8 NumPy; else None."""
         if self.render_mode != "rgb_array":
             return None
-        rgb = self.render_images(128, 128)
+        rgb = self.render_images(*self.render_size)
         rgb = rgb.detach().cpu().numpy() if hasattr(rgb, "detach") else rgb
         return (np.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
 
@@ -320,15 +323,11 @@ class RideSurfaceSingleEnv(gym.Env if gym is not None else object):
         taken = sorted({"num_envs", "backend"} & set(kwargs))
         if taken:
             raise ValueError(f"RideSurfaceSingleEnv: {taken[0]} is fixed for one env (use RideSurfaceEnv for a batch)")
-        if render_mode not in (None, *self.metadata["render_modes"]):
-            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
-        size = tuple(render_size) if np.ndim(render_size) == 1 else ()
-        if len(size) != 2 or any(isinstance(v, bool) or int(v) != v or v < 1 for v in size):
-            raise ValueError(f"render_size must be (width, height) in pixels, got {render_size!r}")
-        self.vector_env = RideSurfaceEnv(num_envs=1, backend="numpy", **kwargs)
+        self.vector_env = RideSurfaceEnv(num_envs=1, backend="numpy", render_mode=render_mode, render_size=render_size,
+                                         **kwargs)
         self.observation_space = self.vector_env.single_observation_space
         self.action_space = self.vector_env.single_action_space
-        self.render_mode, self.render_size = render_mode, (int(size[0]), int(size[1]))
+        self.render_mode, self.render_size = self.vector_env.render_mode, self.vector_env.render_size
         v = self.vector_env
         self.metadata = {**self.metadata, "render_fps": 1.0 / (v.decimation * v.world.dt)}
         self._ended = True  # reset() first
@@ -358,10 +357,8 @@ class RideSurfaceSingleEnv(gym.Env if gym is not None else object):
 
     def render(self):
         """The env's camera image, (height, width, 3) uint8, with ``render_mode="rgb_array"``; else None."""
-        if self.render_mode != "rgb_array":
-            return None
-        rgb = self.vector_env.render_images(*self.render_size)[0]
-        return (np.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+        rgb = self.vector_env.render()
+        return None if rgb is None else rgb[0]
 
     def close(self):
         self.vector_env.close()
