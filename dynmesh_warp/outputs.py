@@ -240,10 +240,12 @@ def read_manifest_kind(folder) -> OutputKind | None:
         return None
 
 
-def _other_kind(folder: Path, holds: OutputKind | None) -> OutputKind | None:
-    """The kind of output ``folder`` holds where it is not ``holds`` and some of it is still there."""
+def _other_kind(folder: Path, holds: OutputKind | None, name: str | None = None) -> OutputKind | None:
+    """The kind of output ``folder`` holds where it is not ``holds`` and some of it is still there
+    (with ``name``: where that entry is one of its files)."""
     other = read_manifest_kind(folder) if holds is not None and folder.is_dir() else None
-    if other is None or other == OutputKind(holds) or not (read_manifest(folder) & set(os.listdir(folder))):
+    present = {name} if name is not None else set(os.listdir(folder)) if other is not None else set()
+    if other is None or other == OutputKind(holds) or not (read_manifest(folder) & present):
         return None
     return other
 
@@ -352,8 +354,8 @@ def check_output(path, *, kind: str, what: str, inputs=(), overwrite: bool = Fal
         else:
             if real.is_dir():
                 raise OutputError(f"{what} {shown}: is a folder, a file is expected")
-            other = read_manifest_kind(real.parent) if holds is not None else None
-            if other is not None and other != OutputKind(holds) and real.name in read_manifest(real.parent):
+            other = _other_kind(real.parent, holds, real.name)
+            if other is not None:
                 # a file of another command's folder output (convert OUT.npz over a run's
                 # trajectories.npz replaced it with exit 0, and the run's manifest still listed it)
                 raise OutputExistsError(f"{what} {shown}: is one of {other.described} in {real.parent}, which "
