@@ -1199,9 +1199,16 @@ def _key_frame_floaters(vseq, K: int, o: dict, device) -> tuple:
     ``far_part_area`` on, all such far small parts. Kept, such a part became a template part that
     no other frame has, dragged about as flying surface (a new user's 12-vertex fragment of
     reconstruction debris jumped 1.2 m between frames: 29 m/s for the physics). A small separate
-    part that persists (a ball, a part of a real object) is kept. Returns (v, f, parts, vertices)."""
-    v, f = vseq.frames[K]
+    part that persists (a ball, a part of a real object) is kept. Returns (v, f, parts, vertices);
+    asked by the template's making and by the key frame's fit, found once per sequence object."""
     area_opt, gap = float(o.get("far_part_area", 0.0)), float(o.get("far_part_gap", 0.0))
+    return _once(vseq, ("key frame floaters", K, area_opt, gap),
+                 lambda: _find_key_frame_floaters(vseq, K, area_opt, gap, device))
+
+
+def _find_key_frame_floaters(vseq, K: int, area_opt: float, gap: float, device) -> tuple:
+    """The body of :func:`_key_frame_floaters`."""
+    v, f = vseq.frames[K]
     _, vert_part, lab, small = _small_parts(v, f, area_opt if area_opt > 0 else FLOATER_AREA)
     if not small.size or gap <= 0:
         return v, f, 0, 0
@@ -1421,10 +1428,19 @@ def to_fixed_topology(seq, strategy: str = DEFAULT_STRATEGY, template=None, devi
 def _to_fixed(seq, strategy, template, device, progress, should_stop, stop_forward, **options):
     """:func:`to_fixed_topology`, with ``stop_forward`` (:func:`_convert_frames`) for
     :func:`to_piecewise_fixed`'s first run."""
+    vseq = _as_varying(seq)
+    vseq.__dict__.pop(_CACHE, None)  # found afresh (the caller may have changed its frames since)
+    try:
+        return _to_fixed_run(vseq, seq, strategy, template, device, progress, should_stop, stop_forward, **options)
+    finally:
+        vseq.__dict__.pop(_CACHE, None)  # nothing of it stays on the caller's sequence
+
+
+def _to_fixed_run(vseq, seq, strategy, template, device, progress, should_stop, stop_forward, **options):
+    """The body of :func:`_to_fixed` (``vseq``: ``seq`` as a varying sequence)."""
     start = time.perf_counter()
     o = _resolve_options(strategy, options)
     set_deterministic(bool(o["deterministic"]), int(o.get("nodes_per_vertex", 4)))
-    vseq = _as_varying(seq)
     where = vseq.source or vseq.name
     for t, (v, f) in enumerate(vseq.frames):  # frames may have been mutated after construction
         src = vseq.frame_sources[t] if vseq.frame_sources else where
@@ -1560,28 +1576,36 @@ def _frame_motion(V: np.ndarray, most: int = 4096) -> list:
     return out
 
 
-def _jumps(motion, ratio: float | None = None, least: float | None = None) -> np.ndarray:
-    """The frames whose ``frame_motion`` is over ``ratio`` x the median of their neighbours'
-    (``JUMP_WINDOW`` either side, segment starts left out) and over ``least`` of the diagonal."""
+def _jumps(motion) -> np.ndarray:
+    """The frames whose ``frame_motion`` is over ``JUMP_RATIO`` x the median of their neighbours'
+    (``JUMP_WINDOW`` either side, segment starts left out) and over ``JUMP_LEAST`` of the diagonal."""
     m = np.asarray(motion, float)
-    ratio, least = JUMP_RATIO if ratio is None else ratio, JUMP_LEAST if least is None else least
     out = []
-    for t in np.flatnonzero(m > least):
+    for t in np.flatnonzero(m > JUMP_LEAST):
         near = np.r_[m[max(0, t - JUMP_WINDOW):t], m[t + 1:t + 1 + JUMP_WINDOW]]
         near = near[near > 0]
-        if near.size and m[t] > ratio * float(np.median(near)):
+        if near.size and m[t] > JUMP_RATIO * float(np.median(near)):
             out.append(int(t))
     return np.array(out, int)
 
 
+#: the attribute of the sequence being converted that holds what :func:`_once` found (emptied at
+#: the start and end of each :func:`_to_fixed`, so it never outlives a conversion)
+_CACHE = "_conversion_cache"
+
+
+def _once(seq: VaryingTopologySequence, key: tuple, make):
+    """``make()``, found once per conversion of ``seq`` and ``key``."""
+    cache = seq.__dict__.setdefault(_CACHE, {})
+    if key not in cache:
+        cache[key] = make()
+    return cache[key]
+
+
 def _frame_areas(seq: VaryingTopologySequence) -> np.ndarray:
-    """Each frame's surface area (T,), computed once per sequence object (the key frame's choice
-    and the converted area's ratio both ask)."""
-    got = getattr(seq, "_frame_areas", None)
-    if got is None or len(got) != seq.num_frames:
-        got = np.array([surface_area(v, f) for v, f in seq.frames])
-        seq._frame_areas = got
-    return got
+    """Each frame's surface area (T,) (the key frame's choice and every run's converted area ratio
+    ask), found once per conversion."""
+    return _once(seq, ("frame areas", seq.num_frames), lambda: np.array([surface_area(v, f) for v, f in seq.frames]))
 
 
 def _to_piecewise(seq, strategy, template, device, progress, should_stop, options: dict):
