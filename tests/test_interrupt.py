@@ -661,6 +661,16 @@ def test_out_of_memory_is_one_line_not_a_traceback(capsys):
     assert capsys.readouterr().err.startswith("error: out of memory; nothing more was written")
 
 
+def _stop_seen_in_a_checking_region(cli):
+    """A SIGINT sent to this process and seen by a loop that checks for stops (no exception)."""
+    with cli.checking_stops():
+        os.kill(os.getpid(), signal.SIGINT)
+        deadline = time.monotonic() + 2.0
+        while not cli.stop_requested() and time.monotonic() < deadline:
+            time.sleep(0.001)
+        assert cli.stop_requested()
+
+
 def test_the_same_stops_second_signal_during_the_write_does_not_raise():
     """The stop's second signal (``timeout``'s, to the group) arriving after the loop saw the stop
     but before the handlers' exit — while the output is written, outside a checking region — raised
@@ -669,12 +679,7 @@ def test_the_same_stops_second_signal_during_the_write_does_not_raise():
     from dynmesh_warp import cli
 
     with cli.handle_stop_signals():
-        with cli.checking_stops():
-            os.kill(os.getpid(), signal.SIGINT)
-            deadline = time.monotonic() + 2.0
-            while not cli.stop_requested() and time.monotonic() < deadline:
-                time.sleep(0.001)
-            assert cli.stop_requested()
+        _stop_seen_in_a_checking_region(cli)
         os.kill(os.getpid(), signal.SIGINT)  # "writing the output": the same stop, sent again
         time.sleep(0.05)  # the handler runs here; it raised Interrupted
 
@@ -690,12 +695,7 @@ def test_a_late_signal_of_the_same_stop_does_not_raise_while_the_handlers_wait()
     from dynmesh_warp import cli
 
     with cli.handle_stop_signals():
-        with cli.checking_stops():
-            os.kill(os.getpid(), signal.SIGINT)
-            deadline = time.monotonic() + 2.0
-            while not cli.stop_requested() and time.monotonic() < deadline:
-                time.sleep(0.001)
-            assert cli.stop_requested()
+        _stop_seen_in_a_checking_region(cli)
         # the output is written; the exit waits out the window, and the second signal comes then
         threading.Timer(0.1, os.kill, args=(os.getpid(), signal.SIGINT)).start()
     time.sleep(0.3)  # past the timer: had it raised, the with-block's exit would have
