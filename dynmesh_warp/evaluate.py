@@ -262,8 +262,8 @@ def surface_velocity_error(gt: FixedTopologySequence, pred, device=None) -> dict
            "max_worst_pair": None, "gt_p99_mean": None}
     if done:
         e99, emax = (np.array([p[k] for _, p in done]) for k in ("p99", "max"))
-        out.update(p50_mean=float(np.mean([p["p50"] for _, p in done])))
-        out.update(p99_mean=float(e99.mean()), p99_max=float(e99.max()), p99_worst_pair=done[int(e99.argmax())][0],
+        out.update(p50_mean=float(np.mean([p["p50"] for _, p in done])),
+                   p99_mean=float(e99.mean()), p99_max=float(e99.max()), p99_worst_pair=done[int(e99.argmax())][0],
                    max=float(emax.max()), max_worst_pair=done[int(emax.argmax())][0],
                    gt_p99_mean=float(np.mean([p["gt_p99"] for _, p in done])))
     return out
