@@ -345,6 +345,9 @@ def test_single_env_is_the_batch_of_one_through_gymnasium_make(device):
         RideSurfaceSingleEnv(scene=cfg, num_envs=2)
     with pytest.raises(ValueError, match="render_mode must be None or 'rgb_array'"):
         RideSurfaceSingleEnv(scene=cfg, render_mode="human")
+    for bad in ((0, 10), (10,), (1.5, 10), "big"):  # refused before the world is built
+        with pytest.raises(ValueError, match=r"render_size must be \(width, height\) in pixels"):
+            RideSurfaceSingleEnv(scene=cfg, render_size=bad)
 
 
 def test_single_env_renders_the_batchs_camera_image(device):
