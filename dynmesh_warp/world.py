@@ -19,7 +19,7 @@ from pydantic import PrivateAttr
 import warp as wp
 
 from .kernels.collide import collide_sphere_mesh
-from .kernels.frames import blend_segment_vertices, update_frame_vertices
+from .kernels.frames import FRAME_SNAP, blend_segment_vertices, update_frame_vertices
 from .kernels.geometry import compute_face_normals
 from .kernels.integrate import integrate_spheres
 from .kernels.swept import (
@@ -107,11 +107,14 @@ def _wrap_frame_host(k: int, num_frames: int, mode: int) -> int:
 
 
 def frame_pair_host(time: float, fps: float, num_frames: int, mode: int = 0) -> tuple[int, int, float]:
-    """Host twin of the device ``frame_pair``: (k, k+1) wrapped by playback mode, and alpha."""
+    """Host twin of the device ``frame_pair``: (k, k+1) wrapped by playback mode, and alpha
+    (a clock within ``FRAME_SNAP`` frames below a boundary is on it)."""
     s = time * fps
     kf = math.floor(s)
+    if s - kf > 1.0 - FRAME_SNAP:
+        kf += 1
     k = int(kf)
-    return (_wrap_frame_host(k, num_frames, mode), _wrap_frame_host(k + 1, num_frames, mode), s - kf)
+    return (_wrap_frame_host(k, num_frames, mode), _wrap_frame_host(k + 1, num_frames, mode), max(s - kf, 0.0))
 
 
 class PhysicsParams(PhysicsCore):
@@ -203,7 +206,7 @@ class SurfaceModel:
     Attributes:
         frames: wp.array2d(vec3), (T, N) vertex positions per reconstruction frame [m].
         indices: wp.array(int32), (3M,) triangle vertex indices, shared by all frames.
-        fps: reconstruction frame rate [1/s]; frame k = floor(t * fps).
+        fps: reconstruction frame rate [1/s]; frame k = floor(t * fps) (``frame_pair_host``).
         playback: int code of "loop" | "clamp" | "pingpong" (times past the last frame).
         interpolate: blend frames k and k+1 linearly (else hold frame k).
         max_speed: largest vertex speed over the sequence [m/s] (host float): the larger of

@@ -337,6 +337,28 @@ def _device_frame_pairs(times, fps, T, mode, device):
     return out
 
 
+@pytest.mark.parametrize("fps", [24.0, 30.0, 48.0, 240.0])
+def test_a_clock_summed_from_dt_starts_each_frame_on_its_boundary(fps, device):
+    """The world's clock adds dt each step, so a step meant to start at k / fps mostly starts a
+    few ulps before it (dt = 1 / 240: on 60 % of the boundary steps, a new user found). The pair
+    is then still (k, k + 1), on the device and on the host, not (k - 1, k) at alpha ~ 1, whose
+    velocity is the previous interval's; a time a step after a boundary is unchanged."""
+    T, dt = 1000, 1.0 / 240.0
+    per = round(1.0 / (fps * dt)) if fps * dt < 1 else 1
+    t, times, want = 0.0, [], []
+    for n in range(1, 600):
+        t += dt  # float64, as the world's clock
+        if n % per == 0:
+            times += [t, t + 0.5 * dt]
+            want += [n // per, n // per]
+    below = sum(math.floor(x * fps) < k for x, k in zip(times[::2], want[::2]))
+    assert below > 0.3 * len(want) / 2  # the case: most of these sums land below the boundary
+    host = [frame_pair_host(x, fps, T, PLAYBACK_MODES["clamp"]) for x in times]
+    assert [h[0] for h in host] == want
+    assert all(0.0 <= h[2] < 1e-6 for h in host[::2])
+    assert _device_frame_pairs(times, fps, T, PLAYBACK_MODES["clamp"], device) == [(k, k + 1) for k in want]
+
+
 @pytest.mark.parametrize("mode", ["loop", "clamp", "pingpong"])
 def test_frame_pair_host_matches_device(mode, device):
     T = 7

@@ -121,6 +121,29 @@ def test_restitution_rebound_apex(e):
     assert z.min() >= r - 1e-3  # never sinks into the floor
 
 
+@pytest.mark.parametrize("collider", COLLIDERS)
+def test_each_step_takes_the_velocity_of_the_frame_interval_it_crosses(collider):
+    """A sheet zig-zagging in x (+1 m/s over frames 0 -> 1, -1 m/s over 1 -> 2, ...) under a
+    resting sphere, dt = 1 / 240 at 24 fps (10 steps a frame): every step's contact takes the
+    velocity of the interval it crosses. The clock is summed from dt, so most steps meant to
+    start on a frame boundary start a few ulps before it; they took the previous interval's
+    velocity, of the wrong sign here (a new user: 16 of 24 boundary steps)."""
+    fps, T, r = 24.0, 30, 0.05
+    V0, F = scenes.grid_sheet(5, 4.0)
+    x = np.concatenate([[0.0], np.cumsum([(1.0 if k % 2 == 0 else -1.0) / fps for k in range(T - 1)])])
+    seq = FixedTopologySequence(np.stack([V0 + [xk, 0.0, 0.0] for xk in x]).astype(np.float32), F, fps=fps)
+    w = make_world(seq, [[0.0, 0.0, r]], r, collider=collider, friction=1.0)
+    wrong = []
+    for n in range(240):
+        k = n // 10  # the interval the step [n dt, (n + 1) dt] lies in
+        w.step()
+        assert w.contacts.face.numpy()[0] >= 0
+        vx = float(w.contacts.velocity.numpy()[0][0])
+        if vx != pytest.approx(1.0 if k % 2 == 0 else -1.0, abs=1e-4):
+            wrong.append((n, k, vx))
+    assert not wrong
+
+
 def test_zero_restitution_does_not_bounce():
     h, r = 0.5, 0.1
     w = make_world(_static_sheet(), [[0.0, 0.0, r + h]], r, restitution=0.0)
