@@ -14,9 +14,9 @@ with ``backend="numpy"`` (default, Gymnasium's convention) host copies.
 Observation (18 per env): ball position relative to the target (3) [m], ball velocity (3)
 [m/s], heights of the surface at a 3 x 3 grid around the ball relative to it (9) [m], in contact
 (1), sin/cos of the env's phase in its playback of the sequence (2). A probe that meets no
-surface below reads the floor: the ground, or the sequence's lowest point where the scene has
-none. Action (2 per env): in [-1, 1] x ``accel`` [m/s^2], a horizontal velocity change of
-action x accel x decimation x dt at the start of the env step (an impulse). Reward per step: 1 -
+surface below reads the floor: the ground, or where the scene has none 2 ball radii under the
+sequence's lowest point (``FLOOR_DROP``). Action (2 per env): in [-1, 1] x ``accel`` [m/s^2], a
+horizontal velocity change of action x accel x decimation x dt at the start of the env step (an impulse). Reward per step: 1 -
 (horizontal distance / max_distance)^2 - 0.01 |action|^2, less 1 on the step that terminates
 (the ball fell to the floor or left ``max_distance``): that step earns -(distance /
 max_distance)^2 - 0.01 |action|^2; episodes are truncated after ``max_steps``.
@@ -61,6 +61,11 @@ def surface_target(V0: np.ndarray, top_fraction: float = 0.1) -> np.ndarray:
     z = V0[:, 2]
     top = V0[z >= np.quantile(z, 1.0 - top_fraction)]
     return top.mean(axis=0).astype(np.float32)
+
+
+#: with no ground, the floor lies this many ball radii under the sequence's lowest point: a ball
+#: resting anywhere on the surface is above it, one that left the surface passes it soon
+FLOOR_DROP = 2.0
 
 
 class RideSurfaceEnv(VectorEnv):
@@ -136,8 +141,10 @@ class RideSurfaceEnv(VectorEnv):
         self.top = float(seq.V[..., 2].max()) + 1.0
         gh = model.params.ground_height
         # where a probe finds no surface below, and below which the ball has fallen: the ground,
-        # or with none the sequence's lowest point (a probe read -1e6 there before)
-        self.floor = float(seq.V[..., 2].min() if gh is None else gh)
+        # or with none FLOOR_DROP ball radii under the sequence's lowest point (a probe read -1e6
+        # there before; at the lowest point itself a ball resting on a flat sheet had "fallen"
+        # at its spawn and every step after)
+        self.floor = float(seq.V[..., 2].min() - FLOOR_DROP * self.radius if gh is None else gh)
         bm = BatchModel(model.surface, int(num_envs), [self.radius], 1.0, model.params)
         far = np.tile(self.target + np.array([0.0, 0.0, 10.0], np.float32), (1, 1))
         self.world = BatchedWorld(bm, BatchState(bm, far))

@@ -9,7 +9,7 @@ import pytest
 
 gym = pytest.importorskip("gymnasium")
 
-from dynmesh_warp.envs import RideSurfaceEnv  # noqa: E402
+from dynmesh_warp.envs import FLOOR_DROP, RideSurfaceEnv  # noqa: E402
 from reference import surface_at  # noqa: E402
 
 
@@ -241,15 +241,39 @@ def _blob_env(device, playback="loop", **kw):
     return RideSurfaceEnv(scene=cfg, **kw)
 
 
+def test_a_ball_resting_on_a_flat_sheet_with_no_ground_has_not_fallen(device, tmp_path):
+    """With no ground the floor lies under the surface: on a static flat sheet (the sequence's
+    lowest point everywhere) a ball spawned on it rests there without terminating (at the lowest
+    point itself every env terminated at every step, a new user found). A ball that leaves the
+    surface still falls past the floor: the blob test below."""
+    from dynmesh_warp import scenes
+    from dynmesh_warp.config import load_scene_config
+    from dynmesh_warp.io import save_sequence
+    from dynmesh_warp.sequence import FixedTopologySequence
+
+    V0, F = scenes.grid_sheet(5, 1.0)
+    save_sequence(FixedTopologySequence(np.stack([V0] * 4).astype(np.float32), F, fps=24.0), tmp_path / "sheet.npz")
+    cfg = load_scene_config(data={"device": device, "surface": {"source": str(tmp_path / "sheet.npz")}})
+    env = RideSurfaceEnv(num_envs=4, scene=cfg, push=0.0, target=[0.0, 0.0, 0.0], max_distance=1.0)
+    assert env.world.model.params.ground_height is None and env.floor < float(V0[:, 2].min())
+    env.reset(seed=0)
+    for _ in range(30):
+        _, _, term, _, _ = env.step(np.zeros((4, 2), np.float32))
+        assert not term.any()
+    assert (env.world.sphere_positions().reshape(-1, 3)[:, 2] > float(V0[:, 2].max())).all()  # on the sheet, not through it
+
+
 def test_missed_probes_read_the_floor_and_a_ball_below_it_has_fallen(device):
     """With no ground (the built-in blob) a height probe that meets no surface below reads the
-    sequence's lowest point (it read -1e6, a new user's silent outlier in 216 of 57,600 heights),
+    floor, FLOOR_DROP ball radii under the sequence's lowest point (it read -1e6, a new user's
+    silent outlier in 216 of 57,600 heights),
     and a ball that drops below it has fallen (terminated, -1). The target is put beside the blob,
     so the balls spawn with no surface under them."""
     probe = _blob_env(device, num_envs=3)
     seq = probe.world.model.surface.sequence
     V = seq.V.reshape(-1, 3)
-    assert probe.world.model.params.ground_height is None and probe.floor == pytest.approx(float(V[:, 2].min()))
+    assert probe.world.model.params.ground_height is None
+    assert probe.floor == pytest.approx(float(V[:, 2].min()) - FLOOR_DROP * probe.radius)
     diag = float(np.linalg.norm(np.ptp(V, axis=0)))
     target = [float(V[:, 0].max()) + 2.0 * diag, 0.0, probe.floor + 0.2]
     env = _blob_env(device, num_envs=3, seed=7, target=target)
