@@ -56,7 +56,8 @@ def _digest(*arrays) -> str:
 def scene_fingerprint(world) -> dict:
     """What a checkpoint must agree on with the world it is restored into, keyed by the scene
     field it comes from: the surface (frames, vertex and face counts, fps, playback,
-    interpolation, a digest of every vertex position and face), the sphere count, the physics
+    interpolation, a digest of every vertex position and face), the sphere count, a digest of the
+    spheres' starting positions and velocities, the physics
     parameters, the sub-steps actually used and the collider."""
     m = world.model
     surf, p = m.surface, m.params
@@ -73,6 +74,9 @@ def scene_fingerprint(world) -> dict:
         "surface.interpolate": bool(surf.interpolate),
         "surface.data (vertex positions and faces)": geom,
         "spheres.count": int(m.spheres.count),
+        # where the scene's spheres start: a resume with another start (a new user's --set of a
+        # sphere's position) continued the old trajectory with exit 0
+        "spheres.start (positions and velocities)": _digest(*world.initial_spheres()),
         "physics.dt": float(p.dt),
         "physics.substeps (used)": int(world.substeps),
         "physics.gravity": [float(g) for g in p.gravity],

@@ -1447,6 +1447,11 @@ class World:
             self._launch_cache = {}
         self.collider.resize(self.model, self.state, self.ctx)
 
+    def initial_spheres(self) -> tuple[np.ndarray, np.ndarray]:
+        """The spheres' positions (S, 3) [m] and velocities (S, 3) [m/s] at the initial time:
+        the scene's, and those of spheres added since (what :meth:`reset` goes back to)."""
+        return self._initial[0].copy(), self._initial[1].copy()
+
     def set_sphere(self, i: int, position, velocity=(0.0, 0.0, 0.0)):
         """Place sphere ``i`` at ``position`` [m] with ``velocity`` [m/s] between steps, without a
         host read-back and keeping the captured graph (the arrays stay the same); the collider

@@ -331,6 +331,8 @@ def test_checkpoint_of_another_scene_or_a_broken_file_is_refused(tmp_path, capsy
     cases = [
         ([str(six), "--steps", "40", "--resume", str(ck)], ["spheres.count", "5 in the checkpoint", "6 here", str(ck)]),
         (["--steps", "40", "--collider", "refit", "--resume", str(ck)], ["physics.collider", "'swept'", "'refit'"]),
+        # the spheres' start (a resume with another start went on with the old trajectory, exit 0)
+        (["--steps", "40", "--set", "spheres.seed=2", "--resume", str(ck)], ["spheres.start"]),
         (["--steps", "10", "--resume", str(ck)], ["step 20", "10 steps", "give more"]),
         # the trajectory's sampling (a resumed run at another record_every mixed two spacings)
         (["--steps", "40", "--set", "run.record_every=7", "--resume", str(ck)],
