@@ -83,8 +83,10 @@ def _say_orientation(reports: list, where: str) -> None:
         warnings.warn(f"{where}{frames('inward')}: closed mesh whose triangles face inward (negative volume): "
                       "flipped them to face outward" + tail, stacklevel=3)
     if total["down"]:
-        warnings.warn(f"{where}{frames('down')}: open surface whose triangles face down, away from where falling "
-                      "bodies come from (contacts are one-sided): flipped them to face up, against gravity" + tail,
+        # said against gravity, not in world axes (with gravity along +z, "face up" read as +z, the
+        # reverse of the flip done, a new user found)
+        warnings.warn(f"{where}{frames('down')}: open surface whose triangles face along gravity, away from where "
+                      "falling bodies come from (contacts are one-sided): flipped them to face against gravity" + tail,
                       stacklevel=3)
     if total["non_orientable"]:
         warnings.warn(f"{where}{frames('non_orientable')}: a part with no consistent winding (a Moebius-like "

@@ -1375,8 +1375,8 @@ class World:
 
     def _apply_substep_rule(self, stacklevel: int):
         """Raise ``substeps`` (auto_substeps, interpolation on) so the surface moves less than half
-        the smallest sphere radius per sub-step; warn when interpolation is off and a frame jump
-        exceeds that. Sets ``sub_dt`` and ``extra_speed``."""
+        the smallest sphere radius per sub-step; warn when the rule is off and a sub-step exceeds
+        that, or when interpolation is off and a frame jump does. Sets ``sub_dt`` and ``extra_speed``."""
         model, p = self.model, self.model.params
         surf = model.surface
         r_min = float(model.spheres.radius_np.min()) if model.spheres.count else math.inf
@@ -1389,6 +1389,14 @@ class World:
                     f"surface moves up to {surf.max_speed:.3g} m/s{note}: raising substeps from "
                     f"{self.substeps} to {need} so it moves < r/2 per sub-step", stacklevel=stacklevel)
                 self.substeps = need
+            elif not p.auto_substeps and surf.interpolate and need > self.substeps:
+                # the rule turned off: said, as the jumps without interpolation are (a new user's
+                # sheet at 20 m/s passed through a sphere without a word)
+                warnings.warn(
+                    f"auto_substeps is off and the surface moves up to {surf.max_speed:.3g} m/s: "
+                    f"{surf.max_speed * p.dt / self.substeps:.3g} m per sub-step, over r/2 = {0.5 * r_min:.3g} m "
+                    f"for the smallest sphere radius: spheres may tunnel; turn physics.auto_substeps on or set "
+                    f"physics.substeps to {need}", stacklevel=stacklevel)
             if not surf.interpolate and surf.max_frame_step > 0.5 * r_min:
                 warnings.warn(
                     f"interpolation is off and the surface jumps up to {surf.max_frame_step:.3g} m "

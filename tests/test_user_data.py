@@ -249,7 +249,7 @@ def test_sheet_facing_down_is_turned_up_and_holds_spheres(tmp_path):
     spheres = [{"position": [0.3 * k - 0.3, 0.1, 0.3], "radius": 0.05} for k in range(3)]
     cfg = SceneConfig.model_validate({"surface": {"source": str(tmp_path / "sheet.npz")}, "spheres": spheres,
                                       "physics": {"restitution": 0.0}})
-    with pytest.warns(UserWarning, match="face down.*flipped them to face up"):
+    with pytest.warns(UserWarning, match="face along gravity.*flipped them to face against gravity"):
         world = build_world(cfg, device="cpu")
     for _ in range(240):
         world.step()
@@ -259,6 +259,22 @@ def test_sheet_facing_down_is_turned_up_and_holds_spheres(tmp_path):
     for _ in range(240):
         world.step()
     assert (world.sphere_positions()[:, 2] < -0.5).all()  # one-sided contacts: kept facing down, it lets them fall
+
+
+def test_with_gravity_along_plus_z_a_sheet_facing_plus_z_is_turned_and_said_so(tmp_path):
+    """Gravity along +z: a sheet whose triangles face +z faces along gravity and is turned to
+    face -z, and the warning says it in gravity's terms (it said "flipped them to face up", the
+    reverse of what it did, a new user read); spheres falling towards +z rest on its -z side."""
+    V, F = _grid_sheet(n=24)
+    np.savez(tmp_path / "sheet.npz", V=np.stack([V, V]).astype(np.float32), F=F, fps=np.float32(24))
+    spheres = [{"position": [0.3 * k - 0.3, 0.1, -0.3], "radius": 0.05} for k in range(3)]
+    cfg = SceneConfig.model_validate({"surface": {"source": str(tmp_path / "sheet.npz")}, "spheres": spheres,
+                                      "physics": {"restitution": 0.0, "gravity": [0.0, 0.0, 9.81]}})
+    with pytest.warns(UserWarning, match="face along gravity.*flipped them to face against gravity"):
+        world = build_world(cfg, device="cpu")
+    for _ in range(240):
+        world.step()
+    np.testing.assert_allclose(world.sphere_positions()[:, 2], -0.05, atol=0.01)
 
 
 def test_orientation_is_decided_once_per_segment():

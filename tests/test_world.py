@@ -264,6 +264,22 @@ def test_no_tunnelling_blob_sweeping_through_spheres():
     assert (P[:, 0] > 0.5).all()  # they were pushed ahead of the blob
 
 
+def test_the_sub_step_rule_turned_off_says_spheres_may_tunnel():
+    """With auto_substeps off, a surface moving over r/2 a sub-step is said (a new user's sheet
+    at 20 m/s passed through a sphere without a word); the number of sub-steps the rule would take
+    is named. Slow enough, or with the rule on, nothing of the kind is said."""
+    r = 0.05
+    fast = moving_sheet((0.0, 0.0, 20.0), 4)  # 20 m/s x dt 1/240: 0.083 m a step, over r/2
+    with pytest.warns(UserWarning, match=r"auto_substeps is off .* spheres may tunnel; .* physics.substeps to 4"):
+        make_world(fast, [[0.0, 0.0, 0.5]], r, auto_substeps=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        make_world(moving_sheet((0.0, 0.0, 5.0), 4), [[0.0, 0.0, 0.5]], r, auto_substeps=False)  # 0.021 m: under
+        make_world(fast, [[0.0, 0.0, 0.5]], r, auto_substeps=False, substeps=4)
+    with pytest.warns(UserWarning, match="raising substeps from 1 to 4"):
+        make_world(fast, [[0.0, 0.0, 0.5]], r)
+
+
 # ---------------------------------------------------------------------------------------------
 # colliders agree; rebuild variants; varying topology
 # ---------------------------------------------------------------------------------------------
