@@ -115,19 +115,23 @@ def run_simulation(sim, cfg, *, steps: int, out: Path, t_build: float, progress:
         add_to_manifest(out, CHECKPOINT_NAME, holds=OutputKind.RUN)
         marks["checkpoint"] = step
 
+    # the samples are the states at steps 0, rec, 2 rec, ... and the last step: a new run's first
+    # is the scene's initial state (it had none, and the samples ran 1, 1 + rec, ...; a new user)
+    if ckpt is None:
+        record(count_contacts=False)
     # warm-up: one eager step (loads the step's modules), then the graph capture, outside the
-    # timed loop; the first sample is the state after it (step 1 of a new run)
+    # timed loop
     sim.step()
     sim.capture()
     wp.synchronize_device(sim.device)
     build_s = time.perf_counter() - t_build
     first = start + 1
     with checking_stops():  # a signal from here on stops at a step boundary (cli.py)
-        if (first - 1) % rec == 0:
-            record(count_contacts=first > 1)
+        if first % rec == 0:
+            record()
         if every and first % every == 0:
             checkpoint(first)
-        sim_s, reached = timed_loop(sim, steps, rec, record, progress, start=first, origin=1,
+        sim_s, reached = timed_loop(sim, steps, rec, record, progress, start=first, origin=0,
                                     stop=stop, checkpoint_every=every, checkpoint=checkpoint)
         if first == steps and marks["record"] != steps:
             record()  # a one-step run (or a resume one step short of the end): its final sample

@@ -170,13 +170,14 @@ def test_cli_runs_tiny_scene_and_writes_outputs(tmp_path, capsys):
     assert pos.shape == (2, 3) and np.isfinite(pos).all()
     assert summary["final"]["max_penetration"] < 0.02
     assert summary["sim_time_s"] == pytest.approx(steps / 240.0)
-    # trajectories: time increases; the record starts at the first step and ends at the final state
+    # trajectories: time increases; the record starts at the initial state (t = 0) and ends at
+    # the final state
     t, P = traj["time"], traj["position"]
-    assert P.shape == (len(t), 2, 3) and np.all(np.diff(t) > 0)
+    assert P.shape == (len(t), 2, 3) and np.all(np.diff(t) > 0) and t[0] == 0.0
     np.testing.assert_allclose(traj["radius"], [0.08, 0.06])
     np.testing.assert_allclose(P[-1], pos, atol=1e-6)
     # the record is a trajectory, not the final state repeated: sphere 0 starts near where it was put
-    np.testing.assert_allclose(P[0, 0], TINY_SCENE["spheres"][0]["position"], atol=0.01)
+    np.testing.assert_allclose(P[0, 0], TINY_SCENE["spheres"][0]["position"], atol=1e-6)
     assert P[0, 0, 2] - P[-1, 0, 2] > 0.1  # it fell onto the bowl
     # both spheres end above the surface (independent check: NumPy height field at that time)
     seq = scenes.wave_bowl(n=24, frames=12)

@@ -149,7 +149,8 @@ def test_run_stop_callable_ends_the_loop_within_a_chunk(tmp_path):
     ref = run_scene(cfg, device="cpu", steps=k, output=tmp_path / "b", progress=False, log=lambda *_: None)
     assert not ref["interrupted"] and ref["step_reached"] == k and ref["interrupted_by"] is None
     _same_trajectories(tmp_path / "a", tmp_path / "b")
-    assert len(np.load(tmp_path / "a" / "trajectories.npz")["time"]) == 1 + (k - 1) // 3 + ((k - 1) % 3 > 0)
+    # steps 0, 3, 6, ... and the last
+    assert len(np.load(tmp_path / "a" / "trajectories.npz")["time"]) == 1 + k // 3 + (k % 3 > 0)
 
 
 def test_an_interrupted_run_never_replaces_an_earlier_output(tmp_path, capsys):

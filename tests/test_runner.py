@@ -96,14 +96,16 @@ def test_runner_drives_any_simulation(tmp_path):
     assert sim.captured == 1  # once, after the eager warm-up step
     assert RUN_FIELDS <= set(s) and s["engine"] == "ballistic" and s["step_reached"] == 41
     tr = np.load(tmp_path / "o" / "trajectories.npz")
-    # samples at steps 1, 6, ..., 41: the closed form of a ballistic point at those times
+    # samples at steps 0 (the initial state), 5, ..., 40 and the last, 41: the closed form of a
+    # ballistic point at those times (the samples were 1, 6, ..., 41, with no initial state)
+    steps_sampled = np.r_[np.arange(0, 41, 5), 41]
     t = tr["time"]
-    np.testing.assert_allclose(t, 0.01 * np.arange(1, 42, 5))
-    assert tr["x"].shape == (9, 3, 3) and tr["mass"].shape == (3,)
-    k = np.arange(1, 42, 5)[:, None]  # semi-implicit Euler: z_k = dt (v0 k - g dt k (k + 1) / 2)
+    np.testing.assert_allclose(t, 0.01 * steps_sampled)
+    assert tr["x"].shape == (10, 3, 3) and tr["mass"].shape == (3,)
+    k = steps_sampled[:, None]  # semi-implicit Euler: z_k = dt (v0 k - g dt k (k + 1) / 2)
     z = 0.01 * (2.0 * k - 9.81 * 0.01 * k * (k + 1) / 2)
     np.testing.assert_allclose(tr["x"][:, :, 2], np.repeat(z, 3, axis=1), rtol=1e-12)
-    assert s["contacts"]["samples"] == 8 and s["contacts"]["contact_samples"] == 3  # below z = 0 at step 41 only
+    assert s["contacts"]["samples"] == 9 and s["contacts"]["contact_samples"] == 6  # below z = 0 at steps 40 and 41
     assert json.loads((tmp_path / "o" / "summary.json").read_text())["timed_steps"] == 40
     assert lines and lines[0].startswith("b: 41 steps on cpu (ballistic)") and "3 points" in lines[0]
 
