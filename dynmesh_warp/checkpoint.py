@@ -36,7 +36,9 @@ __all__ = ["CheckpointError", "Checkpoint", "FORMAT", "CHECKPOINT_NAME", "scene_
 #: file name of the checkpoint in a run's output folder
 CHECKPOINT_NAME = "checkpoint.npz"
 #: the ``format`` field of the files this version writes and reads
-FORMAT = "dynmesh_warp.checkpoint/2"  # 2: the clock's frame_key / frame_changed are state fields
+# 2: the clock's frame_key / frame_changed are state fields; 3: the trajectory samples start at
+# step 0 (a checkpoint of 2, resumed, would mix two grids) and the fingerprint holds the spheres' start
+FORMAT = "dynmesh_warp.checkpoint/3"
 
 
 class CheckpointError(SceneError):
