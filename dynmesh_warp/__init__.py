@@ -27,6 +27,27 @@ def _map_source_kernels():
 
 _map_source_kernels()
 
+
+def _quiet_start_up_interrupt():
+    """``python -m dynmesh_warp.<command>`` (runpy sets ``sys.argv[0]`` to ``"-m"`` while it
+    imports the package): a Ctrl-C before the command installs its own handlers, i.e. while Warp
+    and the rest are imported, ends with one line and exit 130 instead of a 37-line traceback
+    from ``import warp`` (a new user). Library imports are left alone."""
+    if _sys.argv[:1] != ["-m"] or _sys.excepthook is not _sys.__excepthook__:
+        return
+
+    def hook(kind, value, tb):
+        if issubclass(kind, KeyboardInterrupt):
+            print("interrupted during start-up; nothing was done", file=_sys.stderr)
+            _sys.exit(130)
+        _sys.__excepthook__(kind, value, tb)
+
+    hook.start_up_only = True  # cli.handle_stop_signals puts the default back once its handlers are in
+    _sys.excepthook = hook
+
+
+_quiet_start_up_interrupt()
+
 from .config import SceneConfig, SceneError, load_scene_config  # noqa: E402
 from .scene import build_model, build_world, load_surface  # noqa: E402
 from .sequence import FixedTopologySequence, MeshDataError, VaryingTopologySequence, validate_mesh  # noqa: E402

@@ -287,6 +287,8 @@ def handle_stop_signals():
         yield
         return
     _state.reset()
+    if getattr(sys.excepthook, "start_up_only", False):  # the package's start-up hook: its time is over
+        sys.excepthook = sys.__excepthook__
     old = {s: signal.getsignal(s) for s in STOP_SIGNALS}
     r, w = os.pipe()
     os.set_blocking(w, False)

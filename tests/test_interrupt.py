@@ -702,3 +702,18 @@ def test_a_late_signal_of_the_same_stop_does_not_raise_while_the_handlers_wait()
         # the output is written; the exit waits out the window, and the second signal comes then
         threading.Timer(0.1, os.kill, args=(os.getpid(), signal.SIGINT)).start()
     time.sleep(0.3)  # past the timer: had it raised, the with-block's exit would have
+
+
+def test_ctrl_c_while_a_command_starts_up_is_one_line_and_130():
+    """A Ctrl-C while ``python -m dynmesh_warp.<command>`` still imports Warp (before the command's
+    handlers are in) printed a 37-line traceback from ``import warp`` (a new user). The package
+    sees the ``-m`` start (runpy's ``sys.argv[0]``) and ends it with one line and exit 130; a
+    plain library import is left alone (the interrupt's usual traceback)."""
+    raise_it = "import dynmesh_warp; raise KeyboardInterrupt"
+    cli = subprocess.run([sys.executable, "-c", "import sys; sys.argv = ['-m']; " + raise_it],
+                         capture_output=True, text=True, timeout=120)
+    assert cli.returncode == 130
+    assert cli.stderr.strip().splitlines()[-1] == "interrupted during start-up; nothing was done"
+    assert "Traceback" not in cli.stderr
+    lib = subprocess.run([sys.executable, "-c", raise_it], capture_output=True, text=True, timeout=120)
+    assert lib.returncode != 130 and "Traceback" in lib.stderr and "KeyboardInterrupt" in lib.stderr
