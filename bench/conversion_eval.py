@@ -19,7 +19,10 @@ diagonal; 0 = noise-free), then converted back to one fixed topology by each str
 * the surface velocity against the GT's (``evaluate.surface_velocity_error``): per frame pair
   within a template segment, each converted vertex's displacement against the GT's at its
   nearest GT point; 99th percentile and maximum over the vertices (fractions of the diagonal per
-  frame): a template sliding along the surface, which no per-frame figure sees.
+  frame): a template sliding along the surface, which no per-frame figure sees;
+* the drift (``evaluate.surface_drift``): each converted vertex's distance, per frame, to the GT
+  point it stood on at its segment's key frame, carried by the GT; median and 99th percentile
+  over the vertices: a slow slide that adds up over frames shows here.
 
 A strategy named ``S/piecewise`` (e.g. ``graph/piecewise``) runs ``to_piecewise_fixed`` (new
 template segments where one template cannot follow). Summaries report the mean and the worst
@@ -50,7 +53,7 @@ if not DATA.exists():
     DATA = ROOT / ".gpu" / "data"
 
 from dynmesh_warp.convert import nearest_surface, to_fixed_topology, to_piecewise_fixed  # noqa: E402
-from dynmesh_warp.evaluate import surface_velocity_error  # noqa: E402
+from dynmesh_warp.evaluate import surface_drift, surface_velocity_error  # noqa: E402
 from dynmesh_warp.metrics import chamfer_distance  # noqa: E402
 from dynmesh_warp.sequence import FixedTopologySequence  # noqa: E402
 
@@ -205,7 +208,10 @@ def evaluate(name, strategies, args, device) -> dict | None:
         summ["worst_frame_cd_ratio"] = max(p["cd"] / max(q["cd"], 1e-30) for p, q in zip(per, inp))
         vel = surface_velocity_error(gt, fx, device)  # the surface velocity against the GT's
         summ.update({f"velocity_error_{k}": v for k, v in vel.items() if k != "pairs"})
+        drift = surface_drift(gt, fx, device)  # how far the vertices slid from their GT points since the key frame
+        summ.update({f"drift_{k}": v for k, v in drift.items() if k != "frames"})
         out["strategies"][label] = {"summary": summ, "seconds": sec, "per_frame": per, "velocity_per_pair": vel["pairs"],
+                                "drift_per_frame": drift["frames"],
                                 "key_frame": info.key_frame, "coverage": info.coverage,
                                 "web": info.web, "buried": info.buried,
                                 "segments": [list(x) for x in info.segments],
@@ -221,6 +227,9 @@ def evaluate(name, strategies, args, device) -> dict | None:
               f"surface velocity error p99 mean {100 * (summ['velocity_error_p99_mean'] or np.nan):.2f}% / worst pair "
               f"{100 * (summ['velocity_error_p99_max'] or np.nan):.2f}% (the GT's own p99 "
               f"{100 * (summ['velocity_error_gt_p99_mean'] or np.nan):.2f}%), "
+              f"drift median {100 * (summ['drift_p50_mean'] or np.nan):.2f}% / "
+              f"p99 {100 * (summ['drift_p99_mean'] or np.nan):.2f}% "
+              f"(worst frame p99 {100 * (summ['drift_p99_max'] or np.nan):.2f}%), "
               f"{len(info.segments)} segment(s), {sec:.1f} s", flush=True)
     return out
 

@@ -48,6 +48,7 @@ __all__ = [
     "evaluate_folders",
     "evaluate_scene",
     "surface_velocity_error",
+    "surface_drift",
     "summarize",
     "format_markdown",
     "main",
@@ -269,6 +270,57 @@ def surface_velocity_error(gt: FixedTopologySequence, pred, device=None) -> dict
     return out
 
 
+def _segment_runs(pred) -> list:
+    """``(start, stop, key frame)`` per template segment of a converted sequence: its
+    ``conversion.segments`` when it has them, else the runs of one topology anchored at their
+    first frame."""
+    info = getattr(pred, "conversion", None)
+    segs = [(int(a), int(b), int(k)) for a, b, k, *_ in getattr(info, "segments", None) or []]
+    if segs:
+        return segs
+    runs = pred.segments() if hasattr(pred, "segments") else [(0, pred.num_frames)]
+    return [(a, b, a) for a, b in runs]
+
+
+def surface_drift(gt: FixedTopologySequence, pred, device=None) -> dict:
+    """How far the converted vertices have slid from the GT surface points they stood on: each
+    vertex of a template segment of ``pred`` is attached, at the segment's key frame, to the GT
+    point nearest to it (face and barycentric weights), and at every frame t of the segment its
+    distance to that point carried to frame t by the GT is measured. A template that follows the
+    surface stays near 0 (the fit's own per-frame error); one that slides a little each frame
+    drifts ever further, which the per-pair velocity error (:func:`surface_velocity_error`) sees
+    only as a small error every pair (a new user's twisting cylinder: its base came out turned
+    156° about the axis with every per-frame figure fine).
+
+    Returns ``{"frames": [per frame {"p50", "p99", "max"} (None outside the GT's frames)],
+    "p50_mean", "p50_max", "p99_mean", "p99_max", "p99_worst_frame", "max"}``: over the vertices,
+    fractions of the GT frame's bbox diagonal."""
+    from .convert import nearest_surface
+
+    T = min(gt.num_frames, pred.num_frames)
+    frames = [None] * T
+    GF = np.asarray(gt.F)
+    for a, b, k in _segment_runs(pred):
+        if not a <= k < min(b, T):
+            continue
+        r = nearest_surface((gt.V[k], gt.F), pred.frame(k)[0], device=device)
+        w = r.bary.astype(np.float64)
+        for t in range(a, min(b, T)):
+            P = np.einsum("qk,qkj->qj", w, np.asarray(gt.V[t], np.float64)[GF[r.face]])
+            diag = max(float(np.linalg.norm(np.ptp(gt.V[t], axis=0))), 1e-30)
+            d = np.linalg.norm(np.asarray(pred.frame(t)[0], np.float64) - P, axis=1) / diag
+            frames[t] = {"p50": float(np.median(d)), "p99": float(np.percentile(d, 99)), "max": float(d.max())}
+    done = [(t, f) for t, f in enumerate(frames) if f is not None]
+    out = {"frames": frames, "p50_mean": None, "p50_max": None, "p99_mean": None, "p99_max": None,
+           "p99_worst_frame": None, "max": None}
+    if done:
+        p50, p99 = (np.array([f[q] for _, f in done]) for q in ("p50", "p99"))
+        out.update(p50_mean=float(p50.mean()), p50_max=float(p50.max()), p99_mean=float(p99.mean()),
+                   p99_max=float(p99.max()), p99_worst_frame=done[int(p99.argmax())][0],
+                   max=float(max(f["max"] for _, f in done)))
+    return out
+
+
 def _ground_truth(path: str, num_frames: int | None, frame_order: str = "stored") -> FixedTopologySequence:
     from .io import load_sequence
 
@@ -340,7 +392,8 @@ def evaluate_scene(gt_path, input_path=None, num_frames: int | None = None, reso
         info = getattr(fixed, "conversion", None)
         conv_info[s] = {"options": dict(getattr(info, "options", {}) or {}),
                         "reanchored_frames": list(getattr(info, "reanchored_frames", []) or []),
-                        "surface_velocity": surface_velocity_error(gt, fixed, device)}
+                        "surface_velocity": surface_velocity_error(gt, fixed, device),
+                        "surface_drift": surface_drift(gt, fixed, device)}
     frames = list(range(0, gt.num_frames, max(1, int(frame_stride))))
     if not emd:
         emd_frames = []
@@ -389,6 +442,10 @@ def summarize(scenes: list, protocol: str) -> dict:
         if k != "varying" and vel and all(v and v.get("p99_mean") is not None for v in vel):
             out["rows"][k]["velocity_p99"] = float(np.mean([v["p99_mean"] for v in vel]))
             out["rows"][k]["velocity_p99_worst"] = float(max(v["p99_max"] for v in vel))
+        drift = [s.get("conversion", {}).get(k, {}).get("surface_drift") for s in scenes]
+        if k != "varying" and drift and all(d and d.get("p50_mean") is not None for d in drift):
+            out["rows"][k]["drift_p50"] = float(np.mean([d["p50_mean"] for d in drift]))
+            out["rows"][k]["drift_p99_worst"] = float(max(d["p99_max"] for d in drift))
     base = out["rows"].get("varying")
     for k, r in out["rows"].items():
         for m in ("cd", "emd"):
@@ -439,6 +496,12 @@ def format_markdown(summary: dict, protocol: str, note: str = "") -> str:
         lines += ["", "Surface velocity against the ground truth's (`surface_velocity_error`: each converted "
                   "vertex's displacement per frame against the GT's at its nearest GT point, 99th percentile over "
                   "the vertices, fraction of the diagonal; mean over frame pairs / worst pair): " + "; ".join(vel)]
+    drift = [f"{r['label']} {100 * r['drift_p50']:.2f}% / {100 * r['drift_p99_worst']:.2f}%"
+             for r in summary["rows"].values() if "drift_p50" in r]
+    if drift:
+        lines += ["", "Drift from the ground truth's surface points (`surface_drift`: each converted vertex's distance "
+                  "to the GT point it stood on at its segment's key frame, carried by the GT; fraction of the diagonal; "
+                  "the median vertex's, mean over frames / the 99th percentile's worst frame): " + "; ".join(drift)]
     return "\n".join(lines) + "\n"
 
 

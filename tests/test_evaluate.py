@@ -183,6 +183,51 @@ def test_cli_end_to_end_on_tiny_scene(tmp_path, device):
     assert E.main([str(tmp_path / "missing.npz"), "--out", str(tmp_path / "o2"), "--no-progress"]) == 2
 
 
+def test_surface_drift_against_closed_forms(device):
+    """``surface_drift``: a prediction that spins about z by 0.1 rad a frame on a GT sphere that
+    stands still has, at frame t, slid by the chord 2 sin(0.1 t / 2) rho from the GT point each
+    vertex stood on at frame 0 (rho: its distance from the axis) — the drift adds up frame by
+    frame where the per-pair velocity error stays at one frame's chord; a prediction that follows
+    a translating GT drifts by 0; a second segment is anchored at its own key frame (given by
+    ``conversion.segments``), so its drift starts again from 0 there."""
+    from types import SimpleNamespace
+
+    from dynmesh_warp.sequence import VaryingTopologySequence
+
+    s = trimesh.creation.icosphere(subdivisions=3)
+    V, F = np.asarray(s.vertices, np.float64), np.asarray(s.faces, np.int32)
+    diag = float(np.linalg.norm(np.ptp(V, axis=0)))
+    T, th = 6, 0.1
+    still = FixedTopologySequence(np.stack([V] * T).astype(np.float32), F)
+    rot = [np.array([[np.cos(k * th), -np.sin(k * th), 0], [np.sin(k * th), np.cos(k * th), 0], [0, 0, 1]])
+           for k in range(T)]
+    spin = FixedTopologySequence(np.stack([V @ R.T for R in rot]).astype(np.float32), F)
+    d = E.surface_drift(still, spin, device=device)
+    rho = np.linalg.norm(V[:, :2], axis=1)
+    for t in range(T):
+        want = 2 * np.sin(t * th / 2) * rho / diag
+        assert d["frames"][t]["p50"] == pytest.approx(np.median(want), rel=2e-2, abs=1e-6)
+        assert d["frames"][t]["max"] == pytest.approx(want.max(), rel=1e-3, abs=1e-6)
+    assert d["p99_worst_frame"] == T - 1
+    assert d["p99_max"] > 4 * E.surface_velocity_error(still, spin, device=device)["p99_max"]
+    move = FixedTopologySequence(np.stack([V + k * np.float64([0.03, 0.0, 0.0]) for k in range(T)]).astype(np.float32), F)
+    assert E.surface_drift(move, move, device=device)["max"] == pytest.approx(0.0, abs=1e-6)
+    # two segments: frames 0..2 spinning from key frame 0, frames 3..5 (another face order) from key frame 4
+    F2 = np.ascontiguousarray(F[:, [1, 2, 0]])
+    pw = VaryingTopologySequence([(spin.V[t], F if t < 3 else F2) for t in range(T)])
+    pw.conversion = SimpleNamespace(segments=[(0, 3, 0, len(V)), (3, 6, 4, len(V))])
+    p = E.surface_drift(still, pw, device=device)
+    assert p["frames"][2]["max"] == pytest.approx(d["frames"][2]["max"], rel=1e-3)
+    for t in (3, 4, 5):  # anchored at frame 4: one frame's chord either side, ~0 at the key frame
+        want = 2 * np.sin(abs(t - 4) * th / 2) * rho.max() / diag  # (there: the vertex's distance to the
+        assert p["frames"][t]["max"] == pytest.approx(want, abs=2e-3)  # faceted GT surface, 1e-3)
+    assert p["frames"][4]["max"] < 0.05 * p["frames"][3]["max"]
+    rows = {"varying": {"dgmesh": {"cd_mean": 1.0, "emd_mean": None}}, "graph": {"dgmesh": {"cd_mean": 1.0, "emd_mean": None}}}
+    summ = E.summarize([{"scene": "ball", "rows": rows, "conversion": {"graph": {"surface_drift": d}}}], "dgmesh")
+    assert summ["rows"]["graph"]["drift_p50"] == pytest.approx(d["p50_mean"])
+    assert f"Ours (graph) {100 * d['p50_mean']:.2f}% / {100 * d['p99_max']:.2f}%" in E.format_markdown(summ, "dgmesh")
+
+
 def test_surface_velocity_error_against_closed_forms(device):
     """``surface_velocity_error``: a prediction whose vertices spin about z by 0.1 rad a frame on
     a ground-truth sphere that stands still errs by the chord 2 sin(0.05) r at the equator (its
