@@ -52,7 +52,7 @@ DATA = ROOT.parent / "shared" / "data"
 if not DATA.exists():
     DATA = ROOT / ".gpu" / "data"
 
-from dynmesh_warp.convert import nearest_surface, to_fixed_topology, to_piecewise_fixed  # noqa: E402
+from dynmesh_warp.convert import nearest_surface, slide_ratio, to_fixed_topology, to_piecewise_fixed  # noqa: E402
 from dynmesh_warp.evaluate import surface_drift, surface_velocity_error  # noqa: E402
 from dynmesh_warp.metrics import chamfer_distance  # noqa: E402
 from dynmesh_warp.sequence import FixedTopologySequence  # noqa: E402
@@ -212,6 +212,8 @@ def evaluate(name, strategies, args, device) -> dict | None:
         summ.update({f"drift_{k}": v for k, v in drift.items() if k != "frames"})
         out["strategies"][label] = {"summary": summ, "seconds": sec, "per_frame": per, "velocity_per_pair": vel["pairs"],
                                 "drift_per_frame": drift["frames"],
+                                "slide_ratio": slide_ratio(info)[0], "frame_motion": list(info.frame_motion),
+                                "input_motion": list(info.input_motion),
                                 "key_frame": info.key_frame, "coverage": info.coverage,
                                 "web": info.web, "buried": info.buried,
                                 "segments": [list(x) for x in info.segments],
@@ -230,6 +232,7 @@ def evaluate(name, strategies, args, device) -> dict | None:
               f"drift median {100 * (summ['drift_p50_mean'] or np.nan):.2f}% / "
               f"p99 {100 * (summ['drift_p99_mean'] or np.nan):.2f}% "
               f"(worst frame p99 {100 * (summ['drift_p99_max'] or np.nan):.2f}%), "
+              f"slide {slide_ratio(info)[0] or np.nan:.2f}x, "
               f"{len(info.segments)} segment(s), {sec:.1f} s", flush=True)
     return out
 

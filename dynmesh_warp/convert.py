@@ -261,10 +261,13 @@ class ConversionInfo:
     diagonal; 0 at the first frame and where a template segment starts. A frame far above its
     neighbours' is a jump (a restart's new start, a slide along the surface), which the physics
     sees as the surface moving that far in one frame (a new user's spheres were thrown at 30 m/s).
-    input_motion: per frame, where ``frame_motion`` makes it a jump, how far the input itself moved
-    there: the 99th percentile of input frame t's vertices' distances to frame t - 1's surface, over
-    the diagonal (0 elsewhere); a jump the input makes too is real motion, not warned of (a new
-    user's capture that moves 0.4 m in one frame was warned of as a restart).
+    input_motion: per frame t, how far the input itself moved from frame t - 1: the 99th
+    percentile of the distances of the input vertices (at most 4,096) of the neighbouring frame
+    fitted just before (t - 1 on the forward pass, t + 1 on the backward) to the other frame's
+    surface, over the diagonal; 0 at the first frame (measured in the frame loop on the frame's
+    own BVH). A jump the input makes too is real motion, not warned of (a new user's capture that
+    moves 0.4 m in one frame was warned of as a restart); converted vertices moving far more than
+    the input's surface slide along it (the summary's slide line).
     area_ratio: per frame, the converted surface's area over the input's (the result's frames;
     above ``POOR_AREA``, a crumpled surface: a new user's balloon, converted from its inflated
     frame, had 2.0-2.4x the input's area on its 16 deflated frames while the vertex Chamfer
@@ -1265,6 +1268,7 @@ class _PerFrame:
     buried: np.ndarray
     flipped: np.ndarray
     area: np.ndarray
+    input_motion: np.ndarray
 
     @classmethod
     def zeros(cls, T: int) -> "_PerFrame":
@@ -1280,6 +1284,22 @@ def _record_fit(conv, frame, diag: float, pf: _PerFrame, t: int) -> None:
     conv.frame_coverage = conv.frame_web = None
     pf.flipped[t] = conv.flipped(frame, diag)
     pf.area[t] = conv.last_area
+
+
+def _input_motion(frame, points, diag: float, device) -> float:
+    """How far the input surface moved between a neighbouring frame and ``frame``: the 99th
+    percentile of the neighbour's sampled vertices ``points`` (device) distances to ``frame``'s
+    surface, over the diagonal ``diag`` (``ConversionInfo.input_motion``; one launch on the
+    frame's own BVH)."""
+    dist = wp.empty(points.shape[0], dtype=float, device=device)
+    wp.launch(kc.measure_distances_to_mesh, dim=points.shape[0], inputs=[frame[0].id, points, float(diag)],
+              outputs=[dist], device=device)
+    return float(np.percentile(dist.numpy(), 99)) / max(diag, 1e-12)
+
+
+def _motion_sample(v: np.ndarray, device):
+    """At most 4,096 of a frame's vertices on the device (for :func:`_input_motion`)."""
+    return wp.array(np.ascontiguousarray(v[::_stride(len(v), 4096)], np.float32), dtype=wp.vec3, device=device)
 
 
 def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info, strategy: str, where: str, TV,
@@ -1300,6 +1320,7 @@ def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info,
         order = tqdm(order, desc=f"convert ({strategy})", unit="frame")
     lo = hi = None  # the converted frames lo..hi (contiguous: the key frame forward, then backward)
     forward = True
+    samples = {}  # the sampled vertices (device) of the key frame and the last frame fitted
     for t in order:
         if lo is not None and should_stop is not None and should_stop():
             break
@@ -1313,7 +1334,13 @@ def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info,
         frame = _device_frame(v, f, device)
         if step(frame, t):
             info.reanchored_frames.append(t)
-        _record_fit(conv, frame, _bbox_diag(v), pf, t)
+        diag = _bbox_diag(v)
+        _record_fit(conv, frame, diag, pf, t)
+        # the input's own motion from the neighbour fitted before (t - 1 forward, t + 1 backward)
+        near = samples.get(t - 1 if t > K else t + 1)
+        if near is not None:
+            pf.input_motion[t if t > K else t + 1] = _input_motion(frame, near, diag, device)
+        samples = {K: samples.get(K), t: _motion_sample(v, device)} if t != K else {K: _motion_sample(v, device)}
         conv.first = False
         out[t] = conv.X.numpy()
         pf.seconds[t] = time.perf_counter() - t0
@@ -1574,6 +1601,19 @@ def _frame_motion(V: np.ndarray, most: int = 4096) -> list:
         d = np.linalg.norm(V[t] - V[t - 1], axis=1)
         out.append(float(np.percentile(d, 99)) / max(_bbox_diag(V[t]), 1e-12))
     return out
+
+
+def slide_ratio(info) -> tuple[float | None, np.ndarray]:
+    """(the median over frames of ``frame_motion`` / max(``input_motion``, SLIDE_FLOOR), or None
+    without such frames; the per-frame ratios, NaN where a frame has no motion figure: the first
+    frame and where a segment starts)."""
+    m, i = np.asarray(info.frame_motion, float), np.asarray(info.input_motion, float)
+    r = np.full(m.shape, np.nan)
+    if m.size != i.size or m.size < 2:
+        return None, r
+    ok = m > 0
+    r[ok] = m[ok] / np.maximum(i[ok], SLIDE_FLOOR)
+    return (float(np.median(r[ok])) if ok.any() else None), r
 
 
 def _jumps(motion) -> np.ndarray:
@@ -2021,6 +2061,7 @@ def _convert_from_key(vseq, strategy: str, o: dict, K: int, template, device, pr
     info.coverage, info.coverage_tail = pf.coverage.tolist(), pf.tail.tolist()
     info.web, info.buried, info.flipped = pf.web.tolist(), pf.buried.tolist(), pf.flipped.tolist()
     info.area_ratio = (pf.area / np.maximum(_frame_areas(vseq), 1e-30)).tolist()
+    info.input_motion = pf.input_motion.tolist()
     info.reanchored_frames.sort()
     if hasattr(conv, "recovered"):
         info.recovered_frames = sorted(conv.recovered)
@@ -2033,14 +2074,10 @@ def _convert_from_key(vseq, strategy: str, o: dict, K: int, template, device, pr
         info.frame_seconds, info.coverage = info.frame_seconds[lo:hi + 1], info.coverage[lo:hi + 1]
         info.web, info.coverage_tail = info.web[lo:hi + 1], info.coverage_tail[lo:hi + 1]
         info.flipped, info.buried = info.flipped[lo:hi + 1], info.buried[lo:hi + 1]
-        info.area_ratio = info.area_ratio[lo:hi + 1]
+        info.area_ratio, info.input_motion = info.area_ratio[lo:hi + 1], info.input_motion[lo:hi + 1]
     res = FixedTopologySequence(out[lo:hi + 1], TF, fps=vseq.fps, name=vseq.name, source=vseq.source)
     info.frame_motion = _frame_motion(res.V)
-    info.input_motion = [0.0] * len(info.frame_motion)
-    for i in _jumps(info.frame_motion).tolist():  # few: each one query of the input's frame against the one before
-        (v1, _), prev = vseq.frames[lo + i], vseq.frames[lo + i - 1]
-        d = nearest_surface(prev, v1[::_stride(len(v1), 4096)], device=device).dist
-        info.input_motion[i] = float(np.percentile(d, 99)) / max(_bbox_diag(v1), 1e-12)
+    info.input_motion[0] = 0.0  # (the frame before lo is not in the result)
     res.conversion = info
     return res
 
@@ -2078,6 +2115,14 @@ JUMP_WINDOW = 5
 JUMP_LEAST = 0.05
 #: ... unless the input moved (``input_motion``) at least this fraction of that there
 JUMP_INPUT = 0.5
+#: the slide (:func:`slide_ratio`): the median over frames of the converted vertices' motion
+#: (``frame_motion``) over the input surface's (``input_motion``, at least SLIDE_FLOOR of the
+#: diagonal: a still input's noise). A template that follows the surface reads 1-1.5x (issue 12's
+#: gallop 1.4, figure 1.2, pcow 1.5; CPU); one that slides along it more: horse_collapse and
+#: chicken_crossing 2.05 (their surface velocity errs 2.6x and 3.5x the GT's own motion), a new
+#: user's merging balls 4.5x at the frames they swap over. Over SLIDE_WARN the summary warns.
+SLIDE_FLOOR = 0.002
+SLIDE_WARN = 2.0
 #: a web (:func:`web_fraction`): faces whose longest edge grew more than WEB_STRETCH x since the
 #: key frame and whose centroid lies farther than WEB_GAP x the input's bbox diagonal from the
 #: input; a frame whose web covers more than POOR_WEB of the converted surface's area counts as
@@ -2223,6 +2268,17 @@ def conversion_summary(info: ConversionInfo) -> list:
                      f"{JUMP_RATIO:g}x the frames around it, where the input moved less than half as far (a restarted "
                      "fit, or the template sliding along the surface); the physics sees the surface move that far in "
                      "one frame and throws what touches it")
+    slide, per = slide_ratio(info) if len(info.frame_motion) == cov.size else (None, None)
+    if slide is not None:
+        worst = int(np.nanargmax(per))
+        lines.append(f"motion: the converted vertices move a median {slide:.2f}x as far a frame as the input's surface "
+                     f"(99th pct. each; {per[worst]:.1f}x at frame {worst}); about 1-1.5x where the template follows "
+                     "the surface")
+        if slide > SLIDE_WARN:
+            lines.append(f"warning: the converted surface slides along the input's (its vertices move {slide:.2f}x as "
+                         f"far as the surface, over {SLIDE_WARN:g}x): the physics feels that as surface velocity, and "
+                         "friction drags what rests on it; a tangential motion the input cannot show (a spinning "
+                         "round part, a twist) reads so too")
     ar = np.asarray(info.area_ratio, float)
     crumpled = np.flatnonzero(ar > POOR_AREA) if ar.size == cov.size else np.zeros(0, int)
     if crumpled.size:

@@ -19,6 +19,7 @@ from dynmesh_warp.convert import (
     main as convert_main,
 )
 from dynmesh_warp.metrics import chamfer_distance
+from reference import brute_nearest
 from dynmesh_warp.scenes import icosphere, rigid_motion
 from dynmesh_warp.sequence import FixedTopologySequence, MeshDataError, VaryingTopologySequence
 
@@ -537,6 +538,24 @@ def test_frame_motion_and_jumps_are_measured_and_warned():
     np.testing.assert_allclose(r.conversion.frame_motion, want, rtol=1e-4, atol=1e-7)
     assert 0.015 < np.median(want[1:]) < 0.03  # 0.06 a frame over a diagonal of 2 sqrt(3)
     assert not any("jumps" in ln for ln in conversion_summary(r.conversion))
+    # input_motion, every frame, against brute force: the 99th percentile of the distances of the
+    # neighbour fitted before (t - 1 after the key frame K, t + 1 before it) to the fitted frame's
+    # surface, over that frame's diagonal (stored at the later frame of the pair)
+    K = r.conversion.key_frame
+    for t in range(1, 8):
+        fit, near = (t, t - 1) if t > K else (t - 1, t)
+        d = brute_nearest(frames[near][0].astype(np.float64), frames[fit][0].astype(np.float64), frames[fit][1])[0]
+        want_in = np.percentile(d, 99) / np.linalg.norm(np.ptp(frames[fit][0], axis=0))
+        assert r.conversion.input_motion[t] == pytest.approx(want_in, rel=1e-3, abs=1e-6)
+    assert r.conversion.input_motion[0] == 0.0
+    # the translating sphere follows the surface: its vertices move about as far as the surface
+    from dynmesh_warp.convert import SLIDE_WARN, slide_ratio
+
+    slide, per = slide_ratio(r.conversion)
+    assert 0.8 < slide < 1.5 and np.isnan(per[0])
+    summary = conversion_summary(r.conversion)
+    assert any(ln.startswith(f"motion: the converted vertices move a median {slide:.2f}x") for ln in summary)
+    assert not any("slides along" in ln for ln in summary)
     motion = [0.0, 0.02, 0.025, 0.02, 0.2, 0.02, 0.03, 0.02, 0.06]  # frame 4 jumps; 8 is 2-3x, not over 3x
     info = ConversionInfo("graph", {}, 9, 10, frame_seconds=[0.1] * 9, key_frame=0, coverage=[0.01] * 9,
                           frame_motion=motion)
@@ -544,6 +563,11 @@ def test_frame_motion_and_jumps_are_measured_and_warned():
     assert len(warn) == 1 and "jumps at 1 frame(s) (4)" in warn[0] and "move 20.0% of the diagonal from frame 3" in warn[0]
     info.input_motion = [0.0] * 4 + [0.15] + [0.0] * 4  # the input moved as far there: motion, not a fault
     assert not any("jumps" in ln for ln in conversion_summary(info))
+    # vertices moving 3x as far as the input's surface every frame: a slide, warned of
+    info.input_motion = [0.0] + [m / 3.0 for m in motion[1:]]
+    assert slide_ratio(info)[0] == pytest.approx(3.0) and 3.0 > SLIDE_WARN
+    assert any(ln.startswith("warning: the converted surface slides along the input's (its vertices move 3.00x")
+               for ln in conversion_summary(info))
     # a capture that stands still, moves 0.6 (its own size) at frame 4 and stands still again: the
     # converted surface jumps with it, which the input's own move (measured there) explains
     teleport = []
