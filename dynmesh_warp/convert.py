@@ -2123,6 +2123,11 @@ JUMP_INPUT = 0.5
 #: user's merging balls 4.5x at the frames they swap over. Over SLIDE_WARN the summary warns.
 SLIDE_FLOOR = 0.002
 SLIDE_WARN = 2.0
+#: ... and names the frames whose ratio is over SLIDE_FRAME where the vertices moved over
+#: JUMP_LEAST of the diagonal: a local slide (a new user's closing hand, 4.8x where its fingers
+#: met the palm; the merging balls 4.5x) under a median that stays low (1.8x, 1.4x). The protocol's
+#: sequences that follow their surface peak at gallop 2.2, figure 1.6, pcow 3.9 (CPU)
+SLIDE_FRAME = 4.0
 #: a web (:func:`web_fraction`): faces whose longest edge grew more than WEB_STRETCH x since the
 #: key frame and whose centroid lies farther than WEB_GAP x the input's bbox diagonal from the
 #: input; a frame whose web covers more than POOR_WEB of the converted surface's area counts as
@@ -2274,11 +2279,16 @@ def conversion_summary(info: ConversionInfo) -> list:
         lines.append(f"motion: the converted vertices move a median {slide:.2f}x as far a frame as the input's surface "
                      f"(99th pct. each; {per[worst]:.1f}x at frame {worst}); about 1-1.5x where the template follows "
                      "the surface")
-        if slide > SLIDE_WARN:
-            lines.append(f"warning: the converted surface slides along the input's (its vertices move {slide:.2f}x as "
-                         f"far as the surface, over {SLIDE_WARN:g}x): the physics feels that as surface velocity, and "
-                         "friction drags what rests on it; a tangential motion the input cannot show (a spinning "
-                         "round part, a twist) reads so too")
+        m = np.asarray(info.frame_motion, float)
+        local = np.flatnonzero((np.nan_to_num(per) > SLIDE_FRAME) & (m > JUMP_LEAST))
+        if slide > SLIDE_WARN or local.size:
+            said = (f"its vertices move a median {slide:.2f}x as far as the surface, over {SLIDE_WARN:g}x" if slide > SLIDE_WARN
+                    else f"its vertices move over {SLIDE_FRAME:g}x as far as the surface")
+            if local.size:
+                said += f"; over {SLIDE_FRAME:g}x on {local.size} frame(s): {_frames_text(local)}"
+            lines.append(f"warning: the converted surface slides along the input's ({said}): the physics feels that as "
+                         "surface velocity, and friction drags what rests on it; a tangential motion the input cannot "
+                         "show (a spinning round part, a twist) reads so too")
     ar = np.asarray(info.area_ratio, float)
     crumpled = np.flatnonzero(ar > POOR_AREA) if ar.size == cov.size else np.zeros(0, int)
     if crumpled.size:

@@ -566,8 +566,13 @@ def test_frame_motion_and_jumps_are_measured_and_warned():
     # vertices moving 3x as far as the input's surface every frame: a slide, warned of
     info.input_motion = [0.0] + [m / 3.0 for m in motion[1:]]
     assert slide_ratio(info)[0] == pytest.approx(3.0) and 3.0 > SLIDE_WARN
-    assert any(ln.startswith("warning: the converted surface slides along the input's (its vertices move 3.00x")
-               for ln in conversion_summary(info))
+    assert any(ln.startswith("warning: the converted surface slides along the input's (its vertices move a median "
+                             "3.00x") for ln in conversion_summary(info))
+    # a local slide under a low median: frame 4 moves 10x the surface (and over 5 % of the diagonal)
+    info.input_motion = list(info.frame_motion)
+    info.input_motion[4] = 0.02
+    warn = [ln for ln in conversion_summary(info) if "slides along" in ln]
+    assert slide_ratio(info)[0] == pytest.approx(1.0) and len(warn) == 1 and "on 1 frame(s): 4)" in warn[0]
     # a capture that stands still, moves 0.6 (its own size) at frame 4 and stands still again: the
     # converted surface jumps with it, which the input's own move (measured there) explains
     teleport = []
