@@ -2282,10 +2282,12 @@ def conversion_summary(info: ConversionInfo) -> list:
         m = np.asarray(info.frame_motion, float)
         local = np.flatnonzero((np.nan_to_num(per) > SLIDE_FRAME) & (m > JUMP_LEAST))
         if slide > SLIDE_WARN or local.size:
-            said = (f"its vertices move a median {slide:.2f}x as far as the surface, over {SLIDE_WARN:g}x" if slide > SLIDE_WARN
-                    else f"its vertices move over {SLIDE_FRAME:g}x as far as the surface")
-            if local.size:
-                said += f"; over {SLIDE_FRAME:g}x on {local.size} frame(s): {_frames_text(local)}"
+            frames = f"on {local.size} frame(s): {_frames_text(local)}"
+            if slide > SLIDE_WARN:
+                said = f"its vertices move a median {slide:.2f}x as far as the surface, over {SLIDE_WARN:g}x"
+                said += f"; over {SLIDE_FRAME:g}x {frames}" if local.size else ""
+            else:
+                said = f"its vertices move over {SLIDE_FRAME:g}x as far as the surface {frames}; a median {slide:.2f}x"
             lines.append(f"warning: the converted surface slides along the input's ({said}): the physics feels that as "
                          "surface velocity, and friction drags what rests on it; a tangential motion the input cannot "
                          "show (a spinning round part, a twist) reads so too")
