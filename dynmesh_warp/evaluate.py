@@ -321,6 +321,21 @@ def surface_drift(gt: FixedTopologySequence, pred, device=None) -> dict:
     return out
 
 
+#: the per-strategy motion figures ``summarize`` averages over scenes and ``format_markdown``
+#: notes under the table: (the conversion's entry, the row's mean key, the entry's figure
+#: averaged, the row's worst key, the entry's figure maximised, the note's text)
+_MOTION_FIGURES = (
+    ("surface_velocity", "velocity_p99", "p99_mean", "velocity_p99_worst", "p99_max",
+     "Surface velocity against the ground truth's (`surface_velocity_error`: each converted vertex's displacement "
+     "per frame against the GT's at its nearest GT point, 99th percentile over the vertices, fraction of the "
+     "diagonal; mean over frame pairs / worst pair): "),
+    ("surface_drift", "drift_p50", "p50_mean", "drift_p99_worst", "p99_max",
+     "Drift from the ground truth's surface points (`surface_drift`: each converted vertex's distance to the GT "
+     "point it stood on at its segment's key frame, carried by the GT; fraction of the diagonal; the median "
+     "vertex's, mean over frames / the 99th percentile's worst frame): "),
+)
+
+
 def _ground_truth(path: str, num_frames: int | None, frame_order: str = "stored") -> FixedTopologySequence:
     from .io import load_sequence
 
@@ -438,14 +453,11 @@ def summarize(scenes: list, protocol: str) -> dict:
         out["rows"][k] = {"label": row_label(k), "per_scene": per,
                           "cd": float(np.mean(cds)) if cds else None,
                           "emd": float(np.mean(emds)) if len(emds) == len(per) else None}
-        vel = [s.get("conversion", {}).get(k, {}).get("surface_velocity") for s in scenes]
-        if k != "varying" and vel and all(v and v.get("p99_mean") is not None for v in vel):
-            out["rows"][k]["velocity_p99"] = float(np.mean([v["p99_mean"] for v in vel]))
-            out["rows"][k]["velocity_p99_worst"] = float(max(v["p99_max"] for v in vel))
-        drift = [s.get("conversion", {}).get(k, {}).get("surface_drift") for s in scenes]
-        if k != "varying" and drift and all(d and d.get("p50_mean") is not None for d in drift):
-            out["rows"][k]["drift_p50"] = float(np.mean([d["p50_mean"] for d in drift]))
-            out["rows"][k]["drift_p99_worst"] = float(max(d["p99_max"] for d in drift))
+        for figure, mean_key, mean_of, worst_key, worst_of, _ in _MOTION_FIGURES:
+            got = [s.get("conversion", {}).get(k, {}).get(figure) for s in scenes]
+            if k != "varying" and got and all(g and g.get(mean_of) is not None for g in got):
+                out["rows"][k][mean_key] = float(np.mean([g[mean_of] for g in got]))
+                out["rows"][k][worst_key] = float(max(g[worst_of] for g in got))
     base = out["rows"].get("varying")
     for k, r in out["rows"].items():
         for m in ("cd", "emd"):
@@ -490,18 +502,11 @@ def format_markdown(summary: dict, protocol: str, note: str = "") -> str:
     lines.append("| " + " | ".join(header) + " |")
     lines.append("|" + "---|" * len(header))
     lines += ["| " + " | ".join(r) + " |" for r in body]
-    vel = [f"{r['label']} {100 * r['velocity_p99']:.2f}% / {100 * r['velocity_p99_worst']:.2f}%"
-           for r in summary["rows"].values() if "velocity_p99" in r]
-    if vel:
-        lines += ["", "Surface velocity against the ground truth's (`surface_velocity_error`: each converted "
-                  "vertex's displacement per frame against the GT's at its nearest GT point, 99th percentile over "
-                  "the vertices, fraction of the diagonal; mean over frame pairs / worst pair): " + "; ".join(vel)]
-    drift = [f"{r['label']} {100 * r['drift_p50']:.2f}% / {100 * r['drift_p99_worst']:.2f}%"
-             for r in summary["rows"].values() if "drift_p50" in r]
-    if drift:
-        lines += ["", "Drift from the ground truth's surface points (`surface_drift`: each converted vertex's distance "
-                  "to the GT point it stood on at its segment's key frame, carried by the GT; fraction of the diagonal; "
-                  "the median vertex's, mean over frames / the 99th percentile's worst frame): " + "; ".join(drift)]
+    for _, mean_key, _, worst_key, _, text in _MOTION_FIGURES:
+        parts = [f"{r['label']} {100 * r[mean_key]:.2f}% / {100 * r[worst_key]:.2f}%"
+                 for r in summary["rows"].values() if mean_key in r]
+        if parts:
+            lines += ["", text + "; ".join(parts)]
     return "\n".join(lines) + "\n"
 
 
