@@ -165,10 +165,13 @@ def test_swept_bvh_refit_only_on_frame_change():
     w.collider.refit_frame = lambda model, state, ctx: (calls.append(ctx.time), orig(model, state, ctx))
     for _ in range(40):  # 40 steps at 240 Hz: about 4 frames at 24 fps
         w.step()
-    # expected: the steps at whose start floor(t * fps) changes, t accumulated as on the device
+    # expected: the steps n at whose start (n / 240 s, exactly) the frame n * 24 // 240 changes,
+    # at the clock accumulated as on the device (which lands a few ulps short of some of those
+    # boundaries: on them all the same, docs/physics.md; the step after a boundary before)
+    assert seq.fps == 24.0
     t, k_prev, expected = 0.0, 0, []
-    for _ in range(40):
-        k = int(np.floor(t * seq.fps))
+    for n in range(40):
+        k = n * 24 // 240
         if k != k_prev:
             expected.append(t)
             k_prev = k
@@ -176,7 +179,7 @@ def test_swept_bvh_refit_only_on_frame_change():
     assert len(expected) == 3
     np.testing.assert_array_equal(calls, expected)
     lo, hi = w.collider.lowers.numpy(), w.collider.uppers.numpy()
-    k = int(np.floor(calls[-1] * seq.fps)) % seq.num_frames
+    k = 3 % seq.num_frames  # the third boundary: frame 3
     tri = np.stack([seq.V[k][seq.F], seq.V[(k + 1) % seq.num_frames][seq.F]], 1).reshape(len(seq.F), 6, 3)
     np.testing.assert_allclose(lo, tri.min(1), atol=1e-6)
     np.testing.assert_allclose(hi, tri.max(1), atol=1e-6)
