@@ -268,6 +268,11 @@ class ConversionInfo:
     own BVH). A jump the input makes too is real motion, not warned of (a new user's capture that
     moves 0.4 m in one frame was warned of as a restart); converted vertices moving far more than
     the input's surface slide along it (the summary's slide line).
+    input_dropouts: ``(frame, distance, agreement)`` of the input frames that lack surface both
+    frames either side have (a reconstruction's dropout: a new user's leg missing from one
+    frame): the smaller of the two neighbours' 99th-percentile distances to the frame's surface,
+    and the neighbours' own distance to each other (fractions of the diagonal). The output
+    follows the input there (:func:`_input_dropouts`).
     area_ratio: per frame, the converted surface's area over the input's (the result's frames;
     above ``POOR_AREA``, a crumpled surface: a new user's balloon, converted from its inflated
     frame, had 2.0-2.4x the input's area on its 16 deflated frames while the vertex Chamfer
@@ -323,6 +328,7 @@ class ConversionInfo:
     area_ratio: list = field(default_factory=list)
     frame_motion: list = field(default_factory=list)
     input_motion: list = field(default_factory=list)
+    input_dropouts: list = field(default_factory=list)
     rejected_cuts: list = field(default_factory=list)
     segments: list = field(default_factory=list)
     open_edges: list = field(default_factory=list)
@@ -1533,6 +1539,7 @@ def _to_fixed_run(vseq, seq, strategy, template, device, progress, should_stop, 
         info.dropped_unused, info.welded, info.turned_outward = unused, welded, turned
         if float(o["far_part_area"]) <= 0:
             info.floater_webs = _floater_webs(vseq, res, device, float(o["far_part_gap"]))
+        info.input_dropouts = _input_dropouts(vseq, info, device)
         res.all_topology_events = topology.result()  # every frame's (to_piecewise_fixed after a forward stop)
         info.topology_events = [e for e in res.all_topology_events
                                 if info.first_frame <= e[0] < info.first_frame + len(info.coverage)]
@@ -1591,6 +1598,34 @@ def to_piecewise_fixed(seq, strategy: str = DEFAULT_STRATEGY, template=None, dev
     res = _to_piecewise(seq, strategy, template, device, progress, should_stop, options)
     res.conversion.seconds_all = time.perf_counter() - start
     return res
+
+
+def _input_dropouts(vseq, info, device) -> list:
+    """``ConversionInfo.input_dropouts`` of a run (``info``, frames from ``info.first_frame``):
+    the input frames t whose neighbours t - 1 and t + 1 both lie farther than DROPOUT_LEAST of the
+    diagonal from t's surface (99th percentile of at most 4,096 of their vertices) and over
+    DROPOUT_RATIO x farther than from each other. Only frames whose ``input_motion`` (there or at
+    t + 1: the backward pass stores it one later) is over DROPOUT_LEAST and over DROPOUT_RATIO x
+    its neighbours' median are checked: three host queries each."""
+    m = np.asarray(info.input_motion, float)
+    lo, T, out = info.first_frame, vseq.num_frames, []
+
+    def p99(src, dst, diag):
+        v = vseq.frames[src][0]
+        return float(np.percentile(nearest_surface(vseq.frames[dst], v[::_stride(len(v), 4096)], device=device).dist,
+                                   99)) / diag
+
+    for i in range(1, len(m) - 1):
+        t, here = lo + i, max(m[i], m[i + 1])
+        near = np.r_[m[max(1, i - JUMP_WINDOW):i], m[i + 2:i + 2 + JUMP_WINDOW]]
+        if not (0 < t < T - 1) or here <= DROPOUT_LEAST or (near.size and here <= DROPOUT_RATIO * np.median(near)):
+            continue
+        diag = max(_bbox_diag(vseq.frames[t][0]), 1e-12)
+        gone = min(p99(t - 1, t, diag), p99(t + 1, t, diag))
+        agree = p99(t - 1, t + 1, diag)
+        if gone > DROPOUT_LEAST and gone > DROPOUT_RATIO * agree:
+            out.append((t, gone, agree))
+    return out
 
 
 def _frame_motion(V: np.ndarray, most: int = 4096) -> list:
@@ -1818,7 +1853,7 @@ def _join_segments(vseq, segs: list, whole, events: list) -> VaryingTopologySequ
         info.open_edges += c.open_edges
     info.key_score = "+".join(sorted({r.conversion.key_score for _, r in segs} - {""}))
     info.topology_events, info.dropped_unused, info.welded = list(events), whole.dropped_unused, whole.welded
-    info.turned_outward = whole.turned_outward
+    info.turned_outward, info.input_dropouts = whole.turned_outward, whole.input_dropouts
     out.conversion = info
     return out
 
@@ -2123,6 +2158,10 @@ JUMP_INPUT = 0.5
 #: user's merging balls 4.5x at the frames they swap over. Over SLIDE_WARN the summary warns.
 SLIDE_FLOOR = 0.002
 SLIDE_WARN = 2.0
+#: a dropout (:func:`_input_dropouts`): an input frame both neighbours lie over DROPOUT_LEAST of
+#: the diagonal from (99th pct.) and over DROPOUT_RATIO x farther than from each other
+DROPOUT_LEAST = 0.02
+DROPOUT_RATIO = 3.0
 #: ... and names the frames whose ratio is over SLIDE_FRAME where the vertices moved over
 #: JUMP_LEAST of the diagonal: a local slide (a new user's closing hand, 4.8x where its fingers
 #: met the palm; the merging balls 4.5x) under a median that stays low (1.8x, 1.4x). The protocol's
@@ -2262,17 +2301,26 @@ def conversion_summary(info: ConversionInfo) -> list:
             lines.append(f"note: over {100 * POOR_FLIPPED:.0f}% of the converted surface faces against the input on "
                          f"{folds.size} frame(s) ({_frames_text(folds)}): a fold-over (a sheet's free edge doubled "
                          "back), or many thin parts, which read so too; look at those frames")
+    if info.input_dropouts:
+        t, gone, agree = max(info.input_dropouts, key=lambda d: d[1])
+        lines.append(f"note: input frame(s) {_frames_text([d[0] for d in info.input_dropouts])} lack surface that the "
+                     f"frames either side both have (frame {t}: {100 * gone:.1f}% of the diagonal away, where frames "
+                     f"{t - 1} and {t + 1} agree within {100 * agree:.1f}%): a reconstruction's dropout? The output "
+                     "follows the input there, and a sphere resting on the missing part falls through it")
     jumps = _jumps(info.frame_motion) if len(info.frame_motion) == cov.size else np.zeros(0, int)
     if jumps.size and len(info.input_motion) == cov.size:  # the input's own jump is motion, not a fault
         jumps = jumps[np.asarray(info.input_motion, float)[jumps] < JUMP_INPUT * np.asarray(info.frame_motion)[jumps]]
     if jumps.size:
         m = np.asarray(info.frame_motion, float)
         w = int(jumps[np.argmax(m[jumps])])
+        drop = {d[0] for d in info.input_dropouts}
+        after = [int(t) for t in jumps if t in drop or t - 1 in drop]
         lines.append(f"warning: the converted surface jumps at {jumps.size} frame(s) ({_frames_text(jumps)}): at frame "
                      f"{w} its vertices move {100 * m[w]:.1f}% of the diagonal from frame {w - 1} (99th pct.), over "
                      f"{JUMP_RATIO:g}x the frames around it, where the input moved less than half as far (a restarted "
-                     "fit, or the template sliding along the surface); the physics sees the surface move that far in "
-                     "one frame and throws what touches it")
+                     "fit, or the template sliding along the surface"
+                     + (f"; at {_frames_text(after)} the input's dropout noted above" if after else "")
+                     + "); the physics sees the surface move that far in one frame and throws what touches it")
     slide, per = slide_ratio(info) if len(info.frame_motion) == cov.size else (None, None)
     if slide is not None:
         worst = int(np.nanargmax(per))

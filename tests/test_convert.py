@@ -591,6 +591,37 @@ def test_frame_motion_and_jumps_are_measured_and_warned():
         assert t < 4 and m[t] > 0.05
 
 
+def test_an_input_frame_that_lacks_a_part_its_neighbours_have_is_noted():
+    """A reconstruction's dropout: a ball with a small moon beside it, moving slowly, whose frame
+    4 lacks the moon (a new user's leg missing from one frame). ``input_dropouts`` names frame 4
+    (both neighbours lie far from its surface, and close to each other) and the summary notes it;
+    the same sequence without the gap, and a translating ball, have none."""
+    import trimesh
+
+    from dynmesh_warp.convert import conversion_summary
+
+    def frames(drop):
+        out = []
+        for t in range(9):
+            big = trimesh.creation.icosphere(subdivisions=3 if t % 2 else 2)
+            parts = [big.vertices + [0.02 * t, 0, 0]]
+            faces = [big.faces]
+            if t != drop:
+                moon = trimesh.creation.icosphere(subdivisions=2, radius=0.3)
+                parts.append(moon.vertices + [0.02 * t + 1.8, 0, 0])
+                faces.append(moon.faces + len(parts[0]))
+            out.append((np.vstack(parts).astype(np.float32), np.vstack(faces).astype(np.int32)))
+        return VaryingTopologySequence(out)
+
+    r = to_fixed_topology(frames(drop=4), device=DEV)
+    assert [d[0] for d in r.conversion.input_dropouts] == [4]
+    t, gone, agree = r.conversion.input_dropouts[0]
+    assert gone > 0.1 and agree < 0.02
+    assert any(ln.startswith("note: input frame(s) 4 lack surface that the frames either side both have")
+               for ln in conversion_summary(r.conversion))
+    assert to_fixed_topology(frames(drop=None), device=DEV).conversion.input_dropouts == []
+
+
 @pytest.mark.parametrize("bad,name", [({"node_spacing": 0}, "node_spacing"), ({"graph_iterations": 0}, "graph_iterations"),
                                       ({"stiffness": float("nan")}, "stiffness"), ({"smooth_weight": 2}, "smooth_weight"),
                                       ({"max_normal_angle": 200}, "max_normal_angle"), ({"key_frame": 1.5}, "key_frame"),
