@@ -71,6 +71,11 @@ class _Options(BaseModel):
     #: (convert._floater_webs: a floater pulls a spike of stretched faces, a real part's fragment
     #: does not), convert again with far_part_area = convert.FLOATER_AREA and keep the less poor run
     floater_retry: bool = True
+    #: an input frame that lacks surface both neighbours have (ConversionInfo.input_dropouts: a
+    #: reconstruction's dropout, a new user's leg cut off one frame) is bridged in the output: its
+    #: converted frame becomes the mean of the two around it (the part kept, no jump); false: the
+    #: output follows the input there
+    bridge_dropouts: bool = True
     #: the gap for ``far_part_area`` (fraction of the converted mesh's bbox diagonal)
     far_part_gap: Float = Field(0.10, gt=0.0)
     #: bit-identical results from run to run on a GPU: the conversion kernels' float atomic sums

@@ -272,7 +272,9 @@ class ConversionInfo:
     frames either side have (a reconstruction's dropout: a new user's leg missing from one
     frame): the smaller of the two neighbours' 99th-percentile distances to the frame's surface,
     and the neighbours' own distance to each other (fractions of the diagonal). The output
-    follows the input there (:func:`_input_dropouts`).
+    follows the input there (:func:`_input_dropouts`) unless the option ``bridge_dropouts`` (on by
+    default) bridged it: bridged_frames lists the frames whose output is the mean of the two
+    around it.
     area_ratio: per frame, the converted surface's area over the input's (the result's frames;
     above ``POOR_AREA``, a crumpled surface: a new user's balloon, converted from its inflated
     frame, had 2.0-2.4x the input's area on its 16 deflated frames while the vertex Chamfer
@@ -329,6 +331,7 @@ class ConversionInfo:
     frame_motion: list = field(default_factory=list)
     input_motion: list = field(default_factory=list)
     input_dropouts: list = field(default_factory=list)
+    bridged_frames: list = field(default_factory=list)
     rejected_cuts: list = field(default_factory=list)
     segments: list = field(default_factory=list)
     open_edges: list = field(default_factory=list)
@@ -1540,6 +1543,8 @@ def _to_fixed_run(vseq, seq, strategy, template, device, progress, should_stop, 
         if float(o["far_part_area"]) <= 0:
             info.floater_webs = _floater_webs(vseq, res, device, float(o["far_part_gap"]))
         info.input_dropouts = _input_dropouts(vseq, info, device)
+        if info.input_dropouts and bool(o["bridge_dropouts"]):
+            res = _bridge_dropouts(res, info)
         res.all_topology_events = topology.result()  # every frame's (to_piecewise_fixed after a forward stop)
         info.topology_events = [e for e in res.all_topology_events
                                 if info.first_frame <= e[0] < info.first_frame + len(info.coverage)]
@@ -1603,10 +1608,12 @@ def to_piecewise_fixed(seq, strategy: str = DEFAULT_STRATEGY, template=None, dev
 def _input_dropouts(vseq, info, device) -> list:
     """``ConversionInfo.input_dropouts`` of a run (``info``, frames from ``info.first_frame``):
     the input frames t whose neighbours t - 1 and t + 1 both lie farther than DROPOUT_LEAST of the
-    diagonal from t's surface (99th percentile of at most 4,096 of their vertices) and over
-    DROPOUT_RATIO x farther than from each other. Only frames whose ``input_motion`` (there or at
-    t + 1: the backward pass stores it one later) is over DROPOUT_LEAST and over DROPOUT_RATIO x
-    its neighbours' median are checked: three host queries each."""
+    diagonal from t's surface (99th percentile of at most 4,096 of their vertices), over
+    DROPOUT_RATIO x farther than from each other, and whose own surface lies DROPOUT_RATIO x
+    nearer to t - 1's than that (t lacks a part; it did not move away). Only frames whose
+    ``input_motion`` (there or at t + 1: the backward pass stores it one later) is over
+    DROPOUT_LEAST and over DROPOUT_RATIO x its neighbours' median are checked: four host queries
+    each."""
     m = np.asarray(info.input_motion, float)
     lo, T, out = info.first_frame, vseq.num_frames, []
 
@@ -1623,8 +1630,27 @@ def _input_dropouts(vseq, info, device) -> list:
         diag = max(_bbox_diag(vseq.frames[t][0]), 1e-12)
         gone = min(p99(t - 1, t, diag), p99(t + 1, t, diag))
         agree = p99(t - 1, t + 1, diag)
-        if gone > DROPOUT_LEAST and gone > DROPOUT_RATIO * agree:
+        # and the frame's own surface lies on its neighbour's (it lacks a part, it adds none: a
+        # frame moved away as a whole is the input's jump, not a dropout)
+        if gone > DROPOUT_LEAST and gone > DROPOUT_RATIO * agree and DROPOUT_RATIO * p99(t, t - 1, diag) < gone:
             out.append((t, gone, agree))
+    return out
+
+
+def _bridge_dropouts(res, info):
+    """``res`` with each of ``info.input_dropouts`` inside its frames replaced by the mean of the
+    converted frames either side (the same template: a vertex-wise mean), listed in
+    ``info.bridged_frames``; ``frame_motion`` measured again. The frame's other per-frame figures
+    stay the fit's."""
+    V = np.array(res.V, copy=True)
+    for t, _, _ in info.input_dropouts:
+        i = t - info.first_frame
+        if 0 < i < len(V) - 1:
+            V[i] = 0.5 * (V[i - 1] + V[i + 1])
+            info.bridged_frames.append(t)
+    out = FixedTopologySequence(V, res.F, fps=res.fps, name=res.name, source=res.source)
+    out.conversion = info
+    info.frame_motion = _frame_motion(out.V)
     return out
 
 
@@ -1815,7 +1841,7 @@ def _frame_fields(info, shift: int, lo: int | None = None, hi: int | None = None
 
     out = {name: [t + shift for t in getattr(info, name) if kept(t)]
            for name in ("reanchored_frames", "repaired_frames", "unrecovered_frames", "floater_webs",
-                        "floater_retry")}
+                        "floater_retry", "bridged_frames")}
     out["recovered_frames"] = [(t + shift, src) for t, src in info.recovered_frames if kept(t)]
     out["ignored_parts"] = {t + shift: x for t, x in info.ignored_parts.items() if kept(t)}
     out["key_trials"] = [(k + shift, *rest) for k, *rest in info.key_trials]
@@ -2305,8 +2331,10 @@ def conversion_summary(info: ConversionInfo) -> list:
         t, gone, agree = max(info.input_dropouts, key=lambda d: d[1])
         lines.append(f"note: input frame(s) {_frames_text([d[0] for d in info.input_dropouts])} lack surface that the "
                      f"frames either side both have (frame {t}: {100 * gone:.1f}% of the diagonal away, where frames "
-                     f"{t - 1} and {t + 1} agree within {100 * agree:.1f}%): a reconstruction's dropout? The output "
-                     "follows the input there, and a sphere resting on the missing part falls through it")
+                     f"{t - 1} and {t + 1} agree within {100 * agree:.1f}%): a reconstruction's dropout? "
+                     + (f"Bridged: the output at {_frames_text(info.bridged_frames)} is the mean of the frames around "
+                        "it (option bridge_dropouts)" if info.bridged_frames else
+                        "The output follows the input there, and a sphere resting on the missing part falls through it"))
     jumps = _jumps(info.frame_motion) if len(info.frame_motion) == cov.size else np.zeros(0, int)
     if jumps.size and len(info.input_motion) == cov.size:  # the input's own jump is motion, not a fault
         jumps = jumps[np.asarray(info.input_motion, float)[jumps] < JUMP_INPUT * np.asarray(info.frame_motion)[jumps]]

@@ -594,8 +594,9 @@ def test_frame_motion_and_jumps_are_measured_and_warned():
 def test_an_input_frame_that_lacks_a_part_its_neighbours_have_is_noted():
     """A reconstruction's dropout: a ball with a small moon beside it, moving slowly, whose frame
     4 lacks the moon (a new user's leg missing from one frame). ``input_dropouts`` names frame 4
-    (both neighbours lie far from its surface, and close to each other) and the summary notes it;
-    the same sequence without the gap, and a translating ball, have none."""
+    (both neighbours lie far from its surface, and close to each other), the summary notes it, and
+    the output bridges it by default (the mean of frames 3 and 5: the moon kept, no jump); with
+    bridge_dropouts off the output follows the input; without the gap there is none."""
     import trimesh
 
     from dynmesh_warp.convert import conversion_summary
@@ -613,12 +614,25 @@ def test_an_input_frame_that_lacks_a_part_its_neighbours_have_is_noted():
             out.append((np.vstack(parts).astype(np.float32), np.vstack(faces).astype(np.int32)))
         return VaryingTopologySequence(out)
 
-    r = to_fixed_topology(frames(drop=4), device=DEV)
+    gap = frames(drop=4)
+    r = to_fixed_topology(gap, device=DEV)
     assert [d[0] for d in r.conversion.input_dropouts] == [4]
     t, gone, agree = r.conversion.input_dropouts[0]
     assert gone > 0.1 and agree < 0.02
+    summary = conversion_summary(r.conversion)
     assert any(ln.startswith("note: input frame(s) 4 lack surface that the frames either side both have")
-               for ln in conversion_summary(r.conversion))
+               and "Bridged: the output at 4 is the mean" in ln for ln in summary)
+    # bridged (the default): frame 4 is the mean of frames 3 and 5, so the moon stays and nothing jumps
+    assert r.conversion.bridged_frames == [4]
+    np.testing.assert_allclose(r.V[4], 0.5 * (r.V[3].astype(np.float64) + r.V[5]), atol=1e-6)
+    moon = r.V[3][:, 0] > 1.4  # the template's moon vertices (x over 1.4 at frame 3)
+    assert moon.sum() > 20 and (r.V[4][moon, 0] > 1.4).all()
+    assert not any("jumps" in ln for ln in summary)
+    # not bridged: the output follows the input (the moon's vertices leave at frame 4), and says so
+    f = to_fixed_topology(gap, device=DEV, bridge_dropouts=False)
+    assert f.conversion.bridged_frames == [] and [d[0] for d in f.conversion.input_dropouts] == [4]
+    assert (f.V[4][moon, 0] < 1.4).mean() > 0.5
+    assert any("The output follows the input there" in ln for ln in conversion_summary(f.conversion))
     assert to_fixed_topology(frames(drop=None), device=DEV).conversion.input_dropouts == []
 
 
