@@ -1617,10 +1617,9 @@ def _input_dropouts(vseq, info, device) -> list:
     m = np.asarray(info.input_motion, float)
     lo, T, out = info.first_frame, vseq.num_frames, []
 
-    def p99(src, dst, diag):
+    def p99(src, mesh, diag):  # frame src's sampled vertices to ``mesh`` (a wp.Mesh or a frame)
         v = vseq.frames[src][0]
-        return float(np.percentile(nearest_surface(vseq.frames[dst], v[::_stride(len(v), 4096)], device=device).dist,
-                                   99)) / diag
+        return float(np.percentile(nearest_surface(mesh, v[::_stride(len(v), 4096)], device=device).dist, 99)) / diag
 
     for i in range(1, len(m) - 1):
         t, here = lo + i, max(m[i], m[i + 1])
@@ -1628,11 +1627,12 @@ def _input_dropouts(vseq, info, device) -> list:
         if not (0 < t < T - 1) or here <= DROPOUT_LEAST or (near.size and here <= DROPOUT_RATIO * np.median(near)):
             continue
         diag = max(_bbox_diag(vseq.frames[t][0]), 1e-12)
-        gone = min(p99(t - 1, t, diag), p99(t + 1, t, diag))
-        agree = p99(t - 1, t + 1, diag)
+        here_mesh = _wp_mesh(*vseq.frames[t], device)  # asked by both neighbours: one BVH
+        gone = min(p99(t - 1, here_mesh, diag), p99(t + 1, here_mesh, diag))
+        agree = p99(t - 1, vseq.frames[t + 1], diag)
         # and the frame's own surface lies on its neighbour's (it lacks a part, it adds none: a
         # frame moved away as a whole is the input's jump, not a dropout)
-        if gone > DROPOUT_LEAST and gone > DROPOUT_RATIO * agree and DROPOUT_RATIO * p99(t, t - 1, diag) < gone:
+        if gone > DROPOUT_LEAST and gone > DROPOUT_RATIO * agree and DROPOUT_RATIO * p99(t, vseq.frames[t - 1], diag) < gone:
             out.append((t, gone, agree))
     return out
 
@@ -2184,15 +2184,15 @@ JUMP_INPUT = 0.5
 #: user's merging balls 4.5x at the frames they swap over. Over SLIDE_WARN the summary warns.
 SLIDE_FLOOR = 0.002
 SLIDE_WARN = 2.0
-#: a dropout (:func:`_input_dropouts`): an input frame both neighbours lie over DROPOUT_LEAST of
-#: the diagonal from (99th pct.) and over DROPOUT_RATIO x farther than from each other
-DROPOUT_LEAST = 0.02
-DROPOUT_RATIO = 3.0
 #: ... and names the frames whose ratio is over SLIDE_FRAME where the vertices moved over
 #: JUMP_LEAST of the diagonal: a local slide (a new user's closing hand, 4.8x where its fingers
 #: met the palm; the merging balls 4.5x) under a median that stays low (1.8x, 1.4x). The protocol's
 #: sequences that follow their surface peak at gallop 2.2, figure 1.6, pcow 3.9 (CPU)
 SLIDE_FRAME = 4.0
+#: a dropout (:func:`_input_dropouts`): an input frame both neighbours lie over DROPOUT_LEAST of
+#: the diagonal from (99th pct.) and over DROPOUT_RATIO x farther than from each other
+DROPOUT_LEAST = 0.02
+DROPOUT_RATIO = 3.0
 #: a web (:func:`web_fraction`): faces whose longest edge grew more than WEB_STRETCH x since the
 #: key frame and whose centroid lies farther than WEB_GAP x the input's bbox diagonal from the
 #: input; a frame whose web covers more than POOR_WEB of the converted surface's area counts as
@@ -2335,11 +2335,11 @@ def conversion_summary(info: ConversionInfo) -> list:
                      + (f"Bridged: the output at {_frames_text(info.bridged_frames)} is the mean of the frames around "
                         "it (option bridge_dropouts)" if info.bridged_frames else
                         "The output follows the input there, and a sphere resting on the missing part falls through it"))
-    jumps = _jumps(info.frame_motion) if len(info.frame_motion) == cov.size else np.zeros(0, int)
+    m = np.asarray(info.frame_motion, float)
+    jumps = _jumps(m) if m.size == cov.size else np.zeros(0, int)
     if jumps.size and len(info.input_motion) == cov.size:  # the input's own jump is motion, not a fault
-        jumps = jumps[np.asarray(info.input_motion, float)[jumps] < JUMP_INPUT * np.asarray(info.frame_motion)[jumps]]
+        jumps = jumps[np.asarray(info.input_motion, float)[jumps] < JUMP_INPUT * m[jumps]]
     if jumps.size:
-        m = np.asarray(info.frame_motion, float)
         w = int(jumps[np.argmax(m[jumps])])
         drop = {d[0] for d in info.input_dropouts}
         after = [int(t) for t in jumps if t in drop or t - 1 in drop]
@@ -2349,13 +2349,12 @@ def conversion_summary(info: ConversionInfo) -> list:
                      "fit, or the template sliding along the surface"
                      + (f"; at {_frames_text(after)} the input's dropout noted above" if after else "")
                      + "); the physics sees the surface move that far in one frame and throws what touches it")
-    slide, per = slide_ratio(info) if len(info.frame_motion) == cov.size else (None, None)
+    slide, per = slide_ratio(info) if m.size == cov.size else (None, None)
     if slide is not None:
         worst = int(np.nanargmax(per))
         lines.append(f"motion: the converted vertices move a median {slide:.2f}x as far a frame as the input's surface "
                      f"(99th pct. each; {per[worst]:.1f}x at frame {worst}); about 1-1.5x where the template follows "
                      "the surface")
-        m = np.asarray(info.frame_motion, float)
         local = np.flatnonzero((np.nan_to_num(per) > SLIDE_FRAME) & (m > JUMP_LEAST))
         if slide > SLIDE_WARN or local.size:
             frames = f"on {local.size} frame(s): {_frames_text(local)}"

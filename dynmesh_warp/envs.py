@@ -16,10 +16,10 @@ Observation (18 per env): ball position relative to the target (3) [m], ball vel
 (1), sin/cos of the env's phase in its playback of the sequence (2). A probe that meets no
 surface below reads the floor: the ground, or where the scene has none 2 ball radii under the
 sequence's lowest point (``FLOOR_DROP``). Action (2 per env): in [-1, 1] x ``accel`` [m/s^2], a
-horizontal velocity change of action x accel x decimation x dt at the start of the env step (an impulse). Reward per step: 1 -
-(horizontal distance / max_distance)^2 - 0.01 |action|^2, less 1 on the step that terminates
-(the ball fell to the floor or left ``max_distance``): that step earns -(distance /
-max_distance)^2 - 0.01 |action|^2; episodes are truncated after ``max_steps``.
+horizontal velocity change of action x accel x decimation x dt at the start of the env step (an
+impulse). Reward per step: 1 - (horizontal distance / max_distance)^2 - 0.01 |action|^2, less 1
+on the step that terminates (the ball fell to the floor or left ``max_distance``): that step
+earns -(distance / max_distance)^2 - 0.01 |action|^2; episodes are truncated after ``max_steps``.
 """
 
 from __future__ import annotations

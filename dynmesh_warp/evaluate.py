@@ -228,6 +228,13 @@ def evaluate_folders(gt_dir, pred_dir, protocols=("dgmesh", "paper"), frame_stri
     return {"pairs": pairs, "results": res["prediction"]}
 
 
+def _carried(gt: FixedTopologySequence, near, t: int) -> np.ndarray:
+    """The GT surface points ``near`` found (a :func:`~dynmesh_warp.convert.nearest_surface`
+    result on a GT frame: faces and barycentric weights) at GT frame ``t`` [m], float64 (Q, 3)."""
+    tri = np.asarray(gt.V[t], np.float64)[np.asarray(gt.F)[near.face]]
+    return np.einsum("qk,qkj->qj", near.bary.astype(np.float64), tri)
+
+
 def surface_velocity_error(gt: FixedTopologySequence, pred, device=None) -> dict:
     """How far the converted surface's velocity is from the ground truth's: per frame pair
     (t, t + 1) within one template segment of ``pred`` (a fixed-topology sequence, or a
@@ -253,8 +260,7 @@ def surface_velocity_error(gt: FixedTopologySequence, pred, device=None) -> dict
             continue
         diag = max(float(np.linalg.norm(np.ptp(gt.V[t], axis=0))), 1e-30)
         r = nearest_surface((gt.V[t], gt.F), V0, device=device)
-        tri = np.asarray(gt.V[t + 1], np.float64)[np.asarray(gt.F)[r.face]]
-        u = np.einsum("qk,qkj->qj", r.bary.astype(np.float64), tri) - r.closest  # the GT's displacement there
+        u = _carried(gt, r, t + 1) - r.closest  # the GT's displacement there
         e = np.linalg.norm(np.asarray(V1, np.float64) - np.asarray(V0, np.float64) - u, axis=1) / diag
         pairs.append({"p50": float(np.median(e)), "p99": float(np.percentile(e, 99)), "max": float(e.max()),
                       "gt_p99": float(np.percentile(np.linalg.norm(u, axis=1), 99)) / diag})
@@ -299,14 +305,12 @@ def surface_drift(gt: FixedTopologySequence, pred, device=None) -> dict:
 
     T = min(gt.num_frames, pred.num_frames)
     frames = [None] * T
-    GF = np.asarray(gt.F)
     for a, b, k in _segment_runs(pred):
         if not a <= k < min(b, T):
             continue
         r = nearest_surface((gt.V[k], gt.F), pred.frame(k)[0], device=device)
-        w = r.bary.astype(np.float64)
         for t in range(a, min(b, T)):
-            P = np.einsum("qk,qkj->qj", w, np.asarray(gt.V[t], np.float64)[GF[r.face]])
+            P = _carried(gt, r, t)
             diag = max(float(np.linalg.norm(np.ptp(gt.V[t], axis=0))), 1e-30)
             d = np.linalg.norm(np.asarray(pred.frame(t)[0], np.float64) - P, axis=1) / diag
             frames[t] = {"p50": float(np.median(d)), "p99": float(np.percentile(d, 99)), "max": float(d.max())}

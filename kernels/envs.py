@@ -159,8 +159,8 @@ def evaluate_ball_task(
     over max_distance [m], minus 0.01 |action|^2 (the action as applied: ``applied_action``). In
     contact (obs 15) is 0 in an episode's first observation (``obs_only``). Terminated: the ball left the target's
     reach or fell to ``floor_height`` [m] (the ground, or with none ``envs.FLOOR_DROP`` ball radii
-    under the sequence's lowest point); a height probe that meets no surface below reads ``floor_height`` too (a
-    bounded value: with no ground it read -1e6). Phase (obs 16, 17): sin and cos of
+    under the sequence's lowest point); a height probe that meets no surface below reads
+    ``floor_height`` too (a bounded value: with no ground it read -1e6). Phase (obs 16, 17): sin and cos of
     ``playback_phase``. Truncated: env_steps reached max_steps. Only envs with env_mask[e] != 0;
     with obs_only the observation alone (the first of an episode just reset)."""
     e = wp.tid()
