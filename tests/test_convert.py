@@ -640,6 +640,7 @@ def test_an_input_frame_that_lacks_a_part_its_neighbours_have_is_noted():
                                       ({"stiffness": float("nan")}, "stiffness"), ({"smooth_weight": 2}, "smooth_weight"),
                                       ({"max_normal_angle": 200}, "max_normal_angle"), ({"key_frame": 1.5}, "key_frame"),
                                       ({"predict_candidates": 0}, "predict_candidates"),
+                                      ({"bridge_dropouts": "maybe"}, "bridge_dropouts"),
                                       ({"converge_iterations": -1}, "converge_iterations"),
                                       ({"converge_tolerance": 0}, "converge_tolerance"),
                                       ({"converge_tolerance": float("inf")}, "converge_tolerance")])
