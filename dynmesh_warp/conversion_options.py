@@ -73,8 +73,8 @@ class _Options(BaseModel):
     floater_retry: bool = True
     #: an input frame that lacks surface both neighbours have (ConversionInfo.input_dropouts: a
     #: reconstruction's dropout, a new user's leg cut off one frame) is bridged in the output: its
-    #: converted frame becomes the mean of the two around it (the part kept, no jump); false: the
-    #: output follows the input there
+    #: converted frame becomes the mean of the two around it (the part kept, no jump), and the fit
+    #: of the frame after it starts from the frame before it; false: the output follows the input
     bridge_dropouts: bool = True
     #: the gap for ``far_part_area`` (fraction of the converted mesh's bbox diagonal)
     far_part_gap: Float = Field(0.10, gt=0.0)

@@ -516,23 +516,24 @@ class _Converter:
             self.graph = build_deformation_graph(TV, TF, node_spacing, int(opts["nodes_per_vertex"]))
             self.gf = GraphFitter(self.graph, TV, TF, d, self.max_dist, opts)
             self.history = []  # graph states (R, P) of the last two frames
-            self.states = {}  # frame -> graph state (R, P) of the first two frames: where the backward pass starts
             self.scores = []  # coverage [m] of the frames converted so far
             self.graph_bank = []  # (frame, R, P) every bank_interval frames: restart candidates
             self.recovered = []  # (frame, what it restarted from)
             self.failed_restart = None  # coverage [m] of the last restart that found nothing better
-            self.frame_states = {}  # frame -> graph state (R, P) of its result (for the repair pass)
+            self.frame_states = {}  # frame -> graph state (R, P) of its result (the repair pass, rewind)
             self.restarts_failed = []  # frames whose restart candidates all fitted worse
 
     # --- sequence control
-    def rewind(self, X: np.ndarray, t_key: int, t_next: int | None):
-        """Start a new pass from frame t_key's result X (N,3): the backward pass after the
-        forward one. The graph strategy predicts from frames t_next and t_key (the pass
-        continues their motion backwards in time)."""
+    def rewind(self, X: np.ndarray, t_from: int, t_before: int | None):
+        """Go on from frame t_from's result X (N,3): the backward pass after the forward one
+        (t_from the key frame, t_before the frame after it), or past a bridged input dropout (the
+        frame before it, and the one before that). The graph strategy predicts from frames
+        t_before and t_from (the pass continues their motion)."""
         self.X.assign(wp.array(np.ascontiguousarray(X, np.float32), dtype=wp.vec3, device=self.device))
         self.first = False
         if self.opts.get("strategy") == "graph":
-            self.history = ([self.states[t_next]] if t_next in self.states else []) + [self.states[t_key]]
+            fs = self.frame_states
+            self.history = ([fs[t_before]] if t_before in fs else []) + [fs[t_from]]
 
     def web(self, frame, diag: float) -> float:
         """:func:`web_fraction` of the converted surface (self.X) against the input ``frame``
@@ -853,8 +854,6 @@ class _Converter:
         self.frame_web = web  # (web, buried) measured on the kept fit (None: not measured here)
         self.history = (self.history + [(R, P)])[-2:]
         self.frame_states[t] = (R, P)
-        if len(self.states) < 2:  # the key frame and the one after it
-            self.states[t] = (R, P)
         k = int(o["bank_interval"])
         if k > 0 and t % k == 0:
             self.graph_bank.append((t, R.copy(), P.copy()))
@@ -1330,6 +1329,7 @@ def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info,
     lo = hi = None  # the converted frames lo..hi (contiguous: the key frame forward, then backward)
     forward = True
     samples = {}  # the sampled vertices (device) of the key frame and the last frame fitted
+    bridge = bool(info.options["bridge_dropouts"])
     for t in order:
         if lo is not None and should_stop is not None and should_stop():
             break
@@ -1338,17 +1338,26 @@ def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info,
         t0 = time.perf_counter()
         if t == K - 1:
             conv.rewind(out[K], K, K + 1)
-        v, f = _frame_for_fit(vseq, t, K, info.options, out[t - 1] if t > K else out[t + 1] if t < K else None, TF, device,
-                              info)
+        s = 1 if t > K else -1  # the pass's direction (the key frame: either)
+        v, f = _frame_for_fit(vseq, t, K, info.options, out[t - s] if t != K else None, TF, device, info)
         frame = _device_frame(v, f, device)
+        diag = _bbox_diag(v)
+        # the input's own motion from the neighbour fitted before (t - 1 forward, t + 1 backward;
+        # stored at the later frame of the two)
+        near = samples.get(t - s)
+        if near is not None:
+            pf.input_motion[max(t, t - s)] = _input_motion(frame, near, diag, device)
+        if bridge and abs(t - K) >= 2 and _loop_dropout(vseq, pf.input_motion, t - s, s, K, device, info):
+            # the frame before was a dropout (it lacks a part): this one starts from the frame
+            # before it, as if it were not there (the dropout's output becomes their mean)
+            conv.rewind(out[t - 2 * s], t - 2 * s, t - 3 * s)
+            if float(info.options["far_part_area"]) > 0:
+                v, f = _frame_for_fit(vseq, t, K, info.options, out[t - 2 * s], TF, device, info)
+                frame = _device_frame(v, f, device)
+                diag = _bbox_diag(v)
         if step(frame, t):
             info.reanchored_frames.append(t)
-        diag = _bbox_diag(v)
         _record_fit(conv, frame, diag, pf, t)
-        # the input's own motion from the neighbour fitted before (t - 1 forward, t + 1 backward)
-        near = samples.get(t - 1 if t > K else t + 1)
-        if near is not None:
-            pf.input_motion[t if t > K else t + 1] = _input_motion(frame, near, diag, device)
         samples = {K: samples.get(K), t: _motion_sample(v, device)} if t != K else {K: _motion_sample(v, device)}
         conv.first = False
         out[t] = conv.X.numpy()
@@ -1362,6 +1371,18 @@ def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info,
     if hasattr(order, "close"):
         order.close()
     return out, lo, hi, pf
+
+
+def _loop_dropout(vseq, m: np.ndarray, t: int, s: int, K: int, device, info) -> bool:
+    """Whether input frame t, just passed by the frame loop in direction ``s`` (+1 forward, -1
+    backward from key frame K), is a dropout (:func:`_dropout_at`, added to
+    ``info.input_dropouts``): ``m`` holds the ``input_motion`` measured so far (frame t's
+    from both sides among them)."""
+    near = m[max(K + 1, t - JUMP_WINDOW):t] if s > 0 else m[t + 2:t + 2 + JUMP_WINDOW]
+    d = _dropout_at(vseq, t, max(m[t], m[t + 1]), near, device)
+    if d is not None:
+        info.input_dropouts.append(d)
+    return d is not None
 
 
 def best_starts(starts: list, scores, keep: int) -> list:
@@ -1413,7 +1434,7 @@ def _repair_poor_runs(vseq, conv, out, pf: _PerFrame, K: int, o: dict, should_st
                 return sorted(repaired)
             step = 1 if frames[0] > anchor else -1
             prev = anchor - step
-            conv.history = ([conv.frame_states[prev]] if prev in conv.frame_states else []) + [conv.frame_states[anchor]]
+            conv.rewind(out[anchor], anchor, prev)
             conv.failed_restart = None
             for t in frames:
                 t0 = time.perf_counter()
@@ -1607,34 +1628,49 @@ def to_piecewise_fixed(seq, strategy: str = DEFAULT_STRATEGY, template=None, dev
 
 def _input_dropouts(vseq, info, device) -> list:
     """``ConversionInfo.input_dropouts`` of a run (``info``, frames from ``info.first_frame``):
-    the input frames t whose neighbours t - 1 and t + 1 both lie farther than DROPOUT_LEAST of the
-    diagonal from t's surface (99th percentile of at most 4,096 of their vertices), over
-    DROPOUT_RATIO x farther than from each other, and whose own surface lies DROPOUT_RATIO x
-    nearer to t - 1's than that (t lacks a part; it did not move away). Only frames whose
-    ``input_motion`` (there or at t + 1: the backward pass stores it one later) is over
-    DROPOUT_LEAST and over DROPOUT_RATIO x its neighbours' median are checked: four host queries
-    each."""
+    those its frame loop found (already in ``info.input_dropouts``: :func:`_convert_frames` looks
+    for them while ``bridge_dropouts`` is on) and the other frames :func:`_dropout_at` finds, each
+    checked with its ``input_motion`` on both sides and its neighbours' median over
+    ``JUMP_WINDOW`` frames either side."""
     m = np.asarray(info.input_motion, float)
-    lo, T, out = info.first_frame, vseq.num_frames, []
+    lo, out = info.first_frame, list(info.input_dropouts)
+    found = {d[0] for d in out}
+    for i in range(1, len(m) - 1):
+        if lo + i in found:
+            continue
+        # (the backward pass stores frame t's motion from t + 1 at t + 1: either side, the larger)
+        near = np.r_[m[max(1, i - JUMP_WINDOW):i], m[i + 2:i + 2 + JUMP_WINDOW]]
+        d = _dropout_at(vseq, lo + i, max(m[i], m[i + 1]), near, device)
+        if d is not None:
+            out.append(d)
+    return sorted(out)
+
+
+def _dropout_at(vseq, t: int, here: float, near, device) -> tuple | None:
+    """``(t, gone, agree)`` when input frame t is a dropout, else None: its neighbours t - 1 and
+    t + 1 both lie farther than DROPOUT_LEAST of the diagonal from t's surface (``gone``: 99th
+    percentile of at most 4,096 of their vertices), over DROPOUT_RATIO x farther than from each
+    other (``agree``), and t's own surface lies DROPOUT_RATIO x nearer to t - 1's than that (t
+    lacks a part; it did not move away). Checked only where ``here``, the larger ``input_motion``
+    at t's two sides, is over DROPOUT_LEAST and over DROPOUT_RATIO x the median of ``near`` (its
+    neighbours' motion): four host queries each."""
+    near = np.asarray(near, float)
+    if not (0 < t < vseq.num_frames - 1) or here <= DROPOUT_LEAST or (near.size and here <= DROPOUT_RATIO * np.median(near)):
+        return None
 
     def p99(src, mesh, diag):  # frame src's sampled vertices to ``mesh`` (a wp.Mesh or a frame)
         v = vseq.frames[src][0]
         return float(np.percentile(nearest_surface(mesh, v[::_stride(len(v), 4096)], device=device).dist, 99)) / diag
 
-    for i in range(1, len(m) - 1):
-        t, here = lo + i, max(m[i], m[i + 1])
-        near = np.r_[m[max(1, i - JUMP_WINDOW):i], m[i + 2:i + 2 + JUMP_WINDOW]]
-        if not (0 < t < T - 1) or here <= DROPOUT_LEAST or (near.size and here <= DROPOUT_RATIO * np.median(near)):
-            continue
-        diag = max(_bbox_diag(vseq.frames[t][0]), 1e-12)
-        here_mesh = _wp_mesh(*vseq.frames[t], device)  # asked by both neighbours: one BVH
-        gone = min(p99(t - 1, here_mesh, diag), p99(t + 1, here_mesh, diag))
-        agree = p99(t - 1, vseq.frames[t + 1], diag)
-        # and the frame's own surface lies on its neighbour's (it lacks a part, it adds none: a
-        # frame moved away as a whole is the input's jump, not a dropout)
-        if gone > DROPOUT_LEAST and gone > DROPOUT_RATIO * agree and DROPOUT_RATIO * p99(t, vseq.frames[t - 1], diag) < gone:
-            out.append((t, gone, agree))
-    return out
+    diag = max(_bbox_diag(vseq.frames[t][0]), 1e-12)
+    here_mesh = _wp_mesh(*vseq.frames[t], device)  # asked by both neighbours: one BVH
+    gone = min(p99(t - 1, here_mesh, diag), p99(t + 1, here_mesh, diag))
+    agree = p99(t - 1, vseq.frames[t + 1], diag)
+    # and the frame's own surface lies on its neighbour's (it lacks a part, it adds none: a
+    # frame moved away as a whole is the input's jump, not a dropout)
+    if gone > DROPOUT_LEAST and gone > DROPOUT_RATIO * agree and DROPOUT_RATIO * p99(t, vseq.frames[t - 1], diag) < gone:
+        return (t, gone, agree)
+    return None
 
 
 def _bridge_dropouts(res, info):
