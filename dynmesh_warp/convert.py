@@ -274,7 +274,8 @@ class ConversionInfo:
     and the neighbours' own distance to each other (fractions of the diagonal). The output
     follows the input there (:func:`_input_dropouts`) unless the option ``bridge_dropouts`` (on by
     default) bridged it: bridged_frames lists the frames whose output is the mean of the two
-    around it.
+    around it (after a dropout the frame loop found, the next frame's fit started from the frame
+    before it).
     area_ratio: per frame, the converted surface's area over the input's (the result's frames;
     above ``POOR_AREA``, a crumpled surface: a new user's balloon, converted from its inflated
     frame, had 2.0-2.4x the input's area on its 16 deflated frames while the vertex Chamfer
