@@ -34,6 +34,7 @@ from .choices import (
     SweptSearch,
     UpAxis,
 )
+from .mesh_formats import file_problem
 from .sequence import FPS_RANGE
 
 __all__ = ["SceneConfig", "SceneError", "load_scene_config", "scene_config", "apply_overrides", "DEFAULT_SCENE",
@@ -333,16 +334,17 @@ class SceneConfig(_Strict):
                 raise ValueError(f"surface.topology: only for a vertex-only source (a point cache "
                                  f"{', '.join(CACHE_EXTENSIONS)}, an .npy or an npz of vertices), but surface.source "
                                  f"is {src!r}")
-            if not self.resolve(self.surface.topology).is_file():
-                raise ValueError(f"surface.topology: file not found: {self.resolve(self.surface.topology)}")
+            if file_problem(self.resolve(self.surface.topology)):
+                raise ValueError(f"surface.topology: {file_problem(self.resolve(self.surface.topology))}: "
+                                 f"{self.resolve(self.surface.topology)}")
         if self.surface.animation is not None and (src.startswith("builtin:")
                                                     or Path(src).suffix.lower() not in (".glb", ".gltf")):
             raise ValueError(f"surface.animation: only for an animated .glb / .gltf source, but surface.source "
                              f"is {src!r}")
         if self.surface.conversion and self.surface.conversion.template:
             t = self.resolve(self.surface.conversion.template)
-            if not t.exists():
-                raise ValueError(f"surface.conversion.template: file not found: {t}")
+            if file_problem(t):
+                raise ValueError(f"surface.conversion.template: {file_problem(t)}: {t}")
         if self.gaussians.splats and not self.resolve(self.gaussians.splats).is_file():
             raise ValueError(f"gaussians.splats: file not found: {self.resolve(self.gaussians.splats)}")
         if self.gaussians.splats and Path(self.gaussians.splats).suffix.lower() != ".ply":

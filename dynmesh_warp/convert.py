@@ -68,6 +68,7 @@ from .geometry import distinct_faces, face_areas, mesh_orientation, signed_volum
 from .kernels import convert as kc
 from .kernels.geometry import project_points_to_mesh
 from .metrics import chamfer_distance
+from .mesh_formats import file_problem
 from .sequence import FPS_RANGE, FixedTopologySequence, MeshDataError, VaryingTopologySequence, validate_mesh
 
 __all__ = [
@@ -2644,8 +2645,8 @@ def main(argv=None) -> int:
         device = resolve_device(a.device, "--device")
         if not Path(a.input).expanduser().exists():
             raise ValueError(f"input {a.input}: file or folder not found")
-        if a.template is not None and not Path(a.template).expanduser().is_file():
-            raise ValueError(f"--template {a.template}: file not found")
+        if a.template is not None and file_problem(a.template):
+            raise ValueError(f"--template {a.template}: {file_problem(a.template)} (a mesh file is expected)")
         inputs = [a.input] + ([a.template] if a.template else [])
         if Path(a.input).suffix.lower() in VERTEX_ONLY_EXTENSIONS and Path(a.input).is_file():
             try:  # a vertex-only input's faces are an input too (a cache output writes <stem>.obj)

@@ -20,7 +20,7 @@ import numpy as np
 from .outputs import atomic_path
 from .sequence import MeshDataError, validate_mesh
 
-__all__ = ["READERS", "WRITERS", "MESH_EXTENSIONS", "register_format", "mesh_extension", "read_mesh",
+__all__ = ["READERS", "WRITERS", "MESH_EXTENSIONS", "register_format", "mesh_extension", "file_problem", "read_mesh",
            "write_mesh_file", "write_mesh"]
 
 _OWN_READERS = (".obj", ".off")
@@ -68,6 +68,19 @@ class _ReadError(Exception):
 
 def _not_found(path: Path) -> FileNotFoundError:
     return FileNotFoundError(errno.ENOENT, os.strerror(errno.ENOENT), str(path))
+
+
+def file_problem(path) -> str | None:
+    """Why ``path`` is not a readable file, in words ("file not found", "a folder, not a file", "a
+    symbolic link to X, which does not exist"), or None when it is a file."""
+    path = Path(path).expanduser()
+    if path.is_file():
+        return None
+    if path.is_symlink() and not path.exists():
+        return f"a symbolic link to {os.readlink(path)}, which does not exist"
+    if path.is_dir():
+        return "a folder, not a file"
+    return "file not found" if not path.exists() else "not a regular file"
 
 
 def _fan(polygons) -> np.ndarray:

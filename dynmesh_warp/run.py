@@ -181,6 +181,29 @@ def parse_env_list(text: str) -> list:
     return out
 
 
+def check_listen_host(host: str) -> None:
+    """A viewer's ``--host`` this machine can listen on (one line, exit 2): viser's server
+    thread dies on an address it cannot bind, and the viewer then waits for it forever."""
+    import socket
+
+    from .config import SceneError
+
+    try:
+        addrs = socket.getaddrinfo(host, 0, type=socket.SOCK_STREAM)
+    except (socket.gaierror, UnicodeError) as e:
+        raise SceneError(f"--host {host}: not an address or a name this machine resolves ({e})") from None
+    err = None
+    for family, kind, proto, _, addr in addrs:
+        try:
+            with socket.socket(family, kind, proto) as s:
+                s.bind(addr)  # port 0: any free port; only the address is tried
+            return
+        except OSError as e:
+            err = e
+    raise SceneError(f"--host {host}: cannot listen there ({err.strerror or err}); 127.0.0.1 is this machine only, "
+                     "0.0.0.0 every interface") from None
+
+
 def check_cli_options(args) -> None:
     """Every option of ``run`` checked before the scene is loaded (one line, exit 2)."""
     from .config import SceneError
@@ -269,6 +292,7 @@ def main(argv=None) -> int:
 
         scene_device(cfg, args.device)  # a missing device is reported before any data is loaded
         if viewer == "viser" or args.record:
+            check_listen_host(args.host)
             from .splat_io import SplatPlyError
             from .viewer import run_viewer
 

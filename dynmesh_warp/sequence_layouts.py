@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .mesh_formats import MESH_EXTENSIONS, mesh_extension, read_mesh
+from .mesh_formats import MESH_EXTENSIONS, file_problem, mesh_extension, read_mesh
 from .sequence import FixedTopologySequence, MeshDataError, VaryingTopologySequence
 
 __all__ = ["DEFAULT_FPS", "DGMESH_SUBDIRS", "frame_index_from_name", "load_npz", "load_vertex_array", "npz_arrays",
@@ -175,10 +175,12 @@ def finish_kind(seq: VaryingTopologySequence, kind: str):
 
 def list_frame_files(folder: Path) -> list[Path]:
     """Mesh files in ``folder`` ordered by the last integer in their stem."""
-    files = [
-        p for p in folder.iterdir()
-        if not p.name.startswith(".") and mesh_extension(p.name) and p.is_file()
-    ]
+    named = [p for p in folder.iterdir() if not p.name.startswith(".") and mesh_extension(p.name)]
+    broken = sorted(p.name for p in named if p.is_symlink() and not p.exists())
+    if broken:  # a frame that is not there must not vanish from the numbering unremarked
+        raise MeshDataError(f"{folder / broken[0]}: {file_problem(folder / broken[0])}"
+                            + (f" ({len(broken) - 1} more such frame(s))" if len(broken) > 1 else ""))
+    files = [p for p in named if p.is_file()]
     if not files:
         subdirs = sorted(p.name for p in folder.iterdir()
                          if p.is_dir() and not p.name.startswith("."))

@@ -51,6 +51,10 @@ def work(tmp_path_factory) -> Path:
     (w / "dir.viser" / "keep").write_text("x")
     (w / "frames_link").symlink_to(w / "frames")
     (w / "dangling.npz").symlink_to(w / "nowhere" / "x.npz")
+    (w / "frames_broken").mkdir()  # a frame that is a link to nowhere (it was dropped unremarked)
+    for t, (V, F) in enumerate(_ico(3)):
+        write_mesh(w / "frames_broken" / f"{t:03d}.obj", V, F)
+    (w / "frames_broken" / "003.obj").symlink_to(w / "nowhere" / "003.obj")
     scenes = {
         "ok.yaml": "surface: {source: frames}\nrun: {steps: 2}\n",
         "dt_inf.yaml": "physics: {dt: .inf}\n",
@@ -138,6 +142,8 @@ BAD = [
     (CONVERT + ["frames", "x.npz", "--fps", "inf"], "--fps"),
     (CONVERT + ["nothere", "x.npz"], "nothere"),
     (CONVERT + ["frames", "x.npz", "--template", "nope.obj"], "nope.obj"),
+    (CONVERT + ["frames", "x.npz", "--template", "scans"], "--template scans: a folder, not a file"),  # "not found"
+    (CONVERT + ["frames_broken", "x.npz"], "003.obj: a symbolic link to"),  # converted 3 frames unremarked
     # evaluate
     (EVALUATE + ["gt.npz", "--out", "."], "input"),
     (EVALUATE + ["gt.npz", "--out", "notes.txt"], "notes.txt"),
@@ -164,6 +170,23 @@ def test_bad_path_or_value_refused_before_the_work(work, argv, needle):
     assert "Traceback" not in r.stderr
     assert wall < 5.0, f"took {wall:.1f} s: not found before the work"
     assert _snapshot(work) == before  # nothing written, changed, or left behind
+
+
+def test_a_viewer_host_it_cannot_listen_on_is_refused(work):
+    """``--host`` an address of no interface here: viser's server thread died and the viewer
+    waited for it forever, with no word (a new user's); now one line naming it, exit 2."""
+    import socket
+
+    try:
+        with socket.socket() as s:
+            s.bind(("192.0.2.55", 0))  # TEST-NET-1: no interface has it, unless non-local binds are allowed
+        pytest.skip("this machine may bind 192.0.2.55")
+    except OSError:
+        pass
+    r = subprocess.run([sys.executable, *RUN, "ok.yaml", "--viewer", "viser", "--host", "192.0.2.55", "--no-progress"],
+                       cwd=work, capture_output=True, text=True, timeout=60)
+    lines = [ln for ln in (r.stdout + r.stderr).splitlines() if ln.startswith("error: ")]
+    assert r.returncode == 2 and len(lines) == 1 and "--host 192.0.2.55: cannot listen there" in lines[0], r.stderr
 
 
 def test_there_are_at_least_30_cases():
