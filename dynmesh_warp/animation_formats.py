@@ -150,7 +150,7 @@ def find_topology(path, num_points: int | None = None) -> Path:
             f"{path}: {'a ' + path.suffix + ' point cache' if path.suffix.lower() in CACHE_EXTENSIONS else 'this file'} "
             f"holds vertex positions only (no faces: an npz names them F, faces or triangles); its faces come from a mesh "
             f"with the same vertices, and none was found next to it ({path.stem}.obj, .ply, ...). Name one: "
-            f"load_sequence(..., topology='mesh.obj') or surface.topology in a scene file")
+            f"load_sequence(..., topology='mesh.obj'), surface.topology in a scene file, or convert's --topology")
     raise MeshDataError(f"{path}: several meshes could give its faces ({', '.join(p.name for p in found)}); "
                         f"name one with topology=")
 

@@ -2578,6 +2578,9 @@ def main(argv=None) -> int:
                    help=f"conversion strategy (default {DEFAULT_STRATEGY}; docs/conversion.md)")
     p.add_argument("--template", default=None,
                    help="template mesh file (default: the key frame, see --key-frame)")
+    p.add_argument("--topology", default=None,
+                   help="faces of a vertex-only input (a .pc2/.mdd point cache, .npy, or an npz of vertices): a mesh "
+                        "file with as many vertices (default: the mesh of the same name next to it)")
     p.add_argument("--key-frame", default=None,
                    help="frame the template comes from and tracking starts at, forward then backward "
                         "(default 'auto': the frame of largest surface area; frame 0 with --template)")
@@ -2648,7 +2651,14 @@ def main(argv=None) -> int:
         if a.template is not None and file_problem(a.template):
             raise ValueError(f"--template {a.template}: {file_problem(a.template)} (a mesh file is expected)")
         inputs = [a.input] + ([a.template] if a.template else [])
-        if Path(a.input).suffix.lower() in VERTEX_ONLY_EXTENSIONS and Path(a.input).is_file():
+        if a.topology is not None:
+            if Path(a.input).suffix.lower() not in VERTEX_ONLY_EXTENSIONS or not Path(a.input).is_file():
+                raise ValueError(f"--topology {a.topology}: only for a vertex-only input (a point cache "
+                                 f"{', '.join(sorted(VERTEX_ONLY_EXTENSIONS))}), but the input is {a.input}")
+            if file_problem(a.topology):
+                raise ValueError(f"--topology {a.topology}: {file_problem(a.topology)} (a mesh file is expected)")
+            inputs.append(a.topology)
+        elif Path(a.input).suffix.lower() in VERTEX_ONLY_EXTENSIONS and Path(a.input).is_file():
             try:  # a vertex-only input's faces are an input too (a cache output writes <stem>.obj)
                 inputs.append(find_topology(a.input))
             except MeshDataError:
@@ -2684,7 +2694,7 @@ def main(argv=None) -> int:
             a.fmt = a.fmt or "ply"
             check_output(a.output, kind="folder", what="output", inputs=inputs, overwrite=a.overwrite,
                          writes=_FOLDER_FRAMES, holds=OutputKind.SEQUENCE)
-        seq = load_sequence(a.input, fps=a.fps)
+        seq = load_sequence(a.input, fps=a.fps, topology=a.topology)
         if isinstance(seq, FixedTopologySequence):
             print(f"note: {a.input} already has fixed topology ({seq.num_frames} frames); converting it "
                   "anyway (it can be simulated as it is)", file=sys.stderr)

@@ -105,6 +105,20 @@ def test_point_cache_topology_named_explicitly_and_from_a_scene(tmp_path):
     scene.write_text("surface: {source: 'builtin:wave_bowl', topology: body.obj}\n")
     with pytest.raises(ValueError, match=r"surface.topology: only for a vertex-only source"):
         load_config(scene)
+    scene.write_text("surface: {source: cache/take1.pc2, topology: cache}\n")  # a folder: it said "file not found"
+    with pytest.raises(ValueError, match=r"surface.topology: a folder, not a file"):
+        load_config(scene)
+
+    # convert's --topology (its error told a command-line user of options only the library and scenes have)
+    from dynmesh_warp import convert
+
+    out = tmp_path / "fixed.npz"
+    assert convert.main([str(p), str(out), "--device", "cpu", "--no-progress"]) == 2
+    assert convert.main([str(p), str(out), "--topology", str(tmp_path / "body.obj"), "--device", "cpu",
+                         "--no-progress", "--option", "key_candidates=0"]) == 0
+    res = load_sequence(out)
+    assert res.num_frames == len(V) and res.num_vertices == V.shape[1]
+    assert convert.main([str(tmp_path / "body.obj"), str(tmp_path / "x.npz"), "--topology", str(tmp_path / "body.obj")]) == 2
 
 
 @pytest.mark.parametrize("ext", [".anime", ".pc2", ".mdd"])
