@@ -392,8 +392,16 @@ COMMANDS = {
     "distributed": "batched envs across GPUs and machines with Ray",
 }
 
-if __name__ == "__main__":  # a new user's `python -m dynmesh_warp.cli convert ...` did nothing, exit 0
-    print("dynmesh_warp.cli holds the commands' shared helpers; it is not a command. The commands:\n"
+
+
+def not_a_command(module: str, what: str) -> None:
+    """For ``python -m dynmesh_warp.<module>`` of a module that is no command: says what it
+    holds and lists the commands, exit 2 (it did nothing, exit 0)."""
+    print(f"dynmesh_warp.{module} {what}; it is not a command. The commands:\n"
           + "\n".join(f"  python -m dynmesh_warp.{k:<12} {v}" for k, v in COMMANDS.items())
           + "\n(each with --help)", file=sys.stderr)
     sys.exit(2)
+
+
+if __name__ == "__main__":  # a new user's `python -m dynmesh_warp.cli convert ...` did nothing, exit 0
+    not_a_command("cli", "holds the commands' shared helpers")

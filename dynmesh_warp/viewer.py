@@ -839,3 +839,9 @@ def run_viewer(cfg, device=None, viewer: str = "viser", port: int = 8080, host: 
             v.close()
     return {"frames": v.frame, "sim_time_s": world.time, "gaussians": count, "port": v.port,
             "record": str(v.record_path) if record else None, "interrupted_by": reason}
+
+
+if __name__ == "__main__":  # a new user's `python -m dynmesh_warp.viewer scene.yaml` did nothing, exit 0
+    from .cli import not_a_command
+
+    not_a_command("viewer", "is the live viewer that run starts (python -m dynmesh_warp.run scene.yaml --viewer viser)")

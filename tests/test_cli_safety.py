@@ -588,6 +588,10 @@ def test_the_helpers_module_run_as_a_command_names_the_commands():
     for name in COMMANDS:
         assert f"python -m dynmesh_warp.{name} " in r.stderr
         assert hasattr(importlib.import_module(f"dynmesh_warp.{name}"), "main")
+    # so did ``python -m dynmesh_warp.viewer scene.yaml`` (another's): it says that run starts it
+    r = subprocess.run([sys.executable, "-m", "dynmesh_warp.viewer", "scene.yaml"], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 2 and "dynmesh_warp.run scene.yaml --viewer viser" in r.stderr
 
 
 def test_an_output_that_appears_during_convert_is_kept(work, tmp_path, monkeypatch, capsys):
