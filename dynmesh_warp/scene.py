@@ -109,6 +109,10 @@ def _check_size(V0: np.ndarray, cfg) -> None:
             "millimetres), and surface.up_axis: y for y-up data", stacklevel=3)
 
 
+#: a spawn's column of spheres (count x 2.5 radii high) over this many times the surface's
+#: diagonal is warned of: the spheres rain for a long time before the last lands
+SPAWN_COLUMN_WARN = 10.0
+
 #: float32 resolution limits at the scene's farthest coordinate, as fractions of the smallest
 #: sphere radius: above PRECISION_ERROR the scene is refused (positions cannot resolve 1 % of a
 #: radius: at r = 5 cm, coordinates beyond ~4 km), above PRECISION_WARN a warning (~0.5 km)
@@ -132,6 +136,18 @@ def check_precision(lo, hi, positions, radius, where: str, translate=(0.0, 0.0, 
     ulp = float(np.spacing(np.float32(far)))
     r = float(radius.min())
     if ulp <= PRECISION_WARN * r:
+        return
+    surf_far = max(float(np.abs(lo).max()), float(np.abs(hi).max()))
+    if float(np.spacing(np.float32(surf_far))) <= PRECISION_WARN * r:
+        # the surface is near the origin and the spheres are not (a new user's 100,000 spawned
+        # spheres, stacked 12.5 km high, were told to move the 1 m surface to the origin)
+        msg = (f"{where}: spheres reach {far:.4g} m from the origin, where float32 (the simulation's precision) "
+               f"resolves only {ulp * 1e3:.2g} mm, {100 * ulp / r:.2g} % of the smallest sphere radius ({r:g} m), "
+               f"while the surface lies within {surf_far:.4g} m of it: place the spheres nearer the surface (a spawn "
+               f"stacks its spheres 2.5 radii apart: fewer of them, or a list of positions)")
+        if ulp > PRECISION_ERROR * r:
+            raise SceneError(msg + "; contacts and motion would be wrong")
+        warnings.warn(msg, stacklevel=3)
         return
     mid = 0.5 * (np.asarray(lo, np.float64) + np.asarray(hi, np.float64))
     half = 0.5 * float((np.asarray(hi, np.float64) - np.asarray(lo, np.float64)).max())
@@ -299,6 +315,18 @@ def scene_spheres(cfg: SceneConfig, V0: np.ndarray):
         n = cfg.spheres.count
         radius, mass = [cfg.spheres.radius] * n, [cfg.spheres.mass] * n
         pos, vel = spawn_positions(cfg.spheres, V0), None
+        if n and cfg.spheres.mass == 0:
+            warnings.warn("spheres.mass: 0 makes the spawned spheres kinematic: gravity and contacts do not move "
+                          "them, so they hang where they are dropped (give a mass in kg to drop them)", stacklevel=2)
+        extent = float(np.linalg.norm(np.ptp(V0, axis=0))) if len(V0) else 0.0
+        column = 2.5 * cfg.spheres.radius * max(n - 1, 0)
+        if column > SPAWN_COLUMN_WARN * max(extent, cfg.spheres.radius):
+            g = float(np.linalg.norm(cfg.physics.gravity)) or 9.81
+            warnings.warn(f"spheres: the {n} spawned spheres are dropped one above another, 2.5 radii apart: the "
+                          f"top one starts {column + cfg.spheres.height:.4g} m above the surface ({extent:.3g} m "
+                          f"across) and falls about {np.sqrt(2 * (column + cfg.spheres.height) / g):.3g} s before it "
+                          "lands; give fewer spheres, or a list of positions (envs.count runs batched copies)",
+                          stacklevel=2)
     return (np.asarray(radius, np.float32).reshape(-1), np.asarray(mass, np.float64).reshape(-1),
             np.asarray(pos, np.float32).reshape(-1, 3), vel)
 

@@ -392,6 +392,41 @@ def test_spheres_far_out_on_a_huge_surface_are_warned_about():
         check_precision(lo, hi, np.array([[10.0, -20.0, 0.5]]), [0.05], "surface huge.npz")
 
 
+def test_a_spawn_stacked_kilometres_high_is_named_not_the_surface():
+    """``--set spheres.count=100000`` (a new user's): the spawn stacks its spheres 2.5 radii apart,
+    12.5 km high over a 1 m surface at the origin, and the error told them to move the surface
+    to the origin. Now the column is warned of (its height and fall time, closed form) and the
+    precision error names the spheres; 50 spheres say nothing."""
+    import re
+
+    from dynmesh_warp.scene import SPAWN_COLUMN_WARN, check_precision, scene_spheres
+
+    V0 = np.array([[-0.5, -0.5, 0.0], [0.5, 0.5, 0.2]])
+    extent = float(np.linalg.norm(V0[1] - V0[0]))
+    for n, r in ((100000, 0.05), (50, 0.05)):
+        cfg = SceneConfig.model_validate({"surface": {"source": "builtin:wave_bowl"},
+                                          "spheres": {"count": n, "radius": r, "height": 0.3}})
+        column = 2.5 * r * (n - 1)
+        if column > SPAWN_COLUMN_WARN * extent:
+            top = column + 0.3
+            with pytest.warns(UserWarning, match=rf"the {n} spawned spheres .* starts {re.escape(f'{top:.4g}')} m above "
+                                                 rf".* falls about {np.sqrt(2 * top / 9.81):.3g} s"):
+                radius, _, pos, _ = scene_spheres(cfg, V0)
+            assert pos[:, 2].max() == pytest.approx(0.2 + 0.3 + r + column, rel=1e-6)
+            with pytest.raises(SceneError, match=r"spheres reach 1\.25e\+04 m from the origin.*while the surface "
+                                                 r"lies within 0\.5 m of it: place the spheres nearer"):
+                check_precision(V0.min(0), V0.max(0), pos, radius, "surface s.npz")
+        else:
+            with warnings.catch_warnings():
+                warnings.simplefilter("error")
+                scene_spheres(cfg, V0)
+    # mass 0 is kinematic: spawned so, the spheres hung in the air with no word (another user's)
+    cfg = SceneConfig.model_validate({"surface": {"source": "builtin:wave_bowl"}, "spheres": {"count": 3, "mass": 0}})
+    with pytest.warns(UserWarning, match=r"spheres.mass: 0 makes the spawned spheres kinematic"):
+        _, mass, _, _ = scene_spheres(cfg, V0)
+    assert (mass == 0).all()
+
+
 def test_build_world_applies_the_surface_section_to_an_in_memory_sequence():
     V, F = ico_sequence(center=(0.0, 500.0, 0.0), radius=400.0)  # y-up millimetres
     seq = FixedTopologySequence(V, F, fps=30.0, name="mine")
