@@ -640,9 +640,12 @@ def _main(argv=None) -> int:
             if importlib.util.find_spec("imageio_ffmpeg") is None:
                 p.error(f"--video {a.video}: .mp4 needs the imageio-ffmpeg package (pip install imageio-ffmpeg); "
                         "or write a .gif, or PNG frames with --out")
-    if (a.frames < 1 or a.moments < 1 or not 16 <= a.width <= MAX_IMAGE_SIDE or not 16 <= a.height <= MAX_IMAGE_SIDE
-            or not 0 < a.fps < float("inf")):
-        p.error(f"--frames, --moments >= 1, --width, --height 16..{MAX_IMAGE_SIDE}, --fps > 0")
+    for name, ok, need in (("frames", a.frames >= 1, "at least 1"), ("moments", a.moments >= 1, "at least 1"),
+                           ("width", 16 <= a.width <= MAX_IMAGE_SIDE, f"16..{MAX_IMAGE_SIDE} pixels"),
+                           ("height", 16 <= a.height <= MAX_IMAGE_SIDE, f"16..{MAX_IMAGE_SIDE} pixels"),
+                           ("fps", 0 < a.fps < float("inf"), "a positive, finite frame rate")):
+        if not ok:  # one line naming the option and its value (it listed all five for any of them)
+            p.error(f"--{name} must be {need}, got {getattr(a, name)}")
     from .cli import scene_source
     from .config import SceneError, load_scene_config
     from .gaussians import gaussians_for_surface

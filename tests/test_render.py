@@ -601,3 +601,16 @@ def test_render_cli_speaks_like_the_other_clis(tmp_path, capsys):
     r = subprocess.run(cmd + ["--set", "physics.collider=rebuild"], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert (tmp_path / "f.png").exists() and "Module " not in r.stdout + r.stderr and "Warp " not in r.stdout
+
+
+@pytest.mark.parametrize("opt,value,need", [("--width", "0", "--width must be 16..16384 pixels, got 0"),
+                                            ("--fps", "0", "--fps must be a positive, finite frame rate, got 0.0"),
+                                            ("--frames", "0", "--frames must be at least 1, got 0"),
+                                            ("--moments", "0", "--moments must be at least 1, got 0")])
+def test_a_bad_render_value_is_named_with_its_value(opt, value, need, capsys):
+    """One line for any of five bad values listed all five (a new user's); now the one given."""
+    from dynmesh_warp.render import main
+
+    with pytest.raises(SystemExit) as e:
+        main(["--out", "unused_dir", opt, value])
+    assert e.value.code == 2 and need in capsys.readouterr().err
