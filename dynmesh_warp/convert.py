@@ -2624,12 +2624,17 @@ def main(argv=None) -> int:
             opts[k] = getattr(a, k)
     from .config import SceneError, parse_assignment
 
+    given = {}
     for item in a.option:
         try:
             parts, value = parse_assignment(item, "--option", "KEY=VALUE, e.g. --option refine_rounds=0")
         except SceneError as e:
             p.error(str(e))
-        opts[".".join(parts).strip()] = None if value == "" else value
+        key = ".".join(parts).strip()
+        if key in given:  # the last one won, unremarked (a new user's)
+            p.error(f"--option {key}: given twice ({given[key]} and {item.strip()}); give it once")
+        given[key] = item.strip()
+        opts[key] = None if value == "" else value
     try:
         # everything is checked before the sequence is loaded: options, input, template, output
         try:

@@ -144,6 +144,7 @@ BAD = [
     (CONVERT + ["frames", "x.npz", "--template", "nope.obj"], "nope.obj"),
     (CONVERT + ["frames", "x.npz", "--template", "scans"], "--template scans: a folder, not a file"),  # "not found"
     (CONVERT + ["frames_broken", "x.npz"], "003.obj: a symbolic link to"),  # converted 3 frames unremarked
+    (CONVERT + ["frames", "x.npz", "--option", "iterations=2", "--option", "iterations=3"], "given twice"),  # last won
     # evaluate
     (EVALUATE + ["gt.npz", "--out", "."], "input"),
     (EVALUATE + ["gt.npz", "--out", "notes.txt"], "notes.txt"),
