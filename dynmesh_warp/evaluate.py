@@ -719,7 +719,9 @@ def main(argv=None) -> int:
                          "the paper's protocol uses 200)")
     ap.add_argument("--resolution", type=int, default=96, help="remesh grid resolution (longest side)")
     ap.add_argument("--noise", type=float, default=0.0, help="remesh vertex noise, in grid spacings")
-    ap.add_argument("--frame-stride", type=int, default=1, help="evaluate every k-th frame")
+    ap.add_argument("--frame-stride", type=int, default=1,
+                    help="evaluate every k-th frame (the CD / EMD table; the surface velocity and drift, which "
+                         "follow each vertex from frame to frame, always use every frame)")
     ap.add_argument("--emd-stride", type=int, default=0,
                     help="EMD only on frames that are multiples of this (0: every evaluated frame)")
     ap.add_argument("--no-emd", action="store_true", help="skip EMD")
