@@ -71,10 +71,11 @@ class _Options(BaseModel):
     #: (convert._floater_webs: a floater pulls a spike of stretched faces, a real part's fragment
     #: does not), convert again with far_part_area = convert.FLOATER_AREA and keep the less poor run
     floater_retry: bool = True
-    #: an input frame that lacks surface both neighbours have (ConversionInfo.input_dropouts: a
-    #: reconstruction's dropout, a new user's leg cut off one frame) is bridged in the output: its
-    #: converted frame becomes the mean of the two around it (the part kept, no jump), and the fit
-    #: of the frame after it starts from the frame before it; false: the output follows the input
+    #: input frames (up to convert.DROPOUT_FRAMES in a row) that lack surface the frames either
+    #: side both have (ConversionInfo.input_dropouts: a reconstruction's dropout, a new user's leg
+    #: cut off one frame) are bridged in the output: their converted frames are blended from the
+    #: two either side (the part kept, no jump), and the fit of the frame after them starts from
+    #: the frame before them; false: the output follows the input
     bridge_dropouts: bool = True
     #: the gap for ``far_part_area`` (fraction of the converted mesh's bbox diagonal)
     far_part_gap: Float = Field(0.10, gt=0.0)

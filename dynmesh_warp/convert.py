@@ -269,14 +269,14 @@ class ConversionInfo:
     own BVH). A jump the input makes too is real motion, not warned of (a new user's capture that
     moves 0.4 m in one frame was warned of as a restart); converted vertices moving far more than
     the input's surface slide along it (the summary's slide line).
-    input_dropouts: ``(frame, distance, agreement)`` of the input frames that lack surface both
-    frames either side have (a reconstruction's dropout: a new user's leg missing from one
-    frame): the smaller of the two neighbours' 99th-percentile distances to the frame's surface,
-    and the neighbours' own distance to each other (fractions of the diagonal). The output
-    follows the input there (:func:`_input_dropouts`) unless the option ``bridge_dropouts`` (on by
-    default) bridged it: bridged_frames lists the frames whose output is the mean of the two
-    around it (after a dropout the frame loop found, the next frame's fit started from the frame
-    before it).
+    input_dropouts: ``(frame, distance, agreement)`` of the input frames (runs of up to
+    ``DROPOUT_FRAMES``) that lack surface both frames either side of their run have (a
+    reconstruction's dropout: a new user's leg missing from one frame): the smaller of the two
+    ends' 99th-percentile distances to the frame's surface, and the ends' own distance to each
+    other (fractions of the diagonal). The output follows the input there (:func:`_input_dropouts`)
+    unless the option ``bridge_dropouts`` (on by default) bridged it: bridged_frames lists the
+    frames whose output is blended from the two frames either side of their run (after a dropout
+    the frame loop found, the next frame's fit started from the frame before it).
     area_ratio: per frame, the converted surface's area over the input's (the result's frames;
     above ``POOR_AREA``, a crumpled surface: a new user's balloon, converted from its inflated
     frame, had 2.0-2.4x the input's area on its 16 deflated frames while the vertex Chamfer
@@ -1349,12 +1349,13 @@ def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info,
         near = samples.get(t - s)
         if near is not None:
             pf.input_motion[max(t, t - s)] = _input_motion(frame, near, diag, device)
-        if bridge and abs(t - K) >= 2 and _loop_dropout(vseq, pf.input_motion, t - s, s, K, device, info):
-            # the frame before was a dropout (it lacks a part): this one starts from the frame
-            # before it, as if it were not there (the dropout's output becomes their mean)
-            conv.rewind(out[t - 2 * s], t - 2 * s, t - 3 * s)
+        p = _loop_dropout(vseq, pf.input_motion, t, s, K, device, info) if bridge and abs(t - K) >= 2 else None
+        if p is not None:
+            # the frames just passed were a dropout (they lack a part): this one starts from the
+            # frame before them, as if they were not there (their output is bridged afterwards)
+            conv.rewind(out[p], p, p - s)
             if float(info.options["far_part_area"]) > 0:
-                v, f = _frame_for_fit(vseq, t, K, info.options, out[t - 2 * s], TF, device, info)
+                v, f = _frame_for_fit(vseq, t, K, info.options, out[p], TF, device, info)
                 frame = _device_frame(v, f, device)
                 diag = _bbox_diag(v)
         if step(frame, t):
@@ -1375,16 +1376,23 @@ def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info,
     return out, lo, hi, pf
 
 
-def _loop_dropout(vseq, m: np.ndarray, t: int, s: int, K: int, device, info) -> bool:
-    """Whether input frame t, just passed by the frame loop in direction ``s`` (+1 forward, -1
-    backward from key frame K), is a dropout (:func:`_dropout_at`, added to
-    ``info.input_dropouts``): ``m`` holds the ``input_motion`` measured so far (frame t's
-    from both sides among them)."""
-    near = m[max(K + 1, t - JUMP_WINDOW):t] if s > 0 else m[t + 2:t + 2 + JUMP_WINDOW]
-    d = _dropout_at(vseq, t, max(m[t], m[t + 1]), near, device)
-    if d is not None:
-        info.input_dropouts.append(d)
-    return d is not None
+def _loop_dropout(vseq, m: np.ndarray, u: int, s: int, K: int, device, info) -> int | None:
+    """The frame loop, about to fit frame u in direction ``s`` (+1 forward, -1 backward from key
+    frame K): when the up to DROPOUT_FRAMES frames it passed last are a dropout
+    (:func:`_dropout_run` between the frame before them and u; added to ``info.input_dropouts``),
+    the frame before them (the one to go on from), else None. ``m`` holds the ``input_motion``
+    measured so far: the run's first frame (in the pass's order) stands out from those before."""
+    for k in range(1, DROPOUT_FRAMES + 1):
+        first, p = u - k * s, u - (k + 1) * s
+        if (p - K) * s < 0:  # the run would reach the key frame (or past it)
+            break
+        spike = m[first] if s > 0 else m[first + 1]
+        near = m[max(K + 1, first - JUMP_WINDOW):first] if s > 0 else m[first + 2:first + 2 + JUMP_WINDOW]
+        run = _dropout_run(vseq, p, u, spike, near, device)
+        if run:
+            info.input_dropouts.extend(run)
+            return p
+    return None
 
 
 def best_starts(starts: list, scores, keep: int) -> list:
@@ -1631,61 +1639,91 @@ def to_piecewise_fixed(seq, strategy: str = DEFAULT_STRATEGY, template=None, dev
 def _input_dropouts(vseq, info, device) -> list:
     """``ConversionInfo.input_dropouts`` of a run (``info``, frames from ``info.first_frame``):
     those its frame loop found (already in ``info.input_dropouts``: :func:`_convert_frames` looks
-    for them while ``bridge_dropouts`` is on) and the other frames :func:`_dropout_at` finds, each
-    checked with its ``input_motion`` on both sides and its neighbours' median over
-    ``JUMP_WINDOW`` frames either side."""
+    for them while ``bridge_dropouts`` is on) and the other runs of up to DROPOUT_FRAMES frames
+    :func:`_dropout_run` finds, each checked where the ``input_motion`` at either end of the run
+    stands out from its neighbours' over ``JUMP_WINDOW`` frames either side (the backward pass
+    stores a frame's motion from the frame after it at that frame)."""
     m = np.asarray(info.input_motion, float)
     lo, out = info.first_frame, list(info.input_dropouts)
     found = {d[0] for d in out}
     for i in range(1, len(m) - 1):
-        if lo + i in found:
-            continue
-        # (the backward pass stores frame t's motion from t + 1 at t + 1: either side, the larger)
-        near = np.r_[m[max(1, i - JUMP_WINDOW):i], m[i + 2:i + 2 + JUMP_WINDOW]]
-        d = _dropout_at(vseq, lo + i, max(m[i], m[i + 1]), near, device)
-        if d is not None:
-            out.append(d)
+        for k in range(1, DROPOUT_FRAMES + 1):
+            if i + k >= len(m) or any(lo + j in found for j in range(i, i + k)):
+                break
+            near = np.r_[m[max(1, i - JUMP_WINDOW):i], m[i + k + 1:i + k + 1 + JUMP_WINDOW]]
+            run = _dropout_run(vseq, lo + i - 1, lo + i + k, max(m[i], m[i + k]), near, device)
+            if run:
+                out.extend(run)
+                found.update(d[0] for d in run)
+                break
     return sorted(out)
 
 
-def _dropout_at(vseq, t: int, here: float, near, device) -> tuple | None:
-    """``(t, gone, agree)`` when input frame t is a dropout, else None: its neighbours t - 1 and
-    t + 1 both lie farther than DROPOUT_LEAST of the diagonal from t's surface (``gone``: 99th
-    percentile of at most 4,096 of their vertices), over DROPOUT_RATIO x farther than from each
-    other (``agree``), and t's own surface lies DROPOUT_RATIO x nearer to t - 1's than that (t
-    lacks a part; it did not move away). Checked only where ``here``, the larger ``input_motion``
-    at t's two sides, is over DROPOUT_LEAST and over DROPOUT_RATIO x the median of ``near`` (its
-    neighbours' motion): four host queries each."""
+def _dropout_run(vseq, p: int, n: int, spike: float, near, device) -> list | None:
+    """``[(t, gone, agree)]`` for the input frames t strictly between p and n (either order) when
+    they are a dropout, else None: frames p and n agree (``agree``: the 99th percentile of at
+    most 4,096 of one's vertices' distances to the other's surface, the smaller way) and each
+    frame t between lacks a part both have: both lie farther than DROPOUT_LEAST from t's surface
+    (``gone``, the smaller of the two), over DROPOUT_AGREE x farther than from each other, while
+    t's own surface lies DROPOUT_RATIO x nearer to p's or n's than that (t lacks a part; it did not
+    move away). Fractions of the larger diagonal of p and n (the same for (p, n) and (n, p)).
+    Checked only where ``spike``, the ``input_motion`` where the part went, is over
+    DROPOUT_LEAST and over DROPOUT_RATIO x the median of ``near`` (its neighbours' motion): one
+    query for the agreement, then a BVH and three queries per frame."""
     near = np.asarray(near, float)
-    if not (0 < t < vseq.num_frames - 1) or here <= DROPOUT_LEAST or (near.size and here <= DROPOUT_RATIO * np.median(near)):
+    T = vseq.num_frames
+    if (not (0 <= min(p, n) and max(p, n) < T and abs(n - p) >= 2) or spike <= DROPOUT_LEAST
+            or (near.size and spike <= DROPOUT_RATIO * np.median(near))):
         return None
 
     def p99(src, mesh, diag):  # frame src's sampled vertices to ``mesh`` (a wp.Mesh or a frame)
         v = vseq.frames[src][0]
         return float(np.percentile(nearest_surface(mesh, v[::_stride(len(v), 4096)], device=device).dist, 99)) / diag
 
-    diag = max(_bbox_diag(vseq.frames[t][0]), 1e-12)
-    here_mesh = _wp_mesh(*vseq.frames[t], device)  # asked by both neighbours: one BVH
-    gone = min(p99(t - 1, here_mesh, diag), p99(t + 1, here_mesh, diag))
-    agree = p99(t - 1, vseq.frames[t + 1], diag)
-    # and the frame's own surface lies on its neighbour's (it lacks a part, it adds none: a
-    # frame moved away as a whole is the input's jump, not a dropout)
-    if gone > DROPOUT_LEAST and gone > DROPOUT_RATIO * agree and DROPOUT_RATIO * p99(t, vseq.frames[t - 1], diag) < gone:
-        return (t, gone, agree)
-    return None
+    diag = max(_bbox_diag(vseq.frames[p][0]), _bbox_diag(vseq.frames[n][0]), 1e-12)
+    agree = p99(p, vseq.frames[n], diag)
+    if DROPOUT_AGREE * agree >= spike:  # the ends differ as much as the part is gone: motion
+        return None
+    agree = min(agree, p99(n, vseq.frames[p], diag))  # either way: the same for (p, n) and (n, p)
+    out = []
+    for t in range(min(p, n) + 1, max(p, n)):
+        here = _wp_mesh(*vseq.frames[t], device)  # asked by both ends: one BVH
+        gone = min(p99(p, here, diag), p99(n, here, diag))
+        # and the frame's own surface lies on p's or n's (it lacks a part, it adds none: a frame
+        # moved away as a whole is the input's jump, not a dropout); the nearer in time first
+        if not (gone > DROPOUT_LEAST and gone > DROPOUT_AGREE * agree):
+            return None
+        ends = sorted((p, n), key=lambda e: abs(e - t))
+        if not any(DROPOUT_RATIO * p99(t, vseq.frames[e], diag) < gone for e in ends):
+            return None
+        out.append((t, gone, agree))
+    return out
+
+
+def _dropout_runs(frames) -> list:
+    """The runs ``(first, last)`` of consecutive frames in ``frames`` (dropout frames)."""
+    runs = []
+    for t in sorted(frames):
+        if runs and t == runs[-1][1] + 1:
+            runs[-1] = (runs[-1][0], t)
+        else:
+            runs.append((t, t))
+    return runs
 
 
 def _bridge_dropouts(res, info):
-    """``res`` with each of ``info.input_dropouts`` inside its frames replaced by the mean of the
-    converted frames either side (the same template: a vertex-wise mean), listed in
-    ``info.bridged_frames``; ``frame_motion`` measured again. The frame's other per-frame figures
-    stay the fit's."""
+    """``res`` with each run of ``info.input_dropouts`` inside its frames replaced by the
+    converted frames either side, blended linearly in time (the same template: vertex-wise; one
+    frame: their mean), listed in ``info.bridged_frames``; ``frame_motion`` measured again. The
+    frames' other per-frame figures stay the fit's."""
     V = np.array(res.V, copy=True)
-    for t, _, _ in info.input_dropouts:
-        i = t - info.first_frame
-        if 0 < i < len(V) - 1:
-            V[i] = 0.5 * (V[i - 1] + V[i + 1])
-            info.bridged_frames.append(t)
+    for a, b in _dropout_runs(d[0] for d in info.input_dropouts):
+        i, j = a - 1 - info.first_frame, b + 1 - info.first_frame
+        if 0 <= i and j < len(V):
+            for t in range(a, b + 1):
+                w = (t - (a - 1)) / (b + 2 - a)
+                V[t - info.first_frame] = (1.0 - w) * V[i] + w * V[j]
+                info.bridged_frames.append(t)
     out = FixedTopologySequence(V, res.F, fps=res.fps, name=res.name, source=res.source)
     out.conversion = info
     info.frame_motion = _frame_motion(out.V)
@@ -2227,10 +2265,16 @@ SLIDE_WARN = 2.0
 #: met the palm; the merging balls 4.5x) under a median that stays low (1.8x, 1.4x). The protocol's
 #: sequences that follow their surface peak at gallop 2.2, figure 1.6, pcow 3.9 (CPU)
 SLIDE_FRAME = 4.0
-#: a dropout (:func:`_input_dropouts`): an input frame both neighbours lie over DROPOUT_LEAST of
-#: the diagonal from (99th pct.) and over DROPOUT_RATIO x farther than from each other
+#: a dropout (:func:`_dropout_run`): up to DROPOUT_FRAMES input frames that the frames either side
+#: both lie over DROPOUT_LEAST of the diagonal from (99th pct.), while each lies DROPOUT_RATIO x
+#: nearer to one of them than that (and where its motion stands out DROPOUT_RATIO x)
 DROPOUT_LEAST = 0.02
 DROPOUT_RATIO = 3.0
+DROPOUT_FRAMES = 4
+#: ... over DROPOUT_AGREE x farther than the frames either side lie from each other (those are up
+#: to DROPOUT_FRAMES + 1 frames apart, so they differ by more motion than one frame's neighbours;
+#: ordinary motion gives about 0.5x: the frames either side are farther apart than from it)
+DROPOUT_AGREE = 1.5
 #: a web (:func:`web_fraction`): faces whose longest edge grew more than WEB_STRETCH x since the
 #: key frame and whose centroid lies farther than WEB_GAP x the input's bbox diagonal from the
 #: input; a frame whose web covers more than POOR_WEB of the converted surface's area counts as
@@ -2367,11 +2411,12 @@ def conversion_summary(info: ConversionInfo) -> list:
                          "back), or many thin parts, which read so too; look at those frames")
     if info.input_dropouts:
         t, gone, agree = max(info.input_dropouts, key=lambda d: d[1])
+        a, b = next(r for r in _dropout_runs(d[0] for d in info.input_dropouts) if r[0] <= t <= r[1])
         lines.append(f"note: input frame(s) {_frames_text([d[0] for d in info.input_dropouts])} lack surface that the "
                      f"frames either side both have (frame {t}: {100 * gone:.1f}% of the diagonal away, where frames "
-                     f"{t - 1} and {t + 1} agree within {100 * agree:.1f}%): a reconstruction's dropout? "
-                     + (f"Bridged: the output at {_frames_text(info.bridged_frames)} is the mean of the frames around "
-                        "it (option bridge_dropouts)" if info.bridged_frames else
+                     f"{a - 1} and {b + 1} agree within {100 * agree:.1f}%): a reconstruction's dropout? "
+                     + (f"Bridged: the output at {_frames_text(info.bridged_frames)} is blended from the frames either "
+                        "side (option bridge_dropouts)" if info.bridged_frames else
                         "The output follows the input there, and a sphere resting on the missing part falls through it"))
     m = np.asarray(info.frame_motion, float)
     jumps = _jumps(m) if m.size == cov.size else np.zeros(0, int)

@@ -591,37 +591,38 @@ def test_frame_motion_and_jumps_are_measured_and_warned():
         assert t < 4 and m[t] > 0.05
 
 
+def _moon_frames(drop=(), T: int = 9):
+    """A ball with a small moon beside it, moving slowly (0.02 a frame); the frames in ``drop``
+    lack the moon (a reconstruction's dropout)."""
+    import trimesh
+
+    out = []
+    for t in range(T):
+        big = trimesh.creation.icosphere(subdivisions=3 if t % 2 else 2)
+        parts = [big.vertices + [0.02 * t, 0, 0]]
+        faces = [big.faces]
+        if t not in drop:
+            moon = trimesh.creation.icosphere(subdivisions=2, radius=0.3)
+            parts.append(moon.vertices + [0.02 * t + 1.8, 0, 0])
+            faces.append(moon.faces + len(parts[0]))
+        out.append((np.vstack(parts).astype(np.float32), np.vstack(faces).astype(np.int32)))
+    return VaryingTopologySequence(out)
+
+
 def test_an_input_frame_that_lacks_a_part_its_neighbours_have_is_noted():
     """A reconstruction's dropout: a ball with a small moon beside it, moving slowly, whose frame
     4 lacks the moon (a new user's leg missing from one frame). ``input_dropouts`` names frame 4
     (both neighbours lie far from its surface, and close to each other), the summary notes it, and
     the output bridges it by default (the mean of frames 3 and 5: the moon kept, no jump); with
     bridge_dropouts off the output follows the input; without the gap there is none."""
-    import trimesh
-
-    from dynmesh_warp.convert import conversion_summary
-
-    def frames(drop):
-        out = []
-        for t in range(9):
-            big = trimesh.creation.icosphere(subdivisions=3 if t % 2 else 2)
-            parts = [big.vertices + [0.02 * t, 0, 0]]
-            faces = [big.faces]
-            if t != drop:
-                moon = trimesh.creation.icosphere(subdivisions=2, radius=0.3)
-                parts.append(moon.vertices + [0.02 * t + 1.8, 0, 0])
-                faces.append(moon.faces + len(parts[0]))
-            out.append((np.vstack(parts).astype(np.float32), np.vstack(faces).astype(np.int32)))
-        return VaryingTopologySequence(out)
-
-    gap = frames(drop=4)
+    gap = _moon_frames(drop={4})
     r = to_fixed_topology(gap, device=DEV)
     assert [d[0] for d in r.conversion.input_dropouts] == [4]
     t, gone, agree = r.conversion.input_dropouts[0]
     assert gone > 0.1 and agree < 0.02
     summary = conversion_summary(r.conversion)
     assert any(ln.startswith("note: input frame(s) 4 lack surface that the frames either side both have")
-               and "Bridged: the output at 4 is the mean" in ln for ln in summary)
+               and "Bridged: the output at 4 is blended from the frames either side" in ln for ln in summary)
     # bridged (the default): frame 4 is the mean of frames 3 and 5, so the moon stays and nothing jumps
     assert r.conversion.bridged_frames == [4]
     np.testing.assert_allclose(r.V[4], 0.5 * (r.V[3].astype(np.float64) + r.V[5]), atol=1e-6)
@@ -633,7 +634,7 @@ def test_an_input_frame_that_lacks_a_part_its_neighbours_have_is_noted():
     assert f.conversion.bridged_frames == [] and [d[0] for d in f.conversion.input_dropouts] == [4]
     assert (f.V[4][moon, 0] < 1.4).mean() > 0.5
     assert any("The output follows the input there" in ln for ln in conversion_summary(f.conversion))
-    assert to_fixed_topology(frames(drop=None), device=DEV).conversion.input_dropouts == []
+    assert to_fixed_topology(_moon_frames(), device=DEV).conversion.input_dropouts == []
     # the frame after the dropout is fitted from the one before it, forward (key frame 0) and
     # backward (key frame 8): no restart, the moon followed on every frame (before, the fit from
     # the moonless frame lost it and the frame after needed a restart from the template)
@@ -644,6 +645,29 @@ def test_an_input_frame_that_lacks_a_part_its_neighbours_have_is_noted():
         moon = k.V[key][:, 0] > 1.4
         assert moon.sum() > 20 and all((k.V[t][moon, 0] > 1.4).all() for t in range(9))
         assert max(c.frame_motion) < 0.05
+
+
+@pytest.mark.parametrize("drop", [(4, 5), (3, 4, 5)])
+def test_a_dropout_of_several_frames_is_bridged_from_the_frames_either_side(drop):
+    """The moon missing from 2 or 3 frames in a row (a part occluded for a few frames): every
+    frame of the run is named, the output blends the frames either side linearly in time, and
+    the frame after the run starts from the one before it, forward (key frame 0) and backward
+    (key frame 8): the moon followed on every frame with no restart. Before, only a single
+    frame was seen: the moon vanished for the run and the fit after it restarted."""
+    gap = _moon_frames(drop=set(drop))
+    a, b = drop[0] - 1, drop[-1] + 1
+    for key in (0, 8):
+        k = to_fixed_topology(gap, device=DEV, key_frame=key)
+        c = k.conversion
+        assert [d[0] for d in c.input_dropouts] == list(drop) and c.bridged_frames == list(drop)
+        assert c.recovered_frames == []
+        for t in drop:
+            w = (t - a) / (b - a)
+            np.testing.assert_allclose(k.V[t], (1 - w) * k.V[a].astype(np.float64) + w * k.V[b], atol=1e-5)
+        moon = k.V[key][:, 0] > 1.4
+        assert moon.sum() > 20 and all((k.V[t][moon, 0] > 1.4).all() for t in range(9))
+        assert max(c.frame_motion) < 0.05
+        assert any(f"where frames {a} and {b} agree" in ln for ln in conversion_summary(c))
 
 
 @pytest.mark.parametrize("bad,name", [({"node_spacing": 0}, "node_spacing"), ({"graph_iterations": 0}, "graph_iterations"),
