@@ -1681,10 +1681,10 @@ def _dropout_run(vseq, p: int, n: int, spike: float, near, device) -> list | Non
         return float(np.percentile(nearest_surface(mesh, v[::_stride(len(v), 4096)], device=device).dist, 99)) / diag
 
     diag = max(_bbox_diag(vseq.frames[p][0]), _bbox_diag(vseq.frames[n][0]), 1e-12)
-    agree = p99(p, vseq.frames[n], diag)
-    if DROPOUT_AGREE * agree >= spike:  # the ends differ as much as the part is gone: motion
-        return None
-    agree = min(agree, p99(n, vseq.frames[p], diag))  # either way: the same for (p, n) and (n, p)
+    # either way, the smaller: the same for (p, n) and (n, p)
+    agree = min(p99(p, vseq.frames[n], diag), p99(n, vseq.frames[p], diag))
+    if DROPOUT_AGREE * agree >= spike:  # the ends differ as much as the part is gone (the first
+        return None  # frame's gone is at most its spike): motion
     out = []
     for t in range(min(p, n) + 1, max(p, n)):
         here = _wp_mesh(*vseq.frames[t], device)  # asked by both ends: one BVH
