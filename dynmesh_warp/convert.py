@@ -1341,26 +1341,24 @@ def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info,
         if t == K - 1:
             conv.rewind(out[K], K, K + 1)
         s = 1 if t > K else -1  # the pass's direction (the key frame: either)
-        v, f = _frame_for_fit(vseq, t, K, info.options, out[t - s] if t != K else None, TF, device, info)
+        # the frames just passed a dropout (they lack a part: host work on the input and the
+        # motion measured so far)? Then this one starts from the frame before them, as if they
+        # were not there (their output is bridged afterwards)
+        p = _loop_dropout(vseq, pf.input_motion, t, s, K, device, info) if bridge and abs(t - K) >= 2 else None
+        if p is not None:
+            conv.rewind(out[p], p, p - s)
+        ref = None if t == K else out[t - s] if p is None else out[p]
+        v, f = _frame_for_fit(vseq, t, K, info.options, ref, TF, device, info)
         frame = _device_frame(v, f, device)
+        if step(frame, t):
+            info.reanchored_frames.append(t)
         diag = _bbox_diag(v)
+        _record_fit(conv, frame, diag, pf, t)
         # the input's own motion from the neighbour fitted before (t - 1 forward, t + 1 backward;
         # stored at the later frame of the two)
         near = samples.get(t - s)
         if near is not None:
             pf.input_motion[max(t, t - s)] = _input_motion(frame, near, diag, device)
-        p = _loop_dropout(vseq, pf.input_motion, t, s, K, device, info) if bridge and abs(t - K) >= 2 else None
-        if p is not None:
-            # the frames just passed were a dropout (they lack a part): this one starts from the
-            # frame before them, as if they were not there (their output is bridged afterwards)
-            conv.rewind(out[p], p, p - s)
-            if float(info.options["far_part_area"]) > 0:
-                v, f = _frame_for_fit(vseq, t, K, info.options, out[p], TF, device, info)
-                frame = _device_frame(v, f, device)
-                diag = _bbox_diag(v)
-        if step(frame, t):
-            info.reanchored_frames.append(t)
-        _record_fit(conv, frame, diag, pf, t)
         samples = {K: samples.get(K), t: _motion_sample(v, device)} if t != K else {K: _motion_sample(v, device)}
         conv.first = False
         out[t] = conv.X.numpy()
