@@ -1639,8 +1639,9 @@ def _input_dropouts(vseq, info, device) -> list:
     those its frame loop found (already in ``info.input_dropouts``: :func:`_convert_frames` looks
     for them while ``bridge_dropouts`` is on) and the other runs of up to DROPOUT_FRAMES frames
     :func:`_dropout_run` finds, each checked where the ``input_motion`` at either end of the run
-    stands out from its neighbours' over ``JUMP_WINDOW`` frames either side (the backward pass
-    stores a frame's motion from the frame after it at that frame)."""
+    stands out from its neighbours' over ``JUMP_WINDOW`` frames either side (``input_motion[t]``
+    is the motion between frames t - 1 and t, measured from t - 1 forward of the key frame and
+    from t before it: a part that vanishes shows at the run's first frame, or after its last)."""
     m = np.asarray(info.input_motion, float)
     lo, out = info.first_frame, list(info.input_dropouts)
     found = {d[0] for d in out}
@@ -2422,7 +2423,7 @@ def conversion_summary(info: ConversionInfo) -> list:
         jumps = jumps[np.asarray(info.input_motion, float)[jumps] < JUMP_INPUT * m[jumps]]
     if jumps.size:
         w = int(jumps[np.argmax(m[jumps])])
-        drop = {d[0] for d in info.input_dropouts}
+        drop = {d[0] - info.first_frame for d in info.input_dropouts}  # (jumps count from the first frame)
         after = [int(t) for t in jumps if t in drop or t - 1 in drop]
         lines.append(f"warning: the converted surface jumps at {jumps.size} frame(s) ({_frames_text(jumps)}): at frame "
                      f"{w} its vertices move {100 * m[w]:.1f}% of the diagonal from frame {w - 1} (99th pct.), over "
