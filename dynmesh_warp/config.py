@@ -54,9 +54,37 @@ class SceneError(ValueError):
     """The scene file is missing, unreadable or does not match the schema."""
 
 
+def _numeric(annotation) -> bool:
+    """Whether a field's type holds only numbers (int, float, None, tuples of them: Vec3)."""
+    import types
+    import typing
+
+    if annotation in (int, float):
+        return True
+    origin = typing.get_origin(annotation)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(annotation) if a is not type(None)]
+        return bool(args) and all(_numeric(a) for a in args)
+    if origin is tuple:
+        return all(_numeric(a) for a in typing.get_args(annotation) if a is not Ellipsis)
+    return False
+
+
 class _Strict(BaseModel):
     # every float of a scene (and of PhysicsParams) must be finite: NaN/inf are refused naming the field
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _no_booleans_for_numbers(cls, v, info):
+        """A boolean where a number goes is refused (``spheres.count: true`` ran one sphere; a
+        new user's). Quoted numbers stay accepted: YAML reads ``1e-3`` as a string."""
+        field = cls.model_fields.get(info.field_name)
+        if field is not None and _numeric(field.annotation):
+            for x in (v if isinstance(v, (list, tuple)) else (v,)):
+                if isinstance(x, bool):
+                    raise ValueError(f"a number is expected, not the boolean {str(x).lower()}")
+        return v
 
 
 class ConversionConfig(_Strict):

@@ -269,3 +269,16 @@ def test_a_scene_file_that_is_not_a_mapping_says_what_a_scene_is(tmp_path):
     with pytest.raises(SceneError, match=r"notes\.txt: a scene file is a YAML mapping of sections") as e:
         load_scene_config(p)
     assert "top level is a str" in str(e.value) and "folder of frames" in str(e.value)
+
+
+@pytest.mark.parametrize("doc,field", [({"spheres": {"count": True}}, "spheres.count"),
+                                       ({"physics": {"gravity": [0, 0, True]}}, "physics.gravity"),
+                                       ({"physics": {"dt": False}}, "physics.dt"),
+                                       ({"envs": {"count": True}}, "envs.count")])
+def test_a_boolean_where_a_number_goes_is_refused(doc, field):
+    """``spheres.count: true`` ran one sphere (a new user's): booleans for numbers are refused,
+    naming the field; a quoted number stays a number (YAML reads 1e-3 as a string)."""
+    with pytest.raises(SceneError, match=rf"{field}: a number is expected, not the boolean"):
+        load_scene_config(None, overrides=[f"{k}.{kk}={str(v).lower() if not isinstance(v, list) else v}"
+                                          for k, d in doc.items() for kk, v in d.items()])
+    assert load_scene_config(None, overrides=["physics.dt=1e-3"]).physics.dt == pytest.approx(1e-3)
