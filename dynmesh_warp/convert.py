@@ -1387,8 +1387,9 @@ def _loop_dropout(vseq, m: np.ndarray, u: int, s: int, K: int, device, info) -> 
         spike = m[first] if s > 0 else m[first + 1]
         near = m[max(K + 1, first - JUMP_WINDOW):first] if s > 0 else m[first + 2:first + 2 + JUMP_WINDOW]
         run = _dropout_run(vseq, p, u, spike, near, device)
-        if run:
-            info.input_dropouts.extend(run)
+        if run:  # (a longer run may take in a frame found alone before: it is listed once)
+            found = {d[0] for d in info.input_dropouts}
+            info.input_dropouts.extend(d for d in run if d[0] not in found)
             return p
     return None
 
@@ -1665,7 +1666,9 @@ def _dropout_run(vseq, p: int, n: int, spike: float, near, device) -> list | Non
     frame t between lacks a part both have: both lie farther than DROPOUT_LEAST from t's surface
     (``gone``, the smaller of the two), over DROPOUT_AGREE x farther than from each other, while
     t's own surface lies DROPOUT_RATIO x nearer to p's or n's than that (t lacks a part; it did not
-    move away). Fractions of the larger diagonal of p and n (the same for (p, n) and (n, p)).
+    move away), and t has less surface area than p and n and, where the three are closed, lost
+    DROPOUT_VOLUME x as large a fraction of their volume (a part folded flat onto the body keeps
+    its volume). Fractions of the larger diagonal of p and n (the same for (p, n) and (n, p)).
     Checked only where ``spike``, the ``input_motion`` where the part went, is over
     DROPOUT_LEAST and over DROPOUT_RATIO x the median of ``near`` (its neighbours' motion): one
     query for the agreement, then a BVH and three queries per frame."""
@@ -1684,8 +1687,22 @@ def _dropout_run(vseq, p: int, n: int, spike: float, near, device) -> list | Non
     agree = min(p99(p, vseq.frames[n], diag), p99(n, vseq.frames[p], diag))
     if DROPOUT_AGREE * agree >= spike:  # the ends differ as much as the part is gone (the first
         return None  # frame's gone is at most its spike): motion
+    # what the ends have and a frame lacks is surface, and for closed surfaces volume too: a part
+    # folded flat onto the body (a new user's arm slapped down for a frame: its remeshed contact
+    # lost 4 % of the area and none of the volume) or a sheet's edge folded back (no area lost)
+    # is motion, not a dropout
+    area = {e: surface_area(*vseq.frames[e]) for e in (p, n)}
+    closed = all(_open_edges(vseq.frames[e][1]) == 0 for e in (p, n))
+    volume = {e: abs(signed_volume(*vseq.frames[e])) for e in (p, n)} if closed else {}
     out = []
     for t in range(min(p, n) + 1, max(p, n)):
+        lost = 1.0 - surface_area(*vseq.frames[t]) / max(min(area.values()), 1e-30)
+        if lost <= 0.0:
+            return None
+        if closed and _open_edges(vseq.frames[t][1]) == 0:
+            v_lost = 1.0 - abs(signed_volume(*vseq.frames[t])) / max(min(volume.values()), 1e-30)
+            if v_lost < DROPOUT_VOLUME * lost:
+                return None
         here = _wp_mesh(*vseq.frames[t], device)  # asked by both ends: one BVH
         gone = min(p99(p, here, diag), p99(n, here, diag))
         # and the frame's own surface lies on p's or n's (it lacks a part, it adds none: a frame
@@ -1702,7 +1719,7 @@ def _dropout_run(vseq, p: int, n: int, spike: float, near, device) -> list | Non
 def _dropout_runs(frames) -> list:
     """The runs ``(first, last)`` of consecutive frames in ``frames`` (dropout frames)."""
     runs = []
-    for t in sorted(frames):
+    for t in sorted(set(frames)):
         if runs and t == runs[-1][1] + 1:
             runs[-1] = (runs[-1][0], t)
         else:
@@ -1716,7 +1733,7 @@ def _bridge_dropouts(res, info):
     frame: their mean), listed in ``info.bridged_frames``; ``frame_motion`` measured again. The
     frames' other per-frame figures stay the fit's."""
     V = np.array(res.V, copy=True)
-    for a, b in _dropout_runs(d[0] for d in info.input_dropouts):
+    for a, b in _dropout_runs({d[0] for d in info.input_dropouts}):
         i, j = a - 1 - info.first_frame, b + 1 - info.first_frame
         if 0 <= i and j < len(V):
             for t in range(a, b + 1):
@@ -2274,6 +2291,14 @@ DROPOUT_FRAMES = 4
 #: to DROPOUT_FRAMES + 1 frames apart, so they differ by more motion than one frame's neighbours;
 #: ordinary motion gives about 0.5x: the frames either side are farther apart than from it)
 DROPOUT_AGREE = 1.5
+#: ... and each frame of the run has less surface area than both frames either side and, where
+#: all three are closed, lost at least DROPOUT_VOLUME x as large a fraction of their volume as of
+#: their area. A new user's missing arm, leg, antenna or half body: the volume fraction lost is
+#: 0.4-0.6x the area fraction (a small ball beside a big one, whose area is larger for its
+#: volume: 0.25x); an arm slapped flat onto the body for a frame (real motion, which the rest of
+#: the rule took for a dropout): 4 % of the area (the remeshed contact), 0 % volume; a sheet's
+#: edge folded back, or legs tucked up: no area lost (CPU, docs/conversion.md)
+DROPOUT_VOLUME = 0.1
 #: a web (:func:`web_fraction`): faces whose longest edge grew more than WEB_STRETCH x since the
 #: key frame and whose centroid lies farther than WEB_GAP x the input's bbox diagonal from the
 #: input; a frame whose web covers more than POOR_WEB of the converted surface's area counts as

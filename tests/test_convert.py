@@ -593,12 +593,15 @@ def test_frame_motion_and_jumps_are_measured_and_warned():
 
 def _moon_frames(drop=(), T: int = 9):
     """A ball with a small moon beside it, moving slowly (0.02 a frame); the frames in ``drop``
-    lack the moon (a reconstruction's dropout)."""
+    lack the moon (a reconstruction's dropout). The ball's triangulation turns from frame to
+    frame (a new mesh per frame, as a reconstruction's; the same area and volume, as a fixed
+    marching-cubes resolution gives)."""
     import trimesh
 
     out = []
     for t in range(T):
-        big = trimesh.creation.icosphere(subdivisions=3 if t % 2 else 2)
+        big = trimesh.creation.icosphere(subdivisions=3)
+        big.apply_transform(trimesh.transformations.rotation_matrix(0.37 * t, [0.3, 0.5, 0.8]))
         parts = [big.vertices + [0.02 * t, 0, 0]]
         faces = [big.faces]
         if t not in drop:
