@@ -1333,3 +1333,39 @@ def test_held_stiff_levels_follow_fast_motion():
         cov[extra] = max(res.conversion.coverage)
     assert cov[16] < 0.02 < cov[0]
     assert err[16] < 0.25 * err[0]
+
+
+def _capsules_frame(caps, h: float = 0.02):
+    """A closed marching-cubes surface (scikit-image) of a union of capsules ``(a, b, r)``, as a
+    reconstruction gives: parts that touch merge."""
+    from skimage.measure import marching_cubes
+
+    lo, hi = np.array([-0.35, -0.3, -0.75]), np.array([0.9, 0.3, 0.75])
+    axes = [np.arange(lo[i], hi[i] + h, h) for i in range(3)]
+    P = np.stack(np.meshgrid(*axes, indexing="ij"), -1)
+    sdf = np.full(P.shape[:3], np.inf)
+    for a, b, r in caps:
+        a, b = np.asarray(a, float), np.asarray(b, float)
+        s = np.clip(((P - a) @ (b - a)) / max(float((b - a) @ (b - a)), 1e-12), 0, 1)
+        sdf = np.minimum(sdf, np.linalg.norm(P - (a + s[..., None] * (b - a)), axis=-1) - r)
+    v, f, _, _ = marching_cubes(sdf, 0.0, spacing=(h, h, h))
+    return (v + lo).astype(np.float32), f[:, ::-1].astype(np.int32)
+
+
+def test_a_part_folded_flat_onto_the_body_is_not_a_dropout():
+    """A new user's arm slapped flat against the torso for a frame (real motion): the frames
+    either side lie far from that frame's surface and it lies on theirs, as for a dropout, so it
+    was bridged (the arm kept out: CD +73 % on their capture). What tells them apart: a missing
+    arm takes its area and its volume with it; a folded one keeps its volume (its remeshed
+    contact loses some area). The rule (``_dropout_run``) finds the missing arm, not the fold."""
+    from dynmesh_warp.convert import _dropout_run
+
+    torso = ((0, 0, -0.5), (0, 0, 0.5), 0.15)
+    out = [torso, ((0.15, 0, 0.4), (0.75, 0, 0.4), 0.05)]  # the arm held out
+    folded = [torso, ((0.198, 0, 0.4), (0.198, 0, -0.2), 0.05)]  # down along the torso's side, touching
+    for middle, is_dropout in (([torso], True), (folded, False)):
+        seq = VaryingTopologySequence([_capsules_frame(out), _capsules_frame(middle), _capsules_frame(out)])
+        run = _dropout_run(seq, 0, 2, 1.0, [], DEV)
+        assert (run is not None) == is_dropout, (middle, run)
+        if is_dropout:
+            assert run[0][0] == 1 and run[0][1] > 0.2
