@@ -2438,7 +2438,8 @@ def conversion_summary(info: ConversionInfo) -> list:
         a, b = next(r for r in _dropout_runs(d[0] for d in info.input_dropouts) if r[0] <= t <= r[1])
         lines.append(f"note: input frame(s) {_frames_text([d[0] for d in info.input_dropouts])} lack surface that the "
                      f"frames either side both have (frame {t}: {100 * gone:.1f}% of the diagonal away, where frames "
-                     f"{a - 1} and {b + 1} agree within {100 * agree:.1f}%): a reconstruction's dropout? "
+                     f"{a - 1} and {b + 1} agree within {100 * agree:.1f}%): a reconstruction's dropout (or a part that "
+                     "really withdraws into the body for a moment)? "
                      + (f"Bridged: the output at {_frames_text(info.bridged_frames)} is blended from the frames either "
                         "side (option bridge_dropouts)" if info.bridged_frames else
                         "The output follows the input there, and a sphere resting on the missing part falls through it"))
