@@ -321,12 +321,11 @@ def scene_spheres(cfg: SceneConfig, V0: np.ndarray):
         extent = float(np.linalg.norm(np.ptp(V0, axis=0))) if len(V0) else 0.0
         column = 2.5 * cfg.spheres.radius * max(n - 1, 0)
         if column > SPAWN_COLUMN_WARN * max(extent, cfg.spheres.radius):
-            g = float(np.linalg.norm(cfg.physics.gravity)) or 9.81
+            g, top = float(np.linalg.norm(cfg.physics.gravity)), column + cfg.spheres.height
+            fall = f"falls about {np.sqrt(2 * top / g):.3g} s before it lands" if g > 0 else "never lands (no gravity)"
             warnings.warn(f"spheres: the {n} spawned spheres are dropped one above another, 2.5 radii apart: the "
-                          f"top one starts {column + cfg.spheres.height:.4g} m above the surface ({extent:.3g} m "
-                          f"across) and falls about {np.sqrt(2 * (column + cfg.spheres.height) / g):.3g} s before it "
-                          "lands; give fewer spheres, or a list of positions (envs.count runs batched copies)",
-                          stacklevel=2)
+                          f"top one starts {top:.4g} m above the surface ({extent:.3g} m across) and {fall}; give "
+                          "fewer spheres, or a list of positions (envs.count runs batched copies)", stacklevel=2)
     return (np.asarray(radius, np.float32).reshape(-1), np.asarray(mass, np.float64).reshape(-1),
             np.asarray(pos, np.float32).reshape(-1, 3), vel)
 
