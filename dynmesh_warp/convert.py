@@ -1656,6 +1656,16 @@ def _input_dropouts(vseq, info, device) -> list:
                 out.extend(run)
                 found.update(d[0] for d in run)
                 break
+    # the motion was measured from the key frame outwards, so a key frame inside a run (a user's
+    # --key-frame) shows no spike: the runs that hold it are tested without one
+    K = info.key_frame
+    for k in range(1, DROPOUT_FRAMES + 1):
+        runs = (_dropout_run(vseq, a - 1, a + k, 1.0, (), device) for a in range(K - k + 1, K + 1)
+                if lo + 1 <= a and a + k < lo + len(m) and not found & set(range(a, a + k)))
+        run = next((r for r in runs if r), None)
+        if run:
+            out.extend(run)
+            break
     return sorted(out)
 
 
@@ -2443,6 +2453,9 @@ def conversion_summary(info: ConversionInfo) -> list:
                      + (f"Bridged: the output at {_frames_text(info.bridged_frames)} is blended from the frames either "
                         "side (option bridge_dropouts)" if info.bridged_frames else
                         "The output follows the input there, and a sphere resting on the missing part falls through it"))
+        if info.key_frame in {d[0] for d in info.input_dropouts}:  # (a new user's --key-frame inside a run)
+            lines.append(f"warning: the key frame {info.key_frame} is one of those frames: the template, made from it, "
+                         "lacks the part on every frame; choose another key frame (--key-frame)")
     m = np.asarray(info.frame_motion, float)
     jumps = _jumps(m) if m.size == cov.size else np.zeros(0, int)
     if jumps.size and len(info.input_motion) == cov.size:  # the input's own jump is motion, not a fault

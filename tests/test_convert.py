@@ -1369,3 +1369,18 @@ def test_a_part_folded_flat_onto_the_body_is_not_a_dropout():
         assert (run is not None) == is_dropout, (middle, run)
         if is_dropout:
             assert run[0][0] == 1 and run[0][1] > 0.2
+
+
+def test_a_key_frame_given_inside_a_dropout_is_warned_of():
+    """A new user's --key-frame on a frame that lacks a part: the template lacks it on every
+    frame, and nothing was said (the input's motion, measured from the key frame outwards, showed
+    no spike there). The run is now tested without one, named, and the key frame warned of."""
+    from dynmesh_warp.convert import conversion_summary
+
+    for drop, key in (({4}, 4), ({4, 5}, 5)):
+        r = to_fixed_topology(_moon_frames(drop=drop), device=DEV, key_frame=key)
+        assert [d[0] for d in r.conversion.input_dropouts] == sorted(drop)
+        summary = conversion_summary(r.conversion)
+        assert any(ln.startswith(f"warning: the key frame {key} is one of those frames") for ln in summary)
+    r = to_fixed_topology(_moon_frames(drop={4}), device=DEV, key_frame=6)
+    assert not any("is one of those frames" in ln for ln in conversion_summary(r.conversion))
