@@ -209,10 +209,11 @@ def evaluate(name, strategies, args, device) -> dict | None:
         vel = surface_velocity_error(gt, fx, device)  # the surface velocity against the GT's
         summ.update({f"velocity_error_{k}": v for k, v in vel.items() if k != "pairs"})
         drift = surface_drift(gt, fx, device)  # how far the vertices slid from their GT points since the key frame
+        slide = slide_ratio(info)[0]
         summ.update({f"drift_{k}": v for k, v in drift.items() if k != "frames"})
         out["strategies"][label] = {"summary": summ, "seconds": sec, "per_frame": per, "velocity_per_pair": vel["pairs"],
                                 "drift_per_frame": drift["frames"],
-                                "slide_ratio": slide_ratio(info)[0], "frame_motion": list(info.frame_motion),
+                                "slide_ratio": slide, "frame_motion": list(info.frame_motion),
                                 "input_motion": list(info.input_motion),
                                 "key_frame": info.key_frame, "coverage": info.coverage,
                                 "web": info.web, "buried": info.buried,
@@ -232,7 +233,7 @@ def evaluate(name, strategies, args, device) -> dict | None:
               f"drift median {100 * (summ['drift_p50_mean'] or np.nan):.2f}% / "
               f"p99 {100 * (summ['drift_p99_mean'] or np.nan):.2f}% "
               f"(worst frame p99 {100 * (summ['drift_p99_max'] or np.nan):.2f}%), "
-              f"slide {slide_ratio(info)[0] or np.nan:.2f}x, "
+              f"slide {slide or np.nan:.2f}x, "
               f"{len(info.segments)} segment(s), {sec:.1f} s", flush=True)
     return out
 

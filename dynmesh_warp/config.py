@@ -7,7 +7,10 @@ offending field (for example ``physics.dt: Input should be greater than 0``).
 
 from __future__ import annotations
 
+import functools
 import math
+import types
+import typing
 from pathlib import Path
 from typing import Literal, Optional, Union
 
@@ -54,11 +57,10 @@ class SceneError(ValueError):
     """The scene file is missing, unreadable or does not match the schema."""
 
 
+@functools.lru_cache(maxsize=None)
 def _numeric(annotation) -> bool:
-    """Whether a field's type holds only numbers (int, float, None, tuples of them: Vec3)."""
-    import types
-    import typing
-
+    """Whether a field's type holds only numbers (int, float, None, tuples of them: Vec3); once
+    per type (the validator asks on every field of every validation)."""
     if annotation in (int, float):
         return True
     origin = typing.get_origin(annotation)
@@ -362,17 +364,17 @@ class SceneConfig(_Strict):
                 raise ValueError(f"surface.topology: only for a vertex-only source (a point cache "
                                  f"{', '.join(CACHE_EXTENSIONS)}, an .npy or an npz of vertices), but surface.source "
                                  f"is {src!r}")
-            if file_problem(self.resolve(self.surface.topology)):
-                raise ValueError(f"surface.topology: {file_problem(self.resolve(self.surface.topology))}: "
-                                 f"{self.resolve(self.surface.topology)}")
+            topology = self.resolve(self.surface.topology)
+            if why := file_problem(topology):
+                raise ValueError(f"surface.topology: {why}: {topology}")
         if self.surface.animation is not None and (src.startswith("builtin:")
                                                     or Path(src).suffix.lower() not in (".glb", ".gltf")):
             raise ValueError(f"surface.animation: only for an animated .glb / .gltf source, but surface.source "
                              f"is {src!r}")
         if self.surface.conversion and self.surface.conversion.template:
             t = self.resolve(self.surface.conversion.template)
-            if file_problem(t):
-                raise ValueError(f"surface.conversion.template: {file_problem(t)}: {t}")
+            if why := file_problem(t):
+                raise ValueError(f"surface.conversion.template: {why}: {t}")
         if self.gaussians.splats and not self.resolve(self.gaussians.splats).is_file():
             raise ValueError(f"gaussians.splats: file not found: {self.resolve(self.gaussians.splats)}")
         if self.gaussians.splats and Path(self.gaussians.splats).suffix.lower() != ".ply":

@@ -1680,8 +1680,9 @@ def _dropout_run(vseq, p: int, n: int, spike: float, near, device) -> list | Non
     DROPOUT_VOLUME x as large a fraction of their volume (a part folded flat onto the body keeps
     its volume). Fractions of the larger diagonal of p and n (the same for (p, n) and (n, p)).
     Checked only where ``spike``, the ``input_motion`` where the part went, is over
-    DROPOUT_LEAST and over DROPOUT_RATIO x the median of ``near`` (its neighbours' motion): one
-    query for the agreement, then a BVH and three queries per frame."""
+    DROPOUT_LEAST and over DROPOUT_RATIO x the median of ``near`` (its neighbours' motion): the
+    area and volume on the host first, then two queries for the agreement, then a BVH and three
+    queries per frame."""
     near = np.asarray(near, float)
     T = vseq.num_frames
     if (not (0 <= min(p, n) and max(p, n) < T and abs(n - p) >= 2) or spike <= DROPOUT_LEAST
@@ -1692,27 +1693,28 @@ def _dropout_run(vseq, p: int, n: int, spike: float, near, device) -> list | Non
         v = vseq.frames[src][0]
         return float(np.percentile(nearest_surface(mesh, v[::_stride(len(v), 4096)], device=device).dist, 99)) / diag
 
+    # what the ends have and a frame lacks is surface, and for closed surfaces volume too: a part
+    # folded flat onto the body (a new user's arm slapped down for a frame: its remeshed contact
+    # lost 4 % of the area and none of the volume) or a sheet's edge folded back (no area lost)
+    # is motion, not a dropout. Host sums over the faces: checked before any query
+    run = range(min(p, n) + 1, max(p, n))
+    least_area = min(surface_area(*vseq.frames[e]) for e in (p, n))
+    closed = all(_open_edges(vseq.frames[e][1]) == 0 for e in (p, n))
+    least_volume = min(abs(signed_volume(*vseq.frames[e])) for e in (p, n)) if closed else 0.0
+    for t in run:
+        lost = 1.0 - surface_area(*vseq.frames[t]) / max(least_area, 1e-30)
+        if lost <= 0.0:
+            return None
+        if closed and _open_edges(vseq.frames[t][1]) == 0:
+            if 1.0 - abs(signed_volume(*vseq.frames[t])) / max(least_volume, 1e-30) < DROPOUT_VOLUME * lost:
+                return None
     diag = max(_bbox_diag(vseq.frames[p][0]), _bbox_diag(vseq.frames[n][0]), 1e-12)
     # either way, the smaller: the same for (p, n) and (n, p)
     agree = min(p99(p, vseq.frames[n], diag), p99(n, vseq.frames[p], diag))
     if DROPOUT_AGREE * agree >= spike:  # the ends differ as much as the part is gone (the first
         return None  # frame's gone is at most its spike): motion
-    # what the ends have and a frame lacks is surface, and for closed surfaces volume too: a part
-    # folded flat onto the body (a new user's arm slapped down for a frame: its remeshed contact
-    # lost 4 % of the area and none of the volume) or a sheet's edge folded back (no area lost)
-    # is motion, not a dropout
-    area = {e: surface_area(*vseq.frames[e]) for e in (p, n)}
-    closed = all(_open_edges(vseq.frames[e][1]) == 0 for e in (p, n))
-    volume = {e: abs(signed_volume(*vseq.frames[e])) for e in (p, n)} if closed else {}
     out = []
-    for t in range(min(p, n) + 1, max(p, n)):
-        lost = 1.0 - surface_area(*vseq.frames[t]) / max(min(area.values()), 1e-30)
-        if lost <= 0.0:
-            return None
-        if closed and _open_edges(vseq.frames[t][1]) == 0:
-            v_lost = 1.0 - abs(signed_volume(*vseq.frames[t])) / max(min(volume.values()), 1e-30)
-            if v_lost < DROPOUT_VOLUME * lost:
-                return None
+    for t in run:
         here = _wp_mesh(*vseq.frames[t], device)  # asked by both ends: one BVH
         gone = min(p99(p, here, diag), p99(n, here, diag))
         # and the frame's own surface lies on p's or n's (it lacks a part, it adds none: a frame
@@ -2736,15 +2738,15 @@ def main(argv=None) -> int:
         device = resolve_device(a.device, "--device")
         if not Path(a.input).expanduser().exists():
             raise ValueError(f"input {a.input}: file or folder not found")
-        if a.template is not None and file_problem(a.template):
-            raise ValueError(f"--template {a.template}: {file_problem(a.template)} (a mesh file is expected)")
+        if a.template is not None and (why := file_problem(a.template)):
+            raise ValueError(f"--template {a.template}: {why} (a mesh file is expected)")
         inputs = [a.input] + ([a.template] if a.template else [])
         if a.topology is not None:
             if Path(a.input).suffix.lower() not in VERTEX_ONLY_EXTENSIONS or not Path(a.input).is_file():
                 raise ValueError(f"--topology {a.topology}: only for a vertex-only input (a point cache "
                                  f"{', '.join(sorted(VERTEX_ONLY_EXTENSIONS))}), but the input is {a.input}")
-            if file_problem(a.topology):
-                raise ValueError(f"--topology {a.topology}: {file_problem(a.topology)} (a mesh file is expected)")
+            if why := file_problem(a.topology):
+                raise ValueError(f"--topology {a.topology}: {why} (a mesh file is expected)")
             inputs.append(a.topology)
         elif Path(a.input).suffix.lower() in VERTEX_ONLY_EXTENSIONS and Path(a.input).is_file():
             try:  # a vertex-only input's faces are an input too (a cache output writes <stem>.obj)
