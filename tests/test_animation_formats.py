@@ -119,6 +119,11 @@ def test_point_cache_topology_named_explicitly_and_from_a_scene(tmp_path):
     res = load_sequence(out)
     assert res.num_frames == len(V) and res.num_vertices == V.shape[1]
     assert convert.main([str(tmp_path / "body.obj"), str(tmp_path / "x.npz"), "--topology", str(tmp_path / "body.obj")]) == 2
+    # the --topology mesh is an input: a point-cache output whose faces file it is, is refused even with --overwrite
+    body = (tmp_path / "body.obj").read_bytes()
+    assert convert.main([str(p), str(tmp_path / "body.pc2"), "--topology", str(tmp_path / "body.obj"), "--overwrite",
+                         "--device", "cpu", "--no-progress"]) == 2
+    assert (tmp_path / "body.obj").read_bytes() == body and not (tmp_path / "body.pc2").exists()
 
 
 @pytest.mark.parametrize("ext", [".anime", ".pc2", ".mdd"])
