@@ -1357,18 +1357,16 @@ def test_a_part_folded_flat_onto_the_body_is_not_a_dropout():
     either side lie far from that frame's surface and it lies on theirs, as for a dropout, so it
     was bridged (the arm kept out: CD +73 % on their capture). What tells them apart: a missing
     arm takes its area and its volume with it; a folded one keeps its volume (its remeshed
-    contact loses some area). The rule (``_dropout_run``) finds the missing arm, not the fold."""
-    from dynmesh_warp.convert import _dropout_run
-
+    contact loses some area). The conversion names the missing arm, not the fold."""
     torso = ((0, 0, -0.5), (0, 0, 0.5), 0.15)
     out = [torso, ((0.15, 0, 0.4), (0.75, 0, 0.4), 0.05)]  # the arm held out
     folded = [torso, ((0.198, 0, 0.4), (0.198, 0, -0.2), 0.05)]  # down along the torso's side, touching
     for middle, is_dropout in (([torso], True), (folded, False)):
         seq = VaryingTopologySequence([_capsules_frame(out), _capsules_frame(middle), _capsules_frame(out)])
-        run = _dropout_run(seq, 0, 2, 1.0, [], DEV)
-        assert (run is not None) == is_dropout, (middle, run)
+        found = to_fixed_topology(seq, device=DEV, key_frame=0).conversion.input_dropouts
+        assert [d[0] for d in found] == ([1] if is_dropout else []), (middle, found)
         if is_dropout:
-            assert run[0][0] == 1 and run[0][1] > 0.2
+            assert found[0][1] > 0.2
 
 
 def test_a_key_frame_given_inside_a_dropout_is_warned_of():
