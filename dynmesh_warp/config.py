@@ -311,8 +311,10 @@ class SceneConfig(_Strict):
     @field_validator("name")
     @classmethod
     def _name_ok(cls, v):
-        if not v or any(c in v for c in "/\\"):
-            raise ValueError("must be a non-empty name without path separators")
+        # the name fills run.output's {name}: "out/.." would write over the folder above the outputs
+        if not v or any(c in v for c in "/\\") or v in (".", "..") or any(ord(c) < 32 for c in v):
+            raise ValueError("must be a non-empty name without path separators or control characters, "
+                             "and not '.' or '..'")
         return v
 
     def resolve(self, p: str | None) -> Path | None:
@@ -375,14 +377,14 @@ class SceneConfig(_Strict):
             t = self.resolve(self.surface.conversion.template)
             if why := file_problem(t):
                 raise ValueError(f"surface.conversion.template: {why}: {t}")
-        if self.gaussians.splats and not self.resolve(self.gaussians.splats).is_file():
-            raise ValueError(f"gaussians.splats: file not found: {self.resolve(self.gaussians.splats)}")
+        if self.gaussians.splats and (why := file_problem(self.resolve(self.gaussians.splats))):
+            raise ValueError(f"gaussians.splats: {why}: {self.resolve(self.gaussians.splats)}")
         if self.gaussians.splats and Path(self.gaussians.splats).suffix.lower() != ".ply":
             # run took an npz here and render refused it later (a new user's)
             raise ValueError(f"gaussians.splats: a 3D Gaussian splatting .ply is expected, got {self.gaussians.splats!r}")
         for i, b in enumerate(self.newton.bodies if self.newton else []):
-            if b.file and not self.resolve(b.file).is_file():
-                raise ValueError(f"newton.bodies.{i}.file: file not found: {self.resolve(b.file)}")
+            if b.file and (why := file_problem(self.resolve(b.file))):
+                raise ValueError(f"newton.bodies.{i}.file: {why}: {self.resolve(b.file)}")
         return self
 
 

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .mesh_formats import file_problem
 from .outputs import atomic_write_bytes
 
 __all__ = [
@@ -205,10 +206,11 @@ def _header_error(path, msg):
 def read_splat_ply(path) -> SplatCloud:
     """Read a binary little-endian 3DGS ``.ply``. Raises :class:`SplatPlyError` (naming the file)
     for ASCII/big-endian files, list properties, extra elements, truncated data or missing
-    3DGS properties; FileNotFoundError when absent."""
+    3DGS properties; FileNotFoundError when absent or not a file (a folder, a broken link)."""
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: splat file not found")
+    problem = file_problem(path)
+    if problem is not None:  # "file not found", "a folder, not a file", a broken link
+        raise FileNotFoundError(f"{path}: splat file: {problem}")
     raw = path.read_bytes()
     end = raw.find(b"end_header\n")
     if not raw.startswith(b"ply\n") or end < 0:

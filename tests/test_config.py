@@ -65,6 +65,11 @@ def test_empty_file_is_the_defaults(tmp_path):
     ({"surface": {"playback": "bounce"}}, ["surface.playback"]),
     ({"run": {"steps": 0}}, ["run.steps"]),
     ({"name": "a/b"}, ["name"]),
+    ({"name": ".."}, ["name", "not '.' or '..'"]),  # run.output "out/{name}" would be the folder above
+    ({"name": "."}, ["name"]),
+    ({"name": "a\tb"}, ["name", "control characters"]),
+    ({"gaussians": {"splats": "."}}, ["gaussians.splats", "a folder, not a file"]),
+    ({"gaussians": {"splats": "none.ply"}}, ["gaussians.splats", "file not found"]),
 ])
 def test_bad_values_name_the_key_path(tmp_path, data, must_contain):
     path = write_yaml(tmp_path, data)

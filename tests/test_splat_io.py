@@ -119,5 +119,7 @@ def test_missing_property_named(tmp_path):
     dt = np.dtype([(n, "<f4") for n in ["x", "y", "z", "opacity"]])
     with pytest.raises(SplatPlyError, match="missing properties"):
         SplatCloud(np.zeros(2, dt))
-    with pytest.raises(FileNotFoundError):
+    with pytest.raises(FileNotFoundError, match="file not found"):
         read_splat_ply(tmp_path / "nope.ply")
+    with pytest.raises(FileNotFoundError, match="a folder, not a file"):  # said "file not found" before
+        read_splat_ply(tmp_path)
