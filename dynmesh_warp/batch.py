@@ -769,7 +769,8 @@ def build_batched_world(cfg, device=None, num_envs: int | None = None, sequence=
     surface, spheres and physics; ``envs:`` (or ``num_envs``) the count and clocks. ``cfg``: a
     SceneConfig, a scene YAML's path or a dict of its sections."""
     from .config import SceneError, scene_config
-    from .scene import build_model, load_surface, prepare_surface, require_fixed_topology
+    from .scene import (build_model, load_surface, prepare_surface, refuse_starts_inside, require_fixed_topology,
+                        sphere_entries)
 
     cfg = scene_config(cfg)
     if num_envs is not None and (isinstance(num_envs, bool) or int(num_envs) != num_envs):
@@ -794,5 +795,7 @@ def build_batched_world(cfg, device=None, num_envs: int | None = None, sequence=
     pos = state.sphere_pos.numpy()
     if np.any(times != 0.0) and seq.num_frames > 1:
         pos = _spheres_for_env_starts(cfg, seq, model.surface.playback, times, pos)
+    else:  # every env starts on frame 0: the single world's check (it was skipped here: spheres fell out)
+        refuse_starts_inside(*seq.frame(0), sphere_entries(cfg))
     bs = BatchState(bm, pos, vel, times=times, rates=rates)
     return BatchedWorld(bm, bs, max_rate=float(max(envs.rate[1], 1e-9)))

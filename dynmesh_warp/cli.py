@@ -29,7 +29,6 @@ import sys
 import threading
 import time
 import warnings
-from pathlib import Path
 
 __all__ = ["Parser", "quiet_warp", "Interrupted", "interruptible_main", "checking_stops", "raising_stops",
            "stop_requested", "stop_reason", "stop_signal", "signal_name", "STOP_SIGNALS"]
@@ -361,29 +360,6 @@ def interruptible_main(fn):
                 return 1
 
     return main
-
-
-def scene_source(scene) -> dict:
-    """``load_scene_config``'s arguments for the positional ``scene``: a YAML file as it is; a
-    mesh sequence (a folder, or a file that is not YAML but a sequence or mesh) becomes a scene
-    of its own, the schema's defaults around it (five 5 cm spheres dropped on frame 0), with a
-    note saying how to change it (docs/scene.md). ``run`` and ``render`` take their scene so."""
-    from .animation_formats import ANIMATION_EXTENSIONS, VERTEX_ONLY_EXTENSIONS
-    from .mesh_formats import MESH_EXTENSIONS
-
-    if scene is None:
-        return {"path": None}
-    path = Path(scene).expanduser()
-    suffix = path.suffix.lower()
-    if path.is_dir() or (path.is_file() and suffix not in (".yaml", ".yml")
-                         and (suffix in VERTEX_ONLY_EXTENSIONS or suffix in ANIMATION_EXTENSIONS
-                              or suffix in MESH_EXTENSIONS)):
-        print(f"note: {scene} is a mesh sequence, not a scene file: playing it with 5 spheres dropped on it "
-              "(up axis auto: y for glTF, else z; other data: --set surface.up_axis=y or z; more in a scene YAML, "
-              "docs/scene.md)", file=sys.stderr)
-        return {"path": None, "data": {"name": path.resolve().stem or "sequence",
-                                       "surface": {"source": str(path.resolve())}}}
-    return {"path": path}
 
 
 #: the command lines, ``python -m dynmesh_warp.<name>`` (README.md)

@@ -37,7 +37,7 @@ from .choices import (
     SweptSearch,
     UpAxis,
 )
-from .mesh_formats import file_problem
+from .mesh_formats import MESH_EXTENSIONS, file_problem
 from .sequence import FPS_RANGE
 
 __all__ = ["SceneConfig", "SceneError", "load_scene_config", "scene_config", "apply_overrides", "DEFAULT_SCENE",
@@ -222,6 +222,14 @@ class RunConfig(_Strict):
             raise ValueError("must be a non-empty folder path")
         return v
 
+    @model_validator(mode="after")
+    def _one_length(self):
+        # both given: steps won without a word (the CLI refuses --duration with --steps)
+        if {"duration", "steps"} <= self.model_fields_set and self.duration is not None and self.steps is not None:
+            raise ValueError(f"give the run's length once: run.duration ({self.duration:g} s) or run.steps "
+                             f"({self.steps}), not both (null the other)")
+        return self
+
 
 class GaussiansConfig(_Strict):
     """Rendering Gaussians bound to the surface (see docs/rendering.md)."""
@@ -248,6 +256,14 @@ class NewtonBodyConfig(_Strict):
     floating: bool = True  # free base (False: fixed to the world)
     options: dict = Field(default_factory=dict)  # more keyword arguments of add_mjcf / add_urdf / add_usd
     label: Optional[str] = None
+
+    @field_validator("rotation")
+    @classmethod
+    def _unit_quaternion(cls, q):
+        n = math.sqrt(sum(float(x) * float(x) for x in q))
+        if not math.isfinite(n) or n < 1e-6:  # [0, 0, 0, 0] ran as the identity, unsaid
+            raise ValueError(f"must be a rotation quaternion (x, y, z, w) of length 1, got {list(q)}")
+        return tuple(float(x) / n for x in q)
 
     @model_validator(mode="after")
     def _fields_for_type(self):
@@ -293,6 +309,25 @@ class EnvsConfig(_Strict):
         if not (0.0 <= lo <= hi):
             raise ValueError(f"must be [lo, hi] with 0 <= lo <= hi, got {list(v)}")
         return v
+
+    @field_validator("time_offset")
+    @classmethod
+    def _offset_ok(cls, v):
+        if v != "random" and not (math.isfinite(v) and v >= 0.0):  # -5 started every clock at -5 s
+            raise ValueError(f"must be 'random' or a start time >= 0 [s], got {v!r}")
+        return v
+
+    @model_validator(mode="after")
+    def _batched_only(self):
+        # count 1 runs the single world, which has one clock at 0 and rate 1: said, not dropped
+        set_here = sorted(self.model_fields_set & {"time_offset", "rate"})
+        if self.count == 1 and set_here and (self.time_offset != "random" and self.time_offset != 0.0
+                                              or self.rate != (1.0, 1.0)):
+            import warnings
+
+            warnings.warn(f"envs.{', envs.'.join(set_here)}: only for batched envs (envs.count > 1, run --envs N); "
+                          "with envs.count 1 the single world runs from t = 0 at rate 1", UserWarning, stacklevel=2)
+        return self
 
 
 class SceneConfig(_Strict):
@@ -519,10 +554,53 @@ def scene_config(scene, default=None) -> SceneConfig:
                     f"sections, got {type(scene).__name__}")
 
 
+def is_sequence_path(path) -> bool:
+    """Whether ``path`` names a mesh sequence rather than a scene YAML: a folder, or a file (not
+    .yaml / .yml) with an extension a sequence or mesh reader takes (docs/data.md)."""
+    from .animation_formats import ANIMATION_EXTENSIONS, VERTEX_ONLY_EXTENSIONS
+
+    path = Path(path).expanduser()
+    suffix = path.suffix.lower()
+    return path.is_dir() or (path.is_file() and suffix not in (".yaml", ".yml")
+                             and (suffix in VERTEX_ONLY_EXTENSIONS or suffix in ANIMATION_EXTENSIONS
+                                  or suffix in MESH_EXTENSIONS))
+
+
+def sequence_scene(path) -> dict:
+    """The scene of a mesh sequence on its own (:func:`is_sequence_path`): the schema's defaults
+    around it (five 5 cm spheres dropped on frame 0), named after it."""
+    path = Path(path).expanduser().resolve()
+    return {"name": path.stem or "sequence", "surface": {"source": str(path)}}
+
+
+def scene_source(scene) -> dict:
+    """``load_scene_config``'s arguments for the CLIs' positional ``scene`` (``run``, ``render``):
+    a YAML file as it is; a mesh sequence (:func:`is_sequence_path`) becomes a scene of its own
+    (:func:`sequence_scene`: five 5 cm spheres dropped on frame 0), with a note on stderr saying
+    how to change it (docs/scene.md)."""
+    import sys
+
+    if scene is None:
+        return {"path": None}
+    path = Path(scene).expanduser()
+    if is_sequence_path(path):
+        print(f"note: {scene} is a mesh sequence, not a scene file: playing it with 5 spheres dropped on it "
+              "(up axis auto: y for glTF, else z; other data: --set surface.up_axis=y or z; more in a scene YAML, "
+              "docs/scene.md)", file=sys.stderr)
+        return {"path": None, "data": sequence_scene(path)}
+    return {"path": path}
+
+
 def load_scene_config(path: str | Path | None = None, data: dict | None = None, overrides=None) -> SceneConfig:
     """Read and validate a scene YAML file (or a dict); ``None`` gives the built-in default scene.
-    ``overrides``: ``"key.path=value"`` strings applied before validation (:func:`apply_overrides`,
-    the CLI's ``--set``)."""
+    A mesh sequence's path (a folder of frames, an .npz, .anime, .glb, ...: :func:`is_sequence_path`)
+    gives the scene of that sequence on its own, as ``run`` plays it (:func:`sequence_scene`).
+    ``overrides``: ``"key.path=value"`` strings (or one such string) applied before validation
+    (:func:`apply_overrides`, the CLI's ``--set``)."""
+    if isinstance(overrides, str):  # one override: it was iterated character by character
+        overrides = [overrides]
+    if path is not None and data is None and is_sequence_path(path):  # as the CLI (it read an npz as YAML)
+        path, data = None, sequence_scene(path)
     if path is None:
         raw = dict(DEFAULT_SCENE if data is None else data)
         origin, base = "<default scene>" if data is None else "<scene dict>", None

@@ -64,7 +64,8 @@ import warp as wp
 from .choices import DEFAULT_STRATEGY, STRATEGIES
 from .conversion_options import options_for
 from .deform_graph import GraphFitter, build_deformation_graph, extrapolate_rotations
-from .geometry import distinct_faces, face_areas, mesh_orientation, signed_volume, surface_area, weld_vertices
+from .geometry import (distinct_faces, face_areas, mesh_orientation, signed_volume, surface_area, weld_vertices,
+                       winding_numbers)
 from .kernels import convert as kc
 from .kernels.geometry import project_points_to_mesh
 from .metrics import chamfer_distance
@@ -371,22 +372,6 @@ def web_fraction(X: np.ndarray, F: np.ndarray, X_key: np.ndarray, V_ref: np.ndar
         inside[far] = np.abs(winding_numbers(V_ref, F_ref, cen[far])) > 0.5  # either winding
     web, buried = (float(area[cand][far & ~inside].sum() / total), float(area[cand][far & inside].sum() / total))
     return (web, buried) if with_buried else web
-
-
-def winding_numbers(V: np.ndarray, F: np.ndarray, P: np.ndarray) -> np.ndarray:
-    """(Q,) the winding number of the triangle mesh (V, F) around each point of P (Q, 3): the
-    solid angles of its faces seen from the point over 4 pi (Van Oosterom and Strackee's formula),
-    about 1 inside a closed surface wound outward and 0 outside. O(Q x faces) on the host."""
-    tri = np.asarray(V, np.float64)[np.asarray(F).reshape(-1, 3)]
-    out = np.empty(len(P))
-    for i, p in enumerate(np.asarray(P, np.float64)):
-        a, b, c = (tri[:, k] - p for k in range(3))
-        la, lb, lc = (np.linalg.norm(x, axis=1) for x in (a, b, c))
-        num = np.einsum("ij,ij->i", a, np.cross(b, c))
-        den = la * lb * lc + np.einsum("ij,ij->i", a, b) * lc + np.einsum("ij,ij->i", b, c) * la \
-            + np.einsum("ij,ij->i", c, a) * lb
-        out[i] = 2.0 * np.arctan2(num, den).sum() / (4.0 * np.pi)
-    return out
 
 
 def _longest_edges(V, F) -> np.ndarray:

@@ -118,11 +118,12 @@ class RideSurfaceEnv(VectorEnv):
                 raise ValueError(f"{name} must be a finite {'non-negative' if name == 'push' else 'positive'} number, "
                                  f"got {value!r}")
         from .config import scene_config
-        from .scene import build_model, load_surface
+        from .scene import build_model, load_surface, require_fixed_topology
 
         cfg = scene_config(scene, default={"surface": {"source": "builtin:pulsing_blob"}})
         cfg = cfg.model_copy(update={"spheres": []})
-        seq = load_surface(cfg)
+        # a varying-topology scene raised AttributeError ('no attribute V') here (a new user's)
+        seq = require_fixed_topology(cfg, load_surface(cfg), "the RideSurface envs need")
         self._cfg, self._seq = cfg, seq
         self._camera_state = None  # (key, Gaussians, Renderer, camera) of render_images
         model, _ = build_model(cfg, seq, device)

@@ -40,6 +40,23 @@ def signed_volume(V, F) -> float:
     return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
 
 
+def winding_numbers(V, F, P) -> np.ndarray:
+    """(Q,) the generalised winding number of the triangle mesh (V, F) around each point of P
+    (Q, 3): the solid angles of its faces seen from the point over 4 pi (Van Oosterom and
+    Strackee's formula), about +1 inside a closed surface wound outward, -1 wound inward, 0
+    outside. float64, O(Q x faces) on the host."""
+    tri = np.asarray(V, np.float64)[np.asarray(F).reshape(-1, 3)]
+    out = np.empty(len(P))
+    for i, p in enumerate(np.asarray(P, np.float64).reshape(-1, 3)):
+        a, b, c = (tri[:, k] - p for k in range(3))
+        la, lb, lc = (np.linalg.norm(x, axis=1) for x in (a, b, c))
+        num = np.einsum("ij,ij->i", a, np.cross(b, c))
+        den = la * lb * lc + np.einsum("ij,ij->i", a, b) * lc + np.einsum("ij,ij->i", b, c) * la \
+            + np.einsum("ij,ij->i", c, a) * lb
+        out[i] = 2.0 * np.arctan2(num, den).sum() / (4.0 * np.pi)
+    return out
+
+
 def orient_outward(V, F) -> np.ndarray:
     """``F``, with every face flipped when the signed volume is negative (a closed mesh whose
     triangles face inward); the same rule as :func:`mesh_orientation`."""

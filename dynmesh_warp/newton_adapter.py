@@ -568,12 +568,14 @@ def build_newton_world(cfg, device=None, sequence=None, num_worlds: int = 1, **o
     kw = dict(dt=p.dt, substeps=p.substeps, solver=cfg.newton.solver, solver_options=dict(cfg.newton.solver_options),
               gravity=p.gravity, mu=mu, restitution=p.restitution)
     kw.update(overrides)
+    where = f"{cfg.source_file}: " if cfg.source_file else ""  # the scene file, as the schema's errors name it
+    solver = getattr(cfg.newton.solver, "value", cfg.newton.solver)
     try:
         world = NewtonWorld(surface, builder, **kw)
     except ImportError as e:  # e.g. the mujoco solver without mujoco_warp installed
-        raise SceneError(f"newton.solver {getattr(cfg.newton.solver, 'value', cfg.newton.solver)!r}: {e}") from e
+        raise SceneError(f"{where}newton.solver {solver!r}: {e}") from e
     except TypeError as e:  # a constructor argument the solver does not take
-        raise SceneError(f"newton.solver_options: {e}") from e
+        raise SceneError(f"{where}newton.solver_options: {e}") from e
     world.records = records  # the bodies of world 0 (world w's are offset by w x its body count)
     world.num_envs = int(num_worlds)
     return world

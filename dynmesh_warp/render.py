@@ -646,8 +646,7 @@ def _main(argv=None) -> int:
                            ("fps", 0 < a.fps < float("inf"), "a positive, finite frame rate")):
         if not ok:  # one line naming the option and its value (it listed all five for any of them)
             p.error(f"--{name} must be {need}, got {getattr(a, name)}")
-    from .cli import scene_source
-    from .config import SceneError, load_scene_config
+    from .config import SceneError, load_scene_config, scene_source
     from .gaussians import gaussians_for_surface
     from .scene import build_world
 

@@ -18,7 +18,8 @@ import warnings
 from pathlib import Path
 
 
-from .cli import interruptible_main, scene_source
+from .cli import interruptible_main
+from .config import scene_source
 from .runtime import (
     NonFiniteStateError,
     check_record_output,

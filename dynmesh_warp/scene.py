@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import warnings
 from pathlib import Path
 
@@ -10,7 +11,7 @@ import numpy as np
 from .choices import Y_UP_FORMATS, Collider, UpAxis, parse
 from .config import PhysicsCore, SceneConfig, SceneError, scene_config, spawn_positions
 from .runtime import scene_device
-from .geometry import mesh_orientation, orient_faces
+from .geometry import mesh_orientation, orient_faces, winding_numbers
 from .mesh_formats import mesh_extension
 from .sequence import FixedTopologySequence, MeshDataError, TopologyMismatchError, VaryingTopologySequence
 from .world import Model, PhysicsParams, SphereModel, State, World, surface_model, surface_model_class
@@ -249,23 +250,26 @@ def prepare_surface(seq, cfg: SceneConfig):
                 raise SceneError(f"surface.conversion.options: {e}") from e
             for line in conversion_summary(seq.conversion):  # a poor fit or a web is said, as convert says it
                 if line.startswith("warning: "):
-                    warnings.warn(f"{where}: surface.conversion: {line[len('warning: '):]}", UserWarning, stacklevel=2)
+                    warnings.warn(f"{where}: surface.conversion: {scene_keys(line[len('warning: '):])}", UserWarning,
+                                  stacklevel=2)
     return seq
 
 
-def winding_numbers(V: np.ndarray, F: np.ndarray, P: np.ndarray) -> np.ndarray:
-    """Generalised winding number of each point of ``P`` (K, 3) about the mesh (V, F): about
-    +-1 inside a closed mesh, 0 outside (solid angles, Van Oosterom & Strackee), float64."""
-    V = np.asarray(V, np.float64)
-    out = np.zeros(len(P))
-    for k, x in enumerate(np.asarray(P, np.float64)):
-        a, b, c = (V[F[:, i]] - x for i in range(3))
-        la, lb, lc = (np.linalg.norm(v, axis=1) for v in (a, b, c))
-        num = np.einsum("ij,ij->i", a, np.cross(b, c))
-        den = (la * lb * lc + np.einsum("ij,ij->i", a, b) * lc + np.einsum("ij,ij->i", b, c) * la
-               + np.einsum("ij,ij->i", c, a) * lb)
-        out[k] = 2.0 * np.arctan2(num, den).sum() / (4.0 * np.pi)
-    return out
+#: convert's command-line flags in its summary, and the scene keys that set the same in a scene's
+#: surface.conversion section (a run's warning said "--key-frame N", which run refuses)
+_CONVERT_FLAGS = ((re.compile(r"--key-frame( N)?"), lambda m: "surface.conversion.options.key_frame" + (
+                      ": N" if m.group(1) else "")),
+                  (re.compile(r"--option ([a-z_]+)=(\S+)"), lambda m: f"surface.conversion.options.{m.group(1)}: "
+                                                                      f"{m.group(2)}"),
+                  (re.compile(r"--strategy ([a-z]+)"), lambda m: f"surface.conversion.strategy: {m.group(1)}"))
+
+
+def scene_keys(line: str) -> str:
+    """A line of ``convert``'s summary with its command-line flags as the scene keys that set the
+    same (for warnings of a scene's own conversion)."""
+    for pattern, repl in _CONVERT_FLAGS:
+        line = pattern.sub(repl, line)
+    return line
 
 
 def refuse_starts_inside(V0, F0, entries, frame: int = 0, closed: bool | None = None) -> None:
@@ -337,6 +341,38 @@ def scene_ground(cfg: SceneConfig, seq) -> float | None:
     return float(seq.bounds()[0][2]) if g == "auto" else (None if g is None else float(g))
 
 
+#: a sphere may start overlapping the ground plane by this fraction of its radius (one placed
+#: resting on it, up to rounding); deeper is refused
+GROUND_OVERLAP = 0.01
+
+
+def refuse_below_ground(cfg: SceneConfig, seq, ground: float | None, pos: np.ndarray, radius: np.ndarray) -> None:
+    """Refuse (:class:`SceneError`) a sphere whose centre starts below ``ground`` + its radius
+    (by more than GROUND_OVERLAP of it): the ground plane would move it up at the first step,
+    without a word, and the run would report no penetration (a new user's physics.ground 0.5
+    lifted a sphere from z 0.2 to 0.55; ground 5, a units slip, lifted every spawned sphere).
+    Warns when the ground lies above the whole surface (every sphere would rest on it)."""
+    if ground is None:
+        return
+    top = float(seq.bounds()[1][2])
+    if ground > top:
+        warnings.warn(f"physics.ground: {ground:.6g} lies above the whole surface (its highest point, any frame: "
+                      f"z = {top:.6g}): the spheres rest on the ground plane and never meet the surface "
+                      "(auto: the surface's lowest point)", UserWarning, stacklevel=3)
+    pos = np.asarray(pos, np.float64).reshape(-1, 3)
+    r = np.asarray(radius, np.float64).reshape(-1)
+    low = np.flatnonzero(pos[:, 2] < ground + (1.0 - GROUND_OVERLAP) * r)
+    if not low.size:
+        return
+    i = int(low[0])
+    label = f"spheres.{i}" if isinstance(cfg.spheres, list) else "spheres (spawned)"
+    raise SceneError(f"{label}: centre z = {pos[i, 2]:.6g} starts below the ground plane (physics.ground = "
+                     f"{cfg.physics.ground!r}, z = {ground:.6g}, plus its radius {r[i]:.4g}): the ground would "
+                     f"push it up to z = {ground + r[i]:.6g} at the first step"
+                     + (f" ({low.size} of {len(pos)} spheres are below it)" if low.size > 1 else "")
+                     + ". Lower physics.ground (auto: the surface's lowest point; null: none) or raise the spheres")
+
+
 def require_fixed_topology(cfg, seq, who: str):
     """``seq`` when it has fixed topology; else a :class:`SceneError` saying that ``who`` (e.g.
     "batched envs need", "the Newton path needs") with its verb needs one, and how to get it: one template
@@ -366,7 +402,9 @@ def build_model(cfg: SceneConfig, seq, device=None) -> tuple[Model, State]:
     p = cfg.physics
     # every field the scene's physics section shares with PhysicsParams (PhysicsCore), so a new
     # setting cannot be validated by the schema and then dropped here
-    params = PhysicsParams(**{k: getattr(p, k) for k in PhysicsCore.model_fields}, ground_height=scene_ground(cfg, seq))
+    ground = scene_ground(cfg, seq)
+    refuse_below_ground(cfg, seq, ground, pos, radius)
+    params = PhysicsParams(**{k: getattr(p, k) for k in PhysicsCore.model_fields}, ground_height=ground)
     model = Model(surface, SphereModel(radius, mass, device), params)
     return model, State(model, pos, vel)
 

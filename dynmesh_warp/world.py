@@ -64,6 +64,7 @@ from .choices import (
     values,
 )
 from .config import PhysicsCore
+from .geometry import mesh_orientation, winding_numbers
 from .sequence import FixedTopologySequence, VaryingTopologySequence
 
 __all__ = [
@@ -85,6 +86,9 @@ __all__ = [
 
 #: playback name -> the integer code the kernels branch on (dynmesh_warp.choices.PLAYBACK_CODES)
 PLAYBACK_MODES = {m.value: code for m, code in PLAYBACK_CODES.items()}
+#: World.add_spheres checks new spheres against the closed surface up to this many sphere-face
+#: pairs (host winding numbers, ~1 s at the budget); beyond it the check is skipped
+WINDING_CHECK_BUDGET = 20_000_000
 
 
 def _step_modules(with_hooks: bool):
@@ -1421,6 +1425,7 @@ class World:
         except ValueError:
             raise ValueError(f"sphere radius: expected one value or one per new sphere ({n}), got shape "
                              f"{np.shape(radius)}") from None
+        self._refuse_inside(positions, first)
         surf, p = self.model.surface, self.model.params
         if n and surf.max_speed > 0 and surf.interpolate and p.auto_substeps and np.all(radius > 0):
             r_min = float(min(radius.min(), self.model.spheres.radius_np.min(initial=np.inf)))
@@ -1438,6 +1443,26 @@ class World:
         # what reset() restores: only once the spheres are in (a refused call changed it, and the
         # next reset() failed on arrays of different sizes; found by a new user)
         self._initial = (np.concatenate([self._initial[0], positions]), np.concatenate([self._initial[1], vel]))
+
+    def _refuse_inside(self, positions: np.ndarray, first: int) -> None:
+        """ValueError when a new sphere's centre lies inside the surface, where it is closed, as
+        it stands now: contacts are one-sided, so the sphere would fall out through it (the rule
+        ``build_world`` applies to a scene's listed spheres). Skipped above WINDING_CHECK_BUDGET
+        sphere-face pairs (the host's winding numbers are O(spheres x faces))."""
+        F = self.current_indices().numpy().reshape(-1, 3)
+        if not len(positions) or len(positions) * len(F) > WINDING_CHECK_BUDGET:
+            return
+        V = self.surface_points().numpy()
+        if mesh_orientation(V, F) not in ("outward", "inward"):
+            return
+        inside = np.flatnonzero(np.abs(winding_numbers(V, F, positions)) > 0.5)
+        if inside.size:
+            i = int(inside[0])
+            raise ValueError(f"sphere {first + i}: position {[round(float(x), 6) for x in positions[i]]} lies inside the "
+                             f"closed surface at t = {self.time:.6g} s; contacts are one-sided, so it would fall out "
+                             f"through it. Add it outside the surface"
+                             + (f" ({inside.size} of the {len(positions)} new spheres are inside)" if inside.size > 1
+                                else ""))
 
     def _set_spheres(self, spheres: SphereModel, pos, vel, stacklevel: int = 3, rederive_substeps: bool = False):
         """Replace the sphere set (model and state arrays, contacts, sub-step rule, collider lists);
@@ -1517,14 +1542,27 @@ class World:
                 "velocity": vel,
                 "surface_gap": np.where(np.isfinite(gap), gap, None).tolist(),
                 "max_penetration": float(max(0.0, -np.min(gap))) if self.model.spheres.count else 0.0,
+                "on_ground": self.ground_count(),  # spheres on the ground plane (None: no ground)
             },
         }
+
+    def ground_count(self) -> int | None:
+        """Spheres touching the ground plane now (centre within its radius + 1 % of it above the
+        ground); None without a ground. The contact counts are the surface's only (a new user's
+        spheres resting on the ground read "0/5 in contact" as flown off)."""
+        g = self.model.params.ground_height
+        if g is None or not self.model.spheres.count:
+            return None if g is None else 0
+        z = self.state.sphere_pos.numpy()[:, 2]
+        return int(np.count_nonzero(z <= g + 1.01 * self.model.spheres.radius_np))
 
     def run_line(self) -> tuple[str, str]:
         """(engine label, result) of the run's log line."""
         s = self.run_summary()
-        return (s["collider"], f"{self.contact_count()}/{s['spheres']} spheres in contact, "
-                f"max penetration {s['final']['max_penetration']:.2e} m")
+        ground = s["final"]["on_ground"]
+        return (s["collider"], f"{self.contact_count()}/{s['spheres']} spheres in contact with the surface"
+                + ("" if ground is None else f", {ground} on the ground plane")
+                + f", max penetration {s['final']['max_penetration']:.2e} m")
 
     # -- convenience ---------------------------------------------------------------------------
     def sphere_positions(self) -> np.ndarray:

@@ -12,7 +12,7 @@ pseudo-normal over faces tied within epsilon), so the contacts equal the refit p
 
 import warp as wp
 
-from .collide import contact_reach, make_contact
+from .collide import contact_reach, keeps_contact, make_contact
 from .frames import blend_pair, frame_pair, store_frame_key
 from .geometry import closest_point_on_triangle
 
@@ -261,7 +261,7 @@ def write_swept_contact(
             side = -1.0
         fn = wp.normalize(wp.cross(b - a, e - a))
         n, depth = make_contact(p, r, c, side, fn)
-        if depth > 0.0 or side > 0.0:
+        if keeps_contact(side, depth, r):
             face = min_face
             if k0 != k1:
                 i0 = indices[3 * min_face + 0]

@@ -490,7 +490,7 @@ def test_a_scene_without_spheres_plays_the_surface(tmp_path, capsys):
     out = tmp_path / "out"
     assert main(["--viewer", "none", "--device", "cpu", "--no-progress", "--steps", "20", "--output", str(out),
                  "--set", "spheres.count=0"]) == 0
-    assert "0/0 spheres in contact" in capsys.readouterr().out
+    assert "0/0 spheres in contact with the surface" in capsys.readouterr().out
     traj = np.load(out / "trajectories.npz")
     assert traj["position"].shape[1:] == (0, 3) and len(traj["time"]) > 1
 
@@ -692,3 +692,115 @@ def test_face_and_vertex_repeat_rules_equal_their_row_wise_reference():
         np.testing.assert_array_equal(W[WF], V[G])  # every face keeps its corners' positions
     V = rng.random((500, 3)).astype(np.float32)
     assert weld_vertices(V, G)[0] is V  # no repeat: the input itself, no row-wise unique
+
+
+# --------------------------------------------------------------------------- a new user's library checks (helpers)
+
+
+def _ball_scene(tmp_path, spheres, **sections):
+    V, F = ico_sequence(T=3, subdiv=2, center=(0.0, 0.0, 0.0), radius=0.3)
+    np.savez(tmp_path / "ball.npz", V=V, F=F, fps=24.0)
+    return scene_yaml(tmp_path, {"surface": {"source": "ball.npz"}, "spheres": spheres, **sections})
+
+
+def test_batched_envs_at_time_zero_refuse_a_sphere_inside_the_closed_surface(tmp_path):
+    """The inside check ran only for envs starting at other times than 0: at time_offset 0 (the
+    refusal's own suggestion) and on a one-frame ball, a sphere inside fell out with no word."""
+    from dynmesh_warp.batch import build_batched_world
+    from dynmesh_warp.config import load_scene_config
+
+    path = _ball_scene(tmp_path, [{"position": [0.0, 0.0, 0.0], "radius": 0.05}],
+                       envs={"count": 2, "time_offset": 0})
+    with pytest.raises(SceneError, match=r"spheres\.0.*starts inside the closed surface"):
+        build_batched_world(load_scene_config(path), device="cpu")
+
+
+def test_ride_surface_env_names_a_varying_topology_scene(tmp_path):
+    """It raised AttributeError ('VaryingTopologySequence' object has no attribute 'V')."""
+    from dynmesh_warp.envs import RideSurfaceEnv
+
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for t, sub in enumerate((1, 2)):
+        m = trimesh.creation.icosphere(subdivisions=sub, radius=0.3)
+        m.export(folder / f"frame_{t:03d}.ply")
+    path = scene_yaml(tmp_path, {"surface": {"source": "frames"}})
+    with pytest.raises(SceneError, match="RideSurface envs need a fixed-topology surface"):
+        RideSurfaceEnv(num_envs=2, scene=str(path), device="cpu")
+
+
+def test_spheres_below_the_ground_plane_are_refused_and_a_ground_above_the_surface_is_said(tmp_path):
+    """physics.ground above a sphere moved it up at the first step, unsaid, and the run reported
+    no penetration (a new user's ground 0.5 lifted a sphere from z 0.2 to 0.55)."""
+    from dynmesh_warp.config import load_scene_config
+
+    path = _ball_scene(tmp_path, [{"position": [0.0, 0.0, 0.5], "radius": 0.05}, {"position": [0.6, 0, 0.2],
+                                                                                     "radius": 0.05}],
+                       physics={"ground": 0.3})
+    with pytest.raises(SceneError, match=r"spheres\.1: centre z = 0\.2 starts below the ground plane"):
+        build_world(load_scene_config(path), device="cpu")
+    spawned = _ball_scene(tmp_path, {"count": 3, "radius": 0.05}, physics={"ground": 5.0})
+    with pytest.raises(SceneError, match=r"spheres \(spawned\).*below the ground plane.*\(3 of 3"):
+        build_world(load_scene_config(spawned), device="cpu")
+    # resting exactly on it is fine; a ground over the whole surface is said
+    ok = _ball_scene(tmp_path, [{"position": [0.0, 0.0, 0.5], "radius": 0.05}], physics={"ground": 0.45})
+    with pytest.warns(UserWarning, match="lies above the whole surface"):
+        w = build_world(load_scene_config(ok), device="cpu")
+    w.step()
+    assert w.ground_count() == 1 and "1 on the ground plane" in w.run_line()[1]
+
+
+def test_load_scene_config_takes_a_sequence_and_one_override_string(tmp_path):
+    """The library read an npz as YAML ('utf-8' codec can't decode ...), where run plays it; a
+    string of overrides was iterated character by character."""
+    from dynmesh_warp.config import load_scene_config
+
+    V, F = ico_sequence()
+    np.savez(tmp_path / "blob.npz", V=V, F=F, fps=24.0)
+    cfg = load_scene_config(tmp_path / "blob.npz", overrides="physics.dt=0.002")
+    assert cfg.name == "blob" and Path(cfg.surface.source) == (tmp_path / "blob.npz").resolve()
+    assert cfg.physics.dt == 0.002 and cfg.spheres.count == 5
+
+
+@pytest.mark.parametrize("sections, match", [
+    ({"run": {"duration": 1.0, "steps": 10}}, "give the run's length once"),
+    ({"envs": {"count": 2, "time_offset": -5}}, r"envs\.time_offset.*>= 0"),
+    ({"newton": {"bodies": [{"type": "box", "half_extents": [0.1, 0.1, 0.1], "rotation": [0, 0, 0, 0]}]}},
+     "rotation quaternion"),
+])
+def test_contradictory_or_meaningless_settings_are_refused(tmp_path, sections, match):
+    from dynmesh_warp.config import load_scene_config
+
+    with pytest.raises(SceneError, match=match):
+        load_scene_config(scene_yaml(tmp_path, sections))
+
+
+def test_env_clock_settings_without_batched_envs_are_said(tmp_path):
+    from dynmesh_warp.config import load_scene_config
+
+    with pytest.warns(UserWarning, match=r"envs\.rate, envs\.time_offset: only for batched envs"):
+        load_scene_config(scene_yaml(tmp_path, {"envs": {"time_offset": 0.3, "rate": [2, 2]}}))
+
+
+def test_add_spheres_refuses_a_sphere_inside_the_closed_surface(tmp_path):
+    """build_world refused a listed sphere inside a closed surface, World.add_spheres took it
+    (after 1 s it had fallen out to z = -5)."""
+    from dynmesh_warp.config import load_scene_config
+
+    w = build_world(load_scene_config(_ball_scene(tmp_path, [{"position": [0.0, 0.0, 1.0], "radius": 0.05}])),
+                    device="cpu")
+    with pytest.raises(ValueError, match=r"sphere 2: position \[0\.0, 0\.0, 0\.0\] lies inside the closed surface"):
+        w.add_spheres([[0.0, 0.0, 1.5], [0.0, 0.0, 0.0]], 0.05)
+    assert w.model.spheres.count == 1
+    w.add_spheres([[0.0, 0.0, 1.5]], 0.05)
+    assert w.model.spheres.count == 2
+
+
+def test_a_scene_conversion_warning_names_scene_keys_not_convert_flags():
+    from dynmesh_warp.scene import scene_keys
+
+    line = scene_keys("a key frame among those frames (--key-frame N) may follow them better; --option "
+                      "far_part_area=0.05 leaves such parts out; try --strategy graph")
+    assert "--" not in line
+    assert "surface.conversion.options.key_frame: N" in line and "surface.conversion.strategy: graph" in line
+    assert "surface.conversion.options.far_part_area: 0.05" in line

@@ -682,3 +682,24 @@ def test_a_built_world_refuses_new_physics_parameters_and_a_non_finite_time():
         with pytest.raises(ValueError, match="set_time: the time must be a finite number of seconds"):
             w.set_time(bad)
     assert np.isfinite(w.time)
+
+
+@pytest.mark.parametrize("collider", COLLIDERS)
+def test_a_sphere_entirely_behind_the_surface_has_no_contact(collider):
+    """docs/physics.md: a centre behind the surface but within r is pushed out to the front; a
+    sphere entirely behind it has no contact. The kernels kept every sphere behind within the
+    query's reach (``depth > 0 or side > 0``: depth = r + dist behind), so a sphere 7 cm under a
+    sheet falling away at 20 m/s was moved through it to the front and bounced (a new user's
+    closed-form check). Free flight (semi-implicit Euler) against the integrator's own formula;
+    a centre 2 cm behind (within r) is still pushed out to the front."""
+    seq = moving_sheet((0.0, 0.0, 0.0), 3)
+    r = 0.05
+    w = make_world(seq, [[0.3, 0.2, -0.12], [-0.4, 0.1, -0.06], [0.1, -0.3, -0.02]], radius=r, collider=collider,
+                   velocities=[[0.0, 0.0, -20.0], [0.0, 0.0, -3.0], [0.0, 0.0, 0.0]], restitution=0.3)
+    _, ps, vs = run(w, 3)
+    for i, (z0, vz0) in enumerate(((-0.12, -20.0), (-0.06, -3.0))):
+        v = vz0 - G * DT * np.arange(1, 4)
+        z = z0 + np.cumsum(v) * DT
+        np.testing.assert_allclose(ps[:, i, 2], z, atol=1e-5, err_msg=f"sphere {i} (behind by {-z0 - r:.2f} m)")
+        np.testing.assert_allclose(vs[:, i, 2], v, atol=1e-4)
+    assert ps[0, 2, 2] > 0.0, "a centre within r behind the surface is pushed out to the front"
