@@ -61,7 +61,7 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
-from .choices import DEFAULT_STRATEGY, STRATEGIES
+from .choices import DEFAULT_FRAME_ORDER, DEFAULT_STRATEGY, STRATEGIES, FrameOrder, values
 from .conversion_options import options_for
 from .deform_graph import GraphFitter, build_deformation_graph, extrapolate_rotations
 from .geometry import (distinct_faces, face_areas, mesh_orientation, signed_volume, surface_area, weld_vertices,
@@ -950,7 +950,17 @@ def _scale_checked():
         yield
 
 
-def _check_scales(seq: VaryingTopologySequence, tol: float):
+#: a frame whose size (the square root of its surface area) is over this factor from both of its
+#: neighbours' (geometric mean), where they agree within NEIGHBOUR_AGREE, is warned of (other units)
+NEIGHBOUR_SCALE = 1.5
+NEIGHBOUR_AGREE = 1.15
+
+
+def _check_scales(seq: VaryingTopologySequence, tol: float) -> tuple:
+    """Warn of frames whose bounding-box diagonal is over ``tol`` x or under 1 / ``tol`` x the
+    median frame's (other units, a broken frame); returns them (never a key frame: a template
+    from a frame in millimetres among metres crumpled every output frame, and its trial still won
+    the ranking, a new user's)."""
     diags = np.array([_bbox_diag(v) for v, _ in seq.frames])
     med = float(np.median(diags))
     if med <= 0:
@@ -963,10 +973,47 @@ def _check_scales(seq: VaryingTopologySequence, tol: float):
         warnings.warn(
             f"{seq.source or seq.name}: frames of very different scale: bounding-box diagonal vs the "
             f"median {med:.4g} in frame(s) {show}{more}; converted vertices will be pulled across "
-            "the gap (mixed units or a broken frame?)", UserWarning, stacklevel=3)
+            "the gap (mixed units or a broken frame?); they are not taken as the key frame", UserWarning, stacklevel=3)
+    # a lone frame in other units within tol (inches among cm, 2.54x; feet among metres, 3.28x):
+    # its size (the square root of its area, which a floater or a lost limb changes little) against
+    # both neighbours, which agree with each other (a new user's frame x2.54 was blamed on the fit)
+    size = np.sqrt(_frame_areas(seq))
+    lone = []
+    for t in range(1, len(size) - 1):
+        p, n = size[t - 1], size[t + 1]
+        if t in bad or min(p, n) <= 0 or max(p, n) > NEIGHBOUR_AGREE * min(p, n):
+            continue
+        r = size[t] / np.sqrt(p * n)
+        if r > NEIGHBOUR_SCALE or r < 1.0 / NEIGHBOUR_SCALE:
+            lone.append((t, r))
+    if lone:
+        show = ", ".join(f"{t} (x{r:.3g})" for t, r in lone[:10])
+        warnings.warn(f"{seq.source or seq.name}: frame(s) {show} differ in size from both neighbours (the square "
+                      f"root of the surface area, against frames t - 1 and t + 1, which agree): other units or a "
+                      "broken frame? They are not taken as the key frame", UserWarning, stacklevel=3)
+    return tuple(sorted({int(t) for t in bad} | {t for t, _ in lone}))
 
 
-def _key_frame(seq: VaryingTopologySequence, key, has_template: bool) -> int:
+def _check_repeats(seq: VaryingTopologySequence) -> None:
+    """Warn of frames that repeat the frame before them exactly (the same vertices and faces: a
+    stalled or duplicated capture) in a reconstruction (not every frame of one topology: an
+    animated mesh may pause, holding frames exactly): the surface stands still for a frame and then moves twice as
+    far, which the physics feels as a jump in surface velocity (a new user's duplicated frame 13
+    showed only as a 10x motion in the summary)."""
+    F0 = seq.frames[0][1]
+    if all(f.shape == F0.shape and np.array_equal(f, F0) for _, f in seq.frames[1:]):
+        return  # one topology: an animated mesh may hold still for frames (a pause); a reconstruction cannot
+    rep = [t for t in range(1, seq.num_frames)
+           if seq.frames[t][0].shape == seq.frames[t - 1][0].shape and seq.frames[t][1].shape == seq.frames[t - 1][1].shape
+           and np.array_equal(seq.frames[t][0], seq.frames[t - 1][0]) and np.array_equal(seq.frames[t][1], seq.frames[t - 1][1])]
+    if rep and len(rep) < seq.num_frames - 1:  # a capture that never moves is not a repeat
+        show = ", ".join(map(str, rep[:10])) + (f" and {len(rep) - 10} more" if len(rep) > 10 else "")
+        warnings.warn(f"{seq.source or seq.name}: frame(s) {show} repeat the frame before them exactly (a stalled "
+                      "or duplicated capture?): the surface stands still there and then moves twice as far",
+                      UserWarning, stacklevel=3)
+
+
+def _key_frame(seq: VaryingTopologySequence, key, has_template: bool, off_scale=()) -> int:
     """The frame the template comes from (or is matched to). "auto": frame 0 with a given
     template; otherwise the frame of largest surface area (median over 3 consecutive frames
     against single-frame noise): limbs held apart, not fused by the reconstruction. A fixed
@@ -974,7 +1021,7 @@ def _key_frame(seq: VaryingTopologySequence, key, has_template: bool) -> int:
     starts where the parts are most separate. Where most frames are closed, a frame with a hole
     is not taken; nor a frame more than ``KEY_AREA_TOLERANCE`` below its window's median area
     (a coarser remesh); and a frame of about the same area with ``KEY_FINER`` x the vertices or
-    more is preferred."""
+    more is preferred. Never one of ``off_scale`` (:func:`_check_scales`)."""
     T = seq.num_frames
     if key is None or (isinstance(key, str) and key == "auto"):
         if has_template or T < 3:
@@ -993,6 +1040,8 @@ def _key_frame(seq: VaryingTopologySequence, key, has_template: bool) -> int:
         needed = [name for name in checks if 2 * sum(seen[name].values()) >= len(sample)]
 
         def ok(u):
+            if u in off_scale:
+                return False
             for name in needed:
                 if u not in seen[name]:
                     seen[name][u] = checks[name](u)
@@ -1001,7 +1050,8 @@ def _key_frame(seq: VaryingTopologySequence, key, has_template: bool) -> int:
             return True
 
         order = np.argsort(-med, kind="stable")
-        t = next((int(u) for u in order if ok(u)), int(order[0]))
+        t = next((int(u) for u in order if ok(u)),
+                 next((int(u) for u in order if int(u) not in off_scale), int(order[0])))
         tol = KEY_AREA_TOLERANCE
         window = [u for u in range(max(0, t - 1), min(T, t + 2)) if ok(u)]
         if a[t] < (1.0 - tol) * med[t]:
@@ -1498,7 +1548,10 @@ def _to_fixed_run(vseq, seq, strategy, template, device, progress, should_stop, 
         validate_mesh(v, f, src, t)
     vseq, unused, welded, turned = _drop_unused(vseq)
     T = vseq.num_frames
-    K = _key_frame(vseq, o["key_frame"], template is not None)
+    device = wp.get_device(device)
+    off_scale = _check_scales(vseq, float(o["scale_tolerance"]))
+    _check_repeats(vseq)
+    K = _key_frame(vseq, o["key_frame"], template is not None, off_scale)
     given = template is not None
     if given:
         if isinstance(template, (str, bytes)) or hasattr(template, "__fspath__"):
@@ -1510,8 +1563,6 @@ def _to_fixed_run(vseq, seq, strategy, template, device, progress, should_stop, 
         except (TypeError, ValueError):
             raise MeshDataError("template: expected a (V, F) pair or a mesh file path") from None
         template = validate_mesh(tv, tf, "template")
-    device = wp.get_device(device)
-    _check_scales(vseq, float(o["scale_tolerance"]))
     # the topology report is host work that does not steer the conversion: a worker thread does
     # it while the main thread waits on the device (NumPy and SciPy release the GIL in its sorts)
     from concurrent.futures import ThreadPoolExecutor
@@ -1520,7 +1571,7 @@ def _to_fixed_run(vseq, seq, strategy, template, device, progress, should_stop, 
     try:
         topology = pool.submit(_topology_events, vseq)
         res = _convert_from_key(vseq, strategy, o, K, template, device, progress, should_stop, where, stop_forward)
-        trials = _key_candidates(vseq, o, K, given, res)
+        trials = _key_candidates(vseq, o, K, given, res, off_scale=off_scale)
         part, moving = res.conversion.moving_part, None
         if trials and part is not None:
             # with static surroundings the Chamfer distance is mostly theirs: the moving points
@@ -1529,7 +1580,7 @@ def _to_fixed_run(vseq, seq, strategy, template, device, progress, should_stop, 
             moving = _moving_points(vseq, device)
             if sum(len(m) > 0 for m in moving) < MOVING_FRAMES * T:
                 part = moving = None
-                trials = _key_candidates(vseq, o, K, given, res, moving_part=None)
+                trials = _key_candidates(vseq, o, K, given, res, moving_part=None, off_scale=off_scale)
         if trials:
             if progress:  # the run goes on: say why
                 why = _key_retry_reason(res.conversion.coverage, K, part) or "always_try_keys"
@@ -2055,7 +2106,7 @@ def _moving_score_of(distances: list) -> float:
     return _tail_mean(np.concatenate(distances), MOVING_SCORE_TAIL)
 
 
-def _key_candidates(vseq, o: dict, K: int, given: bool, res, moving_part=...) -> list:
+def _key_candidates(vseq, o: dict, K: int, given: bool, res, moving_part=..., off_scale=()) -> list:
     """The key frames to try after the run from the automatic key frame ``K`` (``res``): when
     that run is complete, :func:`_key_retry_reason` finds it worth retrying (or always, with
     ``always_try_keys``) and the key frame was not chosen by the user, :func:`_candidate_keys`.
@@ -2067,13 +2118,18 @@ def _key_candidates(vseq, o: dict, K: int, given: bool, res, moving_part=...) ->
     if (given or o["key_frame"] not in ("auto", None) or T < 3 or len(info.coverage) < T
             or (_key_retry_reason(info.coverage, K, part) is None and not o.get("always_try_keys"))):
         return []
-    return _candidate_keys(T, int(o.get("key_candidates", 0) or 0), K)
+    return _candidate_keys(T, int(o.get("key_candidates", 0) or 0), K, off_scale)
 
 
-def _candidate_keys(T: int, n: int, K: int) -> list:
+def _candidate_keys(T: int, n: int, K: int, off_scale=()) -> list:
     """The ``n`` key frames the trials try besides ``K`` in T frames: spread evenly (frame
-    T (i + 1/2) / n), K and repeats left out."""
+    T (i + 1/2) / n), each of ``off_scale`` moved to the nearest frame that is not, K and repeats
+    left out."""
+    allowed = np.setdiff1d(np.arange(T), np.asarray(off_scale, int))
+    if not allowed.size:
+        return []
     keys = [min(T - 1, int(T * (i + 0.5) / n)) for i in range(max(n, 0))]
+    keys = [int(allowed[np.argmin(np.abs(allowed - k))]) for k in keys]
     return [k for i, k in enumerate(keys) if k != K and k not in keys[:i]]
 
 
@@ -2672,6 +2728,10 @@ def main(argv=None) -> int:
                         "(the graph strategy's fast settings; docs/conversion.md lists the options)")
     p.add_argument("--fmt", default=None, choices=["ply", "obj"], help="per-frame format for a folder output (default ply)")
     p.add_argument("--fps", type=float, default=None, help="override the input frame rate")
+    p.add_argument("--frame-order", choices=values(FrameOrder), default=DEFAULT_FRAME_ORDER.value,
+                   help="an npz input's frames: text_sorted undoes a text sort (1, 10, 11, ..., 2, ...; "
+                        "numbering from 1 for a varying-topology npz); auto: where detected (fixed topology "
+                        "only); docs/data.md")
     p.add_argument("--overwrite", action="store_true",
                    help="replace an existing output (in a folder: only files this tool wrote; others are kept)")
     a = p.parse_args(argv)
@@ -2776,7 +2836,7 @@ def main(argv=None) -> int:
             a.fmt = a.fmt or "ply"
             check_output(a.output, kind="folder", what="output", inputs=inputs, overwrite=a.overwrite,
                          writes=_FOLDER_FRAMES, holds=OutputKind.SEQUENCE)
-        seq = load_sequence(a.input, fps=a.fps, topology=a.topology)
+        seq = load_sequence(a.input, fps=a.fps, topology=a.topology, frame_order=a.frame_order)
         if isinstance(seq, FixedTopologySequence):
             print(f"note: {a.input} already has fixed topology ({seq.num_frames} frames); converting it "
                   "anyway (it can be simulated as it is)", file=sys.stderr)

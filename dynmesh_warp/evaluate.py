@@ -343,7 +343,10 @@ _MOTION_FIGURES = (
 def _ground_truth(path: str, num_frames: int | None, frame_order: str = "stored") -> FixedTopologySequence:
     from .io import load_sequence
 
-    seq = load_sequence(path, kind="fixed", frame_order=frame_order)
+    # a DG-Mesh scene folder: its ground truth is mesh_gt/ (load_sequence prefers the reconstruction,
+    # dynamic_mesh/, which failed here as varying topology: a new user's)
+    subdir = "mesh_gt" if Path(path).is_dir() and (Path(path) / "mesh_gt").is_dir() else None
+    seq = load_sequence(path, kind="fixed", frame_order=frame_order, subdir=subdir)
     if num_frames is not None and num_frames != seq.num_frames:
         from .remesh import resample_time
 
@@ -395,6 +398,14 @@ def evaluate_scene(gt_path, input_path=None, num_frames: int | None = None, reso
         raise MeshDataError(
             f"{input_path or 'remesh'}: {varying.num_frames} input frames but the ground truth "
             f"{gt_path} has {gt.num_frames} (after --num-frames); they are paired by index")
+    if input_path is not None:  # a ground truth in mm against an input in m compared silently (a new user's)
+        d_gt = float(np.linalg.norm(np.ptp(gt.V[0], axis=0)))
+        d_in = float(np.linalg.norm(np.ptp(varying.frames[0][0], axis=0)))
+        ratio = d_in / d_gt if d_gt > 0 else np.inf
+        if not (1.0 / SCALE_MISMATCH < ratio < SCALE_MISMATCH):
+            warnings.warn(f"--inputs: the input's frame 0 ({input_path}) is {d_in:.4g} across, the ground truth's "
+                          f"({gt_path}) {d_gt:.4g} ({ratio:.3g}x): other units (mm against m?) or another scene; the "
+                          "distances compare them as they are", stacklevel=2)
     timing["prepare_s"] = time.perf_counter() - t0
     rows = {"varying": varying.frames}
     conv_info = {}

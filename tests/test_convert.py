@@ -402,6 +402,39 @@ def _sphere_frames(radii):
     return [(V * r, F) for r in radii]
 
 
+def test_frames_in_other_units_are_said_and_never_the_key_frame():
+    """A new user's capture with one frame in millimetres among metres: the key trials tried
+    that frame (candidates spread evenly hit it), its crumpled run won the ranking and every
+    output frame was crumpled (708x the input's area). A lone frame x2.54 (inches among cm),
+    inside scale_tolerance, was not said at all. And a frame repeating the one before exactly (a
+    duplicated capture) was said only as a motion figure."""
+    import warnings
+
+    from dynmesh_warp.convert import _candidate_keys, _check_repeats, _check_scales, _key_frame
+
+    radii = [1.0, 1.05, 1.1, 1000.0, 1.15, 1.1, 2.54 * 1.1, 1.1, 1.05, 1.05]
+    frames = _sphere_frames(radii)
+    frames[9] = (frames[8][0].copy(), frames[8][1].copy())  # a repeated frame
+    frames[0] = icosphere(1, 1.0)  # re-meshed: a reconstruction, not one topology
+    seq = VaryingTopologySequence(frames, name="units")
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        off = _check_scales(seq, 4.0)
+        _check_repeats(seq)
+    msgs = " | ".join(str(x.message) for x in w)
+    assert off == (3, 6), msgs
+    assert "frame(s) 3 (x" in msgs and "frame(s) 6 (x2.54)" in msgs and "frame(s) 9 repeat the frame before" in msgs
+    assert _key_frame(seq, "auto", has_template=False, off_scale=off) not in off
+    assert _key_frame(seq, "auto", has_template=False) == 3  # without: the millimetre frame's area wins
+    keys = _candidate_keys(10, 4, K=0, off_scale=off)
+    assert not set(keys) & set(off) and len(keys) == 4, keys
+    # one topology: an animated mesh's pause is no repeat
+    V, F = _sphere_frames([1.0])[0]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _check_repeats(VaryingTopologySequence([(V, F), (V, F), (V * 1.1, F)], name="pause"))
+
+
 def test_key_frame_auto_is_the_largest_surface_and_tracks_both_ways():
     from dynmesh_warp.convert import _key_frame
 

@@ -109,6 +109,29 @@ def test_evaluate_folders_warns_of_a_prediction_in_other_units(tmp_path, device)
         E.evaluate_folders(tmp_path / "gt", tmp_path / "m", protocols=("dgmesh",), emd=False, device=device)
 
 
+def test_evaluate_scene_warns_of_inputs_in_other_units_and_reads_a_dgmesh_folders_ground_truth(tmp_path, device):
+    """A new user's ground truth in millimetres against inputs in metres was compared as it was
+    (CD 6e8, "+0.0 %"), unsaid; and a DG-Mesh scene folder given as the ground truth was read from
+    its reconstruction (dynamic_mesh/), which failed as varying topology."""
+    scene = tmp_path / "scene"
+    for sub in ("mesh_gt", "dynamic_mesh"):
+        (scene / sub).mkdir(parents=True)
+    for t in range(3):
+        write_mesh(scene / "mesh_gt" / f"frame_{t}.obj", TETRA_V * (1 + 0.1 * t), TETRA_F)
+        V = np.vstack([TETRA_V * (1 + 0.1 * t), [[0.3, 0.3, 0.3]]]) if t == 1 else TETRA_V * (1 + 0.1 * t)
+        F = np.vstack([TETRA_F, [[0, 1, 4]]]) if t == 1 else TETRA_F
+        write_mesh(scene / "dynamic_mesh" / f"frame_{t}.obj", V, F)  # varying topology
+    r = E.evaluate_scene(scene, input_path=scene, strategies=[], protocols=("dgmesh",), emd=False, device=device,
+                         progress=False)
+    assert r is not None
+    gt_mm = FixedTopologySequence(np.stack([1000 * TETRA_V * (1 + 0.1 * t) for t in range(3)]).astype(np.float32),
+                                  TETRA_F, fps=24.0)
+    save_sequence(gt_mm, tmp_path / "gt_mm.npz")
+    with pytest.warns(UserWarning, match=r"--inputs: the input's frame 0 .* \(0\.001x\): other units"):
+        E.evaluate_scene(tmp_path / "gt_mm.npz", input_path=scene, strategies=[], protocols=("dgmesh",), emd=False,
+                         device=device, progress=False)
+
+
 def test_evaluate_folders_pair_by_order_for_differently_numbered_frames(tmp_path, device):
     """Ground truth numbered from 1, prediction from 0 (what convert writes): pairing by index
     fails with a hint, pairing by order pairs gt1 with frame_0000 and gt2 with frame_0001."""

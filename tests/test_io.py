@@ -598,6 +598,16 @@ def test_text_sorted_frames_are_detected_and_restored(tmp_path):
     np.testing.assert_array_equal(load_sequence(path2, frame_order="auto").V, V)  # nothing to undo
     with pytest.raises(ValueError, match="frame_order"):
         load_sequence(path, frame_order="alphabetical")
+    # a varying-topology npz: reordered when asked (it was left as stored, unsaid; a new user's)
+    from dynmesh_warp.sequence import VaryingTopologySequence
+
+    frames = [(V[k] * (1.0 if k % 2 else 1.01), F if k % 2 else F[::-1]) for k in range(T)]
+    vpath = tmp_path / "varying.npz"
+    save_sequence(VaryingTopologySequence([frames[int(x) - 1] for x in labels], fps=24.0), vpath)
+    back = load_sequence(vpath, frame_order="text_sorted")
+    assert isinstance(back, VaryingTopologySequence)
+    for k in range(T):
+        np.testing.assert_array_equal(back.frames[k][0], frames[k][0])
 
 
 def test_a_registered_format_is_read_written_and_found_in_folders(tmp_path):
