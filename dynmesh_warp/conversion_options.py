@@ -140,6 +140,16 @@ class GraphOptions(_Options, _FineStage):
     stiffness: Float = Field(10.0, ge=0.0)
     stiffness_end: Float = Field(0.3, ge=0.0)
     damping: Float = Field(0.01, ge=0.0)
+    #: the static hold: where the input surface did not move between the frame before and this
+    #: one (every template vertex of a node and of its graph neighbours lies, as the last fit left
+    #: it, within static_tolerance x the diagonal of this frame's surface), the node starts from
+    #: where it was (not the constant-velocity prediction) and is held there with this weight (per
+    #: node, as damping): a still part whose motion the data cannot see (a round torso's turn about
+    #: its axis) no longer drifts with the parts that move (a new user's still torso turned 53 -> 10
+    #: degrees; issue 12's protocol: collapse and chicken better, pcow's p99 drift worse); 0: off.
+    #: docs/conversion.md, "Still parts are held still"
+    static_hold: Float = Field(1.0, ge=0.0)
+    static_tolerance: Float = Field(0.004, ge=0.0)
     max_normal_angle: Float = Field(60.0, ge=0.0, le=180.0)
     predict: Float = Field(1.0, ge=0.0)
     #: start poses tried per frame: the prediction scaled by k / (n - 1), k = 0 .. n - 1 (0: the

@@ -503,6 +503,7 @@ class _Converter:
             self.graph = build_deformation_graph(TV, TF, node_spacing, int(opts["nodes_per_vertex"]))
             self.gf = GraphFitter(self.graph, TV, TF, d, self.max_dist, opts)
             self.history = []  # graph states (R, P) of the last two frames
+            self.static_counts = []  # nodes held still (static_hold), per fitted frame
             self.scores = []  # coverage [m] of the frames converted so far
             self.graph_bank = []  # (frame, R, P) every bank_interval frames: restart candidates
             self.recovered = []  # (frame, what it restarted from)
@@ -729,11 +730,40 @@ class _Converter:
         self.relax_and_project(frame)
         return self.coverage(frame)
 
+    def static_nodes(self, frame, diag: float) -> np.ndarray:
+        """(K,) bool: the graph nodes where the input surface did not move since the frame fitted
+        before: every template vertex bound to the node or to one of its graph neighbours lies,
+        where the last fit left it (self.X), within ``static_tolerance`` x the diagonal of this
+        frame's surface. A surface moving along itself somewhere (a walking body's side) moves
+        across itself next to it, so a node and its neighbours together are static only where
+        the surface stands still."""
+        m = frame[0]
+        n = self.X.shape[0]
+        dist = wp.empty(n, dtype=float, device=self.device)
+        tol = float(self.opts["static_tolerance"]) * diag
+        wp.launch(kc.measure_distances_to_mesh, dim=n, inputs=[m.id, self.X, 2.0 * tol], outputs=[dist],
+                  device=self.device)
+        moved = dist.numpy() > tol
+        g = self.graph
+        idx, w = g.node_index.reshape(n, -1), g.node_weight.reshape(n, -1)
+        node_moved = np.zeros(g.num_nodes, bool)
+        node_moved[idx[moved[:, None] & (w > 0)]] = True
+        ring = node_moved.copy()
+        if len(g.edges):
+            e = np.asarray(g.edges, np.int64)
+            ring[e[:, 0]] |= node_moved[e[:, 1]]
+            ring[e[:, 1]] |= node_moved[e[:, 0]]
+        return ~ring
+
     def step_graph(self, frame, t):
         o, gf = self.opts, self.gf
         gframe = self._graph_frame(frame)
         diag = _bbox_diag(frame[1].numpy())
         rest = (np.repeat(np.eye(3)[None], gf.K, axis=0), self.graph.node_rest.copy())
+        hold = None
+        static = None
+        if float(o["static_hold"]) > 0 and self.history:
+            static = self.static_nodes(frame, diag)
         gam = float(o["predict"])
         if not self.history:
             init = rest
@@ -753,9 +783,16 @@ class _Converter:
                 if best is None or sc < best[0]:
                     best = (sc, cand)
             init = best[1]
+        if static is not None and static.any():
+            # a still part starts where it was and is held there (the constant-velocity prediction
+            # carried a drift the data cannot see on from frame to frame)
+            R1, P1 = self.history[-1]
+            init = (np.where(static[:, None, None], R1, init[0]), np.where(static[:, None], P1, init[1]))
+            hold = np.where(static, float(o["static_hold"]) / gf.K, 0.0)
+        self.static_counts.append(0 if static is None else int(static.sum()))
         its, lam0, lam1, mu = (int(o["graph_iterations"]), float(o["stiffness"]), float(o["stiffness_end"]),
                                float(o["damping"]))
-        R, P = gf.fit(gframe, *init, its, lam0, lam1, mu)
+        R, P = gf.fit(gframe, *init, its, lam0, lam1, mu, hold=hold)
         score = self._graph_finish(frame, R, P)
         # large motion: a fit that still leaves the input uncovered gets more rounds (each a new
         # stiffness schedule from where it stands) while they improve the coverage by 10 %

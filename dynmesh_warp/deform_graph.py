@@ -299,6 +299,9 @@ class GraphFitter:
         self.fdist = wp.empty(n, dtype=float, device=d)
         self.weight_sum = wp.zeros(2, dtype=float, device=d)
         self.covariance = wp.zeros(K, dtype=wp.mat33, device=d)
+        # the static hold (convert's static_hold): per node, a 3 x 3 weight towards the fit's start
+        self.node_hold = wp.zeros(K, dtype=wp.mat33, device=d)
+        self._holding = False
         self._frame_cap = 0
         # the K x K system: fixed CSR pattern, graph Laplacian per slot
         offsets, cols = system_pattern(graph, TF)
@@ -407,8 +410,9 @@ class GraphFitter:
         q = frame[1].shape[0]
         # graph and damping terms, zeroed covariance and weight sums: one launch (nnz >= K)
         wp.launch(kr.begin_graph_system, dim=self.nnz,
-                  inputs=[self.slot_row, self.columns, self.laplacian, self.position_prior, stiffness_weight,
-                          damping_weight], outputs=[self.values, self.rhs, self.covariance, self.weight_sum],
+                  inputs=[self.slot_row, self.columns, self.laplacian, self.position_prior, self.node_hold,
+                          stiffness_weight, damping_weight],
+                  outputs=[self.values, self.rhs, self.covariance, self.weight_sum],
                   device=d)
         wp.launch(kr.sum_correspondence_weights, dim=n, inputs=[self.fweight, 0], outputs=[self.weight_sum],
                   device=d)
@@ -432,18 +436,18 @@ class GraphFitter:
         self.residual_dot_sum.zero_()
         self.curvature.zero_()
         wp.launch(kr.begin_conjugate_gradient, dim=K,
-                  inputs=[self.row_offsets, self.columns, self.diagonal_slot, self.values, self.rhs,
+                  inputs=[self.row_offsets, self.columns, self.diagonal_slot, self.values, self.node_hold, self.rhs,
                           self.node_position], outputs=[self.residual, self.preconditioned, self.residual_dot_sum],
                   device=d)
         wp.copy(self.residual_dot, self.residual_dot_sum)
         for it in range(self.cg_iterations):
             p_in, p_out = self.direction[it % 2], self.direction[(it + 1) % 2]
             wp.launch(kr.multiply_search_direction, dim=K,
-                      inputs=[self.row_offsets, self.columns, self.values, self.preconditioned, p_in,
+                      inputs=[self.row_offsets, self.columns, self.values, self.node_hold, self.preconditioned, p_in,
                               self.residual_dot, it], outputs=[p_out, self.product, self.curvature], device=d)
             wp.launch(kr.update_conjugate_gradient, dim=K,
-                      inputs=[self.diagonal_slot, self.values, p_out, self.product, self.curvature, it,
-                              self.cg_tolerance, self.residual_dot],
+                      inputs=[self.diagonal_slot, self.values, self.node_hold, p_out, self.product, self.curvature,
+                              it, self.cg_tolerance, self.residual_dot],
                       outputs=[self.node_position, self.residual, self.preconditioned, self.residual_dot_sum],
                       device=d)
             wp.copy(self.residual_dot, self.residual_dot_sum)
@@ -457,8 +461,8 @@ class GraphFitter:
         if serial:
             self.residual_dot.zero_()
             wp.launch(kr.solve_conjugate_gradient_serial, dim=1,
-                      inputs=[self.row_offsets, self.columns, self.diagonal_slot, self.values, self.rhs,
-                              self.cg_iterations, self.cg_tolerance],
+                      inputs=[self.row_offsets, self.columns, self.diagonal_slot, self.values, self.node_hold,
+                              self.rhs, self.cg_iterations, self.cg_tolerance],
                       outputs=[self.node_position, self.residual, self.preconditioned, self.direction[0],
                                self.product, self.residual_dot], device=self.device)
             return
@@ -500,9 +504,10 @@ class GraphFitter:
 
     # ------------------------------------------------------------------ the fit
     def fit(self, frame, R: np.ndarray, P: np.ndarray, iterations: int, stiffness: float,
-            stiffness_end: float, damping: float):
+            stiffness_end: float, damping: float, hold=None):
         """Fit node rotations/positions to the frame, starting from (R, P) (float64 (K,3,3), (K,3)),
-        which also serve as the damping's prior. Returns the fitted (R, P) (float64);
+        which also serve as the damping's prior. ``hold``: (K,) per-node weights of a further pull
+        towards the start (:meth:`set_hold`; None: none). Returns the fitted (R, P) (float64);
         self.points holds the skinned template."""
         o = self.opts
         min_cos = float(np.cos(np.radians(float(o["max_normal_angle"]))))
@@ -512,6 +517,7 @@ class GraphFitter:
         wp.copy(self.position_prior, self.node_position)
         self.rebuild()
         wd = float(damping) / self.K
+        self.set_hold(hold)
 
         def iterate(lam):
             wr = float(lam) / self.num_edges
@@ -540,6 +546,21 @@ class GraphFitter:
                 done += 1
         self.skin()
         return self.get_state()
+
+    def set_hold(self, weights):
+        """node_hold <- ``weights`` (K,) [per node, as the damping's weight] x I: node j is also
+        held towards the fit's start (``position_prior``) with that weight; None or all zero: no
+        hold (the solve then does exactly what it did without it)."""
+        w = None if weights is None else np.asarray(weights, np.float32).reshape(-1)
+        if w is None or not np.any(w > 0):
+            if self._holding:
+                self.node_hold.zero_()
+                self._holding = False
+            return
+        H = np.zeros((self.K, 3, 3), np.float32)
+        H[:, 0, 0] = H[:, 1, 1] = H[:, 2, 2] = w
+        self.node_hold.assign(wp.array(H, dtype=wp.mat33, device=self.device))
+        self._holding = True
 
     def _moved(self) -> float:
         """The largest node displacement [m] of the last iteration (position_prev -> node_position):

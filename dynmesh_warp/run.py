@@ -223,6 +223,9 @@ def check_cli_options(args) -> None:
                          "summary.json and trajectories.npz")
     if args.view_envs is not None:
         args.view_envs = parse_env_list(args.view_envs)
+        if args.viewer == "none" and not args.record:  # accepted and ignored before (a new user's)
+            raise SceneError("--view-envs: chooses the envs the viewer or a --record recording shows; this run has "
+                             "neither (--viewer none, no --record)")
     if args.splat_groups is not None and args.splat_groups < 0:
         raise SceneError(f"--splat-groups must be >= 0 (0: the whole splat buffer every frame), got {args.splat_groups}")
     if args.rebuild_every is not None and args.collider not in (None, "rebuild"):

@@ -225,6 +225,30 @@ def test_conjugate_gradient_matches_direct_solve():
     assert np.linalg.norm(fit2.node_position.numpy() - x) > 1e-3 * np.linalg.norm(x - start)
 
 
+def test_held_nodes_solve_the_block_system_of_a_dense_reference():
+    """The static hold (convert's static_hold): per node a 3 x 3 weight H_j towards the start,
+    in the operator (A kron I3 + blockdiag(H)) and the right-hand side (+ H_j prior_j); the CG of
+    both forms against a dense NumPy solve of the 3K x 3K system, and no hold = the plain system."""
+    fit, frame, V, F, V1, R, P, prior = _fit_setup(cg_iterations=80)
+    K = fit.K
+    rng = np.random.default_rng(3)
+    w = np.where(rng.random(K) < 0.5, rng.uniform(0.5, 2.0, K), 0.0) / K
+    fit.set_hold(w)
+    wr, wd = 0.7 / fit.num_edges, 0.05 / fit.K
+    fit.assemble(frame, wr, wd)
+    A, b, *_ = _reference_system(fit, frame, V, F, V1, R, P, prior, wr, wd)
+    big = np.kron(A, np.eye(3)) + np.kron(np.diag(w), np.eye(3))
+    x = np.linalg.solve(big, (b + w[:, None] * prior).reshape(-1)).reshape(K, 3)
+    start = fit.node_position.numpy().astype(np.float64)
+    for serial in (False, True):
+        fit.node_position.assign(start.astype(np.float32))
+        fit.solve(serial=serial)
+        y = fit.node_position.numpy()
+        assert np.linalg.norm(y - x) < 2e-3 * np.linalg.norm(x - start), serial
+    fit.set_hold(None)
+    assert not fit.node_hold.numpy().any()
+
+
 def test_rotation_update_matches_numpy_polar():
     fit, frame, V, F, V1, R, P, prior = _fit_setup(seed=3)
     wr = 0.7 / fit.num_edges

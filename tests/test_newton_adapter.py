@@ -473,7 +473,7 @@ def test_run_newton_scene_with_envs_uses_newtons_own_batching(tmp_path, device):
         path.write_text(yaml.safe_dump(scene))
         with pytest.raises(SceneError, match="one clock"):
             run_scene(load_scene_config(path), progress=False, log=lambda *a: None, overwrite=True)
-    assert main([str(path), "--view-envs", "1", "--viewer", "none"]) == 2
+    assert main([str(path), "--view-envs", "1", "--record", str(tmp_path / "rec")]) == 2  # the one-clock refusal
 
 
 def test_newton_restitution_friction_and_bodies_inside_follow_the_scene(tmp_path, device):

@@ -804,3 +804,10 @@ def test_a_scene_conversion_warning_names_scene_keys_not_convert_flags():
     assert "--" not in line
     assert "surface.conversion.options.key_frame: N" in line and "surface.conversion.strategy: graph" in line
     assert "surface.conversion.options.far_part_area: 0.05" in line
+
+
+def test_view_envs_without_a_viewer_or_recording_is_refused(capsys):
+    from dynmesh_warp.run import main
+
+    assert main(["--viewer", "none", "--device", "cpu", "--envs", "4", "--view-envs", "0-2", "--steps", "5"]) == 2
+    assert "--view-envs: chooses the envs the viewer or a --record recording shows" in capsys.readouterr().err
