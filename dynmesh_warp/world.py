@@ -1562,7 +1562,21 @@ class World:
         ground = s["final"]["on_ground"]
         return (s["collider"], f"{self.contact_count()}/{s['spheres']} spheres in contact with the surface"
                 + ("" if ground is None else f", {ground} on the ground plane")
-                + f", max penetration {s['final']['max_penetration']:.2e} m")
+                + f", max penetration {s['final']['max_penetration']:.2e} m" + self._fallen_text())
+
+    def _fallen_text(self) -> str:
+        """The run line's note when spheres ended far below the surface's lowest point with no
+        ground plane to stop them (a new user's y-up horse played as z-up: "0/5 in contact",
+        the spheres at z = -15 m, unsaid)."""
+        if self.model.params.ground_height is not None or not self.model.spheres.count:
+            return ""
+        lo, hi = self.model.surface.sequence.bounds()
+        z = self.state.sphere_pos.numpy()[:, 2]
+        fell = int(np.count_nonzero(z < float(lo[2]) - 0.5 * float(np.linalg.norm(hi - lo))))
+        if not fell:
+            return ""
+        return (f"; {fell} of {self.model.spheres.count} spheres fell past the surface (below its lowest point, no "
+                "ground plane: physics.ground auto adds one; a y-up mesh played as z-up? --set surface.up_axis=y)")
 
     # -- convenience ---------------------------------------------------------------------------
     def sphere_positions(self) -> np.ndarray:

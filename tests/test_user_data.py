@@ -811,3 +811,24 @@ def test_view_envs_without_a_viewer_or_recording_is_refused(capsys):
 
     assert main(["--viewer", "none", "--device", "cpu", "--envs", "4", "--view-envs", "0-2", "--steps", "5"]) == 2
     assert "--view-envs: chooses the envs the viewer or a --record recording shows" in capsys.readouterr().err
+
+
+def test_the_run_line_says_when_spheres_fell_past_the_surface(tmp_path):
+    """A new user's y-up horse played as z-up: "0/5 spheres in contact", the spheres at z = -15 m
+    and no word. The run line now says they fell past the surface (no ground plane)."""
+    from dynmesh_warp.config import load_scene_config
+    from dynmesh_warp.scenes import grid_sheet
+
+    V0, F = grid_sheet(8, 1.0)
+    np.savez(tmp_path / "sheet.npz", V=np.stack([V0, V0]).astype(np.float32), F=F.astype(np.int32), fps=24.0)
+    scene = {"surface": {"source": "sheet.npz"}, "physics": {"ground": None},
+             "spheres": [{"position": [0.0, 0.0, 0.2], "radius": 0.05}, {"position": [2.0, 0.0, 0.2], "radius": 0.05}]}
+    w = build_world(load_scene_config(scene_yaml(tmp_path, scene)), device="cpu")
+    for _ in range(150):
+        w.step()
+    assert "1 of 2 spheres fell past the surface" in w.run_line()[1] and "surface.up_axis=y" in w.run_line()[1]
+    scene["spheres"] = scene["spheres"][:1]
+    w = build_world(load_scene_config(scene_yaml(tmp_path, scene)), device="cpu")
+    for _ in range(150):
+        w.step()
+    assert "fell past" not in w.run_line()[1]
