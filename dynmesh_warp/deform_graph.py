@@ -299,8 +299,8 @@ class GraphFitter:
         self.fdist = wp.empty(n, dtype=float, device=d)
         self.weight_sum = wp.zeros(2, dtype=float, device=d)
         self.covariance = wp.zeros(K, dtype=wp.mat33, device=d)
-        # the static hold (convert's static_hold): per node, a 3 x 3 weight towards the fit's start
-        self.node_hold = wp.zeros(K, dtype=wp.mat33, device=d)
+        # the static hold (convert's static_hold): per node, a weight towards the fit's start
+        self.node_hold = wp.zeros(K, dtype=float, device=d)
         self._holding = False
         self._frame_cap = 0
         # the K x K system: fixed CSR pattern, graph Laplacian per slot
@@ -548,18 +548,16 @@ class GraphFitter:
         return self.get_state()
 
     def set_hold(self, weights):
-        """node_hold <- ``weights`` (K,) [per node, as the damping's weight] x I: node j is also
-        held towards the fit's start (``position_prior``) with that weight; None or all zero: no
-        hold (the solve then does exactly what it did without it)."""
+        """node_hold <- ``weights`` (K,) [per node, as the damping's weight]: node j is also held
+        towards the fit's start (``position_prior``) with that weight; None or all zero: no hold
+        (the solve then does exactly what it did without it)."""
         w = None if weights is None else np.asarray(weights, np.float32).reshape(-1)
         if w is None or not np.any(w > 0):
             if self._holding:
                 self.node_hold.zero_()
                 self._holding = False
             return
-        H = np.zeros((self.K, 3, 3), np.float32)
-        H[:, 0, 0] = H[:, 1, 1] = H[:, 2, 2] = w
-        self.node_hold.assign(wp.array(H, dtype=wp.mat33, device=self.device))
+        self.node_hold.assign(w)
         self._holding = True
 
     def _moved(self) -> float:

@@ -303,7 +303,7 @@ def begin_graph_system(
     laplacian: wp.array[float],
     # In:
     position_prior: wp.array[wp.vec3],
-    node_hold: wp.array[wp.mat33],
+    node_hold: wp.array[float],
     stiffness_weight: float,
     damping_weight: float,
     # Out:
@@ -314,10 +314,10 @@ def begin_graph_system(
 ):
     """Start an iteration's system with its data-independent part, in one launch (dim = nnz):
     values = stiffness_weight * laplacian (the graph's ARAP term) + (damping_weight + 1e-12) on
-    the diagonal (a node with no data and no edge stays solvable); rhs = damping_weight * prior
-    + node_hold * prior (the damping term damping_weight |p - prior|^2 and the hold
-    (p - prior)^T H (p - prior), (K,) [m]; H = ``node_hold`` (K,) enters the solve's operator
-    as a per-node 3 x 3 block, :func:`hold_product`); covariance = 0 (K,);
+    the diagonal (a node with no data and no edge stays solvable); rhs = (damping_weight +
+    node_hold) * prior (the damping term damping_weight |p - prior|^2 and node j's hold
+    node_hold_j |p_j - prior_j|^2, (K,) [m]; ``node_hold`` (K,) enters the CG kernels' operator
+    as a per-node diagonal, not the shared values); covariance = 0 (K,);
     weight_sum = 0 (2,). The data terms are accumulated on top.
 
     slot_row, columns, laplacian (nnz,): the row, column and graph-Laplacian value of each slot.
@@ -328,7 +328,7 @@ def begin_graph_system(
         v += damping_weight + 1.0e-12
     values[s] = v
     if s < rhs.shape[0]:
-        rhs[s] = damping_weight * position_prior[s] + node_hold[s] * position_prior[s]
+        rhs[s] = (damping_weight + node_hold[s]) * position_prior[s]
         covariance[s] = wp.mat33(0.0)
     if s == 0:
         weight_sum[0] = 0.0
@@ -373,13 +373,6 @@ def csr_multiply_row(
     return s
 
 
-@wp.func
-def precondition(r: wp.vec3, diagonal: float, hold: wp.mat33) -> wp.vec3:
-    """Jacobi step of the operator A kron I3 + blockdiag(H): r divided by each unknown's own
-    diagonal entry (A's diagonal + H's)."""
-    return wp.vec3(r[0] / (diagonal + hold[0, 0]), r[1] / (diagonal + hold[1, 1]), r[2] / (diagonal + hold[2, 2]))
-
-
 @wp.kernel
 def begin_conjugate_gradient(
     # Model:
@@ -388,7 +381,7 @@ def begin_conjugate_gradient(
     diagonal_slot: wp.array[wp.int32],
     # In:
     values: wp.array[float],
-    node_hold: wp.array[wp.mat33],
+    node_hold: wp.array[float],
     rhs: wp.array[wp.vec3],
     solution: wp.array[wp.vec3],
     # Out:
@@ -399,14 +392,14 @@ def begin_conjugate_gradient(
     """Preconditioned CG, start: r = b - A x, z = r / diag(A), residual_dot_sum[0] += r . z.
 
     The system is A (K x K, CSR) times the (K, 3) unknowns, one CG over all three columns
-    (A kron I3), plus a 3 x 3 block per node (``node_hold`` (K,), zero unless the fit holds
-    nodes: then the same arithmetic as without it). residual_dot_sum (iterations + 1,) zeroed before [m^2]; the kernels that read
+    (A kron I3), plus a diagonal ``node_hold`` (K,) (zero unless the fit holds nodes: then the
+    same arithmetic as without it). residual_dot_sum (iterations + 1,) zeroed before [m^2]; the kernels that read
     rz take a copy of it (``residual_dot``), so no kernel reads the array it accumulates into
     (Warp's deterministic mode refuses that).
     """
     i = wp.tid()
     r = rhs[i] - csr_multiply_row(row_offsets, columns, values, solution, i) - node_hold[i] * solution[i]
-    z = precondition(r, values[diagonal_slot[i]], node_hold[i])
+    z = r / (values[diagonal_slot[i]] + node_hold[i])
     residual[i] = r
     preconditioned[i] = z
     wp.atomic_add(residual_dot_sum, 0, wp.dot(r, z))
@@ -419,7 +412,7 @@ def multiply_search_direction(
     columns: wp.array[wp.int32],
     # In:
     values: wp.array[float],
-    node_hold: wp.array[wp.mat33],
+    node_hold: wp.array[float],
     preconditioned: wp.array[wp.vec3],
     direction_in: wp.array[wp.vec3],
     residual_dot: wp.array[float],
@@ -455,7 +448,7 @@ def update_conjugate_gradient(
     diagonal_slot: wp.array[wp.int32],
     # In:
     values: wp.array[float],
-    node_hold: wp.array[wp.mat33],
+    node_hold: wp.array[float],
     direction: wp.array[wp.vec3],
     product: wp.array[wp.vec3],
     curvature: wp.array[float],
@@ -481,7 +474,7 @@ def update_conjugate_gradient(
     solution_in[i] = solution_in[i] + alpha * direction[i]
     r = residual_in[i] - alpha * product[i]
     residual_in[i] = r
-    z = precondition(r, values[diagonal_slot[i]], node_hold[i])
+    z = r / (values[diagonal_slot[i]] + node_hold[i])
     preconditioned[i] = z
     wp.atomic_add(residual_dot_sum, iteration + 1, wp.dot(r, z))
 
@@ -494,7 +487,7 @@ def solve_conjugate_gradient_serial(
     diagonal_slot: wp.array[wp.int32],
     # In:
     values: wp.array[float],
-    node_hold: wp.array[wp.mat33],
+    node_hold: wp.array[float],
     rhs: wp.array[wp.vec3],
     iterations: int,
     relative_tolerance: float,
@@ -515,7 +508,7 @@ def solve_conjugate_gradient_serial(
     rz0 = float(0.0)
     for i in range(K):
         r = rhs[i] - csr_multiply_row(row_offsets, columns, values, solution_in, i) - node_hold[i] * solution_in[i]
-        z = precondition(r, values[diagonal_slot[i]], node_hold[i])
+        z = r / (values[diagonal_slot[i]] + node_hold[i])
         residual[i] = r
         preconditioned[i] = z
         direction[i] = z
@@ -538,7 +531,7 @@ def solve_conjugate_gradient_serial(
             solution_in[i] = solution_in[i] + alpha * direction[i]
             r = residual[i] - alpha * product[i]
             residual[i] = r
-            z = precondition(r, values[diagonal_slot[i]], node_hold[i])
+            z = r / (values[diagonal_slot[i]] + node_hold[i])
             preconditioned[i] = z
             rz_new += wp.dot(r, z)
         residual_dot[it + 1] = rz_new

@@ -226,9 +226,9 @@ def test_conjugate_gradient_matches_direct_solve():
 
 
 def test_held_nodes_solve_the_block_system_of_a_dense_reference():
-    """The static hold (convert's static_hold): per node a 3 x 3 weight H_j towards the start,
-    in the operator (A kron I3 + blockdiag(H)) and the right-hand side (+ H_j prior_j); the CG of
-    both forms against a dense NumPy solve of the 3K x 3K system, and no hold = the plain system."""
+    """The static hold (convert's static_hold): per node a weight w_j towards the start, in the
+    operator (A kron I3 + diag(w) kron I3) and the right-hand side (+ w_j prior_j); the CG of both
+    forms against a dense NumPy solve of the 3K x 3K system, and no hold = the plain system."""
     fit, frame, V, F, V1, R, P, prior = _fit_setup(cg_iterations=80)
     K = fit.K
     rng = np.random.default_rng(3)
