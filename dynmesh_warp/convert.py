@@ -1042,15 +1042,13 @@ def _check_scales(seq: VaryingTopologySequence, tol: float) -> tuple:
 def _check_repeats(seq: VaryingTopologySequence) -> None:
     """Warn of frames that repeat the frame before them exactly (the same vertices and faces: a
     stalled or duplicated capture) in a reconstruction (not every frame of one topology: an
-    animated mesh may pause, holding frames exactly): the surface stands still for a frame and then moves twice as
-    far, which the physics feels as a jump in surface velocity (a new user's duplicated frame 13
-    showed only as a 10x motion in the summary)."""
-    F0 = seq.frames[0][1]
-    if all(f.shape == F0.shape and np.array_equal(f, F0) for _, f in seq.frames[1:]):
+    animated mesh may pause, holding frames exactly): the surface stands still for a frame and
+    then moves twice as far, which the physics feels as a jump in surface velocity (a new user's
+    duplicated frame 13 showed only as a 10x motion in the summary)."""
+    fr = seq.frames
+    if all(np.array_equal(f, fr[0][1]) for _, f in fr[1:]):  # (array_equal: False for other shapes)
         return  # one topology: an animated mesh may hold still for frames (a pause); a reconstruction cannot
-    rep = [t for t in range(1, seq.num_frames)
-           if seq.frames[t][0].shape == seq.frames[t - 1][0].shape and seq.frames[t][1].shape == seq.frames[t - 1][1].shape
-           and np.array_equal(seq.frames[t][0], seq.frames[t - 1][0]) and np.array_equal(seq.frames[t][1], seq.frames[t - 1][1])]
+    rep = [t for t in range(1, len(fr)) if np.array_equal(fr[t][0], fr[t - 1][0]) and np.array_equal(fr[t][1], fr[t - 1][1])]
     if rep and len(rep) < seq.num_frames - 1:  # a capture that never moves is not a repeat
         show = ", ".join(map(str, rep[:10])) + (f" and {len(rep) - 10} more" if len(rep) > 10 else "")
         warnings.warn(f"{seq.source or seq.name}: frame(s) {show} repeat the frame before them exactly (a stalled "

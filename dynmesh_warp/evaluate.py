@@ -174,16 +174,24 @@ def evaluate_rows(gt_frames, rows: dict, frames, protocols=("dgmesh", "paper"), 
 SCALE_MISMATCH = 10.0
 
 
+def _warn_other_units(what: str, V, gt_V, gt_name, stacklevel: int = 3) -> None:
+    """Warn when ``what``'s vertices ``V`` (the compared mesh, named in ``what``) and the ground
+    truth's ``gt_V`` (named ``gt_name``) differ in size (bounding-box diagonal) by SCALE_MISMATCH
+    or more."""
+    d_gt, d = (float(np.linalg.norm(np.ptp(np.asarray(x), axis=0))) for x in (gt_V, V))
+    ratio = d / d_gt if d_gt > 0 else np.inf
+    if not (1.0 / SCALE_MISMATCH < ratio < SCALE_MISMATCH):
+        warnings.warn(f"{what} is {d:.4g} across, the ground truth's ({gt_name}) {d_gt:.4g} ({ratio:.3g}x): other "
+                      "units (mm against m?) or another scene; the distances compare them as they are",
+                      stacklevel=stacklevel)
+
+
 def _check_scales(index, gt_file, pred_file) -> None:
     """Warn when the paired first frames differ in size by SCALE_MISMATCH or more."""
     from .io import read_mesh
 
-    d = [float(np.linalg.norm(np.ptp(read_mesh(f)[0], axis=0))) for f in (gt_file, pred_file)]
-    ratio = d[1] / d[0] if d[0] > 0 else np.inf
-    if not (1.0 / SCALE_MISMATCH < ratio < SCALE_MISMATCH):
-        warnings.warn(f"--compare: the prediction's frame {index} ({pred_file}) is {d[1]:.4g} across, the ground "
-                      f"truth's ({gt_file}) {d[0]:.4g} ({ratio:.3g}x): other units (mm against m?) or another scene; "
-                      "the distances compare them as they are", stacklevel=3)
+    _warn_other_units(f"--compare: the prediction's frame {index} ({pred_file})", read_mesh(pred_file)[0],
+                      read_mesh(gt_file)[0], gt_file, stacklevel=4)
 
 
 def evaluate_folders(gt_dir, pred_dir, protocols=("dgmesh", "paper"), frame_stride: int = 1,
@@ -399,13 +407,7 @@ def evaluate_scene(gt_path, input_path=None, num_frames: int | None = None, reso
             f"{input_path or 'remesh'}: {varying.num_frames} input frames but the ground truth "
             f"{gt_path} has {gt.num_frames} (after --num-frames); they are paired by index")
     if input_path is not None:  # a ground truth in mm against an input in m compared silently (a new user's)
-        d_gt = float(np.linalg.norm(np.ptp(gt.V[0], axis=0)))
-        d_in = float(np.linalg.norm(np.ptp(varying.frames[0][0], axis=0)))
-        ratio = d_in / d_gt if d_gt > 0 else np.inf
-        if not (1.0 / SCALE_MISMATCH < ratio < SCALE_MISMATCH):
-            warnings.warn(f"--inputs: the input's frame 0 ({input_path}) is {d_in:.4g} across, the ground truth's "
-                          f"({gt_path}) {d_gt:.4g} ({ratio:.3g}x): other units (mm against m?) or another scene; the "
-                          "distances compare them as they are", stacklevel=2)
+        _warn_other_units(f"--inputs: the input's frame 0 ({input_path})", varying.frames[0][0], gt.V[0], gt_path)
     timing["prepare_s"] = time.perf_counter() - t0
     rows = {"varying": varying.frames}
     conv_info = {}
