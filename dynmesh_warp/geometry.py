@@ -57,6 +57,18 @@ def winding_numbers(V, F, P) -> np.ndarray:
     return out
 
 
+def points_inside(V, F, P, closed: bool | None = None) -> np.ndarray:
+    """Indices of the points P (Q, 3) inside the mesh (V, F) where it is closed (|winding number|
+    > 1/2, either winding; ``closed``: whether it is, when already known, else
+    :func:`mesh_orientation`); none for an open surface, whose inside is not defined."""
+    if closed is None:
+        closed = mesh_orientation(V, F) in ("outward", "inward")
+    P = np.asarray(P, np.float64).reshape(-1, 3)
+    if not closed or not len(P):
+        return np.zeros(0, np.int64)
+    return np.flatnonzero(np.abs(winding_numbers(V, F, P)) > 0.5)
+
+
 def orient_outward(V, F) -> np.ndarray:
     """``F``, with every face flipped when the signed volume is negative (a closed mesh whose
     triangles face inward); the same rule as :func:`mesh_orientation`."""

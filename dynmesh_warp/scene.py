@@ -11,7 +11,7 @@ import numpy as np
 from .choices import Y_UP_FORMATS, Collider, UpAxis, parse
 from .config import PhysicsCore, SceneConfig, SceneError, scene_config, spawn_positions
 from .runtime import scene_device
-from .geometry import mesh_orientation, orient_faces, winding_numbers
+from .geometry import orient_faces, points_inside
 from .mesh_formats import mesh_extension
 from .sequence import FixedTopologySequence, MeshDataError, TopologyMismatchError, VaryingTopologySequence
 from .world import Model, PhysicsParams, SphereModel, State, World, surface_model, surface_model_class
@@ -282,12 +282,7 @@ def refuse_starts_inside(V0, F0, entries, frame: int = 0, closed: bool | None = 
     (at each env's start frame) and the Newton path."""
     if not len(entries):
         return
-    if closed is None:
-        closed = mesh_orientation(V0, F0) in ("outward", "inward")
-    if not closed:
-        return
-    w = winding_numbers(V0, F0, np.asarray([pos for _, pos, _ in entries], np.float64).reshape(-1, 3))
-    inside = np.flatnonzero(np.abs(w) > 0.5)
+    inside = points_inside(V0, F0, [pos for _, pos, _ in entries], closed)
     if inside.size:
         label, pos, clearance = entries[int(inside[0])]
         top = float(np.asarray(V0)[:, 2].max())

@@ -64,7 +64,7 @@ from .choices import (
     values,
 )
 from .config import PhysicsCore
-from .geometry import mesh_orientation, winding_numbers
+from .geometry import points_inside
 from .sequence import FixedTopologySequence, VaryingTopologySequence
 
 __all__ = [
@@ -1452,10 +1452,7 @@ class World:
         F = self.current_indices().numpy().reshape(-1, 3)
         if not len(positions) or len(positions) * len(F) > WINDING_CHECK_BUDGET:
             return
-        V = self.surface_points().numpy()
-        if mesh_orientation(V, F) not in ("outward", "inward"):
-            return
-        inside = np.flatnonzero(np.abs(winding_numbers(V, F, positions)) > 0.5)
+        inside = points_inside(self.surface_points().numpy(), F, positions)
         if inside.size:
             i = int(inside[0])
             raise ValueError(f"sphere {first + i}: position {[round(float(x), 6) for x in positions[i]]} lies inside the "
