@@ -146,7 +146,7 @@ class GraphOptions(_Options, _FineStage):
     #: frame's surface), the node starts from where it was (not the constant-velocity prediction)
     #: and is held there with this weight (per node, as damping). For a capture whose subject
     #: stands still while parts of it move (a new user's still torso turned 53 degrees with its
-    #: legs swinging; 14 with the hold). Not for surfaces that move along themselves (a body
+    #: legs swinging; 19.5 with the hold). Not for surfaces that move along themselves (a body
     #: translating along its axis, a box sliding or spinning in the plane of its faces, motion under
     #: the tolerance): they pass as still and their vertices stop following the material (a new
     #: user's: slide 1.5 -> 16 % of the diagonal). docs/conversion.md, "Still parts"
