@@ -278,6 +278,10 @@ class ConversionInfo:
     unless the option ``bridge_dropouts`` (on by default) bridged it: bridged_frames lists the
     frames whose output is blended from the two frames either side of their run (after a dropout
     the frame loop found, the next frame's fit started from the frame before it).
+    long_dropouts: ``(first, last, lost)`` of the runs of more than ``DROPOUT_FRAMES`` input frames
+    that lack a part the frames either side of the run have (:func:`_long_dropouts`; ``lost``: the
+    fraction of the surface area that went). Not bridged (blending that many frames would blend
+    away the motion of the rest too): the output follows the input there, and the summary says so.
     area_ratio: per frame, the converted surface's area over the input's (the result's frames;
     above ``POOR_AREA``, a crumpled surface: a new user's balloon, converted from its inflated
     frame, had 2.0-2.4x the input's area on its 16 deflated frames while the vertex Chamfer
@@ -334,6 +338,7 @@ class ConversionInfo:
     frame_motion: list = field(default_factory=list)
     input_motion: list = field(default_factory=list)
     input_dropouts: list = field(default_factory=list)
+    long_dropouts: list = field(default_factory=list)
     bridged_frames: list = field(default_factory=list)
     rejected_cuts: list = field(default_factory=list)
     segments: list = field(default_factory=list)
@@ -1652,6 +1657,7 @@ def _to_fixed_run(vseq, seq, strategy, template, device, progress, should_stop, 
         if float(o["far_part_area"]) <= 0:
             info.floater_webs = _floater_webs(vseq, res, device, float(o["far_part_gap"]))
         info.input_dropouts = _input_dropouts(vseq, info, device)
+        info.long_dropouts = _long_dropouts(vseq, info, device)
         if info.input_dropouts and bool(o["bridge_dropouts"]):
             res = _bridge_dropouts(res, info)
         res.all_topology_events = topology.result()  # every frame's (to_piecewise_fixed after a forward stop)
@@ -1748,6 +1754,74 @@ def _input_dropouts(vseq, info, device) -> list:
     return sorted(out)
 
 
+def _far_p99(vseq, src: int, mesh, diag: float, device) -> float:
+    """The 99th percentile of at most 4,096 of input frame ``src``'s vertices' distances to
+    ``mesh`` (a wp.Mesh or a frame), over ``diag``."""
+    v = vseq.frames[src][0]
+    return float(np.percentile(nearest_surface(mesh, v[::_stride(len(v), 4096)], device=device).dist, 99)) / diag
+
+
+def _nearly_closed(F: np.ndarray) -> bool:
+    """A closed surface, up to a defect or two (a new user's marching cubes: one open edge):
+    open edges at most DROPOUT_OPEN_EDGES x the faces."""
+    return _open_edges(F) <= DROPOUT_OPEN_EDGES * len(F)
+
+
+def _long_dropouts(vseq, info, device) -> list:
+    """``ConversionInfo.long_dropouts``: ``(first, last, lost)`` of the runs of more than
+    DROPOUT_FRAMES input frames (absolute indices) that lack a part the frames either side of the
+    run have: a reconstruction that lost a part for longer than a bridged dropout (a new user's arm
+    gone for six frames while the body moved on). The frames either side differ by the motion
+    between them, so, unlike :func:`_dropout_run`, each end of the run is checked against its own
+    neighbour only: the surface area falls into the run by ``lost`` (a fraction of the area before
+    it) and rises out of it by at least half of that, each over DROPOUT_LEAST and DROPOUT_RATIO x
+    the median area change of the ``JUMP_WINDOW`` frames either side; every frame of the run keeps
+    under the area before it less half of ``lost``; the frame before the run lies over
+    DROPOUT_LEAST of the diagonal from the run's first frame (99th pct.), DROPOUT_RATIO x farther
+    than the other way (the part went; nothing moved away), and likewise the frame after the run
+    from its last frame; and where those frames are closed, at least DROPOUT_VOLUME x as large a
+    fraction of the volume went as of the area (a part folded flat onto the body keeps its
+    volume). Runs that hold one of ``info.input_dropouts`` are left to it. Host sums over the faces
+    first; four queries per run that passes them."""
+    lo, T = info.first_frame, len(info.coverage)
+    if T < DROPOUT_FRAMES + 3:
+        return []
+    area = np.array([surface_area(*vseq.frames[lo + i]) for i in range(T)])
+    step = area[1:] / np.maximum(area[:-1], 1e-30) - 1.0  # step[i]: from frame i to i + 1 (relative)
+    short = {d[0] - lo for d in info.input_dropouts}
+
+    def stands_out(i):
+        near = np.abs(np.r_[step[max(0, i - JUMP_WINDOW):i], step[i + 1:i + 1 + JUMP_WINDOW]])
+        return abs(step[i]) > DROPOUT_LEAST and (not near.size or abs(step[i]) > DROPOUT_RATIO * float(np.median(near)))
+
+    def lacks(full, part):  # input frame ``part`` lacks surface (and volume) that frame ``full`` has
+        fv, pv = vseq.frames[full], vseq.frames[part]
+        if _nearly_closed(fv[1]) and _nearly_closed(pv[1]):
+            vol = abs(signed_volume(*fv))
+            if 1.0 - abs(signed_volume(*pv)) / max(vol, 1e-30) < DROPOUT_VOLUME * (1.0 - surface_area(*pv) / surface_area(*fv)):
+                return False
+        diag = max(_bbox_diag(fv[0]), _bbox_diag(pv[0]), 1e-12)
+        gone = _far_p99(vseq, full, pv, diag, device)
+        return gone > DROPOUT_LEAST and DROPOUT_RATIO * _far_p99(vseq, part, fv, diag, device) < gone
+
+    out, i = [], 0
+    while i < len(step):
+        s, before = i + 1, area[i]  # s: the run's first frame
+        if not (step[i] < 0 and stands_out(i)) or s in short:
+            i += 1
+            continue
+        lost = -float(step[i])
+        e = next((e for e in range(s, T - 1) if area[e] > before * (1.0 - 0.5 * lost)
+                  or (step[e] >= 0.5 * lost and stands_out(e))), None)
+        if (e is not None and e - s + 1 > DROPOUT_FRAMES and area[e] <= before * (1.0 - 0.5 * lost)
+                and not short & set(range(s, e + 1)) and lacks(lo + s - 1, lo + s) and lacks(lo + e + 1, lo + e)):
+            out.append((lo + s, lo + e, lost))
+            i = e + 1
+        else:
+            i += 1
+    return out
+
+
 def _dropout_run(vseq, p: int, n: int, spike: float, near, device) -> list | None:
     """``[(t, gone, agree)]`` for the input frames t strictly between p and n (either order) when
     they are a dropout, else None: frames p and n agree (``agree``: the 99th percentile of at
@@ -1768,9 +1842,8 @@ def _dropout_run(vseq, p: int, n: int, spike: float, near, device) -> list | Non
             or (near.size and spike <= DROPOUT_RATIO * np.median(near))):
         return None
 
-    def p99(src, mesh, diag):  # frame src's sampled vertices to ``mesh`` (a wp.Mesh or a frame)
-        v = vseq.frames[src][0]
-        return float(np.percentile(nearest_surface(mesh, v[::_stride(len(v), 4096)], device=device).dist, 99)) / diag
+    def p99(src, mesh, diag):
+        return _far_p99(vseq, src, mesh, diag, device)
 
     # what the ends have and a frame lacks is surface, and for closed surfaces volume too: a part
     # folded flat onto the body (a new user's arm slapped down for a frame: its remeshed contact
@@ -1778,8 +1851,8 @@ def _dropout_run(vseq, p: int, n: int, spike: float, near, device) -> list | Non
     # is motion, not a dropout. Host sums over the faces: checked before any query
     run = range(min(p, n) + 1, max(p, n))
     least_area = min(surface_area(*vseq.frames[e]) for e in (p, n))
-    def closed(e):  # a closed surface, up to a defect or two (a new user's marching cubes: one open edge)
-        return _open_edges(vseq.frames[e][1]) <= DROPOUT_OPEN_EDGES * len(vseq.frames[e][1])
+    def closed(e):
+        return _nearly_closed(vseq.frames[e][1])
 
     ends_closed = closed(p) and closed(n)
     least_volume = min(abs(signed_volume(*vseq.frames[e])) for e in (p, n)) if ends_closed else 0.0
@@ -2066,6 +2139,7 @@ def _join_segments(vseq, segs: list, whole, events: list) -> VaryingTopologySequ
     info.key_score = "+".join(sorted({r.conversion.key_score for _, r in segs} - {""}))
     info.topology_events, info.dropped_unused, info.welded = list(events), whole.dropped_unused, whole.welded
     info.turned_outward, info.input_dropouts = whole.turned_outward, whole.input_dropouts
+    info.long_dropouts = whole.long_dropouts
     out.conversion = info
     return out
 
@@ -2549,6 +2623,15 @@ def conversion_summary(info: ConversionInfo) -> list:
         if info.key_frame in {d[0] for d in info.input_dropouts}:  # (a new user's --key-frame inside a run)
             lines.append(f"warning: the key frame {info.key_frame} is one of those frames: the template, made from it, "
                          "lacks the part on every frame; choose another key frame (--key-frame)")
+    for a, b, lost in info.long_dropouts:
+        lines.append(f"note: input frames {a}-{b} ({b - a + 1} frames) lack a part that frames {a - 1} and {b + 1} have "
+                     f"(the surface's area {100 * lost:.0f}% smaller from frame {a}, back at frame {b + 1}): a "
+                     f"reconstruction's dropout longer than the {DROPOUT_FRAMES} frames that are bridged (or a part "
+                     "withdrawn into the body)? The output follows the input there: the part is pressed onto what is "
+                     "left, a sphere resting on it falls through, and the surface jumps back after the run")
+        if a <= info.key_frame <= b:
+            lines.append(f"warning: the key frame {info.key_frame} is one of frames {a}-{b}: the template, made from "
+                         "it, lacks the part on every frame; choose another key frame (--key-frame)")
     m = np.asarray(info.frame_motion, float)
     jumps = _jumps(m) if m.size == cov.size else np.zeros(0, int)
     if jumps.size and len(info.input_motion) == cov.size:  # the input's own jump is motion, not a fault
@@ -2557,6 +2640,7 @@ def conversion_summary(info: ConversionInfo) -> list:
         w = int(jumps[np.argmax(m[jumps])])
         drop = {d[0] - info.first_frame for d in info.input_dropouts}  # (jumps count from the first frame)
         after = [int(t) for t in jumps if t in drop or t - 1 in drop]
+        after += [int(t) for t in jumps for a, b, _ in info.long_dropouts if t + info.first_frame in (b + 1, b + 2)]
         lines.append(f"warning: the converted surface jumps at {jumps.size} frame(s) ({_frames_text(jumps)}): at frame "
                      f"{w} its vertices move {100 * m[w]:.1f}% of the diagonal from frame {w - 1} (99th pct.), over "
                      f"{JUMP_RATIO:g}x the frames around it, where the input moved less than half as far (a restarted "

@@ -683,6 +683,32 @@ def test_an_input_frame_that_lacks_a_part_its_neighbours_have_is_noted():
         assert max(c.frame_motion) < 0.05
 
 
+def test_a_dropout_longer_than_the_bridged_runs_is_noted_and_not_bridged():
+    """The moon missing from 6 frames in a row (over DROPOUT_FRAMES: a part the reconstruction
+    lost for longer than a bridged dropout; a new user's arm gone for six frames). It is named as
+    one run with the area it took away (the moon: 0.3^2 / (1 + 0.3^2) of the surface), not
+    bridged, and the summary says the output follows the input there. The moon gone for good
+    (never back) and the moon never gone are no such run."""
+    drop = set(range(4, 10))
+    r = to_fixed_topology(_moon_frames(drop=drop, T=14), device=DEV, key_frame=0)
+    c = r.conversion
+    assert c.input_dropouts == [] and c.bridged_frames == []
+    assert len(c.long_dropouts) == 1
+    a, b, lost = c.long_dropouts[0]
+    assert (a, b) == (4, 9) and lost == pytest.approx(0.09 / 1.09, rel=0.1)
+    summary = conversion_summary(c)
+    assert any(ln.startswith("note: input frames 4-9 (6 frames) lack a part that frames 3 and 10 have")
+               and "The output follows the input there" in ln for ln in summary), summary
+    moon = r.V[0][:, 0] > 1.4
+    assert (r.V[6][moon, 0] < 1.4).mean() > 0.5  # not bridged: the output follows the input
+    # the key frame inside the run is warned of
+    k = to_fixed_topology(_moon_frames(drop=drop, T=14), device=DEV, key_frame=6).conversion
+    assert [x[:2] for x in k.long_dropouts] == [(4, 9)]
+    assert any(ln.startswith("warning: the key frame 6 is one of frames 4-9") for ln in conversion_summary(k))
+    for frames in (_moon_frames(drop=set(range(5, 14)), T=14), _moon_frames(T=14)):
+        assert to_fixed_topology(frames, device=DEV, key_frame=0).conversion.long_dropouts == []
+
+
 @pytest.mark.parametrize("drop", [(4, 5), (3, 4, 5)])
 def test_a_dropout_of_several_frames_is_bridged_from_the_frames_either_side(drop):
     """The moon missing from 2 or 3 frames in a row (a part occluded for a few frames): every
