@@ -1842,9 +1842,6 @@ def _dropout_run(vseq, p: int, n: int, spike: float, near, device) -> list | Non
             or (near.size and spike <= DROPOUT_RATIO * np.median(near))):
         return None
 
-    def p99(src, mesh, diag):
-        return _far_p99(vseq, src, mesh, diag, device)
-
     # what the ends have and a frame lacks is surface, and for closed surfaces volume too: a part
     # folded flat onto the body (a new user's arm slapped down for a frame: its remeshed contact
     # lost 4 % of the area and none of the volume) or a sheet's edge folded back (no area lost)
@@ -1865,19 +1862,19 @@ def _dropout_run(vseq, p: int, n: int, spike: float, near, device) -> list | Non
                 return None
     diag = max(_bbox_diag(vseq.frames[p][0]), _bbox_diag(vseq.frames[n][0]), 1e-12)
     # either way, the smaller: the same for (p, n) and (n, p)
-    agree = min(p99(p, vseq.frames[n], diag), p99(n, vseq.frames[p], diag))
+    agree = min(_far_p99(vseq, p, vseq.frames[n], diag, device), _far_p99(vseq, n, vseq.frames[p], diag, device))
     if DROPOUT_AGREE * agree >= spike:  # the ends differ as much as the part is gone (the first
         return None  # frame's gone is at most its spike): motion
     out = []
     for t in run:
         here = _wp_mesh(*vseq.frames[t], device)  # asked by both ends: one BVH
-        gone = min(p99(p, here, diag), p99(n, here, diag))
+        gone = min(_far_p99(vseq, p, here, diag, device), _far_p99(vseq, n, here, diag, device))
         # and the frame's own surface lies on p's or n's (it lacks a part, it adds none: a frame
         # moved away as a whole is the input's jump, not a dropout); the nearer in time first
         if not (gone > DROPOUT_LEAST and gone > DROPOUT_AGREE * agree):
             return None
         ends = sorted((p, n), key=lambda e: abs(e - t))
-        if not any(DROPOUT_RATIO * p99(t, vseq.frames[e], diag) < gone for e in ends):
+        if not any(DROPOUT_RATIO * _far_p99(vseq, t, vseq.frames[e], diag, device) < gone for e in ends):
             return None
         out.append((t, gone, agree))
     return out
@@ -2639,8 +2636,9 @@ def conversion_summary(info: ConversionInfo) -> list:
     if jumps.size:
         w = int(jumps[np.argmax(m[jumps])])
         drop = {d[0] - info.first_frame for d in info.input_dropouts}  # (jumps count from the first frame)
+        for a, b, _ in info.long_dropouts:  # (the fits either side of a long run may restart a frame late)
+            drop |= set(range(a - 1 - info.first_frame, b + 2 - info.first_frame))
         after = [int(t) for t in jumps if t in drop or t - 1 in drop]
-        after += [int(t) for t in jumps for a, b, _ in info.long_dropouts if t + info.first_frame in (b + 1, b + 2)]
         lines.append(f"warning: the converted surface jumps at {jumps.size} frame(s) ({_frames_text(jumps)}): at frame "
                      f"{w} its vertices move {100 * m[w]:.1f}% of the diagonal from frame {w - 1} (99th pct.), over "
                      f"{JUMP_RATIO:g}x the frames around it, where the input moved less than half as far (a restarted "
