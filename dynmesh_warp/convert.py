@@ -2625,7 +2625,7 @@ def conversion_summary(info: ConversionInfo) -> list:
                      f"(the surface's area {100 * lost:.0f}% smaller from frame {a}, back at frame {b + 1}): a "
                      f"reconstruction's dropout longer than the {DROPOUT_FRAMES} frames that are bridged (or a part "
                      "withdrawn into the body)? The output follows the input there: the part is pressed onto what is "
-                     "left, a sphere resting on it falls through, and the surface jumps back after the run")
+                     "left, a sphere resting on it falls through, and the surface jumps where the fit regains the part")
         if a <= info.key_frame <= b:
             lines.append(f"warning: the key frame {info.key_frame} is one of frames {a}-{b}: the template, made from "
                          "it, lacks the part on every frame; choose another key frame (--key-frame)")
