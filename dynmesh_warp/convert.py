@@ -278,10 +278,12 @@ class ConversionInfo:
     unless the option ``bridge_dropouts`` (on by default) bridged it: bridged_frames lists the
     frames whose output is blended from the two frames either side of their run (after a dropout
     the frame loop found, the next frame's fit started from the frame before it).
-    long_dropouts: ``(first, last, lost)`` of the runs of more than ``DROPOUT_FRAMES`` input frames
-    that lack a part the frames either side of the run have (:func:`_long_dropouts`; ``lost``: the
-    fraction of the surface area that went). Not bridged (blending that many frames would blend
-    away the motion of the rest too): the output follows the input there, and the summary says so.
+    missing_parts: ``(first, last, lost)`` of the runs of input frames that lack a part the frame
+    next to the run has, where no bridge reaches (:func:`_missing_parts`; ``lost``: the fraction of
+    the surface area that went): runs of more than ``DROPOUT_FRAMES`` frames (blending that many
+    would blend away the motion of the rest too) and runs that reach the first or last frame (a
+    part that enters or leaves). The template keeps the part: the output presses it onto what is
+    left there, and the summary says so.
     area_ratio: per frame, the converted surface's area over the input's (the result's frames;
     above ``POOR_AREA``, a crumpled surface: a new user's balloon, converted from its inflated
     frame, had 2.0-2.4x the input's area on its 16 deflated frames while the vertex Chamfer
@@ -338,7 +340,7 @@ class ConversionInfo:
     frame_motion: list = field(default_factory=list)
     input_motion: list = field(default_factory=list)
     input_dropouts: list = field(default_factory=list)
-    long_dropouts: list = field(default_factory=list)
+    missing_parts: list = field(default_factory=list)
     bridged_frames: list = field(default_factory=list)
     rejected_cuts: list = field(default_factory=list)
     segments: list = field(default_factory=list)
@@ -1657,7 +1659,7 @@ def _to_fixed_run(vseq, seq, strategy, template, device, progress, should_stop, 
         if float(o["far_part_area"]) <= 0:
             info.floater_webs = _floater_webs(vseq, res, device, float(o["far_part_gap"]))
         info.input_dropouts = _input_dropouts(vseq, info, device)
-        info.long_dropouts = _long_dropouts(vseq, info, device)
+        info.missing_parts = _missing_parts(vseq, info, device, off_scale)
         if info.input_dropouts and bool(o["bridge_dropouts"]):
             res = _bridge_dropouts(res, info)
         res.all_topology_events = topology.result()  # every frame's (to_piecewise_fixed after a forward stop)
@@ -1767,54 +1769,67 @@ def _nearly_closed(F: np.ndarray) -> bool:
     return _open_edges(F) <= DROPOUT_OPEN_EDGES * len(F)
 
 
-def _long_dropouts(vseq, info, device) -> list:
-    """``ConversionInfo.long_dropouts``: ``(first, last, lost)`` of the runs of more than
-    DROPOUT_FRAMES input frames (absolute indices) that lack a part the frames either side of the
-    run have: a reconstruction that lost a part for longer than a bridged dropout (a new user's arm
-    gone for six frames while the body moved on). The frames either side differ by the motion
-    between them, so, unlike :func:`_dropout_run`, each end of the run is checked against its own
-    neighbour only: the surface area falls into the run by ``lost`` (a fraction of the area before
-    it) and rises out of it by at least half of that, each over DROPOUT_LEAST and DROPOUT_RATIO x
-    the median area change of the ``JUMP_WINDOW`` frames either side; every frame of the run keeps
-    under the area before it less half of ``lost``; the frame before the run lies over
-    DROPOUT_LEAST of the diagonal from the run's first frame (99th pct.), DROPOUT_RATIO x farther
-    than the other way (the part went; nothing moved away), and likewise the frame after the run
-    from its last frame; and where those frames are closed, at least DROPOUT_VOLUME x as large a
-    fraction of the volume went as of the area (a part folded flat onto the body keeps its
-    volume). Runs that hold one of ``info.input_dropouts`` are left to it. Host sums over the faces
-    first; four queries per run that passes them."""
+def _missing_parts(vseq, info, device, off_scale=()) -> list:
+    """``ConversionInfo.missing_parts``: ``(first, last, lost)`` of the runs of input frames
+    (absolute indices) that lack a part the frame next to the run has, where the bridge of
+    :func:`_dropout_run` cannot reach: runs of more than DROPOUT_FRAMES frames (a new user's arm
+    gone for six frames while the body moved on) and runs that reach the first or the last frame
+    (a part that enters or leaves, or a dropout there; no frame on that side). The frames either
+    side of a long run differ by the motion between them, so, unlike :func:`_dropout_run`, each
+    end of a run is checked against its own neighbour only: the surface area changes there by
+    ``lost`` (the fraction of the larger of the two), over DROPOUT_LEAST and DROPOUT_RATIO x the
+    median area change of the ``JUMP_WINDOW`` frames either side; every frame of the run keeps
+    under the neighbour's area less half of ``lost`` (and a run between two frames comes back by
+    at least half of it); the neighbour lies over DROPOUT_LEAST of the diagonal from the run's
+    end frame (99th pct.), DROPOUT_RATIO x farther than the other way (a part went; nothing moved
+    away); and where both are closed, at least DROPOUT_VOLUME x as large a fraction of the volume
+    went as of the area (a part folded flat onto the body keeps its volume). Runs that hold one of
+    ``info.input_dropouts`` are left to it, and so are runs with a frame of ``off_scale`` in them or
+    next to them (:func:`_check_scales` warns of those: a frame in other units changes the area
+    too). Host sums over the faces first; two queries per end that passes them."""
     lo, T = info.first_frame, len(info.coverage)
-    if T < DROPOUT_FRAMES + 3:
+    if T < 3:
         return []
     area = np.array([surface_area(*vseq.frames[lo + i]) for i in range(T)])
     step = area[1:] / np.maximum(area[:-1], 1e-30) - 1.0  # step[i]: from frame i to i + 1 (relative)
-    short = {d[0] - lo for d in info.input_dropouts}
+    short = {d[0] - lo for d in info.input_dropouts} | {t - lo for t in off_scale}
 
     def stands_out(i):
         near = np.abs(np.r_[step[max(0, i - JUMP_WINDOW):i], step[i + 1:i + 1 + JUMP_WINDOW]])
         return abs(step[i]) > DROPOUT_LEAST and (not near.size or abs(step[i]) > DROPOUT_RATIO * float(np.median(near)))
 
     def lacks(full, part):  # input frame ``part`` lacks surface (and volume) that frame ``full`` has
-        fv, pv = vseq.frames[full], vseq.frames[part]
+        fv, pv = vseq.frames[lo + full], vseq.frames[lo + part]
         if _nearly_closed(fv[1]) and _nearly_closed(pv[1]):
             vol = abs(signed_volume(*fv))
-            if 1.0 - abs(signed_volume(*pv)) / max(vol, 1e-30) < DROPOUT_VOLUME * (1.0 - surface_area(*pv) / surface_area(*fv)):
+            if 1.0 - abs(signed_volume(*pv)) / max(vol, 1e-30) < DROPOUT_VOLUME * (1.0 - area[part] / area[full]):
                 return False
         diag = max(_bbox_diag(fv[0]), _bbox_diag(pv[0]), 1e-12)
-        gone = _far_p99(vseq, full, pv, diag, device)
-        return gone > DROPOUT_LEAST and DROPOUT_RATIO * _far_p99(vseq, part, fv, diag, device) < gone
+        gone = _far_p99(vseq, lo + full, pv, diag, device)
+        return gone > DROPOUT_LEAST and DROPOUT_RATIO * _far_p99(vseq, lo + part, fv, diag, device) < gone
+
+    def found(s, e, full, lost):  # the run s..e (relative) lacks the part of frame ``full``
+        return (not short & set(range(min(s, full), max(e, full) + 1))
+                and bool((area[s:e + 1] <= area[full] * (1.0 - 0.5 * lost)).all()) and lacks(full, s if full < s else e))
 
     out, i = [], 0
+    rise = np.flatnonzero((step > 0) & np.array([stands_out(k) for k in range(len(step))]))
+    if rise.size:  # a run from the first frame: the area rises into the frames after it
+        e = int(rise[0])
+        lost = 1.0 - float(area[e] / area[e + 1])
+        if found(0, e, e + 1, lost):
+            out.append((lo, lo + e, lost))
+            i = e + 1
     while i < len(step):
-        s, before = i + 1, area[i]  # s: the run's first frame
-        if not (step[i] < 0 and stands_out(i)) or s in short:
+        s = i + 1  # a run from frame s: the area falls into it
+        if not (step[i] < 0 and stands_out(i)):
             i += 1
             continue
         lost = -float(step[i])
-        e = next((e for e in range(s, T - 1) if area[e] > before * (1.0 - 0.5 * lost)
-                  or (step[e] >= 0.5 * lost and stands_out(e))), None)
-        if (e is not None and e - s + 1 > DROPOUT_FRAMES and area[e] <= before * (1.0 - 0.5 * lost)
-                and not short & set(range(s, e + 1)) and lacks(lo + s - 1, lo + s) and lacks(lo + e + 1, lo + e)):
+        e = next((e for e in range(s, T - 1) if area[e] > area[i] * (1.0 - 0.5 * lost)
+                  or (step[e] >= 0.5 * lost and stands_out(e))), T - 1)
+        if ((e == T - 1 or e - s + 1 > DROPOUT_FRAMES) and found(s, e, i, lost)
+                and (e == T - 1 or lacks(e + 1, e))):
             out.append((lo + s, lo + e, lost))
             i = e + 1
         else:
@@ -2136,7 +2151,7 @@ def _join_segments(vseq, segs: list, whole, events: list) -> VaryingTopologySequ
     info.key_score = "+".join(sorted({r.conversion.key_score for _, r in segs} - {""}))
     info.topology_events, info.dropped_unused, info.welded = list(events), whole.dropped_unused, whole.welded
     info.turned_outward, info.input_dropouts = whole.turned_outward, whole.input_dropouts
-    info.long_dropouts = whole.long_dropouts
+    info.missing_parts = whole.missing_parts
     out.conversion = info
     return out
 
@@ -2620,12 +2635,23 @@ def conversion_summary(info: ConversionInfo) -> list:
         if info.key_frame in {d[0] for d in info.input_dropouts}:  # (a new user's --key-frame inside a run)
             lines.append(f"warning: the key frame {info.key_frame} is one of those frames: the template, made from it, "
                          "lacks the part on every frame; choose another key frame (--key-frame)")
-    for a, b, lost in info.long_dropouts:
-        lines.append(f"note: input frames {a}-{b} ({b - a + 1} frames) lack a part that frames {a - 1} and {b + 1} have "
-                     f"(the surface's area {100 * lost:.0f}% smaller from frame {a}, back at frame {b + 1}): a "
+    last = info.first_frame + len(info.coverage) - 1
+    for a, b, lost in info.missing_parts:
+        if a == info.first_frame:
+            which = (f"input frames {a}-{b} (the first {b - a + 1}) lack a part that frame {b + 1} and those after it "
+                     f"have (the surface's area {100 * lost:.0f}% larger from frame {b + 1}): a part that enters, or a "
+                     "reconstruction's dropout at the start?")
+        elif b == last:
+            which = (f"input frames {a}-{b} (the last {b - a + 1}) lack a part that frame {a - 1} and those before it "
+                     f"have (the surface's area {100 * lost:.0f}% smaller from frame {a}): a part that leaves, or a "
+                     "reconstruction's dropout at the end?")
+        else:
+            which = (f"input frames {a}-{b} ({b - a + 1} frames) lack a part that frames {a - 1} and {b + 1} have (the "
+                     f"surface's area {100 * lost:.0f}% smaller from frame {a}, back at frame {b + 1}): a "
                      f"reconstruction's dropout longer than the {DROPOUT_FRAMES} frames that are bridged (or a part "
-                     "withdrawn into the body)? The output follows the input there: the part is pressed onto what is "
-                     "left, a sphere resting on it falls through, and the surface jumps where the fit regains the part")
+                     "withdrawn into the body)?")
+        lines.append(f"note: {which} One template keeps the part: the output presses it onto what is left there, a "
+                     "sphere resting on it falls through, and the surface jumps where the fit loses or regains it")
         if a <= info.key_frame <= b:
             lines.append(f"warning: the key frame {info.key_frame} is one of frames {a}-{b}: the template, made from "
                          "it, lacks the part on every frame; choose another key frame (--key-frame)")
@@ -2636,7 +2662,7 @@ def conversion_summary(info: ConversionInfo) -> list:
     if jumps.size:
         w = int(jumps[np.argmax(m[jumps])])
         drop = {d[0] - info.first_frame for d in info.input_dropouts}  # (jumps count from the first frame)
-        for a, b, _ in info.long_dropouts:  # (the fits either side of a long run may restart a frame late)
+        for a, b, _ in info.missing_parts:  # (the fits either side of such a run may restart a frame late)
             drop |= set(range(a - 1 - info.first_frame, b + 2 - info.first_frame))
         after = [int(t) for t in jumps if t in drop or t - 1 in drop]
         lines.append(f"warning: the converted surface jumps at {jumps.size} frame(s) ({_frames_text(jumps)}): at frame "

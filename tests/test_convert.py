@@ -683,30 +683,38 @@ def test_an_input_frame_that_lacks_a_part_its_neighbours_have_is_noted():
         assert max(c.frame_motion) < 0.05
 
 
-def test_a_dropout_longer_than_the_bridged_runs_is_noted_and_not_bridged():
+def test_a_part_missing_where_no_bridge_reaches_is_noted():
     """The moon missing from 6 frames in a row (over DROPOUT_FRAMES: a part the reconstruction
     lost for longer than a bridged dropout; a new user's arm gone for six frames). It is named as
     one run with the area it took away (the moon: 0.3^2 / (1 + 0.3^2) of the surface), not
-    bridged, and the summary says the output follows the input there. The moon gone for good
-    (never back) and the moon never gone are no such run."""
+    bridged, and the summary says the output presses it onto what is left. Runs that reach the
+    first or the last frame (the moon entering or leaving; no frame on that side to bridge from)
+    are named too; the moon never gone is none."""
+    moon_area = 0.09 / 1.09
     drop = set(range(4, 10))
     r = to_fixed_topology(_moon_frames(drop=drop, T=14), device=DEV, key_frame=0)
     c = r.conversion
     assert c.input_dropouts == [] and c.bridged_frames == []
-    assert len(c.long_dropouts) == 1
-    a, b, lost = c.long_dropouts[0]
-    assert (a, b) == (4, 9) and lost == pytest.approx(0.09 / 1.09, rel=0.1)
+    assert len(c.missing_parts) == 1
+    a, b, lost = c.missing_parts[0]
+    assert (a, b) == (4, 9) and lost == pytest.approx(moon_area, rel=0.1)
     summary = conversion_summary(c)
     assert any(ln.startswith("note: input frames 4-9 (6 frames) lack a part that frames 3 and 10 have")
-               and "The output follows the input there" in ln for ln in summary), summary
+               and "the output presses it onto what is left there" in ln for ln in summary), summary
     moon = r.V[0][:, 0] > 1.4
     assert (r.V[6][moon, 0] < 1.4).mean() > 0.5  # not bridged: the output follows the input
     # the key frame inside the run is warned of
     k = to_fixed_topology(_moon_frames(drop=drop, T=14), device=DEV, key_frame=6).conversion
-    assert [x[:2] for x in k.long_dropouts] == [(4, 9)]
+    assert [x[:2] for x in k.missing_parts] == [(4, 9)]
     assert any(ln.startswith("warning: the key frame 6 is one of frames 4-9") for ln in conversion_summary(k))
-    for frames in (_moon_frames(drop=set(range(5, 14)), T=14), _moon_frames(T=14)):
-        assert to_fixed_topology(frames, device=DEV, key_frame=0).conversion.long_dropouts == []
+    for gone, key, run, said in ((range(5, 14), 0, (5, 13), "note: input frames 5-13 (the last 9) lack a part that "
+                                  "frame 4 and those before it have"),
+                                 (range(0, 5), 13, (0, 4), "note: input frames 0-4 (the first 5) lack a part that "
+                                  "frame 5 and those after it have")):
+        e = to_fixed_topology(_moon_frames(drop=set(gone), T=14), device=DEV, key_frame=key).conversion
+        assert [x[:2] for x in e.missing_parts] == [run] and e.missing_parts[0][2] == pytest.approx(moon_area, rel=0.1)
+        assert any(ln.startswith(said) for ln in conversion_summary(e)), conversion_summary(e)
+    assert to_fixed_topology(_moon_frames(T=14), device=DEV, key_frame=0).conversion.missing_parts == []
 
 
 @pytest.mark.parametrize("drop", [(4, 5), (3, 4, 5)])
