@@ -2639,7 +2639,7 @@ def conversion_summary(info: ConversionInfo) -> list:
     for a, b, lost in info.missing_parts:
         if a == info.first_frame:
             which = (f"input frames {a}-{b} (the first {b - a + 1}) lack a part that frame {b + 1} and those after it "
-                     f"have (the surface's area {100 * lost:.0f}% larger from frame {b + 1}): a part that enters, or a "
+                     f"have (the surface's area {100 * lost:.0f}% smaller before frame {b + 1}): a part that enters, or a "
                      "reconstruction's dropout at the start?")
         elif b == last:
             which = (f"input frames {a}-{b} (the last {b - a + 1}) lack a part that frame {a - 1} and those before it "
