@@ -64,8 +64,8 @@ import warp as wp
 from .choices import DEFAULT_FRAME_ORDER, DEFAULT_STRATEGY, STRATEGIES, FrameOrder, values
 from .conversion_options import options_for
 from .deform_graph import GraphFitter, build_deformation_graph, extrapolate_rotations
-from .geometry import (distinct_faces, face_areas, mesh_orientation, signed_volume, surface_area, weld_vertices,
-                       winding_numbers)
+from .geometry import (distinct_faces, face_areas, fit_group_motions, mesh_orientation, signed_volume, surface_area,
+                       weld_vertices, winding_numbers)
 from .kernels import convert as kc
 from .kernels.geometry import project_points_to_mesh
 from .metrics import chamfer_distance
@@ -737,12 +737,18 @@ class _Converter:
         return self.coverage(frame)
 
     def static_nodes(self, frame, diag: float) -> np.ndarray:
-        """(K,) bool: the graph nodes where the input surface did not move since the frame fitted
-        before: every template vertex bound to the node or to a node within STATIC_RINGS graph
-        edges of it lies, where the last fit left it (self.X), within ``static_tolerance`` x the
-        diagonal of this frame's surface. A surface moving along itself somewhere (a translating
-        ball's band around its direction of motion) moves across itself next to it, so a node
-        and its rings together are static only where the surface stands still."""
+        """(K,) bool: the graph nodes held still this frame. A node is static where the input
+        surface did not move since the frame fitted before: every template vertex bound to the
+        node or to a node within STATIC_RINGS graph edges of it lies, where the last fit left it
+        (self.X), within ``static_tolerance`` x the diagonal of this frame's surface (a surface
+        moving along itself somewhere, a translating ball's band around its direction of motion,
+        moves across itself next to it). Distances cannot tell a still surface from one sliding
+        along itself, so each connected region of static nodes is then held only where
+        :func:`_still_regions` finds the moving parts around it cannot be carrying it. None before
+        two frames are fitted (no motion of the moving parts yet)."""
+        g = self.graph
+        if len(self.history) < 2:
+            return np.zeros(g.num_nodes, bool)
         m = frame[0]
         n = self.X.shape[0]
         dist = wp.empty(n, dtype=float, device=self.device)
@@ -750,18 +756,70 @@ class _Converter:
         wp.launch(kc.measure_distances_to_mesh, dim=n, inputs=[m.id, self.X, 2.0 * tol], outputs=[dist],
                   device=self.device)
         moved = dist.numpy() > tol
-        g = self.graph
         idx, w = g.node_index.reshape(n, -1), g.node_weight.reshape(n, -1)
-        node_moved = np.zeros(g.num_nodes, bool)
-        node_moved[idx[moved[:, None] & (w > 0)]] = True
-        if len(g.edges):  # a node next to a moving one within STATIC_RINGS graph edges moves
-            e = np.asarray(g.edges, np.int64)
-            for _ in range(STATIC_RINGS):
-                ring = node_moved.copy()  # (set, not |=: a node on several edges is indexed more than once)
-                ring[e[node_moved[e[:, 1]], 0]] = True
-                ring[e[node_moved[e[:, 0]], 1]] = True
-                node_moved = ring
-        return ~node_moved
+        own = np.zeros(g.num_nodes, bool)
+        own[idx[moved[:, None] & (w > 0)]] = True
+        e = np.asarray(g.edges, np.int64).reshape(-1, 2)
+        static = ~_grow_nodes(own, e, STATIC_RINGS)  # a node next to a moving one within STATIC_RINGS edges moves
+        return self._still_regions(static, own, e, frame, tol) if static.any() else static
+
+    def _still_regions(self, static, own, e, frame, tol: float) -> np.ndarray:
+        """``static`` (K,) less the regions (connected sets of static nodes over the graph's edges
+        ``e``) that the moving parts around them may be carrying along themselves. Around a
+        region: the nodes within STATIC_RINGS + 2 edges of it whose own vertices moved (``own``).
+        Its moving parts: their connected groups whose nodes moved a median over 2 x ``tol``
+        (meters) between the last two fitted frames (slower ones are a fit's noise: a whole
+        body moving under the tolerance has no moving part, and nothing pulls it). Each part's
+        nodes near the region, and all nodes around it together, give a rigid motion (their
+        motion between the last two frames, Kabsch); a region that one of them moves by a median
+        over ``tol`` while keeping it on this frame's surface (99th percentile of the distances
+        under half that move) may be moving with them, along itself: a cylinder sliding along
+        its axis with its caps, a box spinning in the plane of its faces with its sides, a walker's
+        torso with its shoulders. Held: a region with a moving part around it, and no such motion
+        (a still torso turned by the legs' swing would leave its surface)."""
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import connected_components
+
+        g, m, n = self.graph, frame[0], self.X.shape[0]
+        K = g.num_nodes
+        (_, P0), (_, P1) = self.history[-2:]
+
+        def groups(mask):  # connected components of the nodes in mask, over edges inside it
+            keep = mask[e[:, 0]] & mask[e[:, 1]]
+            a = coo_matrix((np.ones(int(keep.sum())), (e[keep, 0], e[keep, 1])), shape=(K, K))
+            return connected_components(a, directed=False)[1]
+
+        reg, mov = groups(static), groups(own)
+        idx, w = g.node_index.reshape(n, -1), g.node_weight.reshape(n, -1)
+        owner = idx[np.arange(n), np.argmax(w, axis=1)]  # each vertex's heaviest node
+        X = self.X.numpy()
+        out = static.copy()
+        for r in np.unique(reg[static]):
+            region = static & (reg == r)
+            around = _grow_nodes(region, e, STATIC_RINGS + 2) & own
+            parts = [c for c in np.unique(mov[around])
+                     if np.median(np.linalg.norm(P1[mov == c] - P0[mov == c], axis=1)) > 2.0 * tol]
+            if not parts:
+                out[region] = False
+                continue
+            xr = X[region[owner]]
+            for S in [around & (mov == c) for c in parts] + [around]:
+                if S.sum() < 3:
+                    continue
+                c0 = P0[S].mean(axis=0)
+                Rm, tm, _ = fit_group_motions(P0[S] - c0, P1[S], np.zeros(int(S.sum()), np.int64), 1)
+                moved = (xr - c0) @ Rm[0].T + tm[0]
+                step = float(np.median(np.linalg.norm(moved - xr, axis=1)))
+                if step <= tol:
+                    continue  # it would not move the region: no sign against holding it
+                d = wp.empty(len(moved), dtype=float, device=self.device)
+                wp.launch(kc.measure_distances_to_mesh, dim=len(moved),
+                          inputs=[m.id, wp.array(moved.astype(np.float32), dtype=wp.vec3, device=self.device),
+                                  4.0 * step], outputs=[d], device=self.device)
+                if float(np.percentile(d.numpy(), 99)) <= 0.5 * step:
+                    out[region] = False  # it may move with them, along itself
+                    break
+        return out
 
     def step_graph(self, frame, t):
         o, gf = self.opts, self.gf
@@ -770,7 +828,7 @@ class _Converter:
         rest = (np.repeat(np.eye(3)[None], gf.K, axis=0), self.graph.node_rest.copy())
         hold = None
         static = None
-        if float(o["static_hold"]) > 0 and self.history:
+        if float(o["static_hold"]) > 0:
             static = self.static_nodes(frame, diag)
         gam = float(o["predict"])
         if not self.history:
@@ -931,6 +989,18 @@ class _Converter:
             wp.launch(kc.project_points_along_normals, dim=n,
                       inputs=[m.id, self.tmp, self.normals, self.max_dist, float(o["normal_slack"])],
                       outputs=[self.X, self.dist], device=d)
+
+
+
+def _grow_nodes(mask: np.ndarray, e: np.ndarray, rings: int) -> np.ndarray:
+    """``mask`` (K,) bool grown by ``rings`` steps along the graph edges ``e`` (E, 2)."""
+    out = mask.copy()
+    for _ in range(rings):
+        ring = out.copy()  # (set, not |=: a node on several edges is indexed more than once)
+        ring[e[out[e[:, 1]], 0]] = True
+        ring[e[out[e[:, 0]], 1]] = True
+        out = ring
+    return out
 
 
 def _rotation_from_vector(w: np.ndarray) -> np.ndarray:
