@@ -1564,7 +1564,7 @@ class World:
     def _fallen_text(self) -> str:
         """The run line's note when spheres ended far below the surface's lowest point with no
         ground plane to stop them (a new user's y-up horse played as z-up: "0/5 in contact",
-        the spheres at z = -15 m, unsaid)."""
+        the spheres at z = -15 m, unsaid; another's sphere pinched through a closing slab)."""
         if self.model.params.ground_height is not None or not self.model.spheres.count:
             return ""
         lo, hi = self.model.surface.sequence.bounds()
@@ -1573,7 +1573,9 @@ class World:
         if not fell:
             return ""
         return (f"; {fell} of {self.model.spheres.count} spheres fell past the surface (below its lowest point, no "
-                "ground plane: physics.ground auto adds one; a y-up mesh played as z-up? --set surface.up_axis=y)")
+                "ground plane: physics.ground auto adds one; a y-up mesh played as z-up? --set surface.up_axis=y; or "
+                "pinched between two parts of the surface closing on them, which one contact per sphere cannot hold: "
+                "raise physics.substeps, docs/physics.md)")
 
     # -- convenience ---------------------------------------------------------------------------
     def sphere_positions(self) -> np.ndarray:
