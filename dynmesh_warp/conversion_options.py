@@ -140,17 +140,18 @@ class GraphOptions(_Options, _FineStage):
     stiffness: Float = Field(10.0, ge=0.0)
     stiffness_end: Float = Field(0.3, ge=0.0)
     damping: Float = Field(0.01, ge=0.0)
-    #: the static hold (off by default): where the input surface did not move between the frame
-    #: before and this one (every template vertex of a node and of the nodes within STATIC_RINGS
-    #: graph edges lies, as the last fit left it, within static_tolerance x the diagonal of this
-    #: frame's surface), the node starts from where it was (not the constant-velocity prediction)
-    #: and is held there with this weight (per node, as damping). For a capture whose subject
-    #: stands still while parts of it move (a new user's still torso turned 53 degrees with its
-    #: legs swinging; 19.5 with the hold). Not for surfaces that move along themselves (a body
-    #: translating along its axis, a box sliding or spinning in the plane of its faces, motion under
-    #: the tolerance): they pass as still and their vertices stop following the material (a new
-    #: user's: slide 1.5 -> 16 % of the diagonal). docs/conversion.md, "Still parts"
-    static_hold: Float = Field(0.0, ge=0.0)
+    #: the static hold (0: off): where the input surface did not move between the frame before
+    #: and this one (every template vertex of a node and of the nodes within STATIC_RINGS graph
+    #: edges lies, as the last fit left it, within static_tolerance x the diagonal of this frame's
+    #: surface), and no rigid motion of the moving parts around that still region would carry it
+    #: along its own surface (convert._Converter._still_regions), the node starts from where it was
+    #: (not the constant-velocity prediction) and is held there with this weight (per node, as
+    #: damping). A new user's still torso turned 53 degrees with its legs swinging (22 held); the
+    #: first hold, without the region test, also froze surfaces that move along themselves (a long
+    #: cylinder along its axis: slide 1.2 -> 13 % of the diagonal; now 1.2 %). On by default since
+    #: the region test (issue 12's protocol the same or within a point of CD, docs/conversion.md,
+    #: "Still parts")
+    static_hold: Float = Field(1.0, ge=0.0)
     static_tolerance: Float = Field(0.004, ge=0.0)
     max_normal_angle: Float = Field(60.0, ge=0.0, le=180.0)
     predict: Float = Field(1.0, ge=0.0)
