@@ -703,3 +703,67 @@ def test_a_sphere_entirely_behind_the_surface_has_no_contact(collider):
         np.testing.assert_allclose(ps[:, i, 2], z, atol=1e-5, err_msg=f"sphere {i} (behind by {-z0 - r:.2f} m)")
         np.testing.assert_allclose(vs[:, i, 2], v, atol=1e-4)
     assert ps[0, 2, 2] > 0.0, "a centre within r behind the surface is pushed out to the front"
+
+
+def _box_faces(lo, hi):
+    """A closed, outward-facing box (8 vertices, 12 triangles)."""
+    V = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])], np.float64)
+    F = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1], [2, 3, 7], [2, 7, 6],
+                  [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]], np.int32)
+    return V, F
+
+
+@pytest.mark.parametrize("collider", COLLIDERS)
+def test_a_sphere_pinched_between_closing_plates_stays_between_them(collider):
+    """A new user's sphere (r = 5 cm) on a 10 cm slab, another slab lowered onto it until the gap is
+    3 cm (under r): with one contact per sphere each sub-step pushed the centre out of the nearer
+    slab by the whole overlap, into the other, until it went through one (it fell out of the
+    bottom slab). Now a contact facing the sphere's last contact (or its last pinch's other side)
+    is a pinch, resolved against both: the centre stays between the plates, at the middle once
+    the gap is under 2 r (closed form: gap / 2), on every collider."""
+    fps, T, r = 60, 90, 0.05
+    bot, F = _box_faces((-0.5, -0.5, -0.1), (0.5, 0.5, 0.0))
+    top, _ = _box_faces((-0.5, -0.5, 0.0), (0.5, 0.5, 0.1))
+    frames = []
+    for t in range(T):
+        gap = 0.2 + (0.03 - 0.2) * min(t / 60, 1.0)
+        frames.append(np.vstack([bot, top + [0.0, 0.0, gap]]))
+    seq = FixedTopologySequence(np.asarray(frames, np.float32), np.vstack([F, F + 8]), fps=fps)
+    for x in (0.1, 0.0):  # (0, 0): on the diagonal edge of each plate's two triangles
+        w = make_world(seq, [[x, 0.0, r]], radius=r, collider=collider)
+        _, ps, _ = run(w, int(1.5 / DT))
+        t = DT * np.arange(1, len(ps) + 1)
+        gap = 0.2 + (0.03 - 0.2) * np.minimum(t, 1.0)
+        z = ps[:, 0, 2]
+        assert (z > 0.0).all() and (z < gap + 1e-3).all(), (collider, x, z.min())
+        assert z[-1] == pytest.approx(0.015, abs=1e-3)
+
+
+@pytest.mark.parametrize("collider", COLLIDERS)
+def test_a_closing_jaw_squeezes_a_frictionless_sphere_out_along_its_bisector(collider):
+    """A slab hinged at x = -0.5 closing from 30 degrees to 0 in 1 s onto a fixed slab, a
+    frictionless sphere (r = 5 cm) between them (a new user's check). Closed form while it touches
+    both: it rides the bisector, x = -0.5 + r / tan(theta / 2), vx = r theta' / (2 sin^2(theta / 2)).
+    With one contact per sphere it reached x = 0.12 m, 0.66 m/s at 6 degrees and then sank through
+    the bottom slab; resolved against both contacts, the closed form within 2 % (x) and 6 % (vx)."""
+    fps, r, th0 = 240, 0.05, np.radians(30.0)
+    bot, F = _box_faces((-0.5, -0.3, -0.1), (0.5, 0.3, 0.0))
+    top0, _ = _box_faces((-0.5, -0.3, 0.0), (0.5, 0.3, 0.1))
+    frames = []
+    for k in range(int(1.2 * fps) + 1):
+        th = max(0.0, th0 * (1 - k / fps))
+        c, s = np.cos(th), np.sin(th)
+        x, z = top0[:, 0] + 0.5, top0[:, 2]
+        frames.append(np.vstack([bot, np.stack([-0.5 + c * x - s * z, top0[:, 1], s * x + c * z], 1)]))
+    seq = FixedTopologySequence(np.asarray(frames, np.float32), np.vstack([F, F + 8]), fps=fps)
+    w = make_world(seq, [[0.0, 0.0, r + 1e-4]], radius=r, collider=collider, friction=0.0, restitution=0.0)
+    _, ps, vs = run(w, int(0.8 / DT))
+    t = DT * np.arange(1, len(ps) + 1)
+    for when in (0.7, 0.8):  # theta 9 and 6 degrees
+        i = int(np.argmin(np.abs(t - when)))
+        th = th0 * (1 - t[i])
+        x = -0.5 + r / np.tan(th / 2)
+        vx = r * th0 / (2 * np.sin(th / 2) ** 2)
+        assert ps[i, 0, 0] == pytest.approx(x, rel=0.02), (collider, when)
+        assert vs[i, 0, 0] == pytest.approx(vx, rel=0.06), (collider, when)
+        assert ps[i, 0, 2] > 0.9 * r  # above the bottom slab, not through it
