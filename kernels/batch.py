@@ -219,7 +219,7 @@ def collide_and_integrate_env_spheres(
                                    contact_velocity[s], n2, c2, vs2)
     sphere_pos_out[s] = p
     sphere_vel_out[s] = v
-    remember_contact(s, pinched, dt, n2, c2, vs2, contact_face, contact_point, contact_normal, contact_velocity,
+    remember_contact(s, pinched, n2, c2, vs2, contact_face, contact_point, contact_normal, contact_velocity,
                      contact_last_normal, contact_last_point, contact_last_velocity, contact_other_normal,
                      contact_other_point, contact_other_velocity)
 
@@ -758,7 +758,7 @@ def resolve_and_integrate_env_spheres(
                                    contact_velocity[s], n2, c2, vs2)
     sphere_pos_out[s] = p
     sphere_vel_out[s] = v
-    remember_contact(s, pinched, dt, n2, c2, vs2, contact_face, contact_point, contact_normal, contact_velocity,
+    remember_contact(s, pinched, n2, c2, vs2, contact_face, contact_point, contact_normal, contact_velocity,
                      contact_last_normal, contact_last_point, contact_last_velocity, contact_other_normal,
                      contact_other_point, contact_other_velocity)
 

@@ -93,8 +93,8 @@ def advance_sphere(
     [m/s]) and the optional ground plane: the continuous response of ``integrate_spheres``
     (shared with the batched step, kernels/batch.py). ``n2``, ``c2``, ``vs2``: the plane facing
     the contact (``pinch_partner``; n2 zero: none); within half a radius of touching both, its
-    centre in front of both, it is a pinch, resolved against both (``resolve_pinch``). Returns (position, velocity, 1 when
-    pinched else 0)."""
+    centre in front of both, it is a pinch, resolved against both (``resolve_pinch``). Returns
+    (position, velocity, 1 when pinched else 0)."""
     pinched = int(0)
     if inv_mass == 0.0:
         return p + v * dt, v, pinched
@@ -169,7 +169,6 @@ def pinch_partner(
 def remember_contact(
     s: int,
     pinched: int,
-    dt: float,
     n2: wp.vec3,
     c2: wp.vec3,
     vs2: wp.vec3,
@@ -276,7 +275,7 @@ def integrate_spheres(
                                    contact_normal[s], contact_depth[s], contact_velocity[s], n2, c2, vs2)
     sphere_pos_out[s] = p
     sphere_vel_out[s] = v
-    remember_contact(s, pinched, dt, n2, c2, vs2, contact_face, contact_point, contact_normal, contact_velocity,
+    remember_contact(s, pinched, n2, c2, vs2, contact_face, contact_point, contact_normal, contact_velocity,
                      contact_last_normal, contact_last_point, contact_last_velocity, contact_other_normal,
                      contact_other_point, contact_other_velocity)
 
