@@ -15,7 +15,7 @@ import warp as wp
 
 from .collide import contact_reach
 from .frames import PLAYBACK_LOOP, blend_pair, wrap_frame
-from .integrate import advance_sphere, pinch_partner, remember_contact
+from .integrate import advance_sphere_with_memory
 from .swept import (
     NO_PAIR,
     box_distance,
@@ -211,17 +211,12 @@ def collide_and_integrate_env_spheres(
     write_swept_contact(s, p, r, reach, min_dist, min_face, min_w, acc_n, frames, indices, k0, k1, alpha,
                         fps * wp.float64(rate), contact_face, contact_point, contact_normal, contact_depth,
                         contact_velocity)
-    n2, c2, vs2 = pinch_partner(contact_normal[s], contact_last_normal[s], contact_last_point[s],
-                                contact_last_velocity[s], contact_other_normal[s], contact_other_point[s],
-                                contact_other_velocity[s])
-    p, v, pinched = advance_sphere(p, v, inv_mass[s], r, gravity, dt, restitution, friction, rest_speed, ground,
-                                   ground_height, contact_face[s], contact_normal[s], contact_depth[s],
-                                   contact_velocity[s], n2, c2, vs2)
+    p, v = advance_sphere_with_memory(s, p, v, inv_mass[s], r, gravity, dt, restitution, friction, rest_speed,
+                                      ground, ground_height, contact_face, contact_point, contact_normal, contact_depth,
+                                      contact_velocity, contact_last_normal, contact_last_point, contact_last_velocity,
+                                      contact_other_normal, contact_other_point, contact_other_velocity)
     sphere_pos_out[s] = p
     sphere_vel_out[s] = v
-    remember_contact(s, pinched, n2, c2, vs2, contact_face, contact_point, contact_normal, contact_velocity,
-                     contact_last_normal, contact_last_point, contact_last_velocity, contact_other_normal,
-                     contact_other_point, contact_other_velocity)
 
 
 @wp.func
@@ -750,17 +745,12 @@ def resolve_and_integrate_env_spheres(
     write_swept_contact(s, p, r, reach, query_dist[s], query_face[s], query_w[s], query_n[s], frames, indices, k0, k1,
                         alpha, fps * wp.float64(env_rate_in[e]), contact_face, contact_point, contact_normal,
                         contact_depth, contact_velocity)
-    n2, c2, vs2 = pinch_partner(contact_normal[s], contact_last_normal[s], contact_last_point[s],
-                                contact_last_velocity[s], contact_other_normal[s], contact_other_point[s],
-                                contact_other_velocity[s])
-    p, v, pinched = advance_sphere(p, v, inv_mass[s], r, gravity, dt, restitution, friction, rest_speed, ground,
-                                   ground_height, contact_face[s], contact_normal[s], contact_depth[s],
-                                   contact_velocity[s], n2, c2, vs2)
+    p, v = advance_sphere_with_memory(s, p, v, inv_mass[s], r, gravity, dt, restitution, friction, rest_speed,
+                                      ground, ground_height, contact_face, contact_point, contact_normal, contact_depth,
+                                      contact_velocity, contact_last_normal, contact_last_point, contact_last_velocity,
+                                      contact_other_normal, contact_other_point, contact_other_velocity)
     sphere_pos_out[s] = p
     sphere_vel_out[s] = v
-    remember_contact(s, pinched, n2, c2, vs2, contact_face, contact_point, contact_normal, contact_velocity,
-                     contact_last_normal, contact_last_point, contact_last_velocity, contact_other_normal,
-                     contact_other_point, contact_other_velocity)
 
 
 @wp.kernel

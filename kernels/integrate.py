@@ -201,6 +201,47 @@ def remember_contact(
         contact_other_normal[s] = wp.vec3(0.0)
 
 
+@wp.func
+def advance_sphere_with_memory(
+    s: int,
+    p: wp.vec3,
+    v: wp.vec3,
+    inv_mass: float,
+    r: float,
+    gravity: wp.vec3,
+    dt: float,
+    restitution: float,
+    friction: float,
+    rest_speed: float,
+    ground: int,
+    ground_height: float,
+    contact_face: wp.array[wp.int32],
+    contact_point: wp.array[wp.vec3],
+    contact_normal: wp.array[wp.vec3],
+    contact_depth: wp.array[float],
+    contact_velocity: wp.array[wp.vec3],
+    contact_last_normal: wp.array[wp.vec3],
+    contact_last_point: wp.array[wp.vec3],
+    contact_last_velocity: wp.array[wp.vec3],
+    contact_other_normal: wp.array[wp.vec3],
+    contact_other_point: wp.array[wp.vec3],
+    contact_other_velocity: wp.array[wp.vec3],
+):
+    """``advance_sphere`` for sphere s with its contact of this sub-step and its pinch memory
+    (``pinch_partner`` before, ``remember_contact`` after): what the world's and the batched
+    step's integration share. Returns (position, velocity)."""
+    n2, c2, vs2 = pinch_partner(contact_normal[s], contact_last_normal[s], contact_last_point[s],
+                                contact_last_velocity[s], contact_other_normal[s], contact_other_point[s],
+                                contact_other_velocity[s])
+    p, v, pinched = advance_sphere(p, v, inv_mass, r, gravity, dt, restitution, friction, rest_speed, ground,
+                                   ground_height, contact_face[s], contact_normal[s], contact_depth[s],
+                                   contact_velocity[s], n2, c2, vs2)
+    remember_contact(s, pinched, n2, c2, vs2, contact_face, contact_point, contact_normal, contact_velocity,
+                     contact_last_normal, contact_last_point, contact_last_velocity, contact_other_normal,
+                     contact_other_point, contact_other_velocity)
+    return p, v
+
+
 @wp.kernel
 def integrate_spheres(
     # Model:
@@ -267,17 +308,13 @@ def integrate_spheres(
         store_frame_key(t, fps, num_frames, mode, frame_key_out, frame_changed_out)
     if s >= inv_mass.shape[0]:
         return
-    n2, c2, vs2 = pinch_partner(contact_normal[s], contact_last_normal[s], contact_last_point[s],
-                                contact_last_velocity[s], contact_other_normal[s], contact_other_point[s],
-                                contact_other_velocity[s])
-    p, v, pinched = advance_sphere(sphere_pos_out[s], sphere_vel_out[s], inv_mass[s], sphere_radius[s], gravity,
-                                   dt, restitution, friction, rest_speed, ground, ground_height, contact_face[s],
-                                   contact_normal[s], contact_depth[s], contact_velocity[s], n2, c2, vs2)
+    p, v = advance_sphere_with_memory(s, sphere_pos_out[s], sphere_vel_out[s], inv_mass[s], sphere_radius[s],
+                                      gravity, dt, restitution, friction, rest_speed, ground, ground_height,
+                                      contact_face, contact_point, contact_normal, contact_depth, contact_velocity,
+                                      contact_last_normal, contact_last_point, contact_last_velocity,
+                                      contact_other_normal, contact_other_point, contact_other_velocity)
     sphere_pos_out[s] = p
     sphere_vel_out[s] = v
-    remember_contact(s, pinched, n2, c2, vs2, contact_face, contact_point, contact_normal, contact_velocity,
-                     contact_last_normal, contact_last_point, contact_last_velocity, contact_other_normal,
-                     contact_other_point, contact_other_velocity)
 
 
 @wp.kernel
