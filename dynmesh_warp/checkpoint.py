@@ -7,9 +7,7 @@ A checkpoint is one ``.npz`` file (written atomically, NumPy arrays only, no pic
   samples so far and the scene's fingerprint (:func:`scene_fingerprint`);
 - the world's state (:meth:`World.checkpoint_state <dynmesh_warp.world.World.checkpoint_state>`):
   ``time``, ``sim_time``, ``substep_count``, ``sphere_pos``, ``sphere_vel``, ``frame_key``, ``frame_changed``,
-  ``contact_face`` (each sphere's last contact face: the seeded searches read it),
-  ``contact_last_*`` and ``contact_other_*`` (normal, point, velocity: its contact at the last
-  sub-step and the other side of its last pinch, which the integrator reads) and the collider's
+  ``contact_face`` (each sphere's last contact face: the seeded searches read it) and the collider's
   ``collider_*`` arrays;
 - ``radius`` and ``inv_mass`` of the spheres (compared with the scene's, sphere by sphere);
 - ``traj_time``, ``traj_position``, ``traj_velocity``: the trajectory samples taken so far (every
@@ -39,10 +37,8 @@ __all__ = ["CheckpointError", "Checkpoint", "FORMAT", "CHECKPOINT_NAME", "scene_
 CHECKPOINT_NAME = "checkpoint.npz"
 #: the ``format`` field of the files this version writes and reads
 # 2: the clock's frame_key / frame_changed are state fields; 3: the trajectory samples start at
-# step 0 (a checkpoint of 2, resumed, would mix two grids) and the fingerprint holds the spheres' start;
-# 4: each sphere's contact at its last sub-step and its last pinch's other side (the integrator's
-# pinch memory, ``contact_last_*``, ``contact_other_*``)
-FORMAT = "dynmesh_warp.checkpoint/4"
+# step 0 (a checkpoint of 2, resumed, would mix two grids) and the fingerprint holds the spheres' start
+FORMAT = "dynmesh_warp.checkpoint/3"
 
 
 class CheckpointError(SceneError):
@@ -190,9 +186,7 @@ def save_checkpoint(path, world, *, scene: str, step: int, steps: int, checkpoin
 #: state fields every checkpoint has: name -> (dtype kind, shape with "S" for the sphere count)
 _STATE_FIELDS = {"time": ("f", ()), "sim_time": ("f", (1,)), "substep_count": ("i", ()),
                  "sphere_pos": ("f", ("S", 3)), "sphere_vel": ("f", ("S", 3)),
-                 "frame_key": ("i", (1,)), "frame_changed": ("i", (1,)), "contact_face": ("i", ("S",)),
-                 **{f"contact_{k}_{q}": ("f", ("S", 3)) for k in ("last", "other")
-                    for q in ("normal", "point", "velocity")}}
+                 "frame_key": ("i", (1,)), "frame_changed": ("i", (1,)), "contact_face": ("i", ("S",))}
 
 
 def load_checkpoint(path) -> Checkpoint:

@@ -544,21 +544,12 @@ class State:
                   outputs=[self.frame_key, self.frame_changed], device=model.device)
 
 
-#: the names of ``Contacts.last`` (checkpoint fields ``contact_<name>``)
-LAST_CONTACT = ("last_normal", "last_point", "last_velocity", "other_normal", "other_point", "other_velocity")
-
-
 class Contacts:
     """Contact of each sphere with the surface at the last (sub)step.
 
     face (S,) int32, -1 when none; point (S,) vec3 closest surface point [m]; normal (S,) vec3
     unit, towards the sphere's free side; depth (S,) float radius - signed centre distance [m]
     (> 0 penetrating); velocity (S,) vec3 surface velocity at the point [m/s].
-    last_normal, last_point, last_velocity (S,) vec3: the contact of each sphere's last sub-step
-    (the normal zero for none); other_normal, other_point, other_velocity: the other side's plane
-    where that sub-step was a pinch (zero normal otherwise). Kept by the integrator for the next
-    sub-step: a contact facing either is a pinch between two parts of the surface
-    (``kernels.integrate.PINCH_COS``).
     """
 
     def __init__(self, count: int, device=None):
@@ -567,17 +558,6 @@ class Contacts:
         self.normal = wp.zeros(count, dtype=wp.vec3, device=device)
         self.depth = wp.zeros(count, dtype=float, device=device)
         self.velocity = wp.zeros(count, dtype=wp.vec3, device=device)
-        self.last_normal = wp.zeros(count, dtype=wp.vec3, device=device)
-        self.last_point = wp.zeros(count, dtype=wp.vec3, device=device)
-        self.last_velocity = wp.zeros(count, dtype=wp.vec3, device=device)
-        self.other_normal = wp.zeros(count, dtype=wp.vec3, device=device)
-        self.other_point = wp.zeros(count, dtype=wp.vec3, device=device)
-        self.other_velocity = wp.zeros(count, dtype=wp.vec3, device=device)
-
-    @property
-    def last(self) -> tuple:
-        """The integrator's pinch memory, in ``LAST_CONTACT`` order."""
-        return tuple(getattr(self, k) for k in LAST_CONTACT)
 
     def numpy(self) -> dict:
         return {k: getattr(self, k).numpy() for k in ("face", "point", "normal", "depth", "velocity")}
@@ -658,8 +638,8 @@ def integrate(model: Model, state: State, contacts: "Contacts", ctx: StepContext
                 int(m.params.ground_height is not None),
                 float(m.params.ground_height if m.params.ground_height is not None else 0.0),
                 ctx.sub_dt, surf.fps, surf.num_frames, surf.playback,
-                c.face, c.point, c.normal, c.depth, c.velocity],
-               [s.sphere_pos, s.sphere_vel, s.sim_time, s.frame_key, s.frame_changed, *c.last])
+                c.face, c.normal, c.depth, c.velocity],
+               [s.sphere_pos, s.sphere_vel, s.sim_time, s.frame_key, s.frame_changed])
 
 
 def substep(model: Model, state: State, contacts: "Contacts", collider: "ColliderBase", ctx: StepContext):
@@ -1363,8 +1343,7 @@ class World:
         refit and rebuild derive theirs from the clock), and each sphere's last contact face: the
         seeded searches (``SEED_PREVIOUS_FACE``, ``SEED_REFIT_QUERY``) read it before they write
         it (without it a run resumed at step 3,665 of the default scene differed from the
-        uninterrupted one by one float32 ulp of one velocity, a step later; CI caught it), and
-        each sphere's contact at its last sub-step, which the integrator reads (a pinch). The rest
+        uninterrupted one by one float32 ulp of one velocity, a step later; CI caught it). The rest
         is static (surface, radii, masses, parameters: compared with the scene on resume), the
         other contact fields are written before they are read, and no step draws random numbers.
         Between steps only."""
@@ -1372,8 +1351,7 @@ class World:
               "substep_count": np.array(self.substep_count, np.int64),
               "sphere_pos": self.sphere_positions(), "sphere_vel": self.sphere_velocities(),
               "frame_key": self.state.frame_key.numpy().copy(), "frame_changed": self.state.frame_changed.numpy().copy(),
-              "contact_face": self.contacts.face.numpy().copy(),
-              **{f"contact_{k}": a.numpy().copy() for k, a in zip(LAST_CONTACT, self.contacts.last)}}
+              "contact_face": self.contacts.face.numpy().copy()}
         st.update({f"collider_{k}": v for k, v in self.collider.checkpoint_state().items()})
         return st
 
@@ -1393,8 +1371,6 @@ class World:
         self.state.frame_key.assign(np.asarray(st["frame_key"], np.int32).reshape(1))
         self.state.frame_changed.assign(np.asarray(st["frame_changed"], np.int32).reshape(1))
         self.contacts.face.assign(np.asarray(st["contact_face"], np.int32).reshape(-1))
-        for k, a in zip(LAST_CONTACT, self.contacts.last):
-            a.assign(np.asarray(st[f"contact_{k}"], np.float32).reshape(-1, 3))
         self.substep_count = int(st["substep_count"])
         self.collider.restore_checkpoint_state({k[len("collider_"):]: v for k, v in st.items()
                                                 if k.startswith("collider_")})
@@ -1588,7 +1564,7 @@ class World:
     def _fallen_text(self) -> str:
         """The run line's note when spheres ended far below the surface's lowest point with no
         ground plane to stop them (a new user's y-up horse played as z-up: "0/5 in contact",
-        the spheres at z = -15 m, unsaid; another's sphere pinched through closing slabs)."""
+        the spheres at z = -15 m, unsaid; another's sphere pinched through a closing slab)."""
         if self.model.params.ground_height is not None or not self.model.spheres.count:
             return ""
         lo, hi = self.model.surface.sequence.bounds()
@@ -1598,7 +1574,8 @@ class World:
             return ""
         return (f"; {fell} of {self.model.spheres.count} spheres fell past the surface (below its lowest point, no "
                 "ground plane: physics.ground auto adds one; a y-up mesh played as z-up? --set surface.up_axis=y; or "
-                "pinched where two parts of the surface close on each other completely, docs/physics.md)")
+                "pinched between two parts of the surface closing on them, which one contact per sphere cannot hold: "
+                "raise physics.substeps, docs/physics.md)")
 
     # -- convenience ---------------------------------------------------------------------------
     def sphere_positions(self) -> np.ndarray:

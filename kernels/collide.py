@@ -120,16 +120,8 @@ def collide_sphere_mesh(
         w = wp.vec3(q.u, q.v, 1.0 - q.u - q.v)
         c = w[0] * a + w[1] * b + w[2] * e
         fn = wp.normalize(wp.cross(b - a, e - a))
-        side = q.sign
-        h = wp.dot(p - c, fn)
-        if h != 0.0 and h * h >= 0.98 * wp.length_sq(p - c):
-            # the centre straight off the face (not in the wedge of an edge or a corner): the
-            # face's own plane decides the side. The query's sign can come from another face as
-            # near (the other side of a pinch): a sphere between two plates at equal distance
-            # was told it lay behind one and pushed through it
-            side = wp.sign(h)
-        n, depth = make_contact(p, r, c, side, fn)
-        if keeps_contact(side, depth, r):
+        n, depth = make_contact(p, r, c, q.sign, fn)
+        if keeps_contact(q.sign, depth, r):
             face = q.face
             vs = w[0] * velocities_in[i0] + w[1] * velocities_in[i1] + w[2] * velocities_in[i2]
         # else: the sphere lies entirely behind the surface: no contact
