@@ -1856,11 +1856,11 @@ def _missing_parts(vseq, info, device, off_scale=()) -> list:
     went as of the area (a part folded flat onto the body keeps its volume). Runs that hold one of
     ``info.input_dropouts`` are left to it, and so are runs with a frame of ``off_scale`` in them or
     next to them (:func:`_check_scales` warns of those: a frame in other units changes the area
-    too). Host sums over the faces first; two queries per end that passes them."""
+    too). The frames' areas first (:func:`_frame_areas`); two queries per end that passes them."""
     lo, T = info.first_frame, len(info.coverage)
     if T < 3:
         return []
-    area = np.array([surface_area(*vseq.frames[lo + i]) for i in range(T)])
+    area = _frame_areas(vseq)[lo:lo + T]  # (found once per conversion)
     step = area[1:] / np.maximum(area[:-1], 1e-30) - 1.0  # step[i]: from frame i to i + 1 (relative)
     short = {d[0] - lo for d in info.input_dropouts} | {t - lo for t in off_scale}
 
