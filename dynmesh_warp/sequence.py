@@ -75,9 +75,9 @@ def validate_mesh(
         raise MeshDataError(f"{where}: vertices must be real numbers, got dtype {V.dtype}")
     with np.errstate(over="ignore", invalid="ignore"):
         V32 = V.astype(np.float32)  # a finite float64 beyond float32's range becomes inf here
-    bad = ~(np.abs(V32) <= MAX_COORDINATE).all(axis=1)  # NaN compares False: bad too
-    if bad.any():
-        idx = np.flatnonzero(bad)
+    ok = np.abs(V32) <= MAX_COORDINATE  # NaN compares False: bad too
+    if not ok.all():  # (over the whole array first: ok.all(axis=1) is 10x slower)
+        idx = np.flatnonzero(~ok.all(axis=1))
         raise MeshDataError(
             f"{where}: {idx.size} vertices have NaN/inf coordinates or ones beyond {MAX_COORDINATE:.0e} "
             f"(first: vertex {idx[0]}: {V[idx[0]].tolist()}): float32 geometry cannot resolve such a mesh; "
