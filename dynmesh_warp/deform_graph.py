@@ -256,6 +256,10 @@ def system_pattern(graph: DeformationGraph, TF: np.ndarray) -> tuple:
 #: read-backs of all of them (a GPU sync each)
 HELD_LEVELS = 0.5
 
+#: threads of the one block that solves the CG on CUDA (each owns every CG_BLOCK_THREADS-th row
+#: of the K x K system; K is at most the graph's max_nodes, 4,000 by default)
+CG_BLOCK_THREADS = 256
+
 
 class GraphFitter:
     """Device arrays and the device-side solve of the graph fit (module docstring).
@@ -263,7 +267,7 @@ class GraphFitter:
     Every iteration runs on the device with no host round trip: correspondences, the sparse
     normal equations (CSR, fixed pattern), a Jacobi-preconditioned CG warm-started from the
     current positions (``cg_iterations`` iterations at most, relative tolerance ``cg_tolerance``;
-    on CUDA one captured graph per solve) and the per-node rotation update. ``fit`` reads the
+    one launch per solve) and the per-node rotation update. ``fit`` reads the
     result back once."""
 
     def __init__(self, graph: DeformationGraph, TV: np.ndarray, TF: np.ndarray, device, max_dist: float,
@@ -337,9 +341,6 @@ class GraphFitter:
         self.direction = (wp.zeros(K, dtype=wp.vec3, device=d), wp.zeros(K, dtype=wp.vec3, device=d))
         self.product = wp.zeros(K, dtype=wp.vec3, device=d)
         self.residual_dot = wp.zeros(self.cg_iterations + 1, dtype=float, device=d)
-        self.residual_dot_sum = wp.zeros(self.cg_iterations + 1, dtype=float, device=d)  # accumulated, copied
-        self.curvature = wp.zeros(self.cg_iterations, dtype=float, device=d)
-        self._cg_graph = None
 
     # ------------------------------------------------------------------ building blocks
     def _frame_arrays(self, q: int):
@@ -434,54 +435,27 @@ class GraphFitter:
                       inputs=[self.edge_from, self.edge_to, self.rest_offset, self.node_rotation, stiffness_weight],
                       outputs=[self.rhs], device=d)
 
-    def _cg_launches(self):
-        d, K = self.device, self.K
-        self.residual_dot_sum.zero_()
-        self.curvature.zero_()
-        wp.launch(kr.begin_conjugate_gradient, dim=K,
-                  inputs=[self.row_offsets, self.columns, self.diagonal_slot, self.values, self.node_hold, self.rhs,
-                          self.node_position], outputs=[self.residual, self.preconditioned, self.residual_dot_sum],
-                  device=d)
-        wp.copy(self.residual_dot, self.residual_dot_sum)
-        for it in range(self.cg_iterations):
-            p_in, p_out = self.direction[it % 2], self.direction[(it + 1) % 2]
-            wp.launch(kr.multiply_search_direction, dim=K,
-                      inputs=[self.row_offsets, self.columns, self.values, self.node_hold, self.preconditioned, p_in,
-                              self.residual_dot, it], outputs=[p_out, self.product, self.curvature], device=d)
-            wp.launch(kr.update_conjugate_gradient, dim=K,
-                      inputs=[self.diagonal_slot, self.values, self.node_hold, p_out, self.product, self.curvature,
-                              it, self.cg_tolerance, self.residual_dot],
-                      outputs=[self.node_position, self.residual, self.preconditioned, self.residual_dot_sum],
-                      device=d)
-            wp.copy(self.residual_dot, self.residual_dot_sum)
-
     def solve(self, serial: bool | None = None):
-        """node_position <- the solution of the assembled system (CG warm-started from it).
-        On the CPU (``serial`` default) the CG runs as one serial launch and stops at the
-        tolerance; on CUDA as two launches per iteration, captured once as a graph."""
+        """node_position <- the solution of the assembled system (CG warm-started from it, at
+        most ``cg_iterations`` iterations, stopping at the tolerance). On the CPU (``serial``
+        default) one serial launch; on CUDA one block of CG_BLOCK_THREADS threads
+        (``solve_conjugate_gradient_block``: one launch for every iteration)."""
         if serial is None:
             serial = not self.device.is_cuda
+        self.residual_dot.zero_()
         if serial:
-            self.residual_dot.zero_()
             wp.launch(kr.solve_conjugate_gradient_serial, dim=1,
                       inputs=[self.row_offsets, self.columns, self.diagonal_slot, self.values, self.node_hold,
                               self.rhs, self.cg_iterations, self.cg_tolerance],
                       outputs=[self.node_position, self.residual, self.preconditioned, self.direction[0],
                                self.product, self.residual_dot], device=self.device)
             return
-        if self._cg_graph is not None:
-            wp.capture_launch(self._cg_graph)
-            return
-        if self.device.is_cuda:
-            # load only this module before capturing: force_module_load would load (on a cold
-            # cache, compile) every Warp module imported in the process, Newton's included
-            wp.load_module(kr, device=self.device)
-            with wp.ScopedCapture(device=self.device, force_module_load=False) as cap:
-                self._cg_launches()
-            self._cg_graph = cap.graph
-            wp.capture_launch(self._cg_graph)
-            return
-        self._cg_launches()
+        wp.launch_tiled(kr.solve_conjugate_gradient_block, dim=[1],
+                        inputs=[self.row_offsets, self.columns, self.diagonal_slot, self.values, self.node_hold,
+                                self.rhs, self.cg_iterations, self.cg_tolerance],
+                        outputs=[self.node_position, self.residual, self.preconditioned, self.direction[0],
+                                 self.direction[1], self.product, self.residual_dot],
+                        block_dim=CG_BLOCK_THREADS, device=self.device)
 
     def solve_residual(self) -> float:
         """Relative preconditioned residual sqrt(rz_final / rz_0) of the last solve (host read)."""

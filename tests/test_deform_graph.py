@@ -2,6 +2,7 @@
 NumPy references, and coverage on an articulated motion."""
 
 import numpy as np
+import pytest
 import warp as wp
 
 from dynmesh_warp.deform_graph import GraphFitter, build_deformation_graph, polar_rotations
@@ -203,16 +204,24 @@ def test_sparse_system_matches_dense_numpy_reference():
     assert np.allclose(fit.rhs.numpy(), b, atol=1e-5 * np.abs(b).max())
 
 
-def test_conjugate_gradient_matches_direct_solve():
+@pytest.mark.parametrize("block", [None, 8])
+def test_conjugate_gradient_matches_direct_solve(block, monkeypatch):
+    """The CG of both forms against SciPy's direct solve; ``block`` 8: the block form with fewer
+    threads than nodes (each thread owns several rows, as with a large graph on CUDA)."""
     from scipy.sparse import csr_matrix
     from scipy.sparse.linalg import spsolve
 
+    import dynmesh_warp.deform_graph as dg
+
+    if block is not None:
+        monkeypatch.setattr(dg, "CG_BLOCK_THREADS", block)
     fit, frame, V, F, V1, R, P, prior = _fit_setup(cg_iterations=60)
+    assert block is None or fit.K > 2 * block
     fit.assemble(frame, 0.7 / fit.num_edges, 0.05 / fit.K)
     A = csr_matrix((fit.values.numpy().astype(np.float64), fit.columns.numpy(), fit.row_offsets.numpy()))
     x = spsolve(A.tocsc(), fit.rhs.numpy().astype(np.float64))
     start = fit.node_position.numpy().astype(np.float64)
-    for serial in (False, True):  # the CUDA form (two launches per iteration) and the CPU form
+    for serial in (False, True):  # the CUDA form (one block of threads) and the CPU form
         fit.node_position.assign(start.astype(np.float32))
         fit.solve(serial=serial)
         y = fit.node_position.numpy()
