@@ -305,6 +305,7 @@ class GraphFitter:
         self.fweight = wp.empty(n, dtype=float, device=d)
         self.fdist = wp.empty(n, dtype=float, device=d)
         self.weight_sum = wp.zeros(2, dtype=float, device=d)
+        self.stiffness = wp.zeros(1, dtype=float, device=d)  # this iteration's graph weight per directed edge
         self.covariance = wp.zeros(K, dtype=wp.mat33, device=d)
         # the static hold (convert's static_hold): per node, a weight towards the fit's start
         self.node_hold = wp.zeros(K, dtype=float, device=d)
@@ -406,16 +407,19 @@ class GraphFitter:
                   inputs=[self.tmesh.id, X, self.indices, pts, fnormals, self.max_dist, min_cos],
                   outputs=[self.bclosest, self.bface, self.bbary, self.bweight, self.bdist], device=self.device)
 
-    def assemble(self, frame, stiffness_weight: float, damping_weight: float):
+    def assemble(self, frame, stiffness_weight: float | None, damping_weight: float):
         """The normal equations in the node positions (values, rhs) for the current
         correspondences and rotations: two-sided data term, ARAP graph term with weight
-        ``stiffness_weight`` per directed edge, damping towards ``position_prior``."""
+        ``stiffness_weight`` per directed edge (None: the device's ``stiffness`` as set before),
+        damping towards ``position_prior``."""
         d, n = self.device, self.n
         q = frame[1].shape[0]
+        if stiffness_weight is not None:
+            self.stiffness.fill_(float(stiffness_weight))
         # graph and damping terms, zeroed covariance and weight sums: one launch (nnz >= K)
         wp.launch(kr.begin_graph_system, dim=self.nnz,
                   inputs=[self.slot_row, self.columns, self.laplacian, self.position_prior, self.node_hold,
-                          stiffness_weight, damping_weight],
+                          self.stiffness, damping_weight],
                   outputs=[self.values, self.rhs, self.covariance, self.weight_sum],
                   device=d)
         wp.launch(kr.sum_correspondence_weights, dim=n, inputs=[self.fweight, 0], outputs=[self.weight_sum],
@@ -432,7 +436,7 @@ class GraphFitter:
                           self.weight_sum], outputs=[self.values, self.rhs], device=d)
         if len(self.edge_from):
             wp.launch(kr.accumulate_graph_rhs, dim=len(self.edge_from),
-                      inputs=[self.edge_from, self.edge_to, self.rest_offset, self.node_rotation, stiffness_weight],
+                      inputs=[self.edge_from, self.edge_to, self.rest_offset, self.node_rotation, self.stiffness],
                       outputs=[self.rhs], device=d)
 
     def solve(self, serial: bool | None = None):
@@ -463,10 +467,13 @@ class GraphFitter:
         done = np.flatnonzero(rz > 0)
         return float(np.sqrt(rz[done[-1]] / rz[0])) if len(done) and rz[0] > 0 else 0.0
 
-    def update_rotations(self, stiffness_weight: float):
+    def update_rotations(self, stiffness_weight: float | None):
         """Local step: per-node rotations from the data and the edges, at the current positions
-        (after :meth:`assemble`, which zeroes the covariance and sums the weights)."""
+        (after :meth:`assemble`, which zeroes the covariance and sums the weights);
+        ``stiffness_weight`` None: the device's ``stiffness`` as set before."""
         d = self.device
+        if stiffness_weight is not None:
+            self.stiffness.fill_(float(stiffness_weight))
         # covariance was zeroed by assemble()'s first launch
         wp.launch(kr.accumulate_rotation_covariance, dim=self.n,
                   inputs=[self.rest_points, self.node_rest, self.node_index, self.node_weight, self.k,
@@ -474,7 +481,7 @@ class GraphFitter:
                   outputs=[self.covariance], device=d)
         if len(self.edge_from):
             wp.launch(kr.accumulate_edge_covariance, dim=len(self.edge_from),
-                      inputs=[self.edge_from, self.edge_to, self.rest_offset, self.node_position, stiffness_weight],
+                      inputs=[self.edge_from, self.edge_to, self.rest_offset, self.node_position, self.stiffness],
                       outputs=[self.covariance], device=d)
         wp.launch(kr.update_node_rotations, dim=self.K, inputs=[self.covariance], outputs=[self.node_rotation],
                   device=d)
@@ -496,13 +503,7 @@ class GraphFitter:
         wd = float(damping) / self.K
         self.set_hold(hold)
 
-        def iterate(lam):
-            wr = float(lam) / self.num_edges
-            self.skin()
-            self.correspondences(frame, min_cos)
-            self.assemble(frame, wr, wd)
-            self.solve()
-            self.update_rotations(wr)
+        iterate = self._iteration(frame, min_cos, wd)
 
         extra = int(o.get("converge_iterations", 0) or 0)
         tol = float(o.get("converge_tolerance", 0.0) or 0.0) * float(np.min(self.g.spacing))
@@ -523,6 +524,42 @@ class GraphFitter:
                 done += 1
         self.skin()
         return self.get_state()
+
+    def _iteration(self, frame, min_cos: float, wd: float):
+        """``iterate(lam)``: one iteration of the fit at stiffness ``lam`` (skin, correspondences,
+        the system, the solve, the rotations). On CUDA its launches are captured once per fit
+        (the frame and the template's tree stay for the fit) and replayed, the stiffness set
+        in ``stiffness`` before each replay: ~20 launches' host time once instead of each
+        iteration. Not in Warp's deterministic mode (its atomics' records need their own
+        buffers)."""
+        def launches():
+            self.skin()
+            self.correspondences(frame, min_cos)
+            self.assemble(frame, None, wd)
+            self.solve()
+            self.update_rotations(None)
+
+        def iterate(lam):
+            self.stiffness.fill_(float(lam) / self.num_edges)
+            if graph is None:
+                launches()
+            else:
+                wp.capture_launch(graph)
+
+        graph = None
+        det = wp.get_module_options(kr).get("deterministic", wp.DeterministicMode.NOT_GUARANTEED)
+        if self.device.is_cuda and det == wp.DeterministicMode.NOT_GUARANTEED:
+            from .kernels import convert as kc
+
+            self._frame_arrays(frame[1].shape[0])  # no allocation inside the capture
+            # load only these modules before capturing: force_module_load would load (on a cold
+            # cache, compile) every Warp module imported in the process, Newton's included
+            wp.load_module(kr, device=self.device)
+            wp.load_module(kc, device=self.device)
+            with wp.ScopedCapture(device=self.device, force_module_load=False) as cap:
+                launches()
+            graph = cap.graph
+        return iterate
 
     def set_hold(self, weights):
         """node_hold <- ``weights`` (K,) [per node, as the damping's weight]: node j is also held

@@ -305,7 +305,7 @@ def begin_graph_system(
     # In:
     position_prior: wp.array[wp.vec3],
     node_hold: wp.array[float],
-    stiffness_weight: float,
+    stiffness_weight: wp.array[float],
     damping_weight: float,
     # Out:
     values: wp.array[float],
@@ -314,17 +314,19 @@ def begin_graph_system(
     weight_sum: wp.array[float],
 ):
     """Start an iteration's system with its data-independent part, in one launch (dim = nnz):
-    values = stiffness_weight * laplacian (the graph's ARAP term) + (damping_weight + 1e-12) on
+    values = stiffness_weight[0] * laplacian (the graph's ARAP term) + (damping_weight + 1e-12) on
     the diagonal (a node with no data and no edge stays solvable); rhs = (damping_weight +
     node_hold) * prior (the damping term damping_weight |p - prior|^2 and node j's hold
     node_hold_j |p_j - prior_j|^2, (K,) [m]; ``node_hold`` (K,) enters the CG kernels' operator
     as a per-node diagonal, not the shared values); covariance = 0 (K,);
     weight_sum = 0 (2,). The data terms are accumulated on top.
 
-    slot_row, columns, laplacian (nnz,): the row, column and graph-Laplacian value of each slot.
+    slot_row, columns, laplacian (nnz,): the row, column and graph-Laplacian value of each slot;
+    stiffness_weight (1,): the iteration's weight per directed edge (a device array, so that one
+    captured iteration serves every level of the stiffness schedule).
     """
     s = wp.tid()
-    v = stiffness_weight * laplacian[s]
+    v = stiffness_weight[0] * laplacian[s]
     if slot_row[s] == columns[s]:
         v += damping_weight + 1.0e-12
     values[s] = v
@@ -344,18 +346,18 @@ def accumulate_graph_rhs(
     rest_offset: wp.array[wp.vec3],
     # In:
     node_rotation: wp.array[wp.mat33],
-    stiffness_weight: float,
+    stiffness_weight: wp.array[float],
     # Out (accumulated):
     rhs: wp.array[wp.vec3],
 ):
-    """Right-hand side of the ARAP graph term stiffness_weight * sum_e |p_l - p_j - R_j (g_l - g_j)|^2
-    over directed edges e = (j -> l): rhs_l += w R_j d_e, rhs_j -= w R_j d_e.
+    """Right-hand side of the ARAP graph term w sum_e |p_l - p_j - R_j (g_l - g_j)|^2 over directed
+    edges e = (j -> l), w = stiffness_weight[0] (1,): rhs_l += w R_j d_e, rhs_j -= w R_j d_e.
 
     edge_from, edge_to (2E,) both directions of every edge; rest_offset (2E,) g_l - g_j [m].
     """
     e = wp.tid()
     j = edge_from[e]
-    d = stiffness_weight * (node_rotation[j] * rest_offset[e])
+    d = stiffness_weight[0] * (node_rotation[j] * rest_offset[e])
     wp.atomic_add(rhs, edge_to[e], d)
     wp.atomic_sub(rhs, j, d)
 
@@ -576,16 +578,16 @@ def accumulate_edge_covariance(
     rest_offset: wp.array[wp.vec3],
     # In:
     node_position: wp.array[wp.vec3],
-    stiffness_weight: float,
+    stiffness_weight: wp.array[float],
     # Out (accumulated):
     covariance: wp.array[wp.mat33],
 ):
     """Graph part of the rotation fit: covariance_j += w (p_l - p_j) (g_l - g_j)^T per directed
-    edge (j -> l) [m^2]."""
+    edge (j -> l) [m^2], w = stiffness_weight[0] (1,)."""
     e = wp.tid()
     j = edge_from[e]
     cur = node_position[edge_to[e]] - node_position[j]
-    wp.atomic_add(covariance, j, stiffness_weight * wp.outer(cur, rest_offset[e]))
+    wp.atomic_add(covariance, j, stiffness_weight[0] * wp.outer(cur, rest_offset[e]))
 
 
 @wp.kernel
