@@ -107,7 +107,7 @@ def _read_obj(path: Path) -> tuple[np.ndarray, np.ndarray]:
     triangles); anything else (polygons, negative indices, extra fields, malformed
     records) goes through the line-by-line reader, which reports the offending line.
     """
-    text = path.read_text(encoding="utf-8", errors="replace")
+    text = path.read_text(encoding="utf-8-sig", errors="replace")
     fast = _read_obj_fast(text)
     return fast if fast is not None else _read_obj_lines(text.splitlines())
 
@@ -197,7 +197,7 @@ def _read_off(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
     Vertex lines may carry extra fields (normals, colours); only x y z are used.
     """
-    text = path.read_text(encoding="utf-8", errors="replace")
+    text = path.read_text(encoding="utf-8-sig", errors="replace")
     if "#" in text:
         text = "\n".join(ln.split("#", 1)[0] for ln in text.splitlines())
     tokens = text.split()

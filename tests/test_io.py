@@ -686,3 +686,20 @@ def test_npz_with_a_corrupt_status_member_still_loads(tmp_path):
     p.write_bytes(data[:4] + b"nan" + data[4:])  # the first member (status): header shifted
     seq = load_sequence(p)
     assert seq.num_frames == 2
+
+
+def test_obj_and_off_with_a_byte_order_mark(tmp_path):
+    """A file saved as UTF-8 with a byte-order mark (Windows tools, some exporters) reads as the
+    plain file does: the mark is not part of the first record (it dropped vertex 1 and shifted
+    every index, silently where the last vertex was unused; a new user's)."""
+    plain = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 5 5 5\nf 1 2 3 4\n"
+    ref = read_mesh(write_obj_text(tmp_path / "plain.obj", plain))
+    (tmp_path / "bom.obj").write_text(plain, encoding="utf-8-sig")
+    V, F = read_mesh(tmp_path / "bom.obj")
+    np.testing.assert_array_equal(V, ref[0])
+    np.testing.assert_array_equal(F, ref[1])
+    off = "OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n"
+    (tmp_path / "bom.off").write_text(off, encoding="utf-8-sig")
+    V, F = read_mesh(tmp_path / "bom.off")
+    np.testing.assert_array_equal(V, [[0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    np.testing.assert_array_equal(F, [[0, 1, 2]])
