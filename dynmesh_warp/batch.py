@@ -723,10 +723,11 @@ def _spheres_for_env_starts(cfg, seq, mode: int, times: np.ndarray, pos: np.ndar
     sphere inside the closed surface at an env's start frame is refused, naming the env."""
     from .config import SceneError, spawn_positions
     from .geometry import mesh_orientation
-    from .scene import refuse_starts_inside, sphere_entries
+    from .scene import refuse_starts_inside, scene_up, sphere_entries
+    from .sequence import surface_vertices
 
     if not isinstance(cfg.spheres, list):
-        return spawn_positions(cfg.spheres, seq.V.reshape(-1, 3))
+        return spawn_positions(cfg.spheres, surface_vertices(seq.V, seq.F).reshape(-1, 3), scene_up(cfg))
     entries = sphere_entries(cfg)
     if not entries or mesh_orientation(seq.V[0], seq.F) not in ("outward", "inward"):
         return pos

@@ -640,12 +640,30 @@ def load_scene_config(path: str | Path | None = None, data: dict | None = None, 
         raise SceneError(f"{origin}: invalid scene: a file path cannot be used: {e}") from None
 
 
-def spawn_positions(cfg: SpawnConfig, V0: np.ndarray, up: int = 2) -> np.ndarray:
-    """Seeded drop positions above the first frame's vertices ``V0`` (N,3)."""
+def spawn_positions(cfg: SpawnConfig, V0: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """Seeded drop positions above the surface points ``V0`` (N, 3) along ``up`` (3,), the
+    scene's up (against gravity): spread over the points' extent across ``up``, the lowest
+    ``height`` + ``radius`` above their highest point along it, the others stacked 2.5 radii
+    apart (a new user's y-up floor with gravity along -y had its spheres spawned along +z, beside
+    the floor). Along +z the positions are the same as before ``up`` was a vector."""
     rng = np.random.default_rng(cfg.seed)
-    lo, hi = V0.min(0), V0.max(0)
+    u = np.asarray(up, np.float64).reshape(3)
+    u = u / np.linalg.norm(u) if np.linalg.norm(u) > 0 else np.array([0.0, 0.0, 1.0])
+    k = int(np.argmax(np.abs(u)))
+    if abs(u[k]) == 1.0:  # along an axis: that axis's coordinate, in the data's own frame
+        basis, P = None, V0
+    else:  # a frame with up as its third axis
+        e1 = np.cross(u, np.eye(3)[int(np.argmin(np.abs(u)))])
+        e1 /= np.linalg.norm(e1)
+        basis = np.stack([e1, np.cross(u, e1), u])
+        P, k = np.asarray(V0, np.float64) @ basis.T, 2
+    sign = 1.0 if basis is not None or u[k] > 0 else -1.0
+    lo, hi = P.min(0), P.max(0)
     c = 0.5 * (lo + hi)
     half = 0.5 * (hi - lo) * cfg.spread
     pos = c + (rng.random((cfg.count, 3)) * 2 - 1) * half
-    pos[:, up] = hi[up] + cfg.height + cfg.radius + np.arange(cfg.count) * 2.5 * cfg.radius
+    top = hi[k] if sign > 0 else lo[k]
+    pos[:, k] = top + sign * (cfg.height + cfg.radius + np.arange(cfg.count) * 2.5 * cfg.radius)
+    if basis is not None:
+        pos = pos @ basis
     return pos.astype(np.float32)

@@ -13,7 +13,8 @@ from .config import PhysicsCore, SceneConfig, SceneError, scene_config, spawn_po
 from .runtime import scene_device
 from .geometry import orient_faces, points_inside
 from .mesh_formats import mesh_extension
-from .sequence import FixedTopologySequence, MeshDataError, TopologyMismatchError, VaryingTopologySequence
+from .sequence import (FixedTopologySequence, MeshDataError, TopologyMismatchError, VaryingTopologySequence,
+                       surface_vertices)
 from .world import Model, PhysicsParams, SphereModel, State, World, surface_model, surface_model_class
 
 __all__ = ["load_surface", "prepare_surface", "scene_spheres", "scene_ground", "build_model", "build_world"]
@@ -94,7 +95,7 @@ def _say_orientation(reports: list, where: str) -> None:
                       "strip); contacts are one-sided, so some of its faces may let spheres through", stacklevel=3)
 
 
-def _up(cfg) -> np.ndarray:
+def scene_up(cfg) -> np.ndarray:
     """The scene's up: against ``physics.gravity`` (+z without gravity)."""
     g = np.asarray(cfg.physics.gravity, np.float64)
     return -g if np.linalg.norm(g) > 0 else np.array([0.0, 0.0, 1.0])
@@ -208,13 +209,13 @@ def prepare_surface(seq, cfg: SceneConfig):
         raise TypeError(f"expected a FixedTopologySequence or VaryingTopologySequence, got {type(seq).__name__}")
     fps = float(s.fps) if s.fps is not None else seq.fps  # a new sequence: the caller's is untouched
     where = seq.source or seq.name
-    axis, up = up_axis_of(s, seq.source), _up(cfg)
+    axis, up = up_axis_of(s, seq.source), scene_up(cfg)
     if isinstance(seq, FixedTopologySequence):
         V = _transform(seq.V, s, axis)
         F, report = _orient(V[0], seq.F, s, up)
         _say_orientation([(None, report)], where)
         seq = FixedTopologySequence(V, F, fps, seq.name, seq.source)
-        _check_size(seq.V[0], s)
+        _check_size(surface_vertices(seq.V[0], F), s)
     else:
         frames, reports = [], []
         prev = None  # (input faces, oriented faces) of the frame before
@@ -228,7 +229,7 @@ def prepare_surface(seq, cfg: SceneConfig):
             frames.append((v, g))
             reports.append((t, report))
         _say_orientation(reports, where)
-        _check_size(frames[0][0], s)
+        _check_size(surface_vertices(*frames[0]), s)
         seq = VaryingTopologySequence(frames, fps, seq.name, seq.source, seq.frame_sources)
         if seq.is_fixed_topology():
             seq = seq.to_fixed()
@@ -304,7 +305,8 @@ def sphere_entries(cfg: SceneConfig) -> list:
 def scene_spheres(cfg: SceneConfig, V0: np.ndarray):
     """The scene's spheres: ``(radius (S,) float32 [m], mass (S,) float64 [kg], position (S, 3)
     float32 [m], velocity (S, 3) float32 [m/s] or None)``, from a list of spheres or a spawn
-    section (placed over frame 0's vertices ``V0``). Both engines take their spheres from here."""
+    section (dropped against gravity over frame 0's surface points ``V0``, those a face uses:
+    :func:`~dynmesh_warp.sequence.surface_vertices`). Both engines take their spheres from here."""
     if isinstance(cfg.spheres, list):
         radius = [sp.radius for sp in cfg.spheres]
         mass = [sp.mass for sp in cfg.spheres]
@@ -313,7 +315,7 @@ def scene_spheres(cfg: SceneConfig, V0: np.ndarray):
     else:
         n = cfg.spheres.count
         radius, mass = [cfg.spheres.radius] * n, [cfg.spheres.mass] * n
-        pos, vel = spawn_positions(cfg.spheres, V0), None
+        pos, vel = spawn_positions(cfg.spheres, V0, scene_up(cfg)), None
         if n and cfg.spheres.mass == 0:
             warnings.warn("spheres.mass: 0 makes the spawned spheres kinematic: gravity and contacts do not move "
                           "them, so they hang where they are dropped (give a mass in kg to drop them)", stacklevel=2)
@@ -392,7 +394,7 @@ def build_model(cfg: SceneConfig, seq, device=None) -> tuple[Model, State]:
     Newton world takes the surface and the spheres from them (``build_newton_world``)."""
     device = scene_device(cfg, device, "the device argument")  # the CLI checked its --device before
     surface = surface_model(seq, device, playback=cfg.surface.playback, interpolate=cfg.surface.interpolate)
-    radius, mass, pos, vel = scene_spheres(cfg, seq.frame(0)[0])
+    radius, mass, pos, vel = scene_spheres(cfg, surface_vertices(*seq.frame(0)))
     check_precision(*seq.bounds(), pos, radius, f"surface {seq.source or seq.name}", cfg.surface.translate)
     p = cfg.physics
     # every field the scene's physics section shares with PhysicsParams (PhysicsCore), so a new

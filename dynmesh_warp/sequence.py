@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 __all__ = [
+    "surface_vertices",
     "MeshDataError",
     "text_sorted_permutation",
     "detect_text_sorted_frames",
@@ -126,6 +127,18 @@ def _checked_fps(fps, where: str) -> float:
                             f"frames/s, got {fps!r}")
     return value
 
+def surface_vertices(V: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """The vertices of V (N, 3) (or (T, N, 3): of every frame) that a face of F (M, 3) uses: the
+    surface's points. Exporters leave stray vertices no face uses; they are no surface, so the
+    surface's extent, a spawn's drop height and the ground plane come from these (a new user's
+    stray point at z = 20 spawned the spheres 20 m up; one at x = 1e5 called a 2.8 m sheet
+    "1e+05 m across"). V itself (no copy) when every vertex is used."""
+    V = np.asarray(V)
+    used = np.zeros(V.shape[-2], bool)
+    used[np.asarray(F).reshape(-1)] = True
+    return V if used.all() else V[..., used, :]
+
+
 @dataclass(repr=False)
 class FixedTopologySequence:
     """An animated triangle mesh whose faces are the same in every frame.
@@ -190,8 +203,10 @@ class FixedTopologySequence:
         return self.V[k], self.F
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """(lo (3,), hi (3,)) over every vertex of every frame."""
-        return self.V.min(axis=(0, 1)), self.V.max(axis=(0, 1))
+        """(lo (3,), hi (3,)) over every frame's surface vertices (those a face uses:
+        :func:`surface_vertices`)."""
+        V = surface_vertices(self.V, self.F)
+        return V.min(axis=(0, 1)), V.max(axis=(0, 1))
 
     def max_vertex_speed(self) -> float:
         """Largest vertex speed between consecutive frames, in units per second."""
@@ -255,9 +270,10 @@ class VaryingTopologySequence:
         return self.frames[k]
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """(lo (3,), hi (3,)) over every vertex of every frame."""
-        return (np.min([v.min(axis=0) for v, _ in self.frames], axis=0),
-                np.max([v.max(axis=0) for v, _ in self.frames], axis=0))
+        """(lo (3,), hi (3,)) over every frame's surface vertices (those a face uses:
+        :func:`surface_vertices`)."""
+        pts = [surface_vertices(v, f) for v, f in self.frames]
+        return np.min([v.min(axis=0) for v in pts], axis=0), np.max([v.max(axis=0) for v in pts], axis=0)
 
     def is_fixed_topology(self) -> bool:
         """True when every frame has the first frame's vertex count and face array."""

@@ -1568,8 +1568,13 @@ class World:
         if self.model.params.ground_height is not None or not self.model.spheres.count:
             return ""
         lo, hi = self.model.surface.sequence.bounds()
-        z = self.state.sphere_pos.numpy()[:, 2]
-        fell = int(np.count_nonzero(z < float(lo[2]) - 0.5 * float(np.linalg.norm(hi - lo))))
+        g = np.asarray(self.model.params.gravity, np.float64)
+        up = -g / np.linalg.norm(g) if np.linalg.norm(g) > 0 else np.array([0.0, 0.0, 1.0])
+        # along the scene's up (against gravity; a new user's y-up floor under gravity along -y
+        # lost its spheres without this note, which looked along z): the box's lowest corner
+        low = min(float(np.dot(c, up)) for c in np.array(np.meshgrid(*zip(lo, hi))).reshape(3, -1).T)
+        h = self.state.sphere_pos.numpy().astype(np.float64) @ up
+        fell = int(np.count_nonzero(h < low - 0.5 * float(np.linalg.norm(hi - lo))))
         if not fell:
             return ""
         return (f"; {fell} of {self.model.spheres.count} spheres fell past the surface (below its lowest point, no "

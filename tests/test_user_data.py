@@ -832,3 +832,73 @@ def test_the_run_line_says_when_spheres_fell_past_the_surface(tmp_path):
     for _ in range(150):
         w.step()
     assert "fell past" not in w.run_line()[1]
+
+
+def _sheet(n=12, height=0.5, axis=2):
+    """A flat square sheet 2 m across at ``height`` along ``axis``, wound to face +axis."""
+    g = np.linspace(-1.0, 1.0, n)
+    A, B = np.meshgrid(g, g, indexing="ij")
+    cols = [A.ravel(), B.ravel()]
+    cols.insert(axis, np.full(n * n, height))
+    V = np.stack(cols, axis=1)
+    a = (np.arange(n - 1)[:, None] * n + np.arange(n - 1)[None, :]).ravel()
+    F = np.concatenate([np.stack([a, a + n, a + n + 1], 1), np.stack([a, a + n + 1, a + 1], 1)])
+    if axis == 1:  # (x, h, z): the same index pattern faces -y; wind it to face +y
+        F = F[:, ::-1]
+    return V, F
+
+
+def test_vertices_no_face_uses_do_not_steer_the_spawn_the_ground_or_the_size_check(tmp_path):
+    """Stray vertices (exporters leave them) counted as surface: a new user's points at z = -5
+    and 20 beside a sheet at z = 0.5 spawned the spheres 20 m up and put ``ground: auto`` at
+    z = -5; one at x = 1e5 called the 2.8 m sheet "1e+05 m across" and dropped the spheres km
+    away. Now the surface's points are the vertices its faces use."""
+    from dynmesh_warp.config import load_scene_config
+    from dynmesh_warp.sequence import surface_vertices
+
+    V, F = _sheet()
+    extra = np.array([[0.0, 0.0, -5.0], [0.0, 0.0, 20.0], [1e5, 0.0, 0.0]])
+    V2 = np.vstack([V, extra])
+    np.testing.assert_array_equal(surface_vertices(V2, F), V)
+    assert surface_vertices(V, F) is V  # every vertex used: no copy
+    np.savez(tmp_path / "stray.npz", V=np.stack([V2] * 3).astype(np.float32), F=F, fps=24.0)
+    lo, hi = load_sequence(tmp_path / "stray.npz").bounds()
+    np.testing.assert_allclose(lo, [-1, -1, 0.5]) and np.testing.assert_allclose(hi, [1, 1, 0.5])
+    path = scene_yaml(tmp_path, {"surface": {"source": "stray.npz"}, "physics": {"ground": "auto"},
+                                 "spheres": {"count": 3, "radius": 0.05, "height": 0.3}})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no "1e+05 m across", no precision warning
+        w = build_world(load_scene_config(path), device="cpu")
+    pos = w.state.sphere_pos.numpy()
+    assert pos[:, 2].min() == pytest.approx(0.5 + 0.3 + 0.05, abs=1e-6)
+    assert np.abs(pos[:, :2]).max() <= 1.0
+    assert w.model.params.ground_height == pytest.approx(0.5)
+
+
+def test_spawned_spheres_drop_against_gravity(tmp_path):
+    """A new user's y-up floor kept as it is with gravity along -y: the spheres were spawned
+    along +z, beside the floor, and none ever met it. Now they are dropped above the floor along
+    -gravity and land on it; along +z nothing changes."""
+    from dynmesh_warp.config import load_scene_config
+
+    V, F = _sheet(axis=1)  # a floor at y = 0.5 facing +y
+    np.savez(tmp_path / "floor.npz", V=np.stack([V] * 3).astype(np.float32), F=F, fps=24.0)
+    path = scene_yaml(tmp_path, {"surface": {"source": "floor.npz", "up_axis": "z"},
+                                 "physics": {"gravity": [0.0, -9.81, 0.0]},
+                                 "spheres": {"count": 3, "radius": 0.05, "height": 0.3}})
+    w = build_world(load_scene_config(path), device="cpu")
+    pos = w.state.sphere_pos.numpy()
+    assert pos[:, 1].min() == pytest.approx(0.5 + 0.3 + 0.05, abs=1e-6)
+    assert np.abs(pos[:, [0, 2]]).max() <= 1.0
+    for _ in range(240):
+        w.step()
+    end = w.state.sphere_pos.numpy()
+    np.testing.assert_allclose(end[:, 1], 0.55, atol=2e-3)  # resting on the floor, r above it
+    # gravity along a diagonal: dropped along -gravity, above the surface's highest point along it
+    from dynmesh_warp.config import SpawnConfig, spawn_positions
+
+    up = np.array([1.0, 1.0, 0.0]) / np.sqrt(2)
+    P = spawn_positions(SpawnConfig(count=4, radius=0.05, height=0.3, seed=1), V, up)
+    h = P.astype(np.float64) @ up
+    assert h.min() == pytest.approx((V @ up).max() + 0.35, abs=1e-5)
+    np.testing.assert_allclose(np.diff(np.sort(h)), 0.125, atol=1e-5)
