@@ -67,15 +67,18 @@ def winding_numbers(V, F, P) -> np.ndarray:
 
 
 def points_inside(V, F, P, closed: bool | None = None) -> np.ndarray:
-    """Indices of the points P (Q, 3) inside the mesh (V, F) where it is closed (|winding number|
-    > 1/2, either winding; ``closed``: whether it is, when already known, else
-    :func:`mesh_orientation`); none for an open surface, whose inside is not defined."""
+    """Indices of the points P (Q, 3) behind the faces of the mesh (V, F) where it is closed:
+    winding number > 1/2 with the faces as they are wound (inside a surface facing outward; a
+    surface facing inward, a room or a tunnel, has its inside in front of its faces, where
+    contacts hold a body: a new user's sphere in a room kept with ``orientation: keep`` was
+    refused, though the physics held it on the floor). ``closed``: whether it is, when already
+    known, else :func:`mesh_orientation`; none for an open surface, whose inside is not defined."""
     if closed is None:
         closed = mesh_orientation(V, F) in ("outward", "inward")
     P = np.asarray(P, np.float64).reshape(-1, 3)
     if not closed or not len(P):
         return np.zeros(0, np.int64)
-    return np.flatnonzero(np.abs(winding_numbers(V, F, P)) > 0.5)
+    return np.flatnonzero(winding_numbers(V, F, P) > 0.5)
 
 
 def orient_outward(V, F) -> np.ndarray:
@@ -87,16 +90,46 @@ def orient_outward(V, F) -> np.ndarray:
 #: a mesh (or patch) *has an inside* when at most this fraction of its edges lie on a boundary ...
 CLOSED_MAX_BOUNDARY = 0.1
 #: ... and its holes are small: the norm of its vector area (zero for a closed surface, the
-#: area itself for a flat sheet) at most this fraction of its area
+#: area itself for a flat sheet) at most this fraction of its area ...
 CLOSED_MAX_OPENING = 0.1
+#: ... and the rim of its largest hole at most this many times the square root of its area (a
+#: deep cup's opening is a small part of its vector area, but not of its size: a new user's cup of
+#: r = 0.3 m, 1.8 m deep, rim 1.9 m against the square root of its area 1.9 m, counted as closed and
+#: was turned inside out; a hole of a sphere's scan passes up to ~28 % of its diameter across)
+CLOSED_MAX_HOLE = 0.5
 
 
-def _has_inside(boundary_edges, edges, vector_area_norm, area):
+def _has_inside(boundary_edges, edges, vector_area_norm, area, largest_hole=0.0):
     """The one "closed" rule (:func:`mesh_orientation`, :func:`orient_faces`): few boundary edges
     and small holes, so that a scan or reconstruction with holes still has an inside while a
-    sheet of any size (whose boundary is a small fraction of a fine mesh's edges) has not."""
+    sheet of any size (whose boundary is a small fraction of a fine mesh's edges) or a deep
+    container (whose rim is not small against its size) has not. ``area``: the surface's area;
+    ``largest_hole``: the length of its longest boundary loop (:func:`_hole_rims`), same units."""
     return ((np.asarray(boundary_edges) <= CLOSED_MAX_BOUNDARY * np.asarray(edges))
-            & (np.asarray(vector_area_norm) <= CLOSED_MAX_OPENING * np.asarray(area)))
+            & (np.asarray(vector_area_norm) <= CLOSED_MAX_OPENING * np.asarray(area))
+            & (np.asarray(largest_hole) <= CLOSED_MAX_HOLE * np.sqrt(np.asarray(area, np.float64))))
+
+
+def _hole_rims(V, E, group=None, groups: int = 1) -> np.ndarray:
+    """(groups,) the length of the longest boundary loop in each group: ``E`` (B, 2) the boundary
+    edges (each on one face), ``group`` (B,) the group (patch) of each edge (default all 0). A
+    loop is a connected set of boundary edges; zero where a group has none."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    out = np.zeros(int(groups))
+    E = np.asarray(E, np.int64).reshape(-1, 2)
+    if not len(E):
+        return out
+    V = np.asarray(V, np.float64)
+    n = int(E.max()) + 1
+    _, loop = connected_components(coo_matrix((np.ones(len(E), np.int8), (E[:, 0], E[:, 1])), shape=(n, n)),
+                                   directed=False)
+    lab = loop[E[:, 0]]
+    length = np.bincount(lab, np.linalg.norm(V[E[:, 1]] - V[E[:, 0]], axis=1))
+    g = np.zeros(len(E), np.int64) if group is None else np.asarray(group, np.int64)
+    np.maximum.at(out, g, length[lab])
+    return out
 
 
 def mesh_orientation(V, F) -> str:
@@ -112,10 +145,13 @@ def mesh_orientation(V, F) -> str:
     directed = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
     n = int(max(int(F.max()) + 1, 1))
     undirected = np.sort(directed, axis=1)
-    _, counts = np.unique(undirected[:, 0] * n + undirected[:, 1], return_counts=True)
+    keys, first, counts = np.unique(undirected[:, 0] * n + undirected[:, 1], return_index=True, return_counts=True)
     cr = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
-    if np.any(counts > 2) or not _has_inside(np.count_nonzero(counts == 1), len(counts),
-                                             np.linalg.norm(cr.sum(axis=0)), np.linalg.norm(cr, axis=1).sum()):
+    if np.any(counts > 2):
+        return "open"
+    rim = _hole_rims(V, undirected[first[counts == 1]])[0]
+    if not _has_inside(np.count_nonzero(counts == 1), len(counts), 0.5 * np.linalg.norm(cr.sum(axis=0)),
+                       0.5 * np.linalg.norm(cr, axis=1).sum(), rim):
         return "open"
     if len(np.unique(directed[:, 0] * n + directed[:, 1])) != len(directed):
         return "inconsistent"
@@ -126,7 +162,8 @@ def _patches(F: np.ndarray) -> tuple:
     """Faces joined through edges shared by exactly two faces (a *patch*: a manifold piece).
 
     Returns ``(patch label (M,), number of patches, rewind (M,) bool, orientable (M,) bool,
-    boundary edges per patch, edges per patch)``. ``rewind`` marks the faces to flip so that
+    boundary edges per patch, edges per patch, rim edges (B, 2), the patch of each (B,))``, the
+    rim edges being those on one face only. ``rewind`` marks the faces to flip so that
     every patch's winding is consistent (neighbours run through their shared edge in opposite
     directions), the side kept being the one of larger face count; ``orientable`` is False on
     patches with no consistent winding (a Moebius strip), whose faces are never marked.
@@ -163,7 +200,8 @@ def _patches(F: np.ndarray) -> tuple:
     edges_of = face[order[start]]  # one face of each undirected edge
     boundary = np.bincount(label[edges_of[count != 2]], minlength=npatch)
     edges = np.bincount(label[edges_of], minlength=npatch)
-    return label, npatch, rewind, orientable, boundary, edges
+    rim = order[start[count == 1]]  # the half-edges on one face only: the holes' rims
+    return label, npatch, rewind, orientable, boundary, edges, d[rim], label[face[rim]]
 
 
 #: a face is flat (no area: its corners on a line) when its height over its longest edge is at
@@ -253,7 +291,7 @@ def orient_faces(V, F, up=(0.0, 0.0, 1.0), down_fraction: float = 0.25) -> tuple
         return F, report
     # pieces by position, not by index: a triangle soup or a mesh with seams is one piece; a face
     # listed twice (either winding) is decided once, its copies wound as the first
-    W = weld_vertices(V, F)[1]
+    Vw, W = weld_vertices(V, F)[:2]
     # faces that repeat a vertex or lie flat have no area and no winding: left as they are (their
     # edges would tie the pieces in knots: a flat face on an edge makes it non-manifold, and the
     # pieces split there were wound apart; found by a new user)
@@ -261,7 +299,7 @@ def orient_faces(V, F, up=(0.0, 0.0, 1.0), down_fraction: float = 0.25) -> tuple
     if len(live) == 0:
         return F, report
     Fu = F[first]
-    label, npatch, rewind, orientable, boundary, edges = _patches(W[first])
+    label, npatch, rewind, orientable, boundary, edges, rim_edges, rim_patch = _patches(W[first])
     report["patches"] = int(npatch)
     report["rewound"] = int(rewind.sum())
     report["non_orientable"] = int(len(np.unique(label[~orientable])))
@@ -277,7 +315,7 @@ def orient_faces(V, F, up=(0.0, 0.0, 1.0), down_fraction: float = 0.25) -> tuple
     facing = np.bincount(label, cr @ up, minlength=npatch)
     area = np.bincount(label, np.linalg.norm(cr, axis=1), minlength=npatch)
     opening = np.linalg.norm(_sum_by(label, cr, npatch), axis=1)
-    closed = _has_inside(boundary, edges, opening, area)
+    closed = _has_inside(boundary, edges, 0.5 * opening, 0.5 * area, _hole_rims(Vw, rim_edges, rim_patch, npatch))
     ok = np.bincount(label, ~orientable, minlength=npatch) == 0
     inward = ok & closed & (vol < 0)
     down = ok & ~closed & (facing < -down_fraction * area)

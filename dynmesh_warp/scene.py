@@ -245,10 +245,19 @@ def prepare_surface(seq, cfg: SceneConfig):
             try:
                 seq = to_fixed_topology(seq, strategy=s.conversion.strategy, template=template,
                                         **s.conversion.options)
-            except MeshDataError:  # a data problem (e.g. a template in other units): its own message
+            except MeshDataError as e:  # a data problem: its own message, the template's named as the scene's
+                if template is not None and str(e).startswith("template"):
+                    raise MeshDataError(f"surface.conversion.template ({s.conversion.template}): {e}") from None
                 raise
             except (TypeError, ValueError) as e:  # unknown or bad strategy options
                 raise SceneError(f"surface.conversion.options: {e}") from e
+            info = seq.conversion
+            if template is None and s.orientation in ("keep", "flip") and info.key_frame in set(info.turned_outward):
+                # convert fits frames facing outward (its fit compares normals) and turned the key
+                # frame, whose faces the template keeps: the winding asked for is given back (a new
+                # user's inward frames came out facing outward under orientation: keep)
+                seq = FixedTopologySequence(seq.V, np.ascontiguousarray(seq.F[:, ::-1]), seq.fps, seq.name, seq.source)
+                seq.conversion = info
             for line in conversion_summary(seq.conversion):  # a poor fit or a web is said, as convert says it
                 if line.startswith("warning: "):
                     warnings.warn(f"{where}: surface.conversion: {scene_keys(line[len('warning: '):])}", UserWarning,
@@ -274,8 +283,9 @@ def scene_keys(line: str) -> str:
 
 
 def refuse_starts_inside(V0, F0, entries, frame: int = 0, closed: bool | None = None) -> None:
-    """Refuse (:class:`SceneError`) a body whose centre starts inside a closed surface (frame
-    ``frame``, whose vertices are ``V0``): contacts with the surface are one-sided, so it would
+    """Refuse (:class:`SceneError`) a body whose centre starts inside a closed surface, behind its
+    faces (frame ``frame``, whose vertices are ``V0``; a surface facing inward has its inside in
+    front of its faces, which hold the body): contacts with the surface are one-sided, so it would
     fall out through the faces (docs/scene.md). ``entries``: ``(label, position, clearance)`` per
     body, the label naming its scene field (``spheres.3``, ``newton.bodies.0``) and the clearance
     [m] (its radius: how far above the surface the message suggests). ``closed``: whether the
@@ -289,8 +299,10 @@ def refuse_starts_inside(V0, F0, entries, frame: int = 0, closed: bool | None = 
         top = float(np.asarray(V0)[:, 2].max())
         raise SceneError(
             f"{label}: position {[round(float(x), 6) for x in np.asarray(pos, float)]} starts inside the closed "
-            f"surface (frame {frame}); contacts are one-sided, so it would fall out through it. Move it outside, "
-            f"e.g. z >= {top + float(clearance):.4g} above the surface"
+            f"surface (frame {frame}), behind its faces; contacts are one-sided, so it would fall out through it. "
+            f"Move it outside, e.g. z >= {top + float(clearance):.4g} above the surface; or, for a body meant to be "
+            "inside (a room, a tunnel, a container), wind the surface to face inward: surface.orientation: keep "
+            "(faces as in the file) or flip"
             + (f" ({inside.size} {'spheres' if all(e[0].startswith('spheres.') for e in entries) else 'bodies'} "
                "are inside)" if inside.size > 1 else ""))
 

@@ -902,3 +902,103 @@ def test_spawned_spheres_drop_against_gravity(tmp_path):
     h = P.astype(np.float64) @ up
     assert h.min() == pytest.approx((V @ up).max() + 0.35, abs=1e-5)
     np.testing.assert_allclose(np.diff(np.sort(h)), 0.125, atol=1e-5)
+
+
+def _cup(r=0.3, h=1.8, nr=32, nh=20, nb=6):
+    """A single-sheet cup (open top), wound to face into the cup: (V, F)."""
+    ang = np.linspace(0, 2 * np.pi, nr, endpoint=False)
+    V = [[0.0, 0.0, 0.0]] + [[r * i / nb * np.cos(a), r * i / nb * np.sin(a), 0.0] for i in range(1, nb + 1) for a in ang]
+    V += [[r * np.cos(a), r * np.sin(a), h * j / nh] for j in range(1, nh + 1) for a in ang]
+    ring = lambda i: 1 + (i - 1) * nr  # noqa: E731
+    F = [[0, ring(1) + k, ring(1) + (k + 1) % nr] for k in range(nr)]
+    for i in range(1, nb + nh):
+        for k in range(nr):
+            p, q, P, Q = ring(i) + k, ring(i) + (k + 1) % nr, ring(i + 1) + k, ring(i + 1) + (k + 1) % nr
+            F += [[p, P, Q], [p, Q, q]]
+    V, F = np.array(V), np.array(F)
+    n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    if n[:nr, 2].sum() < 0:  # the bottom faces up, into the cup
+        F = F[:, ::-1]
+    return V, F
+
+
+@pytest.mark.parametrize("depth", [0.9, 1.8, 6.0])
+def test_a_deep_open_cup_is_not_closed_and_keeps_its_balls(tmp_path, depth):
+    """The closed rule took a hole to be small when the vector area (the opening's projection) was
+    at most 10 % of the area: a cup deeper than ~1.4x its radius passed, was "turned outward"
+    and a new user's balls dropped into it fell through the bottom. The rim of its largest hole
+    against the square root of its area tells (rim 1.9 m, size 1.9 m here); a sphere's scan with a
+    hole of a sixth of its diameter still has an inside."""
+    from dynmesh_warp.config import load_scene_config
+    from dynmesh_warp.geometry import mesh_orientation, orient_faces
+
+    V, F = _cup(h=depth)
+    assert mesh_orientation(V, F) == "open"
+    F2, report = orient_faces(V, F)
+    assert report["inward"] == 0
+    np.testing.assert_array_equal(F2, F)  # facing up into the cup, against gravity: kept
+    # a sphere with a hole 1/6 of its diameter across: still has an inside (and faces outward)
+    ball = trimesh.creation.icosphere(subdivisions=3)
+    cut = ball.vertices[ball.faces].mean(axis=1)[:, 2] < 0.985
+    assert (~cut).sum() > 0 and mesh_orientation(ball.vertices, ball.faces[cut]) == "outward"
+    np.savez(tmp_path / "cup.npz", V=np.stack([V] * 3).astype(np.float32), F=F, fps=24.0)
+    path = scene_yaml(tmp_path, {"surface": {"source": "cup.npz"},
+                                 "spheres": [{"position": [0.0, 0.0, depth / 2], "radius": 0.05},
+                                             {"position": [0.1, 0.0, depth + 0.2], "radius": 0.05}]})
+    w = build_world(load_scene_config(path), device="cpu")
+    for _ in range(480):
+        w.step()
+    np.testing.assert_allclose(w.state.sphere_pos.numpy()[:, 2], 0.05, atol=2e-3)  # both on the cup's bottom
+
+
+def test_a_sphere_inside_a_room_facing_inward_is_kept(tmp_path):
+    """A closed room wound to face inward (an indoor capture), ``orientation: keep``: a listed
+    sphere inside was refused as "inside the closed surface", though the floor holds it (its
+    inside is in front of its faces). Refused still when the room faces outward, with the hint."""
+    from dynmesh_warp.config import load_scene_config
+
+    box = trimesh.creation.box(extents=[4, 4, 3]).subdivide()
+    V, F = np.asarray(box.vertices) + [0, 0, 1.5], np.asarray(box.faces)[:, ::-1]  # facing in
+    np.savez(tmp_path / "room.npz", V=np.stack([V] * 3).astype(np.float32), F=F, fps=24.0)
+    spheres = [{"position": [0.0, 0.0, 1.0], "radius": 0.1}]
+    path = scene_yaml(tmp_path, {"surface": {"source": "room.npz", "orientation": "keep"}, "spheres": spheres})
+    w = build_world(load_scene_config(path), device="cpu")
+    for _ in range(240):
+        w.step()
+    assert w.state.sphere_pos.numpy()[0, 2] == pytest.approx(0.1, abs=2e-3)  # on the floor
+    auto = scene_yaml(tmp_path, {"surface": {"source": "room.npz"}, "spheres": spheres})
+    with pytest.raises(SceneError, match=r"spheres\.0.*starts inside the closed surface.*behind its faces.*"
+                                         r"surface\.orientation: keep"), pytest.warns(UserWarning, match="face inward"):
+        build_world(load_scene_config(auto), device="cpu")
+
+
+@pytest.mark.parametrize("orientation, sign", [("keep", -1), ("flip", 1), ("auto", 1)])
+def test_orientation_keep_survives_the_scenes_conversion(tmp_path, orientation, sign):
+    """convert turns frames wound inside out before its fit; a scene's ``surface.orientation:
+    keep`` (or flip) was then undone without a word by its ``surface.conversion`` (a new user's
+    inward frames came out facing outward). Now the output has the winding the scene asked for;
+    a bad template is named by its scene field."""
+    from dynmesh_warp.config import load_scene_config
+    from dynmesh_warp.geometry import signed_volume
+    from dynmesh_warp.io import save_sequence
+    from dynmesh_warp.scene import prepare_surface
+    from dynmesh_warp.sequence import VaryingTopologySequence
+
+    frames = []
+    for t, sub in enumerate((2, 3, 2)):
+        m = trimesh.creation.icosphere(subdivisions=sub, radius=0.3)
+        frames.append((np.asarray(m.vertices) * (1 + 0.05 * t), np.asarray(m.faces)[:, ::-1]))  # inward
+    seq = VaryingTopologySequence(frames, fps=24.0, name="ball")
+    save_sequence(seq, tmp_path / "ball", fmt="obj")
+    conv = {"strategy": "projection"}
+    path = scene_yaml(tmp_path, {"surface": {"source": "ball", "orientation": orientation, "conversion": conv}})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        out = prepare_surface(load_sequence(tmp_path / "ball"), load_scene_config(path))
+    assert np.sign(signed_volume(out.V[0], out.F)) == sign
+    (tmp_path / "tiny.obj").write_text("v 0 0 0\nv 0.001 0 0\nv 0 0.001 0\nf 1 2 3\n")
+    bad = scene_yaml(tmp_path, {"surface": {"source": "ball", "conversion": {**conv, "template": "tiny.obj"}}})
+    with pytest.raises(MeshDataError, match=r"^surface\.conversion\.template \(tiny\.obj\): template: "):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            prepare_surface(load_sequence(tmp_path / "ball"), load_scene_config(bad))
