@@ -49,8 +49,8 @@ from .kernels.batch import (
     reset_env_spheres,
 )
 from .kernels.frames import add_points_offset, update_frame_vertices
-from .world import (Contacts, PhysicsParams, SphereModel, SurfaceModel, check_substep_budget, frame_pair_host,
-                    seam_note)
+from .world import (Contacts, PhysicsParams, SphereModel, SurfaceModel, check_substep_budget, fallen_past_note,
+                    frame_pair_host, seam_note)
 
 __all__ = ["BatchModel", "BatchState", "BatchedWorld", "step_envs", "required_substeps", "env_clocks", "TIME_SLICES",
            "BATCH_TILE_THREADS", "HYBRID_BUDGET", "default_batch_search", "HYBRID_BLOCKS", "ContactQuery",
@@ -530,8 +530,14 @@ class BatchedWorld:
                 "final": {"finite": bool(np.isfinite(pos).all() and np.isfinite(vel).all())}}
 
     def run_line(self) -> tuple[str, str]:
+        # spheres that fell past the surface, said as the single world says it (a new user's listed
+        # spheres started under a rising sheet in the envs whose clocks started later, and fell
+        # with only "4/16 spheres in contact" said)
+        hint = ("an env whose clock starts later (envs.time_offset) may begin with a listed sphere under a "
+                "surface that has moved there: envs.time_offset: 0, or spawned spheres; " if self.num_envs > 1 else "")
         return (f"{self.num_envs} envs x {self.model.spheres_per_env} spheres",
-                f"{self.contact_count()}/{self.model.spheres.count} spheres in contact")
+                f"{self.contact_count()}/{self.model.spheres.count} spheres in contact"
+                + fallen_past_note(self.model.surface.sequence, self.model.params, self.state.sphere_pos.numpy(), hint))
 
     # -- read-out (host copies) -----------------------------------------------------------------
     def sphere_positions(self) -> np.ndarray:

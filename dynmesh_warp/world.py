@@ -68,6 +68,7 @@ from .geometry import points_inside
 from .sequence import FixedTopologySequence, VaryingTopologySequence
 
 __all__ = [
+    "fallen_past_note",
     "PhysicsParams",
     "WorkBudgetError",
     "check_substep_budget",
@@ -1034,6 +1035,30 @@ def measure_colliders(model: Model, state: State, candidates, horizon: float | N
     return cost
 
 
+def fallen_past_note(sequence, params, positions, hint: str = "") -> str:
+    """The run line's note when spheres ended far below the surface's lowest point (along the
+    scene's up, against ``params.gravity``) with no ground plane to stop them: ``"; n of S spheres
+    fell past the surface (...)"``, else ``""`` (a new user's y-up horse played as z-up: "0/5 in
+    contact", the spheres at z = -15 m, unsaid; another's sphere pinched through a closing slab).
+    ``positions`` (S, 3) [m]; ``hint``: a cause of the caller's own, said first."""
+    P = np.asarray(positions, np.float64).reshape(-1, 3)
+    if params.ground_height is not None or not len(P):
+        return ""
+    lo, hi = sequence.bounds()
+    g = np.asarray(params.gravity, np.float64)
+    up = -g / np.linalg.norm(g) if np.linalg.norm(g) > 0 else np.array([0.0, 0.0, 1.0])
+    # along the scene's up (a new user's y-up floor under gravity along -y lost its spheres
+    # without this note, which looked along z): the bounding box's lowest corner
+    low = min(float(np.dot(c, up)) for c in np.array(np.meshgrid(*zip(lo, hi))).reshape(3, -1).T)
+    fell = int(np.count_nonzero(P @ up < low - 0.5 * float(np.linalg.norm(hi - lo))))
+    if not fell:
+        return ""
+    return (f"; {fell} of {len(P)} spheres fell past the surface (below its lowest point, no ground plane: "
+            f"{hint}physics.ground auto adds one; a y-up mesh played as z-up? --set surface.up_axis=y; or pinched "
+            "between two parts of the surface closing on them, which one contact per sphere cannot hold: raise "
+            "physics.substeps, docs/physics.md)")
+
+
 class World:
     """Spheres on a deforming mesh.
 
@@ -1562,25 +1587,8 @@ class World:
                 + f", max penetration {s['final']['max_penetration']:.2e} m" + self._fallen_text())
 
     def _fallen_text(self) -> str:
-        """The run line's note when spheres ended far below the surface's lowest point with no
-        ground plane to stop them (a new user's y-up horse played as z-up: "0/5 in contact",
-        the spheres at z = -15 m, unsaid; another's sphere pinched through a closing slab)."""
-        if self.model.params.ground_height is not None or not self.model.spheres.count:
-            return ""
-        lo, hi = self.model.surface.sequence.bounds()
-        g = np.asarray(self.model.params.gravity, np.float64)
-        up = -g / np.linalg.norm(g) if np.linalg.norm(g) > 0 else np.array([0.0, 0.0, 1.0])
-        # along the scene's up (against gravity; a new user's y-up floor under gravity along -y
-        # lost its spheres without this note, which looked along z): the box's lowest corner
-        low = min(float(np.dot(c, up)) for c in np.array(np.meshgrid(*zip(lo, hi))).reshape(3, -1).T)
-        h = self.state.sphere_pos.numpy().astype(np.float64) @ up
-        fell = int(np.count_nonzero(h < low - 0.5 * float(np.linalg.norm(hi - lo))))
-        if not fell:
-            return ""
-        return (f"; {fell} of {self.model.spheres.count} spheres fell past the surface (below its lowest point, no "
-                "ground plane: physics.ground auto adds one; a y-up mesh played as z-up? --set surface.up_axis=y; or "
-                "pinched between two parts of the surface closing on them, which one contact per sphere cannot hold: "
-                "raise physics.substeps, docs/physics.md)")
+        """The run line's note on spheres that fell past the surface (:func:`fallen_past_note`)."""
+        return fallen_past_note(self.model.surface.sequence, self.model.params, self.state.sphere_pos.numpy())
 
     # -- convenience ---------------------------------------------------------------------------
     def sphere_positions(self) -> np.ndarray:

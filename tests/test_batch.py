@@ -379,3 +379,38 @@ def test_a_batch_that_cannot_fit_the_free_memory_is_refused_before_it_is_allocat
         batch.build_batched_world(scene, device="cpu", num_envs=10_000)  # 10,000 x 384 bytes > 1 MB
     assert batch.build_batched_world(scene, device="cpu", num_envs=100).num_envs == 100
     assert batch._free_bytes(wp.get_device("cpu")) > 0  # the host's available memory is known here
+
+
+def test_listed_spheres_under_an_open_sheet_in_a_later_env_are_said_to_have_fallen():
+    """An open sheet rising 0.5 m/s, spheres listed just above it for frame 0, envs starting at
+    random times: in the envs that start later the spheres begin under the sheet and fall; a new
+    user's run said only "4/16 spheres in contact". The run line now says how many fell past the
+    surface and the envs' start times as a cause; envs all starting at 0 keep theirs."""
+    from dynmesh_warp.batch import build_batched_world
+    from dynmesh_warp.config import SceneConfig
+    from dynmesh_warp.sequence import FixedTopologySequence
+
+    n = 12
+    g = np.linspace(-1.0, 1.0, n)
+    X, Y = np.meshgrid(g, g, indexing="ij")
+    V0 = np.stack([X.ravel(), Y.ravel(), np.full(n * n, 0.5)], 1).astype(np.float32)
+    a = (np.arange(n - 1)[:, None] * n + np.arange(n - 1)[None, :]).ravel()
+    F = np.concatenate([np.stack([a, a + n, a + n + 1], 1), np.stack([a, a + n + 1, a + 1], 1)])
+    lift = np.float32(0.5) * np.arange(30, dtype=np.float32) / 24
+    seq = FixedTopologySequence(V0[None] + lift[:, None, None] * np.float32([0, 0, 1]), F, fps=24.0)
+    listed = {"surface": {"source": "builtin:wave_bowl", "playback": "clamp"}, "physics": {"ground": None},
+              "spheres": [{"position": [0.1, 0.2, 0.56], "radius": 0.05}]}
+    lines = {}
+    for offset in ("random", 0.0):
+        cfg = SceneConfig.model_validate({**listed, "envs": {"count": 8, "time_offset": offset, "seed": 0}})
+        w = build_batched_world(cfg, device="cpu", sequence=seq)
+        for _ in range(240):
+            w.step()
+        lines[offset] = w.run_line()[1]
+        z = w.sphere_positions()[:, 0, 2]
+        fell = int((z < 0.5 - 0.5 * float(np.linalg.norm(np.ptp(seq.V.reshape(-1, 3), axis=0)))).sum())
+        if fell:
+            assert f"{fell} of 8 spheres fell past the surface" in lines[offset] and "envs.time_offset: 0" in lines[offset]
+        else:
+            assert "fell past" not in lines[offset]
+    assert "fell past" in lines["random"] and "fell past" not in lines[0.0]
