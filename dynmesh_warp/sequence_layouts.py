@@ -212,7 +212,18 @@ def list_frame_files(folder: Path) -> list[Path]:
     order = sorted(by_index)
     # the first gaps only: indices may be far apart (frame_0, frame_99999999999)
     missing = [i for a, b in zip(order, order[1:]) for i in range(a + 1, min(b, a + 12))][:11]
-    if missing:
+    steps = set(np.diff(order).tolist()) if len(order) > 2 else set()
+    if len(steps) == 1 and min(steps) > 1:
+        # numbered at a stride (frame_000, frame_010, ...): an export of every k-th frame, not
+        # missing ones (a new user's was warned of "gaps (missing 1, 2, 3 ...)" with no word on fps)
+        k = min(steps)
+        warnings.warn(
+            f"{folder}: frames are numbered every {k} ({order[0]}, {order[1]}, {order[2]}, ...): taken in order "
+            f"and played at a constant fps, one file a frame; if they were exported every {k}th frame of a "
+            f"capture, their rate is the capture's fps / {k} (surface.fps in a scene, convert --fps)",
+            stacklevel=4,  # list_frame_files <- load_folder <- load_sequence <- caller
+        )
+    elif missing:
         more = order[-1] - order[0] + 1 - len(order) > 10
         shown = ", ".join(map(str, missing[:10])) + (" ..." if more else "")
         warnings.warn(

@@ -553,6 +553,16 @@ def test_folder_gap_warns(tmp_path):
     assert [frame_of(v) for v in seq.V] == [1, 2, 5]
 
 
+def test_folder_numbered_at_a_stride_is_said_as_a_stride(tmp_path):
+    """frame_000, frame_010, frame_020: an export of every 10th frame, which a new user was told
+    had gaps (missing 1, 2, 3 ...) with no word on the frame rate."""
+    write_marked_frames(tmp_path, ["frame_000.ply", "frame_010.ply", "frame_020.ply", "frame_030.ply"], [0, 1, 2, 3])
+    with pytest.warns(UserWarning, match=r"numbered every 10 \(0, 10, 20, \.\.\.\).*fps / 10") as rec:
+        seq = load_sequence(tmp_path)
+    assert not any("missing" in str(r.message) for r in rec)
+    assert [frame_of(v) for v in seq.V] == [0, 1, 2, 3]
+
+
 # --------------------------------------------------------------------------- shared data
 
 
