@@ -728,14 +728,13 @@ def _spheres_for_env_starts(cfg, seq, mode: int, times: np.ndarray, pos: np.ndar
     no word). Spawned spheres are dropped above the highest point of any frame instead; a listed
     sphere inside the closed surface at an env's start frame is refused, naming the env."""
     from .config import SceneError, spawn_positions
-    from .geometry import mesh_orientation
     from .scene import refuse_starts_inside, scene_up, sphere_entries
     from .sequence import surface_vertices
 
     if not isinstance(cfg.spheres, list):
         return spawn_positions(cfg.spheres, surface_vertices(seq.V, seq.F).reshape(-1, 3), scene_up(cfg))
     entries = sphere_entries(cfg)
-    if not entries or mesh_orientation(seq.V[0], seq.F) not in ("outward", "inward"):
+    if not entries:
         return pos
     first = {}  # start frame -> first env that starts on it
     for e, t in enumerate(times):
@@ -743,7 +742,7 @@ def _spheres_for_env_starts(cfg, seq, mode: int, times: np.ndarray, pos: np.ndar
             first.setdefault(k, e)
     for k in sorted(first):
         try:
-            refuse_starts_inside(seq.V[k], seq.F, entries, frame=k, closed=True)
+            refuse_starts_inside(seq.V[k], seq.F, entries, frame=k)  # closed pieces, piece by piece
         except SceneError as err:
             e = first[k]
             raise SceneError(f"env {e} starts at t = {float(times[e]):.4g} s (envs.time_offset: "

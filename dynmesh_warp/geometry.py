@@ -71,14 +71,41 @@ def points_inside(V, F, P, closed: bool | None = None) -> np.ndarray:
     winding number > 1/2 with the faces as they are wound (inside a surface facing outward; a
     surface facing inward, a room or a tunnel, has its inside in front of its faces, where
     contacts hold a body: a new user's sphere in a room kept with ``orientation: keep`` was
-    refused, though the physics held it on the floor). ``closed``: whether it is, when already
-    known, else :func:`mesh_orientation`; none for an open surface, whose inside is not defined."""
-    if closed is None:
-        closed = mesh_orientation(V, F) in ("outward", "inward")
+    refused, though the physics held it on the floor). ``closed``: whether the whole mesh is, when
+    already known; None: decided piece by piece (connected pieces, :func:`mesh_orientation`); none
+    inside an open piece, whose inside is not defined."""
     P = np.asarray(P, np.float64).reshape(-1, 3)
-    if not closed or not len(P):
+    if not len(P) or closed is False:
         return np.zeros(0, np.int64)
-    return np.flatnonzero(winding_numbers(V, F, P) > 0.5)
+    if closed:
+        return np.flatnonzero(winding_numbers(V, F, P) > 0.5)
+    # piece by piece: an outward crate in an inward room, a rock on a ground sheet (their winding
+    # numbers add up to 0, or the sheet leaves the whole open: spheres inside the crate or the
+    # rock fell through, unrefused; found by a new user)
+    F = np.asarray(F)
+    inside = np.zeros(len(P), bool)
+    n, label = _face_pieces(V, F)
+    for k in range(n):
+        Fk = F[label == k]
+        if mesh_orientation(V, Fk) in ("outward", "inward"):
+            inside |= winding_numbers(V, Fk, P) > 0.5
+    return np.flatnonzero(inside)
+
+
+def _face_pieces(V, F) -> tuple:
+    """``(n, label (M,))``: the faces' connected pieces (sharing a vertex position)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    W = np.asarray(weld_vertices(V, F)[1], np.int64)
+    if not len(W):
+        return 0, np.zeros(0, np.int64)
+    M, nv = len(W), int(W.max()) + 1
+    g = coo_matrix((np.ones(3 * M, np.int8), (np.repeat(np.arange(M), 3), M + W.reshape(-1))), shape=(M + nv, M + nv))
+    n, lab = connected_components(g, directed=False)
+    face_lab = lab[:M]
+    _, face_lab = np.unique(face_lab, return_inverse=True)
+    return int(face_lab.max()) + 1, face_lab.reshape(-1)
 
 
 def orient_outward(V, F) -> np.ndarray:
@@ -92,22 +119,63 @@ CLOSED_MAX_BOUNDARY = 0.1
 #: ... and its holes are small: the norm of its vector area (zero for a closed surface, the
 #: area itself for a flat sheet) at most this fraction of its area ...
 CLOSED_MAX_OPENING = 0.1
-#: ... and the rim of its largest hole at most this many times the square root of its area (a
-#: deep cup's opening is a small part of its vector area, but not of its size: a new user's cup of
-#: r = 0.3 m, 1.8 m deep, rim 1.9 m against the square root of its area 1.9 m, counted as closed and
-#: was turned inside out; a hole of a sphere's scan passes up to ~28 % of its diameter across)
-CLOSED_MAX_HOLE = 0.5
+#: ... unless its largest hole is large (its rim over this many times the square root of its
+#: area) and opens upward (against gravity): then it is a *container* (a cup, a bucket, a box
+#: without its lid), faced into its opening, where dropped bodies land. A new user's deep cup
+#: (r = 0.3 m, 1.8 m deep: its opening 8 % of its vector area, its rim 1.9 m against the square
+#: root of its area 1.9 m) counted as closed and was turned outward: its balls fell through its
+#: bottom. A large hole opening sideways or down (a turntable scan's missing bottom, a blob cut
+#: by the reconstruction's grid) keeps the closed rule: such scans face outward as before
+CONTAINER_MIN_HOLE = 0.5
+#: the opening's direction counts as upward within this angle of the scene's up [degrees]
+CONTAINER_MAX_TILT = 60.0
+#: ... and a container is no flat sheet: the norm of its vector area at most this fraction of
+#: its area (a sheet's is 1; the deep cup's 0.08, a shallow dish's ~0.5) ...
+CONTAINER_MAX_OPENING = 0.6
+#: ... and its mouth is most of its top: the norm of its vector area (the opening's area seen
+#: along up) at least this fraction of its footprint (its bounding box across up): a cup 0.79, a
+#: box without its lid 1; a torus scanned with a hole on top 0.02 (a hole, not a mouth: kept
+#: closed, facing outward; found by a new user)
+CONTAINER_MIN_MOUTH = 0.3
 
 
-def _has_inside(boundary_edges, edges, vector_area_norm, area, largest_hole=0.0):
-    """The one "closed" rule (:func:`mesh_orientation`, :func:`orient_faces`): few boundary edges
-    and small holes, so that a scan or reconstruction with holes still has an inside while a
-    sheet of any size (whose boundary is a small fraction of a fine mesh's edges) or a deep
-    container (whose rim is not small against its size) has not. ``area``: the surface's area;
-    ``largest_hole``: the length of its longest boundary loop (:func:`_hole_rims`), same units."""
-    return ((np.asarray(boundary_edges) <= CLOSED_MAX_BOUNDARY * np.asarray(edges))
-            & (np.asarray(vector_area_norm) <= CLOSED_MAX_OPENING * np.asarray(area))
-            & (np.asarray(largest_hole) <= CLOSED_MAX_HOLE * np.sqrt(np.asarray(area, np.float64))))
+def _footprint(V, up, label=None, n: int = 1) -> np.ndarray:
+    """(n,) the area of the bounding box of the points V (N, 3) across ``up`` (3,), per ``label``
+    (N,) group (default all 0)."""
+    u = np.asarray(up, np.float64)
+    u = u / (np.linalg.norm(u) or 1.0)
+    e1 = np.cross(u, np.eye(3)[int(np.argmin(np.abs(u)))])
+    e1 /= np.linalg.norm(e1)
+    P = np.asarray(V, np.float64).reshape(-1, 3) @ np.stack([e1, np.cross(u, e1)]).T
+    g = np.zeros(len(P), np.int64) if label is None else np.asarray(label, np.int64)
+    lo, hi = np.full((n, 2), np.inf), np.full((n, 2), -np.inf)
+    np.minimum.at(lo, g, P)
+    np.maximum.at(hi, g, P)
+    return np.where(np.isfinite(lo).all(1), np.prod(np.maximum(hi - lo, 0.0), axis=1), 0.0)
+
+
+def _piece_kind(boundary_edges, edges, vector_area, area, largest_hole, volume, up, footprint) -> tuple:
+    """The one rule of :func:`mesh_orientation` and :func:`orient_faces`, per piece: ``(has an
+    inside, is a container)`` (bool arrays). ``vector_area`` (P, 3) and ``area`` (P,) [units^2],
+    ``largest_hole`` (P,) the rim of its longest boundary loop (:func:`_hole_rims`), ``volume``
+    (P,) signed, about its centroid, ``up`` (3,) the scene's up, ``footprint`` (P,) its bounding
+    box's area across up (:func:`_footprint`). A piece with an inside: few
+    boundary edges and small holes (a scan or reconstruction with holes), so that a sheet of any
+    size (whose boundary is a small fraction of a fine mesh's edges) has none; a container: few
+    boundary edges, no flat sheet, and a large hole whose opening (through the hole, out of the
+    piece: against the vector area of a piece facing outward) points up."""
+    S = np.asarray(vector_area, np.float64).reshape(-1, 3)
+    area = np.asarray(area, np.float64).reshape(-1)
+    norm = np.linalg.norm(S, axis=1)
+    few = np.asarray(boundary_edges) <= CLOSED_MAX_BOUNDARY * np.asarray(edges)
+    large = np.asarray(largest_hole) > CONTAINER_MIN_HOLE * np.sqrt(area)
+    u = np.asarray(up, np.float64)
+    u = u / (np.linalg.norm(u) or 1.0)
+    opening = -np.sign(np.asarray(volume, np.float64)) * (S @ u) / np.maximum(norm, 1e-300)
+    container = few & large & (norm > 0) & (opening >= np.cos(np.radians(CONTAINER_MAX_TILT))) \
+        & (norm <= CONTAINER_MAX_OPENING * area) & (norm >= CONTAINER_MIN_MOUTH * np.asarray(footprint))
+    inside = few & (norm <= CLOSED_MAX_OPENING * area) & ~container
+    return inside, container
 
 
 def _hole_rims(V, E, group=None, groups: int = 1) -> np.ndarray:
@@ -132,16 +200,16 @@ def _hole_rims(V, E, group=None, groups: int = 1) -> np.ndarray:
     return out
 
 
-def mesh_orientation(V, F) -> str:
+def mesh_orientation(V, F, up=(0.0, 0.0, 1.0)) -> str:
     """How the triangles of a mesh face.
 
-    ``"outward"`` / ``"inward"``: a mesh with an inside (closed, or with holes that are small:
-    :func:`_has_inside`), with consistent winding; the sign of its volume about the vertex
-    centroid decides. ``"open"``: a sheet, a terrain, a large hole, or an edge shared by more
-    than two faces: no inside to tell. ``"inconsistent"``: two faces run through a shared edge in
-    the same direction."""
-    F = np.asarray(F, np.int64)
-    V = np.asarray(V, np.float64)
+    ``"outward"`` / ``"inward"``: a mesh with an inside (closed, or with holes as a scan has:
+    :func:`_piece_kind`), with consistent winding; the sign of its volume about the vertex
+    centroid decides. ``"open"``: a sheet, a terrain, a container opening against ``up`` (a cup),
+    or an edge shared by more than two faces: no inside to tell. ``"inconsistent"``: two faces
+    run through a shared edge in the same direction. Vertices at one position are one (a
+    flat-shaded export, each face with its own corners, is the closed mesh it shows)."""
+    V, F = weld_vertices(np.asarray(V, np.float64), np.asarray(F, np.int64))[:2]
     directed = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
     n = int(max(int(F.max()) + 1, 1))
     undirected = np.sort(directed, axis=1)
@@ -149,13 +217,15 @@ def mesh_orientation(V, F) -> str:
     cr = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
     if np.any(counts > 2):
         return "open"
-    rim = _hole_rims(V, undirected[first[counts == 1]])[0]
-    if not _has_inside(np.count_nonzero(counts == 1), len(counts), 0.5 * np.linalg.norm(cr.sum(axis=0)),
-                       0.5 * np.linalg.norm(cr, axis=1).sum(), rim):
+    rim = _hole_rims(V, undirected[first[counts == 1]])
+    vol = signed_volume(V, F)
+    inside, _ = _piece_kind(np.count_nonzero(counts == 1), len(counts), 0.5 * cr.sum(axis=0),
+                            0.5 * np.linalg.norm(cr, axis=1).sum(), rim, vol, up, _footprint(V[F.reshape(-1)], up))
+    if not inside[0]:
         return "open"
     if len(np.unique(directed[:, 0] * n + directed[:, 1])) != len(directed):
         return "inconsistent"
-    return "outward" if signed_volume(V, F) > 0 else "inward"
+    return "outward" if vol > 0 else "inward"
 
 
 def _patches(F: np.ndarray) -> tuple:
@@ -275,18 +345,21 @@ def orient_faces(V, F, up=(0.0, 0.0, 1.0), down_fraction: float = 0.25) -> tuple
     (manifold pieces, see :func:`_patches`, of the mesh with coincident vertices welded):
 
     1. every patch's winding is made consistent (the minority of its faces flipped);
-    2. a patch with an inside (closed, or with small holes as a scan: :func:`_has_inside`) faces
+    2. a patch with an inside (closed, or with holes as a scan has: :func:`_piece_kind`) faces
        outward: flipped when its volume (about its own centroid) is negative;
-    3. an open patch (a sheet, a terrain) faces ``up`` (against gravity, where falling bodies come
+    3. a container (a large hole opening up: a cup, a bucket, a box without a lid) faces into
+       itself, where dropped bodies land: flipped when its volume is positive;
+    4. an open patch (a sheet, a terrain) faces ``up`` (against gravity, where falling bodies come
        from) when its area-weighted normal points down by more than ``down_fraction`` of its
        area; one with no clear up or down side (a wall, a flag) is left as it is.
 
-    ``report``: ``{"rewound": faces flipped by 1, "inward": closed patches flipped, "down": open
-    patches flipped, "non_orientable": patches with no consistent winding (left as they are),
-    "patches": number of patches}``. ``F`` is returned itself when nothing changes."""
+    ``report``: ``{"rewound": faces flipped by 1, "inward": closed patches flipped, "container":
+    containers flipped to face into themselves, "down": open patches flipped, "non_orientable":
+    patches with no consistent winding (left as they are), "patches": number of patches}``. ``F``
+    is returned itself when nothing changes."""
     F = np.asarray(F)
     V = np.asarray(V, np.float64)
-    report = {"rewound": 0, "inward": 0, "down": 0, "non_orientable": 0, "patches": 0}
+    report = {"rewound": 0, "inward": 0, "down": 0, "container": 0, "non_orientable": 0, "patches": 0}
     if len(F) == 0:
         return F, report
     # pieces by position, not by index: a triangle soup or a mesh with seams is one piece; a face
@@ -314,14 +387,16 @@ def orient_faces(V, F, up=(0.0, 0.0, 1.0), down_fraction: float = 0.25) -> tuple
     up = up / (np.linalg.norm(up) or 1.0)
     facing = np.bincount(label, cr @ up, minlength=npatch)
     area = np.bincount(label, np.linalg.norm(cr, axis=1), minlength=npatch)
-    opening = np.linalg.norm(_sum_by(label, cr, npatch), axis=1)
-    closed = _has_inside(boundary, edges, 0.5 * opening, 0.5 * area, _hole_rims(Vw, rim_edges, rim_patch, npatch))
+    closed, container = _piece_kind(boundary, edges, 0.5 * _sum_by(label, cr, npatch), 0.5 * area,
+                                    _hole_rims(Vw, rim_edges, rim_patch, npatch), vol, up,
+                                    _footprint(np.concatenate([a, b, c]), up, np.tile(label, 3), npatch))
     ok = np.bincount(label, ~orientable, minlength=npatch) == 0
     inward = ok & closed & (vol < 0)
-    down = ok & ~closed & (facing < -down_fraction * area)
-    report["inward"], report["down"] = int(inward.sum()), int(down.sum())
+    into = ok & container & (vol > 0)  # a container facing out of itself: dropped bodies would pass its bottom
+    down = ok & ~closed & ~container & (facing < -down_fraction * area)
+    report["inward"], report["down"], report["container"] = int(inward.sum()), int(down.sum()), int(into.sum())
     # each face (every copy) turned to the winding its unique face ends with
-    wanted = _winding(W[first]) ^ rewind ^ (inward | down)[label]
+    wanted = _winding(W[first]) ^ rewind ^ (inward | down | into)[label]
     turn = np.zeros(len(F), bool)
     turn[live] = _winding(W[live]) != wanted[copy_of]
     if not turn.any():

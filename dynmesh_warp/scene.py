@@ -70,13 +70,14 @@ def _say_orientation(reports: list, where: str) -> None:
     """One warning per kind of change :func:`_orient` made, over a sequence's frames
     (``reports``: ``(frame or None, report)``)."""
     def frames(key):
-        hit = [t for t, r in reports if r and r[key]]
+        hit = [t for t, r in reports if r and r.get(key)]
         if not hit or hit == [None]:
             return ""
         return f" (frame{'s' if len(hit) > 1 else ''} {', '.join(map(str, hit[:8]))}{' ...' if len(hit) > 8 else ''})"
 
     tail = " (surface.orientation: keep to leave them)"
-    total = {k: sum(r[k] for _, r in reports if r) for k in ("rewound", "inward", "down", "non_orientable")}
+    total = {k: sum(r.get(k, 0) for _, r in reports if r)
+             for k in ("rewound", "inward", "container", "down", "non_orientable")}
     if total["rewound"]:
         warnings.warn(f"{where}{frames('rewound')}: inconsistent winding (neighbouring triangles faced opposite "
                       f"ways): flipped {total['rewound']} triangle(s) to agree with their neighbours" + tail,
@@ -84,6 +85,10 @@ def _say_orientation(reports: list, where: str) -> None:
     if total["inward"]:
         warnings.warn(f"{where}{frames('inward')}: closed mesh whose triangles face inward (negative volume): "
                       "flipped them to face outward" + tail, stacklevel=3)
+    if total["container"]:
+        warnings.warn(f"{where}{frames('container')}: open container (a large hole opening upward: a cup, a "
+                      "bucket, a box without its lid) whose triangles face out of it: flipped them to face into it, "
+                      "where dropped bodies land (contacts are one-sided)" + tail, stacklevel=3)
     if total["down"]:
         # said against gravity, not in world axes (with gravity along +z, "face up" read as +z, the
         # reverse of the flip done, a new user found)
@@ -236,12 +241,19 @@ def prepare_surface(seq, cfg: SceneConfig):
         elif s.conversion is not None:
             from .convert import conversion_summary, to_fixed_topology  # noqa: PLC0415 (optional stage)
 
-            template = None
+            template, template_turned = None, False
             if s.conversion.template:
+                from .geometry import mesh_orientation
                 from .io import read_mesh
 
                 V, F = read_mesh(cfg.resolve(s.conversion.template))
-                template = (_transform(V, s, axis), F)
+                tv = _transform(V, s, axis)
+                tf = _orient(tv, F, s, up)[0]  # wound as the frames are (keep / flip / auto), unsaid
+                # convert fits frames facing outward (it turns closed inward ones) and its template
+                # must agree; the winding asked for is given back on the output below (a new user's
+                # inward template gave an inward output under auto and flip, all of it "flipped")
+                template_turned = mesh_orientation(tv, tf) == "inward"
+                template = (tv, np.ascontiguousarray(tf[:, ::-1]) if template_turned else tf)
             try:
                 seq = to_fixed_topology(seq, strategy=s.conversion.strategy, template=template,
                                         **s.conversion.options)
@@ -252,7 +264,8 @@ def prepare_surface(seq, cfg: SceneConfig):
             except (TypeError, ValueError) as e:  # unknown or bad strategy options
                 raise SceneError(f"surface.conversion.options: {e}") from e
             info = seq.conversion
-            if template is None and s.orientation in ("keep", "flip") and info.key_frame in set(info.turned_outward):
+            if template_turned or (template is None and s.orientation in ("keep", "flip")
+                                   and info.key_frame in set(info.turned_outward)):
                 # convert fits frames facing outward (its fit compares normals) and turned the key
                 # frame, whose faces the template keeps: the winding asked for is given back (a new
                 # user's inward frames came out facing outward under orientation: keep)
