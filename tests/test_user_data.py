@@ -150,7 +150,7 @@ def test_orient_faces_repairs_winding_piece_by_piece_against_trimesh():
     V2 = np.concatenate([V, V + [3.0, 0.0, 0.0]])
     F2 = np.concatenate([F, F[:, ::-1] + len(V)])
     G, r = orient_faces(V2, F2)
-    assert r == {"rewound": 0, "inward": 1, "down": 0, "non_orientable": 0, "patches": 2}
+    assert r == {"rewound": 0, "inward": 1, "container": 0, "down": 0, "non_orientable": 0, "patches": 2}
     np.testing.assert_array_equal(G, np.concatenate([F, F + len(V)]))
     # a triangle soup (no shared vertex index) inside out: pieces are found by position
     soup_V = V[F[:, ::-1].reshape(-1)]
