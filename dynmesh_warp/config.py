@@ -53,6 +53,10 @@ DEFAULT_MAX_SUBSTEPS = 64
 DEFAULT_MAX_TOTAL_SUBSTEPS = 10_000_000
 
 
+#: the largest envs.time_offset [s]: ~30 years; far beyond it a clock's step (1/240 s) is lost
+#: to float64 rounding and every env would see one frozen frame
+MAX_TIME_OFFSET = 1.0e9
+
 class SceneError(ValueError):
     """The scene file is missing, unreadable or does not match the schema."""
 
@@ -315,6 +319,9 @@ class EnvsConfig(_Strict):
     def _offset_ok(cls, v):
         if v != "random" and not (math.isfinite(v) and v >= 0.0):  # -5 started every clock at -5 s
             raise ValueError(f"must be 'random' or a start time >= 0 [s], got {v!r}")
+        if v != "random" and v > MAX_TIME_OFFSET:  # 1e30 froze every clock (t + dt == t), unsaid
+            raise ValueError(f"must be at most {MAX_TIME_OFFSET:g} s (far beyond it float64 rounding loses the "
+                             f"clocks' steps: 1e30 froze every env on one frame), got {v!r}")
         return v
 
     @model_validator(mode="after")

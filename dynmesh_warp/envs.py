@@ -277,7 +277,9 @@ class RideSurfaceEnv(VectorEnv):
             a = np.asarray(actions, np.float64)  # checked before the cast: 1e40 is finite, not inf
             if not np.isfinite(a).all():
                 bad = np.flatnonzero(~np.isfinite(a).all(axis=1))
-                raise ValueError(f"actions of env(s) {bad[:8].tolist()} are NaN or infinite")
+                # one env (gymnasium's single env, a batch of one): no env index it never made
+                raise ValueError("the action is NaN or infinite" if E == 1 else
+                                 f"actions of env(s) {bad[:8].tolist()} are NaN or infinite")
             self.actions.assign(np.clip(a, -1.0, 1.0).astype(np.float32))  # as applied_action takes them
         w = self.world
         wp.launch(apply_env_actions, self.num_envs,

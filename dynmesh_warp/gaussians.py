@@ -188,6 +188,10 @@ def _check_splats(cloud: SplatCloud) -> None:
                             f"(first: splat {int(np.flatnonzero(q == 0)[0])})")
 
 
+#: splats whose median distance to the mesh they are bound to exceeds this fraction of the mesh's
+#: bounding-box diagonal are warned of (another frame or units?)
+SPLAT_FAR = 0.1
+
 def bind_splats(cloud: SplatCloud, V, F, device=None, max_dist: float = 1.0e30) -> Gaussians:
     """Bind a world-space splat cloud to the mesh (V (N,3) rest vertices [m], F (M,3)).
 
@@ -224,6 +228,16 @@ def _bind_world(centers, rotations_xyzw, scales, V, F, device, source: str, max_
         f = face.numpy()
         if (f < 0).any():
             raise ValueError(f"{source}: {(f < 0).sum()} splats are farther than {max_dist} from the mesh")
+        d = dist.numpy()
+        Vn = np.asarray(V, np.float64)
+        diag = float(np.linalg.norm(Vn.max(axis=0) - Vn.min(axis=0))) if len(Vn) else 0.0
+        if diag > 0 and float(np.median(d)) > SPLAT_FAR * diag:
+            # a new user's y-up splats, the mesh turned z-up by surface.up_axis and they not:
+            # bound 2 m off a 2 m mesh, rendered floating, unsaid
+            warnings.warn(f"{source}: the splats lie far from the mesh they are bound to (median {np.median(d):.4g}, "
+                          f"max {d.max():.4g}; the mesh is {diag:.4g} across): are they in another frame? They "
+                          "must be in the scene frame: surface.up_axis, scale and translate turn the mesh, not the "
+                          "splats", UserWarning, stacklevel=4)
     rot = wp.array(np.asarray(rotations_xyzw, np.float32), dtype=wp.quat, device=device)
     scl = wp.array(np.asarray(scales, np.float32), dtype=wp.vec3, device=device)
     offset = wp.zeros(G, dtype=float, device=device)

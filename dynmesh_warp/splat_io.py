@@ -212,12 +212,14 @@ def read_splat_ply(path) -> SplatCloud:
     if problem is not None:  # "file not found", "a folder, not a file", a broken link
         raise FileNotFoundError(f"{path}: splat file: {problem}")
     raw = path.read_bytes()
-    end = raw.find(b"end_header\n")
-    if not raw.startswith(b"ply\n") or end < 0:
+    eol = b"\r\n" if raw.startswith(b"ply\r\n") else b"\n"  # a header written with Windows line
+    # endings (a valid file, read as "not a PLY file" before: a new user's)
+    end = raw.find(b"end_header" + eol)
+    if not raw.startswith(b"ply" + eol) or end < 0:
         raise _header_error(path, "not a PLY file (no 'ply' magic or no 'end_header')")
-    body = raw[end + len(b"end_header\n"):]
+    body = raw[end + len(b"end_header" + eol):]
     try:
-        lines = raw[:end].decode("ascii").split("\n")[1:]
+        lines = raw[:end].decode("ascii").replace("\r\n", "\n").split("\n")[1:]
     except UnicodeDecodeError:
         raise _header_error(path, "PLY header is not ASCII") from None
     fmt, count, props, comments, element = None, None, [], [], None

@@ -414,3 +414,12 @@ def test_listed_spheres_under_an_open_sheet_in_a_later_env_are_said_to_have_fall
         else:
             assert "fell past" not in lines[offset]
     assert "fell past" in lines["random"] and "fell past" not in lines[0.0]
+
+
+def test_an_env_start_time_beyond_float64_steps_is_refused():
+    """envs.time_offset 1e30 was accepted and froze every env clock (t + dt == t in float64)."""
+    from dynmesh_warp.config import EnvsConfig
+
+    with pytest.raises(ValueError, match=r"(?s)time_offset.*at most 1e\+09 s"):
+        EnvsConfig(count=4, time_offset=1e30)
+    assert EnvsConfig(count=4, time_offset=3600.0).time_offset == 3600.0

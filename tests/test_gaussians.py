@@ -246,3 +246,25 @@ def test_gaussians_for_world_names_what_to_call_for_another_simulation():
     newtonish = SimpleNamespace(model=SimpleNamespace(), surface=SimpleNamespace(sequence=None), device="cpu")
     with pytest.raises(TypeError, match=r"a SimpleNamespace takes no step hooks; use gaussians_for_surface\(world"):
         gaussians_for_world(newtonish)
+
+
+def test_splats_bound_far_from_their_mesh_are_warned_of():
+    """Splats in another frame than the mesh (a new user's y-up capture: the mesh turned z-up by
+    surface.up_axis, the splats not) bound 2 m off a 2 m mesh without a word; now warned of, naming
+    the fields that turn the mesh only. Splats on the surface say nothing."""
+    import warnings
+
+    from dynmesh_warp.scenes import icosphere
+
+    V, F = icosphere(2, 1.0)
+    rng = np.random.default_rng(0)
+    G = 200
+    on = V[rng.integers(0, len(V), G)] * 1.01
+    q = rng.normal(size=(G, 4))
+    mk = lambda P: SplatCloud.from_activated(P, np.full((G, 3), 0.01), q, rng.random((G, 3)),  # noqa: E731
+                                            np.full(G, 0.5))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        bind_splats(mk(on), V, F, device="cpu")
+    with pytest.warns(UserWarning, match=r"splats lie far from the mesh .* surface\.up_axis, scale and translate"):
+        bind_splats(mk(on + [0.0, 0.0, 3.0]), V, F, device="cpu")

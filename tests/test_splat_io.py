@@ -123,3 +123,14 @@ def test_missing_property_named(tmp_path):
         read_splat_ply(tmp_path / "nope.ply")
     with pytest.raises(FileNotFoundError, match="a folder, not a file"):  # said "file not found" before
         read_splat_ply(tmp_path)
+
+
+def test_a_header_with_windows_line_endings_reads(tmp_path, rng):
+    """A valid binary 3DGS file whose header lines end in CRLF was refused as "not a PLY file (no
+    'ply' magic or no 'end_header')" (a new user's); it reads as the LF file does."""
+    raw, data = _plyfile_style_bytes(rng)
+    end = raw.index(b"end_header\n") + len(b"end_header\n")
+    (tmp_path / "lf.ply").write_bytes(raw)
+    (tmp_path / "crlf.ply").write_bytes(raw[:end].replace(b"\n", b"\r\n") + raw[end:])
+    a, b = read_splat_ply(tmp_path / "lf.ply"), read_splat_ply(tmp_path / "crlf.ply")
+    assert b.data.tobytes() == a.data.tobytes() == data.tobytes()
