@@ -376,6 +376,24 @@ def csr_multiply_row(
     return s
 
 
+@wp.func
+def next_direction(
+    preconditioned: wp.array[wp.vec3],
+    direction_a: wp.array[wp.vec3],
+    direction_b: wp.array[wp.vec3],
+    beta: float,
+    it: int,
+    row: int,
+) -> wp.vec3:
+    """CG iteration ``it``'s search direction at ``row``: z + beta p, p the last iteration's (in
+    buffer b on even iterations, a on odd ones); z alone on the first iteration."""
+    if it == 0:
+        return preconditioned[row]
+    if it % 2 == 0:
+        return preconditioned[row] + beta * direction_b[row]
+    return preconditioned[row] + beta * direction_a[row]
+
+
 @wp.kernel
 def solve_conjugate_gradient_block(
     # Model:
@@ -429,20 +447,8 @@ def solve_conjugate_gradient_block(
         for i in range(lane, K, nthreads):
             s = wp.vec3(0.0)
             for e in range(row_offsets[i], row_offsets[i + 1]):
-                c = columns[e]
-                pc = preconditioned[c]
-                if it > 0:
-                    if it % 2 == 0:
-                        pc = preconditioned[c] + beta * direction_b[c]
-                    else:
-                        pc = preconditioned[c] + beta * direction_a[c]
-                s += values[e] * pc
-            p = preconditioned[i]
-            if it > 0:
-                if it % 2 == 0:
-                    p = preconditioned[i] + beta * direction_b[i]
-                else:
-                    p = preconditioned[i] + beta * direction_a[i]
+                s += values[e] * next_direction(preconditioned, direction_a, direction_b, beta, it, columns[e])
+            p = next_direction(preconditioned, direction_a, direction_b, beta, it, i)
             s += node_hold[i] * p
             if it % 2 == 0:
                 direction_a[i] = p
