@@ -205,15 +205,15 @@ def mesh_orientation(V, F, up=(0.0, 0.0, 1.0)) -> str:
 
     ``"outward"`` / ``"inward"``: a mesh with an inside (closed, or with holes as a scan has:
     :func:`_piece_kind`), with consistent winding; the sign of its volume about the vertex
-    centroid decides. ``"open"``: a sheet, a terrain, a container opening against ``up`` (a cup),
-    or an edge shared by more than two faces: no inside to tell. ``"inconsistent"``: two faces
+    centroid decides. ``"open"``: a sheet, a terrain, a container opening upward (along ``up``,
+    against gravity: a cup), or an edge shared by more than two faces: no inside to tell. ``"inconsistent"``: two faces
     run through a shared edge in the same direction. Vertices at one position are one (a
     flat-shaded export, each face with its own corners, is the closed mesh it shows)."""
     V, F = weld_vertices(np.asarray(V, np.float64), np.asarray(F, np.int64))[:2]
     directed = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
     n = int(max(int(F.max()) + 1, 1))
     undirected = np.sort(directed, axis=1)
-    keys, first, counts = np.unique(undirected[:, 0] * n + undirected[:, 1], return_index=True, return_counts=True)
+    _, first, counts = np.unique(undirected[:, 0] * n + undirected[:, 1], return_index=True, return_counts=True)
     cr = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
     if np.any(counts > 2):
         return "open"
