@@ -252,7 +252,7 @@ def prepare_surface(seq, cfg: SceneConfig):
                 # convert fits frames facing outward (it turns closed inward ones) and its template
                 # must agree; the winding asked for is given back on the output below (a new user's
                 # inward template gave an inward output under auto and flip, all of it "flipped")
-                template_turned = mesh_orientation(tv, tf) == "inward"
+                template_turned = mesh_orientation(tv, tf, up) == "inward"
                 template = (tv, np.ascontiguousarray(tf[:, ::-1]) if template_turned else tf)
             try:
                 seq = to_fixed_topology(seq, strategy=s.conversion.strategy, template=template,
