@@ -209,7 +209,23 @@ def mesh_orientation(V, F, up=(0.0, 0.0, 1.0)) -> str:
     against gravity: a cup), or an edge shared by more than two faces: no inside to tell. ``"inconsistent"``: two faces
     run through a shared edge in the same direction. Vertices at one position are one (a
     flat-shaded export, each face with its own corners, is the closed mesh it shows)."""
-    V, F = weld_vertices(np.asarray(V, np.float64), np.asarray(F, np.int64))[:2]
+    V0, F0 = np.asarray(V, np.float64), np.asarray(F, np.int64)
+    V, F = weld_vertices(V0, F0)[:2]
+    if F is F0:
+        return _orientation_of(V, F, up)
+    # faces that repeat a vertex once welded (marching cubes where the field is 0 at a grid
+    # point gives coincident vertices) or are listed again are no surface, as orient_faces leaves
+    # them out; where the welded mesh still reads as open (two sheets touching at such a point
+    # share an edge four times: a new user's spheres inside a human were then not refused), the
+    # mesh as indexed decides
+    got = _orientation_of(V, F[distinct_faces(F)[1]], up)
+    return got if got != "open" else _orientation_of(V0, F0, up)
+
+
+def _orientation_of(V, F, up) -> str:
+    """:func:`mesh_orientation` of the mesh as indexed."""
+    if not len(F):
+        return "open"
     directed = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
     n = int(max(int(F.max()) + 1, 1))
     undirected = np.sort(directed, axis=1)

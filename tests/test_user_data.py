@@ -1097,3 +1097,35 @@ def test_a_sphere_inside_a_crate_in_a_room_is_refused_piece_by_piece():
     V, F = np.vstack([GV, CV]), np.vstack([GF, CF + len(GV)])
     with pytest.raises(SE, match=r"spheres\.0.*starts inside the closed surface"):
         refuse_starts_inside(V, F, [("spheres.0", [1.0, 1.0, 0.5], 0.1)])
+
+
+def test_a_quantised_marching_cubes_scan_is_still_closed_for_the_inside_refusal():
+    """Marching cubes of an int8-quantised distance field (zero at some grid points) gives
+    coincident vertices; welded, two sheets touching there share an edge four times and the scan
+    read as "open", so a sphere listed inside it was not refused (this session's weld; a new
+    user's human). The mesh as indexed decides then, as before."""
+    from skimage.measure import marching_cubes
+
+    from dynmesh_warp.config import SceneError as SE
+    from dynmesh_warp.geometry import mesh_orientation, weld_vertices
+    from dynmesh_warp.scene import refuse_starts_inside
+
+    h, lo = 0.02, np.array([-0.5, -0.3, 0.05])
+    X, Y, Z = np.meshgrid(*[np.arange(lo[i], hi, h) for i, hi in enumerate((0.5, 0.3, 1.6))], indexing="ij")
+
+    def capsule(a, b, r):
+        P = np.stack([X, Y, Z], -1)
+        a, b = np.asarray(a, float), np.asarray(b, float)
+        t = np.clip(((P - a) @ (b - a)) / ((b - a) @ (b - a)), 0, 1)
+        return np.linalg.norm(P - (a + t[..., None] * (b - a)), axis=-1) - r
+
+    d = np.minimum(capsule((0, 0, 1.0), (0, 0, 1.4), 0.16), capsule((-0.09, 0, 0.1), (-0.09, 0, 0.95), 0.07))
+    d = np.minimum(d, capsule((0.09, 0, 0.1), (0.09, 0, 0.95), 0.07))
+    q = np.round(np.clip(d / 0.06, -1, 1) * 127).astype(np.float32)
+    V, F, _, _ = marching_cubes(q, 0.0, spacing=(h, h, h))
+    V = V + lo
+    assert weld_vertices(V, F)[2] > 0  # coincident vertices, as the field is 0 at grid points
+    F = np.asarray(F)[:, ::-1] if mesh_orientation(V, F) == "inward" else np.asarray(F)
+    assert mesh_orientation(V, F) == "outward"
+    with pytest.raises(SE, match=r"spheres\.0.*starts inside the closed surface"):
+        refuse_starts_inside(V, F, [("spheres.0", [0.0, 0.0, 1.2], 0.05)])
