@@ -653,6 +653,8 @@ def spawn_positions(cfg: SpawnConfig, V0: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.
     ``height`` + ``radius`` above their highest point along it, the others stacked 2.5 radii
     apart (a new user's y-up floor with gravity along -y had its spheres spawned along +z, beside
     the floor). Along +z the positions are the same as before ``up`` was a vector."""
+    from .geometry import frame_across
+
     rng = np.random.default_rng(cfg.seed)
     u = np.asarray(up, np.float64).reshape(3)
     u = u / np.linalg.norm(u) if np.linalg.norm(u) > 0 else np.array([0.0, 0.0, 1.0])
@@ -660,9 +662,7 @@ def spawn_positions(cfg: SpawnConfig, V0: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.
     if abs(u[k]) == 1.0:  # along an axis: that axis's coordinate, in the data's own frame
         basis, P = None, V0
     else:  # a frame with up as its third axis
-        e1 = np.cross(u, np.eye(3)[int(np.argmin(np.abs(u)))])
-        e1 /= np.linalg.norm(e1)
-        basis = np.stack([e1, np.cross(u, e1), u])
+        basis = frame_across(u)
         P, k = np.asarray(V0, np.float64) @ basis.T, 2
     sign = 1.0 if basis is not None or u[k] > 0 else -1.0
     lo, hi = P.min(0), P.max(0)

@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["face_areas", "surface_area", "signed_volume", "orient_outward", "mesh_orientation", "orient_faces",
-           "distinct_faces", "flat_faces", "weld_vertices", "motion_groups", "fit_group_motions", "rotation_to_wxyz"]
+           "distinct_faces", "flat_faces", "weld_vertices", "motion_groups", "fit_group_motions", "rotation_to_wxyz",
+           "up_from_gravity", "frame_across"]
 
 
 def face_areas(V, F) -> np.ndarray:
@@ -85,10 +86,14 @@ def points_inside(V, F, P, closed: bool | None = None) -> np.ndarray:
     F = np.asarray(F)
     inside = np.zeros(len(P), bool)
     n, label = _face_pieces(V, F)
+    V = np.asarray(V)
     for k in range(n):
-        Fk = F[label == k]
-        if mesh_orientation(V, Fk) in ("outward", "inward"):
-            inside |= winding_numbers(V, Fk, P) > 0.5
+        # the piece on its own vertices (mesh_orientation welds what it is given: the whole
+        # vertex array again for every piece otherwise)
+        used, Fk = np.unique(F[label == k], return_inverse=True)
+        Vk, Fk = V[used], Fk.reshape(-1, 3)
+        if mesh_orientation(Vk, Fk) in ("outward", "inward"):
+            inside |= winding_numbers(Vk, Fk, P) > 0.5
     return np.flatnonzero(inside)
 
 
@@ -139,14 +144,28 @@ CONTAINER_MAX_OPENING = 0.6
 CONTAINER_MIN_MOUTH = 0.3
 
 
-def _footprint(V, up, label=None, n: int = 1) -> np.ndarray:
-    """(n,) the area of the bounding box of the points V (N, 3) across ``up`` (3,), per ``label``
-    (N,) group (default all 0)."""
-    u = np.asarray(up, np.float64)
+def up_from_gravity(gravity) -> np.ndarray:
+    """The scene's up (3,), a unit vector against ``gravity`` [m/s^2] (+z without gravity): where
+    dropped bodies come from. The one rule of spawning, orientation and the fell-past note."""
+    g = np.asarray(gravity, np.float64).reshape(3)
+    n = float(np.linalg.norm(g))
+    return -g / n if n > 0 else np.array([0.0, 0.0, 1.0])
+
+
+def frame_across(up) -> np.ndarray:
+    """(3, 3) an orthonormal frame whose rows are two directions across ``up`` (3,) and ``up``
+    itself (normalised)."""
+    u = np.asarray(up, np.float64).reshape(3)
     u = u / (np.linalg.norm(u) or 1.0)
     e1 = np.cross(u, np.eye(3)[int(np.argmin(np.abs(u)))])
     e1 /= np.linalg.norm(e1)
-    P = np.asarray(V, np.float64).reshape(-1, 3) @ np.stack([e1, np.cross(u, e1)]).T
+    return np.stack([e1, np.cross(u, e1), u])
+
+
+def _footprint(V, up, label=None, n: int = 1) -> np.ndarray:
+    """(n,) the area of the bounding box of the points V (N, 3) across ``up`` (3,), per ``label``
+    (N,) group (default all 0)."""
+    P = np.asarray(V, np.float64).reshape(-1, 3) @ frame_across(up)[:2].T
     g = np.zeros(len(P), np.int64) if label is None else np.asarray(label, np.int64)
     lo, hi = np.full((n, 2), np.inf), np.full((n, 2), -np.inf)
     np.minimum.at(lo, g, P)

@@ -11,7 +11,7 @@ import numpy as np
 from .choices import Y_UP_FORMATS, Collider, UpAxis, parse
 from .config import PhysicsCore, SceneConfig, SceneError, scene_config, spawn_positions
 from .runtime import scene_device
-from .geometry import orient_faces, points_inside
+from .geometry import orient_faces, points_inside, up_from_gravity
 from .mesh_formats import mesh_extension
 from .sequence import (FixedTopologySequence, MeshDataError, TopologyMismatchError, VaryingTopologySequence,
                        surface_vertices)
@@ -101,9 +101,9 @@ def _say_orientation(reports: list, where: str) -> None:
 
 
 def scene_up(cfg) -> np.ndarray:
-    """The scene's up: against ``physics.gravity`` (+z without gravity)."""
-    g = np.asarray(cfg.physics.gravity, np.float64)
-    return -g if np.linalg.norm(g) > 0 else np.array([0.0, 0.0, 1.0])
+    """The scene's up: against ``physics.gravity`` (+z without gravity), a unit vector
+    (:func:`~dynmesh_warp.geometry.up_from_gravity`)."""
+    return up_from_gravity(cfg.physics.gravity)
 
 
 def _check_size(V0: np.ndarray, cfg) -> None:
@@ -309,7 +309,7 @@ def refuse_starts_inside(V0, F0, entries, frame: int = 0, closed: bool | None = 
     inside = points_inside(V0, F0, [pos for _, pos, _ in entries], closed)
     if inside.size:
         label, pos, clearance = entries[int(inside[0])]
-        top = float(np.asarray(V0)[:, 2].max())
+        top = float(surface_vertices(V0, F0)[:, 2].max())  # not a stray vertex's height
         raise SceneError(
             f"{label}: position {[round(float(x), 6) for x in np.asarray(pos, float)]} starts inside the closed "
             f"surface (frame {frame}), behind its faces; contacts are one-sided, so it would fall out through it. "

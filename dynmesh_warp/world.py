@@ -64,7 +64,7 @@ from .choices import (
     values,
 )
 from .config import PhysicsCore
-from .geometry import points_inside
+from .geometry import points_inside, up_from_gravity
 from .sequence import FixedTopologySequence, VaryingTopologySequence
 
 __all__ = [
@@ -1045,11 +1045,10 @@ def fallen_past_note(sequence, params, positions, hint: str = "") -> str:
     if params.ground_height is not None or not len(P):
         return ""
     lo, hi = sequence.bounds()
-    g = np.asarray(params.gravity, np.float64)
-    up = -g / np.linalg.norm(g) if np.linalg.norm(g) > 0 else np.array([0.0, 0.0, 1.0])
+    up = up_from_gravity(params.gravity)
     # along the scene's up (a new user's y-up floor under gravity along -y lost its spheres
-    # without this note, which looked along z): the bounding box's lowest corner
-    low = min(float(np.dot(c, up)) for c in np.array(np.meshgrid(*zip(lo, hi))).reshape(3, -1).T)
+    # without this note, which looked along z): the bounding box's lowest corner along it
+    low = float(np.where(up > 0, lo, hi) @ up)
     fell = int(np.count_nonzero(P @ up < low - 0.5 * float(np.linalg.norm(hi - lo))))
     if not fell:
         return ""
