@@ -27,6 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from dynmesh_warp.convert import to_fixed_topology, to_piecewise_fixed  # noqa: E402
+from dynmesh_warp.outputs import atomic_write_bytes  # noqa: E402
 from dynmesh_warp.scenes import torus_to_sphere  # noqa: E402
 from dynmesh_warp.sequence import VaryingTopologySequence  # noqa: E402
 
@@ -112,7 +113,7 @@ def main(argv=None):
     txt = "\n".join([head] + lines)
     print(txt)
     if a.out:
-        Path(a.out).write_text(txt + "\n")
+        atomic_write_bytes(a.out, (txt + "\n").encode())
 
 
 if __name__ == "__main__":
