@@ -320,7 +320,8 @@ def step_envs(model: BatchModel, state: BatchState, contacts: Contacts, sub_dt: 
                       inputs=[surf.frames, surf.indices, m.pair_bvh, m.pair_lowers, m.pair_uppers, m.spheres.radius,
                               m.spheres.inv_mass, m.sphere_env, *physics, m.time_slices, s.env_time, s.env_rate,
                               s.env_playback, *tail, int(SEED_PREVIOUS_FACE[device_kind(m.device)])],
-                      outputs=[s.sphere_pos, s.sphere_vel, c.face, c.point, c.normal, c.depth, c.velocity],
+                      outputs=[s.sphere_pos, s.sphere_vel, c.face, c.point, c.normal, c.depth, c.velocity,
+                               c.memory],
                       device=m.device)
         else:
             records = [query.dist, query.face, query.w, query.n, query.time]
@@ -347,7 +348,7 @@ def step_envs(model: BatchModel, state: BatchState, contacts: Contacts, sub_dt: 
                           inputs=[surf.frames, surf.indices, m.spheres.radius, m.spheres.inv_mass, m.sphere_env,
                                   *physics, s.env_rate, s.env_playback, *records, *tail, wp.float64(sub_dt)],
                           outputs=[s.sphere_pos, s.sphere_vel, s.env_time, c.face, c.point, c.normal, c.depth,
-                                   c.velocity],
+                                   c.velocity, c.memory],
                           device=m.device)
                 continue
         wp.launch(advance_env_clocks, m.num_envs, inputs=[s.env_rate, wp.float64(sub_dt)], outputs=[s.env_time],

@@ -7,7 +7,8 @@ A checkpoint is one ``.npz`` file (written atomically, NumPy arrays only, no pic
   samples so far and the scene's fingerprint (:func:`scene_fingerprint`);
 - the world's state (:meth:`World.checkpoint_state <dynmesh_warp.world.World.checkpoint_state>`):
   ``time``, ``sim_time``, ``substep_count``, ``sphere_pos``, ``sphere_vel``, ``frame_key``, ``frame_changed``,
-  ``contact_face`` (each sphere's last contact face: the seeded searches read it) and the collider's
+  ``contact_face`` (each sphere's last contact face: the seeded searches read it),
+  ``contact_memory`` (the integrator's pinch memory, 16 floats a sphere) and the collider's
   ``collider_*`` arrays;
 - ``radius`` and ``inv_mass`` of the spheres (compared with the scene's, sphere by sphere);
 - ``traj_time``, ``traj_position``, ``traj_velocity``: the trajectory samples taken so far (every
@@ -38,7 +39,8 @@ CHECKPOINT_NAME = "checkpoint.npz"
 #: the ``format`` field of the files this version writes and reads
 # 2: the clock's frame_key / frame_changed are state fields; 3: the trajectory samples start at
 # step 0 (a checkpoint of 2, resumed, would mix two grids) and the fingerprint holds the spheres' start
-FORMAT = "dynmesh_warp.checkpoint/3"
+# 4: the integrator's pinch memory (``contact_memory``, 16 floats a sphere; Contacts.memory)
+FORMAT = "dynmesh_warp.checkpoint/4"
 
 
 class CheckpointError(SceneError):
@@ -186,7 +188,8 @@ def save_checkpoint(path, world, *, scene: str, step: int, steps: int, checkpoin
 #: state fields every checkpoint has: name -> (dtype kind, shape with "S" for the sphere count)
 _STATE_FIELDS = {"time": ("f", ()), "sim_time": ("f", (1,)), "substep_count": ("i", ()),
                  "sphere_pos": ("f", ("S", 3)), "sphere_vel": ("f", ("S", 3)),
-                 "frame_key": ("i", (1,)), "frame_changed": ("i", (1,)), "contact_face": ("i", ("S",))}
+                 "frame_key": ("i", (1,)), "frame_changed": ("i", (1,)), "contact_face": ("i", ("S",)),
+                 "contact_memory": ("f", ("S", 16))}
 
 
 def load_checkpoint(path) -> Checkpoint:

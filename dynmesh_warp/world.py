@@ -21,7 +21,7 @@ import warp as wp
 from .kernels.collide import collide_sphere_mesh
 from .kernels.frames import FRAME_SNAP, blend_segment_vertices, update_frame_vertices
 from .kernels.geometry import compute_face_normals
-from .kernels.integrate import integrate_spheres
+from .kernels.integrate import integrate_spheres, pinch_memory
 from .kernels.swept import (
     NO_KEY,
     collide_sphere_swept,
@@ -551,6 +551,11 @@ class Contacts:
     face (S,) int32, -1 when none; point (S,) vec3 closest surface point [m]; normal (S,) vec3
     unit, towards the sphere's free side; depth (S,) float radius - signed centre distance [m]
     (> 0 penetrating); velocity (S,) vec3 surface velocity at the point [m/s].
+    memory (S,) ``kernels.integrate.pinch_memory`` (16 floats): the integrator's pinch memory,
+    kept from one sub-step to the next: each sphere's contact of its last sub-step and the other
+    side of its last pinch (normals, velocities, plane offsets, the other side's age). A contact
+    facing one of these planes, both touched and closing on each other, is a pinch
+    (``kernels.integrate.advance_sphere``).
     """
 
     def __init__(self, count: int, device=None):
@@ -559,6 +564,7 @@ class Contacts:
         self.normal = wp.zeros(count, dtype=wp.vec3, device=device)
         self.depth = wp.zeros(count, dtype=float, device=device)
         self.velocity = wp.zeros(count, dtype=wp.vec3, device=device)
+        self.memory = wp.zeros(count, dtype=pinch_memory, device=device)
 
     def numpy(self) -> dict:
         return {k: getattr(self, k).numpy() for k in ("face", "point", "normal", "depth", "velocity")}
@@ -640,7 +646,7 @@ def integrate(model: Model, state: State, contacts: "Contacts", ctx: StepContext
                 float(m.params.ground_height if m.params.ground_height is not None else 0.0),
                 ctx.sub_dt, surf.fps, surf.num_frames, surf.playback,
                 c.face, c.normal, c.depth, c.velocity],
-               [s.sphere_pos, s.sphere_vel, s.sim_time, s.frame_key, s.frame_changed])
+               [s.sphere_pos, s.sphere_vel, s.sim_time, s.frame_key, s.frame_changed, c.memory])
 
 
 def substep(model: Model, state: State, contacts: "Contacts", collider: "ColliderBase", ctx: StepContext):
@@ -1367,7 +1373,8 @@ class World:
         refit and rebuild derive theirs from the clock), and each sphere's last contact face: the
         seeded searches (``SEED_PREVIOUS_FACE``, ``SEED_REFIT_QUERY``) read it before they write
         it (without it a run resumed at step 3,665 of the default scene differed from the
-        uninterrupted one by one float32 ulp of one velocity, a step later; CI caught it). The rest
+        uninterrupted one by one float32 ulp of one velocity, a step later; CI caught it), and the
+        integrator's pinch memory (``Contacts.memory``, read before it is written). The rest
         is static (surface, radii, masses, parameters: compared with the scene on resume), the
         other contact fields are written before they are read, and no step draws random numbers.
         Between steps only."""
@@ -1375,7 +1382,8 @@ class World:
               "substep_count": np.array(self.substep_count, np.int64),
               "sphere_pos": self.sphere_positions(), "sphere_vel": self.sphere_velocities(),
               "frame_key": self.state.frame_key.numpy().copy(), "frame_changed": self.state.frame_changed.numpy().copy(),
-              "contact_face": self.contacts.face.numpy().copy()}
+              "contact_face": self.contacts.face.numpy().copy(),
+              "contact_memory": self.contacts.memory.numpy().copy()}
         st.update({f"collider_{k}": v for k, v in self.collider.checkpoint_state().items()})
         return st
 
@@ -1395,6 +1403,7 @@ class World:
         self.state.frame_key.assign(np.asarray(st["frame_key"], np.int32).reshape(1))
         self.state.frame_changed.assign(np.asarray(st["frame_changed"], np.int32).reshape(1))
         self.contacts.face.assign(np.asarray(st["contact_face"], np.int32).reshape(-1))
+        self.contacts.memory.assign(np.asarray(st["contact_memory"], np.float32).reshape(S, 16))
         self.substep_count = int(st["substep_count"])
         self.collider.restore_checkpoint_state({k[len("collider_"):]: v for k, v in st.items()
                                                 if k.startswith("collider_")})

@@ -15,7 +15,7 @@ import warp as wp
 
 from .collide import contact_reach
 from .frames import PLAYBACK_LOOP, blend_pair, wrap_frame
-from .integrate import advance_sphere
+from .integrate import advance_sphere_with_memory, pinch_memory
 from .swept import (
     NO_PAIR,
     box_distance,
@@ -179,6 +179,7 @@ def collide_and_integrate_env_spheres(
     contact_normal: wp.array[wp.vec3],
     contact_depth: wp.array[float],
     contact_velocity: wp.array[wp.vec3],
+    contact_memory: wp.array[pinch_memory],
 ):
     """One sub-step of every sphere of every env: contact with the surface at its env's time
     (``env_time_in[e]`` [s], played at ``env_rate_in[e]`` x, playback code
@@ -205,8 +206,9 @@ def collide_and_integrate_env_spheres(
     write_swept_contact(s, p, r, reach, min_dist, min_face, min_w, acc_n, frames, indices, k0, k1, alpha,
                         fps * wp.float64(rate), contact_face, contact_point, contact_normal, contact_depth,
                         contact_velocity)
-    p, v = advance_sphere(p, v, inv_mass[s], r, gravity, dt, restitution, friction, rest_speed, ground,
-                          ground_height, contact_face[s], contact_normal[s], contact_depth[s], contact_velocity[s])
+    p, v = advance_sphere_with_memory(s, p, v, inv_mass[s], r, gravity, dt, restitution, friction, rest_speed,
+                                      ground, ground_height, contact_face[s], contact_normal[s], contact_depth[s],
+                                      contact_velocity[s], contact_memory)
     sphere_pos_out[s] = p
     sphere_vel_out[s] = v
 
@@ -711,6 +713,7 @@ def resolve_and_integrate_env_spheres(
     contact_normal: wp.array[wp.vec3],
     contact_depth: wp.array[float],
     contact_velocity: wp.array[wp.vec3],
+    contact_memory: wp.array[pinch_memory],
 ):
     """The contact of each sphere from its query record (``collide_env_sphere_tiled``,
     ``collide_env_sphere_grid`` or the hybrid pair ``collide_env_spheres_bounded`` /
@@ -731,8 +734,9 @@ def resolve_and_integrate_env_spheres(
     write_swept_contact(s, p, r, reach, query_dist[s], query_face[s], query_w[s], query_n[s], frames, indices, k0, k1,
                         alpha, fps * wp.float64(env_rate_in[e]), contact_face, contact_point, contact_normal,
                         contact_depth, contact_velocity)
-    p, v = advance_sphere(p, v, inv_mass[s], r, gravity, dt, restitution, friction, rest_speed, ground,
-                          ground_height, contact_face[s], contact_normal[s], contact_depth[s], contact_velocity[s])
+    p, v = advance_sphere_with_memory(s, p, v, inv_mass[s], r, gravity, dt, restitution, friction, rest_speed,
+                                      ground, ground_height, contact_face[s], contact_normal[s], contact_depth[s],
+                                      contact_velocity[s], contact_memory)
     sphere_pos_out[s] = p
     sphere_vel_out[s] = v
 

@@ -40,6 +40,21 @@ def make_contact(
 
 
 @wp.func
+def contact_side(p: wp.vec3, c: wp.vec3, face_normal: wp.vec3, sign: float) -> float:
+    """The side (+1 front, -1 behind) of centre p from its closest point c: the query's sign
+    (the angle-weighted pseudo-normal over the faces tied within epsilon), except where the
+    centre lies straight off the closest face (p - c along its normal, not in the wedge of an
+    edge or a corner): there the face's own plane decides. Faces tied from two parts of the
+    surface (a sphere at the middle of two plates closing on it) sum opposite normals, and the
+    pseudo-normal's sign was noise: a sphere between two plates was told it lay behind one and
+    pushed through it. Every collider takes its side from here."""
+    h = wp.dot(p - c, face_normal)
+    if h != 0.0 and h * h >= 0.98 * wp.length_sq(p - c):
+        return wp.sign(h)
+    return sign
+
+
+@wp.func
 def keeps_contact(side: float, depth: float, r: float) -> bool:
     """Whether a closest point makes a contact: on the free side (side +1), or behind the surface
     with the centre closer than r (depth = r + dist < 2 r: the sphere overlaps the surface and is
@@ -120,8 +135,9 @@ def collide_sphere_mesh(
         w = wp.vec3(q.u, q.v, 1.0 - q.u - q.v)
         c = w[0] * a + w[1] * b + w[2] * e
         fn = wp.normalize(wp.cross(b - a, e - a))
-        n, depth = make_contact(p, r, c, q.sign, fn)
-        if keeps_contact(q.sign, depth, r):
+        side = contact_side(p, c, fn, q.sign)
+        n, depth = make_contact(p, r, c, side, fn)
+        if keeps_contact(side, depth, r):
             face = q.face
             vs = w[0] * velocities_in[i0] + w[1] * velocities_in[i1] + w[2] * velocities_in[i2]
         # else: the sphere lies entirely behind the surface: no contact

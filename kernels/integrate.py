@@ -9,6 +9,115 @@ from .frames import store_frame_key
 # sequences' slow-path calls; results move by float rounding only (docs/physics.md, "Fast math").
 wp.set_module_options({"fast_math": True})
 
+#: a contact whose normal has a cosine below this with the sphere's other remembered plane
+#: (``Contacts.last_*``: its contact of the last sub-step; ``Contacts.other_*``: the other side
+#: of its last pinch) faces it: the sphere may be pinched between two parts of the surface
+#: (``pinch_partner``; docs/physics.md, "A sphere pinched between two surfaces")
+PINCH_COS = wp.constant(-0.5)
+#: sub-steps a pinch's other side is kept without being the closest contact again: it ages out
+#: (a plate that rises away releases the sphere at once or within these sub-steps)
+PINCH_KEEP = wp.constant(4.0)
+#: each sphere's pinch memory, one 16-float vector (``Contacts.memory``): [0:3] the last
+#: sub-step's contact normal (zero: none), [3:6] its surface velocity, [6:9] the other side of the
+#: last pinch, its normal (zero: none), [9:12] its velocity, [12] the last contact's plane offset
+#: dot(normal, point) [m], [13] the other side's as last seen [m], [14] sub-steps since the other
+#: side was seen, [15] PINCH_KEEP after a pinch, counting down to 0
+pinch_memory = wp.types.vector(length=16, dtype=wp.float32)
+#: how much nearer (x r) a pinch leaves the centre to the side that was not its contact
+PINCH_LEAN = wp.constant(1.0e-3)
+
+
+@wp.func
+def project_two(n1: wp.vec3, b1: float, n2: wp.vec3, b2: float):
+    """The smallest correction x with dot(x, n1) >= b1 and dot(x, n2) >= b2 (unit normals) and
+    the two multipliers (x = a n1 + b n2 where one or both constraints bind): one constraint
+    alone where that satisfies the other, else both exactly; where no x meets both (two planes
+    facing each other, closer than the constraints allow) the least-squares split along n1,
+    (b1 - b2) / 2 (the middle), with the multipliers each constraint alone would need."""
+    a1 = wp.max(b1, 0.0)
+    a2 = wp.max(b2, 0.0)
+    if b1 <= 0.0 and b2 <= 0.0:
+        return wp.vec3(0.0), 0.0, 0.0
+    if a1 * wp.dot(n1, n2) >= b2:
+        return a1 * n1, a1, 0.0
+    if a2 * wp.dot(n1, n2) >= b1:
+        return a2 * n2, 0.0, a2
+    d = wp.dot(n1, n2)
+    det = 1.0 - d * d
+    if det > 1.0e-4:
+        a = (b1 - d * b2) / det
+        b = (b2 - d * b1) / det
+        if a >= 0.0 and b >= 0.0:
+            return a * n1 + b * n2, a, b
+    return 0.5 * (b1 - b2) * n1, a1, a2
+
+
+@wp.func
+def apply_friction(v: wp.vec3, vs: wp.vec3, n: wp.vec3, friction: float, jn: float) -> wp.vec3:
+    """Coulomb friction of one contact (normal n, surface velocity vs) with normal impulse jn
+    [m/s]: up to friction * jn of the tangential relative velocity removed."""
+    vrel = v - vs
+    vt = vrel - wp.dot(vrel, n) * n
+    lt = wp.length(vt)
+    if lt > 0.0 and jn > 0.0:
+        v = v - vt * wp.min(1.0, friction * jn / lt)
+    return v
+
+
+@wp.func
+def pinch_partner(n: wp.vec3, vs: wp.vec3, m: pinch_memory, dt: float):
+    """The plane facing a contact of normal n (cosine under ``PINCH_COS``) in a sphere's memory
+    ``m``: its contact of the last sub-step, else the other side of its last pinch while it was
+    seen no more than ``PINCH_KEEP`` sub-steps ago. Returns (normal (zero: none), offset now [m]
+    (the plane is dot(normal, x) = offset, carried on one sub-step at the velocity it had when
+    seen), velocity, age in sub-steps). A plane seen two or more sub-steps ago: its offset as
+    of the last sub-step (``m[13]``, carried on every sub-step by ``advance_sphere_with_memory``
+    at the velocity it had when seen, never past the contact's point) carried one more; its
+    velocity returned is the contact's (``vs``), its own may be stale (a plate that stopped or
+    turned back would drag the sphere after it until it aged out)."""
+    last_n = wp.vec3(m[0], m[1], m[2])
+    if wp.dot(n, last_n) < PINCH_COS:
+        last_v = wp.vec3(m[3], m[4], m[5])
+        return last_n, m[12] + wp.dot(last_v, last_n) * dt, last_v, 1.0
+    other_n = wp.vec3(m[6], m[7], m[8])
+    age = m[14] + 1.0
+    if wp.dot(n, other_n) < PINCH_COS and age <= PINCH_KEEP:
+        return other_n, m[13] + wp.dot(wp.vec3(m[9], m[10], m[11]), other_n) * dt, vs, age
+    return wp.vec3(0.0), 0.0, wp.vec3(0.0), 0.0
+
+
+@wp.func
+def resolve_pinch(
+    p: wp.vec3,
+    v: wp.vec3,
+    r: float,
+    dt: float,
+    friction: float,
+    n: wp.vec3,
+    depth: float,
+    vs: wp.vec3,
+    n2: wp.vec3,
+    d2: float,
+    vs2: wp.vec3,
+):
+    """A sphere pinched between its contact (normal n, depth, surface velocity vs) and the plane
+    facing it (dot(n2, x) = d2, moving at vs2): its centre moved the least distance that puts
+    it r in front of both (the middle where the planes are closer than 2 r), and PINCH_LEAN r
+    nearer the plane that was not this sub-step's contact, so that the next sub-step's closest
+    contact is that side if it is still there (each side is seen again, or ages out); its
+    velocity changed the least to approach neither (restitution 0: a squeeze), then Coulomb
+    friction of each side with that side's normal impulse; then it moves on for dt. Returns
+    (position, velocity)."""
+    depth2 = r - (wp.dot(n2, p) - d2)
+    x, a1, a2 = project_two(n, depth, n2, depth2 - PINCH_LEAN * r)
+    p = p + x
+    dv, j1, j2 = project_two(n, -wp.dot(v - vs, n), n2, -wp.dot(v - vs2, n2))
+    v = v + dv
+    if friction > 0.0:
+        v = apply_friction(v, vs, n, friction, j1)
+        v = apply_friction(v, vs2, n2, friction, j2)
+    return p + v * dt, v
+
 
 @wp.func
 def advance_sphere(
@@ -27,14 +136,41 @@ def advance_sphere(
     n: wp.vec3,
     depth: float,
     vs: wp.vec3,
+    n2: wp.vec3,
+    d2: float,
+    vs2: wp.vec3,
+    pinched_last: float,
 ):
     """One sphere over dt with its contact (face >= 0: normal n, depth [m], surface velocity vs
     [m/s]) and the optional ground plane: the continuous response of ``integrate_spheres``
-    (shared with the batched step, kernels/batch.py). Returns (position, velocity)."""
+    (shared with the batched step, kernels/batch.py). ``n2``, ``d2``, ``vs2``: the plane facing
+    the contact (``pinch_partner``: dot(n2, x) = d2 now, moving at vs2; n2 zero: none);
+    ``pinched_last`` > 0 where a pinch was resolved within the last PINCH_KEEP sub-steps. The
+    sphere is pinched where it touches both (or reaches them within dt, or would be pushed into
+    one by resolving the other alone), its centre not behind
+    the plane, and either the two close on each other (their relative velocity along the
+    normals, dot(vs - vs2, n - n2) > 0.01 r per second: a static or rigidly moving groove is no
+    pinch, and keeps the one-contact response) or it was pinched recently (a gap that closed
+    and stays closed): then it is resolved against both at once (``resolve_pinch``).
+    Returns (position, velocity, 1 when pinched else 0)."""
+    pinched = int(0)
     if inv_mass == 0.0:
-        return p + v * dt, v
+        return p + v * dt, v, pinched
     v = v + gravity * dt
-    if face >= 0:
+    if face >= 0 and wp.length_sq(n2) > 0.0:
+        depth2 = r - (wp.dot(n2, p) - d2)
+        tol = 0.02 * r
+        # (touching, or touched within dt at the relative normal velocity, or touched once the
+        # other side's overlap alone is resolved: a push out of one side into the other)
+        facing = wp.max(0.0, -wp.dot(n, n2))
+        reach1 = depth + wp.max(0.0, depth2) * facing + wp.max(0.0, -wp.dot(v - vs, n)) * dt + tol
+        reach2 = depth2 + wp.max(0.0, depth) * facing + wp.max(0.0, -wp.dot(v - vs2, n2)) * dt + tol
+        if reach1 >= 0.0 and reach2 >= 0.0 and depth2 <= r + tol:
+            if pinched_last > 0.0 or wp.dot(vs - vs2, n - n2) > 0.01 * r:
+                pinched = 1
+    if pinched != 0:
+        p, v = resolve_pinch(p, v, r, dt, friction, n, depth, vs, n2, d2, vs2)
+    elif face >= 0:
         gap = -depth
         if gap < 0.0:
             p = p - n * gap
@@ -71,7 +207,82 @@ def advance_sphere(
                 if lt > 0.0:
                     vt = vt * wp.max(0.0, 1.0 - friction * (vn_new - vn) / lt)
                 v = wp.vec3(vt[0], vt[1], vn_new)
-    return p, v
+    return p, v, pinched
+
+
+@wp.func
+def advance_sphere_with_memory(
+    s: int,
+    p: wp.vec3,
+    v: wp.vec3,
+    inv_mass: float,
+    r: float,
+    gravity: wp.vec3,
+    dt: float,
+    restitution: float,
+    friction: float,
+    rest_speed: float,
+    ground: int,
+    ground_height: float,
+    face: int,
+    n: wp.vec3,
+    depth: float,
+    vs: wp.vec3,
+    contact_memory: wp.array[pinch_memory],
+):
+    """``advance_sphere`` for sphere s with its contact of this sub-step and its pinch memory
+    (``contact_memory[s]``, ``pinch_memory``), what the world's and the batched step's
+    integration share: the plane facing the contact (``pinch_partner``) before, and after, the
+    contact kept as the last one and, where it was a pinch against the last contact, that
+    contact kept as the other side. Returns (position, velocity)."""
+    m = contact_memory[s]
+    n2 = wp.vec3(0.0)
+    d2 = float(0.0)
+    vs2 = wp.vec3(0.0)
+    age = float(0.0)
+    # the other side carried on one sub-step at the velocity it had when seen (m[13] is its plane
+    # as of the last sub-step: a side not seen again moves on, it is not held where it was seen)
+    carried = m[13] + wp.dot(wp.vec3(m[9], m[10], m[11]), wp.vec3(m[6], m[7], m[8])) * dt
+    if face >= 0:
+        n2, d2, vs2, age = pinch_partner(n, vs, m, dt)
+        if age > 1.0:
+            # (a side not seen since does not pass the contact's point: two surfaces closing on
+            # each other stop where they meet)
+            d2 = wp.min(d2, wp.dot(n2, p) - (r - depth) * wp.dot(n2, n))
+            carried = d2
+    p1, v1, pinched = advance_sphere(p, v, inv_mass, r, gravity, dt, restitution, friction, rest_speed, ground,
+                                     ground_height, face, n, depth, vs, n2, d2, vs2, m[15])
+    other_age = m[14] + 1.0
+    if pinched != 0:
+        if age == 1.0:  # the partner was the last contact: it becomes the other side
+            for k in range(6):
+                m[6 + k] = m[k]
+            m[13] = m[12]
+            other_age = 1.0
+        elif (r - depth) + (wp.dot(n2, p) - d2) > 4.0 * PINCH_LEAN * r:
+            other_age = age
+        else:
+            # (the two planes one: a gap closed to nothing, where the contact found is either
+            # of two coplanar faces and leaning cannot make the other the closest; it is not
+            # aged while they stay one, and a plane that moves off ages again)
+            other_age = 1.0
+    if pinched == 0 or age != 1.0:
+        m[13] = carried
+    m[14] = wp.min(other_age, PINCH_KEEP + 1.0)
+    if face >= 0:
+        for k in range(3):
+            m[k] = n[k]
+            m[3 + k] = vs[k]
+        m[12] = wp.dot(n, p) - (r - depth)
+    else:
+        m[0] = 0.0
+        m[1] = 0.0
+        m[2] = 0.0
+    m[15] = wp.max(m[15] - 1.0, 0.0)
+    if pinched != 0:
+        m[15] = PINCH_KEEP
+    contact_memory[s] = m
+    return p1, v1
 
 
 @wp.kernel
@@ -101,6 +312,8 @@ def integrate_spheres(
     sim_time_out: wp.array[wp.float64],
     frame_key_out: wp.array[wp.int32],
     frame_changed_out: wp.array[wp.int32],
+    # Out:
+    contact_memory: wp.array[pinch_memory],
 ):
     """Advance each sphere by dt with a continuous (time-of-impact) contact response.
 
@@ -110,7 +323,10 @@ def integrate_spheres(
     is reflected with ``restitution`` (set to zero below ``rest_speed`` [m/s], which makes
     resting contact stable), Coulomb friction removes up to ``friction`` * normal impulse of
     the tangential relative velocity, and it moves on for the rest of the step. A sphere
-    already penetrating is first projected out along the contact normal.
+    already penetrating is first projected out along the contact normal. A sphere pinched
+    between its contact and the plane facing it that it remembers (``contact_memory`` (S,)
+    ``pinch_memory``: read, then set by ``advance_sphere_with_memory``) is resolved against both
+    (``resolve_pinch``).
     inv_mass (S,) [1/kg]: 0 marks a kinematic sphere (moves with its velocity, no forces).
     With ``ground`` set, a static plane z = ground_height (normal +z) also stops the spheres
     (same restitution and friction, applied after the mesh contact).
@@ -128,9 +344,10 @@ def integrate_spheres(
         store_frame_key(t, fps, num_frames, mode, frame_key_out, frame_changed_out)
     if s >= inv_mass.shape[0]:
         return
-    p, v = advance_sphere(sphere_pos_out[s], sphere_vel_out[s], inv_mass[s], sphere_radius[s], gravity, dt,
-                          restitution, friction, rest_speed, ground, ground_height, contact_face[s],
-                          contact_normal[s], contact_depth[s], contact_velocity[s])
+    p, v = advance_sphere_with_memory(s, sphere_pos_out[s], sphere_vel_out[s], inv_mass[s], sphere_radius[s],
+                                      gravity, dt, restitution, friction, rest_speed, ground, ground_height,
+                                      contact_face[s], contact_normal[s], contact_depth[s], contact_velocity[s],
+                                      contact_memory)
     sphere_pos_out[s] = p
     sphere_vel_out[s] = v
 

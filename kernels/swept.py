@@ -12,7 +12,7 @@ pseudo-normal over faces tied within epsilon), so the contacts equal the refit p
 
 import warp as wp
 
-from .collide import contact_reach, keeps_contact, make_contact
+from .collide import contact_reach, contact_side, keeps_contact, make_contact
 from .frames import blend_pair, frame_pair, store_frame_key
 from .geometry import closest_point_on_triangle
 
@@ -256,10 +256,11 @@ def write_swept_contact(
     if min_face >= 0 and min_dist < reach:
         a, b, e = interpolated_triangle(frames, indices, min_face, k0, k1, alpha)
         c = min_w[0] * a + min_w[1] * b + min_w[2] * e
-        side = float(1.0)
+        sign = float(1.0)
         if wp.dot(p - c, acc_n) < 0.0:
-            side = -1.0
+            sign = -1.0
         fn = wp.normalize(wp.cross(b - a, e - a))
+        side = contact_side(p, c, fn, sign)
         n, depth = make_contact(p, r, c, side, fn)
         if keeps_contact(side, depth, r):
             face = min_face

@@ -703,3 +703,132 @@ def test_a_sphere_entirely_behind_the_surface_has_no_contact(collider):
         np.testing.assert_allclose(ps[:, i, 2], z, atol=1e-5, err_msg=f"sphere {i} (behind by {-z0 - r:.2f} m)")
         np.testing.assert_allclose(vs[:, i, 2], v, atol=1e-4)
     assert ps[0, 2, 2] > 0.0, "a centre within r behind the surface is pushed out to the front"
+
+
+# -- a sphere pinched between two surfaces that close on it (docs/physics.md) -------------------
+
+
+def _box_faces(lo, hi):
+    """A closed, outward-facing box (8 vertices, 12 triangles)."""
+    V = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])], np.float64)
+    F = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1], [2, 3, 7], [2, 7, 6],
+                  [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]], np.int32)
+    return V, F
+
+
+def _plates(gap_at, fps, seconds):
+    """A fixed 10 cm slab (top face z = 0) and a second one above it whose bottom face is at
+    z = gap_at(t)."""
+    bot, F = _box_faces((-0.5, -0.5, -0.1), (0.5, 0.5, 0.0))
+    top, _ = _box_faces((-0.5, -0.5, 0.0), (0.5, 0.5, 0.1))
+    frames = [np.vstack([bot, top + [0.0, 0.0, gap_at(k / fps)]]) for k in range(int(seconds * fps) + 1)]
+    return FixedTopologySequence(np.asarray(frames, np.float32), np.vstack([F, F + 8]), fps=fps)
+
+
+@pytest.mark.parametrize("collider", COLLIDERS)
+def test_a_sphere_pinched_between_closing_plates_stays_between_them(collider):
+    """A new user's sphere (r = 5 cm) on a slab, a second slab lowered onto it until the gap is
+    3 cm (under r), then to nothing: with one contact per sphere each sub-step pushed the centre
+    out of the nearer slab by the whole overlap, into the other, until it went through one (it
+    fell out of the bottom slab). A contact facing the other side of the pinch, the two closing,
+    is resolved against both: the centre stays between the plates, at the middle once the gap
+    is under 2 r (closed form: gap / 2), and where the gap closes completely, at the interface."""
+    r = 0.05
+    for final in (0.03, 0.0):
+        seq = _plates(lambda t: 0.2 + (final - 0.2) * min(t, 1.0), 60, 1.5)
+        # (0, 0): on the diagonal edge of each plate's two triangles; (0.058, 0.033): where, the
+        # gap closed, the closest face found was the bottom plate's every time (a tie) and the top
+        # plate's plane, remembered where it was last seen, aged out: the sphere was pushed up
+        # into the top plate (on CUDA at (0.1, 0))
+        for x, y in ((0.1, 0.0), (0.0, 0.0), (0.058, 0.033)):
+            w = make_world(seq, [[x, y, r + 1e-4]], radius=r, collider=collider)
+            t, ps, _ = run(w, int(1.5 / DT))
+            gap = 0.2 + (final - 0.2) * np.minimum(t, 1.0)
+            z = ps[:, 0, 2]
+            assert (z > -1e-3).all() and (z < gap + 1e-3).all(), (collider, final, x, y, z.min())
+            assert z[-1] == pytest.approx(final / 2, abs=1e-3), (collider, final, x, y)
+
+
+@pytest.mark.parametrize("collider", COLLIDERS)
+def test_a_closing_jaw_squeezes_a_frictionless_sphere_out_along_its_bisector(collider):
+    """A slab hinged at x = -0.5 closing from 30 degrees to 0 in 1 s onto a fixed slab, a
+    frictionless sphere (r = 5 cm) between them (a new user's check). Closed form while it touches
+    both: it rides the bisector, x = -0.5 + r / tan(theta / 2), vx = r theta' / (2 sin^2(theta / 2)).
+    With one contact per sphere it reached x = 0.12 m, 0.66 m/s at 6 degrees with one sub-step and
+    then sank through the bottom slab; resolved against both contacts, the closed form within
+    2 % (x) and 6 % (vx), the default sub-steps."""
+    fps, r, th0 = 240, 0.05, np.radians(30.0)
+    bot, F = _box_faces((-0.5, -0.3, -0.1), (0.5, 0.3, 0.0))
+    top0, _ = _box_faces((-0.5, -0.3, 0.0), (0.5, 0.3, 0.1))
+    frames = []
+    for k in range(int(1.2 * fps) + 1):
+        th = max(0.0, th0 * (1 - k / fps))
+        c, s = np.cos(th), np.sin(th)
+        x, z = top0[:, 0] + 0.5, top0[:, 2]
+        frames.append(np.vstack([bot, np.stack([-0.5 + c * x - s * z, top0[:, 1], s * x + c * z], 1)]))
+    seq = FixedTopologySequence(np.asarray(frames, np.float32), np.vstack([F, F + 8]), fps=fps)
+    w = make_world(seq, [[0.0, 0.0, r + 1e-4]], radius=r, collider=collider, friction=0.0, restitution=0.0)
+    t, ps, vs = run(w, int(0.8 / DT))
+    for when in (0.7, 0.8):  # theta 9 and 6 degrees
+        i = int(np.argmin(np.abs(t - when)))
+        th = th0 * (1 - t[i])
+        x = -0.5 + r / np.tan(th / 2)
+        vx = r * th0 / (2 * np.sin(th / 2) ** 2)
+        assert ps[i, 0, 0] == pytest.approx(x, rel=0.02), (collider, when)
+        assert vs[i, 0, 0] == pytest.approx(vx, rel=0.06), (collider, when)
+        assert ps[i, 0, 2] > 0.9 * r  # above the bottom slab, not through it
+
+
+@pytest.mark.parametrize("collider", COLLIDERS)
+def test_a_plate_that_lifts_away_releases_the_pinched_sphere(collider):
+    """A plate closes on a sphere resting on a floor to a gap of 8 cm (< 2 r), holds 0.2 s, then
+    rises away at 0.5 m/s. Closed form: the centre at gap / 2 = 4 cm while held, then back at
+    z = r on the floor. One contact per sphere sent it through the plate (it rode on top of the
+    plate, z = 0.23 m at 0.6 s); the fix that was taken back kept the plate's plane after the
+    plate had gone and held the sphere 1 cm inside the floor for 5 s. The other side of a pinch
+    is forgotten unless it is seen again."""
+    r = 0.05
+    seq = _plates(lambda t: 0.2 - 0.12 * min(t / 0.5, 1.0) + 0.5 * max(t - 0.7, 0.0), 60, 2.0)
+    w = make_world(seq, [[0.1, 0.0, r + 1e-4]], radius=r, collider=collider, friction=0.5)
+    t, ps, vs = run(w, int(1.5 / DT))
+    z = ps[:, 0, 2]
+    held = (t > 0.55) & (t < 0.7)
+    np.testing.assert_allclose(z[held], 0.04, atol=1e-3)
+    after = t > 0.95  # the plate 12.5 cm up
+    np.testing.assert_allclose(z[after], r, atol=1e-4)
+    assert np.abs(vs[after, 0]).max() < 1e-3
+
+
+@pytest.mark.parametrize("collider", COLLIDERS)
+def test_a_static_v_groove_keeps_its_friction(collider):
+    """A static V-groove (40 degrees, walls' normals facing each other) tilted 30 degrees, a
+    sphere (r = 5 cm) resting in it: its walls do not close on each other, so it is no pinch and
+    the one-contact response (friction, resting) is as it was. mu = 0.5 holds it (closed form: no
+    sliding, mu cos(30) / sin(20) > sin(30); the response creeps a few cm); mu = 0 slides at
+    g sin(30). The fix that was taken back counted it as a pinch: friction vanished and the
+    sphere slid 2.46 m in 1 s."""
+    r, beta, th = 0.05, np.radians(30.0), 40.0
+    a = np.radians(th) / 2
+    ys = np.linspace(-2.0, 2.0, 17)
+    V = np.array([q for y in ys for q in ([-0.5 * np.sin(a), y, 0.5 * np.cos(a)], [0.0, y, 0.0],
+                                          [0.5 * np.sin(a), y, 0.5 * np.cos(a)])])
+    F = []
+    for j in range(16):
+        for k in range(2):
+            q = [3 * j + k, 3 * j + k + 1, 3 * (j + 1) + k + 1, 3 * (j + 1) + k]
+            F += [[q[0], q[1], q[2]], [q[0], q[2], q[3]]]
+    F = np.array(F, np.int32)
+    n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    F[n[:, 2] < 0] = F[n[:, 2] < 0][:, ::-1]  # normals into the V
+    R = np.array([[1, 0, 0], [0, np.cos(beta), -np.sin(beta)], [0, np.sin(beta), np.cos(beta)]])
+    V = V @ R.T
+    seq = FixedTopologySequence(np.stack([V, V]).astype(np.float32), F, fps=24.0)
+    p0 = R @ np.array([0.0, 1.0, r / np.sin(a) + 1e-4])
+    down = -(R @ [0.0, 1.0, 0.0])
+    for mu, lo, hi in ((0.5, 0.0, 0.1), (0.0, 0.98 * 0.5 * G * np.sin(beta), 1.02 * 0.5 * G * np.sin(beta))):
+        w = make_world(seq, [p0], radius=r, collider=collider, friction=mu, restitution=0.0)
+        _, ps, _ = run(w, int(1.0 / DT))
+        s = (ps[-1, 0] - p0) @ down
+        assert lo <= s <= hi, (collider, mu, s)
+        height = (ps[:, 0] @ (R @ [0.0, 0.0, 1.0]))
+        assert height.min() > 0.98 * r / np.sin(a), (collider, mu)  # in the groove, not through a wall
