@@ -463,7 +463,7 @@ class BatchedWorld:
             raise ValueError(f"rates: {float(np.max(r)):g} exceeds the rate the sub-steps were chosen for "
                              f"({self.max_rate:g}); build the world with max_rate=")
         wp.launch(reset_env_spheres, m.spheres.count, inputs=[m.sphere_env, self._mask, new_pos, new_vel],
-                  outputs=[s.sphere_pos, s.sphere_vel], device=self.device)
+                  outputs=[s.sphere_pos, s.sphere_vel, self.contacts.memory], device=self.device)
         wp.launch(reset_env_clocks, E,
                   inputs=[self._mask, wp.array(t, dtype=wp.float64, device=self.device),
                           wp.array(r, dtype=float, device=self.device),

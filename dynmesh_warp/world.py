@@ -1359,6 +1359,7 @@ class World:
         s.sim_time.assign(np.array([self.t0], dtype=np.float64))
         s.sphere_pos.assign(self._initial[0])
         s.sphere_vel.assign(self._initial[1])
+        self.contacts.memory.zero_()  # (a pinch before the reset would squeeze the first sub-step after it)
         self.substep_count = 0
         self.ctx.time = self.t0
         self._refresh_surface()
@@ -1501,7 +1502,11 @@ class World:
         self.model.spheres = spheres
         self.state.sphere_pos = wp.array(np.asarray(pos, np.float32), dtype=wp.vec3, device=self.device)
         self.state.sphere_vel = wp.array(np.asarray(vel, np.float32), dtype=wp.vec3, device=self.device)
+        memory = self.contacts.memory.numpy()
         self.contacts = Contacts(self.model.spheres.count, device=self.device)
+        kept = min(len(memory), self.model.spheres.count)  # the spheres kept keep their pinch memory
+        if kept:
+            wp.copy(self.contacts.memory, wp.array(memory[:kept], dtype=pinch_memory, device=self.device), count=kept)
         if rederive_substeps:
             self.substeps = max(1, int(self.model.params.substeps))
         self._apply_substep_rule(stacklevel=stacklevel)  # smaller spheres may need more sub-steps
@@ -1525,6 +1530,7 @@ class World:
         rows = [_sphere_rows(name, v, 1, i) for name, v in (("position", position), ("velocity", velocity))]
         for dst, row in zip((self.state.sphere_pos, self.state.sphere_vel), rows):
             wp.copy(dst, wp.array(row, dtype=wp.vec3, device=self.device), dest_offset=i, count=1)
+        self.contacts.memory[i:i + 1].zero_()  # a sphere placed anew remembers no contact
         self.collider.spheres_moved(self.model, self.state, self.ctx)
 
     # -- what the runner reads (runtime.Simulation; runner.run_simulation) ---------------------

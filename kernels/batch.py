@@ -765,14 +765,19 @@ def reset_env_spheres(
     # State out:
     sphere_pos_out: wp.array[wp.vec3],
     sphere_vel_out: wp.array[wp.vec3],
+    # Out:
+    contact_memory: wp.array[pinch_memory],
 ):
-    """Spheres of the envs with env_mask[e] != 0 from new_pos / new_vel ((E * S,) [m], [m/s]);
-    the other envs' spheres are left untouched. One thread per sphere."""
+    """Spheres of the envs with env_mask[e] != 0 from new_pos / new_vel ((E * S,) [m], [m/s]),
+    their pinch memory cleared (``kernels.integrate.pinch_memory``: a pinch before the reset
+    would squeeze the first sub-step after it); the other envs' spheres are left untouched. One
+    thread per sphere."""
     s = wp.tid()
     if env_mask[sphere_env[s]] == 0:
         return
     sphere_pos_out[s] = new_pos[s]
     sphere_vel_out[s] = new_vel[s]
+    contact_memory[s] = pinch_memory()
 
 
 @wp.kernel

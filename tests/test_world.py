@@ -779,6 +779,71 @@ def test_a_closing_jaw_squeezes_a_frictionless_sphere_out_along_its_bisector(col
         assert ps[i, 0, 2] > 0.9 * r  # above the bottom slab, not through it
 
 
+def _closing_plates():
+    """Plates closing to a 6 cm gap (< 2 r for r = 5 cm) in 1 s, held there."""
+    return _plates(lambda t: 0.2 - 0.14 * min(t, 1.0), 60, 2.0)
+
+
+@pytest.mark.parametrize("collider", COLLIDERS)
+def test_a_reset_or_a_placed_sphere_forgets_the_pinch(collider):
+    """The pinch memory (``Contacts.memory``) is per-step state: a world reset while its sphere is
+    pinched runs on exactly as a new world (the remembered closing plate would otherwise squeeze
+    the first sub-step after the reset: a phantom plate 1 cm over a sphere resting on the floor),
+    and a sphere placed anew (``set_sphere``) remembers no contact; a sphere added keeps the
+    others' memory."""
+    r, start = 0.05, [[0.1, 0.0, 0.05 + 1e-4]]
+    fresh = make_world(_closing_plates(), start, radius=r, collider=collider)
+    _, p_fresh, v_fresh = run(fresh, 60)
+    w = make_world(_closing_plates(), start, radius=r, collider=collider)
+    run(w, int(0.9 / DT))
+    assert np.abs(w.contacts.memory.numpy()[0, 6:9]).max() > 0.5  # pinched: the other side kept
+    w.reset()
+    _, p, v = run(w, 60)
+    np.testing.assert_array_equal(p, p_fresh)
+    np.testing.assert_array_equal(v, v_fresh)
+    run(w, int(0.9 / DT))
+    before = w.contacts.memory.numpy().copy()
+    w.add_spheres([[0.3, 0.3, 0.05 + 1e-4]], r)
+    np.testing.assert_array_equal(w.contacts.memory.numpy()[0], before[0])
+    w.set_sphere(0, [0.1, 0.0, 0.05 + 1e-4])
+    assert not w.contacts.memory.numpy()[0].any()
+
+
+def test_a_batched_reset_forgets_the_pinch_of_the_envs_it_resets(device):
+    """The batched world's reset (``BatchedWorld.reset``) clears the pinch memory of the envs it
+    resets only: env 0 reset while pinched runs on as a new batch's env 0, bit for bit, and env
+    1, pinched and not reset, keeps its memory."""
+    from dynmesh_warp.batch import BatchedWorld, BatchModel, BatchState
+
+    r = 0.05
+    pos = np.array([[0.1, 0.0, r + 1e-4]], np.float32)
+
+    def batch():
+        surf = SurfaceModel(_closing_plates(), device, playback="clamp")
+        bm = BatchModel(surf, 2, np.full(1, r, np.float32), 1.0, PhysicsParams(dt=DT))
+        return BatchedWorld(bm, BatchState(bm, pos, np.zeros_like(pos), times=np.zeros(2)))
+
+    fresh = batch()
+    ref = []
+    for _ in range(60):
+        fresh.step()
+        ref.append(fresh.state.sphere_pos.numpy()[0].copy())
+    bw = batch()
+    for _ in range(int(0.9 / DT)):
+        bw.step()
+    kept = bw.contacts.memory.numpy()[1].copy()
+    assert np.abs(kept[6:9]).max() > 0.5
+    bw.reset(np.array([True, False]), positions=np.stack([pos, pos]), velocities=np.zeros((2, 1, 3), np.float32),
+             times=np.zeros(2))
+    assert not bw.contacts.memory.numpy()[0].any()
+    np.testing.assert_array_equal(bw.contacts.memory.numpy()[1], kept)
+    got = []
+    for _ in range(60):
+        bw.step()
+        got.append(bw.state.sphere_pos.numpy()[0].copy())
+    np.testing.assert_array_equal(np.array(got), np.array(ref))
+
+
 @pytest.mark.parametrize("collider", COLLIDERS)
 def test_a_plate_that_lifts_away_releases_the_pinched_sphere(collider):
     """A plate closes on a sphere resting on a floor to a gap of 8 cm (< 2 r), holds 0.2 s, then
