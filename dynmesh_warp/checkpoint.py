@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import warnings
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -41,6 +42,8 @@ CHECKPOINT_NAME = "checkpoint.npz"
 # step 0 (a checkpoint of 2, resumed, would mix two grids) and the fingerprint holds the spheres' start
 # 4: the integrator's pinch memory (``contact_memory``, 16 floats a sphere; Contacts.memory)
 FORMAT = "dynmesh_warp.checkpoint/4"
+#: the format before: read too, the pinch memory started empty (a warning says so)
+PREVIOUS_FORMAT = "dynmesh_warp.checkpoint/3"
 
 
 class CheckpointError(SceneError):
@@ -214,8 +217,10 @@ def load_checkpoint(path) -> Checkpoint:
         return data[k]
 
     fmt = need("format")
-    if fmt.shape != () or fmt.dtype.kind != "U" or str(fmt) != FORMAT:
-        raise CheckpointError(f"{where}: field 'format' is {str(fmt)[:80]!r}, expected {FORMAT!r}")
+    if fmt.shape != () or fmt.dtype.kind != "U" or str(fmt) not in (FORMAT, PREVIOUS_FORMAT):
+        raise CheckpointError(f"{where}: field 'format' is {str(fmt)[:80]!r}, expected {FORMAT!r} (or "
+                              f"{PREVIOUS_FORMAT!r})")
+    previous = str(fmt) == PREVIOUS_FORMAT and "contact_memory" not in data
     try:
         meta = json.loads(str(need("meta")))
         if not isinstance(meta, dict):
@@ -247,6 +252,11 @@ def load_checkpoint(path) -> Checkpoint:
             raise CheckpointError(f"{where}: field {k!r} holds NaN or inf")
         return a
 
+    if previous:  # (written before the pinch memory: it starts empty, as at a reset)
+        data["contact_memory"] = np.zeros((S, 16), np.float32)
+        warnings.warn(f"{where}: a checkpoint of the previous format ({PREVIOUS_FORMAT}), written before the "
+                      "integrator kept a pinch memory: resumed with none (a sphere pinched at that step is "
+                      "resolved afresh; otherwise the run goes on as it would have)", stacklevel=2)
     state = {k: array(k, kind, shape) for k, (kind, shape) in _STATE_FIELDS.items()}
     for k, a in data.items():
         if k.startswith("collider_"):

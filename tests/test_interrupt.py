@@ -348,7 +348,8 @@ def test_checkpoint_of_another_scene_or_a_broken_file_is_refused(tmp_path, capsy
     d = dict(np.load(ck))
     d["format"] = np.asarray("dynmesh_warp.checkpoint/2")  # an earlier format (its samples on another grid)
     np.savez(tmp_path / "old.npz", **d)
-    cases.append((["--resume", str(tmp_path / "old.npz")], ["old.npz", "'format'", "checkpoint/2", "checkpoint/4"]))
+    cases.append((["--resume", str(tmp_path / "old.npz")], ["old.npz", "'format'", "checkpoint/2", "checkpoint/4",
+                                                          "checkpoint/3"]))
     d = dict(np.load(ck))
     d.pop("sphere_vel")
     np.savez(tmp_path / "novel.npz", **d)
@@ -366,6 +367,26 @@ def test_checkpoint_of_another_scene_or_a_broken_file_is_refused(tmp_path, capsy
         for n in needles:
             assert n in err, (n, err)
         assert not out.exists()
+
+
+def test_a_checkpoint_of_the_previous_format_resumes_without_the_pinch_memory(tmp_path, capsys):
+    """A checkpoint written before the pinch memory (format 3: no ``contact_memory``) resumes with
+    an empty one, said in a warning; where no sphere was pinched the run goes on bit for bit as
+    the uninterrupted one (the default scene). An interrupted run of the previous version keeps
+    what it had done."""
+    a = tmp_path / "a"
+    assert _run_inprocess(["--steps", "40", "--checkpoint-every", "20", "--output", str(a)]) == 0
+    d = dict(np.load(a / "checkpoint.npz"))
+    d.pop("contact_memory")
+    d["format"] = np.asarray("dynmesh_warp.checkpoint/3")
+    np.savez(tmp_path / "v3.npz", **d)
+    capsys.readouterr()
+    out = tmp_path / "out"
+    with pytest.warns(UserWarning, match=r"checkpoint/3\), written before the integrator kept a pinch memory"):
+        assert _run_inprocess(["--steps", "120", "--resume", str(tmp_path / "v3.npz"), "--output", str(out)]) == 0
+    ref = tmp_path / "ref"
+    assert _run_inprocess(["--steps", "120", "--output", str(ref)]) == 0
+    _same_trajectories(out, ref)
 
 
 def test_newton_scene_refuses_checkpoints(tmp_path, capsys):
