@@ -64,7 +64,7 @@ import warp as wp
 from .choices import DEFAULT_FRAME_ORDER, DEFAULT_STRATEGY, STRATEGIES, FrameOrder, values
 from .conversion_options import options_for
 from .deform_graph import GraphFitter, build_deformation_graph, extrapolate_rotations
-from .geometry import (distinct_faces, face_areas, fit_group_motions, mesh_orientation, signed_volume, surface_area,
+from .geometry import (distinct_faces, face_areas, fit_group_motions, mesh_orientation, orient_faces, signed_volume, surface_area,
                        weld_vertices, winding_numbers)
 from .kernels import convert as kc
 from .kernels.geometry import project_points_to_mesh
@@ -254,6 +254,8 @@ class ConversionInfo:
     a connected mesh).
     turned_outward: input frames wound inside out (closed, all faces inward), turned before the
     conversion (the fit compares normals).
+    rewound: ``(frame, faces flipped)`` for input frames wound inconsistently (faces flipped at
+    random), made consistent piece by piece before the conversion (``geometry.orient_faces``).
     dropped_unused: ``(frame, vertices, faces)`` for input frames holding vertices that no face
     uses (left over after a face filter, stray points) or faces that repeat a vertex: dropped
     before the conversion, so they neither pull the template nor count in the coverage, the
@@ -336,6 +338,7 @@ class ConversionInfo:
     dropped_unused: list = field(default_factory=list)
     welded: list = field(default_factory=list)
     turned_outward: list = field(default_factory=list)
+    rewound: list = field(default_factory=list)
     floater_webs: list = field(default_factory=list)
     floater_retry: list = field(default_factory=list)
     floater_retry_rejected: bool = False
@@ -403,9 +406,19 @@ def _keep_faces(v: np.ndarray, f: np.ndarray, keep: np.ndarray) -> tuple:
     return v[used], remap[f[keep]].astype(np.int32)
 
 
+def _inconsistent_winding(f: np.ndarray) -> bool:
+    """Two faces of ``f`` run through a shared edge in the same direction (one directed edge
+    twice): their winding is inconsistent. One sort of the directed edges (~2 ms a 20k-face frame)."""
+    f = np.asarray(f, np.int64)
+    if not len(f):
+        return False
+    key = np.sort(f.ravel() * (int(f.max()) + 1) + f[:, [1, 2, 0]].ravel())
+    return bool(np.any(key[1:] == key[:-1]))
+
+
 def _drop_unused(vseq: VaryingTopologySequence):
     """(vseq cleaned, [(frame, vertices dropped, faces dropped)], [(frame, vertices welded)],
-    [frames turned outward]):
+    [frames turned outward], [(frame, faces flipped)] rewound):
     vertices at one position welded into one (:func:`~dynmesh_warp.geometry.weld_vertices`: a
     triangle soup, or seams, would otherwise be thousands of separate parts to the fit and to the
     topology report), then faces that repeat a vertex (no area in any pose), faces listed again
@@ -414,8 +427,17 @@ def _drop_unused(vseq: VaryingTopologySequence):
     inside out (closed, consistently wound, negative volume: :func:`~dynmesh_warp.geometry.mesh_orientation`
     "inward") has all its faces turned: the fit compares normals (``max_normal_angle``), so a
     reversed frame among outward ones lost its correspondences (found by a new user: +37 % area
-    on such frames, no warning). Raises MeshDataError for a frame left without faces."""
-    frames, dropped, welded, turned = [], [], [], []
+    on such frames, no warning). First, where the input's first, middle or last frame is wound
+    inconsistently (faces flipped at random, as some exporters and repair tools leave them), every
+    such frame is made consistent piece by piece (:func:`~dynmesh_warp.geometry.orient_faces`;
+    ``rewound``): the fit compares normals, and the output takes the key frame's faces (a new
+    user's input with 30 % of its faces flipped came out so, every output face the key frame's,
+    and the summary blamed a fold-over). Checked on those three frames only unless one of them
+    is (a directed-edge sort a frame, ~2 ms for 20k faces, would cost the 200-frame GPU
+    conversion ~0.5 s). Raises MeshDataError for a frame left without faces."""
+    frames, dropped, welded, turned, rewound = [], [], [], [], []
+    T = vseq.num_frames
+    rewind = any(_inconsistent_winding(vseq.frames[t][1]) for t in sorted({0, T // 2, T - 1}) if t < T)
     for t, (v, f) in enumerate(vseq.frames):
         v, f, merged = weld_vertices(v, np.asarray(f))
         if merged:
@@ -429,14 +451,19 @@ def _drop_unused(vseq: VaryingTopologySequence):
             v2, f2 = _keep_faces(v, f, keep)
             dropped.append((t, len(v) - len(v2), len(f) - len(f2)))
             v, f = v2, f2
+        if rewind and _inconsistent_winding(f):
+            f2, report = orient_faces(v, f)
+            if report["rewound"]:
+                rewound.append((t, int(report["rewound"])))
+                f = np.ascontiguousarray(f2, dtype=np.asarray(f).dtype)
         if _inside_out(v, f):
             f = np.ascontiguousarray(f[:, ::-1])
             turned.append(t)
         frames.append((v, f))
-    if not dropped and not welded and not turned:
-        return vseq, dropped, welded, turned
+    if not dropped and not welded and not turned and not rewound:
+        return vseq, dropped, welded, turned, rewound
     return VaryingTopologySequence(frames, fps=vseq.fps, name=vseq.name, source=vseq.source,
-                                   frame_sources=vseq.frame_sources), dropped, welded, turned
+                                   frame_sources=vseq.frame_sources), dropped, welded, turned, rewound
 
 
 def _inside_out(v: np.ndarray, f: np.ndarray) -> bool:
@@ -1160,22 +1187,7 @@ def _key_frame(seq: VaryingTopologySequence, key, has_template: bool, off_scale=
         # part, neither does the template: a floater's extra area made its frame the key, and the
         # floater went to every output frame, crushed onto the body where the input had none (a
         # new user's). Asked lazily, from the largest area down.
-        sample = _sample_frames(T)
-        checks = {"closed": lambda u: _open_edges(seq.frames[u][1]) == 0,
-                  "no small part": lambda u: not _has_small_part(*seq.frames[u])}
-        seen = {name: {u: test(u) for u in sample} for name, test in checks.items()}
-        needed = [name for name in checks if 2 * sum(seen[name].values()) >= len(sample)]
-
-        def ok(u):
-            if u in off_scale:
-                return False
-            for name in needed:
-                if u not in seen[name]:
-                    seen[name][u] = checks[name](u)
-                if not seen[name][u]:
-                    return False
-            return True
-
+        ok = _key_frame_fit(seq, off_scale)
         order = np.argsort(-med, kind="stable")
         t = next((int(u) for u in order if ok(u)),
                  next((int(u) for u in order if int(u) not in off_scale), int(order[0])))
@@ -1196,6 +1208,41 @@ def _key_frame(seq: VaryingTopologySequence, key, has_template: bool, off_scale=
         raise ValueError(f"key_frame must be 'auto' or a frame index in [{-T}, {T - 1}] "
                          f"(the sequence has {T} frames), got {key!r}")
     return int(key) % T
+
+
+def _key_frame_fit(seq: VaryingTopologySequence, off_scale=()):
+    """``ok(u)``: whether frame u may be the key frame (the template's source). Where most frames
+    are closed, a frame with a hole may not; where most frames have no small separate part
+    (``_has_small_part``: a floater), a frame with one may not; nor one of ``off_scale``. "Most"
+    is judged on ``_sample_frames``, and on every frame where the sample is split (floaters on
+    every third frame met a sample at frames 0, 3, 6, ... as 5 of 9: "most have one", a floater's
+    frame became the key and the floaters every frame's; a new user's). Each test asked lazily."""
+    T = seq.num_frames
+    sample = _sample_frames(T)
+    checks = {"closed": lambda u: _open_edges(seq.frames[u][1]) == 0,
+              "no small part": lambda u: not _has_small_part(*seq.frames[u])}
+    seen = {name: {u: test(u) for u in sample} for name, test in checks.items()}
+    needed = []
+    for name, test in checks.items():
+        votes = list(seen[name].values())
+        if 0 < sum(votes) < len(votes):  # split: every frame votes
+            seen[name].update({u: test(u) for u in range(T) if u not in seen[name]})
+            votes = list(seen[name].values())
+        if 2 * sum(votes) >= len(votes):
+            needed.append(name)
+    off = set(int(u) for u in off_scale)
+
+    def ok(u):
+        if u in off:
+            return False
+        for name in needed:
+            if u not in seen[name]:
+                seen[name][u] = checks[name](u)
+            if not seen[name][u]:
+                return False
+        return True
+
+    return ok
 
 
 def _small_parts(v: np.ndarray, f: np.ndarray, area_frac: float) -> tuple:
@@ -1477,9 +1524,9 @@ def _motion_sample(v: np.ndarray, device):
 def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info, strategy: str, where: str, TV,
                     TF, stop_forward=None):
     """The frame loop of to_fixed_topology: the key frame forward to the end, then backward to
-    frame 0. ``stop_forward(t, web)``, asked after each frame t > K: true ends the forward pass
-    there (the backward pass still runs). Returns (out (T, N, 3), lo, hi (the converted frames
-    lo..hi), the per-frame figures (:class:`_PerFrame`))."""
+    frame 0. ``stop_forward(t, web, buried)`` (the per-frame figures so far), asked after each
+    frame t > K: true ends the forward pass there (the backward pass still runs). Returns (out
+    (T, N, 3), lo, hi (the converted frames lo..hi), the per-frame figures (:class:`_PerFrame`))."""
     T = vseq.num_frames
     device = conv.device
     out = np.empty((T, len(TV), 3), np.float32)
@@ -1529,7 +1576,7 @@ def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info,
             raise RuntimeError(f"{where}: conversion ({strategy}) produced NaN/inf at frame {t}; "
                                "the input frame may be degenerate")
         lo, hi = (t, t) if lo is None else (min(lo, t), max(hi, t))
-        if t > K and stop_forward is not None and stop_forward(t, pf.web + pf.buried):
+        if t > K and stop_forward is not None and stop_forward(t, pf.web, pf.buried):
             forward = False
     if hasattr(order, "close"):
         order.close()
@@ -1673,7 +1720,7 @@ def _to_fixed_run(vseq, seq, strategy, template, device, progress, should_stop, 
     for t, (v, f) in enumerate(vseq.frames):  # frames may have been mutated after construction
         src = vseq.frame_sources[t] if vseq.frame_sources else where
         validate_mesh(v, f, src, t)
-    vseq, unused, welded, turned = _drop_unused(vseq)
+    vseq, unused, welded, turned, rewound = _drop_unused(vseq)
     T = vseq.num_frames
     device = wp.get_device(device)
     off_scale = _check_scales(vseq, float(o["scale_tolerance"]))
@@ -1732,7 +1779,7 @@ def _to_fixed_run(vseq, seq, strategy, template, device, progress, should_stop, 
                     res, best = r, tried[-1][2]
             res.conversion.key_trials, res.conversion.key_score = tried, key_score
         info = res.conversion
-        info.dropped_unused, info.welded, info.turned_outward = unused, welded, turned
+        info.dropped_unused, info.welded, info.turned_outward, info.rewound = unused, welded, turned, rewound
         if float(o["far_part_area"]) <= 0:
             info.floater_webs = _floater_webs(vseq, res, device, float(o["far_part_gap"]))
         info.input_dropouts = _input_dropouts(vseq, info, device)
@@ -1987,7 +2034,11 @@ def _bridge_dropouts(res, info):
     """``res`` with each run of ``info.input_dropouts`` inside its frames replaced by the
     converted frames either side, blended linearly in time (the same template: vertex-wise; one
     frame: their mean), listed in ``info.bridged_frames``; ``frame_motion`` measured again. The
-    frames' other per-frame figures stay the fit's."""
+    frames' other per-frame figures stay the fit's, but for ``web`` and ``buried``, set to 0: they
+    described the fit the bridge replaced (its part pressed into what is left: "buried", which
+    made those frames poor and the segment cut undid the bridge; a new user's arm occluded for 4
+    frames came out of ``convert`` in two segments, the arm lost on those frames, where
+    :func:`to_fixed_topology` bridged it)."""
     V = np.array(res.V, copy=True)
     for a, b in _dropout_runs({d[0] for d in info.input_dropouts}):
         i, j = a - 1 - info.first_frame, b + 1 - info.first_frame
@@ -1996,6 +2047,9 @@ def _bridge_dropouts(res, info):
                 w = (t - (a - 1)) / (b + 2 - a)
                 V[t - info.first_frame] = (1.0 - w) * V[i] + w * V[j]
                 info.bridged_frames.append(t)
+                for figure in (info.web, info.buried):
+                    if len(figure) == len(V):
+                        figure[t - info.first_frame] = 0.0
     out = FixedTopologySequence(V, res.F, fps=res.fps, name=res.name, source=res.source)
     out.conversion = info
     info.frame_motion = _frame_motion(out.V)
@@ -2079,9 +2133,20 @@ def _to_piecewise(seq, strategy, template, device, progress, should_stop, option
         return should_stop is not None and bool(should_stop())
 
     # the first run ends its forward pass at the second poor web frame in a row: the frames after
-    # it would be converted again with a new template (the common cut), so they are not fitted twice
-    first = _to_fixed(vseq, strategy, None, device, progress, should_stop,
-                      lambda t, web: web[t] > POOR_WEB and web[t - 1] > POOR_WEB, **options)
+    # it would be converted again with a new template (the common cut), so they are not fitted
+    # twice. Frames poor by their buried faces end it at the (DROPOUT_FRAMES + 2)-th while
+    # dropouts are bridged: the part a dropout's frames lack is pressed into what is left
+    # ("buried") until the loop reaches the frame after them and bridges them (a new user's arm
+    # occluded for 4 frames: the pass ended inside the dropout, and the cut gave the frames from
+    # it a template without the arm)
+    row = 2 + (DROPOUT_FRAMES if bool(o["bridge_dropouts"]) else 0)
+
+    def stop_forward(t, web, buried):
+        far = web + buried
+        return bool((web[t] > POOR_WEB and web[t - 1] > POOR_WEB)
+                    or (t - row >= 0 and all(far[t - j] > POOR_WEB for j in range(row))))
+
+    first = _to_fixed(vseq, strategy, None, device, progress, should_stop, stop_forward, **options)
     events = first.all_topology_events
     res = first
     if len(first.conversion.coverage) < T and not stopped():  # the forward pass stopped at frame b
@@ -2227,7 +2292,7 @@ def _join_segments(vseq, segs: list, whole, events: list) -> VaryingTopologySequ
         info.open_edges += c.open_edges
     info.key_score = "+".join(sorted({r.conversion.key_score for _, r in segs} - {""}))
     info.topology_events, info.dropped_unused, info.welded = list(events), whole.dropped_unused, whole.welded
-    info.turned_outward, info.input_dropouts = whole.turned_outward, whole.input_dropouts
+    info.turned_outward, info.input_dropouts, info.rewound = whole.turned_outward, whole.input_dropouts, whole.rewound
     info.missing_parts = whole.missing_parts
     out.conversion = info
     return out
@@ -2324,13 +2389,14 @@ def _key_candidates(vseq, o: dict, K: int, given: bool, res, moving_part=..., of
     if (given or o["key_frame"] not in ("auto", None) or T < 3 or len(info.coverage) < T
             or (_key_retry_reason(info.coverage, K, part) is None and not o.get("always_try_keys"))):
         return []
-    return _candidate_keys(T, int(o.get("key_candidates", 0) or 0), K, off_scale)
+    ok = _key_frame_fit(vseq, off_scale)
+    return _candidate_keys(T, int(o.get("key_candidates", 0) or 0), K, [u for u in range(T) if not ok(u)])
 
 
 def _candidate_keys(T: int, n: int, K: int, off_scale=()) -> list:
     """The ``n`` key frames the trials try besides ``K`` in T frames: spread evenly (frame
-    T (i + 1/2) / n), each of ``off_scale`` moved to the nearest frame that is not, K and repeats
-    left out."""
+    T (i + 1/2) / n), each of ``off_scale`` (frames that may not be a key frame:
+    :func:`_key_frame_fit`) moved to the nearest frame that is not, K and repeats left out."""
     allowed = np.setdiff1d(np.arange(T), np.asarray(off_scale, int))
     if not allowed.size:
         return []
@@ -2670,6 +2736,11 @@ def conversion_summary(info: ConversionInfo) -> list:
     if we:
         lines.append(f"note: welded {sum(x[1] for x in we)} input vertices that repeat another's position (a "
                      f"triangle soup or seams) in {len(we)} frame(s) (first: frame {we[0][0]})")
+    rw = info.rewound
+    if rw:
+        lines.append(f"note: {len(rw)} input frame(s) wound inconsistently ({sum(x[1] for x in rw)} faces ran "
+                     f"against their neighbours; first: frame {rw[0][0]}, {rw[0][1]} faces): made consistent piece by "
+                     "piece before the fit (the output's faces are the key frame's)")
     to = info.turned_outward
     if to:
         lines.append(f"note: turned the faces of {len(to)} input frame(s) wound inside out (closed, facing inward) "
