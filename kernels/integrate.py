@@ -28,12 +28,15 @@ PINCH_LEAN = wp.constant(1.0e-3)
 
 
 @wp.func
-def project_two(n1: wp.vec3, b1: float, n2: wp.vec3, b2: float):
+def project_two(n1: wp.vec3, b1: float, n2: wp.vec3, b2: float, most: float):
     """The smallest correction x with dot(x, n1) >= b1 and dot(x, n2) >= b2 (unit normals) and
     the two multipliers (x = a n1 + b n2 where one or both constraints bind): one constraint
     alone where that satisfies the other, else both exactly; where no x meets both (two planes
-    facing each other, closer than the constraints allow) the least-squares split along n1,
-    (b1 - b2) / 2 (the middle), with the multipliers each constraint alone would need."""
+    facing each other, closer than the constraints allow), or meeting both takes a correction
+    longer than ``most`` (two planes all but parallel: a finger's bottom edge, normal
+    (1, 0, -0.01), against the other finger's face sent a gripped sphere 1 m down through the
+    floor in one sub-step; a new user's), the least-squares split along n1, (b1 - b2) / 2 (the
+    middle), with the multipliers each constraint alone would need."""
     a1 = wp.max(b1, 0.0)
     a2 = wp.max(b2, 0.0)
     if b1 <= 0.0 and b2 <= 0.0:
@@ -47,8 +50,9 @@ def project_two(n1: wp.vec3, b1: float, n2: wp.vec3, b2: float):
     if det > 1.0e-4:
         a = (b1 - d * b2) / det
         b = (b2 - d * b1) / det
-        if a >= 0.0 and b >= 0.0:
-            return a * n1 + b * n2, a, b
+        x = a * n1 + b * n2
+        if a >= 0.0 and b >= 0.0 and wp.length(x) <= most:
+            return x, a, b
     return 0.5 * (b1 - b2) * n1, a1, a2
 
 
@@ -109,9 +113,9 @@ def resolve_pinch(
     friction of each side with that side's normal impulse; then it moves on for dt. Returns
     (position, velocity)."""
     depth2 = r - (wp.dot(n2, p) - d2)
-    x, a1, a2 = project_two(n, depth, n2, depth2 - PINCH_LEAN * r)
+    x, a1, a2 = project_two(n, depth, n2, depth2 - PINCH_LEAN * r, r)  # (at most r a sub-step)
     p = p + x
-    dv, j1, j2 = project_two(n, -wp.dot(v - vs, n), n2, -wp.dot(v - vs2, n2))
+    dv, j1, j2 = project_two(n, -wp.dot(v - vs, n), n2, -wp.dot(v - vs2, n2), r / dt)
     v = v + dv
     if friction > 0.0:
         v = apply_friction(v, vs, n, friction, j1)
@@ -147,11 +151,12 @@ def advance_sphere(
     the contact (``pinch_partner``: dot(n2, x) = d2 now, moving at vs2; n2 zero: none);
     ``pinched_last`` > 0 where a pinch was resolved within the last PINCH_KEEP sub-steps. The
     sphere is pinched where it touches both (or reaches them within dt, or would be pushed into
-    one by resolving the other alone), its centre not behind
-    the plane, and either the two close on each other (their relative velocity along the
-    normals, dot(vs - vs2, n - n2) > 0.01 r per second: a static or rigidly moving groove is no
-    pinch, and keeps the one-contact response) or it was pinched recently (a gap that closed
-    and stays closed): then it is resolved against both at once (``resolve_pinch``).
+    one by resolving the other alone), its centre not behind the plane (by up to r / 2 after a
+    recent pinch), and either the two close on each other (their relative velocity along the
+    normals, dot(vs - vs2, n - n2) > 0.01 r per second and over half of |vs - vs2| |n - n2|:
+    mostly closing; a static or rigidly moving groove is no pinch, and keeps the one-contact
+    response) or it was pinched recently (a gap that closed and stays closed): then it is
+    resolved against both at once (``resolve_pinch``).
     Returns (position, velocity, 1 when pinched else 0)."""
     pinched = int(0)
     if inv_mass == 0.0:
@@ -165,8 +170,19 @@ def advance_sphere(
         facing = wp.max(0.0, -wp.dot(n, n2))
         reach1 = depth + wp.max(0.0, depth2) * facing + wp.max(0.0, -wp.dot(v - vs, n)) * dt + tol
         reach2 = depth2 + wp.max(0.0, depth) * facing + wp.max(0.0, -wp.dot(v - vs2, n2)) * dt + tol
-        if reach1 >= 0.0 and reach2 >= 0.0 and depth2 <= r + tol:
-            if pinched_last > 0.0 or wp.dot(vs - vs2, n - n2) > 0.01 * r:
+        # (the centre not behind the remembered plane; after a pinch, up to r / 2 behind it: a gap
+        # closing to nothing at over 0.6 m/s left the centre that far past it, and the one-contact
+        # response then pushed the sphere up into the top plate; a new user's)
+        behind = tol
+        if pinched_last > 0.0:
+            behind = 0.5 * r
+        # closing: the two surfaces' relative velocity mostly along their normals, towards each
+        # other (a rigidly rotating groove's interpolated vertices close a little, at a small
+        # fraction of their relative speed: counted as a pinch, it changed an ordinary contact)
+        rel = vs - vs2
+        closing = wp.dot(rel, n - n2)
+        if reach1 >= 0.0 and reach2 >= 0.0 and depth2 <= r + behind:
+            if pinched_last > 0.0 or (closing > 0.01 * r and closing > 0.5 * wp.length(rel) * wp.length(n - n2)):
                 pinched = 1
     if pinched != 0:
         p, v = resolve_pinch(p, v, r, dt, friction, n, depth, vs, n2, d2, vs2)
