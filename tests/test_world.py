@@ -920,15 +920,9 @@ def test_a_plate_that_lifts_away_releases_the_pinched_sphere(collider):
     assert np.abs(vs[after, 0]).max() < 1e-3
 
 
-@pytest.mark.parametrize("collider", COLLIDERS)
-def test_a_static_v_groove_keeps_its_friction(collider):
-    """A static V-groove (40 degrees, walls' normals facing each other) tilted 30 degrees, a
-    sphere (r = 5 cm) resting in it: its walls do not close on each other, so it is no pinch and
-    the one-contact response (friction, resting) is as it was. mu = 0.5 holds it (closed form: no
-    sliding, mu cos(30) / sin(20) > sin(30); the response creeps a few cm); mu = 0 slides at
-    g sin(30). The fix that was taken back counted it as a pinch: friction vanished and the
-    sphere slid 2.46 m in 1 s."""
-    r, beta, th = 0.05, np.radians(30.0), 40.0
+def _tilted_groove(r: float, beta: float, th: float = 40.0):
+    """A V-groove of opening ``th`` degrees along y (walls 0.5 m, 4 m long, normals into the V)
+    tilted ``beta`` about x: (V, F, R the tilt, p0 a sphere of radius r resting in it at y = 1)."""
     a = np.radians(th) / 2
     ys = np.linspace(-2.0, 2.0, 17)
     V = np.array([q for y in ys for q in ([-0.5 * np.sin(a), y, 0.5 * np.cos(a)], [0.0, y, 0.0],
@@ -942,9 +936,42 @@ def test_a_static_v_groove_keeps_its_friction(collider):
     n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
     F[n[:, 2] < 0] = F[n[:, 2] < 0][:, ::-1]  # normals into the V
     R = np.array([[1, 0, 0], [0, np.cos(beta), -np.sin(beta)], [0, np.sin(beta), np.cos(beta)]])
-    V = V @ R.T
+    return V @ R.T, F, R, R @ np.array([0.0, 1.0, r / np.sin(a) + 1e-4])
+
+
+@pytest.mark.parametrize("collider", COLLIDERS)
+def test_a_turning_groove_is_no_pinch(collider):
+    """The tilted groove turning rigidly (0.5 rad/s about the vertical through the sphere's start,
+    60 fps): its walls do not close on each other, so no sub-step is a pinch (``Contacts.memory``'s
+    countdown stays 0). The interpolated vertices of a rotation close a little (chords, not arcs):
+    counted as a pinch, the trajectory left the one-contact response's from step 5 (a new user's)."""
+    r, beta = 0.05, np.radians(30.0)
+    V, F, _, p0 = _tilted_groove(r, beta)
+    c = np.array([0.0, 0.866, 0.5])
+    frames = []
+    for k in range(62):
+        g = 0.5 * k / 60
+        Rz = np.array([[np.cos(g), -np.sin(g), 0], [np.sin(g), np.cos(g), 0], [0, 0, 1]])
+        frames.append((V - c) @ Rz.T + c)
+    seq = FixedTopologySequence(np.asarray(frames, np.float32), F, fps=60.0)
+    for mu in (0.0, 0.5):
+        w = make_world(seq, [p0], radius=r, collider=collider, friction=mu, restitution=0.0)
+        for _ in range(240):
+            w.step()
+            assert w.contacts.memory.numpy()[0, 15] == 0.0, (mu, w.time)
+
+
+@pytest.mark.parametrize("collider", COLLIDERS)
+def test_a_static_v_groove_keeps_its_friction(collider):
+    """A static V-groove (40 degrees, walls' normals facing each other) tilted 30 degrees, a
+    sphere (r = 5 cm) resting in it: its walls do not close on each other, so it is no pinch and
+    the one-contact response (friction, resting) is as it was. mu = 0.5 holds it (closed form: no
+    sliding, mu cos(30) / sin(20) > sin(30); the response creeps a few cm); mu = 0 slides at
+    g sin(30). The fix that was taken back counted it as a pinch: friction vanished and the
+    sphere slid 2.46 m in 1 s."""
+    r, beta = 0.05, np.radians(30.0)
+    V, F, R, p0 = _tilted_groove(r, beta)
     seq = FixedTopologySequence(np.stack([V, V]).astype(np.float32), F, fps=24.0)
-    p0 = R @ np.array([0.0, 1.0, r / np.sin(a) + 1e-4])
     down = -(R @ [0.0, 1.0, 0.0])
     for mu, lo, hi in ((0.5, 0.0, 0.1), (0.0, 0.98 * 0.5 * G * np.sin(beta), 1.02 * 0.5 * G * np.sin(beta))):
         w = make_world(seq, [p0], radius=r, collider=collider, friction=mu, restitution=0.0)
@@ -952,4 +979,4 @@ def test_a_static_v_groove_keeps_its_friction(collider):
         s = (ps[-1, 0] - p0) @ down
         assert lo <= s <= hi, (collider, mu, s)
         height = (ps[:, 0] @ (R @ [0.0, 0.0, 1.0]))
-        assert height.min() > 0.98 * r / np.sin(a), (collider, mu)  # in the groove, not through a wall
+        assert height.min() > 0.98 * r / np.sin(np.radians(20.0)), (collider, mu)  # in the groove, not through a wall
