@@ -65,7 +65,7 @@ from .choices import DEFAULT_FRAME_ORDER, DEFAULT_STRATEGY, STRATEGIES, FrameOrd
 from .conversion_options import options_for
 from .deform_graph import GraphFitter, build_deformation_graph, extrapolate_rotations
 from .geometry import (distinct_faces, face_areas, fit_group_motions, mesh_orientation, orient_faces, signed_volume, surface_area,
-                       weld_vertices, winding_numbers)
+                       weld_vertices, winding_inconsistent, winding_numbers)
 from .kernels import convert as kc
 from .kernels.geometry import project_points_to_mesh
 from .metrics import chamfer_distance
@@ -406,16 +406,6 @@ def _keep_faces(v: np.ndarray, f: np.ndarray, keep: np.ndarray) -> tuple:
     return v[used], remap[f[keep]].astype(np.int32)
 
 
-def _inconsistent_winding(f: np.ndarray) -> bool:
-    """Two faces of ``f`` run through a shared edge in the same direction (one directed edge
-    twice): their winding is inconsistent. One sort of the directed edges (~2 ms a 20k-face frame)."""
-    f = np.asarray(f, np.int64)
-    if not len(f):
-        return False
-    key = np.sort(f.ravel() * (int(f.max()) + 1) + f[:, [1, 2, 0]].ravel())
-    return bool(np.any(key[1:] == key[:-1]))
-
-
 def _drop_unused(vseq: VaryingTopologySequence):
     """(vseq cleaned, [(frame, vertices dropped, faces dropped)], [(frame, vertices welded)],
     [frames turned outward], [(frame, faces flipped)] rewound):
@@ -437,7 +427,7 @@ def _drop_unused(vseq: VaryingTopologySequence):
     conversion ~0.5 s). Raises MeshDataError for a frame left without faces."""
     frames, dropped, welded, turned, rewound = [], [], [], [], []
     T = vseq.num_frames
-    rewind = any(_inconsistent_winding(vseq.frames[t][1]) for t in sorted({0, T // 2, T - 1}) if t < T)
+    rewind = any(winding_inconsistent(vseq.frames[t][1]) for t in sorted({0, T // 2, T - 1}) if t < T)
     for t, (v, f) in enumerate(vseq.frames):
         v, f, merged = weld_vertices(v, np.asarray(f))
         if merged:
@@ -451,7 +441,7 @@ def _drop_unused(vseq: VaryingTopologySequence):
             v2, f2 = _keep_faces(v, f, keep)
             dropped.append((t, len(v) - len(v2), len(f) - len(f2)))
             v, f = v2, f2
-        if rewind and _inconsistent_winding(f):
+        if rewind and winding_inconsistent(f):
             f2, report = orient_faces(v, f)
             if report["rewound"]:
                 rewound.append((t, int(report["rewound"])))

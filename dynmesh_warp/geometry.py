@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["face_areas", "surface_area", "signed_volume", "orient_outward", "mesh_orientation", "orient_faces",
+           "winding_inconsistent",
            "distinct_faces", "flat_faces", "weld_vertices", "motion_groups", "fit_group_motions", "rotation_to_wxyz",
            "up_from_gravity", "frame_across"]
 
@@ -258,7 +259,7 @@ def _orientation_of(V, F, up) -> str:
                             0.5 * np.linalg.norm(cr, axis=1).sum(), rim, vol, up, _footprint(V[F.reshape(-1)], up))
     if not inside[0]:
         return "open"
-    if len(np.unique(directed[:, 0] * n + directed[:, 1])) != len(directed):
+    if winding_inconsistent(F):
         return "inconsistent"
     return "outward" if vol > 0 else "inward"
 
@@ -437,6 +438,17 @@ def orient_faces(V, F, up=(0.0, 0.0, 1.0), down_fraction: float = 0.25) -> tuple
     if not turn.any():
         return F, report
     return np.ascontiguousarray(np.where(turn[:, None], F[:, ::-1], F), dtype=F.dtype), report
+
+
+def winding_inconsistent(F) -> bool:
+    """Two faces of ``F`` run through a shared edge in the same direction (a directed edge listed
+    twice): the faces are not wound consistently. One sort of the 3M directed edges (~2 ms for 20k
+    faces)."""
+    F = np.asarray(F, np.int64).reshape(-1, 3)
+    if not len(F):
+        return False
+    key = np.sort(F.ravel() * (int(F.max()) + 1) + F[:, [1, 2, 0]].ravel())
+    return bool(np.any(key[1:] == key[:-1]))
 
 
 def _winding(F: np.ndarray) -> np.ndarray:

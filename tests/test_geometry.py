@@ -45,3 +45,27 @@ def test_farthest_points_cover_every_point_within_its_spacing():
     assert len(set(idx)) == len(idx)
     # finer spacing where asked: the left half holds most samples
     assert np.mean(P[idx, 0] < 0.5) > 0.7
+
+
+def test_winding_inconsistent_matches_a_set_of_directed_edges():
+    """``winding_inconsistent`` (one sort of the directed edges; convert's rewinding and
+    ``mesh_orientation`` ask it) against a Python set of (i, j) pairs, on an icosphere with no,
+    one and many faces flipped, and on faces with large indices."""
+    import trimesh
+
+    from dynmesh_warp.geometry import winding_inconsistent
+
+    F0 = np.asarray(trimesh.creation.icosphere(subdivisions=2).faces, np.int64)
+    rng = np.random.default_rng(0)
+    for flip in (0, 1, 40):
+        F = F0.copy()
+        idx = rng.choice(len(F), flip, replace=False)
+        F[idx] = F[idx][:, ::-1]
+        for G in (F, F + 10**6):
+            seen, repeated = set(), False
+            for a, b, c in G.tolist():
+                for e in ((a, b), (b, c), (c, a)):
+                    repeated |= e in seen
+                    seen.add(e)
+            assert winding_inconsistent(G) == repeated == (flip > 0)
+    assert not winding_inconsistent(np.zeros((0, 3), np.int64))
