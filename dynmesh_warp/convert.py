@@ -1201,6 +1201,13 @@ def _key_frame(seq: VaryingTopologySequence, key, has_template: bool, off_scale=
 
 
 def _key_frame_fit(seq: VaryingTopologySequence, off_scale=()):
+    """:func:`_find_key_frame_fit`, found once per conversion of ``seq`` (the key frame's choice
+    and the key trials ask it; its answers are kept as they are asked)."""
+    return _once(seq, ("key frame fit", tuple(sorted(int(u) for u in off_scale))),
+                 lambda: _find_key_frame_fit(seq, off_scale))
+
+
+def _find_key_frame_fit(seq: VaryingTopologySequence, off_scale=()):
     """``ok(u)``: whether frame u may be the key frame (the template's source). Where most frames
     are closed, a frame with a hole may not; where most frames have no small separate part
     (``_has_small_part``: a floater), a frame with one may not; nor one of ``off_scale``. "Most"
@@ -2379,19 +2386,25 @@ def _key_candidates(vseq, o: dict, K: int, given: bool, res, moving_part=..., of
     if (given or o["key_frame"] not in ("auto", None) or T < 3 or len(info.coverage) < T
             or (_key_retry_reason(info.coverage, K, part) is None and not o.get("always_try_keys"))):
         return []
-    ok = _key_frame_fit(vseq, off_scale)
-    return _candidate_keys(T, int(o.get("key_candidates", 0) or 0), K, [u for u in range(T) if not ok(u)])
+    return _candidate_keys(T, int(o.get("key_candidates", 0) or 0), K, _key_frame_fit(vseq, off_scale))
 
 
-def _candidate_keys(T: int, n: int, K: int, off_scale=()) -> list:
+def _candidate_keys(T: int, n: int, K: int, ok=lambda u: True) -> list:
     """The ``n`` key frames the trials try besides ``K`` in T frames: spread evenly (frame
-    T (i + 1/2) / n), each of ``off_scale`` (frames that may not be a key frame:
-    :func:`_key_frame_fit`) moved to the nearest frame that is not, K and repeats left out."""
-    allowed = np.setdiff1d(np.arange(T), np.asarray(off_scale, int))
-    if not allowed.size:
+    T (i + 1/2) / n), each frame that may not be a key frame (``ok`` false: :func:`_key_frame_fit`)
+    moved to the nearest frame that may (the earlier of two as near), K and repeats left out.
+    ``ok`` is asked from each spread frame outwards only (its tests cost a pass over a frame)."""
+
+    def nearest(k):
+        for d in range(T):
+            for u in (k - d, k + d):
+                if 0 <= u < T and ok(u):
+                    return u
+        return None
+
+    keys = [nearest(min(T - 1, int(T * (i + 0.5) / n))) for i in range(max(n, 0))]
+    if any(k is None for k in keys):
         return []
-    keys = [min(T - 1, int(T * (i + 0.5) / n)) for i in range(max(n, 0))]
-    keys = [int(allowed[np.argmin(np.abs(allowed - k))]) for k in keys]
     return [k for i, k in enumerate(keys) if k != K and k not in keys[:i]]
 
 

@@ -426,7 +426,7 @@ def test_frames_in_other_units_are_said_and_never_the_key_frame():
     assert "frame(s) 3 (x" in msgs and "frame(s) 6 (x2.54)" in msgs and "frame(s) 9 repeat the frame before" in msgs
     assert _key_frame(seq, "auto", has_template=False, off_scale=off) not in off
     assert _key_frame(seq, "auto", has_template=False) == 3  # without: the millimetre frame's area wins
-    keys = _candidate_keys(10, 4, K=0, off_scale=off)
+    keys = _candidate_keys(10, 4, K=0, ok=lambda u: u not in off)
     assert not set(keys) & set(off) and len(keys) == 4, keys
     # one topology: an animated mesh's pause is no repeat
     V, F = _sphere_frames([1.0])[0]
@@ -861,7 +861,7 @@ def test_floaters_on_every_third_frame_do_not_make_the_key_frame():
     assert K % 3 != 0, K
     ok = _key_frame_fit(seq)
     assert [u for u in range(24) if not ok(u)] == list(range(0, 24, 3))
-    keys = _candidate_keys(24, 4, K, [u for u in range(24) if not ok(u)])
+    keys = _candidate_keys(24, 4, K, ok)
     assert keys and all(k % 3 for k in keys), keys
 
 
