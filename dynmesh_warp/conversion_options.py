@@ -137,6 +137,9 @@ class GraphOptions(_Options, _FineStage):
     #: docs/conversion.md, "Held stiffness levels"); 0: the schedule alone
     converge_iterations: Int = Field(16, ge=0)
     converge_tolerance: Float = Field(0.3, gt=0.0)
+    #: rigid point-to-plane alignment of each frame's start pose (the prediction) before the graph
+    #: fit, kept where it fits the frame better: Gauss-Newton iterations at most (0: off)
+    rigid_iterations: Int = Field(6, ge=0)
     stiffness: Float = Field(10.0, ge=0.0)
     stiffness_end: Float = Field(0.3, ge=0.0)
     damping: Float = Field(0.01, ge=0.0)

@@ -873,6 +873,10 @@ class _Converter:
                 if best is None or sc < best[0]:
                     best = (sc, cand)
             init = best[1]
+        if self.history and int(o["rigid_iterations"]) > 0:
+            moved = gf.rigid_align(gframe, *init, int(o["rigid_iterations"]), 1e-4 * diag)
+            if self.fit_score(frame, gf.skin(*moved)) < self.fit_score(frame, gf.skin(*init)):
+                init = moved
         if static is not None and static.any():
             # a still part starts where it was and is held there (the constant-velocity prediction
             # carried a drift the data cannot see on from frame to frame)

@@ -39,7 +39,7 @@ from .kernels import register as kr
 
 
 __all__ = ["DeformationGraph", "build_deformation_graph", "GraphFitter", "polar_rotations",
-           "extrapolate_rotations", "system_pattern"]
+           "extrapolate_rotations", "rotation_from_vector", "system_pattern"]
 
 
 @dataclass
@@ -201,6 +201,16 @@ def polar_rotations(C: np.ndarray) -> np.ndarray:
     return U @ Vt
 
 
+def rotation_from_vector(v: np.ndarray) -> np.ndarray:
+    """The rotation by |v| radians about v (Rodrigues), (3, 3) float64."""
+    a = float(np.linalg.norm(v))
+    if a < 1e-15:
+        return np.eye(3)
+    k = np.asarray(v, np.float64) / a
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(a) * K + (1.0 - np.cos(a)) * (K @ K)
+
+
 def extrapolate_rotations(R0: np.ndarray, R1: np.ndarray, gamma: float) -> np.ndarray:
     """R1 advanced by gamma times the step R0 -> R1 (constant angular velocity), (K, 3, 3)."""
     D = R1 @ np.transpose(R0, (0, 2, 1))
@@ -293,6 +303,7 @@ class GraphFitter:
         self.position_prior = wp.empty(K, dtype=wp.vec3, device=d)
         self.position_prev = wp.empty(K, dtype=wp.vec3, device=d)  # before the last iteration (convergence)
         self.moved = wp.zeros(1, dtype=float, device=d)
+        self.rigid_system = wp.zeros((2, 28), dtype=float, device=d)  # rigid_align's normal equations
         self.points = wp.empty(n, dtype=wp.vec3, device=d)
         # the template BVH: built on the predicted pose by rebuild() at the start of every fit
         # (a tree refit far from the pose it was built on answers queries slowly)
@@ -524,6 +535,50 @@ class GraphFitter:
                 done += 1
         self.skin()
         return self.get_state()
+
+    def rigid_align(self, frame, R: np.ndarray, P: np.ndarray, iterations: int, min_step: float) -> tuple:
+        """(R, P) moved by the rigid motion of the whole template that best fits the frame:
+        symmetric point-to-plane ICP, Gauss-Newton on the 6 rigid unknowns, at most ``iterations``
+        (each: correspondences both ways as the fit's, the normal equations summed on the device,
+        6 x 6 solved on the host), until a step turns less than 1e-3 rad and moves less than
+        ``min_step`` [m]. A template vertex's plane is its own normal, a frame vertex's the frame's.
+        The fit's point-to-point closest points move a surface along itself only part of the way
+        per iteration (a body turning between frames: the template lags behind and slides); the
+        planes' linearisation finds a rigid turn in a few steps. Returns float64 (K,3,3), (K,3)."""
+        m, pts, idx, fnormals = frame
+        min_cos = float(np.cos(np.radians(float(self.opts["max_normal_angle"]))))
+        R, P = np.asarray(R, np.float64), np.asarray(P, np.float64)
+        c = P.mean(axis=0)
+        cw = wp.vec3(*[float(x) for x in c])
+        Rr, tr = np.eye(3), np.zeros(3)
+        iu = np.triu_indices(6)
+        self.set_state(R, P)
+        self.rebuild()
+        for _ in range(int(iterations)):
+            self.correspondences(frame, min_cos)
+            self.rigid_system.zero_()
+            for side, (dim, moving, fixed, normal, weight) in enumerate((
+                    (self.n, self.points, self.target, self.normals, self.fweight),
+                    (pts.shape[0], self.bclosest, pts, fnormals, self.bweight))):
+                wp.launch(kr.accumulate_rigid_system, dim=dim, inputs=[moving, fixed, normal, weight, cw, side],
+                          outputs=[self.rigid_system], device=self.device)
+            S = self.rigid_system.numpy().astype(np.float64)
+            if not np.all(S[:, 27] > 0):
+                break  # one side found no partner
+            H, g = np.zeros((6, 6)), np.zeros(6)
+            for side in (0, 1):  # each side a mean, the two weighted equally (as the fit's data term)
+                Hs = np.zeros((6, 6))
+                Hs[iu] = S[side, :21]
+                H += 0.5 / S[side, 27] * (Hs + np.triu(Hs, 1).T)
+                g += 0.5 / S[side, 27] * S[side, 21:27]
+            H += 1e-9 * max(np.trace(H), 1e-30) * np.eye(6)
+            d = -np.linalg.solve(H, g)
+            dR = rotation_from_vector(d[:3])
+            Rr, tr = dR @ Rr, dR @ tr + d[3:]  # x -> Rr (x - c) + c + tr
+            self.skin(np.einsum("ij,kjl->kil", Rr, R), (P - c) @ Rr.T + c + tr)
+            if np.linalg.norm(d[:3]) < 1e-3 and np.linalg.norm(d[3:]) < min_step:
+                break
+        return np.einsum("ij,kjl->kil", Rr, R), (P - c) @ Rr.T + c + tr
 
     def _iteration(self, frame, min_cos: float, wd: float):
         """``iterate(lam)``: one iteration of the fit at stiffness ``lam`` (skin, correspondences,

@@ -652,3 +652,45 @@ def measure_node_motion(
     it): how far the last graph iteration moved a node (the held-level test of ``fit``)."""
     j = wp.tid()
     wp.atomic_max(moved, 0, wp.length(node_position[j] - position_prev[j]))
+
+
+@wp.kernel
+def accumulate_rigid_system(
+    # In:
+    moving: wp.array[wp.vec3],
+    fixed: wp.array[wp.vec3],
+    plane_normal: wp.array[wp.vec3],
+    weight: wp.array[float],
+    center: wp.vec3,
+    side: int,
+    # Out (accumulated):
+    rigid_system: wp.array2d[float],
+):
+    """Gauss-Newton normal equations of sum_i weight_i ((moving_i - fixed_i) . n_i)^2 in a small
+    rigid motion of the moving points (rotation vector omega [rad] about ``center``, translation
+    tau [m]: x -> x + omega x (x - center) + tau), n_i = plane_normal_i normalised (rows with a
+    zero normal or weight skipped). Row i: J = [(moving_i - center) x n_i, n_i], residual
+    e = (moving_i - fixed_i) . n_i [m].
+
+    moving, fixed, plane_normal, weight (dim,) (launch with the live count); rigid_system (2, 28):
+    row ``side`` += the upper triangle of sum w J J^T (21 entries, row by row), sum w J e (6),
+    sum w (1).
+    """
+    i = wp.tid()
+    w = weight[i]
+    nl = wp.length(plane_normal[i])
+    if w == 0.0 or nl == 0.0:
+        return
+    n = plane_normal[i] / nl
+    x = moving[i]
+    c = wp.cross(x - center, n)
+    J = wp.vector(c[0], c[1], c[2], n[0], n[1], n[2])
+    e = wp.dot(x - fixed[i], n)
+    s = int(0)
+    for a in range(6):
+        for b in range(a, 6):
+            wp.atomic_add(rigid_system, side, s, w * J[a] * J[b])
+            s += 1
+    for a in range(6):
+        wp.atomic_add(rigid_system, side, 21 + a, w * J[a] * e)
+    wp.atomic_add(rigid_system, side, 27, w)
