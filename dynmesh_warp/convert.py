@@ -874,8 +874,8 @@ class _Converter:
                     best = (sc, cand)
             init = best[1]
         if self.history and int(o["rigid_iterations"]) > 0:
-            moved = gf.rigid_align(gframe, *init, int(o["rigid_iterations"]), 1e-4 * diag)
-            if self.fit_score(frame, gf.skin(*moved)) < self.fit_score(frame, gf.skin(*init)):
+            *moved, aligned = gf.rigid_align(gframe, *init, int(o["rigid_iterations"]), RIGID_STEP * diag)
+            if not aligned and self.fit_score(frame, gf.skin(*moved)) < self.fit_score(frame, gf.skin(*init)):
                 init = moved
         if static is not None and static.any():
             # a still part starts where it was and is held there (the constant-velocity prediction
@@ -1098,6 +1098,12 @@ def _scale_checked():
 #: with it mended one ring keeps the ball's motion, 2.2 % of the diagonal a frame as without the
 #: hold, and holds more of a still torso: 19.5 degrees of turn against 39 with two)
 STATIC_RINGS = 1
+
+
+#: the rigid start (option rigid_iterations) stops at a step that moves less than this fraction of
+#: the frame's diagonal (and turns less than 2e-3 rad); where its first step already does, the
+#: prediction is kept without scoring either (most frames of a smooth motion)
+RIGID_STEP = 1e-3
 
 
 #: a frame whose size (the square root of its surface area) is over this factor from both of its

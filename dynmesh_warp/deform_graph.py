@@ -536,15 +536,18 @@ class GraphFitter:
         self.skin()
         return self.get_state()
 
-    def rigid_align(self, frame, R: np.ndarray, P: np.ndarray, iterations: int, min_step: float) -> tuple:
+    def rigid_align(self, frame, R: np.ndarray, P: np.ndarray, iterations: int, min_step: float,
+                    min_turn: float = 2e-3) -> tuple:
         """(R, P) moved by the rigid motion of the whole template that best fits the frame:
         symmetric point-to-plane ICP, Gauss-Newton on the 6 rigid unknowns, at most ``iterations``
         (each: correspondences both ways as the fit's, the normal equations summed on the device,
-        6 x 6 solved on the host), until a step turns less than 1e-3 rad and moves less than
-        ``min_step`` [m]. A template vertex's plane is its own normal, a frame vertex's the frame's.
-        The fit's point-to-point closest points move a surface along itself only part of the way
-        per iteration (a body turning between frames: the template lags behind and slides); the
-        planes' linearisation finds a rigid turn in a few steps. Returns float64 (K,3,3), (K,3)."""
+        6 x 6 solved on the host), until a step turns less than ``min_turn`` [rad] and moves less
+        than ``min_step`` [m]. A template vertex's plane is its own normal, a frame vertex's the
+        frame's. The fit's point-to-point closest points move a surface along itself only part of
+        the way per iteration (a body turning between frames: the template lags behind and
+        slides); the planes' linearisation finds a rigid turn in a few steps. Returns float64
+        (K,3,3), (K,3) and whether the first step was already below both bounds (the start was
+        as good as rigidly aligned; R, P are then returned as given)."""
         m, pts, idx, fnormals = frame
         min_cos = float(np.cos(np.radians(float(self.opts["max_normal_angle"]))))
         R, P = np.asarray(R, np.float64), np.asarray(P, np.float64)
@@ -554,7 +557,7 @@ class GraphFitter:
         iu = np.triu_indices(6)
         self.set_state(R, P)
         self.rebuild()
-        for _ in range(int(iterations)):
+        for it in range(int(iterations)):
             self.correspondences(frame, min_cos)
             self.rigid_system.zero_()
             for side, (dim, moving, fixed, normal, weight) in enumerate((
@@ -564,6 +567,8 @@ class GraphFitter:
                           outputs=[self.rigid_system], device=self.device)
             S = self.rigid_system.numpy().astype(np.float64)
             if not np.all(S[:, 27] > 0):
+                if it == 0:
+                    return R, P, True
                 break  # one side found no partner
             H, g = np.zeros((6, 6)), np.zeros(6)
             for side in (0, 1):  # each side a mean, the two weighted equally (as the fit's data term)
@@ -573,12 +578,15 @@ class GraphFitter:
                 g += 0.5 / S[side, 27] * S[side, 21:27]
             H += 1e-9 * max(np.trace(H), 1e-30) * np.eye(6)
             d = -np.linalg.solve(H, g)
+            small = np.linalg.norm(d[:3]) < min_turn and np.linalg.norm(d[3:]) < min_step
+            if small and it == 0:
+                return R, P, True
             dR = rotation_from_vector(d[:3])
             Rr, tr = dR @ Rr, dR @ tr + d[3:]  # x -> Rr (x - c) + c + tr
             self.skin(np.einsum("ij,kjl->kil", Rr, R), (P - c) @ Rr.T + c + tr)
-            if np.linalg.norm(d[:3]) < 1e-3 and np.linalg.norm(d[3:]) < min_step:
+            if small:
                 break
-        return np.einsum("ij,kjl->kil", Rr, R), (P - c) @ Rr.T + c + tr
+        return np.einsum("ij,kjl->kil", Rr, R), (P - c) @ Rr.T + c + tr, False
 
     def _iteration(self, frame, min_cos: float, wd: float):
         """``iterate(lam)``: one iteration of the fit at stiffness ``lam`` (skin, correspondences,
