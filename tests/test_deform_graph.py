@@ -110,7 +110,8 @@ def test_rigid_align_finds_a_turn_the_closest_point_fit_lags_behind():
     fit = GraphFitter(g, V, F, wp.get_device(DEV), 10.0, {"max_normal_angle": 60.0})
     frame, V1 = _box_frame(V, F, np.radians(20.0), (0.05, 0.02, 0.0))
     R0, P0 = np.repeat(np.eye(3)[None], g.num_nodes, 0), g.node_rest.copy()
-    R, P = fit.rigid_align(frame, R0, P0, 8, 1e-6)
+    R, P, aligned = fit.rigid_align(frame, R0, P0, 8, 1e-6)
+    assert not aligned  # the start was 20 degrees off
     err = np.linalg.norm(fit.skin(R, P).numpy() - V1, axis=1)
     assert err.max() < 1e-3  # quadratic convergence: 1e-5 after 3 steps (0.17 m moved)
     assert np.allclose(np.einsum("kij,kil->kjl", R, R), np.eye(3), atol=1e-5)  # still rotations
@@ -125,8 +126,10 @@ def test_rigid_align_without_partners_returns_the_start():
     fit = GraphFitter(g, V, F, wp.get_device(DEV), 0.01, {"max_normal_angle": 60.0})
     frame, _ = _box_frame(V, F, 0.3, (5.0, 0.0, 0.0))  # beyond max_dist: nothing found
     R0, P0 = np.repeat(np.eye(3)[None], g.num_nodes, 0), g.node_rest.copy()
-    R, P = fit.rigid_align(frame, R0, P0, 5, 1e-6)
-    assert np.array_equal(R, R0) and np.allclose(P, P0)
+    R, P, aligned = fit.rigid_align(frame, R0, P0, 5, 1e-6)
+    assert aligned and R is R0 and P is P0
+    frame, V1 = _box_frame(V, F, 1e-4, (1e-5, 0.0, 0.0))  # as good as aligned: the first step is below the bounds
+    assert fit.rigid_align(frame, R0, P0, 5, 1e-3)[2]
 
 
 # --------------------------------------------------------------------------- coverage through a motion
