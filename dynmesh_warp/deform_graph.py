@@ -271,6 +271,28 @@ HELD_LEVELS = 0.5
 CG_BLOCK_THREADS = 256
 
 
+#: rigid_align: damping of each part's 6 x 6 system, a fraction of its mean diagonal per block
+#: (a rotation the part's surface does not see is left out), and the fewest partners a part needs
+#: each way to be moved
+RIGID_DAMPING = 1e-2
+RIGID_MIN_ROWS = 12
+#: rigid_align keeps a part's motion only where it lowers the part's two-sided mean squared plane
+#: distance below this factor of the start's
+RIGID_GAIN = 0.8
+
+
+def _graph_parts(graph: DeformationGraph) -> np.ndarray:
+    """(K,) int64: the connected piece of the graph (nodes joined by edges) each node is in."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    K, e = graph.num_nodes, graph.edges
+    if K == 0:
+        return np.zeros(0, np.int64)
+    a = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(K, K))
+    return connected_components(a, directed=False)[1].astype(np.int64)
+
+
 class GraphFitter:
     """Device arrays and the device-side solve of the graph fit (module docstring).
 
@@ -303,7 +325,15 @@ class GraphFitter:
         self.position_prior = wp.empty(K, dtype=wp.vec3, device=d)
         self.position_prev = wp.empty(K, dtype=wp.vec3, device=d)  # before the last iteration (convergence)
         self.moved = wp.zeros(1, dtype=float, device=d)
-        self.rigid_system = wp.zeros((2, 28), dtype=float, device=d)  # rigid_align's normal equations
+        # rigid_align: the template's parts (connected pieces of the graph), the normal equations of each
+        self.node_part = _graph_parts(graph)
+        self.num_parts = int(self.node_part.max()) + 1 if K else 0
+        vpart = self.node_part[graph.node_index[:, 0]]
+        self.vertex_part = arr(vpart.astype(np.int32), wp.int32)
+        self.face_part = arr(vpart[np.asarray(TF).reshape(-1, 3)[:, 0]].astype(np.int32), wp.int32)
+        self.vertex_ids = arr(np.arange(n, dtype=np.int32), wp.int32)
+        self.part_center = wp.zeros(max(self.num_parts, 1), dtype=wp.vec3, device=d)
+        self.rigid_system = wp.zeros((2 * max(self.num_parts, 1), 29), dtype=float, device=d)
         self.points = wp.empty(n, dtype=wp.vec3, device=d)
         # the template BVH: built on the predicted pose by rebuild() at the start of every fit
         # (a tree refit far from the pose it was built on answers queries slowly)
@@ -538,55 +568,81 @@ class GraphFitter:
 
     def rigid_align(self, frame, R: np.ndarray, P: np.ndarray, iterations: int, min_step: float,
                     min_turn: float = 2e-3) -> tuple:
-        """(R, P) moved by the rigid motion of the whole template that best fits the frame:
-        symmetric point-to-plane ICP, Gauss-Newton on the 6 rigid unknowns, at most ``iterations``
-        (each: correspondences both ways as the fit's, the normal equations summed on the device,
-        6 x 6 solved on the host), until a step turns less than ``min_turn`` [rad] and moves less
-        than ``min_step`` [m]. A template vertex's plane is its own normal, a frame vertex's the
-        frame's. The fit's point-to-point closest points move a surface along itself only part of
-        the way per iteration (a body turning between frames: the template lags behind and
-        slides); the planes' linearisation finds a rigid turn in a few steps. Returns float64
-        (K,3,3), (K,3) and whether the first step was already below both bounds (the start was
-        as good as rigidly aligned; R, P are then returned as given)."""
+        """(R, P) with each part of the template (a connected piece of the graph) moved by the rigid
+        motion that best fits it to the frame: symmetric point-to-plane ICP, Gauss-Newton on 6
+        rigid unknowns per part, at most ``iterations`` (each: correspondences both ways as the
+        fit's, a frame vertex counted for the part its closest template point lies on; the
+        normal equations summed on the device, solved per part on the host), until every part's
+        step turns less than ``min_turn`` [rad] and moves less than ``min_step`` [m]. A template
+        vertex's plane is its own normal, a frame vertex's the frame's. The fit's point-to-point
+        closest points move a surface along itself only part of the way per iteration (a body
+        turning between frames: the template lags behind and slides); the planes' linearisation
+        finds a rigid turn in a few steps. Each part's system is damped by RIGID_DAMPING of its
+        mean diagonal: a motion the part's own surface cannot see (a round part turning about its
+        axis) is left out rather than taken from the noise. Returns float64 (K,3,3), (K,3) and
+        whether the first step was already below both bounds everywhere (the start was as good
+        as rigidly aligned; R, P are then returned as given)."""
         m, pts, idx, fnormals = frame
         min_cos = float(np.cos(np.radians(float(self.opts["max_normal_angle"]))))
         R, P = np.asarray(R, np.float64), np.asarray(P, np.float64)
-        c = P.mean(axis=0)
-        cw = wp.vec3(*[float(x) for x in c])
-        Rr, tr = np.eye(3), np.zeros(3)
+        C, part = self.num_parts, self.node_part
+        if C == 0:
+            return R, P, True
+        cnt = np.maximum(np.bincount(part, minlength=C), 1)
+        c = np.stack([np.bincount(part, P[:, a], C) for a in range(3)], 1) / cnt[:, None]
+        self.part_center.assign(c.astype(np.float32))
+        Rr, tr = np.repeat(np.eye(3)[None], C, 0), np.zeros((C, 3))
         iu = np.triu_indices(6)
         self.set_state(R, P)
         self.rebuild()
-        for it in range(int(iterations)):
+
+        def moved():
+            return np.einsum("kij,kjl->kil", Rr[part], R), np.einsum("kij,kj->ki", Rr[part], P - c[part]) + c[part] + tr[part]
+
+        energy = []  # per iteration: each part's two-sided mean squared plane distance [m^2]
+        for it in range(int(iterations) + 1):
             self.correspondences(frame, min_cos)
             self.rigid_system.zero_()
-            for side, (dim, moving, fixed, normal, weight) in enumerate((
-                    (self.n, self.points, self.target, self.normals, self.fweight),
-                    (pts.shape[0], self.bclosest, pts, fnormals, self.bweight))):
-                wp.launch(kr.accumulate_rigid_system, dim=dim, inputs=[moving, fixed, normal, weight, cw, side],
+            for side, (dim, moving, fixed, normal, weight, element, owner) in enumerate((
+                    (self.n, self.points, self.target, self.normals, self.fweight, self.vertex_ids, self.vertex_part),
+                    (pts.shape[0], self.bclosest, pts, fnormals, self.bweight, self.bface, self.face_part))):
+                wp.launch(kr.accumulate_rigid_system, dim=dim,
+                          inputs=[owner, self.part_center, moving, fixed, normal, weight, element, side],
                           outputs=[self.rigid_system], device=self.device)
-            S = self.rigid_system.numpy().astype(np.float64)
-            if not np.all(S[:, 27] > 0):
-                if it == 0:
-                    return R, P, True
-                break  # one side found no partner
-            H, g = np.zeros((6, 6)), np.zeros(6)
-            for side in (0, 1):  # each side a mean, the two weighted equally (as the fit's data term)
-                Hs = np.zeros((6, 6))
-                Hs[iu] = S[side, :21]
-                H += 0.5 / S[side, 27] * (Hs + np.triu(Hs, 1).T)
-                g += 0.5 / S[side, 27] * S[side, 21:27]
-            H += 1e-9 * max(np.trace(H), 1e-30) * np.eye(6)
-            d = -np.linalg.solve(H, g)
-            small = np.linalg.norm(d[:3]) < min_turn and np.linalg.norm(d[3:]) < min_step
+            S = self.rigid_system.numpy().astype(np.float64).reshape(C, 2, 29)
+            W = S[:, :, 27]
+            s = 0.5 / np.maximum(W, 1.0)  # each side a mean, the two weighted equally (as the fit's data term)
+            energy.append((s * S[:, :, 28]).sum(axis=1))
+            if it == int(iterations):
+                break  # the last pose measured only
+            seen = np.all(W >= RIGID_MIN_ROWS, axis=1)  # parts with partners both ways
+            H = np.zeros((C, 6, 6))
+            g = np.zeros((C, 6))
+            for side in (0, 1):
+                Hs = np.zeros((C, 6, 6))
+                Hs[:, iu[0], iu[1]] = S[:, side, :21]
+                H += s[:, side, None, None] * (Hs + np.triu(Hs, 1).transpose(0, 2, 1))
+                g += s[:, side, None] * S[:, side, 21:27]
+            for blk in (slice(0, 3), slice(3, 6)):  # damping, per block (rotation [m^2], translation [1])
+                tr_b = np.trace(H[:, blk, blk], axis1=1, axis2=2) / 3.0
+                H[:, blk, blk] += (RIGID_DAMPING * np.maximum(tr_b, 1e-30))[:, None, None] * np.eye(3)
+            d = np.zeros((C, 6))
+            if seen.any():
+                d[seen] = -np.linalg.solve(H[seen], g[seen][:, :, None])[:, :, 0]
+            small = np.all((np.linalg.norm(d[:, :3], axis=1) < min_turn) & (np.linalg.norm(d[:, 3:], axis=1) < min_step))
             if small and it == 0:
                 return R, P, True
-            dR = rotation_from_vector(d[:3])
-            Rr, tr = dR @ Rr, dR @ tr + d[3:]  # x -> Rr (x - c) + c + tr
-            self.skin(np.einsum("ij,kjl->kil", Rr, R), (P - c) @ Rr.T + c + tr)
             if small:
-                break
-        return np.einsum("ij,kjl->kil", Rr, R), (P - c) @ Rr.T + c + tr, False
+                break  # converged: the pose measured last is the one it ends on
+            for p in np.flatnonzero(seen):  # x -> Rr (x - c) + c + tr, per part
+                dR = rotation_from_vector(d[p, :3])
+                Rr[p], tr[p] = dR @ Rr[p], dR @ tr[p] + d[p, 3:]
+            self.skin(*moved())
+        # a part keeps its rigid motion only where that fits it clearly better than the start (a
+        # round part's turn fitted to the error of a reconstruction only fits it a little better)
+        back = ~(energy[-1] < RIGID_GAIN * energy[0])
+        Rr[back], tr[back] = np.eye(3), 0.0
+        return (*moved(), False)
 
     def _iteration(self, frame, min_cos: float, wd: float):
         """``iterate(lam)``: one iteration of the fit at stiffness ``lam`` (skin, correspondences,

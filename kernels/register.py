@@ -656,41 +656,49 @@ def measure_node_motion(
 
 @wp.kernel
 def accumulate_rigid_system(
+    # Model:
+    element_part: wp.array[wp.int32],
+    part_center: wp.array[wp.vec3],
     # In:
     moving: wp.array[wp.vec3],
     fixed: wp.array[wp.vec3],
     plane_normal: wp.array[wp.vec3],
     weight: wp.array[float],
-    center: wp.vec3,
+    element: wp.array[wp.int32],
     side: int,
     # Out (accumulated):
     rigid_system: wp.array2d[float],
 ):
-    """Gauss-Newton normal equations of sum_i weight_i ((moving_i - fixed_i) . n_i)^2 in a small
-    rigid motion of the moving points (rotation vector omega [rad] about ``center``, translation
-    tau [m]: x -> x + omega x (x - center) + tau), n_i = plane_normal_i normalised (rows with a
-    zero normal or weight skipped). Row i: J = [(moving_i - center) x n_i, n_i], residual
-    e = (moving_i - fixed_i) . n_i [m].
+    """Gauss-Newton normal equations, per part of the template, of sum_i weight_i
+    ((moving_i - fixed_i) . n_i)^2 in a small rigid motion of each part (rotation vector omega
+    [rad] about its ``part_center``, translation tau [m]: x -> x + omega x (x - center) + tau),
+    n_i = plane_normal_i normalised. Row i belongs to part element_part[element[i]] (``element``: a
+    template vertex or face; rows with element -1, a zero normal or a zero weight are skipped).
+    Row i: J = [(moving_i - center) x n_i, n_i], residual e = (moving_i - fixed_i) . n_i [m].
 
-    moving, fixed, plane_normal, weight (dim,) (launch with the live count); rigid_system (2, 28):
-    row ``side`` += the upper triangle of sum w J J^T (21 entries, row by row), sum w J e (6),
-    sum w (1).
+    moving, fixed, plane_normal, weight, element (dim,) (launch with the live count);
+    rigid_system (2 x parts, 29): row 2 part + ``side`` += the upper triangle of sum w J J^T
+    (21 entries, row by row), sum w J e (6), sum w (1), sum w e^2 (1) [m^2].
     """
     i = wp.tid()
     w = weight[i]
     nl = wp.length(plane_normal[i])
-    if w == 0.0 or nl == 0.0:
+    el = element[i]
+    if w == 0.0 or nl == 0.0 or el < 0:
         return
+    p = element_part[el]
+    row = 2 * p + side
     n = plane_normal[i] / nl
     x = moving[i]
-    c = wp.cross(x - center, n)
+    c = wp.cross(x - part_center[p], n)
     J = wp.vector(c[0], c[1], c[2], n[0], n[1], n[2])
     e = wp.dot(x - fixed[i], n)
     s = int(0)
     for a in range(6):
         for b in range(a, 6):
-            wp.atomic_add(rigid_system, side, s, w * J[a] * J[b])
+            wp.atomic_add(rigid_system, row, s, w * J[a] * J[b])
             s += 1
     for a in range(6):
-        wp.atomic_add(rigid_system, side, 21 + a, w * J[a] * e)
-    wp.atomic_add(rigid_system, side, 27, w)
+        wp.atomic_add(rigid_system, row, 21 + a, w * J[a] * e)
+    wp.atomic_add(rigid_system, row, 27, w)
+    wp.atomic_add(rigid_system, row, 28, w * e * e)
