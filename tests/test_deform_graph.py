@@ -441,7 +441,8 @@ def test_predict_candidates_start_from_the_better_pose_when_motion_reverses():
     cov = {}
     for n in (1, 3):
         r = to_fixed_topology(var, strategy="graph", device=DEV, predict_candidates=n, restart_threshold=0.0,
-                              refine_rounds=0, rigid_iterations=0, graph_iterations=3, iterations=1, smooth_iterations=3, key_frame=0)
+                              refine_rounds=0, rigid_iterations=0, graph_iterations=3, iterations=1,
+                              smooth_iterations=3, key_frame=0)
         cov[n] = np.asarray(r.conversion.coverage)[2:] / diag  # frames 0, 1 have no prediction
     assert (cov[3] < cov[1]).all() and cov[3].mean() < 0.85 * cov[1].mean(), cov
 
