@@ -63,7 +63,7 @@ import warp as wp
 
 from .choices import DEFAULT_FRAME_ORDER, DEFAULT_STRATEGY, STRATEGIES, FrameOrder, values
 from .conversion_options import options_for
-from .deform_graph import GraphFitter, build_deformation_graph, extrapolate_rotations
+from .deform_graph import GraphFitter, build_deformation_graph, extrapolate_rotations, node_groups
 from .geometry import (distinct_faces, face_areas, fit_group_motions, mesh_orientation, orient_faces, signed_volume, surface_area,
                        weld_vertices, winding_inconsistent, winding_numbers)
 from .kernels import convert as kc
@@ -801,19 +801,9 @@ class _Converter:
         its axis with its caps, a box spinning in the plane of its faces with its sides, a walker's
         torso with its shoulders. Held: a region with a moving part around it, and no such motion
         (a still torso turned by the legs' swing would leave its surface)."""
-        from scipy.sparse import coo_matrix
-        from scipy.sparse.csgraph import connected_components
-
         g, m, n = self.graph, frame[0], self.X.shape[0]
-        K = g.num_nodes
         (_, P0), (_, P1) = self.history[-2:]
-
-        def groups(mask):  # connected components of the nodes in mask, over edges inside it
-            keep = mask[e[:, 0]] & mask[e[:, 1]]
-            a = coo_matrix((np.ones(int(keep.sum())), (e[keep, 0], e[keep, 1])), shape=(K, K))
-            return connected_components(a, directed=False)[1]
-
-        reg, mov = groups(static), groups(own)
+        reg, mov = node_groups(g, static), node_groups(g, own)
         idx, w = g.node_index.reshape(n, -1), g.node_weight.reshape(n, -1)
         owner = idx[np.arange(n), np.argmax(w, axis=1)]  # each vertex's heaviest node
         X = self.X.numpy()
@@ -845,6 +835,31 @@ class _Converter:
                     break
         return out
 
+    def rigid_nodes(self, frame, init: tuple, moved: tuple) -> tuple:
+        """The start (R, P) of each graph node: the rigidly aligned one (``moved``, from
+        GraphFitter.rigid_align, a rigid motion per part of the template) for every node of a part
+        where it is supported broadly, else the prediction (``init``). A node supports it where its
+        template vertices lie nearer the frame's surface than from the prediction by the factor
+        RIGID_NODE_GAIN (their mean distance, weighted by their skinning weights); a part takes it
+        where at least RIGID_SUPPORT of its nodes do. A part turning as a whole fits better almost
+        everywhere it has a shape (a rolling box); a rigid motion that fits one region's own motion
+        in part (legs swinging in opposite phase read as a turn of the whole figure) fits the rest
+        no better (the still, round torso between them, which it would turn with them) and is left
+        to the graph fit."""
+        gf, n = self.gf, self.gf.n
+        err = []
+        for R, P in (init, moved):
+            d = wp.empty(n, dtype=float, device=self.device)
+            wp.launch(kc.measure_distances_to_mesh, dim=n, inputs=[frame[0].id, gf.skin(R, P), gf.max_dist],
+                      outputs=[d], device=self.device)
+            err.append(d.numpy().astype(np.float64))
+        idx, w = self.graph.node_index.reshape(-1), self.graph.node_weight.reshape(n, -1).astype(np.float64)
+        e0, e1 = [np.bincount(idx, (w * e[:, None]).reshape(-1), gf.K) for e in err]  # the same weights
+        part, C = gf.node_part, gf.num_parts
+        support = np.bincount(part, e1 < RIGID_NODE_GAIN * e0, C) / np.maximum(np.bincount(part, minlength=C), 1)
+        take = (support >= RIGID_SUPPORT)[part]
+        return np.where(take[:, None, None], moved[0], init[0]), np.where(take[:, None], moved[1], init[1])
+
     def step_graph(self, frame, t):
         o, gf = self.opts, self.gf
         gframe = self._graph_frame(frame)
@@ -875,8 +890,8 @@ class _Converter:
             init = best[1]
         if self.history and int(o["rigid_iterations"]) > 0:
             *moved, aligned = gf.rigid_align(gframe, *init, int(o["rigid_iterations"]), RIGID_STEP * diag)
-            if not aligned and self.fit_score(frame, gf.skin(*moved)) < self.fit_score(frame, gf.skin(*init)):
-                init = moved
+            if not aligned:
+                init = self.rigid_nodes(frame, init, moved)
         if static is not None and static.any():
             # a still part starts where it was and is held there (the constant-velocity prediction
             # carried a drift the data cannot see on from frame to frame)
@@ -1104,6 +1119,11 @@ STATIC_RINGS = 1
 #: the frame's diagonal (and turns less than 2e-3 rad); where its first step already does, the
 #: prediction is kept without scoring either (most frames of a smooth motion)
 RIGID_STEP = 1e-3
+#: the rigid start is taken for a part of the template where at least RIGID_SUPPORT of its graph
+#: nodes have their vertices' mean distance to the frame under RIGID_NODE_GAIN of the
+#: prediction's (``_Converter.rigid_nodes``)
+RIGID_NODE_GAIN = 0.8
+RIGID_SUPPORT = 0.25
 
 
 #: a frame whose size (the square root of its surface area) is over this factor from both of its

@@ -39,7 +39,7 @@ from .kernels import register as kr
 
 
 __all__ = ["DeformationGraph", "build_deformation_graph", "GraphFitter", "polar_rotations",
-           "extrapolate_rotations", "rotation_from_vector", "system_pattern"]
+           "extrapolate_rotations", "rotation_from_vector", "node_groups", "system_pattern"]
 
 
 @dataclass
@@ -271,22 +271,45 @@ HELD_LEVELS = 0.5
 CG_BLOCK_THREADS = 256
 
 
-#: rigid_align: damping of each part's 6 x 6 system, a fraction of its mean diagonal per block
-#: (a rotation the part's surface does not see is left out), and the fewest partners a part needs
-#: each way to be moved
-RIGID_DAMPING = 1e-2
+#: rigid_align: a part's step leaves out the directions of its 6 x 6 system (rotations scaled by
+#: the part's size) whose eigenvalue is under this fraction of the largest (a motion the part's
+#: surface does not see: a round part turning about its axis, a capsule about its own), and the
+#: fewest partners a part needs each way to be moved
+RIGID_CONDITION = 0.02
 RIGID_MIN_ROWS = 12
 #: rigid_align keeps a part's motion only where it lowers the part's two-sided mean squared plane
 #: distance below this factor of the start's
 RIGID_GAIN = 0.8
 
 
-def _graph_parts(graph: DeformationGraph) -> np.ndarray:
-    """(K,) int64: the connected piece of the graph (nodes joined by edges) each node is in."""
+def _observable_step(H: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """(P, 6) Gauss-Newton steps -H^-1 g of P rigid systems (H (P, 6, 6), g (P, 6); unknowns:
+    rotation vector [rad], translation [m]) within each one's observable directions: the rotation
+    is scaled by the part's size L (L^2 = tr H_rot / tr H_trans), and the directions whose
+    eigenvalue is under RIGID_CONDITION x the largest are left out (no step along them)."""
+    tt = np.maximum(np.trace(H[:, 3:, 3:], axis1=1, axis2=2), 1e-30)
+    L = np.sqrt(np.maximum(np.trace(H[:, :3, :3], axis1=1, axis2=2), 1e-30) / tt)
+    sc = np.ones((len(H), 6))
+    sc[:, :3] = 1.0 / L[:, None]
+    Hs = H * sc[:, :, None] * sc[:, None, :]
+    lam, U = np.linalg.eigh(Hs)
+    keep = lam > RIGID_CONDITION * lam[:, -1:]
+    inv = np.where(keep, 1.0 / np.where(keep, lam, 1.0), 0.0)
+    step = -np.einsum("pij,pj,pkj,pk->pi", U, inv, U, g * sc)
+    return step * sc
+
+
+def node_groups(graph: DeformationGraph, mask: np.ndarray | None = None) -> np.ndarray:
+    """(K,) int64: the connected group of each node over the graph's edges between nodes in
+    ``mask`` ((K,) bool; None: all, the template's parts). A node outside the mask is a group of
+    its own."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    K, e = graph.num_nodes, graph.edges
+    K = graph.num_nodes
+    e = np.asarray(graph.edges, np.int64).reshape(-1, 2)
+    if mask is not None:
+        e = e[mask[e[:, 0]] & mask[e[:, 1]]]
     if K == 0:
         return np.zeros(0, np.int64)
     a = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(K, K))
@@ -326,7 +349,7 @@ class GraphFitter:
         self.position_prev = wp.empty(K, dtype=wp.vec3, device=d)  # before the last iteration (convergence)
         self.moved = wp.zeros(1, dtype=float, device=d)
         # rigid_align: the template's parts (connected pieces of the graph), the normal equations of each
-        self.node_part = _graph_parts(graph)
+        self.node_part = node_groups(graph)
         self.num_parts = int(self.node_part.max()) + 1 if K else 0
         vpart = self.node_part[graph.node_index[:, 0]]
         self.vertex_part = arr(vpart.astype(np.int32), wp.int32)
@@ -577,9 +600,10 @@ class GraphFitter:
         vertex's plane is its own normal, a frame vertex's the frame's. The fit's point-to-point
         closest points move a surface along itself only part of the way per iteration (a body
         turning between frames: the template lags behind and slides); the planes' linearisation
-        finds a rigid turn in a few steps. Each part's system is damped by RIGID_DAMPING of its
-        mean diagonal: a motion the part's own surface cannot see (a round part turning about its
-        axis) is left out rather than taken from the noise. Returns float64 (K,3,3), (K,3) and
+        finds a rigid turn in a few steps. A step leaves out the directions the part's own surface
+        cannot see (:func:`_observable_step`: a round part turning about its axis) rather than
+        take them from the noise, and a part keeps its motion only where it lowers its two-sided
+        mean squared plane distance below RIGID_GAIN of the start's. Returns float64 (K,3,3), (K,3) and
         whether the first step was already below both bounds everywhere (the start was as good
         as rigidly aligned; R, P are then returned as given)."""
         m, pts, idx, fnormals = frame
@@ -623,12 +647,9 @@ class GraphFitter:
                 Hs[:, iu[0], iu[1]] = S[:, side, :21]
                 H += s[:, side, None, None] * (Hs + np.triu(Hs, 1).transpose(0, 2, 1))
                 g += s[:, side, None] * S[:, side, 21:27]
-            for blk in (slice(0, 3), slice(3, 6)):  # damping, per block (rotation [m^2], translation [1])
-                tr_b = np.trace(H[:, blk, blk], axis1=1, axis2=2) / 3.0
-                H[:, blk, blk] += (RIGID_DAMPING * np.maximum(tr_b, 1e-30))[:, None, None] * np.eye(3)
             d = np.zeros((C, 6))
             if seen.any():
-                d[seen] = -np.linalg.solve(H[seen], g[seen][:, :, None])[:, :, 0]
+                d[seen] = _observable_step(H[seen], g[seen])
             small = np.all((np.linalg.norm(d[:, :3], axis=1) < min_turn) & (np.linalg.norm(d[:, 3:], axis=1) < min_step))
             if small and it == 0:
                 return R, P, True

@@ -1300,7 +1300,9 @@ def test_a_static_floor_does_not_coarsen_the_graph_on_the_subject():
     diagonal, then leaves the jumping figure's arms too few nodes: they are lost. With
     ``adaptive_spacing`` (default) the spacing within the moving part's box comes from that part's
     own diagonal (the floor keeps the coarse one) and the arms are kept. The protocol's sequences,
-    where everything moves, keep one spacing (checked on the figure alone)."""
+    where everything moves, keep one spacing (checked on the figure alone). The rigid start is
+    off in both runs: it also keeps more of the arms on the coarse graph (4.1 % of the diagonal
+    lost instead of over 6 %), which is not what this test is about."""
     from dynmesh_warp.conversion_options import option_defaults
     from dynmesh_warp.convert import _node_spacing
     from dynmesh_warp.scenes import articulated_figure, with_floor
@@ -1311,7 +1313,7 @@ def test_a_static_floor_does_not_coarsen_the_graph_on_the_subject():
     var = FixedTopologySequence(V, F, fps=30.0, name="figure on a floor").to_varying()
     worst, info = {}, {}
     for adaptive in (True, False):
-        fx = to_fixed_topology(var, strategy="graph", device=DEV, adaptive_spacing=adaptive)
+        fx = to_fixed_topology(var, strategy="graph", device=DEV, adaptive_spacing=adaptive, rigid_iterations=0)
         worst[adaptive] = max(float(nearest_surface((fx.V[t], fx.F), fig.V[t], device=DEV).dist.max())
                               / _diag(fig.V[t]) for t in range(fig.num_frames))
         info[adaptive] = fx.conversion
