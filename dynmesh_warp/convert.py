@@ -835,29 +835,18 @@ class _Converter:
                     break
         return out
 
-    def rigid_nodes(self, frame, init: tuple, moved: tuple) -> tuple:
+    def rigid_nodes(self, frame, init: tuple, moved: tuple, static) -> tuple:
         """The start (R, P) of each graph node: the rigidly aligned one (``moved``, from
-        GraphFitter.rigid_align, a rigid motion per part of the template) for every node of a part
-        where it is supported broadly, else the prediction (``init``). A node supports it where its
-        template vertices lie nearer the frame's surface than from the prediction by the factor
-        RIGID_NODE_GAIN (their mean distance, weighted by their skinning weights); a part takes it
-        where at least RIGID_SUPPORT of its nodes do. A part turning as a whole fits better almost
-        everywhere it has a shape (a rolling box); a rigid motion that fits one region's own motion
-        in part (legs swinging in opposite phase read as a turn of the whole figure) fits the rest
-        no better (the still, round torso between them, which it would turn with them) and is left
-        to the graph fit."""
-        gf, n = self.gf, self.gf.n
-        err = []
-        for R, P in (init, moved):
-            d = wp.empty(n, dtype=float, device=self.device)
-            wp.launch(kc.measure_distances_to_mesh, dim=n, inputs=[frame[0].id, gf.skin(R, P), gf.max_dist],
-                      outputs=[d], device=self.device)
-            err.append(d.numpy().astype(np.float64))
-        idx, w = self.graph.node_index.reshape(-1), self.graph.node_weight.reshape(n, -1).astype(np.float64)
-        e0, e1 = [np.bincount(idx, (w * e[:, None]).reshape(-1), gf.K) for e in err]  # the same weights
-        part, C = gf.node_part, gf.num_parts
-        support = np.bincount(part, e1 < RIGID_NODE_GAIN * e0, C) / np.maximum(np.bincount(part, minlength=C), 1)
-        take = (support >= RIGID_SUPPORT)[part]
+        GraphFitter.rigid_align, a rigid motion per part of the template) for the nodes of the
+        parts with no node held still this frame (``static`` (K,) bool, the static hold's, or
+        None), else the prediction (``init``). A part with a still region is not moving as a
+        whole: a rigid motion that fits its moving regions in part (legs swinging in opposite
+        phase read as a turn of the whole figure) would turn the still region with them (the
+        still, round torso between the legs, which fits the frame as well turned)."""
+        if static is None or not static.any():
+            return moved
+        part = self.gf.node_part
+        take = ~np.isin(part, part[static])
         return np.where(take[:, None, None], moved[0], init[0]), np.where(take[:, None], moved[1], init[1])
 
     def step_graph(self, frame, t):
@@ -891,7 +880,7 @@ class _Converter:
         if self.history and int(o["rigid_iterations"]) > 0:
             *moved, aligned = gf.rigid_align(gframe, *init, int(o["rigid_iterations"]), RIGID_STEP * diag)
             if not aligned:
-                init = self.rigid_nodes(frame, init, moved)
+                init = self.rigid_nodes(frame, init, moved, static)
         if static is not None and static.any():
             # a still part starts where it was and is held there (the constant-velocity prediction
             # carried a drift the data cannot see on from frame to frame)
@@ -1119,11 +1108,6 @@ STATIC_RINGS = 1
 #: the frame's diagonal (and turns less than 2e-3 rad); where its first step already does, the
 #: prediction is kept without scoring either (most frames of a smooth motion)
 RIGID_STEP = 1e-3
-#: the rigid start is taken for a part of the template where at least RIGID_SUPPORT of its graph
-#: nodes have their vertices' mean distance to the frame under RIGID_NODE_GAIN of the
-#: prediction's (``_Converter.rigid_nodes``)
-RIGID_NODE_GAIN = 0.8
-RIGID_SUPPORT = 0.25
 
 
 #: a frame whose size (the square root of its surface area) is over this factor from both of its

@@ -1543,13 +1543,14 @@ def test_held_stiff_levels_follow_fast_motion():
     fast banana (the input is the GT's own mesh, so each output vertex has a known place: the
     oracle) the 8-iteration schedule alone leaves vertices up to 0.9 of the diagonal from their
     place and the input 3.8 % of the diagonal from the output; held levels keep every frame's
-    coverage under 2 % and the worst vertex within a fifth of that error."""
+    coverage under 2 % and the worst vertex within a fifth of that error. The rigid start is off
+    in both runs: on this banana it alone keeps the schedule's coverage under 1 %."""
     frames, F = _fast_banana()
     seq = VaryingTopologySequence([(v, F) for v in frames], name="banana")
     err, cov = {}, {}
     for extra in (0, 16):
         res = to_fixed_topology(seq, device=DEV, key_frame=0, key_candidates=0, converge_iterations=extra,
-                                converge_tolerance=0.3)
+                                converge_tolerance=0.3, rigid_iterations=0)
         err[extra] = max(np.linalg.norm(res.V[t] - frames[t], axis=1).max() / np.linalg.norm(np.ptp(frames[t], 0))
                          for t in range(len(frames)))
         cov[extra] = max(res.conversion.coverage)
