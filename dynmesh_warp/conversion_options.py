@@ -137,8 +137,11 @@ class GraphOptions(_Options, _FineStage):
     #: docs/conversion.md, "Held stiffness levels"); 0: the schedule alone
     converge_iterations: Int = Field(16, ge=0)
     converge_tolerance: Float = Field(0.3, gt=0.0)
-    #: rigid point-to-plane alignment of each frame's start pose (the prediction) before the graph
-    #: fit, kept where it fits the frame better: Gauss-Newton iterations at most (0: off)
+    #: the rigid start: each part of the template (a connected piece of the graph) moved from its
+    #: predicted pose by the rigid motion that fits it to the frame (symmetric point-to-plane ICP)
+    #: before the graph fit, so that a turning body does not lag and slide along its surface; kept
+    #: only along what the part's surface shows, where it fits clearly better, and not for a part
+    #: the static hold holds (docs/conversion.md, "The rigid start"): Gauss-Newton steps at most (0: off)
     rigid_iterations: Int = Field(6, ge=0)
     stiffness: Float = Field(10.0, ge=0.0)
     stiffness_end: Float = Field(0.3, ge=0.0)

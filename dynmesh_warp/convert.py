@@ -835,7 +835,7 @@ class _Converter:
                     break
         return out
 
-    def rigid_nodes(self, frame, init: tuple, moved: tuple, static) -> tuple:
+    def rigid_nodes(self, init: tuple, moved: tuple, static) -> tuple:
         """The start (R, P) of each graph node: the rigidly aligned one (``moved``, from
         GraphFitter.rigid_align, a rigid motion per part of the template) for the nodes of the
         parts with no node held still this frame (``static`` (K,) bool, the static hold's, or
@@ -844,7 +844,7 @@ class _Converter:
         phase read as a turn of the whole figure) would turn the still region with them (the
         still, round torso between the legs, which fits the frame as well turned)."""
         if static is None or not static.any():
-            return moved
+            return tuple(moved)
         part = self.gf.node_part
         take = ~np.isin(part, part[static])
         return np.where(take[:, None, None], moved[0], init[0]), np.where(take[:, None], moved[1], init[1])
@@ -880,7 +880,7 @@ class _Converter:
         if self.history and int(o["rigid_iterations"]) > 0:
             *moved, aligned = gf.rigid_align(gframe, *init, int(o["rigid_iterations"]), RIGID_STEP * diag)
             if not aligned:
-                init = self.rigid_nodes(frame, init, moved, static)
+                init = self.rigid_nodes(init, moved, static)
         if static is not None and static.any():
             # a still part starts where it was and is held there (the constant-velocity prediction
             # carried a drift the data cannot see on from frame to frame)
@@ -1106,7 +1106,7 @@ STATIC_RINGS = 1
 
 #: the rigid start (option rigid_iterations) stops at a step that moves less than this fraction of
 #: the frame's diagonal (and turns less than 2e-3 rad); where its first step already does, the
-#: prediction is kept without scoring either (most frames of a smooth motion)
+#: prediction is kept as it is (most frames of a smooth motion)
 RIGID_STEP = 1e-3
 
 
