@@ -1301,8 +1301,8 @@ def test_a_static_floor_does_not_coarsen_the_graph_on_the_subject():
     ``adaptive_spacing`` (default) the spacing within the moving part's box comes from that part's
     own diagonal (the floor keeps the coarse one) and the arms are kept. The protocol's sequences,
     where everything moves, keep one spacing (checked on the figure alone). The rigid start is
-    off in both runs: it also keeps more of the arms on the coarse graph (4.1 % of the diagonal
-    lost instead of over 6 %), which is not what this test is about."""
+    off in both runs: it also keeps more of the arms on the coarse graph (its first per-part
+    version: 4.1 % of the diagonal lost instead of over 6 %), which is not what this test is about."""
     from dynmesh_warp.conversion_options import option_defaults
     from dynmesh_warp.convert import _node_spacing
     from dynmesh_warp.scenes import articulated_figure, with_floor
