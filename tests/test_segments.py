@@ -548,7 +548,9 @@ def test_web_restarts_the_fit_on_fast_curling_arms():
     # atomics' order alone moved the worst web with the trigger from 0.6 to 5.8 % in three runs of
     # one H200 (bench/web_repeatability.py, bench/results/web_repeatability_*.json; CPU 7.4 -> 3.7 %,
     # H200 deterministic 12.1 -> 7.1 %)
-    det = {"deterministic": wp.get_device(TEST_DEVICE).is_cuda}
+    # the rigid start off too, for the same reason (with the schedule alone it moves this chaotic
+    # curl's webs: 9.1 -> 7.3 %; with the defaults the worst web is 5.8 % on, 6.0 % off)
+    det = {"deterministic": wp.get_device(TEST_DEVICE).is_cuda, "rigid_iterations": 0}
     off = to_fixed_topology(var, device=TEST_DEVICE, restart_on_web=False, converge_iterations=0, **det)
     on = to_fixed_topology(var, device=TEST_DEVICE, converge_iterations=0, **det)
     w_off, w_on = max(off.conversion.web), max(on.conversion.web)
