@@ -63,7 +63,7 @@ import warp as wp
 
 from .choices import DEFAULT_FRAME_ORDER, DEFAULT_STRATEGY, STRATEGIES, FrameOrder, values
 from .conversion_options import options_for
-from .deform_graph import GraphFitter, build_deformation_graph, extrapolate_rotations, node_groups
+from .deform_graph import GraphFitter, build_deformation_graph, extrapolate_rotations, node_groups, rotation_from_vector
 from .geometry import (distinct_faces, face_areas, fit_group_motions, mesh_orientation, orient_faces, signed_volume, surface_area,
                        weld_vertices, winding_inconsistent, winding_numbers)
 from .kernels import convert as kc
@@ -649,7 +649,7 @@ class _Converter:
                 return
             if not np.isfinite(xi).all():
                 return
-            R = _rotation_from_vector(xi[:3])
+            R = rotation_from_vector(xi[:3]).astype(np.float32)
             wp.launch(kc.transform_points_rigid, dim=n,
                       inputs=[self.X, wp.mat33(*R.reshape(-1)), wp.vec3(*center), wp.vec3(*xi[3:])],
                       outputs=[self.X], device=d)
@@ -1033,16 +1033,6 @@ def _grow_nodes(mask: np.ndarray, e: np.ndarray, rings: int) -> np.ndarray:
         ring[e[out[e[:, 0]], 1]] = True
         out = ring
     return out
-
-
-def _rotation_from_vector(w: np.ndarray) -> np.ndarray:
-    """Rodrigues: the rotation by angle |w| about w / |w| (float32 (3,3))."""
-    a = float(np.linalg.norm(w))
-    if a < 1e-12:
-        return np.eye(3, dtype=np.float32)
-    k = w / a
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return (np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K).astype(np.float32)
 
 
 def _as_varying(seq) -> VaryingTopologySequence:

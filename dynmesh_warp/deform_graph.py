@@ -202,13 +202,15 @@ def polar_rotations(C: np.ndarray) -> np.ndarray:
 
 
 def rotation_from_vector(v: np.ndarray) -> np.ndarray:
-    """The rotation by |v| radians about v (Rodrigues), (3, 3) float64."""
-    a = float(np.linalg.norm(v))
-    if a < 1e-15:
-        return np.eye(3)
-    k = np.asarray(v, np.float64) / a
-    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + np.sin(a) * K + (1.0 - np.cos(a)) * (K @ K)
+    """Rodrigues: the rotation by |v| radians about v, (..., 3) -> (..., 3, 3) float64; the
+    identity where |v| < 1e-12."""
+    v = np.asarray(v, np.float64)
+    a = np.linalg.norm(v, axis=-1)
+    k = np.divide(v, a[..., None], out=np.zeros_like(v), where=a[..., None] >= 1e-12)
+    K = np.zeros(v.shape[:-1] + (3, 3))
+    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -k[..., 2], k[..., 1], -k[..., 0]
+    K[..., 1, 0], K[..., 2, 0], K[..., 2, 1] = k[..., 2], -k[..., 1], k[..., 0]
+    return np.eye(3) + np.sin(a)[..., None, None] * K + (1.0 - np.cos(a))[..., None, None] * (K @ K)
 
 
 def extrapolate_rotations(R0: np.ndarray, R1: np.ndarray, gamma: float) -> np.ndarray:
@@ -222,12 +224,7 @@ def extrapolate_rotations(R0: np.ndarray, R1: np.ndarray, gamma: float) -> np.nd
     axis = np.stack([D[:, 2, 1] - D[:, 1, 2], D[:, 0, 2] - D[:, 2, 0], D[:, 1, 0] - D[:, 0, 1]], 1)
     s = np.linalg.norm(axis, axis=1, keepdims=True)
     axis = np.divide(axis, s, out=np.zeros_like(axis), where=s > 1e-12)
-    a = gamma * ang
-    Kx = np.zeros_like(D)
-    Kx[:, 0, 1], Kx[:, 0, 2], Kx[:, 1, 2] = -axis[:, 2], axis[:, 1], -axis[:, 0]
-    Kx[:, 1, 0], Kx[:, 2, 0], Kx[:, 2, 1] = axis[:, 2], -axis[:, 1], axis[:, 0]
-    Dg = np.eye(3) + np.sin(a)[:, None, None] * Kx + (1 - np.cos(a))[:, None, None] * (Kx @ Kx)
-    return Dg @ R1
+    return rotation_from_vector(axis * (gamma * ang)[:, None]) @ R1
 
 
 def system_pattern(graph: DeformationGraph, TF: np.ndarray) -> tuple:
@@ -655,9 +652,8 @@ class GraphFitter:
                 return R, P, True
             if small:
                 break  # converged: the pose measured last is the one it ends on
-            for p in np.flatnonzero(seen):  # x -> Rr (x - c) + c + tr, per part
-                dR = rotation_from_vector(d[p, :3])
-                Rr[p], tr[p] = dR @ Rr[p], dR @ tr[p] + d[p, 3:]
+            dR = rotation_from_vector(d[:, :3])  # x -> Rr (x - c) + c + tr, per part (unseen: d = 0)
+            Rr, tr = dR @ Rr, np.einsum("pij,pj->pi", dR, tr) + d[:, 3:]
             self.skin(*moved())
         # a part keeps its rigid motion only where that fits it clearly better than the start (a
         # round part's turn fitted to the error of a reconstruction only fits it a little better)
