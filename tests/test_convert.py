@@ -933,6 +933,7 @@ def test_strategy_options_are_one_typed_model_per_strategy():
     assert isinstance(g, GraphOptions) and g.refine_rounds == 1 and isinstance(g.refine_rounds, int)
     assert g.key_frame == 3 and g.pull_fraction == 1.0 and option_defaults("regularized")["pull_fraction"] == 0.5
     for bad, msg in (({"refine_rounds": True}, "refine_rounds must be an integer >= 0"),
+                     ({"rigid_iterations": -1}, "rigid_iterations must be an integer >= 0"),
                      ({"nodes_per_vertex": MAX_NODES_PER_VERTEX + 1}, f"lie in [1, {MAX_NODES_PER_VERTEX}]"),
                      ({"cg_tolerance": -1.0}, "cg_tolerance must be a finite number >= 0"),
                      ({"node_spacing": 0.0}, "node_spacing must lie in (0, 1]")):
