@@ -63,7 +63,8 @@ import warp as wp
 
 from .choices import DEFAULT_FRAME_ORDER, DEFAULT_STRATEGY, STRATEGIES, FrameOrder, values
 from .conversion_options import options_for
-from .deform_graph import GraphFitter, build_deformation_graph, extrapolate_rotations, node_groups, rotation_from_vector
+from .deform_graph import (GraphFitter, GraphFrame, build_deformation_graph, extrapolate_rotations, node_groups, rim_array,
+                           rotation_from_vector)
 from .geometry import (distinct_faces, face_areas, fit_group_motions, mesh_orientation, orient_faces, signed_volume, surface_area,
                        weld_vertices, winding_inconsistent, winding_numbers)
 from .kernels import convert as kc
@@ -120,6 +121,11 @@ class _Frame(tuple):
         self = super().__new__(cls, (mesh, pts, idx))
         self._faces, self._closed = faces, None
         return self
+
+    @property
+    def faces(self) -> np.ndarray:
+        """The host faces (M, 3) the frame was made from."""
+        return self._faces
 
     @property
     def closed(self) -> bool:
@@ -743,12 +749,15 @@ class _Converter:
         self.remember(t)
         return restarted
 
-    def _graph_frame(self, frame):
+    def _graph_frame(self, frame: _Frame) -> GraphFrame:
         m, pts, idx = frame
         fn = wp.zeros(pts.shape[0], dtype=wp.vec3, device=self.device)
         wp.launch(kc.accumulate_vertex_normals, dim=idx.shape[0] // 3, inputs=[pts, idx], outputs=[fn],
                   device=self.device)
-        return (m, pts, idx, fn)
+        # the rim matters to the rigid start where the surfaces are partial views; found only where
+        # the template is open (a partial scan's), as it costs a host pass over the frame's edges
+        rim = None if self.gf.face_rim is None or frame.closed else rim_array(frame.faces, self.device)
+        return GraphFrame(m, pts, idx, fn, rim)
 
     def _graph_finish(self, frame, R, P):
         """The fine stage on the full-resolution template after the graph fit (R, P): the smooth

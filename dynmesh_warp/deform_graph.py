@@ -30,16 +30,37 @@ once.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import warp as wp
 
 from .conversion_options import CG_ITERATIONS, CG_TOLERANCE  # the solve's defaults (one home)
+from .geometry import face_rim_flags
 from .kernels import register as kr
 
 
-__all__ = ["DeformationGraph", "build_deformation_graph", "GraphFitter", "polar_rotations",
+__all__ = ["DeformationGraph", "GraphFrame", "rim_array", "build_deformation_graph", "GraphFitter", "polar_rotations",
            "extrapolate_rotations", "rotation_from_vector", "node_groups", "system_pattern"]
+
+
+class GraphFrame(NamedTuple):
+    """An input frame on the device as :class:`GraphFitter` takes it: ``mesh`` a wp.Mesh over
+    ``points`` (Q,) wp.vec3 [m] and ``indices`` (3M,) wp.int32; ``normals`` (Q,) wp.vec3 area-
+    weighted vertex normals (any length); ``face_rim`` (M,) wp.int32 the faces' rim flags
+    (:func:`dynmesh_warp.geometry.face_rim_flags`), None where the frame has no rim (closed)."""
+
+    mesh: wp.Mesh
+    points: wp.array
+    indices: wp.array
+    normals: wp.array
+    face_rim: wp.array | None = None
+
+
+def rim_array(F: np.ndarray, device) -> wp.array | None:
+    """The rim flags of faces ``F`` (M, 3) on the device, None for a closed mesh (no rim)."""
+    flags = face_rim_flags(F)
+    return wp.array(flags, dtype=wp.int32, device=device) if flags.any() else None
 
 
 @dataclass
@@ -336,6 +357,7 @@ class GraphFitter:
         arr = lambda a, dt: wp.array(a, dtype=dt, device=d)  # noqa: E731
         self.rest_points = arr(np.ascontiguousarray(TV, np.float32), wp.vec3)
         self.indices = arr(np.ascontiguousarray(TF, np.int32).reshape(-1), wp.int32)
+        self.face_rim = rim_array(TF, d)  # the template's rim (an open template), None if closed
         self.node_rest = arr(graph.node_rest.astype(np.float32), wp.vec3)
         self.node_index = arr(graph.node_index.reshape(-1), wp.int32)
         self.node_weight = arr(graph.node_weight.reshape(-1), float)
@@ -449,24 +471,30 @@ class GraphFitter:
         wp.launch(kc.accumulate_vertex_normals, dim=len(self.indices) // 3, inputs=[self.points, self.indices],
                   outputs=[self.normals], device=self.device)
 
-    def correspondences(self, frame, min_cos: float):
-        """Forward and backward correspondences for the current self.points."""
-        m, pts, idx, fnormals = frame
+    def correspondences(self, frame: GraphFrame, min_cos: float, reject_rim: bool = False):
+        """Forward and backward correspondences for the current self.points. ``reject_rim``: on an
+        open frame or template, the pairs whose closest point lies on the searched mesh's rim are
+        left out (``kr.reject_rim_pairs``; the rigid start's, see :meth:`rigid_align`)."""
         d = self.device
         self._update_template()
         wp.launch(kr.find_correspondences, dim=self.n,
-                  inputs=[m.id, pts, idx, self.points, self.normals, self.max_dist, min_cos],
+                  inputs=[frame.mesh.id, frame.points, frame.indices, self.points, self.normals, self.max_dist, min_cos],
                   outputs=[self.target, self.fface, self.fbary, self.fweight, self.fdist], device=d)
-        self._find_backward(frame, self.points, min_cos)
+        if reject_rim and frame.face_rim is not None:
+            wp.launch(kr.reject_rim_pairs, dim=self.n, inputs=[frame.face_rim, self.fface, self.fbary],
+                      outputs=[self.fweight], device=d)
+        self._find_backward(frame, self.points, min_cos, reject_rim)
 
-    def _find_backward(self, frame, X, min_cos: float):
+    def _find_backward(self, frame: GraphFrame, X, min_cos: float, reject_rim: bool = False):
         """Frame -> template correspondences against the template BVH (already refit to X)."""
-        m, pts, idx, fnormals = frame
-        q = pts.shape[0]
+        q = frame.points.shape[0]
         self._frame_arrays(q)
         wp.launch(kr.find_correspondences, dim=q,
-                  inputs=[self.tmesh.id, X, self.indices, pts, fnormals, self.max_dist, min_cos],
+                  inputs=[self.tmesh.id, X, self.indices, frame.points, frame.normals, self.max_dist, min_cos],
                   outputs=[self.bclosest, self.bface, self.bbary, self.bweight, self.bdist], device=self.device)
+        if reject_rim and self.face_rim is not None:
+            wp.launch(kr.reject_rim_pairs, dim=q, inputs=[self.face_rim, self.bface, self.bbary],
+                      outputs=[self.bweight], device=self.device)
 
     def assemble(self, frame, stiffness_weight: float | None, damping_weight: float):
         """The normal equations in the node positions (values, rhs) for the current
@@ -603,7 +631,7 @@ class GraphFitter:
         mean squared plane distance below RIGID_GAIN of the start's. Returns float64 (K,3,3), (K,3) and
         whether the first step was already below both bounds everywhere (the start was as good
         as rigidly aligned; R, P are then returned as given)."""
-        m, pts, idx, fnormals = frame
+        pts, fnormals = frame.points, frame.normals
         min_cos = float(np.cos(np.radians(float(self.opts["max_normal_angle"]))))
         R, P = np.asarray(R, np.float64), np.asarray(P, np.float64)
         C, part = self.num_parts, self.node_part
@@ -622,7 +650,7 @@ class GraphFitter:
 
         energy = []  # per iteration: each part's two-sided mean squared plane distance [m^2]
         for it in range(int(iterations) + 1):
-            self.correspondences(frame, min_cos)
+            self.correspondences(frame, min_cos, reject_rim=True)
             self.rigid_system.zero_()
             for side, (dim, moving, fixed, normal, weight, element, owner) in enumerate((
                     (self.n, self.points, self.target, self.normals, self.fweight, self.vertex_ids, self.vertex_part),

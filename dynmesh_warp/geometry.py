@@ -8,7 +8,7 @@ import numpy as np
 __all__ = ["face_areas", "surface_area", "signed_volume", "orient_outward", "mesh_orientation", "orient_faces",
            "winding_inconsistent",
            "distinct_faces", "flat_faces", "weld_vertices", "motion_groups", "fit_group_motions", "rotation_to_wxyz",
-           "up_from_gravity", "frame_across"]
+           "up_from_gravity", "frame_across", "face_rim_flags"]
 
 
 def face_areas(V, F) -> np.ndarray:
@@ -308,6 +308,28 @@ def _patches(F: np.ndarray) -> tuple:
     edges = np.bincount(label[edges_of], minlength=npatch)
     rim = order[start[count == 1]]  # the half-edges on one face only: the holes' rims
     return label, npatch, rewind, orientable, boundary, edges, d[rim], label[face[rim]]
+
+
+def face_rim_flags(F) -> np.ndarray:
+    """(M,) int32 per face of ``F`` (M, 3): bit k (0-2) set where the face's edge opposite its
+    corner k lies on one face only (a rim: a hole's, a sheet's or a partial scan's edge), bit 3 + k
+    where corner k is a vertex of some rim edge. All zero on a closed mesh."""
+    F = np.asarray(F, np.int64).reshape(-1, 3)
+    M = len(F)
+    flags = np.zeros(M, np.int32)
+    if not M:
+        return flags
+    n = int(F.max()) + 1
+    a, b = F[:, [1, 2, 0]].T.ravel(), F[:, [2, 0, 1]].T.ravel()  # row k M + i: face i's edge opposite corner k
+    key = np.minimum(a, b) * n + np.maximum(a, b)
+    _, inverse, count = np.unique(key, return_inverse=True, return_counts=True)
+    rim = (count[inverse] == 1).reshape(3, M)
+    on_rim = np.zeros(n, bool)
+    on_rim[a[rim.ravel()]] = on_rim[b[rim.ravel()]] = True
+    for k in range(3):
+        flags |= rim[k].astype(np.int32) << k
+        flags |= on_rim[F[:, k]].astype(np.int32) << (3 + k)
+    return flags
 
 
 #: a face is flat (no area: its corners on a line) when its height over its longest edge is at

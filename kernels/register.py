@@ -126,6 +126,46 @@ def find_correspondences(
     weight[i] = w
 
 
+#: a closest point counts as on a face's edge (or corner) when its weight of the opposite corner
+#: is below this (or its own weight above 1 minus it); Warp's closest-point query puts points of
+#: an edge's region exactly on it, up to float32 rounding
+RIM_BARY = wp.constant(1.0e-4)
+
+
+@wp.kernel
+def reject_rim_pairs(
+    # Model:
+    face_rim: wp.array[wp.int32],
+    # In:
+    face: wp.array[wp.int32],
+    bary: wp.array[wp.vec3],
+    # Out:
+    weight_out: wp.array[float],
+):
+    """Zero the weight of each correspondence whose closest point lies on the searched mesh's rim
+    (an edge of one face only, or a vertex of one): on a partial scan, or a template taken from
+    one, a point beyond the part both surfaces show finds the rim as its closest point and pulls
+    the fit sideways along the surface (Turk & Levoy 1994 leave such pairs out when aligning
+    range scans).
+
+    face_rim (M,) :func:`dynmesh_warp.geometry.face_rim_flags` of the searched mesh; face, bary
+    (Q,) from :func:`find_correspondences`; weight_out (Q,) in place.
+    """
+    i = wp.tid()
+    f = face[i]
+    if f < 0:
+        return
+    flags = face_rim[f]
+    if flags == 0:
+        return
+    b = bary[i]
+    for k in range(3):
+        if ((flags >> k) & 1) != 0 and b[k] < RIM_BARY:
+            weight_out[i] = 0.0
+        if ((flags >> (3 + k)) & 1) != 0 and b[k] > 1.0 - RIM_BARY:
+            weight_out[i] = 0.0
+
+
 @wp.func
 def fixed_part(
     points: wp.array[wp.vec3],

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from dynmesh_warp.deform_graph import GraphFitter, build_deformation_graph, polar_rotations
+from dynmesh_warp.deform_graph import GraphFitter, GraphFrame, build_deformation_graph, polar_rotations
 from dynmesh_warp.scenes import icosphere
 
 from conftest import TEST_DEVICE as DEV  # noqa: E402  ("cpu" unless DYNMESH_TEST_DEVICE says otherwise)
@@ -51,7 +51,7 @@ def test_graph_fit_recovers_a_rigid_motion():
     from dynmesh_warp.remesh import vertex_normals
 
     fn = wp.array(vertex_normals(V1, F).astype(np.float32), dtype=wp.vec3, device=dev)
-    frame = (wp.Mesh(points=pts, indices=idx), pts, idx, fn)
+    frame = GraphFrame(wp.Mesh(points=pts, indices=idx), pts, idx, fn)
     R0 = np.repeat(np.eye(3)[None], g.num_nodes, 0)
     from dynmesh_warp.convert import nearest_surface
 
@@ -105,7 +105,7 @@ def _box_frame(V, F, a, shift):
     pts = wp.array(V1, dtype=wp.vec3, device=DEV)
     idx = wp.array(F.reshape(-1).astype(np.int32), dtype=wp.int32, device=DEV)
     fn = wp.array(vertex_normals(V1, F).astype(np.float32), dtype=wp.vec3, device=DEV)
-    return (wp.Mesh(points=pts, indices=idx), pts, idx, fn), V1
+    return GraphFrame(wp.Mesh(points=pts, indices=idx), pts, idx, fn), V1
 
 
 def test_rigid_align_finds_a_turn_the_closest_point_fit_lags_behind():
@@ -150,13 +150,115 @@ def test_rigid_align_moves_each_part_by_its_own_motion():
     pts = wp.array(V1, dtype=wp.vec3, device=DEV)
     idx = wp.array(F.reshape(-1), dtype=wp.int32, device=DEV)
     fn = wp.array(vertex_normals(V1, F).astype(np.float32), dtype=wp.vec3, device=DEV)
-    frame = (wp.Mesh(points=pts, indices=idx), pts, idx, fn)
+    frame = GraphFrame(wp.Mesh(points=pts, indices=idx), pts, idx, fn)
     R0, P0 = np.repeat(np.eye(3)[None], g.num_nodes, 0), g.node_rest.copy()
     R, P, aligned = fit.rigid_align(frame, R0, P0, 8, 1e-6)
     X = fit.skin(R, P).numpy()
     assert not aligned
     assert np.abs(X[:len(Vb)] - V[:len(Vb)]).max() < 1e-4  # the base stays
     assert np.abs(X[len(Vb):] - V1[len(Vb):]).max() < 2e-3  # the body turns
+
+
+def _faces_facing_minus_y(V, F):
+    """The faces of (V, F) a camera at -y sees (a one-sided partial scan), re-indexed."""
+    fn = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    keep = fn[:, 1] < 0
+    used = np.unique(F[keep])
+    remap = -np.ones(len(V), np.int64)
+    remap[used] = np.arange(len(used))
+    return V[used].astype(np.float32), remap[F[keep]].astype(np.int32)
+
+
+def test_face_rim_flags_match_a_count_of_each_edges_faces():
+    """Bit k: the edge opposite corner k on one face only; bit 3 + k: corner k a vertex of such an
+    edge. Against a dictionary count of faces per edge, on a sphere with faces cut away."""
+    from dynmesh_warp.geometry import face_rim_flags
+
+    V, F = icosphere(2, 1.0)
+    F = F[V[F].mean(axis=1)[:, 2] < 0.5]  # a cap cut off: an open rim
+    F = np.delete(F, [3, 40], axis=0)  # and two holes
+    count = {}
+    for f in F:
+        for k in range(3):
+            e = tuple(sorted((f[(k + 1) % 3], f[(k + 2) % 3])))
+            count[e] = count.get(e, 0) + 1
+    on_rim = {v for e, c in count.items() if c == 1 for v in e}
+    want = np.zeros(len(F), np.int32)
+    for i, f in enumerate(F):
+        for k in range(3):
+            want[i] |= (count[tuple(sorted((f[(k + 1) % 3], f[(k + 2) % 3])))] == 1) << k
+            want[i] |= (f[k] in on_rim) << (3 + k)
+    got = face_rim_flags(F)
+    assert np.array_equal(got, want)
+    assert (got & 7).any() and not face_rim_flags(icosphere(2, 1.0)[1]).any()  # closed: none
+
+
+def test_reject_rim_pairs_matches_brute_force():
+    """A pair is left out exactly where its closest point lies on a rim edge (brute force: the
+    distance to the nearest rim segment), on a sheet with a hole and queries all around it."""
+    from dynmesh_warp.geometry import face_rim_flags
+    from dynmesh_warp.kernels import register as kr
+
+    n = 12
+    u, v = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n))
+    V = np.stack([u.ravel(), v.ravel(), 0.1 * np.sin(3 * u.ravel())], 1).astype(np.float32)
+    q = (np.arange(n - 1)[:, None] * n + np.arange(n - 1)[None, :]).ravel()
+    F = np.concatenate([np.stack([q, q + 1, q + n + 1], 1), np.stack([q, q + n + 1, q + n], 1)]).astype(np.int32)
+    F = np.delete(F, [60, 61, 60 + len(q)], axis=0)  # a hole inside
+    rng = np.random.default_rng(5)
+    Q = (rng.random((2000, 3)) * [1.6, 1.6, 0.8] - [0.3, 0.3, 0.4]).astype(np.float32)
+    pts = wp.array(V, dtype=wp.vec3, device=DEV)
+    idx = wp.array(F.reshape(-1), dtype=wp.int32, device=DEV)
+    mesh = wp.Mesh(points=pts, indices=idx)
+    out = [wp.empty(len(Q), dtype=t, device=DEV) for t in (wp.vec3, wp.int32, wp.vec3, float, float)]
+    qa = wp.array(Q, dtype=wp.vec3, device=DEV)
+    wp.launch(kr.find_correspondences, dim=len(Q), inputs=[mesh.id, pts, idx, qa, qa, 10.0, -2.0], outputs=out,
+              device=DEV)
+    assert out[3].numpy().min() == 1.0  # every pair kept before (min_cos -2)
+    wp.launch(kr.reject_rim_pairs, dim=len(Q), inputs=[wp.array(face_rim_flags(F), dtype=wp.int32, device=DEV),
+              out[1], out[2]], outputs=[out[3]], device=DEV)
+    C = out[0].numpy().astype(np.float64)
+    key = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
+    edges, cnt = np.unique(key, axis=0, return_counts=True)
+    A, B = V[edges[cnt == 1, 0]].astype(np.float64), V[edges[cnt == 1, 1]].astype(np.float64)
+    AB = B - A
+    t = np.clip(np.einsum("qej,ej->qe", C[:, None] - A[None], AB) / np.einsum("ej,ej->e", AB, AB), 0, 1)
+    d = np.linalg.norm(C[:, None] - (A[None] + t[..., None] * AB[None]), axis=2).min(axis=1)
+    on_rim = d < 1e-5
+    assert 100 < on_rim.sum() < len(Q) - 100  # both kinds of query are there
+    assert np.array_equal(out[3].numpy() == 0.0, on_rim)
+
+
+def test_rigid_align_on_a_partial_scan_leaves_the_rims_pairs_out():
+    """A one-sided scan (the faces a camera at -y sees) of an ellipsoid turned 20 degrees: the
+    part each view shows changes, so template points beyond the shared part find the other
+    scan's rim and drag the turn short (19.6 degrees, a few mm off). Without those pairs the
+    rigid start finds the turn."""
+    from dynmesh_warp.deform_graph import rim_array
+    from dynmesh_warp.remesh import vertex_normals
+
+    V, F = icosphere(4, 1.0)
+    V = V * np.array([0.5, 0.3, 0.2])
+    a = np.radians(20.0)
+    Rz = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    TV, TF = _faces_facing_minus_y(V, F)
+    FV, FF = _faces_facing_minus_y(V @ Rz.T, F)
+    g = build_deformation_graph(TV, TF, spacing=0.15, k=4)
+    pts = wp.array(FV, dtype=wp.vec3, device=DEV)
+    idx = wp.array(FF.reshape(-1), dtype=wp.int32, device=DEV)
+    fn = wp.array(vertex_normals(FV, FF).astype(np.float32), dtype=wp.vec3, device=DEV)
+    R0, P0 = np.repeat(np.eye(3)[None], g.num_nodes, 0), g.node_rest.copy()
+    errs = []
+    for reject in (True, False):
+        fit = GraphFitter(g, TV, TF, wp.get_device(DEV), 10.0, {"max_normal_angle": 60.0})
+        assert fit.face_rim is not None
+        if not reject:
+            fit.face_rim = None  # the template's rim unknown, and the frame's: every pair kept
+        frame = GraphFrame(wp.Mesh(points=pts, indices=idx), pts, idx, fn, rim_array(FF, DEV) if reject else None)
+        R, P, aligned = fit.rigid_align(frame, R0, P0, 8, 1e-6)
+        assert not aligned
+        errs.append(np.linalg.norm(fit.skin(R, P).numpy() - TV @ Rz.T, axis=1).max())
+    assert errs[0] < 2e-4 and errs[1] > 10 * errs[0]
 
 
 def test_rigid_align_without_partners_returns_the_start():
@@ -244,7 +346,7 @@ def _fit_setup(seed=0, cg_iterations=40):
     pts = wp.array(V1, dtype=wp.vec3, device=DEV)
     idx = wp.array(F.reshape(-1).astype(np.int32), dtype=wp.int32, device=DEV)
     fn = wp.array(vertex_normals(V1, F).astype(np.float32), dtype=wp.vec3, device=DEV)
-    frame = (wp.Mesh(points=pts, indices=idx), pts, idx, fn)
+    frame = GraphFrame(wp.Mesh(points=pts, indices=idx), pts, idx, fn)
     K = g.num_nodes
     R = polar_rotations(np.eye(3) + 0.1 * rng.normal(size=(K, 3, 3)))
     P = g.node_rest + 0.02 * rng.normal(size=(K, 3))

@@ -26,7 +26,7 @@ HEADER = re.compile(r"^#\s*(Model|State in|In|State out|Out)(\s*\([^)]*\))?:\s*$
 VERBS = {
     "accumulate", "add", "advance", "apply", "begin", "bind", "blend", "cast", "collide", "combine", "compute", "count",
     "detect", "emit", "evaluate",
-    "find", "gather", "integrate", "mark", "measure", "multiply", "pack", "project", "rasterize", "relax", "reset",
+    "find", "gather", "integrate", "mark", "measure", "multiply", "pack", "project", "rasterize", "reject", "relax", "reset",
     "resolve", "sample", "scatter", "skin", "smooth", "solve", "sum", "transform", "update",
 }
 
