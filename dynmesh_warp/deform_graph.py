@@ -381,6 +381,7 @@ class GraphFitter:
         # (a tree refit far from the pose it was built on answers queries slowly)
         self.mesh_points = wp.empty(n, dtype=wp.vec3, device=d)
         self.tmesh = None
+        self._tree_pose = None  # (R, P) the tree was built on and left unmoved, else None
         self.normals = wp.zeros(n, dtype=wp.vec3, device=d)
         self.target = wp.empty(n, dtype=wp.vec3, device=d)
         self.fface = wp.empty(n, dtype=wp.int32, device=d)
@@ -461,6 +462,16 @@ class GraphFitter:
         """Rebuild the template BVH on the template skinned by the device state."""
         wp.copy(self.mesh_points, self.skin())
         self.tmesh = wp.Mesh(points=self.mesh_points, indices=self.indices)
+        self._tree_pose = None
+
+    def _rebuild_unless_built_on(self, R: np.ndarray, P: np.ndarray):
+        """:meth:`rebuild` (the state set to R, P already), unless the tree stands on exactly this
+        pose: :meth:`rigid_align` found the start aligned and left its tree built on it (one
+        build a frame saved, ~6 ms for 20k faces on the CPU; the same tree, so the same result)."""
+        kept = self._tree_pose
+        if kept is None or not (np.array_equal(kept[0], R) and np.array_equal(kept[1], P)):
+            self.rebuild()
+        self._tree_pose = None
 
     def _update_template(self):
         from .kernels import convert as kc
@@ -588,7 +599,7 @@ class GraphFitter:
         lams = np.geomspace(max(stiffness, 1e-12), max(stiffness_end, 1e-12), its) if its > 1 else [stiffness_end]
         self.set_state(R, P)
         wp.copy(self.position_prior, self.node_position)
-        self.rebuild()
+        self._rebuild_unless_built_on(R, P)
         wd = float(damping) / self.K
         self.set_hold(hold)
 
@@ -677,6 +688,7 @@ class GraphFitter:
                 d[seen] = _observable_step(H[seen], g[seen])
             small = np.all((np.linalg.norm(d[:, :3], axis=1) < min_turn) & (np.linalg.norm(d[:, 3:], axis=1) < min_step))
             if small and it == 0:
+                self._tree_pose = (R.copy(), P.copy())  # the tree stands on the start (fit() reuses it)
                 return R, P, True
             if small:
                 break  # converged: the pose measured last is the one it ends on
