@@ -742,3 +742,33 @@ def accumulate_rigid_system(
         wp.atomic_add(rigid_system, row, 21 + a, w * J[a] * e)
     wp.atomic_add(rigid_system, row, 27, w)
     wp.atomic_add(rigid_system, row, 28, w * e * e)
+
+
+@wp.kernel
+def accumulate_node_residuals(
+    # Model:
+    node_index: wp.array[wp.int32],
+    k: int,
+    # In:
+    points: wp.array[wp.vec3],
+    target: wp.array[wp.vec3],
+    normals: wp.array[wp.vec3],
+    weight: wp.array[float],
+    # Out (accumulated):
+    node_residual: wp.array[wp.vec2],
+):
+    """Per graph node, the plane distances of the template vertices whose nearest node it is
+    (node_index[k i], the first of vertex i's k nodes): node_residual[j] += (w_i e_i^2, w_i) with
+    e_i = (points_i - target_i) . n_i [m], n_i = normals_i normalised; vertices with a zero
+    weight or normal are skipped.
+
+    node_index (N k,); points, target, normals, weight (N,); node_residual (K,) [m^2, 1], zero it first.
+    """
+    i = wp.tid()
+    w = weight[i]
+    nl = wp.length(normals[i])
+    if w == 0.0 or nl == 0.0:
+        return
+    e = wp.dot(points[i] - target[i], normals[i] / nl)
+    wp.atomic_add(node_residual, node_index[k * i], wp.vec2(w * e * e, w))
+
