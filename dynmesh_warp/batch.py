@@ -49,6 +49,7 @@ from .kernels.batch import (
     reset_env_spheres,
 )
 from .kernels.frames import add_points_offset, update_frame_vertices
+from .runtime import free_bytes
 from .world import (Contacts, PhysicsParams, SphereModel, SurfaceModel, check_substep_budget, fallen_past_note,
                     frame_pair_host, seam_note)
 
@@ -758,19 +759,6 @@ def _spheres_for_env_starts(cfg, seq, mode: int, times: np.ndarray, pos: np.ndar
 BYTES_PER_ENV, BYTES_PER_SPHERE = 64, 64
 
 
-def _free_bytes(device) -> int:
-    """Free memory of ``device`` [bytes]: the GPU's, or the host's available physical memory
-    (0 where it cannot be told: no check then)."""
-    import os
-
-    try:
-        if device.is_cuda:
-            return int(device.free_memory)
-        return int(os.sysconf("SC_AVPHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
-    except (AttributeError, ValueError, OSError):
-        return 0
-
-
 def build_batched_world(cfg, device=None, num_envs: int | None = None, sequence=None) -> BatchedWorld:
     """A :class:`BatchedWorld` of a scene: the one builder (``scene.build_model``) gives the
     surface, spheres and physics; ``envs:`` (or ``num_envs``) the count and clocks. ``cfg``: a
@@ -789,7 +777,7 @@ def build_batched_world(cfg, device=None, num_envs: int | None = None, sequence=
     if envs.count < 1:
         raise SceneError(f"envs.count must be >= 1, got {envs.count}")
     need = envs.count * (BYTES_PER_ENV + BYTES_PER_SPHERE * model.spheres.count)
-    free = _free_bytes(model.device)
+    free = free_bytes(model.device)
     if free and need > free:  # a new user's --envs 100000000 was killed by the OOM killer
         def size(b):
             return f"{b / 2**30:,.1f} GiB" if b >= 2**30 else f"{b / 2**20:,.1f} MiB"

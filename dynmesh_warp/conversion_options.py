@@ -41,6 +41,12 @@ def _key_frame(v):
 
 
 Int = Annotated[int, BeforeValidator(_no_bool)]
+#: the most iterations, rounds, passes or candidates any count option takes: far above any useful
+#: setting (the defaults are 1-16), low enough that a frame always ends (a new user's
+#: ``--iterations 1000000000`` ran on past a SIGTERM, which stops at the next frame)
+MAX_COUNT = 10_000
+#: a count of iterations (rounds, passes, candidates): a whole number up to MAX_COUNT
+Count = Annotated[int, BeforeValidator(_no_bool), Field(le=MAX_COUNT)]
 Float = Annotated[float, BeforeValidator(_no_bool)]
 Fraction = Annotated[float, BeforeValidator(_no_bool), Field(ge=0.0, le=1.0)]
 KeyFrame = Annotated[Union[Literal["auto"], int, None], BeforeValidator(_key_frame)]
@@ -90,10 +96,10 @@ class _Options(BaseModel):
 class _FineStage(BaseModel):
     """The full-resolution refinement ``regularized`` and ``graph`` share."""
 
-    smooth_iterations: Int = Field(10, ge=0)
+    smooth_iterations: Count = Field(10, ge=0)
     smooth_weight: Fraction = 0.5
     pull_fraction: Fraction = 0.5
-    relax_iterations: Int = Field(3, ge=0)
+    relax_iterations: Count = Field(3, ge=0)
     relax_step: Fraction = 1.0
     normal_slack: Float = Field(3.0, ge=1.0)
 
@@ -111,10 +117,10 @@ class TrackingOptions(_Options):
 
 class RegularizedOptions(_Options, _FineStage):
     strategy: Literal["regularized"] = "regularized"
-    iterations: Int = Field(3, ge=0)
-    rigid_iterations: Int = Field(3, ge=0)
+    iterations: Count = Field(3, ge=0)
+    rigid_iterations: Count = Field(3, ge=0)
     reinit_threshold: Float = Field(0.005, ge=0.0)
-    max_iterations: Int = Field(6, ge=0)
+    max_iterations: Count = Field(6, ge=0)
     refine_threshold: Float = Field(0.002, ge=0.0)
     bank_interval: Int = Field(5, ge=0)
     reinit_samples: Int = Field(1024, ge=1)
@@ -129,20 +135,20 @@ class GraphOptions(_Options, _FineStage):
     #: coarsens the graph on the subject (docs/conversion.md, "A static floor in the capture")
     adaptive_spacing: bool = True
     nodes_per_vertex: Int = Field(4, ge=1, le=MAX_NODES_PER_VERTEX)
-    graph_iterations: Int = Field(8, ge=1)
+    graph_iterations: Count = Field(8, ge=1)
     #: at most this many more graph iterations in all: a level of the stiffness schedule is held
     #: while its last iteration still moved a node by more than converge_tolerance x the node
     #: spacing (large motion between frames: a new user's fast banana +57 % -> +2 % CD; issue 12's
     #: protocol pcow +9 -> +4 %, chicken's coverage lost 11.2 -> 7.9 %, the rest unchanged;
     #: docs/conversion.md, "Held stiffness levels"); 0: the schedule alone
-    converge_iterations: Int = Field(16, ge=0)
+    converge_iterations: Count = Field(16, ge=0)
     converge_tolerance: Float = Field(0.3, gt=0.0)
     #: the rigid start: each part of the template (a connected piece of the graph) moved from its
     #: predicted pose by the rigid motion that fits it to the frame (symmetric point-to-plane ICP)
     #: before the graph fit, so that a turning body does not lag and slide along its surface; kept
     #: only along what the part's surface shows, where it fits clearly better, and not for a part
     #: the static hold holds (docs/conversion.md, "The rigid start"): Gauss-Newton steps at most (0: off)
-    rigid_iterations: Int = Field(6, ge=0)
+    rigid_iterations: Count = Field(6, ge=0)
     stiffness: Float = Field(10.0, ge=0.0)
     stiffness_end: Float = Field(0.3, ge=0.0)
     damping: Float = Field(0.01, ge=0.0)
@@ -163,7 +169,7 @@ class GraphOptions(_Options, _FineStage):
     predict: Float = Field(1.0, ge=0.0)
     #: start poses tried per frame: the prediction scaled by k / (n - 1), k = 0 .. n - 1 (0: the
     #: previous pose), the one with the lowest two-sided fit score kept (1: the prediction alone)
-    predict_candidates: Int = Field(1, ge=1)
+    predict_candidates: Count = Field(1, ge=1)
     #: samples per side of that score
     reinit_samples: Int = Field(1024, ge=1)
     restart_threshold: Float = Field(0.02, ge=0.0)
@@ -176,8 +182,8 @@ class GraphOptions(_Options, _FineStage):
     #: 2 (was 0): the same accuracy on every sequence of issue 12's protocol (pcow +38 -> +36 %,
     #: others unchanged; noise-free too) and 14 % less time on the restart-heavy speed input (CPU:
     #: 181 -> 156 s for 200 frames); 1 lost pcow (+60 %). docs/conversion.md
-    restart_fits: Int = Field(2, ge=0)
-    refine_rounds: Int = Field(2, ge=0)
+    restart_fits: Count = Field(2, ge=0)
+    refine_rounds: Count = Field(2, ge=0)
     #: when the run from the automatic key frame leaves frames poorly covered (coverage above
     #: convert.POOR_COVERAGE on convert.KEY_RETRY_POOR_FRAMES of them) or its coverage drifts
     #: away from the key frame (convert.DRIFT_RATIO), the conversion is run
@@ -186,7 +192,7 @@ class GraphOptions(_Options, _FineStage):
     #: distance to the input frames is kept (a GT-free score that ranks the runs like their true
     #: error; docs/conversion.md);
     #: 0: never. Not with a chosen key_frame or a given template.
-    key_candidates: Int = Field(4, ge=0)
+    key_candidates: Count = Field(4, ge=0)
     #: run the key-frame trials whatever the first run's coverage (an accurate mode, off by
     #: default: ~5x the time where the first run covers every frame). Issue 12's protocol, CPU,
     #: 1 % error: CD vs the input +0 / +2 / +5 / +7 / -2 % (gallop, collapse, pcow, chicken,
@@ -195,11 +201,11 @@ class GraphOptions(_Options, _FineStage):
     always_try_keys: bool = False
     # bidirectional repair: re-track runs of poorly covered frames from the other side (off: on
     # pcow it lowered the worst uncovered vertex 13.6 -> 12.3 % but not the CD, +58 -> +60 %)
-    repair_passes: Int = Field(0, ge=0)
+    repair_passes: Count = Field(0, ge=0)
     #: coverage above which a frame is poor; 0: max(restart_threshold, 2 x the median)
     repair_threshold: Float = Field(0.0, ge=0.0)
     bank_interval: Int = Field(10, ge=0)
-    cg_iterations: Int = Field(CG_ITERATIONS, ge=1)
+    cg_iterations: Count = Field(CG_ITERATIONS, ge=1)
     cg_tolerance: Float = Field(CG_TOLERANCE, ge=0.0)
     # fine stage: 6 iterations (was 4), the backward (coverage) pull alone where a vertex has
     # one, each smoothed by 1 pass (was 3; 10 before that), one tangential relaxation (was 3).
@@ -207,14 +213,14 @@ class GraphOptions(_Options, _FineStage):
     # 4 -> 6 iterations with 3 -> 1 passes: chicken_crossing +14.2 -> +11.4 %, pcow +35.8 ->
     # +30.2 %, horse_collapse +10.0 -> +8.9 %, horse_gallop +1.2 -> +0.8 %, figure -2.3 -> -2.4 %
     # (at 0-20 % more time); the round before: chicken +24 -> +14 %, pcow +67 -> +38 %
-    iterations: Int = Field(6, ge=0)
+    iterations: Count = Field(6, ge=0)
     pull_fraction: Fraction = 1.0
-    smooth_iterations: Int = Field(1, ge=0)
+    smooth_iterations: Count = Field(1, ge=0)
     # no tangential relaxation (was 1): it slid vertices off the parts the backward pull had
     # just reached. Issue 12's protocol, CPU, with the drift trigger of the key trials: 1 % error
     # CD vs the input (horse_gallop, horse_collapse, pcow, chicken, figure) and the speed input
     # in docs/conversion.md ("No tangential relaxation")
-    relax_iterations: Int = Field(0, ge=0)
+    relax_iterations: Count = Field(0, ge=0)
 
 
 ConversionOptions = Annotated[Union[ProjectionOptions, TrackingOptions, RegularizedOptions, GraphOptions],

@@ -65,8 +65,8 @@ from .choices import DEFAULT_FRAME_ORDER, DEFAULT_STRATEGY, STRATEGIES, FrameOrd
 from .conversion_options import options_for
 from .deform_graph import (GraphFitter, GraphFrame, build_deformation_graph, extrapolate_rotations, node_groups, rim_array,
                            rotation_from_vector)
-from .geometry import (distinct_faces, face_areas, fit_group_motions, mesh_orientation, orient_faces, signed_volume, surface_area,
-                       weld_vertices, winding_inconsistent, winding_numbers)
+from .geometry import (distinct_faces, face_areas, fit_group_motions, flat_faces, mesh_orientation, orient_faces,
+                       signed_volume, surface_area, weld_vertices, winding_inconsistent, winding_numbers)
 from .kernels import convert as kc
 from .kernels.geometry import project_points_to_mesh
 from .metrics import chamfer_distance
@@ -1284,6 +1284,13 @@ def _edge_keys(F: np.ndarray) -> np.ndarray:
     return np.sort(np.minimum(a, b) * n + np.maximum(a, b))
 
 
+def _has_area(V: np.ndarray, F: np.ndarray, chunk: int = 4096) -> bool:
+    """Whether some face of (V, F) is not flat (:func:`~dynmesh_warp.geometry.flat_faces`),
+    looked for a chunk of faces at a time (a real mesh answers in the first)."""
+    F = np.asarray(F).reshape(-1, 3)
+    return any(not flat_faces(V, F[s:s + chunk]).all() for s in range(0, len(F), chunk))
+
+
 def _open_edges(F: np.ndarray) -> int:
     """How many edges of the faces ``F`` belong to one face only (a hole's or a sheet's rim)."""
     F = np.asarray(F, np.int64).reshape(-1, 3)
@@ -1730,6 +1737,9 @@ def _to_fixed_run(vseq, seq, strategy, template, device, progress, should_stop, 
     for t, (v, f) in enumerate(vseq.frames):  # frames may have been mutated after construction
         src = vseq.frame_sources[t] if vseq.frame_sources else where
         validate_mesh(v, f, src, t)
+        if not _has_area(v, f):  # a new user's points on a line: converted with "coverage 1400 %", exit 0
+            raise MeshDataError(f"{src}, frame {t}: every face has zero area (its corners on one line or point): "
+                                "no surface to convert")
     vseq, unused, welded, turned, rewound = _drop_unused(vseq)
     T = vseq.num_frames
     device = wp.get_device(device)

@@ -131,6 +131,9 @@ def load_sequence(
     if path.is_dir():
         if topology is not None:
             raise _no_topology(path, "this is a folder")
+        if parse(FrameOrder, frame_order, "frame_order") != FrameOrder.STORED:  # accepted and ignored before
+            raise ValueError(f"{path}: frame_order (--frame-order) {frame_order!r} reorders an npz's frames; a "
+                             "folder's frames are ordered by the numbers in their file names")
         folder = resolve_folder(path, subdir)
         _warn_if_interrupted(folder)
         return load_folder(folder, fps, kind, name=path.name or str(path))
@@ -184,23 +187,13 @@ def _warn_if_interrupted(path: Path) -> None:
     """Warn when ``path`` (an npz, or a folder with this tool's manifest) was written by a run
     that was stopped (its status says ``"complete": false``): a new user's interrupted
     conversion played in a scene with no word that it held only some of the frames."""
-    import json
     import warnings
 
-    from .outputs import read_manifest_status
+    from .outputs import stopped_note, stopped_status
 
-    if path.is_dir():
-        status = read_manifest_status(path)
-    else:
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                status = json.loads(str(z["status"])) if "status" in z.files else None
-        except Exception:  # noqa: BLE001 - unreadable here (a corrupt zip member too): the loader reports what is wrong
-            return
-    if isinstance(status, dict) and status.get("complete") is False:
-        first, n = int(status.get("first_frame", 0) or 0), status.get("frames")
-        held = f"input frames {first}..{first + int(n) - 1} of 0..{int(status['input_frames']) - 1}" \
-            if n is not None and status.get("input_frames") is not None else "part of the frames"
+    status = stopped_status(path)
+    if status is not None:
+        held = stopped_note(status)
         warnings.warn(f"{path}: written by a run that was stopped ({status.get('interrupted_by') or 'interrupted'}): it "
                       f"holds {held}", stacklevel=3)
 

@@ -231,6 +231,30 @@ def read_manifest_status(folder) -> dict | None:
     return status if isinstance(status, dict) else None
 
 
+def stopped_status(path) -> dict | None:
+    """The status of a stopped run's output at ``path`` (an npz with a ``status`` member, or a
+    folder with this tool's manifest) when it says ``"complete": false``, else None."""
+    path = Path(path)
+    if path.is_dir():
+        status = read_manifest_status(path)
+    else:
+        import numpy as np
+
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                status = json.loads(str(z["status"])) if "status" in z.files else None
+        except Exception:  # noqa: BLE001 - unreadable here (a corrupt zip member too): the loader reports what is wrong
+            return None
+    return status if isinstance(status, dict) and status.get("complete") is False else None
+
+
+def stopped_note(status: dict) -> str:
+    """What a stopped run's output holds, from :func:`stopped_status`: "input frames a..b of 0..N-1"."""
+    first, n, total = int(status.get("first_frame", 0) or 0), status.get("frames"), status.get("input_frames")
+    return f"input frames {first}..{first + int(n) - 1} of 0..{int(total) - 1}" if n is not None and total is not None \
+        else "part of the frames"
+
+
 def read_manifest_kind(folder) -> OutputKind | None:
     """What ``folder``'s manifest says it holds (None: no manifest, or one written before the
     manifest said it, or an unknown kind)."""
@@ -347,8 +371,8 @@ def check_output(path, *, kind: str, what: str, inputs=(), overwrite: bool = Fal
                                             "write; refusing to replace the folder (pass overwrite=True to "
                                             "replace only what this tool wrote)")
             elif entries and not overwrite:
-                raise OutputExistsError(f"{what} {shown}: folder exists and is not empty; add --overwrite to "
-                                        "replace what this tool wrote there (other files are kept)")
+                raise OutputExistsError(f"{what} {shown}: folder exists and is not empty{_stopped_text(real)}; add "
+                                        "--overwrite to replace what this tool wrote there (other files are kept)")
             if not os.access(real, os.W_OK | os.X_OK):
                 raise OutputError(f"{what} {shown}: the folder is not writable")
         else:
@@ -362,9 +386,17 @@ def check_output(path, *, kind: str, what: str, inputs=(), overwrite: bool = Fal
                                         f"--overwrite does not replace with {OutputKind(holds).described}; choose "
                                         "another path")
             if not overwrite:
-                raise OutputExistsError(f"{what} {shown}: file exists; add --overwrite to replace it")
+                raise OutputExistsError(f"{what} {shown}: file exists{_stopped_text(real)}; add --overwrite to replace it")
     _check_creatable(real, shown, what)
     return real
+
+
+def _stopped_text(path: Path) -> str:
+    """ " (the output of a stopped run: it holds ...)" for a stopped run's output at ``path``, else
+    "" (a new user, told only "file exists" after a Ctrl-C, could not tell that the file was
+    partial)."""
+    status = stopped_status(path)
+    return "" if status is None else f" (the output of a stopped run: it holds {stopped_note(status)})"
 
 
 def entries(folder) -> set:

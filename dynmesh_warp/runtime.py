@@ -18,7 +18,7 @@ import warp as wp
 
 from .config import SceneConfig, SceneError
 
-__all__ = ["Simulation", "resolve_device", "scene_device", "run_steps", "check_total_work", "lift_work_limits",
+__all__ = ["Simulation", "free_bytes", "resolve_device", "scene_device", "run_steps", "check_total_work", "lift_work_limits",
            "NonFiniteStateError", "RUN_OUTPUTS", "check_run_output", "check_record_output", "timed_loop",
            "steps_per_second", "rate_text"]
 
@@ -259,3 +259,17 @@ def steps_per_second(timed_steps: int, wall_s: float) -> float | None:
 
 def rate_text(sps: float | None) -> str:
     return f"{sps:,.0f} steps/s; " if sps is not None else "too few steps to time; "
+
+
+def free_bytes(device=None) -> int:
+    """Free memory [bytes] of ``device`` (a Warp device; None: the host): the GPU's, or the host's
+    available physical memory; 0 where it cannot be told (no check then)."""
+    import os
+
+    try:
+        if device is not None and device.is_cuda:
+            return int(device.free_memory)
+        return int(os.sysconf("SC_AVPHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
+    except (AttributeError, ValueError, OSError):
+        return 0
+

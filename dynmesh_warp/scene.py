@@ -10,7 +10,7 @@ import numpy as np
 
 from .choices import Y_UP_FORMATS, Collider, UpAxis, parse
 from .config import PhysicsCore, SceneConfig, SceneError, scene_config, spawn_positions
-from .runtime import scene_device
+from .runtime import free_bytes, scene_device
 from .geometry import orient_faces, points_inside, up_from_gravity
 from .mesh_formats import mesh_extension
 from .sequence import (FixedTopologySequence, MeshDataError, TopologyMismatchError, VaryingTopologySequence,
@@ -120,11 +120,33 @@ def _check_size(V0: np.ndarray, cfg) -> None:
 #: diagonal is warned of: the spheres rain for a long time before the last lands
 SPAWN_COLUMN_WARN = 10.0
 
+#: the host memory a spawned sphere takes while the spawn is made and checked [bytes], at least
+#: (its float64 draws and float32 copies, radius, mass; the world's arrays come on top)
+SPAWN_BYTES = 128
+
 #: float32 resolution limits at the scene's farthest coordinate, as fractions of the smallest
 #: sphere radius: above PRECISION_ERROR the scene is refused (positions cannot resolve 1 % of a
 #: radius: at r = 5 cm, coordinates beyond ~4 km), above PRECISION_WARN a warning (~0.5 km)
 PRECISION_ERROR = 1e-2
 PRECISION_WARN = 1e-3
+
+
+#: a sphere whose radius is over this many times the surface's bbox diagonal is refused: the
+#: surface is a speck to it (a new user's radius 1e30 m ran with the spheres frozen where float32
+#: put them, and the summary said "finite")
+SPHERE_SIZE_MAX = 1e3
+
+
+def refuse_outsized_spheres(lo, hi, radius, where: str) -> None:
+    """Refuse (:class:`SceneError`) spheres over SPHERE_SIZE_MAX times the surface's size (bounds
+    ``lo``, ``hi`` over all frames)."""
+    radius = np.asarray(radius, np.float64)
+    diag = float(np.linalg.norm(np.asarray(hi, np.float64) - np.asarray(lo, np.float64)))
+    if radius.size and diag > 0 and float(radius.max()) > SPHERE_SIZE_MAX * diag:
+        r = float(radius.max())
+        raise SceneError(f"{where}: a sphere radius of {r:.4g} m is {r / diag:.3g} x the surface's size ({diag:.4g} m "
+                         "across its bounding box's diagonal): the surface is a speck to it; give the radius in the "
+                         "surface's units (spheres.radius, or each listed sphere's radius)")
 
 
 def check_precision(lo, hi, positions, radius, where: str, translate=(0.0, 0.0, 0.0)) -> None:
@@ -339,7 +361,11 @@ def scene_spheres(cfg: SceneConfig, V0: np.ndarray):
         vel = np.asarray([sp.velocity for sp in cfg.spheres], np.float32).reshape(-1, 3)
     else:
         n = cfg.spheres.count
-        radius, mass = [cfg.spheres.radius] * n, [cfg.spheres.mass] * n
+        need, free = n * SPAWN_BYTES, free_bytes()
+        if free and need > free:  # a new user's count 1e9 took the machine's 24 GB and was killed, unsaid
+            raise SceneError(f"spheres.count {n:,}: spawning them needs about {need / 2**30:,.1f} GiB of memory, "
+                             f"{free / 2**30:,.1f} GiB free; fewer spheres (envs.count runs batched copies)")
+        radius, mass = np.full(n, cfg.spheres.radius, np.float32), np.full(n, cfg.spheres.mass, np.float64)
         pos, vel = spawn_positions(cfg.spheres, V0, scene_up(cfg)), None
         if n and cfg.spheres.mass == 0:
             warnings.warn("spheres.mass: 0 makes the spawned spheres kinematic: gravity and contacts do not move "
@@ -421,6 +447,7 @@ def build_model(cfg: SceneConfig, seq, device=None) -> tuple[Model, State]:
     surface = surface_model(seq, device, playback=cfg.surface.playback, interpolate=cfg.surface.interpolate)
     radius, mass, pos, vel = scene_spheres(cfg, surface_vertices(*seq.frame(0)))
     check_precision(*seq.bounds(), pos, radius, f"surface {seq.source or seq.name}", cfg.surface.translate)
+    refuse_outsized_spheres(*seq.bounds(), radius, f"surface {seq.source or seq.name}")
     p = cfg.physics
     # every field the scene's physics section shares with PhysicsParams (PhysicsCore), so a new
     # setting cannot be validated by the schema and then dropped here

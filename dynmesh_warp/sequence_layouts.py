@@ -210,6 +210,12 @@ def list_frame_files(folder: Path) -> list[Path]:
             )
         by_index[i] = p
     order = sorted(by_index)
+    series = _name_series(files)
+    if len(series) > 1:  # a new user's frame_0003, mesh_0004 and "frame_0005 (copy)" were joined unsaid
+        shown = ", ".join(f"{name!r} ({n} file(s))" for name, n in series[:4]) + (" ..." if len(series) > 4 else "")
+        warnings.warn(f"{folder}: its files are named in {len(series)} different ways ({shown}, the frame number as "
+                      "#): they are taken as one sequence by their numbers; keep one series of frames per folder",
+                      stacklevel=4)  # list_frame_files <- load_folder <- load_sequence <- caller
     # the first gaps only: indices may be far apart (frame_0, frame_99999999999)
     missing = [i for a, b in zip(order, order[1:]) for i in range(a + 1, min(b, a + 12))][:11]
     steps = set(np.diff(order).tolist()) if len(order) > 2 else set()
@@ -232,6 +238,19 @@ def list_frame_files(folder: Path) -> list[Path]:
             stacklevel=4,  # list_frame_files <- load_folder <- load_sequence <- caller
         )
     return [by_index[i] for i in order]
+
+
+def _name_series(files: list[Path]) -> list[tuple[str, int]]:
+    """The ways ``files`` are named, the frame number (the stem's last integer) written ``#``,
+    each with its count, most common first: one for a sequence's frames (``frame_#.obj``)."""
+    from collections import Counter
+
+    def pattern(p: Path) -> str:
+        m = list(_INT_RE.finditer(p.name))
+        return p.name if not m else p.name[:m[-1].start()] + "#" + p.name[m[-1].end():]
+
+    # (the last integer of the name, not of the stem: the same for the names that reach here)
+    return Counter(pattern(p) for p in files).most_common()
 
 
 def load_folder(folder: Path, fps, kind: str, name: str):

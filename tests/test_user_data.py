@@ -1129,3 +1129,90 @@ def test_a_quantised_marching_cubes_scan_is_still_closed_for_the_inside_refusal(
     assert mesh_orientation(V, F) == "outward"
     with pytest.raises(SE, match=r"spheres\.0.*starts inside the closed surface"):
         refuse_starts_inside(V, F, [("spheres.0", [0.0, 0.0, 1.2], 0.05)])
+
+
+# --------------------------------------------------------------------------- a third breaker's round
+
+
+def test_a_mesh_whose_faces_all_have_no_area_is_refused_naming_the_frame():
+    """Points on a line with faces along it converted with "coverage 1400 %" and exit 0 (a new
+    user's); one face with area is enough."""
+    from dynmesh_warp.convert import to_fixed_topology
+
+    V = np.array([[0, 0, 0], [1, 1, 1], [2, 2, 2], [3, 3, 3]], np.float32)
+    F = np.array([[0, 1, 2], [1, 2, 3], [0, 0, 3]], np.int32)
+    V2 = V.copy()
+    V2[3] = (0.0, 1.0, 0.0)
+    with pytest.raises(MeshDataError, match=r"frame 1: every face has zero area"):
+        to_fixed_topology([(V2, F), (V, F)], device="cpu")
+
+
+def test_count_options_have_an_upper_bound(capsys):
+    """``--iterations 1000000000`` ran on past a SIGTERM (which stops between frames): every count
+    option is bounded by MAX_COUNT, on the command line and in the library."""
+    from dynmesh_warp.conversion_options import MAX_COUNT, options_for
+    from dynmesh_warp.convert import main as convert_main
+
+    assert options_for("graph", graph_iterations=MAX_COUNT).graph_iterations == MAX_COUNT
+    for key in ("graph_iterations", "iterations", "rigid_iterations", "cg_iterations", "refine_rounds"):
+        with pytest.raises(ValueError, match=rf"{key} must lie in \[\d, {MAX_COUNT}\]"):
+            options_for("graph", **{key: MAX_COUNT + 1})
+    assert convert_main(["missing.npz", "out.npz", "--iterations", "100000000", "--strategy", "regularized"]) == 2
+    assert f"--iterations: must lie in [0, {MAX_COUNT}], got 100000000" in capsys.readouterr().err
+
+
+def test_a_spawn_larger_than_memory_and_an_outsized_sphere_are_refused(monkeypatch):
+    """``spheres.count: 1000000000`` filled the machine's memory and was killed with no word; a
+    radius of 1e30 m ran with the spheres frozen and a summary saying "finite"."""
+    import dynmesh_warp.scene as sc
+
+    cfg = SceneConfig.model_validate({"surface": {"source": "builtin:wave_bowl"}, "spheres": {"count": 4}})
+    V0 = np.array([[-1.0, -1.0, 0.0], [1.0, 1.0, 0.0]])
+    monkeypatch.setattr(sc, "free_bytes", lambda device=None: 4 * sc.SPAWN_BYTES - 1)
+    with pytest.raises(SceneError, match=r"spheres\.count 4: spawning them needs about .* GiB of memory"):
+        sc.scene_spheres(cfg, V0)
+    monkeypatch.setattr(sc, "free_bytes", lambda device=None: 4 * sc.SPAWN_BYTES)
+    assert len(sc.scene_spheres(cfg, V0)[0]) == 4
+    lo, hi = np.zeros(3), np.ones(3)  # a surface 1.73 m across
+    with pytest.raises(SceneError, match=r"a sphere radius of 1e\+30 m is 5\.77e\+29 x the surface's size"):
+        sc.refuse_outsized_spheres(lo, hi, [0.1, 1e30], "surface s")
+    sc.refuse_outsized_spheres(lo, hi, [0.9 * sc.SPHERE_SIZE_MAX * np.sqrt(3.0)], "surface s")  # large, allowed
+    with pytest.raises(SceneError, match="the surface is a speck to it"):
+        build_world(SceneConfig.model_validate({"surface": {"source": "builtin:wave_bowl"},
+                                                "spheres": {"count": 2, "radius": 1e30}}), device="cpu")
+
+
+def test_an_existing_output_of_a_stopped_run_is_named_so(tmp_path):
+    """After a Ctrl-C, a rerun said only "file exists; add --overwrite"."""
+    from dynmesh_warp.io import save_sequence
+    from dynmesh_warp.outputs import OutputExistsError, check_output
+
+    V, F = ico_sequence(3)
+    out = tmp_path / "part.npz"
+    save_sequence(FixedTopologySequence(V, F), out, status={"complete": False, "frames": 3, "first_frame": 2,
+                                                            "input_frames": 9})
+    with pytest.raises(OutputExistsError, match=r"file exists \(the output of a stopped run: it holds input frames "
+                                                r"2\.\.4 of 0\.\.8\); add --overwrite"):
+        check_output(out, kind="file", what="output")
+    save_sequence(FixedTopologySequence(V, F), out, overwrite=True)  # complete: nothing more said
+    with pytest.raises(OutputExistsError, match=r"file exists; add --overwrite"):
+        check_output(out, kind="file", what="output")
+
+
+def test_a_folder_of_several_name_series_is_warned_of_and_frame_order_refused(tmp_path):
+    """``frame_0003``, ``mesh_0004`` and ``frame_0005 (copy)`` were joined by their numbers with no
+    word; ``--frame-order text_sorted`` on a folder was accepted and did nothing."""
+    m = trimesh.creation.icosphere(subdivisions=1)
+    for name in ("frame_0003.obj", "mesh_0004.obj", "frame_0005 (copy).obj", "frame_0006.obj"):
+        m.export(tmp_path / name)
+    with pytest.warns(UserWarning, match=r"named in 3 different ways \('frame_#\.obj' \(2 file\(s\)\), 'mesh_#\.obj'"):
+        assert load_sequence(tmp_path).num_frames == 4
+    with pytest.raises(ValueError, match=r"frame_order \(--frame-order\) 'text_sorted' reorders an npz's frames"):
+        load_sequence(tmp_path, frame_order="text_sorted")
+    for p in tmp_path.glob("*"):
+        p.unlink()
+    for t in range(3):
+        m.export(tmp_path / f"frame_{t:04d}.obj")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_sequence(tmp_path)
