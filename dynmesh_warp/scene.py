@@ -470,6 +470,9 @@ def build_world(cfg: SceneConfig, device=None, collider: str | None = None,
     seq = load_surface(cfg) if sequence is None else prepare_surface(sequence, cfg)
     p = cfg.physics
     collider = parse(Collider, collider or p.collider, "collider").value  # an unknown name: the choices, named
+    if rebuild_every is not None and collider != Collider.REBUILD.value:  # accepted and ignored before (a new user's)
+        raise SceneError(f"--rebuild-every (rebuild_every) applies to the rebuild collider; this scene's is {collider!r} "
+                         "(add --collider rebuild, or set physics.rebuild_every in a scene with physics.collider: rebuild)")
     if collider not in surface_model_class(seq).colliders_for(seq):  # before the frames go to the device
         try:
             seq.to_fixed()

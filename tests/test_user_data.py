@@ -1216,3 +1216,12 @@ def test_a_folder_of_several_name_series_is_warned_of_and_frame_order_refused(tm
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         load_sequence(tmp_path)
+
+
+def test_rebuild_every_without_the_rebuild_collider_is_refused():
+    """``run --rebuild-every frame`` without ``--collider rebuild`` was accepted and did nothing."""
+    cfg = SceneConfig.model_validate({"surface": {"source": "builtin:wave_bowl"}, "spheres": {"count": 2}})
+    with pytest.raises(SceneError, match=r"--rebuild-every \(rebuild_every\) applies to the rebuild collider; this "
+                                         r"scene's is 'fixed'"):
+        build_world(cfg, device="cpu", rebuild_every="segment")
+    assert build_world(cfg, device="cpu", collider="rebuild", rebuild_every="segment") is not None
