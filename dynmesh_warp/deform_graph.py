@@ -298,12 +298,16 @@ RIGID_MIN_ROWS = 12
 #: rigid_align keeps a part's motion only where it lowers the part's two-sided mean squared plane
 #: distance below this factor of the start's
 RIGID_GAIN = 0.8
-#: ... and where no more than RIGID_WORSE_SHARE of its nodes fit over RIGID_WORSE x worse
-#: (:func:`_worse_in_places`; a new user's fast arm on a still body, one connected surface: the
-#: body turned up to 47 degrees with the arm, 0.26-0.70 of its nodes worse; parts turning as one,
-#: at 1 % error: at most 0.055)
+#: ... and not where it fits many of its nodes clearly worse and few better (:func:`_worse_in_places`:
+#: at least RIGID_WORSE_NODES, over RIGID_WORSE_SHARE of them, twice the better ones; a node
+#: worse: its mean squared plane distance over RIGID_WORSE x the start's plus the part's median).
+#: A new user's fast arm on a still body, one connected surface: the body turned up to 47 degrees
+#: with the arm, 26-70 % of the nodes worse and 2.2-7x the better ones; parts turning as one at
+#: 1 % error: at most 5.5 % worse; pcow's body leaving its legs behind: 16-21 % worse, 1-1.4x the
+#: better; chicken_crossing's 3-13-node parts: a node or two either way (the noise)
 RIGID_WORSE = 4.0
 RIGID_WORSE_SHARE = 0.15
+RIGID_WORSE_NODES = 3
 
 
 def _observable_step(H: np.ndarray, g: np.ndarray) -> np.ndarray:
@@ -324,22 +328,27 @@ def _observable_step(H: np.ndarray, g: np.ndarray) -> np.ndarray:
 
 
 def _worse_in_places(start: np.ndarray, end: np.ndarray, part: np.ndarray, parts: int) -> np.ndarray:
-    """(parts,) bool: the parts whose rigid motion fits over RIGID_WORSE_SHARE of their nodes
-    clearly worse than the start. ``start``, ``end`` (K, 2) :meth:`GraphFitter._node_residuals`
-    at the start and the end; ``part`` (K,) each node's part. A node fits clearly worse where its
-    mean squared plane distance ends over RIGID_WORSE x the start's plus the part's median start
-    (the reconstruction error's level: a node that started by chance on the exact surface is not
-    counted); nodes with no partners at either end are left out. A part that turns as one fits
-    better or alike everywhere; one rigid motion fitted to a part moving in pieces (a fast limb on
-    a still body, the same connected surface) pays for the limb with the body."""
+    """(parts,) bool: the parts whose rigid motion fits many of their nodes clearly worse than the
+    start and few clearly better: at least RIGID_WORSE_NODES nodes and over RIGID_WORSE_SHARE of
+    the part's clearly worse, and at least twice as many as clearly better. ``start``, ``end``
+    (K, 2) :meth:`GraphFitter._node_residuals` at the start and the end; ``part`` (K,) each
+    node's part. A node fits clearly worse where its mean squared plane distance ends over
+    RIGID_WORSE x the start's plus the part's median start (the reconstruction error's level: a
+    node that started on the exact surface by chance is not counted), clearly better the other
+    way round; nodes with no partners at either end are left out. A part that turns as one fits
+    better or alike everywhere, and a body turning with its limbs lagging fits the body better
+    and the limbs worse; one rigid motion fitted to a fast limb on a still body (one connected
+    surface) fits the limb better and the larger body worse."""
     has = (start[:, 1] > 0) & (end[:, 1] > 0)
     b = start[:, 0] / np.maximum(start[:, 1], 1e-30)
     a = end[:, 0] / np.maximum(end[:, 1], 1e-30)
     out = np.zeros(parts, bool)
     for p in np.unique(part[has]):
         sel = has & (part == p)
-        if sel.sum() >= 3:
-            out[p] = np.mean(a[sel] > RIGID_WORSE * b[sel] + np.median(b[sel])) > RIGID_WORSE_SHARE
+        floor = np.median(b[sel])
+        worse = int(np.sum(a[sel] > RIGID_WORSE * b[sel] + floor))
+        better = int(np.sum(b[sel] > RIGID_WORSE * a[sel] + floor))
+        out[p] = worse >= RIGID_WORSE_NODES and worse > RIGID_WORSE_SHARE * sel.sum() and worse >= 2 * better
     return out
 
 
