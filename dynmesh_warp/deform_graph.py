@@ -675,7 +675,10 @@ class GraphFitter:
         finds a rigid turn in a few steps. A step leaves out the directions the part's own surface
         cannot see (:func:`_observable_step`: a round part turning about its axis) rather than
         take them from the noise, and a part keeps its motion only where it lowers its two-sided
-        mean squared plane distance below RIGID_GAIN of the start's. Returns float64 (K,3,3), (K,3) and
+        mean squared plane distance below RIGID_GAIN of the start's and does not fit many of its
+        nodes clearly worse and few better (:func:`_worse_in_places`: a fast limb on a still body).
+        Pairs whose closest point lies on a rim are left out (``correspondences``' reject_rim: a
+        partial scan's other edge). Returns float64 (K,3,3), (K,3) and
         whether the first step was already below both bounds everywhere (the start was as good
         as rigidly aligned; R, P are then returned as given)."""
         pts, fnormals = frame.points, frame.normals
