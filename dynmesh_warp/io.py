@@ -177,10 +177,14 @@ def _save_npz(seq, path: Path, status: dict | None = None) -> None:
 
 
 def _save_folder(seq, folder: Path, fmt: str, overwrite: bool = False, status: dict | None = None) -> None:
+    """The frames as ``frame_{i:04d}.{fmt}``, numbered from the ``status``' ``first_frame`` (a stopped
+    conversion's frames keep their input frame numbers: a new user's frames 1..19 were written as
+    frame_0000..0018, which a tool reading the names takes for frames 0..18), else from 0."""
+    first = int((status or {}).get("first_frame", 0) or 0)
     with OutputFolder(folder, overwrite=overwrite, status=status, holds=OutputKind.SEQUENCE) as tmp:
         for t in range(seq.num_frames):
             V, F = seq.frame(t)
-            write_mesh_file(tmp / f"frame_{t:04d}.{fmt}", V, F)
+            write_mesh_file(tmp / f"frame_{first + t:04d}.{fmt}", V, F)
 
 
 def _warn_if_interrupted(path: Path) -> None:

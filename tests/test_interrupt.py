@@ -464,6 +464,8 @@ def test_convert_interrupted_writes_the_frames_done(tmp_path, varying_npz, sig, 
     assert status == {"complete": False, "frames": got.num_frames, "input_frames": 120, "interrupted_by": name,
                       "first_frame": k, "strategy": "regularized"}
     assert len(seg) == 1 and seg[0][:2] == [k, k + got.num_frames] and seg[0][3] == got.V.shape[1]
+    if folder:  # the frames keep their input numbers (they were written from frame_0000)
+        assert sorted(p.name for p in out.glob("frame_*")) == [f"frame_{t:04d}.ply" for t in range(k, k + got.num_frames)]
     assert f"frames {k}..{k + got.num_frames - 1} of 0..119" in line
     full = to_fixed_topology(load_sequence(varying_npz), strategy="regularized", device="cpu")
     np.testing.assert_allclose(got.V, full.V[k:k + got.num_frames], atol=1e-6)  # .ply / .npz round trip of the same frames
