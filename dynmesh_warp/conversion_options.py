@@ -252,6 +252,8 @@ def _domain(field) -> str:
         kind = "be a finite number"
     else:
         return "be 'auto' or a frame index"
+    if field.annotation is int and lo is not None and hi == MAX_COUNT:  # a count: what it is, then the cap
+        return f"{kind} {'>' if lo_open else '>='} {lo:g} (at most {hi:g})"
     if lo is not None and hi is not None:
         return f"lie in {'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
     if lo is not None:

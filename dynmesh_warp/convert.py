@@ -1737,10 +1737,12 @@ def _to_fixed_run(vseq, seq, strategy, template, device, progress, should_stop, 
     for t, (v, f) in enumerate(vseq.frames):  # frames may have been mutated after construction
         src = vseq.frame_sources[t] if vseq.frame_sources else where
         validate_mesh(v, f, src, t)
+    vseq, unused, welded, turned, rewound = _drop_unused(vseq)
+    for t, (v, f) in enumerate(vseq.frames):
         if not _has_area(v, f):  # a new user's points on a line: converted with "coverage 1400 %", exit 0
+            src = vseq.frame_sources[t] if vseq.frame_sources else where
             raise MeshDataError(f"{src}, frame {t}: every face has zero area (its corners on one line or point): "
                                 "no surface to convert")
-    vseq, unused, welded, turned, rewound = _drop_unused(vseq)
     T = vseq.num_frames
     device = wp.get_device(device)
     off_scale = _check_scales(vseq, float(o["scale_tolerance"]))
