@@ -68,6 +68,7 @@ from .deform_graph import (GraphFitter, GraphFrame, build_deformation_graph, ext
 from .geometry import (distinct_faces, face_areas, fit_group_motions, flat_faces, mesh_orientation, orient_faces,
                        signed_volume, surface_area, weld_vertices, winding_inconsistent, winding_numbers)
 from .kernels import convert as kc
+from .kernels import register as kr
 from .kernels.geometry import project_points_to_mesh
 from .metrics import chamfer_distance
 from .mesh_formats import file_problem
@@ -531,7 +532,13 @@ class _Converter:
             self.T_center = TV.mean(axis=0)
             self.Xm = wp.clone(self.T)  # points of the template-topology BVH (refit per use)
             self.tmesh = wp.Mesh(points=self.Xm, indices=self.TF)
-            self.system = wp.zeros(42, dtype=float, device=d)
+            # the whole-template rigid ICP (rigid_align): one part, its rows' planes the target faces'
+            self.rigid_system = wp.zeros((2, 29), dtype=float, device=d)
+            self.one_part = wp.zeros(n, dtype=wp.int32, device=d)
+            self.part_center = wp.zeros(1, dtype=wp.vec3, device=d)
+            self.plane_normal = wp.zeros(n, dtype=wp.vec3, device=d)
+            self.unit_weight = wp.full(n, 1.0, dtype=float, device=d)
+            self.vertex_ids = wp.array(np.arange(n, dtype=np.int32), dtype=wp.int32, device=d)
             self.score_fwd = wp.zeros(1, dtype=float, device=d)
             self.score_bwd = wp.zeros(1, dtype=float, device=d)
             self.bank = []  # (frame, positions (N,) wp.vec3, centroid (3,)) of earlier results
@@ -642,12 +649,17 @@ class _Converter:
             wp.launch(project_points_to_mesh, dim=n, inputs=[m.id, self.X, self.max_dist],
                       outputs=[self.closest, self.face, self.bary, self.dist], device=d)
             center = self.X.numpy().mean(axis=0)
-            self.system.zero_()
-            wp.launch(kc.accumulate_point_to_plane_system, dim=n,
-                      inputs=[self.X, wp.vec3(*center), self.closest, self.face, pts, idx],
-                      outputs=[self.system], device=d)
-            s = self.system.numpy().astype(np.float64)
-            A, b = s[:36].reshape(6, 6), s[36:]
+            self.part_center.assign(center[None].astype(np.float32))
+            wp.launch(kr.gather_face_normals, dim=n, inputs=[pts, idx, self.face], outputs=[self.plane_normal], device=d)
+            self.rigid_system.zero_()
+            wp.launch(kr.accumulate_rigid_system, dim=n,
+                      inputs=[self.one_part, self.part_center, self.X, self.closest, self.plane_normal, self.unit_weight,
+                              self.vertex_ids, 0], outputs=[self.rigid_system], device=d)
+            s = self.rigid_system.numpy()[0].astype(np.float64)
+            A = np.zeros((6, 6))
+            A[np.triu_indices(6)] = s[:21]
+            A = A + np.triu(A, 1).T
+            b = -s[21:27]  # the rows' residual is (x - closest) . n: the step solves A xi = -J e
             A = A + np.diag(1e-3 * np.trace(A) / 6.0 + 1e-12 + 1e-3 * np.diag(A))
             try:
                 xi = np.linalg.solve(A, b)
@@ -1064,9 +1076,8 @@ def set_deterministic(on: bool, nodes_per_vertex: int = 4) -> None:
 
     Warp records each atomic call of a thread; a thread that loops over atomics needs the bound
     given: the graph system's rows (k + k^2 for a template vertex's k nodes, m + m^2 for a
-    frame point's m <= 3k distinct nodes) and the rigid fit's 6 x 6 system (36 + 6)."""
-    from .kernels import register as kr
-
+    frame point's m <= 3k distinct nodes; the rigid fits' 29 sums a row fit under it) and, for
+    ``kernels.convert``, 42 (above its kernels' largest count of atomics a thread)."""
     det = wp.DeterministicMode.RUN_TO_RUN if on else wp.DeterministicMode.NOT_GUARANTEED
     m = min(int(kr.MAX_ROW_NODES), 3 * int(nodes_per_vertex))
     bounds = {kc: 6 * 6 + 6, kr: max(nodes_per_vertex + nodes_per_vertex ** 2, m + m * m)}

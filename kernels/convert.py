@@ -353,48 +353,6 @@ def project_points_along_normals(
 
 
 @wp.kernel
-def accumulate_point_to_plane_system(
-    # In:
-    points: wp.array[wp.vec3],
-    center: wp.vec3,
-    closest: wp.array[wp.vec3],
-    face: wp.array[wp.int32],
-    frame_points: wp.array[wp.vec3],
-    frame_indices: wp.array[wp.int32],
-    # Out:
-    system: wp.array[float],
-):
-    """Normal equations of one linearized point-to-plane ICP step (a small rigid motion).
-
-    Unknowns xi = (omega, tau): x' = x + omega x (x - center) + tau. Residual of vertex i:
-    n.(c - x) with c its closest point and n the unit normal of the target face. Adds J J^T to
-    system[0:36] (6x6 row-major) and J r to system[36:42], J = ((x - center) x n, n).
-    points, closest (N,) [m]; face (N,) target face or -1 (skipped); frame_points (Nf,) [m];
-    frame_indices (3Mf,); system (42,) zero it first.
-    """
-    i = wp.tid()
-    f = face[i]
-    if f < 0:
-        return
-    a = frame_points[frame_indices[3 * f + 0]]
-    b = frame_points[frame_indices[3 * f + 1]]
-    c = frame_points[frame_indices[3 * f + 2]]
-    n = wp.cross(b - a, c - a)
-    ln = wp.length(n)
-    if ln <= 0.0:
-        return
-    n = n / ln
-    x = points[i]
-    r = wp.dot(n, closest[i] - x)
-    w = wp.cross(x - center, n)
-    J = wp.spatial_vector(w[0], w[1], w[2], n[0], n[1], n[2])
-    for k in range(6):
-        for m in range(6):
-            wp.atomic_add(system, k * 6 + m, J[k] * J[m])
-        wp.atomic_add(system, 36 + k, J[k] * r)
-
-
-@wp.kernel
 def transform_points_rigid(
     # In:
     points: wp.array[wp.vec3],

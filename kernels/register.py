@@ -126,6 +126,29 @@ def find_correspondences(
     weight[i] = w
 
 
+@wp.kernel
+def gather_face_normals(
+    # In:
+    points: wp.array[wp.vec3],
+    indices: wp.array[wp.int32],
+    face: wp.array[wp.int32],
+    # Out:
+    normal: wp.array[wp.vec3],
+):
+    """The unit normal of each query's face (``triangle_normal``): the planes of point-to-plane
+    rows (:func:`accumulate_rigid_system`) whose target is a face of the mesh (points, indices).
+
+    points (P,) [m]; indices (3M,); face (Q,) a face index or -1; normal (Q,) zero for -1 or a
+    degenerate face (such rows are skipped by the accumulation).
+    """
+    i = wp.tid()
+    f = face[i]
+    n = wp.vec3(0.0)
+    if f >= 0:
+        n = triangle_normal(points, indices, f)
+    normal[i] = n
+
+
 #: a closest point counts as on a face's edge (or corner) when its weight of the opposite corner
 #: is below this (or its own weight above 1 minus it); Warp's closest-point query puts points of
 #: an edge's region exactly on it, up to float32 rounding

@@ -660,3 +660,23 @@ def test_bad_restart_fits_is_refused_naming_the_option():
     V, F = icosphere(2, 1.0)
     with pytest.raises(ValueError, match="restart_fits"):
         to_fixed_topology([(V, F), (V, F)], strategy="graph", device=DEV, restart_fits=-1)
+
+
+def test_gather_face_normals_match_numpy():
+    """Each query's face normal (zero where there is no face), against NumPy's cross products."""
+    from dynmesh_warp.kernels import register as kr
+
+    V, F = icosphere(2, 1.0)
+    V = (V * np.array([1.0, 0.5, 0.3])).astype(np.float32)
+    rng = np.random.default_rng(2)
+    face = rng.integers(0, len(F), 200).astype(np.int32)
+    face[::7] = -1
+    out = wp.empty(len(face), dtype=wp.vec3, device=DEV)
+    wp.launch(kr.gather_face_normals, dim=len(face),
+              inputs=[wp.array(V, dtype=wp.vec3, device=DEV), wp.array(F.reshape(-1).astype(np.int32), dtype=wp.int32,
+                                                                        device=DEV), wp.array(face, dtype=wp.int32,
+                                                                                              device=DEV)],
+              outputs=[out], device=DEV)
+    c = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]).astype(np.float64)
+    want = np.where(face[:, None] >= 0, (c / np.linalg.norm(c, axis=1, keepdims=True))[face], 0.0)
+    assert np.abs(out.numpy() - want).max() < 1e-6
