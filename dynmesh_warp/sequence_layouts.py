@@ -241,15 +241,16 @@ def list_frame_files(folder: Path) -> list[Path]:
 
 
 def _name_series(files: list[Path]) -> list[tuple[str, int]]:
-    """The ways ``files`` are named, the frame number (the stem's last integer) written ``#``,
-    each with its count, most common first: one for a sequence's frames (``frame_#.obj``)."""
+    """The ways ``files`` are named, the last integer of each name written ``#``, each with its
+    count, most common first: one for a sequence's frames (``frame_#.obj``). (The name's last
+    integer is the stem's, the frame number, except in an extension with a digit, ``.3ds``, where
+    every name of the folder has it alike.)"""
     from collections import Counter
 
     def pattern(p: Path) -> str:
         m = list(_INT_RE.finditer(p.name))
         return p.name if not m else p.name[:m[-1].start()] + "#" + p.name[m[-1].end():]
 
-    # (the last integer of the name, not of the stem: the same for the names that reach here)
     return Counter(pattern(p) for p in files).most_common()
 
 
