@@ -136,8 +136,13 @@ class _Frame(tuple):
 
     @property
     def known_closed(self) -> bool | None:
-        """``closed`` if it was asked already, else None (not computed here)."""
+        """``closed`` if it was asked (or told) already, else None (not computed here)."""
         return self._closed
+
+    @known_closed.setter
+    def known_closed(self, closed: bool):
+        """Tell the frame whether it is closed, found by a caller's own pass over its edges."""
+        self._closed = bool(closed)
 
 
 def _device_frame(V: np.ndarray, F: np.ndarray, device) -> _Frame:
@@ -768,7 +773,11 @@ class _Converter:
                   device=self.device)
         # the rim matters to the rigid start where the surfaces are partial views; found only where
         # the template is open (a partial scan's), as it costs a host pass over the frame's edges
-        rim = None if self.gf.face_rim is None or frame.closed else rim_array(frame.faces, self.device)
+        # (which also tells whether the frame is closed: not asked again)
+        rim = None
+        if self.gf.face_rim is not None and frame.known_closed is not True:
+            rim = rim_array(frame.faces, self.device)
+            frame.known_closed = rim is None
         return GraphFrame(m, pts, idx, fn, rim)
 
     def _graph_finish(self, frame, R, P):

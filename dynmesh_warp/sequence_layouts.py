@@ -41,17 +41,23 @@ def frame_index_from_name(name) -> int:
     stem (the last extension is removed). Raises :class:`MeshDataError` (a ``ValueError``)
     naming ``name`` when the stem holds no integer.
     """
-    stem = Path(str(name)).stem
-    ext = mesh_extension(Path(str(name)).name)
-    if ext and ext.count(".") > 1:  # frame_3.vol.gz -> frame_3
-        stem = Path(str(name)).name[: -len(ext)]
-    found = _INT_RE.findall(stem)
-    if not found:
+    found = _frame_number(name)
+    if found is None:
         raise MeshDataError(
             f"{name}: file name has no integer frame index (frames in a folder are ordered "
             "by the last integer in the file name, e.g. frame_12.ply)"
         )
-    return int(found[-1])
+    return int(found.group())
+
+
+def _frame_number(name) -> re.Match | None:
+    """The frame number in a file name or path (:func:`frame_index_from_name`'s rule: the last
+    integer of the final component's stem) as a match on that component, or None."""
+    base = Path(str(name)).name
+    ext = mesh_extension(base)
+    stem = base[: -len(ext)] if ext and ext.count(".") > 1 else Path(base).stem  # frame_3.vol.gz -> frame_3
+    found = list(_INT_RE.finditer(stem))
+    return found[-1] if found else None
 
 
 # npz array names: the canonical V (T, N, 3) / F (M, 3) first, then common aliases
@@ -241,15 +247,13 @@ def list_frame_files(folder: Path) -> list[Path]:
 
 
 def _name_series(files: list[Path]) -> list[tuple[str, int]]:
-    """The ways ``files`` are named, the last integer of each name written ``#``, each with its
-    count, most common first: one for a sequence's frames (``frame_#.obj``). (The name's last
-    integer is the stem's, the frame number, except in an extension with a digit, ``.3ds``, where
-    every name of the folder has it alike.)"""
+    """The ways ``files`` are named, each one's frame number (:func:`_frame_number`) written
+    ``#``, each with its count, most common first: one for a sequence's frames (``frame_#.obj``)."""
     from collections import Counter
 
     def pattern(p: Path) -> str:
-        m = list(_INT_RE.finditer(p.name))
-        return p.name if not m else p.name[:m[-1].start()] + "#" + p.name[m[-1].end():]
+        m = _frame_number(p)
+        return p.name if m is None else p.name[:m.start()] + "#" + p.name[m.end():]
 
     return Counter(pattern(p) for p in files).most_common()
 
