@@ -113,6 +113,10 @@ class ConversionConfig(_Strict):
         return v
 
 
+#: the largest ``surface.upsample`` (frames played per input frame)
+MAX_UPSAMPLE = 100
+
+
 class SurfaceConfig(_Strict):
     source: str = Field(default="builtin:wave_bowl", min_length=1)  # "" resolved to the scene's own folder
     params: dict = Field(default_factory=dict)  # keyword arguments of a built-in generator
@@ -123,6 +127,9 @@ class SurfaceConfig(_Strict):
     frame_order: FrameOrder = DEFAULT_FRAME_ORDER  # text_sorted: undo 1, 10, 11, ..., 2, ...
     playback: Playback = DEFAULT_PLAYBACK
     interpolate: bool = True
+    # frames played per input frame, on a C1 curve through them (FixedTopologySequence.upsampled):
+    # 1 plays the input as it is; 10 makes 24 fps data 240 fps (docs/physics.md, the data's frame rate)
+    upsample: int = Field(default=1, ge=1, le=MAX_UPSAMPLE)
     up_axis: UpAxis = DEFAULT_UP_AXIS
     scale: float = Field(default=1.0, gt=0)
     translate: Vec3 = (0.0, 0.0, 0.0)

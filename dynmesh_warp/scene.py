@@ -229,7 +229,8 @@ def load_surface(cfg: SceneConfig):
 
 def prepare_surface(seq, cfg: SceneConfig):
     """Bring a loaded sequence into the scene frame as the ``surface`` section asks: fps,
-    up_axis, scale, translate, orientation, then ``conversion`` of a varying-topology one.
+    up_axis, scale, translate, orientation, then ``conversion`` of a varying-topology one, then
+    ``upsample``.
     ``build_world(cfg, sequence=seq)`` calls it for a sequence you built or loaded yourself."""
     s = cfg.surface
     if not isinstance(seq, (FixedTopologySequence, VaryingTopologySequence)):
@@ -297,7 +298,26 @@ def prepare_surface(seq, cfg: SceneConfig):
                 if line.startswith("warning: "):
                     warnings.warn(f"{where}: surface.conversion: {scene_keys(line[len('warning: '):])}", UserWarning,
                                   stacklevel=2)
-    return seq
+    return _upsampled(seq, s, where)
+
+
+def _upsampled(seq, s, where: str):
+    """``seq`` played at ``surface.upsample`` frames per input frame
+    (:meth:`FixedTopologySequence.upsampled`, its ends as ``surface.playback`` plays them)."""
+    factor = int(s.upsample)
+    if factor == 1 or seq.num_frames < 2:
+        return seq
+    if not isinstance(seq, FixedTopologySequence):
+        raise SceneError(f"surface.upsample {factor}: {where} has varying topology (or template segments), whose "
+                         "frames cannot be blended across a change of faces; convert it to one template first "
+                         "(surface.conversion, or python -m dynmesh_warp.convert to an .npz file) or leave "
+                         "surface.upsample at 1")
+    frames = (seq.num_frames - (s.playback != "loop")) * factor + (s.playback != "loop")
+    need, free = frames * seq.num_vertices * 12, free_bytes()  # float32 frames, host (the device holds a copy)
+    if free and need > free:
+        raise SceneError(f"surface.upsample {factor}: {frames:,} frames of {seq.num_vertices:,} vertices need "
+                         f"{need / 2**30:,.1f} GiB, {free / 2**30:,.1f} GiB free; a smaller factor")
+    return seq.upsampled(factor, str(s.playback))
 
 
 #: convert's command-line flags in its summary, and the scene keys that set the same in a scene's

@@ -215,6 +215,49 @@ class FixedTopologySequence:
         d = np.linalg.norm(np.diff(self.V, axis=0), axis=-1)
         return float(d.max() * self.fps)
 
+    def upsampled(self, factor: int, playback: str = "loop") -> "FixedTopologySequence":
+        """The same motion at ``factor`` × the frame rate, on a C¹ curve through the frames
+        (uniform Catmull-Rom: the cubic Hermite curve whose velocity at frame k is
+        (V[k+1] − V[k−1]) · fps / 2), so that the step's straight lines between the new frames
+        follow a motion whose velocity does not jump at the input's frame boundaries.
+
+        Every input frame is kept (new frame ``factor * k`` is frame k) and a motion quadratic in
+        time is reproduced exactly between them. ``playback`` (``loop``, ``clamp`` or
+        ``pingpong``, as the scene plays it) decides the ends: ``loop`` also fills the interval
+        from the last frame back to the first and takes its neighbours across it (T · factor
+        frames); ``clamp`` repeats the end frames as their own neighbours and ``pingpong``
+        reflects them (velocity 0 at the turn): (T − 1) · factor + 1 frames. Float64 inside,
+        float32 out. ``factor`` 1, or a single frame, gives the sequence back unchanged."""
+        factor = int(factor)
+        if factor < 1:
+            raise ValueError(f"upsampled: factor must be an integer >= 1, got {factor}")
+        if playback not in ("loop", "clamp", "pingpong"):
+            raise ValueError(f"upsampled: playback must be loop, clamp or pingpong, got {playback!r}")
+        T = self.num_frames
+        if factor == 1 or T < 2:
+            return self
+        V = self.V.astype(np.float64)
+        k = np.arange(T if playback == "loop" else T - 1)  # intervals k -> k + 1
+        if playback == "loop":
+            idx = [np.mod(k + j, T) for j in (-1, 0, 1, 2)]
+        elif playback == "clamp":
+            idx = [np.clip(k + j, 0, T - 1) for j in (-1, 0, 1, 2)]
+        else:  # pingpong: reflected at both ends (frame -1 is frame 1, frame T is frame T - 2)
+            idx = [np.abs(k + j) for j in (-1, 0, 1, 2)]
+            idx = [np.where(i > T - 1, 2 * (T - 1) - i, i) for i in idx]
+        # uniform Catmull-Rom in Hermite form: p1 + m1 s + (3 d - 2 m1 - m2) s^2 + (m1 + m2 - 2 d) s^3,
+        # d = p2 - p1, m1 = (p2 - p0) / 2, m2 = (p3 - p1) / 2 (tangents per frame interval)
+        p1 = V[idx[1]]
+        d, m1, m2 = V[idx[2]] - p1, 0.5 * (V[idx[2]] - V[idx[0]]), 0.5 * (V[idx[3]] - p1)
+        a2, a3 = 3.0 * d - 2.0 * m1 - m2, m1 + m2 - 2.0 * d
+        out = np.empty((len(k) * factor + (playback != "loop"), self.num_vertices, 3), np.float32)
+        for j in range(factor):  # the new frames at s = j / factor of each interval
+            s = j / factor
+            out[j:len(k) * factor:factor] = p1 + s * (m1 + s * (a2 + s * a3))
+        if playback != "loop":
+            out[-1] = self.V[-1]
+        return FixedTopologySequence(out, self.F, self.fps * factor, self.name, self.source)
+
     def reordered(self, order) -> "FixedTopologySequence":
         """A copy with frames taken in ``order`` (indices into the stored frames)."""
         order = np.asarray(order, dtype=np.int64)

@@ -713,3 +713,50 @@ def test_obj_and_off_with_a_byte_order_mark(tmp_path):
     V, F = read_mesh(tmp_path / "bom.off")
     np.testing.assert_array_equal(V, [[0, 0, 0], [1, 0, 0], [0, 1, 0]])
     np.testing.assert_array_equal(F, [[0, 1, 2]])
+
+
+def _quadratic_motion(t: np.ndarray) -> np.ndarray:
+    """A triangle whose vertices move on parabolas: (len(t), 3, 3) float64."""
+    x = np.stack([0.3 + 2.0 * t - 4.0 * t ** 2, 1.0 + 0.5 * t, 3.0 * t ** 2], -1)
+    return np.stack([x, x + [1.0, 0.0, 0.0], x + [0.0, 1.0, 0.0]], 1)
+
+
+def test_upsampled_is_a_c1_curve_through_the_frames():
+    """``FixedTopologySequence.upsampled``: every input frame kept, a motion quadratic in time
+    reproduced exactly between the frames (Catmull-Rom's tangents are exact for it), the frame
+    counts and rate of each playback, and the ends as each playback plays them."""
+    fps, T, n = 24.0, 7, 10
+    seq = FixedTopologySequence(_quadratic_motion(np.arange(T) / fps).astype(np.float32),
+                                np.array([[0, 1, 2]], np.int32), fps)
+    assert seq.upsampled(1) is seq
+    for playback, frames in (("loop", T * n), ("clamp", (T - 1) * n + 1), ("pingpong", (T - 1) * n + 1)):
+        up = seq.upsampled(n, playback)
+        assert (up.num_frames, up.fps) == (frames, fps * n)
+        np.testing.assert_array_equal(up.V[::n][:T], seq.V)  # the input's frames, unchanged
+        np.testing.assert_array_equal(up.F, seq.F)
+        # the intervals whose four neighbours are input frames (1 -> 2 ... T-3 -> T-2): exact
+        inner = slice(n, (T - 2) * n + 1)
+        exact = _quadratic_motion(np.arange(frames)[inner] / (fps * n))
+        np.testing.assert_allclose(up.V[inner], exact, atol=2e-6)
+    # pingpong reflects its ends: the motion turns with velocity 0 there (C1 through the turn)
+    fine = 100  # the velocity over the first 1 % of the interval, against the one at frame 1
+    up = seq.upsampled(fine, "pingpong")
+    v_end = np.abs(up.V[1] - up.V[0]).max() * fps * fine
+    v_next = np.abs(up.V[fine + 1] - up.V[fine]).max() * fps * fine
+    assert v_end < 0.05 * v_next
+    up = seq.upsampled(fine, "clamp")  # clamp takes the end frame as its own neighbour: half the chord
+    assert np.abs(up.V[1] - up.V[0]).max() * fps * fine > 0.3 * v_next
+    # loop: a point turning once around a circle over the loop; every interval, the seam's too,
+    # is the first one turned (the wrap's neighbours come from across it)
+    ang = 2 * np.pi * np.arange(T) / T
+    ring = np.stack([np.stack([np.cos(ang + a), np.sin(ang + a), np.zeros(T)], -1) for a in (0.0, 2.0, 4.0)], 1)
+    up = FixedTopologySequence(ring.astype(np.float32), np.array([[0, 1, 2]], np.int32), fps).upsampled(n, "loop")
+    first = up.V[:n].astype(np.float64)
+    for k in range(T):
+        c, s = np.cos(ang[k]), np.sin(ang[k])
+        turned = first @ np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+        np.testing.assert_allclose(up.V[k * n:(k + 1) * n], turned, atol=2e-6)
+    with pytest.raises(ValueError, match="factor"):
+        seq.upsampled(0)
+    with pytest.raises(ValueError, match="playback"):
+        seq.upsampled(2, "bounce")

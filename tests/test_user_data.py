@@ -1225,3 +1225,49 @@ def test_rebuild_every_without_the_rebuild_collider_is_refused():
                                          r"scene's is 'fixed'"):
         build_world(cfg, device="cpu", rebuild_every="segment")
     assert build_world(cfg, device="cpu", collider="rebuild", rebuild_every="segment") is not None
+
+
+def _shaken_plate(fps: float, amplitude: float, seconds: float = 3.0) -> FixedTopologySequence:
+    """A flat 2 m plate at height -A cos(2 pi 2 t) (2 Hz), sampled at ``fps``."""
+    g = np.linspace(-1.0, 1.0, 9)
+    X, Y = np.meshgrid(g, g, indexing="ij")
+    P = np.c_[X.ravel(), Y.ravel(), np.zeros(81)]
+    F = np.array([f for i in range(8) for j in range(8)
+                  for f in ([i * 9 + j, i * 9 + j + 9, i * 9 + j + 10], [i * 9 + j, i * 9 + j + 10, i * 9 + j + 1])],
+                 np.int32)
+    t = np.arange(int(seconds * fps) + 1) / fps
+    return FixedTopologySequence(np.stack([P + [0.0, 0.0, -amplitude * np.cos(4 * np.pi * tk)] for tk in t])
+                                 .astype(np.float32), F, fps, "shaker")
+
+
+def test_upsample_plays_low_rate_data_on_a_smooth_curve():
+    """A new user's closed-form check: a sphere resting on a plate shaken at 2 Hz with 0.04 m
+    amplitude (peak acceleration 0.64 g) must never leave it. From 24 fps data the plate's
+    velocity jumps at each frame and the sphere hopped 2.9 mm; ``surface.upsample: 10`` plays the
+    frames on a C1 curve (240 fps) and it stays on, as it does from 240 fps data. Varying-topology
+    data is refused by name."""
+    A, r = 0.04, 0.05
+
+    def highest_gap(upsample):
+        cfg = SceneConfig.model_validate({"surface": {"playback": "clamp", "upsample": upsample, "up_axis": "z"},
+                                          "spheres": [{"position": [0.05, 0.03, r - A], "radius": r}]})
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            world = build_world(cfg, device="cpu", sequence=_shaken_plate(24.0, A), collider="refit")
+        assert world.model.surface.fps == 24.0 * upsample
+        gaps = []
+        for _ in range(480):
+            world.step()
+            gaps.append(float(world.sphere_positions()[0][2]) - r - float(world.surface_points().numpy()[0][2]))
+        return max(gaps)
+
+    assert highest_gap(1) > 1e-3  # the hop the test is about (2.9 mm)
+    assert highest_gap(10) < 1e-4
+    V, F = ico_sequence()
+    cfg = SceneConfig.model_validate({"surface": {"upsample": 4}})
+    varying = FixedTopologySequence(V, F, fps=30.0).to_varying()
+    varying.frames[1] = (varying.frames[1][0], varying.frames[1][1][:-5])  # another topology
+    with pytest.raises(SceneError, match=r"surface\.upsample 4: .* varying topology"):
+        build_world(cfg, device="cpu", sequence=varying)
+    with pytest.raises(Exception, match="upsample"):
+        SceneConfig.model_validate({"surface": {"upsample": 0}})
