@@ -512,6 +512,8 @@ class _Converter:
         self.last_area = 0.0  # the converted surface's area [m^2] at the last flipped()
         self.last_buried = 0.0  # the buried fraction of the last web() call
         self.first = True  # the next frame is the first one converted (starts from the template)
+        # the next frame repeats the input frame fitted before it exactly (set by the frame loop)
+        self.input_repeats = False
         self.frame_coverage = None  # set by a step that already measured its result's coverage [m]
         self.frame_web = None  # ... and its (web, buried) fractions
         self.P = wp.empty(n, dtype=wp.vec3, device=d)
@@ -891,7 +893,11 @@ class _Converter:
         gam = float(o["predict"])
         if not self.history:
             init = rest
-        elif len(self.history) == 1 or gam == 0:
+        elif len(self.history) == 1 or gam == 0 or self.input_repeats:
+            # an input frame that repeats the one before it shows no motion: none is predicted
+            # (along a surface that looks the same the data cannot take a predicted velocity back:
+            # a new user's ball that had stopped kept turning 3.7 degrees a frame over 15 repeated
+            # frames, a draped cloth flowed 1 % of the diagonal a frame)
             init = self.history[-1]
         else:
             (R0, P0), (R1, P1) = self.history[-2:]
@@ -1492,12 +1498,13 @@ def _find_key_frame_floaters(vseq, K: int, area_opt: float, gap: float, device) 
     return v2, f2, int(drop.size), len(v) - len(v2)
 
 
-def _frame_for_fit(vseq, t: int, K: int, o: dict, X_ref, TF: np.ndarray, device, info) -> tuple:
+def _frame_for_fit(vseq, t: int, K: int, o: dict, X_ref, TF: np.ndarray, device, info, frame=None) -> tuple:
     """Input frame t as the fit sees it: without small parts far from ``X_ref`` (the converted
     neighbour frame it is tracked from; :func:`_far_parts`, noted in ``info.ignored_parts``),
     at the key frame without its floaters (:func:`_key_frame_floaters`: the template is that
-    frame), and elsewhere as it is while ``far_part_area`` is 0."""
-    v, f = vseq.frames[t]
+    frame), and elsewhere as it is while ``far_part_area`` is 0 (``frame``: ``vseq.frames[t]``
+    when the caller has it)."""
+    v, f = vseq.frames[t] if frame is None else frame
     if t == K:
         v2, f2, parts, nv = _key_frame_floaters(vseq, K, o, device)
     elif float(o.get("far_part_area", 0.0)) <= 0:
@@ -1558,6 +1565,11 @@ def _motion_sample(v: np.ndarray, device):
     return wp.array(np.ascontiguousarray(v[::_stride(len(v), 4096)], np.float32), dtype=wp.vec3, device=device)
 
 
+def _same_frame(a: tuple, b: tuple) -> bool:
+    """Whether two input frames (V, F) are the same mesh, vertex for vertex and face for face."""
+    return a[0].shape == b[0].shape and a[1].shape == b[1].shape and np.array_equal(a[1], b[1]) and np.array_equal(a[0], b[0])
+
+
 def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info, strategy: str, where: str, TV,
                     TF, stop_forward=None):
     """The frame loop of to_fixed_topology: the key frame forward to the end, then backward to
@@ -1577,6 +1589,7 @@ def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info,
     lo = hi = None  # the converted frames lo..hi (contiguous: the key frame forward, then backward)
     forward = True
     samples = {}  # the sampled vertices (device) of the key frame and the last frame fitted
+    raw = {}  # the input frames (V, F) fitted last, by frame
     bridge = bool(info.options["bridge_dropouts"])
     for t in order:
         if lo is not None and should_stop is not None and should_stop():
@@ -1594,7 +1607,13 @@ def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info,
         if p is not None:
             conv.rewind(out[p], p, p - s)
         ref = None if t == K else out[t - s] if p is None else out[p]
-        v, f = _frame_for_fit(vseq, t, K, info.options, ref, TF, device, info)
+        # a frame that repeats the input frame fitted before it exactly (a stalled capture, an
+        # animation on twos): the fit starts where it was (graph: no predicted motion)
+        raw[t] = vseq.frames[t]
+        u = raw.get(t - s if p is None else p)
+        conv.input_repeats = t != K and u is not None and _same_frame(raw[t], u)
+        raw = {k: raw[k] for k in raw if k == K or abs(k - t) <= DROPOUT_FRAMES + 1}  # the backward pass starts at K
+        v, f = _frame_for_fit(vseq, t, K, info.options, ref, TF, device, info, raw[t])
         frame = _device_frame(v, f, device)
         if step(frame, t):
             info.reanchored_frames.append(t)

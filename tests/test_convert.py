@@ -1628,6 +1628,25 @@ def test_the_static_hold_lets_a_body_slide_along_itself():
     assert advance[0] > 0.5 * 0.025 * (T - 1)
     assert advance[1] == pytest.approx(advance[0], rel=0.1)
 
+def test_a_ball_that_stops_stops_turning():
+    """A new user's ball bounced along and then lay still for 15 identical frames: the converted
+    ball kept turning 3.7 degrees a frame through all of them (and a sphere resting on it was
+    carried off), because the constant-velocity prediction's turn is one a round surface cannot
+    take back. A region where neither the input nor anything around it moved now starts where it
+    was (the rigid start still finds any motion the data show). Here, on 8 still frames after 12
+    bouncing ones: 18 mm a frame before (the ball is 0.5 m across), now under 1 mm."""
+    T, stop = 20, 12
+    frames = []
+    for t in range(T):
+        tt = min(t, stop)
+        u = (tt % 8) / 8
+        c = (0.1 + 0.03 * tt, 0.0, -0.3 + 2.4 * u * (1 - u))
+        frames.append(_capsules_frame([(c, c, 0.25)], h=0.04))
+    V = to_fixed_topology(VaryingTopologySequence(frames), device=DEV, key_frame=0).V.astype(np.float64)
+    still = [float(np.median(np.linalg.norm(V[t] - V[t - 1], axis=1))) for t in range(stop + 1, T)]
+    assert max(still) < 1e-3, still
+
+
 def _torso_turn(res, z_band=(0.0, 0.35)) -> float:
     """The largest turn [degrees] of the converted torso band (its key-frame vertices with z in
     ``z_band``) from the key frame, by the best-fitting rotation (Kabsch) on each frame."""
