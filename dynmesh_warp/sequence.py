@@ -236,24 +236,25 @@ class FixedTopologySequence:
         T = self.num_frames
         if factor == 1 or T < 2:
             return self
-        V = self.V.astype(np.float64)
-        k = np.arange(T if playback == "loop" else T - 1)  # intervals k -> k + 1
-        if playback == "loop":
-            idx = [np.mod(k + j, T) for j in (-1, 0, 1, 2)]
-        elif playback == "clamp":
-            idx = [np.clip(k + j, 0, T - 1) for j in (-1, 0, 1, 2)]
-        else:  # pingpong: reflected at both ends (frame -1 is frame 1, frame T is frame T - 2)
-            idx = [np.abs(k + j) for j in (-1, 0, 1, 2)]
-            idx = [np.where(i > T - 1, 2 * (T - 1) - i, i) for i in idx]
-        # uniform Catmull-Rom in Hermite form: p1 + m1 s + (3 d - 2 m1 - m2) s^2 + (m1 + m2 - 2 d) s^3,
-        # d = p2 - p1, m1 = (p2 - p0) / 2, m2 = (p3 - p1) / 2 (tangents per frame interval)
-        p1 = V[idx[1]]
-        d, m1, m2 = V[idx[2]] - p1, 0.5 * (V[idx[2]] - V[idx[0]]), 0.5 * (V[idx[3]] - p1)
-        a2, a3 = 3.0 * d - 2.0 * m1 - m2, m1 + m2 - 2.0 * d
-        out = np.empty((len(k) * factor + (playback != "loop"), self.num_vertices, 3), np.float32)
-        for j in range(factor):  # the new frames at s = j / factor of each interval
-            s = j / factor
-            out[j:len(k) * factor:factor] = p1 + s * (m1 + s * (a2 + s * a3))
+        intervals = T if playback == "loop" else T - 1  # k -> k + 1
+        out = np.empty((intervals * factor + (playback != "loop"), self.num_vertices, 3), np.float32)
+        for k in range(intervals):  # one interval at a time: float64 work of a few frames only
+            j = np.arange(k - 1, k + 3)  # its four frames
+            if playback == "loop":
+                j = np.mod(j, T)
+            elif playback == "clamp":
+                j = np.clip(j, 0, T - 1)
+            else:  # pingpong: reflected at both ends (frame -1 is frame 1, frame T is frame T - 2)
+                j = np.abs(j)
+                j = np.where(j > T - 1, 2 * (T - 1) - j, j)
+            p0, p1, p2, p3 = self.V[j].astype(np.float64)
+            # uniform Catmull-Rom in Hermite form: p1 + m1 s + (3 d - 2 m1 - m2) s^2 + (m1 + m2 - 2 d) s^3,
+            # d = p2 - p1, m1 = (p2 - p0) / 2, m2 = (p3 - p1) / 2 (tangents per frame interval)
+            d, m1, m2 = p2 - p1, 0.5 * (p2 - p0), 0.5 * (p3 - p1)
+            a2, a3 = 3.0 * d - 2.0 * m1 - m2, m1 + m2 - 2.0 * d
+            for i in range(factor):  # the new frames at s = i / factor of the interval
+                s = i / factor
+                out[k * factor + i] = p1 + s * (m1 + s * (a2 + s * a3))
         if playback != "loop":
             out[-1] = self.V[-1]
         return FixedTopologySequence(out, self.F, self.fps * factor, self.name, self.source)
