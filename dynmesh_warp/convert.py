@@ -1188,7 +1188,7 @@ def _check_repeats(seq: VaryingTopologySequence) -> None:
     fr = seq.frames
     if all(np.array_equal(f, fr[0][1]) for _, f in fr[1:]):  # (array_equal: False for other shapes)
         return  # one topology: an animated mesh may hold still for frames (a pause); a reconstruction cannot
-    rep = [t for t in range(1, len(fr)) if np.array_equal(fr[t][0], fr[t - 1][0]) and np.array_equal(fr[t][1], fr[t - 1][1])]
+    rep = [t for t in range(1, len(fr)) if _same_frame(fr[t], fr[t - 1])]
     if rep and len(rep) < seq.num_frames - 1:  # a capture that never moves is not a repeat
         show = ", ".join(map(str, rep[:10])) + (f" and {len(rep) - 10} more" if len(rep) > 10 else "")
         warnings.warn(f"{seq.source or seq.name}: frame(s) {show} repeat the frame before them exactly (a stalled "
@@ -1567,7 +1567,7 @@ def _motion_sample(v: np.ndarray, device):
 
 def _same_frame(a: tuple, b: tuple) -> bool:
     """Whether two input frames (V, F) are the same mesh, vertex for vertex and face for face."""
-    return a[0].shape == b[0].shape and a[1].shape == b[1].shape and np.array_equal(a[1], b[1]) and np.array_equal(a[0], b[0])
+    return np.array_equal(a[1], b[1]) and np.array_equal(a[0], b[0])  # (False for other shapes)
 
 
 def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info, strategy: str, where: str, TV,

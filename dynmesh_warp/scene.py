@@ -13,7 +13,7 @@ from .config import PhysicsCore, SceneConfig, SceneError, scene_config, spawn_po
 from .runtime import free_bytes, scene_device
 from .geometry import orient_faces, points_inside, up_from_gravity
 from .mesh_formats import mesh_extension
-from .sequence import (FixedTopologySequence, MeshDataError, TopologyMismatchError, VaryingTopologySequence,
+from .sequence import (FixedTopologySequence, MeshDataError, TopologyMismatchError, VaryingTopologySequence, upsampled_frames,
                        surface_vertices)
 from .world import Model, PhysicsParams, SphereModel, State, World, surface_model, surface_model_class
 
@@ -312,7 +312,7 @@ def _upsampled(seq, s, where: str):
                          "frames cannot be blended across a change of faces; convert it to one template first "
                          "(surface.conversion, or python -m dynmesh_warp.convert to an .npz file) or leave "
                          "surface.upsample at 1")
-    frames = (seq.num_frames - (s.playback != "loop")) * factor + (s.playback != "loop")
+    frames = upsampled_frames(seq.num_frames, factor, str(s.playback))
     need, free = frames * seq.num_vertices * 12, free_bytes()  # float32 frames, host (the device holds a copy)
     if free and need > free:
         raise SceneError(f"surface.upsample {factor}: {frames:,} frames of {seq.num_vertices:,} vertices need "

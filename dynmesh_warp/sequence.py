@@ -18,6 +18,7 @@ __all__ = [
     "detect_text_sorted_frames",
     "FixedTopologySequence",
     "VaryingTopologySequence",
+    "upsampled_frames",
     "validate_mesh",
 ]
 
@@ -139,6 +140,13 @@ def surface_vertices(V: np.ndarray, F: np.ndarray) -> np.ndarray:
     return V if used.all() else V[..., used, :]
 
 
+def upsampled_frames(num_frames: int, factor: int, playback: str) -> int:
+    """How many frames :meth:`FixedTopologySequence.upsampled` makes of ``num_frames`` (>= 2):
+    ``num_frames * factor`` under ``loop`` (the seam back to the first frame filled too), else
+    ``(num_frames - 1) * factor + 1``."""
+    return num_frames * factor if playback == "loop" else (num_frames - 1) * factor + 1
+
+
 @dataclass(repr=False)
 class FixedTopologySequence:
     """An animated triangle mesh whose faces are the same in every frame.
@@ -237,7 +245,7 @@ class FixedTopologySequence:
         if factor == 1 or T < 2:
             return self
         intervals = T if playback == "loop" else T - 1  # k -> k + 1
-        out = np.empty((intervals * factor + (playback != "loop"), self.num_vertices, 3), np.float32)
+        out = np.empty((upsampled_frames(T, factor, playback), self.num_vertices, 3), np.float32)
         for k in range(intervals):  # one interval at a time: float64 work of a few frames only
             j = np.arange(k - 1, k + 3)  # its four frames
             if playback == "loop":

@@ -1269,5 +1269,7 @@ def test_upsample_plays_low_rate_data_on_a_smooth_curve():
     varying.frames[1] = (varying.frames[1][0], varying.frames[1][1][:-5])  # another topology
     with pytest.raises(SceneError, match=r"surface\.upsample 4: .* varying topology"):
         build_world(cfg, device="cpu", sequence=varying)
-    with pytest.raises(Exception, match="upsample"):
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match="upsample"):
         SceneConfig.model_validate({"surface": {"upsample": 0}})
