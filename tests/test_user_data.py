@@ -1273,3 +1273,16 @@ def test_upsample_plays_low_rate_data_on_a_smooth_curve():
 
     with pytest.raises(ValidationError, match="upsample"):
         SceneConfig.model_validate({"surface": {"upsample": 0}})
+
+
+def test_upsample_beyond_the_free_memory_is_refused(monkeypatch):
+    """``surface.upsample`` multiplies the frames held: a factor whose frames do not fit the host's
+    free memory is refused by name, before the world is built."""
+    from dynmesh_warp import scene
+
+    V, F = ico_sequence()
+    seq = FixedTopologySequence(V, F, fps=30.0)
+    monkeypatch.setattr(scene, "free_bytes", lambda device=None: 10_000)  # 42 vertices x 3 frames x 100: 151 kB
+    cfg = SceneConfig.model_validate({"surface": {"upsample": 100, "playback": "clamp"}})
+    with pytest.raises(SceneError, match=r"surface\.upsample 100: 201 frames of 42 vertices need .* GiB free; a smaller factor"):
+        build_world(cfg, device="cpu", sequence=seq)
