@@ -299,8 +299,13 @@ class VaryingTopologySequence:
         if len(self.frames) == 0:
             raise MeshDataError(f"{where}: sequence has no frames")
         checked = []
-        for t, (v, f) in enumerate(self.frames):
+        for t, pair in enumerate(self.frames):
             src = self.frame_sources[t] if self.frame_sources else where
+            if not isinstance(pair, (tuple, list)) or len(pair) != 2:
+                raise MeshDataError(f"{src}: frame {t}: frames must be a list of (V, F) pairs, one per frame "
+                                    f"(got {type(pair).__name__}"
+                                    f"{' of length ' + str(len(pair)) if hasattr(pair, '__len__') else ''})")
+            v, f = pair
             checked.append(validate_mesh(v, f, src, t))
         self.frames = checked
         self.fps = _checked_fps(self.fps, where)

@@ -143,6 +143,18 @@ def test_a_bad_fps_is_named_for_both_sequence_kinds():
     assert FixedTopologySequence(seq.V, seq.F, fps="30", name="cap").fps == 30.0  # a numeric string as before
 
 
+def test_varying_frames_given_as_two_lists_are_named():
+    """VaryingTopologySequence takes one list of (V, F) pairs; a list of vertex arrays and a list
+    of face arrays given separately (the shape of FixedTopologySequence's arguments) failed with
+    Python's "too many values to unpack", naming nothing."""
+    seq = fixed_seq()
+    with pytest.raises(MeshDataError, match=r"cap: frame 0: frames must be a list of \(V, F\) pairs.*ndarray of length"):
+        VaryingTopologySequence(list(seq.V), name="cap")
+    with pytest.raises(MeshDataError, match=r"frames must be a list of \(V, F\) pairs.*tuple of length 3"):
+        VaryingTopologySequence([(seq.V[0], seq.F, None)], name="cap")
+    assert VaryingTopologySequence(seq.to_varying().frames, name="cap").num_frames == seq.num_frames
+
+
 def test_single_mesh_file(tmp_path):
     V, F = icosphere()
     write_mesh(tmp_path / "one.ply", V, F)
