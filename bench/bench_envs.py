@@ -94,10 +94,10 @@ def main(argv=None):
                "swept_search": str(w.search), "tile_threads": w.tile_threads if w.query is not None else None,
                "hybrid_budget": w.budget if str(w.search) == "hybrid" else None,
                "hybrid_blocks": w.blocks if str(w.search) == "hybrid" else None, "grid_cell_m": bm.grid_cell,
-               "memory_bytes": bm.memory_bytes}
+               "memory_bytes": w.memory_bytes}
         res["rows"].append(row)
         print(f"E={E:>6}: {t['steps_per_s']:>10,.0f} steps/s  {row['env_steps_per_s']:>14,.0f} env-steps/s  "
-              f"mem/env {bm.memory_bytes['per_env']} B", flush=True)
+              f"mem/env {w.memory_bytes['per_env']} B", flush=True)
         del w, bm
     out = Path(a.out) if a.out else RESULTS / f"envs_{'cuda' if device.is_cuda else 'cpu'}.json"
     write_json(out, res)

@@ -88,6 +88,13 @@ def required_substeps(max_speed: float, dt: float, r_min: float) -> int:
     return max(1, math.ceil(max_speed * dt / (0.5 * r_min)))
 
 
+#: device memory of one sphere of a batch [bytes]: radius, inverse mass, env index, position,
+#: velocity, and its contact (face, point, normal, depth, velocity, pinch memory of 64 bytes)
+SPHERE_BYTES = 4 + 4 + 4 + 12 + 12 + (4 + 12 + 12 + 4 + 12 + 64)
+#: ... and of one env's clock: time (float64), rate, playback
+CLOCK_BYTES = 8 + 4 + 4
+
+
 class BatchModel:
     """Static data of E envs on one deforming surface.
 
@@ -202,8 +209,7 @@ class BatchModel:
         leaves = math.ceil(M / 4)
         boxes = 2 * T * M * 12
         bvh_nodes = T * (2 * leaves - 1) * 32 + T * M * 4  # nodes + primitive indices
-        per_sphere = 4 + 4 + 4 + 2 * 12 + (4 + 12 + 12 + 4 + 12)  # radius, inv_mass, env, pos/vel, contacts
-        per_env = self.spheres_per_env * per_sphere + 8 + 4 + 4
+        per_env = self.spheres_per_env * SPHERE_BYTES + CLOCK_BYTES
         grids = (0 if self.cell_faces is None  # the grid search's, once built
                  else self.cell_start.size * 8 + self.cell_faces.size * 28 + T * (12 + 12))
         return {"pair_boxes": boxes, "pair_bvh_nodes_estimate": bvh_nodes, "pair_grids": grids, "frames": frames,
@@ -412,6 +418,25 @@ class BatchedWorld:
         return self.model.num_envs
 
     @property
+    def memory_bytes(self) -> dict:
+        """:attr:`BatchModel.memory_bytes` with ``per_env`` counted from this world's arrays
+        [bytes]: every array of one entry per env or per sphere (the spheres' model, the state,
+        the contacts and their pinch memory, the split searches' query record, the reset mask),
+        divided by E. The model's own figure is an estimate of the spheres and clocks alone (a
+        new user measured 740 B an env of 5 spheres against the 416 it said)."""
+        m = self.model
+        E, n = m.num_envs, m.spheres.count
+        held = [m.spheres, m.sphere_env, self.state, self.contacts, self.query, self._mask]
+        arrays = [a for h in held if h is not None
+                  for a in ([h] if isinstance(h, wp.array) else vars(h).values()) if isinstance(a, wp.array)]
+        per_env = sum(a.capacity for a in arrays if a.shape[0] in (E, n) and a.ndim == 1) / E
+        out = dict(m.memory_bytes)
+        total = out["total_estimate"] - out["per_env"] * E
+        out["per_env"] = int(round(per_env))
+        out["total_estimate"] = int(total + per_env * E)
+        return out
+
+    @property
     def dt(self) -> float:
         return self.model.params.dt
 
@@ -528,7 +553,7 @@ class BatchedWorld:
         return {"collider": "swept (pair BVHs, batched)", "swept_search": str(self.search), "num_envs": self.num_envs,
                 "spheres_per_env": self.model.spheres_per_env,
                 "surface": {"frames": surf.num_frames, "fps": surf.fps, "faces": surf.num_faces},
-                "memory_bytes": self.model.memory_bytes,
+                "memory_bytes": self.memory_bytes,
                 "final": {"finite": bool(np.isfinite(pos).all() and np.isfinite(vel).all())}}
 
     def run_line(self) -> tuple[str, str]:
@@ -753,10 +778,12 @@ def _spheres_for_env_starts(cfg, seq, mode: int, times: np.ndarray, pos: np.ndar
     return pos
 
 
-#: the memory a batch takes per env and per sphere of an env [bytes], at least: 512 bytes an env of
-#: 5 spheres measured on the CPU (resident size of 200,000 envs); a batch that cannot fit the
-#: device's free memory is refused before it is allocated
-BYTES_PER_ENV, BYTES_PER_SPHERE = 64, 64
+#: the memory a batch takes per env and per sphere of an env [bytes], at least: the clocks and
+#: the reset mask (CLOCK_BYTES + 4), and per sphere SPHERE_BYTES plus the split searches' query
+#: record (44), rounded up; a new user measured 877 B an env of 5 spheres on the CPU (resident
+#: size from 10 to 200,010 envs; this said 384 before). A batch that cannot fit the device's free
+#: memory is refused before it is allocated
+BYTES_PER_ENV, BYTES_PER_SPHERE = 32, 192
 
 
 def build_batched_world(cfg, device=None, num_envs: int | None = None, sequence=None) -> BatchedWorld:
