@@ -53,6 +53,10 @@ __all__ = ["ENV_ID", "RideSurfaceEnv", "RideSurfaceSingleEnv", "surface_target"]
 #: (its ``vector_entry_point``: one batched world, not E copies); without importing this module
 #: first, ``gym.make("dynmesh_warp.envs:" + ENV_ID)``
 ENV_ID = "dynmesh_warp/RideSurface-v0"
+#: the episode length [env steps] when none is given: ``max_steps`` of :class:`RideSurfaceEnv`, and
+#: the registered ``max_episode_steps`` of ``ENV_ID`` (Gymnasium's TimeLimit ends ``gym.make``'s
+#: episodes, ``gym.make_vec`` passes it to the batch)
+MAX_STEPS = 500
 
 
 def surface_target(V0: np.ndarray, top_fraction: float = 0.1) -> np.ndarray:
@@ -78,18 +82,21 @@ class RideSurfaceEnv(VectorEnv):
             surface and physics are used, its spheres are not (one ball per env).
         device: Warp device (default: the scene's, else Warp's).
         backend: "numpy" (host arrays) or "torch" (device tensors, zero copy).
-        radius: ball radius [m]; max_steps: episode length; decimation: physics steps per env
+        radius: ball radius [m]; max_steps: episode length (default ``MAX_STEPS``; Gymnasium's
+            ``max_episode_steps`` is the same setting); decimation: physics steps per env
             step; accel: action scale [m/s^2]; push: largest initial push [m/s]; max_distance:
             horizontal reach around the target [m] (default 0.25 x the surface's bbox diagonal);
-            target: (3,) [m] (default :func:`surface_target`).
+            target: (3,) [m] (default :func:`surface_target`); seed: the episodes' random stream
+            (default None: fresh entropy, as Gymnasium's first ``reset()`` without a seed;
+            ``reset(seed=s)`` sets it too).
     """
 
     metadata = {"autoreset_mode": AutoresetMode.SAME_STEP if AutoresetMode is not None else "same-step",
                 "render_modes": ["rgb_array"]}
 
     def __init__(self, num_envs: int = 64, scene=None, device=None, backend: str = "numpy", radius: float = 0.05,
-                 max_steps: int = 500, decimation: int = 4, accel: float = 4.0, push: float = 0.6,
-                 max_distance: float | None = None, target=None, seed: int = 0, render_mode: str | None = None,
+                 max_steps: int | None = None, decimation: int = 4, accel: float = 4.0, push: float = 0.6,
+                 max_distance: float | None = None, target=None, seed: int | None = None, render_mode: str | None = None,
                  render_size: tuple[int, int] = (128, 128), max_episode_steps: int | None = None):
         if gym is None:
             raise ImportError("RideSurfaceEnv needs gymnasium >= 1.0: pip install 'dynmesh_warp[rl]'")
@@ -100,7 +107,12 @@ class RideSurfaceEnv(VectorEnv):
             raise ValueError(f"render_size must be (width, height) in pixels, got {render_size!r}")
         self.render_mode, self.render_size = render_mode, (int(size[0]), int(size[1]))
         if max_episode_steps is not None:  # Gymnasium's name (gym.make_vec passes it) for max_steps
+            if max_steps is not None and max_steps != max_episode_steps:
+                raise ValueError(f"max_steps ({max_steps!r}) and max_episode_steps ({max_episode_steps!r}) are one "
+                                 "setting, the episode length: give one (gym.make_vec passes the registered "
+                                 f"max_episode_steps, {MAX_STEPS}, unless you give max_episode_steps=N)")
             max_steps = max_episode_steps
+        max_steps = MAX_STEPS if max_steps is None else max_steps
         if backend not in ("numpy", "torch"):
             raise ValueError(f"backend must be 'numpy' or 'torch', got {backend!r}")
         if backend == "torch":
@@ -161,7 +173,11 @@ class RideSurfaceEnv(VectorEnv):
         self.done = wp.zeros(E, dtype=wp.int32, device=d)
         self.actions = wp.zeros((E, 2), dtype=float, device=d)
         self._all = wp.ones(E, dtype=wp.int32, device=d)
-        self._seed = kernel_seed(seed)
+        if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer))):
+            raise ValueError(f"seed: one integer for the batch, or None (fresh entropy), got {seed!r}")
+        # no seed: fresh entropy, as Gymnasium's reset() without one (every env made without a seed
+        # played seed 0's episodes: a new user's unseeded workers collected the same data)
+        self._seed = kernel_seed(np.random.SeedSequence().entropy if seed is None else seed)
         box = gym.spaces.Box(-np.inf, np.inf, (int(OBS_DIM),), np.float32)
         act = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
         self.single_observation_space, self.single_action_space = box, act
@@ -374,6 +390,22 @@ class RideSurfaceSingleEnv(gym.Env if gym is not None else object):
         self.vector_env.close()
 
 
+def make_single_env(**kwargs) -> RideSurfaceSingleEnv:
+    """``gym.make(ENV_ID, ...)``'s entry point: a :class:`RideSurfaceSingleEnv` whose episodes end
+    where Gymnasium's TimeLimit ends them (``max_episode_steps``: ``MAX_STEPS`` as registered, or
+    the one given to ``gym.make``; -1 none). Its own limit is off: at 500 it cut
+    ``gym.make(..., max_episode_steps=700)``'s episodes at 500 (a new user's)."""
+    if "max_steps" in kwargs:
+        raise ValueError(f"gym.make({ENV_ID!r}): give the episode length as max_episode_steps="
+                         f"{kwargs['max_steps']!r} (Gymnasium's TimeLimit ends gym.make's episodes), not max_steps")
+    return RideSurfaceSingleEnv(max_steps=NO_STEP_LIMIT, **kwargs)
+
+
+make_single_env.metadata = RideSurfaceSingleEnv.metadata
+#: the episode length of an env whose episodes a wrapper ends (``make_single_env``) [env steps]
+NO_STEP_LIMIT = 2**31 - 1
+
 if gym is not None and ENV_ID not in gym.registry:
-    gym.register(ENV_ID, entry_point=f"{__name__}:RideSurfaceSingleEnv", vector_entry_point=f"{__name__}:RideSurfaceEnv")
+    gym.register(ENV_ID, entry_point=f"{__name__}:make_single_env", vector_entry_point=f"{__name__}:RideSurfaceEnv",
+                 max_episode_steps=MAX_STEPS)
 

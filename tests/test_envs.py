@@ -126,6 +126,42 @@ def test_env_arguments_seeds_and_close_are_checked(device):
         env.reset()
 
 
+def test_unseeded_envs_draw_their_own_episodes_and_gym_make_takes_gymnasiums_episode_length(device):
+    """No seed: fresh entropy, as Gymnasium's reset() without one (every env made without a seed
+    played seed 0's episodes, so a new user's unseeded workers collected the same data); a seed
+    still reproduces. gym.make's episode length is Gymnasium's ``max_episode_steps`` (its
+    TimeLimit; the env's own limit is off): the env's own 500 cut ``max_episode_steps=700`` at 500."""
+    from dynmesh_warp.envs import ENV_ID, MAX_STEPS, NO_STEP_LIMIT
+
+    a, b = _env(device, num_envs=2), _env(device, num_envs=2)
+    assert not np.array_equal(a.reset()[0], b.reset()[0])
+    np.testing.assert_array_equal(a.reset(seed=3)[0], b.reset(seed=3)[0])
+    c, d = _env(device, num_envs=2, seed=7), _env(device, num_envs=2, seed=7)
+    np.testing.assert_array_equal(c.reset()[0], d.reset()[0])
+    with pytest.raises(ValueError, match="seed: one integer for the batch, or None"):
+        _env(device, num_envs=2, seed=1.5)
+    env = gym.make(ENV_ID, scene=_env_cfg(device))
+    assert env.spec.max_episode_steps == MAX_STEPS and env.unwrapped.vector_env.max_steps == NO_STEP_LIMIT
+    env = gym.make(ENV_ID, scene=_env_cfg(device), max_episode_steps=MAX_STEPS + 200)
+    assert env.spec.max_episode_steps == MAX_STEPS + 200 and env.unwrapped.vector_env.max_steps == NO_STEP_LIMIT
+    env.reset(seed=0)
+    state = env.unwrapped.vector_env.world.state
+    start = state.sphere_pos.numpy() + [0.0, 0.0, 1.0]  # clear of the breathing blob's top
+    trunc, k = False, 0
+    while not trunc:  # a ball held in place runs to the wrapper's limit, past the env's old 500
+        state.sphere_pos.assign(start)
+        state.sphere_vel.zero_()
+        _, _, term, trunc, _ = env.step(np.zeros(2, np.float32))
+        k += 1
+        if term:
+            break
+    assert not term and k == MAX_STEPS + 200
+    vec = gym.make_vec(ENV_ID, num_envs=2, scene=_env_cfg(device))
+    assert vec.max_steps == MAX_STEPS
+    with pytest.raises(ValueError, match="max_steps .* and max_episode_steps .* are one setting"):
+        _env(device, num_envs=2, max_steps=7, max_episode_steps=9)
+
+
 def test_a_reset_episode_starts_out_of_contact(device):
     """An episode's first observation does not carry the last step's contact (obs 15): a reset
     with the same seed gives the same first observation after a rollout as before it."""
@@ -331,8 +367,8 @@ def test_single_env_is_the_batch_of_one_through_gymnasium_make(device):
     from dynmesh_warp.envs import ENV_ID, RideSurfaceSingleEnv
 
     cfg = _env_cfg(device)
-    env = gym.make(ENV_ID, scene=cfg, max_steps=6)
-    assert isinstance(env.unwrapped, RideSurfaceSingleEnv)
+    env = gym.make(ENV_ID, scene=cfg, max_episode_steps=6)  # Gymnasium's TimeLimit ends the episode
+    assert isinstance(env.unwrapped, RideSurfaceSingleEnv) and env.spec.max_episode_steps == 6
     check_env(env.unwrapped, skip_render_check=True)
     batch = RideSurfaceEnv(num_envs=1, scene=cfg, max_steps=6)
     rng = np.random.default_rng(0)
@@ -350,8 +386,11 @@ def test_single_env_is_the_batch_of_one_through_gymnasium_make(device):
             if term or trunc:
                 break
         assert term or (trunc and k == 5)
-        with pytest.raises(RuntimeError, match="call reset"):
-            env.step(np.zeros(2, np.float32))
+        if term:  # the env's own end (a TimeLimit's truncation is the wrapper's: Gymnasium steps on)
+            with pytest.raises(RuntimeError, match="call reset"):
+                env.step(np.zeros(2, np.float32))
+    with pytest.raises(ValueError, match=r"give the episode length as max_episode_steps=6"):
+        gym.make(ENV_ID, scene=cfg, max_steps=6)
     with pytest.raises(ValueError, match=r"action must have shape \(2,\)"):
         env.reset()
         env.step(np.zeros((1, 2), np.float32))
