@@ -51,7 +51,7 @@ from .kernels.batch import (
 from .kernels.frames import add_points_offset, update_frame_vertices
 from .runtime import free_bytes
 from .world import (Contacts, PhysicsParams, SphereModel, SurfaceModel, check_substep_budget, fallen_past_note,
-                    frame_pair_host, seam_note)
+                    frame_pair_host, playback_cycle_host, seam_note)
 
 __all__ = ["BatchModel", "BatchState", "BatchedWorld", "step_envs", "required_substeps", "env_clocks", "TIME_SLICES",
            "BATCH_TILE_THREADS", "HYBRID_BUDGET", "default_batch_search", "HYBRID_BLOCKS", "ContactQuery",
@@ -386,6 +386,10 @@ class BatchedWorld:
             need = required_substeps(speed, p.dt, r_min)
             if need > self.substeps:
                 note = seam_note(model.surface)
+                if rate != 1.0 and p.max_substeps is not None:  # name the envs' rate (a new user's 1e6 was not)
+                    fit = p.max_substeps * 0.5 * r_min / (p.dt * max(model.surface.max_speed, 1e-30))
+                    note += (f" (the fastest env's rate {rate:g} x the surface's own {model.surface.max_speed:.3g} m/s: "
+                             f"envs.rate up to {fit:.3g} fits)")
                 check_substep_budget(need, speed, r_min, p, note)
                 warnings.warn(f"surface moves up to {speed:.3g} m/s (at rate {rate:g}){note}: "
                               "raising substeps from "
@@ -733,14 +737,16 @@ class EnvGrid(EnvView):
         return np.concatenate([r[e * S:(e + 1) * S] for e in self.envs])
 
 
-def env_clocks(envs, duration: float, rng: np.random.Generator | None = None):
+def env_clocks(envs, cycle: float, rng: np.random.Generator | None = None):
     """(times (E,) [s], rates (E,)) of an ``envs:`` section (config.EnvsConfig): start times
-    uniform over one playback of ``duration`` [s] ("random") or the given offset; rates uniform in
+    uniform over one cycle of the surface's playback, ``cycle`` [s] (``world.playback_cycle_host``
+    / fps: a pingpong env starts going back as often as forth, a clamp env not on the held last
+    frame; as the RL env's reset draws them), for "random", or the given offset; rates uniform in
     ``envs.rate``."""
     rng = np.random.default_rng(envs.seed) if rng is None else rng
     E = envs.count
     if envs.time_offset == "random":
-        times = rng.uniform(0.0, max(duration, 0.0), E)
+        times = rng.uniform(0.0, max(cycle, 0.0), E)
     else:
         times = np.full(E, float(envs.time_offset))
     lo, hi = envs.rate
@@ -811,7 +817,7 @@ def build_batched_world(cfg, device=None, num_envs: int | None = None, sequence=
 
         raise SceneError(f"envs.count {envs.count:,}: needs about {size(need)} on {model.device}, {size(free)} free; "
                          "fewer envs (or spheres per env)")
-    times, rates = env_clocks(envs, seq.num_frames / seq.fps)
+    times, rates = env_clocks(envs, playback_cycle_host(seq.num_frames, model.surface.playback) / seq.fps)
     bm = BatchModel(model.surface, envs.count, model.spheres.radius_np, model.spheres.mass_np, model.params)
     vel = state.sphere_vel.numpy()
     pos = state.sphere_pos.numpy()

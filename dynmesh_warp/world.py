@@ -111,6 +111,17 @@ def _wrap_frame_host(k: int, num_frames: int, mode: int) -> int:
     return k % num_frames
 
 
+def playback_cycle_host(num_frames: int, mode: int) -> float:
+    """Host twin of the device ``kernels.envs.playback_cycle``: frames of one cycle of the
+    playback (T for loop, 2 (T - 1) for pingpong, T - 1 for clamp; at least 1)."""
+    T = float(num_frames)
+    if mode == PLAYBACK_MODES["pingpong"]:
+        return max(2.0 * (T - 1.0), 1.0)
+    if mode == PLAYBACK_MODES["clamp"]:
+        return max(T - 1.0, 1.0)
+    return max(T, 1.0)
+
+
 def frame_pair_host(time: float, fps: float, num_frames: int, mode: int = 0) -> tuple[int, int, float]:
     """Host twin of the device ``frame_pair``: (k, k+1) wrapped by playback mode, and alpha
     (a clock within ``FRAME_SNAP`` frames below a boundary is on it)."""

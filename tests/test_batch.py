@@ -354,6 +354,27 @@ def test_env_grid_shows_several_envs_side_by_side(device, tmp_path):
         EnvGrid(bw, [0, 4])
 
 
+@pytest.mark.parametrize("playback,cycle_frames", [("loop", 12), ("pingpong", 22), ("clamp", 11)])
+def test_random_env_starts_span_one_cycle_of_the_playback(playback, cycle_frames):
+    """``envs.time_offset: random`` draws each env's start uniformly over one cycle of its
+    playback, as the RL env's reset does: loop T frames, pingpong 2 (T - 1) (forward and back),
+    clamp T - 1 (not on the held last frame). A new user found every mode drawn over T / fps:
+    2 of 64 pingpong envs started past the turn, 2 of 64 clamp envs on the held last frame."""
+    from dynmesh_warp.batch import build_batched_world
+    from dynmesh_warp.config import SceneConfig
+
+    cfg = SceneConfig.model_validate({"surface": {"source": "builtin:wave_bowl", "params": {"n": 8, "frames": 12},
+                                                  "playback": playback},
+                                      "spheres": {"count": 1, "radius": 0.05},
+                                      "envs": {"count": 400, "time_offset": "random", "seed": 3}})
+    w = build_batched_world(cfg, device="cpu")
+    frames = w.env_times() * w.model.surface.fps
+    assert frames.min() >= 0.0 and frames.max() < cycle_frames
+    # uniform over the cycle: each quarter holds about a quarter of the starts (binomial, 400 draws)
+    counts = np.histogram(frames, bins=4, range=(0.0, cycle_frames))[0]
+    assert (np.abs(counts - 100) < 40).all(), counts
+
+
 def test_batched_envs_starting_later_do_not_start_inside_the_surface():
     """Envs start at random times (envs.time_offset: random) but every env got the scene's spheres
     placed for frame 0: a new user's raised arm held spheres of 3 of 8 envs inside it, and they
@@ -441,3 +462,16 @@ def test_an_env_start_time_beyond_float64_steps_is_refused():
     with pytest.raises(ValueError, match=r"(?s)time_offset.*at most 1e\+09 s"):
         EnvsConfig(count=4, time_offset=1e30)
     assert EnvsConfig(count=4, time_offset=3600.0).time_offset == 3600.0
+
+
+def test_a_rate_beyond_the_work_budget_names_envs_rate():
+    """envs.rate [1, 1e6] stopped the run naming the surface speed, the radius and dt but not
+    the rate that set it (a new user's): the error now names envs.rate and the rate that fits."""
+    from dynmesh_warp.batch import build_batched_world
+    from dynmesh_warp.config import SceneConfig
+    from dynmesh_warp.world import WorkBudgetError
+
+    cfg = SceneConfig.model_validate({"surface": {"source": "builtin:wave_bowl", "params": {"n": 8, "frames": 12}},
+                                      "spheres": {"count": 1, "radius": 0.05}, "envs": {"count": 4, "rate": [1, 1e6]}})
+    with pytest.raises(WorkBudgetError, match=r"the fastest env's rate 1e\+06 x the surface's own .* envs.rate up to \S+ fits"):
+        build_batched_world(cfg, device="cpu")
