@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import math
 import sys
 import time
 
@@ -32,10 +33,14 @@ def pd_actions(obs: np.ndarray, kp: float, kd: float) -> np.ndarray:
 def rollout(env, steps: int, seed: int, kp: float = 0.0, kd: float = 0.0) -> dict:
     """Run ``env`` (numpy backend) for ``steps`` vector steps under the PD controller (kp = kd =
     0: no action) from ``reset(seed)``; returns the finished episodes' mean return and length,
-    the reward per env-step and the env-steps/s."""
+    the mean return of each env's first episode (None until every env's first has ended: at
+    least ``max_steps`` steps; the episodes that finish inside the window are biased short, so
+    their mean reads low: a new user's 376 against 395 for the first episodes, no action), the
+    reward per env-step and the env-steps/s."""
     obs, _ = env.reset(seed=seed)
     E = env.num_envs
     ret, length = np.zeros(E), np.zeros(E)
+    first = np.full(E, np.nan)
     returns, lengths, total = [], [], 0.0
     t0 = time.perf_counter()
     for _ in range(steps):
@@ -44,6 +49,7 @@ def rollout(env, steps: int, seed: int, kp: float = 0.0, kd: float = 0.0) -> dic
         length += 1
         total += float(r.sum())
         done = term | trunc
+        first[done & np.isnan(first)] = ret[done & np.isnan(first)]
         returns += ret[done].tolist()
         lengths += length[done].tolist()
         ret[done], length[done] = 0.0, 0.0
@@ -51,6 +57,7 @@ def rollout(env, steps: int, seed: int, kp: float = 0.0, kd: float = 0.0) -> dic
     return {"kp": kp, "kd": kd, "seed": seed, "episodes": len(returns),
             "mean_return": float(np.mean(returns)) if returns else None,
             "mean_length": float(np.mean(lengths)) if lengths else None,
+            "first_episode_mean_return": None if np.isnan(first).any() else float(first.mean()),
             "reward_per_env_step": total / (steps * E), "env_steps_per_s": steps * E / wall}
 
 
@@ -110,8 +117,24 @@ def _sweep(spec: list[str]) -> list[dict]:
         if k not in ("kp", "kd", "seed") or not v:
             raise SystemExit(f"--sweep {s}: expected kp=..., kd=... or seed=... with comma-separated values")
         keys.append(k)
-        values.append([float(x) for x in v.split(",")])
+        values.append([_sweep_value(s, k, x) for x in v.split(",")])
     return [dict(zip(keys, combo)) for combo in itertools.product(*values)] or [{}]
+
+
+def _sweep_value(spec: str, key: str, text: str):
+    """One value of ``--sweep KEY=...``: a finite number for kp / kd, a whole number for seed
+    (``kp=abc`` ended in float()'s traceback and ``seed=1.5`` ran seed 1: a new user's)."""
+    try:
+        x = float(text)
+    except ValueError:
+        x = float("nan")
+    if key == "seed":
+        if not (math.isfinite(x) and x == int(x)):
+            raise SystemExit(f"--sweep {spec}: seed values must be whole numbers, got {text!r}")
+        return int(x)
+    if not math.isfinite(x):
+        raise SystemExit(f"--sweep {spec}: {key} values must be finite numbers, got {text!r}")
+    return x
 
 
 def main(argv=None) -> int:

@@ -192,7 +192,8 @@ class RideSurfaceEnv(VectorEnv):
                   inputs=[surf.frames, surf.indices, m.pair_bvh, surf.fps, int(surf.interpolate), m.time_slices,
                           m.spheres_per_env, mask, self._seed, wp.vec3(*self.target.tolist()), 0.3 * self.max_distance, self.push,
                           self.top, self.radius],
-                  outputs=[s.env_time, s.env_playback, s.sphere_pos, s.sphere_vel, self.env_steps, self.env_episode],
+                  outputs=[s.env_time, s.env_playback, s.sphere_pos, s.sphere_vel, self.env_steps, self.env_episode,
+                           self.world.contacts.memory],
                   device=self.device)
 
     def _evaluate(self, mask: wp.array | None = None):
@@ -311,8 +312,11 @@ class RideSurfaceEnv(VectorEnv):
         self._reset_envs(self.done)
         self._evaluate(self.done)
         done = self._out(self.done)
-        info = {"final_obs": self._out(self.final_obs), "_final_obs": done.astype(bool) if self.backend == "numpy"
-                else done.bool()}
+        ended = done.astype(bool) if self.backend == "numpy" else done.bool()
+        # Gymnasium's same-step keys, as its SyncVectorEnv gives them: the finished envs' last
+        # observations and their last step's info (this env's step info is empty, so an empty dict)
+        info = {"final_obs": self._out(self.final_obs), "_final_obs": ended,
+                "final_info": {}, "_final_info": ended.clone() if self.backend == "torch" else ended.copy()}
         term, trunc = self._out(self.terminated), self._out(self.truncated)
         if self.backend == "numpy":
             return self._out(self.obs), self._out(self.reward), term.astype(bool), trunc.astype(bool), info

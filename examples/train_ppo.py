@@ -84,6 +84,7 @@ def main(argv=None):
         buf_r = torch.zeros((H, E), device=dev)
         buf_d = torch.zeros((H, E), device=dev)
         buf_v = torch.zeros((H, E), device=dev)
+        env_r = torch.zeros((), device=dev)  # the env's rewards alone (buf_r adds the bootstrap values)
         finished = []
         with torch.no_grad():
             for t in range(H):
@@ -96,6 +97,7 @@ def main(argv=None):
                 # final observation (same-step autoreset: obs is already the next episode's)
                 boot = gamma * net.value(info["final_obs"]) * trunc.float() if bool(trunc.any()) else 0.0
                 buf_r[t], buf_d[t] = r + boot, done
+                env_r += r.sum()
                 ep_ret += r
                 ep_len += 1
                 if bool(done.any()):
@@ -136,7 +138,7 @@ def main(argv=None):
         rets = torch.cat(finished) if finished else torch.zeros(0, device=dev)
         row = {"iteration": it, "env_steps": it * H * E, "wall_s": time.perf_counter() - t0,
                "episodes": int(rets.numel()), "mean_return": float(rets.mean()) if rets.numel() else None,
-               "mean_reward_per_step": float(buf_r.mean())}
+               "mean_reward_per_step": float(env_r) / (H * E)}
         curve.append(row)
         if it % 10 == 1:
             print(f"it {it:4d}  env-steps {row['env_steps']:>12,}  {row['wall_s']:6.1f} s  "

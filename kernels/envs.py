@@ -10,6 +10,7 @@ import warp as wp
 
 from .batch import pair_slot
 from .frames import PLAYBACK_CLAMP, PLAYBACK_PINGPONG, blend_pair
+from .integrate import pinch_memory
 from .swept import interpolated_triangle
 
 #: probe grid around the ball: PROBE_SIDE x PROBE_SIDE points
@@ -240,12 +241,14 @@ def reset_ball_envs(
     sphere_vel_out: wp.array[wp.vec3],
     env_steps_out: wp.array[wp.int32],
     env_episode_out: wp.array[wp.int32],
+    contact_memory_out: wp.array[pinch_memory],
 ):
     """Start a new episode in every env with env_mask[e] != 0: a random time of its playback's
     cycle (uniform over ``playback_cycle`` / fps [s]: a pingpong env starts going back as often
     as forth), the ball over a random point within ``spawn_radius`` [m]
     of the target, just above the surface there, with a random horizontal push of at most
-    ``push`` [m/s]. Random numbers from (seed, env, episode): reproducible."""
+    ``push`` [m/s], its pinch memory cleared (``BatchedWorld.reset``'s rule). Random numbers from
+    (seed, env, episode): reproducible."""
     e = wp.tid()
     if env_mask[e] == 0:
         return
@@ -269,6 +272,7 @@ def reset_ball_envs(
     pang = wp.randf(state) * 6.283185307179586
     pm = push * wp.randf(state)
     sphere_vel_out[s] = wp.vec3(pm * wp.cos(pang), pm * wp.sin(pang), 0.0)
+    contact_memory_out[s] = pinch_memory()  # a pinch of the last episode is not this one's
     env_steps_out[e] = 0
 
 

@@ -28,3 +28,16 @@ def test_rollouts_fan_out_over_ray_actors_and_match_local_runs():
         assert r["mean_return"] == pytest.approx(mine["mean_return"], rel=1e-6)
         assert r["reward_per_env_step"] == pytest.approx(mine["reward_per_env_step"], rel=1e-6)
     assert not ray.is_initialized()  # the local Ray it started is shut down again
+
+
+def test_sweep_values_are_checked_by_name():
+    """``--sweep kp=abc`` ended in float()'s traceback and ``--sweep seed=1.5`` ran seed 1 (a new
+    user's): each is now refused naming the option; whole seeds and finite gains pass."""
+    from dynmesh_warp.distributed import _sweep
+
+    assert _sweep(["kp=1,2.5", "seed=3"]) == [{"kp": 1.0, "seed": 3}, {"kp": 2.5, "seed": 3}]
+    for bad, what in (("kp=abc", "kp values must be finite numbers, got 'abc'"),
+                      ("kd=1,inf", "kd values must be finite numbers, got 'inf'"),
+                      ("seed=1.5", "seed values must be whole numbers, got '1.5'")):
+        with pytest.raises(SystemExit, match=f"--sweep {bad}: {what}"):
+            _sweep([bad])

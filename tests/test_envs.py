@@ -57,6 +57,13 @@ def test_reset_mask_resets_only_the_masked_envs(device):
     obs, _ = env.reset(seed=5, options={"reset_mask": m})
     np.testing.assert_array_equal(obs[m], first[m])
     np.testing.assert_array_equal(obs[~m], moved[~m])
+    # a reset env's pinch memory is cleared, as BatchedWorld.reset clears it (a new user found 16
+    # floats of the last episode's carried into the next); the other envs' is left as it was
+    memory = env.world.contacts.memory
+    memory.fill_(1.0)
+    env.reset(options={"reset_mask": m})
+    np.testing.assert_array_equal(memory.numpy()[m], 0.0)
+    np.testing.assert_array_equal(memory.numpy()[~m], 1.0)
     for bad in (np.ones(3, bool), np.ones(4, np.int32)):
         with pytest.raises(ValueError, match=r"reset_mask: expected \(4,\) booleans"):
             env.reset(options={"reset_mask": bad})
@@ -204,6 +211,8 @@ def test_same_step_autoreset_and_termination(device):
     obs, r, term, trunc, info = env.step(zero)
     assert (trunc | term).all()  # every episode ended at max_steps (or earlier by falling)
     assert info["_final_obs"].all()
+    # Gymnasium's same-step keys as its SyncVectorEnv gives them (final_info was missing: a new user's)
+    assert info["final_info"] == {} and info["_final_info"].dtype == bool and info["_final_info"].all()
     assert not np.allclose(info["final_obs"], obs)  # obs is the new episode's first, final_obs the last
     np.testing.assert_array_equal(env.env_steps.numpy(), 0)
     # pushing hard in one direction carries the ball off its reach: terminated, reward -1 included
