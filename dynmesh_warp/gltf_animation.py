@@ -257,6 +257,9 @@ def gltf_has_animation(path) -> bool:
 #: coordinates as they were (no up axis is known to the writer), so ``up_axis: auto`` reads them
 #: back unturned
 GENERATOR = "dynmesh_warp"
+#: ... and of the files it writes from +Y-up coordinates (a glTF input converted: its coordinates
+#: stay as they were, which is glTF's own up axis), which ``up_axis: auto`` turns as any glTF
+GENERATOR_Y_UP = "dynmesh_warp (+Y up)"
 
 
 def gltf_generator(path) -> str:
@@ -435,13 +438,15 @@ def read_gltf_animation(path, fps: float | None = None, animation=None):
     return V, F, float(fps)
 
 
-def write_gltf_animation(path, V, F, fps: float) -> None:
+def write_gltf_animation(path, V, F, fps: float, y_up: bool = False) -> None:
     """Write a fixed-topology sequence ``V`` (T, N, 3) on faces ``F`` (M, 3) as one animated GLB
     (``path``, atomically): frame 0 is the mesh, frames 1 .. T - 1 are morph targets (position
     offsets from frame 0), and one animation sets target t - 1's weight to 1 at time t / fps, 0
     elsewhere, with LINEAR interpolation, so a viewer plays the frames and blends between them
     as the physics does. Reads back with :func:`read_gltf_animation`; Blender imports the targets
-    as shape keys. float32 positions, uint32 indices."""
+    as shape keys. float32 positions, uint32 indices. ``y_up``: the coordinates are +Y up (glTF's
+    own axis; ``asset.generator`` ``GENERATOR_Y_UP``), else as this project's z-up world
+    (``GENERATOR``: read back unturned)."""
     V = np.asarray(V, np.float32)
     F = np.asarray(F, np.uint32)
     T, n = V.shape[:2]
@@ -463,8 +468,9 @@ def write_gltf_animation(path, V, F, fps: float) -> None:
 
     prim = {"attributes": {"POSITION": add(V[0], "VEC3", 5126, True)}, "indices": add(F.reshape(-1), "SCALAR", 5125),
             "mode": 4}
-    doc = {"asset": {"version": "2.0", "generator": GENERATOR}, "scene": 0, "scenes": [{"nodes": [0]}],
-           "nodes": [{"mesh": 0, "name": "surface"}], "meshes": [{"primitives": [prim], "name": "surface"}]}
+    doc = {"asset": {"version": "2.0", "generator": GENERATOR_Y_UP if y_up else GENERATOR}, "scene": 0,
+           "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0, "name": "surface"}],
+           "meshes": [{"primitives": [prim], "name": "surface"}]}
     if T > 1:
         prim["targets"] = [{"POSITION": add(V[t] - V[0], "VEC3", 5126, True)} for t in range(1, T)]
         doc["meshes"][0]["weights"] = [0.0] * (T - 1)

@@ -30,9 +30,10 @@ from .animation_formats import (
     topology_faces,
     write_animation,
 )
-from .choices import FrameOrder, parse
-from .gltf_animation import GLTF_EXTENSIONS, gltf_has_animation, read_gltf_animation, write_gltf_animation
-from .mesh_formats import MESH_EXTENSIONS, read_mesh, write_mesh, write_mesh_file
+from .choices import Y_UP_FORMATS, FrameOrder, parse
+from .gltf_animation import (GENERATOR, GENERATOR_Y_UP, GLTF_EXTENSIONS, gltf_generator, gltf_has_animation,
+                             read_gltf_animation, write_gltf_animation)
+from .mesh_formats import MESH_EXTENSIONS, mesh_extension, read_mesh, write_mesh, write_mesh_file
 from .outputs import OutputExistsError, OutputFolder, OutputKind, atomic_path
 from .sequence import FixedTopologySequence, VaryingTopologySequence
 from .sequence_layouts import (
@@ -168,8 +169,43 @@ def load_sequence(
 
 
 
+def stored_up_axis(path) -> str:
+    """The up axis of the coordinates a file or folder holds, as far as it says: ``"y"`` for glTF
+    (``.glb`` / ``.gltf``, or a folder whose frames all are; +Y up by its specification) unless
+    this project wrote it from z-up data (``asset.generator`` ``GENERATOR``; ``GENERATOR_Y_UP`` is
+    +Y up), ``"y"`` for an npz this project wrote from +Y-up data (its ``up_axis`` entry), else
+    ``"z"``. What ``surface.up_axis: auto`` takes; the writers keep it (a new user's glTF
+    converted to an npz or a .glb came back turned 90 degrees from the input)."""
+    path = Path(str(path))
+    try:
+        if path.is_dir():  # its frames, by the folder loader's own rule (sequence_layouts.list_frame_files)
+            frames = sorted(q for q in path.iterdir()
+                            if q.is_file() and not q.name.startswith(".") and mesh_extension(q.name))
+            if not frames or any(mesh_extension(q.name) not in Y_UP_FORMATS for q in frames):
+                return "z"
+            path = frames[0]
+        ext = mesh_extension(path.name) or path.suffix.lower()
+        if ext == ".npz":
+            with np.load(path, allow_pickle=False) as z:
+                return "y" if "up_axis" in z.files and str(z["up_axis"]) == "y" else "z"
+    except (OSError, ValueError):
+        return "z"
+    if ext not in Y_UP_FORMATS:
+        return "z"
+    g = gltf_generator(path)
+    return "y" if g == GENERATOR_Y_UP or not g.startswith(GENERATOR) else "z"
+
+
+def _y_up(seq) -> bool:
+    """Whether ``seq``'s coordinates are +Y up: those of its source file as loaded (glTF, or an
+    npz / .glb this project wrote from one); a sequence made in memory is not."""
+    return bool(seq.source) and not str(seq.source).startswith("builtin:") and stored_up_axis(seq.source) == "y"
+
+
 def _save_npz(seq, path: Path, status: dict | None = None) -> None:
     arrays = npz_arrays(seq, status)
+    if _y_up(seq):  # read back turned, as its glTF source is (surface.up_axis: auto)
+        arrays["up_axis"] = np.asarray("y")
     with atomic_path(path, suffix=".npz") as tmp, open(tmp, "wb") as fh:  # a file object: numpy adds no ".npz"
         np.savez(fh, **arrays)
         fh.flush()
@@ -245,9 +281,10 @@ def save_sequence(seq, path, fmt: str | None = None, overwrite: bool = False, st
             raise ValueError(f"{path}: a {path.suffix} animation holds one set of faces for every frame; this "
                              f"sequence's topology varies (convert it first, or save a .npz or a folder)")
         if path.suffix.lower() == ".glb":
-            write_gltf_animation(path, seq.V, seq.F, seq.fps)
+            write_gltf_animation(path, seq.V, seq.F, seq.fps, y_up=_y_up(seq))
         else:
             write_animation(path, seq.V, seq.F, seq.fps, overwrite=bool(overwrite))
+            _warn_up_axis_lost(seq, path)
         return
     if path.suffix.lower() == ".npz":
         if fmt not in (None, "npz"):
@@ -262,3 +299,15 @@ def save_sequence(seq, path, fmt: str | None = None, overwrite: bool = False, st
             f"(got {fmt!r}); use a .npz path for a single file"
         )
     _save_folder(seq, path, fmt, overwrite, status)
+    _warn_up_axis_lost(seq, path)
+
+
+def _warn_up_axis_lost(seq, path: Path) -> None:
+    """A format that cannot say its up axis (frames, point caches, .anime), written from +Y-up
+    coordinates (a glTF input): say how to read it back the input's way up."""
+    if _y_up(seq):
+        import warnings
+
+        warnings.warn(f"{path}: its coordinates are +Y up, as its source {seq.source} (glTF) holds them, and this "
+                      "format cannot say so: read it back with surface.up_axis: y (--set surface.up_axis=y), or "
+                      "write a .npz or .glb, which keep it", stacklevel=3)

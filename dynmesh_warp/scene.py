@@ -4,15 +4,13 @@ from __future__ import annotations
 
 import re
 import warnings
-from pathlib import Path
 
 import numpy as np
 
-from .choices import Y_UP_FORMATS, Collider, UpAxis, parse
+from .choices import Collider, UpAxis, parse
 from .config import PhysicsCore, SceneConfig, SceneError, scene_config, spawn_positions
 from .runtime import free_bytes, scene_device
 from .geometry import orient_faces, points_inside, up_from_gravity
-from .mesh_formats import mesh_extension
 from .sequence import (FixedTopologySequence, MeshDataError, TopologyMismatchError, VaryingTopologySequence, upsampled_frames,
                        surface_vertices)
 from .world import Model, PhysicsParams, SphereModel, State, World, surface_model, surface_model_class
@@ -25,26 +23,15 @@ _Y_TO_Z = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
 
 def up_axis_of(cfg, source) -> str:
     """``surface.up_axis`` resolved for the loaded ``source`` (a path, or None for data built in
-    memory): ``auto`` is ``y`` for glTF (a ``.glb``/``.gltf`` file, or a folder whose frames are),
-    whose specification fixes +Y up, unless this project wrote it (its ``asset.generator``:
-    written with the input's coordinates unturned), else ``z``."""
-    from .gltf_animation import GENERATOR, gltf_generator
+    memory): ``auto`` is what the file says (:func:`~dynmesh_warp.io.stored_up_axis`: ``y`` for
+    glTF, whose specification fixes +Y up, and for what this project wrote from it), else ``z``."""
+    from .io import stored_up_axis
 
     if cfg.up_axis != UpAxis.AUTO:
         return str(cfg.up_axis)
     if not source or str(source).startswith("builtin:"):
         return "z"
-    path = Path(str(source))
-    if path.is_dir():  # its frames, by the folder loader's own rule (sequence_layouts.list_frame_files)
-        frames = sorted(q for q in path.iterdir()
-                        if q.is_file() and not q.name.startswith(".") and mesh_extension(q.name))
-        if not frames or any(mesh_extension(q.name) not in Y_UP_FORMATS for q in frames):
-            return "z"
-        path = frames[0]
-    elif mesh_extension(path.name) not in Y_UP_FORMATS:
-        return "z"
-    # a file this project wrote holds its input's coordinates as they were: read back unturned
-    return "z" if gltf_generator(path).startswith(GENERATOR) else "y"
+    return stored_up_axis(source)
 
 
 def _transform(V: np.ndarray, cfg, up_axis: str) -> np.ndarray:

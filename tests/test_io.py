@@ -772,3 +772,42 @@ def test_upsampled_is_a_c1_curve_through_the_frames():
         seq.upsampled(0)
     with pytest.raises(ValueError, match="playback"):
         seq.upsampled(2, "bounce")
+
+
+def test_a_gltf_input_saved_as_npz_or_glb_reads_back_the_same_way_up(tmp_path):
+    """glTF is +Y up, so ``surface.up_axis: auto`` turns it; a sequence loaded from one keeps
+    those coordinates, and its npz or .glb used to be read back unturned (a new user's converted
+    glTF lay on its side: frame 0's extent (0.92, 0.59, 0.10) became (0.92, 0.10, 0.59)). The npz
+    now says ``up_axis: y`` and the .glb is written as +Y up, so the scene is the same from each;
+    data made in memory (z-up) reads back unturned as before; a frames folder warns."""
+    from test_gltf_animation import _sliding_bar
+
+    from dynmesh_warp.config import load_scene_config
+    from dynmesh_warp.io import stored_up_axis
+    from dynmesh_warp.scene import load_surface
+
+    b = _sliding_bar()
+    b.doc["asset"]["generator"] = "SomeExporter 1.0"
+    src = tmp_path / "bar.glb"
+    src.write_bytes(b.glb())
+    seq = load_sequence(src)
+    save_sequence(seq, tmp_path / "bar.npz")
+    save_sequence(seq, tmp_path / "back.glb")
+    with pytest.warns(UserWarning, match=r"its coordinates are \+Y up, .* surface.up_axis: y"):
+        save_sequence(seq, tmp_path / "frames", fmt="obj")
+
+    def scene_V(path, **surface):
+        return load_surface(load_scene_config(data={"surface": {"source": str(path), "orientation": "keep",
+                                                                **surface}})).V
+
+    ref = scene_V(src)
+    assert np.ptp(ref[0][:, 2]) > np.ptp(ref[0][:, 1])  # the bar's +Y extent is now up (z)
+    for out in ("bar.npz", "back.glb"):
+        assert stored_up_axis(tmp_path / out) == "y"
+        np.testing.assert_allclose(scene_V(tmp_path / out), ref, atol=1e-6)
+    np.testing.assert_allclose(scene_V(tmp_path / "frames", up_axis="y"), ref, atol=1e-6)
+    zup = fixed_seq()  # made in memory: this project's z-up world, read back unturned
+    save_sequence(zup, tmp_path / "z.npz")
+    save_sequence(zup, tmp_path / "z.glb")
+    assert stored_up_axis(tmp_path / "z.npz") == "z" and stored_up_axis(tmp_path / "z.glb") == "z"
+    np.testing.assert_allclose(scene_V(tmp_path / "z.glb"), scene_V(tmp_path / "z.npz"), atol=1e-6)
