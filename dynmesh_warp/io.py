@@ -217,6 +217,9 @@ def _save_folder(seq, folder: Path, fmt: str, overwrite: bool = False, status: d
     conversion's frames keep their input frame numbers: a new user's frames 1..19 were written as
     frame_0000..0018, which a tool reading the names takes for frames 0..18), else from 0."""
     first = int((status or {}).get("first_frame", 0) or 0)
+    # the frame rate in the manifest, which the folder loader reads back (a folder of frames says
+    # none: a new user's 30 fps conversion read back at 24)
+    status = {**(status or {}), "fps": float(seq.fps)}
     with OutputFolder(folder, overwrite=overwrite, status=status, holds=OutputKind.SEQUENCE) as tmp:
         for t in range(seq.num_frames):
             V, F = seq.frame(t)

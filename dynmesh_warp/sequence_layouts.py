@@ -261,7 +261,11 @@ def _name_series(files: list[Path]) -> list[tuple[str, int]]:
 def load_folder(folder: Path, fps, kind: str, name: str):
     files = list_frame_files(folder)
     frames = [read_mesh(p, frame=t) for t, p in enumerate(files)]
-    fps = DEFAULT_FPS if fps is None else fps
+    if fps is None:  # the rate this tool wrote the frames at (its manifest's status), else the default
+        from .outputs import read_manifest_status
+
+        fps = (read_manifest_status(folder) or {}).get("fps")
+        fps = DEFAULT_FPS if isinstance(fps, bool) or not isinstance(fps, (int, float)) else fps
     seq = VaryingTopologySequence(
         frames, fps=fps, name=name, source=str(folder),
         frame_sources=[str(p) for p in files],
@@ -326,7 +330,7 @@ def npz_arrays(seq, status: dict | None = None) -> dict:
             "V_offsets": np.concatenate([[0], np.cumsum([len(v) for v in Vs])]).astype(np.int64),
             "F_offsets": np.concatenate([[0], np.cumsum([len(f) for f in Fs])]).astype(np.int64),
         }
-    arrays["fps"] = np.asarray(seq.fps, dtype=np.float32)
+    arrays["fps"] = np.asarray(seq.fps, dtype=np.float64)  # float32 read 29.97 back as 29.9699993
     arrays["name"] = np.asarray(str(seq.name))
     if status is not None:
         arrays["status"] = np.asarray(json.dumps(status))

@@ -97,8 +97,14 @@ def test_roundtrip_fixed_folder(tmp_path, fmt):
     assert names == [".dynmesh_outputs.json"] + [f"frame_{i:04d}.{fmt}" for i in range(seq.num_frames)]
     out = load_sequence(tmp_path / "out")
     assert_same_fixed(seq, out)
-    assert out.fps == 24.0  # folders carry no fps: default
-    assert load_sequence(tmp_path / "out", fps=30).fps == 30.0
+    # the frame rate comes back from the manifest (a new user's 30 fps conversion read back at 24)
+    assert seq.fps == 30.0 and out.fps == 30.0
+    assert load_sequence(tmp_path / "out", fps=12).fps == 12.0  # the argument wins
+    (tmp_path / "out" / ".dynmesh_outputs.json").unlink()
+    assert load_sequence(tmp_path / "out").fps == 24.0  # a folder that says no rate: the default
+    seq.fps = 29.97
+    save_sequence(seq, tmp_path / "s.npz")
+    assert load_sequence(tmp_path / "s.npz").fps == 29.97  # float64 in the npz (float32: 29.9699993)
 
 
 @pytest.mark.parametrize("target", ["npz", "ply", "obj"])
