@@ -414,7 +414,7 @@ def test_a_batch_that_cannot_fit_the_free_memory_is_refused_before_it_is_allocat
 
     scene = {"surface": {"source": "builtin:pulsing_blob", "params": {"subdivisions": 1, "frames": 4}}}
     monkeypatch.setattr(batch, "free_bytes", lambda device=None: 1_000_000)
-    with pytest.raises(SceneError, match=r"envs.count 10,000: needs about 3.7 MiB on cpu, 1.0 MiB free; fewer envs"):
+    with pytest.raises(SceneError, match=r"envs.count 10,000: needs about 9.5 MiB on cpu, 1.0 MiB free; fewer envs"):
         batch.build_batched_world(scene, device="cpu", num_envs=10_000)  # 10,000 x 384 bytes > 1 MB
     assert batch.build_batched_world(scene, device="cpu", num_envs=100).num_envs == 100
     assert batch.free_bytes(wp.get_device("cpu")) > 0  # the host's available memory is known here
