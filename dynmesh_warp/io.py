@@ -197,8 +197,11 @@ def stored_up_axis(path) -> str:
 
 
 def _y_up(seq) -> bool:
-    """Whether ``seq``'s coordinates are +Y up: those of its source file as loaded (glTF, or an
-    npz / .glb this project wrote from one); a sequence made in memory is not."""
+    """Whether ``seq``'s coordinates are +Y up: its ``up_axis`` where it says (a scene's surface:
+    z), else its source file's as loaded (glTF, or an npz / .glb this project wrote from one); a
+    sequence made in memory is not."""
+    if seq.up_axis is not None:
+        return seq.up_axis == "y"
     return bool(seq.source) and not str(seq.source).startswith("builtin:") and stored_up_axis(seq.source) == "y"
 
 

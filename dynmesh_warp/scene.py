@@ -233,7 +233,9 @@ def prepare_surface(seq, cfg: SceneConfig):
         raise TypeError(f"expected a FixedTopologySequence or VaryingTopologySequence, got {type(seq).__name__}")
     fps = float(s.fps) if s.fps is not None else seq.fps  # a new sequence: the caller's is untouched
     where = seq.source or seq.name
-    axis, up = up_axis_of(s, seq.source), scene_up(cfg)
+    # a sequence that says its axis (a scene's surface: z) is not turned again
+    axis = up_axis_of(s, seq.source) if s.up_axis != UpAxis.AUTO or seq.up_axis is None else seq.up_axis
+    up = scene_up(cfg)
     if isinstance(seq, FixedTopologySequence):
         V = _transform(seq.V, s, axis)
         F, report = _orient(V[0], seq.F, s, up)
@@ -294,7 +296,9 @@ def prepare_surface(seq, cfg: SceneConfig):
                 if line.startswith("warning: "):
                     warnings.warn(f"{where}: surface.conversion: {scene_keys(line[len('warning: '):])}", UserWarning,
                                   stacklevel=2)
-    return _upsampled(seq, s, where)
+    seq = _upsampled(seq, s, where)
+    seq.up_axis = "z"  # the scene's frame: saved, it is read back unturned (io.stored_up_axis aside)
+    return seq
 
 
 def _upsampled(seq, s, where: str):

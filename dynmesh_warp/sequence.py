@@ -147,6 +147,11 @@ def upsampled_frames(num_frames: int, factor: int, playback: str) -> int:
     return num_frames * factor if playback == "loop" else (num_frames - 1) * factor + 1
 
 
+def _check_up_axis(up_axis, where: str) -> None:
+    if up_axis not in (None, "y", "z"):
+        raise MeshDataError(f"{where}: up_axis must be 'y', 'z' or None (as its source says), got {up_axis!r}")
+
+
 @dataclass(repr=False)
 class FixedTopologySequence:
     """An animated triangle mesh whose faces are the same in every frame.
@@ -158,6 +163,8 @@ class FixedTopologySequence:
             t in [k/fps, (k+1)/fps)).
         name: a label for logs and outputs.
         source: where it came from (file or folder), used in error messages.
+        up_axis: the axis V's "up" is along, where known ("y" or "z"; None: as ``source`` says,
+            ``io.stored_up_axis``); a scene's surface is "z" (``scene.prepare_surface``).
     """
 
     V: np.ndarray
@@ -165,6 +172,7 @@ class FixedTopologySequence:
     fps: float = 24.0
     name: str = "sequence"
     source: str | None = None
+    up_axis: str | None = None
 
     def __post_init__(self):
         where = self.source or self.name
@@ -185,6 +193,7 @@ class FixedTopologySequence:
         self.V = V32
         self.F = F
         self.fps = _checked_fps(self.fps, where)
+        _check_up_axis(self.up_axis, where)
 
     def __repr__(self) -> str:
         return (f"FixedTopologySequence(name={self.name!r}, frames={self.num_frames}, "
@@ -286,6 +295,7 @@ class VaryingTopologySequence:
         frames: list of (V_t float32 (N_t, 3), F_t int32 (M_t, 3)) per frame.
         fps: frame rate in frames per second.
         name, source: labels for logs and error messages.
+        up_axis: as :class:`FixedTopologySequence`'s.
     """
 
     frames: list = field(default_factory=list)
@@ -293,6 +303,7 @@ class VaryingTopologySequence:
     name: str = "sequence"
     source: str | None = None
     frame_sources: list | None = None  # optional per-frame file names for messages
+    up_axis: str | None = None
 
     def __post_init__(self):
         where = self.source or self.name
@@ -309,6 +320,7 @@ class VaryingTopologySequence:
             checked.append(validate_mesh(v, f, src, t))
         self.frames = checked
         self.fps = _checked_fps(self.fps, where)
+        _check_up_axis(self.up_axis, where)
 
     def __repr__(self) -> str:
         nv = [len(v) for v, _ in self.frames]

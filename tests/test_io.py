@@ -817,3 +817,15 @@ def test_a_gltf_input_saved_as_npz_or_glb_reads_back_the_same_way_up(tmp_path):
     save_sequence(zup, tmp_path / "z.glb")
     assert stored_up_axis(tmp_path / "z.npz") == "z" and stored_up_axis(tmp_path / "z.glb") == "z"
     np.testing.assert_allclose(scene_V(tmp_path / "z.glb"), scene_V(tmp_path / "z.npz"), atol=1e-6)
+    # a scene's surface (turned to z-up) says so: saved, it reads back unturned, and it is not
+    # turned twice when given to a scene again
+    from dynmesh_warp.scene import prepare_surface
+
+    cfg = load_scene_config(data={"surface": {"source": str(src), "orientation": "keep"}})
+    surf = load_surface(cfg)
+    assert surf.up_axis == "z" and seq.up_axis is None
+    np.testing.assert_allclose(prepare_surface(surf, cfg).V, ref, atol=1e-6)
+    save_sequence(surf, tmp_path / "scene.npz")
+    np.testing.assert_allclose(scene_V(tmp_path / "scene.npz"), ref, atol=1e-6)
+    with pytest.raises(MeshDataError, match="up_axis must be 'y', 'z' or None"):
+        FixedTopologySequence(seq.V, seq.F, up_axis="Y")
