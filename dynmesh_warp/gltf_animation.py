@@ -45,6 +45,10 @@ _DEFAULT_FPS = 30.0
 _COMPONENT = {5120: "<i1", 5121: "<u1", 5122: "<i2", 5123: "<u2", 5125: "<u4", 5126: "<f4"}
 _WIDTH = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
 _NORM = {"<i1": 127.0, "<u1": 255.0, "<i2": 32767.0, "<u2": 65535.0, "<u4": 4294967295.0}
+#: keyframe times are float32 (the accessors' type) and lie up to half a float32 step (6e-8 of
+#: the time) from the k / fps they stand for: times within this fraction of the time (of 1 s near
+#: 0) count as equal, for the frame count and where a frame time meets a key
+_TIME_RTOL = 1e-6
 _UNREAD_EXTENSIONS = {"KHR_draco_mesh_compression": "Draco-compressed meshes",
                       "EXT_meshopt_compression": "meshopt-compressed buffers",
                       "KHR_meshopt_compression": "meshopt-compressed buffers"}
@@ -153,6 +157,11 @@ class _File:
 
 
 # --------------------------------------------------------------------------- transforms
+
+
+def _time_tol(t: float) -> float:
+    """How far two times near ``t`` may lie apart and still be one (float32 keyframe times)."""
+    return _TIME_RTOL * max(abs(float(t)), 1.0)
 
 
 def _quat_matrix(q) -> np.ndarray:
@@ -328,7 +337,9 @@ def read_gltf_animation(path, fps: float | None = None, animation=None):
             r = 1.0 / float(np.median(np.diff(allt)))
             if 1.0 <= r <= 1000.0 and abs(r - round(r)) < 1e-3 * r:
                 fps = float(round(r))
-    n_frames = int(np.floor((t1 - t0) * fps + 1e-6)) + 1
+    # the last key counts when it lies within float32 rounding of a frame time (k / fps stored as
+    # float32 may round down: 60 frames at 24 fps read back as 59)
+    n_frames = int(np.floor((t1 - t0 + _time_tol(t1)) * fps)) + 1
     # the node tree: transforms for every node (joints may lie outside the scene's roots), meshes
     # from the scene's nodes only
     children = [c for n in nodes for c in n.get("children", [])]

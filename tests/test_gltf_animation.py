@@ -352,3 +352,46 @@ def test_the_up_axis_and_animation_checks_read_only_the_json_chunk(tmp_path, mon
     (tmp_path / "bad.glb").write_bytes(b"glTF\x02\x00\x00\x00" + b"\x00" * 4)  # a header and nothing else
     with pytest.raises(MeshDataError, match=r"bad\.glb"):
         ga.gltf_has_animation(tmp_path / "bad.glb")
+
+
+def _keyed_triangle(times, path: str = "translation", interpolation: str = "STEP") -> bytes:
+    """A triangle whose node moves to x = k at keyframe k (times as given, stored float32)."""
+    b = Builder()
+    P = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float64)
+    b.doc["meshes"] = [{"primitives": [{"attributes": {"POSITION": b.add(P, "VEC3")}}]}]
+    b.doc["nodes"] = [{"mesh": 0}]
+    b.doc["scenes"][0]["nodes"] = [0]
+    K = len(times)
+    out = np.c_[np.arange(K), np.zeros(K), np.zeros(K)]
+    if interpolation == "CUBICSPLINE":  # in-tangent, value, out-tangent per key
+        out = np.stack([np.zeros_like(out), out, np.zeros_like(out)], axis=1).reshape(-1, 3)
+    b.doc["animations"] = [{"channels": [{"sampler": 0, "target": {"node": 0, "path": path}}],
+                            "samplers": [{"input": b.add(np.asarray(times, np.float32), "SCALAR"),
+                                          "output": b.add(out, "VEC3"), "interpolation": interpolation}]}]
+    return b.glb()
+
+
+@pytest.mark.parametrize("fps", [24, 25, 30, 60])
+def test_the_last_key_is_a_frame_though_its_float32_time_rounds_down(tmp_path, fps):
+    """40 keys baked at k / fps (float32, as exporters store them) are 40 frames at fps: the
+    count was taken from the last key's float32 time, and where it rounded down (25, 30, 60 fps)
+    the last frame was lost (found by a new user)."""
+    (tmp_path / "k.glb").write_bytes(_keyed_triangle(np.arange(40) / fps))
+    for rate in (None, fps):
+        seq = load_sequence(tmp_path / "k.glb", fps=rate)
+        assert seq.fps == fps and seq.num_frames == 40
+
+
+@pytest.mark.parametrize("fps", [24, 25, 30, 60, 120])
+def test_the_writer_round_trip_keeps_every_frame_count(tmp_path, fps):
+    """save_sequence's .glb read back has its T frames for every T up to 60 (lost one for 4 to 8
+    of the 59 lengths at each rate: 60 frames at 24 fps read back as 59)."""
+    from dynmesh_warp.gltf_animation import read_gltf_animation, write_gltf_animation
+
+    P, F = _bar()
+    for T in range(2, 61):
+        V = (P[None] + np.arange(T)[:, None, None] * np.array([0.0, 0.0, 0.01])).astype(np.float32)
+        write_gltf_animation(tmp_path / "w.glb", V, F, fps)
+        V2, F2, fps2 = read_gltf_animation(tmp_path / "w.glb")
+        assert fps2 == fps and V2.shape == V.shape, T
+        np.testing.assert_allclose(V2, V, atol=1e-6)
