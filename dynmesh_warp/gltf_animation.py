@@ -199,13 +199,14 @@ def _sample(times: np.ndarray, values: np.ndarray, interp: str, t: float, rotati
     def key(k):
         return values[3 * k + 1] if cubic else values[k]
 
-    if t <= times[0] or K == 1:
+    tol = _time_tol(t)  # a frame time (float64) within float32 rounding of a key is at that key
+    if t <= times[0] + tol or K == 1:
         return key(0)
-    if t >= times[-1]:
+    if t >= times[-1] - tol:
         return key(K - 1)
-    i = int(np.searchsorted(times, t, side="right")) - 1
+    i = int(np.searchsorted(times, t + tol, side="right")) - 1
     td = float(times[i + 1] - times[i])
-    u = (t - times[i]) / td if td > 0 else 0.0
+    u = min(max((t - times[i]) / td, 0.0), 1.0) if td > 0 else 0.0
     if interp == "STEP":
         return key(i)
     if cubic:
