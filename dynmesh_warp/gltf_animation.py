@@ -20,7 +20,8 @@ What is evaluated, as the glTF 2.0 specification defines it:
 Not read, with an error saying so: sparse accessors and the compression extensions a file may
 require (Draco, meshopt). ``read_gltf_animation(path, fps=None, animation=None) -> (V (T, N, 3)
 float32, F (M, 3) int64, fps)``. The frame rate, when not given, is the one the keyframes lie on
-(exporters bake at 24, 25, 30, 60 ...; 1 / the median keyframe spacing, if whole), else 30.
+(1 / the spacing of uniformly spaced keys, whole or not: exporters bake at 24, 25, 29.97, 30 ...;
+for other keys 1 / the median spacing, if whole), else 30.
 ``write_gltf_animation(path, V, F, fps)`` writes a sequence as an animated GLB (morph targets).
 """
 
@@ -42,6 +43,7 @@ __all__ = ["GLTF_EXTENSIONS", "read_gltf_animation", "gltf_has_animation", "writ
 
 GLTF_EXTENSIONS = (".glb", ".gltf")
 _DEFAULT_FPS = 30.0
+_MAX_KEY_RATE = 1000.0  # keys closer than 1 ms are not taken as frames (the default rate samples them)
 _COMPONENT = {5120: "<i1", 5121: "<u1", 5122: "<i2", 5123: "<u2", 5125: "<u4", 5126: "<f4"}
 _WIDTH = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
 _NORM = {"<i1": 127.0, "<u1": 255.0, "<i2": 32767.0, "<u2": 65535.0, "<u4": 4294967295.0}
@@ -235,6 +237,33 @@ def _triangles(mode: int, idx: np.ndarray) -> np.ndarray:
     return np.zeros((0, 3), np.int64)  # points, lines
 
 
+def _key_rate(allt: np.ndarray) -> float:
+    """The frame rate the keyframe times ``allt`` (sorted, distinct) lie on. Uniformly spaced keys
+    (within float32 rounding: a baked animation, the library's own .glb) give 1 / their spacing,
+    whole or not, as the shortest decimal (up to 6 places) that puts every key within two float32
+    steps of its k / fps (23.976, 29.97, 12.5, 0.5; else the spacing's own rate), so that each key
+    is one frame. Others: 1 / the median spacing if it is a whole rate in [1, 1000], else 30."""
+    K = len(allt)
+    if K < 2:
+        return _DEFAULT_FPS
+    t0, t1 = float(allt[0]), float(allt[-1])
+    k = np.arange(K)
+    step = (t1 - t0) / (K - 1)
+    if np.all(np.abs(allt - (t0 + k * step)) <= _time_tol(t1)) and 1.0 / step <= _MAX_KEY_RATE:
+        r = 1.0 / step
+        ulps = 2.0 * (np.spacing(np.abs(allt).astype(np.float32)).astype(np.float64)
+                      + float(np.spacing(np.float32(abs(t0)))))
+        for places in range(7):
+            short = round(r, places)
+            if short > 0 and np.all(np.abs(allt - t0 - k / short) <= ulps):
+                return float(short)
+        return r
+    r = 1.0 / float(np.median(np.diff(allt)))
+    if 1.0 <= r <= _MAX_KEY_RATE and abs(r - round(r)) < 1e-3 * r:
+        return float(round(r))
+    return _DEFAULT_FPS
+
+
 def gltf_document(path) -> dict:
     """The JSON document of a .glb / .gltf file, reading only a .glb's header and its JSON chunk
     (which the specification puts first), not its binary buffer; a file that is not laid out so
@@ -333,11 +362,7 @@ def read_gltf_animation(path, fps: float | None = None, animation=None):
     allt = np.unique(np.concatenate(key_times))
     t0, t1 = float(allt[0]), float(allt[-1])
     if fps is None:
-        fps = _DEFAULT_FPS
-        if len(allt) > 1:
-            r = 1.0 / float(np.median(np.diff(allt)))
-            if 1.0 <= r <= 1000.0 and abs(r - round(r)) < 1e-3 * r:
-                fps = float(round(r))
+        fps = _key_rate(allt)
     # the last key counts when it lies within float32 rounding of a frame time (k / fps stored as
     # float32 may round down: 60 frames at 24 fps read back as 59)
     n_frames = int(np.floor((t1 - t0 + _time_tol(t1)) * fps)) + 1

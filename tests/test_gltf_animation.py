@@ -412,3 +412,31 @@ def test_every_frame_shows_its_own_key_though_key_times_are_float32(tmp_path, fp
     if interpolation == "STEP":
         fine = load_sequence(tmp_path / "k.glb", fps=2 * fps)
         np.testing.assert_array_equal(fine.V[:, 0, 0], np.arange(79) // 2)
+
+
+@pytest.mark.parametrize("fps", [23.976, 29.97, 30000 / 1001, 12.5, 0.5, 7.0])
+def test_the_writer_round_trip_keeps_a_rate_that_is_not_whole(tmp_path, fps):
+    """Uniformly spaced keys give 1 / their spacing, whole or not, so that each key is a frame:
+    only whole rates were taken, else the file was resampled at 30 fps (a new user's 23.976 fps,
+    12 frames -> 30 fps, 14 frames; 12.5 -> 27 frames; 0.5 -> 661; 29.97 -> 30). The rate read
+    is the shortest decimal that puts every float32 key on its k / fps."""
+    from dynmesh_warp.io import save_sequence
+    from dynmesh_warp.sequence import FixedTopologySequence
+
+    P, F = _bar()
+    V = (P[None] + np.random.default_rng(1).normal(size=(12, len(P), 3)) * 0.1).astype(np.float32)
+    save_sequence(FixedTopologySequence(V, F, fps=fps, name="bar"), tmp_path / "bar.glb")
+    back = load_sequence(tmp_path / "bar.glb")
+    assert back.num_frames == 12
+    assert back.fps == (29.97003 if fps == 30000 / 1001 else fps)
+    np.testing.assert_allclose(back.V, V, atol=1e-6)
+
+
+def test_keys_not_uniformly_spaced_keep_the_median_rule(tmp_path):
+    """Keys at uneven times: 1 / the median spacing when whole (10 fps), else 30 fps."""
+    (tmp_path / "a.glb").write_bytes(_keyed_triangle([0.0, 0.1, 0.2, 0.4, 0.5]))
+    seq = load_sequence(tmp_path / "a.glb")
+    assert seq.fps == 10.0 and seq.num_frames == 6
+    np.testing.assert_array_equal(seq.V[:, 0, 0], [0, 1, 2, 2, 3, 4])
+    (tmp_path / "b.glb").write_bytes(_keyed_triangle([0.0, 0.37, 0.5, 0.9]))
+    assert load_sequence(tmp_path / "b.glb").fps == 30.0
