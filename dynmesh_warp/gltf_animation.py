@@ -84,6 +84,16 @@ class _File:
     def error(self, msg: str) -> MeshDataError:
         return MeshDataError(f"{self.path}: {msg}")
 
+    def ref(self, value, where: str, what: str, items=None, owner: str = "the file") -> int:
+        """``value``, found at the JSON path ``where``, checked as an index into the document's list
+        ``what`` (or ``items``, a list of ``owner``'s): an index out of range is an error naming the
+        file, the path and the list (``nodes[3].mesh: 7, but the file has 2 meshes``), as a glTF
+        validator reports it, never an IndexError or KeyError."""
+        items = (self.doc.get(what) or []) if items is None else items
+        if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value < len(items):
+            raise self.error(f"{where}: {value!r}, but {owner} has {len(items)} {what}")
+        return value
+
     def _chunks(self, data: bytes) -> dict:
         _, length = struct.unpack_from("<II", data, 4)
         if length > len(data):
@@ -321,27 +331,32 @@ def read_gltf_animation(path, fps: float | None = None, animation=None):
     if not anims:
         raise g.error("has no animation")
     if animation is None:
-        anim = anims[0]
+        ai = 0
     elif isinstance(animation, str):
-        named = [a for a in anims if a.get("name") == animation]
+        named = [k for k, a in enumerate(anims) if a.get("name") == animation]
         if not named:
             raise g.error(f"no animation named {animation!r}; it has {[a.get('name') for a in anims]}")
-        anim = named[0]
+        ai = named[0]
     else:
         if not 0 <= int(animation) < len(anims):
             raise g.error(f"animation {animation} does not exist; it has {len(anims)}")
-        anim = anims[int(animation)]
+        ai = int(animation)
+    anim = anims[ai]
     # channels: node -> path -> (times, values, interpolation)
     chans: dict[int, dict[str, tuple]] = {}
     key_times = []
-    for c in anim.get("channels", []):
+    for ci, c in enumerate(anim.get("channels", [])):
         tgt = c.get("target", {})
-        if "node" not in tgt or tgt.get("path") not in ("translation", "rotation", "scale", "weights"):
+        if "node" not in tgt:  # allowed (an extension may name the target)
             continue
-        try:
-            s = anim["samplers"][c["sampler"]]
-        except (KeyError, IndexError, TypeError):
-            raise g.error(f"animation channel with a missing sampler {c.get('sampler')}") from None
+        where = f"animations[{ai}].channels[{ci}]"
+        node_i = g.ref(tgt["node"], f"{where}.target.node", "nodes")
+        if tgt.get("path") not in ("translation", "rotation", "scale", "weights"):
+            continue
+        s = anim.get("samplers") or []
+        s = s[g.ref(c.get("sampler"), f"{where}.sampler", "samplers", s, f"animations[{ai}]")]
+        if "input" not in s or "output" not in s:
+            raise g.error(f"animations[{ai}].samplers[{c['sampler']}] has no {'input' if 'input' not in s else 'output'}")
         times = g.accessor(s["input"])[:, 0].astype(np.float64)
         vals = g.accessor(s["output"])
         interp = s.get("interpolation", "LINEAR")
@@ -355,7 +370,7 @@ def read_gltf_animation(path, fps: float | None = None, animation=None):
         need = len(times) * (3 if interp == "CUBICSPLINE" else 1)
         if len(vals) != need:
             raise g.error(f"animation sampler {c['sampler']}: {len(vals)} output values for {len(times)} keyframes")
-        chans.setdefault(int(tgt["node"]), {})[tgt["path"]] = (times, vals, interp)
+        chans.setdefault(node_i, {})[tgt["path"]] = (times, vals, interp)
         key_times.append(times)
     if not key_times:
         raise g.error("its animation has no channel on a node's translation, rotation, scale or weights")
@@ -368,9 +383,10 @@ def read_gltf_animation(path, fps: float | None = None, animation=None):
     n_frames = int(np.floor((t1 - t0 + _time_tol(t1)) * fps)) + 1
     # the node tree: transforms for every node (joints may lie outside the scene's roots), meshes
     # from the scene's nodes only
-    children = [c for n in nodes for c in n.get("children", [])]
-    if any(not 0 <= c < len(nodes) for c in children) or len(set(children)) != len(children):
-        raise g.error("its node tree is malformed (a child index out of range or a node with two parents)")
+    children = [g.ref(c, f"nodes[{i}].children[{j}]", "nodes") for i, n in enumerate(nodes)
+                for j, c in enumerate(n.get("children", []))]
+    if len(set(children)) != len(children):
+        raise g.error("its node tree is malformed (a node with two parents)")
     order, parent = [], {}
     stack = [(r, None) for r in reversed([i for i in range(len(nodes)) if i not in set(children)])]
     while stack:
@@ -382,8 +398,10 @@ def read_gltf_animation(path, fps: float | None = None, animation=None):
         raise g.error("its node tree has a cycle")
     scenes = doc.get("scenes") or []
     shown = set(order)
-    if scenes:
-        shown, stack = set(), list(scenes[int(doc.get("scene", 0))].get("nodes", []))
+    if scenes or "scene" in doc:
+        si = g.ref(doc.get("scene", 0), "scene", "scenes")
+        stack = [g.ref(r, f"scenes[{si}].nodes[{j}]", "nodes") for j, r in enumerate(scenes[si].get("nodes", []))]
+        shown = set()
         while stack:
             i = stack.pop()
             shown.add(i)
@@ -394,15 +412,22 @@ def read_gltf_animation(path, fps: float | None = None, animation=None):
         node = nodes[i]
         if "mesh" not in node or i not in shown:
             continue
-        mesh = doc["meshes"][node["mesh"]]
-        skin = doc["skins"][node["skin"]] if "skin" in node else None
+        mesh_i = g.ref(node["mesh"], f"nodes[{i}].mesh", "meshes")  # checked before the list is indexed
+        skin_i = g.ref(node["skin"], f"nodes[{i}].skin", "skins") if "skin" in node else None
+        mesh = doc["meshes"][mesh_i]
+        skin = None if skin_i is None else doc["skins"][skin_i]
         ibm = None
         if skin is not None:
+            if not isinstance(skin.get("joints"), list) or not skin["joints"]:
+                raise g.error(f"skins[{skin_i}].joints: {skin.get('joints')!r}, but a skin needs a list of "
+                              "joint nodes")
+            for j, jn in enumerate(skin["joints"]):
+                g.ref(jn, f"skins[{skin_i}].joints[{j}]", "nodes")
             J = len(skin["joints"])
             ibm = (g.accessor(skin["inverseBindMatrices"]).reshape(-1, 4, 4).transpose(0, 2, 1)
                    if "inverseBindMatrices" in skin else np.tile(np.eye(4), (J, 1, 1)))
             if len(ibm) != J:
-                raise g.error(f"skin {node['skin']}: {len(ibm)} inverse bind matrices for {J} joints")
+                raise g.error(f"skin {skin_i}: {len(ibm)} inverse bind matrices for {J} joints")
         for k, pr in enumerate(mesh.get("primitives", [])):
             attrs = pr.get("attributes", {})
             if "POSITION" not in attrs:
@@ -413,7 +438,7 @@ def read_gltf_animation(path, fps: float | None = None, animation=None):
             if len(tri) == 0:
                 continue
             if tri.min() < 0 or tri.max() >= len(P):
-                raise g.error(f"mesh {node['mesh']} primitive {k}: indices out of range [0, {len(P)})")
+                raise g.error(f"mesh {mesh_i} primitive {k}: indices out of range [0, {len(P)})")
             targets = [g.accessor(t["POSITION"]) if "POSITION" in t else np.zeros_like(P)
                        for t in pr.get("targets", [])]
             joints, weights = [], []
@@ -425,8 +450,8 @@ def read_gltf_animation(path, fps: float | None = None, animation=None):
             if joints:
                 joints, weights = np.concatenate(joints, axis=1), np.concatenate(weights, axis=1)
                 if joints.max() >= len(skin["joints"]) or joints.min() < 0:
-                    raise g.error(f"mesh {node['mesh']} primitive {k}: joint index out of range of skin "
-                                  f"{node['skin']} ({len(skin['joints'])} joints)")
+                    raise g.error(f"mesh {mesh_i} primitive {k}: joint index out of range of skin "
+                                  f"{skin_i} ({len(skin['joints'])} joints)")
                 tot = weights.sum(axis=1, keepdims=True)
                 weights = np.where(tot > 0, weights / np.where(tot > 0, tot, 1.0), 0.0)
             prims.append({"node": i, "P": P, "tri": tri, "targets": targets,

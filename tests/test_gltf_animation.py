@@ -440,3 +440,27 @@ def test_keys_not_uniformly_spaced_keep_the_median_rule(tmp_path):
     np.testing.assert_array_equal(seq.V[:, 0, 0], [0, 1, 2, 2, 3, 4])
     (tmp_path / "b.glb").write_bytes(_keyed_triangle([0.0, 0.37, 0.5, 0.9]))
     assert load_sequence(tmp_path / "b.glb").fps == 30.0
+
+
+@pytest.mark.parametrize("edit,message", [
+    (lambda d: d["nodes"][0].update(mesh=7), r"nodes\[0\]\.mesh: 7, but the file has 1 meshes"),
+    (lambda d: d.update(scene=2), r"scene: 2, but the file has 1 scenes"),
+    (lambda d: d["scenes"][0].update(nodes=[0, 9]), r"scenes\[0\]\.nodes\[1\]: 9, but the file has 1 nodes"),
+    (lambda d: d["nodes"][0].update(children=[5]), r"nodes\[0\]\.children\[0\]: 5, but the file has 1 nodes"),
+    (lambda d: d["nodes"][0].update(skin=2), r"nodes\[0\]\.skin: 2, but the file has 0 skins"),
+    (lambda d: (d["nodes"][0].update(skin=0), d.update(skins=[{"joints": [0, 9]}])),
+     r"skins\[0\]\.joints\[1\]: 9, but the file has 1 nodes"),
+    (lambda d: d["animations"][0]["channels"].append({"sampler": 0, "target": {"node": 9, "path": "rotation"}}),
+     r"animations\[0\]\.channels\[1\]\.target\.node: 9, but the file has 1 nodes"),
+    (lambda d: d["animations"][0]["channels"][0].update(sampler=3),
+     r"animations\[0\]\.channels\[0\]\.sampler: 3, but animations\[0\] has 1 samplers"),
+])
+def test_a_reference_out_of_range_names_the_file_and_its_json_path(tmp_path, edit, message):
+    """An index into a missing mesh, scene, node, skin or sampler is an error naming the file and
+    the JSON path, as a glTF validator says it: a new user got a raw IndexError (a node's mesh,
+    the scene), KeyError: 9 (a skin's joint), and a channel to a missing node was ignored."""
+    b = _sliding_bar()
+    edit(b.doc)
+    (tmp_path / "ref.glb").write_bytes(b.glb())
+    with pytest.raises(MeshDataError, match=r"ref\.glb: " + message):
+        load_sequence(tmp_path / "ref.glb")
