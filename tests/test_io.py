@@ -432,16 +432,17 @@ def test_truncated_ascii_ply_is_an_error(tmp_path, keep_lines):
 def _binary_ply(path, V, polys, endian: str, index: str, face_flags: bool = False) -> None:
     """A binary PLY written with struct from the PLY specification: x y z, normals and colours
     per vertex; per face a vertex_indices list with a uchar count and ``index`` ("i" int, "I"
-    uint) items, and optionally a uchar property after the list."""
+    uint) items, and optionally a per-corner texcoord list (float) and a uchar property after it."""
     order = "little" if endian == "<" else "big"
     head = (f"ply\nformat binary_{order}_endian 1.0\ncomment written by the test\nelement vertex {len(V)}\n"
             "property float x\nproperty float y\nproperty float z\nproperty float nx\nproperty float ny\n"
             "property float nz\nproperty uchar red\nproperty uchar green\nproperty uchar blue\n"
             f"element face {len(polys)}\nproperty list uchar {'int' if index == 'i' else 'uint'} vertex_indices\n"
-            + ("property uchar flags\n" if face_flags else "") + "end_header\n")
+            + ("property list uchar float texcoord\nproperty uchar flags\n" if face_flags else "") + "end_header\n")
     body = b"".join(struct.pack(endian + "6f3B", *v, 0.0, 0.0, 1.0, 200, 100, 50) for v in V)
-    body += b"".join(struct.pack(f"{endian}B{len(p)}{index}", len(p), *p) + (b"\x07" if face_flags else b"")
-                     for p in polys)
+    body += b"".join(struct.pack(f"{endian}B{len(p)}{index}", len(p), *p)
+                     + (struct.pack(f"{endian}B{2 * len(p)}fB", 2 * len(p), *np.linspace(0, 1, 2 * len(p)), 7)
+                        if face_flags else b"") for p in polys)
     path.write_bytes(head.encode("ascii") + body)
 
 
