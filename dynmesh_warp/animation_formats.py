@@ -16,6 +16,9 @@ do (docs/data.md, "Single-file animations"):
   read from the times. Old Blender exporters wrote the rest pose as one more block than the
   header counts: such a file is read without that first block.
 
+A point cache in the other byte order than its spec's (a big-endian PC2, a little-endian MDD) is
+read so, with a warning, where its header read so fits the file and its numbers are finite.
+
 ``read_animation(path, topology=None) -> (V (T, N, 3) float32, F (M, 3) int64, fps or None)``;
 ``write_animation(path, V, F, fps)`` writes one (for PC2 / MDD also the topology mesh next to
 it, ``<stem>.obj``, which ``read_animation`` finds by itself). Every size is checked against the
@@ -28,6 +31,7 @@ from __future__ import annotations
 import errno
 import os
 import struct
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -47,7 +51,7 @@ CACHE_EXTENSIONS = (".pc2", ".mdd")
 #: and npz files without a face array
 VERTEX_ONLY_EXTENSIONS = CACHE_EXTENSIONS + (".npz", ".npy")
 
-_PC2_HEADER = struct.Struct("<12siiffi")
+_PC2_HEADER = struct.Struct("<12siiffi")  # the spec's byte order; _read_pc2 also reads the other
 _PC2_MAGIC = b"POINTCACHE2\0"
 
 
@@ -85,24 +89,57 @@ def _read_anime(path: Path, size: int):
     return V, F, None
 
 
+_ORDER = {"<": "little", ">": "big"}
+
+
+def _either_order(read, path: Path, size: int, spec: str, fmt: str):
+    """``read(path, size, byte_order)`` in the spec's byte order, else in the other one where the
+    header read so fits the file exactly and every number read is finite (a file written by a
+    tool that got the byte order wrong), with a warning saying so; else the spec order's error,
+    with a hint where only the other order's header fits (a new user's big-endian PC2 was
+    reported as "201326592 samples x 2013265920 points ... (truncated)" without one)."""
+    try:
+        return read(path, size, spec)
+    except MeshDataError as e:
+        other = ">" if spec == "<" else "<"
+        try:
+            out = read(path, size, other)
+        except MeshDataError:
+            raise e from None
+        said = (f"read {_ORDER[other]}-endian, its header fits the file: a {_ORDER[other]}-endian {fmt}? {fmt} is "
+                f"{_ORDER[spec]}-endian by its spec")
+        if not all(np.all(np.isfinite(a)) for a in out if isinstance(a, np.ndarray)):
+            raise MeshDataError(f"{e}; {said}, but its data do not read as numbers so") from None
+        warnings.warn(f"{path}: {said}; read {_ORDER[other]}-endian (write {fmt} {_ORDER[spec]}-endian)", stacklevel=3)
+        return out
+
+
 def _read_pc2(path: Path, size: int):
+    return _either_order(_read_pc2_as, path, size, "<", "PC2")
+
+
+def _read_pc2_as(path: Path, size: int, order: str):
     with open(path, "rb") as fh:
         head = fh.read(_PC2_HEADER.size)
         if len(head) < _PC2_HEADER.size or not head.startswith(b"POINTCACHE2"):
             raise _bad(path, "not a PC2 point cache (it must start with 'POINTCACHE2')")
-        _, _version, n, _start, _sampling, T = _PC2_HEADER.unpack(head)
+        _, _version, n, _start, _sampling, T = struct.unpack(order + _PC2_HEADER.format[1:], head)
         _counts(path, points=n, samples=T)
         _size_check(path, size, _PC2_HEADER.size + 12 * n * T, f"header: {T} samples x {n} points")
-        V = np.fromfile(fh, dtype="<f4", count=3 * n * T).reshape(T, n, 3)
+        V = np.fromfile(fh, dtype=order + "f4", count=3 * n * T).reshape(T, n, 3)
     return V.astype(np.float32), None, None
 
 
 def _read_mdd(path: Path, size: int):
+    return _either_order(_read_mdd_as, path, size, ">", "MDD")
+
+
+def _read_mdd_as(path: Path, size: int, order: str):
     with open(path, "rb") as fh:
         head = fh.read(8)
         if len(head) < 8:
             raise _bad(path, f"{size} bytes: too short for the MDD header (2 int32)")
-        T, n = struct.unpack(">2i", head)
+        T, n = struct.unpack(order + "2i", head)
         _counts(path, frames=T, points=n)
         base = 8 + 4 * T
         rest = 0
@@ -110,9 +147,9 @@ def _read_mdd(path: Path, size: int):
             rest = 1
         else:
             _size_check(path, size, base + 12 * n * T, f"header: {T} frames x {n} points")
-        times = np.fromfile(fh, dtype=">f4", count=T).astype(np.float64)
+        times = np.fromfile(fh, dtype=order + "f4", count=T).astype(np.float64)
         fh.seek(base + 12 * n * rest)
-        V = np.fromfile(fh, dtype=">f4", count=3 * n * T).reshape(T, n, 3)
+        V = np.fromfile(fh, dtype=order + "f4", count=3 * n * T).reshape(T, n, 3)
     fps = None
     if T >= 2:
         dt = np.diff(times)

@@ -20,7 +20,8 @@ What is evaluated, as the glTF 2.0 specification defines it:
 Not read, with an error saying so: sparse accessors and the compression extensions a file may
 require (Draco, meshopt). ``read_gltf_animation(path, fps=None, animation=None) -> (V (T, N, 3)
 float32, F (M, 3) int64, fps)``. The frame rate, when not given, is the one the keyframes lie on
-(exporters bake at 24, 25, 30, 60 ...; 1 / the median keyframe spacing, if whole), else 30.
+(1 / the spacing of uniformly spaced keys, whole or not: exporters bake at 24, 25, 29.97, 30 ...;
+for other keys 1 / the median spacing, if whole), else 30.
 ``write_gltf_animation(path, V, F, fps)`` writes a sequence as an animated GLB (morph targets).
 """
 
@@ -42,9 +43,14 @@ __all__ = ["GLTF_EXTENSIONS", "read_gltf_animation", "gltf_has_animation", "writ
 
 GLTF_EXTENSIONS = (".glb", ".gltf")
 _DEFAULT_FPS = 30.0
+_MAX_KEY_RATE = 1000.0  # keys closer than 1 ms are not taken as frames (the default rate samples them)
 _COMPONENT = {5120: "<i1", 5121: "<u1", 5122: "<i2", 5123: "<u2", 5125: "<u4", 5126: "<f4"}
 _WIDTH = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
 _NORM = {"<i1": 127.0, "<u1": 255.0, "<i2": 32767.0, "<u2": 65535.0, "<u4": 4294967295.0}
+#: keyframe times are float32 (the accessors' type) and lie up to half a float32 step (6e-8 of
+#: the time) from the k / fps they stand for: times within this fraction of the time (of 1 s near
+#: 0) count as equal, for the frame count and where a frame time meets a key
+_TIME_RTOL = 1e-6
 _UNREAD_EXTENSIONS = {"KHR_draco_mesh_compression": "Draco-compressed meshes",
                       "EXT_meshopt_compression": "meshopt-compressed buffers",
                       "KHR_meshopt_compression": "meshopt-compressed buffers"}
@@ -77,6 +83,16 @@ class _File:
 
     def error(self, msg: str) -> MeshDataError:
         return MeshDataError(f"{self.path}: {msg}")
+
+    def ref(self, value, where: str, what: str, items=None, owner: str = "the file") -> int:
+        """``value``, found at the JSON path ``where``, checked as an index into the document's list
+        ``what`` (or ``items``, a list of ``owner``'s): an index out of range is an error naming the
+        file, the path and the list (``nodes[3].mesh: 7, but the file has 2 meshes``), as a glTF
+        validator reports it, never an IndexError or KeyError."""
+        items = (self.doc.get(what) or []) if items is None else items
+        if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value < len(items):
+            raise self.error(f"{where}: {value!r}, but {owner} has {len(items)} {what}")
+        return value
 
     def _chunks(self, data: bytes) -> dict:
         _, length = struct.unpack_from("<II", data, 4)
@@ -155,6 +171,11 @@ class _File:
 # --------------------------------------------------------------------------- transforms
 
 
+def _time_tol(t: float) -> float:
+    """How far two times near ``t`` may lie apart and still be one (float32 keyframe times)."""
+    return _TIME_RTOL * max(abs(float(t)), 1.0)
+
+
 def _quat_matrix(q) -> np.ndarray:
     x, y, z, w = np.asarray(q, np.float64) / max(np.linalg.norm(q), 1e-300)
     return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
@@ -190,13 +211,14 @@ def _sample(times: np.ndarray, values: np.ndarray, interp: str, t: float, rotati
     def key(k):
         return values[3 * k + 1] if cubic else values[k]
 
-    if t <= times[0] or K == 1:
+    tol = _time_tol(t)  # a frame time (float64) within float32 rounding of a key is at that key
+    if t <= times[0] + tol or K == 1:
         return key(0)
-    if t >= times[-1]:
+    if t >= times[-1] - tol:
         return key(K - 1)
-    i = int(np.searchsorted(times, t, side="right")) - 1
+    i = int(np.searchsorted(times, t + tol, side="right")) - 1
     td = float(times[i + 1] - times[i])
-    u = (t - times[i]) / td if td > 0 else 0.0
+    u = min(max((t - times[i]) / td, 0.0), 1.0) if td > 0 else 0.0
     if interp == "STEP":
         return key(i)
     if cubic:
@@ -223,6 +245,33 @@ def _triangles(mode: int, idx: np.ndarray) -> np.ndarray:
     if mode == 6:  # fan
         return np.stack([np.full(len(idx) - 2, idx[0]), idx[1:-1], idx[2:]], axis=1)
     return np.zeros((0, 3), np.int64)  # points, lines
+
+
+def _key_rate(allt: np.ndarray) -> float:
+    """The frame rate the keyframe times ``allt`` (sorted, distinct) lie on. Uniformly spaced keys
+    (within float32 rounding: a baked animation, the library's own .glb) give 1 / their spacing,
+    whole or not, as the shortest decimal (up to 6 places) that puts every key within two float32
+    steps of its k / fps (23.976, 29.97, 12.5, 0.5; else the spacing's own rate), so that each key
+    is one frame. Others: 1 / the median spacing if it is a whole rate in [1, 1000], else 30."""
+    K = len(allt)
+    if K < 2:
+        return _DEFAULT_FPS
+    t0, t1 = float(allt[0]), float(allt[-1])
+    k = np.arange(K)
+    step = (t1 - t0) / (K - 1)
+    if np.all(np.abs(allt - (t0 + k * step)) <= _time_tol(t1)) and 1.0 / step <= _MAX_KEY_RATE:
+        r = 1.0 / step
+        ulps = 2.0 * (np.spacing(np.abs(allt).astype(np.float32)).astype(np.float64)
+                      + float(np.spacing(np.float32(abs(t0)))))
+        for places in range(7):
+            short = round(r, places)
+            if short > 0 and np.all(np.abs(allt - t0 - k / short) <= ulps):
+                return float(short)
+        return r
+    r = 1.0 / float(np.median(np.diff(allt)))
+    if 1.0 <= r <= _MAX_KEY_RATE and abs(r - round(r)) < 1e-3 * r:
+        return float(round(r))
+    return _DEFAULT_FPS
 
 
 def gltf_document(path) -> dict:
@@ -285,27 +334,32 @@ def read_gltf_animation(path, fps: float | None = None, animation=None):
     if not anims:
         raise g.error("has no animation")
     if animation is None:
-        anim = anims[0]
+        ai = 0
     elif isinstance(animation, str):
-        named = [a for a in anims if a.get("name") == animation]
+        named = [k for k, a in enumerate(anims) if a.get("name") == animation]
         if not named:
             raise g.error(f"no animation named {animation!r}; it has {[a.get('name') for a in anims]}")
-        anim = named[0]
+        ai = named[0]
     else:
         if not 0 <= int(animation) < len(anims):
             raise g.error(f"animation {animation} does not exist; it has {len(anims)}")
-        anim = anims[int(animation)]
+        ai = int(animation)
+    anim = anims[ai]
     # channels: node -> path -> (times, values, interpolation)
     chans: dict[int, dict[str, tuple]] = {}
     key_times = []
-    for c in anim.get("channels", []):
+    for ci, c in enumerate(anim.get("channels", [])):
         tgt = c.get("target", {})
-        if "node" not in tgt or tgt.get("path") not in ("translation", "rotation", "scale", "weights"):
+        if "node" not in tgt:  # allowed (an extension may name the target)
             continue
-        try:
-            s = anim["samplers"][c["sampler"]]
-        except (KeyError, IndexError, TypeError):
-            raise g.error(f"animation channel with a missing sampler {c.get('sampler')}") from None
+        where = f"animations[{ai}].channels[{ci}]"
+        node_i = g.ref(tgt["node"], f"{where}.target.node", "nodes")
+        if tgt.get("path") not in ("translation", "rotation", "scale", "weights"):
+            continue
+        s = anim.get("samplers") or []
+        s = s[g.ref(c.get("sampler"), f"{where}.sampler", "samplers", s, f"animations[{ai}]")]
+        if "input" not in s or "output" not in s:
+            raise g.error(f"animations[{ai}].samplers[{c['sampler']}] has no {'input' if 'input' not in s else 'output'}")
         times = g.accessor(s["input"])[:, 0].astype(np.float64)
         vals = g.accessor(s["output"])
         interp = s.get("interpolation", "LINEAR")
@@ -319,24 +373,23 @@ def read_gltf_animation(path, fps: float | None = None, animation=None):
         need = len(times) * (3 if interp == "CUBICSPLINE" else 1)
         if len(vals) != need:
             raise g.error(f"animation sampler {c['sampler']}: {len(vals)} output values for {len(times)} keyframes")
-        chans.setdefault(int(tgt["node"]), {})[tgt["path"]] = (times, vals, interp)
+        chans.setdefault(node_i, {})[tgt["path"]] = (times, vals, interp)
         key_times.append(times)
     if not key_times:
         raise g.error("its animation has no channel on a node's translation, rotation, scale or weights")
     allt = np.unique(np.concatenate(key_times))
     t0, t1 = float(allt[0]), float(allt[-1])
     if fps is None:
-        fps = _DEFAULT_FPS
-        if len(allt) > 1:
-            r = 1.0 / float(np.median(np.diff(allt)))
-            if 1.0 <= r <= 1000.0 and abs(r - round(r)) < 1e-3 * r:
-                fps = float(round(r))
-    n_frames = int(np.floor((t1 - t0) * fps + 1e-6)) + 1
+        fps = _key_rate(allt)
+    # the last key counts when it lies within float32 rounding of a frame time (k / fps stored as
+    # float32 may round down: 60 frames at 24 fps read back as 59)
+    n_frames = int(np.floor((t1 - t0 + _time_tol(t1)) * fps)) + 1
     # the node tree: transforms for every node (joints may lie outside the scene's roots), meshes
     # from the scene's nodes only
-    children = [c for n in nodes for c in n.get("children", [])]
-    if any(not 0 <= c < len(nodes) for c in children) or len(set(children)) != len(children):
-        raise g.error("its node tree is malformed (a child index out of range or a node with two parents)")
+    children = [g.ref(c, f"nodes[{i}].children[{j}]", "nodes") for i, n in enumerate(nodes)
+                for j, c in enumerate(n.get("children", []))]
+    if len(set(children)) != len(children):
+        raise g.error("its node tree is malformed (a node with two parents)")
     order, parent = [], {}
     stack = [(r, None) for r in reversed([i for i in range(len(nodes)) if i not in set(children)])]
     while stack:
@@ -348,8 +401,10 @@ def read_gltf_animation(path, fps: float | None = None, animation=None):
         raise g.error("its node tree has a cycle")
     scenes = doc.get("scenes") or []
     shown = set(order)
-    if scenes:
-        shown, stack = set(), list(scenes[int(doc.get("scene", 0))].get("nodes", []))
+    if scenes or "scene" in doc:
+        si = g.ref(doc.get("scene", 0), "scene", "scenes")
+        stack = [g.ref(r, f"scenes[{si}].nodes[{j}]", "nodes") for j, r in enumerate(scenes[si].get("nodes", []))]
+        shown = set()
         while stack:
             i = stack.pop()
             shown.add(i)
@@ -360,15 +415,22 @@ def read_gltf_animation(path, fps: float | None = None, animation=None):
         node = nodes[i]
         if "mesh" not in node or i not in shown:
             continue
-        mesh = doc["meshes"][node["mesh"]]
-        skin = doc["skins"][node["skin"]] if "skin" in node else None
+        mesh_i = g.ref(node["mesh"], f"nodes[{i}].mesh", "meshes")  # checked before the list is indexed
+        skin_i = g.ref(node["skin"], f"nodes[{i}].skin", "skins") if "skin" in node else None
+        mesh = doc["meshes"][mesh_i]
+        skin = None if skin_i is None else doc["skins"][skin_i]
         ibm = None
         if skin is not None:
+            if not isinstance(skin.get("joints"), list) or not skin["joints"]:
+                raise g.error(f"skins[{skin_i}].joints: {skin.get('joints')!r}, but a skin needs a list of "
+                              "joint nodes")
+            for j, jn in enumerate(skin["joints"]):
+                g.ref(jn, f"skins[{skin_i}].joints[{j}]", "nodes")
             J = len(skin["joints"])
             ibm = (g.accessor(skin["inverseBindMatrices"]).reshape(-1, 4, 4).transpose(0, 2, 1)
                    if "inverseBindMatrices" in skin else np.tile(np.eye(4), (J, 1, 1)))
             if len(ibm) != J:
-                raise g.error(f"skin {node['skin']}: {len(ibm)} inverse bind matrices for {J} joints")
+                raise g.error(f"skin {skin_i}: {len(ibm)} inverse bind matrices for {J} joints")
         for k, pr in enumerate(mesh.get("primitives", [])):
             attrs = pr.get("attributes", {})
             if "POSITION" not in attrs:
@@ -379,7 +441,7 @@ def read_gltf_animation(path, fps: float | None = None, animation=None):
             if len(tri) == 0:
                 continue
             if tri.min() < 0 or tri.max() >= len(P):
-                raise g.error(f"mesh {node['mesh']} primitive {k}: indices out of range [0, {len(P)})")
+                raise g.error(f"mesh {mesh_i} primitive {k}: indices out of range [0, {len(P)})")
             targets = [g.accessor(t["POSITION"]) if "POSITION" in t else np.zeros_like(P)
                        for t in pr.get("targets", [])]
             joints, weights = [], []
@@ -391,8 +453,8 @@ def read_gltf_animation(path, fps: float | None = None, animation=None):
             if joints:
                 joints, weights = np.concatenate(joints, axis=1), np.concatenate(weights, axis=1)
                 if joints.max() >= len(skin["joints"]) or joints.min() < 0:
-                    raise g.error(f"mesh {node['mesh']} primitive {k}: joint index out of range of skin "
-                                  f"{node['skin']} ({len(skin['joints'])} joints)")
+                    raise g.error(f"mesh {mesh_i} primitive {k}: joint index out of range of skin "
+                                  f"{skin_i} ({len(skin['joints'])} joints)")
                 tot = weights.sum(axis=1, keepdims=True)
                 weights = np.where(tot > 0, weights / np.where(tot > 0, tot, 1.0), 0.0)
             prims.append({"node": i, "P": P, "tri": tri, "targets": targets,

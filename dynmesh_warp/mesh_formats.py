@@ -13,6 +13,7 @@ from __future__ import annotations
 import errno
 import os
 import re
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -272,30 +273,145 @@ def _read_trimesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return V.reshape(-1, 3), F
 
 
-def _ply_header(path: Path) -> tuple[str, dict, int]:
-    """(format, {element: count}, byte offset of the data) from a PLY file's header."""
+_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2", "ushort": "u2",
+              "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4", "float": "f4", "float32": "f4",
+              "double": "f8", "float64": "f8"}
+"""PLY property types (the specification's names and their sized aliases) -> NumPy type codes."""
+
+
+def _ply_header(path: Path) -> tuple[str, list, int]:
+    """(format, [(element, count, [(property, type or (count type, item type))])], byte offset of
+    the data) from a PLY file's header; types are the header's words, checked where read."""
     with open(path, "rb") as fh:
         head = fh.read(1 << 16)
     end = re.search(rb"end_header\r?\n", head)
     if not head.startswith(b"ply") or end is None:
         raise _ReadError("not a PLY file, or its header has no end_header line")
-    fmt, counts = "", {}
+    fmt, elements = "", []
     for line in head[:end.start()].decode("latin-1").splitlines():
         tok = line.split()
         if len(tok) >= 2 and tok[0] == "format":
             fmt = tok[1]
         elif len(tok) == 3 and tok[0] == "element":
             try:
-                counts[tok[1]] = int(tok[2])
+                elements.append((tok[1], int(tok[2]), []))
             except ValueError:
                 raise _ReadError(f"header: element {tok[1]} has a count that is not a whole number: {tok[2]!r}") from None
-    return fmt, counts, end.end()
+        elif len(tok) >= 3 and tok[0] == "property" and elements:
+            typ = (tok[2], tok[3]) if tok[1] == "list" and len(tok) == 5 else tok[1]
+            elements[-1][2].append((tok[-1], typ))
+    return fmt, elements, end.end()
+
+
+def _ply_type(element: str, prop: str, typ: str, endian: str) -> np.dtype:
+    if typ not in _PLY_TYPES:
+        raise _ReadError(f"header: element {element} property {prop} has an unknown type {typ!r}")
+    return np.dtype(endian + _PLY_TYPES[typ])
+
+
+def _ply_binary(path: Path, elements: list, start: int, endian: str) -> tuple[dict, bool]:
+    """The elements of a binary PLY, ``{element: {property: values}}`` (a list property as
+    ``(items, counts)``), and whether every list property holds as many items in every row as in
+    the first (the only layout trimesh's binary reader reads: Blender's quads among triangles or
+    n-gons failed with "PLY is unexpected length!", or read garbage when the sizes happened to add
+    up). Rows of varying lists are walked one by one; their items are gathered at once."""
+    buf = path.read_bytes()
+    u8 = np.frombuffer(buf, np.uint8)
+    off, out, uniform = start, {}, True
+
+    def truncated(name, n):
+        return _ReadError(f"truncated: element {name} ({n} rows, as the header declares) reaches past the end "
+                          f"of the file ({len(buf) - start:,} bytes of data)")
+
+    for name, n, props in elements:
+        types = [(p, (_ply_type(name, p, t[0], endian), _ply_type(name, p, t[1], endian)) if isinstance(t, tuple)
+                  else _ply_type(name, p, t, endian)) for p, t in props]
+        # every row as the first: one structured view (checked: every count as the first row's)
+        fields, pos = [], off
+        try:
+            for p, t in types:
+                if isinstance(t, tuple):
+                    k = int(np.frombuffer(buf, t[0], 1, pos)[0]) if n else 0
+                    fields += [(p + "#count", t[0]), (p, t[1], (k,))]
+                    pos += t[0].itemsize + k * t[1].itemsize
+                else:
+                    fields.append((p, t))
+                    pos += t.itemsize
+        except ValueError:  # the first row's count lies past the end
+            raise truncated(name, n) from None
+        try:
+            dt = np.dtype(fields)
+        except ValueError:  # a corrupt first count (negative, or beyond any file)
+            dt = None
+        if dt is not None and off + n * dt.itemsize <= len(buf):
+            rows = np.frombuffer(buf, dt, n, off)
+            if all(np.all(rows[p + "#count"] == dt[p].shape[0]) for p, t in types if isinstance(t, tuple)):
+                out[name] = {p: (rows[p].reshape(-1), np.full(n, dt[p].shape[0])) if isinstance(t, tuple)
+                             else rows[p] for p, t in types}
+                off += n * dt.itemsize
+                continue
+        if all(not isinstance(t, tuple) for _, t in types):
+            raise truncated(name, n)
+        uniform = False  # lists of varying length: walk the rows
+        walk = [(p, t, struct.Struct(endian + t[0].char).unpack_from if isinstance(t, tuple) else None) for p, t in types]
+        starts = {p: [] for p, _ in types}
+        counts = {p: [] for p, t in types if isinstance(t, tuple)}
+        try:
+            for _ in range(n):
+                for p, t, unpack in walk:
+                    if unpack is None:
+                        starts[p].append(off)
+                        off += t.itemsize
+                    else:
+                        k = unpack(buf, off)[0]
+                        off += t[0].itemsize
+                        starts[p].append(off)
+                        counts[p].append(k)
+                        off += k * t[1].itemsize
+        except struct.error:
+            raise truncated(name, n) from None
+        if off > len(buf):
+            raise truncated(name, n)
+        cols = {}
+        for p, t in types:
+            item = t[1] if isinstance(t, tuple) else t
+            at = np.asarray(starts[p], np.int64)
+            if isinstance(t, tuple):
+                k = np.asarray(counts[p], np.int64)
+                if k.size and k.min() < 0:
+                    raise _ReadError(f"element {name} row {int(np.argmax(k < 0))}: property {p} has "
+                                     f"{int(k.min())} items")
+                first = np.repeat(np.cumsum(k) - k, k)
+                at = np.repeat(at, k) + (np.arange(int(k.sum())) - first) * item.itemsize
+            vals = u8[at[:, None] + np.arange(item.itemsize)].reshape(-1).view(item)
+            cols[p] = (vals, k) if isinstance(t, tuple) else vals
+        out[name] = cols
+    return out, uniform
+
+
+def _fan_lists(items: np.ndarray, counts: np.ndarray, element: str = "face") -> np.ndarray:
+    """Fan triangles (v0, vi, vi+1) of polygons stored one after another (``counts`` items
+    each), in polygon order, as :func:`_fan` makes them."""
+    counts = np.asarray(counts, np.int64)
+    if counts.size and counts.min() < 3:
+        i = int(np.argmax(counts < 3))
+        raise _ReadError(f"{element} {i} has {int(counts[i])} vertex indices (a face needs at least 3)")
+    first = np.cumsum(counts) - counts
+    per = counts - 2
+    poly = np.repeat(np.arange(len(counts)), per)
+    j = np.arange(int(per.sum())) - np.repeat(np.cumsum(per) - per, per) + 1
+    base = first[poly]
+    items = np.asarray(items, np.int64)
+    return np.stack([items[base], items[base + j], items[base + j + 1]], axis=1).reshape(-1, 3)
 
 
 def _read_ply(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """A PLY file through trimesh, checked against its header: an ASCII file cut short (trimesh
-    reads what is there without a word) or a vertex count unlike the header's is an error."""
-    fmt, counts, start = _ply_header(path)
+    reads what is there without a word) or a vertex count unlike the header's is an error. A
+    binary file whose face lists vary in length (quads among triangles or n-gons, as Blender
+    writes them) is read by :func:`_ply_binary` and fan-triangulated in face order."""
+    fmt, elements, start = _ply_header(path)
+    counts = {name: n for name, n, _ in elements}
     nv, nf = counts.get("vertex", 0), counts.get("face", 0)
     if fmt == "ascii":
         with open(path, "rb") as fh:
@@ -306,6 +422,20 @@ def _read_ply(path: Path) -> tuple[np.ndarray, np.ndarray]:
             raise _ReadError(f"truncated: the header declares {nv} vertices and {nf} faces"
                              + (f" ({need} elements in all)" if need != nv + nf else "")
                              + f" but the file has {lines} data lines")
+    elif fmt in ("binary_little_endian", "binary_big_endian"):
+        data, uniform = _ply_binary(path, elements, start, "<" if fmt == "binary_little_endian" else ">")
+        if not uniform:
+            vert = data.get("vertex", {})
+            if not all(c in vert and not isinstance(vert[c], tuple) for c in "xyz"):
+                raise _ReadError("the vertex element has no x, y, z properties")
+            lists = {p: v for p, v in data.get("face", {}).items() if isinstance(v, tuple)}
+            name = next((p for p in ("vertex_indices", "vertex_index") if p in lists), None)
+            if name is None and len(lists) == 1:
+                name = next(iter(lists))
+            if name is None:
+                raise _ReadError(f"the face element has no vertex_indices list (its lists: {sorted(lists)})")
+            V = np.stack([np.asarray(vert[c], np.float64) for c in "xyz"], axis=1).reshape(-1, 3)
+            return V, _fan_lists(*lists[name])
     V, F = _read_trimesh(path)
     if len(V) != nv:
         raise _ReadError(f"the header declares {nv} vertices but {len(V)} were read (truncated or corrupt)")

@@ -254,3 +254,30 @@ def test_vertex_only_npz_and_npy_take_faces_from_a_mesh(tmp_path):
     with pytest.raises(ValueError, match=r"full\.npz: topology= applies to vertex-only files"):
         load_sequence(tmp_path / "full.npz", topology=tmp_path / "body.obj")
     np.testing.assert_array_equal(load_sequence(tmp_path / "full.npz").V, V)
+
+
+def test_a_cache_in_the_other_byte_order_reads_with_a_warning(tmp_path):
+    """PC2 is little-endian and MDD big-endian by their specs; a cache written in the other byte
+    order (its header read so fits the file exactly) reads with a warning saying so. A new user's
+    big-endian PC2 was "201326592 samples x 2013265920 points ... (truncated)", without a hint.
+    Where the data do not read as numbers either, the error says what the header suggests."""
+    be_pc2 = struct.pack(">12siiffi", b"POINTCACHE2\0", 1, 4, 1.0, 1.0, T) + struct.pack(f">{V.size}f", *V.ravel())
+    le_mdd = (struct.pack("<2i", T, 4) + struct.pack(f"<{T}f", *[t / 25 for t in range(T)])
+              + struct.pack(f"<{V.size}f", *V.ravel()))
+    for name, data, fmt, order, spec in [("be.pc2", be_pc2, "PC2", "big", "little"),
+                                         ("le.mdd", le_mdd, "MDD", "little", "big")]:
+        (tmp_path / name).write_bytes(data)
+        write_mesh(tmp_path / name.replace(name[-4:], ".obj"), V0, F)
+        with pytest.warns(UserWarning, match=rf"{name[:2]}\.{name[3:]}: read {order}-endian, its header fits the "
+                                             rf"file: a {order}-endian {fmt}\? {fmt} is {spec}-endian by its spec"):
+            seq = load_sequence(tmp_path / name)
+        np.testing.assert_array_equal(seq.V, V)
+        np.testing.assert_array_equal(seq.F, F)
+        assert seq.fps == (25.0 if fmt == "MDD" else 24.0)
+    nan = be_pc2[:32] + b"\xff" * (len(be_pc2) - 32)
+    (tmp_path / "nan.pc2").write_bytes(nan)
+    write_mesh(tmp_path / "nan.obj", V0, F)
+    with pytest.raises(MeshDataError, match=r"nan\.pc2: header: 83886080 samples x 67108864 points make .* "
+                                            r"\(truncated\); read big-endian, its header fits the file: a big-endian "
+                                            r"PC2\? .* but its data do not read as numbers so"):
+        load_sequence(tmp_path / "nan.pc2")

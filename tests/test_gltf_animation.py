@@ -352,3 +352,115 @@ def test_the_up_axis_and_animation_checks_read_only_the_json_chunk(tmp_path, mon
     (tmp_path / "bad.glb").write_bytes(b"glTF\x02\x00\x00\x00" + b"\x00" * 4)  # a header and nothing else
     with pytest.raises(MeshDataError, match=r"bad\.glb"):
         ga.gltf_has_animation(tmp_path / "bad.glb")
+
+
+def _keyed_triangle(times, path: str = "translation", interpolation: str = "STEP") -> bytes:
+    """A triangle whose node moves to x = k at keyframe k (times as given, stored float32)."""
+    b = Builder()
+    P = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float64)
+    b.doc["meshes"] = [{"primitives": [{"attributes": {"POSITION": b.add(P, "VEC3")}}]}]
+    b.doc["nodes"] = [{"mesh": 0}]
+    b.doc["scenes"][0]["nodes"] = [0]
+    K = len(times)
+    out = np.c_[np.arange(K), np.zeros(K), np.zeros(K)]
+    if interpolation == "CUBICSPLINE":  # in-tangent, value, out-tangent per key
+        out = np.stack([np.zeros_like(out), out, np.zeros_like(out)], axis=1).reshape(-1, 3)
+    b.doc["animations"] = [{"channels": [{"sampler": 0, "target": {"node": 0, "path": path}}],
+                            "samplers": [{"input": b.add(np.asarray(times, np.float32), "SCALAR"),
+                                          "output": b.add(out, "VEC3"), "interpolation": interpolation}]}]
+    return b.glb()
+
+
+@pytest.mark.parametrize("fps", [24, 25, 30, 60])
+def test_the_last_key_is_a_frame_though_its_float32_time_rounds_down(tmp_path, fps):
+    """40 keys baked at k / fps (float32, as exporters store them) are 40 frames at fps: the
+    count was taken from the last key's float32 time, and where it rounded down (25, 30, 60 fps)
+    the last frame was lost (found by a new user)."""
+    (tmp_path / "k.glb").write_bytes(_keyed_triangle(np.arange(40) / fps))
+    for rate in (None, fps):
+        seq = load_sequence(tmp_path / "k.glb", fps=rate)
+        assert seq.fps == fps and seq.num_frames == 40
+
+
+@pytest.mark.parametrize("fps", [24, 25, 30, 60, 120])
+def test_the_writer_round_trip_keeps_every_frame_count(tmp_path, fps):
+    """save_sequence's .glb read back has its T frames for every T up to 60 (lost one for 4 to 8
+    of the 59 lengths at each rate: 60 frames at 24 fps read back as 59)."""
+    from dynmesh_warp.gltf_animation import read_gltf_animation, write_gltf_animation
+
+    P, F = _bar()
+    for T in range(2, 61):
+        V = (P[None] + np.arange(T)[:, None, None] * np.array([0.0, 0.0, 0.01])).astype(np.float32)
+        write_gltf_animation(tmp_path / "w.glb", V, F, fps)
+        V2, F2, fps2 = read_gltf_animation(tmp_path / "w.glb")
+        assert fps2 == fps and V2.shape == V.shape, T
+        np.testing.assert_allclose(V2, V, atol=1e-6)
+
+
+@pytest.mark.parametrize("fps", [24, 25, 30, 60])
+@pytest.mark.parametrize("interpolation", ["STEP", "LINEAR", "CUBICSPLINE"])
+def test_every_frame_shows_its_own_key_though_key_times_are_float32(tmp_path, fps, interpolation):
+    """Keys at float32 k / fps: frame k is key k exactly, for every interpolation. A frame time
+    (float64 k / fps) was compared with the float32 key times, and where a key's rounded up,
+    STEP gave the key before (14 of 40 frames at 24 fps, 18 at 25, 25 at 30 and 60; found by a
+    new user), LINEAR a blend 2e-6 off. At twice the rate a STEP frame between keys holds the
+    key before it."""
+    (tmp_path / "k.glb").write_bytes(_keyed_triangle(np.arange(40) / fps, interpolation=interpolation))
+    seq = load_sequence(tmp_path / "k.glb")
+    assert seq.num_frames == 40
+    np.testing.assert_array_equal(seq.V[:, 0, 0], np.arange(40))
+    if interpolation == "STEP":
+        fine = load_sequence(tmp_path / "k.glb", fps=2 * fps)
+        np.testing.assert_array_equal(fine.V[:, 0, 0], np.arange(79) // 2)
+
+
+@pytest.mark.parametrize("fps", [23.976, 29.97, 30000 / 1001, 12.5, 0.5, 7.0])
+def test_the_writer_round_trip_keeps_a_rate_that_is_not_whole(tmp_path, fps):
+    """Uniformly spaced keys give 1 / their spacing, whole or not, so that each key is a frame:
+    only whole rates were taken, else the file was resampled at 30 fps (a new user's 23.976 fps,
+    12 frames -> 30 fps, 14 frames; 12.5 -> 27 frames; 0.5 -> 661; 29.97 -> 30). The rate read
+    is the shortest decimal that puts every float32 key on its k / fps."""
+    from dynmesh_warp.io import save_sequence
+    from dynmesh_warp.sequence import FixedTopologySequence
+
+    P, F = _bar()
+    V = (P[None] + np.random.default_rng(1).normal(size=(12, len(P), 3)) * 0.1).astype(np.float32)
+    save_sequence(FixedTopologySequence(V, F, fps=fps, name="bar"), tmp_path / "bar.glb")
+    back = load_sequence(tmp_path / "bar.glb")
+    assert back.num_frames == 12
+    assert back.fps == (29.97003 if fps == 30000 / 1001 else fps)
+    np.testing.assert_allclose(back.V, V, atol=1e-6)
+
+
+def test_keys_not_uniformly_spaced_keep_the_median_rule(tmp_path):
+    """Keys at uneven times: 1 / the median spacing when whole (10 fps), else 30 fps."""
+    (tmp_path / "a.glb").write_bytes(_keyed_triangle([0.0, 0.1, 0.2, 0.4, 0.5]))
+    seq = load_sequence(tmp_path / "a.glb")
+    assert seq.fps == 10.0 and seq.num_frames == 6
+    np.testing.assert_array_equal(seq.V[:, 0, 0], [0, 1, 2, 2, 3, 4])
+    (tmp_path / "b.glb").write_bytes(_keyed_triangle([0.0, 0.37, 0.5, 0.9]))
+    assert load_sequence(tmp_path / "b.glb").fps == 30.0
+
+
+@pytest.mark.parametrize("edit,message", [
+    (lambda d: d["nodes"][0].update(mesh=7), r"nodes\[0\]\.mesh: 7, but the file has 1 meshes"),
+    (lambda d: d.update(scene=2), r"scene: 2, but the file has 1 scenes"),
+    (lambda d: d["scenes"][0].update(nodes=[0, 9]), r"scenes\[0\]\.nodes\[1\]: 9, but the file has 1 nodes"),
+    (lambda d: d["nodes"][0].update(children=[5]), r"nodes\[0\]\.children\[0\]: 5, but the file has 1 nodes"),
+    (lambda d: d["nodes"][0].update(skin=2), r"nodes\[0\]\.skin: 2, but the file has 0 skins"),
+    (lambda d: (d["nodes"][0].update(skin=0), d.update(skins=[{"joints": [0, 9]}])),
+     r"skins\[0\]\.joints\[1\]: 9, but the file has 1 nodes"),
+    (lambda d: d["animations"][0]["channels"].append({"sampler": 0, "target": {"node": 9, "path": "rotation"}}),
+     r"animations\[0\]\.channels\[1\]\.target\.node: 9, but the file has 1 nodes"),
+    (lambda d: d["animations"][0]["channels"][0].update(sampler=3),
+     r"animations\[0\]\.channels\[0\]\.sampler: 3, but animations\[0\] has 1 samplers"),
+])
+def test_a_reference_out_of_range_names_the_file_and_its_json_path(tmp_path, edit, message):
+    """An index into a missing mesh, scene, node, skin or sampler is an error naming the file and
+    the JSON path, as a glTF validator says it: a new user got a raw IndexError (a node's mesh,
+    the scene), KeyError: 9 (a skin's joint), and a channel to a missing node was ignored."""
+    b = _sliding_bar()
+    edit(b.doc)
+    (tmp_path / "ref.glb").write_bytes(b.glb())
+    with pytest.raises(MeshDataError, match=r"ref\.glb: " + message):
+        load_sequence(tmp_path / "ref.glb")

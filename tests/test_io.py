@@ -6,6 +6,7 @@ except by the optional test at the end, which skips when it is absent.
 
 from __future__ import annotations
 
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -432,6 +433,54 @@ def test_truncated_ascii_ply_is_an_error(tmp_path, keep_lines):
     with pytest.raises(MeshDataError, match=r"cut\.ply: truncated: the header declares 4 vertices and 4 faces "
                                             rf"but the file has {keep_lines} data lines"):
         read_mesh(p)
+
+
+def _binary_ply(path, V, polys, endian: str, index: str, face_flags: bool = False) -> None:
+    """A binary PLY written with struct from the PLY specification: x y z, normals and colours
+    per vertex; per face a vertex_indices list with a uchar count and ``index`` ("i" int, "I"
+    uint) items, and optionally a per-corner texcoord list (float) and a uchar property after it."""
+    order = "little" if endian == "<" else "big"
+    head = (f"ply\nformat binary_{order}_endian 1.0\ncomment written by the test\nelement vertex {len(V)}\n"
+            "property float x\nproperty float y\nproperty float z\nproperty float nx\nproperty float ny\n"
+            "property float nz\nproperty uchar red\nproperty uchar green\nproperty uchar blue\n"
+            f"element face {len(polys)}\nproperty list uchar {'int' if index == 'i' else 'uint'} vertex_indices\n"
+            + ("property list uchar float texcoord\nproperty uchar flags\n" if face_flags else "") + "end_header\n")
+    body = b"".join(struct.pack(endian + "6f3B", *v, 0.0, 0.0, 1.0, 200, 100, 50) for v in V)
+    body += b"".join(struct.pack(f"{endian}B{len(p)}{index}", len(p), *p)
+                     + (struct.pack(f"{endian}B{2 * len(p)}fB", 2 * len(p), *np.linspace(0, 1, 2 * len(p)), 7)
+                        if face_flags else b"") for p in polys)
+    path.write_bytes(head.encode("ascii") + body)
+
+
+@pytest.mark.parametrize("endian", ["<", ">"])
+@pytest.mark.parametrize("index", ["i", "I"])
+@pytest.mark.parametrize("sizes", [(4, 3, 4, 3, 3), (4, 5, 4, 6, 4), (3, 4, 3, 4), (4, 3, 5)])
+def test_binary_ply_with_mixed_face_sizes(tmp_path, endian, index, sizes):
+    """Quads among triangles or n-gons in a binary PLY (Blender's export) load, fanned (v0, vi,
+    vi+1) in face order as OBJ/OFF are; trimesh's binary reader takes every face list as long as
+    the first and refused them ("PLY is unexpected length!") or read garbage (found by a new
+    user). (4, 3, 5) takes as many bytes as three quads: trimesh read it as quads, garbage."""
+    rng = np.random.default_rng(len(sizes))
+    V = rng.random((12, 3)).astype(np.float32)
+    polys = [[int(i) for i in rng.choice(12, size=k, replace=False)] for k in sizes]
+    want = [(p[0], p[i], p[i + 1]) for p in polys for i in range(1, len(p) - 1)]
+    for flags in (False, True):
+        p = tmp_path / f"frame_1_{flags}.ply"
+        _binary_ply(p, V, polys, endian, index, flags)
+        V2, F2 = read_mesh(p)
+        np.testing.assert_array_equal(V2, V)
+        np.testing.assert_array_equal(F2, want)
+
+
+@pytest.mark.parametrize("endian", ["<", ">"])
+def test_binary_ply_with_mixed_face_sizes_cut_short_is_an_error(tmp_path, endian):
+    p = tmp_path / "cut.ply"
+    _binary_ply(p, np.eye(5, 3, dtype=np.float32), [[0, 1, 2, 3], [1, 2, 4], [0, 1, 2, 3, 4]], endian, "i")
+    data = p.read_bytes()
+    for cut in (1, 4, 21):
+        p.write_bytes(data[:-cut])
+        with pytest.raises(MeshDataError, match=r"cut\.ply: truncated: element face \(3 rows"):
+            read_mesh(p)
 
 
 def test_corrupt_frame_in_folder_names_file_and_frame(tmp_path):
