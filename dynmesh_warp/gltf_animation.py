@@ -320,19 +320,23 @@ def gltf_generator(path) -> str:
     return g if isinstance(g, str) else ""
 
 
-def read_gltf_animation(path, fps: float | None = None, animation=None):
+def read_gltf_animation(path, fps: float | None = None, animation=None, rest: bool = False):
     """Sample an animated glTF scene: ``(V (T, N, 3) float32, F (M, 3) int64, fps)``.
 
     ``animation``: the index or name of the animation (default: the first); ``fps``: the frame
-    rate to sample at (default: the keyframes', else 30). Raises :class:`MeshDataError` naming
-    the file for what cannot be read (module docstring)."""
+    rate to sample at (default: the keyframes', else 30). ``rest``: a file without animations is
+    one frame, its scene as its nodes, skins and morph weights stand (by the same rules: a skinned
+    mesh's own node transform is not applied, as the specification says). Raises
+    :class:`MeshDataError` naming the file for what cannot be read (module docstring)."""
     g = _File(Path(path))
     g.check_extensions()
     doc = g.doc
     nodes = doc.get("nodes", [])
     anims = [a for a in doc.get("animations", []) or []]
-    if not anims:
+    if not anims and not (rest and animation is None):
         raise g.error("has no animation")
+    if not anims:
+        anims = [{"channels": []}]  # the scene as it stands: one frame
     if animation is None:
         ai = 0
     elif isinstance(animation, str):
@@ -375,9 +379,9 @@ def read_gltf_animation(path, fps: float | None = None, animation=None):
             raise g.error(f"animation sampler {c['sampler']}: {len(vals)} output values for {len(times)} keyframes")
         chans.setdefault(node_i, {})[tgt["path"]] = (times, vals, interp)
         key_times.append(times)
-    if not key_times:
+    if not key_times and not (rest and not anim["channels"]):
         raise g.error("its animation has no channel on a node's translation, rotation, scale or weights")
-    allt = np.unique(np.concatenate(key_times))
+    allt = np.unique(np.concatenate(key_times)) if key_times else np.zeros(1)
     t0, t1 = float(allt[0]), float(allt[-1])
     if fps is None:
         fps = _key_rate(allt)

@@ -162,7 +162,14 @@ def load_sequence(
     if animated:
         V, F, file_fps = read_gltf_animation(path, fps, animation)
         return _one_file(V, F, None, file_fps, path.stem, path, kind)
-    V, F = read_mesh(path)
+    if suffix in GLTF_EXTENSIONS:
+        # the scene as it stands, by the glTF reader's rules (a skinned mesh's own node transform
+        # is not applied: through trimesh a new user's static skinned file sat 5 m off the same
+        # file's animated frame 0, its parts in another order)
+        V, F, _ = read_gltf_animation(path, rest=True)
+        V = V[0]
+    else:
+        V, F = read_mesh(path)
     fps = DEFAULT_FPS if fps is None else fps
     seq = FixedTopologySequence(V[None], F, fps=fps, name=path.stem, source=str(path))
     return seq.to_varying() if kind == "varying" else seq

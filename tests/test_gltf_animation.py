@@ -181,6 +181,42 @@ def test_static_glb_still_reads_as_one_mesh(tmp_path):
     np.testing.assert_allclose(seq.V[0], P, atol=1e-6)
 
 
+def test_a_static_skinned_glb_reads_as_its_animated_frame_0_and_node_transforms_apply(tmp_path):
+    """A file without animations is read by the glTF reader's own rules (the scene as its nodes
+    and skins stand), not through trimesh: a skinned mesh's own node transform is not applied
+    (the specification; a new user's static skinned file sat 5 m off the same file's animated
+    frame 0 through trimesh), and an unskinned node's transform is (closed form)."""
+    P, F = _bar()
+
+    def bone(animated: bool) -> bytes:
+        b = Builder()
+        J = np.array([[0, 0, 0, 0]] * 6)
+        Wt = np.array([[1, 0, 0, 0]] * 6)
+        prim = {"attributes": {"POSITION": b.add(P, "VEC3"), "JOINTS_0": b.add(J, "VEC4", 5123),
+                               "WEIGHTS_0": b.add(Wt, "VEC4")}, "indices": b.add(F.ravel(), "SCALAR", 5125)}
+        b.doc["meshes"] = [{"primitives": [prim]}, {"primitives": [{"attributes": {"POSITION": b.add(P, "VEC3")},
+                                                                     "indices": b.add(F.ravel(), "SCALAR", 5125)}]}]
+        b.doc["skins"] = [{"joints": [1]}]
+        b.doc["nodes"] = [{"mesh": 0, "skin": 0, "translation": [5, 5, 5]},  # ignored: a skinned mesh
+                          {"translation": [0, 0, 1]},  # the joint lifts the skinned bar by 1
+                          {"mesh": 1, "translation": [0, 3, 0], "rotation": _quat_z(90)}]
+        b.doc["scenes"][0]["nodes"] = [0, 1, 2]
+        if animated:
+            b.doc["animations"] = [{"channels": [{"sampler": 0, "target": {"node": 1, "path": "translation"}}],
+                                    "samplers": [{"input": b.add([0.0, 1.0], "SCALAR"),
+                                                  "output": b.add([[0, 0, 1], [0, 0, 2]], "VEC3")}]}]
+        return b.glb()
+
+    (tmp_path / "static.glb").write_bytes(bone(False))
+    (tmp_path / "anim.glb").write_bytes(bone(True))
+    static, anim = load_sequence(tmp_path / "static.glb"), load_sequence(tmp_path / "anim.glb")
+    want = np.r_[P + [0, 0, 1], P @ _rz(90).T + [0, 3, 0]]
+    assert static.num_frames == 1
+    np.testing.assert_allclose(static.V[0], want, atol=1e-6)
+    np.testing.assert_allclose(anim.V[0], want, atol=1e-6)
+    np.testing.assert_array_equal(static.F, anim.F)
+
+
 def _sliding_bar() -> "Builder":
     """The bar as one node translated by 1 along x over a second (a LINEAR channel)."""
     b = Builder()
