@@ -129,11 +129,14 @@ def project_gaussians(
     fy = k[1]
     cx = k[2]
     cy = k[3]
-    # EWA: clamp the position to 1.3x the half field of view, as the reference does
-    lim_x_pos = (float(width) - cx) / fx + 0.3 * float(width) / fx
-    lim_x_neg = cx / fx + 0.3 * float(width) / fx
-    lim_y_pos = (float(height) - cy) / fy + 0.3 * float(height) / fy
-    lim_y_neg = cy / fy + 0.3 * float(height) / fy
+    # EWA: clamp the position to 1.3x the half field of view, as the reference does (gsplat:
+    # lim = edge / f + 0.3 tan_fov, tan_fov = 0.5 size / f; 0.3 size / f here made it 1.6x)
+    tan_fovx = 0.5 * float(width) / fx
+    tan_fovy = 0.5 * float(height) / fy
+    lim_x_pos = (float(width) - cx) / fx + 0.3 * tan_fovx
+    lim_x_neg = cx / fx + 0.3 * tan_fovx
+    lim_y_pos = (float(height) - cy) / fy + 0.3 * tan_fovy
+    lim_y_neg = cy / fy + 0.3 * tan_fovy
     rz = 1.0 / p[2]
     tx = p[2] * wp.clamp(p[0] * rz, -lim_x_neg, lim_x_pos)
     ty = p[2] * wp.clamp(p[1] * rz, -lim_y_neg, lim_y_pos)

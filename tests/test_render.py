@@ -614,3 +614,51 @@ def test_a_bad_render_value_is_named_with_its_value(opt, value, need, capsys):
     with pytest.raises(SystemExit) as e:
         main(["--out", "unused_dir", opt, value])
     assert e.value.code == 2 and need in capsys.readouterr().err
+
+
+def _ewa_alpha_3dgs(mean_cam, cov_cam, opacity, fx, fy, W, H, clamp=1.3):
+    """Alpha (H, W) of one Gaussian (camera-space centre and covariance, camera at the origin
+    looking down +z) written out from the 3DGS paper / gsplat in float64, independently of the
+    kernels: J of the perspective map at the centre with x/z, y/z clamped to 1.3 tan_fov
+    (tan_fovx = 0.5 W / fx; cx = W / 2), 2-D covariance J cov J^T + 0.3 I, pixel centres at
+    (i + 0.5, j + 0.5), alpha = min(0.999, o exp(-d^T cov2d^-1 d / 2)). Returns (alpha, the
+    squared Mahalanobis distance)."""
+    x, y, z = (float(v) for v in mean_cam)
+    limx, limy = clamp * 0.5 * W / fx, clamp * 0.5 * H / fy
+    tx, ty = z * min(max(x / z, -limx), limx), z * min(max(y / z, -limy), limy)
+    J = np.array([[fx / z, 0.0, -fx * tx / z**2], [0.0, fy / z, -fy * ty / z**2]])
+    cov2d = J @ np.asarray(cov_cam, np.float64) @ J.T + 0.3 * np.eye(2)
+    u, v = fx * x / z + W / 2, fy * y / z + H / 2
+    px, py = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    d = np.stack([px - u, py - v], -1)
+    m = np.einsum("hwi,ij,hwj->hw", d, np.linalg.inv(cov2d), d)
+    return np.minimum(0.999, opacity * np.exp(-0.5 * m)), m
+
+
+@pytest.mark.parametrize("axis,sign", [(0, 1.0), (0, -1.0), (1, 1.0), (1, -1.0)])
+def test_a_gaussian_just_off_screen_is_clamped_at_1p3_the_half_fov(device, axis, sign):
+    """The EWA Jacobian takes the centre clamped to 1.3x the half field of view (3DGS, gsplat:
+    lim = (W - cx) / fx + 0.3 tan_fovx). The kernel used 0.3 W / fx (1.6x): a large Gaussian
+    whose centre is at 1.45x the half fov, reaching into the image, was drawn with the
+    unclamped Jacobian (alpha off by ~1e-2). Checked against the closed form above, on both
+    sides of both axes."""
+    from dynmesh_warp.render import Camera
+
+    W, H, fx, fy = 64, 48, 50.0, 45.0
+    cam = Camera(np.eye(3), np.zeros(3), fx, fy, W / 2, H / 2, W, H)
+    z = 2.0
+    p = np.array([0.0, 0.0, z])
+    p[axis] = sign * 1.45 * 0.5 * (W / fx if axis == 0 else H / fy) * z
+    S = np.array([0.9, 0.7, 0.5])
+    cov = np.diag(S**2)
+    op = 0.8
+    want, m = _ewa_alpha_3dgs(p, cov, op, fx, fy, W, H)
+    out = Renderer(device).render(p[None].astype(np.float32), cov[None].astype(np.float32),
+                                  rgb_to_sh(np.array([[0.2, 0.6, 0.9]])), np.array([op], np.float32), [cam])
+    alpha = out.alpha.numpy()[0]
+    near = m < 9.0  # within 3 sigma: every such pixel lies in a tile the splat touches
+    assert near.sum() > 100 and want[near].max() > 0.1  # it reaches well into the image
+    np.testing.assert_allclose(alpha[near], want[near], atol=2e-5)
+    # the old 1.6x clamp gives another footprint (what the test tells apart)
+    old, _ = _ewa_alpha_3dgs(p, cov, op, fx, fy, W, H, clamp=1.6)
+    assert np.abs(old[near] - want[near]).max() > 1e-3
