@@ -106,7 +106,7 @@ def orbit_cameras(center, distance: float, count: int, elevation_deg: float = 20
 
 
 def rgb_to_sh(rgb) -> np.ndarray:
-    """Degree-0 SH coefficients (G, 1, 3) that render as ``rgb`` (G, 3) in [0, 1]."""
+    """Degree-0 SH coefficients (G, 1, 3) that render as ``rgb`` (G, 3), >= 0 (above 1 for a bright splat, as 3DGS)."""
     return ((np.asarray(rgb, np.float32) - 0.5) / SH_C0).reshape(-1, 1, 3).astype(np.float32)
 
 

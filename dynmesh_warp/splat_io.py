@@ -9,7 +9,8 @@ Values are stored *pre-activation*: ``scale_*`` is log(std dev), ``opacity`` is 
 ``rot_*`` is an unnormalized quaternion (w, x, y, z), ``f_dc``/``f_rest`` are spherical-harmonic
 coefficients (``f_rest`` grouped by colour channel: K/3 per channel). The activations are
 :func:`activate_scale` (exp), :func:`activate_opacity` (sigmoid), :func:`activate_rotation`
-(normalize) and :func:`sh_dc_to_rgb` (0.5 + C0 * f_dc).
+(normalize) and :func:`sh_dc_to_rgb` (0.5 + C0 * f_dc, clamped at 0 only, as 3DGS: a colour may
+exceed 1; the image is clipped where it is written).
 
 The reader keeps the property order, types and comments, so ``write_splat_ply(read_splat_ply(p))``
 reproduces a file written by this module (or by plyfile) byte for byte.
@@ -31,6 +32,7 @@ __all__ = [
     "read_splat_ply",
     "write_splat_ply",
     "SH_C0",
+    "OPACITY_EPS",
     "activate_scale",
     "activate_opacity",
     "activate_rotation",
@@ -40,6 +42,9 @@ __all__ = [
 ]
 
 SH_C0 = 0.28209479177387814  # Y_0^0 = 1 / (2 sqrt(pi))
+#: activated opacities exactly 0 or 1 (no finite logit) are stored as the nearest float32
+#: opacities that are not: 2^-24 and 1 - 2^-24 (logits -16.6 / +16.6); ``from_activated``
+OPACITY_EPS = 2.0 ** -24
 
 _PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -81,9 +86,13 @@ def activate_rotation(q_wxyz):
     return np.where(n > 0, q / np.where(n > 0, n, 1.0), ident)
 
 
-def sh_dc_to_rgb(f_dc):
-    """Base colour in [0, 1] (clipped) from the degree-0 SH coefficient."""
-    return np.clip(0.5 + SH_C0 * np.asarray(f_dc, np.float64), 0.0, 1.0)
+def sh_dc_to_rgb(f_dc, clamp: bool = True):
+    """Base colour from the degree-0 SH coefficient: 0.5 + C0 f_dc, clamped at 0 only (as 3DGS's
+    ``clamp_min(..., 0)``: a bright splat's colour exceeds 1; the composited image is clipped to
+    [0, 1] where it is written). ``clamp=False``: the linear value, which keeps f_dc (a binding
+    holds it, so an export writes back what was read)."""
+    rgb = 0.5 + SH_C0 * np.asarray(f_dc, np.float64)
+    return np.maximum(rgb, 0.0) if clamp else rgb
 
 
 def rgb_to_sh_dc(rgb):
@@ -163,20 +172,23 @@ class SplatCloud:
         return activate_rotation(self.rotations_raw)
 
     def rgb(self) -> np.ndarray:
-        """(G, 3) view-independent base colour in [0, 1]."""
+        """(G, 3) view-independent base colour, >= 0 (above 1 for a bright splat)."""
         return sh_dc_to_rgb(self.f_dc)
 
     @classmethod
     def from_activated(cls, centers, scales, rotations_wxyz, rgb, opacities, f_rest=None, normals=None,
-                       comments=None) -> "SplatCloud":
+                       comments=None, opacity_logits=None) -> "SplatCloud":
         """Build a cloud in the standard property order from activated values (inverse
-        activations applied: log of scales, logit of opacities, SH DC from rgb)."""
+        activations applied: log of scales, logit of opacities, SH DC from rgb, which may exceed
+        1). ``opacity_logits`` (G,): the stored logits to write as they are (a binding read from
+        a file keeps them: sigmoid(20) is 1.0 in float32, whose logit is inf); else the logit of
+        ``opacities``, those at exactly 0 or 1 taken as ``OPACITY_EPS`` / 1 - ``OPACITY_EPS``."""
         centers = np.asarray(centers, np.float32).reshape(-1, 3)
         G = centers.shape[0]
         scales = np.asarray(scales, np.float64).reshape(G, 3)
         if (scales <= 0).any():
             raise SplatPlyError("scales must be > 0 (they are stored as logarithms)")
-        op = np.clip(np.asarray(opacities, np.float64).reshape(G), 1e-6, 1 - 1e-6)
+        op = np.clip(np.asarray(opacities, np.float64).reshape(G), OPACITY_EPS, 1 - OPACITY_EPS)
         f_rest = np.zeros((G, 0), np.float32) if f_rest is None else np.asarray(f_rest, np.float32).reshape(G, -1)
         normals = np.zeros((G, 3), np.float32) if normals is None else np.asarray(normals, np.float32).reshape(G, 3)
         cols = {"x": centers[:, 0], "y": centers[:, 1], "z": centers[:, 2],
@@ -186,7 +198,7 @@ class SplatCloud:
             cols[f"f_dc_{i}"] = dc[:, i]
         for i in range(f_rest.shape[1]):
             cols[f"f_rest_{i}"] = f_rest[:, i]
-        cols["opacity"] = inverse_sigmoid(op)
+        cols["opacity"] = inverse_sigmoid(op) if opacity_logits is None else np.asarray(opacity_logits).reshape(G)
         ls = np.log(scales)
         for i in range(3):
             cols[f"scale_{i}"] = ls[:, i]

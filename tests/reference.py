@@ -228,7 +228,7 @@ def render_splats(means, covs, sh, degree, opacity, cam, spheres=None, sphere_co
                 nrm /= np.linalg.norm(nrm)
                 acc += np.asarray(sphere_color) * (0.25 + 0.75 * max(0.0, -(nrm @ dw))) * T
                 T = 0.0
-            rgb[py, px] = acc + bg * T
+            rgb[py, px] = np.clip(acc + bg * T, 0.0, 1.0)  # colours clamped at 0 only; the image at 1
             alpha[py, px] = 1 - T
     return rgb, alpha
 

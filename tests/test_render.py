@@ -662,3 +662,40 @@ def test_a_gaussian_just_off_screen_is_clamped_at_1p3_the_half_fov(device, axis,
     # the old 1.6x clamp gives another footprint (what the test tells apart)
     old, _ = _ewa_alpha_3dgs(p, cov, op, fx, fy, W, H, clamp=1.6)
     assert np.abs(old[near] - want[near]).max() > 1e-3
+
+
+@pytest.mark.parametrize("background", [(0.0, 0.0, 0.0), (1.0, 1.0, 1.0)])
+def test_a_bright_splat_renders_its_unclipped_colour(device, background):
+    """3DGS clamps the DC colour at 0 only: f_dc 3.0 is 1.346, and the image (not the colour) is
+    clipped to [0, 1]. A splat read as f_dc (3.0, 1.0, -3.0), bound to a mesh and drawn through
+    ``render_world``'s colour path, against the closed form min(1, c alpha + bg (1 - alpha)) with
+    alpha written out in float64 (``_ewa_alpha_3dgs``). The binding clipped the colour to 1
+    before: 0.364 darker at alpha 0.8 over black."""
+    from dynmesh_warp.gaussians import bind_splats
+    from dynmesh_warp.render import Camera, _binding_colours
+    from dynmesh_warp.splat_io import SplatCloud
+
+    W, H, fx, fy = 48, 40, 40.0, 40.0
+    cam = Camera(np.eye(3), np.zeros(3), fx, fy, W / 2, H / 2, W, H)
+    p, S = np.array([0.1, -0.05, 2.0]), np.array([0.3, 0.25, 0.01])
+    cloud = SplatCloud.from_activated(p[None], S[None], [[1.0, 0, 0, 0]], [[1.0, 1.0, 1.0]], [0.8])
+    cloud.data["f_dc_0"], cloud.data["f_dc_1"], cloud.data["f_dc_2"] = 3.0, 1.0, -3.0
+    V = np.array([[-1, -1, 2], [1, -1, 2], [1, 1, 2], [-1, 1, 2]], np.float32)
+    F = np.array([[0, 1, 2], [0, 2, 3]], np.int32)
+    g = bind_splats(cloud, V, F, device=device)
+    import warp as wp
+
+    g.update(wp.array(V, dtype=wp.vec3, device=device), wp.array(F.reshape(-1), dtype=wp.int32, device=device))
+    r = Renderer(device)
+    sh, op = _binding_colours(r, g.binding, device)
+    out = r.render(g.state.centers, g.state.covariances, sh, op, [cam], background=background)
+    rgb = out.rgb.numpy()[0]
+    alpha, m = _ewa_alpha_3dgs(p, np.diag(S**2), 0.8, fx, fy, W, H)
+    col = np.maximum(0.5 + 0.28209479177387814 * np.array([3.0, 1.0, -3.0]), 0.0)  # 1.346, 0.782, 0
+    want = np.clip(col * alpha[..., None] + np.asarray(background) * (1 - alpha[..., None]), 0.0, 1.0)
+    near = m < 9.0
+    assert alpha[near].max() > 0.7
+    np.testing.assert_allclose(rgb[near], want[near], atol=1e-4)
+    assert rgb.max() <= 1.0 and rgb.min() >= 0.0
+    if background[0] == 0.0:
+        assert rgb[..., 0].max() > 1.0 * alpha.max() + 0.2  # brighter than a colour clipped to 1 could be
