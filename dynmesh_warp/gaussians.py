@@ -31,6 +31,7 @@ __all__ = [
     "SegmentedGaussians",
     "generate_gaussians",
     "gaussians_for_surface",
+    "can_bind",
     "gaussians_for_world",
     "quat_wxyz_to_xyzw",
     "quat_xyzw_to_wxyz",
@@ -377,6 +378,13 @@ def gaussians_for_world(world, cfg=None) -> Gaussians:
     return gaussians_for_surface(world.model.surface.sequence, cfg, world.device).attach(world)
 
 
+def can_bind(seq) -> bool:
+    """Whether Gaussians can be bound to the sequence: fixed topology, or piecewise-fixed
+    (template segments, :class:`SegmentedGaussians`); not a truly varying one (a new mesh every
+    frame)."""
+    return hasattr(seq, "V") or seq.is_piecewise_fixed()
+
+
 def gaussians_for_surface(seq, cfg=None, device=None) -> Gaussians:
     """Gaussians for a fixed-topology sequence as a scene asks (``cfg.gaussians``): bound to, or
     generated on, its first frame. Not attached: call ``update(points, indices)`` yourself. A
@@ -384,9 +392,9 @@ def gaussians_for_surface(seq, cfg=None, device=None) -> Gaussians:
     Gaussians carried from segment to segment."""
     from .splat_io import read_splat_ply
 
-    segmented = not hasattr(seq, "V") and seq.is_piecewise_fixed()
-    if not hasattr(seq, "V") and not segmented:
+    if not can_bind(seq):
         raise ValueError("Gaussians need a fixed-topology surface (convert the sequence first)")
+    segmented = not hasattr(seq, "V")
     V0, F0 = seq.frame(0)
     gcfg = getattr(cfg, "gaussians", None) if cfg is not None else None
     if gcfg is not None and gcfg.splats:

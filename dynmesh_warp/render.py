@@ -647,7 +647,7 @@ def _main(argv=None) -> int:
         if not ok:  # one line naming the option and its value (it listed all five for any of them)
             p.error(f"--{name} must be {need}, got {getattr(a, name)}")
     from .config import SceneError, load_scene_config, scene_source
-    from .gaussians import gaussians_for_surface
+    from .gaussians import can_bind, gaussians_for_surface
     from .scene import build_world
 
     from .outputs import OutputFolder, OutputKind, check_output, entries
@@ -676,7 +676,7 @@ def _main(argv=None) -> int:
         seq = world.surface.sequence
         gs = None
         if not a.no_splats:
-            if not hasattr(seq, "V") and not seq.is_piecewise_fixed():
+            if not can_bind(seq):
                 raise ValueError(f"surface {cfg.surface.source}: its topology changes from frame to frame, and "
                                  "Gaussians are bound to one mesh (or to a piecewise-fixed one, as convert writes): "
                                  "convert it first (python -m dynmesh_warp.convert SOURCE OUT.npz) and render OUT.npz, "
