@@ -699,3 +699,80 @@ def test_a_bright_splat_renders_its_unclipped_colour(device, background):
     assert rgb.max() <= 1.0 and rgb.min() >= 0.0
     if background[0] == 0.0:
         assert rgb[..., 0].max() > 1.0 * alpha.max() + 0.2  # brighter than a colour clipped to 1 could be
+
+
+_GOOD = dict(R=np.eye(3), t=np.zeros(3), fx=50.0, fy=50.0, cx=32.0, cy=24.0, width=64, height=48)
+
+
+@pytest.mark.parametrize("field,value,said", [
+    ("fx", 0.0, "Camera: fx must be a finite focal length > 0 [px], got 0"),
+    ("fx", -50.0, "Camera: fx must be a finite focal length > 0 [px], got -50"),
+    ("fx", float("nan"), "Camera: fx must be a finite focal length > 0 [px], got nan"),
+    ("fy", float("inf"), "Camera: fy must be a finite focal length > 0 [px], got inf"),
+    ("cx", float("nan"), "Camera: cx must be finite [px], got nan"),
+    ("cy", float("-inf"), "Camera: cy must be finite [px], got -inf"),
+    ("R", np.eye(3) * 1.1, "Camera: R must be a rotation (orthonormal, det +1, to 0.0001), got [[1.1, 0.0, 0.0]"),
+    ("R", np.diag([1.0, 1.0, -1.0]), "det -1"),
+    ("R", np.array([[1, 0.2, 0], [0, 1, 0], [0, 0, 1]]), "max |R R^T - I| 0.2"),
+    ("R", np.full((3, 3), np.nan), "Camera: R must be finite, got [[nan"),
+    ("R", np.eye(4), "Camera: R must be (3, 3) and t (3,), got R (4, 4)"),
+    ("t", np.array([0.0, np.nan, 0.0]), "Camera: t must be finite [m], got [0.0, nan, 0.0]"),
+    ("width", 0, "Camera: width must be a positive integer [px], got 0"),
+    ("width", 64.0, "Camera: width must be a positive integer [px], got 64.0"),
+    ("height", -48, "Camera: height must be a positive integer [px], got -48"),
+    ("height", True, "Camera: height must be a positive integer [px], got True"),
+])
+def test_a_bad_camera_value_is_named_when_the_camera_is_made(field, value, said):
+    """fx 0 or < 0, a non-rotation R, NaN anywhere rendered without a word (NaN: an all-background
+    image); width 0 an empty image, a float width a TypeError deep inside Warp. Now each is a
+    ValueError naming the field and its value where the camera is made; a good camera is made
+    (and renders, the tests above)."""
+    import re
+
+    from dynmesh_warp.render import Camera
+
+    Camera(**_GOOD)
+    with pytest.raises(ValueError, match=re.escape(said)):
+        Camera(**{**_GOOD, field: value})
+
+
+@pytest.mark.parametrize("kw,said", [
+    ({"fov_y_deg": 0}, "look_at: fov_y_deg must be in (0, 180) degrees, got 0"),
+    ({"fov_y_deg": 180.0}, "look_at: fov_y_deg must be in (0, 180) degrees, got 180.0"),
+    ({"fov_y_deg": float("nan")}, "look_at: fov_y_deg must be in (0, 180) degrees, got nan"),
+    ({"up": (0, 0, 0)}, "look_at: up must be a finite, non-zero 3-vector, got [0.0, 0.0, 0.0]"),
+    ({"up": (0, 0, np.nan)}, "look_at: up must be a finite, non-zero 3-vector, got [0.0, 0.0, nan]"),
+    ({"up": (0, 0, -2)}, "look_at: up [0.0, 0.0, -2.0] is parallel to the view direction [0.0, 0.0, -1.0]"),
+    ({"width": 64.5}, "look_at: width must be a positive integer [px], got 64.5"),
+    ({"height": 0}, "look_at: height must be a positive integer [px], got 0"),
+])
+def test_look_at_refuses_what_makes_no_camera(kw, said):
+    """fov 0 was a ZeroDivisionError, up (0, 0, 0) or along the view a NaN camera with only a
+    RuntimeWarning (the docs said look_at guards against NaN cameras)."""
+    import re
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no RuntimeWarning on the way
+        with pytest.raises(ValueError, match=re.escape(said)):
+            look_at([0, 0, 3], [0, 0, 0], **{"up": (0, 1, 0), **kw})
+        cam = look_at([0, 0, 3], [0, 0, 0], up=(0, 1, 0), fov_y_deg=179.0, width=np.int64(8), height=8)
+    assert np.isfinite(cam.R).all() and cam.fx > 0
+
+
+def test_a_camera_changed_after_it_was_made_is_refused_by_the_render():
+    """The render checks the cameras again when their values change (a camera's fields can be
+    set after it is made): a NaN or zero set later is named with the camera's index."""
+    means, covs, sh, op = _scene(20, 1, 0)
+    cams = orbit_cameras([0, 0, 0], 3.5, 2, width=16, height=16)
+    r = Renderer("cpu")
+    r.render(means, covs, sh, op, cams)
+    cams[1].fx = 0.0
+    with pytest.raises(ValueError, match=r"render: camera 1: fx must be a finite focal length > 0 \[px\], got 0"):
+        r.render(means, covs, sh, op, cams)
+    cams[1].fx, cams[0].t = 10.0, np.array([0.0, np.nan, 1.0])
+    with pytest.raises(ValueError, match=r"render: camera 0: t must be finite"):
+        r.render(means, covs, sh, op, cams)
+    cams[0].t, cams[0].width, cams[1].width = np.zeros(3), 16.0, 16.0
+    with pytest.raises(ValueError, match=r"render: camera 0: width must be a positive integer \[px\], got 16.0"):
+        r.render(means, covs, sh, op, cams)
