@@ -33,6 +33,7 @@ __all__ = [
     "write_splat_ply",
     "SH_C0",
     "OPACITY_EPS",
+    "F_REST_COUNTS",
     "activate_scale",
     "activate_opacity",
     "activate_rotation",
@@ -42,6 +43,10 @@ __all__ = [
 ]
 
 SH_C0 = 0.28209479177387814  # Y_0^0 = 1 / (2 sqrt(pi))
+#: SH degrees a 3DGS file holds, and their f_rest counts 3 ((d + 1)^2 - 1) for d = 0..3: any other
+#: count fits no degree (30 was read as degree 2 before)
+MAX_SH_DEGREE = 3
+F_REST_COUNTS = tuple(3 * ((d + 1) ** 2 - 1) for d in range(MAX_SH_DEGREE + 1))
 #: activated opacities exactly 0 or 1 (no finite logit) are stored as the nearest float32
 #: opacities that are not: 2^-24 and 1 - 2^-24 (logits -16.6 / +16.6); ``from_activated``
 OPACITY_EPS = 2.0 ** -24
@@ -117,6 +122,10 @@ class SplatCloud:
         missing = [n for n in _REQUIRED if n not in names]
         if missing:
             raise SplatPlyError(f"{self.source}: not a 3D Gaussian Splatting file, missing properties {missing}")
+        k = len(self._f_rest_names())
+        if k not in F_REST_COUNTS:
+            raise SplatPlyError(f"{self.source}: {k} f_rest properties fit no SH degree (degree d has "
+                                f"3 ((d + 1)^2 - 1): {', '.join(map(str, F_REST_COUNTS))} for degrees 0..{MAX_SH_DEGREE})")
 
     def __len__(self):
         return int(self.data.shape[0])
@@ -133,17 +142,19 @@ class SplatCloud:
     def f_dc(self) -> np.ndarray:
         return self._cols(["f_dc_0", "f_dc_1", "f_dc_2"])
 
+    def _f_rest_names(self) -> list:
+        return sorted((n for n in self.data.dtype.names if n.startswith("f_rest_") and n[7:].isdecimal()),
+                      key=lambda n: int(n[7:]))  # "f_rest_x" is some other property
+
     @property
     def f_rest(self) -> np.ndarray:
         """(G, K) higher-order SH coefficients (channel-major: K/3 for R, then G, then B)."""
-        names = sorted((n for n in self.data.dtype.names if n.startswith("f_rest_") and n[7:].isdecimal()),
-                       key=lambda n: int(n[7:]))  # "f_rest_x" is some other property
-        return self._cols(names)
+        return self._cols(self._f_rest_names())
 
     @property
     def sh_degree(self) -> int:
-        k = self.f_rest.shape[1] // 3
-        return int(round(np.sqrt(k + 1))) - 1
+        """The SH degree the f_rest count holds (K = 3 ((d + 1)^2 - 1); checked when made)."""
+        return F_REST_COUNTS.index(len(self._f_rest_names()))
 
     @property
     def log_scales(self) -> np.ndarray:

@@ -172,3 +172,33 @@ def test_bright_and_dark_colours_and_extreme_opacities_survive_bind_and_export(t
     np.testing.assert_allclose(c.opacity_logits, [np.log((1 - OPACITY_EPS) / OPACITY_EPS),
                                                   -np.log((1 - OPACITY_EPS) / OPACITY_EPS)], rtol=1e-6)
     np.testing.assert_allclose(c.rgb(), 1.346, rtol=1e-6)
+
+
+@pytest.mark.parametrize("k", [30, 3, 1, 46])
+def test_an_f_rest_count_that_fits_no_sh_degree_is_refused(tmp_path, rng, k):
+    """Degree d has 3 ((d + 1)^2 - 1) f_rest coefficients: 0, 9, 24, 45. A file with 30 was read
+    and reported as sh_degree 2 (a new user's); now it is refused naming the file, the count and
+    the valid counts. The valid counts read with their degrees."""
+    from dynmesh_warp.splat_io import F_REST_COUNTS
+
+    def ply(n):
+        names = STD_ORDER[:9] + [f"f_rest_{i}" for i in range(n)] + STD_ORDER[54:]
+        data = np.zeros(3, [(m, "<f4") for m in names])
+        data["rot_0"] = 1.0
+        hdr = "ply\nformat binary_little_endian 1.0\nelement vertex 3\n" + "".join(f"property float {m}\n" for m in names)
+        p = tmp_path / f"rest{n}.ply"
+        p.write_bytes((hdr + "end_header\n").encode() + data.tobytes())
+        return p
+
+    assert F_REST_COUNTS == (0, 9, 24, 45)
+    for d, n in enumerate(F_REST_COUNTS):
+        c = read_splat_ply(ply(n))
+        assert c.sh_degree == d and c.f_rest.shape == (3, n)
+    p = ply(k)
+    with pytest.raises(SplatPlyError, match=rf"{k} f_rest properties fit no SH degree .*0, 9, 24, 45 for degrees 0..3"
+                       ) as e:
+        read_splat_ply(p)
+    assert str(p) in str(e.value)
+    with pytest.raises(SplatPlyError, match=f"{k} f_rest properties"):
+        SplatCloud.from_activated(np.zeros((2, 3)), np.full((2, 3), 0.1), np.tile([1.0, 0, 0, 0], (2, 1)),
+                                  np.full((2, 3), 0.5), [0.5, 0.5], f_rest=np.zeros((2, k)))
