@@ -20,7 +20,7 @@ from .geometry import face_areas
 from .kernels.gaussians import bind_gaussians_to_faces, pack_splat_covariances, update_gaussians
 from .kernels.geometry import project_points_to_mesh
 from .sequence import validate_mesh
-from .splat_io import SplatCloud
+from .splat_io import SplatCloud, sh_dc_to_rgb
 
 __all__ = [
     "GaussianBinding",
@@ -31,6 +31,7 @@ __all__ = [
     "SegmentedGaussians",
     "generate_gaussians",
     "gaussians_for_surface",
+    "can_bind",
     "gaussians_for_world",
     "quat_wxyz_to_xyzw",
     "quat_xyzw_to_wxyz",
@@ -59,12 +60,16 @@ class GaussianBinding:
         (i0, i1, i2); offset (G,) float along the face normal [face scales = sqrt(face area)];
         local_rotation (G,) quat (x, y, z, w) in the face frame; local_scale (G,) vec3 std devs
         [face scales].
-    Host attributes: rgb (G, 3) float32 in [0, 1]; opacity (G,) float32 in [0, 1];
-        f_rest (G, K) float32 higher SH (kept for .ply export, not rendered).
+    Host attributes: rgb (G, 3) float64, the linear colour 0.5 + C0 f_dc, not clipped (above 1
+        for a bright splat, below 0 for a dark one: the renderer clamps it at 0 as 3DGS does, the
+        images and the viewer's u8 colours are clipped to [0, 1]; kept unclipped so that an export
+        writes f_dc back); opacity (G,) float32 in [0, 1]; opacity_logit (G,) float32, the stored
+        logits of splats read from a file (exported as they are), or None; f_rest (G, K) float32
+        higher SH (kept for .ply export, not rendered).
     """
 
     def __init__(self, face, bary, offset, local_rotation_xyzw, local_scale, rgb, opacity, num_faces: int,
-                 f_rest=None, device=None):
+                 f_rest=None, device=None, opacity_logit=None):
         self.device = wp.get_device(device)
         face = np.asarray(face, np.int32).reshape(-1)
         G = face.size
@@ -79,8 +84,9 @@ class GaussianBinding:
                                        device=self.device)
         self.local_scale = wp.array(np.asarray(local_scale, np.float32).reshape(G, 3), dtype=wp.vec3,
                                     device=self.device)
-        self.rgb = np.clip(np.asarray(rgb, np.float32).reshape(G, 3), 0.0, 1.0)
+        self.rgb = np.asarray(rgb, np.float64).reshape(G, 3).copy()
         self.opacity = np.clip(np.asarray(opacity, np.float32).reshape(G), 0.0, 1.0)
+        self.opacity_logit = None if opacity_logit is None else np.asarray(opacity_logit, np.float32).reshape(G)
         self.f_rest = np.zeros((G, 0), np.float32) if f_rest is None else np.asarray(f_rest, np.float32)
 
 
@@ -157,7 +163,8 @@ class Gaussians:
         d = self.numpy()
         return SplatCloud.from_activated(d["centers"], np.maximum(d["scales"], 1e-12),
                                          quat_xyzw_to_wxyz(d["rotations_xyzw"]), self.binding.rgb,
-                                         self.binding.opacity, f_rest=self.binding.f_rest)
+                                         self.binding.opacity, f_rest=self.binding.f_rest,
+                                         opacity_logits=self.binding.opacity_logit)
 
 
 def _check_splats(cloud: SplatCloud) -> None:
@@ -204,8 +211,8 @@ def bind_splats(cloud: SplatCloud, V, F, device=None, max_dist: float = 1.0e30) 
     _check_splats(cloud)
     bound = _bind_world(cloud.positions, quat_wxyz_to_xyzw(cloud.rotations_wxyz()), cloud.scales(), V, F, device,
                         cloud.source, max_dist)
-    binding = GaussianBinding(*bound, cloud.rgb(), cloud.opacities(), num_faces=F.shape[0], f_rest=cloud.f_rest,
-                              device=device)
+    binding = GaussianBinding(*bound, sh_dc_to_rgb(cloud.f_dc, clamp=False), cloud.opacities(), num_faces=F.shape[0],
+                              f_rest=cloud.f_rest, device=device, opacity_logit=cloud.opacity_logits)
     return Gaussians(binding)
 
 
@@ -263,7 +270,8 @@ def rebind(gaussians: Gaussians, V_from, F_from, V_to, F_to) -> Gaussians:
     s, b = gaussians.state, gaussians.binding
     V_to, F_to = validate_mesh(V_to, F_to, source="rebind mesh")
     bound = _bind_world(s.centers.numpy(), s.rotations.numpy(), s.scales.numpy(), V_to, F_to, d, "rebind")
-    return Gaussians(GaussianBinding(*bound, b.rgb, b.opacity, num_faces=F_to.shape[0], f_rest=b.f_rest, device=d))
+    return Gaussians(GaussianBinding(*bound, b.rgb, b.opacity, num_faces=F_to.shape[0], f_rest=b.f_rest, device=d,
+                                     opacity_logit=b.opacity_logit))
 
 
 class SegmentedGaussians:
@@ -370,6 +378,13 @@ def gaussians_for_world(world, cfg=None) -> Gaussians:
     return gaussians_for_surface(world.model.surface.sequence, cfg, world.device).attach(world)
 
 
+def can_bind(seq) -> bool:
+    """Whether Gaussians can be bound to the sequence: fixed topology, or piecewise-fixed
+    (template segments, :class:`SegmentedGaussians`); not a truly varying one (a new mesh every
+    frame)."""
+    return hasattr(seq, "V") or seq.is_piecewise_fixed()
+
+
 def gaussians_for_surface(seq, cfg=None, device=None) -> Gaussians:
     """Gaussians for a fixed-topology sequence as a scene asks (``cfg.gaussians``): bound to, or
     generated on, its first frame. Not attached: call ``update(points, indices)`` yourself. A
@@ -377,9 +392,9 @@ def gaussians_for_surface(seq, cfg=None, device=None) -> Gaussians:
     Gaussians carried from segment to segment."""
     from .splat_io import read_splat_ply
 
-    segmented = not hasattr(seq, "V") and seq.is_piecewise_fixed()
-    if not hasattr(seq, "V") and not segmented:
+    if not can_bind(seq):
         raise ValueError("Gaussians need a fixed-topology surface (convert the sequence first)")
+    segmented = not hasattr(seq, "V")
     V0, F0 = seq.frame(0)
     gcfg = getattr(cfg, "gaussians", None) if cfg is not None else None
     if gcfg is not None and gcfg.splats:

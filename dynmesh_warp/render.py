@@ -55,11 +55,55 @@ SHAPE_KINDS = {"sphere": int(SHAPE_SPHERE), "box": int(SHAPE_BOX), "capsule": in
                "convex_mesh": int(SHAPE_MESH)}
 
 
+#: how far a camera's ``R`` may be from a rotation: max |R R^T - I| and |det R - 1| (a float32
+#: rotation is ~1e-7 off; a scaled or sheared R draws a distorted picture)
+ROTATION_TOL = 1e-4
+#: how close to parallel ``look_at``'s ``up`` and view direction may be: |up x view| / |up|
+UP_PARALLEL_TOL = 1e-6
+
+
+def _check_sizes(width, height, where: str) -> None:
+    for name, v in (("width", width), ("height", height)):
+        if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or v <= 0:
+            raise ValueError(f"{where}: {name} must be a positive integer [px], got {v!r}")
+
+
+def _check_cameras(R, t, k, where) -> None:
+    """The one check of camera values (a :class:`Camera` when made, a render's cameras when they
+    change): R (C, 3, 3) a rotation (finite, orthonormal with det +1 within ``ROTATION_TOL``),
+    t (C, 3) finite, k (C, 4) = fx, fy finite > 0 and cx, cy finite [px]. A ValueError names
+    the field, its value and the camera (``where(c)``): NaN gave an all-background image, fx 0 or
+    < 0 and a non-rotation R a wrong one, without a word."""
+    R, t, k = (np.asarray(v, np.float64) for v in (R, t, k))
+    with np.errstate(invalid="ignore"):  # vectorised over the cameras (a batch's check is one pass)
+        off = np.abs(R @ np.swapaxes(R, 1, 2) - np.eye(3)).max(axis=(1, 2))
+        det = np.linalg.det(np.where(np.isfinite(R), R, 0.0))
+        bad = [~(np.isfinite(k[:, 0]) & (k[:, 0] > 0)), ~(np.isfinite(k[:, 1]) & (k[:, 1] > 0)), ~np.isfinite(k[:, 2]),
+               ~np.isfinite(k[:, 3]), ~np.isfinite(t).all(axis=1), ~np.isfinite(R).all(axis=(1, 2)),
+               (off > ROTATION_TOL) | (np.abs(det - 1.0) > ROTATION_TOL)]
+    for which, b in enumerate(bad):
+        if not b.any():
+            continue
+        c = int(np.flatnonzero(b)[0])
+        if which < 2:
+            raise ValueError(f"{where(c)}: {'fx' if which == 0 else 'fy'} must be a finite focal length > 0 [px], "
+                             f"got {k[c, which]:g}")
+        if which < 4:
+            raise ValueError(f"{where(c)}: {'cx' if which == 2 else 'cy'} must be finite [px], got {k[c, which]:g}")
+        if which == 4:
+            raise ValueError(f"{where(c)}: t must be finite [m], got {t[c].tolist()}")
+        if which == 5:
+            raise ValueError(f"{where(c)}: R must be finite, got {R[c].tolist()}")
+        raise ValueError(f"{where(c)}: R must be a rotation (orthonormal, det +1, to {ROTATION_TOL:g}), got "
+                         f"{np.round(R[c], 6).tolist()} (max |R R^T - I| {off[c]:.3g}, det {det[c]:.6g})")
+
+
 @dataclass
 class Camera:
     """A pinhole camera, OpenCV/COLMAP convention (x right, y down, z forward): world-to-camera
     rotation ``R`` (3, 3) and translation ``t`` (3,) [m]; intrinsics fx, fy, cx, cy [px]; image
-    width x height [px]."""
+    width x height [px] (positive integers). Checked when made (``_check_cameras``: fx, fy > 0,
+    every value finite, R a rotation) and again by a render whose cameras changed."""
 
     R: np.ndarray
     t: np.ndarray
@@ -70,26 +114,46 @@ class Camera:
     width: int
     height: int
 
+    def __post_init__(self):
+        _check_sizes(self.width, self.height, "Camera")
+        R, t = np.asarray(self.R), np.asarray(self.t)
+        if R.shape != (3, 3) or t.shape != (3,):
+            raise ValueError(f"Camera: R must be (3, 3) and t (3,), got R {R.shape}, t {t.shape}")
+        try:
+            k = np.array([[self.fx, self.fy, self.cx, self.cy]], np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"Camera: fx, fy, cx, cy must be numbers [px], got {self.fx!r}, {self.fy!r}, "
+                             f"{self.cx!r}, {self.cy!r}") from None
+        _check_cameras(R[None], t[None], k, lambda c: "Camera")
+
     @property
     def center(self) -> np.ndarray:
         return -np.asarray(self.R, np.float64).T @ np.asarray(self.t, np.float64)
 
 
 def look_at(eye, target, up=(0.0, 0.0, 1.0), width: int = 640, height: int = 480, fov_y_deg: float = 45.0) -> Camera:
-    """A camera at ``eye`` looking at ``target`` with ``up`` roughly up in the image."""
+    """A camera at ``eye`` looking at ``target`` with ``up`` roughly up in the image; fov_y_deg
+    the vertical field of view in (0, 180) degrees. ``up`` must be finite, non-zero and not
+    parallel to the view direction (the camera's roll would be undefined: a NaN camera)."""
     eye, target, up = (np.asarray(v, np.float64) for v in (eye, target, up))
     z = target - eye
     if not (np.isfinite(z).all() and np.linalg.norm(z) > 0):
         raise ValueError(f"look_at: eye {eye.tolist()} and target {target.tolist()} must be finite and apart")
+    if not (isinstance(fov_y_deg, (int, float, np.integer, np.floating)) and 0.0 < fov_y_deg < 180.0):
+        raise ValueError(f"look_at: fov_y_deg must be in (0, 180) degrees, got {fov_y_deg!r}")
+    if up.shape != (3,) or not np.isfinite(up).all() or np.linalg.norm(up) == 0:
+        raise ValueError(f"look_at: up must be a finite, non-zero 3-vector, got {up.tolist()}")
     z /= np.linalg.norm(z)
-    x = np.cross(z, up)
-    if np.linalg.norm(x) < 1e-9:
-        x = np.cross(z, [1.0, 0.0, 0.0])
+    x = np.cross(z, up / np.linalg.norm(up))
+    if np.linalg.norm(x) < UP_PARALLEL_TOL:
+        raise ValueError(f"look_at: up {up.tolist()} is parallel to the view direction {z.tolist()} (eye to target): "
+                         "the camera's roll is undefined; give another up")
     x /= np.linalg.norm(x)
     y = np.cross(z, x)
     R = np.stack([x, y, z])  # rows: camera axes in world
+    _check_sizes(width, height, "look_at")
     f = 0.5 * height / math.tan(math.radians(fov_y_deg) / 2)
-    return Camera(R, -R @ eye, f, f, width / 2.0, height / 2.0, int(width), int(height))
+    return Camera(R, -R @ eye, f, f, width / 2.0, height / 2.0, width, height)
 
 
 def orbit_cameras(center, distance: float, count: int, elevation_deg: float = 20.0, width: int = 640,
@@ -106,7 +170,7 @@ def orbit_cameras(center, distance: float, count: int, elevation_deg: float = 20
 
 
 def rgb_to_sh(rgb) -> np.ndarray:
-    """Degree-0 SH coefficients (G, 1, 3) that render as ``rgb`` (G, 3) in [0, 1]."""
+    """Degree-0 SH coefficients (G, 1, 3) that render as ``rgb`` (G, 3), >= 0 (above 1 for a bright splat, as 3DGS)."""
     return ((np.asarray(rgb, np.float32) - 0.5) / SH_C0).reshape(-1, 1, 3).astype(np.float32)
 
 
@@ -258,6 +322,7 @@ class Renderer:
         k = np.array([[c.fx, c.fy, c.cx, c.cy] for c in cameras], np.float32)
         key = R.tobytes() + t.tobytes() + k.tobytes()
         if self._cams[0] != key:
+            _check_cameras(R, t, k, lambda c: f"render: camera {c}")  # changed since made? (checked once per value)
             d = self.device
             self._cams = (key, (wp.array(R, dtype=wp.mat33, device=d), wp.array(t, dtype=wp.vec3, device=d),
                                 wp.array(k, dtype=wp.vec4, device=d)))
@@ -366,6 +431,8 @@ class Renderer:
         d = self.device
         if not cameras:
             raise ValueError("render: no cameras")
+        for i, c in enumerate(cameras):
+            _check_sizes(c.width, c.height, f"render: camera {i}")
         W, H = cameras[0].width, cameras[0].height
         if any((c.width, c.height) != (W, H) for c in cameras):
             raise ValueError("render: every camera of a batch must have the same image size")
@@ -647,7 +714,7 @@ def _main(argv=None) -> int:
         if not ok:  # one line naming the option and its value (it listed all five for any of them)
             p.error(f"--{name} must be {need}, got {getattr(a, name)}")
     from .config import SceneError, load_scene_config, scene_source
-    from .gaussians import gaussians_for_surface
+    from .gaussians import can_bind, gaussians_for_surface
     from .scene import build_world
 
     from .outputs import OutputFolder, OutputKind, check_output, entries
@@ -676,7 +743,7 @@ def _main(argv=None) -> int:
         seq = world.surface.sequence
         gs = None
         if not a.no_splats:
-            if not hasattr(seq, "V") and not seq.is_piecewise_fixed():
+            if not can_bind(seq):
                 raise ValueError(f"surface {cfg.surface.source}: its topology changes from frame to frame, and "
                                  "Gaussians are bound to one mesh (or to a piecewise-fixed one, as convert writes): "
                                  "convert it first (python -m dynmesh_warp.convert SOURCE OUT.npz) and render OUT.npz, "

@@ -9,7 +9,8 @@ Values are stored *pre-activation*: ``scale_*`` is log(std dev), ``opacity`` is 
 ``rot_*`` is an unnormalized quaternion (w, x, y, z), ``f_dc``/``f_rest`` are spherical-harmonic
 coefficients (``f_rest`` grouped by colour channel: K/3 per channel). The activations are
 :func:`activate_scale` (exp), :func:`activate_opacity` (sigmoid), :func:`activate_rotation`
-(normalize) and :func:`sh_dc_to_rgb` (0.5 + C0 * f_dc).
+(normalize) and :func:`sh_dc_to_rgb` (0.5 + C0 * f_dc, clamped at 0 only, as 3DGS: a colour may
+exceed 1; the image is clipped where it is written).
 
 The reader keeps the property order, types and comments, so ``write_splat_ply(read_splat_ply(p))``
 reproduces a file written by this module (or by plyfile) byte for byte.
@@ -31,6 +32,8 @@ __all__ = [
     "read_splat_ply",
     "write_splat_ply",
     "SH_C0",
+    "OPACITY_EPS",
+    "F_REST_COUNTS",
     "activate_scale",
     "activate_opacity",
     "activate_rotation",
@@ -40,6 +43,13 @@ __all__ = [
 ]
 
 SH_C0 = 0.28209479177387814  # Y_0^0 = 1 / (2 sqrt(pi))
+#: SH degrees a 3DGS file holds, and their f_rest counts 3 ((d + 1)^2 - 1) for d = 0..3: any other
+#: count fits no degree (30 was read as degree 2 before)
+MAX_SH_DEGREE = 3
+F_REST_COUNTS = tuple(3 * ((d + 1) ** 2 - 1) for d in range(MAX_SH_DEGREE + 1))
+#: activated opacities exactly 0 or 1 (no finite logit) are stored as the nearest float32
+#: opacities that are not: 2^-24 and 1 - 2^-24 (logits -16.6 / +16.6); ``from_activated``
+OPACITY_EPS = 2.0 ** -24
 
 _PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -81,9 +91,13 @@ def activate_rotation(q_wxyz):
     return np.where(n > 0, q / np.where(n > 0, n, 1.0), ident)
 
 
-def sh_dc_to_rgb(f_dc):
-    """Base colour in [0, 1] (clipped) from the degree-0 SH coefficient."""
-    return np.clip(0.5 + SH_C0 * np.asarray(f_dc, np.float64), 0.0, 1.0)
+def sh_dc_to_rgb(f_dc, clamp: bool = True):
+    """Base colour from the degree-0 SH coefficient: 0.5 + C0 f_dc, clamped at 0 only (as 3DGS's
+    ``clamp_min(..., 0)``: a bright splat's colour exceeds 1; the composited image is clipped to
+    [0, 1] where it is written). ``clamp=False``: the linear value, which keeps f_dc (a binding
+    holds it, so an export writes back what was read)."""
+    rgb = 0.5 + SH_C0 * np.asarray(f_dc, np.float64)
+    return np.maximum(rgb, 0.0) if clamp else rgb
 
 
 def rgb_to_sh_dc(rgb):
@@ -108,6 +122,10 @@ class SplatCloud:
         missing = [n for n in _REQUIRED if n not in names]
         if missing:
             raise SplatPlyError(f"{self.source}: not a 3D Gaussian Splatting file, missing properties {missing}")
+        k = len(self._f_rest_names())
+        if k not in F_REST_COUNTS:
+            raise SplatPlyError(f"{self.source}: {k} f_rest properties fit no SH degree (degree d has "
+                                f"3 ((d + 1)^2 - 1): {', '.join(map(str, F_REST_COUNTS))} for degrees 0..{MAX_SH_DEGREE})")
 
     def __len__(self):
         return int(self.data.shape[0])
@@ -124,17 +142,19 @@ class SplatCloud:
     def f_dc(self) -> np.ndarray:
         return self._cols(["f_dc_0", "f_dc_1", "f_dc_2"])
 
+    def _f_rest_names(self) -> list:
+        return sorted((n for n in self.data.dtype.names if n.startswith("f_rest_") and n[7:].isdecimal()),
+                      key=lambda n: int(n[7:]))  # "f_rest_x" is some other property
+
     @property
     def f_rest(self) -> np.ndarray:
         """(G, K) higher-order SH coefficients (channel-major: K/3 for R, then G, then B)."""
-        names = sorted((n for n in self.data.dtype.names if n.startswith("f_rest_") and n[7:].isdecimal()),
-                       key=lambda n: int(n[7:]))  # "f_rest_x" is some other property
-        return self._cols(names)
+        return self._cols(self._f_rest_names())
 
     @property
     def sh_degree(self) -> int:
-        k = self.f_rest.shape[1] // 3
-        return int(round(np.sqrt(k + 1))) - 1
+        """The SH degree the f_rest count holds (K = 3 ((d + 1)^2 - 1); checked when made)."""
+        return F_REST_COUNTS.index(len(self._f_rest_names()))
 
     @property
     def log_scales(self) -> np.ndarray:
@@ -163,20 +183,23 @@ class SplatCloud:
         return activate_rotation(self.rotations_raw)
 
     def rgb(self) -> np.ndarray:
-        """(G, 3) view-independent base colour in [0, 1]."""
+        """(G, 3) view-independent base colour, >= 0 (above 1 for a bright splat)."""
         return sh_dc_to_rgb(self.f_dc)
 
     @classmethod
     def from_activated(cls, centers, scales, rotations_wxyz, rgb, opacities, f_rest=None, normals=None,
-                       comments=None) -> "SplatCloud":
+                       comments=None, opacity_logits=None) -> "SplatCloud":
         """Build a cloud in the standard property order from activated values (inverse
-        activations applied: log of scales, logit of opacities, SH DC from rgb)."""
+        activations applied: log of scales, logit of opacities, SH DC from rgb, which may exceed
+        1). ``opacity_logits`` (G,): the stored logits to write as they are (a binding read from
+        a file keeps them: sigmoid(20) is 1.0 in float32, whose logit is inf); else the logit of
+        ``opacities``, those at exactly 0 or 1 taken as ``OPACITY_EPS`` / 1 - ``OPACITY_EPS``."""
         centers = np.asarray(centers, np.float32).reshape(-1, 3)
         G = centers.shape[0]
         scales = np.asarray(scales, np.float64).reshape(G, 3)
         if (scales <= 0).any():
             raise SplatPlyError("scales must be > 0 (they are stored as logarithms)")
-        op = np.clip(np.asarray(opacities, np.float64).reshape(G), 1e-6, 1 - 1e-6)
+        op = np.clip(np.asarray(opacities, np.float64).reshape(G), OPACITY_EPS, 1 - OPACITY_EPS)
         f_rest = np.zeros((G, 0), np.float32) if f_rest is None else np.asarray(f_rest, np.float32).reshape(G, -1)
         normals = np.zeros((G, 3), np.float32) if normals is None else np.asarray(normals, np.float32).reshape(G, 3)
         cols = {"x": centers[:, 0], "y": centers[:, 1], "z": centers[:, 2],
@@ -186,7 +209,7 @@ class SplatCloud:
             cols[f"f_dc_{i}"] = dc[:, i]
         for i in range(f_rest.shape[1]):
             cols[f"f_rest_{i}"] = f_rest[:, i]
-        cols["opacity"] = inverse_sigmoid(op)
+        cols["opacity"] = inverse_sigmoid(op) if opacity_logits is None else np.asarray(opacity_logits).reshape(G)
         ls = np.log(scales)
         for i in range(3):
             cols[f"scale_{i}"] = ls[:, i]

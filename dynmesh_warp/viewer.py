@@ -759,7 +759,7 @@ def run_viewer(cfg, device=None, viewer: str = "viser", port: int = 8080, host: 
     the envs shown (one: that env; several: side by side, ``batch.EnvGrid``; None: env 0).
     """
     kw = {"splat_groups": SPLAT_GROUPS if splat_groups is None else int(splat_groups)}
-    from .gaussians import gaussians_for_surface
+    from .gaussians import can_bind, gaussians_for_surface
 
     if viewer != "viser":  # headless recording: viser's serializer needs a server object; bind it to an
         host, port = "127.0.0.1", 0  # ephemeral local port (nothing announced, no port clash)
@@ -793,9 +793,12 @@ def run_viewer(cfg, device=None, viewer: str = "viser", port: int = 8080, host: 
         # not attached to the step: the viewer updates them once per frame it sends. A varying
         # (e.g. piecewise-fixed) surface has no faces every frame shares to bind them to: the mesh
         # is shown instead, its faces changing per segment
-        try:
-            g = gaussians_for_surface(world.model.surface.sequence, cfg, world.device)
-        except ValueError:  # a truly varying surface: no faces to bind them to from frame to frame
+        # (asked, not caught: a bad splat file's SplatPlyError is a ValueError too, and was taken
+        # for this case: the note, 0 splats recorded, exit 0)
+        seq = world.model.surface.sequence
+        if can_bind(seq):
+            g = gaussians_for_surface(seq, cfg, world.device)
+        else:  # a truly varying surface: no faces to bind them to from frame to frame
             g = None
             log("note: the surface's topology changes every frame: showing the mesh without Gaussians "
                 "(convert the sequence to bind them)")

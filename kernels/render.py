@@ -129,11 +129,14 @@ def project_gaussians(
     fy = k[1]
     cx = k[2]
     cy = k[3]
-    # EWA: clamp the position to 1.3x the half field of view, as the reference does
-    lim_x_pos = (float(width) - cx) / fx + 0.3 * float(width) / fx
-    lim_x_neg = cx / fx + 0.3 * float(width) / fx
-    lim_y_pos = (float(height) - cy) / fy + 0.3 * float(height) / fy
-    lim_y_neg = cy / fy + 0.3 * float(height) / fy
+    # EWA: clamp the position to 1.3x the half field of view, as the reference does (gsplat:
+    # lim = edge / f + 0.3 tan_fov, tan_fov = 0.5 size / f; 0.3 size / f here made it 1.6x)
+    tan_fovx = 0.5 * float(width) / fx
+    tan_fovy = 0.5 * float(height) / fy
+    lim_x_pos = (float(width) - cx) / fx + 0.3 * tan_fovx
+    lim_x_neg = cx / fx + 0.3 * tan_fovx
+    lim_y_pos = (float(height) - cy) / fy + 0.3 * tan_fovy
+    lim_y_neg = cy / fy + 0.3 * tan_fovy
     rz = 1.0 / p[2]
     tx = p[2] * wp.clamp(p[0] * rz, -lim_x_neg, lim_x_pos)
     ty = p[2] * wp.clamp(p[1] * rz, -lim_y_neg, lim_y_pos)
@@ -654,7 +657,8 @@ def write_pixel(
     expected_depth: wp.array3d[float],
 ):
     """A pixel's splats composited (transmittance T, colour and depth sums) closed by its
-    opaque occluder (``occluder_at_pixel``) unless the splats saturated it, over the background."""
+    opaque occluder (``occluder_at_pixel``) unless the splats saturated it, over the background;
+    the colour clipped to [0, 1]."""
     if sk >= 0 and saturated != 1:  # the sphere, opaque, behind the splats composited so far
         pw = o + dw * s_hit
         nrm = wp.normalize(pw - sphere_centers[sk])
@@ -666,7 +670,10 @@ def write_pixel(
         acc = acc + wp.vec3(solid_px[0], solid_px[1], solid_px[2]) * T
         acc_z = acc_z + z_sphere * T
         T = 0.0
-    rgb[c, py, px] = acc + background * T
+    # the image clipped to [0, 1] here only: a bright splat's colour (SH clamped at 0, not at 1,
+    # as 3DGS) may take the composited sum above 1
+    out = acc + background * T
+    rgb[c, py, px] = wp.vec3(wp.clamp(out[0], 0.0, 1.0), wp.clamp(out[1], 0.0, 1.0), wp.clamp(out[2], 0.0, 1.0))
     alpha[c, py, px] = 1.0 - T
     ez = float(0.0)
     if T < 1.0:

@@ -160,8 +160,10 @@ def render_splats(means, covs, sh, degree, opacity, cam, spheres=None, sphere_co
         if p[2] < near:
             continue
         rz = f32(1) / p[2]
-        lxp, lxn = (f32(W) - cx) / fx + f32(0.3) * f32(W) / fx, cx / fx + f32(0.3) * f32(W) / fx
-        lyp, lyn = (f32(H) - cy) / fy + f32(0.3) * f32(H) / fy, cy / fy + f32(0.3) * f32(H) / fy
+        # 1.3x the half field of view (gsplat: + 0.3 tan_fov, tan_fov = 0.5 W / fx)
+        tfx, tfy = f32(0.5) * f32(W) / fx, f32(0.5) * f32(H) / fy
+        lxp, lxn = (f32(W) - cx) / fx + f32(0.3) * tfx, cx / fx + f32(0.3) * tfx
+        lyp, lyn = (f32(H) - cy) / fy + f32(0.3) * tfy, cy / fy + f32(0.3) * tfy
         tx = p[2] * np.clip(p[0] * rz, -lxn, lxp)
         ty = p[2] * np.clip(p[1] * rz, -lyn, lyp)
         J = np.array([[fx * rz, 0, -fx * tx * rz * rz], [0, fy * rz, -fy * ty * rz * rz]], f32)
@@ -226,7 +228,7 @@ def render_splats(means, covs, sh, degree, opacity, cam, spheres=None, sphere_co
                 nrm /= np.linalg.norm(nrm)
                 acc += np.asarray(sphere_color) * (0.25 + 0.75 * max(0.0, -(nrm @ dw))) * T
                 T = 0.0
-            rgb[py, px] = acc + bg * T
+            rgb[py, px] = np.clip(acc + bg * T, 0.0, 1.0)  # colours clamped at 0 only; the image at 1
             alpha[py, px] = 1 - T
     return rgb, alpha
 

@@ -774,14 +774,14 @@ def test_found_far_apart_frame_indices_do_not_exhaust_memory(tmp_path):
 
 
 def test_found_odd_f_rest_name_is_another_property(tmp_path):
-    names = SPLAT_ORDER + ["f_rest_x", "f_rest_0"] + SPLAT_TAIL
+    names = SPLAT_ORDER + ["f_rest_x"] + [f"f_rest_{i}" for i in range(9)] + SPLAT_TAIL
     data = np.zeros(2, [(n, "<f4") for n in names])
     data["rot_0"] = 1
     from dynmesh_warp.splat_io import write_splat_ply
 
     write_splat_ply(tmp_path / "s.ply", SplatCloud(data))
     cloud = read_splat_ply(tmp_path / "s.ply")
-    assert cloud.f_rest.shape == (2, 1) and cloud.sh_degree == 0
+    assert cloud.f_rest.shape == (2, 9) and cloud.sh_degree == 1  # a count that fits no degree is refused
 
 
 @pytest.mark.parametrize("column, value, dtype, match", [

@@ -614,3 +614,165 @@ def test_a_bad_render_value_is_named_with_its_value(opt, value, need, capsys):
     with pytest.raises(SystemExit) as e:
         main(["--out", "unused_dir", opt, value])
     assert e.value.code == 2 and need in capsys.readouterr().err
+
+
+def _ewa_alpha_3dgs(mean_cam, cov_cam, opacity, fx, fy, W, H, clamp=1.3):
+    """Alpha (H, W) of one Gaussian (camera-space centre and covariance, camera at the origin
+    looking down +z) written out from the 3DGS paper / gsplat in float64, independently of the
+    kernels: J of the perspective map at the centre with x/z, y/z clamped to 1.3 tan_fov
+    (tan_fovx = 0.5 W / fx; cx = W / 2), 2-D covariance J cov J^T + 0.3 I, pixel centres at
+    (i + 0.5, j + 0.5), alpha = min(0.999, o exp(-d^T cov2d^-1 d / 2)). Returns (alpha, the
+    squared Mahalanobis distance)."""
+    x, y, z = (float(v) for v in mean_cam)
+    limx, limy = clamp * 0.5 * W / fx, clamp * 0.5 * H / fy
+    tx, ty = z * min(max(x / z, -limx), limx), z * min(max(y / z, -limy), limy)
+    J = np.array([[fx / z, 0.0, -fx * tx / z**2], [0.0, fy / z, -fy * ty / z**2]])
+    cov2d = J @ np.asarray(cov_cam, np.float64) @ J.T + 0.3 * np.eye(2)
+    u, v = fx * x / z + W / 2, fy * y / z + H / 2
+    px, py = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    d = np.stack([px - u, py - v], -1)
+    m = np.einsum("hwi,ij,hwj->hw", d, np.linalg.inv(cov2d), d)
+    return np.minimum(0.999, opacity * np.exp(-0.5 * m)), m
+
+
+@pytest.mark.parametrize("axis,sign", [(0, 1.0), (0, -1.0), (1, 1.0), (1, -1.0)])
+def test_a_gaussian_just_off_screen_is_clamped_at_1p3_the_half_fov(device, axis, sign):
+    """The EWA Jacobian takes the centre clamped to 1.3x the half field of view (3DGS, gsplat:
+    lim = (W - cx) / fx + 0.3 tan_fovx). The kernel used 0.3 W / fx (1.6x): a large Gaussian
+    whose centre is at 1.45x the half fov, reaching into the image, was drawn with the
+    unclamped Jacobian (alpha off by ~1e-2). Checked against the closed form above, on both
+    sides of both axes."""
+    from dynmesh_warp.render import Camera
+
+    W, H, fx, fy = 64, 48, 50.0, 45.0
+    cam = Camera(np.eye(3), np.zeros(3), fx, fy, W / 2, H / 2, W, H)
+    z = 2.0
+    p = np.array([0.0, 0.0, z])
+    p[axis] = sign * 1.45 * 0.5 * (W / fx if axis == 0 else H / fy) * z
+    S = np.array([0.9, 0.7, 0.5])
+    cov = np.diag(S**2)
+    op = 0.8
+    want, m = _ewa_alpha_3dgs(p, cov, op, fx, fy, W, H)
+    out = Renderer(device).render(p[None].astype(np.float32), cov[None].astype(np.float32),
+                                  rgb_to_sh(np.array([[0.2, 0.6, 0.9]])), np.array([op], np.float32), [cam])
+    alpha = out.alpha.numpy()[0]
+    near = m < 9.0  # within 3 sigma: every such pixel lies in a tile the splat touches
+    assert near.sum() > 100 and want[near].max() > 0.1  # it reaches well into the image
+    np.testing.assert_allclose(alpha[near], want[near], atol=2e-5)
+    # the old 1.6x clamp gives another footprint (what the test tells apart)
+    old, _ = _ewa_alpha_3dgs(p, cov, op, fx, fy, W, H, clamp=1.6)
+    assert np.abs(old[near] - want[near]).max() > 1e-3
+
+
+@pytest.mark.parametrize("background", [(0.0, 0.0, 0.0), (1.0, 1.0, 1.0)])
+def test_a_bright_splat_renders_its_unclipped_colour(device, background):
+    """3DGS clamps the DC colour at 0 only: f_dc 3.0 is 1.346, and the image (not the colour) is
+    clipped to [0, 1]. A splat read as f_dc (3.0, 1.0, -3.0), bound to a mesh and drawn through
+    ``render_world``'s colour path, against the closed form min(1, c alpha + bg (1 - alpha)) with
+    alpha written out in float64 (``_ewa_alpha_3dgs``). The binding clipped the colour to 1
+    before: 0.364 darker at alpha 0.8 over black."""
+    from dynmesh_warp.gaussians import bind_splats
+    from dynmesh_warp.render import Camera, _binding_colours
+    from dynmesh_warp.splat_io import SplatCloud
+
+    W, H, fx, fy = 48, 40, 40.0, 40.0
+    cam = Camera(np.eye(3), np.zeros(3), fx, fy, W / 2, H / 2, W, H)
+    p, S = np.array([0.1, -0.05, 2.0]), np.array([0.3, 0.25, 0.01])
+    cloud = SplatCloud.from_activated(p[None], S[None], [[1.0, 0, 0, 0]], [[1.0, 1.0, 1.0]], [0.8])
+    cloud.data["f_dc_0"], cloud.data["f_dc_1"], cloud.data["f_dc_2"] = 3.0, 1.0, -3.0
+    V = np.array([[-1, -1, 2], [1, -1, 2], [1, 1, 2], [-1, 1, 2]], np.float32)
+    F = np.array([[0, 1, 2], [0, 2, 3]], np.int32)
+    g = bind_splats(cloud, V, F, device=device)
+    import warp as wp
+
+    g.update(wp.array(V, dtype=wp.vec3, device=device), wp.array(F.reshape(-1), dtype=wp.int32, device=device))
+    r = Renderer(device)
+    sh, op = _binding_colours(r, g.binding, device)
+    out = r.render(g.state.centers, g.state.covariances, sh, op, [cam], background=background)
+    rgb = out.rgb.numpy()[0]
+    alpha, m = _ewa_alpha_3dgs(p, np.diag(S**2), 0.8, fx, fy, W, H)
+    col = np.maximum(0.5 + 0.28209479177387814 * np.array([3.0, 1.0, -3.0]), 0.0)  # 1.346, 0.782, 0
+    want = np.clip(col * alpha[..., None] + np.asarray(background) * (1 - alpha[..., None]), 0.0, 1.0)
+    near = m < 9.0
+    assert alpha[near].max() > 0.7
+    np.testing.assert_allclose(rgb[near], want[near], atol=1e-4)
+    assert rgb.max() <= 1.0 and rgb.min() >= 0.0
+    if background[0] == 0.0:
+        assert rgb[..., 0].max() > 1.0 * alpha.max() + 0.2  # brighter than a colour clipped to 1 could be
+
+
+_GOOD = dict(R=np.eye(3), t=np.zeros(3), fx=50.0, fy=50.0, cx=32.0, cy=24.0, width=64, height=48)
+
+
+@pytest.mark.parametrize("field,value,said", [
+    ("fx", 0.0, "Camera: fx must be a finite focal length > 0 [px], got 0"),
+    ("fx", -50.0, "Camera: fx must be a finite focal length > 0 [px], got -50"),
+    ("fx", float("nan"), "Camera: fx must be a finite focal length > 0 [px], got nan"),
+    ("fy", float("inf"), "Camera: fy must be a finite focal length > 0 [px], got inf"),
+    ("cx", float("nan"), "Camera: cx must be finite [px], got nan"),
+    ("cy", float("-inf"), "Camera: cy must be finite [px], got -inf"),
+    ("R", np.eye(3) * 1.1, "Camera: R must be a rotation (orthonormal, det +1, to 0.0001), got [[1.1, 0.0, 0.0]"),
+    ("R", np.diag([1.0, 1.0, -1.0]), "det -1"),
+    ("R", np.array([[1, 0.2, 0], [0, 1, 0], [0, 0, 1]]), "max |R R^T - I| 0.2"),
+    ("R", np.full((3, 3), np.nan), "Camera: R must be finite, got [[nan"),
+    ("R", np.eye(4), "Camera: R must be (3, 3) and t (3,), got R (4, 4)"),
+    ("t", np.array([0.0, np.nan, 0.0]), "Camera: t must be finite [m], got [0.0, nan, 0.0]"),
+    ("width", 0, "Camera: width must be a positive integer [px], got 0"),
+    ("width", 64.0, "Camera: width must be a positive integer [px], got 64.0"),
+    ("height", -48, "Camera: height must be a positive integer [px], got -48"),
+    ("height", True, "Camera: height must be a positive integer [px], got True"),
+])
+def test_a_bad_camera_value_is_named_when_the_camera_is_made(field, value, said):
+    """fx 0 or < 0, a non-rotation R, NaN anywhere rendered without a word (NaN: an all-background
+    image); width 0 an empty image, a float width a TypeError deep inside Warp. Now each is a
+    ValueError naming the field and its value where the camera is made; a good camera is made
+    (and renders, the tests above)."""
+    import re
+
+    from dynmesh_warp.render import Camera
+
+    Camera(**_GOOD)
+    with pytest.raises(ValueError, match=re.escape(said)):
+        Camera(**{**_GOOD, field: value})
+
+
+@pytest.mark.parametrize("kw,said", [
+    ({"fov_y_deg": 0}, "look_at: fov_y_deg must be in (0, 180) degrees, got 0"),
+    ({"fov_y_deg": 180.0}, "look_at: fov_y_deg must be in (0, 180) degrees, got 180.0"),
+    ({"fov_y_deg": float("nan")}, "look_at: fov_y_deg must be in (0, 180) degrees, got nan"),
+    ({"up": (0, 0, 0)}, "look_at: up must be a finite, non-zero 3-vector, got [0.0, 0.0, 0.0]"),
+    ({"up": (0, 0, np.nan)}, "look_at: up must be a finite, non-zero 3-vector, got [0.0, 0.0, nan]"),
+    ({"up": (0, 0, -2)}, "look_at: up [0.0, 0.0, -2.0] is parallel to the view direction [0.0, 0.0, -1.0]"),
+    ({"width": 64.5}, "look_at: width must be a positive integer [px], got 64.5"),
+    ({"height": 0}, "look_at: height must be a positive integer [px], got 0"),
+])
+def test_look_at_refuses_what_makes_no_camera(kw, said):
+    """fov 0 was a ZeroDivisionError, up (0, 0, 0) or along the view a NaN camera with only a
+    RuntimeWarning (the docs said look_at guards against NaN cameras)."""
+    import re
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no RuntimeWarning on the way
+        with pytest.raises(ValueError, match=re.escape(said)):
+            look_at([0, 0, 3], [0, 0, 0], **{"up": (0, 1, 0), **kw})
+        cam = look_at([0, 0, 3], [0, 0, 0], up=(0, 1, 0), fov_y_deg=179.0, width=np.int64(8), height=8)
+    assert np.isfinite(cam.R).all() and cam.fx > 0
+
+
+def test_a_camera_changed_after_it_was_made_is_refused_by_the_render():
+    """The render checks the cameras again when their values change (a camera's fields can be
+    set after it is made): a NaN or zero set later is named with the camera's index."""
+    means, covs, sh, op = _scene(20, 1, 0)
+    cams = orbit_cameras([0, 0, 0], 3.5, 2, width=16, height=16)
+    r = Renderer("cpu")
+    r.render(means, covs, sh, op, cams)
+    cams[1].fx = 0.0
+    with pytest.raises(ValueError, match=r"render: camera 1: fx must be a finite focal length > 0 \[px\], got 0"):
+        r.render(means, covs, sh, op, cams)
+    cams[1].fx, cams[0].t = 10.0, np.array([0.0, np.nan, 1.0])
+    with pytest.raises(ValueError, match=r"render: camera 0: t must be finite"):
+        r.render(means, covs, sh, op, cams)
+    cams[0].t, cams[0].width, cams[1].width = np.zeros(3), 16.0, 16.0
+    with pytest.raises(ValueError, match=r"render: camera 0: width must be a positive integer \[px\], got 16.0"):
+        r.render(means, covs, sh, op, cams)

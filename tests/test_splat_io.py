@@ -63,7 +63,7 @@ def test_reference_layout_round_trip_and_activations(tmp_path, rng):
     q = np.stack([data[f"rot_{i}"] for i in range(4)], 1).astype(np.float64)
     np.testing.assert_allclose(c.rotations_wxyz(), q / np.linalg.norm(q, axis=1, keepdims=True), atol=1e-12)
     dc = np.stack([data[f"f_dc_{i}"] for i in range(3)], 1).astype(np.float64)
-    np.testing.assert_allclose(c.rgb(), np.clip(0.5 + SH_C0 * dc, 0, 1), atol=1e-12)
+    np.testing.assert_allclose(c.rgb(), np.maximum(0.5 + SH_C0 * dc, 0), atol=1e-12)  # 3DGS: clamped at 0 only
     assert c.f_rest.shape == (len(data), 45)
     assert np.array_equal(c.f_rest[:, 7], data["f_rest_7"])
 
@@ -134,3 +134,71 @@ def test_a_header_with_windows_line_endings_reads(tmp_path, rng):
     (tmp_path / "crlf.ply").write_bytes(raw[:end].replace(b"\n", b"\r\n") + raw[end:])
     a, b = read_splat_ply(tmp_path / "lf.ply"), read_splat_ply(tmp_path / "crlf.ply")
     assert b.data.tobytes() == a.data.tobytes() == data.tobytes()
+
+
+def test_bright_and_dark_colours_and_extreme_opacities_survive_bind_and_export(tmp_path, rng):
+    """3DGS clamps the DC colour at 0 only (``clamp_min(sh_dc * C0 + 0.5, 0)``): f_dc 3.0 is
+    rgb 0.5 + 3 C0 = 1.346, not 1. The binding clipped colours to [0, 1] (f_dc 3.0 came back
+    from ``to_splat_cloud`` as 1.7725) and the export clipped opacities to [1e-6, 1 - 1e-6]
+    (logits +-20 came back as +-13.8: sigmoid(20) is 1.0 in float32). Now a read -> bind ->
+    export round trip keeps f_dc (3.0, -3.0 too) and the opacity logits."""
+    import warp as wp
+
+    from dynmesh_warp.gaussians import bind_splats
+    from dynmesh_warp.splat_io import OPACITY_EPS
+
+    raw, data = _plyfile_style_bytes(rng, 6)
+    data["f_dc_0"] = [3.0, -3.0, 0.25, 1.9, 3.0, 0.0]
+    data["opacity"] = [20.0, -20.0, 0.5, 13.9, 30.0, -2.0]
+    for i in range(4):
+        data[f"rot_{i}"] = [1.0, 0.0, 0.0, 0.0][i]
+    data["x"], data["y"], data["z"] = rng.uniform(-0.4, 0.4, 6), rng.uniform(-0.4, 0.4, 6), 0.01
+    p = tmp_path / "bright.ply"
+    p.write_bytes(raw[:raw.index(b"end_header\n") + 11] + data.tobytes())
+    cloud = read_splat_ply(p)
+    np.testing.assert_allclose(cloud.rgb()[:, 0], np.maximum(0.5 + SH_C0 * data["f_dc_0"].astype(np.float64), 0))
+    assert cloud.rgb()[0, 0] > 1.34 and cloud.rgb()[1, 0] == 0.0
+    V = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float32)
+    F = np.array([[0, 1, 2], [0, 2, 3]], np.int32)
+    out = bind_splats(cloud, V, F, device="cpu")
+    out.update(wp.array(V, dtype=wp.vec3, device="cpu"), wp.array(F.reshape(-1), dtype=wp.int32, device="cpu"))
+    back = out.to_splat_cloud()
+    for i in range(3):
+        assert np.array_equal(back.data[f"f_dc_{i}"], data[f"f_dc_{i}"]), i
+    assert np.array_equal(back.opacity_logits, data["opacity"])
+    # activated values alone (no logits kept): 0 and 1 are the nearest float32 opacities that are not
+    c = SplatCloud.from_activated(np.zeros((2, 3)), np.full((2, 3), 0.1), np.tile([1.0, 0, 0, 0], (2, 1)),
+                                  np.full((2, 3), 1.346), [1.0, 0.0])
+    np.testing.assert_allclose(c.opacity_logits, [np.log((1 - OPACITY_EPS) / OPACITY_EPS),
+                                                  -np.log((1 - OPACITY_EPS) / OPACITY_EPS)], rtol=1e-6)
+    np.testing.assert_allclose(c.rgb(), 1.346, rtol=1e-6)
+
+
+@pytest.mark.parametrize("k", [30, 3, 1, 46])
+def test_an_f_rest_count_that_fits_no_sh_degree_is_refused(tmp_path, rng, k):
+    """Degree d has 3 ((d + 1)^2 - 1) f_rest coefficients: 0, 9, 24, 45. A file with 30 was read
+    and reported as sh_degree 2 (a new user's); now it is refused naming the file, the count and
+    the valid counts. The valid counts read with their degrees."""
+    from dynmesh_warp.splat_io import F_REST_COUNTS
+
+    def ply(n):
+        names = STD_ORDER[:9] + [f"f_rest_{i}" for i in range(n)] + STD_ORDER[54:]
+        data = np.zeros(3, [(m, "<f4") for m in names])
+        data["rot_0"] = 1.0
+        hdr = "ply\nformat binary_little_endian 1.0\nelement vertex 3\n" + "".join(f"property float {m}\n" for m in names)
+        p = tmp_path / f"rest{n}.ply"
+        p.write_bytes((hdr + "end_header\n").encode() + data.tobytes())
+        return p
+
+    assert F_REST_COUNTS == (0, 9, 24, 45)
+    for d, n in enumerate(F_REST_COUNTS):
+        c = read_splat_ply(ply(n))
+        assert c.sh_degree == d and c.f_rest.shape == (3, n)
+    p = ply(k)
+    with pytest.raises(SplatPlyError, match=rf"{k} f_rest properties fit no SH degree .*0, 9, 24, 45 for degrees 0..3"
+                       ) as e:
+        read_splat_ply(p)
+    assert str(p) in str(e.value)
+    with pytest.raises(SplatPlyError, match=f"{k} f_rest properties"):
+        SplatCloud.from_activated(np.zeros((2, 3)), np.full((2, 3), 0.1), np.tile([1.0, 0, 0, 0], (2, 1)),
+                                  np.full((2, 3), 0.5), [0.5, 0.5], f_rest=np.zeros((2, k)))

@@ -225,3 +225,63 @@ def test_recording_size_estimate_is_close_to_what_is_written(tmp_path):
     est = float(next(ln for ln in lines if ln.startswith("recording ")).split("about ")[1].split(" MB")[0])
     actual = struct.unpack("<Q", rec.read_bytes()[:8])[0] / 2**20
     assert abs(est - actual) <= 0.15 * actual, (est, actual)
+
+
+def _splat_file(path, bad: str):
+    """A small 3DGS .ply over the default scene's bowl, made bad in one way."""
+    names = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1",
+             "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    if bad == "missing_opacity":
+        names.remove("opacity")
+    data = np.zeros(8, [(n, "<f4") for n in names])
+    for n in ("scale_0", "scale_1", "scale_2"):
+        data[n] = -4.0
+    data["rot_0"] = 1.0
+    if bad == "nan":
+        data["y"][3] = np.nan
+    if bad == "zero_quaternion":
+        data["rot_0"][5] = 0.0
+    fmt = "ascii" if bad == "ascii" else "binary_little_endian"
+    hdr = f"ply\nformat {fmt} 1.0\nelement vertex 8\n" + "".join(f"property float {n}\n" for n in names) + "end_header\n"
+    body = data.tobytes()
+    path.write_bytes(hdr.encode() + (body[:-5] if bad == "truncated" else body))
+    return path
+
+
+@pytest.mark.parametrize("bad,said", [("nan", "property 'y' is NaN/inf in 1 splats (first: splat 3)"),
+                                      ("ascii", "only binary_little_endian"),
+                                      ("missing_opacity", "missing properties ['opacity']"),
+                                      ("truncated", "data has"),
+                                      ("zero_quaternion", "zero rotation quaternion (first: splat 5)")])
+def test_a_bad_splat_file_is_an_error_of_run_record_as_of_render(tmp_path, capsys, bad, said):
+    """``run --viewer none --record`` with a bad ``gaussians.splats`` exited 0, said the surface's
+    topology changed every frame (untrue) and recorded 0 splats: the viewer caught every
+    ValueError, and a SplatPlyError is one. Now it is exit 2 with the render CLI's own line,
+    naming the file and what is wrong; the note is kept for a truly varying surface."""
+    from dynmesh_warp import render, run
+
+    ply = _splat_file(tmp_path / f"{bad}.ply", bad)
+    common = ["--set", f"gaussians.splats={ply}", "--device", "cpu"]
+    assert run.main(["--viewer", "none", "--record", str(tmp_path / "x.viser"), "--steps", "1"] + common) == 2
+    err = capsys.readouterr().err
+    line = next(ln for ln in err.splitlines() if ln.startswith("error: "))
+    assert str(ply) in line and said in line, err
+    assert "topology changes" not in err and not (tmp_path / "x.viser").exists()
+    assert render.main(["--figure", str(tmp_path / "f.png"), "--moments", "1", "--width", "16", "--height", "16",
+                        "--no-progress"] + common) == 2
+    assert line in capsys.readouterr().err.splitlines()
+
+
+def test_a_truly_varying_surface_is_recorded_without_gaussians_with_the_note(tmp_path):
+    """The note's own case: a new mesh every frame has no faces to bind Gaussians to."""
+    from dynmesh_warp import load_scene_config
+    from dynmesh_warp.io import save_sequence
+    from dynmesh_warp.scenes import torus_to_sphere
+    from dynmesh_warp.viewer import run_viewer
+
+    folder = tmp_path / "frames"
+    save_sequence(torus_to_sphere(frames=4, resolution=12), folder, fmt="ply")
+    cfg = load_scene_config(str(folder), overrides=["physics.collider=rebuild"])
+    lines = []
+    res = run_viewer(cfg, device="cpu", viewer="none", record=str(tmp_path / "v.viser"), steps=2, log=lines.append)
+    assert res["gaussians"] == 0 and any("topology changes every frame" in ln for ln in lines)
