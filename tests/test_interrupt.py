@@ -457,6 +457,7 @@ def test_convert_interrupted_writes_the_frames_done(tmp_path, varying_npz, sig, 
     if folder:
         status = json.loads((out / MANIFEST).read_text())["status"]
         assert (out / "mine.txt").read_text() == "kept"
+        assert status.pop("fps") == got.fps == 24.0  # the frame rate, which a folder cannot say itself
     else:
         status = json.loads(str(np.load(out)["status"]))
     k = status["first_frame"]
