@@ -41,6 +41,7 @@ from .sequence_layouts import (
     DGMESH_SUBDIRS,
     fix_frame_order,
     frame_index_from_name,
+    list_frame_files,
     load_folder,
     load_npz,
     load_vertex_array,
@@ -185,17 +186,13 @@ def stored_up_axis(path) -> str:
     converted to an npz or a .glb came back turned 90 degrees from the input)."""
     path = Path(str(path))
     try:
-        if path.is_dir():  # its frames, by the folder loader's own rule (sequence_layouts.list_frame_files)
-            frames = sorted(q for q in path.iterdir()
-                            if q.is_file() and not q.name.startswith(".") and mesh_extension(q.name))
-            if not frames or any(mesh_extension(q.name) not in Y_UP_FORMATS for q in frames):
-                return "z"
-            path = frames[0]
+        if path.is_dir():  # its frames, as the folder loader lists them (one extension)
+            path = list_frame_files(path)[0]
         ext = mesh_extension(path.name) or path.suffix.lower()
         if ext == ".npz":
             with np.load(path, allow_pickle=False) as z:
                 return "y" if "up_axis" in z.files and str(z["up_axis"]) == "y" else "z"
-    except (OSError, ValueError):
+    except (OSError, ValueError):  # MeshDataError too: a folder the loader cannot read
         return "z"
     if ext not in Y_UP_FORMATS:
         return "z"
@@ -203,13 +200,19 @@ def stored_up_axis(path) -> str:
     return "y" if g == GENERATOR_Y_UP or not g.startswith(GENERATOR) else "z"
 
 
-def _y_up(seq) -> bool:
-    """Whether ``seq``'s coordinates are +Y up: its ``up_axis`` where it says (a scene's surface:
-    z), else its source file's as loaded (glTF, or an npz / .glb this project wrote from one); a
-    sequence made in memory is not."""
+def sequence_up_axis(seq) -> str:
+    """The axis ``seq``'s coordinates are up along: its ``up_axis`` where it says (a scene's
+    surface: z), else what its source file says (:func:`stored_up_axis`: glTF, or an npz / .glb
+    this project wrote from one, is y); a sequence made in memory or built in is z."""
     if seq.up_axis is not None:
-        return seq.up_axis == "y"
-    return bool(seq.source) and not str(seq.source).startswith("builtin:") and stored_up_axis(seq.source) == "y"
+        return seq.up_axis
+    if not seq.source or str(seq.source).startswith("builtin:"):
+        return "z"
+    return stored_up_axis(seq.source)
+
+
+def _y_up(seq) -> bool:
+    return sequence_up_axis(seq) == "y"
 
 
 def _save_npz(seq, path: Path, status: dict | None = None) -> None:

@@ -21,17 +21,16 @@ __all__ = ["load_surface", "prepare_surface", "scene_spheres", "scene_ground", "
 _Y_TO_Z = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
 
 
-def up_axis_of(cfg, source) -> str:
-    """``surface.up_axis`` resolved for the loaded ``source`` (a path, or None for data built in
-    memory): ``auto`` is what the file says (:func:`~dynmesh_warp.io.stored_up_axis`: ``y`` for
-    glTF, whose specification fixes +Y up, and for what this project wrote from it), else ``z``."""
-    from .io import stored_up_axis
+def up_axis_of(cfg, seq) -> str:
+    """``surface.up_axis`` resolved for the loaded sequence ``seq``: ``auto`` is the axis its
+    coordinates are up along (:func:`~dynmesh_warp.io.sequence_up_axis`: what it says, else what its
+    source file says: ``y`` for glTF, whose specification fixes +Y up, and for what this project
+    wrote from it), else ``z``."""
+    from .io import sequence_up_axis
 
     if cfg.up_axis != UpAxis.AUTO:
         return str(cfg.up_axis)
-    if not source or str(source).startswith("builtin:"):
-        return "z"
-    return stored_up_axis(source)
+    return sequence_up_axis(seq)
 
 
 def _transform(V: np.ndarray, cfg, up_axis: str) -> np.ndarray:
@@ -233,9 +232,7 @@ def prepare_surface(seq, cfg: SceneConfig):
         raise TypeError(f"expected a FixedTopologySequence or VaryingTopologySequence, got {type(seq).__name__}")
     fps = float(s.fps) if s.fps is not None else seq.fps  # a new sequence: the caller's is untouched
     where = seq.source or seq.name
-    # a sequence that says its axis (a scene's surface: z) is not turned again
-    axis = up_axis_of(s, seq.source) if s.up_axis != UpAxis.AUTO or seq.up_axis is None else seq.up_axis
-    up = scene_up(cfg)
+    axis, up = up_axis_of(s, seq), scene_up(cfg)  # a scene's surface says z: not turned again
     if isinstance(seq, FixedTopologySequence):
         V = _transform(seq.V, s, axis)
         F, report = _orient(V[0], seq.F, s, up)
