@@ -50,7 +50,9 @@ CLI: ``python -m dynmesh_warp.convert IN OUT --strategy tracking|projection|regu
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import dataclasses
+import os
 import re
 import sys
 import time
@@ -63,6 +65,7 @@ import warp as wp
 
 from .choices import DEFAULT_FRAME_ORDER, DEFAULT_STRATEGY, STRATEGIES, FrameOrder, values
 from .conversion_options import options_for
+from .convert_journal import ConversionJournal, frame_digest
 from .deform_graph import (GraphFitter, GraphFrame, build_deformation_graph, extrapolate_rotations, node_groups, rim_array,
                            rotation_from_vector)
 from .geometry import (distinct_faces, face_areas, fit_group_motions, flat_faces, mesh_orientation, orient_faces,
@@ -1006,15 +1009,58 @@ class _Converter:
                 self.failed_restart = bad
                 if name is None:  # no start fitted better at all (a better one is a recovered frame)
                     self.restarts_failed.append(t)
-        self.scores.append(score)
+        self._commit_graph(t, R, P, score)
         self.frame_coverage = score
         self.frame_web = web  # (web, buried) measured on the kept fit (None: not measured here)
+        return restarted
+
+    def _commit_graph(self, t: int, R: np.ndarray, P: np.ndarray, score: float) -> None:
+        """Frame t's graph state (R, P) and coverage [m] into the sequence's memory: the history
+        the next frame predicts from, the states the repair pass and rewind go back to, the bank
+        of restart candidates (:meth:`step_graph`, and :meth:`replay_step` for a journal's frame)."""
+        self.scores.append(score)
         self.history = (self.history + [(R, P)])[-2:]
         self.frame_states[t] = (R, P)
-        k = int(o["bank_interval"])
+        k = int(self.opts["bank_interval"])
         if k > 0 and t % k == 0:
             self.graph_bank.append((t, R.copy(), P.copy()))
-        return restarted
+
+    # --- the journal (convert --resume; convert_journal)
+    def step_record(self, t: int) -> dict:
+        """What the last step (frame t) changed in this converter besides the result self.X, as
+        NumPy arrays for a journal record: :meth:`replay_step` applies it again."""
+        s = self.opts.get("strategy")
+        if s == "graph":
+            R, P = self.frame_states[t]
+            rec = {"R": R, "P": P, "score": np.float64(self.scores[-1]),
+                   "recovered": np.str_(self.recovered[-1][1] if self.recovered and self.recovered[-1][0] == t else ""),
+                   "restart_failed": np.bool_(bool(self.restarts_failed) and self.restarts_failed[-1] == t),
+                   "failed_restart": np.float64(np.nan if self.failed_restart is None else self.failed_restart)}
+            return rec
+        if s == "regularized":
+            src = self.reinit_sources[-1][1] if self.reinit_sources and self.reinit_sources[-1][0] == t else -2
+            return {"reinit_source": np.int64(src)}
+        return {}
+
+    def replay_step(self, t: int, X: np.ndarray, rec: dict) -> None:
+        """Frame t as the step left it, from a journal record (:meth:`step_record`) and the
+        result X (N, 3): the converter goes on as if it had fitted the frame."""
+        self.X.assign(wp.array(np.ascontiguousarray(X, np.float32), dtype=wp.vec3, device=self.device))
+        self.frame_coverage = self.frame_web = None
+        s = self.opts.get("strategy")
+        if s == "graph":
+            score = float(rec["score"])
+            self._commit_graph(t, np.asarray(rec["R"]), np.asarray(rec["P"]), score)
+            if str(rec["recovered"]):
+                self.recovered.append((t, str(rec["recovered"])))
+            if bool(rec["restart_failed"]):
+                self.restarts_failed.append(t)
+            f = float(rec["failed_restart"])
+            self.failed_restart = None if np.isnan(f) else f
+        elif s == "regularized":
+            if int(rec["reinit_source"]) != -2:
+                self.reinit_sources.append((t, int(rec["reinit_source"])))
+            self.remember(t)
 
     def fit_nonrigid(self, frame):
         """One iteration of the smooth two-sided data term (forward closest points + backward
@@ -1069,6 +1115,24 @@ def _grow_nodes(mask: np.ndarray, e: np.ndarray, rings: int) -> np.ndarray:
         ring[e[out[e[:, 0]], 1]] = True
         out = ring
     return out
+
+
+#: the journal of the conversion under way (``journal`` of :func:`to_fixed_topology` /
+#: :func:`to_piecewise_fixed`): every run it starts (:func:`_convert_from_key`) writes its frames there
+_JOURNAL: contextvars.ContextVar[ConversionJournal | None] = contextvars.ContextVar("conversion_journal", default=None)
+
+
+@contextlib.contextmanager
+def _journaling(journal: ConversionJournal | None):
+    """The runs inside write to ``journal`` (None: to the journal already set, if any)."""
+    if journal is None:
+        yield
+        return
+    token = _JOURNAL.set(journal)
+    try:
+        yield
+    finally:
+        _JOURNAL.reset(token)
 
 
 def _as_varying(seq) -> VaryingTopologySequence:
@@ -1538,6 +1602,10 @@ class _PerFrame:
         return cls(*(np.zeros(T) for _ in dataclasses.fields(cls)))
 
 
+#: the per-frame figures a journal record keeps (:func:`_convert_frames`; ``input_motion`` apart)
+_PER_FRAME_RECORD = ("seconds", "coverage", "tail", "web", "buried", "flipped", "area")
+
+
 def _record_fit(conv, frame, diag: float, pf: _PerFrame, t: int) -> None:
     """Frame t's coverage, tail, web, buried and flipped fractions of the fit in ``conv.X`` into
     ``pf`` (the coverage and web measured on the kept fit when the fit did)."""
@@ -1571,11 +1639,13 @@ def _same_frame(a: tuple, b: tuple) -> bool:
 
 
 def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info, strategy: str, where: str, TV,
-                    TF, stop_forward=None):
+                    TF, stop_forward=None, journal=None):
     """The frame loop of to_fixed_topology: the key frame forward to the end, then backward to
     frame 0. ``stop_forward(t, web, buried)`` (the per-frame figures so far), asked after each
-    frame t > K: true ends the forward pass there (the backward pass still runs). Returns (out
-    (T, N, 3), lo, hi (the converted frames lo..hi), the per-frame figures (:class:`_PerFrame`))."""
+    frame t > K: true ends the forward pass there (the backward pass still runs). ``journal``: the
+    run's :class:`~dynmesh_warp.convert_journal.RunJournal`: each frame fitted is written to it, and
+    a frame it holds is taken from it instead of fitted. Returns (out (T, N, 3), lo, hi (the
+    converted frames lo..hi), the per-frame figures (:class:`_PerFrame`))."""
     T = vseq.num_frames
     device = conv.device
     out = np.empty((T, len(TV), 3), np.float32)
@@ -1588,6 +1658,7 @@ def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info,
         order = tqdm(order, desc=f"convert ({strategy})", unit="frame")
     lo = hi = None  # the converted frames lo..hi (contiguous: the key frame forward, then backward)
     forward = True
+    done = 0  # frames done (fitted, or taken from the journal) so far: a frame's place in the journal
     samples = {}  # the sampled vertices (device) of the key frame and the last frame fitted
     raw = {}  # the input frames (V, F) fitted last, by frame
     bridge = bool(info.options["bridge_dropouts"])
@@ -1614,23 +1685,44 @@ def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info,
         conv.input_repeats = t != K and u is not None and _same_frame(raw[t], u)
         raw = {k: raw[k] for k in raw if k == K or abs(k - t) <= DROPOUT_FRAMES + 1}  # the backward pass starts at K
         v, f = _frame_for_fit(vseq, t, K, info.options, ref, TF, device, info, raw[t])
-        frame = _device_frame(v, f, device)
-        if step(frame, t):
-            info.reanchored_frames.append(t)
-        diag = _bbox_diag(v)
-        _record_fit(conv, frame, diag, pf, t)
-        # the input's own motion from the neighbour fitted before (t - 1 forward, t + 1 backward;
-        # stored at the later frame of the two)
-        near = samples.get(t - s)
-        if near is not None:
-            pf.input_motion[max(t, t - s)] = _input_motion(frame, near, diag, device)
+        index = done
+        done += 1
+        digest = frame_digest(*raw[t]) if journal is not None else ""
+        rec = journal.replay(index, t, digest) if journal is not None else None
+        m = max(t, t - s)  # where the input's motion from the neighbour fitted before is stored
+        if rec is not None:  # fitted before the interruption: the journal's result and state change
+            out[t] = rec["X"]
+            conv.replay_step(t, out[t], rec)
+            if bool(rec["reanchored"]):
+                info.reanchored_frames.append(t)
+            for name in _PER_FRAME_RECORD:
+                getattr(pf, name)[t] = float(rec[name])
+            if samples.get(t - s) is not None:
+                pf.input_motion[m] = float(rec["input_motion"])
+        else:
+            frame = _device_frame(v, f, device)
+            reanchored = bool(step(frame, t))
+            if reanchored:
+                info.reanchored_frames.append(t)
+            change = conv.step_record(t) if journal is not None else None
+            diag = _bbox_diag(v)
+            _record_fit(conv, frame, diag, pf, t)
+            # the input's own motion from the neighbour fitted before (t - 1 forward, t + 1 backward;
+            # stored at the later frame of the two)
+            near = samples.get(t - s)
+            if near is not None:
+                pf.input_motion[m] = _input_motion(frame, near, diag, device)
+            out[t] = conv.X.numpy()
+            pf.seconds[t] = time.perf_counter() - t0
+            if not np.isfinite(out[t]).all():
+                raise RuntimeError(f"{where}: conversion ({strategy}) produced NaN/inf at frame {t}; "
+                                   "the input frame may be degenerate")
+            if journal is not None:
+                journal.write(index, t, digest, X=out[t], reanchored=np.bool_(reanchored),
+                              **{name: np.float64(getattr(pf, name)[t]) for name in _PER_FRAME_RECORD},
+                              input_motion=np.float64(pf.input_motion[m] if m < T else 0.0), **change)
         samples = {K: samples.get(K), t: _motion_sample(v, device)} if t != K else {K: _motion_sample(v, device)}
         conv.first = False
-        out[t] = conv.X.numpy()
-        pf.seconds[t] = time.perf_counter() - t0
-        if not np.isfinite(out[t]).all():
-            raise RuntimeError(f"{where}: conversion ({strategy}) produced NaN/inf at frame {t}; "
-                               "the input frame may be degenerate")
         lo, hi = (t, t) if lo is None else (min(lo, t), max(hi, t))
         if t > K and stop_forward is not None and stop_forward(t, pf.web, pf.buried):
             forward = False
@@ -1730,7 +1822,7 @@ def _repair_poor_runs(vseq, conv, out, pf: _PerFrame, K: int, o: dict, should_st
 
 
 def to_fixed_topology(seq, strategy: str = DEFAULT_STRATEGY, template=None, device=None, progress: bool = False,
-                      should_stop=None, **options) -> FixedTopologySequence:
+                      should_stop=None, journal: ConversionJournal | None = None, **options) -> FixedTopologySequence:
     """Convert a varying-topology sequence into a fixed-topology one on ``template``'s faces.
 
     Args:
@@ -1742,6 +1834,9 @@ def to_fixed_topology(seq, strategy: str = DEFAULT_STRATEGY, template=None, devi
         should_stop: a callable checked between frames (e.g. the CLI's Ctrl-C flag); once true
             the conversion ends after the frames done so far (at least the first): the result
             then holds frames 0..k-1 only.
+        journal: a :class:`~dynmesh_warp.convert_journal.ConversionJournal`: every frame fitted is
+            written to it as it is done, and the frames it holds from an interrupted conversion of
+            the same input and options are taken from it instead of fitted (``convert --resume``).
         **options: strategy options (module docstring); unknown names raise TypeError.
 
     Returns:
@@ -1753,7 +1848,8 @@ def to_fixed_topology(seq, strategy: str = DEFAULT_STRATEGY, template=None, devi
         MeshDataError: an empty/invalid frame or template (naming it), a template out of the
             surface's reach. Warns (UserWarning) about frames of very different scale.
     """
-    return _to_fixed(seq, strategy, template, device, progress, should_stop, None, **options)
+    with _journaling(journal):
+        return _to_fixed(seq, strategy, template, device, progress, should_stop, None, **options)
 
 
 def _to_fixed(seq, strategy, template, device, progress, should_stop, stop_forward, **options):
@@ -1877,7 +1973,7 @@ def _to_fixed_run(vseq, seq, strategy, template, device, progress, should_stop, 
 
 
 def to_piecewise_fixed(seq, strategy: str = DEFAULT_STRATEGY, template=None, device=None, progress: bool = False,
-                       should_stop=None, **options):
+                       should_stop=None, journal: ConversionJournal | None = None, **options):
     """Convert like :func:`to_fixed_topology`, starting a new template where one template cannot
     follow the input: a piecewise-fixed sequence (issue 12's topology segments).
 
@@ -1902,7 +1998,8 @@ def to_piecewise_fixed(seq, strategy: str = DEFAULT_STRATEGY, template=None, dev
         (:class:`ConversionInfo`) lists the ``segments``.
     """
     start = time.perf_counter()
-    res = _to_piecewise(seq, strategy, template, device, progress, should_stop, options)
+    with _journaling(journal):
+        res = _to_piecewise(seq, strategy, template, device, progress, should_stop, options)
     res.conversion.seconds_all = time.perf_counter() - start
     return res
 
@@ -2600,8 +2697,13 @@ def _convert_from_key(vseq, strategy: str, o: dict, K: int, template, device, pr
     step = getattr(conv, f"step_{strategy}")
     info = ConversionInfo(strategy, {k: v for k, v in o.items() if k != "strategy"}, T, len(TV), key_frame=K)
     info.moving_part = moving
+    journal = _JOURNAL.get()
+    if journal is not None:  # this run's identity: what its frames' results depend on besides the frames
+        journal = journal.run({"strategy": strategy, "options": info.options, "key_frame": K, "frames": T,
+                               "template": frame_digest(TV, TF), "spacing": frame_digest(np.asarray(spacing, float)),
+                               "reach": frame_digest(np.float64(all_diag))})
     out, lo, hi, pf = _convert_frames(vseq, conv, step, K, progress, should_stop, info, strategy, where, TV, TF,
-                                      stop_forward)
+                                      stop_forward, journal)
     if strategy == "graph" and (lo, hi) == (0, T - 1) and int(o["repair_passes"]) > 0:
         info.repaired_frames = _repair_poor_runs(vseq, conv, out, pf, K, o, should_stop, TF, info)
     info.ignored_parts = {t: x for t, x in sorted(info.ignored_parts.items()) if lo <= t <= hi}
@@ -3061,6 +3163,59 @@ def _beside_path(output, name: str = "partial") -> Path:
     return beside_path(output, name, faces_taken)
 
 
+def _same_path(a, b) -> bool:
+    return Path(os.path.realpath(Path(a).expanduser())) == Path(os.path.realpath(Path(b).expanduser()))
+
+
+def _remove_output(path: Path) -> None:
+    """Remove a partial output this tool wrote (a file, with a point cache's faces; or a folder's
+    listed files and its manifest, the folder too when that leaves it empty)."""
+    from .animation_formats import written_topology
+    from .outputs import MANIFEST, read_manifest
+
+    if path.is_dir():
+        for name in read_manifest(path) | {MANIFEST}:
+            (path / name).unlink(missing_ok=True)
+        with contextlib.suppress(OSError):
+            path.rmdir()
+        return
+    faces = written_topology(path)
+    path.unlink(missing_ok=True)
+    if faces is not None:
+        faces.unlink(missing_ok=True)
+
+
+def _open_journal(a, opts: dict, inputs: list) -> ConversionJournal:
+    """The journal of this command's conversion (``convert_journal``): the interrupted one's with
+    ``--resume``; else a new one, refused where an interrupted conversion's journal is there."""
+    from .convert_journal import journal_path, read_journal
+
+    folder = journal_path(a.output)
+    real = lambda q: None if q is None else os.path.realpath(Path(q).expanduser())  # noqa: E731
+    identity = {"input": real(a.input), "template": real(a.template), "topology": real(a.topology),
+                "strategy": a.strategy, "options": opts, "fps": a.fps, "frame_order": a.frame_order}
+    if a.resume:
+        if not os.path.lexists(folder):
+            raise ValueError(f"--resume: no interrupted conversion of {a.output} to go on with ({folder} is not there)")
+        return ConversionJournal(folder, identity, resume=True)
+    if os.path.lexists(folder):
+        read_journal(folder)  # a folder of that name that is no journal is named as such
+        n = len(list(folder.glob("run_*_*.npz")))
+        raise ValueError(f"output {a.output}: an interrupted conversion of it left {n} frame fits in {folder}; give "
+                         "--resume to go on from them, or remove that folder to start over")
+    return ConversionJournal(folder, identity)
+
+
+@contextlib.contextmanager
+def _keeping_journal(journal: ConversionJournal):
+    """A journal with no frame fitted is removed however the conversion ends (nothing to go on from)."""
+    try:
+        yield
+    finally:
+        if not journal.frames():
+            journal.remove()
+
+
 @interruptible_main
 def main(argv=None) -> int:
     from .cli import Parser
@@ -3100,6 +3255,9 @@ def main(argv=None) -> int:
                         "only); docs/data.md")
     p.add_argument("--overwrite", action="store_true",
                    help="replace an existing output (in a folder: only files this tool wrote; others are kept)")
+    p.add_argument("--resume", action="store_true",
+                   help="go on with an interrupted conversion of this output from the frames it had fitted (its "
+                        "journal, <output>.convert-journal); give the same input and options")
     a = p.parse_args(argv)
     from .cli import checking_stops, quiet_warp, stop_reason
 
@@ -3138,6 +3296,7 @@ def main(argv=None) -> int:
             p.error(f"--option {key}: given twice ({given[key]} and {item.strip()}); give it once")
         given[key] = item.strip()
         opts[key] = None if value == "" else value
+    journal = None
     try:
         # everything is checked before the sequence is loaded: options, input, template, output
         try:
@@ -3172,15 +3331,19 @@ def main(argv=None) -> int:
             except MeshDataError:
                 pass  # none found: the load reports it
         out_suffix = Path(a.output).suffix.lower()
+        journal = _open_journal(a, opts, inputs)
+        partial = journal.partial() if journal.resumed else None
+        # the partial output the interrupted run wrote in the output's place is replaced by the resumed one
+        replace = a.overwrite or (partial is not None and _same_path(partial, a.output))
         if out_suffix == ".npz" or out_suffix in ANIMATED_FILE_OUTPUTS:
             if a.fmt:
                 raise ValueError(f"--fmt {a.fmt}: applies to a folder output, not to {a.output}")
-            check_output(a.output, kind="file", what="output", inputs=inputs, overwrite=a.overwrite,
+            check_output(a.output, kind="file", what="output", inputs=inputs, overwrite=replace,
                          suffixes={out_suffix}, holds=OutputKind.SEQUENCE)
             faces = written_topology(a.output)
             if faces is not None:  # a point cache's faces go next to it
                 check_output(faces, kind="file", what=f"output {a.output}: its faces", inputs=inputs,
-                             overwrite=a.overwrite, suffixes={".obj"}, holds=OutputKind.SEQUENCE)
+                             overwrite=replace, suffixes={".obj"}, holds=OutputKind.SEQUENCE)
         else:
             formats = (".npz file, a .pc2/.mdd/.anime or animated .glb file, or a folder (frames written as "
                        "frame_XXXX.ply, or .obj with --fmt obj)")
@@ -3200,7 +3363,7 @@ def main(argv=None) -> int:
                 raise ValueError(f"output {a.output}: {out_suffix} is not a format convert writes; give a "
                                  + formats + " named without an extension (or create the folder first)")
             a.fmt = a.fmt or "ply"
-            check_output(a.output, kind="folder", what="output", inputs=inputs, overwrite=a.overwrite,
+            check_output(a.output, kind="folder", what="output", inputs=inputs, overwrite=replace,
                          writes=_FOLDER_FRAMES, holds=OutputKind.SEQUENCE)
         seq = load_sequence(a.input, fps=a.fps, topology=a.topology, frame_order=a.frame_order)
         if isinstance(seq, FixedTopologySequence):
@@ -3213,9 +3376,9 @@ def main(argv=None) -> int:
         # where one cannot follow the input (to_piecewise_fixed; max_segments)
         one_file = out_suffix in ANIMATED_FILE_OUTPUTS
         run = to_fixed_topology if one_file else to_piecewise_fixed
-        with checking_stops():  # Ctrl-C / SIGTERM: stop between frames, write the frames done
+        with checking_stops(), _keeping_journal(journal):  # Ctrl-C / SIGTERM: stop between frames, write the frames done
             res = run(seq, strategy=a.strategy, template=a.template, device=device,
-                      progress=not a.no_progress, should_stop=stop_reason, **opts)
+                      progress=not a.no_progress, should_stop=stop_reason, journal=journal, **opts)
             # a stop after every frame was converted (during the key-frame trials, the floater
             # retry or the segments) still counts: the output is the run so far, not the one an
             # uninterrupted run would have written
@@ -3225,14 +3388,25 @@ def main(argv=None) -> int:
                       "interrupted_by": reason, "strategy": a.strategy,
                       "segments": [list(x) for x in res.conversion.segments]}
             written, kept = a.output, None
-            if (reason or not a.overwrite) and _holds_output(a.output):
+            # the interrupted run's partial output in the output's place, unchanged during the work
+            ours = partial is not None and _same_path(partial, a.output) and journal.partial() is not None
+            if (reason or not a.overwrite) and _holds_output(a.output) and not ours:
                 # an interrupted run never replaces what is there (an earlier, maybe complete,
                 # output): the frames done go beside it; nor does a run without --overwrite whose
                 # output appeared during the work (another run's: the check before the work passed)
                 written, kept = _beside_path(a.output, "partial" if reason else "new"), a.output
-            save_sequence(res, written, fmt=a.fmt, overwrite=a.overwrite, status=status)
+            save_sequence(res, written, fmt=a.fmt, overwrite=a.overwrite or ours, status=status)
+            if reason:
+                journal.note_partial(written)
+            else:
+                if partial is not None and not _same_path(partial, written) and journal.partial() is not None:
+                    _remove_output(partial)  # the interrupted run's partial output beside it: superseded
+                journal.remove()
     except (MeshDataError, FileNotFoundError, ValueError, TypeError) as e:
         print(f"error: {e}", file=sys.stderr)
+        if journal is not None and journal.frames():
+            print(f"note: the {journal.frames()} frame fits done are kept in {journal.folder}: mend the cause and give "
+                  "the same command with --resume to go on from them", file=sys.stderr)
         return 2
     if reason:
         stored = "status: complete false" if out_suffix == ".npz" or a.fmt else "a point cache or animation holds no status"
@@ -3240,7 +3414,9 @@ def main(argv=None) -> int:
                  "floater retry) did not finish: an uninterrupted run may differ") if res.num_frames == seq.num_frames else ""
         print(f"interrupted by {reason}: wrote {written} with input frames {res.conversion.first_frame}.."
               f"{res.conversion.first_frame + res.num_frames - 1} of 0..{seq.num_frames - 1} ({stored}){later}"
-              + (f"; {kept}, which was there before, is unchanged" if kept else ""), file=sys.stderr)
+              + (f"; {kept}, which was there before, is unchanged" if kept else "")
+              + f"; the same command with --resume goes on from the {journal.frames()} frame fits done "
+              f"({journal.folder})", file=sys.stderr)
         import signal
 
         return 128 + int(getattr(signal, reason, signal.SIGINT))

@@ -491,7 +491,7 @@ def test_convert_interrupted_keeps_an_existing_output(tmp_path, varying_npz, cap
     partial = tmp_path / "out.partial-2.npz"
     line = _last_line(err)
     assert line.startswith(f"interrupted by SIGINT: wrote {partial} with input frames "), line
-    assert line.endswith(f"{out}, which was there before, is unchanged"), line
+    assert f"{out}, which was there before, is unchanged; the same command with --resume goes on from the " in line
     assert out.read_bytes() == b"an earlier run's output"
     assert (tmp_path / "out.partial.npz").read_bytes() == b"another file"
     got = load_sequence(partial)
@@ -543,6 +543,141 @@ def test_convert_stopped_after_the_last_frame_is_not_complete(tmp_path, varying_
     assert "every frame was converted, but the later passes" in line
     status = json.loads(str(np.load(out)["status"]))
     assert status["complete"] is False and status["interrupted_by"] == "SIGINT" and status["frames"] == 120
+
+
+# --------------------------------------------------------------------------- convert --resume
+
+
+def _frames(res) -> list:
+    """A conversion result's frames (V, F), one template or several."""
+    return [(res.V[t], res.F) for t in range(res.num_frames)] if hasattr(res, "V") else list(res.frames)
+
+
+def _same_frames(a, b) -> bool:
+    fa, fb = _frames(a), _frames(b)
+    return len(fa) == len(fb) and all(np.array_equal(x[0], y[0]) and np.array_equal(x[1], y[1]) for x, y in zip(fa, fb))
+
+
+@pytest.fixture(scope="module")
+def segmented():
+    """A torus closing into a sphere (its conversion: two template segments) and its uninterrupted
+    conversion (graph, the default)."""
+    from dynmesh_warp.convert import to_piecewise_fixed
+    from dynmesh_warp.scenes import torus_to_sphere
+
+    seq = torus_to_sphere(frames=24, resolution=24)
+    return seq, to_piecewise_fixed(seq, device="cpu")
+
+
+@pytest.mark.parametrize("stop_at", [4, 17, 30])
+def test_resumed_conversion_equals_the_uninterrupted_one(tmp_path, segmented, stop_at):
+    """Stopped in its first run, in the run that starts the second segment, or in a later one, a
+    conversion resumed from its journal is the uninterrupted conversion bit for bit (CPU): the
+    frames, the per-frame figures, the segments; only the frames the journal lacks are fitted."""
+    from dynmesh_warp.convert import to_piecewise_fixed
+    from dynmesh_warp.convert_journal import ConversionJournal
+
+    seq, full = segmented
+    assert len(full.conversion.segments) == 2  # the case covers a later run (the second template's)
+    calls = []
+    j = ConversionJournal(tmp_path / "j", {"input": "torus"})
+    part = to_piecewise_fixed(seq, device="cpu", journal=j, should_stop=lambda: calls.append(1) or len(calls) > stop_at)
+    assert j.written == j.frames() > 0
+    assert len(_frames(part)) < 24
+    again = ConversionJournal(tmp_path / "j", {"input": "torus"}, resume=True)
+    res = to_piecewise_fixed(seq, device="cpu", journal=again)
+    assert again.replayed == j.written and again.written > 0  # every frame fit kept is used, the rest fitted
+    assert _same_frames(res, full)
+    c, f = res.conversion, full.conversion
+    assert (c.coverage, c.web, c.flipped, c.input_motion, c.segments) == (f.coverage, f.web, f.flipped, f.input_motion,
+                                                                        f.segments)
+
+
+@pytest.mark.parametrize("strategy", ["regularized", "tracking"])
+def test_resume_other_strategies(tmp_path, strategy):
+    from dynmesh_warp.convert import to_fixed_topology
+    from dynmesh_warp.convert_journal import ConversionJournal
+    from dynmesh_warp.scenes import torus_to_sphere
+
+    seq = torus_to_sphere(frames=16, resolution=20)
+    full = to_fixed_topology(seq, strategy=strategy, device="cpu", key_frame=8)
+    calls = []
+    j = ConversionJournal(tmp_path / "j", {})
+    to_fixed_topology(seq, strategy=strategy, device="cpu", key_frame=8, journal=j,
+                      should_stop=lambda: calls.append(1) or len(calls) > 10)  # forward to 15, back to 6
+    res = to_fixed_topology(seq, strategy=strategy, device="cpu", key_frame=8,
+                            journal=ConversionJournal(tmp_path / "j", {}, resume=True))
+    assert np.array_equal(res.V, full.V) and res.conversion.coverage == full.conversion.coverage
+    assert res.conversion.recovered_frames == full.conversion.recovered_frames
+
+
+def test_resume_refits_from_a_changed_input_frame(tmp_path):
+    """A record is used only for the same input frame: an input mended after the stop (frame 9
+    moved) is fitted again from that frame on; the result is the conversion of the mended input."""
+    from dynmesh_warp.convert import to_fixed_topology
+    from dynmesh_warp.convert_journal import ConversionJournal
+    from dynmesh_warp.scenes import torus_to_sphere
+    from dynmesh_warp.sequence import VaryingTopologySequence
+
+    seq = torus_to_sphere(frames=16, resolution=20)
+    j = ConversionJournal(tmp_path / "j", {})
+    to_fixed_topology(seq, strategy="tracking", device="cpu", key_frame=0, journal=j)
+    assert j.frames() == 16
+    frames = [(v.copy(), f) for v, f in seq.frames]
+    frames[9] = (frames[9][0] + np.float32(0.01), frames[9][1])
+    mended = VaryingTopologySequence(frames, fps=seq.fps, name=seq.name)
+    again = ConversionJournal(tmp_path / "j", {}, resume=True)
+    res = to_fixed_topology(mended, strategy="tracking", device="cpu", key_frame=0, journal=again)
+    assert again.replayed == 9 and again.written == 7  # frames 0-8 kept, 9-15 fitted again
+    assert np.array_equal(res.V, to_fixed_topology(mended, strategy="tracking", device="cpu", key_frame=0).V)
+
+
+def test_convert_resume_command_line(tmp_path, varying_npz, capsys):
+    """``convert`` stopped by SIGINT keeps its journal beside the output and says how to go on; the
+    same command refuses to start over it; ``--resume`` with other options is refused naming the
+    option; ``--resume`` replaces the stopped run's partial output with the whole conversion, equal
+    byte for byte to an uninterrupted run's, and removes the journal."""
+    from dynmesh_warp.convert import main
+    from dynmesh_warp.convert_journal import journal_path
+
+    out = tmp_path / "out.npz"
+    args = [str(varying_npz), str(out), "--strategy", "regularized", "--device", "cpu"]
+    pr = Proc([sys.executable, "-m", "dynmesh_warp.convert", *args], tmp_path)
+    pr.wait_for(b"frame/s")
+    pr.p.send_signal(signal.SIGINT)
+    rc, _, err = pr.finish()
+    journal = journal_path(out)
+    assert rc == 130 and journal.is_dir(), err[-2000:]
+    n = len(list(journal.glob("run_*_*.npz")))
+    line = _last_line(err)
+    assert line.endswith(f"the same command with --resume goes on from the {n} frame fits done ({journal})"), line
+    stopped = out.read_bytes()
+    capsys.readouterr()
+    assert main(args + ["--no-progress"]) == 2
+    assert f"an interrupted conversion of it left {n} frame fits in {journal}; give --resume" in capsys.readouterr().err
+    assert main(args + ["--no-progress", "--resume", "--option", "iterations=2"]) == 2
+    assert "the interrupted conversion had options {}, this command {'iterations': 2}" in capsys.readouterr().err
+    assert out.read_bytes() == stopped and len(list(journal.glob("run_*_*.npz"))) == n  # refusals touch nothing
+    assert main(args + ["--no-progress", "--resume"]) == 0
+    assert not journal.exists()
+    ref = tmp_path / "ref.npz"
+    assert main([str(varying_npz), str(ref)] + args[2:] + ["--no-progress"]) == 0
+    assert out.read_bytes() == ref.read_bytes()
+    assert main(args + ["--no-progress", "--resume"]) == 2  # nothing left to go on with
+    assert f"no interrupted conversion of {out} to go on with" in capsys.readouterr().err
+
+
+def test_convert_leaves_a_foreign_journal_name_alone(tmp_path, varying_npz, capsys):
+    from dynmesh_warp.convert import main
+
+    out = tmp_path / "frames"
+    mine = tmp_path / "frames.convert-journal"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("mine")
+    for extra in ([], ["--resume"]):
+        assert main([str(varying_npz), str(out), "--device", "cpu", "--no-progress", *extra]) == 2
+        assert "not a conversion journal (no journal.json); it was not written by convert" in capsys.readouterr().err
+    assert sorted(p.name for p in mine.iterdir()) == ["notes.txt"] and not out.exists()
 
 
 @pytest.fixture(scope="module")

@@ -27,7 +27,8 @@ LAYERS = [
     {"world", "remesh", "metrics", "deform_graph"},
     # what runners share: devices, run length, output checks, the timed loop; checkpoints; Gaussians;
     # the cells collider measured for issue 14 and not kept (a world's collider put in from outside)
-    {"runtime", "checkpoint", "gaussians", "face_cells"},
+    # a conversion's journal (convert --resume)
+    {"runtime", "checkpoint", "convert_journal", "gaussians", "face_cells"},
     # the one runner of both engines (it is handed a built simulation)
     {"runner"},
     # conversion, then building a scene (which may convert)
