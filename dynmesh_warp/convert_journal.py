@@ -123,7 +123,11 @@ class ConversionJournal:
     # --- on disk
     def _open(self):
         if not self.folder.is_dir():
-            self.folder.mkdir(parents=True)
+            try:
+                self.folder.mkdir(parents=True)
+            except FileExistsError:  # made since this journal was opened: another conversion's
+                raise JournalError(f"{self.folder}: appeared during the work (another conversion of the same output?); "
+                                   "run one conversion per output") from None
             atomic_write_json(self.folder / _HEAD, self.doc)
 
     def frames(self) -> int:
