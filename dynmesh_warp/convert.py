@@ -1133,6 +1133,7 @@ def _journaling(journal: ConversionJournal | None):
         yield
     finally:
         _JOURNAL.reset(token)
+        journal.close()  # every fit given to it is on disk when the conversion returns
 
 
 def _as_varying(seq) -> VaryingTopologySequence:
@@ -1687,8 +1688,7 @@ def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info,
         v, f = _frame_for_fit(vseq, t, K, info.options, ref, TF, device, info, raw[t])
         index = done
         done += 1
-        digest = frame_digest(*raw[t]) if journal is not None else ""
-        rec = journal.replay(index, t, digest) if journal is not None else None
+        rec = journal.replay(index, t, raw[t]) if journal is not None else None
         m = max(t, t - s)  # where the input's motion from the neighbour fitted before is stored
         if rec is not None:  # fitted before the interruption: the journal's result and state change
             out[t] = rec["X"]
@@ -1718,7 +1718,7 @@ def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info,
                 raise RuntimeError(f"{where}: conversion ({strategy}) produced NaN/inf at frame {t}; "
                                    "the input frame may be degenerate")
             if journal is not None:
-                journal.write(index, t, digest, X=out[t], reanchored=np.bool_(reanchored),
+                journal.write(index, t, raw[t], X=out[t], reanchored=np.bool_(reanchored),
                               **{name: np.float64(getattr(pf, name)[t]) for name in _PER_FRAME_RECORD},
                               input_motion=np.float64(pf.input_motion[m] if m < T else 0.0), **change)
         samples = {K: samples.get(K), t: _motion_sample(v, device)} if t != K else {K: _motion_sample(v, device)}
@@ -3212,6 +3212,7 @@ def _keeping_journal(journal: ConversionJournal):
     try:
         yield
     finally:
+        journal.close()
         if not journal.frames():
             journal.remove()
 

@@ -632,6 +632,32 @@ def test_resume_refits_from_a_changed_input_frame(tmp_path):
     assert np.array_equal(res.V, to_fixed_topology(mended, strategy="tracking", device="cpu", key_frame=0).V)
 
 
+def test_a_journal_that_cannot_be_written_does_not_stop_the_conversion(tmp_path, monkeypatch):
+    """A full disk while the journal writes: one warning, the conversion goes on and is the same."""
+    import errno
+
+    import dynmesh_warp.convert_journal as cj
+    from dynmesh_warp.convert import to_fixed_topology
+    from dynmesh_warp.scenes import torus_to_sphere
+
+    seq = torus_to_sphere(frames=8, resolution=20)
+    full = to_fixed_topology(seq, strategy="tracking", device="cpu", key_frame=0)
+    real, n = np.savez, []
+
+    def savez(f, **arrays):
+        n.append(1)
+        if len(n) > 3:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real(f, **arrays)
+
+    monkeypatch.setattr(cj.np, "savez", savez)
+    j = cj.ConversionJournal(tmp_path / "j", {})
+    with pytest.warns(UserWarning, match=r"conversion journal: could not write .*run_0000_000003\.npz: \[Errno 28\] No space"):
+        res = to_fixed_topology(seq, strategy="tracking", device="cpu", key_frame=0, journal=j)
+    assert np.array_equal(res.V, full.V) and j.frames() == 3
+    assert not list((tmp_path / "j").glob("*.tmp*"))  # no half-written record left
+
+
 def test_convert_resume_command_line(tmp_path, varying_npz, capsys):
     """``convert`` stopped by SIGINT keeps its journal beside the output and says how to go on; the
     same command refuses to start over it; ``--resume`` with other options is refused naming the
