@@ -47,6 +47,8 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--device", default=None)
     p.add_argument("--input", default=None, help="a sequence file (default: the built-in torus closing into a sphere)")
+    p.add_argument("--deterministic", action="store_true",
+                   help="the conversion option deterministic=True (a GPU run then repeats bit for bit)")
     p.add_argument("--out", required=True)
     a = p.parse_args(argv)
     wp.config.quiet = True
@@ -56,7 +58,7 @@ def main(argv=None):
     try:
         def timed(**kw):
             t0 = time.perf_counter()
-            r = to_piecewise_fixed(seq, device=device, **kw)
+            r = to_piecewise_fixed(seq, device=device, **kw, **({"deterministic": True} if a.deterministic else {}))
             return r, time.perf_counter() - t0
 
         plain, t_plain = timed()
@@ -78,6 +80,7 @@ def main(argv=None):
         "input_vertices_mean": float(np.mean([len(v) for v, _ in seq.frames])),
         "segments": [list(s) for s in plain.conversion.segments],
         "device": describe_device(device),
+        "deterministic": a.deterministic,
         "seconds_without_journal": t_plain,
         "seconds_with_journal": t_journal,
         "journal_overhead": t_journal / t_plain - 1.0,
