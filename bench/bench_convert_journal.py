@@ -47,13 +47,15 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--device", default=None)
     p.add_argument("--input", default=None, help="a sequence file (default: the built-in torus closing into a sphere)")
+    p.add_argument("--frames", type=int, default=60, help="the built-in input's frames (200: bench_convert's input)")
+    p.add_argument("--resolution", type=int, default=32, help="its marching-cubes grid (76: ~10k vertices a frame)")
     p.add_argument("--deterministic", action="store_true",
                    help="the conversion option deterministic=True (a GPU run then repeats bit for bit)")
     p.add_argument("--out", required=True)
     a = p.parse_args(argv)
     wp.config.quiet = True
     device = wp.get_device(a.device)
-    seq = load_sequence(a.input) if a.input else torus_to_sphere(frames=60, resolution=32)
+    seq = load_sequence(a.input) if a.input else torus_to_sphere(frames=a.frames, resolution=a.resolution)
     work = Path(tempfile.mkdtemp(prefix="journal_bench_"))
     try:
         def timed(**kw):
@@ -75,7 +77,7 @@ def main(argv=None):
     finally:
         shutil.rmtree(work, ignore_errors=True)
     res = {
-        "input": a.input or "torus_to_sphere(frames=60, resolution=32)",
+        "input": a.input or f"torus_to_sphere(frames={a.frames}, resolution={a.resolution})",
         "frames": seq.num_frames,
         "input_vertices_mean": float(np.mean([len(v) for v, _ in seq.frames])),
         "segments": [list(s) for s in plain.conversion.segments],
