@@ -52,6 +52,7 @@ def main(argv=None):
     p.add_argument("--resolution", type=int, default=32, help="its marching-cubes grid (76: ~10k vertices a frame)")
     p.add_argument("--deterministic", action="store_true",
                    help="the conversion option deterministic=True (a GPU run then repeats bit for bit)")
+    p.add_argument("--repeats", type=int, default=1, help="timed conversions without and with a journal (medians)")
     p.add_argument("--out", required=True)
     a = p.parse_args(argv)
     wp.config.quiet = True
@@ -66,9 +67,15 @@ def main(argv=None):
 
         warm = VaryingTopologySequence(list(seq.frames[:3]), fps=seq.fps)  # Warp's kernels compiled, not timed
         to_piecewise_fixed(warm, device=device, **({"deterministic": True} if a.deterministic else {}))
-        plain, t_plain = timed()
-        full_j = ConversionJournal(work / "full", {})
-        journaled, t_journal = timed(journal=full_j)
+        plains, journals = [], []
+        for r in range(a.repeats):  # alternately, so that the machine's drift falls on both
+            plain, t = timed()
+            plains.append(t)
+            shutil.rmtree(work / "full", ignore_errors=True)
+            full_j = ConversionJournal(work / "full", {})
+            journaled, t = timed(journal=full_j)
+            journals.append(t)
+        t_plain, t_journal = float(np.median(plains)), float(np.median(journals))
         size = sum(q.stat().st_size for q in full_j.folder.iterdir())
         half = max(full_j.written // 2, 1)
         stop_j = ConversionJournal(work / "stop", {})
@@ -89,6 +96,7 @@ def main(argv=None):
         "seconds_without_journal": t_plain,
         "seconds_with_journal": t_journal,
         "journal_overhead": t_journal / t_plain - 1.0,
+        "repeats": {"without_journal": plains, "with_journal": journals},
         "frame_fits": full_j.written,
         "journal_bytes": size,
         "journal_bytes_per_fit": size / max(full_j.written, 1),

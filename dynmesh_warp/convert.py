@@ -1032,10 +1032,12 @@ class _Converter:
         s = self.opts.get("strategy")
         if s == "graph":
             R, P = self.frame_states[t]
-            rec = {"R": R, "P": P, "score": np.float64(self.scores[-1]),
-                   "recovered": np.str_(self.recovered[-1][1] if self.recovered and self.recovered[-1][0] == t else ""),
-                   "restart_failed": np.bool_(bool(self.restarts_failed) and self.restarts_failed[-1] == t),
-                   "failed_restart": np.float64(np.nan if self.failed_restart is None else self.failed_restart)}
+            # few members (a record is written while the fit goes on: each costs the writer time)
+            rec = {"R": R, "P": P, "graph": np.array([
+                self.scores[-1], np.nan if self.failed_restart is None else self.failed_restart,
+                bool(self.restarts_failed) and self.restarts_failed[-1] == t], np.float64)}
+            if self.recovered and self.recovered[-1][0] == t:
+                rec["recovered"] = np.str_(self.recovered[-1][1])
             return rec
         if s == "regularized":
             src = self.reinit_sources[-1][1] if self.reinit_sources and self.reinit_sources[-1][0] == t else -2
@@ -1049,14 +1051,13 @@ class _Converter:
         self.frame_coverage = self.frame_web = None
         s = self.opts.get("strategy")
         if s == "graph":
-            score = float(rec["score"])
+            score, failed, restart_failed = (float(x) for x in rec["graph"])
             self._commit_graph(t, np.asarray(rec["R"]), np.asarray(rec["P"]), score)
-            if str(rec["recovered"]):
+            if "recovered" in rec:
                 self.recovered.append((t, str(rec["recovered"])))
-            if bool(rec["restart_failed"]):
+            if restart_failed:
                 self.restarts_failed.append(t)
-            f = float(rec["failed_restart"])
-            self.failed_restart = None if np.isnan(f) else f
+            self.failed_restart = None if np.isnan(failed) else failed
         elif s == "regularized":
             if int(rec["reinit_source"]) != -2:
                 self.reinit_sources.append((t, int(rec["reinit_source"])))
@@ -1603,7 +1604,8 @@ class _PerFrame:
         return cls(*(np.zeros(T) for _ in dataclasses.fields(cls)))
 
 
-#: the per-frame figures a journal record keeps (:func:`_convert_frames`; ``input_motion`` apart)
+#: the per-frame figures a journal record keeps (:func:`_convert_frames`), in its ``figures``
+#: followed by the input's motion and whether the frame was re-anchored
 _PER_FRAME_RECORD = ("seconds", "coverage", "tail", "web", "buried", "flipped", "area")
 
 
@@ -1693,12 +1695,13 @@ def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info,
         if rec is not None:  # fitted before the interruption: the journal's result and state change
             out[t] = rec["X"]
             conv.replay_step(t, out[t], rec)
-            if bool(rec["reanchored"]):
+            *figures, motion, reanchored = (float(x) for x in rec["figures"])
+            if reanchored:
                 info.reanchored_frames.append(t)
-            for name in _PER_FRAME_RECORD:
-                getattr(pf, name)[t] = float(rec[name])
+            for name, x in zip(_PER_FRAME_RECORD, figures):
+                getattr(pf, name)[t] = x
             if samples.get(t - s) is not None:
-                pf.input_motion[m] = float(rec["input_motion"])
+                pf.input_motion[m] = motion
         else:
             frame = _device_frame(v, f, device)
             reanchored = bool(step(frame, t))
@@ -1718,9 +1721,9 @@ def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info,
                 raise RuntimeError(f"{where}: conversion ({strategy}) produced NaN/inf at frame {t}; "
                                    "the input frame may be degenerate")
             if journal is not None:
-                journal.write(index, t, raw[t], X=out[t], reanchored=np.bool_(reanchored),
-                              **{name: np.float64(getattr(pf, name)[t]) for name in _PER_FRAME_RECORD},
-                              input_motion=np.float64(pf.input_motion[m] if m < T else 0.0), **change)
+                figures = [getattr(pf, name)[t] for name in _PER_FRAME_RECORD]
+                figures += [pf.input_motion[m] if m < T else 0.0, reanchored]
+                journal.write(index, t, raw[t], X=out[t], figures=np.array(figures, np.float64), **change)
         samples = {K: samples.get(K), t: _motion_sample(v, device)} if t != K else {K: _motion_sample(v, device)}
         conv.first = False
         lo, hi = (t, t) if lo is None else (min(lo, t), max(hi, t))
