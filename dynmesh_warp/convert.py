@@ -54,6 +54,7 @@ import contextvars
 import dataclasses
 import os
 import re
+import shutil
 import sys
 import time
 import warnings
@@ -3204,6 +3205,9 @@ def _open_journal(a, opts: dict, inputs: list) -> ConversionJournal:
     if os.path.lexists(folder):
         read_journal(folder)  # a folder of that name that is no journal is named as such
         n = len(list(folder.glob("run_*_*.npz")))
+        if n == 0:  # killed before its first fit was written: nothing to go on from
+            shutil.rmtree(folder, ignore_errors=True)
+            return ConversionJournal(folder, identity)
         raise ValueError(f"output {a.output}: an interrupted conversion of it left {n} frame fits in {folder}; give "
                          "--resume to go on from them, or remove that folder to start over")
     return ConversionJournal(folder, identity)

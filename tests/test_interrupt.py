@@ -693,6 +693,23 @@ def test_convert_resume_command_line(tmp_path, varying_npz, capsys):
     assert f"no interrupted conversion of {out} to go on with" in capsys.readouterr().err
 
 
+def test_a_journal_without_fits_is_started_over(tmp_path):
+    """Killed before its first fit was written, a conversion leaves a journal with nothing to go
+    on from: the same command starts over (no --resume asked for) and removes it at the end."""
+    from dynmesh_warp.convert import main
+    from dynmesh_warp.convert_journal import ConversionJournal, journal_path
+    from dynmesh_warp.io import save_sequence
+    from dynmesh_warp.scenes import torus_to_sphere
+
+    src = tmp_path / "in.npz"
+    save_sequence(torus_to_sphere(frames=4, resolution=16), src)
+    out = tmp_path / "out.npz"
+    ConversionJournal(journal_path(out), {}).run({"a": 1})  # journal.json and a run, no fit
+    assert journal_path(out).is_dir()
+    assert main([str(src), str(out), "--strategy", "tracking", "--device", "cpu", "--no-progress"]) == 0
+    assert out.is_file() and not journal_path(out).exists()
+
+
 def test_convert_leaves_a_foreign_journal_name_alone(tmp_path, varying_npz, capsys):
     from dynmesh_warp.convert import main
 
