@@ -2925,9 +2925,10 @@ def conversion_summary(info: ConversionInfo) -> list:
                      f"frame {un[0][0]}); they add no surface")
     rims = [(s, n) for s, n in zip(info.segments, info.open_edges) if n]
     if rims:
-        where = ("the template" if len(info.segments) == 1 else
-                 ", ".join(f"the template of frames {a}..{b - 1}" for (a, b, _k, _n), _ in rims))
-        lines.append(f"note: {where} is open: {', '.join(str(n) for _, n in rims)} edges on the rim of a hole or a "
+        where = ("the template is" if len(info.segments) == 1 else
+                 "the templates of frames " + ", ".join(f"{a}..{b - 1}" for (a, b, _k, _n), _ in rims)
+                 + (" are" if len(rims) > 1 else " is"))
+        lines.append(f"note: {where} open: {', '.join(str(n) for _, n in rims)} edges on the rim of a hole or a "
                      "sheet's border (as its key frame has them); every output frame keeps them, and a sphere can "
                      "pass through a hole")
     ev = info.topology_events
@@ -3026,8 +3027,11 @@ def conversion_summary(info: ConversionInfo) -> list:
     poor_web = np.flatnonzero(web > POOR_WEB)
     if poor_web.size:
         if info.rejected_cuts:
-            then = ("; a new template from frame " + ", ".join(str(a) for a, _ in info.rejected_cuts)
-                    + " was tried and fitted no better, so one was kept")
+            # (a cut tried inside one of several segments: those segments stay; it said "so one was
+            # kept" beside "3 segments", a new user's)
+            kept = "so one was kept" if not segs else f"so the {len(segs)} templates above were kept"
+            then = (("; a new template from frame " if len(info.rejected_cuts) == 1 else "; new templates from frames ")
+                    + ", ".join(str(a) for a, _ in info.rejected_cuts) + " fitted no better where tried, " + kept)
         elif segs:
             then = ""
         else:

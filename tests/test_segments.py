@@ -590,3 +590,29 @@ def test_batched_envs_and_newton_refuse_segments_with_the_one_template_hint(tmp_
                                           name="new faces every frame")  # no segments to keep
         with pytest.raises(SceneError, match=rf"{who} a fixed-topology surface; set surface\.conversion"):
             build(cfg, varying)
+
+
+def test_summary_of_a_cut_tried_inside_kept_segments():
+    """A cut tried and rejected inside one of several segments: the summary said "so one was kept"
+    next to "3 templates" (a new user's README run); it now says the templates above were kept."""
+    from dynmesh_warp.convert import ConversionInfo, conversion_summary
+
+    T = 24
+    info = ConversionInfo("projection", {}, T, 100, key_frame=0)
+    for name in ("coverage", "coverage_tail", "web", "buried", "flipped", "frame_seconds"):
+        setattr(info, name, [0.0] * T)
+    info.area_ratio, info.frame_motion, info.input_motion = [1.0] * T, [0.01] * T, [0.01] * T
+    info.web[5] = info.web[6] = 0.05
+    info.segments = [(0, 10, 0, 100), (10, 11, 10, 90), (11, 24, 11, 95)]
+    info.open_edges = [19, 0, 19]
+    info.rejected_cuts = [(0, 11)]
+    lines = conversion_summary(info)
+    web = [ln for ln in lines if ln.startswith("warning: web on 2 frame(s)")]
+    assert len(web) == 1 and web[0].endswith("a new template from frame 0 fitted no better where tried, so the 3 "
+                                             "templates above were kept"), web
+    assert not any("so one was kept" in ln for ln in lines)
+    assert any(ln.startswith("note: the templates of frames 0..9, 11..23 are open: 19, 19 edges") for ln in lines)
+    info.segments, info.open_edges = [(0, 24, 0, 100)], [19]
+    lines = conversion_summary(info)
+    assert any(ln.endswith("fitted no better where tried, so one was kept") for ln in lines)
+    assert any(ln.startswith("note: the template is open: 19 edges") for ln in lines)
