@@ -571,11 +571,15 @@ class _Converter:
         (t_from the key frame, t_before the frame after it), or past a bridged input dropout (the
         frame before it, and the one before that). The graph strategy predicts from frames
         t_before and t_from (the pass continues their motion)."""
-        self.X.assign(wp.array(np.ascontiguousarray(X, np.float32), dtype=wp.vec3, device=self.device))
+        self._set_result(X)
         self.first = False
         if self.opts.get("strategy") == "graph":
             fs = self.frame_states
             self.history = ([fs[t_before]] if t_before in fs else []) + [fs[t_from]]
+
+    def _set_result(self, X: np.ndarray) -> None:
+        """self.X <- X (N, 3) [m] from the host."""
+        self.X.assign(wp.array(np.ascontiguousarray(X, np.float32), dtype=wp.vec3, device=self.device))
 
     def web(self, frame, diag: float) -> float:
         """:func:`web_fraction` of the converted surface (self.X) against the input ``frame``
@@ -1048,7 +1052,7 @@ class _Converter:
     def replay_step(self, t: int, X: np.ndarray, rec: dict) -> None:
         """Frame t as the step left it, from a journal record (:meth:`step_record`) and the
         result X (N, 3): the converter goes on as if it had fitted the frame."""
-        self.X.assign(wp.array(np.ascontiguousarray(X, np.float32), dtype=wp.vec3, device=self.device))
+        self._set_result(X)
         self.frame_coverage = self.frame_web = None
         s = self.opts.get("strategy")
         if s == "graph":
@@ -3196,7 +3200,7 @@ def _remove_output(path: Path) -> None:
 def _open_journal(a, opts: dict, inputs: list) -> ConversionJournal:
     """The journal of this command's conversion (``convert_journal``): the interrupted one's with
     ``--resume``; else a new one, refused where an interrupted conversion's journal is there."""
-    from .convert_journal import journal_path, read_journal
+    from .convert_journal import fit_count, journal_path, read_journal
 
     folder = journal_path(a.output)
     real = lambda q: None if q is None else os.path.realpath(Path(q).expanduser())  # noqa: E731
@@ -3208,7 +3212,7 @@ def _open_journal(a, opts: dict, inputs: list) -> ConversionJournal:
         return ConversionJournal(folder, identity, resume=True)
     if os.path.lexists(folder):
         read_journal(folder)  # a folder of that name that is no journal is named as such
-        n = len(list(folder.glob("run_*_*.npz")))
+        n = fit_count(folder)
         if n == 0:  # killed before its first fit was written: nothing to go on from
             shutil.rmtree(folder, ignore_errors=True)
             return ConversionJournal(folder, identity)
@@ -3427,8 +3431,8 @@ def main(argv=None) -> int:
         print(f"interrupted by {reason}: wrote {written} with input frames {res.conversion.first_frame}.."
               f"{res.conversion.first_frame + res.num_frames - 1} of 0..{seq.num_frames - 1} ({stored}){later}"
               + (f"; {kept}, which was there before, is unchanged" if kept else "")
-              + f"; the same command with --resume goes on from the {journal.frames()} frame fits done "
-              f"({journal.folder})", file=sys.stderr)
+              + (f"; the same command with --resume goes on from the {n} frame fits done ({journal.folder})"
+                 if (n := journal.frames()) else ""), file=sys.stderr)
         import signal
 
         return 128 + int(getattr(signal, reason, signal.SIGINT))

@@ -41,10 +41,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .outputs import _strict, atomic_path, atomic_write_json
+from .outputs import MANIFEST, _strict, atomic_path, atomic_write_json
 
 __all__ = ["FORMAT", "JOURNAL_SUFFIX", "JournalError", "ConversionJournal", "RunJournal", "journal_path",
-           "frame_digest", "read_journal"]
+           "frame_digest", "read_journal", "fit_count"]
 
 FORMAT = "dynmesh_warp.convert-journal/1"
 JOURNAL_SUFFIX = ".convert-journal"
@@ -69,6 +69,21 @@ def frame_digest(*arrays) -> str:
         h.update(str((a.dtype.str, a.shape)).encode())
         h.update(a.data)
     return h.hexdigest()
+
+
+def fit_count(folder) -> int:
+    """The frame fits a journal folder holds (all runs; 0 where there is no folder)."""
+    folder = Path(folder)
+    return len(list(folder.glob("run_*_*.npz"))) if folder.is_dir() else 0
+
+
+def _stamp(path: Path) -> tuple | None:
+    """(size, mtime_ns) of an output: a file's, or a folder output's manifest's; None if absent."""
+    try:
+        st = (path / MANIFEST if path.is_dir() else path).stat()
+    except OSError:
+        return None
+    return st.st_size, st.st_mtime_ns
 
 
 def _canonical(obj) -> str:
@@ -109,6 +124,7 @@ class ConversionJournal:
         self.replayed = 0  # frames taken from the journal
         self.written = 0  # frames given to it to write
         self.failed = None  # why writing stopped (a full disk: the conversion goes on without a journal)
+        self._warned = False  # ... said once
         self._queue = None  # the writer thread's (path, frame (V, F), t, arrays), while it runs
         self._writer = None
         if resume:
@@ -139,7 +155,7 @@ class ConversionJournal:
     def frames(self) -> int:
         """Frame records in the journal folder (all runs), once the ones given are written."""
         self.flush()
-        return len(list(self.folder.glob("run_*_*.npz"))) if self.folder.is_dir() else 0
+        return fit_count(self.folder)
 
     # --- the writer thread: a record's digest and file are made off the conversion's thread
     # (about 2 ms a frame of a 10k-vertex template on a 2-core CPU: 5-10 % of a GPU conversion's frame)
@@ -173,7 +189,7 @@ class ConversionJournal:
         """Wait until every record given is written; warn once if writing failed."""
         if self._writer is not None:
             self._queue.join()
-        if self.failed is not None and not getattr(self, "_warned", False):
+        if self.failed is not None and not self._warned:
             self._warned = True
             warnings.warn(f"conversion journal: could not write {self.failed}; the conversion goes on without a "
                           "journal (a stop from here on cannot be resumed past the frames written)", stacklevel=2)
@@ -189,12 +205,10 @@ class ConversionJournal:
     def note_partial(self, path) -> None:
         """Record the partial output a stopped conversion wrote (``--resume`` may replace it)."""
         p = Path(path)
-        q = p / ".dynmesh_outputs.json" if p.is_dir() else p
-        try:
-            st = q.stat()
-        except OSError:
+        stamp = _stamp(p)
+        if stamp is None:
             return
-        self.doc["partial"] = {"path": str(p.resolve()), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
+        self.doc["partial"] = {"path": str(p.resolve()), "size": stamp[0], "mtime_ns": stamp[1]}
         if self.folder.is_dir():
             atomic_write_json(self.folder / _HEAD, self.doc)
 
@@ -204,12 +218,7 @@ class ConversionJournal:
         if not isinstance(rec, dict):
             return None
         p = Path(str(rec.get("path")))
-        q = p / ".dynmesh_outputs.json" if p.is_dir() else p
-        try:
-            st = q.stat()
-        except OSError:
-            return None
-        return p if (st.st_size, st.st_mtime_ns) == (rec.get("size"), rec.get("mtime_ns")) else None
+        return p if _stamp(p) == (rec.get("size"), rec.get("mtime_ns")) else None
 
     def remove(self) -> None:
         """Delete the journal (the conversion is complete)."""
