@@ -855,7 +855,7 @@ def test_the_run_line_says_when_spheres_fell_past_the_surface(tmp_path):
     w = build_world(load_scene_config(scene_yaml(tmp_path, scene)), device="cpu")
     for _ in range(150):
         w.step()
-    assert "1 of 2 spheres fell past the surface" in w.run_line()[1] and "surface.up_axis=y" in w.run_line()[1]
+    assert "1 of 2 spheres fell past the surface" in w.run_line()[1] and "surface.up_axis=y or z" in w.run_line()[1]
     scene["spheres"] = scene["spheres"][:1]
     w = build_world(load_scene_config(scene_yaml(tmp_path, scene)), device="cpu")
     for _ in range(150):
