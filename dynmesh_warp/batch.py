@@ -51,7 +51,7 @@ from .kernels.batch import (
 from .kernels.frames import add_points_offset, update_frame_vertices
 from .runtime import free_bytes
 from .world import (Contacts, PhysicsParams, SphereModel, SurfaceModel, check_substep_budget, fallen_past_note,
-                    frame_pair_host, playback_cycle_host, seam_note)
+                    frame_pair_host, playback_cycle_host, resolve_playback, seam_note)
 
 __all__ = ["BatchModel", "BatchState", "BatchedWorld", "step_envs", "required_substeps", "env_clocks", "TIME_SLICES",
            "BATCH_TILE_THREADS", "HYBRID_BUDGET", "default_batch_search", "HYBRID_BLOCKS", "ContactQuery",
@@ -259,7 +259,7 @@ def _clocks(model: BatchModel, times, rates, playback):
         vals = [playback] * E if one else list(playback)  # one mode of another type: parse names it
         if len(vals) != E:
             raise ValueError(f"playback: expected one mode or {E}, got {len(vals)}")
-        m = np.array([PLAYBACK_CODES[parse(Playback, v, "playback")] for v in vals], np.int32)
+        m = np.array([PLAYBACK_CODES[Playback(resolve_playback(model.surface.sequence, v))] for v in vals], np.int32)
     return t, r, m
 
 

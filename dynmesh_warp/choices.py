@@ -86,6 +86,10 @@ class RebuildEvery(StrEnum):
 class Playback(StrEnum):
     """Times past the last frame."""
 
+    #: ``loop`` where the animation repeats (its last frame is as near its first as two frames
+    #: within it are: ``sequence.repeats``), else ``clamp`` (the last frame held): resolved on
+    #: the sequence by ``sequence.resolve_playback``, before anything plays it
+    AUTO = "auto"
     LOOP = "loop"
     CLAMP = "clamp"
     PINGPONG = "pingpong"
@@ -204,14 +208,17 @@ SPHERE_GRID_SERIAL_RESOLVE = 16384
 #: threads per sphere of the face-parallel search's second pass (the faces around the winning
 #: face's three vertices, ~18 on a regular mesh, taken in parallel)
 SWEPT_RESOLVE_THREADS = 32
-DEFAULT_PLAYBACK = Playback.LOOP
+#: a captured animation that does not repeat is held at its end, not swept back to its first
+#: frame at hundreds of m/s (docs/physics.md, "Playback")
+DEFAULT_PLAYBACK = Playback.AUTO
 DEFAULT_FRAME_ORDER = FrameOrder.STORED
 DEFAULT_ORIENTATION = Orientation.AUTO
 DEFAULT_UP_AXIS = UpAxis.AUTO
 DEFAULT_STRATEGY = Strategy.GRAPH
 DEFAULT_NEWTON_SOLVER = NewtonSolver.XPBD
 
-#: integer code of each playback mode, as the kernels branch on it (kernels/frames.py)
+#: integer code of each playback mode, as the kernels branch on it (kernels/frames.py); ``auto``
+#: has none: it is resolved to one of these on the sequence first
 PLAYBACK_CODES = {Playback.LOOP: 0, Playback.CLAMP: 1, Playback.PINGPONG: 2}
 
 #: the strategy names, in the enum's order

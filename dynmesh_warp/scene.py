@@ -13,7 +13,8 @@ from .runtime import free_bytes, scene_device
 from .geometry import orient_faces, points_inside, up_from_gravity
 from .sequence import (FixedTopologySequence, MeshDataError, TopologyMismatchError, VaryingTopologySequence, upsampled_frames,
                        surface_vertices)
-from .world import Model, PhysicsParams, SphereModel, State, World, surface_model, surface_model_class
+from .world import (Model, PhysicsParams, SphereModel, State, World, playback_note, resolve_playback, surface_model,
+                    surface_model_class)
 
 __all__ = ["load_surface", "prepare_surface", "scene_spheres", "scene_ground", "build_model", "build_world"]
 
@@ -293,6 +294,9 @@ def prepare_surface(seq, cfg: SceneConfig):
                 if line.startswith("warning: "):
                     warnings.warn(f"{where}: surface.conversion: {scene_keys(line[len('warning: '):])}", UserWarning,
                                   stacklevel=2)
+    note = playback_note(seq, s.playback)
+    if note:
+        warnings.warn(f"{where}: {note}", stacklevel=2)
     seq = _upsampled(seq, s, where)
     seq.up_axis = "z"  # the scene's frame: saved, it is read back unturned (io.stored_up_axis aside)
     return seq
@@ -309,12 +313,13 @@ def _upsampled(seq, s, where: str):
                          "frames cannot be blended across a change of faces; convert it to one template first "
                          "(surface.conversion, or python -m dynmesh_warp.convert to an .npz file) or leave "
                          "surface.upsample at 1")
-    frames = upsampled_frames(seq.num_frames, factor, str(s.playback))
+    playback = resolve_playback(seq, s.playback)
+    frames = upsampled_frames(seq.num_frames, factor, playback)
     need, free = frames * seq.num_vertices * 12, free_bytes()  # float32 frames, host (the device holds a copy)
     if free and need > free:
         raise SceneError(f"surface.upsample {factor}: {frames:,} frames of {seq.num_vertices:,} vertices need "
                          f"{need / 2**30:,.1f} GiB, {free / 2**30:,.1f} GiB free; a smaller factor")
-    return seq.upsampled(factor, str(s.playback))
+    return seq.upsampled(factor, playback)
 
 
 #: convert's command-line flags in its summary, and the scene keys that set the same in a scene's

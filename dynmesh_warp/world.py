@@ -83,6 +83,10 @@ __all__ = [
     "surface_model",
     "surface_model_class",
     "frame_pair_host",
+    "resolve_playback",
+    "playback_note",
+    "seam_jumps",
+    "SEAM_REPEAT_RATIO",
 ]
 
 #: playback name -> the integer code the kernels branch on (dynmesh_warp.choices.PLAYBACK_CODES)
@@ -180,13 +184,55 @@ class PhysicsParams(PhysicsCore):
 _REFERENCE = {"radius": 0.05, "speed": 1.0, "dt": 1.0 / 240.0}
 
 
+#: the loop's seam (the jump from the last frame back to the first) repeats the animation when its
+#: largest vertex jump is at most this many times the largest between two frames within it
+#: (measured: horse_gallop 0.79, the default scene's wave_bowl 0.76; pcow 2.8, chicken_crossing
+#: 14.9, horse_collapse 28.9)
+SEAM_REPEAT_RATIO = 1.5
+
+
+def seam_jumps(seq) -> tuple[float, float]:
+    """``(seam, within)``: the largest vertex jump from the last frame of the fixed-topology
+    ``seq`` back to its first, and the largest between two consecutive frames within it [m]."""
+    if seq.num_frames < 2:
+        return 0.0, 0.0
+    return (float(np.linalg.norm(seq.V[0] - seq.V[-1], axis=-1).max()),
+            float(np.linalg.norm(np.diff(seq.V, axis=0), axis=-1).max()))
+
+
+def resolve_playback(seq, playback) -> str:
+    """The playback mode's name with ``auto`` resolved on ``seq`` (``choices.Playback.AUTO``):
+    ``loop`` where the animation repeats (its seam no larger than ``SEAM_REPEAT_RATIO`` x the
+    largest jump between two frames within it: :func:`seam_jumps`), else ``clamp``. A varying
+    topology's frames have no vertex correspondence to measure a seam by: ``loop``. Other modes
+    are returned as given (parsed)."""
+    mode = parse(Playback, playback, "playback")
+    if mode != Playback.AUTO:
+        return mode.value
+    if not isinstance(seq, FixedTopologySequence):
+        return Playback.LOOP.value
+    seam, within = seam_jumps(seq)
+    return (Playback.LOOP if seam <= SEAM_REPEAT_RATIO * within else Playback.CLAMP).value
+
+
+def playback_note(seq, playback) -> str:
+    """Words for the user where ``auto`` holds the last frame (``""`` otherwise): the seam's jump
+    against the motion within the animation, and how to loop it anyway."""
+    if parse(Playback, playback, "playback") != Playback.AUTO or resolve_playback(seq, playback) != Playback.CLAMP:
+        return ""
+    seam, within = seam_jumps(seq)
+    return (f"surface.playback auto: clamp (the animation does not repeat: its last frame lies up to {seam:.3g} m "
+            f"from its first, against {within:.3g} m between two frames within it), so its last frame is held "
+            "after it ends; surface.playback: loop to repeat it anyway, pingpong to play it back and forth")
+
+
 def seam_note(surface) -> str:
     """Where the loop's seam (the jump from the last frame back to the first) is what sets the
     surface's speed, words saying so: most captured animations do not repeat, and under the
     default ``playback: loop`` a new user's sheet moving at 0.5 m/s was reported at 24 m/s and ran
     4 sub-steps a step."""
     seam, motion = float(surface.seam_speed), float(surface.motion_speed)
-    if seam <= 0 or seam < float(surface.max_speed) or seam <= 1.5 * motion:
+    if seam <= 0 or seam < float(surface.max_speed) or seam <= SEAM_REPEAT_RATIO * motion:
         return ""
     return (f" (the jump from the last frame back to the first under surface.playback: loop; within the "
             f"animation {motion:.3g} m/s: for an animation that does not repeat, set "
@@ -223,7 +269,8 @@ class SurfaceModel:
         frames: wp.array2d(vec3), (T, N) vertex positions per reconstruction frame [m].
         indices: wp.array(int32), (3M,) triangle vertex indices, shared by all frames.
         fps: reconstruction frame rate [1/s]; frame k = floor(t * fps) (``frame_pair_host``).
-        playback: int code of "loop" | "clamp" | "pingpong" (times past the last frame).
+        playback: int code of "loop" | "clamp" | "pingpong" (times past the last frame; "auto"
+            resolved on the sequence first: :func:`resolve_playback`).
         interpolate: blend frames k and k+1 linearly (else hold frame k).
         max_speed: largest vertex speed over the sequence [m/s] (host float): the larger of
         motion_speed (within the animation) and seam_speed (loop: the jump from the last frame
@@ -233,7 +280,7 @@ class SurfaceModel:
     """
 
     def __init__(self, seq: FixedTopologySequence, device=None, playback: str = DEFAULT_PLAYBACK, interpolate: bool = True):
-        playback = parse(Playback, playback, "playback").value
+        playback = resolve_playback(seq, playback)
         self.sequence = seq
         self.device = wp.get_device(device)
         self.frames = wp.array(seq.V, dtype=wp.vec3, device=self.device)
@@ -342,7 +389,7 @@ class VaryingSurfaceModel:
 
     def __init__(self, seq: VaryingTopologySequence, device=None, playback: str = DEFAULT_PLAYBACK,
                  interpolate: bool = True):
-        playback = parse(Playback, playback, "playback").value
+        playback = resolve_playback(seq, playback)
         self.sequence = seq
         self.device = wp.get_device(device)
         runs = seq.segments()

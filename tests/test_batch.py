@@ -190,7 +190,7 @@ def test_reset_touches_only_the_named_envs(device):
         with pytest.raises(ValueError, match="env_mask: expected booleans, one per env"):
             a.reset(bad)
     # one playback mode of another type was a TypeError ("'int' object is not iterable")
-    with pytest.raises(ValueError, match=r"playback must be one of \['loop', 'clamp', 'pingpong'\], got 1"):
+    with pytest.raises(ValueError, match=r"playback must be one of \['auto', 'loop', 'clamp', 'pingpong'\], got 1"):
         a.reset(mask, playback=1)
     a.reset(mask, playback="pingpong")
 

@@ -338,7 +338,9 @@ def test_millimetre_data_warns_and_scale_fixes_it(tmp_path):
     cfg = SceneConfig.model_validate({"surface": {"source": str(tmp_path / "mm.npz")}})
     with pytest.warns(UserWarning, match=r"m across.*surface\.scale"):
         load_surface(cfg)
-    cfg = SceneConfig.model_validate({"surface": {"source": str(tmp_path / "mm.npz"), "scale": 0.001}})
+    # a playback named: auto would say that this motion does not repeat (a warning of its own)
+    cfg = SceneConfig.model_validate({"surface": {"source": str(tmp_path / "mm.npz"), "scale": 0.001,
+                                                  "playback": "clamp"}})
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         seq = load_surface(cfg)
@@ -357,8 +359,8 @@ def test_scene_far_from_the_origin_is_refused_or_warned_and_translate_fixes_it()
         seq = FixedTopologySequence(V, F, fps=30.0, name="far")
         ulp = float(np.spacing(np.float32(np.abs(V).max())))  # the rule, computed independently
         assert expect == ("error" if ulp > PRECISION_ERROR * r else "warn" if ulp > PRECISION_WARN * r else "ok")
-        cfg = SceneConfig.model_validate({"surface": {"source": "builtin:wave_bowl"},
-                                          "spheres": {"count": 2, "radius": r}})
+        cfg = SceneConfig.model_validate({"surface": {"source": "builtin:wave_bowl", "playback": "clamp"},
+                                          "spheres": {"count": 2, "radius": r}})  # named: auto would say it
         if expect == "error":
             with pytest.raises(SceneError, match=r"coordinates reach 1e\+05 m .* resolves only 7\.8 mm.*"
                                                  r"surface\.translate: \[-100000\.0, 100000\.0, -0\.5\]"):
@@ -1315,3 +1317,53 @@ def test_upsample_beyond_the_free_memory_is_refused(monkeypatch):
     cfg = SceneConfig.model_validate({"surface": {"upsample": 100, "playback": "clamp"}})
     with pytest.raises(SceneError, match=r"surface\.upsample 100: 201 frames of 42 vertices need .* GiB free; a smaller factor"):
         build_world(cfg, device="cpu", sequence=seq)
+
+
+def test_auto_playback_loops_only_an_animation_that_repeats(tmp_path):
+    """The default ``surface.playback: auto``: a sheet rising 1 m over 24 frames (chicken_crossing,
+    walking 4 m, was swept back at 95 m/s under the old default ``loop`` and ran 16 sub-steps a
+    step) is held at its last frame, with a warning naming both jumps, and the sub-steps follow its
+    own motion; a sheet bobbing through whole periods loops, unsaid; a mode a scene names is kept."""
+    from dynmesh_warp.config import load_scene_config
+    from dynmesh_warp.world import SEAM_REPEAT_RATIO, frame_pair_host, resolve_playback, seam_jumps
+
+    V, F = _sheet()
+    T = 24
+    rise = np.stack([V + [0.0, 0.0, 1.0 * k / (T - 1)] for k in range(T)]).astype(np.float32)
+    bob = np.stack([V + [0.0, 0.0, 0.2 * np.sin(2 * np.pi * k / T)] for k in range(T)]).astype(np.float32)
+    np.savez(tmp_path / "rise.npz", V=rise, F=F.astype(np.int32), fps=24.0)
+    np.savez(tmp_path / "bob.npz", V=bob, F=F.astype(np.int32), fps=24.0)
+    seam, within = seam_jumps(FixedTopologySequence(rise, F, fps=24.0))
+    assert seam == pytest.approx(1.0, abs=1e-6) and within == pytest.approx(1.0 / 23, abs=1e-6)
+    spheres = [{"position": [0.0, 0.0, 1.8], "radius": 0.05}]
+
+    def world(source, **surface):
+        path = scene_yaml(tmp_path, {"surface": {"source": source, **surface}, "spheres": spheres})
+        with warnings.catch_warnings(record=True) as got:
+            warnings.simplefilter("always")
+            w = build_world(load_scene_config(path), device="cpu")
+        return w, [str(x.message) for x in got]
+
+    held, said = world("rise.npz")
+    assert held.model.surface.playback_name == "clamp" and held.substeps == 1
+    note = [m for m in said if "surface.playback auto: clamp" in m]
+    assert len(note) == 1 and "up to 1 m from its first, against 0.0435 m" in note[0]
+    assert not any("raising substeps" in m for m in said)
+    # past the end the last frame is held: the pair (T-1, T-1), not a blend back to frame 0
+    k0, k1, _ = frame_pair_host(1.5 * T / 24.0, 24.0, T, held.model.surface.playback)
+    assert (k0, k1) == (T - 1, T - 1)
+    looped, said = world("rise.npz", playback="loop")  # named: kept, and its seam counted as before
+    assert looped.model.surface.playback_name == "loop" and looped.substeps > 1
+    assert any("the jump from the last frame back to the first" in m for m in said)
+    bobbing, said = world("bob.npz")
+    assert bobbing.model.surface.playback_name == "loop" and not any("playback auto" in m for m in said)
+    # the rule itself on either side of SEAM_REPEAT_RATIO (largest step within 0.1 m)
+    for last, mode in ((0.149, "loop"), (0.151, "clamp")):
+        z = [0.0, 0.1, 0.2, last]
+        edge = FixedTopologySequence(np.stack([V + [0.0, 0.0, h] for h in z]).astype(np.float32), F, fps=24.0)
+        assert last / 0.1 - SEAM_REPEAT_RATIO == pytest.approx(0.01 if mode == "clamp" else -0.01)
+        assert resolve_playback(edge, "auto") == mode
+    assert resolve_playback(FixedTopologySequence(rise[:2], F, fps=24.0), "pingpong") == "pingpong"
+    from dynmesh_warp.sequence import VaryingTopologySequence
+
+    assert resolve_playback(VaryingTopologySequence([(rise[0], F), (rise[-1], F[:-1])], fps=24.0), "auto") == "loop"
