@@ -229,14 +229,15 @@ def playback_note(seq, playback) -> str:
 def seam_note(surface) -> str:
     """Where the loop's seam (the jump from the last frame back to the first) is what sets the
     surface's speed, words saying so: most captured animations do not repeat, and under the
-    default ``playback: loop`` a new user's sheet moving at 0.5 m/s was reported at 24 m/s and ran
-    4 sub-steps a step."""
+    then default ``playback: loop`` a new user's sheet moving at 0.5 m/s was reported at 24 m/s and
+    ran 4 sub-steps a step (``auto``, the default now, holds such an animation's last frame; this
+    is said where a scene names ``loop``)."""
     seam, motion = float(surface.seam_speed), float(surface.motion_speed)
     if seam <= 0 or seam < float(surface.max_speed) or seam <= SEAM_REPEAT_RATIO * motion:
         return ""
     return (f" (the jump from the last frame back to the first under surface.playback: loop; within the "
             f"animation {motion:.3g} m/s: for an animation that does not repeat, set "
-            "surface.playback: clamp or pingpong)")
+            "surface.playback: auto, clamp or pingpong)")
 
 
 def check_substep_budget(need: int, speed: float, r_min: float, p, note: str = "") -> None:
