@@ -146,7 +146,10 @@ def test_spheres_rest_at_same_heights_as_our_world(device):
         np.testing.assert_allclose(p[:, 2], ref, atol=1.5e-3)
     # they stay in their dimples (different heights) and agree with each other
     np.testing.assert_allclose(p_newton[:, 2], p_ours[:, 2], atol=2e-3)
-    np.testing.assert_allclose(p_newton[:, :2], pos[:, :2], atol=0.03)
+    # within one grid cell (2 m / 23) of the dimple's centre: the shallowest dimple's faceted bottom
+    # is nearly flat over a cell, and Newton on CUDA (atomic order) left that sphere 3.4 cm off once
+    # in an 8-worker run on an H200 (0.4-1.8 cm otherwise)
+    np.testing.assert_allclose(p_newton[:, :2], pos[:, :2], atol=2.0 / 23)
     assert np.all(np.diff(p_ours[:, 2]) < -0.03)
 
 
