@@ -86,9 +86,9 @@ class RebuildEvery(StrEnum):
 class Playback(StrEnum):
     """Times past the last frame."""
 
-    #: ``loop`` where the animation repeats (its last frame is as near its first as two frames
-    #: within it are: ``sequence.repeats``), else ``clamp`` (the last frame held): resolved on
-    #: the sequence by ``sequence.resolve_playback``, before anything plays it
+    #: ``loop`` where the animation repeats (its last frame about as near its first as two
+    #: frames within it are), else ``clamp`` (the last frame held): resolved on the sequence by
+    #: ``world.resolve_playback`` before anything plays it
     AUTO = "auto"
     LOOP = "loop"
     CLAMP = "clamp"
