@@ -1118,7 +1118,8 @@ def fallen_past_note(sequence, params, positions, hint: str = "") -> str:
     if not fell:
         return ""
     return (f"; {fell} of {len(P)} spheres fell past the surface (below its lowest point, no ground plane: "
-            f"{hint}physics.ground auto adds one; the data's up axis not the one it was read with? --set "
+            f"{hint}--set physics.ground=auto would put one at the surface's lowest point; the data's up axis "
+            "not the one it was read with? --set "
             "surface.up_axis=y or z; or pinched "
             "between two parts of the surface closing on them, which one contact per sphere cannot hold: raise "
             "physics.substeps, docs/physics.md)")
