@@ -286,14 +286,36 @@ def surface_velocity_error(gt: FixedTopologySequence, pred, device=None) -> dict
 
 def _segment_runs(pred) -> list:
     """``(start, stop, key frame)`` per template segment of a converted sequence: its
-    ``conversion.segments`` when it has them, else the runs of one topology anchored at their
-    first frame."""
+    ``conversion.segments`` when it has them; for a sequence loaded from a complete ``convert``
+    output, the segments its status records (:func:`_stored_segments`); else the runs of one
+    topology anchored at their first frame."""
     info = getattr(pred, "conversion", None)
     segs = [(int(a), int(b), int(k)) for a, b, k, *_ in getattr(info, "segments", None) or []]
     if segs:
         return segs
     runs = pred.segments() if hasattr(pred, "segments") else [(0, pred.num_frames)]
-    return [(a, b, a) for a, b in runs]
+    return _stored_segments(pred, runs) or [(a, b, a) for a, b in runs]
+
+
+def _stored_segments(pred, runs) -> list:
+    """The ``(start, stop, key frame)`` segments that the complete ``convert`` output ``pred`` was
+    loaded from records in its status (``"segments"``), where they tile the sequence's own runs
+    of one topology; else ``[]``. A loaded output had no ``conversion``, so its segments were
+    anchored at their first frames instead of their key frames (a new user's thrown ball read a
+    drift p99 of 57 % instead of 19.8 %)."""
+    from .outputs import read_status
+
+    src = getattr(pred, "source", None)
+    try:
+        status = read_status(src) if src else None
+        segs = [(int(a), int(b), int(k)) for a, b, k, *_ in (status or {}).get("segments") or []]
+    except (OSError, TypeError, ValueError):  # not a path, or not segments: the runs as they are
+        return []
+    if not (status or {}).get("complete") or not segs:
+        return []
+    if [(a, b) for a, b, _ in segs] != [(int(a), int(b)) for a, b in runs] or any(not a <= k < b for a, b, k in segs):
+        return []
+    return segs
 
 
 def surface_drift(gt: FixedTopologySequence, pred, device=None) -> dict:

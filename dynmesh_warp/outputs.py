@@ -34,7 +34,7 @@ import numpy as np
 
 __all__ = ["atomic_write_bytes", "atomic_write_json", "atomic_write_npz", "atomic_path", "OutputError",
            "OutputExistsError", "check_output", "OutputFolder", "MANIFEST", "read_manifest", "read_manifest_status",
-           "foreign_entries", "apply_umask", "OutputKind", "read_manifest_kind",
+           "read_status", "foreign_entries", "apply_umask", "OutputKind", "read_manifest_kind",
            "add_to_manifest", "temporary", "abandon_temporaries", "beside_path", "entries"]
 
 #: name of the manifest in every folder this tool writes: JSON {"tool": ..., "files": [names],
@@ -231,9 +231,10 @@ def read_manifest_status(folder) -> dict | None:
     return status if isinstance(status, dict) else None
 
 
-def stopped_status(path) -> dict | None:
-    """The status of a stopped run's output at ``path`` (an npz with a ``status`` member, or a
-    folder with this tool's manifest) when it says ``"complete": false``, else None."""
+def read_status(path) -> dict | None:
+    """The ``status`` a run of this tool stored with its output at ``path``: an npz's ``status``
+    member (JSON) or a folder's manifest (:func:`read_manifest_status`); None where there is none
+    or it cannot be read."""
     path = Path(path)
     if path.is_dir():
         status = read_manifest_status(path)
@@ -245,7 +246,14 @@ def stopped_status(path) -> dict | None:
                 status = json.loads(str(z["status"])) if "status" in z.files else None
         except Exception:  # noqa: BLE001 - unreadable here (a corrupt zip member too): the loader reports what is wrong
             return None
-    return status if isinstance(status, dict) and status.get("complete") is False else None
+    return status if isinstance(status, dict) else None
+
+
+def stopped_status(path) -> dict | None:
+    """The status of a stopped run's output at ``path`` (:func:`read_status`) when it says
+    ``"complete": false``, else None."""
+    status = read_status(path)
+    return status if status is not None and status.get("complete") is False else None
 
 
 def stopped_note(status: dict) -> str:
