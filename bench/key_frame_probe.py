@@ -12,7 +12,7 @@ With a mode, a third run: A guided by transferred B on the frames on B's side of
 "pose" fits A's graph to the transferred surface and A's fit of the real frame starts from that
 pose; "fine" starts A's fine stage from the transferred vertices; the better coverage kept per
 frame. That run is an experiment on the converter's internals (it wraps the private
-``convert._Converter.step_graph`` and calls its private helpers), not a use of the public API:
+``convert_fit._Converter.step_graph`` and calls its private helpers), not a use of the public API:
 it may break with the converter, and both modes were measured worse (docs/conversion.md).
 """
 import json
@@ -27,8 +27,9 @@ import warp as wp  # noqa: E402
 wp.config.quiet = True
 from common import RESULTS, describe_device, write_json  # noqa: E402
 from conversion_eval import ground_truth, varying_input  # noqa: E402
-import dynmesh_warp.convert as cv  # noqa: E402
+import dynmesh_warp.convert_fit as cv  # noqa: E402
 from dynmesh_warp.convert import nearest_surface, to_fixed_topology  # noqa: E402
+from dynmesh_warp.convert_base import _device_frame  # noqa: E402
 from dynmesh_warp.metrics import chamfer_distance  # noqa: E402
 
 
@@ -111,7 +112,7 @@ def main():
             its, lam0, lam1, mu = (int(o["graph_iterations"]), float(o["stiffness"]), float(o["stiffness_end"]),
                                    float(o["damping"]))
             R0, P0 = self.history[-1]
-            Rg, Pg = gf.fit(self._graph_frame(cv._device_frame(GUIDE[t], A.F, self.device)), R0, P0, its, lam0, lam1, mu)
+            Rg, Pg = gf.fit(self._graph_frame(_device_frame(GUIDE[t], A.F, self.device)), R0, P0, its, lam0, lam1, mu)
             R2, P2 = gf.fit(self._graph_frame(frame), Rg, Pg, its, lam1, lam1, mu)
             sc = self._graph_finish(frame, R2, P2)
         else:  # "fine": the transferred vertices themselves, then A's fine stage (fit + relaxation)

@@ -26,8 +26,8 @@ from conversion_eval import add_input_args, probe_input  # noqa: E402
 
 from dynmesh_warp.conversion_options import option_defaults  # noqa: E402
 from dynmesh_warp.outputs import add_to_manifest, atomic_write_npz  # noqa: E402
-from dynmesh_warp.convert import (_as_varying, _chamfer_to_input, _key_frame, _candidate_keys, nearest_surface,  # noqa: E402
-                                  to_fixed_topology)
+from dynmesh_warp.convert import _as_varying, nearest_surface, to_fixed_topology  # noqa: E402
+from dynmesh_warp.convert_input import _candidate_keys, _chamfer_to_input, _key_frame  # noqa: E402
 
 
 def main(argv=None):

@@ -26,15 +26,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import checked_output, describe_device, write_json  # noqa: E402
 from conversion_eval import ground_truth, varying_input  # noqa: E402
 
-from dynmesh_warp.convert import (  # noqa: E402
-    MOVING_SCORE_TAIL,
-    ConversionInfo,
-    _as_varying,
-    _moving_distances,
-    _moving_points,
-    _moving_score_of,
-    _tail_mean,
-)
+from dynmesh_warp.convert import ConversionInfo, _as_varying  # noqa: E402
+from dynmesh_warp.convert_input import _moving_distances, _moving_points, _moving_score_of, _tail_mean  # noqa: E402
+from dynmesh_warp.convert_report import MOVING_SCORE_TAIL  # noqa: E402
 from dynmesh_warp.sequence import FixedTopologySequence  # noqa: E402
 
 

@@ -518,7 +518,7 @@ def test_sphere_starting_inside_a_closed_surface_is_refused():
 
 
 def test_convert_prints_an_estimate_after_the_second_frame_naming_faster_options(capsys):
-    from dynmesh_warp.convert import _TimedFrames
+    from dynmesh_warp.convert_cli import _TimedFrames
 
     frames = _TimedFrames([10, 11, 12, 13], "cpu", "regularized", limit_s=0.0)  # any length is "long"
     assert [frames[t] for t in range(4)] == [10, 11, 12, 13]  # values unchanged

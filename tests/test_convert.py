@@ -410,7 +410,7 @@ def test_frames_in_other_units_are_said_and_never_the_key_frame():
     duplicated capture) was said only as a motion figure."""
     import warnings
 
-    from dynmesh_warp.convert import _candidate_keys, _check_repeats, _check_scales, _key_frame
+    from dynmesh_warp.convert_input import _candidate_keys, _check_repeats, _check_scales, _key_frame
 
     radii = [1.0, 1.05, 1.1, 1000.0, 1.15, 1.1, 2.54 * 1.1, 1.1, 1.05, 1.05]
     frames = _sphere_frames(radii)
@@ -436,7 +436,7 @@ def test_frames_in_other_units_are_said_and_never_the_key_frame():
 
 
 def test_key_frame_auto_is_the_largest_surface_and_tracks_both_ways():
-    from dynmesh_warp.convert import _key_frame
+    from dynmesh_warp.convert_input import _key_frame
 
     radii = [1.0, 1.05, 1.1, 1.3, 1.15, 1.05]
     seq = VaryingTopologySequence(_sphere_frames(radii), name="grow")
@@ -477,7 +477,7 @@ def test_an_open_template_is_said_with_its_rim_edge_count():
 def test_topology_events_name_parts_and_genus():
     import trimesh
 
-    from dynmesh_warp.convert import _topology, _topology_events
+    from dynmesh_warp.convert_input import _topology, _topology_events
 
     s = trimesh.creation.icosphere(2)
     t = trimesh.creation.torus(1.0, 0.3)
@@ -497,7 +497,8 @@ def test_topology_events_name_parts_and_genus():
 
 
 def test_conversion_summary_warns_on_poor_coverage():
-    from dynmesh_warp.convert import POOR_COVERAGE, ConversionInfo, conversion_summary
+    from dynmesh_warp.convert import ConversionInfo, conversion_summary
+    from dynmesh_warp.convert_report import POOR_COVERAGE
 
     info = ConversionInfo("tracking", {}, 4, 10, frame_seconds=[0.1] * 4, key_frame=0,
                           coverage=[0.01, 0.02, POOR_COVERAGE * 2, 0.01], recovered_frames=[(2, "template")])
@@ -533,7 +534,8 @@ def test_area_ratio_is_each_frames_area_over_the_inputs_and_crumpling_is_warned(
     the vertex Chamfer distance called it 13 % better, and nothing was said)."""
     import trimesh
 
-    from dynmesh_warp.convert import POOR_AREA, ConversionInfo, conversion_summary
+    from dynmesh_warp.convert import ConversionInfo, conversion_summary
+    from dynmesh_warp.convert_report import POOR_AREA
 
     frames = []
     for t in range(6):
@@ -582,7 +584,8 @@ def test_frame_motion_and_jumps_are_measured_and_warned():
         assert r.conversion.input_motion[t] == pytest.approx(want_in, rel=1e-3, abs=1e-6)
     assert r.conversion.input_motion[0] == 0.0
     # the translating sphere follows the surface: its vertices move about as far as the surface
-    from dynmesh_warp.convert import SLIDE_WARN, slide_ratio
+    from dynmesh_warp.convert import slide_ratio
+    from dynmesh_warp.convert_report import SLIDE_WARN
 
     slide, per = slide_ratio(r.conversion)
     assert 0.8 < slide < 1.5 and np.isnan(per[0])
@@ -796,7 +799,8 @@ def test_an_occluded_part_is_bridged_by_the_piecewise_conversion():
     loop reached the frame after them: the first run's forward pass ended inside the dropout and a
     new segment from its first frame took the arm away (two segments, the arm lost on 4 frames,
     the surface jumping 35 % of the diagonal where it came back)."""
-    from dynmesh_warp.convert import DROPOUT_FRAMES, to_piecewise_fixed
+    from dynmesh_warp.convert import to_piecewise_fixed
+    from dynmesh_warp.convert_report import DROPOUT_FRAMES
 
     drop = list(range(10, 10 + DROPOUT_FRAMES))
     r = to_piecewise_fixed(_arm_body(dropout=set(drop)), device=DEV)
@@ -869,7 +873,7 @@ def test_floaters_on_every_third_frame_do_not_make_the_key_frame():
     A split sample asks every frame: 8 of 24 have one, so neither the key frame nor a trial does."""
     import trimesh
 
-    from dynmesh_warp.convert import _candidate_keys, _key_frame, _key_frame_fit
+    from dynmesh_warp.convert_input import _candidate_keys, _key_frame, _key_frame_fit
 
     frames = []
     for t in range(24):
@@ -908,7 +912,7 @@ def test_poor_runs_are_re_tracked_from_the_other_side():
     """The repair pass's runs: after the key frame a poor run is re-tracked backward from the good
     frame after it, before the key frame forward from the good frame before it; a run with no
     good frame on that side, or the key frame itself, is left alone."""
-    from dynmesh_warp.convert import _poor_runs
+    from dynmesh_warp.convert_fit import _poor_runs
 
     cov = np.array([0.01, 0.09, 0.08, 0.01, 0.0, 0.01, 0.07, 0.09, 0.01, 0.08])
     K = 4
@@ -957,7 +961,8 @@ def test_key_candidates_rerun_from_spread_keys_and_keep_the_closest_to_the_input
     the input frames is kept, with its own template (each frame here is shuffled, so the faces
     tell which run was kept); the recorded score is that distance, checked against
     metrics.chamfer_distance."""
-    import dynmesh_warp.convert as convert_mod
+    import dynmesh_warp.convert_input as convert_mod
+    import dynmesh_warp.convert_report as report_mod
     from dynmesh_warp.convert import conversion_summary
 
     rng = np.random.default_rng(4)
@@ -970,6 +975,7 @@ def test_key_candidates_rerun_from_spread_keys_and_keep_the_closest_to_the_input
     always = to_fixed_topology(seq, strategy="graph", device=DEV, key_candidates=2, always_try_keys=True)
     assert [k for k, _, _, _ in always.conversion.key_trials] == [3, 1, 4]
     monkeypatch.setattr(convert_mod, "POOR_COVERAGE", -1.0)  # every frame "poor": the candidates run
+    monkeypatch.setattr(report_mod, "POOR_COVERAGE", -1.0)
     res = to_fixed_topology(seq, strategy="graph", device=DEV, key_candidates=2)
     tried = res.conversion.key_trials
     assert [k for k, _, _, _ in tried] == [3, 1, 4]  # the automatic key, then frames 6 (i + 1/2) / 2
@@ -995,7 +1001,7 @@ def test_key_trial_score_is_the_chamfer_distance_to_the_input_on_capped_points(m
     and the input frame, each side cut to at most SCORE_POINTS points by a fixed stride."""
     from types import SimpleNamespace
 
-    import dynmesh_warp.convert as convert_mod
+    import dynmesh_warp.convert_input as convert_mod
 
     rng = np.random.default_rng(2)
     out = rng.normal(size=(3, 120, 3)).astype(np.float32)
@@ -1016,7 +1022,8 @@ def test_key_candidates_need_more_than_one_poor_frame():
     least KEY_RETRY_POOR_FRAMES (2) frames are poor."""
     from types import SimpleNamespace
 
-    from dynmesh_warp.convert import KEY_RETRY_POOR_FRAMES, POOR_COVERAGE, _key_candidates
+    from dynmesh_warp.convert_input import KEY_RETRY_POOR_FRAMES, _key_candidates
+    from dynmesh_warp.convert_report import POOR_COVERAGE
 
     T = 200
     tet = (np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32),
@@ -1048,8 +1055,8 @@ def test_key_candidates_on_coverage_drift():
     each threshold."""
     from types import SimpleNamespace
 
-    from dynmesh_warp.convert import (DRIFT_FLOOR, DRIFT_NEIGHBOURS, DRIFT_RATIO, POOR_COVERAGE,
-                                      _key_candidates, _key_retry_reason)
+    from dynmesh_warp.convert_input import DRIFT_FLOOR, DRIFT_NEIGHBOURS, DRIFT_RATIO, _key_candidates, _key_retry_reason
+    from dynmesh_warp.convert_report import POOR_COVERAGE
 
     T, K = 200, 150
     tet = (np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32),
@@ -1097,7 +1104,8 @@ def test_a_short_run_tries_other_keys_on_one_poor_frame():
     KEY_RETRY_SHORT frames (the trials cost seconds there, and such a run is too short for the
     drift sign); in a longer one it takes KEY_RETRY_POOR_FRAMES, a lone poor frame being an
     outlier there. Both sides of each threshold, with every other frame at the noise level."""
-    from dynmesh_warp.convert import KEY_RETRY_POOR_FRAMES, KEY_RETRY_SHORT, POOR_COVERAGE, _key_retry_reason
+    from dynmesh_warp.convert_input import KEY_RETRY_POOR_FRAMES, KEY_RETRY_SHORT, _key_retry_reason
+    from dynmesh_warp.convert_report import POOR_COVERAGE
 
     assert KEY_RETRY_POOR_FRAMES == 2
     for T in (10, KEY_RETRY_SHORT, KEY_RETRY_SHORT + 1, 200):
@@ -1159,7 +1167,7 @@ def test_frames_wound_inside_out_are_turned_before_the_fit(rigid_varying):
     np.testing.assert_allclose(b.V, a.V, atol=1e-6)
     assert any("turned the faces of 3 input frame(s) wound inside out" in ln for ln in conversion_summary(b.conversion))
     # a sheet (open: no inside) is left as it is, whichever way it faces
-    from dynmesh_warp.convert import _drop_unused
+    from dynmesh_warp.convert_input import _drop_unused
 
     g = np.stack(np.meshgrid(np.linspace(0, 1, 6), np.linspace(0, 1, 6), indexing="ij"), -1).reshape(-1, 2)
     V = np.c_[g, 0.1 * np.sin(3 * g[:, 0])].astype(np.float32)
@@ -1257,7 +1265,7 @@ def test_far_parts_keeps_the_largest_and_near_parts():
     small blob) only the far one goes; the kept faces are the input's other faces, remapped."""
     import trimesh
 
-    from dynmesh_warp.convert import _far_parts
+    from dynmesh_warp.convert_input import _far_parts
 
     s = trimesh.creation.icosphere(subdivisions=2)
     V, F = _with_blob(s.vertices, s.faces, np.array([3.0, 0.0, 0.0]), 0.1)
@@ -1305,7 +1313,7 @@ def test_a_static_floor_does_not_coarsen_the_graph_on_the_subject():
     off in both runs: it also keeps more of the arms on the coarse graph (its first per-part
     version: 4.1 % of the diagonal lost instead of over 6 %), which is not what this test is about."""
     from dynmesh_warp.conversion_options import option_defaults
-    from dynmesh_warp.convert import _node_spacing
+    from dynmesh_warp.convert_input import _node_spacing
     from dynmesh_warp.scenes import articulated_figure, with_floor
 
     fig = articulated_figure(frames=12, resolution=32)  # 12 frames: the key trials still run (4)
@@ -1369,7 +1377,8 @@ def test_the_key_trials_score_sees_the_moving_points_not_the_static_surroundings
     shrinks on one frame only: the score is the tail of the distances pooled over the frames,
     so a part lost on a few frames is not diluted by the frames that keep it (a mean over
     frames would give a ninth)."""
-    from dynmesh_warp.convert import ConversionInfo, _as_varying, _chamfer_to_input, _moving_points, _moving_score
+    from dynmesh_warp.convert import ConversionInfo, _as_varying
+    from dynmesh_warp.convert_input import _chamfer_to_input, _moving_points, _moving_score
 
     V, F, ball = _ball_over_floor()
     var = _as_varying(FixedTopologySequence(V, F).to_varying())
@@ -1402,7 +1411,7 @@ def test_the_moving_part_is_found_on_a_large_template_as_with_every_vertex(monke
     62,500-vertex static sheet (0.07 % of the vertices): asked at every vertex (the reference)
     the part is found, and so it must be when sampled (it was not while the minimum counted every
     vertex: 53 sampled against 125)."""
-    from dynmesh_warp import convert as cv
+    from dynmesh_warp import convert_input as cv
     from dynmesh_warp.conversion_options import option_defaults
     from dynmesh_warp.scenes import grid_sheet
 
@@ -1455,7 +1464,7 @@ def test_the_automatic_key_frame_is_neither_holed_nor_coarse():
     500-vertex frame with a hole, and its hole and resolution went to every output frame (+82 %
     CD). The window's median frame is taken when its middle is > 2 % below, and a frame of about
     the same area with >= 2x the vertices is preferred; otherwise the rule is as before."""
-    from dynmesh_warp.convert import _key_frame
+    from dynmesh_warp.convert_input import _key_frame
 
     def ball(r, subdiv, hole=False):
         V, F = icosphere(subdivisions=subdiv)

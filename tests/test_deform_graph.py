@@ -555,7 +555,7 @@ def test_repair_pass_only_ever_improves_a_frames_coverage(monkeypatch):
     """``repair_passes`` re-tracks poorly covered runs from their other side and keeps, per frame,
     the better result: within one conversion no frame's coverage is worse after the pass than
     before it, the frames it lists are exactly those it improved, and the output stays finite."""
-    import dynmesh_warp.convert as cv
+    import dynmesh_warp.convert_fit as cv
     from dynmesh_warp.convert import to_fixed_topology
     from dynmesh_warp.remesh import remesh_sequence
     from dynmesh_warp.scenes import articulated_figure
@@ -608,7 +608,7 @@ def test_predict_candidates_start_from_the_better_pose_when_motion_reverses():
 
 
 def test_best_starts_keeps_the_lowest_scores_in_their_order():
-    from dynmesh_warp.convert import best_starts
+    from dynmesh_warp.convert_fit import best_starts
 
     starts = ["previous", "frame 10", "frame 20", "frame 30", "template"]
     assert best_starts(starts, [0.5, 0.1, 0.9, 0.1, 0.3], 2) == ["frame 10", "frame 30"]  # ties: the earlier
@@ -622,7 +622,7 @@ def test_restart_fits_only_the_best_screened_starts_and_still_recovers(monkeypat
     are poorly covered and restart (a low ``restart_threshold``). With ``restart_fits`` 2 every
     restart scores all its candidate starts (previous pose, banked states, template) and fits
     the best two; the restarted frames are recovered as well as when every start is fitted."""
-    import dynmesh_warp.convert as cv
+    import dynmesh_warp.convert_fit as cv
     from dynmesh_warp.convert import to_fixed_topology
     from dynmesh_warp.remesh import remesh_sequence
     from dynmesh_warp.scenes import rigid_motion

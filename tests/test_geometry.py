@@ -5,7 +5,7 @@ import numpy as np
 import trimesh
 
 from dynmesh_warp import geometry
-from dynmesh_warp.convert import _bbox_diag
+from dynmesh_warp.convert_base import _bbox_diag
 from dynmesh_warp.deform_graph import _farthest_points
 
 

@@ -31,7 +31,14 @@ LAYERS = [
     {"runtime", "checkpoint", "convert_journal", "gaussians", "face_cells"},
     # the one runner of both engines (it is handed a built simulation)
     {"runner"},
-    # conversion, then building a scene (which may convert)
+    # conversion (docs/architecture.md): what its stages share (closest points, ConversionInfo) and its
+    # command line's plumbing (parser, output checks, journal); the
+    # thresholds and the report; the input's analyses and the segments; the fit; then the public
+    # API and its CLI (convert), then building a scene (which may convert)
+    {"convert_base", "convert_cli"},
+    {"convert_report"},
+    {"convert_input", "convert_segments"},
+    {"convert_fit"},
     {"convert"},
     {"scene"},
     # engines and tools over a scene

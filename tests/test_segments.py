@@ -16,14 +16,12 @@ import warp as wp
 
 from dynmesh_warp import world as world_mod
 from dynmesh_warp.convert import (
-    POOR_WEB,
-    WEB_GAP,
-    WEB_STRETCH,
     conversion_summary,
     to_fixed_topology,
     to_piecewise_fixed,
     web_fraction,
 )
+from dynmesh_warp.convert_report import POOR_WEB, WEB_GAP, WEB_STRETCH
 from dynmesh_warp.io import load_sequence, save_sequence
 from dynmesh_warp.scenes import grid_sheet
 from dynmesh_warp.sequence import FixedTopologySequence, VaryingTopologySequence
