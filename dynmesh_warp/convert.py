@@ -55,6 +55,7 @@ frame loop) and ``convert_cli`` (the command line's plumbing).
 
 from __future__ import annotations
 
+import contextvars
 import re
 import sys
 import time
@@ -68,8 +69,8 @@ from .cli import interruptible_main
 from .conversion_options import options_for
 from .convert_base import (ConversionInfo, NearestSurfaceResult, _bbox_diag, _longest_edges, _open_edges, nearest_surface,
                            vertex_adjacency)
-from .convert_cli import (_FILE_SUFFIXES, _FOLDER_FRAMES, _TimedFrames, _beside_path, _holds_output, _keeping_journal,
-                          _open_journal, _parser, _remove_output, _same_path, _say_frame_numbers)
+from .convert_cli import (_FILE_SUFFIXES, _FOLDER_FRAMES, _TimedFrames, _beside_path, _duration, _holds_output,
+                          _keeping_journal, _open_journal, _parser, _remove_output, _same_path, _say_frame_numbers)
 from .convert_fit import _convert_from_key, _journaling
 from .convert_input import (MOVING_FRAMES, _CACHE, _bridge_dropouts, _chamfer_to_input, _check_repeats, _check_scales,
                             _drop_unused, _floater_webs, _has_area, _input_dropouts, _key_candidates, _key_frame,
@@ -83,6 +84,10 @@ from .kernels import convert as kc
 from .kernels import register as kr
 from .mesh_formats import file_problem
 from .sequence import FPS_RANGE, FixedTopologySequence, MeshDataError, VaryingTopologySequence, validate_mesh
+
+#: True while the ``convert`` CLI runs a conversion: its stages (the key trials) are said on stderr
+#: without the progress bar too (``progress`` alone is the Python API's switch)
+_STAGE_NOTES: contextvars.ContextVar[bool] = contextvars.ContextVar("convert_stage_notes", default=False)
 
 __all__ = [
     "STRATEGIES",
@@ -275,10 +280,12 @@ def _to_fixed_run(vseq, seq, strategy, template, device, progress, should_stop, 
                 part = moving = None
                 trials = _key_candidates(vseq, o, K, given, res, moving_part=None, off_scale=off_scale)
         if trials:
-            if progress:  # the run goes on: say why
+            if progress or _STAGE_NOTES.get():  # the run goes on: say why, and for how long about
                 why = _key_retry_reason(res.conversion.coverage, K, part) or "always_try_keys"
+                took = float(np.sum(res.conversion.frame_seconds))
                 print(f"conversion: the run from key frame {K}: {why}; trying key frames "
-                      f"{', '.join(map(str, trials))} (key_candidates)", file=sys.stderr, flush=True)
+                      f"{', '.join(map(str, trials))} (key_candidates): about {_duration(took * len(trials))} more, "
+                      f"the first run took {_duration(took)}", file=sys.stderr, flush=True)
             key_score = "chamfer" if moving is None else "moving"
 
             def trial(k, r):  # (key frame, mean coverage, score, seconds)
@@ -555,9 +562,14 @@ def main(argv=None) -> int:
         # where one cannot follow the input (to_piecewise_fixed; max_segments)
         one_file = out_suffix in ANIMATED_FILE_OUTPUTS
         run = to_fixed_topology if one_file else to_piecewise_fixed
+        notes = _STAGE_NOTES.set(True)  # the key trials are said with --no-progress too (a new user's
+        # octopus ran 57 s, then 445 s in all, unsaid); the progress bar is what --no-progress leaves out
         with checking_stops(), _keeping_journal(journal):  # Ctrl-C / SIGTERM: stop between frames, write the frames done
-            res = run(seq, strategy=a.strategy, template=a.template, device=device,
-                      progress=not a.no_progress, should_stop=stop_reason, journal=journal, **opts)
+            try:
+                res = run(seq, strategy=a.strategy, template=a.template, device=device,
+                          progress=not a.no_progress, should_stop=stop_reason, journal=journal, **opts)
+            finally:
+                _STAGE_NOTES.reset(notes)
             # a stop after every frame was converted (during the key-frame trials, the floater
             # retry or the segments) still counts: the output is the run so far, not the one an
             # uninterrupted run would have written

@@ -177,7 +177,8 @@ def conversion_summary(info: ConversionInfo) -> list:
     if info.moving_part is not None:
         lines.append(f"the moving part ({info.moving_part[0]:.4g} across, in the input's units; {info.moving_part[1]} "
                      "template vertices in its box) "
-                     "is much smaller than the whole (a static floor or background): its graph nodes are spaced "
+                     "is much smaller than the whole (a static floor or background, or a still body whose limbs alone "
+                     "move): its graph nodes are spaced "
                      "from its own size (option adaptive_spacing)")
     tail = np.asarray(info.coverage_tail, float)
 

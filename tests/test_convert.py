@@ -996,6 +996,29 @@ def test_key_candidates_rerun_from_spread_keys_and_keep_the_closest_to_the_input
         to_fixed_topology(seq, strategy="graph", device=DEV, always_try_keys="maybe")
 
 
+def test_key_trials_are_said_with_their_time_in_the_cli_also_without_progress(capsys):
+    """The key trials after the first run (a new user's octopus: 57 s, then 445 s in all) were said
+    only with the progress bar on, and with no time: ``convert --no-progress`` ran on unsaid. The
+    CLI's conversion (``convert._STAGE_NOTES``) says them, with the first run's time and about
+    how long the trials take; the Python API without ``progress`` stays quiet."""
+    import dynmesh_warp.convert as convert_mod
+
+    rng = np.random.default_rng(4)
+    frames = [_shuffled(V, F, rng) for V, F in _sphere_frames([1.0, 1.05, 1.1, 1.3, 1.15, 1.05])]
+    seq = VaryingTopologySequence(frames, name="grow")
+    to_fixed_topology(seq, strategy="graph", device=DEV, key_candidates=2, always_try_keys=True)
+    assert "trying key frames" not in capsys.readouterr().err
+    token = convert_mod._STAGE_NOTES.set(True)
+    try:
+        res = to_fixed_topology(seq, strategy="graph", device=DEV, key_candidates=2, always_try_keys=True)
+    finally:
+        convert_mod._STAGE_NOTES.reset(token)
+    err = capsys.readouterr().err
+    assert [k for k, *_ in res.conversion.key_trials] == [3, 1, 4]
+    assert "the run from key frame 3: always_try_keys; trying key frames 1, 4 (key_candidates): about " in err
+    assert "more, the first run took " in err
+
+
 def test_key_trial_score_is_the_chamfer_distance_to_the_input_on_capped_points(monkeypatch):
     """The key trials' score: the mean over frames of the Chamfer distance between the converted
     and the input frame, each side cut to at most SCORE_POINTS points by a fixed stride."""

@@ -826,8 +826,9 @@ def test_recording_interrupted_keeps_the_frames_so_far(tmp_path):
     (tmp_path / "r.html").write_text("its page")
     pr = Proc(RUN[:3] + ["--viewer", "none", "--device", "cpu", "--record", "r.viser", "--steps", "1000000",
                          "--overwrite"], tmp_path)
-    pr.wait_for(b"note: --record writes")  # printed before the frame loop: give it time for some frames
-    time.sleep(3.0)
+    pr.wait_for(b"recording ", where="out")  # the size estimate (stdout), printed just before the frame loop
+    time.sleep(8.0)  # time for some frames (3 s after the stderr note before it stopped it before the first
+    # frame twice, under two workers on two busy cores: the set-up in between took up to ~16 s there)
     pr.p.send_signal(signal.SIGTERM)
     rc, out, err = pr.finish(timeout=60)
     assert rc == 143 and "Traceback" not in err + out, err[-2000:]
