@@ -259,7 +259,10 @@ def _clocks(model: BatchModel, times, rates, playback):
         vals = [playback] * E if one else list(playback)  # one mode of another type: parse names it
         if len(vals) != E:
             raise ValueError(f"playback: expected one mode or {E}, got {len(vals)}")
-        m = np.array([PLAYBACK_CODES[Playback(resolve_playback(model.surface.sequence, v))] for v in vals], np.int32)
+        modes = [parse(Playback, v, "playback") for v in vals]
+        # each mode resolved once (auto measures the sequence's seam: one pass over its frames)
+        code = {mode: PLAYBACK_CODES[Playback(resolve_playback(model.surface.sequence, mode))] for mode in set(modes)}
+        m = np.array([code[x] for x in modes], np.int32)
     return t, r, m
 
 

@@ -307,11 +307,11 @@ def _stored_segments(pred, runs) -> list:
 
     src = getattr(pred, "source", None)
     try:
-        status = read_status(src) if src else None
-        segs = [(int(a), int(b), int(k)) for a, b, k, *_ in (status or {}).get("segments") or []]
+        status = (read_status(src) if src else None) or {}
+        segs = [(int(a), int(b), int(k)) for a, b, k, *_ in status.get("segments") or []]
     except (OSError, TypeError, ValueError):  # not a path, or not segments: the runs as they are
         return []
-    if not (status or {}).get("complete") or not segs:
+    if not status.get("complete") or not segs:
         return []
     if [(a, b) for a, b, _ in segs] != [(int(a), int(b)) for a, b in runs] or any(not a <= k < b for a, b, k in segs):
         return []

@@ -206,21 +206,29 @@ def resolve_playback(seq, playback) -> str:
     largest jump between two frames within it: :func:`seam_jumps`), else ``clamp``. A varying
     topology's frames have no vertex correspondence to measure a seam by: ``loop``. Other modes
     are returned as given (parsed)."""
+    return _resolved(seq, playback)[0]
+
+
+def _resolved(seq, playback) -> tuple[str, float, float]:
+    """``(mode, seam, within)``: :func:`resolve_playback`'s mode and, where ``auto`` measured it
+    (:func:`seam_jumps`, one pass over the frames), the two jumps; 0, 0 elsewhere."""
     mode = parse(Playback, playback, "playback")
     if mode != Playback.AUTO:
-        return mode.value
+        return mode.value, 0.0, 0.0
     if not isinstance(seq, FixedTopologySequence):
-        return Playback.LOOP.value
+        return Playback.LOOP.value, 0.0, 0.0
     seam, within = seam_jumps(seq)
-    return (Playback.LOOP if seam <= SEAM_REPEAT_RATIO * within else Playback.CLAMP).value
+    return (Playback.LOOP if seam <= SEAM_REPEAT_RATIO * within else Playback.CLAMP).value, seam, within
 
 
 def playback_note(seq, playback) -> str:
     """Words for the user where ``auto`` holds the last frame (``""`` otherwise): the seam's jump
     against the motion within the animation, and how to loop it anyway."""
-    if parse(Playback, playback, "playback") != Playback.AUTO or resolve_playback(seq, playback) != Playback.CLAMP:
+    if parse(Playback, playback, "playback") != Playback.AUTO:
         return ""
-    seam, within = seam_jumps(seq)
+    mode, seam, within = _resolved(seq, playback)
+    if mode != Playback.CLAMP:
+        return ""
     return (f"surface.playback auto: clamp (the animation does not repeat: its last frame lies up to {seam:.3g} m "
             f"from its first, against {within:.3g} m between two frames within it), so its last frame is held "
             "after it ends; surface.playback: loop to repeat it anyway, pingpong to play it back and forth")
