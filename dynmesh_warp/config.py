@@ -458,6 +458,11 @@ def _format_errors(err: ValidationError, origin: str) -> str:
     for e in err.errors():
         loc = [x for x in e["loc"] if not _is_branch_tag(x)]
         msg = "unknown key" if e["type"] == "extra_forbidden" else e["msg"].removeprefix("Value error, ")
+        key = str(loc[-1]) if loc else ""
+        if e["type"] == "extra_forbidden" and ":" in key and not key.endswith(":"):
+            # YAML reads {count:40} as the key "count:40" (a new user's --set spheres={count:40,radius:0.03})
+            k, v = key.split(":", 1)
+            msg += f" (YAML needs a space after the colon: {k}: {v})"
         errs.append((".".join(str(x) for x in loc), e["type"], msg,  # "": the scene's own checks name their field
                      any(_is_branch_tag(x) for x in e["loc"])))
     keep = [
@@ -590,19 +595,32 @@ def sequence_scene(path) -> dict:
 def scene_source(scene) -> dict:
     """``load_scene_config``'s arguments for the CLIs' positional ``scene`` (``run``, ``render``):
     a YAML file as it is; a mesh sequence (:func:`is_sequence_path`) becomes a scene of its own
-    (:func:`sequence_scene`: five 5 cm spheres dropped on frame 0), with a note on stderr saying
-    how to change it (docs/scene.md)."""
-    import sys
-
+    (:func:`sequence_scene`: five 5 cm spheres dropped on frame 0, unless ``--set`` says otherwise;
+    the CLI says so with :func:`say_sequence_scene` once the scene is loaded)."""
     if scene is None:
         return {"path": None}
     path = Path(scene).expanduser()
     if is_sequence_path(path):
-        print(f"note: {scene} is a mesh sequence, not a scene file: playing it with 5 spheres dropped on it "
-              "(up axis auto: y for glTF, else z; other data: --set surface.up_axis=y or z; more in a scene YAML, "
-              "docs/scene.md)", file=sys.stderr)
         return {"path": None, "data": sequence_scene(path)}
     return {"path": path}
+
+
+def say_sequence_scene(scene, cfg: SceneConfig) -> None:
+    """The note on stderr for a mesh sequence given where a scene goes (:func:`scene_source`): the
+    spheres the loaded scene ``cfg`` has (its ``--set`` applied: a new user's 40 spheres were said
+    as 5) and how to change the rest (docs/scene.md). Nothing for a scene file."""
+    import sys
+
+    if scene is None or not is_sequence_path(scene):
+        return
+    sp = cfg.spheres
+    if isinstance(sp, SpawnConfig):
+        what = f"{sp.count} sphere{'s' if sp.count != 1 else ''} of radius {sp.radius:g} m dropped on it"
+    else:
+        what = f"the {len(sp)} sphere{'s' if len(sp) != 1 else ''} of spheres:"
+    print(f"note: {scene} is a mesh sequence, not a scene file: playing it with {what} "
+          "(up axis auto: y for glTF, else z; other data: --set surface.up_axis=y or z; more in a scene YAML, "
+          "docs/scene.md)", file=sys.stderr)
 
 
 def load_scene_config(path: str | Path | None = None, data: dict | None = None, overrides=None) -> SceneConfig:

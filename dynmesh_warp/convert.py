@@ -385,7 +385,8 @@ def _to_piecewise(seq, strategy, template, device, progress, should_stop, option
 
     def convert(lo, hi):  # frames lo..hi-1 with a template of their own; None when stopped meanwhile
         if (lo, hi) not in runs:
-            sub = VaryingTopologySequence(list(vseq.frames[lo:hi]), fps=vseq.fps, name=vseq.name, source=vseq.source)
+            sub = VaryingTopologySequence(list(vseq.frames[lo:hi]), fps=vseq.fps, name=vseq.name, source=vseq.source,
+                                          up_axis=vseq.up_axis)
             with _scale_checked():  # this run's check would number the input's frames from lo
                 r = to_fixed_topology(sub, strategy, None, device, progress, should_stop, **options)
             runs[lo, hi] = r if len(r.conversion.coverage) == hi - lo else None

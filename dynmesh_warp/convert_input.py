@@ -75,7 +75,7 @@ def _drop_unused(vseq: VaryingTopologySequence):
     if not dropped and not welded and not turned and not rewound:
         return vseq, dropped, welded, turned, rewound
     return VaryingTopologySequence(frames, fps=vseq.fps, name=vseq.name, source=vseq.source,
-                                   frame_sources=vseq.frame_sources), dropped, welded, turned, rewound
+                                   frame_sources=vseq.frame_sources, up_axis=vseq.up_axis), dropped, welded, turned, rewound
 
 
 def _inside_out(v: np.ndarray, f: np.ndarray) -> bool:
@@ -634,7 +634,7 @@ def _bridge_dropouts(res, info):
                 for figure in (info.web, info.buried):
                     if len(figure) == len(V):
                         figure[t - info.first_frame] = 0.0
-    out = FixedTopologySequence(V, res.F, fps=res.fps, name=res.name, source=res.source)
+    out = FixedTopologySequence(V, res.F, fps=res.fps, name=res.name, source=res.source, up_axis=res.up_axis)
     out.conversion = info
     info.frame_motion = _frame_motion(out.V)
     return out

@@ -382,7 +382,7 @@ def _ground_truth(path: str, num_frames: int | None, frame_order: str = "stored"
 
         V = resample_time(seq, num_frames)
         fps = seq.fps * (num_frames - 1) / max(seq.num_frames - 1, 1) if seq.num_frames > 1 else seq.fps
-        seq = FixedTopologySequence(V, seq.F, fps=fps, name=seq.name, source=seq.source)
+        seq = FixedTopologySequence(V, seq.F, fps=fps, name=seq.name, source=seq.source, up_axis=seq.up_axis)
     return seq
 
 

@@ -33,6 +33,7 @@ import warp as wp
 
 from .kernels.remesh import compute_signed_distances, mark_band_voxels
 from .geometry import orient_outward
+from .io import sequence_up_axis
 from .sequence import FixedTopologySequence, MeshDataError, VaryingTopologySequence
 
 __all__ = ["remesh_sequence", "resample_time", "grid_for", "remesh_frame", "reconstruction_error",
@@ -234,7 +235,10 @@ def remesh_sequence(seq, resolution: int = 96, num_frames: int | None = None, no
         v0 = np.asarray(frames[0][0], np.float64)
         out = reconstruction_error(out, error, seed=seed,
                                    diag=float(np.linalg.norm(v0.max(axis=0) - v0.min(axis=0))))
+    # the up axis is carried: the new source no longer names a file that says it (a new user's
+    # glTF fox, re-meshed, was read z-up and lay on its side)
     res = VaryingTopologySequence(out, fps=fps, name=f"{seq.name}_remesh{int(resolution)}",
-                                  source=f"remesh({seq.source or seq.name}, resolution={int(resolution)})")
+                                  source=f"remesh({seq.source or seq.name}, resolution={int(resolution)})",
+                                  up_axis=sequence_up_axis(seq))
     res.grid_spacing = float(h)
     return res

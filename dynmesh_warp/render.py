@@ -713,7 +713,7 @@ def _main(argv=None) -> int:
                            ("fps", 0 < a.fps < float("inf"), "a positive, finite frame rate")):
         if not ok:  # one line naming the option and its value (it listed all five for any of them)
             p.error(f"--{name} must be {need}, got {getattr(a, name)}")
-    from .config import SceneError, load_scene_config, scene_source
+    from .config import SceneError, load_scene_config, say_sequence_scene, scene_source
     from .gaussians import can_bind, gaussians_for_surface
     from .scene import build_world
 
@@ -721,6 +721,7 @@ def _main(argv=None) -> int:
 
     try:
         cfg = load_scene_config(**scene_source(a.scene), overrides=a.overrides)
+        say_sequence_scene(a.scene, cfg)
         # the outputs, before any work: never one of the scene's inputs, nothing replaced unasked
         ins = cfg.inputs()
         if a.figure:

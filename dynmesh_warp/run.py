@@ -19,7 +19,7 @@ from pathlib import Path
 
 
 from .cli import interruptible_main
-from .config import scene_source
+from .config import say_sequence_scene, scene_source
 from .runtime import (
     NonFiniteStateError,
     check_record_output,
@@ -272,6 +272,7 @@ def main(argv=None) -> int:
             raise SceneError(f"--envs must be at least 1, got {args.envs}")
         overrides = list(args.overrides) + ([f"envs.count={args.envs}"] if args.envs is not None else [])
         cfg = load_scene_config(**scene_source(args.scene), overrides=overrides)
+        say_sequence_scene(args.scene, cfg)
         if args.view_envs is not None and cfg.newton is not None:
             raise SceneError("--view-envs: a newton: scene's worlds share one clock and one place; "
                              "the viewer shows world 0")

@@ -93,14 +93,16 @@ def scene_up(cfg) -> np.ndarray:
     return up_from_gravity(cfg.physics.gravity)
 
 
-def _check_size(V0: np.ndarray, cfg) -> None:
-    """Warn when the surface is implausibly large or small for metres (wrong units?)."""
+def _check_size(V0: np.ndarray, cfg, up_axis: str) -> None:
+    """Warn when the surface is implausibly large or small for metres (wrong units?). ``up_axis``:
+    the axis the data were read up along; the hint to read y-up data so only when it was z (a new
+    user's glTF, read y-up already, was told to set surface.up_axis: y)."""
     diag = float(np.linalg.norm(V0.max(axis=0) - V0.min(axis=0)))
     if diag > 100.0 or diag < 0.01:
         warnings.warn(
             f"surface {cfg.source}: the first frame is {diag:.3g} m across (bounding-box diagonal) in the "
             "scene frame, which is in metres; for data in other units set surface.scale (e.g. 0.001 for "
-            "millimetres), and surface.up_axis: y for y-up data", stacklevel=3)
+            "millimetres)" + (", and surface.up_axis: y for y-up data" if up_axis == "z" else ""), stacklevel=3)
 
 
 #: a spawn's column of spheres (count x 2.5 radii high) over this many times the surface's
@@ -239,7 +241,7 @@ def prepare_surface(seq, cfg: SceneConfig):
         F, report = _orient(V[0], seq.F, s, up)
         _say_orientation([(None, report)], where)
         seq = FixedTopologySequence(V, F, fps, seq.name, seq.source)
-        _check_size(surface_vertices(seq.V[0], F), s)
+        _check_size(surface_vertices(seq.V[0], F), s, axis)
     else:
         frames, reports = [], []
         prev = None  # (input faces, oriented faces) of the frame before
@@ -253,7 +255,7 @@ def prepare_surface(seq, cfg: SceneConfig):
             frames.append((v, g))
             reports.append((t, report))
         _say_orientation(reports, where)
-        _check_size(surface_vertices(*frames[0]), s)
+        _check_size(surface_vertices(*frames[0]), s, axis)
         seq = VaryingTopologySequence(frames, fps, seq.name, seq.source, seq.frame_sources)
         if seq.is_fixed_topology():
             seq = seq.to_fixed()

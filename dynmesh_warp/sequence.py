@@ -274,16 +274,16 @@ class FixedTopologySequence:
                 out[k * factor + i] = p1 + s * (m1 + s * (a2 + s * a3))
         if playback != "loop":
             out[-1] = self.V[-1]
-        return FixedTopologySequence(out, self.F, self.fps * factor, self.name, self.source)
+        return FixedTopologySequence(out, self.F, self.fps * factor, self.name, self.source, self.up_axis)
 
     def reordered(self, order) -> "FixedTopologySequence":
         """A copy with frames taken in ``order`` (indices into the stored frames)."""
         order = np.asarray(order, dtype=np.int64)
-        return FixedTopologySequence(self.V[order], self.F, self.fps, self.name, self.source)
+        return FixedTopologySequence(self.V[order], self.F, self.fps, self.name, self.source, self.up_axis)
 
     def to_varying(self) -> "VaryingTopologySequence":
         return VaryingTopologySequence(
-            [(v, self.F) for v in self.V], fps=self.fps, name=self.name, source=self.source
+            [(v, self.F) for v in self.V], fps=self.fps, name=self.name, source=self.source, up_axis=self.up_axis
         )
 
 
@@ -391,7 +391,7 @@ class VaryingTopologySequence:
                            "varying-topology one with dynmesh_warp.convert)")
         return FixedTopologySequence(
             np.stack([v for v, _ in self.frames]), F0, fps=self.fps, name=self.name,
-            source=self.source,
+            source=self.source, up_axis=self.up_axis,
         )
 
 

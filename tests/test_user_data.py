@@ -336,8 +336,13 @@ def test_millimetre_data_warns_and_scale_fixes_it(tmp_path):
     V, F = ico_sequence(center=(0.0, 0.0, 500.0), radius=400.0)  # millimetres
     np.savez(tmp_path / "mm.npz", V=V, F=F)
     cfg = SceneConfig.model_validate({"surface": {"source": str(tmp_path / "mm.npz")}})
-    with pytest.warns(UserWarning, match=r"m across.*surface\.scale"):
+    with pytest.warns(UserWarning, match=r"m across.*surface\.scale.*surface\.up_axis: y for y-up data"):
         load_surface(cfg)
+    # data read y-up already (a new user's glTF) are not told to read them y-up
+    cfg = SceneConfig.model_validate({"surface": {"source": str(tmp_path / "mm.npz"), "up_axis": "y"}})
+    with pytest.warns(UserWarning, match=r"m across") as said:
+        load_surface(cfg)
+    assert not any("up_axis" in str(w.message) for w in said if "m across" in str(w.message))
     # a playback named: auto would say that this motion does not repeat (a warning of its own)
     cfg = SceneConfig.model_validate({"surface": {"source": str(tmp_path / "mm.npz"), "scale": 0.001,
                                                   "playback": "clamp"}})
@@ -502,11 +507,13 @@ def test_run_cli_plays_a_sequence_given_instead_of_a_scene(tmp_path, capsys):
     assert main([str(tmp_path / "blob.anime"), *base, "--output", str(tmp_path / "o")]) == 0
     err = capsys.readouterr().err
     assert "blob.anime is a mesh sequence, not a scene file" in err and "surface.up_axis=y" in err
+    assert "with 5 spheres of radius 0.05 m dropped on it" in err
     summary = json.loads((tmp_path / "o" / "summary.json").read_text())
     assert summary["steps"] == 3 and summary["spheres"] == 5 and summary["scene"] == "blob"
-    # --set applies as to a scene file
+    # --set applies as to a scene file, and the note says the spheres it made (it said 5 for 40)
     assert main([str(tmp_path / "blob.anime"), *base, "--output", str(tmp_path / "o2"), "--set", "spheres.count=2"]) == 0
     assert json.loads((tmp_path / "o2" / "summary.json").read_text())["spheres"] == 2
+    assert "with 2 spheres of radius 0.05 m dropped on it" in capsys.readouterr().err
     # a text file is still read as a scene, with the YAML error
     (tmp_path / "notes.txt").write_text("not: [a scene\n")
     assert main([str(tmp_path / "notes.txt"), *base]) == 2
