@@ -67,11 +67,12 @@ import warp as wp
 from .choices import DEFAULT_STRATEGY, STRATEGIES
 from .cli import interruptible_main
 from .conversion_options import options_for
-from .convert_base import (ConversionInfo, NearestSurfaceResult, _bbox_diag, _longest_edges, _open_edges, nearest_surface,
+from .convert_base import (ConversionInfo, ConversionStopped, NearestSurfaceResult, _bbox_diag, _fitting, _longest_edges,
+                           _open_edges, _stop_before_fitting, nearest_surface, stopping_early,
                            vertex_adjacency)
-from .convert_cli import (_FILE_SUFFIXES, _FOLDER_FRAMES, _TimedFrames, _beside_path, _duration, _holds_output,
+from .convert_cli import (_FILE_SUFFIXES, _FOLDER_FRAMES, FrameEstimate, _beside_path, _duration, _holds_output,
                           _keeping_journal, _open_journal, _parser, _remove_output, _same_path, _say_frame_numbers)
-from .convert_fit import _convert_from_key, _journaling
+from .convert_fit import FRAME_TIMER, _convert_from_key, _journaling
 from .convert_input import (MOVING_FRAMES, _CACHE, _bridge_dropouts, _chamfer_to_input, _check_repeats, _check_scales,
                             _drop_unused, _floater_webs, _has_area, _input_dropouts, _key_candidates, _key_frame,
                             _key_retry_reason, _missing_parts, _moving_points, _moving_score, _scale_checked, _topology_events)
@@ -92,6 +93,7 @@ _STAGE_NOTES: contextvars.ContextVar[bool] = contextvars.ContextVar("convert_sta
 __all__ = [
     "STRATEGIES",
     "NearestSurfaceResult",
+    "ConversionStopped",
     "ConversionInfo",
     "nearest_surface",
     "vertex_adjacency",
@@ -215,7 +217,7 @@ def to_fixed_topology(seq, strategy: str = DEFAULT_STRATEGY, template=None, devi
         MeshDataError: an empty/invalid frame or template (naming it), a template out of the
             surface's reach. Warns (UserWarning) about frames of very different scale.
     """
-    with _journaling(journal):
+    with _journaling(journal), _fitting():
         return _to_fixed(seq, strategy, template, device, progress, should_stop, None, **options)
 
 
@@ -239,7 +241,7 @@ def _to_fixed_run(vseq, seq, strategy, template, device, progress, should_stop, 
     for t, (v, f) in enumerate(vseq.frames):  # frames may have been mutated after construction
         src = vseq.frame_sources[t] if vseq.frame_sources else where
         validate_mesh(v, f, src, t)
-    vseq, unused, welded, turned, rewound = _drop_unused(vseq)
+    vseq, unused, welded, turned, rewound = _drop_unused(vseq, should_stop)
     for t, (v, f) in enumerate(vseq.frames):
         if not _has_area(v, f):  # a new user's points on a line: converted with "coverage 1400 %", exit 0
             src = vseq.frame_sources[t] if vseq.frame_sources else where
@@ -249,7 +251,9 @@ def _to_fixed_run(vseq, seq, strategy, template, device, progress, should_stop, 
     device = wp.get_device(device)
     off_scale = _check_scales(vseq, float(o["scale_tolerance"]))
     _check_repeats(vseq)
+    _stop_before_fitting(should_stop)
     K = _key_frame(vseq, o["key_frame"], template is not None, off_scale)
+    _stop_before_fitting(should_stop)
     given = template is not None
     if given:
         if isinstance(template, (str, bytes)) or hasattr(template, "__fspath__"):
@@ -367,7 +371,7 @@ def to_piecewise_fixed(seq, strategy: str = DEFAULT_STRATEGY, template=None, dev
         (:class:`ConversionInfo`) lists the ``segments``.
     """
     start = time.perf_counter()
-    with _journaling(journal):
+    with _journaling(journal), _fitting():
         res = _to_piecewise(seq, strategy, template, device, progress, should_stop, options)
     res.conversion.seconds_all = time.perf_counter() - start
     return res
@@ -558,19 +562,21 @@ def main(argv=None) -> int:
                   "anyway (it can be simulated as it is)", file=sys.stderr)
             seq = seq.to_varying()
         _say_frame_numbers(seq)
-        seq.frames = _TimedFrames(seq.frames, device, a.strategy)
         # an animation file holds one set of faces: one template; else new templates (segments)
         # where one cannot follow the input (to_piecewise_fixed; max_segments)
         one_file = out_suffix in ANIMATED_FILE_OUTPUTS
         run = to_fixed_topology if one_file else to_piecewise_fixed
         notes = _STAGE_NOTES.set(True)  # the key trials are said with --no-progress too (a new user's
         # octopus ran 57 s, then 445 s in all, unsaid); the progress bar is what --no-progress leaves out
-        with checking_stops(), _keeping_journal(journal):  # Ctrl-C / SIGTERM: stop between frames, write the frames done
+        timer = FRAME_TIMER.set(FrameEstimate(device, a.strategy))
+        # Ctrl-C / SIGTERM: stop between frames, write the frames done; before the first, at once
+        with checking_stops(), stopping_early(), _keeping_journal(journal):
             try:
                 res = run(seq, strategy=a.strategy, template=a.template, device=device,
                           progress=not a.no_progress, should_stop=stop_reason, journal=journal, **opts)
             finally:
                 _STAGE_NOTES.reset(notes)
+                FRAME_TIMER.reset(timer)
             # a stop after every frame was converted (during the key-frame trials, the floater
             # retry or the segments) still counts: the output is the run so far, not the one an
             # uninterrupted run would have written
@@ -594,6 +600,13 @@ def main(argv=None) -> int:
                 if partial is not None and not _same_path(partial, written) and journal.partial() is not None:
                     _remove_output(partial)  # the interrupted run's partial output beside it: superseded
                 journal.remove()
+    except ConversionStopped as e:  # a signal during the input's checks or the set-up: nothing fitted to write
+        import signal
+
+        print(f"interrupted by {e.reason} before any frame was fitted: nothing written"
+              + (f"; the same command with --resume goes on from the {n} frame fits done ({journal.folder})"
+                 if journal is not None and (n := journal.frames()) else ""), file=sys.stderr)
+        return 128 + int(getattr(signal, str(e.reason), signal.SIGINT))
     except (MeshDataError, FileNotFoundError, ValueError, TypeError) as e:
         print(f"error: {e}", file=sys.stderr)
         if journal is not None and journal.frames():

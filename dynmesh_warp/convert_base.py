@@ -5,6 +5,8 @@ The public names here are re-exported by :mod:`dynmesh_warp.convert`, their cano
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -134,6 +136,69 @@ def vertex_adjacency(F: np.ndarray, num_vertices: int) -> tuple[np.ndarray, np.n
 
 
 # --------------------------------------------------------------------------- ConversionInfo
+
+
+class ConversionStopped(RuntimeError):
+    """``should_stop`` was true before the conversion had fitted a frame (during the input's
+    checks or the converter's set-up, which take minutes on large frames: a new user's SIGINT was
+    acted on 159 s later, past a scheduler's grace period): there is nothing to return.
+    ``reason``: what ``should_stop`` returned (the CLI's signal name)."""
+
+    def __init__(self, reason):
+        self.reason = reason
+        super().__init__(f"conversion stopped ({reason}) before any frame was fitted")
+
+
+#: ``[fitted]`` of the conversion under way: set by the public calls (:func:`_fitting`), marked by
+#: the frame loop at its first frame (fitted or taken from a journal); None outside a conversion
+_FITTED: contextvars.ContextVar = contextvars.ContextVar("conversion_fitted", default=None)
+
+
+@contextlib.contextmanager
+def _fitting():
+    """A conversion's span for :func:`_stop_before_fitting` (a nested call joins the outer one)."""
+    if _FITTED.get() is not None:
+        yield
+        return
+    token = _FITTED.set([False])
+    try:
+        yield
+    finally:
+        _FITTED.reset(token)
+
+
+def _mark_fitted() -> None:
+    flag = _FITTED.get()
+    if flag is not None:
+        flag[0] = True
+
+
+#: whether a stop before the first frame ends the conversion at once (:func:`stopping_early`: the
+#: CLIs); the Python API's default keeps its promise of at least the first frame
+_STOP_EARLY: contextvars.ContextVar[bool] = contextvars.ContextVar("conversion_stop_early", default=False)
+
+
+@contextlib.contextmanager
+def stopping_early():
+    """Conversions inside check ``should_stop`` during the input's checks and the converter's
+    set-up too, and raise :class:`ConversionStopped` there (``convert`` and ``evaluate`` run so)."""
+    token = _STOP_EARLY.set(True)
+    try:
+        yield
+    finally:
+        _STOP_EARLY.reset(token)
+
+
+def _stop_before_fitting(should_stop) -> None:
+    """Inside :func:`stopping_early`, raise :class:`ConversionStopped` when ``should_stop`` is true
+    and the conversion under way has fitted no frame yet (after that, the frame loop stops between
+    frames and keeps them)."""
+    flag = _FITTED.get()
+    if should_stop is None or not _STOP_EARLY.get() or (flag is not None and flag[0]):
+        return
+    reason = should_stop()
+    if reason:
+        raise ConversionStopped(reason)
 
 
 @dataclass

@@ -18,34 +18,32 @@ from .convert_journal import ConversionJournal
 from .sequence import MeshDataError
 
 
-class _TimedFrames(list):
-    """The frames of a sequence being converted, noting when the converter asks for each: after
-    the second frame (the first includes compilation) it prints an estimate when the whole
-    conversion will take more than ``limit_s``, naming faster options. Values are unchanged."""
+class FrameEstimate:
+    """The ``convert`` CLI's estimate, called by the frame loop after each frame it fits
+    (``convert_fit.FRAME_TIMER``): at the second fitted frame (the first includes compilation)
+    it prints the time the conversion will take, what has passed since it began (the input's
+    checks, the converter's set-up, frames taken from a journal) plus that frame's time for each
+    frame left, when that is over ``limit_s``, naming faster options. Once per conversion."""
 
-    def __init__(self, frames, device, strategy: str, limit_s: float = 60.0):
-        super().__init__(frames)
+    def __init__(self, device, strategy: str, limit_s: float = 60.0):
         self.device, self.strategy, self.limit_s = str(device), strategy, limit_s
-        self.t1 = None
-        self.calls = 0
+        self.start = time.perf_counter()
+        self.fitted = 0
         self.done = False
 
-    def __getitem__(self, t):
-        if isinstance(t, int) and not self.done:
-            self.calls += 1  # frames are asked for in conversion order (from the key frame)
-            if self.calls == 2:
-                self.t1 = time.perf_counter()
-            elif self.calls == 3:
-                self.done = True
-                per = time.perf_counter() - self.t1
-                total = per * len(self)
-                if total > self.limit_s:
-                    faster = [] if self.device.startswith("cuda") else ["--device cuda (a GPU)"]
-                    if self.strategy != "projection":
-                        faster.append("--strategy projection (fastest, least accurate)")
-                    _note(f"estimate: {per:.1f} s per frame, about {_duration(total)} for {len(self)} frames on "
-                          f"{self.device}" + (f"; faster: {', '.join(faster)}" if faster else ""))
-        return super().__getitem__(t)
+    def __call__(self, seconds: float, done: int, frames: int) -> None:
+        self.fitted += 1
+        if self.done or self.fitted < 2:
+            return
+        self.done = True
+        total = time.perf_counter() - self.start + seconds * max(frames - done, 0)
+        if total > self.limit_s:
+            faster = [] if self.device.startswith("cuda") else ["--device cuda (a GPU)"]
+            if self.strategy != "projection":
+                faster.append("--strategy projection (fastest, least accurate)")
+            _note(f"estimate: {seconds:.1f} s per frame, about {_duration(total)} for {frames} frames on "
+                  f"{self.device}, the first run (key-frame trials may follow)"
+                  + (f"; faster: {', '.join(faster)}" if faster else ""))
 
 
 def _duration(s: float) -> str:

@@ -12,7 +12,8 @@ import time
 import numpy as np
 import warp as wp
 
-from .convert_base import ConversionInfo, _Frame, _bbox_diag, _device_frame, _longest_edges, _stride, vertex_adjacency
+from .convert_base import (ConversionInfo, _Frame, _bbox_diag, _device_frame, _longest_edges, _mark_fitted,
+                           _stop_before_fitting, _stride, vertex_adjacency)
 from .convert_input import (_check_reach, _dropout_run, _far_parts, _frame_areas, _frame_motion, _key_frame_floaters,
                             _node_spacing, _same_frame)
 from .convert_journal import ConversionJournal, frame_digest
@@ -668,6 +669,15 @@ def _grow_nodes(mask: np.ndarray, e: np.ndarray, rings: int) -> np.ndarray:
     return out
 
 
+#: called as ``timer(seconds, done, frames)`` after each frame a run fits (not one taken from the
+#: journal): that frame's wall time [s], the frames the run has done so far (fitted or taken from
+#: the journal, this one included) and its number of frames. The ``convert`` CLI's estimate
+#: (:class:`~dynmesh_warp.convert_cli.FrameEstimate`); it counted the reads of the frame list,
+#: and the input's checks read three frames in one millisecond first (a new user's 24 frames of
+#: 400k vertices, 28-62 s each, had no estimate)
+FRAME_TIMER: contextvars.ContextVar = contextvars.ContextVar("convert_frame_timer", default=None)
+
+
 #: the journal of the conversion under way (``journal`` of :func:`to_fixed_topology` /
 #: :func:`to_piecewise_fixed`): every run it starts (:func:`_convert_from_key`) writes its frames there
 _JOURNAL: contextvars.ContextVar[ConversionJournal | None] = contextvars.ContextVar("conversion_journal", default=None)
@@ -849,6 +859,9 @@ def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info,
                 pf.input_motion[m] = _input_motion(frame, near, diag, device)
             out[t] = conv.X.numpy()
             pf.seconds[t] = time.perf_counter() - t0
+            timer = FRAME_TIMER.get()
+            if timer is not None:
+                timer(float(pf.seconds[t]), done, T)
             if not np.isfinite(out[t]).all():
                 raise RuntimeError(f"{where}: conversion ({strategy}) produced NaN/inf at frame {t}; "
                                    "the input frame may be degenerate")
@@ -858,6 +871,7 @@ def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info,
                 journal.write(index, t, raw[t], X=out[t], figures=np.array(figures, np.float64), **change)
         samples = {K: samples.get(K), t: _motion_sample(v, device)} if t != K else {K: _motion_sample(v, device)}
         conv.first = False
+        _mark_fitted()
         lo, hi = (t, t) if lo is None else (min(lo, t), max(hi, t))
         if t > K and stop_forward is not None and stop_forward(t, pf.web, pf.buried):
             forward = False
@@ -961,6 +975,7 @@ def _convert_from_key(vseq, strategy: str, o: dict, K: int, template, device, pr
     """One conversion run: the template is ``template`` (validated (V, F)) or key frame K's
     mesh, tracked from frame K to both ends."""
     T = vseq.num_frames
+    _stop_before_fitting(should_stop)
     if template is None:  # the key frame, without its floaters
         TV, TF = _key_frame_floaters(vseq, K, o, device)[:2]
     else:
@@ -970,7 +985,9 @@ def _convert_from_key(vseq, strategy: str, o: dict, K: int, template, device, pr
     if template is not None:
         _check_reach(TV, TF, *vseq.frames[K], float(o["max_template_distance"]), device, K)
     all_diag = max(max(_bbox_diag(v) for v, _ in vseq.frames), _bbox_diag(TV), 1e-6)
+    _stop_before_fitting(should_stop)
     spacing, moving = _node_spacing(vseq, K, TV, TF, o, device) if strategy == "graph" else (None, None)
+    _stop_before_fitting(should_stop)
     conv = _Converter(TV, TF, device, 10.0 * all_diag, o, spacing)
     step = getattr(conv, f"step_{strategy}")
     info = ConversionInfo(strategy, {k: v for k, v in o.items() if k != "strategy"}, T, len(TV), key_frame=K)

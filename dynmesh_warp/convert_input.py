@@ -9,7 +9,8 @@ import warnings
 
 import numpy as np
 
-from .convert_base import _bbox_diag, _edge_keys, _longest_edges, _open_edges, _stride, _wp_mesh, nearest_surface
+from .convert_base import (_bbox_diag, _edge_keys, _longest_edges, _open_edges, _stop_before_fitting, _stride, _wp_mesh,
+                           nearest_surface)
 from .convert_report import (DROPOUT_AGREE, DROPOUT_FRAMES, DROPOUT_LEAST, DROPOUT_OPEN_EDGES, DROPOUT_RATIO, DROPOUT_VOLUME,
                              FLOATER_AREA, JUMP_WINDOW, MOVING_SCORE_TAIL, POOR_COVERAGE, POOR_WEB, WEB_STRETCH, _dropout_runs,
                              _stretched_far)
@@ -28,7 +29,7 @@ def _keep_faces(v: np.ndarray, f: np.ndarray, keep: np.ndarray) -> tuple:
     return v[used], remap[f[keep]].astype(np.int32)
 
 
-def _drop_unused(vseq: VaryingTopologySequence):
+def _drop_unused(vseq: VaryingTopologySequence, should_stop=None):
     """(vseq cleaned, [(frame, vertices dropped, faces dropped)], [(frame, vertices welded)],
     [frames turned outward], [(frame, faces flipped)] rewound):
     vertices at one position welded into one (:func:`~dynmesh_warp.geometry.weld_vertices`: a
@@ -51,6 +52,7 @@ def _drop_unused(vseq: VaryingTopologySequence):
     T = vseq.num_frames
     rewind = any(winding_inconsistent(vseq.frames[t][1]) for t in sorted({0, T // 2, T - 1}) if t < T)
     for t, (v, f) in enumerate(vseq.frames):
+        _stop_before_fitting(should_stop)  # seconds a frame on large input (a new user's 400k vertices)
         v, f, merged = weld_vertices(v, np.asarray(f))
         if merged:
             welded.append((t, merged))

@@ -403,7 +403,7 @@ def evaluate_scene(gt_path, input_path=None, num_frames: int | None = None, reso
     options: {strategy: {option: value}} passed to to_fixed_topology.
     Returns a JSON-ready dict (see module docstring).
     """
-    from .convert import STRATEGIES, to_fixed_topology
+    from .convert import STRATEGIES, ConversionStopped, to_fixed_topology
 
     strategies = list(STRATEGIES if strategies is None else strategies)
     options = options or {}
@@ -437,8 +437,11 @@ def evaluate_scene(gt_path, input_path=None, num_frames: int | None = None, reso
         if stopped():
             return None
         t0 = time.perf_counter()
-        fixed = to_fixed_topology(varying, strategy=s, device=device, progress=progress, should_stop=should_stop,
-                                  **options.get(s, {}))
+        try:
+            fixed = to_fixed_topology(varying, strategy=s, device=device, progress=progress, should_stop=should_stop,
+                                      **options.get(s, {}))
+        except ConversionStopped:  # stopped during the conversion's checks or set-up, before its first frame
+            return None
         if fixed.num_frames < varying.num_frames:
             return None
         timing[f"convert_{s}_s"] = time.perf_counter() - t0
@@ -825,7 +828,10 @@ def main(argv=None) -> int:
         scenes = []
         folder = OutputFolder(a.out, overwrite=a.overwrite, checked=checked, holds=OutputKind.EVALUATION)
         reason, info = None, None
-        with checking_stops(), folder as tmp:  # Ctrl-C / SIGTERM: stop between frames, keep what is done
+        from .convert_base import stopping_early
+
+        # Ctrl-C / SIGTERM: stop between frames, keep what is done (a conversion's set-up: at once)
+        with checking_stops(), stopping_early(), folder as tmp:
             for i, s in enumerate(a.scenes):
                 t0 = time.perf_counter()
                 try:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+from pathlib import Path
 import warnings
 
 import numpy as np
@@ -91,6 +92,22 @@ def scene_up(cfg) -> np.ndarray:
     """The scene's up: against ``physics.gravity`` (+z without gravity), a unit vector
     (:func:`~dynmesh_warp.geometry.up_from_gravity`)."""
     return up_from_gravity(cfg.physics.gravity)
+
+
+def _say_interrupted(seq, where: str) -> None:
+    """Warn of the segments of a piecewise-fixed sequence played as it is whose frames either side
+    share one topology (:meth:`~dynmesh_warp.sequence.VaryingTopologySequence.interrupted_segments`):
+    a frame that lost faces, which the physics would play as a segment of its own."""
+    runs = seq.segments()
+    if len(runs) < 3 or not seq.is_piecewise_fixed(runs):
+        return
+    for a, b in seq.interrupted_segments(runs)[:4]:
+        name = f" ({Path(seq.frame_sources[a]).name})" if seq.frame_sources else ""
+        frames_ = f"frame {a}" if b == a + 1 else f"frames {a}..{b - 1}"
+        warnings.warn(
+            f"{where}: {frames_}{name} {'has' if b == a + 1 else 'have'} other faces than the frames either side, which "
+            f"share theirs ({len(seq.frames[a][1])} against {len(seq.frames[a - 1][1])} faces): a frame cut short or "
+            "damaged? It is played as it is, as a segment of its own", stacklevel=4)
 
 
 def _check_size(V0: np.ndarray, cfg, up_axis: str) -> None:
@@ -257,6 +274,8 @@ def prepare_surface(seq, cfg: SceneConfig):
         _say_orientation(reports, where)
         _check_size(surface_vertices(*frames[0]), s, axis)
         seq = VaryingTopologySequence(frames, fps, seq.name, seq.source, seq.frame_sources)
+        if s.conversion is None:
+            _say_interrupted(seq, where)
         if seq.is_fixed_topology():
             seq = seq.to_fixed()
         elif s.conversion is not None:

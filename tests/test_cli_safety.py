@@ -581,14 +581,40 @@ def test_sphere_starting_inside_a_closed_surface_is_refused():
 
 
 def test_convert_prints_an_estimate_after_the_second_frame_naming_faster_options(capsys):
-    from dynmesh_warp.convert_cli import _TimedFrames
+    from dynmesh_warp.convert_cli import FrameEstimate
 
-    frames = _TimedFrames([10, 11, 12, 13], "cpu", "regularized", limit_s=0.0)  # any length is "long"
-    assert [frames[t] for t in range(4)] == [10, 11, 12, 13]  # values unchanged
+    est = FrameEstimate("cpu", "regularized", limit_s=0.0)  # any length is "long"
+    est(5.0, 1, 4)  # the first frame (compilation): no estimate yet
+    assert "estimate" not in capsys.readouterr().err
+    est(2.0, 2, 4)
     err = capsys.readouterr().err
-    assert err.count("estimate:") == 1 and "--device cuda" in err and "--strategy projection" in err
-    quiet = _TimedFrames([1, 2, 3], "cpu", "tracking", limit_s=1e9)
-    assert [quiet[t] for t in range(3)] == [1, 2, 3] and "estimate" not in capsys.readouterr().err
+    assert err.count("estimate:") == 1 and "2.0 s per frame" in err and "--device cuda" in err \
+        and "--strategy projection" in err
+    assert "about 4 s for 4 frames" in err  # what has passed (~0 s here) + 2 frames left x 2 s
+    est(2.0, 3, 4)
+    assert "estimate" not in capsys.readouterr().err  # once
+    quiet = FrameEstimate("cpu", "tracking", limit_s=1e9)
+    quiet(1.0, 1, 3), quiet(1.0, 2, 3)
+    assert "estimate" not in capsys.readouterr().err
+
+
+def test_the_frame_loop_times_each_frame_it_fits():
+    """The estimate's input: the frame loop calls ``FRAME_TIMER`` once per fitted frame, with the
+    frames done so far (it counted reads of the frame list before, and the input's checks read
+    three frames in a millisecond: a new user's 400k-vertex frames got no estimate)."""
+    from dynmesh_warp.convert import to_fixed_topology
+    from dynmesh_warp.convert_fit import FRAME_TIMER
+    from dynmesh_warp.scenes import pulsing_blob
+
+    calls = []
+    token = FRAME_TIMER.set(lambda seconds, done, frames: calls.append((seconds, done, frames)))
+    try:
+        to_fixed_topology(pulsing_blob(subdivisions=2, frames=4).to_varying(), device="cpu", iterations=1,
+                          refine_rounds=0, key_frame=1)
+    finally:
+        FRAME_TIMER.reset(token)
+    assert [(d, n) for _, d, n in calls][:4] == [(1, 4), (2, 4), (3, 4), (4, 4)]
+    assert all(s > 0 for s, _, _ in calls)
 
 
 def test_evaluate_estimates_emd_on_the_cpu_up_front(work, capsys):
@@ -696,3 +722,43 @@ def test_convert_says_when_its_output_does_not_keep_the_frame_rate(work, tmp_pat
     assert convert.main([str(work / "frames"), str(tmp_path / "f.npz"), "--fps", "30", "--device", "cpu",
                          "--no-progress"]) == 0
     assert "frame rate" not in capsys.readouterr().err and load_sequence(tmp_path / "f.npz").fps == 30.0
+
+
+def test_a_stop_before_the_first_frame_is_acted_on_at_once(tmp_path, monkeypatch, capsys):
+    """A signal during the input's checks or the converter's set-up (minutes on large frames: a new
+    user's SIGINT was acted on 159 s later) stops there: ``ConversionStopped``, nothing fitted; the
+    CLI exits 128 + the signal with nothing written. After the first frame the run stops between
+    frames and keeps them, as before."""
+    from dynmesh_warp import convert as cv
+    from dynmesh_warp.convert_fit import FRAME_TIMER
+    from dynmesh_warp.io import save_sequence
+    from dynmesh_warp.scenes import pulsing_blob
+
+    from dynmesh_warp.convert_base import stopping_early
+
+    seq = pulsing_blob(subdivisions=2, frames=4).to_varying()
+    asked, fitted = [], []
+    one = cv.to_fixed_topology(seq, device="cpu", iterations=1, refine_rounds=0, should_stop=lambda: "SIGINT")
+    assert one.num_frames == 1  # the Python API, unasked: at least the first frame, as documented
+    token = FRAME_TIMER.set(lambda *a: fitted.append(a))
+    early = stopping_early()
+    early.__enter__()
+    try:
+        with pytest.raises(cv.ConversionStopped, match="SIGINT"):  # stops inside the input's per-frame checks
+            cv.to_fixed_topology(seq, device="cpu", iterations=1, refine_rounds=0,
+                                 should_stop=lambda: asked.append(1) or ("SIGINT" if len(asked) >= 2 else None))
+        assert len(asked) == 2 and not fitted
+        later = cv.to_fixed_topology(seq, device="cpu", iterations=1, refine_rounds=0, key_frame=0,
+                                     should_stop=lambda: "SIGINT" if fitted else None)
+        assert later.num_frames == 1  # the key frame fitted, then the stop between frames
+    finally:
+        early.__exit__(None, None, None)
+        FRAME_TIMER.reset(token)
+    save_sequence(seq, tmp_path / "in.npz")
+    import dynmesh_warp.cli
+
+    monkeypatch.setattr(dynmesh_warp.cli, "stop_reason", lambda: "SIGTERM")  # as if a SIGTERM came before the work
+    assert cv.main([str(tmp_path / "in.npz"), str(tmp_path / "out.npz"), "--device", "cpu", "--no-progress"]) == 143
+    assert "interrupted by SIGTERM before any frame was fitted: nothing written" in capsys.readouterr().err
+    assert not (tmp_path / "out.npz").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in.npz"]  # no journal left either

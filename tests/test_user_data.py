@@ -67,6 +67,16 @@ def test_one_based_faces_get_a_hint(tmp_path):
     with pytest.raises(MeshDataError) as e:
         load_sequence(tmp_path / "bad.npz")
     assert "1-based" not in str(e.value)
+    # 1-based with the last vertex in no face: every index in range, a scrambled mesh (loaded
+    # silently before: a new user's surface area 146 against 12.5); the geometry tells
+    last = len(V[0]) - 1
+    F_in = F[(F != last).all(axis=1)]
+    np.savez(tmp_path / "matlab_in_range.npz", V=V, F=F_in + 1)
+    with pytest.raises(MeshDataError, match=r"matlab_in_range\.npz.*look 1-based.*vertex 0 is in no face.*subtract 1"):
+        load_sequence(tmp_path / "matlab_in_range.npz")
+    # 0-based with vertex 0 in no face: read as it is
+    np.savez(tmp_path / "no_zero.npz", V=V, F=F[(F != 0).all(axis=1)])
+    assert load_sequence(tmp_path / "no_zero.npz").num_faces == int((F != 0).all(axis=1).sum())
 
 
 # --------------------------------------------------------------------------- orientation
@@ -1374,3 +1384,29 @@ def test_auto_playback_loops_only_an_animation_that_repeats(tmp_path):
     from dynmesh_warp.sequence import VaryingTopologySequence
 
     assert resolve_playback(VaryingTopologySequence([(rise[0], F), (rise[-1], F[:-1])], fps=24.0), "auto") == "loop"
+
+
+def test_a_frame_that_lost_faces_between_frames_that_share_theirs_is_warned_of(tmp_path):
+    """A folder whose frame 4 was cut short at a line's end (a quarter of its faces) played as a
+    piecewise-fixed sequence, unsaid (a new user's); convert's own segments (A, B, C) are not."""
+    from dynmesh_warp.io import save_sequence
+    from dynmesh_warp.scenes import wave_bowl
+    from dynmesh_warp.sequence import VaryingTopologySequence
+
+    seq = wave_bowl(n=16, frames=10)
+    save_sequence(seq, tmp_path / "frames", fmt="obj")
+    cut = tmp_path / "frames" / "frame_0004.obj"
+    lines = cut.read_text().splitlines()
+    first_face = next(i for i, line in enumerate(lines) if line.startswith("f "))
+    cut.write_text("\n".join(lines[:first_face + 50]) + "\n")
+    cfg = SceneConfig.model_validate({"surface": {"source": str(tmp_path / "frames"), "playback": "loop"}})
+    with pytest.warns(UserWarning, match=r"frame 4 \(frame_0004\.obj\) has other faces than the frames either side, "
+                                         r"which share theirs \(50 against 450 faces\)"):
+        load_surface(cfg)
+    # three templates one after another, as convert writes: no warning
+    V, F = seq.V, seq.F
+    other = (F[:, [0, 2, 1]], F[::-1])
+    frames = [(V[t], F if t < 3 else other[0] if t < 6 else other[1]) for t in range(10)]
+    pieces = VaryingTopologySequence(frames, fps=24.0, name="pieces")
+    assert pieces.is_piecewise_fixed() and pieces.interrupted_segments() == []
+    assert VaryingTopologySequence([(V[t], F if t != 4 else F[:50]) for t in range(10)]).interrupted_segments() == [(4, 5)]
