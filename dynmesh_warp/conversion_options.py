@@ -274,8 +274,12 @@ def options_for(strategy, /, **options) -> GraphOptions | RegularizedOptions | T
     model = _MODELS[strategy]
     unknown = sorted(set(options) - set(model.model_fields) | ({"strategy"} & set(options)))
     if unknown:
+        import difflib
+
         valid = sorted(k for k in model.model_fields if k != "strategy")
-        raise TypeError(f"to_fixed_topology(strategy={strategy!r}): unknown option(s) {unknown}; valid: {valid}")
+        near = [m for u in unknown for m in difflib.get_close_matches(u, valid, n=1)]  # refine_round: refine_rounds
+        raise TypeError(f"to_fixed_topology(strategy={strategy!r}): unknown option(s) {unknown}"
+                        + (f"; did you mean {', '.join(near)}?" if near else "") + f"; valid: {valid}")
     try:
         return _ADAPTER.validate_python({"strategy": strategy, **options})
     except ValidationError as e:

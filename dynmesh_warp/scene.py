@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import shlex
 from pathlib import Path
 import warnings
 
@@ -533,7 +534,7 @@ def build_world(cfg: SceneConfig, device=None, collider: str | None = None,
             "physics.collider: rebuild, or surface.conversion to convert it to fixed topology (on the "
             "command line: --set physics.collider=rebuild (run: --collider rebuild), or --set "
             "surface.conversion.strategy=graph; or convert it once, python -m dynmesh_warp.convert "
-            f"{cfg.surface.source} OUT.npz, and run OUT.npz)")
+            f"{shlex.quote(str(cfg.surface.source))} OUT.npz, and run OUT.npz)")  # quoted: a path with spaces
     refuse_starts_inside(*seq.frame(0), sphere_entries(cfg))  # listed spheres must start outside a closed surface
     model, state = build_model(cfg, seq, device)
     return World(model, state, collider=collider, rebuild_every=rebuild_every or p.rebuild_every)

@@ -303,7 +303,8 @@ def test_cli_strategy_options_are_checked_before_the_input_is_read(tmp_path, cap
     missing = str(tmp_path / "missing.npz")
     for opt, msg in (("refine_rounds=x", "--option refine_rounds: must be an integer"),
                      ("pull_fraction=2", "--option pull_fraction: must lie in [0, 1]"),
-                     ("bogus=1", "unknown option(s) ['bogus']")):
+                     ("bogus=1", "unknown option(s) ['bogus']"),
+                     ("refine_round=0", "unknown option(s) ['refine_round']; did you mean refine_rounds?")):
         assert convert_main([missing, out, "--option", opt]) == 2
         assert msg in capsys.readouterr().err, opt
     with pytest.raises(SystemExit) as e:  # a usage error (argparse)

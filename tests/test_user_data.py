@@ -1410,3 +1410,20 @@ def test_a_frame_that_lost_faces_between_frames_that_share_theirs_is_warned_of(t
     pieces = VaryingTopologySequence(frames, fps=24.0, name="pieces")
     assert pieces.is_piecewise_fixed() and pieces.interrupted_segments() == []
     assert VaryingTopologySequence([(V[t], F if t != 4 else F[:50]) for t in range(10)]).interrupted_segments() == [(4, 5)]
+
+
+def test_the_convert_command_suggested_for_a_varying_surface_quotes_its_path(tmp_path):
+    """The refusal of a varying-topology surface by a one-topology collider names the command to
+    convert it; a path with a space is quoted so that it can be pasted (a new user's could not)."""
+    from dynmesh_warp.config import SceneError
+    from dynmesh_warp.scene import build_world
+    from dynmesh_warp.scenes import torus_to_sphere
+    from dynmesh_warp.io import save_sequence
+
+    folder = tmp_path / "my scan"
+    folder.mkdir()
+    save_sequence(torus_to_sphere(frames=3, resolution=12), folder / "var.npz")
+    cfg = SceneConfig.model_validate({"surface": {"source": str(folder / "var.npz")}, "physics": {"collider": "refit"}})
+    with pytest.raises(SceneError) as e:
+        build_world(cfg, device="cpu")
+    assert f"python -m dynmesh_warp.convert '{folder / 'var.npz'}' OUT.npz" in str(e.value)
