@@ -501,13 +501,17 @@ def test_gaussians_follow_a_piecewise_world_across_its_segments():
     g = gaussians_for_world(w)
     assert isinstance(g, SegmentedGaussians) and len(g.parts) == 3
     seen = set()
-    for _ in range(120):  # 0.5 s: frames 0..11, all three segments
+    for i in range(120):  # 0.5 s: frames 0..11, all three segments
         w.step()
-        seen.add(g.parts.index(g.current))
+        part = g.parts.index(g.current)
         c = g.numpy()["centers"]
-        V, F = surf.host_mesh_at(w.time)
-        d = brute_nearest(c[::25], V, F)[0]
-        assert g.count == g.parts[0].count and np.isfinite(c).all() and d.max() < 0.05
+        assert g.count == g.parts[0].count and np.isfinite(c).all()
+        # on the surface (the brute-force oracle, ~0.2 s a call): at each segment's first step and
+        # every 4th step (2-3 times per input frame)
+        if part not in seen or i % 4 == 0:
+            V, F = surf.host_mesh_at(w.time)
+            assert brute_nearest(c[::25], V, F)[0].max() < 0.05, (i, part)
+        seen.add(part)
     assert seen == {0, 1, 2}
 
 
