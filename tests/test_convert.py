@@ -1153,13 +1153,20 @@ def test_a_short_run_tries_other_keys_on_one_poor_frame():
         assert _key_retry_reason(cov, 0) == "2 frames poorly covered"
 
 
-def test_unused_vertices_and_faces_of_the_input_are_dropped(rigid_varying):
+@pytest.fixture(scope="module")
+def rigid_clean8(rigid_varying):
+    """The first 8 re-meshed frames of ``rigid_varying`` and their conversion (the defaults): the
+    clean run two tests compare a mended input's conversion with (computed once)."""
+    clean = VaryingTopologySequence(rigid_varying[2].frames[:8])
+    return clean, to_fixed_topology(clean, device=DEV)
+
+
+def test_unused_vertices_and_faces_of_the_input_are_dropped(rigid_clean8):
     """Stray vertices no face uses (far from the surface), faces that repeat a vertex and faces
     listed twice, added to every remeshed frame, change nothing: the graph conversion gives the same mesh as on the
     clean input (vertex for vertex), the coverage is the clean run's, the summary says what was
     dropped; the input is left as it was; a frame whose every face repeats a vertex is refused."""
-    _, _, clean = rigid_varying
-    clean = VaryingTopologySequence(clean.frames[:8])
+    clean, a = rigid_clean8
     rng = np.random.default_rng(3)
     junk = []
     for v, f in clean.frames:
@@ -1170,7 +1177,6 @@ def test_unused_vertices_and_faces_of_the_input_are_dropped(rigid_varying):
         junk.append((v2, f2[:-1]))  # the face of strays would make them surface: keep them unused
     junk_seq = VaryingTopologySequence(junk)
     before = [v.copy() for v, _ in junk_seq.frames]
-    a = to_fixed_topology(clean, device=DEV)
     b = to_fixed_topology(junk_seq, device=DEV)
     assert a.V.shape == b.V.shape and np.array_equal(a.F, b.F)
     np.testing.assert_allclose(b.V, a.V, atol=1e-6)
@@ -1185,16 +1191,14 @@ def test_unused_vertices_and_faces_of_the_input_are_dropped(rigid_varying):
         to_fixed_topology(VaryingTopologySequence(bad), device=DEV)
 
 
-def test_frames_wound_inside_out_are_turned_before_the_fit(rigid_varying):
+def test_frames_wound_inside_out_are_turned_before_the_fit(rigid_clean8):
     """Input frames whose faces all face inward (an exporter's other marching-cubes convention)
     among outward ones convert as if they were outward: the same mesh vertex for vertex, the
     summary names them. Before, the fit's normal test rejected their correspondences (a new
     user's run: +37 % area on such frames, no warning). An open sheet is never turned."""
-    _, _, clean = rigid_varying
-    clean = VaryingTopologySequence(clean.frames[:8])
+    clean, a = rigid_clean8
     flipped = VaryingTopologySequence([(v, f[:, ::-1].copy()) if t in (2, 3, 6) else (v, f)
                                        for t, (v, f) in enumerate(clean.frames)])
-    a = to_fixed_topology(clean, device=DEV)
     b = to_fixed_topology(flipped, device=DEV)
     assert a.conversion.turned_outward == [] and b.conversion.turned_outward == [2, 3, 6]
     assert np.array_equal(a.F, b.F)
