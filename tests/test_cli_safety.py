@@ -1,17 +1,23 @@
 """Issue 20: outputs never touch inputs, everything is checked before the work, the work is bounded.
 
-``test_bad_path_or_value_refused_before_the_work`` runs each command line in a subprocess (as a
-user would): it must exit 2 with one line naming the offending path or value, no traceback,
-without launching a Warp kernel or building a Warp mesh (the work), and leave every file in the
-work folder (inputs and pre-existing outputs) exactly as it was, with no temporary file left behind.
+``test_bad_path_or_value_refused_before_the_work`` runs each command line (as a user would): it
+must exit 2 with one line naming the offending path or value, no traceback, without launching a
+Warp kernel or building a Warp mesh (the work), and leave every file in the work folder (inputs and
+pre-existing outputs) exactly as it was, with no temporary file left behind. One case per command
+runs in a subprocess (``python -m``: the exit status and everything the process prints, its
+start-up included); the others call the command's ``main`` in this process with the same checks
+(its return value is the exit status: ``sys.exit(main())``), which saves a Python and Warp start-up
+(~2 CPU-s) per case.
 """
 
 from __future__ import annotations
 
 import hashlib
+import importlib
 import os
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -188,18 +194,77 @@ def run_noting_work(argv: list[str], cwd: Path, notes: Path) -> subprocess.Compl
                           timeout=120, env={**os.environ, "DYNMESH_WORK_NOTES": str(notes)})
 
 
+#: the cases of BAD run as a real process (one per command, each refused at a different stage:
+#: the scene's work budget, a broken frame of the input, an unknown strategy); the rest in-process
+IN_A_PROCESS = {("dynmesh_warp.run", "dt_tiny.yaml"), ("dynmesh_warp.convert", "frames_broken"),
+                ("dynmesh_warp.evaluate", "--strategies")}
+
+
+def _in_a_process(argv) -> bool:
+    return any(argv[1] == module and arg in argv for module, arg in IN_A_PROCESS)
+
+
+def run_in_process_noting_work(argv: list[str], cwd: Path, monkeypatch, capfd) -> tuple[int, str, str, list[str]]:
+    """``python -m ...`` (``argv`` = ["-m", module, *args]) as ``sys.exit(<module>.main(args))`` in
+    this process, in ``cwd``: (exit status, stdout, stderr, the Warp work noted as NO_WORK notes it).
+    A warning the command leaves uncaught is a line of stderr, as in a fresh interpreter (shown
+    once per place; deprecation, import and resource warnings ignored)."""
+    import warp
+    import warp._src.context as context
+    import warp._src.types as types
+
+    assert argv[0] == "-m"
+    module = importlib.import_module(argv[1])
+    work = []
+
+    def noting(what, real):
+        def call(*args, **kwargs):
+            work.append(f"{what} {getattr(args[0], 'key', '') if args else ''}".strip())
+            return real(*args, **kwargs)
+        return call
+
+    capfd.readouterr()
+    with monkeypatch.context() as m, warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("default")
+        for category in (DeprecationWarning, PendingDeprecationWarning, ImportWarning, ResourceWarning):
+            warnings.filterwarnings("ignore", category=category)
+        m.chdir(cwd)
+        launch = noting("launch", context.launch)
+        m.setattr(warp, "launch", launch)
+        m.setattr(context, "launch", launch)
+        m.setattr(types.Mesh, "__init__", noting("Mesh", types.Mesh.__init__))
+        try:
+            rc = module.main(argv[2:])
+        except SystemExit as e:  # argparse's usage errors
+            rc = e.code
+    out, err = capfd.readouterr()
+    err += "".join(f"warning ({w.category.__name__}): {w.message}\n" for w in caught)
+    return (0 if rc is None else rc), out, err, work
+
+
 @pytest.mark.parametrize("argv,needle", BAD, ids=[" ".join(a[2:]) for a, _ in BAD])
-def test_bad_path_or_value_refused_before_the_work(work, tmp_path, argv, needle):
+def test_bad_path_or_value_refused_before_the_work(work, tmp_path, argv, needle, monkeypatch, capfd):
     before = _snapshot(work)
-    notes = tmp_path / "work_notes.txt"  # outside the user's folder, which must stay as it was
-    r = run_noting_work(argv + ["--no-progress"] if argv[1] != "dynmesh_warp.convert" else argv, work, notes)
-    lines = [ln for ln in (r.stdout + r.stderr).splitlines() if ln.strip()]
-    assert r.returncode == 2, (r.returncode, lines)
+    argv = argv + ["--no-progress"] if argv[1] != "dynmesh_warp.convert" else argv
+    if _in_a_process(argv):
+        notes = tmp_path / "work_notes.txt"  # outside the user's folder, which must stay as it was
+        r = run_noting_work(argv, work, notes)
+        rc, out, err = r.returncode, r.stdout, r.stderr
+        noted = notes.read_text().split() if notes.exists() else []
+    else:
+        rc, out, err, noted = run_in_process_noting_work(argv, work, monkeypatch, capfd)
+    lines = [ln for ln in (out + err).splitlines() if ln.strip()]
+    assert rc == 2, (rc, lines)
     assert len(lines) == 1 and lines[0].startswith("error: "), lines
     assert needle in lines[0]
-    assert "Traceback" not in r.stderr
-    assert not notes.exists(), "refused after the work began: " + " ".join(notes.read_text().split()[:12])
+    assert "Traceback" not in err
+    assert not noted, "refused after the work began: " + " ".join(noted[:12])
     assert _snapshot(work) == before  # nothing written, changed, or left behind
+
+
+def test_each_command_has_a_case_in_a_process():
+    assert sorted(a[1] for a, _ in BAD if _in_a_process(a)) == ["dynmesh_warp.convert", "dynmesh_warp.evaluate",
+                                                                 "dynmesh_warp.run"]
 
 
 def test_the_work_check_sees_a_kernel_launch_and_a_mesh(tmp_path):
@@ -210,6 +275,23 @@ def test_the_work_check_sees_a_kernel_launch_and_a_mesh(tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     noted = notes.read_text().splitlines()
     assert any(n.startswith("launch ") for n in noted) and any(n.startswith("Mesh") for n in noted), noted[:5]
+
+
+def test_the_in_process_work_check_sees_a_kernel_launch_and_a_mesh(tmp_path, monkeypatch, capfd):
+    """... and so does its in-process form, for each command: a run of one step, a conversion
+    of two frames, an evaluation of two frames launch kernels and build meshes."""
+    from dynmesh_warp.io import save_sequence
+    from dynmesh_warp.sequence import FixedTopologySequence
+
+    V, F = icosphere(1)
+    save_sequence(FixedTopologySequence(np.stack([V, V * 1.1]), F, fps=10), tmp_path / "gt.npz")
+    for argv in (RUN + ["--steps", "1", "--viewer", "none", "--device", "cpu", "--no-progress", "--output", "o"],
+                 CONVERT + ["gt.npz", "c.npz", "--strategy", "projection", "--device", "cpu", "--no-progress"],
+                 EVALUATE + ["gt.npz", "--strategies", "projection", "--no-emd", "--resolution", "16", "--device", "cpu",
+                             "--no-progress", "--out", "e"]):
+        rc, out, err, noted = run_in_process_noting_work(argv, tmp_path, monkeypatch, capfd)
+        assert rc == 0, err[-2000:]
+        assert any(n.startswith("launch ") for n in noted) and any(n.startswith("Mesh") for n in noted), (argv, noted[:5])
 
 
 def test_a_viewer_host_it_cannot_listen_on_is_refused(work):

@@ -409,6 +409,16 @@ def varying_npz(tmp_path_factory) -> Path:
     return p
 
 
+@pytest.fixture(scope="module")
+def varying_regularized(varying_npz):
+    """The uninterrupted ``regularized`` conversion of ``varying_npz``: the oracle of the
+    interrupted command lines' frames (both signals), computed once."""
+    from dynmesh_warp.convert import to_fixed_topology
+    from dynmesh_warp.io import load_sequence
+
+    return to_fixed_topology(load_sequence(varying_npz), strategy="regularized", device="cpu")
+
+
 def test_to_fixed_topology_should_stop_keeps_a_prefix(varying_npz):
     from dynmesh_warp.convert import to_fixed_topology
     from dynmesh_warp.io import load_sequence
@@ -433,8 +443,7 @@ def test_to_fixed_topology_should_stop_keeps_a_prefix(varying_npz):
 
 @pytest.mark.parametrize("sig,folder", [(signal.SIGINT, False), (signal.SIGTERM, True)],
                          ids=["SIGINT-npz", "SIGTERM-folder"])
-def test_convert_interrupted_writes_the_frames_done(tmp_path, varying_npz, sig, folder, capsys):
-    from dynmesh_warp.convert import to_fixed_topology
+def test_convert_interrupted_writes_the_frames_done(tmp_path, varying_npz, varying_regularized, sig, folder, capsys):
     from dynmesh_warp.io import load_sequence
 
     out = tmp_path / ("frames" if folder else "out.npz")
@@ -468,7 +477,7 @@ def test_convert_interrupted_writes_the_frames_done(tmp_path, varying_npz, sig, 
     if folder:  # the frames keep their input numbers (they were written from frame_0000)
         assert sorted(p.name for p in out.glob("frame_*")) == [f"frame_{t:04d}.ply" for t in range(k, k + got.num_frames)]
     assert f"frames {k}..{k + got.num_frames - 1} of 0..119" in line
-    full = to_fixed_topology(load_sequence(varying_npz), strategy="regularized", device="cpu")
+    full = varying_regularized
     np.testing.assert_allclose(got.V, full.V[k:k + got.num_frames], atol=1e-6)  # .ply / .npz round trip of the same frames
     assert _leftovers(tmp_path) == []
     capsys.readouterr()

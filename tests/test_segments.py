@@ -64,6 +64,17 @@ def tearing():
     return VaryingTopologySequence(frames, fps=24.0, name="tearing"), centres
 
 
+#: a GPU fit sums with float atomics: its deterministic mode makes two runs comparable to the bit
+DETERMINISTIC = {"deterministic": True} if str(TEST_DEVICE).startswith("cuda") else {}
+
+
+@pytest.fixture(scope="module")
+def tearing_one(tearing):
+    """The one-template conversion of ``tearing`` (to_fixed_topology, the defaults; deterministic
+    on a GPU), which two tests read: computed once."""
+    return to_fixed_topology(tearing[0], device=TEST_DEVICE, **DETERMINISTIC)
+
+
 def _off_surface_area(V, F, centres, gap: float) -> float:
     """Fraction of (V, F)'s area whose face centroids lie farther than ``gap`` x the balls' bbox
     diagonal from the union of the balls (analytic: |distance to the nearest centre - 0.5|)."""
@@ -151,13 +162,13 @@ def test_stretched_faces_inside_a_closed_input_are_buried_not_web():
     assert buried == 0.0 and web > want[0]
 
 
-def test_one_template_leaves_a_web_that_segments_remove(tearing, tmp_path):
+def test_one_template_leaves_a_web_that_segments_remove(tearing, tearing_one, tmp_path):
     """The template of the automatic key frame fuses one pair, which the input later tears: one
     template stretches a web across the gap (its vertices all on the input, so the coverage
     stays good); the piecewise conversion starts a new template at the topology change and
     its surface keeps to the balls (the analytic oracle) on every frame."""
     seq, centres = tearing
-    one = to_fixed_topology(seq, device=TEST_DEVICE)
+    one = tearing_one
     assert max(one.conversion.coverage) < 0.05  # the coverage does not see it
     web = np.asarray(one.conversion.web)
     assert web.max() > POOR_WEB
@@ -191,7 +202,7 @@ def test_one_template_leaves_a_web_that_segments_remove(tearing, tmp_path):
     assert isinstance(to_piecewise_fixed(seq, device=TEST_DEVICE, max_segments=1), FixedTopologySequence)
 
 
-def test_a_rejected_cut_gives_the_one_template_run(tearing, monkeypatch):
+def test_a_rejected_cut_gives_the_one_template_run(tearing, tearing_one, monkeypatch):
     """When the new template is no better where it would take over, the first run's stopped
     forward pass is not kept: the result is to_fixed_topology's, frame for frame."""
     from dynmesh_warp import convert
@@ -206,11 +217,9 @@ def test_a_rejected_cut_gives_the_one_template_run(tearing, monkeypatch):
         return r
 
     monkeypatch.setattr(convert, "to_fixed_topology", worse_sub_runs)
-    # a GPU fit sums with float atomics: its deterministic mode makes two runs comparable to the bit
-    opts = {"deterministic": True} if str(TEST_DEVICE).startswith("cuda") else {}
-    res = to_piecewise_fixed(seq, device=TEST_DEVICE, **opts)
+    res = to_piecewise_fixed(seq, device=TEST_DEVICE, **DETERMINISTIC)
     assert isinstance(res, FixedTopologySequence) and len(res.conversion.segments) == 1
-    np.testing.assert_array_equal(res.V, to_fixed_topology(seq, device=TEST_DEVICE, **opts).V)
+    np.testing.assert_array_equal(res.V, tearing_one.V)
 
 
 def test_a_stop_during_the_new_template_keeps_the_frames_done(tearing, monkeypatch):
@@ -501,13 +510,17 @@ def test_gaussians_follow_a_piecewise_world_across_its_segments():
     g = gaussians_for_world(w)
     assert isinstance(g, SegmentedGaussians) and len(g.parts) == 3
     seen = set()
-    for _ in range(120):  # 0.5 s: frames 0..11, all three segments
+    for i in range(120):  # 0.5 s: frames 0..11, all three segments
         w.step()
-        seen.add(g.parts.index(g.current))
+        part = g.parts.index(g.current)
         c = g.numpy()["centers"]
-        V, F = surf.host_mesh_at(w.time)
-        d = brute_nearest(c[::25], V, F)[0]
-        assert g.count == g.parts[0].count and np.isfinite(c).all() and d.max() < 0.05
+        assert g.count == g.parts[0].count and np.isfinite(c).all()
+        # on the surface (the brute-force oracle, ~0.2 s a call): at each segment's first step and
+        # every 4th step (2-3 times per input frame)
+        if part not in seen or i % 4 == 0:
+            V, F = surf.host_mesh_at(w.time)
+            assert brute_nearest(c[::25], V, F)[0].max() < 0.05, (i, part)
+        seen.add(part)
     assert seen == {0, 1, 2}
 
 
