@@ -94,6 +94,7 @@ __all__ = [
     "STRATEGIES",
     "NearestSurfaceResult",
     "ConversionStopped",
+    "stopping_early",
     "ConversionInfo",
     "nearest_surface",
     "vertex_adjacency",

@@ -828,7 +828,7 @@ def main(argv=None) -> int:
         scenes = []
         folder = OutputFolder(a.out, overwrite=a.overwrite, checked=checked, holds=OutputKind.EVALUATION)
         reason, info = None, None
-        from .convert_base import stopping_early
+        from .convert import stopping_early
 
         # Ctrl-C / SIGTERM: stop between frames, keep what is done (a conversion's set-up: at once)
         with checking_stops(), stopping_early(), folder as tmp:

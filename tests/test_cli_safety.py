@@ -817,25 +817,21 @@ def test_a_stop_before_the_first_frame_is_acted_on_at_once(tmp_path, monkeypatch
     from dynmesh_warp.io import save_sequence
     from dynmesh_warp.scenes import pulsing_blob
 
-    from dynmesh_warp.convert_base import stopping_early
-
     seq = pulsing_blob(subdivisions=2, frames=4).to_varying()
     asked, fitted = [], []
     one = cv.to_fixed_topology(seq, device="cpu", iterations=1, refine_rounds=0, should_stop=lambda: "SIGINT")
     assert one.num_frames == 1  # the Python API, unasked: at least the first frame, as documented
     token = FRAME_TIMER.set(lambda *a: fitted.append(a))
-    early = stopping_early()
-    early.__enter__()
     try:
-        with pytest.raises(cv.ConversionStopped, match="SIGINT"):  # stops inside the input's per-frame checks
-            cv.to_fixed_topology(seq, device="cpu", iterations=1, refine_rounds=0,
-                                 should_stop=lambda: asked.append(1) or ("SIGINT" if len(asked) >= 2 else None))
-        assert len(asked) == 2 and not fitted
-        later = cv.to_fixed_topology(seq, device="cpu", iterations=1, refine_rounds=0, key_frame=0,
-                                     should_stop=lambda: "SIGINT" if fitted else None)
-        assert later.num_frames == 1  # the key frame fitted, then the stop between frames
+        with cv.stopping_early():
+            with pytest.raises(cv.ConversionStopped, match="SIGINT"):  # stops inside the input's per-frame checks
+                cv.to_fixed_topology(seq, device="cpu", iterations=1, refine_rounds=0,
+                                     should_stop=lambda: asked.append(1) or ("SIGINT" if len(asked) >= 2 else None))
+            assert len(asked) == 2 and not fitted
+            later = cv.to_fixed_topology(seq, device="cpu", iterations=1, refine_rounds=0, key_frame=0,
+                                         should_stop=lambda: "SIGINT" if fitted else None)
+            assert later.num_frames == 1  # the key frame fitted, then the stop between frames
     finally:
-        early.__exit__(None, None, None)
         FRAME_TIMER.reset(token)
     save_sequence(seq, tmp_path / "in.npz")
     import dynmesh_warp.cli
