@@ -561,7 +561,10 @@ def test_web_restarts_the_fit_on_fast_curling_arms():
     # H200 deterministic 12.1 -> 7.1 %)
     # the rigid start off too, for the same reason (with the schedule alone it moves this chaotic
     # curl's webs: 9.1 -> 7.3 %; with the defaults the worst web is 5.8 % on, 6.0 % off)
-    det = {"deterministic": wp.get_device(TEST_DEVICE).is_cuda, "rigid_iterations": 0}
+    # the floater retry off too: the web trigger's run leaves a web reaching out to a small input
+    # part on frame 14, and a second conversion without such parts followed (24 of its 29 CPU-s) only
+    # to be rejected (the same frames, bit for bit, as with the retry off): not what this test is about
+    det = {"deterministic": wp.get_device(TEST_DEVICE).is_cuda, "rigid_iterations": 0, "floater_retry": False}
     off = to_fixed_topology(var, device=TEST_DEVICE, restart_on_web=False, converge_iterations=0, **det)
     on = to_fixed_topology(var, device=TEST_DEVICE, converge_iterations=0, **det)
     w_off, w_on = max(off.conversion.web), max(on.conversion.web)
