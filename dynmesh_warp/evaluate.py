@@ -174,11 +174,17 @@ def evaluate_rows(gt_frames, rows: dict, frames, protocols=("dgmesh", "paper"), 
 SCALE_MISMATCH = 10.0
 
 
+def bbox_diagonal(V) -> float:
+    """The length of the bounding box's diagonal of the points ``V`` (N, 3), in their units: the
+    scale the tables' CD (squared) and EMD are read against (a mesh in mm gives mm² and mm)."""
+    return float(np.linalg.norm(np.ptp(np.asarray(V, np.float64), axis=0)))
+
+
 def _warn_other_units(what: str, V, gt_V, gt_name, stacklevel: int = 3) -> None:
     """Warn when ``what``'s vertices ``V`` (the compared mesh, named in ``what``) and the ground
     truth's ``gt_V`` (named ``gt_name``) differ in size (bounding-box diagonal) by SCALE_MISMATCH
     or more."""
-    d_gt, d = (float(np.linalg.norm(np.ptp(np.asarray(x), axis=0))) for x in (gt_V, V))
+    d_gt, d = (bbox_diagonal(x) for x in (gt_V, V))
     ratio = d / d_gt if d_gt > 0 else np.inf
     if not (1.0 / SCALE_MISMATCH < ratio < SCALE_MISMATCH):
         warnings.warn(f"{what} is {d:.4g} across, the ground truth's ({gt_name}) {d_gt:.4g} ({ratio:.3g}x): other "
@@ -186,12 +192,15 @@ def _warn_other_units(what: str, V, gt_V, gt_name, stacklevel: int = 3) -> None:
                       stacklevel=stacklevel)
 
 
-def _check_scales(index, gt_file, pred_file) -> None:
-    """Warn when the paired first frames differ in size by SCALE_MISMATCH or more."""
+def _check_scales(index, gt_file, pred_file) -> float:
+    """Warn when the paired first frames differ in size by SCALE_MISMATCH or more; returns the
+    ground truth's frame's bounding-box diagonal (:func:`bbox_diagonal`)."""
     from .io import read_mesh
 
+    gt_V = read_mesh(gt_file)[0]
     _warn_other_units(f"--compare: the prediction's frame {index} ({pred_file})", read_mesh(pred_file)[0],
-                      read_mesh(gt_file)[0], gt_file, stacklevel=4)
+                      gt_V, gt_file, stacklevel=4)
+    return bbox_diagonal(gt_V)
 
 
 def evaluate_folders(gt_dir, pred_dir, protocols=("dgmesh", "paper"), frame_stride: int = 1,
@@ -202,7 +211,8 @@ def evaluate_folders(gt_dir, pred_dir, protocols=("dgmesh", "paper"), frame_stri
     (``pair="order"``). ``emd_stride`` K: EMD only on the pairs at positions 0, K, 2K, ... of the
     paired list (as the CLI's estimate counts them; it was ignored here, and EMD ran on every
     pair: a new user's). Returns {'pairs': [(index, gt, pred)], 'results':
-    evaluate_rows(...)['prediction']} (frames are the paired indices)."""
+    evaluate_rows(...)['prediction'], 'gt_diagonal': the first ground-truth frame's bounding-box
+    diagonal (its units; None without pairs)} (frames are the paired indices)."""
     from .io import read_mesh
     from .sequence_layouts import list_frame_files
 
@@ -226,14 +236,13 @@ def evaluate_folders(gt_dir, pred_dir, protocols=("dgmesh", "paper"), frame_stri
             return read_mesh(name)
 
     idx = [p[0] for p in pairs]
-    if pairs:
-        _check_scales(*pairs[0])
+    diagonal = _check_scales(*pairs[0]) if pairs else None
     emd_frames = [] if not emd else None if not emd_stride else \
         [t for t, k in zip(idx, at) if k % int(emd_stride) == 0]
     res = evaluate_rows(_Lazy(1), {"prediction": _Lazy(2)}, idx, protocols,
                         emd_frames=emd_frames, seed=seed, device=device,
                         progress=progress, desc=Path(pred_dir).name, should_stop=should_stop)
-    return {"pairs": pairs, "results": res["prediction"]}
+    return {"pairs": pairs, "results": res["prediction"], "gt_diagonal": diagonal}
 
 
 def _carried(gt: FixedTopologySequence, near, t: int) -> np.ndarray:
@@ -469,7 +478,7 @@ def evaluate_scene(gt_path, input_path=None, num_frames: int | None = None, reso
     return {
         "scene": gt.name, "ground_truth": str(gt_path), "input": str(input_path) if input_path else
         f"remesh_sequence(resolution={resolution}, noise={noise}, seed={seed})",
-        "num_frames": gt.num_frames, "gt_vertices": int(gt.num_vertices),
+        "num_frames": gt.num_frames, "gt_vertices": int(gt.num_vertices), "gt_diagonal": bbox_diagonal(gt.V[0]),
         "input_vertices_min_max": [int(min(nv)), int(max(nv))],
         "frames": frames, "emd_frames": emd_frames, "rows": res, "conversion": conv_info,
         "timing": timing,
@@ -537,7 +546,8 @@ def _table_rows(summary: dict):
 def format_markdown(summary: dict, protocol: str, note: str = "") -> str:
     header, body = _table_rows(summary)
     lines = [f"Protocol `{protocol}`: {M.PROTOCOLS[protocol].description}",
-             "CD in units of 1e-3 (squared distance), EMD in units of 1e-1; change = "
+             "CD in units of 1e-3 (squared distance, in the ground truth's units), EMD in units of 1e-1 "
+             "(its units); change = "
              "(row - varying input) / varying input, on the averages.", ""]
     if note:
         lines += [note, ""]
@@ -626,6 +636,8 @@ def write_outputs(out_dir, scenes: list, protocols, config: dict, interrupted: d
     note = "; ".join(
         f"{s['scene']}: CD on {_frames_done(s)} of {s['num_frames']} frames "
         f"(stride {config.get('frame_stride', 1)}), EMD on {len(s['emd_frames'])} frames"
+        + (f", ground truth {s['gt_diagonal']:.4g} units across (bounding-box diagonal, frame 0)"
+           if s.get("gt_diagonal") is not None else "")
         for s in scenes) if len(strides) else ""
     if interrupted:
         note = (f"INTERRUPTED by {interrupted['signal']}: partial results ({interrupted['note']})"
@@ -804,7 +816,7 @@ def main(argv=None) -> int:
                 with cmp_folder as tmp:
                     atomic_write_json(tmp / "compare.json", {
                         "ground_truth": a.compare[0], "prediction": a.compare[1], "device": device,
-                        "pairs": r["pairs"], "results": r["results"],
+                        "pairs": r["pairs"], "results": r["results"], "gt_diagonal": r["gt_diagonal"],
                         "interrupted": {"signal": reason, "frames_done": done, "pairs": len(r["pairs"])}
                         if reason else None})
             if reason:
@@ -817,6 +829,9 @@ def main(argv=None) -> int:
                 emd = "–" if d["emd_mean"] is None else f"{d['emd_mean'] / M.EMD_SCALE:.4f}"
                 print(f"{p}: CD {d['cd_mean'] / M.CD_SCALE:.4f} (1e-3), EMD {emd} (1e-1) "
                       f"over {len(d['frames'])} frames")
+            if r["gt_diagonal"] is not None:
+                print(f"(CD in squared units of the ground truth, EMD in its units; its first frame is "
+                      f"{r['gt_diagonal']:.4g} across, bounding-box diagonal)")
             if cmp_folder.written != cmp_folder.path:
                 print(f"warning: wrote {cmp_folder.written}" + _kept_note(a.out, cmp_folder), file=sys.stderr)
             return 0

@@ -104,6 +104,8 @@ def test_evaluate_folders_warns_of_a_prediction_in_other_units(tmp_path, device)
     with pytest.warns(UserWarning, match=r"frame 0 .*frame_0000\.obj\) is 1732 across.* \(1e\+03x\): other units"):
         r = E.evaluate_folders(tmp_path / "gt", tmp_path / "mm", protocols=("dgmesh",), emd=False, device=device)
     assert r["results"]["dgmesh"]["cd"][0] > 1e5
+    # the scale a reader needs for the CD's units: the ground truth's diagonal (sqrt 3 for this tetrahedron)
+    assert r["gt_diagonal"] == pytest.approx(np.linalg.norm(np.ptp(TETRA_V, axis=0)))
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         E.evaluate_folders(tmp_path / "gt", tmp_path / "m", protocols=("dgmesh",), emd=False, device=device)
@@ -124,6 +126,10 @@ def test_evaluate_scene_warns_of_inputs_in_other_units_and_reads_a_dgmesh_folder
     r = E.evaluate_scene(scene, input_path=scene, strategies=[], protocols=("dgmesh",), emd=False, device=device,
                          progress=False)
     assert r is not None
+    # the tables say in what units their CD is (a mm scene's CD is in mm^2): the ground truth's size
+    E.write_outputs(tmp_path / "tables", [r], ("dgmesh",), {"frame_stride": 1})
+    d = float(np.linalg.norm(np.ptp(TETRA_V, axis=0)))
+    assert f"ground truth {d:.4g} units across" in (tmp_path / "tables" / "table_dgmesh.md").read_text()
     gt_mm = FixedTopologySequence(np.stack([1000 * TETRA_V * (1 + 0.1 * t) for t in range(3)]).astype(np.float32),
                                   TETRA_F, fps=24.0)
     save_sequence(gt_mm, tmp_path / "gt_mm.npz")
