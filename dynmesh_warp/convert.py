@@ -84,7 +84,7 @@ from .geometry import face_areas, winding_numbers
 from .kernels import convert as kc
 from .kernels import register as kr
 from .mesh_formats import file_problem
-from .sequence import FPS_RANGE, FixedTopologySequence, MeshDataError, VaryingTopologySequence, validate_mesh
+from .sequence import FPS_RANGE, FixedTopologySequence, carried, MeshDataError, VaryingTopologySequence, validate_mesh
 
 #: True while the ``convert`` CLI runs a conversion: its stages (the key trials) are said on stderr
 #: without the progress bar too (``progress`` alone is the Python API's switch)
@@ -390,8 +390,8 @@ def _to_piecewise(seq, strategy, template, device, progress, should_stop, option
 
     def convert(lo, hi):  # frames lo..hi-1 with a template of their own; None when stopped meanwhile
         if (lo, hi) not in runs:
-            sub = VaryingTopologySequence(list(vseq.frames[lo:hi]), fps=vseq.fps, name=vseq.name, source=vseq.source,
-                                          up_axis=vseq.up_axis)
+            sub = VaryingTopologySequence(list(vseq.frames[lo:hi]), **carried(vseq),
+                                          frame_sources=vseq.frame_sources[lo:hi] if vseq.frame_sources else None)
             with _scale_checked():  # this run's check would number the input's frames from lo
                 r = to_fixed_topology(sub, strategy, None, device, progress, should_stop, **options)
             runs[lo, hi] = r if len(r.conversion.coverage) == hi - lo else None

@@ -24,7 +24,7 @@ from .geometry import fit_group_motions
 from .kernels import convert as kc
 from .kernels import register as kr
 from .kernels.geometry import project_points_to_mesh
-from .sequence import FixedTopologySequence
+from .sequence import FixedTopologySequence, carried
 
 
 class _Coverage(float):
@@ -1020,8 +1020,7 @@ def _convert_from_key(vseq, strategy: str, o: dict, K: int, template, device, pr
         info.web, info.coverage_tail = info.web[lo:hi + 1], info.coverage_tail[lo:hi + 1]
         info.flipped, info.buried = info.flipped[lo:hi + 1], info.buried[lo:hi + 1]
         info.area_ratio, info.input_motion = info.area_ratio[lo:hi + 1], info.input_motion[lo:hi + 1]
-    res = FixedTopologySequence(out[lo:hi + 1], TF, fps=vseq.fps, name=vseq.name, source=vseq.source,
-                                up_axis=vseq.up_axis)
+    res = FixedTopologySequence(out[lo:hi + 1], TF, **carried(vseq))
     info.frame_motion = _frame_motion(res.V)
     info.input_motion[0] = 0.0  # (the frame before lo is not in the result)
     res.conversion = info

@@ -17,7 +17,7 @@ from .convert_report import (DROPOUT_AGREE, DROPOUT_FRAMES, DROPOUT_LEAST, DROPO
 from .geometry import (distinct_faces, face_areas, flat_faces, mesh_orientation, orient_faces, signed_volume, surface_area,
                        weld_vertices, winding_inconsistent)
 from .metrics import chamfer_distance
-from .sequence import FixedTopologySequence, MeshDataError, VaryingTopologySequence
+from .sequence import FixedTopologySequence, MeshDataError, VaryingTopologySequence, carried
 
 
 def _keep_faces(v: np.ndarray, f: np.ndarray, keep: np.ndarray) -> tuple:
@@ -47,9 +47,14 @@ def _drop_unused(vseq: VaryingTopologySequence, should_stop=None):
     user's input with 30 % of its faces flipped came out so, every output face the key frame's,
     and the summary blamed a fold-over). Checked on those three frames only unless one of them
     is (a directed-edge sort a frame, ~2 ms for 20k faces, would cost the 200-frame GPU
-    conversion ~0.5 s). Raises MeshDataError for a frame left without faces."""
+    conversion ~0.5 s); a sheet is turned up along the input's up axis (``io.sequence_up_axis``).
+    Raises MeshDataError for a frame left without faces."""
+    from .io import sequence_up_axis  # noqa: PLC0415 (reads the source's kind only where asked)
+
     frames, dropped, welded, turned, rewound = [], [], [], [], []
     T = vseq.num_frames
+    # a sheet is turned up against gravity along the input's own up axis (a glTF's +Y), not +Z
+    up = (0.0, 1.0, 0.0) if sequence_up_axis(vseq) == "y" else (0.0, 0.0, 1.0)
     rewind = any(winding_inconsistent(vseq.frames[t][1]) for t in sorted({0, T // 2, T - 1}) if t < T)
     for t, (v, f) in enumerate(vseq.frames):
         _stop_before_fitting(should_stop)  # seconds a frame on large input (a new user's 400k vertices)
@@ -66,7 +71,7 @@ def _drop_unused(vseq: VaryingTopologySequence, should_stop=None):
             dropped.append((t, len(v) - len(v2), len(f) - len(f2)))
             v, f = v2, f2
         if rewind and winding_inconsistent(f):
-            f2, report = orient_faces(v, f)
+            f2, report = orient_faces(v, f, up)
             if report["rewound"]:
                 rewound.append((t, int(report["rewound"])))
                 f = np.ascontiguousarray(f2, dtype=np.asarray(f).dtype)
@@ -76,8 +81,8 @@ def _drop_unused(vseq: VaryingTopologySequence, should_stop=None):
         frames.append((v, f))
     if not dropped and not welded and not turned and not rewound:
         return vseq, dropped, welded, turned, rewound
-    return VaryingTopologySequence(frames, fps=vseq.fps, name=vseq.name, source=vseq.source,
-                                   frame_sources=vseq.frame_sources, up_axis=vseq.up_axis), dropped, welded, turned, rewound
+    return (VaryingTopologySequence(frames, **carried(vseq), frame_sources=vseq.frame_sources),
+            dropped, welded, turned, rewound)
 
 
 def _inside_out(v: np.ndarray, f: np.ndarray) -> bool:
@@ -636,7 +641,7 @@ def _bridge_dropouts(res, info):
                 for figure in (info.web, info.buried):
                     if len(figure) == len(V):
                         figure[t - info.first_frame] = 0.0
-    out = FixedTopologySequence(V, res.F, fps=res.fps, name=res.name, source=res.source, up_axis=res.up_axis)
+    out = FixedTopologySequence(V, res.F, **carried(res))
     out.conversion = info
     info.frame_motion = _frame_motion(out.V)
     return out

@@ -9,7 +9,7 @@ import numpy as np
 
 from .convert_base import ConversionInfo
 from .convert_report import _badness
-from .sequence import FixedTopologySequence, VaryingTopologySequence
+from .sequence import FixedTopologySequence, VaryingTopologySequence, carried
 
 
 def _segment_cut(info, events: list, lo: int) -> tuple | None:
@@ -56,7 +56,7 @@ def _slice_result(res, a: int, b: int, lo: int):
     its per-frame info sliced to match (frame indices become relative to the slice)."""
     info = res.conversion
     i, j = a - lo, b - lo
-    out = FixedTopologySequence(res.V[i:j], res.F, fps=res.fps, name=res.name, source=res.source, up_axis=res.up_axis)
+    out = FixedTopologySequence(res.V[i:j], res.F, **carried(res))
     out.conversion = dataclasses.replace(info, num_frames=j - i, key_frame=info.key_frame - i,
                                          coverage=list(info.coverage[i:j]), web=list(info.web[i:j]),
                                          coverage_tail=list(info.coverage_tail[i:j]), flipped=list(info.flipped[i:j]),
@@ -90,7 +90,7 @@ def _join_segments(vseq, segs: list, whole, events: list) -> VaryingTopologySequ
     indices absolute) with the input's topology ``events`` and the first run's (``whole``)
     dropped vertices."""
     frames = [(v, r.F) for _, r in segs for v in r.V]
-    out = VaryingTopologySequence(frames, fps=vseq.fps, name=vseq.name, source=vseq.source, up_axis=vseq.up_axis)
+    out = VaryingTopologySequence(frames, **carried(vseq))
     first = segs[0][1].conversion
     info = ConversionInfo(first.strategy, first.options, vseq.num_frames,
                           max(r.num_vertices for _, r in segs), key_frame=first.key_frame + segs[0][0])

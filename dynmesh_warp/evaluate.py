@@ -38,7 +38,7 @@ import numpy as np
 
 from . import metrics as M
 from .outputs import atomic_path, atomic_write_bytes, atomic_write_json
-from .sequence import FixedTopologySequence, MeshDataError, VaryingTopologySequence
+from .sequence import FixedTopologySequence, MeshDataError, VaryingTopologySequence, carried
 
 __all__ = [
     "ROW_LABELS",
@@ -391,7 +391,7 @@ def _ground_truth(path: str, num_frames: int | None, frame_order: str = "stored"
 
         V = resample_time(seq, num_frames)
         fps = seq.fps * (num_frames - 1) / max(seq.num_frames - 1, 1) if seq.num_frames > 1 else seq.fps
-        seq = FixedTopologySequence(V, seq.F, fps=fps, name=seq.name, source=seq.source, up_axis=seq.up_axis)
+        seq = FixedTopologySequence(V, seq.F, **carried(seq, fps=fps))
     return seq
 
 

@@ -173,6 +173,21 @@ def _check_up_axis(up_axis, where: str) -> None:
         raise MeshDataError(f"{where}: up_axis must be 'y', 'z' or None (as its source says), got {up_axis!r}")
 
 
+def carried(seq, **changed) -> dict:
+    """The keyword arguments that describe ``seq`` (``fps``, ``name``, ``source``, ``up_axis``)
+    for a new sequence made from its frames, ``changed`` replacing some:
+    ``FixedTopologySequence(V, F, **carried(seq))``. The one list of them: a copy that named its
+    fields by hand lost the up axis (a glTF's +Y up, read as z-up after re-meshing), and a field added
+    here is carried by every copy. Per-frame ``frame_sources`` are not carried (a copy may take other
+    frames): pass them where the frames are the same."""
+    out = {"fps": seq.fps, "name": seq.name, "source": seq.source, "up_axis": seq.up_axis}
+    unknown = set(changed) - set(out)
+    if unknown:
+        raise TypeError(f"carried: unknown field(s) {sorted(unknown)}; it carries {sorted(out)}")
+    out.update(changed)
+    return out
+
+
 @dataclass(repr=False)
 class FixedTopologySequence:
     """An animated triangle mesh whose faces are the same in every frame.
@@ -295,17 +310,15 @@ class FixedTopologySequence:
                 out[k * factor + i] = p1 + s * (m1 + s * (a2 + s * a3))
         if playback != "loop":
             out[-1] = self.V[-1]
-        return FixedTopologySequence(out, self.F, self.fps * factor, self.name, self.source, self.up_axis)
+        return FixedTopologySequence(out, self.F, **carried(self, fps=self.fps * factor))
 
     def reordered(self, order) -> "FixedTopologySequence":
         """A copy with frames taken in ``order`` (indices into the stored frames)."""
         order = np.asarray(order, dtype=np.int64)
-        return FixedTopologySequence(self.V[order], self.F, self.fps, self.name, self.source, self.up_axis)
+        return FixedTopologySequence(self.V[order], self.F, **carried(self))
 
     def to_varying(self) -> "VaryingTopologySequence":
-        return VaryingTopologySequence(
-            [(v, self.F) for v in self.V], fps=self.fps, name=self.name, source=self.source, up_axis=self.up_axis
-        )
+        return VaryingTopologySequence([(v, self.F) for v in self.V], **carried(self))
 
 
 @dataclass(repr=False)
@@ -424,10 +437,7 @@ class VaryingTopologySequence:
                                  f"vertex indices (first at face {int(np.flatnonzero((f != F0).any(axis=1))[0])})"),
                     advice="a fixed-topology sequence needs identical faces in every frame (convert a "
                            "varying-topology one with dynmesh_warp.convert)")
-        return FixedTopologySequence(
-            np.stack([v for v, _ in self.frames]), F0, fps=self.fps, name=self.name,
-            source=self.source, up_axis=self.up_axis,
-        )
+        return FixedTopologySequence(np.stack([v for v, _ in self.frames]), F0, **carried(self))
 
 
 def text_sorted_permutation(num_frames: int, start: int = 1) -> np.ndarray:

@@ -290,12 +290,13 @@ def fix_frame_order(seq, frame_order: str, path: Path):
     """Detect (warn) or undo a text sort of the frames of a fixed-topology npz; undo it for a
     varying-topology npz when asked (``text_sorted``: numbering from 1; without vertex
     correspondence the order is not detected, it was left as stored, unsaid)."""
-    from .sequence import detect_text_sorted_frames, text_sorted_permutation
+    from .sequence import carried, detect_text_sorted_frames, text_sorted_permutation
 
     if not isinstance(seq, FixedTopologySequence):
         if frame_order == "text_sorted" and seq.num_frames > 1:
             order = text_sorted_permutation(seq.num_frames, 1)
-            return type(seq)([seq.frames[int(i)] for i in order], fps=seq.fps, name=seq.name, source=seq.source)
+            return type(seq)([seq.frames[int(i)] for i in order], **carried(seq),
+                             frame_sources=[seq.frame_sources[int(i)] for i in order] if seq.frame_sources else None)
         return seq
 
     start = detect_text_sorted_frames(seq.V)

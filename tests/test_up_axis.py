@@ -57,3 +57,56 @@ def test_a_sequences_own_copies_keep_the_up_axis():
 def test_a_yaml_mapping_without_spaces_is_explained():
     with pytest.raises(SceneError, match=r"spheres\.count:40: unknown key \(YAML needs a space after the colon: count: 40\)"):
         load_scene_config(overrides=["spheres={count:40,radius:0.03}"])
+
+
+def test_carried_lists_every_field_a_copy_keeps():
+    """``sequence.carried`` is the one list of what a copy keeps: a field added to the sequences
+    and not to it fails here (the up axis was lost by copies that named their fields by hand)."""
+    import dataclasses
+
+    from dynmesh_warp.sequence import VaryingTopologySequence, carried
+
+    seq = articulated_figure(frames=2, resolution=16)
+    y = FixedTopologySequence(seq.V, seq.F, 30.0, "s", source="src.glb", up_axis="y")
+    per_frame = {"V", "F", "frames", "frame_sources"}  # what a copy takes anew
+    for cls, obj in ((FixedTopologySequence, y), (VaryingTopologySequence, y.to_varying())):
+        assert set(carried(obj)) == {f.name for f in dataclasses.fields(cls)} - per_frame
+    assert carried(y) == {"fps": 30.0, "name": "s", "source": "src.glb", "up_axis": "y"}
+    assert carried(y, fps=60.0)["fps"] == 60.0
+    with pytest.raises(TypeError, match="unknown field"):
+        carried(y, up="y")
+
+
+def test_convert_turns_a_sheet_up_along_the_inputs_up_axis(tmp_path):
+    """A y-up input's sheet, wound inconsistently, is made consistent and turned to face +Y (up,
+    against gravity) before the fit; it was turned along +Z, which a horizontal y-up sheet has no
+    side for: it came out facing down."""
+    import trimesh
+
+    from dynmesh_warp.convert import to_fixed_topology
+    from dynmesh_warp.sequence import VaryingTopologySequence
+
+    n = 12
+    g = np.linspace(-0.5, 0.5, n)
+    X, Z = np.meshgrid(g, g, indexing="ij")
+    F = []
+    for i in range(n - 1):
+        for j in range(n - 1):
+            a = i * n + j
+            F += [(a, a + n, a + 1), (a + 1, a + n, a + n + 1)]
+    F = np.array(F, np.int32)
+    V0 = np.c_[X.ravel(), np.zeros(n * n), Z.ravel()]
+    assert trimesh.Trimesh(V0, F, process=False).face_normals[:, 1].mean() < -0.99  # wound facing -y (down)
+    rng = np.random.default_rng(0)
+    Fm = F.copy()
+    flip = rng.random(len(F)) < 0.2  # an exporter's random flips: the majority still faces down
+    Fm[flip] = Fm[flip][:, ::-1]
+    frames = [((V0 + [0.0, 0.02 * t, 0.0]).astype(np.float32), Fm) for t in range(3)]  # rising
+    var = VaryingTopologySequence(frames, fps=24.0, name="sheet", up_axis="y")
+    out = to_fixed_topology(var, device="cpu", iterations=1, refine_rounds=0)
+    normals = trimesh.Trimesh(out.V[0], out.F, process=False).face_normals
+    assert (normals[:, 1] > 0.99).all()  # every face up (+y) once made consistent
+    # the same sheet said z-up keeps the majority's side: +Z has no up or down side to give it
+    var_z = VaryingTopologySequence(frames, fps=24.0, name="sheet", up_axis="z")
+    out_z = to_fixed_topology(var_z, device="cpu", iterations=1, refine_rounds=0)
+    assert (trimesh.Trimesh(out_z.V[0], out_z.F, process=False).face_normals[:, 1] < -0.99).all()
