@@ -251,6 +251,39 @@ def test_flat_faces_on_edges_do_not_turn_real_faces():
     assert r["inward"] == r["rewound"] == 0
 
 
+def test_a_closed_surface_with_fins_or_flat_faces_keeps_its_inside():
+    """An edge shared by more than two faces made the whole mesh "open": a new user's frame wound
+    inward with 30 fins (0.3 % of its faces) was not turned outward as its neighbours were and came
+    out of convert crumpled (1.7x the input's area). Fins and flat faces on a closed surface are
+    left out of the decision; a real non-manifold join (two balls on one edge) stays open."""
+    from dynmesh_warp.convert_input import _inside_out
+
+    m = trimesh.creation.icosphere(subdivisions=3)
+    V, F = np.asarray(m.vertices), np.asarray(m.faces)
+    rng = np.random.default_rng(0)
+    i = rng.choice(len(F), 12, replace=False)
+    nrm = np.asarray(m.face_normals)[i]
+    fin_v = 0.5 * (V[F[i, 0]] + V[F[i, 1]]) + 0.05 * nrm  # a fin standing on each chosen edge
+    V_fin = np.concatenate([V, fin_v])
+    F_fin = np.concatenate([F, np.c_[F[i, 0], F[i, 1], len(V) + np.arange(12)]])
+    V_flat = np.concatenate([V, 0.5 * (V[F[i, 0]] + V[F[i, 1]])])  # (a, midpoint, b): no area
+    F_flat = np.concatenate([F, np.c_[F[i, 0], len(V) + np.arange(12), F[i, 1]]])
+    for Vd, Fd in ((V_fin, F_fin), (V_flat, F_flat)):
+        assert mesh_orientation(Vd, Fd) == "outward"
+        assert mesh_orientation(Vd, Fd[:, ::-1]) == "inward"
+        assert _inside_out(Vd, Fd[:, ::-1]) and not _inside_out(Vd, Fd)
+    # debris over DEBRIS_FRACTION of the faces, or two closed balls sharing an edge: no inside to tell
+    many = rng.choice(len(F), len(F) // 5, replace=False)
+    Vm = np.concatenate([V, 0.5 * (V[F[many, 0]] + V[F[many, 1]]) + 0.05 * np.asarray(m.face_normals)[many]])
+    assert mesh_orientation(Vm, np.concatenate([F, np.c_[F[many, 0], F[many, 1], len(V) + np.arange(len(many))]])) == "open"
+    e = F[0, :2]
+    far = V + 2.0 * (V[e[0]] + V[e[1]])  # a second ball through the first one's edge e
+    far[e] = V[e]
+    two = np.concatenate([F, F + len(V)])
+    two = np.where(np.isin(two - len(V), e) & (two >= len(V)), two - len(V), two)
+    assert mesh_orientation(np.concatenate([V, far]), two) == "open"
+
+
 def test_sheet_facing_down_is_turned_up_and_holds_spheres(tmp_path):
     """An open surface whose triangles face down let every dropped sphere through before (0/5 in
     contact, spheres falling forever); loaded with orientation auto it holds them."""
