@@ -262,12 +262,12 @@ def conversion_summary(info: ConversionInfo) -> list:
     last = info.first_frame + len(info.coverage) - 1
     for a, b, lost in info.missing_parts:
         if a == info.first_frame:
-            which = (f"input frames {a}-{b} (the first {b - a + 1}) lack a part that frame {b + 1} and those after it "
-                     f"have (the surface's area {100 * lost:.0f}% smaller before frame {b + 1}): a part that enters, or a "
+            which = (f"input frames {a}-{b} (the first {b - a + 1}) lack a part that frame {b + 1} "
+                     f"has (the surface's area {100 * lost:.0f}% smaller before frame {b + 1}): a part that enters, or a "
                      "reconstruction's dropout at the start?")
         elif b == last:
-            which = (f"input frames {a}-{b} (the last {b - a + 1}) lack a part that frame {a - 1} and those before it "
-                     f"have (the surface's area {100 * lost:.0f}% smaller from frame {a}): a part that leaves, or a "
+            which = (f"input frames {a}-{b} (the last {b - a + 1}) lack a part that frame {a - 1} "
+                     f"has (the surface's area {100 * lost:.0f}% smaller from frame {a}): a part that leaves, or a "
                      "reconstruction's dropout at the end?")
         else:
             which = (f"input frames {a}-{b} ({b - a + 1} frames) lack a part that frames {a - 1} and {b + 1} have (the "
@@ -276,8 +276,9 @@ def conversion_summary(info: ConversionInfo) -> list:
                      "withdrawn into the body)?")
         lines.append(f"note: {which} One template keeps the part: the output presses it onto what is left there, a "
                      "sphere resting on it falls through, and the surface jumps where the fit loses or regains it")
-        if a <= info.key_frame <= b:
-            lines.append(f"warning: the key frame {info.key_frame} is one of frames {a}-{b}: the template, made from "
+        key = next((k for s, e, k, _ in info.segments if s <= a < e), info.key_frame)  # the run's template's
+        if a <= key <= b:
+            lines.append(f"warning: the key frame {key} is one of frames {a}-{b}: the template, made from "
                          "it, lacks the part on every frame; choose another key frame (--key-frame)")
     m = np.asarray(info.frame_motion, float)
     jumps = _jumps(m) if m.size == cov.size else np.zeros(0, int)

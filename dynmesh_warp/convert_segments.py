@@ -64,8 +64,19 @@ def _slice_result(res, a: int, b: int, lo: int):
                                          frame_motion=[0.0] + list(info.frame_motion[i + 1:j]),
                                          input_motion=[0.0] + list(info.input_motion[i + 1:j]),
                                          buried=list(info.buried[i:j]), rejected_cuts=list(info.rejected_cuts),
-                                         frame_seconds=list(info.frame_seconds[i:j]), **_frame_fields(info, -i, i, j))
+                                         frame_seconds=list(info.frame_seconds[i:j]),
+                                         missing_parts=_parts_within(info.missing_parts, i, j, len(info.coverage)),
+                                         **_frame_fields(info, -i, i, j))
     return out
+
+
+def _parts_within(parts: list, i: int, j: int, n: int) -> list:
+    """The runs of ``missing_parts`` (``(first, last, lost)`` over a result's frames 0..n-1) that
+    lie in frames i..j-1 together with the frames next to them that have the part (a run from the
+    result's first frame or to its last has none on that side), counted from i: what a slice of
+    the result can say (a run whose neighbour went to another segment is that segment's cut)."""
+    return [(a - i, b - i, lost) for a, b, lost in parts
+            if i <= a and b < j and (a == 0 or a - 1 >= i) and (b == n - 1 or b + 1 < j)]
 
 
 def _frame_fields(info, shift: int, lo: int | None = None, hi: int | None = None) -> dict:
@@ -116,6 +127,11 @@ def _join_segments(vseq, segs: list, whole, events: list) -> VaryingTopologySequ
     info.key_score = "+".join(sorted({r.conversion.key_score for _, r in segs} - {""}))
     info.topology_events, info.dropped_unused, info.welded = list(events), whole.dropped_unused, whole.welded
     info.turned_outward, info.input_dropouts, info.rewound = whole.turned_outward, whole.input_dropouts, whole.rewound
-    info.missing_parts = whole.missing_parts
+    # each segment's own (its template's): the whole first run's named runs the segments split
+    # apart (a new user's floater on frames 3-5 of 12, a segment of its own, was still said to be
+    # missing from frames 0-2 and "pressed onto what is left" by a template that had no part there)
+    info.missing_parts = [(a + lo, b + lo, lost) for lo, r in segs
+                          for a, b, lost in _parts_within(r.conversion.missing_parts, 0, r.num_frames, r.num_frames)
+                          if (a > 0 or lo == 0) and (b < r.num_frames - 1 or lo + r.num_frames == vseq.num_frames)]
     out.conversion = info
     return out

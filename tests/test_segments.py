@@ -630,3 +630,48 @@ def test_summary_of_a_cut_tried_inside_kept_segments():
     lines = conversion_summary(info)
     assert any(ln.endswith("fitted no better where tried, so one was kept") for ln in lines)
     assert any(ln.startswith("note: the template is open: 19 edges") for ln in lines)
+
+
+def test_segments_say_the_missing_parts_of_their_own_templates():
+    """A whole run's missing-part runs, once segments split the input, belong to the segment that
+    holds the run and the frames next to it that have the part; one cut apart from them goes (a
+    new user's floater on frames 3-5 of 12, a segment of its own, was still said to be missing from
+    frames 0-2, "pressed onto what is left" by a template that lacked it, with a warning on frame
+    1 as key). The key-frame warning names the run's own segment's key frame."""
+    from dynmesh_warp.convert import ConversionInfo, conversion_summary
+    from dynmesh_warp.convert_segments import _join_segments, _parts_within, _slice_result
+
+    # the whole run's frames 0-2 lack a part frame 3 has; frames 9-11 (the end) lack one frame 8 has
+    parts = [(0, 2, 0.03), (9, 11, 0.05)]
+    assert _parts_within(parts, 0, 3, 12) == []  # frame 3 went to another segment
+    assert _parts_within(parts, 0, 4, 12) == [(0, 2, 0.03)]
+    assert _parts_within(parts, 8, 12, 12) == [(1, 3, 0.05)]  # frames 9-11 and frame 8, from 8
+    assert _parts_within(parts, 9, 12, 12) == []
+    assert _parts_within([(4, 6, 0.1)], 3, 8, 12) == [(1, 3, 0.1)] and _parts_within([(4, 6, 0.1)], 4, 8, 12) == []
+
+    def result(n, key, missing, lo=0):
+        V = np.zeros((n, 3, 3), np.float32)
+        V[:, 1, 0] = V[:, 2, 1] = 1.0
+        r = FixedTopologySequence(V, np.array([[0, 1, 2]], np.int32))
+        r.conversion = ConversionInfo("graph", {}, n, 3, key_frame=key, coverage=[0.01] * n, frame_seconds=[0.1] * n,
+                                      area_ratio=[1.0] * n, frame_motion=[0.0] * n, input_motion=[0.0] * n,
+                                      missing_parts=missing)
+        return r
+
+    whole = result(12, 1, parts)
+    vseq = VaryingTopologySequence([whole.frame(t) for t in range(12)])
+    segs = [(0, _slice_result(whole, 0, 3, 0)), (3, result(3, 0, [])), (6, result(6, 5, [(0, 1, 0.02)]))]
+    joined = _join_segments(vseq, segs, whole.conversion, []).conversion
+    # frames 0-2's run went with its neighbour frame 3; the last segment's run from its own first
+    # frame (6) has no frame before it in that segment: neither is said; the whole run's end run
+    # (9-11) is not the last segment's (its template, from frame 11, has no such part)
+    assert joined.missing_parts == []
+    summary = conversion_summary(joined)
+    assert not any("lack a part" in ln or "is one of frames" in ln for ln in summary), summary
+    # a run inside a segment with its neighbours: said, and its key frame warned of when inside it
+    segs = [(0, _slice_result(whole, 0, 3, 0)), (3, result(9, 4, [(3, 5, 0.04)]))]
+    joined = _join_segments(vseq, segs, whole.conversion, []).conversion
+    assert joined.missing_parts == [(6, 8, 0.04)]
+    summary = conversion_summary(joined)
+    assert any(ln.startswith("note: input frames 6-8 (3 frames) lack a part that frames 5 and 9 have") for ln in summary)
+    assert any(ln.startswith("warning: the key frame 7 is one of frames 6-8") for ln in summary), summary
