@@ -160,6 +160,10 @@ class SpawnConfig(_Strict):
 MAX_GRAVITY = 1.0e4
 
 
+#: ``physics.ground`` (the plane z = height) needs gravity within 45 degrees of -z (cos of that)
+GROUND_GRAVITY_COS = math.cos(math.radians(45.0))
+
+
 class PhysicsCore(_Strict):
     """Physics settings shared by the scene's ``physics:`` section and the Python API's
     :class:`~dynmesh_warp.world.PhysicsParams`: one place for their types, ranges and defaults
@@ -199,9 +203,21 @@ class PhysicsCore(_Strict):
 
 
 class PhysicsConfig(PhysicsCore):
-    ground: Optional[Union[float, Literal["auto"]]] = None  # ground plane height [m]; auto: lowest surface point
+    ground: Optional[Union[float, Literal["auto"]]] = None  # ground plane z = height [m]; auto: lowest surface point
     collider: Collider = DEFAULT_COLLIDER
     rebuild_every: RebuildEvery = DEFAULT_REBUILD_EVERY
+
+    @model_validator(mode="after")
+    def _ground_across_gravity(self):
+        # the ground is the plane z = height; under gravity along -y it stood parallel to the fall
+        # and stopped nothing (a new user's sphere fell 19 m past it, its "fell past" note hushed)
+        g = self.gravity
+        n = math.hypot(*g)
+        if self.ground is not None and n > 0 and -g[2] < GROUND_GRAVITY_COS * n:
+            raise ValueError(f"ground: the ground is the plane z = height, for gravity along -z; gravity "
+                             f"{list(g)} is {math.degrees(math.acos(max(-1.0, min(1.0, -g[2] / n)))):.0f} degrees from -z "
+                             "(y-up data: surface.up_axis: y turns it z-up, with gravity [0, 0, -9.81]; or ground: null)")
+        return self
 
 
 #: placeholders allowed in ``run.output`` (filled from the scene's fields of the same name)

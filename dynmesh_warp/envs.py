@@ -134,6 +134,13 @@ class RideSurfaceEnv(VectorEnv):
 
         cfg = scene_config(scene, default={"surface": {"source": "builtin:pulsing_blob"}})
         cfg = cfg.model_copy(update={"spheres": []})
+        g = np.asarray(cfg.physics.gravity, np.float64)
+        if not (g[2] < 0 and np.allclose(g[:2], 0.0)):
+            # the task is laid out along z (probes cast down -z, pushes in x and y, the target on
+            # top along z): a y-up scene's ball was pushed into its floor, unsaid (a new user's)
+            raise ValueError(f"the RideSurface envs need gravity along -z (probes cast down, pushes across); the "
+                             f"scene's physics.gravity is {list(cfg.physics.gravity)}: for y-up data set "
+                             "surface.up_axis: y (it is turned z-up) and keep gravity [0, 0, -9.81]")
         # a varying-topology scene raised AttributeError ('no attribute V') here (a new user's)
         seq = require_fixed_topology(cfg, load_surface(cfg), "the RideSurface envs need")
         self._cfg, self._seq = cfg, seq

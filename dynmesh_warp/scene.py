@@ -13,8 +13,8 @@ from .choices import Collider, UpAxis, parse
 from .config import PhysicsCore, SceneConfig, SceneError, scene_config, spawn_positions
 from .runtime import free_bytes, scene_device
 from .geometry import orient_faces, points_inside, up_from_gravity
-from .sequence import (FixedTopologySequence, MeshDataError, TopologyMismatchError, VaryingTopologySequence, upsampled_frames,
-                       surface_vertices)
+from .sequence import (FixedTopologySequence, MeshDataError, TopologyMismatchError, VaryingTopologySequence, require_area,
+                       surface_vertices, upsampled_frames)
 from .world import (Model, PhysicsParams, SphereModel, State, World, playback_note, resolve_playback, surface_model,
                     surface_model_class)
 
@@ -259,6 +259,7 @@ def prepare_surface(seq, cfg: SceneConfig):
         F, report = _orient(V[0], seq.F, s, up)
         _say_orientation([(None, report)], where)
         seq = FixedTopologySequence(V, F, fps, seq.name, seq.source)
+        require_area(seq.V[0], F, where, 0)  # faces all [a, b, b]: every sphere fell through, unsaid
         _check_size(surface_vertices(seq.V[0], F), s, axis)
     else:
         frames, reports = [], []
@@ -273,6 +274,8 @@ def prepare_surface(seq, cfg: SceneConfig):
             frames.append((v, g))
             reports.append((t, report))
         _say_orientation(reports, where)
+        for t, (v, g) in enumerate(frames):
+            require_area(v, g, seq.frame_sources[t] if seq.frame_sources else where, t)
         _check_size(surface_vertices(*frames[0]), s, axis)
         seq = VaryingTopologySequence(frames, fps, seq.name, seq.source, seq.frame_sources)
         if s.conversion is None:

@@ -287,3 +287,16 @@ def test_a_boolean_where_a_number_goes_is_refused(doc, field):
         load_scene_config(None, overrides=[f"{k}.{kk}={str(v).lower() if not isinstance(v, list) else v}"
                                           for k, d in doc.items() for kk, v in d.items()])
     assert load_scene_config(None, overrides=["physics.dt=1e-3"]).physics.dt == pytest.approx(1e-3)
+
+
+def test_a_ground_plane_needs_gravity_along_minus_z():
+    """The ground is the plane z = height. Under gravity along -y it stood parallel to the fall
+    and stopped nothing (a new user's sphere fell 19 m past it, with no word): refused, naming
+    the angle and what to do; gravity off, or within 45 degrees of -z, keeps it."""
+    with pytest.raises(SceneError, match=r"physics: ground: the ground is the plane z = height.*90 degrees from -z"):
+        load_scene_config(data={"physics": {"gravity": [0, -9.81, 0], "ground": "auto"}})
+    with pytest.raises(SceneError, match="ground"):
+        load_scene_config(overrides=["physics.gravity=[0,0,9.81]", "physics.ground=0"])  # upside down
+    assert load_scene_config(data={"physics": {"gravity": [0, 0, 0], "ground": 0.0}}).physics.ground == 0.0
+    assert load_scene_config(data={"physics": {"gravity": [3, 0, -9.81], "ground": "auto"}}).physics.ground == "auto"
+    assert load_scene_config(data={"physics": {"gravity": [0, -9.81, 0]}}).physics.ground is None

@@ -106,6 +106,11 @@ def test_env_arguments_seeds_and_close_are_checked(device):
         _env(device, num_envs=2, decimation=0)
     with pytest.raises(ValueError, match="radius must be a finite positive number"):
         _env(device, num_envs=2, radius=float("nan"))
+    # the task is laid out along z: a y-up scene (gravity along -y) pushed its ball into the floor
+    y_up = _env_cfg(device).model_copy(deep=True)
+    y_up.physics.gravity = (0.0, -9.81, 0.0)
+    with pytest.raises(ValueError, match=r"need gravity along -z .* physics.gravity is \[0.0, -9.81, 0.0\]"):
+        RideSurfaceEnv(scene=y_up, num_envs=2)
     # a new user's: NaN / inf / 0 / negative max_distance gave NaN rewards, -inf rewards or
     # episodes that never end; a bad target failed later without its name
     for bad in (float("nan"), float("inf"), 0.0, -1.0):

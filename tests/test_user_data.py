@@ -1228,6 +1228,34 @@ def test_a_mesh_whose_faces_all_have_no_area_is_refused_naming_the_frame():
         to_fixed_topology([(V2, F), (V, F)], device="cpu")
 
 
+def test_a_surface_whose_faces_all_have_no_area_is_refused_by_the_scene(tmp_path):
+    """A new user's sheet with faces [a, b, b] loaded and every sphere fell through it, the only
+    word a list of unrelated causes; [0, 0, 0] got a units warning. The scene refuses it naming the
+    file and frame (for a varying sequence, the frame that has none); one face with area is enough."""
+    from dynmesh_warp.config import load_scene_config
+    from dynmesh_warp.scene import load_surface
+    from dynmesh_warp.sequence import has_area
+
+    V = np.random.default_rng(0).random((2, 10, 3)).astype(np.float32)
+    for F in ([[0, 1, 1], [2, 3, 3]], [[0, 0, 0]]):
+        np.savez(tmp_path / "z.npz", V=V, F=np.array(F, np.int32), fps=24.0)
+        with pytest.raises(MeshDataError, match=r"z\.npz, frame 0: every face has zero area"):
+            load_surface(load_scene_config(data={"surface": {"source": str(tmp_path / "z.npz")}}))
+    assert has_area(V[0], np.array([[0, 1, 1], [2, 3, 4]]))
+    assert not has_area(np.c_[np.arange(5.0), np.zeros(5), np.zeros(5)], np.array([[0, 1, 2], [1, 2, 3]]))
+    ok = trimesh.creation.icosphere(subdivisions=4)  # over 1,024 faces: past the first look
+    F = np.asarray(ok.faces).copy()
+    F[:2000] = F[:2000, [0, 1, 1]]
+    assert has_area(ok.vertices, F) and not has_area(ok.vertices, F[:2000])
+    frames = [(V[0], np.array([[0, 1, 2]], np.int32)), (V[1], np.array([[0, 1, 1]], np.int32))]
+    from dynmesh_warp.io import save_sequence
+    from dynmesh_warp.sequence import VaryingTopologySequence
+
+    save_sequence(VaryingTopologySequence(frames), tmp_path / "v.npz")
+    with pytest.raises(MeshDataError, match=r"frame 1: every face has zero area"):
+        load_surface(load_scene_config(data={"surface": {"source": str(tmp_path / "v.npz")}}))
+
+
 def test_count_options_have_an_upper_bound(capsys):
     """``--iterations 1000000000`` ran on past a SIGTERM (which stops between frames): every count
     option is bounded by MAX_COUNT, on the command line and in the library."""
