@@ -525,6 +525,39 @@ def _refuse_bodies_inside(cfg, seq) -> None:
     refuse_starts_inside(*seq.frame(0), (sphere_entries(cfg) if cfg.newton.include_spheres else []) + bodies)
 
 
+def _newton_substeps(cfg, surface, radii) -> int:
+    """``physics.substeps``, raised (``physics.auto_substeps``, with a warning; else only warned
+    of) so the surface moves less than half the thinnest body per sub-step: the built-in world's
+    rule (``World._apply_substep_rule``), the thickness a box's smallest half extent, a capsule's
+    or a sphere's radius (mjcf / urdf / usd bodies: not known, not counted). A new user's box (5 cm
+    half height) fell through a sheet moving at 8.5 m/s at one sub-step, unsaid."""
+    import warnings  # noqa: PLC0415
+
+    from .world import check_substep_budget, seam_note  # noqa: PLC0415
+
+    p = cfg.physics
+    thick = [min(b.half_extents) if b.type == "box" else b.radius for b in cfg.newton.bodies
+             if b.type in ("box", "sphere", "capsule")]
+    thick += list(radii) if cfg.newton.include_spheres else []
+    if not thick or surface.max_speed <= 0 or not surface.interpolate:
+        return int(p.substeps)
+    r_min = float(min(thick))
+    need = math.ceil(surface.max_speed * p.dt / (0.5 * r_min))
+    if need <= p.substeps:
+        return int(p.substeps)
+    note = seam_note(surface)
+    if not p.auto_substeps:
+        warnings.warn(f"auto_substeps is off and the surface moves up to {surface.max_speed:.3g} m/s{note}: "
+                      f"{surface.max_speed * p.dt / p.substeps:.3g} m per sub-step, over half the thinnest Newton "
+                      f"body ({0.5 * r_min:.3g} m): bodies may pass through it; set physics.substeps to {need}",
+                      stacklevel=3)
+        return int(p.substeps)
+    check_substep_budget(need, surface.max_speed, r_min, p, note)
+    warnings.warn(f"surface moves up to {surface.max_speed:.3g} m/s{note}: raising substeps from {p.substeps} to "
+                  f"{need} so it moves < half the thinnest Newton body ({r_min:.3g} m) per sub-step", stacklevel=3)
+    return need
+
+
 def build_newton_world(cfg, device=None, sequence=None, num_worlds: int = 1, **overrides) -> NewtonWorld:
     """Create a :class:`NewtonWorld` from a validated scene with a ``newton:`` section.
 
@@ -565,8 +598,8 @@ def build_newton_world(cfg, device=None, sequence=None, num_worlds: int = 1, **o
     mu = p.friction if cfg.newton.surface_mu is None else cfg.newton.surface_mu
     if model.params.ground_height is not None:  # the same static plane the built-in world has
         builder.add_ground_plane(height=float(model.params.ground_height), cfg=newton.ModelBuilder.ShapeConfig(mu=mu))
-    kw = dict(dt=p.dt, substeps=p.substeps, solver=cfg.newton.solver, solver_options=dict(cfg.newton.solver_options),
-              gravity=p.gravity, mu=mu, restitution=p.restitution)
+    kw = dict(dt=p.dt, substeps=_newton_substeps(cfg, surface, sph[0]), solver=cfg.newton.solver,
+              solver_options=dict(cfg.newton.solver_options), gravity=p.gravity, mu=mu, restitution=p.restitution)
     kw.update(overrides)
     where = f"{cfg.source_file}: " if cfg.source_file else ""  # the scene file, as the schema's errors name it
     solver = getattr(cfg.newton.solver, "value", cfg.newton.solver)
