@@ -152,6 +152,15 @@ def main(argv=None) -> int:
         print("error: --actors, --envs and --steps must be >= 1", file=sys.stderr)
         return 2
     tasks = [{"steps": a.steps, "seed": 0, "kp": 0.0, "kd": 0.0, **t} for t in _sweep(a.sweep)]
+    from .config import SceneError  # noqa: PLC0415
+    from .envs import ride_surface_scene  # noqa: PLC0415
+    from .sequence import MeshDataError  # noqa: PLC0415
+
+    try:  # the scene's errors here, as run gives them, not from inside the actors after Ray starts
+        ride_surface_scene(a.scene)
+    except (SceneError, MeshDataError, FileNotFoundError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     t0 = time.perf_counter()
     res = run_rollouts(tasks, a.actors, a.envs, scene=a.scene, address=a.address, device=a.device)
     wall = time.perf_counter() - t0

@@ -46,7 +46,7 @@ except ImportError:  # pragma: no cover - reported when an env is made
     VectorEnv = object
     AutoresetMode = None
 
-__all__ = ["ENV_ID", "RideSurfaceEnv", "RideSurfaceSingleEnv", "surface_target"]
+__all__ = ["ENV_ID", "RideSurfaceEnv", "RideSurfaceSingleEnv", "ride_surface_scene", "surface_target"]
 
 #: the Gymnasium id registered when this module is imported: ``gym.make(ENV_ID)`` makes a
 #: :class:`RideSurfaceSingleEnv`, ``gym.make_vec(ENV_ID, num_envs=E)`` a :class:`RideSurfaceEnv`
@@ -70,6 +70,29 @@ def surface_target(V0: np.ndarray, top_fraction: float = 0.1) -> np.ndarray:
 #: with no ground, the floor lies this many ball radii under the sequence's lowest point: a ball
 #: resting anywhere on the surface is above it, one that left the surface passes it soon
 FLOOR_DROP = 2.0
+
+
+def ride_surface_scene(scene=None) -> tuple:
+    """``(cfg, sequence)`` of the RideSurface task for ``scene`` (a path, a mapping, a
+    ``SceneConfig`` or None: a ball on the built-in pulsing blob), its spheres left out, checked
+    before any env is built: gravity along -z, a fixed-topology surface (``SceneError``,
+    ``MeshDataError`` or ``ValueError`` naming the file and field). ``python -m
+    dynmesh_warp.distributed`` asks it before it starts Ray (a new user's bad scene file was a
+    40-line actor traceback)."""
+    from .config import scene_config
+    from .scene import load_surface, require_fixed_topology
+
+    cfg = scene_config(scene, default={"surface": {"source": "builtin:pulsing_blob"}})
+    cfg = cfg.model_copy(update={"spheres": []})
+    g = np.asarray(cfg.physics.gravity, np.float64)
+    if not (g[2] < 0 and np.allclose(g[:2], 0.0)):
+        # the task is laid out along z (probes cast down -z, pushes in x and y, the target on
+        # top along z): a y-up scene's ball was pushed into its floor, unsaid (a new user's)
+        raise ValueError(f"the RideSurface envs need gravity along -z (probes cast down, pushes across); the "
+                         f"scene's physics.gravity is {list(cfg.physics.gravity)}: for y-up data set "
+                         "surface.up_axis: y (it is turned z-up) and keep gravity [0, 0, -9.81]")
+    # a varying-topology scene raised AttributeError ('no attribute V') here (a new user's)
+    return cfg, require_fixed_topology(cfg, load_surface(cfg), "the RideSurface envs need")
 
 
 class RideSurfaceEnv(VectorEnv):
@@ -129,20 +152,9 @@ class RideSurfaceEnv(VectorEnv):
             if not (np.isfinite(value) and value >= (0.0 if name == "push" else 1e-12)):
                 raise ValueError(f"{name} must be a finite {'non-negative' if name == 'push' else 'positive'} number, "
                                  f"got {value!r}")
-        from .config import scene_config
-        from .scene import build_model, load_surface, require_fixed_topology
+        from .scene import build_model
 
-        cfg = scene_config(scene, default={"surface": {"source": "builtin:pulsing_blob"}})
-        cfg = cfg.model_copy(update={"spheres": []})
-        g = np.asarray(cfg.physics.gravity, np.float64)
-        if not (g[2] < 0 and np.allclose(g[:2], 0.0)):
-            # the task is laid out along z (probes cast down -z, pushes in x and y, the target on
-            # top along z): a y-up scene's ball was pushed into its floor, unsaid (a new user's)
-            raise ValueError(f"the RideSurface envs need gravity along -z (probes cast down, pushes across); the "
-                             f"scene's physics.gravity is {list(cfg.physics.gravity)}: for y-up data set "
-                             "surface.up_axis: y (it is turned z-up) and keep gravity [0, 0, -9.81]")
-        # a varying-topology scene raised AttributeError ('no attribute V') here (a new user's)
-        seq = require_fixed_topology(cfg, load_surface(cfg), "the RideSurface envs need")
+        cfg, seq = ride_surface_scene(scene)
         self._cfg, self._seq = cfg, seq
         self._camera_state = None  # (key, Gaussians, Renderer, camera) of render_images
         model, _ = build_model(cfg, seq, device)

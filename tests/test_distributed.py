@@ -41,3 +41,18 @@ def test_sweep_values_are_checked_by_name():
                       ("seed=1.5", "seed values must be whole numbers, got '1.5'")):
         with pytest.raises(SystemExit, match=f"--sweep {bad}: {what}"):
             _sweep([bad])
+
+
+def test_a_bad_scene_is_refused_before_ray_starts(tmp_path, monkeypatch, capsys):
+    """A scene with an unknown key, a missing scene file and a y-up scene: one line naming the file
+    and field, exit 2, Ray never started (it was a 40-line actor traceback and exit 1)."""
+    import dynmesh_warp.distributed as D
+
+    monkeypatch.setattr(D, "run_rollouts", lambda *a, **k: pytest.fail("Ray was started"))
+    (tmp_path / "bad.yaml").write_text("surface:\n  source: builtin:pulsing_blob\nphysics:\n  dtt: 1\n")
+    (tmp_path / "y.yaml").write_text("surface:\n  source: builtin:pulsing_blob\nphysics:\n  gravity: [0, -9.81, 0]\n")
+    for name, said in (("bad.yaml", "physics.dtt: unknown key"), ("nope.yaml", "scene file not found"),
+                       ("y.yaml", "need gravity along -z")):
+        assert D.main([str(tmp_path / name), "--device", "cpu", "--envs", "2", "--steps", "5"]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and said in err and len(err.splitlines()) == 1, err
