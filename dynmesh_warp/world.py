@@ -64,7 +64,7 @@ from .choices import (
     values,
 )
 from .config import PhysicsCore
-from .geometry import points_inside, up_from_gravity
+from .geometry import frame_across, points_inside, up_from_gravity
 from .sequence import FixedTopologySequence, VaryingTopologySequence
 
 __all__ = [
@@ -1122,9 +1122,20 @@ def fallen_past_note(sequence, params, positions, hint: str = "") -> str:
     # along the scene's up (a new user's y-up floor under gravity along -y lost its spheres
     # without this note, which looked along z): the bounding box's lowest corner along it
     low = float(np.where(up > 0, lo, hi) @ up)
-    fell = int(np.count_nonzero(P @ up < low - 0.5 * float(np.linalg.norm(hi - lo))))
+    below = P @ up < low - 0.5 * float(np.linalg.norm(hi - lo))
+    fell = int(np.count_nonzero(below))
     if not fell:
         return ""
+    # those beside the surface's footprint (across the up axis) went off its edge, not through it
+    # (a new user's spheres carried off an open sheet by its wave were blamed on the up axis)
+    across = frame_across(up)[:2]
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    c_lo, c_hi = (corners @ across.T).min(axis=0), (corners @ across.T).max(axis=0)
+    q = P[below] @ across.T
+    off = int(np.count_nonzero(((q < c_lo) | (q > c_hi)).any(axis=1)))
+    if off:
+        hint = (f"{'all' if off == fell else off} of them beside the surface's footprint: they went off its edge "
+                f"(rolled or thrown off); " + hint)
     return (f"; {fell} of {len(P)} spheres fell past the surface (below its lowest point, no ground plane: "
             f"{hint}--set physics.ground=auto would put one at the surface's lowest point; the data's up axis "
             "not the one it was read with? --set "

@@ -908,6 +908,14 @@ def test_the_run_line_says_when_spheres_fell_past_the_surface(tmp_path):
     for _ in range(150):
         w.step()
     assert "1 of 2 spheres fell past the surface" in w.run_line()[1] and "surface.up_axis=y or z" in w.run_line()[1]
+    # the one at x = 2 m fell beside the 1 m sheet: off its edge, said first (a new user's spheres
+    # carried off a sheet by its wave were blamed on the up axis alone)
+    assert "(below its lowest point, no ground plane: all of them beside the surface's footprint" in w.run_line()[1]
+    from dynmesh_warp.world import fallen_past_note
+
+    # one below the sheet's middle (through it, not off its edge) and one beside it
+    note = fallen_past_note(w.model.surface.sequence, w.model.params, [[0.0, 0.0, -5.0], [3.0, 0.0, -5.0]])
+    assert "2 of 2 spheres fell past" in note and "1 of them beside the surface's footprint" in note
     scene["spheres"] = scene["spheres"][:1]
     w = build_world(load_scene_config(scene_yaml(tmp_path, scene)), device="cpu")
     for _ in range(150):
