@@ -197,7 +197,11 @@ class RideSurfaceEnv(VectorEnv):
         # no seed: fresh entropy, as Gymnasium's reset() without one (every env made without a seed
         # played seed 0's episodes: a new user's unseeded workers collected the same data)
         self._seed = kernel_seed(np.random.SeedSequence().entropy if seed is None else seed)
-        box = gym.spaces.Box(-np.inf, np.inf, (int(OBS_DIM),), np.float32)
+        # bounded where the value is: the contact flag (obs 15) in {0, 1}, the phase's sin and cos
+        # (16, 17) in [-1, 1]; positions and velocities unbounded (check_env warned twice of it)
+        low, high = np.full(int(OBS_DIM), -np.inf, np.float32), np.full(int(OBS_DIM), np.inf, np.float32)
+        low[15:], high[15:] = (0.0, -1.0, -1.0), 1.0
+        box = gym.spaces.Box(low, high, (int(OBS_DIM),), np.float32)
         act = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
         self.single_observation_space, self.single_action_space = box, act
         self.observation_space = gym.vector.utils.batch_space(box, E)

@@ -35,6 +35,14 @@ def test_spaces_reset_and_step_follow_the_vector_api(device):
     obs2, r, term, trunc, info = env.step(a)
     assert obs2.shape == (6, 18) and r.shape == (6,) and r.dtype == np.float32
     assert term.dtype == bool and trunc.dtype == bool and info["final_obs"].shape == (6, 18)
+    # bounded where the value is (contact flag, phase sin and cos), and every observation within them
+    sp = env.single_observation_space
+    np.testing.assert_array_equal(sp.low[15:], [0.0, -1.0, -1.0])
+    np.testing.assert_array_equal(sp.high[15:], [1.0, 1.0, 1.0])
+    assert np.isinf(sp.low[:15]).all() and np.isinf(sp.high[:15]).all()
+    for _ in range(30):
+        o = env.step(env.action_space.sample())[0]
+        assert env.observation_space.contains(o), o[:, 15:]
     # deterministic seeding: the same seed and actions give the same rollout
     again = _env(device, num_envs=6)
     o, _ = again.reset(seed=11)
