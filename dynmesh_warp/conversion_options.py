@@ -61,7 +61,8 @@ class _Options(BaseModel):
     max_template_distance: Float = Field(0.25, gt=0.0)
     #: frames whose bbox diagonal differs from the median by more than this factor are warned about
     scale_tolerance: Float = Field(4.0, gt=0.0)
-    #: the frame the template comes from and tracking starts at: "auto" (largest surface area) or an index
+    #: the frame the template comes from and tracking starts at: "auto" (largest surface area, with the
+    #: rules of ``convert_input._key_frame``: a finer frame of about that area is preferred) or an index
     key_frame: KeyFrame = "auto"
     #: the most templates ``to_piecewise_fixed`` (and ``convert``) may use: a new one starts where
     #: one template cannot follow the input (a web across parts it fused, a lost part); 1: one

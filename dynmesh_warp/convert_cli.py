@@ -181,7 +181,9 @@ def _parser() -> Parser:
                         "file with as many vertices (default: the mesh of the same name next to it)")
     p.add_argument("--key-frame", default=None,
                    help="frame the template comes from and tracking starts at, forward then backward "
-                        "(default 'auto': the frame of largest surface area; frame 0 with --template)")
+                        "(default 'auto': the frame of largest surface area, closed where most are, and of about "
+                        "that area the one with 2x the vertices or more when there is one: every output frame "
+                        "gets its resolution; frame 0 with --template)")
     p.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (as run, evaluate and render)")
     p.add_argument("--reanchor-interval", type=int, default=None, help="tracking: frames between re-anchors (0: never)")
