@@ -457,6 +457,7 @@ def main(argv=None) -> int:
     from .animation_formats import VERTEX_ONLY_EXTENSIONS, find_topology, written_topology
     from .io import ANIMATED_FILE_OUTPUTS, MESH_EXTENSIONS, load_sequence, save_sequence
     from .mesh_formats import UNREAD_ANIMATIONS
+    from .sequence_layouts import npz_holds_faces
     from .outputs import OutputKind, check_output
 
     opts = {}
@@ -488,6 +489,11 @@ def main(argv=None) -> int:
             p.error(f"--option {key}: given twice ({given[key]} and {item.strip()}); give it once")
         given[key] = item.strip()
         opts[key] = None if value == "" else value
+    if a.as_is:  # nothing is fitted: the fit's settings would be ignored, unsaid
+        fit = [f"--{k}" for k, v in (("template", a.template), ("key-frame", a.key_frame), ("resume", a.resume))
+               if v not in (None, False)] + (["--option / a strategy option"] if opts else [])
+        if fit:
+            p.error(f"--as-is writes the input as it is; {', '.join(fit)} set(s) a fit: leave one out")
     journal = None
     try:
         # everything is checked before the sequence is loaded: options, input, template, output
@@ -517,7 +523,8 @@ def main(argv=None) -> int:
             if why := file_problem(a.topology):
                 raise ValueError(f"--topology {a.topology}: {why} (a mesh file is expected)")
             inputs.append(a.topology)
-        elif Path(a.input).suffix.lower() in VERTEX_ONLY_EXTENSIONS and Path(a.input).is_file():
+        elif (Path(a.input).suffix.lower() in VERTEX_ONLY_EXTENSIONS and Path(a.input).is_file()
+              and not npz_holds_faces(a.input)):
             try:  # a vertex-only input's faces are an input too (a cache output writes <stem>.obj)
                 inputs.append(find_topology(a.input))
             except MeshDataError:
@@ -558,9 +565,19 @@ def main(argv=None) -> int:
             check_output(a.output, kind="folder", what="output", inputs=inputs, overwrite=replace,
                          writes=_FOLDER_FRAMES, holds=OutputKind.SEQUENCE)
         seq = load_sequence(a.input, fps=a.fps, topology=a.topology, frame_order=a.frame_order)
+        if a.as_is:  # a format conversion: the frames as they are (a new user's sheet, re-fitted, folded over)
+            if not isinstance(seq, FixedTopologySequence):
+                raise ValueError(f"--as-is: {a.input} has varying topology (its frames' faces differ): a template "
+                                 "has to be fitted; leave --as-is out")
+            save_sequence(seq, a.output, fmt=a.fmt, overwrite=replace)
+            journal.remove()
+            print(f"wrote {a.output}: {seq.num_frames} frames x {seq.num_vertices} vertices, {seq.num_faces} faces, "
+                  "as they are (--as-is: no template fitted)")
+            return 0
         if isinstance(seq, FixedTopologySequence):
             print(f"note: {a.input} already has fixed topology ({seq.num_frames} frames); converting it "
-                  "anyway (it can be simulated as it is)", file=sys.stderr)
+                  "anyway (it can be simulated as it is; --as-is writes it as it is, a format conversion)",
+                  file=sys.stderr)
             seq = seq.to_varying()
         _say_frame_numbers(seq)
         # an animation file holds one set of faces: one template; else new templates (segments)

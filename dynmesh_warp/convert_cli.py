@@ -201,6 +201,9 @@ def _parser() -> Parser:
                         "only); docs/data.md")
     p.add_argument("--overwrite", action="store_true",
                    help="replace an existing output (in a folder: only files this tool wrote; others are kept)")
+    p.add_argument("--as-is", action="store_true",
+                   help="a fixed-topology input written to the output's format as it is, no template fitted (a "
+                        "lossless .glb, point cache or frames of an animation); refused for varying topology")
     p.add_argument("--resume", action="store_true",
                    help="go on with an interrupted conversion of this output from the frames it had fitted (its "
                         "journal, <output>.convert-journal); give the same input and options")

@@ -125,6 +125,19 @@ def load_npz(path: Path, fps, kind: str):
     return finish_kind(seq, kind)
 
 
+def npz_holds_faces(path) -> bool:
+    """An npz with faces of its own (``F``/``faces``/``triangles``, or the packed varying layout):
+    no mesh file next to it gives its faces (``convert`` took a ``horse.glb`` beside ``horse.npz``
+    for the npz's faces, and refused ``convert horse.npz horse.glb`` as writing over its input).
+    False for an unreadable file (its load says why)."""
+    try:
+        with _open_npz(Path(path)) as data:
+            keys = set(data.files)
+    except Exception:
+        return False
+    return any(k in keys for k in _NPZ_FACE_KEYS) or {"V_packed", "F_packed"} <= keys
+
+
 def load_vertex_array(path: Path):
     """The vertices of a vertex-only file: an ``.npy`` array, or an npz holding vertices
     (``V``/``vertices``/``verts``/``points``) but no faces, as SMPL / AMASS exports and

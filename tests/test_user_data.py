@@ -1496,3 +1496,31 @@ def test_the_convert_command_suggested_for_a_varying_surface_quotes_its_path(tmp
     with pytest.raises(SceneError) as e:
         build_world(cfg, device="cpu")
     assert f"python -m dynmesh_warp.convert '{folder / 'var.npz'}' OUT.npz" in str(e.value)
+
+
+def test_convert_as_is_writes_a_fixed_input_losslessly(tmp_path, capsys):
+    """``convert --as-is``: a fixed-topology input written to another format as it is (a new
+    user's sheet, re-fitted by convert, moved 0.23 m along itself and folded 2.4 % of its area:
+    there was no lossless route but the Python API). Varying input and fit settings are refused.
+    And an npz with its own faces takes none from a mesh beside it: ``convert w.npz w.glb`` with
+    w.glb there was refused as writing over its input, even with --overwrite."""
+    from dynmesh_warp.convert import main as convert_main
+    from dynmesh_warp.io import load_sequence, save_sequence
+    from dynmesh_warp.scenes import torus_to_sphere, wave_bowl
+
+    seq = wave_bowl(n=12, frames=6)
+    save_sequence(seq, tmp_path / "w.npz")
+    for out in ("w.glb", "w.pc2", "frames"):
+        assert convert_main([str(tmp_path / "w.npz"), str(tmp_path / out), "--as-is"]) == 0
+        back = load_sequence(tmp_path / out, topology=str(tmp_path / "w.obj") if out.endswith(".pc2") else None)
+        np.testing.assert_allclose(back.V, seq.V, atol=1e-6)
+        np.testing.assert_array_equal(back.F, seq.F)
+    assert "as they are (--as-is: no template fitted)" in capsys.readouterr().out
+    assert not list(tmp_path.glob("*journal*"))
+    assert convert_main([str(tmp_path / "w.npz"), str(tmp_path / "w.glb"), "--as-is", "--overwrite"]) == 0
+    save_sequence(torus_to_sphere(frames=3, resolution=16), tmp_path / "v.npz")
+    assert convert_main([str(tmp_path / "v.npz"), str(tmp_path / "v.glb"), "--as-is"]) == 2
+    assert "--as-is: " in capsys.readouterr().err and not (tmp_path / "v.glb").exists()
+    with pytest.raises(SystemExit):
+        convert_main([str(tmp_path / "w.npz"), str(tmp_path / "x.glb"), "--as-is", "--key-frame", "2"])
+    assert "--as-is writes the input as it is; --key-frame" in capsys.readouterr().err
