@@ -96,20 +96,42 @@ def _edge_graph(V: np.ndarray, F: np.ndarray):
     return G.tocsr()
 
 
+#: _farthest_points asks a k-d tree for the points near each new sample from this many points on
+#: (fewer: a pass over all of them is cheaper than building it)
+FPS_TREE_POINTS = 20_000
+
+
 def _farthest_points(P: np.ndarray, spacing, start: int) -> list:
     """Farthest-point sampling of P from index ``start`` until every point lies within its
     ``spacing`` (a float or one per point) of a sample: each next sample is the point farthest
     from the samples relative to its own spacing."""
+    from scipy.spatial import cKDTree
+
+    P = np.asarray(P, np.float64).reshape(-1, 3)
     d = np.full(len(P), np.inf)
-    x, y, z = np.ascontiguousarray(np.asarray(P, np.float64).reshape(-1, 3).T)  # per coordinate:
-    # the same distances as np.linalg.norm(P - P[i], axis=1), 3x faster
+    x, y, z = np.ascontiguousarray(P.T)  # per coordinate: the same distances as
+    # np.linalg.norm(P - P[i], axis=1), 3x faster
+    spacing = np.broadcast_to(np.asarray(spacing, np.float64), d.shape)
+    r = np.empty_like(d)
+    tree, dmax = None, np.inf
     out = []
     i = start
     while True:
         out.append(i)
-        dx, dy, dz = x - x[i], y - y[i], z - z[i]
-        d = np.minimum(d, np.sqrt(dx * dx + dy * dy + dz * dz))
-        r = d / spacing
+        if tree is None:  # the first sample (and every one of a small input): every point
+            near = slice(None)
+        else:  # only points nearer the new sample than the farthest one is from any: the others keep
+            # their distance (a 105k-vertex template's 706 samples each passed over every point:
+            # 9 % of its conversion on an H200); the same distances, bit for bit
+            near = tree.query_ball_point(P[i], float(dmax) * (1.0 + 1e-9) + 1e-300, return_sorted=False)
+            near = np.asarray(near, np.int64)
+        dx, dy, dz = x[near] - x[i], y[near] - y[i], z[near] - z[i]
+        d[near] = np.minimum(d[near], np.sqrt(dx * dx + dy * dy + dz * dz))
+        r[near] = d[near] / spacing[near]
+        if tree is None and len(P) >= FPS_TREE_POINTS:
+            tree = cKDTree(P)
+        if tree is not None:
+            dmax = d.max()
         i = int(np.argmax(r))
         if r[i] <= 1.0:
             return out
@@ -259,6 +281,10 @@ def system_pattern(graph: DeformationGraph, TF: np.ndarray) -> tuple:
     keys += [e[:, 0] * K + e[:, 1], e[:, 1] * K + e[:, 0]]
 
     def pairs(groups):  # (m, g) node groups -> unique keys of all ordered pairs in a group
+        # neighbouring vertices and faces share their nodes: the distinct groups first (a 105k-vertex
+        # template's 231k faces have a few thousand), then their pairs (np.unique of every face's
+        # 144 keys was 10 % of its conversion on an H200)
+        groups = np.unique(np.sort(groups, axis=1), axis=0)
         a = np.repeat(groups, groups.shape[1], axis=1)
         b = np.tile(groups, (1, groups.shape[1]))
         return np.unique(a * K + b)

@@ -681,3 +681,36 @@ def test_gather_face_normals_match_numpy():
     c = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]).astype(np.float64)
     want = np.where(face[:, None] >= 0, (c / np.linalg.norm(c, axis=1, keepdims=True))[face], 0.0)
     assert np.abs(out.numpy() - want).max() < 1e-6
+
+
+def test_farthest_points_and_system_pattern_match_brute_force_references():
+    """The graph's node sampling asks a k-d tree for the points near each new sample on large
+    inputs, and the system pattern pairs the distinct node groups: both must give what the plain
+    passes give (every point each sample; every face's pairs), bit for bit: a per-point spacing
+    on 30k points, and the pattern of a graph on an icosphere against a Python set of pairs."""
+    from dynmesh_warp.deform_graph import FPS_TREE_POINTS, _farthest_points, system_pattern
+
+    rng = np.random.default_rng(3)
+    P = rng.random((30_000, 3)) * [2.0, 1.0, 0.5]
+    assert len(P) >= FPS_TREE_POINTS
+    spacing = 0.05 * (1.0 + rng.random(len(P)))
+
+    def brute(P, spacing, i):
+        d, out = np.full(len(P), np.inf), []
+        while True:
+            out.append(i)
+            d = np.minimum(d, np.sqrt(((P - P[i]) ** 2).sum(axis=1)))
+            i = int(np.argmax(d / spacing))
+            if d[i] / spacing[i] <= 1.0:
+                return out
+
+    assert _farthest_points(P, spacing, 7) == brute(P, spacing, 7)
+    V, F = icosphere(4)
+    g = build_deformation_graph(V, F, 0.25)
+    rows, cols = system_pattern(g, F)
+    K, NI = g.num_nodes, g.node_index
+    want = {(i, i) for i in range(K)} | {(a, b) for a, b in g.edges} | {(b, a) for a, b in g.edges}
+    for group in list(NI) + [NI[f].reshape(-1) for f in F]:
+        want |= {(int(a), int(b)) for a in group for b in group}
+    got = {(r, int(c)) for r in range(K) for c in cols[rows[r]:rows[r + 1]]}
+    assert got == want
