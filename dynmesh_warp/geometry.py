@@ -227,7 +227,7 @@ def mesh_orientation(V, F, up=(0.0, 0.0, 1.0)) -> str:
     :func:`_piece_kind`), with consistent winding; the sign of its volume about the vertex
     centroid decides. ``"open"``: a sheet, a terrain, a container opening upward (along ``up``,
     against gravity: a cup), or an edge shared by more than two faces (fins and flat faces on a
-closed surface aside: :func:`_orientation_of`): no inside to tell. ``"inconsistent"``: two faces
+    closed surface aside: :func:`_orientation_of`): no inside to tell. ``"inconsistent"``: two faces
     run through a shared edge in the same direction. Vertices at one position are one (a
     flat-shaded export, each face with its own corners, is the closed mesh it shows)."""
     V0, F0 = np.asarray(V, np.float64), np.asarray(F, np.int64)
