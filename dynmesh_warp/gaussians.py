@@ -227,7 +227,18 @@ def _bind_world(centers, rotations_xyzw, scales, V, F, device, source: str, max_
     face = wp.zeros(G, dtype=wp.int32, device=device)
     bary = wp.zeros(G, dtype=wp.vec3, device=device)
     if G:
-        mesh = wp.Mesh(points=pts, indices=idx)
+        # only faces with an area at the rest pose: a splat bound to one without (its corners at one
+        # point, a reconstruction's face that opens later) kept no size (std dev 0: invisible) and
+        # moved onto a corner (a new user's)
+        Fn = np.asarray(F, np.int64).reshape(-1, 3)
+        Vd = np.asarray(V, np.float64)
+        twice = np.linalg.norm(np.cross(Vd[Fn[:, 1]] - Vd[Fn[:, 0]], Vd[Fn[:, 2]] - Vd[Fn[:, 0]]), axis=1)
+        live = np.flatnonzero(twice > 2e-12 * max(float(np.sum(np.ptp(Vd, axis=0) ** 2)), 1e-300))
+        if not len(live):
+            raise ValueError(f"{source}: every face of the mesh has zero area at the rest pose: nothing to bind to")
+        sub = idx if len(live) == len(Fn) else wp.array(Fn[live].astype(np.int32).reshape(-1), dtype=wp.int32,
+                                                         device=device)
+        mesh = wp.Mesh(points=pts, indices=sub)
         closest = wp.zeros(G, dtype=wp.vec3, device=device)
         dist = wp.zeros(G, dtype=float, device=device)
         wp.launch(project_points_to_mesh, dim=G, inputs=[mesh.id, c, float(max_dist)],
@@ -235,6 +246,8 @@ def _bind_world(centers, rotations_xyzw, scales, V, F, device, source: str, max_
         f = face.numpy()
         if (f < 0).any():
             raise ValueError(f"{source}: {(f < 0).sum()} splats are farther than {max_dist} from the mesh")
+        if len(live) < len(Fn):  # back to the mesh's own face numbers
+            face = wp.array(live[f].astype(np.int32), dtype=wp.int32, device=device)
         d = dist.numpy()
         Vn = np.asarray(V, np.float64)
         diag = float(np.linalg.norm(Vn.max(axis=0) - Vn.min(axis=0))) if len(Vn) else 0.0

@@ -268,3 +268,33 @@ def test_splats_bound_far_from_their_mesh_are_warned_of():
         bind_splats(mk(on), V, F, device="cpu")
     with pytest.warns(UserWarning, match=r"splats lie far from the mesh .* surface\.up_axis, scale and translate"):
         bind_splats(mk(on + [0.0, 0.0, 3.0]), V, F, device="cpu")
+
+
+def test_a_splat_by_a_face_without_area_binds_to_a_face_with_one():
+    """A reconstruction's face whose corners sit at one point at the rest pose (it opens later):
+    a splat nearest it was bound to it, kept no size (std dev 0: invisible) and moved onto a
+    corner (a new user's). Faces without area are left out of the binding: the rest pose is
+    reproduced (centre and std dev), and the splat follows a face with an area."""
+    from dynmesh_warp.gaussians import bind_splats
+    from dynmesh_warp.splat_io import SplatCloud
+
+    n = 11
+    g = np.linspace(-1, 1, n)
+    X, Y = np.meshgrid(g, g)
+    Fg = [[i * n + j, i * n + j + 1, i * n + j + n + 1] for i in range(n - 1) for j in range(n - 1)]
+    Fg += [[i * n + j, i * n + j + n + 1, i * n + j + n] for i in range(n - 1) for j in range(n - 1)]
+    p = np.array([0.05, 0.05, 0.02])
+    V0 = np.concatenate([np.c_[X.ravel(), Y.ravel(), np.zeros(n * n)], [p, p, p]]).astype(np.float32)
+    F = np.concatenate([Fg, [[n * n, n * n + 1, n * n + 2]]]).astype(np.int32)
+    idx = wp.array(F.reshape(-1), dtype=wp.int32, device="cpu")
+    for c in (p, p + [0.0, 0.0, 0.01]):
+        cloud = SplatCloud.from_activated(centers=[c], scales=[[0.01, 0.01, 0.01]], rotations_wxyz=[[1, 0, 0, 0]],
+                                          rgb=[[1, 0, 0]], opacities=[0.9])
+        gs = bind_splats(cloud, V0, F, device="cpu")
+        assert gs.binding.face.numpy()[0] != len(F) - 1  # not the face without area
+        gs.update(wp.array(V0, dtype=wp.vec3, device="cpu"), idx)
+        st = gs.numpy()
+        np.testing.assert_allclose(st["centers"][0], c, atol=1e-6)
+        np.testing.assert_allclose(st["scales"][0], 0.01, rtol=1e-5)
+    with pytest.raises(ValueError, match="every face of the mesh has zero area"):
+        bind_splats(cloud, np.zeros((3, 3), np.float32) + [0.0, 0.0, 1.0], np.array([[0, 1, 2]]), device="cpu")
