@@ -210,6 +210,7 @@ class Viewer:
                 self.splats = sc.add_gaussian_splats("/splats", centers=np.zeros((g.count, 3), np.float32),
                                                      covariances=cov, rgbs=g.binding.rgb,
                                                      opacities=g.binding.opacity[:, None])
+                self._refresh_gaussians()  # the state at time 0 (the buffer was the Gaussians' last)
                 self.splats.buffer = self._splat_buffer()
         self.spheres = None
         self._sphere_count = -1
@@ -367,6 +368,11 @@ class Viewer:
         elapsed = self.frame_dt if (not self.realtime or self._last_wall is None) else \
             min(now - self._last_wall, MAX_CATCH_UP)
         self._last_wall = now
+        if self._serializer is not None:
+            # the recording's clock first: the set-up's messages (the state at time 0) stand for one
+            # frame, and the state after this frame's steps comes at the time it has (a new user's
+            # recording showed time (j + 1) / fps at j / fps, and never the start)
+            self._serializer.insert_sleep(self.frame_dt)
         if self.playing:
             self._owed += self.speed * elapsed
             dt = w.dt
@@ -375,8 +381,6 @@ class Viewer:
             for _ in range(n):
                 w.step()
         self._send()
-        if self._serializer is not None:
-            self._serializer.insert_sleep(self.frame_dt)
         self.frame += 1
         self._rate_window.append((now, w.time))
         if len(self._rate_window) > 30:
@@ -826,8 +830,10 @@ def run_viewer(cfg, device=None, viewer: str = "viser", port: int = 8080, host: 
         est = max_frames * per_frame + (count * 32 if grouped else 0) + 4 * mesh + 0.3 * 2**20
         what = (f"the splats once ({count * 32 / 2**20:,.1f} MB) and the poses of {v.stream.K} groups per frame"
                 if grouped else f"{count:,} splats x 32 B per frame")
+        whole = int(round(max_frames * v.frame_dt / dt))
         log(f"recording {max_frames:,} frames at {v.fps:g} fps: about {est / 2**20:,.1f} MB before compression "
-            f"({what}{', the mesh' if v.mesh.visible else ''}, the spheres)")
+            f"({what}{', the mesh' if v.mesh.visible else ''}, the spheres)"
+            + (f"; {whole:,} steps, whole frames of {v.frame_dt:.4g} s ({steps:,} asked)" if whole != steps else ""))
     if viewer == "viser":
         log(f"viewer: http://{'localhost' if host in ('0.0.0.0', '127.0.0.1') else host}:{v.port} "
             f"({count} Gaussians, {what}); Ctrl-C to quit")

@@ -119,6 +119,47 @@ def test_client_receives_engine_state_and_recording_replays(tmp_path, device, gr
     assert "window.__VISER_EMBED_DATA__=" in html and "<script" in html
 
 
+def test_a_recording_shows_each_moment_at_its_own_time(tmp_path, device):
+    """The state a recording holds at time t is the world's at t, from t = 0: a new user's showed
+    the state of (j + 1) / fps at j / fps, never the start, and the splats at t = 0 were a stale
+    buffer (1.35 m off)."""
+    from dynmesh_warp import build_world, load_scene_config
+    from dynmesh_warp.gaussians import gaussians_for_world
+    from dynmesh_warp.viewer import SceneStateTracker, Viewer, decode_viser_recording
+
+    cfg = load_scene_config(data={"name": "v", "surface": {"source": "builtin:pulsing_blob",
+                                                             "params": {"subdivisions": 2}},
+                                  "spheres": {"count": 2, "radius": 0.08}, "gaussians": {"count": 200}})
+    world = build_world(cfg, device=device)
+    v = Viewer(world, gaussians_for_world(world, cfg), port=0, realtime=False, record=tmp_path / "r.viser",
+               show_mesh=True, log=lambda *a: None, splat_groups=0)
+    try:
+        v.run(max_frames=4)
+    finally:
+        v.close()
+    r = decode_viser_recording((tmp_path / "r.viser").read_bytes())
+    ref = build_world(cfg, device=device)
+    g = gaussians_for_world(ref, cfg)
+    steps = int(round(v.frame_dt / ref.dt))
+    tracker, by_t = SceneStateTracker(), {}
+    for t, m in r["messages"]:
+        by_t.setdefault(round(t, 9), []).append(m)
+    assert len(by_t) == 5  # t = 0 and the four frames after it
+    for j, t in enumerate(sorted(by_t)):
+        for m in by_t[t]:
+            tracker.apply(m)
+        assert t == pytest.approx(j * v.frame_dt)
+        assert ref.time == pytest.approx(t)
+        np.testing.assert_array_equal(tracker.nodes["/spheres"]["batched_positions"].reshape(-1, 3),
+                                      ref.sphere_positions())
+        ref.render_state = True
+        g.update(ref.surface_points(), ref.surface_indices())
+        shown = tracker.nodes["/splats"]["buffer"].reshape(-1, 8)[:, :3].view(np.float32)
+        np.testing.assert_allclose(shown, g.state.centers.numpy(), atol=1e-6)
+        for _ in range(steps):
+            ref.step()
+
+
 def test_clock_follows_the_wall_and_gaussians_update_once_per_frame(device, monkeypatch):
     """Realtime: each frame simulates speed x the wall time since the last (a late frame catches
     up, at most MAX_CATCH_UP); the Gaussians are updated once per sent frame, not per physics
