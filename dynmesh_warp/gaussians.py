@@ -185,10 +185,11 @@ def _check_splats(cloud: SplatCloud) -> None:
             raise SplatPlyError(f"{cloud.source}: property {name!r} is {what} in {int(bad.sum())} splats "
                                 f"(first: splat {int(np.flatnonzero(bad)[0])})")
     with np.errstate(over="ignore"):
-        big = ~np.isfinite(cloud.scales().astype(np.float32)).all(axis=1)
+        # the covariance holds the squares: a log-scale of 45 (std dev 3.5e19 m) passed and gave inf
+        big = ~np.isfinite((cloud.scales().astype(np.float64) ** 2).astype(np.float32)).all(axis=1)
     if big.any():
         raise SplatPlyError(f"{cloud.source}: {int(big.sum())} splats have a log-scale (scale_*) whose exp "
-                            f"overflows float32 (first: splat {int(np.flatnonzero(big)[0])})")
+                            f"squared (the covariance) overflows float32 (first: splat {int(np.flatnonzero(big)[0])})")
     q = np.linalg.norm(np.asarray(cloud.rotations_raw, np.float64), axis=1)
     if (q == 0).any():
         raise SplatPlyError(f"{cloud.source}: {int((q == 0).sum())} splats have a zero rotation quaternion "

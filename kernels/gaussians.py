@@ -192,6 +192,11 @@ def bind_gaussians_to_faces(
     local_scale[g] = scales[g] / sf
 
 
+#: the largest std dev [m] the viewer's float16 covariance holds (255^2 = 65,025 < 65,504, float16's
+#: largest; the off-diagonal terms are at most the largest variance)
+F16_MAX_STD = wp.constant(255.0)
+
+
 @wp.kernel
 def pack_splat_covariances(
     # In:
@@ -204,7 +209,8 @@ def pack_splat_covariances(
 ):
     """Upper-triangle covariance (xx, xy, xz, yy, yz, zz) in float16 for the viewer, with each
     std dev clamped to >= max(min_scale, min_ratio * largest std dev) so thin Gaussians keep a
-    positive-definite covariance after float16 rounding.
+    positive-definite covariance after float16 rounding, and to <= ``F16_MAX_STD`` [m] so it stays
+    within float16's range (65,504; a new user's 300 m background splat was sent as inf).
 
     rotations (G,) unit quat; scales (G,) std devs [m]; min_scale [m]; min_ratio (unitless);
     cov_triu (G, 6) float16 [m^2].
@@ -215,9 +221,9 @@ def pack_splat_covariances(
     s1 = wp.abs(s[1])
     s2 = wp.abs(s[2])
     lo = wp.max(min_scale, min_ratio * wp.max(s0, wp.max(s1, s2)))
-    s0 = wp.max(s0, lo)
-    s1 = wp.max(s1, lo)
-    s2 = wp.max(s2, lo)
+    s0 = wp.min(wp.max(s0, lo), F16_MAX_STD)
+    s1 = wp.min(wp.max(s1, lo), F16_MAX_STD)
+    s2 = wp.min(wp.max(s2, lo), F16_MAX_STD)
     r = wp.quat_to_matrix(rotations[g])
     c = r * wp.diag(wp.vec3(s0 * s0, s1 * s1, s2 * s2)) * wp.transpose(r)
     cov_triu[g, 0] = wp.float16(c[0, 0])

@@ -789,6 +789,7 @@ def test_found_odd_f_rest_name_is_another_property(tmp_path):
 @pytest.mark.parametrize("column, value, dtype, match", [
     ("x", 1e39, "<f8", "property 'x' is beyond float32's range"),
     ("scale_1", 89.0, "<f4", "log-scale .* overflows float32"),
+    ("scale_1", 45.0, "<f4", "log-scale .* squared \\(the covariance\\) overflows float32"),  # exp fits, its square not
 ])
 def test_found_splats_overflowing_float32_are_refused(column, value, dtype, match):
     from dynmesh_warp.gaussians import _check_splats

@@ -197,6 +197,26 @@ def test_float16_clamp_keeps_thin_gaussians_positive_definite(device, rng):
     np.testing.assert_allclose(np.sqrt(ev[:, 2]), 0.05, rtol=2e-3)
 
 
+def test_viewer_covariances_of_huge_splats_stay_in_float16(device):
+    """A 300 m background splat (log-scale 5.7, a real capture's) was sent to the viewer as inf
+    (float16 holds 65,504): its std devs are clamped to F16_MAX_STD, finite and positive definite;
+    small splats are unchanged."""
+    from dynmesh_warp.kernels.gaussians import F16_MAX_STD
+    from dynmesh_warp.scenes import grid_sheet
+
+    V, F = grid_sheet(6, 1.0)
+    cloud = SplatCloud.from_activated(centers=[[0.2, 0.2, 0.01], [0.5, 0.5, 0.01]],
+                                      scales=[[300.0, 300.0, 1.0], [0.01, 0.02, 0.005]],
+                                      rotations_wxyz=[[1, 0, 0, 0], [1, 0, 0, 0]], rgb=[[1, 0, 0]] * 2,
+                                      opacities=[0.5, 0.5])
+    g = bind_splats(cloud, V, F, device=device)
+    g.update(_arr(V, device), _idx(F, device))
+    c = g.splat_covariances_f16(min_scale=1e-4, min_ratio=0.0).astype(np.float64)
+    assert np.isfinite(c).all()
+    np.testing.assert_allclose(c[0, [0, 3, 5]], [float(F16_MAX_STD) ** 2, float(F16_MAX_STD) ** 2, 1.0], rtol=2e-3)
+    np.testing.assert_allclose(c[1, [0, 3, 5]], [1e-4, 4e-4, 2.5e-5], rtol=2e-3)
+
+
 def test_post_step_hook_follows_world_surface(device):
     from dynmesh_warp import load_scene_config
     from dynmesh_warp.gaussians import gaussians_for_world
