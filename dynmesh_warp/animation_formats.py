@@ -38,7 +38,7 @@ import numpy as np
 
 from .mesh_formats import MESH_EXTENSIONS, mesh_extension, read_mesh, write_mesh
 from .outputs import atomic_path
-from .sequence import MeshDataError
+from .sequence import MAX_COORDINATE, MeshDataError
 
 __all__ = ["ANIMATION_EXTENSIONS", "CACHE_EXTENSIONS", "VERTEX_ONLY_EXTENSIONS", "read_animation", "write_animation",
            "find_topology", "topology_faces", "written_topology"]
@@ -92,9 +92,15 @@ def _read_anime(path: Path, size: int):
 _ORDER = {"<": "little", ">": "big"}
 
 
+#: _either_order takes the other byte order when its header fits the file, its finite numbers are
+#: coordinates (within sequence.MAX_COORDINATE: numbers read in the wrong order have wild exponents)
+#: and at most this fraction of them are not finite (a few NaN are the data's own: the load names them)
+OTHER_ORDER_NONFINITE = 0.5
+
+
 def _either_order(read, path: Path, size: int, spec: str, fmt: str):
     """``read(path, size, byte_order)`` in the spec's byte order, else in the other one where the
-    header read so fits the file exactly and every number read is finite (a file written by a
+    header read so fits the file exactly and its numbers are finite but for a few (a file written by a
     tool that got the byte order wrong), with a warning saying so; else the spec order's error,
     with a hint where only the other order's header fits (a new user's big-endian PC2 was
     reported as "201326592 samples x 2013265920 points ... (truncated)" without one)."""
@@ -108,8 +114,13 @@ def _either_order(read, path: Path, size: int, spec: str, fmt: str):
             raise e from None
         said = (f"read {_ORDER[other]}-endian, its header fits the file: a {_ORDER[other]}-endian {fmt}? {fmt} is "
                 f"{_ORDER[spec]}-endian by its spec")
-        if not all(np.all(np.isfinite(a)) for a in out if isinstance(a, np.ndarray)):
+        arrays = [np.asarray(a, np.float64) for a in out if isinstance(a, np.ndarray)]
+        bad = sum(int(np.count_nonzero(~np.isfinite(a))) for a in arrays)
+        wild = any(bool((np.abs(a[np.isfinite(a)]) > MAX_COORDINATE).any()) for a in arrays)
+        if wild or bad > OTHER_ORDER_NONFINITE * max(sum(a.size for a in arrays), 1):
             raise MeshDataError(f"{e}; {said}, but its data do not read as numbers so") from None
+        # a few NaN among numbers: the file's own (the load's check names the frame and vertex; a
+        # new user's one NaN made the whole file "a corrupt header")
         warnings.warn(f"{path}: {said}; read {_ORDER[other]}-endian (write {fmt} {_ORDER[spec]}-endian)", stacklevel=3)
         return out
 

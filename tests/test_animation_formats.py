@@ -281,3 +281,12 @@ def test_a_cache_in_the_other_byte_order_reads_with_a_warning(tmp_path):
                                             r"\(truncated\); read big-endian, its header fits the file: a big-endian "
                                             r"PC2\? .* but its data do not read as numbers so"):
         load_sequence(tmp_path / "nan.pc2")
+    # one NaN among the numbers is the data's own: read in the other order, the load names its frame
+    # and vertex (a new user's was told of a corrupt header instead)
+    one = bytearray(be_pc2)
+    one[32 + 12 * (4 * 2 + 1) + 4:32 + 12 * (4 * 2 + 1) + 8] = struct.pack(">f", float("nan"))  # frame 2, vertex 1, y
+    (tmp_path / "one.pc2").write_bytes(bytes(one))
+    write_mesh(tmp_path / "one.obj", V0, F)
+    with pytest.warns(UserWarning, match="read big-endian"), \
+            pytest.raises(MeshDataError, match=r"one\.pc2, frame 2: 1 vertices have NaN.*first: vertex 1"):
+        load_sequence(tmp_path / "one.pc2")
