@@ -690,6 +690,9 @@ def _main(argv=None) -> int:
                         f"{DEFAULT_RASTERISER['cuda']} on CUDA)")
     p.add_argument("--mesh", action="store_true", help="draw the physics mesh too (opaque, shaded): for debugging")
     p.add_argument("--no-splats", action="store_true", help="leave the Gaussians out (with --mesh: the mesh alone)")
+    p.add_argument("--unlit", action="store_true",
+                   help="the Gaussians' own colours, not shaded by the head light (a 3DGS capture's colours already "
+                        "hold its lighting; generated splats are flat grey and read better shaded, the default)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace an existing --figure / --video file, or frames in a non-empty --out folder")
     p.add_argument("--no-progress", action="store_true")
@@ -781,7 +784,8 @@ def _main(argv=None) -> int:
                 gs.update(world.surface_points(), world.surface_indices())
             cam = orbit_cameras(centre, 1.05 * diag, 1, 20.0, a.width, a.height,
                                 start_deg=30.0 + 90.0 * f / max(last, 1))
-            img = _to_uint8(render_world(world, gs, cam, renderer, splats=not a.no_splats, mesh=a.mesh).rgb.numpy()[0])
+            res = render_world(world, gs, cam, renderer, shade=not a.unlit, splats=not a.no_splats, mesh=a.mesh)
+            img = _to_uint8(res.rgb.numpy()[0])
             if a.out and f < total:
                 _write_png(tmp / f"frame_{f:04d}.png", img)
             if a.video and f < total:

@@ -299,6 +299,14 @@ def test_render_cli_writes_frames_and_a_figure(tmp_path):
     m = np.asarray(Image.open(tmp_path / "mesh.png")).astype(float)
     fg = np.abs(m - 255).max(axis=-1) > 10  # not background
     assert fg.mean() > 0.05 and not np.array_equal(m, img.astype(float))
+    # --unlit: the splats' own colours (a capture's hold its lighting): never darker than shaded
+    # (shading multiplies by 0.35-1), and darker somewhere on the curved surface
+    for name, extra in (("lit.png", []), ("unlit.png", ["--unlit"])):
+        assert main(["--figure", str(tmp_path / name), "--moments", "1", "--width", "64", "--height", "48",
+                     "--no-progress", "--device", "cpu"] + extra) == 0
+    lit, unlit = (np.asarray(Image.open(tmp_path / n)).astype(float) for n in ("lit.png", "unlit.png"))
+    on = np.abs(unlit - 255).max(axis=-1) > 10
+    assert on.mean() > 0.05 and (unlit[on] >= lit[on] - 2).all() and (unlit[on] - lit[on]).mean() > 5
 
 
 def test_render_cli_takes_a_sequence_as_run_does(tmp_path, capsys):
