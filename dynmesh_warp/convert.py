@@ -74,17 +74,17 @@ from .convert_cli import (_FILE_SUFFIXES, _FOLDER_FRAMES, FrameEstimate, _beside
                           _keeping_journal, _open_journal, _parser, _remove_output, _same_path, _say_frame_numbers)
 from .convert_fit import FRAME_TIMER, _convert_from_key, _journaling
 from .convert_input import (MOVING_FRAMES, _CACHE, _bridge_dropouts, _chamfer_to_input, _check_repeats, _check_scales,
-                            _drop_unused, _floater_webs, _has_area, _input_dropouts, _key_candidates, _key_frame,
+                            _drop_unused, _floater_webs, _input_dropouts, _key_candidates, _key_frame,
                             _key_retry_reason, _missing_parts, _moving_points, _moving_score, _scale_checked, _topology_events)
 from .convert_journal import ConversionJournal
 from .convert_report import (DROPOUT_FRAMES, FLOATER_AREA, POOR_WEB, WEB_GAP, WEB_STRETCH, _badness, _stretched_far,
                              conversion_summary, slide_ratio)
 from .convert_segments import _join_segments, _slice_result, _split_segments
-from .geometry import face_areas, winding_numbers
+from .geometry import face_areas, has_area, winding_numbers
 from .kernels import convert as kc
 from .kernels import register as kr
 from .mesh_formats import file_problem
-from .sequence import FPS_RANGE, FixedTopologySequence, carried, MeshDataError, VaryingTopologySequence, validate_mesh
+from .sequence import FPS_RANGE, FixedTopologySequence, MeshDataError, VaryingTopologySequence, carried, validate_mesh
 
 #: True while the ``convert`` CLI runs a conversion: its stages (the key trials) are said on stderr
 #: without the progress bar too (``progress`` alone is the Python API's switch)
@@ -244,7 +244,7 @@ def _to_fixed_run(vseq, seq, strategy, template, device, progress, should_stop, 
         validate_mesh(v, f, src, t)
     vseq, unused, welded, turned, rewound = _drop_unused(vseq, should_stop)
     for t, (v, f) in enumerate(vseq.frames):
-        if not _has_area(v, f):  # a new user's points on a line: converted with "coverage 1400 %", exit 0
+        if not has_area(v, f):  # a new user's points on a line: converted with "coverage 1400 %", exit 0
             src = vseq.frame_sources[t] if vseq.frame_sources else where
             raise MeshDataError(f"{src}, frame {t}: every face has zero area (its corners on one line or point): "
                                 "no surface to convert")
@@ -457,8 +457,8 @@ def main(argv=None) -> int:
     from .animation_formats import VERTEX_ONLY_EXTENSIONS, find_topology, written_topology
     from .io import ANIMATED_FILE_OUTPUTS, MESH_EXTENSIONS, load_sequence, save_sequence
     from .mesh_formats import UNREAD_ANIMATIONS
-    from .sequence_layouts import npz_holds_faces
     from .outputs import OutputKind, check_output
+    from .sequence_layouts import npz_holds_faces
 
     opts = {}
     if a.key_frame is not None:

@@ -14,7 +14,7 @@ from .convert_base import (_bbox_diag, _edge_keys, _longest_edges, _open_edges, 
 from .convert_report import (DROPOUT_AGREE, DROPOUT_FRAMES, DROPOUT_LEAST, DROPOUT_OPEN_EDGES, DROPOUT_RATIO, DROPOUT_VOLUME,
                              FLOATER_AREA, JUMP_WINDOW, MOVING_SCORE_TAIL, POOR_COVERAGE, POOR_WEB, WEB_STRETCH, _dropout_runs,
                              _stretched_far)
-from .geometry import (distinct_faces, face_areas, flat_faces, mesh_orientation, orient_faces, signed_volume, surface_area,
+from .geometry import (distinct_faces, face_areas, mesh_orientation, orient_faces, signed_volume, surface_area,
                        weld_vertices, winding_inconsistent)
 from .metrics import chamfer_distance
 from .sequence import FixedTopologySequence, MeshDataError, VaryingTopologySequence, carried
@@ -269,13 +269,6 @@ def _has_small_part(V: np.ndarray, F: np.ndarray) -> bool:
     """Whether the mesh has a connected part of less than ``FLOATER_AREA`` of its area (a
     reconstruction's floater, a fragment)."""
     return bool(_small_parts(V, np.asarray(F, np.int64).reshape(-1, 3), FLOATER_AREA)[3].size)
-
-
-def _has_area(V: np.ndarray, F: np.ndarray, chunk: int = 4096) -> bool:
-    """Whether some face of (V, F) is not flat (:func:`~dynmesh_warp.geometry.flat_faces`),
-    looked for a chunk of faces at a time (a real mesh answers in the first)."""
-    F = np.asarray(F).reshape(-1, 3)
-    return any(not flat_faces(V, F[s:s + chunk]).all() for s in range(0, len(F), chunk))
 
 
 def _topology(F: np.ndarray) -> tuple:

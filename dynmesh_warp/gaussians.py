@@ -16,7 +16,7 @@ import warnings
 import numpy as np
 import warp as wp
 
-from .geometry import face_areas
+from .geometry import face_areas, flat_faces
 from .kernels.gaussians import bind_gaussians_to_faces, pack_splat_covariances, update_gaussians
 from .kernels.geometry import project_points_to_mesh
 from .sequence import validate_mesh
@@ -232,9 +232,7 @@ def _bind_world(centers, rotations_xyzw, scales, V, F, device, source: str, max_
         # point, a reconstruction's face that opens later) kept no size (std dev 0: invisible) and
         # moved onto a corner (a new user's)
         Fn = np.asarray(F, np.int64).reshape(-1, 3)
-        Vd = np.asarray(V, np.float64)
-        twice = np.linalg.norm(np.cross(Vd[Fn[:, 1]] - Vd[Fn[:, 0]], Vd[Fn[:, 2]] - Vd[Fn[:, 0]]), axis=1)
-        live = np.flatnonzero(twice > 2e-12 * max(float(np.sum(np.ptp(Vd, axis=0) ** 2)), 1e-300))
+        live = np.flatnonzero(~flat_faces(V, Fn))
         if not len(live):
             raise ValueError(f"{source}: every face of the mesh has zero area at the rest pose: nothing to bind to")
         sub = idx if len(live) == len(Fn) else wp.array(Fn[live].astype(np.int32).reshape(-1), dtype=wp.int32,

@@ -7,7 +7,7 @@ import numpy as np
 
 __all__ = ["face_areas", "surface_area", "signed_volume", "orient_outward", "mesh_orientation", "orient_faces",
            "winding_inconsistent",
-           "distinct_faces", "flat_faces", "weld_vertices", "motion_groups", "fit_group_motions", "rotation_to_wxyz",
+           "distinct_faces", "flat_faces", "has_area", "weld_vertices", "motion_groups", "fit_group_motions", "rotation_to_wxyz",
            "up_from_gravity", "frame_across", "face_rim_flags"]
 
 
@@ -370,6 +370,14 @@ def flat_faces(V, F) -> np.ndarray:
     longest = np.sqrt(np.max(np.stack([np.einsum("ij,ij->i", e, e) for e in (b - a, c - b, a - c)]), axis=0))
     scale = float(np.abs(V[np.unique(F)]).max()) if V.size else 0.0
     return twice <= FLAT_FACE * longest * (longest + scale)
+
+
+def has_area(V, F, chunk: int = 4096) -> bool:
+    """Whether some face of (V, F) is not flat (:func:`flat_faces`), looked for a chunk of faces
+    at a time (a real mesh answers in the first): ``convert`` refuses a frame without, and a
+    scene a surface without (a new user's faces [a, b, b] let every sphere fall through)."""
+    F = np.asarray(F).reshape(-1, 3)
+    return any(not flat_faces(V, F[s:s + chunk]).all() for s in range(0, len(F), chunk))
 
 
 def distinct_faces(F, flat=None) -> tuple:

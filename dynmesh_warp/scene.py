@@ -12,8 +12,8 @@ import numpy as np
 from .choices import Collider, UpAxis, parse
 from .config import PhysicsCore, SceneConfig, SceneError, scene_config, spawn_positions
 from .runtime import free_bytes, scene_device
-from .geometry import orient_faces, points_inside, up_from_gravity
-from .sequence import (FixedTopologySequence, MeshDataError, TopologyMismatchError, VaryingTopologySequence, require_area,
+from .geometry import has_area, orient_faces, points_inside, up_from_gravity
+from .sequence import (FixedTopologySequence, MeshDataError, TopologyMismatchError, VaryingTopologySequence,
                        surface_vertices, upsampled_frames)
 from .world import (Model, PhysicsParams, SphereModel, State, World, playback_note, resolve_playback, surface_model,
                     surface_model_class)
@@ -243,6 +243,16 @@ def load_surface(cfg: SceneConfig):
     return prepare_surface(seq, cfg)
 
 
+def _require_area(V: np.ndarray, F: np.ndarray, where: str, frame: int) -> None:
+    """Refuse a surface frame whose faces all are flat (:func:`~dynmesh_warp.geometry.has_area`):
+    nothing to collide with or render (``validate_mesh`` lets it through: ``evaluate`` still
+    measures a collapsed prediction)."""
+    if not has_area(V, F):
+        raise MeshDataError(f"{where}, frame {frame}: every face has zero area ({len(F)} faces; the first "
+                            f"{np.asarray(F)[0].tolist()}): no surface to collide with or render (faces that repeat a "
+                            "vertex, or corners on a line); wrong face indices?")
+
+
 def prepare_surface(seq, cfg: SceneConfig):
     """Bring a loaded sequence into the scene frame as the ``surface`` section asks: fps,
     up_axis, scale, translate, orientation, then ``conversion`` of a varying-topology one, then
@@ -259,7 +269,7 @@ def prepare_surface(seq, cfg: SceneConfig):
         F, report = _orient(V[0], seq.F, s, up)
         _say_orientation([(None, report)], where)
         seq = FixedTopologySequence(V, F, fps, seq.name, seq.source)
-        require_area(seq.V[0], F, where, 0)  # faces all [a, b, b]: every sphere fell through, unsaid
+        _require_area(seq.V[0], F, where, 0)  # faces all [a, b, b]: every sphere fell through, unsaid
         _check_size(surface_vertices(seq.V[0], F), s, axis)
     else:
         frames, reports = [], []
@@ -275,7 +285,7 @@ def prepare_surface(seq, cfg: SceneConfig):
             reports.append((t, report))
         _say_orientation(reports, where)
         for t, (v, g) in enumerate(frames):
-            require_area(v, g, seq.frame_sources[t] if seq.frame_sources else where, t)
+            _require_area(v, g, seq.frame_sources[t] if seq.frame_sources else where, t)
         _check_size(surface_vertices(*frames[0]), s, axis)
         seq = VaryingTopologySequence(frames, fps, seq.name, seq.source, seq.frame_sources)
         if s.conversion is None:

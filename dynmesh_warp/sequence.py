@@ -114,32 +114,6 @@ def validate_mesh(
     return np.ascontiguousarray(V32), np.ascontiguousarray(F, dtype=np.int32)
 
 
-def require_area(V: np.ndarray, F: np.ndarray, source: str | None = None, frame: int | None = None) -> None:
-    """Raise :class:`MeshDataError` when every face of the mesh has zero area (:func:`has_area`):
-    a surface for the physics or the renderer (``validate_mesh`` lets such a mesh through: a
-    collapsed prediction is still measured, and convert says it its own way)."""
-    if not has_area(V, F):
-        raise MeshDataError(
-            f"{_where(source, frame)}: every face has zero area ({len(F)} faces; the first {np.asarray(F)[0].tolist()}): "
-            "no surface to collide with or render (faces that repeat a vertex, or corners on a line); wrong face "
-            "indices?")
-
-
-def has_area(V: np.ndarray, F: np.ndarray, first: int = 1024) -> bool:
-    """Some face of (V, F) has an area over 1e-12 x the squared diagonal of the vertices it uses:
-    the first ``first`` faces are asked before all of them (a mesh has area almost always there;
-    a new user's all-degenerate faces, [a, b, b], loaded and let every sphere fall through)."""
-    V, F = np.asarray(V), np.asarray(F)
-    for G in (F[:first], F) if len(F) > first else (F,):
-        a, b, c = (V[G[:, k]].astype(np.float64) for k in range(3))
-        twice = np.linalg.norm(np.cross(b - a, c - a), axis=1)
-        used = V[np.unique(G)].astype(np.float64)
-        diag2 = float(np.sum(np.ptp(used, axis=0) ** 2))
-        if twice.max() > 2e-12 * max(diag2, 1e-300):
-            return True
-    return False
-
-
 #: faces whose indices all are >= 1 read as 1-based when 1 subtracted makes the mean edge this many
 #: times shorter: a relabelling by one keeps the topology, so the geometry tells (a new user's
 #: 1-based npz whose last vertex no face used loaded as a scrambled mesh: area 146 against 12.5)

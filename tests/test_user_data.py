@@ -1242,7 +1242,7 @@ def test_a_surface_whose_faces_all_have_no_area_is_refused_by_the_scene(tmp_path
     file and frame (for a varying sequence, the frame that has none); one face with area is enough."""
     from dynmesh_warp.config import load_scene_config
     from dynmesh_warp.scene import load_surface
-    from dynmesh_warp.sequence import has_area
+    from dynmesh_warp.geometry import has_area
 
     V = np.random.default_rng(0).random((2, 10, 3)).astype(np.float32)
     for F in ([[0, 1, 1], [2, 3, 3]], [[0, 0, 0]]):
