@@ -51,9 +51,9 @@ from .kernels.batch import (
 from .kernels.frames import add_points_offset, update_frame_vertices
 from .runtime import free_bytes
 from .world import (Contacts, PhysicsParams, SphereModel, SurfaceModel, check_substep_budget, fallen_past_note,
-                    frame_pair_host, playback_cycle_host, resolve_playback, seam_note)
+                    frame_pair_host, playback_cycle_host, required_substeps, resolve_playback, seam_note)
 
-__all__ = ["BatchModel", "BatchState", "BatchedWorld", "step_envs", "required_substeps", "env_clocks", "TIME_SLICES",
+__all__ = ["BatchModel", "BatchState", "BatchedWorld", "step_envs", "env_clocks", "TIME_SLICES",
            "BATCH_TILE_THREADS", "HYBRID_BUDGET", "default_batch_search", "HYBRID_BLOCKS", "ContactQuery",
            "build_batched_world", "EnvView", "EnvGrid"]
 
@@ -78,14 +78,6 @@ HYBRID_BLOCKS = 4096
 #: 2, 2.5, 3.5, 4 and 5 at 4,096 envs landing (9,040 vs 8,091 / 8,260 / 8,814 / 8,405 / 7,584)
 GRID_CELL_RADII = 3.0
 GRID_MAX_CELLS = 1 << 16
-
-
-def required_substeps(max_speed: float, dt: float, r_min: float) -> int:
-    """Sub-steps per step so a surface moving at ``max_speed`` [m/s] moves less than half the
-    smallest sphere radius ``r_min`` [m] per sub-step (the single world's rule)."""
-    if max_speed <= 0 or not math.isfinite(r_min):
-        return 1
-    return max(1, math.ceil(max_speed * dt / (0.5 * r_min)))
 
 
 #: device memory of one sphere of a batch [bytes]: radius, inverse mass, env index, position,

@@ -533,7 +533,7 @@ def _newton_substeps(cfg, surface, radii) -> int:
     half height) fell through a sheet moving at 8.5 m/s at one sub-step, unsaid."""
     import warnings  # noqa: PLC0415
 
-    from .world import check_substep_budget, seam_note  # noqa: PLC0415
+    from .world import check_substep_budget, required_substeps, seam_note  # noqa: PLC0415
 
     p = cfg.physics
     thick = [min(b.half_extents) if b.type == "box" else b.radius for b in cfg.newton.bodies
@@ -542,7 +542,7 @@ def _newton_substeps(cfg, surface, radii) -> int:
     if not thick or surface.max_speed <= 0 or not surface.interpolate:
         return int(p.substeps)
     r_min = float(min(thick))
-    need = math.ceil(surface.max_speed * p.dt / (0.5 * r_min))
+    need = required_substeps(surface.max_speed, p.dt, r_min)
     if need <= p.substeps:
         return int(p.substeps)
     note = seam_note(surface)

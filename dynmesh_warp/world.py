@@ -72,6 +72,7 @@ __all__ = [
     "PhysicsParams",
     "WorkBudgetError",
     "check_substep_budget",
+    "required_substeps",
     "SurfaceModel",
     "VaryingSurfaceModel",
     "SphereModel",
@@ -246,6 +247,15 @@ def seam_note(surface) -> str:
     return (f" (the jump from the last frame back to the first under surface.playback: loop; within the "
             f"animation {motion:.3g} m/s: for an animation that does not repeat, set "
             "surface.playback: auto, clamp or pingpong)")
+
+
+def required_substeps(max_speed: float, dt: float, r_min: float) -> int:
+    """Sub-steps per step so a surface moving at ``max_speed`` [m/s] moves less than half the
+    smallest body's radius (or half thickness) ``r_min`` [m] per sub-step: the sub-step rule of the
+    world, the batch and the Newton adapter."""
+    if max_speed <= 0 or not math.isfinite(r_min):
+        return 1
+    return max(1, math.ceil(max_speed * dt / (0.5 * r_min)))
 
 
 def check_substep_budget(need: int, speed: float, r_min: float, p, note: str = "") -> None:
@@ -1499,7 +1509,7 @@ class World:
         surf = model.surface
         r_min = float(model.spheres.radius_np.min()) if model.spheres.count else math.inf
         if surf.max_speed > 0 and math.isfinite(r_min):
-            need = math.ceil(surf.max_speed * p.dt / (0.5 * r_min))
+            need = required_substeps(surf.max_speed, p.dt, r_min)
             if p.auto_substeps and surf.interpolate and need > self.substeps:
                 note = seam_note(surf)
                 check_substep_budget(need, surf.max_speed, r_min, p, note)
