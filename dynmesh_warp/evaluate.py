@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from . import metrics as M
+from .geometry import bbox_diagonal
 from .outputs import atomic_path, atomic_write_bytes, atomic_write_json
 from .sequence import FixedTopologySequence, MeshDataError, VaryingTopologySequence, carried
 
@@ -174,12 +175,6 @@ def evaluate_rows(gt_frames, rows: dict, frames, protocols=("dgmesh", "paper"), 
 SCALE_MISMATCH = 10.0
 
 
-def bbox_diagonal(V) -> float:
-    """The length of the bounding box's diagonal of the points ``V`` (N, 3), in their units: the
-    scale the tables' CD (squared) and EMD are read against (a mesh in mm gives mm² and mm)."""
-    return float(np.linalg.norm(np.ptp(np.asarray(V, np.float64), axis=0)))
-
-
 def _warn_other_units(what: str, V, gt_V, gt_name, stacklevel: int = 3) -> None:
     """Warn when ``what``'s vertices ``V`` (the compared mesh, named in ``what``) and the ground
     truth's ``gt_V`` (named ``gt_name``) differ in size (bounding-box diagonal) by SCALE_MISMATCH
@@ -194,7 +189,7 @@ def _warn_other_units(what: str, V, gt_V, gt_name, stacklevel: int = 3) -> None:
 
 def _check_scales(index, gt_file, pred_file) -> float:
     """Warn when the paired first frames differ in size by SCALE_MISMATCH or more; returns the
-    ground truth's frame's bounding-box diagonal (:func:`bbox_diagonal`)."""
+    ground truth's frame's bounding-box diagonal (:func:`~dynmesh_warp.geometry.bbox_diagonal`)."""
     from .io import read_mesh
 
     gt_V = read_mesh(gt_file)[0]
