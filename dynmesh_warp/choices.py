@@ -17,7 +17,8 @@ from __future__ import annotations
 import enum
 
 __all__ = ["StrEnum", "Collider", "SweptSearch", "RebuildEvery", "Playback", "FrameOrder", "Orientation", "UpAxis",
-           "Strategy", "NewtonSolver", "Rasteriser", "PLAYBACK_CODES", "DEFAULT_RASTERISER", "DEFAULT_COLLIDER",
+           "Strategy", "NewtonSolver", "Rasteriser", "ColorSource", "DEFAULT_COLOR_SOURCE",
+           "PLAYBACK_CODES", "DEFAULT_RASTERISER", "DEFAULT_COLLIDER",
            "DEFAULT_REBUILD_EVERY", "REFIT_BVH", "SEED_PREVIOUS_FACE", "SEED_REFIT_QUERY",
            "DEFAULT_SWEPT_SEARCH", "DEFAULT_BATCH_SWEPT_SEARCH", "SWEPT_MEASURED_SEARCHES", "SWEPT_FACES_MAX_SPHERES",
            "SPHERE_GRID_BUCKETS_PER_SPHERE", "SPHERE_GRID_CELL_SCALE", "SPHERE_GRID_LEVEL_SCALE",
@@ -111,6 +112,18 @@ class Orientation(StrEnum):
     AUTO = "auto"
     KEEP = "keep"
     FLIP = "flip"
+
+
+class ColorSource(StrEnum):
+    """Where generated Gaussians take their colour (docs/rendering.md): ``mesh``: the surface's own
+    vertex colours where its file has them (interpolated), else ``gaussians.color``; ``uniform``:
+    ``gaussians.color`` everywhere."""
+
+    MESH = "mesh"
+    UNIFORM = "uniform"
+
+
+DEFAULT_COLOR_SOURCE = ColorSource.MESH
 
 
 class UpAxis(StrEnum):

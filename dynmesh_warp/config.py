@@ -22,6 +22,7 @@ from .choices import (
     DEFAULT_COLLIDER,
     DEFAULT_FRAME_ORDER,
     DEFAULT_NEWTON_SOLVER,
+    DEFAULT_COLOR_SOURCE,
     DEFAULT_ORIENTATION,
     DEFAULT_PLAYBACK,
     DEFAULT_REBUILD_EVERY,
@@ -30,6 +31,7 @@ from .choices import (
     Collider,
     FrameOrder,
     NewtonSolver,
+    ColorSource,
     Orientation,
     Playback,
     RebuildEvery,
@@ -263,7 +265,8 @@ class GaussiansConfig(_Strict):
 
     splats: Optional[str] = None  # a 3DGS .ply in the scene frame, bound to the first frame
     count: int = Field(default=20000, ge=0)  # generated on the surface when splats is null
-    color: Vec3 = (0.75, 0.72, 0.68)  # RGB in [0, 1] of generated Gaussians
+    color: Vec3 = (0.75, 0.72, 0.68)  # RGB in [0, 1] of generated Gaussians where colors says so
+    colors: ColorSource = DEFAULT_COLOR_SOURCE  # mesh: the surface's own vertex colours where it has them
     opacity: float = Field(default=0.9, gt=0, lt=1)
     seed: int = 0
 

@@ -219,7 +219,21 @@ def to_fixed_topology(seq, strategy: str = DEFAULT_STRATEGY, template=None, devi
             surface's reach. Warns (UserWarning) about frames of very different scale.
     """
     with _journaling(journal), _fitting():
-        return _to_fixed(seq, strategy, template, device, progress, should_stop, None, **options)
+        res = _to_fixed(seq, strategy, template, device, progress, should_stop, None, **options)
+    return _with_colors(res, seq, device)
+
+
+def _with_colors(res, seq, device):
+    """``res`` with the input's vertex colours (``seq.colors``, of frame 0's vertices) carried to its
+    frame 0: each output vertex takes the colour at its closest point on the input's frame 0
+    (barycentric over that face's corners). Unchanged when the input has none."""
+    C = getattr(seq, "colors", None)
+    if C is None:
+        return res
+    V0, F0 = seq.frame(0)
+    near = nearest_surface((V0, F0), res.frame(0)[0], device=device, source=seq.source or seq.name)
+    res.colors = np.einsum("nk,nkc->nc", near.bary, C[np.asarray(F0)[near.face]]).astype(np.float32)
+    return res
 
 
 def _to_fixed(seq, strategy, template, device, progress, should_stop, stop_forward, **options):
@@ -374,6 +388,7 @@ def to_piecewise_fixed(seq, strategy: str = DEFAULT_STRATEGY, template=None, dev
     start = time.perf_counter()
     with _journaling(journal), _fitting():
         res = _to_piecewise(seq, strategy, template, device, progress, should_stop, options)
+    res = _with_colors(res, seq, device)
     res.conversion.seconds_all = time.perf_counter() - start
     return res
 

@@ -16,6 +16,7 @@ import warnings
 import numpy as np
 import warp as wp
 
+from .choices import DEFAULT_COLOR_SOURCE, ColorSource
 from .geometry import face_areas, flat_faces
 from .kernels.gaussians import bind_gaussians_to_faces, pack_splat_covariances, update_gaussians
 from .kernels.geometry import project_points_to_mesh
@@ -414,7 +415,9 @@ def gaussians_for_surface(seq, cfg=None, device=None) -> Gaussians:
     else:
         kw = {} if gcfg is None else {"count": gcfg.count, "seed": gcfg.seed, "color": gcfg.color,
                                       "opacity": gcfg.opacity}
-        g = generate_gaussians(V0, F0, device=device, **kw)
+        source = DEFAULT_COLOR_SOURCE if gcfg is None else gcfg.colors
+        colors = getattr(seq, "colors", None) if source == ColorSource.MESH else None
+        g = generate_gaussians(V0, F0, device=device, vertex_colors=colors, **kw)
     return SegmentedGaussians(seq, g) if segmented else g
 
 

@@ -320,14 +320,22 @@ def gltf_generator(path) -> str:
     return g if isinstance(g, str) else ""
 
 
-def read_gltf_animation(path, fps: float | None = None, animation=None, rest: bool = False):
+def _srgb(linear: np.ndarray) -> np.ndarray:
+    """glTF's linear ``COLOR_0`` as sRGB (the space a PLY's or OBJ's colours are in)."""
+    c = np.clip(linear, 0.0, 1.0)
+    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1.0 / 2.4) - 0.055)
+
+
+def read_gltf_animation(path, fps: float | None = None, animation=None, rest: bool = False, colors: bool = False):
     """Sample an animated glTF scene: ``(V (T, N, 3) float32, F (M, 3) int64, fps)``.
 
     ``animation``: the index or name of the animation (default: the first); ``fps``: the frame
     rate to sample at (default: the keyframes', else 30). ``rest``: a file without animations is
     one frame, its scene as its nodes, skins and morph weights stand (by the same rules: a skinned
-    mesh's own node transform is not applied, as the specification says). Raises
-    :class:`MeshDataError` naming the file for what cannot be read (module docstring)."""
+    mesh's own node transform is not applied, as the specification says). ``colors``: also return
+    the primitives' ``COLOR_0`` as sRGB, (N, 3) float32 in [0, 1], or None when a primitive has none:
+    ``(V, F, fps, colors)``. Raises :class:`MeshDataError` naming the file for what cannot be read
+    (module docstring)."""
     g = _File(Path(path))
     g.check_extensions()
     doc = g.doc
@@ -461,7 +469,10 @@ def read_gltf_animation(path, fps: float | None = None, animation=None, rest: bo
                                   f"{skin_i} ({len(skin['joints'])} joints)")
                 tot = weights.sum(axis=1, keepdims=True)
                 weights = np.where(tot > 0, weights / np.where(tot > 0, tot, 1.0), 0.0)
-            prims.append({"node": i, "P": P, "tri": tri, "targets": targets,
+            C = g.accessor(attrs["COLOR_0"])[:, :3] if "COLOR_0" in attrs else None
+            if C is not None and len(C) != len(P):
+                raise g.error(f"mesh {mesh_i} primitive {k}: {len(C)} COLOR_0 values for {len(P)} positions")
+            prims.append({"node": i, "P": P, "tri": tri, "targets": targets, "C": C,
                           "weights0": node.get("weights", mesh.get("weights", [0.0] * len(targets))),
                           "skin": skin if len(joints) else None, "ibm": ibm, "joints": joints, "w": weights})
     if not prims:
@@ -501,10 +512,20 @@ def read_gltf_animation(path, fps: float | None = None, animation=None, rest: bo
                 X = Ph @ G[p["node"]].T[:, :3]
             out[off:off + len(P)] = X
             off += len(P)
-    return V, F, float(fps)
+    if not colors:
+        return V, F, float(fps)
+    C = None if any(p["C"] is None for p in prims) else \
+        _srgb(np.concatenate([p["C"] for p in prims]).astype(np.float64)).astype(np.float32)
+    return V, F, float(fps), C
 
 
-def write_gltf_animation(path, V, F, fps: float, y_up: bool = False) -> None:
+def _linear(srgb: np.ndarray) -> np.ndarray:
+    """sRGB colours as glTF's linear ``COLOR_0`` (the inverse of :func:`_srgb`)."""
+    c = np.clip(srgb, 0.0, 1.0)
+    return np.where(c <= 0.04045, c / 12.92, np.power((c + 0.055) / 1.055, 2.4))
+
+
+def write_gltf_animation(path, V, F, fps: float, y_up: bool = False, colors=None) -> None:
     """Write a fixed-topology sequence ``V`` (T, N, 3) on faces ``F`` (M, 3) as one animated GLB
     (``path``, atomically): frame 0 is the mesh, frames 1 .. T - 1 are morph targets (position
     offsets from frame 0), and one animation sets target t - 1's weight to 1 at time t / fps, 0
@@ -512,7 +533,8 @@ def write_gltf_animation(path, V, F, fps: float, y_up: bool = False) -> None:
     as the physics does. Reads back with :func:`read_gltf_animation`; Blender imports the targets
     as shape keys. float32 positions, uint32 indices. ``y_up``: the coordinates are +Y up (glTF's
     own axis; ``asset.generator`` ``GENERATOR_Y_UP``), else as this project's z-up world
-    (``GENERATOR``: read back unturned)."""
+    (``GENERATOR``: read back unturned). ``colors``: (N, 3) sRGB in [0, 1], written as linear
+    float ``COLOR_0`` (the specification's space)."""
     V = np.asarray(V, np.float32)
     F = np.asarray(F, np.uint32)
     T, n = V.shape[:2]
@@ -534,6 +556,8 @@ def write_gltf_animation(path, V, F, fps: float, y_up: bool = False) -> None:
 
     prim = {"attributes": {"POSITION": add(V[0], "VEC3", 5126, True)}, "indices": add(F.reshape(-1), "SCALAR", 5125),
             "mode": 4}
+    if colors is not None:
+        prim["attributes"]["COLOR_0"] = add(_linear(np.asarray(colors, np.float64)).astype(np.float32), "VEC3", 5126)
     doc = {"asset": {"version": "2.0", "generator": GENERATOR_Y_UP if y_up else GENERATOR}, "scene": 0,
            "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0, "name": "surface"}],
            "meshes": [{"primitives": [prim], "name": "surface"}]}

@@ -33,7 +33,7 @@ from .animation_formats import (
 from .choices import Y_UP_FORMATS, FrameOrder, parse
 from .gltf_animation import (GENERATOR, GENERATOR_Y_UP, GLTF_EXTENSIONS, gltf_generator, gltf_has_animation,
                              read_gltf_animation, write_gltf_animation)
-from .mesh_formats import MESH_EXTENSIONS, mesh_extension, read_mesh, write_mesh, write_mesh_file
+from .mesh_formats import MESH_EXTENSIONS, mesh_extension, read_mesh, read_vertex_colors, write_mesh, write_mesh_file
 from .outputs import OutputExistsError, OutputFolder, OutputKind, atomic_path
 from .sequence import FixedTopologySequence, VaryingTopologySequence
 from .sequence_layouts import (
@@ -69,12 +69,12 @@ _KINDS = ("auto", "fixed", "varying")
 ANIMATED_FILE_OUTPUTS = ANIMATION_EXTENSIONS + (".glb",)
 
 
-def _one_file(V, F, fps, file_fps, name: str, path: Path, kind: str, frame_order: str | None = None):
+def _one_file(V, F, fps, file_fps, name: str, path: Path, kind: str, frame_order: str | None = None, colors=None):
     """The fixed sequence of a one-file animation: ``fps`` if given, else the file's, else
     DEFAULT_FPS; the frame-order check of an npz when ``frame_order`` is given; varying when
     ``kind`` asks for it."""
     fps = fps if fps is not None else (file_fps if file_fps is not None else DEFAULT_FPS)
-    seq = FixedTopologySequence(V, F, fps=fps, name=name, source=str(path))
+    seq = FixedTopologySequence(V, F, fps=fps, name=name, source=str(path), colors=colors)
     if frame_order is not None:
         seq = fix_frame_order(seq, frame_order, path)
     return seq.to_varying() if kind == "varying" else seq
@@ -161,18 +161,19 @@ def load_sequence(
         raise ValueError(f"{path}: animation= picks one animation of an animated .glb / .gltf, but this file "
                          f"has none")
     if animated:
-        V, F, file_fps = read_gltf_animation(path, fps, animation)
-        return _one_file(V, F, None, file_fps, path.stem, path, kind)
+        V, F, file_fps, colors = read_gltf_animation(path, fps, animation, colors=True)
+        return _one_file(V, F, None, file_fps, path.stem, path, kind, colors=colors)
     if suffix in GLTF_EXTENSIONS:
         # the scene as it stands, by the glTF reader's rules (a skinned mesh's own node transform
         # is not applied: through trimesh a new user's static skinned file sat 5 m off the same
         # file's animated frame 0, its parts in another order)
-        V, F, _ = read_gltf_animation(path, rest=True)
+        V, F, _, colors = read_gltf_animation(path, rest=True, colors=True)
         V = V[0]
     else:
         V, F = read_mesh(path)
+        colors = read_vertex_colors(path, len(V))
     fps = DEFAULT_FPS if fps is None else fps
-    seq = FixedTopologySequence(V[None], F, fps=fps, name=path.stem, source=str(path))
+    seq = FixedTopologySequence(V[None], F, fps=fps, name=path.stem, source=str(path), colors=colors)
     return seq.to_varying() if kind == "varying" else seq
 
 
@@ -236,7 +237,9 @@ def _save_folder(seq, folder: Path, fmt: str, overwrite: bool = False, status: d
     with OutputFolder(folder, overwrite=overwrite, status=status, holds=OutputKind.SEQUENCE) as tmp:
         for t in range(seq.num_frames):
             V, F = seq.frame(t)
-            write_mesh_file(tmp / f"frame_{first + t:04d}.{fmt}", V, F)
+            # the colours of frame 0's vertices; a fixed sequence's are every frame's
+            colors = seq.colors if (t == 0 or hasattr(seq, "V")) else None
+            write_mesh_file(tmp / f"frame_{first + t:04d}.{fmt}", V, F, colors)
 
 
 def _warn_if_interrupted(path: Path) -> None:
@@ -297,7 +300,7 @@ def save_sequence(seq, path, fmt: str | None = None, overwrite: bool = False, st
             raise ValueError(f"{path}: a {path.suffix} animation holds one set of faces for every frame; this "
                              f"sequence's topology varies (convert it first, or save a .npz or a folder)")
         if path.suffix.lower() == ".glb":
-            write_gltf_animation(path, seq.V, seq.F, seq.fps, y_up=_y_up(seq))
+            write_gltf_animation(path, seq.V, seq.F, seq.fps, y_up=_y_up(seq), colors=seq.colors)
         else:
             write_animation(path, seq.V, seq.F, seq.fps, overwrite=bool(overwrite))
             _warn_up_axis_lost(seq, path)

@@ -22,7 +22,7 @@ from .outputs import atomic_path
 from .sequence import MeshDataError, validate_mesh
 
 __all__ = ["READERS", "WRITERS", "MESH_EXTENSIONS", "register_format", "mesh_extension", "file_problem", "read_mesh",
-           "write_mesh_file", "write_mesh"]
+           "read_vertex_colors", "write_mesh_file", "write_mesh"]
 
 _OWN_READERS = (".obj", ".off")
 _TRIMESH_READERS = (".ply", ".stl", ".glb", ".gltf")
@@ -509,27 +509,120 @@ def read_mesh(path, frame: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     return validate_mesh(V, F, source=str(path), frame=frame)
 
 
+#: a PLY vertex element's colour properties, in the order looked for (MeshLab/Open3D/trimesh write
+#: red green blue; some scanners r g b; older tools diffuse_red ...)
+PLY_COLOR_NAMES = (("red", "green", "blue"), ("r", "g", "b"), ("diffuse_red", "diffuse_green", "diffuse_blue"))
+
+
+def _unit_colors(C: np.ndarray, integer_max: float | None) -> np.ndarray:
+    """(N, 3) colours in [0, 1] as float32: integers over their type's maximum (``integer_max``);
+    floats as they are, or over 255 when any exceeds 1 and none 255 (written as 0..255 floats)."""
+    C = np.asarray(C, np.float64)
+    if integer_max is not None:
+        C = C / integer_max
+    elif C.size and np.nanmax(C) > 1.0 and np.nanmax(C) <= 255.0:
+        C = C / 255.0
+    return np.clip(np.nan_to_num(C, nan=0.0), 0.0, 1.0).astype(np.float32)
+
+
+def _ply_colors(path: Path) -> np.ndarray | None:
+    fmt, elements, start = _ply_header(path)
+    names = {p: t for name, _, props in elements if name == "vertex" for p, t in props}
+    rgb = next((c for c in PLY_COLOR_NAMES if all(n in names and not isinstance(names[n], tuple) for n in c)), None)
+    if rgb is None:
+        return None
+    typ = np.dtype(_PLY_TYPES.get(names[rgb[0]], "f4"))
+    top = None if typ.kind == "f" else float(np.iinfo(typ).max)
+    if fmt == "ascii":
+        skip = 0
+        for name, n, props in elements:
+            if name == "vertex":
+                cols = [i for i, (p, _) in enumerate(props) if p in rgb]
+                cols = [cols[[props[i][0] for i in cols].index(c)] for c in rgb]
+                with open(path, "rb") as fh:
+                    fh.seek(start)
+                    rows = [line.split() for line in fh if line.strip()][skip:skip + n]
+                try:
+                    return _unit_colors(np.array([[float(r[i]) for i in cols] for r in rows]).reshape(-1, 3), top)
+                except (ValueError, IndexError):
+                    raise _ReadError("vertex colours: a vertex line has too few or non-numeric fields") from None
+            skip += n
+    data, _ = _ply_binary(path, elements, start, ">" if fmt == "binary_big_endian" else "<")
+    return _unit_colors(np.stack([np.asarray(data["vertex"][c]) for c in rgb], axis=1), top)
+
+
+def _obj_colors(path: Path) -> np.ndarray | None:
+    """``v x y z r g b`` records (MeshLab's, Open3D's): colours when every vertex has them."""
+    rows = _OBJ_V_RE.findall(path.read_text(encoding="utf-8-sig", errors="replace"))
+    fields = [r.split("#", 1)[0].split() for r in rows]
+    if not fields or any(len(f) < 6 for f in fields):
+        return None
+    try:
+        return _unit_colors(np.array([f[3:6] for f in fields], np.float64), None)
+    except ValueError:
+        raise _ReadError("vertex colours: a 'v x y z r g b' record has a field that is not a number") from None
+
+
+#: extension -> ``colors(path) -> (N, 3) in [0, 1] or None``; glTF's COLOR_0 is read with its
+#: animation (:func:`dynmesh_warp.gltf_animation.read_gltf_animation`)
+COLOR_READERS = {".ply": _ply_colors, ".obj": _obj_colors}
+
+
+def read_vertex_colors(path, num_vertices: int | None = None) -> np.ndarray | None:
+    """The per-vertex colours a mesh file holds, (N, 3) float32 in [0, 1], or None when it has none
+    (or its format's colours are not read: docs/data.md). A PLY's ``red green blue`` (or ``r g b``,
+    ``diffuse_*``; integers over their type's maximum), an OBJ's ``v x y z r g b``. Floats above 1
+    (but none above 255) are taken as 0..255. ``num_vertices``: the count :func:`read_mesh` gave;
+    colours of another count are an error naming the file."""
+    path = Path(path).expanduser()
+    reader = COLOR_READERS.get(mesh_extension(path.name) or path.suffix.lower())
+    if reader is None:
+        return None
+    try:
+        C = reader(path)
+    except _ReadError as e:
+        raise MeshDataError(f"{path}: {e}") from None
+    if C is not None and num_vertices is not None and len(C) != num_vertices:
+        raise MeshDataError(f"{path}: {len(C)} vertex colours for {num_vertices} vertices")
+    return C
+
+
 # --------------------------------------------------------------------------- writing
 
 
-def _write_ply(fh, V: np.ndarray, F: np.ndarray) -> None:
+def _byte_colors(colors: np.ndarray) -> np.ndarray:
+    return np.round(np.clip(np.asarray(colors, np.float64), 0.0, 1.0) * 255.0).astype(np.uint8)
+
+
+def _write_ply(fh, V: np.ndarray, F: np.ndarray, colors: np.ndarray | None = None) -> None:
     header = (
         "ply\nformat binary_little_endian 1.0\n"
         f"element vertex {len(V)}\nproperty float x\nproperty float y\nproperty float z\n"
-        f"element face {len(F)}\nproperty list uchar int vertex_indices\nend_header\n"
+        + ("" if colors is None else "property uchar red\nproperty uchar green\nproperty uchar blue\n")
+        + f"element face {len(F)}\nproperty list uchar int vertex_indices\nend_header\n"
     )
     fh.write(header.encode("ascii"))
-    fh.write(np.ascontiguousarray(V, dtype="<f4").tobytes())
+    if colors is None:
+        fh.write(np.ascontiguousarray(V, dtype="<f4").tobytes())
+    else:
+        verts = np.empty(len(V), dtype=[("p", "<f4", (3,)), ("c", "u1", (3,))])
+        verts["p"] = V
+        verts["c"] = _byte_colors(colors)
+        fh.write(verts.tobytes())
     faces = np.empty(len(F), dtype=[("n", "u1"), ("i", "<i4", (3,))])
     faces["n"] = 3
     faces["i"] = F
     fh.write(faces.tobytes())
 
 
-def _write_obj(fh, V: np.ndarray, F: np.ndarray) -> None:
+def _write_obj(fh, V: np.ndarray, F: np.ndarray, colors: np.ndarray | None = None) -> None:
     # %.9g round-trips float32 exactly.
-    fh.write(("v %.9g %.9g %.9g\n" * len(V) % tuple(V.astype(np.float64).ravel()))
-             .encode("ascii"))
+    if colors is None:
+        fh.write(("v %.9g %.9g %.9g\n" * len(V) % tuple(V.astype(np.float64).ravel()))
+                 .encode("ascii"))
+    else:  # MeshLab's "v x y z r g b", colours in [0, 1] (4 decimals keep a byte's 1/255 steps)
+        rows = np.concatenate([V.astype(np.float64), np.clip(np.asarray(colors, np.float64), 0, 1)], axis=1)
+        fh.write(("v %.9g %.9g %.9g %.4f %.4f %.4f\n" * len(V) % tuple(rows.ravel())).encode("ascii"))
     fh.write(("f %d %d %d\n" * len(F) % tuple((F.astype(np.int64) + 1).ravel()))
              .encode("ascii"))
 
@@ -545,6 +638,9 @@ WRITERS = {".ply": _write_ply, ".obj": _write_obj, ".off": _write_off}
 """Extension -> ``writer(fh, V, F)`` writing one mesh to a binary file object, keeping vertex
 order; other extensions go through trimesh (``.stl``, ``.glb``, ``.gltf``) or meshio."""
 
+#: the built-in writers that also write per-vertex colours (``writer(fh, V, F, colors)``)
+COLOR_WRITERS = {".ply", ".obj"}
+
 
 def register_format(ext: str, reader=None, writer=None) -> None:
     """Add (or replace) the reader and/or writer of extension ``ext`` (e.g. ``".xyzmesh"``);
@@ -557,26 +653,32 @@ def register_format(ext: str, reader=None, writer=None) -> None:
         WRITERS[ext] = writer
 
 
-def write_mesh_file(path: Path, V: np.ndarray, F: np.ndarray) -> None:
-    """Write one mesh to ``path`` (not atomic; callers write to a temporary name)."""
+def write_mesh_file(path: Path, V: np.ndarray, F: np.ndarray, colors: np.ndarray | None = None) -> None:
+    """Write one mesh to ``path`` (not atomic; callers write to a temporary name). ``colors``
+    (N, 3) in [0, 1]: written by ``.ply`` (uchar ``red green blue``), ``.obj`` (``v x y z r g b``),
+    ``.glb``/``.gltf`` (``COLOR_0``, through trimesh); other formats leave them out."""
     path = Path(path)
     ext = path.suffix.lower()
     if ext in WRITERS:
         with open(path, "wb") as fh:
-            WRITERS[ext](fh, V, F)
+            if colors is not None and ext in COLOR_WRITERS and WRITERS[ext] in (_write_ply, _write_obj):
+                WRITERS[ext](fh, V, F, colors)
+            else:
+                WRITERS[ext](fh, V, F)
             fh.flush()
             os.fsync(fh.fileno())
     elif ext in (".stl", ".glb", ".gltf"):
         import trimesh
 
-        trimesh.Trimesh(V, F, process=False).export(str(path))
+        vc = None if colors is None or ext == ".stl" else _byte_colors(colors)
+        trimesh.Trimesh(V, F, vertex_colors=vc, process=False).export(str(path))
     else:
         import meshio
 
         meshio.write(str(path), meshio.Mesh(V, [("triangle", F)]))
 
 
-def write_mesh(path, V, F) -> None:
+def write_mesh(path, V, F, colors=None) -> None:
     """Write one triangle mesh atomically; the format follows the extension of ``path``.
 
     ``.ply`` (binary, float32), ``.obj`` and ``.off`` use this module's writers, which keep
@@ -585,5 +687,9 @@ def write_mesh(path, V, F) -> None:
     """
     path = Path(path).expanduser()
     V, F = validate_mesh(V, F, source=str(path))
+    if colors is not None:
+        colors = np.asarray(colors, np.float32)
+        if colors.shape != V.shape:
+            raise MeshDataError(f"{path}: colors must have shape {V.shape} (one RGB per vertex), got {colors.shape}")
     with atomic_path(path, suffix=path.suffix) as tmp:  # the one atomic writer (outputs)
-        write_mesh_file(tmp, V, F)
+        write_mesh_file(tmp, V, F, colors)

@@ -268,7 +268,7 @@ def prepare_surface(seq, cfg: SceneConfig):
         V = _transform(seq.V, s, axis)
         F, report = _orient(V[0], seq.F, s, up)
         _say_orientation([(None, report)], where)
-        seq = FixedTopologySequence(V, F, fps, seq.name, seq.source)
+        seq = FixedTopologySequence(V, F, fps, seq.name, seq.source, colors=seq.colors)
         _require_area(seq.V[0], F, where, 0)  # faces all [a, b, b]: every sphere fell through, unsaid
         _check_size(surface_vertices(seq.V[0], F), s, axis)
     else:
@@ -287,7 +287,7 @@ def prepare_surface(seq, cfg: SceneConfig):
         for t, (v, g) in enumerate(frames):
             _require_area(v, g, seq.frame_sources[t] if seq.frame_sources else where, t)
         _check_size(surface_vertices(*frames[0]), s, axis)
-        seq = VaryingTopologySequence(frames, fps, seq.name, seq.source, seq.frame_sources)
+        seq = VaryingTopologySequence(frames, fps, seq.name, seq.source, seq.frame_sources, colors=seq.colors)
         if s.conversion is None:
             _say_interrupted(seq, where)
         if seq.is_fixed_topology():
@@ -323,7 +323,8 @@ def prepare_surface(seq, cfg: SceneConfig):
                 # convert fits frames facing outward (its fit compares normals) and turned the key
                 # frame, whose faces the template keeps: the winding asked for is given back (a new
                 # user's inward frames came out facing outward under orientation: keep)
-                seq = FixedTopologySequence(seq.V, np.ascontiguousarray(seq.F[:, ::-1]), seq.fps, seq.name, seq.source)
+                seq = FixedTopologySequence(seq.V, np.ascontiguousarray(seq.F[:, ::-1]), seq.fps, seq.name, seq.source,
+                                            colors=seq.colors)
                 seq.conversion = info
             for line in conversion_summary(seq.conversion):  # a poor fit or a web is said, as convert says it
                 if line.startswith("warning: "):

@@ -173,13 +173,29 @@ def _check_up_axis(up_axis, where: str) -> None:
         raise MeshDataError(f"{where}: up_axis must be 'y', 'z' or None (as its source says), got {up_axis!r}")
 
 
+def _checked_colors(colors, num_vertices: int, where: str):
+    """``colors`` as float32 (N, 3) in [0, 1] for frame 0's ``num_vertices`` vertices, or None."""
+    if colors is None:
+        return None
+    C = np.asarray(colors)
+    if C.ndim != 2 or C.shape[1] not in (3, 4) or len(C) != num_vertices:
+        raise MeshDataError(f"{where}: colors must have shape ({num_vertices}, 3), one RGB per vertex of frame 0, "
+                            f"got {C.shape}")
+    if not np.issubdtype(C.dtype, np.number) or not np.isfinite(C).all():
+        raise MeshDataError(f"{where}: colors hold NaN, inf or non-numbers")
+    if np.issubdtype(C.dtype, np.integer):
+        C = C / 255.0
+    return np.ascontiguousarray(np.clip(C[:, :3], 0.0, 1.0), np.float32)
+
+
 def carried(seq, **changed) -> dict:
     """The keyword arguments that describe ``seq`` (``fps``, ``name``, ``source``, ``up_axis``)
     for a new sequence made from its frames, ``changed`` replacing some:
     ``FixedTopologySequence(V, F, **carried(seq))``. The one list of them: a copy that named its
     fields by hand lost the up axis (a glTF's +Y up, read as z-up after re-meshing), and a field added
     here is carried by every copy. Per-frame ``frame_sources`` are not carried (a copy may take other
-    frames): pass them where the frames are the same."""
+    frames): pass them where the frames are the same. Nor are ``colors`` (per vertex of frame 0): pass
+    ``colors=seq.colors`` where frame 0's vertices are the same."""
     out = {"fps": seq.fps, "name": seq.name, "source": seq.source, "up_axis": seq.up_axis}
     unknown = set(changed) - set(out)
     if unknown:
@@ -201,6 +217,8 @@ class FixedTopologySequence:
         source: where it came from (file or folder), used in error messages.
         up_axis: the axis V's "up" is along, where known ("y" or "z"; None: as ``source`` says,
             ``io.stored_up_axis``); a scene's surface is "z" (``scene.prepare_surface``).
+        colors: per-vertex RGB, float32 (N, 3) in [0, 1] (the mesh file's own vertex colours), or
+            None; the colour of generated Gaussians (docs/rendering.md).
     """
 
     V: np.ndarray
@@ -209,6 +227,7 @@ class FixedTopologySequence:
     name: str = "sequence"
     source: str | None = None
     up_axis: str | None = None
+    colors: np.ndarray | None = None
 
     def __post_init__(self):
         where = self.source or self.name
@@ -230,6 +249,7 @@ class FixedTopologySequence:
         self.F = F
         self.fps = _checked_fps(self.fps, where)
         _check_up_axis(self.up_axis, where)
+        self.colors = _checked_colors(self.colors, V.shape[1], where)
 
     def __repr__(self) -> str:
         return (f"FixedTopologySequence(name={self.name!r}, frames={self.num_frames}, "
@@ -310,15 +330,15 @@ class FixedTopologySequence:
                 out[k * factor + i] = p1 + s * (m1 + s * (a2 + s * a3))
         if playback != "loop":
             out[-1] = self.V[-1]
-        return FixedTopologySequence(out, self.F, **carried(self, fps=self.fps * factor))
+        return FixedTopologySequence(out, self.F, **carried(self, fps=self.fps * factor), colors=self.colors)
 
     def reordered(self, order) -> "FixedTopologySequence":
         """A copy with frames taken in ``order`` (indices into the stored frames)."""
         order = np.asarray(order, dtype=np.int64)
-        return FixedTopologySequence(self.V[order], self.F, **carried(self))
+        return FixedTopologySequence(self.V[order], self.F, **carried(self), colors=self.colors)
 
     def to_varying(self) -> "VaryingTopologySequence":
-        return VaryingTopologySequence([(v, self.F) for v in self.V], **carried(self))
+        return VaryingTopologySequence([(v, self.F) for v in self.V], **carried(self), colors=self.colors)
 
 
 @dataclass(repr=False)
@@ -330,6 +350,8 @@ class VaryingTopologySequence:
         fps: frame rate in frames per second.
         name, source: labels for logs and error messages.
         up_axis: as :class:`FixedTopologySequence`'s.
+        colors: per-vertex RGB of frame 0's vertices, float32 (N_0, 3) in [0, 1], or None (a
+            conversion carries them to its template: docs/conversion.md).
     """
 
     frames: list = field(default_factory=list)
@@ -338,6 +360,7 @@ class VaryingTopologySequence:
     source: str | None = None
     frame_sources: list | None = None  # optional per-frame file names for messages
     up_axis: str | None = None
+    colors: np.ndarray | None = None
 
     def __post_init__(self):
         where = self.source or self.name
@@ -355,6 +378,7 @@ class VaryingTopologySequence:
         self.frames = checked
         self.fps = _checked_fps(self.fps, where)
         _check_up_axis(self.up_axis, where)
+        self.colors = _checked_colors(self.colors, len(checked[0][0]), where)
 
     def __repr__(self) -> str:
         nv = [len(v) for v, _ in self.frames]
@@ -437,7 +461,7 @@ class VaryingTopologySequence:
                                  f"vertex indices (first at face {int(np.flatnonzero((f != F0).any(axis=1))[0])})"),
                     advice="a fixed-topology sequence needs identical faces in every frame (convert a "
                            "varying-topology one with dynmesh_warp.convert)")
-        return FixedTopologySequence(np.stack([v for v, _ in self.frames]), F0, **carried(self))
+        return FixedTopologySequence(np.stack([v for v, _ in self.frames]), F0, **carried(self), colors=self.colors)
 
 
 def text_sorted_permutation(num_frames: int, start: int = 1) -> np.ndarray:

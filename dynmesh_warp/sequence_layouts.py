@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .mesh_formats import MESH_EXTENSIONS, file_problem, mesh_extension, read_mesh
+from .mesh_formats import MESH_EXTENSIONS, file_problem, mesh_extension, read_mesh, read_vertex_colors
 from .sequence import FixedTopologySequence, MeshDataError, VaryingTopologySequence
 
 __all__ = ["DEFAULT_FPS", "DGMESH_SUBDIRS", "frame_index_from_name", "load_npz", "load_vertex_array", "npz_arrays",
@@ -62,6 +62,8 @@ def _frame_number(name) -> re.Match | None:
 
 # npz array names: the canonical V (T, N, 3) / F (M, 3) first, then common aliases
 _NPZ_VERTEX_KEYS = ("V", "vertices", "verts", "points")
+#: an npz's per-vertex colours of frame 0: (N, 3), float in [0, 1] or uint8 (docs/data.md)
+NPZ_COLOR_KEY = "vertex_colors"
 _NPZ_FACE_KEYS = ("F", "faces", "triangles")
 
 
@@ -93,6 +95,7 @@ def load_npz(path: Path, fps, kind: str):
         vkey = next((k for k in _NPZ_VERTEX_KEYS if k in keys), None)
         fkey = next((k for k in _NPZ_FACE_KEYS if k in keys), None)
         try:
+            colors = np.asarray(data[NPZ_COLOR_KEY]) if NPZ_COLOR_KEY in keys else None
             if vkey and fkey:
                 V, F = np.asarray(data[vkey]), np.asarray(data[fkey])
                 if V.ndim not in (2, 3) or V.shape[-1] != 3:
@@ -102,7 +105,7 @@ def load_npz(path: Path, fps, kind: str):
                     V = V[None]
                 if F.ndim == 2 and F.shape[1] == 4:  # quads: two triangles each, as for files
                     F = F[:, [0, 1, 2, 0, 2, 3]].reshape(-1, 3)
-                seq = FixedTopologySequence(V, F, fps=fps, name=name, source=str(path))
+                seq = FixedTopologySequence(V, F, fps=fps, name=name, source=str(path), colors=colors)
                 return seq.to_varying() if kind == "varying" else seq
             packed = {"V_packed", "F_packed", "V_offsets", "F_offsets"}
             if packed <= keys:
@@ -121,7 +124,7 @@ def load_npz(path: Path, fps, kind: str):
             raise
         except Exception as e:  # e.g. a corrupt member inside the zip
             raise MeshDataError(f"{path}: cannot read npz data ({type(e).__name__}: {e})") from e
-    seq = VaryingTopologySequence(frames, fps=fps, name=name, source=str(path))
+    seq = VaryingTopologySequence(frames, fps=fps, name=name, source=str(path), colors=colors)
     return finish_kind(seq, kind)
 
 
@@ -274,6 +277,7 @@ def _name_series(files: list[Path]) -> list[tuple[str, int]]:
 def load_folder(folder: Path, fps, kind: str, name: str):
     files = list_frame_files(folder)
     frames = [read_mesh(p, frame=t) for t, p in enumerate(files)]
+    colors = read_vertex_colors(files[0], len(frames[0][0])) if files else None  # frame 0's (docs/data.md)
     if fps is None:  # the rate this tool wrote the frames at (its manifest's status), else the default
         from .outputs import read_manifest_status
 
@@ -281,7 +285,7 @@ def load_folder(folder: Path, fps, kind: str, name: str):
         fps = DEFAULT_FPS if isinstance(fps, bool) or not isinstance(fps, (int, float)) else fps
     seq = VaryingTopologySequence(
         frames, fps=fps, name=name, source=str(folder),
-        frame_sources=[str(p) for p in files],
+        frame_sources=[str(p) for p in files], colors=colors,
     )
     return finish_kind(seq, kind)
 
@@ -344,6 +348,8 @@ def npz_arrays(seq, status: dict | None = None) -> dict:
             "V_offsets": np.concatenate([[0], np.cumsum([len(v) for v in Vs])]).astype(np.int64),
             "F_offsets": np.concatenate([[0], np.cumsum([len(f) for f in Fs])]).astype(np.int64),
         }
+    if seq.colors is not None:
+        arrays[NPZ_COLOR_KEY] = seq.colors
     arrays["fps"] = np.asarray(seq.fps, dtype=np.float64)  # float32 read 29.97 back as 29.9699993
     arrays["name"] = np.asarray(str(seq.name))
     if status is not None:

@@ -14,6 +14,7 @@ from dynmesh_warp.config import (
     DEFAULT_SCENE,
     DEFAULT_SCENE_FILE,
     ConversionConfig,
+    GaussiansConfig,
     NewtonConfig,
     PhysicsConfig,
     PhysicsCore,
@@ -32,6 +33,7 @@ SCHEMA = [
     (SurfaceConfig, "up_axis", C.UpAxis, C.DEFAULT_UP_AXIS),
     (ConversionConfig, "strategy", C.Strategy, C.DEFAULT_STRATEGY),
     (NewtonConfig, "solver", C.NewtonSolver, C.DEFAULT_NEWTON_SOLVER),
+    (GaussiansConfig, "colors", C.ColorSource, C.DEFAULT_COLOR_SOURCE),
 ]
 
 
