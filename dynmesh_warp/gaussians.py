@@ -21,7 +21,7 @@ from .geometry import face_areas, flat_faces
 from .kernels.gaussians import bind_gaussians_to_faces, pack_splat_covariances, update_gaussians
 from .kernels.geometry import project_points_to_mesh
 from .sequence import validate_mesh
-from .splat_io import SplatCloud, sh_dc_to_rgb
+from .splat_io import SplatCloud, rotate_sh, sh_dc_to_rgb
 
 __all__ = [
     "GaussianBinding",
@@ -53,6 +53,16 @@ def quat_xyzw_to_wxyz(q):
     return np.concatenate([q[..., 3:], q[..., :3]], axis=-1)
 
 
+def quat_xyzw_matrices(q) -> np.ndarray:
+    """(G, 3, 3) rotation matrices of quaternions (G, 4) (x, y, z, w), normalised first."""
+    q = np.asarray(q, np.float64).reshape(-1, 4)
+    q = q / np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-300)
+    x, y, z, w = q.T
+    return np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
+                     2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
+                     2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], axis=1).reshape(-1, 3, 3)
+
+
 class GaussianBinding:
     """Static per-Gaussian data (G Gaussians on a mesh of M faces).
 
@@ -66,11 +76,14 @@ class GaussianBinding:
         images and the viewer's u8 colours are clipped to [0, 1]; kept unclipped so that an export
         writes f_dc back); opacity (G,) float32 in [0, 1]; opacity_logit (G,) float32, the stored
         logits of splats read from a file (exported as they are), or None; f_rest (G, K) float32
-        higher SH (kept for .ply export, not rendered).
+        higher SH (exported turned with each Gaussian, not rendered); f_rest_rotation (G, 4) quat
+        (x, y, z, w) or None: the world rotation each Gaussian had when its f_rest were written (the
+        splat file's: an export turns f_rest by the rotation since, ``splat_io.rotate_sh``; None:
+        exported as they are).
     """
 
     def __init__(self, face, bary, offset, local_rotation_xyzw, local_scale, rgb, opacity, num_faces: int,
-                 f_rest=None, device=None, opacity_logit=None):
+                 f_rest=None, device=None, opacity_logit=None, f_rest_rotation_xyzw=None):
         self.device = wp.get_device(device)
         face = np.asarray(face, np.int32).reshape(-1)
         G = face.size
@@ -89,6 +102,8 @@ class GaussianBinding:
         self.opacity = np.clip(np.asarray(opacity, np.float32).reshape(G), 0.0, 1.0)
         self.opacity_logit = None if opacity_logit is None else np.asarray(opacity_logit, np.float32).reshape(G)
         self.f_rest = np.zeros((G, 0), np.float32) if f_rest is None else np.asarray(f_rest, np.float32)
+        self.f_rest_rotation = (None if f_rest_rotation_xyzw is None or self.f_rest.shape[1] == 0
+                                else np.asarray(f_rest_rotation_xyzw, np.float64).reshape(G, 4).copy())
 
 
 class GaussianState:
@@ -159,12 +174,22 @@ class Gaussians:
         return {"centers": s.centers.numpy().copy(), "rotations_xyzw": s.rotations.numpy().copy(),
                 "scales": s.scales.numpy().copy(), "covariances": s.covariances.numpy().copy()}
 
+    def current_f_rest(self) -> np.ndarray:
+        """The binding's ``f_rest`` turned with each Gaussian from the rotation it had when they were
+        written (``binding.f_rest_rotation``) to its current one: (G, K) float32."""
+        b = self.binding
+        if b.f_rest_rotation is None or b.f_rest.shape[1] == 0:
+            return b.f_rest
+        R = quat_xyzw_matrices(self.state.rotations.numpy()) @ quat_xyzw_matrices(b.f_rest_rotation).transpose(0, 2, 1)
+        return rotate_sh(b.f_rest, R)
+
     def to_splat_cloud(self) -> SplatCloud:
-        """The current world Gaussians as a 3DGS cloud (for ``write_splat_ply``)."""
+        """The current world Gaussians as a 3DGS cloud (for ``write_splat_ply``); ``f_rest`` turned
+        with each Gaussian (:meth:`current_f_rest`)."""
         d = self.numpy()
         return SplatCloud.from_activated(d["centers"], np.maximum(d["scales"], 1e-12),
                                          quat_xyzw_to_wxyz(d["rotations_xyzw"]), self.binding.rgb,
-                                         self.binding.opacity, f_rest=self.binding.f_rest,
+                                         self.binding.opacity, f_rest=self.current_f_rest(),
                                          opacity_logits=self.binding.opacity_logit)
 
 
@@ -211,10 +236,11 @@ def bind_splats(cloud: SplatCloud, V, F, device=None, max_dist: float = 1.0e30) 
     V, F = validate_mesh(V, F, source="bind_splats mesh")
     device = wp.get_device(device)
     _check_splats(cloud)
-    bound = _bind_world(cloud.positions, quat_wxyz_to_xyzw(cloud.rotations_wxyz()), cloud.scales(), V, F, device,
-                        cloud.source, max_dist)
+    rotations = quat_wxyz_to_xyzw(cloud.rotations_wxyz())
+    bound = _bind_world(cloud.positions, rotations, cloud.scales(), V, F, device, cloud.source, max_dist)
     binding = GaussianBinding(*bound, sh_dc_to_rgb(cloud.f_dc, clamp=False), cloud.opacities(), num_faces=F.shape[0],
-                              f_rest=cloud.f_rest, device=device, opacity_logit=cloud.opacity_logits)
+                              f_rest=cloud.f_rest, device=device, opacity_logit=cloud.opacity_logits,
+                              f_rest_rotation_xyzw=rotations)
     return Gaussians(binding)
 
 
@@ -283,8 +309,10 @@ def rebind(gaussians: Gaussians, V_from, F_from, V_to, F_to) -> Gaussians:
     s, b = gaussians.state, gaussians.binding
     V_to, F_to = validate_mesh(V_to, F_to, source="rebind mesh")
     bound = _bind_world(s.centers.numpy(), s.rotations.numpy(), s.scales.numpy(), V_to, F_to, d, "rebind")
-    return Gaussians(GaussianBinding(*bound, b.rgb, b.opacity, num_faces=F_to.shape[0], f_rest=b.f_rest, device=d,
-                                     opacity_logit=b.opacity_logit))
+    # f_rest as they stand now (turned since their file), and the rotation they stand at
+    return Gaussians(GaussianBinding(*bound, b.rgb, b.opacity, num_faces=F_to.shape[0], f_rest=gaussians.current_f_rest(),
+                                     device=d, opacity_logit=b.opacity_logit,
+                                     f_rest_rotation_xyzw=None if b.f_rest_rotation is None else s.rotations.numpy()))
 
 
 class SegmentedGaussians:

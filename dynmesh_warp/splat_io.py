@@ -39,6 +39,7 @@ __all__ = [
     "activate_rotation",
     "sh_dc_to_rgb",
     "rgb_to_sh_dc",
+    "rotate_sh",
     "inverse_sigmoid",
 ]
 
@@ -89,6 +90,69 @@ def activate_rotation(q_wxyz):
     ident = np.zeros_like(q)
     ident[..., 0] = 1.0
     return np.where(n > 0, q / np.where(n > 0, n, 1.0), ident)
+
+
+_SH_C1 = 0.4886025119029199
+_SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
+_SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154, -0.4570457994644658,
+          1.445305721320277, -0.5900435899266435)
+
+
+def _sh_rest_basis(d: np.ndarray, degree: int) -> np.ndarray:
+    """The 3DGS reference code's SH basis of degrees 1..``degree`` (its order and signs: ``eval_sh``)
+    at unit directions d (..., 3): (..., (degree + 1)^2 - 1)."""
+    x, y, z = d[..., 0], d[..., 1], d[..., 2]
+    out = [-_SH_C1 * y, _SH_C1 * z, -_SH_C1 * x]
+    if degree > 1:
+        xx, yy, zz = x * x, y * y, z * z
+        out += [_SH_C2[0] * x * y, _SH_C2[1] * y * z, _SH_C2[2] * (2 * zz - xx - yy), _SH_C2[3] * x * z,
+                _SH_C2[4] * (xx - yy)]
+        if degree > 2:
+            out += [_SH_C3[0] * y * (3 * xx - yy), _SH_C3[1] * x * y * z, _SH_C3[2] * y * (4 * zz - xx - yy),
+                    _SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy), _SH_C3[4] * x * (4 * zz - xx - yy),
+                    _SH_C3[5] * z * (xx - yy), _SH_C3[6] * x * (xx - 3 * yy)]
+    return np.stack(out, axis=-1)
+
+
+#: directions the SH rotation samples (a Fibonacci sphere; any set on which each band's basis has
+#: full rank gives the same, exact, rotation)
+_SH_SAMPLES = 24
+#: Gaussians per chunk of :func:`rotate_sh` (its (chunk, samples, coefficients) float64 buffers)
+_SH_CHUNK = 16384
+
+
+def rotate_sh(f_rest, rotations) -> np.ndarray:
+    """3DGS ``f_rest`` (G, 3K) (channel-major, K = (d + 1)^2 - 1 a channel, degrees 1..3) of
+    Gaussians turned by ``rotations`` (G, 3, 3) or (3, 3), world: the coefficients whose colour seen
+    from direction v is the original's seen from R^T v, so the view-dependent colour turns with the
+    Gaussian. Each band l is one (2l + 1)-square matrix a Gaussian: with Y(R^T v) = D Y(v) for the
+    band's basis Y, the new coefficients are D^T f. D^T is solved exactly from the basis at fixed
+    sample directions (least squares on a full-rank system, no approximation)."""
+    f = np.asarray(f_rest, np.float64)
+    G, n = f.shape
+    if n == 0 or G == 0:
+        return np.asarray(f_rest, np.float32).copy()
+    if n not in F_REST_COUNTS:
+        raise ValueError(f"rotate_sh: {n} f_rest coefficients fit no SH degree (one of {F_REST_COUNTS[1:]})")
+    degree = F_REST_COUNTS.index(n)
+    K = n // 3
+    R = np.broadcast_to(np.asarray(rotations, np.float64), (G, 3, 3))
+    i = np.arange(_SH_SAMPLES) + 0.5
+    z = 1.0 - 2.0 * i / _SH_SAMPLES
+    phi = np.pi * (1.0 + 5.0 ** 0.5) * i
+    S = np.stack([np.sqrt(1.0 - z * z) * np.cos(phi), np.sqrt(1.0 - z * z) * np.sin(phi), z], axis=1)
+    YS = _sh_rest_basis(S, degree)
+    bands = [np.arange(b * b - 1, (b + 1) ** 2 - 1) for b in range(1, degree + 1)]
+    pinv = [np.linalg.pinv(YS[:, b]) for b in bands]
+    coef = f.reshape(G, 3, K)
+    out = np.empty_like(coef)
+    for lo in range(0, G, _SH_CHUNK):
+        r = R[lo:lo + _SH_CHUNK]
+        Yr = _sh_rest_basis(np.einsum("gji,nj->gni", r, S), degree)  # Y(R^T s) (chunk, samples, K)
+        for b, P in zip(bands, pinv):
+            Dt = np.einsum("in,gnj->gij", P, Yr[:, :, b])  # D^T a Gaussian
+            out[lo:lo + _SH_CHUNK][:, :, b] = np.einsum("gij,gcj->gci", Dt, coef[lo:lo + _SH_CHUNK][:, :, b])
+    return out.reshape(G, n).astype(np.float32)
 
 
 def sh_dc_to_rgb(f_dc, clamp: bool = True):
