@@ -203,14 +203,21 @@ def find_topology(path, num_points: int | None = None) -> Path:
                         f"name one with topology=")
 
 
+def topology_mesh(path, num_points: int, topology=None) -> Path:
+    """The mesh file that gives the vertex-only sequence ``path`` its faces: ``topology``, by
+    default :func:`find_topology`'s (``FileNotFoundError`` when it is not there)."""
+    mesh = Path(topology).expanduser() if topology is not None else find_topology(path, num_points)
+    if not mesh.is_file():
+        raise FileNotFoundError(errno.ENOENT, os.strerror(errno.ENOENT), str(mesh))
+    return mesh
+
+
 def topology_faces(path, num_points: int, topology=None) -> np.ndarray:
     """The faces (M, 3) of a vertex-only sequence ``path`` with ``num_points`` points a frame
     (a point cache, an npz or npy of vertices): from the mesh file ``topology``, by default
     :func:`find_topology`'s; its vertex count must equal ``num_points`` (:class:`MeshDataError`
     naming both files)."""
-    mesh = Path(topology).expanduser() if topology is not None else find_topology(path, num_points)
-    if not mesh.is_file():
-        raise FileNotFoundError(errno.ENOENT, os.strerror(errno.ENOENT), str(mesh))
+    mesh = topology_mesh(path, num_points, topology)
     V0, F = read_mesh(mesh)
     if len(V0) != num_points:
         raise MeshDataError(f"{path}: {num_points} points a frame, but its topology {mesh} has {len(V0)} "
@@ -247,13 +254,14 @@ def written_topology(path) -> Path | None:
     return path.with_suffix(".obj") if path.suffix.lower() in CACHE_EXTENSIONS else None
 
 
-def write_animation(path, V, F, fps: float, overwrite: bool = False) -> list[Path]:
+def write_animation(path, V, F, fps: float, overwrite: bool = False, colors=None) -> list[Path]:
     """Write ``V`` (T, N, 3) on faces ``F`` (M, 3) as ``path`` (``.anime``, ``.pc2`` or ``.mdd``),
     atomically; a point cache also gets its topology, ``<stem>.obj`` next to it (frame 0,
     :func:`written_topology`), unless that file already holds the same faces on as many
     vertices. A mesh there that is not the cache's topology is replaced only with
     ``overwrite`` (else :class:`~dynmesh_warp.outputs.OutputExistsError`, before anything is
-    written). Returns the files written."""
+    written). ``colors`` (N, 3) in [0, 1]: written to the point cache's ``<stem>.obj`` (the other
+    formats have no place for them). Returns the files written."""
     from .outputs import OutputExistsError
 
     path = Path(path)
@@ -292,7 +300,7 @@ def write_animation(path, V, F, fps: float, overwrite: bool = False) -> list[Pat
         fh.flush()
         os.fsync(fh.fileno())
     if mesh is not None:
-        write_mesh(mesh, V[0], F)
+        write_mesh(mesh, V[0], F, colors)
         written.append(mesh)
     return written
 

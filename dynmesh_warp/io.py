@@ -28,6 +28,7 @@ from .animation_formats import (
     VERTEX_ONLY_EXTENSIONS,
     read_animation,
     topology_faces,
+    topology_mesh,
     write_animation,
 )
 from .choices import Y_UP_FORMATS, FrameOrder, parse
@@ -78,6 +79,11 @@ def _one_file(V, F, fps, file_fps, name: str, path: Path, kind: str, frame_order
     if frame_order is not None:
         seq = fix_frame_order(seq, frame_order, path)
     return seq.to_varying() if kind == "varying" else seq
+
+
+def _topology_colors(path: Path, num_points: int, topology):
+    """The vertex colours of the mesh that gives a vertex-only sequence its faces, or None."""
+    return read_vertex_colors(topology_mesh(path, num_points, topology), num_points)
 
 
 def _no_topology(path: Path, what: str) -> ValueError:
@@ -145,12 +151,13 @@ def load_sequence(
     suffix = path.suffix.lower()
     if suffix in ANIMATION_EXTENSIONS:
         V, F, file_fps = read_animation(path, topology)
-        return _one_file(V, F, fps, file_fps, path.stem, path, kind, frame_order)
+        return _one_file(V, F, fps, file_fps, path.stem, path, kind, frame_order,
+                         colors=_topology_colors(path, V.shape[1], topology) if suffix in CACHE_EXTENSIONS else None)
     if suffix in VERTEX_ONLY_EXTENSIONS:  # .npz, .npy: vertices only, or an npz with its faces
         V, file_fps, name = load_vertex_array(path)
         if V is not None:  # vertices only: the faces come from a mesh
             return _one_file(V, topology_faces(path, V.shape[1], topology), fps, file_fps, name, path, kind,
-                             frame_order)
+                             frame_order, colors=_topology_colors(path, V.shape[1], topology))
     if topology is not None:
         raise _no_topology(path, "this one has its own faces")
     if suffix == ".npz":
@@ -302,7 +309,7 @@ def save_sequence(seq, path, fmt: str | None = None, overwrite: bool = False, st
         if path.suffix.lower() == ".glb":
             write_gltf_animation(path, seq.V, seq.F, seq.fps, y_up=_y_up(seq), colors=seq.colors)
         else:
-            write_animation(path, seq.V, seq.F, seq.fps, overwrite=bool(overwrite))
+            write_animation(path, seq.V, seq.F, seq.fps, overwrite=bool(overwrite), colors=seq.colors)
             _warn_up_axis_lost(seq, path)
         return
     if path.suffix.lower() == ".npz":

@@ -91,7 +91,7 @@ def test_obj_colours_every_vertex_or_none(tmp_path):
     assert read_vertex_colors(p) is None
 
 
-@pytest.mark.parametrize("fmt", ["ply", "obj", "npz", "glb"])
+@pytest.mark.parametrize("fmt", ["ply", "obj", "npz", "glb", "pc2"])
 def test_colours_round_trip_through_save_and_load(tmp_path, fmt):
     V, F = _sphere(1)
     frames = np.stack([V, V + [0.1, 0.0, 0.0], V + [0.2, 0.0, 0.0]])
@@ -101,7 +101,7 @@ def test_colours_round_trip_through_save_and_load(tmp_path, fmt):
     save_sequence(seq, out, fmt=fmt if fmt in ("ply", "obj") else None)
     back = load_sequence(out)
     assert back.colors is not None
-    np.testing.assert_allclose(back.colors, C, atol=2e-4 if fmt == "obj" else 1e-5)
+    np.testing.assert_allclose(back.colors, C, atol=2e-4 if fmt in ("obj", "pc2") else 1e-5)  # pc2: its .obj
     np.testing.assert_allclose(back.V, frames, atol=1e-6)
 
 
