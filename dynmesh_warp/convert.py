@@ -75,7 +75,7 @@ from .convert_cli import (_FILE_SUFFIXES, _FOLDER_FRAMES, FrameEstimate, _beside
 from .convert_fit import FRAME_TIMER, _convert_from_key, _journaling
 from .convert_input import (MOVING_FRAMES, _CACHE, _bridge_dropouts, _chamfer_to_input, _check_repeats, _check_scales,
                             _drop_unused, _floater_webs, _input_dropouts, _key_candidates, _key_frame,
-                            _key_retry_reason, _missing_parts, _moving_points, _moving_score, _scale_checked, _topology_events)
+                            _key_retry_reason, _missing_parts, _moving_points, _moving_score, _input_checked, _topology_events)
 from .convert_journal import ConversionJournal
 from .convert_report import (DROPOUT_FRAMES, FLOATER_AREA, POOR_WEB, WEB_GAP, WEB_STRETCH, _badness, _stretched_far,
                              conversion_summary, slide_ratio)
@@ -346,8 +346,9 @@ def _to_fixed_run(vseq, seq, strategy, template, device, progress, should_stop, 
             print(f"conversion: the web on frame(s) {', '.join(map(str, fl[:8]))} reaches out to small separate "
                   f"input parts (floaters?); converting again without them (far_part_area={FLOATER_AREA})",
                   file=sys.stderr, flush=True)
-        retry = _to_fixed(seq, strategy, template, device, progress, should_stop, stop_forward,
-                          **{**options, "far_part_area": FLOATER_AREA})
+        with _input_checked():
+            retry = _to_fixed(seq, strategy, template, device, progress, should_stop, stop_forward,
+                              **{**options, "far_part_area": FLOATER_AREA})
         r = retry.conversion
         if len(r.coverage) < len(info.coverage):
             pass  # stopped by the caller during the second run: the first, complete, is kept
@@ -407,7 +408,7 @@ def _to_piecewise(seq, strategy, template, device, progress, should_stop, option
         if (lo, hi) not in runs:
             sub = VaryingTopologySequence(list(vseq.frames[lo:hi]), **carried(vseq),
                                           frame_sources=vseq.frame_sources[lo:hi] if vseq.frame_sources else None)
-            with _scale_checked():  # this run's check would number the input's frames from lo
+            with _input_checked():  # this run's checks would number the input's frames from lo
                 r = to_fixed_topology(sub, strategy, None, device, progress, should_stop, **options)
             runs[lo, hi] = r if len(r.conversion.coverage) == hi - lo else None
         return runs[lo, hi]
@@ -445,7 +446,7 @@ def _to_piecewise(seq, strategy, template, device, progress, should_stop, option
             segs = left + _split_segments(a, new, events, limit - len(left), convert)
             return _join_segments(vseq, sorted(segs, key=lambda x: x[0]), first.conversion, events)
         # the new template is not better there: one template for every frame, as without the stop
-        with _scale_checked():
+        with _input_checked():
             res = to_fixed_topology(vseq, strategy, None, device, progress, should_stop, **options)
         if len(res.conversion.coverage) < len(first.conversion.coverage):
             # stopped by the caller during that run: the first run's frames 0..b are more (a new

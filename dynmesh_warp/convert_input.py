@@ -93,15 +93,20 @@ def _inside_out(v: np.ndarray, f: np.ndarray) -> bool:
     return signed_volume(v, f) < 0 and mesh_orientation(v, f) == "inward"
 
 
-#: the start of the scale check's warning (a regular expression for ``warnings.filterwarnings``)
+#: the input checks' warnings (regular expressions for ``warnings.filterwarnings``): the scale
+#: check's and the repeated frames'
 SCALE_WARNING = r".*: frames of very different scale"
+REPEAT_WARNING = r".*: frame\(s\) .* repeat the frame before them exactly"
 
 
 @contextlib.contextmanager
-def _scale_checked():
-    """A run over frames the first run's scale check has seen already: no second warning."""
+def _input_checked():
+    """A run over frames the first run's input checks have seen already (a segment's trial, the
+    whole sequence again, the floater retry): no second warning. A trial's would number the input's
+    frames from its own first frame (a new user's "frame(s) 3 repeat" for the input's frame 12)."""
     with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message=SCALE_WARNING)
+        for message in (SCALE_WARNING, REPEAT_WARNING):
+            warnings.filterwarnings("ignore", message=message)
         yield
 
 

@@ -146,6 +146,10 @@ def _frames_text(frames, limit: int = 12) -> str:
     return ", ".join(map(str, frames[:limit])) + (" ..." if len(frames) > limit else "")
 
 
+#: the whole conversion's time is said beside the kept run's when it is over this factor of it
+ALL_SECONDS_SHOWN = 1.2
+
+
 def conversion_summary(info: ConversionInfo) -> list:
     """Lines that tell the user what a conversion did and where it may have failed: key frame
     (or the segments), time, coverage (worst frame), recovered frames, topology changes, the
@@ -165,6 +169,10 @@ def conversion_summary(info: ConversionInfo) -> list:
         lines = [f"conversion ({info.strategy}): template from frame {info.key_frame}, tracked "
                  + (f"frames {info.key_frame}..{T - 1} then {info.key_frame - 1}..0" if info.key_frame
                     else f"0..{T - 1}") + f"; {sum(info.frame_seconds):.2f} s"]
+        if info.seconds_all > ALL_SECONDS_SHOWN * sum(info.frame_seconds):
+            # the runs not kept (key trials, a segment's trial, a floater retry) and the analyses: a
+            # new user's summary said 4.9 s of a conversion that took 10.7 s
+            lines[0] += f" ({info.seconds_all:.2f} s in all, with the runs not kept)"
     if info.key_trials:
         tried = ", ".join(f"{k} ({100 * c:.2f}%, {d:.3g})" for k, c, d, _ in info.key_trials)
         score, why = {"chamfer": ("mean Chamfer distance to the input", "the first run covered frames poorly or "
@@ -328,6 +336,12 @@ def conversion_summary(info: ConversionInfo) -> list:
         lines.append(f"web (converted surface stretched across gaps of the input, fraction of its area): worst "
                      f"{100 * web[w]:.2f}% at frame {w}, on {int(np.count_nonzero(web))} frame(s)")
     poor_web = np.flatnonzero(web > POOR_WEB)
+    if info.rejected_cuts and not poor_web.size:
+        # tried where the fit was poor by its buried faces: said too (a new user's was not)
+        lines.append(("a new template from frame " if len(info.rejected_cuts) == 1 else "new templates from frames ")
+                     + ", ".join(str(a) for a, _ in info.rejected_cuts) + " (tried where the surface was pressed "
+                     "into the input or stretched across its gaps) fitted no better, "
+                     + ("so one was kept" if not segs else f"so the {len(segs)} templates above were kept"))
     if poor_web.size:
         if info.rejected_cuts:
             # (a cut tried inside one of several segments: those segments stay; it said "so one was

@@ -675,3 +675,51 @@ def test_segments_say_the_missing_parts_of_their_own_templates():
     summary = conversion_summary(joined)
     assert any(ln.startswith("note: input frames 6-8 (3 frames) lack a part that frames 5 and 9 have") for ln in summary)
     assert any(ln.startswith("warning: the key frame 7 is one of frames 6-8") for ln in summary), summary
+
+
+def test_summary_says_a_cut_tried_without_a_web_and_the_whole_time():
+    """A cut tried where the fit was poor by its buried faces alone (no poor web frame) and
+    rejected: the summary said nothing of it, and gave the kept run's time (a new user's 4.9 s of
+    10.7 s spent). Both are said now."""
+    from dynmesh_warp.convert import ConversionInfo, conversion_summary
+
+    T = 24
+    info = ConversionInfo("graph", {}, T, 100, key_frame=0)
+    for name in ("coverage", "coverage_tail", "web", "buried", "flipped"):
+        setattr(info, name, [0.0] * T)
+    info.frame_seconds = [0.2] * T
+    info.area_ratio, info.frame_motion, info.input_motion = [1.0] * T, [0.01] * T, [0.01] * T
+    info.segments, info.rejected_cuts, info.seconds_all = [(0, 24, 0, 100)], [(9, 24)], 10.7
+    lines = conversion_summary(info)
+    assert lines[0].endswith("; 4.80 s (10.70 s in all, with the runs not kept)"), lines[0]
+    said = [ln for ln in lines if ln.startswith("a new template from frame 9 (tried where")]
+    assert len(said) == 1 and said[0].endswith("fitted no better, so one was kept"), lines
+    info.seconds_all, info.rejected_cuts = 5.0, []  # within ALL_SECONDS_SHOWN of the run: not said
+    lines = conversion_summary(info)
+    assert "in all" not in lines[0] and not any("fitted no better" in ln for ln in lines)
+
+
+def test_a_segment_trial_does_not_warn_of_the_inputs_repeats_again():
+    """Two balls merge and split, frame 12 repeating frame 11 exactly. The segment trial over
+    frames 9..23 warned again, of its own "frame(s) 3" (a new user's); one warning now, of frame 12."""
+    import warnings
+
+    from skimage.measure import marching_cubes
+
+    from dynmesh_warp.convert import to_piecewise_fixed
+
+    T = 24
+    xs = np.linspace(-1.5, 1.5, 24)
+    X, Y, Z = np.meshgrid(xs, xs, xs, indexing="ij")
+    frames = []
+    for t in range(T):
+        d = 0.35 + 0.55 * abs(np.cos(np.pi * t / (T - 1)))
+        f = np.minimum(np.sqrt((X + d) ** 2 + Y ** 2 + Z ** 2), np.sqrt((X - d) ** 2 + Y ** 2 + Z ** 2)) - 0.5
+        V, F, _, _ = marching_cubes(f, 0.0, spacing=(xs[1] - xs[0],) * 3)
+        frames.append(((V - 1.5).astype(np.float32), F.astype(np.int32)))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        out = to_piecewise_fixed(VaryingTopologySequence(frames, fps=24.0, name="merge_split"), device=TEST_DEVICE)
+    repeats = [str(w.message) for w in caught if "repeat the frame before them" in str(w.message)]
+    assert out.conversion.rejected_cuts or len(out.conversion.segments) > 1  # a trial ran
+    assert repeats == [repeats[0]] and "frame(s) 12 repeat" in repeats[0], repeats
