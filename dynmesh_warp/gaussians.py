@@ -298,17 +298,23 @@ def _bind_world(centers, rotations_xyzw, scales, V, F, device, source: str, max_
 def rebind(gaussians: Gaussians, V_from, F_from, V_to, F_to) -> Gaussians:
     """The same Gaussians on another mesh: posed on (V_from, F_from) (the mesh they are bound to,
     at some frame), then each bound to its nearest face of (V_to, F_to) with its world rotation
-    and scale kept; colours, opacities and SH carried over. So splats continue across a change
-    of template (a new segment of a piecewise-fixed sequence): at the frame where both meshes
-    show the surface, the rebound Gaussians are where the old ones were (to the offset along the
-    normal that the new face's frame takes up)."""
+    and scale kept, and its distance from the surface too (its old offset along the face normal,
+    in metres: not the gap between the two meshes, which a new user's splats kept as a float of up
+    to 7 % of the diagonal for a whole segment); colours, opacities and SH carried over. So splats
+    continue across a change of template (a new segment of a piecewise-fixed sequence): where both
+    meshes show the surface at one moment, the rebound Gaussians are where the old ones were."""
     d = gaussians.device
     F_from = np.asarray(F_from, np.int32)
     gaussians.update(wp.array(np.asarray(V_from, np.float32), dtype=wp.vec3, device=d),
                      wp.array(F_from.reshape(-1), dtype=wp.int32, device=d))
     s, b = gaussians.state, gaussians.binding
     V_to, F_to = validate_mesh(V_to, F_to, source="rebind mesh")
-    bound = _bind_world(s.centers.numpy(), s.rotations.numpy(), s.scales.numpy(), V_to, F_to, d, "rebind")
+    bound = list(_bind_world(s.centers.numpy(), s.rotations.numpy(), s.scales.numpy(), V_to, F_to, d, "rebind"))
+    # the old offset in metres (offsets are in face scales, sqrt(area)), in the new face's scale
+    old_scale = np.sqrt(face_areas(np.asarray(V_from, np.float64), F_from[b.face.numpy()]))
+    new_scale = np.sqrt(face_areas(np.asarray(V_to, np.float64), np.asarray(F_to)[bound[0]]))
+    live = new_scale > 0  # a degenerate face keeps offset 0 (bind_gaussians_to_faces)
+    bound[2] = np.where(live, b.offset.numpy() * old_scale / np.where(live, new_scale, 1.0), 0.0).astype(np.float32)
     # f_rest as they stand now (turned since their file), and the rotation they stand at
     return Gaussians(GaussianBinding(*bound, b.rgb, b.opacity, num_faces=F_to.shape[0], f_rest=gaussians.current_f_rest(),
                                      device=d, opacity_logit=b.opacity_logit,
@@ -318,7 +324,10 @@ def rebind(gaussians: Gaussians, V_from, F_from, V_to, F_to) -> Gaussians:
 class SegmentedGaussians:
     """Gaussians over a piecewise-fixed sequence (template segments, ``convert``'s output where
     one template could not follow): one :class:`Gaussians` per segment, each carried over from
-    the previous segment's last frame onto its own first frame (:func:`rebind`). ``update(points,
+    the previous segment onto its own first frame (:func:`rebind`): posed on the previous template
+    carried on to that moment (its last frame plus its last frame's motion, constant velocity: the
+    surface moves between the two frames, and splats posed at the last frame kept that motion as a
+    gap). ``update(points,
     indices)`` takes the segment whose faces ``indices`` are (found once per index buffer) and
     poses it; every other attribute (``count``, ``state``, ``binding``, ...) is the current
     segment's. The count, colours and opacities are the same in every segment."""
@@ -326,8 +335,11 @@ class SegmentedGaussians:
     def __init__(self, seq, first: Gaussians):
         runs = seq.segments()
         self.parts = [first]
-        for (_, b), (c, _) in zip(runs, runs[1:]):
-            self.parts.append(rebind(self.parts[-1], *seq.frames[b - 1], *seq.frames[c]))
+        for (a, b), (c, _) in zip(runs, runs[1:]):
+            V, F = seq.frames[b - 1]
+            if b - 1 > a:  # the previous template at frame c, its last motion carried on
+                V = V + (c - b + 1) * (V - seq.frames[b - 2][0])
+            self.parts.append(rebind(self.parts[-1], V, F, *seq.frames[c]))
         self.faces = [np.asarray(seq.frames[a][1]) for a, _ in runs]
         self.current = first
         self._by_ptr = {}
