@@ -639,15 +639,46 @@ def _write_png(path: Path, img: np.ndarray) -> None:
         Image.fromarray(img).save(tmp, format="PNG")
 
 
+def frame_steps(frames: int, fps: float, dt: float) -> np.ndarray:
+    """The world's steps before each of ``frames`` frames shown ``fps`` times a simulated second
+    (int64 (frames,), the first 0): frame k shows time k / fps to within dt / 2. Each frame took
+    round(1 / (fps dt)) steps before, so --fps 100 at dt = 1/240 showed frames 1/120 s apart and
+    --fps 25 ran 4 % fast (a new user's)."""
+    return np.diff(np.round(np.arange(-1, frames) / (fps * dt)).clip(0)).astype(np.int64)
+
+
+#: the shortest GIF frame delay browsers play as written [1/100 s]: a 1/100 s delay is played
+#: as 1/10 s (so a GIF plays at most 50 frames a second)
+GIF_MIN_DELAY_CS = 2
+
+
+def gif_timing(frames: int, fps: float) -> tuple[int, list]:
+    """(every how many frames a GIF keeps, each kept frame's delay in ms): GIF delays are whole
+    1/100 s, so each is rounded where the frames' times fall (24 fps: 40, 40, 50, 40, 40, 50 ... ms,
+    the rate kept on average; a single 40 ms delay played 24 fps at 25), and above 50 fps frames
+    are left out (every n-th kept) rather than written with 1/100 s delays that browsers slow to
+    1/10 s."""
+    every = max(1, int(np.ceil(fps * GIF_MIN_DELAY_CS / 100.0 - 1e-9)))
+    kept = len(range(0, frames, every))
+    ends = np.round(np.arange(kept + 1) * every * 100.0 / fps).astype(np.int64)
+    return every, (10 * np.diff(ends)).tolist()
+
+
 def _write_video(path: Path, frames: list, fps: float) -> None:
-    """Frames (H, W, 3) uint8 as a .gif (imageio + Pillow) or .mp4 (imageio-ffmpeg), atomically."""
+    """Frames (H, W, 3) uint8 as a .gif (imageio + Pillow; :func:`gif_timing`) or .mp4
+    (imageio-ffmpeg), atomically."""
     import imageio.v2 as imageio
 
     from .outputs import atomic_path
 
     with atomic_path(path, suffix=path.suffix) as tmp:
         if path.suffix.lower() == ".gif":
-            imageio.mimsave(tmp, frames, format="GIF", duration=1000.0 / fps, loop=0)
+            every, delays = gif_timing(len(frames), fps)
+            if every > 1:
+                print(f"note: {path.name}: a GIF plays at most {100 // GIF_MIN_DELAY_CS} frames a second (its delays are "
+                      f"whole 1/100 s, and browsers slow 1/100 s to 1/10 s): every {every}th frame written, "
+                      f"{fps / every:.4g} a second; an .mp4 keeps them all", file=sys.stderr)
+            imageio.mimsave(tmp, frames[::every], format="GIF", duration=delays, loop=0)
         else:
             imageio.mimsave(tmp, frames, fps=fps, format="FFMPEG")
 
@@ -759,7 +790,10 @@ def _main(argv=None) -> int:
     lo, hi = (np.asarray(b, np.float64) for b in seq.bounds())
     centre, diag = 0.5 * (lo + hi), float(np.linalg.norm(hi - lo))
     renderer = Renderer(world.device, rasteriser=a.rasteriser)
-    steps_per_frame = max(1, int(round(1.0 / (a.fps * world.dt))))
+    steps = frame_steps(max(a.frames, a.moments) + 1, a.fps, world.dt)
+    if a.fps * world.dt > 1.0:
+        print(f"note: --fps {a.fps:g} is above the physics rate (1 / dt = {1.0 / world.dt:.4g} steps a second): "
+              "some frames repeat the one before", file=sys.stderr)
     total = a.frames if (a.out or a.video) else 0
     video = []
     moments = sorted(set(np.linspace(0, max(a.frames, a.moments) - 1, a.moments).astype(int).tolist()))
@@ -793,7 +827,7 @@ def _main(argv=None) -> int:
             if a.figure and f in moments:
                 strip.append(img)
             done = f + 1
-            for _ in range(steps_per_frame):
+            for _ in range(int(steps[f + 1])):  # to the next frame's time, (f + 1) / fps
                 world.step()
         if folder is not None:
             folder.interrupted = bool(reason)  # a stopped render never replaces an earlier --out

@@ -784,3 +784,38 @@ def test_a_camera_changed_after_it_was_made_is_refused_by_the_render():
     cams[0].t, cams[0].width, cams[1].width = np.zeros(3), 16.0, 16.0
     with pytest.raises(ValueError, match=r"render: camera 0: width must be a positive integer \[px\], got 16.0"):
         r.render(means, covs, sh, op, cams)
+
+
+@pytest.mark.parametrize("fps, dt", [(100.0, 1 / 240), (25.0, 1 / 240), (24.0, 0.005), (30.0, 1 / 60)])
+def test_each_frame_shows_its_own_time(fps, dt):
+    """Frame k shows the world at k / fps to within dt / 2: --fps 100 at dt = 1/240 took 2 steps a
+    frame (1/120 s: the images of --fps 120), --fps 25 ran 4 % fast (a new user's)."""
+    from dynmesh_warp.render import frame_steps
+
+    steps = frame_steps(200, fps, dt)
+    assert steps[0] == 0 and (steps >= 0).all()
+    shown = np.cumsum(steps) * dt
+    assert np.abs(shown - np.arange(200) / fps).max() <= dt / 2 + 1e-12
+
+
+@pytest.mark.parametrize("fps", [24.0, 30.0, 60.0, 12.5])
+def test_a_gif_plays_at_its_frame_rate(tmp_path, fps):
+    """GIF delays are whole 1/100 s: one 40 ms delay played 24 fps at 25, and 60 fps was written
+    with 10 ms delays that browsers play as 100 ms. Read back with Pillow: every delay at least
+    20 ms, and the frames' times within 10 ms of k / fps (frames left out above 50 fps)."""
+    from PIL import Image
+
+    from dynmesh_warp.render import _write_video
+
+    n = 30
+    frames = [np.full((8, 8, 3), 8 * k, np.uint8) for k in range(n)]
+    _write_video(tmp_path / "v.gif", frames, fps)
+    gif = Image.open(tmp_path / "v.gif")
+    delays = []
+    for i in range(gif.n_frames):
+        gif.seek(i)
+        delays.append(gif.info["duration"])
+    every = n // gif.n_frames if gif.n_frames < n else 1
+    assert min(delays) >= 20 and (every == 1) == (fps <= 50)
+    starts = np.concatenate([[0], np.cumsum(delays)])[:-1] / 1000.0
+    assert np.abs(starts - np.arange(gif.n_frames) * every / fps).max() <= 0.0101, delays
