@@ -302,13 +302,44 @@ def gltf_has_animation(path) -> bool:
     return any(a.get("channels") for a in doc.get("animations", []) or [])
 
 
-#: ``asset.generator`` of the files :func:`write_gltf_animation` writes: they hold the input's
-#: coordinates as they were (no up axis is known to the writer), so ``up_axis: auto`` reads them
-#: back unturned
+#: ``asset.generator`` of the files :func:`write_gltf_animation` wrote before it turned z-up data
+#: to glTF's +Y up: they hold z-up coordinates as they were, which ``up_axis: auto`` reads unturned
 GENERATOR = "dynmesh_warp"
-#: ... and of the files it writes from +Y-up coordinates (a glTF input converted: its coordinates
-#: stay as they were, which is glTF's own up axis), which ``up_axis: auto`` turns as any glTF
+#: ... and of the files it writes now: +Y up, as the specification says (a glTF input's coordinates
+#: as they were; z-up data turned, with :data:`Z_UP_MARK`)
 GENERATOR_Y_UP = "dynmesh_warp (+Y up)"
+#: ``asset.extras`` of a file whose z-up coordinates were turned to +Y up on writing:
+#: :func:`read_gltf_animation` turns them back, so a save and a load give the coordinates saved.
+#: A tool that writes the file again drops it, and the file is then read as any glTF (+Y up), so
+#: the scene turns it the same way up (before, the only mark of z-up data was ``asset.generator``:
+#: a glTF viewer showed it lying on its side, and a file saved again by another tool came back
+#: turned 90 degrees)
+Z_UP_MARK = {"dynmesh_warp": {"turned_from_up_axis": "z"}}
+
+
+def _z_to_y(V: np.ndarray) -> np.ndarray:
+    """z-up coordinates as +Y up: (x, y, z) -> (x, z, -y), exactly (a permutation and a sign)."""
+    return V[..., [0, 2, 1]] * np.array([1, 1, -1], V.dtype)
+
+
+def _y_to_z(V: np.ndarray) -> np.ndarray:
+    """The inverse of :func:`_z_to_y`: (x, y, z) -> (x, -z, y)."""
+    return V[..., [0, 2, 1]] * np.array([1, -1, 1], V.dtype)
+
+
+def _marked(doc: dict) -> bool:
+    asset = doc.get("asset", {})
+    extras = asset.get("extras") if isinstance(asset, dict) else None
+    return isinstance(extras, dict) and extras.get("dynmesh_warp") == Z_UP_MARK["dynmesh_warp"]
+
+
+def gltf_turned_from_z(path) -> bool:
+    """Whether a .glb / .gltf file holds z-up coordinates turned to +Y up by this project (its
+    ``asset.extras`` carry :data:`Z_UP_MARK`; its JSON only, False when unreadable)."""
+    try:
+        return _marked(gltf_document(path))
+    except (MeshDataError, OSError, AttributeError):
+        return False
 
 
 def gltf_generator(path) -> str:
@@ -512,6 +543,8 @@ def read_gltf_animation(path, fps: float | None = None, animation=None, rest: bo
                 X = Ph @ G[p["node"]].T[:, :3]
             out[off:off + len(P)] = X
             off += len(P)
+    if _marked(doc):
+        V = _y_to_z(V)  # this project's z-up data, turned to +Y up on writing: as it was saved
     if not colors:
         return V, F, float(fps)
     C = None if any(p["C"] is None for p in prims) else \
@@ -531,11 +564,13 @@ def write_gltf_animation(path, V, F, fps: float, y_up: bool = False, colors=None
     offsets from frame 0), and one animation sets target t - 1's weight to 1 at time t / fps, 0
     elsewhere, with LINEAR interpolation, so a viewer plays the frames and blends between them
     as the physics does. Reads back with :func:`read_gltf_animation`; Blender imports the targets
-    as shape keys. float32 positions, uint32 indices. ``y_up``: the coordinates are +Y up (glTF's
-    own axis; ``asset.generator`` ``GENERATOR_Y_UP``), else as this project's z-up world
-    (``GENERATOR``: read back unturned). ``colors``: (N, 3) sRGB in [0, 1], written as linear
+    as shape keys. float32 positions, uint32 indices, +Y up as the specification says (``asset.generator``
+    ``GENERATOR_Y_UP``): ``y_up`` coordinates as they are, else z-up ones turned, (x, y, z) -> (x, z, -y),
+    and marked (:data:`Z_UP_MARK`: read back as they were given). ``colors``: (N, 3) sRGB in [0, 1], written as linear
     float ``COLOR_0`` (the specification's space)."""
     V = np.asarray(V, np.float32)
+    if not y_up:
+        V = _z_to_y(V)  # glTF is +Y up: viewers show it upright (read back turned again: Z_UP_MARK)
     F = np.asarray(F, np.uint32)
     T, n = V.shape[:2]
     blob = bytearray()
@@ -558,7 +593,8 @@ def write_gltf_animation(path, V, F, fps: float, y_up: bool = False, colors=None
             "mode": 4}
     if colors is not None:
         prim["attributes"]["COLOR_0"] = add(_linear(np.asarray(colors, np.float64)).astype(np.float32), "VEC3", 5126)
-    doc = {"asset": {"version": "2.0", "generator": GENERATOR_Y_UP if y_up else GENERATOR}, "scene": 0,
+    asset = {"version": "2.0", "generator": GENERATOR_Y_UP, **({} if y_up else {"extras": Z_UP_MARK})}
+    doc = {"asset": asset, "scene": 0,
            "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0, "name": "surface"}],
            "meshes": [{"primitives": [prim], "name": "surface"}]}
     if T > 1:

@@ -33,7 +33,7 @@ from .animation_formats import (
 )
 from .choices import Y_UP_FORMATS, FrameOrder, parse
 from .gltf_animation import (GENERATOR, GENERATOR_Y_UP, GLTF_EXTENSIONS, gltf_generator, gltf_has_animation,
-                             read_gltf_animation, write_gltf_animation)
+                             gltf_turned_from_z, read_gltf_animation, write_gltf_animation)
 from .mesh_formats import MESH_EXTENSIONS, mesh_extension, read_mesh, read_vertex_colors, write_mesh, write_mesh_file
 from .outputs import OutputExistsError, OutputFolder, OutputKind, atomic_path
 from .sequence import FixedTopologySequence, VaryingTopologySequence
@@ -188,8 +188,9 @@ def load_sequence(
 def stored_up_axis(path) -> str:
     """The up axis of the coordinates a file or folder holds, as far as it says: ``"y"`` for glTF
     (``.glb`` / ``.gltf``, or a folder whose frames all are; +Y up by its specification) unless
-    this project wrote it from z-up data (``asset.generator`` ``GENERATOR``; ``GENERATOR_Y_UP`` is
-    +Y up), ``"y"`` for an npz this project wrote from +Y-up data (its ``up_axis`` entry), else
+    this project wrote it from z-up data (turned to +Y up and marked, ``gltf_animation.Z_UP_MARK``,
+    which the reader turns back; or, written before that, ``asset.generator`` ``GENERATOR`` with the
+    z-up coordinates as they were), ``"y"`` for an npz this project wrote from +Y-up data (its ``up_axis`` entry), else
     ``"z"``. What ``surface.up_axis: auto`` takes; the writers keep it (a new user's glTF
     converted to an npz or a .glb came back turned 90 degrees from the input)."""
     path = Path(str(path))
@@ -203,6 +204,8 @@ def stored_up_axis(path) -> str:
     except (OSError, ValueError):  # MeshDataError too: a folder the loader cannot read
         return "z"
     if ext not in Y_UP_FORMATS:
+        return "z"
+    if gltf_turned_from_z(path):  # this project's z-up data, turned to +Y up and read back turned again
         return "z"
     g = gltf_generator(path)
     return "y" if g == GENERATOR_Y_UP or not g.startswith(GENERATOR) else "z"

@@ -357,9 +357,10 @@ def test_sequence_written_as_an_animated_glb_reads_back_and_blends_like_the_phys
     fine = load_sequence(tmp_path / "bar.glb", fps=24.0)
     assert fine.num_frames == 2 * T - 1
     np.testing.assert_allclose(fine.V[1::2], 0.5 * (V[:-1] + V[1:]), atol=1e-6)
-    scene = trimesh.load(tmp_path / "bar.glb", force="scene", process=False)  # another reader: frame 0
+    scene = trimesh.load(tmp_path / "bar.glb", force="scene", process=False)  # another reader: frame 0,
     ref = scene.to_geometry() if hasattr(scene, "to_geometry") else scene.dump(concatenate=True)
-    np.testing.assert_allclose(np.asarray(ref.vertices), V[0], atol=1e-6)
+    # +Y up as glTF says (the z-up data turned, (x, y, z) -> (x, z, -y)): upright in a glTF viewer
+    np.testing.assert_allclose(np.asarray(ref.vertices), V[0][:, [0, 2, 1]] * [1, 1, -1], atol=1e-6)
     with pytest.raises(ValueError, match=r"topology varies \(convert it first"):
         var = seq.to_varying()
         var.frames[1] = (V[1][:3], F[:1])
@@ -500,3 +501,62 @@ def test_a_reference_out_of_range_names_the_file_and_its_json_path(tmp_path, edi
     (tmp_path / "ref.glb").write_bytes(b.glb())
     with pytest.raises(MeshDataError, match=r"ref\.glb: " + message):
         load_sequence(tmp_path / "ref.glb")
+
+
+def _edit_glb_json(src, dst, edit):
+    """Write ``src`` (a .glb) to ``dst`` with its JSON chunk passed through ``edit(doc)``, as
+    another tool saving the file again would (its own asset block)."""
+    from pathlib import Path
+
+    raw = Path(src).read_bytes()
+    n = struct.unpack_from("<I", raw, 12)[0]
+    doc = edit(json.loads(raw[20:20 + n]))
+    js = json.dumps(doc).encode()
+    js += b" " * (-len(js) % 4)
+    rest = raw[20 + n:]
+    body = struct.pack("<II", len(js), 0x4E4F534A) + js + rest
+    Path(dst).write_bytes(struct.pack("<III", 0x46546C67, 2, 12 + len(body)) + body)
+
+
+def test_a_glb_of_z_up_data_is_y_up_as_gltf_says_and_stays_upright_when_saved_again(tmp_path):
+    """z-up data written to .glb was stored as it was, z-up, its only mark the asset.generator: a
+    glTF viewer showed it lying on its side, and a file saved again by another tool (its own
+    generator) came back turned 90 degrees (a new user's). Now it is turned to +Y up and marked:
+    load_sequence gives back what was saved, and the same file without the mark (another tool's
+    save) reads as any glTF, which the scene turns the same way up. A file written before (z-up,
+    generator "dynmesh_warp") still reads unturned."""
+    from dynmesh_warp.config import load_scene_config
+    from dynmesh_warp.gltf_animation import GENERATOR, write_gltf_animation
+    from dynmesh_warp.io import save_sequence, stored_up_axis
+    from dynmesh_warp.scene import load_surface
+    from dynmesh_warp.sequence import FixedTopologySequence
+
+    P, F = _bar()
+    V = np.stack([P, P + [0.0, 0.0, 0.5]]).astype(np.float32)  # rises along +z
+    save_sequence(FixedTopologySequence(V, F, fps=24.0), tmp_path / "ours.glb")
+    np.testing.assert_array_equal(load_sequence(tmp_path / "ours.glb").V, V)  # exact: a permutation and signs
+    assert stored_up_axis(tmp_path / "ours.glb") == "z"
+
+    def resaved(doc):
+        doc["asset"] = {"version": "2.0", "generator": "SomeTool 4.2"}
+        return doc
+
+    _edit_glb_json(tmp_path / "ours.glb", tmp_path / "resaved.glb", resaved)
+    raw = load_sequence(tmp_path / "resaved.glb")
+    np.testing.assert_allclose(raw.V[1] - raw.V[0], np.tile([0.0, 0.5, 0.0], (len(P), 1)), atol=1e-6)  # +Y up
+    assert stored_up_axis(tmp_path / "resaved.glb") == "y"
+    surfaces = []
+    for name in ("ours.glb", "resaved.glb"):
+        (tmp_path / "s.yaml").write_text(f"surface: {{source: {name}}}\n")
+        surfaces.append(load_surface(load_scene_config(tmp_path / "s.yaml")).V)
+    np.testing.assert_allclose(surfaces[1], surfaces[0], atol=1e-6)
+    np.testing.assert_allclose(surfaces[0][1] - surfaces[0][0], np.tile([0.0, 0.0, 0.5], (len(P), 1)), atol=1e-6)
+    # the earlier files: z-up as it was, generator "dynmesh_warp" -> read unturned
+    write_gltf_animation(tmp_path / "old.glb", V[:, :, [0, 2, 1]] * [1, -1, 1], F, 24.0, y_up=True)  # raw z-up
+
+    def old(doc):
+        doc["asset"] = {"version": "2.0", "generator": GENERATOR}
+        return doc
+
+    _edit_glb_json(tmp_path / "old.glb", tmp_path / "old2.glb", old)
+    assert stored_up_axis(tmp_path / "old2.glb") == "z"
