@@ -71,7 +71,8 @@ from .convert_base import (ConversionInfo, ConversionStopped, NearestSurfaceResu
                            _open_edges, _stop_before_fitting, nearest_surface, stopping_early,
                            vertex_adjacency)
 from .convert_cli import (_FILE_SUFFIXES, _FOLDER_FRAMES, FrameEstimate, _beside_path, _duration, _holds_output,
-                          _keeping_journal, _open_journal, _parser, _remove_output, _same_path, _say_frame_numbers)
+                          _keeping_journal, _open_journal, _parser, _remove_output, _same_path, _say_frame_numbers,
+                          input_frame_numbers)
 from .convert_fit import FRAME_TIMER, _convert_from_key, _journaling
 from .convert_input import (MOVING_FRAMES, _CACHE, _bridge_dropouts, _chamfer_to_input, _check_repeats, _check_scales,
                             _drop_unused, _floater_webs, _input_dropouts, _key_candidates, _key_frame,
@@ -585,7 +586,9 @@ def main(argv=None) -> int:
             if not isinstance(seq, FixedTopologySequence):
                 raise ValueError(f"--as-is: {a.input} has varying topology (its frames' faces differ): a template "
                                  "has to be fitted; leave --as-is out")
-            save_sequence(seq, a.output, fmt=a.fmt, overwrite=replace)
+            numbers = input_frame_numbers(a.input)
+            save_sequence(seq, a.output, fmt=a.fmt, overwrite=replace,
+                          status={"frame_numbers": numbers} if numbers and len(numbers) == seq.num_frames else None)
             journal.remove()
             print(f"wrote {a.output}: {seq.num_frames} frames x {seq.num_vertices} vertices, {seq.num_faces} faces, "
                   "as they are (--as-is: no template fitted)")
@@ -615,8 +618,13 @@ def main(argv=None) -> int:
             # retry or the segments) still counts: the output is the run so far, not the one an
             # uninterrupted run would have written
             reason = stop_reason()
+            numbers = input_frame_numbers(a.input)
+            first = res.conversion.first_frame
             status = {"complete": not reason, "frames": res.num_frames, "input_frames": seq.num_frames,
-                      "first_frame": res.conversion.first_frame,
+                      "first_frame": first,
+                      # a folder input's own file numbers, which the output's files take
+                      "frame_numbers": numbers[first:first + res.num_frames]
+                      if numbers and len(numbers) == seq.num_frames else None,
                       "interrupted_by": reason, "strategy": a.strategy,
                       "segments": [list(x) for x in res.conversion.segments]}
             written, kept = a.output, None

@@ -80,6 +80,19 @@ def _say_frame_numbers(seq) -> None:
               f"frame {len(src) - 1} is {Path(src[-1]).name}", file=sys.stderr)
 
 
+def input_frame_numbers(path) -> list | None:
+    """The numbers of a folder input's frame files in its order (``frame_0001.ply`` ... -> 1, ...),
+    which a folder output's files take; None for another input or names without numbers."""
+    from .sequence_layouts import frame_index_from_name, list_frame_files
+
+    try:
+        if not Path(path).is_dir():
+            return None
+        return [frame_index_from_name(f) for f in list_frame_files(Path(path))]
+    except (MeshDataError, OSError, ValueError):
+        return None
+
+
 #: the names ``convert`` writes into a folder output (and finds an earlier run's frames by)
 _FOLDER_FRAMES = ("frame_*.ply", "frame_*.obj")
 

@@ -237,10 +237,15 @@ def _save_npz(seq, path: Path, status: dict | None = None) -> None:
 
 
 def _save_folder(seq, folder: Path, fmt: str, overwrite: bool = False, status: dict | None = None) -> None:
-    """The frames as ``frame_{i:04d}.{fmt}``, numbered from the ``status``' ``first_frame`` (a stopped
-    conversion's frames keep their input frame numbers: a new user's frames 1..19 were written as
+    """The frames as ``frame_{i:04d}.{fmt}``, numbered as the ``status``' ``frame_numbers`` say (a
+    folder input's own file numbers, which ``convert`` keeps: a new user's frame_0001..0006 came out as
+    frame_0000..0005, off by one for a tool pairing files by name), else from its ``first_frame`` (a
+    stopped conversion's frames keep their input frame numbers: frames 1..19 were written as
     frame_0000..0018, which a tool reading the names takes for frames 0..18), else from 0."""
     first = int((status or {}).get("first_frame", 0) or 0)
+    numbers = (status or {}).get("frame_numbers") or list(range(first, first + seq.num_frames))
+    if len(numbers) != seq.num_frames or len(set(numbers)) != len(numbers):
+        raise ValueError(f"{folder}: frame_numbers must give each of the {seq.num_frames} frames its own number")
     # the frame rate in the manifest, which the folder loader reads back (a folder of frames says
     # none: a new user's 30 fps conversion read back at 24)
     status = {**(status or {}), "fps": float(seq.fps)}
@@ -249,7 +254,7 @@ def _save_folder(seq, folder: Path, fmt: str, overwrite: bool = False, status: d
             V, F = seq.frame(t)
             # the colours of frame 0's vertices; a fixed sequence's are every frame's
             colors = seq.colors if (t == 0 or hasattr(seq, "V")) else None
-            write_mesh_file(tmp / f"frame_{first + t:04d}.{fmt}", V, F, colors)
+            write_mesh_file(tmp / f"frame_{int(numbers[t]):04d}.{fmt}", V, F, colors)
 
 
 def _warn_if_interrupted(path: Path) -> None:

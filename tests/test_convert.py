@@ -1739,3 +1739,26 @@ def test_a_still_round_torso_does_not_turn_with_the_legs():
     assert _torso_turn(held) < min(3.0, 0.25 * _torso_turn(free))  # (18.1 -> 2.4 degrees)
     # the held run still follows the legs: every frame covered as well
     assert max(held.conversion.coverage) <= 1.2 * max(free.conversion.coverage) + 1e-3
+
+
+def test_a_folder_output_keeps_the_input_folders_frame_numbers(tmp_path):
+    """frame_0001..0004 in, frame_0001..0004 out (they came out as frame_0000..0003: a tool pairing
+    files by name was one frame off); --as-is too."""
+    from dynmesh_warp.convert import main
+    from dynmesh_warp.io import write_mesh
+
+    src = tmp_path / "in"
+    src.mkdir()
+    for k, sub in zip(range(1, 5), (2, 1, 2, 1)):  # two tessellations: a conversion is needed
+        V, F = icosphere(sub, 0.5)
+        write_mesh(src / f"frame_{k:04d}.ply", V + np.float32([0.02 * k, 0, 0]), F)
+    assert main([str(src), str(tmp_path / "out"), "--device", "cpu", "--no-progress"]) == 0
+    assert sorted(p.name for p in (tmp_path / "out").glob("frame_*.ply")) == [f"frame_{k:04d}.ply" for k in range(1, 5)]
+    fixed = tmp_path / "fixed"
+    fixed.mkdir()
+    V, F = icosphere(1, 0.5)
+    for k in (7, 9, 11):
+        write_mesh(fixed / f"mesh_{k}.obj", V + np.float32([0, 0, 0.01 * k]), F)
+    assert main([str(fixed), str(tmp_path / "asis"), "--as-is", "--fmt", "obj"]) == 0
+    assert sorted(p.name for p in (tmp_path / "asis").glob("frame_*.obj")) == ["frame_0007.obj", "frame_0009.obj",
+                                                                              "frame_0011.obj"]
