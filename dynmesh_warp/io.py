@@ -319,6 +319,7 @@ def save_sequence(seq, path, fmt: str | None = None, overwrite: bool = False, st
         else:
             write_animation(path, seq.V, seq.F, seq.fps, overwrite=bool(overwrite), colors=seq.colors)
             _warn_up_axis_lost(seq, path)
+            _warn_animation_loses(seq, path)
         return
     if path.suffix.lower() == ".npz":
         if fmt not in (None, "npz"):
@@ -334,6 +335,27 @@ def save_sequence(seq, path, fmt: str | None = None, overwrite: bool = False, st
         )
     _save_folder(seq, path, fmt, overwrite, status)
     _warn_up_axis_lost(seq, path)
+
+
+#: the single-file animations that store no frame rate (read back at the ``fps`` argument, else 24)
+_NO_FPS = (".pc2", ".anime")
+
+
+def _warn_animation_loses(seq, path: Path) -> None:
+    """What a single-file animation cannot hold, said when written (a new user's 30 fps sequence
+    read back at 24 from a .pc2, and an .anime dropped its colours, unsaid)."""
+    import warnings
+
+    lost = []
+    ext = path.suffix.lower()
+    if ext in _NO_FPS and float(seq.fps) != DEFAULT_FPS:
+        lost.append(f"its frame rate ({seq.fps:g} fps: read it back with fps={seq.fps:g}, surface.fps or convert's "
+                    f"--fps; it reads as {DEFAULT_FPS:g})")
+    if ext == ".anime" and seq.colors is not None:
+        lost.append("its vertex colours")
+    if lost:
+        warnings.warn(f"{path}: a {ext} file does not store {' and '.join(lost)}; a .npz or .glb keeps them",
+                      stacklevel=3)
 
 
 def _warn_up_axis_lost(seq, path: Path) -> None:

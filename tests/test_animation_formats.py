@@ -290,3 +290,28 @@ def test_a_cache_in_the_other_byte_order_reads_with_a_warning(tmp_path):
     with pytest.warns(UserWarning, match="read big-endian"), \
             pytest.raises(MeshDataError, match=r"one\.pc2, frame 2: 1 vertices have NaN.*first: vertex 1"):
         load_sequence(tmp_path / "one.pc2")
+
+
+def test_writing_an_animation_says_what_it_cannot_hold(tmp_path):
+    """A .pc2 / .anime stores no frame rate (30 fps read back at 24) and an .anime no colours: said
+    when written (a new user's were lost unsaid); a .mdd keeps the rate (its frame times)."""
+    import warnings
+
+    from dynmesh_warp.io import load_sequence, save_sequence
+    from dynmesh_warp.scenes import icosphere
+    from dynmesh_warp.sequence import FixedTopologySequence
+
+    V, F = icosphere(1, 0.5)
+    seq = FixedTopologySequence(np.stack([V, V + 0.1]), F, fps=30.0, colors=np.full((len(V), 3), 0.5))
+    for name, said in (("a.pc2", ["frame rate (30 fps"]), ("b.anime", ["frame rate (30 fps", "vertex colours"]),
+                       ("c.mdd", [])):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            save_sequence(seq, tmp_path / name)
+        text = " ".join(str(w.message) for w in caught)
+        assert all(s in text for s in said) and (bool(said) == ("does not store" in text)), (name, text)
+    assert load_sequence(tmp_path / "a.pc2").fps == 24.0 and load_sequence(tmp_path / "c.mdd").fps == 30.0
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        save_sequence(FixedTopologySequence(seq.V, F, fps=24.0), tmp_path / "d.pc2")  # nothing lost
+    assert not any("does not store" in str(w.message) for w in caught)
