@@ -202,6 +202,26 @@ def test_one_template_leaves_a_web_that_segments_remove(tearing, tearing_one, tm
     assert isinstance(to_piecewise_fixed(seq, device=TEST_DEVICE, max_segments=1), FixedTopologySequence)
 
 
+def test_evaluate_converts_as_convert_writes(tearing, tmp_path):
+    """evaluate's row of a strategy is what convert writes (to_piecewise_fixed: new templates where
+    one cannot follow), not one template: on the tearing balls it was one template with a web over
+    the gap (a new user's four balls: 2.6 % of the area off the balls, against convert's 0 %)."""
+    from dynmesh_warp.evaluate import evaluate_scene
+    from dynmesh_warp.scenes import icosphere
+
+    seq, centres = tearing
+    Vb, Fb = icosphere(3, 0.5)
+    F4 = np.concatenate([Fb + k * len(Vb) for k in range(4)])
+    gt = FixedTopologySequence(np.stack([np.concatenate([Vb + c for c in cs]) for cs in centres]).astype(np.float32),
+                               F4, fps=24.0, name="balls")
+    save_sequence(gt, tmp_path / "gt.npz")
+    save_sequence(seq, tmp_path / "in.npz")
+    out = evaluate_scene(tmp_path / "gt.npz", tmp_path / "in.npz", strategies=["graph"], emd=False, frame_stride=6,
+                         device=TEST_DEVICE, progress=False)
+    segs = out["conversion"]["graph"]["segments"]
+    assert len(segs) >= 2 and segs[0][0] == 0 and segs[-1][1] == seq.num_frames
+
+
 def test_a_rejected_cut_gives_the_one_template_run(tearing, tearing_one, monkeypatch):
     """When the new template is no better where it would take over, the first run's stopped
     forward pass is not kept: the result is to_fixed_topology's, frame for frame."""
