@@ -176,10 +176,11 @@ def _key_frame(seq: VaryingTopologySequence, key, has_template: bool, off_scale=
     template; otherwise the frame of largest surface area (median over 3 consecutive frames
     against single-frame noise): limbs held apart, not fused by the reconstruction. A fixed
     template can follow two parts into contact but cannot tear one part into two, so tracking
-    starts where the parts are most separate. Where most frames are closed, a frame with a hole
-    is not taken; nor a frame more than ``KEY_AREA_TOLERANCE`` below its window's median area
-    (a coarser remesh); and a frame of about the same area with ``KEY_FINER`` x the vertices or
-    more is preferred. Never one of ``off_scale`` (:func:`_check_scales`)."""
+    starts where the parts are most separate: among the frames with as many parts as any
+    (:func:`_most_separate`, parts of at least ``FLOATER_AREA`` of the area), the largest. Where
+    most frames are closed, a frame with a hole is not taken; nor a frame more than
+    ``KEY_AREA_TOLERANCE`` below its window's median area (a coarser remesh); and a frame of about
+    the same area with ``KEY_FINER`` x the vertices or more is preferred. Never one of ``off_scale`` (:func:`_check_scales`)."""
     T = seq.num_frames
     if key is None or (isinstance(key, str) and key == "auto"):
         if has_template or T < 3:
@@ -195,6 +196,7 @@ def _key_frame(seq: VaryingTopologySequence, key, has_template: bool, off_scale=
         order = np.argsort(-med, kind="stable")
         t = next((int(u) for u in order if ok(u)),
                  next((int(u) for u in order if int(u) not in off_scale), int(order[0])))
+        t = apart = _most_separate(seq, order, ok, t)
         tol = KEY_AREA_TOLERANCE
         window = [u for u in range(max(0, t - 1), min(T, t + 2)) if ok(u)]
         if a[t] < (1.0 - tol) * med[t]:
@@ -207,11 +209,43 @@ def _key_frame(seq: VaryingTopologySequence, key, has_template: bool, off_scale=
         nv = np.array([len(v) for v, _ in seq.frames])
         near = [u for u in range(T) if min(a[u], med[u]) >= (1.0 - tol) * a[t]]
         fine = max(near, key=lambda u: (nv[u], med[u]), default=t)
-        return int(fine) if nv[fine] >= KEY_FINER * nv[t] and ok(fine) else t
+        t = int(fine) if nv[fine] >= KEY_FINER * nv[t] and ok(fine) else t
+        # the window's or the finer frame only where its parts are as far apart
+        return t if t == apart or _separation(seq, t) >= _separation(seq, apart) else apart
     if isinstance(key, bool) or not isinstance(key, (int, np.integer)) or not -T <= int(key) < T:
         raise ValueError(f"key_frame must be 'auto' or a frame index in [{-T}, {T - 1}] "
                          f"(the sequence has {T} frames), got {key!r}")
     return int(key) % T
+
+
+def _separation(seq: VaryingTopologySequence, u: int) -> int:
+    """How far apart frame u's parts are, for the key frame's choice: its parts of at least
+    ``FLOATER_AREA`` of its area each (parts touching fuse into one; a thin part the reconstruction
+    broke, a floater, an eye, is smaller and not counted). The genus (a loop closed by two limbs of
+    one part touching) is not asked: a marching-cubes surface's small tunnels come and go from frame
+    to frame. Found once per frame."""
+    def find():
+        v, f = seq.frames[u]
+        f = np.asarray(f, np.int64).reshape(-1, 3)
+        k, _, _, small = _small_parts(v, f, FLOATER_AREA)
+        unused = len(v) - int(np.count_nonzero(np.bincount(f.ravel(), minlength=len(v))))
+        return int(k - unused - len(small))  # a vertex no face uses is no part
+
+    return _once(seq, ("separation", int(u)), find)
+
+
+def _most_separate(seq: VaryingTopologySequence, order, ok, t: int) -> int:
+    """``t``, or where the input's parts are farther apart than at t (:func:`_separation`, on
+    ``_sample_frames`` and t), the first frame of ``order`` (largest area first) with them as far
+    apart. A fixed template can follow two parts into contact but not tear one part into two: a new
+    user's two fingers, bent until their tips touched, were largest (stretched) where fused, and the
+    template from there kept a web between the tips on every frame after (1.8-2.6 % of the area,
+    under the web's threshold). Few frames are asked: the sample, then the order up to a frame as
+    separate."""
+    best = max([_separation(seq, u) for u in _sample_frames(seq.num_frames) if ok(u)] + [_separation(seq, t)])
+    if _separation(seq, t) >= best:
+        return t
+    return next(int(u) for u in order if ok(int(u)) and _separation(seq, int(u)) >= best)
 
 
 def _key_frame_fit(seq: VaryingTopologySequence, off_scale=()):

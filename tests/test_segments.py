@@ -767,3 +767,33 @@ def test_a_segment_trial_does_not_warn_of_the_inputs_repeats_again():
     repeats = [str(w.message) for w in caught if "repeat the frame before them" in str(w.message)]
     assert out.conversion.rejected_cuts or len(out.conversion.segments) > 1  # a trial ran
     assert repeats == [repeats[0]] and "frame(s) 12 repeat" in repeats[0], repeats
+
+
+def test_the_key_frame_is_where_the_parts_are_apart():
+    """Two fingers bend until their tips touch (frames 10-13 of 24) and part again: bending stretches
+    them, so a fused frame had the largest area and was the key; the template from there kept a web
+    between the tips on the frames after (a new user's: 1.8-2.6 % of the area, under the web's
+    threshold, unreported). The key is now a frame whose parts are as far apart as any."""
+    from skimage.measure import marching_cubes
+
+    from dynmesh_warp.convert_input import _key_frame, _separation
+
+    T = 24
+    xs = np.linspace(-1.5, 1.5, 30)
+    X, Y, Z = np.meshgrid(xs, xs, xs, indexing="ij")
+
+    def finger(x0, sgn, gap):
+        zc = np.clip(Z, -0.8, 0.0)
+        return np.sqrt((X - x0 - sgn * (0.5 - gap / 2 - 0.15) * ((zc + 0.8) / 0.8) ** 2) ** 2 + Y ** 2 + (Z - zc) ** 2) - 0.15
+
+    frames = []
+    for t in range(T):
+        gap = 0.25 * abs(np.cos(np.pi * t / (T - 1))) - 0.02
+        V, F, _, _ = marching_cubes(np.minimum(finger(-0.5, 1, gap), finger(0.5, -1, gap)), 0.0, spacing=(xs[1] - xs[0],) * 3)
+        frames.append(((V - 1.5).astype(np.float32), F.astype(np.int32)))
+    seq = VaryingTopologySequence(frames, fps=24.0)
+    parts = [_separation(seq, t) for t in range(T)]
+    assert max(parts) == 2 and min(parts) == 1
+    areas = [trimesh.Trimesh(*fr, process=False).area for fr in frames]
+    assert parts[int(np.argmax(areas))] == 1  # the largest frame is a fused one
+    assert parts[_key_frame(seq, "auto", False)] == 2
