@@ -59,7 +59,8 @@ class _Converter:
         # (M,) each face's longest edge in the template [m] (the web's reference)
         self.key_edge = arr(_longest_edges(TV, TF).astype(np.float32), float)
         self.web_area = wp.zeros(3, dtype=float, device=d)
-        self.fold_area = wp.zeros(2, dtype=float, device=d)
+        self.fold_area = wp.zeros(3, dtype=float, device=d)
+        self.last_off = 0.0  # the fraction of the converted surface off the input at the last flipped()
         self.last_area = 0.0  # the converted surface's area [m^2] at the last flipped()
         self.last_buried = 0.0  # the buried fraction of the last web() call
         self.first = True  # the next frame is the first one converted (starts from the template)
@@ -152,12 +153,14 @@ class _Converter:
     def flipped(self, frame, diag: float) -> float:
         """The fraction of the converted surface's area (self.X) whose faces point against the
         input ``frame``'s surface nearest to them (within ``WEB_GAP`` x ``diag``; a fold-over),
-        :func:`~dynmesh_warp.kernels.convert.measure_flipped_area`. One launch, two floats back."""
+        :func:`~dynmesh_warp.kernels.convert.measure_flipped_area`; the fraction with no input point
+        within that gap goes to ``last_off``. One launch, three floats back."""
         self.fold_area.zero_()
         wp.launch(kc.measure_flipped_area, dim=self.nf, inputs=[self.TF, self.X, frame[0].id, WEB_GAP * diag],
                   outputs=[self.fold_area], device=self.device)
-        total, flipped = self.fold_area.numpy()
+        total, flipped, off = self.fold_area.numpy()
         self.last_area = float(total)
+        self.last_off = float(off / total) if total > 0 else 0.0
         return float(flipped / total) if total > 0 else 0.0
 
     def coverage(self, frame) -> "_Coverage":
@@ -744,6 +747,7 @@ class _PerFrame:
     buried: np.ndarray
     flipped: np.ndarray
     area: np.ndarray
+    off: np.ndarray
     input_motion: np.ndarray
 
     @classmethod
@@ -752,8 +756,9 @@ class _PerFrame:
 
 
 #: the per-frame figures a journal record keeps (:func:`_convert_frames`), in its ``figures``
-#: followed by the input's motion and whether the frame was re-anchored
-_PER_FRAME_RECORD = ("seconds", "coverage", "tail", "web", "buried", "flipped", "area")
+#: followed by the input's motion and whether the frame was re-anchored ("off" last: a journal
+#: written before it was measured replays without it, 0)
+_PER_FRAME_RECORD = ("seconds", "coverage", "tail", "web", "buried", "flipped", "area", "off")
 
 
 def _record_fit(conv, frame, diag: float, pf: _PerFrame, t: int) -> None:
@@ -764,7 +769,7 @@ def _record_fit(conv, frame, diag: float, pf: _PerFrame, t: int) -> None:
     pf.web[t], pf.buried[t] = conv.frame_web if conv.frame_web is not None else (conv.web(frame, diag), conv.last_buried)
     conv.frame_coverage = conv.frame_web = None
     pf.flipped[t] = conv.flipped(frame, diag)
-    pf.area[t] = conv.last_area
+    pf.area[t], pf.off[t] = conv.last_area, conv.last_off
 
 
 def _input_motion(frame, points, diag: float, device) -> float:
@@ -1005,6 +1010,7 @@ def _convert_from_key(vseq, strategy: str, o: dict, K: int, template, device, pr
     info.frame_seconds = pf.seconds.tolist()
     info.coverage, info.coverage_tail = pf.coverage.tolist(), pf.tail.tolist()
     info.web, info.buried, info.flipped = pf.web.tolist(), pf.buried.tolist(), pf.flipped.tolist()
+    info.off_input = pf.off.tolist()
     info.area_ratio = (pf.area / np.maximum(_frame_areas(vseq), 1e-30)).tolist()
     info.input_motion = pf.input_motion.tolist()
     info.reanchored_frames.sort()
@@ -1019,6 +1025,7 @@ def _convert_from_key(vseq, strategy: str, o: dict, K: int, template, device, pr
         info.frame_seconds, info.coverage = info.frame_seconds[lo:hi + 1], info.coverage[lo:hi + 1]
         info.web, info.coverage_tail = info.web[lo:hi + 1], info.coverage_tail[lo:hi + 1]
         info.flipped, info.buried = info.flipped[lo:hi + 1], info.buried[lo:hi + 1]
+        info.off_input = info.off_input[lo:hi + 1]
         info.area_ratio, info.input_motion = info.area_ratio[lo:hi + 1], info.input_motion[lo:hi + 1]
     res = FixedTopologySequence(out[lo:hi + 1], TF, **carried(vseq))
     info.frame_motion = _frame_motion(res.V)

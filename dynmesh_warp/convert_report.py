@@ -78,6 +78,11 @@ DROPOUT_OPEN_EDGES = 0.001
 WEB_STRETCH = 3.0
 WEB_GAP = 0.05
 POOR_WEB = 0.01
+#: a frame whose converted surface has more than this fraction of its area off the input (no
+#: input point within WEB_GAP x the diagonal of a face's centroid) besides its web and buried
+#: faces, and no dropout there, is warned of: the fit lost the input unstretched (a new user's
+#: propeller at 90 degrees a frame, crumpled inside its body: 1.4-7.5 % on 9 of 16 frames)
+POOR_OFF = 0.01
 #: a poor web frame counts as pulled by a floater when a separate input part of less than this
 #: fraction of the frame's area has most of its vertices nearest to stretched faces
 FLOATER_AREA = 0.05
@@ -148,6 +153,35 @@ def _frames_text(frames, limit: int = 12) -> str:
 
 #: the whole conversion's time is said beside the kept run's when it is over this factor of it
 ALL_SECONDS_SHOWN = 1.2
+
+
+def _off_input_lines(info: ConversionInfo, T: int) -> list:
+    """The summary's lines on the converted surface off the input (``ConversionInfo.off_input``):
+    mean and worst; a warning where, besides the web and the buried faces (said on their own) and
+    away from the input's dropouts and missing parts (a part the template keeps), over POOR_OFF of
+    it is off the input."""
+    off = np.asarray(info.off_input, float)
+    if off.size != T or not off.size or off.max() <= 0:
+        return []
+    worst = int(np.argmax(off))
+    lines = [f"off the input (converted surface farther than {100 * WEB_GAP:.0f}% of the diagonal from it, fraction of "
+             f"its area): mean {100 * off.mean():.2f}%, worst {100 * off[worst]:.2f}% at frame {worst}"]
+    stretched = np.zeros(T)
+    for name in ("web", "buried"):
+        x = np.asarray(getattr(info, name), float)
+        if x.size == T:
+            stretched += x
+    lo = info.first_frame
+    known = {d[0] - lo for d in info.input_dropouts} | set(t - lo for t in info.bridged_frames)
+    for a, b, _ in info.missing_parts:
+        known |= set(range(a - 1 - lo, b + 2 - lo))
+    poor = [t for t in np.flatnonzero(off - stretched > POOR_OFF) if int(t) not in known]
+    if poor:
+        lines.append(f"warning: off the input on {len(poor)} frame(s) ({_frames_text(poor)}): over {100 * POOR_OFF:.0f}% "
+                     f"of the converted surface lies farther than {100 * WEB_GAP:.0f}% of the diagonal from the input, "
+                     "unstretched (not a web): the fit lost the input there (crumpled into it, folded, or the motion "
+                     "between frames too fast to follow); look at those frames (--key-frame, or a higher frame rate)")
+    return lines
 
 
 def conversion_summary(info: ConversionInfo) -> list:
@@ -254,6 +288,7 @@ def conversion_summary(info: ConversionInfo) -> list:
             lines.append(f"note: over {100 * POOR_FLIPPED:.0f}% of the converted surface faces against the input on "
                          f"{folds.size} frame(s) ({_frames_text(folds)}): a fold-over (a sheet's free edge doubled "
                          "back), or many thin parts, which read so too; look at those frames")
+    lines += _off_input_lines(info, cov.size)
     if info.input_dropouts:
         t, gone, agree = max(info.input_dropouts, key=lambda d: d[1])
         a, b = next(r for r in _dropout_runs(d[0] for d in info.input_dropouts) if r[0] <= t <= r[1])

@@ -60,6 +60,7 @@ def _slice_result(res, a: int, b: int, lo: int):
     out.conversion = dataclasses.replace(info, num_frames=j - i, key_frame=info.key_frame - i,
                                          coverage=list(info.coverage[i:j]), web=list(info.web[i:j]),
                                          coverage_tail=list(info.coverage_tail[i:j]), flipped=list(info.flipped[i:j]),
+                                         off_input=list(info.off_input[i:j]),
                                          area_ratio=list(info.area_ratio[i:j]),
                                          frame_motion=[0.0] + list(info.frame_motion[i + 1:j]),
                                          input_motion=[0.0] + list(info.input_motion[i + 1:j]),
@@ -110,6 +111,7 @@ def _join_segments(vseq, segs: list, whole, events: list) -> VaryingTopologySequ
         info.coverage += c.coverage
         info.coverage_tail += c.coverage_tail
         info.flipped += c.flipped
+        info.off_input += c.off_input
         info.area_ratio += c.area_ratio
         info.frame_motion += c.frame_motion
         info.input_motion += c.input_motion

@@ -431,13 +431,15 @@ def measure_flipped_area(
     # Out:
     area_out: wp.array[float],
 ):
-    """Faces of a converted frame turned against the input (``ConversionInfo.flipped``), one
-    thread per face: area_out[0] += the face's area; area_out[1] += its area when the input
-    ``mesh`` has a point within ``gap`` of its centroid and the face's normal points against the
-    normal of the input face there (a fold-over: the converted surface doubled back on itself).
+    """Faces of a converted frame turned against the input (``ConversionInfo.flipped``) or off it
+    (``ConversionInfo.off_input``), one thread per face: area_out[0] += the face's area;
+    area_out[1] += its area when the input ``mesh`` has a point within ``gap`` of its centroid and
+    the face's normal points against the normal of the input face there (a fold-over: the
+    converted surface doubled back on itself); area_out[2] += its area when the input has no point
+    within ``gap`` of its centroid (the same query).
 
     indices (3M,) template faces; points (N,) converted vertices [m]; mesh: the input frame's
-    wp.Mesh; gap [m]; area_out (2,) [m^2], zeroed by the caller.
+    wp.Mesh; gap [m]; area_out (3,) [m^2], zeroed by the caller.
     """
     f = wp.tid()
     a = points[indices[3 * f]]
@@ -450,6 +452,8 @@ def measure_flipped_area(
     if q.result:
         if wp.dot(n, wp.mesh_eval_face_normal(mesh, q.face)) < 0.0:
             wp.atomic_add(area_out, 1, area)
+    else:
+        wp.atomic_add(area_out, 2, area)
 
 
 @wp.kernel
