@@ -622,11 +622,10 @@ def main(argv=None) -> int:
             first = res.conversion.first_frame
             status = {"complete": not reason, "frames": res.num_frames, "input_frames": seq.num_frames,
                       "first_frame": first,
-                      # a folder input's own file numbers, which the output's files take
-                      "frame_numbers": numbers[first:first + res.num_frames]
-                      if numbers and len(numbers) == seq.num_frames else None,
                       "interrupted_by": reason, "strategy": a.strategy,
                       "segments": [list(x) for x in res.conversion.segments]}
+            if numbers and len(numbers) == seq.num_frames:  # a folder input's own file numbers: the output's files'
+                status["frame_numbers"] = numbers[first:first + res.num_frames]
             written, kept = a.output, None
             # the interrupted run's partial output in the output's place, unchanged during the work
             ours = partial is not None and _same_path(partial, a.output) and journal.partial() is not None

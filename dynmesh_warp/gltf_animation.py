@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .mesh_formats import Z_UP_MARK, gltf_marked, linear_to_srgb, srgb_to_linear, y_to_z, z_to_y
 from .outputs import atomic_path
 from .sequence import MeshDataError
 
@@ -308,36 +309,11 @@ GENERATOR = "dynmesh_warp"
 #: ... and of the files it writes now: +Y up, as the specification says (a glTF input's coordinates
 #: as they were; z-up data turned, with :data:`Z_UP_MARK`)
 GENERATOR_Y_UP = "dynmesh_warp (+Y up)"
-#: ``asset.extras`` of a file whose z-up coordinates were turned to +Y up on writing:
-#: :func:`read_gltf_animation` turns them back, so a save and a load give the coordinates saved.
-#: A tool that writes the file again drops it, and the file is then read as any glTF (+Y up), so
-#: the scene turns it the same way up (before, the only mark of z-up data was ``asset.generator``:
-#: a glTF viewer showed it lying on its side, and a file saved again by another tool came back
-#: turned 90 degrees)
-Z_UP_MARK = {"dynmesh_warp": {"turned_from_up_axis": "z"}}
-
-
-def _z_to_y(V: np.ndarray) -> np.ndarray:
-    """z-up coordinates as +Y up: (x, y, z) -> (x, z, -y), exactly (a permutation and a sign)."""
-    return V[..., [0, 2, 1]] * np.array([1, 1, -1], V.dtype)
-
-
-def _y_to_z(V: np.ndarray) -> np.ndarray:
-    """The inverse of :func:`_z_to_y`: (x, y, z) -> (x, -z, y)."""
-    return V[..., [0, 2, 1]] * np.array([1, -1, 1], V.dtype)
-
-
-def _marked(doc: dict) -> bool:
-    asset = doc.get("asset", {})
-    extras = asset.get("extras") if isinstance(asset, dict) else None
-    return isinstance(extras, dict) and extras.get("dynmesh_warp") == Z_UP_MARK["dynmesh_warp"]
-
-
 def gltf_turned_from_z(path) -> bool:
     """Whether a .glb / .gltf file holds z-up coordinates turned to +Y up by this project (its
     ``asset.extras`` carry :data:`Z_UP_MARK`; its JSON only, False when unreadable)."""
     try:
-        return _marked(gltf_document(path))
+        return gltf_marked(gltf_document(path))
     except (MeshDataError, OSError, AttributeError):
         return False
 
@@ -349,12 +325,6 @@ def gltf_generator(path) -> str:
     except (MeshDataError, OSError, AttributeError):
         return ""
     return g if isinstance(g, str) else ""
-
-
-def _srgb(linear: np.ndarray) -> np.ndarray:
-    """glTF's linear ``COLOR_0`` as sRGB (the space a PLY's or OBJ's colours are in)."""
-    c = np.clip(linear, 0.0, 1.0)
-    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1.0 / 2.4) - 0.055)
 
 
 def read_gltf_animation(path, fps: float | None = None, animation=None, rest: bool = False, colors: bool = False):
@@ -543,19 +513,13 @@ def read_gltf_animation(path, fps: float | None = None, animation=None, rest: bo
                 X = Ph @ G[p["node"]].T[:, :3]
             out[off:off + len(P)] = X
             off += len(P)
-    if _marked(doc):
-        V = _y_to_z(V)  # this project's z-up data, turned to +Y up on writing: as it was saved
+    if gltf_marked(doc):
+        V = y_to_z(V)  # this project's z-up data, turned to +Y up on writing: as it was saved
     if not colors:
         return V, F, float(fps)
     C = None if any(p["C"] is None for p in prims) else \
-        _srgb(np.concatenate([p["C"] for p in prims]).astype(np.float64)).astype(np.float32)
+        linear_to_srgb(np.concatenate([p["C"] for p in prims])).astype(np.float32)
     return V, F, float(fps), C
-
-
-def _linear(srgb: np.ndarray) -> np.ndarray:
-    """sRGB colours as glTF's linear ``COLOR_0`` (the inverse of :func:`_srgb`)."""
-    c = np.clip(srgb, 0.0, 1.0)
-    return np.where(c <= 0.04045, c / 12.92, np.power((c + 0.055) / 1.055, 2.4))
 
 
 def write_gltf_animation(path, V, F, fps: float, y_up: bool = False, colors=None) -> None:
@@ -570,7 +534,7 @@ def write_gltf_animation(path, V, F, fps: float, y_up: bool = False, colors=None
     float ``COLOR_0`` (the specification's space)."""
     V = np.asarray(V, np.float32)
     if not y_up:
-        V = _z_to_y(V)  # glTF is +Y up: viewers show it upright (read back turned again: Z_UP_MARK)
+        V = z_to_y(V)  # glTF is +Y up: viewers show it upright (read back turned again: Z_UP_MARK)
     F = np.asarray(F, np.uint32)
     T, n = V.shape[:2]
     blob = bytearray()
@@ -592,7 +556,7 @@ def write_gltf_animation(path, V, F, fps: float, y_up: bool = False, colors=None
     prim = {"attributes": {"POSITION": add(V[0], "VEC3", 5126, True)}, "indices": add(F.reshape(-1), "SCALAR", 5125),
             "mode": 4}
     if colors is not None:
-        prim["attributes"]["COLOR_0"] = add(_linear(np.asarray(colors, np.float64)).astype(np.float32), "VEC3", 5126)
+        prim["attributes"]["COLOR_0"] = add(srgb_to_linear(colors).astype(np.float32), "VEC3", 5126)
     asset = {"version": "2.0", "generator": GENERATOR_Y_UP, **({} if y_up else {"extras": Z_UP_MARK})}
     doc = {"asset": asset, "scene": 0,
            "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0, "name": "surface"}],

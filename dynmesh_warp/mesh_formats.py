@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from .outputs import atomic_path
-from .sequence import MeshDataError, validate_mesh
+from .sequence import MeshDataError, unit_colors, validate_mesh
 
 __all__ = ["READERS", "WRITERS", "MESH_EXTENSIONS", "register_format", "mesh_extension", "file_problem", "read_mesh",
            "read_vertex_colors", "write_mesh_file", "write_mesh"]
@@ -34,6 +34,76 @@ _NOT_FRAME_EXTENSIONS = {".svg", ".xml", ".dat", ".node"}
 #: animation formats people have that are not read, by extension, for a hint instead of a parse error
 UNREAD_ANIMATIONS = {".abc": "Alembic", ".fbx": "FBX", ".usd": "USD", ".usda": "USD", ".usdc": "USD",
                      ".usdz": "USD", ".bvh": "BVH (a skeleton without a surface)", ".blend": "Blender"}
+
+
+#: ``asset.extras`` of a glTF file whose z-up coordinates were turned to glTF's +Y up on writing
+#: (``write_mesh``, ``gltf_animation.write_gltf_animation``): the readers turn them back, so a save
+#: and a load give the coordinates saved. A tool that writes the file again drops it, and the file
+#: is then read as any glTF (+Y up), so a scene turns it the same way up (docs/data.md)
+Z_UP_MARK = {"dynmesh_warp": {"turned_from_up_axis": "z"}}
+GLTF_SUFFIXES = (".glb", ".gltf")
+
+
+def z_to_y(V: np.ndarray) -> np.ndarray:
+    """z-up coordinates as +Y up: (x, y, z) -> (x, z, -y), exactly (a permutation and a sign)."""
+    return V[..., [0, 2, 1]] * np.array([1, 1, -1], V.dtype)
+
+
+def y_to_z(V: np.ndarray) -> np.ndarray:
+    """The inverse of :func:`z_to_y`: (x, y, z) -> (x, -z, y)."""
+    return V[..., [0, 2, 1]] * np.array([1, -1, 1], V.dtype)
+
+
+def srgb_to_linear(c) -> np.ndarray:
+    """sRGB colours in [0, 1] as linear light (glTF's ``COLOR_0`` space)."""
+    c = np.clip(np.asarray(c, np.float64), 0.0, 1.0)
+    return np.where(c <= 0.04045, c / 12.92, np.power((c + 0.055) / 1.055, 2.4))
+
+
+def linear_to_srgb(c) -> np.ndarray:
+    """The inverse of :func:`srgb_to_linear` (the space a PLY's or OBJ's colours are in)."""
+    c = np.clip(np.asarray(c, np.float64), 0.0, 1.0)
+    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1.0 / 2.4) - 0.055)
+
+
+def gltf_marked(doc) -> bool:
+    """Whether a glTF JSON document carries :data:`Z_UP_MARK` (its coordinates turned from z-up)."""
+    asset = doc.get("asset", {}) if isinstance(doc, dict) else {}
+    extras = asset.get("extras") if isinstance(asset, dict) else None
+    return isinstance(extras, dict) and extras.get("dynmesh_warp") == Z_UP_MARK["dynmesh_warp"]
+
+
+def _gltf_json(path: Path):
+    """A .glb's JSON chunk or a .gltf's JSON, parsed; None when it is neither."""
+    import json
+
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(20)
+            if head[:4] == b"glTF" and len(head) == 20:
+                size, kind = struct.unpack_from("<II", head, 12)
+                return json.loads(fh.read(size).decode("utf-8")) if kind == 0x4E4F534A else None
+            return json.loads((head + fh.read()).decode("utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError):
+        return None
+
+
+def _marked_gltf_bytes(data: bytes, glb: bool) -> bytes:
+    """A glTF file's bytes with :data:`Z_UP_MARK` in its ``asset.extras`` (the JSON chunk of a .glb
+    rewritten, padded with spaces to 4 bytes as the specification asks)."""
+    import json
+
+    if not glb:
+        doc = json.loads(data.decode("utf-8"))
+        doc.setdefault("asset", {})["extras"] = Z_UP_MARK
+        return json.dumps(doc).encode("utf-8")
+    n = struct.unpack_from("<I", data, 12)[0]
+    doc = json.loads(data[20:20 + n].decode("utf-8"))
+    doc.setdefault("asset", {})["extras"] = Z_UP_MARK
+    js = json.dumps(doc).encode("utf-8")
+    js += b" " * (-len(js) % 4)
+    body = struct.pack("<II", len(js), 0x4E4F534A) + js + data[20 + n:]
+    return struct.pack("<III", 0x46546C67, 2, 12 + len(body)) + body
 
 
 def _meshio_extensions() -> set[str]:
@@ -267,10 +337,12 @@ def _read_trimesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
             n = sum(len(getattr(g, "vertices", ())) for g in geoms)
             return np.zeros((n, 3)), np.zeros((0, 3), dtype=np.int64)
         loaded = meshes[0] if len(meshes) == 1 else trimesh.util.concatenate(meshes)
-    V = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=np.float64)
+    V = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=np.float64).reshape(-1, 3)
     F = getattr(loaded, "faces", None)  # a PointCloud has no faces
     F = np.zeros((0, 3), dtype=np.int64) if F is None else np.asarray(F).reshape(-1, 3)
-    return V.reshape(-1, 3), F
+    if path.suffix.lower() in GLTF_SUFFIXES and gltf_marked(_gltf_json(path)):
+        V = y_to_z(V)  # this project's z-up data, turned to +Y up on writing: as it was saved
+    return V, F
 
 
 _PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2", "ushort": "u2",
@@ -514,22 +586,17 @@ def read_mesh(path, frame: int | None = None) -> tuple[np.ndarray, np.ndarray]:
 PLY_COLOR_NAMES = (("red", "green", "blue"), ("r", "g", "b"), ("diffuse_red", "diffuse_green", "diffuse_blue"))
 
 
-def _unit_colors(C: np.ndarray, integer_max: float | None) -> np.ndarray:
-    """(N, 3) colours in [0, 1] as float32: integers over their type's maximum (``integer_max``);
-    floats as they are, or over 255 when any exceeds 1 and none 255 (written as 0..255 floats)."""
-    C = np.asarray(C, np.float64)
-    if integer_max is not None:
-        C = C / integer_max
-    elif C.size and np.nanmax(C) > 1.0 and np.nanmax(C) <= 255.0:
-        C = C / 255.0
-    return np.clip(np.nan_to_num(C, nan=0.0), 0.0, 1.0).astype(np.float32)
-
-
 def _ply_colors(path: Path) -> np.ndarray | None:
     fmt, elements, start = _ply_header(path)
     names = {p: t for name, _, props in elements if name == "vertex" for p, t in props}
     rgb = next((c for c in PLY_COLOR_NAMES if all(n in names and not isinstance(names[n], tuple) for n in c)), None)
     if rgb is None:
+        faces = {p for name, _, props in elements if name == "face" for p, _ in props}
+        if any(all(n in faces for n in c) for c in PLY_COLOR_NAMES):
+            import warnings
+
+            warnings.warn(f"{path}: its colours are on its faces, not its vertices: not read (vertex colours "
+                          "are: docs/data.md)", stacklevel=4)
         return None
     typ = np.dtype(_PLY_TYPES.get(names[rgb[0]], "f4"))
     top = None if typ.kind == "f" else float(np.iinfo(typ).max)
@@ -543,29 +610,51 @@ def _ply_colors(path: Path) -> np.ndarray | None:
                     fh.seek(start)
                     rows = [line.split() for line in fh if line.strip()][skip:skip + n]
                 try:
-                    return _unit_colors(np.array([[float(r[i]) for i in cols] for r in rows]).reshape(-1, 3), top)
+                    return unit_colors(np.array([[float(r[i]) for i in cols] for r in rows]).reshape(-1, 3), top)
                 except (ValueError, IndexError):
                     raise _ReadError("vertex colours: a vertex line has too few or non-numeric fields") from None
             skip += n
     data, _ = _ply_binary(path, elements, start, ">" if fmt == "binary_big_endian" else "<")
-    return _unit_colors(np.stack([np.asarray(data["vertex"][c]) for c in rgb], axis=1), top)
+    return unit_colors(np.stack([np.asarray(data["vertex"][c]) for c in rgb], axis=1), top)
 
 
 def _obj_colors(path: Path) -> np.ndarray | None:
     """``v x y z r g b`` records (MeshLab's, Open3D's): colours when every vertex has them."""
     rows = _OBJ_V_RE.findall(path.read_text(encoding="utf-8-sig", errors="replace"))
     fields = [r.split("#", 1)[0].split() for r in rows]
-    if not fields or any(len(f) < 6 for f in fields):
+    some = sum(len(f) >= 6 for f in fields)
+    if 0 < some < len(fields):
+        import warnings
+
+        warnings.warn(f"{path}: {some} of its {len(fields)} vertices have colours ('v x y z r g b'), the rest none: "
+                      "no colours read", stacklevel=4)
+    if not fields or some < len(fields):
         return None
     try:
-        return _unit_colors(np.array([f[3:6] for f in fields], np.float64), None)
+        return unit_colors(np.array([f[3:6] for f in fields], np.float64), None)
     except ValueError:
         raise _ReadError("vertex colours: a 'v x y z r g b' record has a field that is not a number") from None
 
 
-#: extension -> ``colors(path) -> (N, 3) in [0, 1] or None``; glTF's COLOR_0 is read with its
-#: animation (:func:`dynmesh_warp.gltf_animation.read_gltf_animation`)
-COLOR_READERS = {".ply": _ply_colors, ".obj": _obj_colors}
+def _gltf_colors(path: Path) -> np.ndarray | None:
+    """A glTF mesh's ``COLOR_0`` (linear) as sRGB, through trimesh as :func:`_read_trimesh` reads
+    it (a folder's frames; a single file's are read with its animation)."""
+    import trimesh
+
+    loaded = trimesh.load(str(path), process=False, maintain_order=True)
+    geoms = [g for g in loaded.dump() if isinstance(g, trimesh.Trimesh)] if isinstance(loaded, trimesh.Scene) \
+        else [loaded]
+    cols = []
+    for g in geoms:
+        vis = getattr(g, "visual", None)
+        if vis is None or getattr(vis, "kind", None) != "vertex":
+            return None
+        cols.append(np.asarray(vis.vertex_colors)[:, :3] / 255.0)
+    return linear_to_srgb(np.concatenate(cols)).astype(np.float32) if cols else None
+
+
+#: extension -> ``colors(path) -> (N, 3) in [0, 1] or None``
+COLOR_READERS = {".ply": _ply_colors, ".obj": _obj_colors, ".glb": _gltf_colors, ".gltf": _gltf_colors}
 
 
 def read_vertex_colors(path, num_vertices: int | None = None) -> np.ndarray | None:
@@ -656,7 +745,8 @@ def register_format(ext: str, reader=None, writer=None) -> None:
 def write_mesh_file(path: Path, V: np.ndarray, F: np.ndarray, colors: np.ndarray | None = None) -> None:
     """Write one mesh to ``path`` (not atomic; callers write to a temporary name). ``colors``
     (N, 3) in [0, 1]: written by ``.ply`` (uchar ``red green blue``), ``.obj`` (``v x y z r g b``),
-    ``.glb``/``.gltf`` (``COLOR_0``, through trimesh); other formats leave them out."""
+    ``.glb``/``.gltf`` (linear ``COLOR_0``, through trimesh); other formats leave them out. A glTF
+    is written +Y up, the z-up coordinates turned and marked (:data:`Z_UP_MARK`)."""
     path = Path(path)
     ext = path.suffix.lower()
     if ext in WRITERS:
@@ -667,11 +757,23 @@ def write_mesh_file(path: Path, V: np.ndarray, F: np.ndarray, colors: np.ndarray
                 WRITERS[ext](fh, V, F)
             fh.flush()
             os.fsync(fh.fileno())
-    elif ext in (".stl", ".glb", ".gltf"):
+    elif ext in GLTF_SUFFIXES:
+        # +Y up as glTF says (z-up turned and marked: read back as saved), linear COLOR_0 as it says;
+        # the buffers in the one file (a .gltf's were written beside it, as gltf_buffer_0.bin ...)
+        import trimesh
+        from trimesh.exchange.gltf import export_glb, export_gltf
+
+        vc = None if colors is None else _byte_colors(srgb_to_linear(colors))
+        mesh = trimesh.Trimesh(z_to_y(np.asarray(V, np.float64)), F, vertex_colors=vc, process=False)
+        data = export_glb(mesh) if ext == ".glb" else export_gltf(mesh, embed_buffers=True)["model.gltf"]
+        with open(path, "wb") as fh:
+            fh.write(_marked_gltf_bytes(data, ext == ".glb"))
+            fh.flush()
+            os.fsync(fh.fileno())
+    elif ext == ".stl":
         import trimesh
 
-        vc = None if colors is None or ext == ".stl" else _byte_colors(colors)
-        trimesh.Trimesh(V, F, vertex_colors=vc, process=False).export(str(path))
+        trimesh.Trimesh(V, F, process=False).export(str(path))
     else:
         import meshio
 

@@ -173,19 +173,37 @@ def _check_up_axis(up_axis, where: str) -> None:
         raise MeshDataError(f"{where}: up_axis must be 'y', 'z' or None (as its source says), got {up_axis!r}")
 
 
+def unit_colors(C, integer_max: float | None = None) -> np.ndarray:
+    """Colours as float32 in [0, 1]: integers over their type's maximum (uint8 over 255, uint16 over
+    65535; ``integer_max`` for integers held in floats), floats as they are, or over 255 where any
+    exceeds 1 and none 255 (0..255 written as floats); NaN as 0. The one rule of the colour readers
+    and of a sequence's ``colors`` (an npz's uint16 or 0..255 float colours read white before)."""
+    C = np.asarray(C)
+    if np.issubdtype(C.dtype, np.integer):
+        integer_max = float(np.iinfo(C.dtype).max) if integer_max is None else integer_max
+    C = np.asarray(C, np.float64)
+    if integer_max is not None:
+        C = C / integer_max
+    elif C.size and np.nanmax(C) > 1.0 and np.nanmax(C) <= 255.0:
+        C = C / 255.0
+    return np.clip(np.nan_to_num(C, nan=0.0), 0.0, 1.0).astype(np.float32)
+
+
 def _checked_colors(colors, num_vertices: int, where: str):
-    """``colors`` as float32 (N, 3) in [0, 1] for frame 0's ``num_vertices`` vertices, or None."""
+    """``colors`` as float32 (N, 3) in [0, 1] (:func:`unit_colors`) for frame 0's ``num_vertices``
+    vertices, or None."""
     if colors is None:
         return None
     C = np.asarray(colors)
     if C.ndim != 2 or C.shape[1] not in (3, 4) or len(C) != num_vertices:
         raise MeshDataError(f"{where}: colors must have shape ({num_vertices}, 3), one RGB per vertex of frame 0, "
                             f"got {C.shape}")
-    if not np.issubdtype(C.dtype, np.number) or not np.isfinite(C).all():
+    if not (np.issubdtype(C.dtype, np.number) and not np.issubdtype(C.dtype, np.complexfloating)) \
+            or not np.isfinite(C).all():
         raise MeshDataError(f"{where}: colors hold NaN, inf or non-numbers")
-    if np.issubdtype(C.dtype, np.integer):
-        C = C / 255.0
-    return np.ascontiguousarray(np.clip(C[:, :3], 0.0, 1.0), np.float32)
+    if C.dtype == np.bool_ or (np.issubdtype(C.dtype, np.integer) and C.min() < 0):
+        raise MeshDataError(f"{where}: colors must be unsigned integers or floats, got {C.dtype} with negatives")
+    return np.ascontiguousarray(unit_colors(C[:, :3]))
 
 
 def carried(seq, **changed) -> dict:

@@ -167,3 +167,69 @@ def test_conversion_carries_colours_to_the_template():
     # the template's vertices lie on (or within a fraction of an edge of) frame 0's surface
     err = np.abs(res.colors - _rgb_of(X0)).max()
     assert err < 0.02, err
+
+
+def test_npz_colours_of_other_types_read_as_the_ply_readers_do(tmp_path):
+    """An npz's vertex_colors as float 0..255 or uint16 read almost white (clipped, or over 255):
+    one rule now for every reader (sequence.unit_colors), integer types over their maximum."""
+    V, F = _sphere(1)
+    C = _rgb_of(V)
+    for name, stored in (("f255", (C * 255).astype(np.float32)), ("u16", np.round(C * 65535).astype(np.uint16)),
+                         ("u8", np.round(C * 255).astype(np.uint8)), ("unit", C.astype(np.float32))):
+        np.savez(tmp_path / f"{name}.npz", V=V[None], F=F, vertex_colors=stored)
+        np.testing.assert_allclose(load_sequence(tmp_path / f"{name}.npz").colors, C, atol=2.5e-3, err_msg=name)
+
+
+def test_a_glb_mesh_written_alone_reads_back_as_saved(tmp_path):
+    """io.write_mesh(x.glb, V, F, colors) went through trimesh as it was: z-up coordinates in a +Y-up
+    format (a scene turned them onto their side) and sRGB values in COLOR_0, which is linear (read
+    back 0.29 too bright; a new user's). Now +Y up and marked, COLOR_0 linear, as save_sequence's;
+    read back as saved by read_mesh, load_sequence and a folder of such frames."""
+    import json
+
+    from dynmesh_warp.io import read_mesh, write_mesh
+
+    V, F = _sphere(1)
+    V = (V * [1.0, 1.0, 2.0]).astype(np.float32)  # tall along z
+    C = _rgb_of(V / 2)
+    write_mesh(tmp_path / "m.glb", V, F, colors=C)
+    raw = (tmp_path / "m.glb").read_bytes()
+    n = struct.unpack_from("<I", raw, 12)[0]
+    doc = json.loads(raw[20:20 + n])
+    assert doc["asset"]["extras"] == {"dynmesh_warp": {"turned_from_up_axis": "z"}}
+    pos = doc["accessors"][doc["meshes"][0]["primitives"][0]["attributes"]["POSITION"]]
+    assert pos["max"][1] > 0.9 and pos["max"][2] < 0.6  # tall along +Y in the file
+    back = read_mesh(tmp_path / "m.glb")[0]
+    np.testing.assert_allclose(back, V, atol=1e-6)
+    seq = load_sequence(tmp_path / "m.glb")
+    np.testing.assert_allclose(seq.V[0], V, atol=1e-6)
+    np.testing.assert_allclose(seq.colors, C, atol=0.02)  # 8-bit linear: coarse in the darks
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for t in range(2):
+        write_mesh(frames / f"f_{t}.glb", V + [0.0, 0.0, 0.1 * t], F, colors=C)
+    fs = load_sequence(frames)
+    np.testing.assert_allclose(fs.V[1] - fs.V[0], np.tile([0.0, 0.0, 0.1], (len(V), 1)), atol=1e-6)
+    np.testing.assert_allclose(fs.colors, C, atol=0.02)
+
+
+def test_colours_not_read_are_said(tmp_path):
+    import warnings
+
+    V, F = _sphere(0)
+    p = tmp_path / "some.obj"
+    lines = [f"v {x} {y} {z}" + (" 1 0 0" if i < 3 else "") for i, (x, y, z) in enumerate(V)]
+    p.write_text("\n".join(lines + [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in F]) + "\n")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert read_vertex_colors(p) is None
+    assert any("3 of its 12 vertices have colours" in str(w.message) for w in caught)
+    head = (f"ply\nformat ascii 1.0\nelement vertex {len(V)}\nproperty float x\nproperty float y\nproperty float z\n"
+            f"element face {len(F)}\nproperty list uchar int vertex_indices\nproperty uchar red\nproperty uchar green\n"
+            "property uchar blue\nend_header\n")
+    body = "".join(f"{x} {y} {z}\n" for x, y, z in V) + "".join(f"3 {a} {b} {c} 255 0 0\n" for a, b, c in F)
+    (tmp_path / "fc.ply").write_text(head + body)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert read_vertex_colors(tmp_path / "fc.ply") is None
+    assert any("colours are on its faces" in str(w.message) for w in caught)
