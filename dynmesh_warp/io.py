@@ -32,7 +32,7 @@ from .animation_formats import (
     write_animation,
 )
 from .choices import Y_UP_FORMATS, FrameOrder, parse
-from .gltf_animation import (GENERATOR, GENERATOR_Y_UP, GLTF_EXTENSIONS, gltf_generator, gltf_has_animation,
+from .gltf_animation import (GENERATOR, GLTF_EXTENSIONS, gltf_generator, gltf_has_animation,
                              gltf_turned_from_z, read_gltf_animation, write_gltf_animation)
 from .mesh_formats import MESH_EXTENSIONS, mesh_extension, read_mesh, read_vertex_colors, write_mesh, write_mesh_file
 from .outputs import OutputExistsError, OutputFolder, OutputKind, atomic_path
@@ -207,8 +207,9 @@ def stored_up_axis(path) -> str:
         return "z"
     if gltf_turned_from_z(path):  # this project's z-up data, turned to +Y up and read back turned again
         return "z"
-    g = gltf_generator(path)
-    return "y" if g == GENERATOR_Y_UP or not g.startswith(GENERATOR) else "z"
+    # the earlier files: z-up as they were, their generator exactly GENERATOR (one that only starts
+    # so is another writer's, or ours re-saved: +Y up)
+    return "z" if gltf_generator(path) == GENERATOR else "y"
 
 
 def sequence_up_axis(seq) -> str:

@@ -560,3 +560,10 @@ def test_a_glb_of_z_up_data_is_y_up_as_gltf_says_and_stays_upright_when_saved_ag
 
     _edit_glb_json(tmp_path / "old.glb", tmp_path / "old2.glb", old)
     assert stored_up_axis(tmp_path / "old2.glb") == "z"
+
+    def kept_generator(doc):  # a re-save that keeps a generator starting with ours, drops the mark
+        doc["asset"] = {"version": "2.0", "generator": "dynmesh_warp 0.1.0"}
+        return doc
+
+    _edit_glb_json(tmp_path / "ours.glb", tmp_path / "kept.glb", kept_generator)
+    assert stored_up_axis(tmp_path / "kept.glb") == "y"
