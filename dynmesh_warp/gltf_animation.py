@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .mesh_formats import Z_UP_MARK, gltf_marked, linear_to_srgb, srgb_to_linear, y_to_z, z_to_y
+from .mesh_formats import Z_UP_MARK, gltf_json, gltf_marked, linear_to_srgb, srgb_to_linear, y_to_z, z_to_y
 from .outputs import atomic_path
 from .sequence import MeshDataError
 
@@ -277,23 +277,10 @@ def _key_rate(allt: np.ndarray) -> float:
 
 def gltf_document(path) -> dict:
     """The JSON document of a .glb / .gltf file, reading only a .glb's header and its JSON chunk
-    (which the specification puts first), not its binary buffer; a file that is not laid out so
-    is read whole by :class:`_File`, which names what is wrong with it."""
-    path = Path(path)
-    with open(path, "rb") as fh:
-        head = fh.read(20)
-        if head[:4] == b"glTF" and len(head) == 20:
-            size, kind = struct.unpack_from("<II", head, 12)
-            if kind == 0x4E4F534A:  # JSON
-                chunk = fh.read(size)
-                if len(chunk) == size:
-                    try:
-                        doc = json.loads(chunk.decode("utf-8"))
-                    except (UnicodeDecodeError, json.JSONDecodeError):
-                        doc = None
-                    if isinstance(doc, dict):
-                        return doc
-    return _File(path).doc
+    (:func:`~dynmesh_warp.mesh_formats.gltf_json`), not its binary buffer; a file that is not laid
+    out so is read whole by :class:`_File`, which names what is wrong with it."""
+    doc = gltf_json(path)
+    return doc if isinstance(doc, dict) else _File(Path(path)).doc
 
 
 def gltf_has_animation(path) -> bool:

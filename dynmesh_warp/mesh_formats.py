@@ -73,8 +73,10 @@ def gltf_marked(doc) -> bool:
     return isinstance(extras, dict) and extras.get("dynmesh_warp") == Z_UP_MARK["dynmesh_warp"]
 
 
-def _gltf_json(path: Path):
-    """A .glb's JSON chunk or a .gltf's JSON, parsed; None when it is neither."""
+def gltf_json(path):
+    """A .glb's JSON chunk (reading only the header and that chunk, which the specification puts
+    first, not the binary buffer) or a .gltf's JSON, parsed; None when it is neither (unreadable,
+    not JSON, not laid out so)."""
     import json
 
     try:
@@ -340,7 +342,7 @@ def _read_trimesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
     V = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=np.float64).reshape(-1, 3)
     F = getattr(loaded, "faces", None)  # a PointCloud has no faces
     F = np.zeros((0, 3), dtype=np.int64) if F is None else np.asarray(F).reshape(-1, 3)
-    if path.suffix.lower() in GLTF_SUFFIXES and gltf_marked(_gltf_json(path)):
+    if path.suffix.lower() in GLTF_SUFFIXES and gltf_marked(gltf_json(path)):
         V = y_to_z(V)  # this project's z-up data, turned to +Y up on writing: as it was saved
     return V, F
 
