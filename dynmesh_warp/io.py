@@ -188,7 +188,7 @@ def load_sequence(
 def stored_up_axis(path) -> str:
     """The up axis of the coordinates a file or folder holds, as far as it says: ``"y"`` for glTF
     (``.glb`` / ``.gltf``, or a folder whose frames all are; +Y up by its specification) unless
-    this project wrote it from z-up data (turned to +Y up and marked, ``gltf_animation.Z_UP_MARK``,
+    this project wrote it from z-up data (turned to +Y up and marked, ``mesh_formats.Z_UP_MARK``,
     which the reader turns back; or, written before that, ``asset.generator`` ``GENERATOR`` with the
     z-up coordinates as they were), ``"y"`` for an npz this project wrote from +Y-up data (its ``up_axis`` entry), else
     ``"z"``. What ``surface.up_axis: auto`` takes; the writers keep it (a new user's glTF
