@@ -180,7 +180,8 @@ def _off_input_lines(info: ConversionInfo, T: int) -> list:
         lines.append(f"warning: off the input on {len(poor)} frame(s) ({_frames_text(poor)}): over {100 * POOR_OFF:.0f}% "
                      f"of the converted surface lies farther than {100 * WEB_GAP:.0f}% of the diagonal from the input, "
                      "unstretched (not a web): the fit lost the input there (crumpled into it, folded, or the motion "
-                     "between frames too fast to follow); look at those frames (--key-frame, or a higher frame rate)")
+                     "between frames too fast to follow), or the input lacks that surface there (a part out of view); "
+                     "look at those frames (--key-frame, or a higher frame rate)")
     return lines
 
 
