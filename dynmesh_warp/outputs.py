@@ -25,6 +25,7 @@ import enum
 import json
 import math
 import os
+import re
 import shutil
 import tempfile
 import threading
@@ -292,10 +293,21 @@ def add_to_manifest(folder, name: str, holds: OutputKind | None = None) -> None:
     atomic_write_json(folder / MANIFEST, {**doc, "tool": "dynmesh_warp", "files": files, **kind})
 
 
+#: the names of this tool's own temporaries: ``atomic_path``'s ``.{stem}.XXXXXXXX.tmp{suffix}`` and
+#: ``OutputFolder``'s ``.{name}.tmp-XXXXXXXX`` / ``.{name}.old-XXXXXXXX`` (mkstemp's / mkdtemp's 8
+#: characters). A run killed while it wrote (SIGKILL, a power cut) leaves one behind; it is this
+#: tool's, not the user's (a new user's killed checkpoint write left one, and ``--resume`` was then
+#: refused, "holds .checkpoint....tmp.npz, which this tool did not write", and ``--overwrite`` kept it
+#: for ever as the user's)
+TEMPORARY_NAME = re.compile(r"^\..+\.(?:[a-z0-9_]{8}\.tmp(?:\.[A-Za-z0-9]+)*|(?:tmp|old)-[a-z0-9_]{8})$")
+
+
 def foreign_entries(folder: Path) -> list[str]:
-    """Entries of an existing ``folder`` that this tool did not write (sorted)."""
+    """Entries of an existing ``folder`` that this tool did not write (sorted): not its manifest's
+    files, nor a temporary of its own left by a killed run (:data:`TEMPORARY_NAME`), which a
+    replacement of the folder removes with this tool's other files."""
     ours = read_manifest(folder)
-    return sorted(e for e in os.listdir(folder) if e != MANIFEST and e not in ours)
+    return sorted(e for e in os.listdir(folder) if e != MANIFEST and e not in ours and not TEMPORARY_NAME.match(e))
 
 
 def _check_creatable(real: Path, shown: str, what: str) -> None:

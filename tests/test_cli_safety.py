@@ -841,3 +841,28 @@ def test_a_stop_before_the_first_frame_is_acted_on_at_once(tmp_path, monkeypatch
     assert "interrupted by SIGTERM before any frame was fitted: nothing written" in capsys.readouterr().err
     assert not (tmp_path / "out.npz").exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["in.npz"]  # no journal left either
+
+
+def test_a_killed_writes_temporary_is_the_tools_own(tmp_path):
+    """A run killed (SIGKILL) while it wrote its checkpoint left .checkpoint.XXXXXXXX.tmp.npz in its
+    output folder: --resume was then refused ("holds .checkpoint....tmp.npz, which this tool did not
+    write") and --overwrite kept it for ever as the user's (a new user's). The tool's own temporaries
+    (atomic_path's and OutputFolder's names, made the same way here) are not foreign, and a
+    replacement of the folder removes them; a user's look-alike names stay the user's."""
+    import tempfile
+
+    from dynmesh_warp.outputs import foreign_entries
+
+    out = tmp_path / "ck"
+    with OutputFolder(out) as tmp:
+        (tmp / "checkpoint.npz").write_text("1")
+    fd, stale = tempfile.mkstemp(prefix=".checkpoint.", suffix=".tmp.npz", dir=out)  # as atomic_path names it
+    os.close(fd)
+    stale_dir = tempfile.mkdtemp(prefix=".frames.tmp-", dir=out)
+    (out / ".notes.tmp").write_text("mine")
+    (out / "my.tmp.npz").write_text("mine")
+    assert foreign_entries(out) == [".notes.tmp", "my.tmp.npz"]
+    with OutputFolder(out, overwrite=True) as tmp:
+        (tmp / "checkpoint.npz").write_text("2")
+    assert sorted(p.name for p in out.iterdir()) == [MANIFEST, ".notes.tmp", "checkpoint.npz", "my.tmp.npz"]
+    assert not os.path.exists(stale) and not os.path.exists(stale_dir)
