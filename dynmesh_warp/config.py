@@ -659,7 +659,9 @@ def load_scene_config(path: str | Path | None = None, data: dict | None = None, 
         path = Path(path)
         origin = str(path)
         if not path.is_file():
-            raise SceneError(f"{path}: scene file not found")
+            why = file_problem(path)
+            raise SceneError(f"{path}: scene file not found" if why == "file not found" else f"{path}: {why}, not a "
+                             "scene file (a scene YAML, a sequence file or a folder of frames)")
         try:
             raw = load_yaml(path.read_text())
         except (OSError, UnicodeDecodeError, yaml.YAMLError) as e:

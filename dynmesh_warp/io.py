@@ -34,9 +34,10 @@ from .animation_formats import (
 from .choices import Y_UP_FORMATS, FrameOrder, parse
 from .gltf_animation import (GENERATOR, GLTF_EXTENSIONS, gltf_generator, gltf_has_animation,
                              gltf_turned_from_z, read_gltf_animation, write_gltf_animation)
-from .mesh_formats import MESH_EXTENSIONS, mesh_extension, read_mesh, read_vertex_colors, write_mesh, write_mesh_file
+from .mesh_formats import (MESH_EXTENSIONS, file_problem, mesh_extension, read_mesh, read_vertex_colors, write_mesh,
+                           write_mesh_file)
 from .outputs import OutputExistsError, OutputFolder, OutputKind, atomic_path
-from .sequence import FixedTopologySequence, VaryingTopologySequence
+from .sequence import FixedTopologySequence, MeshDataError, VaryingTopologySequence
 from .sequence_layouts import (
     DEFAULT_FPS,
     DGMESH_SUBDIRS,
@@ -147,6 +148,9 @@ def load_sequence(
         return load_folder(folder, fps, kind, name=path.name or str(path))
     if subdir is not None:
         raise ValueError(f"{path}: subdir= applies to folders, but this is a file")
+    if not path.is_file():  # a pipe waited for a writer for ever, /dev/zero was read until memory ran out
+        raise MeshDataError(f"{path}: {file_problem(path)} (a pipe, a device or a socket): give a mesh or sequence "
+                            "file, or a folder of frames")
     frame_order = parse(FrameOrder, frame_order, "frame_order").value
     suffix = path.suffix.lower()
     if suffix in ANIMATION_EXTENSIONS:

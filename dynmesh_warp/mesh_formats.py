@@ -559,6 +559,8 @@ def read_mesh(path, frame: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     if path.is_dir():
         raise IsADirectoryError(errno.EISDIR, "expected a mesh file, got a folder", str(path))
     where = f"{path}" if frame is None else f"{path}, frame {frame}"
+    if not path.is_file():  # a pipe would be waited on for ever, a device read without end
+        raise MeshDataError(f"{where}: not a regular file (a pipe, a device or a socket)")
     ext = mesh_extension(path.name) or path.suffix.lower()
     if ext in UNREAD_ANIMATIONS and ext not in READERS:
         raise MeshDataError(f"{where}: {UNREAD_ANIMATIONS[ext]} files are not read (docs/data.md). Export the "

@@ -202,6 +202,10 @@ def list_frame_files(folder: Path) -> list[Path]:
     if broken:  # a frame that is not there must not vanish from the numbering unremarked
         raise MeshDataError(f"{folder / broken[0]}: {file_problem(folder / broken[0])}"
                             + (f" ({len(broken) - 1} more such frame(s))" if len(broken) > 1 else ""))
+    odd = sorted(p.name for p in named if p.exists() and not p.is_file() and not p.is_dir())
+    if odd:  # a pipe named as a frame was left out of the numbering unremarked
+        raise MeshDataError(f"{folder / odd[0]}: not a regular file (a pipe, a device or a socket)"
+                            + (f" ({len(odd) - 1} more such frame(s))" if len(odd) > 1 else ""))
     files = [p for p in named if p.is_file()]
     if not files:
         subdirs = sorted(p.name for p in folder.iterdir()

@@ -866,3 +866,34 @@ def test_a_killed_writes_temporary_is_the_tools_own(tmp_path):
         (tmp / "checkpoint.npz").write_text("2")
     assert sorted(p.name for p in out.iterdir()) == [MANIFEST, ".notes.tmp", "checkpoint.npz", "my.tmp.npz"]
     assert not os.path.exists(stale) and not os.path.exists(stale_dir)
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs named pipes")
+def test_a_pipe_or_a_device_is_refused_not_read(tmp_path):
+    """A pipe given as input waited for a writer for ever; /dev/zero behind an .npz link was read
+    until memory ran out; a pipe named as a frame was left out of the folder's numbering unsaid (a
+    new user's). Each is now an error naming it, before anything is read."""
+    from dynmesh_warp.config import SceneError, load_scene_config
+    from dynmesh_warp.io import load_sequence, read_mesh
+    from dynmesh_warp.sequence import MeshDataError
+
+    os.mkfifo(tmp_path / "a.ply")
+    with pytest.raises(MeshDataError, match=r"a\.ply: not a regular file"):
+        load_sequence(tmp_path / "a.ply")
+    with pytest.raises(MeshDataError, match=r"a\.ply: not a regular file"):
+        read_mesh(tmp_path / "a.ply")
+    if os.path.exists("/dev/zero"):
+        (tmp_path / "z.npz").symlink_to("/dev/zero")
+        with pytest.raises(MeshDataError, match=r"z\.npz: not a regular file"):
+            load_sequence(tmp_path / "z.npz")
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    V, F = icosphere(1, 0.5)
+    for t in range(2):
+        write_mesh(frames / f"frame_{t}.ply", V, F)
+    os.mkfifo(frames / "frame_2.ply")
+    with pytest.raises(MeshDataError, match=r"frame_2\.ply: not a regular file"):
+        load_sequence(frames)
+    os.mkfifo(tmp_path / "s.yaml")
+    with pytest.raises(SceneError, match=r"s\.yaml: not a regular file, not a scene file"):
+        load_scene_config(tmp_path / "s.yaml")
