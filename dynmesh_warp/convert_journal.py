@@ -74,7 +74,10 @@ def frame_digest(*arrays) -> str:
 def fit_count(folder) -> int:
     """The frame fits a journal folder holds (all runs; 0 where there is no folder)."""
     folder = Path(folder)
-    return len(list(folder.glob("run_*_*.npz"))) if folder.is_dir() else 0
+    try:
+        return len(list(folder.glob("run_*_*.npz"))) if folder.is_dir() else 0
+    except OSError:  # a name the file system refuses (too long: is_dir raised, after the output's own error)
+        return 0
 
 
 def _stamp(path: Path) -> tuple | None:

@@ -36,7 +36,7 @@ from .gltf_animation import (GENERATOR, GLTF_EXTENSIONS, gltf_generator, gltf_ha
                              gltf_turned_from_z, read_gltf_animation, write_gltf_animation)
 from .mesh_formats import (MESH_EXTENSIONS, file_problem, mesh_extension, read_mesh, read_vertex_colors, write_mesh,
                            write_mesh_file)
-from .outputs import OutputExistsError, OutputFolder, OutputKind, atomic_path
+from .outputs import OutputExistsError, OutputFolder, OutputKind, atomic_path, check_name_length
 from .sequence import FixedTopologySequence, MeshDataError, VaryingTopologySequence
 from .sequence_layouts import (
     DEFAULT_FPS,
@@ -308,6 +308,7 @@ def save_sequence(seq, path, fmt: str | None = None, overwrite: bool = False, st
         raise TypeError(f"expected a FixedTopologySequence or VaryingTopologySequence, "
                         f"got {type(seq).__name__}")
     path = Path(path).expanduser()
+    check_name_length(path, str(path), "save_sequence")  # before the work, not at the temporary's name
     fmt = fmt.lower().lstrip(".") if fmt else None
     single_file = path.suffix.lower() in ANIMATED_FILE_OUTPUTS or path.suffix.lower() == ".npz"
     if single_file and not overwrite and (path.exists() or path.is_symlink()):

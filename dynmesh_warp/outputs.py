@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import enum
+import errno
 import json
 import math
 import os
@@ -123,6 +124,20 @@ def apply_umask(path, folder: bool = False) -> None:
     os.chmod(path, (0o777 if folder else 0o666) & ~_umask())
 
 
+#: the OSError numbers of a write the file system refused (no space, over a quota or the file-size
+#: limit, read-only): re-raised naming the output they were for (:func:`_for_output`); the CLIs say
+#: them in one line (``cli.interruptible_main``)
+WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS})
+
+
+def _for_output(exc, path) -> OSError | None:
+    """A write error of the file system (:data:`WRITE_ERRNOS`) named by the output ``path`` it was for
+    (NumPy's savez names no file, and a temporary's name means nothing to the user); else None."""
+    if isinstance(exc, OSError) and exc.errno in WRITE_ERRNOS:
+        return OSError(exc.errno, exc.strerror or os.strerror(exc.errno), str(path))
+    return None
+
+
 class atomic_path:
     """Context manager yielding a temporary path next to ``path``; renamed onto it on success.
 
@@ -152,6 +167,9 @@ class atomic_path:
                     self.tmp.unlink(missing_ok=True)
             finally:
                 self._reg.__exit__(None, None, None)
+        named = _for_output(exc, self.path)
+        if named is not None:
+            raise named from exc
         return False
 
 
@@ -327,6 +345,30 @@ def _check_creatable(real: Path, shown: str, what: str) -> None:
         raise OutputError(f"{what} {shown}: the folder {anc} is not writable ({e.strerror or e})") from None
 
 
+#: the bytes the names this tool writes beside an output add to its name, at most: a temporary
+#: (``.{name}.tmp-XXXXXXXX``, ``.{stem}.XXXXXXXX.tmp{suffix}``), a conversion's journal
+#: (``{name}.convert-journal``) and its own temporary, ``<stem>.partial-2<suffix>``
+SIBLING_NAME_BYTES = 32
+
+
+def check_name_length(real: Path, shown: str, what: str) -> None:
+    """The output's name, with what this tool writes beside it, must fit the file system's limit
+    (a new user's 245-byte name passed, then the run failed after the work writing its temporary
+    sibling: ENAMETOOLONG, a traceback)."""
+    n = len(os.fsencode(real.name))
+    anc = real.parent
+    while not anc.is_dir() and anc != anc.parent:
+        anc = anc.parent
+    try:
+        limit = os.pathconf(anc, "PC_NAME_MAX")
+    except (OSError, ValueError):
+        limit = 255
+    if n + SIBLING_NAME_BYTES > limit:
+        raise OutputError(f"{what} {shown}: its name is {n} bytes; this tool writes files beside it whose names are up "
+                          f"to {SIBLING_NAME_BYTES} bytes longer (temporaries, a journal), beyond this file system's "
+                          f"{limit}: give a name of at most {limit - SIBLING_NAME_BYTES} bytes")
+
+
 def check_output(path, *, kind: str, what: str, inputs=(), overwrite: bool = False, suffixes=None,
                  writes=(), holds: OutputKind | None = None) -> Path:
     """Check an output path before any work; return its real path. Raises :class:`OutputError`
@@ -355,6 +397,7 @@ def check_output(path, *, kind: str, what: str, inputs=(), overwrite: bool = Fal
                           "exist; remove the link or name the output itself")
     if kind == "file" and shown.endswith(("/", os.sep)):
         raise OutputError(f"{what} {shown}: names a folder (trailing '{os.sep}'), a file is expected")
+    check_name_length(real, shown, what)
     if kind == "file" and suffixes and real.suffix.lower() not in suffixes and Path(shown).suffix.lower() not in suffixes:
         raise OutputError(f"{what} {shown}: unknown extension {Path(shown).suffix or '(none)'!r}; "
                           f"expected {' or '.join(sorted(suffixes))}")
@@ -511,6 +554,9 @@ class OutputFolder:
                     shutil.rmtree(self.tmp, ignore_errors=True)
             finally:
                 self._reg.__exit__(None, None, None)
+        named = _for_output(exc, self.path)
+        if named is not None:
+            raise named from exc
         return False
 
     def commit(self):

@@ -897,3 +897,68 @@ def test_a_pipe_or_a_device_is_refused_not_read(tmp_path):
     os.mkfifo(tmp_path / "s.yaml")
     with pytest.raises(SceneError, match=r"s\.yaml: not a regular file, not a scene file"):
         load_scene_config(tmp_path / "s.yaml")
+
+
+def test_a_full_disk_is_one_line_naming_the_output(tmp_path, monkeypatch, capsys):
+    """A full file system (or a file-size limit, a quota, a read-only mount) during the work ended
+    in chained tracebacks, exit 1, naming no output (a new user's). The write error is re-raised
+    naming the output it was for (numpy's savez names none), the tool's temporary is gone, and the
+    CLI says it in one line."""
+    import errno
+
+    import dynmesh_warp.io as dio
+    from dynmesh_warp.convert import main
+    from dynmesh_warp.outputs import atomic_path
+
+    target = tmp_path / "x.npz"
+    with pytest.raises(OSError) as info:
+        with atomic_path(target) as tmp:
+            tmp.write_bytes(b"half")
+            raise OSError(errno.ENOSPC, "No space left on device")
+    assert info.value.errno == errno.ENOSPC and info.value.filename == str(target)
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(OSError, match="Permission denied"):  # other errors stay as they are
+        with atomic_path(target):
+            raise PermissionError(errno.EACCES, "Permission denied")
+    src = tmp_path / "in"
+    src.mkdir()
+    for k, sub in enumerate((1, 2)):
+        Vk, Fk = icosphere(sub, 0.5)
+        write_mesh(src / f"f_{k}.ply", Vk, Fk)
+
+    def full(seq, path, *a, **k):
+        with atomic_path(path) as tmp:
+            tmp.write_bytes(b"x")
+            raise OSError(errno.EFBIG, "File too large")
+
+    monkeypatch.setattr(dio, "save_sequence", full)  # convert's main imports it from io when it runs
+    rc = main([str(src), str(tmp_path / "out.npz"), "--device", "cpu", "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 1 and "Traceback" not in err
+    line = [ln for ln in err.splitlines() if ln.startswith("error: ")]
+    assert len(line) == 1 and line[0].startswith(f"error: {tmp_path / 'out.npz'}: File too large while writing"), err
+    assert not (tmp_path / "out.npz").exists()
+
+
+def test_an_output_name_too_long_for_what_is_written_beside_it_is_refused_first(tmp_path, capsys):
+    """A 240-byte output name is legal, but its journal and temporaries beside it are not: convert
+    and run failed after the work with an ENAMETOOLONG traceback (a new user's). Refused before the
+    work now, naming the limit; a name that fits is taken."""
+    from dynmesh_warp.io import load_sequence, save_sequence
+    from dynmesh_warp.outputs import SIBLING_NAME_BYTES
+
+    limit = os.pathconf(tmp_path, "PC_NAME_MAX")
+    with pytest.raises(OutputError, match=rf"its name is {limit - 20} bytes.*at most {limit - SIBLING_NAME_BYTES}"):
+        check_output(tmp_path / ("b" * (limit - 24) + ".npz"), kind="file", what="output")
+    check_output(tmp_path / ("b" * (limit - SIBLING_NAME_BYTES - 4) + ".npz"), kind="file", what="output")
+    src = tmp_path / "in"
+    src.mkdir()
+    for k, sub in enumerate((1, 2)):
+        write_mesh(src / f"f_{k}.ply", *icosphere(sub, 0.5))
+    from dynmesh_warp.convert import main
+
+    assert main([str(src), str(tmp_path / ("c" * (limit - 10) + ".npz")), "--device", "cpu", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "error: output" in err and "bytes" in err
+    with pytest.raises(OutputError, match="its name is"):
+        save_sequence(load_sequence(src / "f_0.ply"), tmp_path / ("q" * (limit - 4) + ".npz"))
