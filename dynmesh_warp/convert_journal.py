@@ -98,6 +98,9 @@ def read_journal(folder) -> dict:
     is not a journal this tool wrote (or one of another format)."""
     folder = Path(folder)
     head = folder / _HEAD
+    if os.path.lexists(folder) and not folder.is_dir():  # a user's file of the journal's name: not ours to remove
+        raise JournalError(f"{folder}: a file where convert keeps its journal (not a journal this tool wrote, so it "
+                           "is left as it is): move it away, or choose another output")
     try:
         doc = json.loads(head.read_text())
     except FileNotFoundError:

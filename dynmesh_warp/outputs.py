@@ -397,6 +397,10 @@ def check_output(path, *, kind: str, what: str, inputs=(), overwrite: bool = Fal
                           "exist; remove the link or name the output itself")
     if kind == "file" and shown.endswith(("/", os.sep)):
         raise OutputError(f"{what} {shown}: names a folder (trailing '{os.sep}'), a file is expected")
+    name = Path(shown.rstrip("/" + os.sep)).name
+    if name != name.strip():  # "out.npz " wrote a folder of frames named so: its extension read ".npz "
+        raise OutputError(f"{what} {shown!r}: the name begins or ends with white space (a typo?); name the output "
+                          "without it")
     check_name_length(real, shown, what)
     if kind == "file" and suffixes and real.suffix.lower() not in suffixes and Path(shown).suffix.lower() not in suffixes:
         raise OutputError(f"{what} {shown}: unknown extension {Path(shown).suffix or '(none)'!r}; "
@@ -589,8 +593,13 @@ class OutputFolder:
                                            **({"holds": self.holds.value} if self.holds is not None else {}),
                                            **({"status": self.status} if self.status is not None else {})})
         if not keep and not os.path.lexists(target):
-            os.replace(tmp, target)
-            return
+            try:
+                os.replace(tmp, target)
+                return
+            except OSError as e:  # made meanwhile by another process (a new user's two saves at once)
+                if e.errno not in (errno.ENOTEMPTY, errno.EEXIST) or not target.is_dir():
+                    raise
+            return self.commit()  # again, onto the folder that is there now (by its own rules)
         old = Path(tempfile.mkdtemp(prefix=f".{target.name}.old-", dir=target.parent))
         cwd = Path.cwd().resolve()
         if not keep and not (cwd == target or _within(cwd, target)):

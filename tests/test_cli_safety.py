@@ -962,3 +962,52 @@ def test_an_output_name_too_long_for_what_is_written_beside_it_is_refused_first(
     assert "Traceback" not in err and "error: output" in err and "bytes" in err
     with pytest.raises(OutputError, match="its name is"):
         save_sequence(load_sequence(src / "f_0.ply"), tmp_path / ("q" * (limit - 4) + ".npz"))
+
+
+def test_a_folder_made_meanwhile_by_another_save_is_not_a_traceback(tmp_path, monkeypatch):
+    """Two saves to one new folder at once: the second's rename met the folder the first had just
+    made, "[Errno 39] Directory not empty: '.out.tmp-...' -> 'out'" (a new user's, 1 try in 10), and
+    its result was thrown away. The commit now goes again by the rules of an existing folder (here:
+    the other's output, this tool's, is replaced); a white-space name is refused first."""
+    import errno
+
+    import dynmesh_warp.outputs as outputs
+
+    out = tmp_path / "out"
+    real_replace = os.replace
+    calls = []
+
+    def racing(src, dst):
+        if Path(dst) == out and not calls:
+            calls.append(1)
+            with OutputFolder(tmp_path / "other") as tmp:  # the other process's whole save
+                (tmp / "frame_0000.ply").write_text("theirs")
+            real_replace(tmp_path / "other", out)
+            raise OSError(errno.ENOTEMPTY, "Directory not empty", str(src), None, str(dst))
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(outputs.os, "replace", racing)
+    with OutputFolder(out) as tmp:
+        (tmp / "frame_0000.ply").write_text("mine")
+    assert calls and (out / "frame_0000.ply").read_text() == "mine"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no temporary left
+    monkeypatch.undo()
+    with pytest.raises(OutputError, match="white space"):
+        check_output(tmp_path / "trail.npz ", kind="file", what="output")
+
+
+def test_a_users_file_where_the_journal_goes_is_named_as_a_file(tmp_path, capsys):
+    """A user's file named OUT.convert-journal was called an unreadable journal folder, "remove the
+    folder to start over" (a new user's); it is named as a file, to be moved, and kept."""
+    from dynmesh_warp.convert import main
+
+    src = tmp_path / "in"
+    src.mkdir()
+    for k, sub in enumerate((1, 2)):
+        write_mesh(src / f"f_{k}.ply", *icosphere(sub, 0.5))
+    mine = tmp_path / "o.npz.convert-journal"
+    mine.write_text("my notes")
+    rc = main([str(src), str(tmp_path / "o.npz"), "--device", "cpu", "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "a file where convert keeps its journal" in err and "Traceback" not in err, err
+    assert mine.read_text() == "my notes"
