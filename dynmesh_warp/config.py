@@ -608,6 +608,11 @@ def sequence_scene(path) -> dict:
     """The scene of a mesh sequence on its own (:func:`is_sequence_path`): the schema's defaults
     around it (five 5 cm spheres dropped on frame 0), named after it."""
     path = Path(path).expanduser().resolve()
+    try:
+        str(path).encode("utf-8")
+    except UnicodeEncodeError:  # the schema takes text ("<scene dict>: surface.source: Input should be a valid string")
+        raise SceneError(f"{str(path)!r}: the file's name is not valid UTF-8 (the scene's "
+                         "paths are text); rename it") from None
     return {"name": path.stem or "sequence", "surface": {"source": str(path)}}
 
 

@@ -1011,3 +1011,17 @@ def test_a_users_file_where_the_journal_goes_is_named_as_a_file(tmp_path, capsys
     err = capsys.readouterr().err
     assert rc == 2 and "a file where convert keeps its journal" in err and "Traceback" not in err, err
     assert mine.read_text() == "my notes"
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="a file name that is not UTF-8 needs a byte-named file system")
+def test_a_sequence_whose_name_is_not_utf8_is_named(tmp_path):
+    """run / render on a sequence whose file name is not valid UTF-8 said "<scene dict>:
+    surface.source: Input should be a valid string", naming no file (a new user's)."""
+    from dynmesh_warp.config import SceneError, scene_source
+
+    V, F = icosphere(1, 0.5)
+    name = os.fsdecode(b"bad\xff.npz")
+    write_mesh(tmp_path / "ok.ply", V, F)
+    os.rename(tmp_path / "ok.ply", tmp_path / name)
+    with pytest.raises(SceneError, match=r"bad\\udcff\.npz'?: the file's name is not valid UTF-8"):
+        scene_source(str(tmp_path / name))
