@@ -368,8 +368,7 @@ def interruptible_main(fn):
                 where = f"{e.filename}: " if e.filename else ""
                 print(f"error: {where}{e.strerror or e} while writing; nothing of that output was put in place "
                       "(outputs are atomic: an earlier one there is unchanged). Free space or lift the limit and "
-                      "run again" + (" (convert: --resume goes on from the frames fitted)" if fn.__module__.endswith(
-                          "convert") else ""), file=sys.stderr)
+                      "run again", file=sys.stderr)
                 return 1
 
     return main

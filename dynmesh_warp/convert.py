@@ -648,12 +648,18 @@ def main(argv=None) -> int:
               + (f"; the same command with --resume goes on from the {n} frame fits done ({journal.folder})"
                  if journal is not None and (n := journal.frames()) else ""), file=sys.stderr)
         return 128 + int(getattr(signal, str(e.reason), signal.SIGINT))
-    except (MeshDataError, FileNotFoundError, ValueError, TypeError) as e:
-        print(f"error: {e}", file=sys.stderr)
+    except (MeshDataError, FileNotFoundError, ValueError, TypeError, OSError) as e:
+        from .outputs import WRITE_ERRNOS
+
+        full = isinstance(e, OSError) and e.errno in WRITE_ERRNOS  # a full disk, a file-size limit, ...
+        if isinstance(e, OSError) and not isinstance(e, FileNotFoundError) and not full:
+            raise
+        print(f"error: {e.filename}: {e.strerror} while writing; nothing of that output was put in place (outputs "
+              "are atomic: an earlier one there is unchanged)" if full else f"error: {e}", file=sys.stderr)
         if journal is not None and journal.frames():
             print(f"note: the {journal.frames()} frame fits done are kept in {journal.folder}: mend the cause and give "
                   "the same command with --resume to go on from them", file=sys.stderr)
-        return 2
+        return 1 if full else 2
     if reason:
         stored = "status: complete false" if out_suffix == ".npz" or a.fmt else "a point cache or animation holds no status"
         later = ("; every frame was converted, but the later passes (key-frame trials, segments, the "

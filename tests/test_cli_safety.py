@@ -903,7 +903,7 @@ def test_a_full_disk_is_one_line_naming_the_output(tmp_path, monkeypatch, capsys
     """A full file system (or a file-size limit, a quota, a read-only mount) during the work ended
     in chained tracebacks, exit 1, naming no output (a new user's). The write error is re-raised
     naming the output it was for (numpy's savez names none), the tool's temporary is gone, and the
-    CLI says it in one line."""
+    CLI says it in one line (convert: with the --resume note, as python -m, where the hint was lost)."""
     import errno
 
     import dynmesh_warp.io as dio
@@ -937,6 +937,7 @@ def test_a_full_disk_is_one_line_naming_the_output(tmp_path, monkeypatch, capsys
     assert rc == 1 and "Traceback" not in err
     line = [ln for ln in err.splitlines() if ln.startswith("error: ")]
     assert len(line) == 1 and line[0].startswith(f"error: {tmp_path / 'out.npz'}: File too large while writing"), err
+    assert "--resume to go on from them" in err  # the frame fits are kept in the journal
     assert not (tmp_path / "out.npz").exists()
 
 
