@@ -652,8 +652,8 @@ def main(argv=None) -> int:
         from .outputs import WRITE_ERRNOS
 
         full = isinstance(e, OSError) and e.errno in WRITE_ERRNOS  # a full disk, a file-size limit, ...
-        if isinstance(e, OSError) and not isinstance(e, FileNotFoundError) and not full:
-            raise
+        if isinstance(e, OSError) and not isinstance(e, (FileNotFoundError, ValueError)) and not full:
+            raise  # another OSError (OutputExistsError is a ValueError too: said as before)
         print(f"error: {e.filename}: {e.strerror} while writing; nothing of that output was put in place (outputs "
               "are atomic: an earlier one there is unchanged)" if full else f"error: {e}", file=sys.stderr)
         if journal is not None and journal.frames():
