@@ -582,13 +582,13 @@ def main(argv=None) -> int:
             check_output(a.output, kind="folder", what="output", inputs=inputs, overwrite=replace,
                          writes=_FOLDER_FRAMES, holds=OutputKind.SEQUENCE)
         seq = load_sequence(a.input, fps=a.fps, topology=a.topology, frame_order=a.frame_order)
+        numbers = input_frame_numbers(a.input, seq.num_frames)  # a folder input's file numbers: the output's files'
         if a.as_is:  # a format conversion: the frames as they are (a new user's sheet, re-fitted, folded over)
             if not isinstance(seq, FixedTopologySequence):
                 raise ValueError(f"--as-is: {a.input} has varying topology (its frames' faces differ): a template "
                                  "has to be fitted; leave --as-is out")
-            numbers = input_frame_numbers(a.input)
             save_sequence(seq, a.output, fmt=a.fmt, overwrite=replace,
-                          status={"frame_numbers": numbers} if numbers and len(numbers) == seq.num_frames else None)
+                          status=None if numbers is None else {"frame_numbers": numbers})
             journal.remove()
             print(f"wrote {a.output}: {seq.num_frames} frames x {seq.num_vertices} vertices, {seq.num_faces} faces, "
                   "as they are (--as-is: no template fitted)")
@@ -618,13 +618,12 @@ def main(argv=None) -> int:
             # retry or the segments) still counts: the output is the run so far, not the one an
             # uninterrupted run would have written
             reason = stop_reason()
-            numbers = input_frame_numbers(a.input)
             first = res.conversion.first_frame
             status = {"complete": not reason, "frames": res.num_frames, "input_frames": seq.num_frames,
                       "first_frame": first,
                       "interrupted_by": reason, "strategy": a.strategy,
                       "segments": [list(x) for x in res.conversion.segments]}
-            if numbers and len(numbers) == seq.num_frames:  # a folder input's own file numbers: the output's files'
+            if numbers is not None:
                 status["frame_numbers"] = numbers[first:first + res.num_frames]
             written, kept = a.output, None
             # the interrupted run's partial output in the output's place, unchanged during the work

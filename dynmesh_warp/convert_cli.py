@@ -80,17 +80,19 @@ def _say_frame_numbers(seq) -> None:
               f"frame {len(src) - 1} is {Path(src[-1]).name}", file=sys.stderr)
 
 
-def input_frame_numbers(path) -> list | None:
-    """The numbers of a folder input's frame files in its order (``frame_0001.ply`` ... -> 1, ...),
-    which a folder output's files take; None for another input or names without numbers."""
+def input_frame_numbers(path, num_frames: int) -> list | None:
+    """The numbers of a folder input's ``num_frames`` frame files in its order (``frame_0001.ply``
+    ... -> 1, ...), which a folder output's files take; None for another input, names without
+    numbers, or another count of files."""
     from .sequence_layouts import frame_index_from_name, list_frame_files
 
     try:
         if not Path(path).is_dir():
             return None
-        return [frame_index_from_name(f) for f in list_frame_files(Path(path))]
+        numbers = [frame_index_from_name(f) for f in list_frame_files(Path(path))]
     except (MeshDataError, OSError, ValueError):
         return None
+    return numbers if len(numbers) == num_frames else None
 
 
 #: the names ``convert`` writes into a folder output (and finds an earlier run's frames by)

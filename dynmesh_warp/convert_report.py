@@ -155,6 +155,17 @@ def _frames_text(frames, limit: int = 12) -> str:
 ALL_SECONDS_SHOWN = 1.2
 
 
+def _dropout_frames(info: ConversionInfo) -> set:
+    """The frames, counted from ``info.first_frame``, where the input lacks a part the template keeps:
+    its dropouts, and its missing-part runs with a frame either side (the fits there may restart a
+    frame late)."""
+    lo = info.first_frame
+    out = {d[0] - lo for d in info.input_dropouts}
+    for a, b, _ in info.missing_parts:
+        out |= set(range(a - 1 - lo, b + 2 - lo))
+    return out
+
+
 def _off_input_lines(info: ConversionInfo, T: int) -> list:
     """The summary's lines on the converted surface off the input (``ConversionInfo.off_input``):
     mean and worst; a warning where, besides the web and the buried faces (said on their own) and
@@ -171,10 +182,7 @@ def _off_input_lines(info: ConversionInfo, T: int) -> list:
         x = np.asarray(getattr(info, name), float)
         if x.size == T:
             stretched += x
-    lo = info.first_frame
-    known = {d[0] - lo for d in info.input_dropouts} | set(t - lo for t in info.bridged_frames)
-    for a, b, _ in info.missing_parts:
-        known |= set(range(a - 1 - lo, b + 2 - lo))
+    known = _dropout_frames(info) | {t - info.first_frame for t in info.bridged_frames}
     poor = [t for t in np.flatnonzero(off - stretched > POOR_OFF) if int(t) not in known]
     if poor:
         lines.append(f"warning: off the input on {len(poor)} frame(s) ({_frames_text(poor)}): over {100 * POOR_OFF:.0f}% "
@@ -330,9 +338,7 @@ def conversion_summary(info: ConversionInfo) -> list:
         jumps = jumps[np.asarray(info.input_motion, float)[jumps] < JUMP_INPUT * m[jumps]]
     if jumps.size:
         w = int(jumps[np.argmax(m[jumps])])
-        drop = {d[0] - info.first_frame for d in info.input_dropouts}  # (jumps count from the first frame)
-        for a, b, _ in info.missing_parts:  # (the fits either side of such a run may restart a frame late)
-            drop |= set(range(a - 1 - info.first_frame, b + 2 - info.first_frame))
+        drop = _dropout_frames(info)  # (jumps count from the first frame)
         after = [int(t) for t in jumps if t in drop or t - 1 in drop]
         lines.append(f"warning: the converted surface jumps at {jumps.size} frame(s) ({_frames_text(jumps)}): at frame "
                      f"{w} its vertices move {100 * m[w]:.1f}% of the diagonal from frame {w - 1} (99th pct.), over "
@@ -372,19 +378,19 @@ def conversion_summary(info: ConversionInfo) -> list:
         lines.append(f"web (converted surface stretched across gaps of the input, fraction of its area): worst "
                      f"{100 * web[w]:.2f}% at frame {w}, on {int(np.count_nonzero(web))} frame(s)")
     poor_web = np.flatnonzero(web > POOR_WEB)
+    # the cuts tried and rejected: "a new template from frame 9", and what was kept (a cut tried inside
+    # one of several segments: those segments stay; it said "so one was kept" beside "3 segments", a
+    # new user's)
+    cuts = (("a new template from frame " if len(info.rejected_cuts) == 1 else "new templates from frames ")
+            + ", ".join(str(a) for a, _ in info.rejected_cuts))
+    kept = "so one was kept" if not segs else f"so the {len(segs)} templates above were kept"
     if info.rejected_cuts and not poor_web.size:
         # tried where the fit was poor by its buried faces: said too (a new user's was not)
-        lines.append(("a new template from frame " if len(info.rejected_cuts) == 1 else "new templates from frames ")
-                     + ", ".join(str(a) for a, _ in info.rejected_cuts) + " (tried where the surface was pressed "
-                     "into the input or stretched across its gaps) fitted no better, "
-                     + ("so one was kept" if not segs else f"so the {len(segs)} templates above were kept"))
+        lines.append(f"{cuts} (tried where the surface was pressed into the input or stretched across its gaps) "
+                     f"fitted no better, {kept}")
     if poor_web.size:
         if info.rejected_cuts:
-            # (a cut tried inside one of several segments: those segments stay; it said "so one was
-            # kept" beside "3 segments", a new user's)
-            kept = "so one was kept" if not segs else f"so the {len(segs)} templates above were kept"
-            then = (("; a new template from frame " if len(info.rejected_cuts) == 1 else "; new templates from frames ")
-                    + ", ".join(str(a) for a, _ in info.rejected_cuts) + " fitted no better where tried, " + kept)
+            then = f"; {cuts} fitted no better where tried, {kept}"
         elif segs:
             then = ""
         else:
