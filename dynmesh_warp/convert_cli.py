@@ -82,14 +82,14 @@ def _say_frame_numbers(seq) -> None:
 
 def input_frame_numbers(path, num_frames: int) -> list | None:
     """The numbers of a folder input's ``num_frames`` frame files in its order (``frame_0001.ply``
-    ... -> 1, ...), which a folder output's files take; None for another input, names without
-    numbers, or another count of files."""
-    from .sequence_layouts import frame_index_from_name, list_frame_files
+    ... -> 1, ...; a DG-Mesh scene folder's, in the subfolder the loader reads), which a folder
+    output's files take; None for another input, names without numbers, or another count of files."""
+    from .sequence_layouts import frame_index_from_name, list_frame_files, resolve_folder
 
     try:
         if not Path(path).is_dir():
             return None
-        numbers = [frame_index_from_name(f) for f in list_frame_files(Path(path))]
+        numbers = [frame_index_from_name(f) for f in list_frame_files(resolve_folder(Path(path), None))]
     except (MeshDataError, OSError, ValueError):
         return None
     return numbers if len(numbers) == num_frames else None

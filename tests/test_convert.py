@@ -1745,7 +1745,7 @@ def test_a_still_round_torso_does_not_turn_with_the_legs():
 
 def test_a_folder_output_keeps_the_input_folders_frame_numbers(tmp_path):
     """frame_0001..0004 in, frame_0001..0004 out (they came out as frame_0000..0003: a tool pairing
-    files by name was one frame off); --as-is too."""
+    files by name was one frame off); a DG-Mesh scene folder's (its dynamic_mesh subfolder) too; --as-is too."""
     from dynmesh_warp.convert import main
     from dynmesh_warp.io import write_mesh
 
@@ -1761,6 +1761,12 @@ def test_a_folder_output_keeps_the_input_folders_frame_numbers(tmp_path):
     V, F = icosphere(1, 0.5)
     for k in (7, 9, 11):
         write_mesh(fixed / f"mesh_{k}.obj", V + np.float32([0, 0, 0.01 * k]), F)
+    scene = tmp_path / "dgmesh"  # a DG-Mesh scene folder: the frames in its dynamic_mesh subfolder
+    (scene / "dynamic_mesh").mkdir(parents=True)
+    for p in src.iterdir():
+        (scene / "dynamic_mesh" / p.name).write_bytes(p.read_bytes())
+    assert main([str(scene), str(tmp_path / "out_dg"), "--device", "cpu", "--no-progress"]) == 0
+    assert sorted(p.name for p in (tmp_path / "out_dg").glob("frame_*.ply")) == [f"frame_{k:04d}.ply" for k in range(1, 5)]
     assert main([str(fixed), str(tmp_path / "asis"), "--as-is", "--fmt", "obj"]) == 0
     assert sorted(p.name for p in (tmp_path / "asis").glob("frame_*.obj")) == ["frame_0007.obj", "frame_0009.obj",
                                                                               "frame_0011.obj"]
