@@ -258,7 +258,7 @@ def _save_folder(seq, folder: Path, fmt: str, overwrite: bool = False, status: d
         for t in range(seq.num_frames):
             V, F = seq.frame(t)
             # the colours of frame 0's vertices; a fixed sequence's are every frame's
-            colors = seq.colors if (t == 0 or hasattr(seq, "V")) else None
+            colors = seq.colors if (t == 0 or isinstance(seq, FixedTopologySequence)) else None
             write_mesh_file(tmp / f"frame_{int(numbers[t]):04d}.{fmt}", V, F, colors)
 
 

@@ -731,9 +731,6 @@ WRITERS = {".ply": _write_ply, ".obj": _write_obj, ".off": _write_off}
 """Extension -> ``writer(fh, V, F)`` writing one mesh to a binary file object, keeping vertex
 order; other extensions go through trimesh (``.stl``, ``.glb``, ``.gltf``) or meshio."""
 
-#: the built-in writers that also write per-vertex colours (``writer(fh, V, F, colors)``)
-COLOR_WRITERS = {".ply", ".obj"}
-
 
 def register_format(ext: str, reader=None, writer=None) -> None:
     """Add (or replace) the reader and/or writer of extension ``ext`` (e.g. ``".xyzmesh"``);
@@ -755,7 +752,7 @@ def write_mesh_file(path: Path, V: np.ndarray, F: np.ndarray, colors: np.ndarray
     ext = path.suffix.lower()
     if ext in WRITERS:
         with open(path, "wb") as fh:
-            if colors is not None and ext in COLOR_WRITERS and WRITERS[ext] in (_write_ply, _write_obj):
+            if colors is not None and WRITERS[ext] in (_write_ply, _write_obj):  # the writers that take colours
                 WRITERS[ext](fh, V, F, colors)
             else:
                 WRITERS[ext](fh, V, F)
