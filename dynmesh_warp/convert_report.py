@@ -296,7 +296,8 @@ def conversion_summary(info: ConversionInfo) -> list:
         if folds.size:  # a note, not a warning: thin parts read as much (docs/conversion.md, Folds)
             lines.append(f"note: over {100 * POOR_FLIPPED:.0f}% of the converted surface faces against the input on "
                          f"{folds.size} frame(s) ({_frames_text(folds)}): a fold-over (a sheet's free edge doubled "
-                         "back), or many thin parts, which read so too; look at those frames")
+                         "back), parts of the template slid onto other parts (limbs trading places), or many thin "
+                         "parts, which read so too; look at those frames")
     lines += _off_input_lines(info, cov.size)
     if info.input_dropouts:
         t, gone, agree = max(info.input_dropouts, key=lambda d: d[1])
