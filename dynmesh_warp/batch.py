@@ -27,6 +27,7 @@ from .choices import (
     DEFAULT_BATCH_SWEPT_SEARCH,
     PLAYBACK_CODES,
     SEED_PREVIOUS_FACE,
+    SPHERE_INERTIA,
     Playback,
     SweptSearch,
     device_kind,
@@ -81,8 +82,8 @@ GRID_MAX_CELLS = 1 << 16
 
 
 #: device memory of one sphere of a batch [bytes]: radius, inverse mass, env index, position,
-#: velocity, and its contact (face, point, normal, depth, velocity, pinch memory of 64 bytes)
-SPHERE_BYTES = 4 + 4 + 4 + 12 + 12 + (4 + 12 + 12 + 4 + 12 + 64)
+#: velocity, spin, and its contact (face, point, normal, depth, velocity, pinch memory of 64 bytes)
+SPHERE_BYTES = 4 + 4 + 4 + 12 + 12 + 12 + (4 + 12 + 12 + 4 + 12 + 64)
 #: ... and of one env's clock: time (float64), rate, playback
 CLOCK_BYTES = 8 + 4 + 4
 
@@ -211,8 +212,9 @@ class BatchModel:
 
 class BatchState:
     """Per-step data of E envs: env_time (E,) float64 [s], env_rate (E,) float32 (1 = real time),
-    env_playback (E,) int32 (``choices.PLAYBACK_CODES``), sphere_pos / sphere_vel (E * S,) vec3
-    [m], [m/s]. Owns its arrays (never aliases the model)."""
+    env_playback (E,) int32 (``choices.PLAYBACK_CODES``), sphere_pos / sphere_vel / sphere_spin
+    (E * S,) vec3 [m], [m/s], [rad/s] (the spin stays zero for ``sphere_body: point``). Owns its
+    arrays (never aliases the model)."""
 
     def __init__(self, model: BatchModel, positions, velocities=None, times=0.0, rates=1.0, playback=None):
         E, S, d = model.num_envs, model.spheres_per_env, model.device
@@ -220,6 +222,7 @@ class BatchState:
         vel = np.zeros_like(pos) if velocities is None else _per_env(velocities, E, S, "velocities")
         self.sphere_pos = wp.array(pos, dtype=wp.vec3, device=d)
         self.sphere_vel = wp.array(vel, dtype=wp.vec3, device=d)
+        self.sphere_spin = wp.zeros(E * S, dtype=wp.vec3, device=d)
         t, r, m = _clocks(model, times, rates, playback)
         self.env_time = wp.array(t, dtype=wp.float64, device=d)
         self.env_rate = wp.array(r, dtype=float, device=d)
@@ -307,7 +310,8 @@ def step_envs(model: BatchModel, state: BatchState, contacts: Contacts, sub_dt: 
     gh = float(p.ground_height if p.ground_height is not None else 0.0)
     g = wp.vec3(*[float(x) for x in p.gravity])
     n = m.spheres.count
-    physics = [g, p.restitution, p.friction, p.rest_speed, ground, gh, surf.fps, int(surf.interpolate)]
+    physics = [g, p.restitution, p.friction, p.rest_speed, ground, gh, surf.fps, int(surf.interpolate),
+               SPHERE_INERTIA[p.sphere_body]]
     args = [surf.frames, surf.indices, m.pair_bvh, m.pair_lowers, m.pair_uppers, m.spheres.radius, m.sphere_env,
             surf.fps, int(surf.interpolate), m.time_slices, s.env_time, s.env_playback, s.sphere_pos, s.sphere_vel]
     tail = [sub_dt, extra_speed, p.margin, m.epsilon]
@@ -322,7 +326,7 @@ def step_envs(model: BatchModel, state: BatchState, contacts: Contacts, sub_dt: 
                       inputs=[surf.frames, surf.indices, m.pair_bvh, m.pair_lowers, m.pair_uppers, m.spheres.radius,
                               m.spheres.inv_mass, m.sphere_env, *physics, m.time_slices, s.env_time, s.env_rate,
                               s.env_playback, *tail, int(SEED_PREVIOUS_FACE[device_kind(m.device)])],
-                      outputs=[s.sphere_pos, s.sphere_vel, c.face, c.point, c.normal, c.depth, c.velocity,
+                      outputs=[s.sphere_pos, s.sphere_vel, s.sphere_spin, c.face, c.point, c.normal, c.depth, c.velocity,
                                c.memory],
                       device=m.device)
         else:
@@ -349,7 +353,7 @@ def step_envs(model: BatchModel, state: BatchState, contacts: Contacts, sub_dt: 
                 wp.launch(resolve_and_integrate_env_spheres, n,
                           inputs=[surf.frames, surf.indices, m.spheres.radius, m.spheres.inv_mass, m.sphere_env,
                                   *physics, s.env_rate, s.env_playback, *records, *tail, wp.float64(sub_dt)],
-                          outputs=[s.sphere_pos, s.sphere_vel, s.env_time, c.face, c.point, c.normal, c.depth,
+                          outputs=[s.sphere_pos, s.sphere_vel, s.sphere_spin, s.env_time, c.face, c.point, c.normal, c.depth,
                                    c.velocity, c.memory],
                           device=m.device)
                 continue
@@ -462,7 +466,7 @@ class BatchedWorld:
 
     def reset(self, env_mask, positions=None, velocities=None, times=None, rates=None, playback=None):
         """Reset the envs where ``env_mask`` (E,) is true: their spheres to ``positions`` /
-        ``velocities`` ((S, 3) or (E, S, 3); rows of other envs are ignored) and their clocks to
+        ``velocities`` ((S, 3) or (E, S, 3); rows of other envs are ignored; spins to zero) and their clocks to
         ``times`` [s] / ``rates`` / ``playback`` (scalars or (E,)). What is not given is kept.
         The other envs are untouched; the captured graph stays valid (arrays are written, not
         replaced)."""
@@ -488,7 +492,7 @@ class BatchedWorld:
             raise ValueError(f"rates: {float(np.max(r)):g} exceeds the rate the sub-steps were chosen for "
                              f"({self.max_rate:g}); build the world with max_rate=")
         wp.launch(reset_env_spheres, m.spheres.count, inputs=[m.sphere_env, self._mask, new_pos, new_vel],
-                  outputs=[s.sphere_pos, s.sphere_vel, self.contacts.memory], device=self.device)
+                  outputs=[s.sphere_pos, s.sphere_vel, s.sphere_spin, self.contacts.memory], device=self.device)
         wp.launch(reset_env_clocks, E,
                   inputs=[self._mask, wp.array(t, dtype=wp.float64, device=self.device),
                           wp.array(r, dtype=float, device=self.device),

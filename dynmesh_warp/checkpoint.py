@@ -6,7 +6,8 @@ A checkpoint is one ``.npz`` file (written atomically, NumPy arrays only, no pic
   written at, the run's step count, the checkpoint interval, the device, the number of contact
   samples so far and the scene's fingerprint (:func:`scene_fingerprint`);
 - the world's state (:meth:`World.checkpoint_state <dynmesh_warp.world.World.checkpoint_state>`):
-  ``time``, ``sim_time``, ``substep_count``, ``sphere_pos``, ``sphere_vel``, ``frame_key``, ``frame_changed``,
+  ``time``, ``sim_time``, ``substep_count``, ``sphere_pos``, ``sphere_vel``, ``sphere_spin`` (zero in a
+  checkpoint written before spheres could rotate, which it then was), ``frame_key``, ``frame_changed``,
   ``contact_face`` (each sphere's last contact face: the seeded searches read it),
   ``contact_memory`` (the integrator's pinch memory, 16 floats a sphere) and the collider's
   ``collider_*`` arrays;
@@ -92,6 +93,7 @@ def scene_fingerprint(world) -> dict:
         "physics.rest_speed": float(p.rest_speed),
         "physics.margin": float(p.margin),
         "physics.ground": None if p.ground_height is None else float(p.ground_height),
+        "physics.sphere_body": str(p.sphere_body),
         "physics.collider": col,
     }
 
@@ -135,7 +137,8 @@ class Checkpoint:
         """Refuse (:class:`CheckpointError`) a checkpoint written for another scene, naming the
         first field that differs and both values."""
         want = scene_fingerprint(world)
-        have = self.meta["fingerprint"]
+        # (a checkpoint from before spheres could rotate: its spheres were point masses)
+        have = {"physics.sphere_body": "point", **self.meta["fingerprint"]}
         for key, value in want.items():
             if key not in have:
                 raise CheckpointError(f"--resume {self.path}: field {key!r} missing from the checkpoint's scene "
@@ -190,7 +193,7 @@ def save_checkpoint(path, world, *, scene: str, step: int, steps: int, checkpoin
 
 #: state fields every checkpoint has: name -> (dtype kind, shape with "S" for the sphere count)
 _STATE_FIELDS = {"time": ("f", ()), "sim_time": ("f", (1,)), "substep_count": ("i", ()),
-                 "sphere_pos": ("f", ("S", 3)), "sphere_vel": ("f", ("S", 3)),
+                 "sphere_pos": ("f", ("S", 3)), "sphere_vel": ("f", ("S", 3)), "sphere_spin": ("f", ("S", 3)),
                  "frame_key": ("i", (1,)), "frame_changed": ("i", (1,)), "contact_face": ("i", ("S",)),
                  "contact_memory": ("f", ("S", 16))}
 
@@ -257,6 +260,7 @@ def load_checkpoint(path) -> Checkpoint:
         warnings.warn(f"{where}: a checkpoint of the previous format ({PREVIOUS_FORMAT}), written before the "
                       "integrator kept a pinch memory: resumed with none (a sphere pinched at that step is "
                       "resolved afresh; otherwise the run goes on as it would have)", stacklevel=2)
+    data.setdefault("sphere_spin", np.zeros((S, 3), np.float32))  # (written before spheres could rotate)
     state = {k: array(k, kind, shape) for k, (kind, shape) in _STATE_FIELDS.items()}
     for k, a in data.items():
         if k.startswith("collider_"):

@@ -17,7 +17,8 @@ from __future__ import annotations
 import enum
 
 __all__ = ["StrEnum", "Collider", "SweptSearch", "RebuildEvery", "Playback", "FrameOrder", "Orientation", "UpAxis",
-           "Strategy", "NewtonSolver", "Rasteriser", "ColorSource", "DEFAULT_COLOR_SOURCE",
+           "Strategy", "NewtonSolver", "Rasteriser", "ColorSource", "DEFAULT_COLOR_SOURCE", "SphereBody",
+           "DEFAULT_SPHERE_BODY", "SPHERE_INERTIA",
            "PLAYBACK_CODES", "DEFAULT_RASTERISER", "DEFAULT_COLLIDER",
            "DEFAULT_REBUILD_EVERY", "REFIT_BVH", "SEED_PREVIOUS_FACE", "SEED_REFIT_QUERY",
            "DEFAULT_SWEPT_SEARCH", "DEFAULT_BATCH_SWEPT_SEARCH", "SWEPT_MEASURED_SEARCHES", "SWEPT_FACES_MAX_SPHERES",
@@ -124,6 +125,25 @@ class ColorSource(StrEnum):
 
 
 DEFAULT_COLOR_SOURCE = ColorSource.MESH
+
+
+class SphereBody(StrEnum):
+    """What a sphere is as a body (docs/physics.md, "Rolling"): how friction shares its impulse
+    between the sphere's travel and its spin."""
+
+    #: a point mass with a radius: no rotation, friction acts on the centre's velocity alone (a
+    #: ball on a slope slides or sticks, a sliding block's law)
+    POINT = "point"
+    #: a solid ball (moment of inertia 2/5 m r^2): friction spins it, so it rolls
+    SOLID = "solid"
+    #: a thin spherical shell (2/3 m r^2)
+    SHELL = "shell"
+
+
+#: the default body: the point mass every release so far had (its results unchanged)
+DEFAULT_SPHERE_BODY = SphereBody.POINT
+#: each body's moment of inertia over m r^2; 0: the body does not rotate (the kernels' code)
+SPHERE_INERTIA = {SphereBody.POINT: 0.0, SphereBody.SOLID: 0.4, SphereBody.SHELL: 2.0 / 3.0}
 
 
 class UpAxis(StrEnum):

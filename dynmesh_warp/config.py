@@ -26,10 +26,12 @@ from .choices import (
     DEFAULT_ORIENTATION,
     DEFAULT_PLAYBACK,
     DEFAULT_REBUILD_EVERY,
+    DEFAULT_SPHERE_BODY,
     DEFAULT_STRATEGY,
     DEFAULT_UP_AXIS,
     Collider,
     FrameOrder,
+    SphereBody,
     NewtonSolver,
     ColorSource,
     Orientation,
@@ -186,6 +188,9 @@ class PhysicsCore(_Strict):
     # how the swept collider searches a sphere's faces (None: the device's default,
     # choices.DEFAULT_SWEPT_SEARCH); docs/physics.md#the-swept-collider
     swept_search: Optional[SweptSearch] = None
+    # what a sphere is as a body: point (no rotation), solid or shell (friction spins it, so it
+    # rolls); docs/physics.md#rolling
+    sphere_body: SphereBody = DEFAULT_SPHERE_BODY
 
     @field_validator("gravity")
     @classmethod

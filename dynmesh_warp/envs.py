@@ -215,8 +215,8 @@ class RideSurfaceEnv(VectorEnv):
                   inputs=[surf.frames, surf.indices, m.pair_bvh, surf.fps, int(surf.interpolate), m.time_slices,
                           m.spheres_per_env, mask, self._seed, wp.vec3(*self.target.tolist()), 0.3 * self.max_distance, self.push,
                           self.top, self.radius],
-                  outputs=[s.env_time, s.env_playback, s.sphere_pos, s.sphere_vel, self.env_steps, self.env_episode,
-                           self.world.contacts.memory],
+                  outputs=[s.env_time, s.env_playback, s.sphere_pos, s.sphere_vel, s.sphere_spin, self.env_steps,
+                           self.env_episode, self.world.contacts.memory],
                   device=self.device)
 
     def _evaluate(self, mask: wp.array | None = None):

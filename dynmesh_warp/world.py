@@ -48,6 +48,7 @@ from .choices import (
     SEED_PREVIOUS_FACE,
     SEED_REFIT_QUERY,
     SPHERE_GRID_BUCKETS_PER_SPHERE,
+    SPHERE_INERTIA,
     SPHERE_GRID_CELL_SCALE,
     SPHERE_GRID_LEVEL_SCALE,
     SPHERE_GRID_SERIAL_RESOLVE,
@@ -150,7 +151,8 @@ class PhysicsParams(PhysicsCore):
     below which an impact does not bounce; margin: extra contact query distance [m];
     auto_substeps: raise substeps so the surface moves less than half the smallest sphere radius
     per sub-step; swept_search: the swept collider's search (None: the device's default);
-    ground_height: optional static ground plane z = ground_height [m] (None: no ground).
+    sphere_body: ``point`` (no rotation), ``solid`` or ``shell`` (friction spins the sphere, so it
+    rolls; ``choices.SphereBody``); ground_height: optional static ground plane z = ground_height [m] (None: no ground).
 
     A world built from them fixes them (:meth:`freeze`): its sub-steps, gravity and captured
     CUDA graph were made from the values it saw, so a later assignment is refused rather than
@@ -534,7 +536,7 @@ def _sphere_rows(name: str, values, count: int, first: int = 0) -> np.ndarray:
     (3, S) stack of x, y and z rows was read as scrambled rows: a new user's) or a non-finite row
     (ValueError naming ``name``, "position" or "velocity", and the sphere). A flat (3 count,)
     array is taken row by row."""
-    names = {"position": "positions", "velocity": "velocities"}[name]
+    names = {"position": "positions", "velocity": "velocities", "spin": "spins"}[name]
     try:
         a = np.asarray(values, np.float32)
     except (TypeError, ValueError) as e:
@@ -596,10 +598,11 @@ class State:
         frame pair, the swept one, reads it).
         points: (N,) vec3 current surface vertices [m]; velocities: (N,) vec3 [m/s].
         face_normals: (M,) vec3 unit normals of the current surface.
-        sphere_pos: (S,) vec3 centres [m]; sphere_vel: (S,) vec3 [m/s].
+        sphere_pos: (S,) vec3 centres [m]; sphere_vel: (S,) vec3 [m/s]; sphere_spin: (S,) vec3
+        angular velocities [rad/s] (stay as given where ``PhysicsParams.sphere_body`` is ``point``).
     """
 
-    def __init__(self, model: Model, positions, velocities=None, t0: float = 0.0):
+    def __init__(self, model: Model, positions, velocities=None, t0: float = 0.0, spins=None):
         d = model.device
         surf = model.surface
         self.sim_time = wp.array([t0], dtype=wp.float64, device=d)
@@ -612,6 +615,8 @@ class State:
         vel = np.zeros((S, 3), np.float32) if velocities is None else _sphere_rows("velocity", velocities, S)
         self.sphere_pos = wp.array(pos, dtype=wp.vec3, device=d)
         self.sphere_vel = wp.array(vel, dtype=wp.vec3, device=d)
+        spin = np.zeros((S, 3), np.float32) if spins is None else _sphere_rows("spin", spins, S)
+        self.sphere_spin = wp.array(spin, dtype=wp.vec3, device=d)
 
 
     def update_frame_key(self, model: Model):
@@ -721,9 +726,9 @@ def integrate(model: Model, state: State, contacts: "Contacts", ctx: StepContext
                 ctx.sub_dt, m.params.restitution, m.params.friction, m.params.rest_speed,
                 int(m.params.ground_height is not None),
                 float(m.params.ground_height if m.params.ground_height is not None else 0.0),
-                ctx.sub_dt, surf.fps, surf.num_frames, surf.playback,
+                ctx.sub_dt, surf.fps, surf.num_frames, surf.playback, SPHERE_INERTIA[m.params.sphere_body],
                 c.face, c.normal, c.depth, c.velocity],
-               [s.sphere_pos, s.sphere_vel, s.sim_time, s.frame_key, s.frame_changed, c.memory])
+               [s.sphere_pos, s.sphere_vel, s.sphere_spin, s.sim_time, s.frame_key, s.frame_changed, c.memory])
 
 
 def substep(model: Model, state: State, contacts: "Contacts", collider: "ColliderBase", ctx: StepContext):
@@ -1220,7 +1225,8 @@ class World:
         self._graph = None
         if self.device.is_cpu and self.collider.capturable:
             self._launch_cache = {}
-        self._initial = (state.sphere_pos.numpy().copy(), state.sphere_vel.numpy().copy())  # .numpy() is a view on the CPU
+        self._initial = (state.sphere_pos.numpy().copy(), state.sphere_vel.numpy().copy(),  # .numpy() is a view on the CPU
+                         state.sphere_spin.numpy().copy())
         self._initial_spheres = model.spheres  # the scene's own spheres: reset() goes back to them
         self.post_step_hooks = []  # callables hook(world) launched after each step (inside the graph)
 
@@ -1442,13 +1448,14 @@ class World:
         if self.model.spheres is not self._initial_spheres:
             with warnings.catch_warnings():  # the scene's own sub-step note was given when it was built
                 warnings.simplefilter("ignore")
-                self._set_spheres(self._initial_spheres, self._initial[0][: self._initial_spheres.count],
-                                  self._initial[1][: self._initial_spheres.count], rederive_substeps=True)
-            self._initial = (self._initial[0][: self.model.spheres.count], self._initial[1][: self.model.spheres.count])
+                self._set_spheres(self._initial_spheres, *(a[: self._initial_spheres.count] for a in self._initial),
+                                  rederive_substeps=True)
+            self._initial = tuple(a[: self.model.spheres.count] for a in self._initial)
         s = self.state
         s.sim_time.assign(np.array([self.t0], dtype=np.float64))
         s.sphere_pos.assign(self._initial[0])
         s.sphere_vel.assign(self._initial[1])
+        s.sphere_spin.assign(self._initial[2])
         self.contacts.memory.zero_()  # (a pinch before the reset would squeeze the first sub-step after it)
         self.substep_count = 0
         self.ctx.time = self.t0
@@ -1458,8 +1465,8 @@ class World:
     # -- checkpoints (run --checkpoint-every / --resume; dynmesh_warp.checkpoint) -------------
     def checkpoint_state(self) -> dict:
         """Everything a step reads that changes while the world runs, as NumPy copies: the clock
-        (the host's float64 and the device's), the sub-step count, the spheres' positions and
-        velocities, the clock's frame pair and pending-change flag, and the collider's frame state
+        (the host's float64 and the device's), the sub-step count, the spheres' positions,
+        velocities and spins, the clock's frame pair and pending-change flag, and the collider's frame state
         (swept: :attr:`SweptCollider.CHECKPOINT_ARRAYS`;
         refit and rebuild derive theirs from the clock), and each sphere's last contact face: the
         seeded searches (``SEED_PREVIOUS_FACE``, ``SEED_REFIT_QUERY``) read it before they write
@@ -1472,6 +1479,7 @@ class World:
         st = {"time": np.array(self.ctx.time, np.float64), "sim_time": self.state.sim_time.numpy().copy(),
               "substep_count": np.array(self.substep_count, np.int64),
               "sphere_pos": self.sphere_positions(), "sphere_vel": self.sphere_velocities(),
+              "sphere_spin": self.sphere_spins(),
               "frame_key": self.state.frame_key.numpy().copy(), "frame_changed": self.state.frame_changed.numpy().copy(),
               "contact_face": self.contacts.face.numpy().copy(),
               "contact_memory": self.contacts.memory.numpy().copy()}
@@ -1491,6 +1499,8 @@ class World:
         self.state.sim_time.assign(np.asarray(st["sim_time"], np.float64).reshape(1))
         self.state.sphere_pos.assign(np.asarray(st["sphere_pos"], np.float32).reshape(-1, 3))
         self.state.sphere_vel.assign(np.asarray(st["sphere_vel"], np.float32).reshape(-1, 3))
+        # (a checkpoint from before spins were kept: its spheres did not rotate)
+        self.state.sphere_spin.assign(np.asarray(st.get("sphere_spin", np.zeros((S, 3))), np.float32).reshape(-1, 3))
         self.state.frame_key.assign(np.asarray(st["frame_key"], np.int32).reshape(1))
         self.state.frame_changed.assign(np.asarray(st["frame_changed"], np.int32).reshape(1))
         self.contacts.face.assign(np.asarray(st["contact_face"], np.int32).reshape(-1))
@@ -1560,13 +1570,15 @@ class World:
         new_r = np.concatenate([old.radius_np, radius])
         new_m = np.concatenate([old_mass, np.broadcast_to(np.asarray(mass, np.float64), (n,))])
         vel = np.zeros((n, 3), np.float32) if velocities is None else _sphere_rows("velocity", velocities, n, first)
+        spin = np.zeros((n, 3), np.float32)
         pos_all = np.concatenate([self.state.sphere_pos.numpy(), positions])
         vel_all = np.concatenate([self.state.sphere_vel.numpy(), vel])
+        spin_all = np.concatenate([self.state.sphere_spin.numpy(), spin])
         spheres = SphereModel(new_r, new_m, self.device)  # checks radius and mass before anything changes
-        self._set_spheres(spheres, pos_all, vel_all, stacklevel=4)
+        self._set_spheres(spheres, pos_all, vel_all, spin_all, stacklevel=4)
         # what reset() restores: only once the spheres are in (a refused call changed it, and the
         # next reset() failed on arrays of different sizes; found by a new user)
-        self._initial = (np.concatenate([self._initial[0], positions]), np.concatenate([self._initial[1], vel]))
+        self._initial = tuple(np.concatenate([a, b]) for a, b in zip(self._initial, (positions, vel, spin)))
 
     def _refuse_inside(self, positions: np.ndarray, first: int) -> None:
         """ValueError when a new sphere's centre lies inside the surface, where it is closed, as
@@ -1585,13 +1597,14 @@ class World:
                              + (f" ({inside.size} of the {len(positions)} new spheres are inside)" if inside.size > 1
                                 else ""))
 
-    def _set_spheres(self, spheres: SphereModel, pos, vel, stacklevel: int = 3, rederive_substeps: bool = False):
+    def _set_spheres(self, spheres: SphereModel, pos, vel, spin, stacklevel: int = 3, rederive_substeps: bool = False):
         """Replace the sphere set (model and state arrays, contacts, sub-step rule, collider lists);
         drops the graph. ``rederive_substeps``: from the configured count again (after removing
         spheres), else only ever raised."""
         self.model.spheres = spheres
         self.state.sphere_pos = wp.array(np.asarray(pos, np.float32), dtype=wp.vec3, device=self.device)
         self.state.sphere_vel = wp.array(np.asarray(vel, np.float32), dtype=wp.vec3, device=self.device)
+        self.state.sphere_spin = wp.array(np.asarray(spin, np.float32), dtype=wp.vec3, device=self.device)
         memory = self.contacts.memory.numpy()
         self.contacts = Contacts(self.model.spheres.count, device=self.device)
         kept = min(len(memory), self.model.spheres.count)  # the spheres kept keep their pinch memory
@@ -1610,15 +1623,16 @@ class World:
         the scene's, and those of spheres added since (what :meth:`reset` goes back to)."""
         return self._initial[0].copy(), self._initial[1].copy()
 
-    def set_sphere(self, i: int, position, velocity=(0.0, 0.0, 0.0)):
-        """Place sphere ``i`` at ``position`` [m] with ``velocity`` [m/s] between steps, without a
-        host read-back and keeping the captured graph (the arrays stay the same); the collider
-        is told (``spheres_moved``)."""
+    def set_sphere(self, i: int, position, velocity=(0.0, 0.0, 0.0), spin=(0.0, 0.0, 0.0)):
+        """Place sphere ``i`` at ``position`` [m] with ``velocity`` [m/s] and ``spin`` [rad/s] between
+        steps, without a host read-back and keeping the captured graph (the arrays stay the same);
+        the collider is told (``spheres_moved``)."""
         i = int(i)
         if not 0 <= i < self.model.spheres.count:
             raise IndexError(f"sphere {i}: the world has {self.model.spheres.count} spheres")
-        rows = [_sphere_rows(name, v, 1, i) for name, v in (("position", position), ("velocity", velocity))]
-        for dst, row in zip((self.state.sphere_pos, self.state.sphere_vel), rows):
+        rows = [_sphere_rows(name, v, 1, i) for name, v in (("position", position), ("velocity", velocity),
+                                                             ("spin", spin))]
+        for dst, row in zip((self.state.sphere_pos, self.state.sphere_vel, self.state.sphere_spin), rows):
             wp.copy(dst, wp.array(row, dtype=wp.vec3, device=self.device), dest_offset=i, count=1)
         self.contacts.memory[i:i + 1].zero_()  # a sphere placed anew remembers no contact
         self.collider.spheres_moved(self.model, self.state, self.ctx)
@@ -1630,7 +1644,7 @@ class World:
 
     def sample(self) -> dict:
         """The arrays of one ``trajectories.npz`` sample: ``position`` and ``velocity`` (S, 3)
-        [m], [m/s] (host copies)."""
+        [m], [m/s] (host copies). (Spins are not sampled: :meth:`sphere_spins`.)"""
         return {"position": self.sphere_positions(), "velocity": self.sphere_velocities()}
 
     def trajectory_constants(self) -> dict:
@@ -1700,3 +1714,7 @@ class World:
 
     def sphere_velocities(self) -> np.ndarray:
         return self.state.sphere_vel.numpy().copy()
+
+    def sphere_spins(self) -> np.ndarray:
+        """(S, 3) angular velocities [rad/s] (zero where ``physics.sphere_body`` is ``point``)."""
+        return self.state.sphere_spin.numpy().copy()

@@ -159,6 +159,7 @@ def collide_and_integrate_env_spheres(
     ground_height: float,
     fps: wp.float64,
     interpolate: int,
+    inertia: float,
     slices: int,
     # State in:
     env_time_in: wp.array[wp.float64],
@@ -173,6 +174,7 @@ def collide_and_integrate_env_spheres(
     # State out:
     sphere_pos_out: wp.array[wp.vec3],
     sphere_vel_out: wp.array[wp.vec3],
+    sphere_spin_out: wp.array[wp.vec3],
     # Out:
     contact_face: wp.array[wp.int32],
     contact_point: wp.array[wp.vec3],
@@ -206,11 +208,12 @@ def collide_and_integrate_env_spheres(
     write_swept_contact(s, p, r, reach, min_dist, min_face, min_w, acc_n, frames, indices, k0, k1, alpha,
                         fps * wp.float64(rate), contact_face, contact_point, contact_normal, contact_depth,
                         contact_velocity)
-    p, v = advance_sphere_with_memory(s, p, v, inv_mass[s], r, gravity, dt, restitution, friction, rest_speed,
-                                      ground, ground_height, contact_face[s], contact_normal[s], contact_depth[s],
-                                      contact_velocity[s], contact_memory)
+    p, v, w = advance_sphere_with_memory(s, p, v, inv_mass[s], r, gravity, dt, restitution, friction, rest_speed,
+                                         ground, ground_height, contact_face[s], contact_normal[s], contact_depth[s],
+                                         contact_velocity[s], contact_memory, sphere_spin_out[s], inertia)
     sphere_pos_out[s] = p
     sphere_vel_out[s] = v
+    sphere_spin_out[s] = w
 
 
 @wp.func
@@ -689,6 +692,7 @@ def resolve_and_integrate_env_spheres(
     ground_height: float,
     fps: wp.float64,
     interpolate: int,
+    inertia: float,
     # State in:
     env_rate_in: wp.array[float],
     env_playback_in: wp.array[wp.int32],
@@ -706,6 +710,7 @@ def resolve_and_integrate_env_spheres(
     # State out:
     sphere_pos_out: wp.array[wp.vec3],
     sphere_vel_out: wp.array[wp.vec3],
+    sphere_spin_out: wp.array[wp.vec3],
     env_time_out: wp.array[wp.float64],
     # Out:
     contact_face: wp.array[wp.int32],
@@ -734,11 +739,12 @@ def resolve_and_integrate_env_spheres(
     write_swept_contact(s, p, r, reach, query_dist[s], query_face[s], query_w[s], query_n[s], frames, indices, k0, k1,
                         alpha, fps * wp.float64(env_rate_in[e]), contact_face, contact_point, contact_normal,
                         contact_depth, contact_velocity)
-    p, v = advance_sphere_with_memory(s, p, v, inv_mass[s], r, gravity, dt, restitution, friction, rest_speed,
-                                      ground, ground_height, contact_face[s], contact_normal[s], contact_depth[s],
-                                      contact_velocity[s], contact_memory)
+    p, v, w = advance_sphere_with_memory(s, p, v, inv_mass[s], r, gravity, dt, restitution, friction, rest_speed,
+                                         ground, ground_height, contact_face[s], contact_normal[s], contact_depth[s],
+                                         contact_velocity[s], contact_memory, sphere_spin_out[s], inertia)
     sphere_pos_out[s] = p
     sphere_vel_out[s] = v
+    sphere_spin_out[s] = w
 
 
 @wp.kernel
@@ -765,11 +771,12 @@ def reset_env_spheres(
     # State out:
     sphere_pos_out: wp.array[wp.vec3],
     sphere_vel_out: wp.array[wp.vec3],
+    sphere_spin_out: wp.array[wp.vec3],
     # Out:
     contact_memory: wp.array[pinch_memory],
 ):
     """Spheres of the envs with env_mask[e] != 0 from new_pos / new_vel ((E * S,) [m], [m/s]),
-    their pinch memory cleared (``kernels.integrate.pinch_memory``: a pinch before the reset
+    their spin stopped and their pinch memory cleared (``kernels.integrate.pinch_memory``: a pinch before the reset
     would squeeze the first sub-step after it); the other envs' spheres are left untouched. One
     thread per sphere."""
     s = wp.tid()
@@ -777,6 +784,7 @@ def reset_env_spheres(
         return
     sphere_pos_out[s] = new_pos[s]
     sphere_vel_out[s] = new_vel[s]
+    sphere_spin_out[s] = wp.vec3(0.0)
     contact_memory[s] = pinch_memory()
 
 

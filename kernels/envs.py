@@ -239,6 +239,7 @@ def reset_ball_envs(
     env_playback_out: wp.array[wp.int32],
     sphere_pos_out: wp.array[wp.vec3],
     sphere_vel_out: wp.array[wp.vec3],
+    sphere_spin_out: wp.array[wp.vec3],
     env_steps_out: wp.array[wp.int32],
     env_episode_out: wp.array[wp.int32],
     contact_memory_out: wp.array[pinch_memory],
@@ -247,7 +248,7 @@ def reset_ball_envs(
     cycle (uniform over ``playback_cycle`` / fps [s]: a pingpong env starts going back as often
     as forth), the ball over a random point within ``spawn_radius`` [m]
     of the target, just above the surface there, with a random horizontal push of at most
-    ``push`` [m/s], its pinch memory cleared (``BatchedWorld.reset``'s rule). Random numbers from
+    ``push`` [m/s], its spin stopped and its pinch memory cleared (``BatchedWorld.reset``'s rule). Random numbers from
     (seed, env, episode): reproducible."""
     e = wp.tid()
     if env_mask[e] == 0:
@@ -272,6 +273,7 @@ def reset_ball_envs(
     pang = wp.randf(state) * 6.283185307179586
     pm = push * wp.randf(state)
     sphere_vel_out[s] = wp.vec3(pm * wp.cos(pang), pm * wp.sin(pang), 0.0)
+    sphere_spin_out[s] = wp.vec3(0.0)
     contact_memory_out[s] = pinch_memory()  # a pinch of the last episode is not this one's
     env_steps_out[e] = 0
 

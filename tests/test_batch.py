@@ -20,19 +20,20 @@ def _spheres(S, rng):
     return pos, vel
 
 
-def _params():
-    return PhysicsParams(restitution=0.3, friction=0.5, ground_height=-0.4)
+def _params(body="point"):
+    return PhysicsParams(restitution=0.3, friction=0.5, ground_height=-0.4, sphere_body=body)
 
 
-@pytest.mark.parametrize("playback,search,budget", [("loop", "serial", None), ("pingpong", "serial", None),
-                                                    ("clamp", "serial", None), ("loop", "tiled", None),
-                                                    ("pingpong", "tiled", None), ("loop", "hybrid", 2),
-                                                    ("clamp", "hybrid", 0), ("loop", "grid", None),
-                                                    ("pingpong", "grid", None)])
-def test_batched_envs_equal_single_worlds(device, playback, search, budget):
+@pytest.mark.parametrize("playback,search,budget,body", [
+    ("loop", "serial", None, "point"), ("pingpong", "serial", None, "point"), ("clamp", "serial", None, "point"),
+    ("loop", "tiled", None, "point"), ("pingpong", "tiled", None, "point"), ("loop", "hybrid", 2, "point"),
+    ("clamp", "hybrid", 0, "point"), ("loop", "grid", None, "point"), ("pingpong", "grid", None, "point"),
+    ("loop", "serial", None, "solid"), ("pingpong", "tiled", None, "shell")])
+def test_batched_envs_equal_single_worlds(device, playback, search, budget, body):
     """... with each search: serial, tiled (a block per sphere) and hybrid (a thread per sphere,
     handing a sphere with more than ``budget`` candidate faces to a block; budget 0 hands over
-    every sphere near the surface). The single worlds keep the serial search, the reference."""
+    every sphere near the surface). The single worlds keep the serial search, the reference.
+    Spheres that roll (``body`` solid, shell) keep their spins the same too."""
     seq = wave_bowl(n=20, frames=10)
     rng = np.random.default_rng(5)
     E, S = 4, 6
@@ -40,13 +41,13 @@ def test_batched_envs_equal_single_worlds(device, playback, search, budget):
     radius = np.full(S, 0.06, np.float32)
     times = np.array([0.0, 0.13, 0.37, 0.41 + 10 / 24.0])  # includes a time past the end (loop / turn / hold)
     surf = SurfaceModel(seq, device, playback=playback)
-    bm = BatchModel(surf, E, radius, 1.0, _params())
+    bm = BatchModel(surf, E, radius, 1.0, _params(body))
     bw = BatchedWorld(bm, BatchState(bm, pos, vel, times=times), search=search, tile_threads=8,
                       budget=budget, blocks=3)
     assert bw.search == search
     singles = []
     for e in range(E):
-        m = Model(SurfaceModel(seq, device, playback=playback), SphereModel(radius, 1.0, device), _params())
+        m = Model(SurfaceModel(seq, device, playback=playback), SphereModel(radius, 1.0, device), _params(body))
         w = World(m, State(m, pos, vel, t0=float(times[e])), collider="swept", swept_search="serial")
         assert w.substeps == bw.substeps
         singles.append(w)
@@ -64,6 +65,9 @@ def test_batched_envs_equal_single_worlds(device, playback, search, budget):
         np.testing.assert_allclose(P[e], w.sphere_positions(), atol=2e-5, err_msg=f"env {e}")
         np.testing.assert_allclose(bw.sphere_velocities()[e], w.sphere_velocities(), atol=2e-4)
         assert bw.env_times()[e] == pytest.approx(w.time, abs=1e-12)
+        np.testing.assert_allclose(bw.state.sphere_spin.numpy().reshape(E, S, 3)[e], w.sphere_spins(), atol=2e-3)
+    spins = np.abs(bw.state.sphere_spin.numpy()).max()
+    assert (spins > 0.1) if body != "point" else (spins == 0.0)  # friction spun them, or nothing does
     assert touched > 0  # the spheres did meet the moving surface
     assert not np.allclose(P[0], P[1])  # different clocks, different outcomes
     if search == "hybrid":
@@ -280,8 +284,8 @@ def test_batch_needs_a_fixed_surface_and_spheres(device):
 
 def test_memory_per_env_counts_every_array_of_an_env(device):
     """The per-env memory a batch reports (summary.json's ``memory_bytes``) against a count by
-    hand of what each sphere and env holds: radius, inverse mass, env index, position, velocity
-    (4 + 4 + 4 + 12 + 12), its contact (face, point, normal, depth, velocity: 4 + 12 + 12 + 4 + 12)
+    hand of what each sphere and env holds: radius, inverse mass, env index, position, velocity,
+    spin (4 + 4 + 4 + 12 + 12 + 12), its contact (face, point, normal, depth, velocity: 4 + 12 + 12 + 4 + 12)
     and pinch memory (64), the clock (8 + 4 + 4) and the reset mask (4); a split search adds the
     query record (dist, face, weights, normal sum, time, hand-over: 4 + 4 + 12 + 12 + 8 + 4). A
     new user measured 740 B an env of 5 spheres where 416 was said (contacts' pinch memory and the
@@ -289,7 +293,7 @@ def test_memory_per_env_counts_every_array_of_an_env(device):
     seq = wave_bowl(n=8, frames=4)
     S, E = 3, 5
     bm = BatchModel(SurfaceModel(seq, device), E, [0.05] * S, 1.0, PhysicsParams())
-    sphere = 4 + 4 + 4 + 12 + 12 + (4 + 12 + 12 + 4 + 12) + 64
+    sphere = 4 + 4 + 4 + 12 + 12 + 12 + (4 + 12 + 12 + 4 + 12) + 64
     for search, query in (("serial", 0), ("grid", 4 + 4 + 12 + 12 + 8 + 4)):
         bw = BatchedWorld(bm, BatchState(bm, np.zeros((S, 3), np.float32) + [0.0, 0.0, 0.5]), search=search)
         assert bw.memory_bytes["per_env"] == S * (sphere + query) + 8 + 4 + 4 + 4, search

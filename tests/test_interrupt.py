@@ -271,6 +271,37 @@ def test_resume_from_a_checkpoint_is_bit_identical(tmp_path, collider, steps, ev
     assert sb["checkpoint"]["every"] == every  # the interval is kept on resume
 
 
+def test_resume_of_rolling_spheres_is_bit_identical_and_an_old_checkpoint_had_none(tmp_path, capsys):
+    """Spheres that roll (physics.sphere_body: solid) resume with their spins, bit for bit; a
+    checkpoint without spins (written before they were kept) resumes a point-mass scene as it
+    was, and is refused for a rolling one (its fingerprint's body is point)."""
+    roll = ["--set", "physics.sphere_body=solid", "--collider", "swept"]
+    a, b, ref = tmp_path / "a", tmp_path / "b", tmp_path / "ref"
+    assert _run_inprocess(["--steps", "300", "--checkpoint-every", "150", "--output", str(a)] + roll) == 0
+    assert np.abs(np.load(a / "checkpoint.npz")["sphere_spin"]).max() > 0.1  # they did spin
+    assert _run_inprocess(["--steps", "450", "--resume", str(a / "checkpoint.npz"), "--output", str(b)] + roll) == 0
+    assert _run_inprocess(["--steps", "450", "--output", str(ref)] + roll) == 0
+    _same_trajectories(b, ref)
+    c = tmp_path / "c"  # a point-mass run's checkpoint with the spins and the body taken out
+    assert _run_inprocess(["--steps", "60", "--checkpoint-every", "30", "--collider", "swept", "--output", str(c)]) == 0
+    d = dict(np.load(c / "checkpoint.npz"))
+    d.pop("sphere_spin")
+    meta = json.loads(str(d["meta"]))
+    del meta["fingerprint"]["physics.sphere_body"]
+    d["meta"] = np.asarray(json.dumps(meta))
+    np.savez(tmp_path / "old.npz", **d)
+    capsys.readouterr()
+    out, ref2 = tmp_path / "out", tmp_path / "ref2"
+    assert _run_inprocess(["--steps", "90", "--resume", str(tmp_path / "old.npz"), "--collider", "swept",
+                           "--output", str(out)]) == 0
+    assert _run_inprocess(["--steps", "90", "--collider", "swept", "--output", str(ref2)]) == 0
+    _same_trajectories(out, ref2)
+    capsys.readouterr()
+    assert _run_inprocess(["--steps", "90", "--resume", str(tmp_path / "old.npz"), "--output", str(tmp_path / "x")]
+                          + roll) == 2
+    assert "physics.sphere_body is 'point' in the checkpoint but 'solid' here" in capsys.readouterr().err
+
+
 def test_resume_keeps_the_collider_fixed_chose(tmp_path, monkeypatch):
     """``fixed`` is measured and may choose differently on another machine: a resumed run takes
     the collider its checkpoint was written with, whatever a new measurement says."""

@@ -180,6 +180,90 @@ def test_friction_on_incline(mu, slides):
         np.testing.assert_allclose(v[-1, 0] @ (-up_slope), a * t[-1], rtol=0.02)
 
 
+@pytest.mark.parametrize("body, k, mu", [("solid", 0.4, 0.5), ("shell", 2.0 / 3.0, 0.5), ("solid", 0.4, 0.05),
+                                         ("point", 0.0, 0.5)])
+def test_ball_on_incline_rolls_or_slides(body, k, mu):
+    """physics.sphere_body: a body that rotates rolls down a 20-degree slope at g sin / (1 + k)
+    (k = I / m r^2; 5/7 and 3/5 g sin) with spin v / r where tan <= (1 + 1/k) mu, and slides at
+    g (sin - mu cos) spinning up at mu g cos / (k r) where friction cannot hold it (closed forms of
+    rigid-body mechanics); the point mass sticks (tan 20 < 0.5) and never spins."""
+    theta = math.radians(20.0)
+    r = 0.1
+    R, n, up_slope = _incline(theta)
+    w = make_world(_static_sheet(size=4.0, rotation=R), [r * n], r, friction=mu, sphere_body=body)
+    t, p, v = run(w, int(0.8 / DT))
+    down = v[:, 0] @ (-up_slope)
+    spin = w.sphere_spins()[0]
+    np.testing.assert_allclose(p[:, 0] @ n - r, 0.0, atol=1e-3)  # stays on the plane
+    if k == 0.0:
+        assert np.abs(down).max() < 1e-3 and not spin.any()
+        return
+    rolls = math.tan(theta) <= (1 + 1 / k) * mu
+    a = G * math.sin(theta) / (1 + k) if rolls else G * (math.sin(theta) - mu * math.cos(theta))
+    np.testing.assert_allclose(down[-1], a * t[-1], rtol=0.01)
+    axis = np.cross(n, -up_slope)  # rolling down the slope turns the ball about n x (downhill)
+    if rolls:
+        np.testing.assert_allclose(spin @ axis * r, down[-1], rtol=1e-3)
+    else:
+        np.testing.assert_allclose(spin @ axis, mu * G * math.cos(theta) / (k * r) * t[-1], rtol=0.01)
+    np.testing.assert_allclose(spin - (spin @ axis) * axis, 0.0, atol=1e-4)
+
+
+def test_ball_launched_sliding_rolls_on_at_five_sevenths():
+    """A solid ball launched sliding at v0 on a level floor (mu = 0.5): friction slows the centre
+    and spins the ball until the contact point stops slipping at t = 2 v0 / (7 mu g), then it
+    rolls on at 5/7 v0 for ever (no rolling resistance); the point mass stops at v0^2 / (2 mu g)."""
+    r, v0, mu = 0.05, 2.0, 0.5
+    t_roll = 2 * v0 / (7 * mu * G)
+    for body, v_end in (("solid", 5.0 / 7.0 * v0), ("point", 0.0)):
+        w = make_world(_static_sheet(size=8.0), [[-1.5, 0.0, r]], r, friction=mu, sphere_body=body,
+                       velocities=[[v0, 0.0, 0.0]])
+        t, p, v = run(w, int(0.6 / DT))
+        np.testing.assert_allclose(v[-1, 0], [v_end, 0.0, 0.0], atol=2e-3)
+        if body == "solid":
+            i = int(np.searchsorted(t, t_roll + 2 * DT))
+            np.testing.assert_allclose(v[i:, 0, 0], v_end, atol=2e-3)  # rolling from then on
+            j = int(np.searchsorted(t, 0.5 * t_roll))
+            np.testing.assert_allclose(v[j, 0, 0], v0 - mu * G * t[j], atol=2e-2)  # sliding before
+            np.testing.assert_allclose(w.sphere_spins()[0], [0.0, v_end / r, 0.0], rtol=1e-3, atol=1e-3)
+        else:
+            np.testing.assert_allclose(p[-1, 0, 0] + 1.5, v0 ** 2 / (2 * mu * G), rtol=0.02)
+
+
+@pytest.mark.parametrize("e", [0.5, 0.7])
+def test_ground_plane_bounces_like_the_mesh_plane(e):
+    """The ground plane's contact has the mesh's time of impact: a sphere dropped on it rebounds
+    to the same apexes as on a mesh plane at the same height (it was clamped: 4th apex 0.65 x
+    e^8 h at dt 1/240, a new user's), each within 10 % of e^2n h."""
+    r, h = 0.05, 1.0
+    apexes = []
+    for ground in (None, 0.0):
+        seq = _static_sheet(size=4.0)
+        if ground is not None:  # the mesh far below: only the ground plane stops the sphere
+            seq = FixedTopologySequence(seq.V - np.float32([0, 0, 5.0]), seq.F, fps=seq.fps)
+        w = make_world(seq, [[0.0, 0.0, h + r]], r, restitution=e, friction=0.5, ground_height=ground)
+        t, p, v = run(w, int(2.5 / DT))
+        vz = v[:, 0, 2]
+        top = np.flatnonzero((vz[1:] <= 0) & (vz[:-1] > 0)) + 1  # the steps where it turns down
+        apexes.append(p[top[:3], 0, 2] - r)
+        assert p[:, 0, 2].min() > r - 1e-6
+    np.testing.assert_allclose(apexes[1], apexes[0], rtol=1e-3)
+    np.testing.assert_allclose(apexes[1], [h * e ** (2 * k) for k in (1, 2, 3)], rtol=0.1)
+
+
+def test_fast_sphere_note_names_the_sphere_and_the_substeps():
+    """runner.fast_sphere_note: a sphere whose sampled speed took it over its radius in one
+    sub-step is named with its radii a sub-step and the sub-steps that keep it within one."""
+    from dynmesh_warp.runner import fast_sphere_note
+
+    v = np.zeros((3, 2, 3))
+    v[1, 1] = [30.0, 0.0, 0.0]  # 30 m/s x 1/240 s = 2.5 radii of 0.05 m
+    note = fast_sphere_note({"velocity": v, "radius": np.array([0.05, 0.05])}, 1 / 240, 1)
+    assert "sphere 1: 30 m/s, 2.5 radii a sub-step" in note and "physics.substeps=3" in note
+    assert fast_sphere_note({"velocity": v, "radius": np.array([0.05, 0.05])}, 1 / 240, 4) == ""
+    assert fast_sphere_note({"velocity": v * 0.1, "radius": np.array([0.05, 0.05])}, 1 / 240, 1) == ""
+
+
 # ---------------------------------------------------------------------------------------------
 # no tunnelling
 # ---------------------------------------------------------------------------------------------
