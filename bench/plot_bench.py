@@ -37,8 +37,10 @@ def main(out: str | None = None):
         ax.set_xlabel("surface vertices")
         ax.grid(True, which="both", alpha=0.3)
         ax.set_title(f"{d['machine']['device_name']} ({d['machine']['device']})", fontsize=10)
+        # each panel its own legend: the colours stand for each file's own sphere counts (the CPU
+        # table's third is 10,000, the GPU's 100,000; one legend named both 100,000, a new user's)
+        ax.legend(fontsize=7, ncol=3, loc="lower left")
     axes[0].set_ylabel("steps / s")
-    axes[0].legend(fontsize=7, ncol=3, loc="lower left")
     fig.suptitle("dynmesh_warp step rate vs mesh size: fixed topology (swept, refit) vs rebuild baseline", fontsize=11)
     fig.tight_layout()
     from dynmesh_warp.outputs import atomic_path

@@ -41,7 +41,7 @@ from .choices import (
     SweptSearch,
     UpAxis,
 )
-from .mesh_formats import MESH_EXTENSIONS, file_problem
+from .mesh_formats import MESH_EXTENSIONS, UNREAD_ANIMATIONS, file_problem
 from .sequence import FPS_RANGE
 
 __all__ = ["SceneConfig", "SceneError", "load_scene_config", "scene_config", "apply_overrides", "DEFAULT_SCENE",
@@ -599,14 +599,16 @@ def scene_config(scene, default=None) -> SceneConfig:
 
 def is_sequence_path(path) -> bool:
     """Whether ``path`` names a mesh sequence rather than a scene YAML: a folder, or a file (not
-    .yaml / .yml) with an extension a sequence or mesh reader takes (docs/data.md)."""
+    .yaml / .yml) with an extension a sequence or mesh reader takes (docs/data.md), or of an
+    animation format that is not read (Alembic, FBX, USD, ...: the sequence's loader says so and
+    what to export; read as YAML, an empty .abc played the default scene with exit 0, a new user's)."""
     from .animation_formats import ANIMATION_EXTENSIONS, VERTEX_ONLY_EXTENSIONS
 
     path = Path(path).expanduser()
     suffix = path.suffix.lower()
     return path.is_dir() or (path.is_file() and suffix not in (".yaml", ".yml")
                              and (suffix in VERTEX_ONLY_EXTENSIONS or suffix in ANIMATION_EXTENSIONS
-                                  or suffix in MESH_EXTENSIONS))
+                                  or suffix in MESH_EXTENSIONS or suffix in UNREAD_ANIMATIONS))
 
 
 def sequence_scene(path) -> dict:
@@ -640,8 +642,8 @@ def say_sequence_scene(scene, cfg: SceneConfig) -> None:
     as 5) and how to change the rest (docs/scene.md). Nothing for a scene file."""
     import sys
 
-    if scene is None or not is_sequence_path(scene):
-        return
+    if scene is None or not is_sequence_path(scene) or Path(scene).suffix.lower() in UNREAD_ANIMATIONS:
+        return  # (not for a format that is not read: its loader's error follows)
     sp = cfg.spheres
     if isinstance(sp, SpawnConfig):
         what = f"{sp.count} sphere{'s' if sp.count != 1 else ''} of radius {sp.radius:g} m dropped on it"

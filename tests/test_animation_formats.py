@@ -232,6 +232,25 @@ def test_unread_animation_formats_say_what_to_export_instead(tmp_path, name, wha
         load_sequence(tmp_path / name)
 
 
+@pytest.mark.parametrize("name, what", [("walk.abc", "Alembic"), ("rig.fbx", "FBX"), ("m.bvh", "BVH")])
+def test_run_and_render_refuse_unread_animation_formats_too(tmp_path, capsys, monkeypatch, name, what):
+    """``run`` / ``render`` given an Alembic, FBX, ... file say what ``convert`` says (exit 2):
+    they read it as a scene YAML, and an empty ``.abc`` played the built-in default scene with
+    exit 0 (a new user's)."""
+    from dynmesh_warp.render import main as render_main
+    from dynmesh_warp.run import main as run_main
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / name).write_bytes(b"" if name.endswith(".abc") else b"\xff\0HIERARCHY")
+    for argv in ([name, "--device", "cpu", "--viewer", "none", "--steps", "2"],
+                 [name, "--device", "cpu", "--figure", "f.png"]):
+        main = run_main if "--viewer" in argv else render_main
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert f"{name}: {what}" in err and "files are not read" in err and "is a mesh sequence" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == [name]  # nothing written
+
+
 def test_vertex_only_npz_and_npy_take_faces_from_a_mesh(tmp_path):
     """SMPL / AMASS-style exports: vertices (T, N, 3) in an npz without faces, or a bare .npy."""
     np.savez(tmp_path / "smpl_walk.npz", vertices=V.astype(np.float64), fps=np.float32(30))
