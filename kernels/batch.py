@@ -208,12 +208,16 @@ def collide_and_integrate_env_spheres(
     write_swept_contact(s, p, r, reach, min_dist, min_face, min_w, acc_n, frames, indices, k0, k1, alpha,
                         fps * wp.float64(rate), contact_face, contact_point, contact_normal, contact_depth,
                         contact_velocity)
+    spin = wp.vec3(0.0)
+    if inertia > 0.0:
+        spin = sphere_spin_out[s]
     p, v, w = advance_sphere_with_memory(s, p, v, inv_mass[s], r, gravity, dt, restitution, friction, rest_speed,
                                          ground, ground_height, contact_face[s], contact_normal[s], contact_depth[s],
-                                         contact_velocity[s], contact_memory, sphere_spin_out[s], inertia)
+                                         contact_velocity[s], contact_memory, spin, inertia)
     sphere_pos_out[s] = p
     sphere_vel_out[s] = v
-    sphere_spin_out[s] = w
+    if inertia > 0.0:  # (a point mass keeps its spin: no read, no write)
+        sphere_spin_out[s] = w
 
 
 @wp.func
@@ -739,12 +743,16 @@ def resolve_and_integrate_env_spheres(
     write_swept_contact(s, p, r, reach, query_dist[s], query_face[s], query_w[s], query_n[s], frames, indices, k0, k1,
                         alpha, fps * wp.float64(env_rate_in[e]), contact_face, contact_point, contact_normal,
                         contact_depth, contact_velocity)
+    spin = wp.vec3(0.0)
+    if inertia > 0.0:
+        spin = sphere_spin_out[s]
     p, v, w = advance_sphere_with_memory(s, p, v, inv_mass[s], r, gravity, dt, restitution, friction, rest_speed,
                                          ground, ground_height, contact_face[s], contact_normal[s], contact_depth[s],
-                                         contact_velocity[s], contact_memory, sphere_spin_out[s], inertia)
+                                         contact_velocity[s], contact_memory, spin, inertia)
     sphere_pos_out[s] = p
     sphere_vel_out[s] = v
-    sphere_spin_out[s] = w
+    if inertia > 0.0:  # (a point mass keeps its spin: no read, no write)
+        sphere_spin_out[s] = w
 
 
 @wp.kernel

@@ -421,13 +421,17 @@ def integrate_spheres(
         store_frame_key(t, fps, num_frames, mode, frame_key_out, frame_changed_out)
     if s >= inv_mass.shape[0]:
         return
+    spin = wp.vec3(0.0)
+    if inertia > 0.0:
+        spin = sphere_spin_out[s]
     p, v, w = advance_sphere_with_memory(s, sphere_pos_out[s], sphere_vel_out[s], inv_mass[s], sphere_radius[s],
                                          gravity, dt, restitution, friction, rest_speed, ground, ground_height,
                                          contact_face[s], contact_normal[s], contact_depth[s], contact_velocity[s],
-                                         contact_memory, sphere_spin_out[s], inertia)
+                                         contact_memory, spin, inertia)
     sphere_pos_out[s] = p
     sphere_vel_out[s] = v
-    sphere_spin_out[s] = w
+    if inertia > 0.0:  # (a point mass keeps its spin: no read, no write)
+        sphere_spin_out[s] = w
 
 
 @wp.kernel
