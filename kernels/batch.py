@@ -15,7 +15,7 @@ import warp as wp
 
 from .collide import contact_reach
 from .frames import PLAYBACK_LOOP, blend_pair, wrap_frame
-from .integrate import advance_sphere_with_memory, pinch_memory
+from .integrate import advance_and_store_sphere, pinch_memory
 from .swept import (
     NO_PAIR,
     box_distance,
@@ -208,16 +208,9 @@ def collide_and_integrate_env_spheres(
     write_swept_contact(s, p, r, reach, min_dist, min_face, min_w, acc_n, frames, indices, k0, k1, alpha,
                         fps * wp.float64(rate), contact_face, contact_point, contact_normal, contact_depth,
                         contact_velocity)
-    spin = wp.vec3(0.0)
-    if inertia > 0.0:
-        spin = sphere_spin_out[s]
-    p, v, w = advance_sphere_with_memory(s, p, v, inv_mass[s], r, gravity, dt, restitution, friction, rest_speed,
-                                         ground, ground_height, contact_face[s], contact_normal[s], contact_depth[s],
-                                         contact_velocity[s], contact_memory, spin, inertia)
-    sphere_pos_out[s] = p
-    sphere_vel_out[s] = v
-    if inertia > 0.0:  # (a point mass keeps its spin: no read, no write)
-        sphere_spin_out[s] = w
+    advance_and_store_sphere(s, p, v, inv_mass[s], r, gravity, dt, restitution, friction, rest_speed, ground,
+                             ground_height, inertia, contact_face, contact_normal, contact_depth, contact_velocity,
+                             contact_memory, sphere_pos_out, sphere_vel_out, sphere_spin_out)
 
 
 @wp.func
@@ -743,16 +736,9 @@ def resolve_and_integrate_env_spheres(
     write_swept_contact(s, p, r, reach, query_dist[s], query_face[s], query_w[s], query_n[s], frames, indices, k0, k1,
                         alpha, fps * wp.float64(env_rate_in[e]), contact_face, contact_point, contact_normal,
                         contact_depth, contact_velocity)
-    spin = wp.vec3(0.0)
-    if inertia > 0.0:
-        spin = sphere_spin_out[s]
-    p, v, w = advance_sphere_with_memory(s, p, v, inv_mass[s], r, gravity, dt, restitution, friction, rest_speed,
-                                         ground, ground_height, contact_face[s], contact_normal[s], contact_depth[s],
-                                         contact_velocity[s], contact_memory, spin, inertia)
-    sphere_pos_out[s] = p
-    sphere_vel_out[s] = v
-    if inertia > 0.0:  # (a point mass keeps its spin: no read, no write)
-        sphere_spin_out[s] = w
+    advance_and_store_sphere(s, p, v, inv_mass[s], r, gravity, dt, restitution, friction, rest_speed, ground,
+                             ground_height, inertia, contact_face, contact_normal, contact_depth, contact_velocity,
+                             contact_memory, sphere_pos_out, sphere_vel_out, sphere_spin_out)
 
 
 @wp.kernel

@@ -357,6 +357,46 @@ def advance_sphere_with_memory(
     return p1, v1, w1
 
 
+@wp.func
+def advance_and_store_sphere(
+    s: int,
+    p: wp.vec3,
+    v: wp.vec3,
+    inv_mass: float,
+    r: float,
+    gravity: wp.vec3,
+    dt: float,
+    restitution: float,
+    friction: float,
+    rest_speed: float,
+    ground: int,
+    ground_height: float,
+    inertia: float,
+    contact_face: wp.array[wp.int32],
+    contact_normal: wp.array[wp.vec3],
+    contact_depth: wp.array[float],
+    contact_velocity: wp.array[wp.vec3],
+    contact_memory: wp.array[pinch_memory],
+    sphere_pos_out: wp.array[wp.vec3],
+    sphere_vel_out: wp.array[wp.vec3],
+    sphere_spin_out: wp.array[wp.vec3],
+):
+    """``advance_sphere_with_memory`` for sphere s (centre p, velocity v) with its contact of this
+    sub-step, stored: position, velocity and, where the sphere rotates (``inertia`` > 0), its spin
+    (a point mass's spin is neither read nor written). What the world's and the batched step's
+    integration share."""
+    spin = wp.vec3(0.0)
+    if inertia > 0.0:
+        spin = sphere_spin_out[s]
+    p1, v1, w1 = advance_sphere_with_memory(s, p, v, inv_mass, r, gravity, dt, restitution, friction, rest_speed,
+                                            ground, ground_height, contact_face[s], contact_normal[s], contact_depth[s],
+                                            contact_velocity[s], contact_memory, spin, inertia)
+    sphere_pos_out[s] = p1
+    sphere_vel_out[s] = v1
+    if inertia > 0.0:
+        sphere_spin_out[s] = w1
+
+
 @wp.kernel
 def integrate_spheres(
     # Model:
@@ -421,17 +461,10 @@ def integrate_spheres(
         store_frame_key(t, fps, num_frames, mode, frame_key_out, frame_changed_out)
     if s >= inv_mass.shape[0]:
         return
-    spin = wp.vec3(0.0)
-    if inertia > 0.0:
-        spin = sphere_spin_out[s]
-    p, v, w = advance_sphere_with_memory(s, sphere_pos_out[s], sphere_vel_out[s], inv_mass[s], sphere_radius[s],
-                                         gravity, dt, restitution, friction, rest_speed, ground, ground_height,
-                                         contact_face[s], contact_normal[s], contact_depth[s], contact_velocity[s],
-                                         contact_memory, spin, inertia)
-    sphere_pos_out[s] = p
-    sphere_vel_out[s] = v
-    if inertia > 0.0:  # (a point mass keeps its spin: no read, no write)
-        sphere_spin_out[s] = w
+    advance_and_store_sphere(s, sphere_pos_out[s], sphere_vel_out[s], inv_mass[s], sphere_radius[s], gravity, dt,
+                             restitution, friction, rest_speed, ground, ground_height, inertia, contact_face,
+                             contact_normal, contact_depth, contact_velocity, contact_memory, sphere_pos_out,
+                             sphere_vel_out, sphere_spin_out)
 
 
 @wp.kernel
