@@ -66,15 +66,16 @@ _FILE_SUFFIXES = {".json", ".txt", ".csv", ".zip", ".npy", ".png", ".yaml", ".ym
 def _say_frame_numbers(seq) -> None:
     """A note when the input's files are numbered otherwise than 0, 1, ...: the messages (key
     frame, poor frames, segments) count the frames in the input's order from 0."""
-    from .sequence_layouts import frame_index_from_name
+    from .sequence_layouts import frame_keys
 
     src = getattr(seq, "frame_sources", None)
     if not src:
         return
     try:
-        numbers = [frame_index_from_name(f) for f in (src[0], src[-1])]
+        keys = frame_keys(src)[0]
     except MeshDataError:
         return
+    numbers = [keys[0], keys[-1]]
     if numbers != [0, len(src) - 1]:
         print(f"note: frames are counted 0..{len(src) - 1} in the input's order: frame 0 is {Path(src[0]).name}, "
               f"frame {len(src) - 1} is {Path(src[-1]).name}", file=sys.stderr)
@@ -84,13 +85,15 @@ def input_frame_numbers(path, num_frames: int) -> list | None:
     """The numbers of a folder input's ``num_frames`` frame files in its order (``frame_0001.ply``
     ... -> 1, ...; a DG-Mesh scene folder's, in the subfolder the loader reads), which a folder
     output's files take; None for another input, names without numbers, or another count of files."""
-    from .sequence_layouts import frame_index_from_name, list_frame_files, resolve_folder
+    from .sequence_layouts import frame_keys, list_frame_files, resolve_folder
 
     try:
         if not Path(path).is_dir():
             return None
-        numbers = [frame_index_from_name(f) for f in list_frame_files(resolve_folder(Path(path), None))]
+        numbers = frame_keys(list_frame_files(resolve_folder(Path(path), None), quiet=True))[0]
     except (MeshDataError, OSError, ValueError):
+        return None
+    if any(isinstance(n, float) for n in numbers):  # time stamps: the output numbers its frames 0, 1, ...
         return None
     return numbers if len(numbers) == num_frames else None
 

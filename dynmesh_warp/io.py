@@ -200,7 +200,7 @@ def stored_up_axis(path) -> str:
     path = Path(str(path))
     try:
         if path.is_dir():  # its frames, as the folder loader lists them (one extension)
-            path = list_frame_files(path)[0]
+            path = list_frame_files(path, quiet=True)[0]
         ext = mesh_extension(path.name) or path.suffix.lower()
         if ext == ".npz":
             with np.load(path, allow_pickle=False) as z:

@@ -1,6 +1,6 @@
 """Sequence layouts on disk: the two npz layouts (fixed ``V``/``F``; varying packed
 ``V_packed``/``F_packed``/``V_offsets``/``F_offsets``), folders of per-frame meshes ordered by
-the last integer in the file name, DG-Mesh scene folders, and the frame-order check of an npz.
+the number in the file name that counts them (:func:`frame_keys`), DG-Mesh scene folders, and the frame-order check of an npz.
 docs/data.md is the format spec; ``dynmesh_warp.io`` is the public face (``load_sequence``,
 ``save_sequence``).
 """
@@ -31,6 +31,8 @@ DGMESH_SUBDIRS = ("dynamic_mesh", "mesh_gt")
 """DG-Mesh subfolders recognised in a scene folder, in order of preference."""
 
 _INT_RE = re.compile(r"\d+")
+#: a number in a file name: an integer, or a decimal (a time stamp: mesh_t0.05.ply)
+_NUMBER_RE = re.compile(r"\d+(?:\.\d+)?")
 
 
 def frame_index_from_name(name) -> int:
@@ -50,14 +52,51 @@ def frame_index_from_name(name) -> int:
     return int(found.group())
 
 
+def _stem(name) -> str:
+    base = Path(str(name)).name
+    ext = mesh_extension(base)
+    return base[: -len(ext)] if ext and ext.count(".") > 1 else Path(base).stem  # frame_3.vol.gz -> frame_3
+
+
 def _frame_number(name) -> re.Match | None:
     """The frame number in a file name or path (:func:`frame_index_from_name`'s rule: the last
     integer of the final component's stem) as a match on that component, or None."""
-    base = Path(str(name)).name
-    ext = mesh_extension(base)
-    stem = base[: -len(ext)] if ext and ext.count(".") > 1 else Path(base).stem  # frame_3.vol.gz -> frame_3
-    found = list(_INT_RE.finditer(stem))
+    found = list(_INT_RE.finditer(_stem(name)))
     return found[-1] if found else None
+
+
+def _key_position(files) -> int | None:
+    """Which of the names' numbers (``_NUMBER_RE``) is the frame's (:func:`frame_keys`): the last
+    that differs between ``files`` where every name holds as many; None: the last integer."""
+    found = [_NUMBER_RE.findall(_stem(f)) for f in files]
+    if len(files) > 1 and found[0] and all(len(f) == len(found[0]) for f in found):
+        varying = [k for k in range(len(found[0])) if len({f[k] for f in found}) > 1]
+        if varying:
+            return varying[-1]
+    return None
+
+
+def frame_keys(files) -> tuple[list, str]:
+    """The number each of a folder's frame ``files`` is ordered by, and the rule in words.
+
+    Each stem's numbers are read as integers or decimals (``mesh_t0.05`` holds 0.05). Where every
+    name holds as many numbers, the frame's is the last one that differs between the files: a
+    suffix that all share (``frame_000_iter30000``, ``frame_0000_v2``) is not it, and a time
+    stamp orders by its value (``mesh_t0.1`` after ``mesh_t0.05``; by the last integer it came
+    first, a new user's frames read 0, 2, 4, 6, 8, 1, 3, ...). Otherwise, or where no number
+    differs (one file), the last integer (:func:`frame_index_from_name`, which raises naming a
+    file without one). Keys are ``int`` unless the chosen number is a decimal in some name (then
+    ``float``)."""
+    files = list(files)
+    k = _key_position(files)
+    if k is None:
+        return [frame_index_from_name(f) for f in files], "the last integer in the file name"
+    texts = [_NUMBER_RE.findall(_stem(f))[k] for f in files]
+    n = len(_NUMBER_RE.findall(_stem(files[0])))
+    where = "the last number" if k == n - 1 else f"number {k + 1} of {n}, the one that differs between the files,"
+    if any("." in t for t in texts):
+        return [float(t) for t in texts], f"{where} in the file name (a decimal: ordered by its value)"
+    return [int(t) for t in texts], f"{where} in the file name"
 
 
 # npz array names: the canonical V (T, N, 3) / F (M, 3) first, then common aliases
@@ -123,6 +162,12 @@ def load_npz(path: Path, fps, kind: str):
         except MeshDataError:
             raise
         except Exception as e:  # e.g. a corrupt member inside the zip
+            if "allow_pickle" in str(e):  # lists of per-frame arrays (np.savez(V=[...], F=[...])): object arrays
+                raise MeshDataError(
+                    f"{path}: it holds object arrays (per-frame lists saved with np.savez, read only with pickle, "
+                    "which is not used); save varying-topology frames packed: V_packed (sum N, 3), F_packed "
+                    "(sum M, 3), V_offsets and F_offsets (T + 1,), or with dynmesh_warp.io.save_sequence "
+                    "(docs/data.md)") from None
             raise MeshDataError(f"{path}: cannot read npz data ({type(e).__name__}: {e})") from e
     seq = VaryingTopologySequence(frames, fps=fps, name=name, source=str(path), colors=colors)
     return finish_kind(seq, kind)
@@ -195,8 +240,10 @@ def finish_kind(seq: VaryingTopologySequence, kind: str):
     return seq
 
 
-def list_frame_files(folder: Path) -> list[Path]:
-    """Mesh files in ``folder`` ordered by the last integer in their stem."""
+def list_frame_files(folder: Path, quiet: bool = False) -> list[Path]:
+    """Mesh files in ``folder`` ordered by their frame numbers (:func:`frame_keys`). ``quiet``: no
+    warnings on the numbering (for a second look at a folder the loader has read and warned of:
+    a new user's gaps were said three times)."""
     named = [p for p in folder.iterdir() if not p.name.startswith(".") and mesh_extension(p.name)]
     broken = sorted(p.name for p in named if p.is_symlink() and not p.exists())
     if broken:  # a frame that is not there must not vanish from the numbering unremarked
@@ -208,6 +255,9 @@ def list_frame_files(folder: Path) -> list[Path]:
                             + (f" ({len(odd) - 1} more such frame(s))" if len(odd) > 1 else ""))
     files = [p for p in named if p.is_file()]
     if not files:
+        per_frame = _frame_subfolders(folder)
+        if per_frame:
+            return per_frame
         subdirs = sorted(p.name for p in folder.iterdir()
                          if p.is_dir() and not p.name.startswith("."))
         hint = f"; subfolders: {', '.join(subdirs)} (pass subdir=...)" if subdirs else ""
@@ -227,15 +277,21 @@ def list_frame_files(folder: Path) -> list[Path]:
             f"{folder}: ambiguous folder, it holds meshes of several extensions "
             f"({', '.join(exts)}; e.g. {examples}); keep one format per folder"
         )
-    by_index: dict[int, Path] = {}
-    for p in sorted(files):
-        i = frame_index_from_name(p)  # raises naming the file
+    by_index: dict = {}
+    files = sorted(files)
+    keys, rule = frame_keys(files)  # raises naming a file without a number
+    for i, p in zip(keys, files):
         if i in by_index:
             raise MeshDataError(
-                f"{folder}: two files have frame index {i}: {by_index[i]} and {p}"
+                f"{folder}: two files have frame index {i:g} ({rule}): {by_index[i]} and {p}; name the frames "
+                "with one number that counts them (frame_0000.ply, frame_0001.ply, ...)"
             )
         by_index[i] = p
     order = sorted(by_index)
+    if any(isinstance(i, float) for i in order):  # time stamps: no gaps or strides to speak of
+        return [by_index[i] for i in order]
+    if quiet:
+        return [by_index[i] for i in order]
     series = _name_series(files)
     if len(series) > 1:  # a new user's frame_0003, mesh_0004 and "frame_0005 (copy)" were joined unsaid
         shown = ", ".join(f"{name!r} ({n} file(s))" for name, n in series[:4]) + (" ..." if len(series) > 4 else "")
@@ -266,13 +322,39 @@ def list_frame_files(folder: Path) -> list[Path]:
     return [by_index[i] for i in order]
 
 
+def _frame_subfolders(folder: Path) -> list[Path] | None:
+    """The frames of a folder of one subfolder a frame (``0000/mesh.ply``, ``0001/mesh.ply``, ...,
+    as per-frame reconstruction outputs are written): where every numbered subfolder holds exactly
+    one mesh file, of one extension, those files ordered by the subfolders' numbers
+    (:func:`frame_keys`); None where the folder is not laid out so (a new user's was refused with
+    "pass subdir=...", which picks one subfolder: one frame)."""
+    subdirs = sorted(p for p in folder.iterdir() if p.is_dir() and not p.name.startswith("."))
+    subdirs = [d for d in subdirs if _NUMBER_RE.search(d.name)]
+    if len(subdirs) < 2:
+        return None
+    files = []
+    for d in subdirs:
+        inside = [p for p in d.iterdir() if not p.name.startswith(".") and p.is_file() and mesh_extension(p.name)]
+        if len(inside) != 1:
+            return None
+        files.append(inside[0])
+    if len({mesh_extension(p.name) for p in files}) != 1:
+        return None
+    keys, rule = frame_keys(subdirs)
+    if len(set(keys)) != len(keys):
+        return None
+    return [files[i] for i in sorted(range(len(files)), key=lambda i: keys[i])]
+
+
 def _name_series(files: list[Path]) -> list[tuple[str, int]]:
     """The ways ``files`` are named, each one's frame number (:func:`_frame_number`) written
     ``#``, each with its count, most common first: one for a sequence's frames (``frame_#.obj``)."""
     from collections import Counter
 
+    k = _key_position(files)
+
     def pattern(p: Path) -> str:
-        m = _frame_number(p)
+        m = _frame_number(p) if k is None else list(_NUMBER_RE.finditer(_stem(p)))[k]
         return p.name if m is None else p.name[:m.start()] + "#" + p.name[m.end():]
 
     return Counter(pattern(p) for p in files).most_common()

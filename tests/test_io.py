@@ -278,6 +278,64 @@ def test_folder_numeric_order_obj_names(tmp_path):
     assert [frame_of(v) for v in seq.V] == [9, 10, 11]
 
 
+@pytest.mark.parametrize("names, times", [
+    ([f"mesh_t{round(k * 0.05, 2)}.ply" for k in range(10)], None),  # as f"{t}" writes them: 0.05 before 0.1
+    ([f"mesh_t{k / 30:.3f}.ply" for k in range(40)], None),  # 0.000 .. 1.300: the last integer repeats
+    ([f"frame_{k:03d}_iter30000.ply" for k in range(6)], list(range(6))),  # a suffix all share
+    ([f"frame_{k:04d}_v2.ply" for k in range(6)], list(range(6))),
+    ([f"scan_v2_{k:03d}.obj" for k in range(4)], list(range(4)))])
+def test_folder_order_by_the_number_that_counts_the_frames(tmp_path, names, times):
+    """The frame's number is the last one that differs between the names (a decimal time stamp
+    by its value): time stamps read 0, 2, 4, 6, 8, 1, 3, ... and names with a shared suffix were
+    refused as "two files have frame index 30000" (a new user's). Written shuffled; frame k is
+    marked at x = k. A folder output keeps integer numbers, a time stamp's frames are numbered
+    from 0 (``input_frame_numbers``)."""
+    from dynmesh_warp.convert_cli import input_frame_numbers
+
+    order = np.random.default_rng(1).permutation(len(names))
+    write_marked_frames(tmp_path, [names[i] for i in order], [int(i) for i in order])
+    seq = load_sequence(tmp_path)
+    assert [frame_of(v) for v in seq.V] == list(range(len(names)))
+    assert input_frame_numbers(tmp_path, len(names)) == times
+
+
+def test_folder_of_one_subfolder_a_frame(tmp_path):
+    """``0000/mesh.ply``, ``0001/mesh.ply``, ...: the frames in the subfolders' order (it was
+    refused with "pass subdir=...", which reads one subfolder); a subfolder with two meshes is not
+    this layout."""
+    for k in (2, 0, 10, 1):
+        write_marked_frames(tmp_path / f"{k:04d}", ["mesh.ply"], [k])
+    assert [frame_of(v) for v in load_sequence(tmp_path).V] == [0, 1, 2, 10]
+    write_marked_frames(tmp_path / "0003", ["mesh.ply", "points.ply"], [3, 3])
+    with pytest.raises(MeshDataError, match="no mesh files found.*subfolders: 0000"):
+        load_sequence(tmp_path)
+
+
+def test_gaps_are_said_once_by_convert(tmp_path, capsys):
+    """The numbering's warning comes from the loader alone: ``convert`` looked at the folder
+    three times and said a new user's gaps three times."""
+    from dynmesh_warp.convert import main
+
+    import warnings
+
+    write_marked_frames(tmp_path / "g", [f"frame_{n:04d}.ply" for n in (0, 1, 2, 5, 6, 9)], list(range(6)))
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        assert main([str(tmp_path / "g"), str(tmp_path / "o.npz"), "--as-is", "--device", "cpu"]) == 0
+    said = [str(w.message) for w in seen] + capsys.readouterr().err.splitlines()
+    assert sum("frame numbering has gaps" in m for m in said) == 1
+
+
+def test_npz_of_object_arrays_names_the_packed_layout(tmp_path):
+    """Per-frame lists saved with np.savez (object arrays, which need pickle) are refused naming the
+    packed layout to save instead (it was NumPy's "Object arrays cannot be loaded ...")."""
+    V = np.empty(2, object)
+    V[:] = [np.zeros((3, 3)), np.zeros((4, 3))]
+    np.savez(tmp_path / "lists.npz", V=V, F=V)
+    with pytest.raises(MeshDataError, match=r"lists\.npz: it holds object arrays .* V_packed"):
+        load_sequence(tmp_path / "lists.npz")
+
+
 def test_dgmesh_layouts(tmp_path):
     scene = tmp_path / "bird"
     write_marked_frames(scene / "dynamic_mesh", [f"frame_{i}.ply" for i in range(3)], [0, 1, 2])
