@@ -65,7 +65,7 @@ import numpy as np
 import warp as wp
 
 from .choices import DEFAULT_STRATEGY, STRATEGIES
-from .cli import interruptible_main
+from .cli import interruptible_main, set_stop_hint
 from .conversion_options import options_for
 from .convert_base import (ConversionInfo, ConversionStopped, NearestSurfaceResult, _bbox_diag, _fitting, _longest_edges,
                            _open_edges, _stop_before_fitting, nearest_surface, stopping_early,
@@ -73,7 +73,7 @@ from .convert_base import (ConversionInfo, ConversionStopped, NearestSurfaceResu
 from .convert_cli import (_FILE_SUFFIXES, _FOLDER_FRAMES, FrameEstimate, _beside_path, _duration, _holds_output,
                           _keeping_journal, _open_journal, _parser, _remove_output, _same_path, _say_frame_numbers,
                           input_frame_numbers)
-from .convert_fit import FRAME_TIMER, _convert_from_key, _journaling
+from .convert_fit import FRAME_TIMER, RUN_LABEL, _convert_from_key, _journaling
 from .convert_input import (MOVING_FRAMES, _CACHE, _bridge_dropouts, _chamfer_to_input, _check_repeats, _check_scales,
                             _drop_unused, _floater_webs, _input_dropouts, _key_candidates, _key_frame,
                             _key_retry_reason, _missing_parts, _moving_points, _moving_score, _input_checked, _topology_events)
@@ -317,7 +317,11 @@ def _to_fixed_run(vseq, seq, strategy, template, device, progress, should_stop, 
             for k in trials:
                 if should_stop is not None and should_stop():
                     break
-                r = _convert_from_key(vseq, strategy, o, k, None, device, progress, should_stop, where)
+                label = RUN_LABEL.set(f"trying key frame {k}")
+                try:
+                    r = _convert_from_key(vseq, strategy, o, k, None, device, progress, should_stop, where)
+                finally:
+                    RUN_LABEL.reset(label)
                 if len(r.conversion.coverage) < T:  # stopped during this run: keep the finished ones
                     break
                 tried.append(trial(k, r))
@@ -409,8 +413,16 @@ def _to_piecewise(seq, strategy, template, device, progress, should_stop, option
         if (lo, hi) not in runs:
             sub = VaryingTopologySequence(list(vseq.frames[lo:hi]), **carried(vseq),
                                           frame_sources=vseq.frame_sources[lo:hi] if vseq.frame_sources else None)
-            with _input_checked():  # this run's checks would number the input's frames from lo
-                r = to_fixed_topology(sub, strategy, None, device, progress, should_stop, **options)
+            what = f"frames {lo}..{hi - 1} with a template of their own"
+            if not progress and _STAGE_NOTES.get():  # (the progress bar says it in its label)
+                print(f"conversion: {what} (a segment tried where one template could not follow)", file=sys.stderr,
+                      flush=True)
+            label = RUN_LABEL.set(what)
+            try:
+                with _input_checked():  # this run's checks would number the input's frames from lo
+                    r = to_fixed_topology(sub, strategy, None, device, progress, should_stop, **options)
+            finally:
+                RUN_LABEL.reset(label)
             runs[lo, hi] = r if len(r.conversion.coverage) == hi - lo else None
         return runs[lo, hi]
 
@@ -447,8 +459,12 @@ def _to_piecewise(seq, strategy, template, device, progress, should_stop, option
             segs = left + _split_segments(a, new, events, limit - len(left), convert)
             return _join_segments(vseq, sorted(segs, key=lambda x: x[0]), first.conversion, events)
         # the new template is not better there: one template for every frame, as without the stop
-        with _input_checked():
-            res = to_fixed_topology(vseq, strategy, None, device, progress, should_stop, **options)
+        label = RUN_LABEL.set("every frame with one template, as the segment was no better")
+        try:
+            with _input_checked():
+                res = to_fixed_topology(vseq, strategy, None, device, progress, should_stop, **options)
+        finally:
+            RUN_LABEL.reset(label)
         if len(res.conversion.coverage) < len(first.conversion.coverage):
             # stopped by the caller during that run: the first run's frames 0..b are more (a new
             # user's stop kept 1 frame of the rerun and threw the first run's 7 away)
@@ -605,7 +621,9 @@ def main(argv=None) -> int:
         run = to_fixed_topology if one_file else to_piecewise_fixed
         notes = _STAGE_NOTES.set(True)  # the key trials are said with --no-progress too (a new user's
         # octopus ran 57 s, then 445 s in all, unsaid); the progress bar is what --no-progress leaves out
-        timer = FRAME_TIMER.set(FrameEstimate(device, a.strategy))
+        estimate = FrameEstimate(device, a.strategy)
+        timer = FRAME_TIMER.set(estimate)
+        set_stop_hint(estimate.stop_hint)
         # Ctrl-C / SIGTERM: stop between frames, write the frames done; before the first, at once
         with checking_stops(), stopping_early(), _keeping_journal(journal):
             try:
@@ -614,6 +632,7 @@ def main(argv=None) -> int:
             finally:
                 _STAGE_NOTES.reset(notes)
                 FRAME_TIMER.reset(timer)
+                set_stop_hint(None)
             # a stop after every frame was converted (during the key-frame trials, the floater
             # retry or the segments) still counts: the output is the run so far, not the one an
             # uninterrupted run would have written

@@ -30,9 +30,18 @@ class FrameEstimate:
         self.start = time.perf_counter()
         self.fitted = 0
         self.done = False
+        self.last_s = 0.0  # the last fitted frame's time [s]
+
+    def stop_hint(self) -> str:
+        """What a stop's acknowledgement adds (``cli.set_stop_hint``): the frame in progress may
+        take as long as the last one did, where that is long."""
+        if self.last_s < 10.0:
+            return ""
+        return f"after the frame being fitted: about {_duration(self.last_s)}, as long as the last one took"
 
     def __call__(self, seconds: float, done: int, frames: int) -> None:
         self.fitted += 1
+        self.last_s = float(seconds)
         if self.done or self.fitted < 2:
             return
         self.done = True

@@ -679,6 +679,9 @@ def _grow_nodes(mask: np.ndarray, e: np.ndarray, rings: int) -> np.ndarray:
 #: and the input's checks read three frames in one millisecond first (a new user's 24 frames of
 #: 400k vertices, 28-62 s each, had no estimate)
 FRAME_TIMER: contextvars.ContextVar = contextvars.ContextVar("convert_frame_timer", default=None)
+#: what the run in progress is, said in its progress bar's label where it is not the first run (a
+#: segment's frames with a template of their own): a new user's 10 frames showed four bare bars
+RUN_LABEL: contextvars.ContextVar = contextvars.ContextVar("convert_run_label", default="")
 
 
 #: the journal of the conversion under way (``journal`` of :func:`to_fixed_topology` /
@@ -805,7 +808,8 @@ def _convert_frames(vseq, conv, step, K: int, progress: bool, should_stop, info,
     if progress:
         from tqdm import tqdm
 
-        order = tqdm(order, desc=f"convert ({strategy})", unit="frame")
+        label = RUN_LABEL.get()
+        order = tqdm(order, desc=f"convert ({strategy}{', ' + label if label else ''})", unit="frame")
     lo = hi = None  # the converted frames lo..hi (contiguous: the key frame forward, then backward)
     forward = True
     done = 0  # frames done (fitted, or taken from the journal) so far: a frame's place in the journal

@@ -302,6 +302,31 @@ def test_resume_of_rolling_spheres_is_bit_identical_and_an_old_checkpoint_had_no
     assert "physics.sphere_body is 'point' in the checkpoint but 'solid' here" in capsys.readouterr().err
 
 
+def test_a_stop_says_how_long_the_frame_in_progress_may_take(capsys, monkeypatch):
+    """A stop's acknowledgement adds the hint ``convert`` sets (``cli.set_stop_hint``): the frame
+    being fitted may take as long as the last (a new user's 390k-vertex frame went on for 6
+    minutes after Ctrl-C, unsaid); nothing for short frames."""
+    from dynmesh_warp import cli
+    from dynmesh_warp.convert_cli import FrameEstimate
+
+    est = FrameEstimate("cpu", "graph")
+    est(2.0, 1, 10)
+    assert est.stop_hint() == ""
+    est(382.0, 2, 10)
+    assert est.stop_hint() == "after the frame being fitted: about 6 min, as long as the last one took"
+    monkeypatch.setattr(cli._state, "installed", True)
+    monkeypatch.setattr(cli._state, "done", __import__("threading").Event())
+    monkeypatch.setattr(cli._state, "seen", __import__("threading").Event())
+    cli.set_stop_hint(est.stop_hint)
+    try:
+        cli._acknowledge(2)
+    finally:
+        cli.set_stop_hint(None)
+    err = capsys.readouterr().err
+    assert "SIGINT: stopping at the next step or frame and writing what is done (after the frame being fitted: " \
+           "about 6 min, as long as the last one took); send it again" in err
+
+
 def test_resume_keeps_the_collider_fixed_chose(tmp_path, monkeypatch):
     """``fixed`` is measured and may choose differently on another machine: a resumed run takes
     the collider its checkpoint was written with, whatever a new measurement says."""
