@@ -86,6 +86,12 @@ class _Options(BaseModel):
     bridge_dropouts: bool = True
     #: the gap for ``far_part_area`` (fraction of the converted mesh's bbox diagonal)
     far_part_gap: Float = Field(0.10, gt=0.0)
+    #: input parts (connected components) with less than this fraction of their frame's surface
+    #: area are removed from every frame before the conversion, wherever they lie (a
+    #: reconstruction's debris: a new user's 200 tetrahedra of 1 cm a frame all became flying
+    #: template parts); the largest part of a frame never is. 0 (the default): none, since thin
+    #: parts break into small fragments at a reconstruction's error (docs/conversion.md#floaters)
+    min_part_area: Fraction = 0.0
     #: bit-identical results from run to run on a GPU: the conversion kernels' float atomic sums
     #: are reduced in a fixed order (Warp's deterministic mode, RUN_TO_RUN: the same GPU model).
     #: The CPU is deterministic either way. Off by default: 4.3-4.9x the time on an H100 (200

@@ -75,8 +75,9 @@ from .convert_cli import (_FILE_SUFFIXES, _FOLDER_FRAMES, FrameEstimate, _beside
                           input_frame_numbers)
 from .convert_fit import FRAME_TIMER, RUN_LABEL, _convert_from_key, _journaling
 from .convert_input import (MOVING_FRAMES, _CACHE, _bridge_dropouts, _chamfer_to_input, _check_repeats, _check_scales,
-                            _drop_unused, _floater_webs, _input_dropouts, _key_candidates, _key_frame,
-                            _key_retry_reason, _missing_parts, _moving_points, _moving_score, _input_checked, _topology_events)
+                            _drop_small_parts, _drop_unused, _floater_webs, _input_dropouts, _key_candidates, _key_frame,
+                            _key_retry_reason, _missing_parts, _moving_points, _moving_score, _input_checked, _tiny_parts,
+                            _topology_events)
 from .convert_journal import ConversionJournal
 from .convert_report import (DROPOUT_FRAMES, FLOATER_AREA, POOR_WEB, WEB_GAP, WEB_STRETCH, _badness, _stretched_far,
                              conversion_summary, slide_ratio)
@@ -258,6 +259,7 @@ def _to_fixed_run(vseq, seq, strategy, template, device, progress, should_stop, 
         src = vseq.frame_sources[t] if vseq.frame_sources else where
         validate_mesh(v, f, src, t)
     vseq, unused, welded, turned, rewound = _drop_unused(vseq, should_stop)
+    vseq, removed_parts = _drop_small_parts(vseq, float(o["min_part_area"]))
     for t, (v, f) in enumerate(vseq.frames):
         if not has_area(v, f):  # a new user's points on a line: converted with "coverage 1400 %", exit 0
             src = vseq.frame_sources[t] if vseq.frame_sources else where
@@ -330,6 +332,7 @@ def _to_fixed_run(vseq, seq, strategy, template, device, progress, should_stop, 
             res.conversion.key_trials, res.conversion.key_score = tried, key_score
         info = res.conversion
         info.dropped_unused, info.welded, info.turned_outward, info.rewound = unused, welded, turned, rewound
+        info.removed_parts = removed_parts
         if float(o["far_part_area"]) <= 0:
             info.floater_webs = _floater_webs(vseq, res, device, float(o["far_part_gap"]))
         info.input_dropouts = _input_dropouts(vseq, info, device)
@@ -343,6 +346,7 @@ def _to_fixed_run(vseq, seq, strategy, template, device, progress, should_stop, 
         pool.shutdown(wait=False, cancel_futures=True)
     info.segments = [(info.first_frame, info.first_frame + res.num_frames, info.key_frame, res.num_vertices)]
     info.open_edges = [_open_edges(res.F)]
+    info.tiny_parts = [_tiny_parts(res.V[info.key_frame - info.first_frame], res.F)]
     fl = info.floater_webs
     if fl and bool(o["floater_retry"]) and not (should_stop is not None and should_stop()):
         # the web reaches out to small separate input parts: floaters, by that evidence (a real thin

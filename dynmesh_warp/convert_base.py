@@ -242,6 +242,10 @@ class ConversionInfo:
     uses (left over after a face filter, stray points) or faces that repeat a vertex: dropped
     before the conversion, so they neither pull the template nor count in the coverage, the
     scale check or the template (whose faces are then the key frame's without them).
+    removed_parts: ``(frame, parts, vertices)`` for input frames whose parts under the option
+    ``min_part_area`` of their area were removed before the conversion (debris).
+    tiny_parts: per segment (in the order of ``segments``), how many of its template's parts
+    each have under ``convert_report.TINY_PART_AREA`` of its area (at its key frame).
     ignored_parts: ``{frame: (parts, vertices)}``: small input parts left out of that frame's
     fit and coverage because they lie wholly far from the converted surface (options
     ``far_part_area``, ``far_part_gap``): floaters of a reconstruction, for which the template
@@ -330,6 +334,8 @@ class ConversionInfo:
     floater_retry: list = field(default_factory=list)
     floater_retry_rejected: bool = False
     ignored_parts: dict = field(default_factory=dict)
+    removed_parts: list = field(default_factory=list)
+    tiny_parts: list = field(default_factory=list)
     web: list = field(default_factory=list)
     buried: list = field(default_factory=list)
     flipped: list = field(default_factory=list)

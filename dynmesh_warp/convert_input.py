@@ -12,8 +12,8 @@ import numpy as np
 from .convert_base import (_bbox_diag, _edge_keys, _longest_edges, _open_edges, _stop_before_fitting, _stride, _wp_mesh,
                            nearest_surface)
 from .convert_report import (DROPOUT_AGREE, DROPOUT_FRAMES, DROPOUT_LEAST, DROPOUT_OPEN_EDGES, DROPOUT_RATIO, DROPOUT_VOLUME,
-                             FLOATER_AREA, JUMP_WINDOW, MOVING_SCORE_TAIL, POOR_COVERAGE, POOR_WEB, WEB_STRETCH, _dropout_runs,
-                             _stretched_far)
+                             FLOATER_AREA, JUMP_WINDOW, MOVING_SCORE_TAIL, POOR_COVERAGE, POOR_WEB, TINY_PART_AREA,
+                             WEB_STRETCH, _dropout_runs, _stretched_far)
 from .geometry import (distinct_faces, face_areas, mesh_orientation, orient_faces, signed_volume, surface_area,
                        weld_vertices, winding_inconsistent)
 from .metrics import chamfer_distance
@@ -27,6 +27,31 @@ def _keep_faces(v: np.ndarray, f: np.ndarray, keep: np.ndarray) -> tuple:
     used[f[keep].ravel()] = True
     remap = np.cumsum(used) - 1
     return v[used], remap[f[keep]].astype(np.int32)
+
+
+def _tiny_parts(v: np.ndarray, f: np.ndarray) -> int:
+    """How many parts of (v, f) (a template at its key frame) have under ``TINY_PART_AREA`` of its
+    area (``ConversionInfo.tiny_parts``)."""
+    return int(_small_parts(v, np.asarray(f), TINY_PART_AREA)[3].size)
+
+
+def _drop_small_parts(vseq: VaryingTopologySequence, frac: float):
+    """(vseq without the parts of each frame under ``frac`` of its surface area (never a frame's
+    largest), [(frame, parts, vertices removed)]): the option ``min_part_area``. Frames without
+    such parts are kept as they are; ``frac`` 0: the input as it is."""
+    if frac <= 0:
+        return vseq, []
+    frames, removed = [], []
+    for t, (v, f) in enumerate(vseq.frames):
+        _k, _vp, lab, small = _small_parts(v, np.asarray(f), frac)
+        if small.size:
+            v2, f2 = _keep_faces(v, np.asarray(f), ~np.isin(lab, small))
+            removed.append((t, int(small.size), len(v) - len(v2)))
+            v, f = v2, f2
+        frames.append((v, f))
+    if not removed:
+        return vseq, []
+    return VaryingTopologySequence(frames, **carried(vseq), frame_sources=vseq.frame_sources), removed
 
 
 def _drop_unused(vseq: VaryingTopologySequence, should_stop=None):

@@ -86,6 +86,12 @@ POOR_OFF = 0.01
 #: a poor web frame counts as pulled by a floater when a separate input part of less than this
 #: fraction of the frame's area has most of its vertices nearest to stretched faces
 FLOATER_AREA = 0.05
+#: a template part under this fraction of the template's area is tiny: where a template holds
+#: TINY_PARTS or more (debris of a reconstruction, not a body's parts), the summary names the
+#: option ``min_part_area`` (a new user's 200 tetrahedra of 1 cm a frame, all kept as parts; the
+#: protocol's inputs at 1 % error have up to 23 in a frame, fragments of thin parts: chicken_crossing)
+TINY_PART_AREA = 0.001
+TINY_PARTS = 50
 #: the key trials' moving score (:func:`_moving_score`) is the mean of this largest fraction of
 #: the moving points' distances to the output, pooled over the frames. Measured on seven floor
 #: scenes' stored key runs (CPU; docs/conversion.md): the best run that lost a part on 3 or more
@@ -252,6 +258,17 @@ def conversion_summary(info: ConversionInfo) -> list:
     if info.unrecovered_frames:
         u = info.unrecovered_frames
         lines.append(f"restart found no better fit at {len(u)} frame(s): {_frames_text(u)}")
+    rp = info.removed_parts
+    if rp:
+        lines.append(f"note: removed {sum(x[1] for x in rp)} input part(s) under min_part_area="
+                     f"{float(info.options.get('min_part_area', 0)):g} of their frame's area ({sum(x[2] for x in rp)} "
+                     f"vertices) from {len(rp)} frame(s) before the conversion")
+    tiny = max(info.tiny_parts, default=0)
+    if tiny >= TINY_PARTS and not float(info.options.get("min_part_area", 0) or 0):
+        lines.append(f"warning: the template keeps {tiny} tiny separate parts (each under {100 * TINY_PART_AREA:g}% of "
+                     "its area): if they are a reconstruction's debris, they move as surface the spheres meet; "
+                     f"--option min_part_area={TINY_PART_AREA:g} removes such parts from every frame before the "
+                     "conversion")
     ig = info.ignored_parts
     if ig:
         fr = sorted(ig)

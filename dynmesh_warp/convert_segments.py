@@ -126,9 +126,11 @@ def _join_segments(vseq, segs: list, whole, events: list) -> VaryingTopologySequ
                 getattr(info, name).extend(value)
         info.segments.append((lo, lo + r.num_frames, c.key_frame + lo, r.num_vertices))
         info.open_edges += c.open_edges
+        info.tiny_parts += c.tiny_parts
     info.key_score = "+".join(sorted({r.conversion.key_score for _, r in segs} - {""}))
     info.topology_events, info.dropped_unused, info.welded = list(events), whole.dropped_unused, whole.welded
     info.turned_outward, info.input_dropouts, info.rewound = whole.turned_outward, whole.input_dropouts, whole.rewound
+    info.removed_parts = whole.removed_parts
     # each segment's own (its template's): the whole first run's named runs the segments split
     # apart (a new user's floater on frames 3-5 of 12, a segment of its own, was still said to be
     # missing from frames 0-2 and "pressed onto what is left" by a template that had no part there)

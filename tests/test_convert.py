@@ -1260,6 +1260,46 @@ def test_a_floater_in_the_key_frame_is_left_out_of_the_template():
     assert kept.num_vertices == len(seq.frames[2][0]) and kept.conversion.ignored_parts == {}
 
 
+def test_min_part_area_removes_debris_and_the_summary_names_it():
+    """Dense debris near a body (60 tetrahedra of 0.02 a frame, at random places within 0.3 of a
+    breathing unit sphere's surface, other places each frame): every one became a template part
+    (a new user's 200). The summary warns of the tiny parts and names ``min_part_area``; with
+    it, the parts under that fraction of a frame's area go before the conversion: the template
+    is the sphere alone (the key frame's vertices less the debris'), every output vertex within
+    2 % of the input sphere, and the summary says what was removed."""
+    import trimesh
+
+    from dynmesh_warp.convert_report import TINY_PARTS
+
+    rng = np.random.default_rng(3)
+    tet = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32) * 0.02
+    tf = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    out, sphere = [], []
+    for t in range(6):
+        s = trimesh.creation.icosphere(subdivisions=2)
+        k = 1 + 0.04 * np.sin(t)
+        V, F = [s.vertices * k], [s.faces]
+        d = rng.normal(size=(60, 3))
+        for i, c in enumerate(d / np.linalg.norm(d, axis=1, keepdims=True) * (k + 0.05 + 0.25 * rng.random((60, 1)))):
+            V.append(c + tet)
+            F.append(tf + len(s.vertices) + 4 * i)
+        out.append((np.vstack(V).astype(np.float32), np.vstack(F).astype(np.int32)))
+        sphere.append(k)
+    seq = VaryingTopologySequence(out)
+    plain = to_fixed_topology(seq, device=DEV, key_frame=2, floater_retry=False)
+    assert plain.conversion.tiny_parts == [60] and 60 >= TINY_PARTS
+    assert any("the template keeps 60 tiny separate parts" in ln and "min_part_area=0.001" in ln
+               for ln in conversion_summary(plain.conversion))
+    r = to_fixed_topology(seq, device=DEV, key_frame=2, min_part_area=0.001)
+    assert r.num_vertices == len(out[2][0]) - 240 and r.conversion.tiny_parts == [0]
+    assert [x[:2] for x in r.conversion.removed_parts] == [(t, 60) for t in range(6)]
+    radius = np.linalg.norm(r.V, axis=2)
+    assert np.all(np.abs(radius / np.array(sphere)[:, None] - 1) < 0.02)
+    lines = conversion_summary(r.conversion)
+    assert any("removed 360 input part(s) under min_part_area=0.001" in ln for ln in lines)
+    assert not any("tiny separate parts" in ln for ln in lines)
+
+
 def test_far_small_parts_are_left_out_of_the_fit():
     """With far_part_area 0.05, a floater (a small separate blob 0.6 radii off a breathing sphere)
     on three frames is left out of those frames' fit, so the converted sphere grows no spike
