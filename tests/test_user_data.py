@@ -1322,7 +1322,8 @@ def test_a_folder_of_several_name_series_is_warned_of_and_frame_order_refused(tm
     m = trimesh.creation.icosphere(subdivisions=1)
     for name in ("frame_0003.obj", "mesh_0004.obj", "frame_0005 (copy).obj", "frame_0006.obj"):
         m.export(tmp_path / name)
-    with pytest.warns(UserWarning, match=r"named in 3 different ways \('frame_#\.obj' \(2 file\(s\)\), 'mesh_#\.obj'"):
+    with pytest.warns(UserWarning, match=r"named in 3 different ways \('frame_#\.obj' \(2 file\(s\)\), "
+                      r"'frame_# \(copy\)\.obj' \(1 file\(s\)\), 'mesh_#\.obj'"):
         assert load_sequence(tmp_path).num_frames == 4
     with pytest.raises(ValueError, match=r"frame_order \(--frame-order\) 'text_sorted' reorders an npz's frames"):
         load_sequence(tmp_path, frame_order="text_sorted")
