@@ -31,8 +31,6 @@ DGMESH_SUBDIRS = ("dynamic_mesh", "mesh_gt")
 """DG-Mesh subfolders recognised in a scene folder, in order of preference."""
 
 _INT_RE = re.compile(r"\d+")
-#: a number in a file name: an integer, or a decimal (a time stamp: mesh_t0.05.ply)
-_NUMBER_RE = re.compile(r"\d+(?:\.\d+)?")
 
 
 def frame_index_from_name(name) -> int:
@@ -65,38 +63,87 @@ def _frame_number(name) -> re.Match | None:
     return found[-1] if found else None
 
 
-def _key_position(files) -> int | None:
-    """Which of the names' numbers (``_NUMBER_RE``) is the frame's (:func:`frame_keys`): the last
-    that differs between ``files`` where every name holds as many; None: the last integer."""
-    found = [_NUMBER_RE.findall(_stem(f)) for f in files]
-    if len(files) > 1 and found[0] and all(len(f) == len(found[0]) for f in found):
-        varying = [k for k in range(len(found[0])) if len({f[k] for f in found}) > 1]
-        if varying:
-            return varying[-1]
-    return None
+def _numbers(name, whole: bool = False) -> tuple[str, list]:
+    """(the text looked at, the integer matches in it): a file's stem (``whole``: a folder's whole
+    name, whose dots are no extension: ``t0.05``)."""
+    text = Path(str(name)).name if whole else _stem(name)
+    return text, list(_INT_RE.finditer(text))
 
 
-def frame_keys(files) -> tuple[list, str]:
-    """The number each of a folder's frame ``files`` is ordered by, and the rule in words.
+def _decimal_keys(seen: list, k: int) -> list:
+    """Each name's decimal of integers k - 1 and k (``seen``: :func:`_numbers` of each), with a
+    time stamp's minus (``t-0.5``; not a separator after a digit, as in a date ``2024-05-01``)."""
+    out = []
+    for t, m in seen:
+        at = m[k - 1].start()
+        neg = at >= 1 and t[at - 1] == "-" and (at < 2 or not t[at - 2].isdigit())
+        out.append((-1.0 if neg else 1.0) * float(f"{m[k - 1].group()}.{m[k].group()}"))
+    return out
 
-    Each stem's numbers are read as integers or decimals (``mesh_t0.05`` holds 0.05). Where every
-    name holds as many numbers, the frame's is the last one that differs between the files: a
-    suffix that all share (``frame_000_iter30000``, ``frame_0000_v2``) is not it, and a time
-    stamp orders by its value (``mesh_t0.1`` after ``mesh_t0.05``; by the last integer it came
-    first, a new user's frames read 0, 2, 4, 6, 8, 1, 3, ...). Otherwise, or where no number
-    differs (one file), the last integer (:func:`frame_index_from_name`, which raises naming a
-    file without one). Keys are ``int`` unless the chosen number is a decimal in some name (then
-    ``float``)."""
+
+def _key_choice(files, whole: bool = False):
+    """Which of the names' numbers is the frame's (:func:`frame_keys`): ``(kind, k)`` with kind
+    ``"int"`` (integer k of each name) or ``"dec"`` (integers k - 1 and k joined by a dot: a
+    decimal), or None where the names hold different counts of integers, none differs, or no
+    differing number has distinct values (then the last integer)."""
+    if len(files) < 2:
+        return None
+    seen = [_numbers(f, whole) for f in files]
+    n = len(seen[0][1])
+    if not n or any(len(m) != n for _t, m in seen):
+        return None
+    vals = [[x.group() for x in m] for _t, m in seen]
+    varying = [k for k in range(n) if len({v[k] for v in vals}) > 1]
+
+    def joined(k):  # integers k - 1 and k written "a.b" in every name
+        return k > 0 and all(t[m[k - 1].end():m[k].start()] == "." for t, m in seen)
+
+    # a decimal where its integer part differs too (0.9, 1.0) or a fraction has a leading zero
+    # (0.05); else "shot1.8" ... "shot1.11" is name 1, frame 8 .. 11 (1.10 read as a decimal came
+    # before 1.8: a new user's)
+    dec = {k for k in varying if joined(k) and (k - 1 in varying or any(len(v[k]) > 1 and v[k][0] == "0"
+                                                                        for v in vals))}
+    choices = []
+    for k in varying:
+        if k + 1 in dec:
+            continue  # the integer part of a decimal
+        keys = _decimal_keys(seen, k) if k in dec else [int(v[k]) for v in vals]
+        if len(set(keys)) == len(keys):
+            steps = np.diff(np.sort(np.asarray(keys, float)))
+            choices.append((float(steps.max() / steps.min()), -k, ("dec" if k in dec else "int", k)))
+    # the number that counts the frames: of those with distinct values, the one whose sorted values
+    # step most evenly (frame_000_iter30000, frame_001_iter29500: the frame, not the iteration), the
+    # last on a tie
+    return min(choices)[2] if choices else None
+
+
+def frame_keys(files, whole: bool = False) -> tuple[list, str]:
+    """The number each of a folder's frame ``files`` is ordered by, and the rule in words
+    (``whole``: the files are folders, their whole names read).
+
+    Where every name holds as many numbers, the frame's is one that differs between the files,
+    with distinct values: the one whose values step most evenly (a suffix that all share,
+    ``frame_000_iter30000`` or ``frame_0000_v2``, is not it, nor is an iteration counter that
+    differs; the last on a tie); a decimal time stamp (``mesh_t0.05``: a fraction with a leading
+    zero, or an integer part that differs too) by its value (by the last integer ``mesh_t0.1``
+    came first: a new user's frames read 0, 2, 4, 6, 8, 1, 3, ...). Otherwise the last integer
+    (:func:`frame_index_from_name`, which raises naming a file without one). Keys are ``int``,
+    or ``float`` for time stamps."""
     files = list(files)
-    k = _key_position(files)
-    if k is None:
+    choice = _key_choice(files, whole)
+    if choice is None:
+        if whole:
+            return [int(_numbers(f, True)[1][-1].group()) if _numbers(f, True)[1] else
+                    frame_index_from_name(f) for f in files], "the last integer in the name"
         return [frame_index_from_name(f) for f in files], "the last integer in the file name"
-    texts = [_NUMBER_RE.findall(_stem(f))[k] for f in files]
-    n = len(_NUMBER_RE.findall(_stem(files[0])))
-    where = "the last number" if k == n - 1 else f"number {k + 1} of {n}, the one that differs between the files,"
-    if any("." in t for t in texts):
-        return [float(t) for t in texts], f"{where} in the file name (a decimal: ordered by its value)"
-    return [int(t) for t in texts], f"{where} in the file name"
+    kind, k = choice
+    seen = [_numbers(f, whole) for f in files]
+    vals = [[x.group() for x in m] for _t, m in seen]
+    n = len(vals[0])
+    where = "the last number" if k == n - 1 else f"number {k + 1} of {n}, the one that counts the frames,"
+    if kind == "dec":
+        return _decimal_keys(seen, k), f"{where} in the name (a decimal: ordered by its value)"
+    return [int(v[k]) for v in vals], f"{where} in the name"
 
 
 # npz array names: the canonical V (T, N, 3) / F (M, 3) first, then common aliases
@@ -329,18 +376,26 @@ def _frame_subfolders(folder: Path) -> list[Path] | None:
     (:func:`frame_keys`); None where the folder is not laid out so (a new user's was refused with
     "pass subdir=...", which picks one subfolder: one frame)."""
     subdirs = sorted(p for p in folder.iterdir() if p.is_dir() and not p.name.startswith("."))
-    subdirs = [d for d in subdirs if _NUMBER_RE.search(d.name)]
+    subdirs = [d for d in subdirs if _INT_RE.search(d.name)]
     if len(subdirs) < 2:
         return None
-    files = []
+    files, odd = [], []
     for d in subdirs:
         inside = [p for p in d.iterdir() if not p.name.startswith(".") and p.is_file() and mesh_extension(p.name)]
-        if len(inside) != 1:
-            return None
-        files.append(inside[0])
+        if len(inside) == 1:
+            files.append(inside[0])
+        else:
+            odd.append((d, len(inside)))
+    if odd and len(files) >= len(subdirs) // 2 + 1:  # the layout, but for these: say which
+        d, k = odd[0]
+        raise MeshDataError(f"{folder}: read as one mesh a subfolder (the frames), but {d.name} holds {k} mesh "
+                            f"files" + (f" ({len(odd) - 1} more such subfolder(s))" if len(odd) > 1 else "")
+                            + "; keep one mesh file in each frame's subfolder")
+    if odd:
+        return None
     if len({mesh_extension(p.name) for p in files}) != 1:
         return None
-    keys, rule = frame_keys(subdirs)
+    keys, rule = frame_keys(subdirs, whole=True)
     if len(set(keys)) != len(keys):
         return None
     return [files[i] for i in sorted(range(len(files)), key=lambda i: keys[i])]
@@ -351,14 +406,23 @@ def _name_series(files: list[Path]) -> list[tuple[str, int]]:
     ``#``, each with its count, most common first: one for a sequence's frames (``frame_#.obj``)."""
     from collections import Counter
 
-    k = _key_position(files)
+    seen = [_numbers(p)[1] for p in files]
+    n = len(seen[0]) if seen else 0
+    same = n and all(len(m) == n for m in seen)
+    varying = {k for k in range(n) if len({m[k].group() for m in seen}) > 1} if same else set()
 
-    def pattern(p: Path) -> str:
-        m = _frame_number(p) if k is None else list(_NUMBER_RE.finditer(_stem(p)))[k]
-        return p.name if m is None else p.name[:m.start()] + "#" + p.name[m.end():]
+    def pattern(p: Path, m: list) -> str:
+        if not varying:  # the last integer as #
+            last = _frame_number(p)
+            return p.name if last is None else p.name[:last.start()] + "#" + p.name[last.end():]
+        name, out, at = p.name, "", 0
+        for k in sorted(varying):  # every number that differs between the names as # (a date that changes too)
+            out += name[at:m[k].start()] + "#"
+            at = m[k].end()
+        return out + name[at:]
 
     # most common first, then by name (ties in the files' listing order read differently on another file system)
-    return sorted(Counter(pattern(p) for p in files).items(), key=lambda x: (-x[1], x[0]))
+    return sorted(Counter(pattern(p, m) for p, m in zip(files, seen)).items(), key=lambda x: (-x[1], x[0]))
 
 
 def load_folder(folder: Path, fps, kind: str, name: str):

@@ -283,7 +283,11 @@ def test_folder_numeric_order_obj_names(tmp_path):
     ([f"mesh_t{k / 30:.3f}.ply" for k in range(40)], None),  # 0.000 .. 1.300: the last integer repeats
     ([f"frame_{k:03d}_iter30000.ply" for k in range(6)], list(range(6))),  # a suffix all share
     ([f"frame_{k:04d}_v2.ply" for k in range(6)], list(range(6))),
-    ([f"scan_v2_{k:03d}.obj" for k in range(4)], list(range(4)))])
+    ([f"scan_v2_{k:03d}.obj" for k in range(4)], list(range(4))),
+    ([f"shot1.{k}.obj" for k in (8, 9, 10, 11)], [8, 9, 10, 11]),  # name.frame: 1.10 is no decimal
+    (["frame_000_iter30000.obj", "frame_001_iter29500.obj", "frame_002_iter31000.obj"], [0, 1, 2]),
+    (["t-1.0.obj", "t-0.5.obj", "t0.0.obj", "t0.5.obj"], None),  # negative time stamps
+    (["2024-05-01_frame_098.obj", "2024-05-01_frame_099.obj", "2024-05-02_frame_100.obj"], [98, 99, 100])])
 def test_folder_order_by_the_number_that_counts_the_frames(tmp_path, names, times):
     """The frame's number is the last one that differs between the names (a decimal time stamp
     by its value): time stamps read 0, 2, 4, 6, 8, 1, 3, ... and names with a shared suffix were
@@ -292,9 +296,14 @@ def test_folder_order_by_the_number_that_counts_the_frames(tmp_path, names, time
     from 0 (``input_frame_numbers``)."""
     from dynmesh_warp.convert_cli import input_frame_numbers
 
+    import warnings
+
     order = np.random.default_rng(1).permutation(len(names))
     write_marked_frames(tmp_path, [names[i] for i in order], [int(i) for i in order])
-    seq = load_sequence(tmp_path)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        seq = load_sequence(tmp_path)
+    assert not any("different ways" in str(w.message) for w in seen)  # one series (a date that changes too)
     assert [frame_of(v) for v in seq.V] == list(range(len(names)))
     assert input_frame_numbers(tmp_path, len(names)) == times
 
@@ -307,8 +316,11 @@ def test_folder_of_one_subfolder_a_frame(tmp_path):
         write_marked_frames(tmp_path / f"{k:04d}", ["mesh.ply"], [k])
     assert [frame_of(v) for v in load_sequence(tmp_path).V] == [0, 1, 2, 10]
     write_marked_frames(tmp_path / "0003", ["mesh.ply", "points.ply"], [3, 3])
-    with pytest.raises(MeshDataError, match="no mesh files found.*subfolders: 0000"):
+    with pytest.raises(MeshDataError, match="read as one mesh a subfolder .* but 0003 holds 2 mesh files"):
         load_sequence(tmp_path)
+    for k in (0, 1, 2):  # subfolders named by time stamp (t0.05: no extension)
+        write_marked_frames(tmp_path / "ts" / f"t{round(0.05 * k, 2)}", ["mesh.obj"], [k])
+    assert [frame_of(v) for v in load_sequence(tmp_path / "ts").V] == [0, 1, 2]
 
 
 def test_gaps_are_said_once_by_convert(tmp_path, capsys):
