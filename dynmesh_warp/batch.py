@@ -51,7 +51,7 @@ from .kernels.batch import (
 )
 from .kernels.frames import add_points_offset, update_frame_vertices
 from .runtime import free_bytes
-from .world import (Contacts, PhysicsParams, SphereModel, SurfaceModel, check_substep_budget, fallen_past_note,
+from .world import (Contacts, PhysicsParams, SphereModel, SurfaceModel, check_substep_budget, fallen_past_note, physics_summary,
                     frame_pair_host, playback_cycle_host, required_substeps, resolve_playback, seam_note)
 
 __all__ = ["BatchModel", "BatchState", "BatchedWorld", "step_envs", "env_clocks", "TIME_SLICES",
@@ -216,13 +216,15 @@ class BatchState:
     (E * S,) vec3 [m], [m/s], [rad/s] (the spin stays zero for ``sphere_body: point``). Owns its
     arrays (never aliases the model)."""
 
-    def __init__(self, model: BatchModel, positions, velocities=None, times=0.0, rates=1.0, playback=None):
+    def __init__(self, model: BatchModel, positions, velocities=None, times=0.0, rates=1.0, playback=None,
+                 spins=None):
         E, S, d = model.num_envs, model.spheres_per_env, model.device
         pos = _per_env(positions, E, S, "positions")
         vel = np.zeros_like(pos) if velocities is None else _per_env(velocities, E, S, "velocities")
+        spin = np.zeros_like(pos) if spins is None else _per_env(spins, E, S, "spins")
         self.sphere_pos = wp.array(pos, dtype=wp.vec3, device=d)
         self.sphere_vel = wp.array(vel, dtype=wp.vec3, device=d)
-        self.sphere_spin = wp.zeros(E * S, dtype=wp.vec3, device=d)
+        self.sphere_spin = wp.array(spin, dtype=wp.vec3, device=d)
         t, r, m = _clocks(model, times, rates, playback)
         self.env_time = wp.array(t, dtype=wp.float64, device=d)
         self.env_rate = wp.array(r, dtype=float, device=d)
@@ -464,9 +466,9 @@ class BatchedWorld:
             self._step_body()
         self.step_count += 1
 
-    def reset(self, env_mask, positions=None, velocities=None, times=None, rates=None, playback=None):
+    def reset(self, env_mask, positions=None, velocities=None, times=None, rates=None, playback=None, spins=None):
         """Reset the envs where ``env_mask`` (E,) is true: their spheres to ``positions`` /
-        ``velocities`` ((S, 3) or (E, S, 3); rows of other envs are ignored; spins to zero) and their clocks to
+        ``velocities`` / ``spins`` ((S, 3) or (E, S, 3) [m], [m/s], [rad/s]; rows of other envs are ignored) and their clocks to
         ``times`` [s] / ``rates`` / ``playback`` (scalars or (E,)). What is not given is kept.
         The other envs are untouched; the captured graph stays valid (arrays are written, not
         replaced)."""
@@ -484,6 +486,9 @@ class BatchedWorld:
         vel = s.sphere_vel.numpy().reshape(E, S, 3) if velocities is None else velocities
         new_pos = wp.array(_per_env(pos, E, S, "positions"), dtype=wp.vec3, device=self.device)
         new_vel = wp.array(_per_env(vel, E, S, "velocities"), dtype=wp.vec3, device=self.device)
+        # (kept where not given, as the velocity is: zeroed, a rolling ball kept its speed and slipped again)
+        spin = s.sphere_spin.numpy().reshape(E, S, 3) if spins is None else spins
+        new_spin = wp.array(_per_env(spin, E, S, "spins"), dtype=wp.vec3, device=self.device)
         t, r, pb = _clocks(m, s.env_time.numpy() if times is None else times,
                            s.env_rate.numpy() if rates is None else rates, playback)
         if playback is None:
@@ -491,7 +496,7 @@ class BatchedWorld:
         if rates is not None and float(np.max(r)) > self.max_rate * (1 + 1e-6):
             raise ValueError(f"rates: {float(np.max(r)):g} exceeds the rate the sub-steps were chosen for "
                              f"({self.max_rate:g}); build the world with max_rate=")
-        wp.launch(reset_env_spheres, m.spheres.count, inputs=[m.sphere_env, self._mask, new_pos, new_vel],
+        wp.launch(reset_env_spheres, m.spheres.count, inputs=[m.sphere_env, self._mask, new_pos, new_vel, new_spin],
                   outputs=[s.sphere_pos, s.sphere_vel, s.sphere_spin, self.contacts.memory], device=self.device)
         wp.launch(reset_env_clocks, E,
                   inputs=[self._mask, wp.array(t, dtype=wp.float64, device=self.device),
@@ -556,6 +561,7 @@ class BatchedWorld:
         return {"collider": "swept (pair BVHs, batched)", "swept_search": str(self.search), "num_envs": self.num_envs,
                 "spheres_per_env": self.model.spheres_per_env,
                 "surface": {"frames": surf.num_frames, "fps": surf.fps, "faces": surf.num_faces},
+                "physics": physics_summary(self.model.params),
                 "memory_bytes": self.memory_bytes,
                 "final": {"finite": bool(np.isfinite(pos).all() and np.isfinite(vel).all())}}
 
@@ -577,6 +583,10 @@ class BatchedWorld:
     def sphere_velocities(self) -> np.ndarray:
         """(E, S, 3) [m/s]."""
         return self.state.sphere_vel.numpy().reshape(self.num_envs, -1, 3).copy()
+
+    def sphere_spins(self) -> np.ndarray:
+        """(E, S, 3) angular velocities [rad/s] (zero where ``physics.sphere_body`` is ``point``)."""
+        return self.state.sphere_spin.numpy().reshape(self.num_envs, -1, 3).copy()
 
     def env_times(self) -> np.ndarray:
         """(E,) float64 [s]."""

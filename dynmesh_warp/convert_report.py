@@ -262,7 +262,8 @@ def conversion_summary(info: ConversionInfo) -> list:
     if rp:
         lines.append(f"note: removed {sum(x[1] for x in rp)} input part(s) under min_part_area="
                      f"{float(info.options.get('min_part_area', 0)):g} of their frame's area ({sum(x[2] for x in rp)} "
-                     f"vertices) from {len(rp)} frame(s) before the conversion")
+                     f"vertices) from {len(rp)} frame(s) before the conversion; the figures here are against the "
+                     "input without them (a real small part removed so shows in none of them)")
     tiny = max(info.tiny_parts, default=0)
     if tiny >= TINY_PARTS and not float(info.options.get("min_part_area", 0) or 0):
         lines.append(f"warning: the template keeps {tiny} tiny separate parts (each under {100 * TINY_PART_AREA:g}% of "

@@ -198,20 +198,22 @@ def run_simulation(sim, cfg, *, steps: int, out: Path, t_build: float, progress:
         + rate_text(sps) + envs + f"{tail}; outputs in {out}")
     if not summary["final"]["finite"]:
         log(f"WARNING: non-finite {sim.body_noun} state at the end of the run")
-    fast = fast_sphere_note(arrays, sim.dt, int(sim.substeps)) if sim.body_noun == "sphere" else ""
+    bound = getattr(getattr(cfg, "physics", None), "max_substeps", None)
+    fast = fast_sphere_note(arrays, sim.dt, int(sim.substeps), bound) if sim.body_noun == "sphere" else ""
     if fast:
         log(fast)
     return summary
 
 
-def fast_sphere_note(arrays: dict, dt: float, substeps: int) -> str:
+def fast_sphere_note(arrays: dict, dt: float, substeps: int, max_substeps: int | None = None) -> str:
     """A note when a sampled sphere moved farther than its radius in one sub-step (``arrays``: the
     run's ``trajectories.npz`` arrays, ``velocity`` (samples, S, 3) [m/s] and ``radius`` (S,) [m];
     ``dt`` [s] the step of ``substeps`` sub-steps): a contact is the sphere's nearest surface, so
     where another surface lies within a sub-step's travel (a floor and a wall, two close walls)
     the sphere can pass through that one (docs/physics.md, "Why spheres do not tunnel"; a new
     user's sphere sliding on a floor at 30 m/s went through a wall, r = 0.05 m at dt 1/240).
-    "" when none did."""
+    ``max_substeps``: the scene's work bound, named too where the sub-steps said exceed it (the
+    note's 84 was refused by the default 64). "" when none did."""
     v, r = arrays.get("velocity"), arrays.get("radius")
     if v is None or r is None or not np.size(v) or dt <= 0:
         return ""
@@ -223,8 +225,11 @@ def fast_sphere_note(arrays: dict, dt: float, substeps: int) -> str:
     i = int(np.argmax(reach))
     if reach[i] <= 1.0:
         return ""
+    need = max(1, substeps) * int(np.ceil(reach[i]))
+    over = (f" --set physics.max_substeps={need} (its bound, {max_substeps}, is lower)"
+            if max_substeps is not None and need > max_substeps else "")
     return (f"note: {int(np.count_nonzero(reach > 1.0))} sphere(s) moved farther than their radius in one sub-step "
             f"(sphere {i}: {speed[i]:.3g} m/s, {reach[i]:.1f} radii a sub-step): a sphere's contact is its nearest "
             "surface, so where another surface lies within that travel (a floor and a wall, two close walls) it can "
-            f"pass through it; --set physics.substeps={max(1, substeps) * int(np.ceil(reach[i]))} keeps it within one "
-            "radius (docs/physics.md#why-spheres-do-not-tunnel)")
+            f"pass through it; --set physics.substeps={need}{over} keeps it within one radius "
+            "(docs/physics.md#why-spheres-do-not-tunnel)")

@@ -70,6 +70,7 @@ from .sequence import FixedTopologySequence, VaryingTopologySequence
 
 __all__ = [
     "fallen_past_note",
+    "physics_summary",
     "PhysicsParams",
     "WorkBudgetError",
     "check_substep_budget",
@@ -616,6 +617,9 @@ class State:
         self.sphere_pos = wp.array(pos, dtype=wp.vec3, device=d)
         self.sphere_vel = wp.array(vel, dtype=wp.vec3, device=d)
         spin = np.zeros((S, 3), np.float32) if spins is None else _sphere_rows("spin", spins, S)
+        if spin.any() and SPHERE_INERTIA[model.params.sphere_body] == 0:  # (kept, reported, and without effect)
+            warnings.warn("State: spins given to spheres that do not rotate (physics.sphere_body point): they are kept "
+                          "as given and change nothing; sphere_body solid or shell makes them roll", stacklevel=2)
         self.sphere_spin = wp.array(spin, dtype=wp.vec3, device=d)
 
 
@@ -1121,6 +1125,16 @@ def measure_colliders(model: Model, state: State, candidates, horizon: float | N
         # swept collider, ~20 ms timed in all on the CPU, measured 4x slower now and then)
         cost[name] = float(np.median(rounds)) / per_round
     return cost
+
+
+def physics_summary(params) -> dict:
+    """The physics a run's ``summary.json`` records (a point-mass run and a rolling one could not
+    be told apart afterwards: a new user's): the sphere body, friction, restitution, rest speed,
+    gravity, the ground plane and the step."""
+    return {"sphere_body": str(params.sphere_body), "friction": float(params.friction),
+            "restitution": float(params.restitution), "rest_speed": float(params.rest_speed),
+            "gravity": [float(g) for g in params.gravity], "dt": float(params.dt),
+            "ground": None if params.ground_height is None else float(params.ground_height)}
 
 
 def fallen_past_note(sequence, params, positions, hint: str = "") -> str:
@@ -1676,6 +1690,7 @@ class World:
             "surface": {"frames": surf.num_frames, "fps": surf.fps,
                         "interpolate": bool(surf.interpolate), "max_speed_m_s": float(surf.max_speed)},
             "spheres": self.model.spheres.count,
+            "physics": physics_summary(self.model.params),
             "final": {
                 "finite": bool(np.isfinite(pos).all() and np.isfinite(vel).all()),
                 "position": pos,

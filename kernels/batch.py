@@ -762,6 +762,7 @@ def reset_env_spheres(
     env_mask: wp.array[wp.int32],
     new_pos: wp.array[wp.vec3],
     new_vel: wp.array[wp.vec3],
+    new_spin: wp.array[wp.vec3],
     # State out:
     sphere_pos_out: wp.array[wp.vec3],
     sphere_vel_out: wp.array[wp.vec3],
@@ -769,8 +770,8 @@ def reset_env_spheres(
     # Out:
     contact_memory: wp.array[pinch_memory],
 ):
-    """Spheres of the envs with env_mask[e] != 0 from new_pos / new_vel ((E * S,) [m], [m/s]),
-    their spin stopped and their pinch memory cleared (``kernels.integrate.pinch_memory``: a pinch before the reset
+    """Spheres of the envs with env_mask[e] != 0 from new_pos / new_vel / new_spin ((E * S,) [m],
+    [m/s], [rad/s]), their pinch memory cleared (``kernels.integrate.pinch_memory``: a pinch before the reset
     would squeeze the first sub-step after it); the other envs' spheres are left untouched. One
     thread per sphere."""
     s = wp.tid()
@@ -778,7 +779,7 @@ def reset_env_spheres(
         return
     sphere_pos_out[s] = new_pos[s]
     sphere_vel_out[s] = new_vel[s]
-    sphere_spin_out[s] = wp.vec3(0.0)
+    sphere_spin_out[s] = new_spin[s]
     contact_memory[s] = pinch_memory()
 
 

@@ -1296,7 +1296,8 @@ def test_min_part_area_removes_debris_and_the_summary_names_it():
     radius = np.linalg.norm(r.V, axis=2)
     assert np.all(np.abs(radius / np.array(sphere)[:, None] - 1) < 0.02)
     lines = conversion_summary(r.conversion)
-    assert any("removed 360 input part(s) under min_part_area=0.001" in ln for ln in lines)
+    assert any("removed 360 input part(s) under min_part_area=0.001" in ln and "against the input without them" in ln
+               for ln in lines)
     assert not any("tiny separate parts" in ln for ln in lines)
 
 

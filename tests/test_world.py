@@ -230,6 +230,40 @@ def test_ball_launched_sliding_rolls_on_at_five_sevenths():
             np.testing.assert_allclose(p[-1, 0, 0] + 1.5, v0 ** 2 / (2 * mu * G), rtol=0.02)
 
 
+def test_rolling_batch_reset_keeps_the_spin_and_spins_can_be_given():
+    """A batched reset keeps what it is not given, the spin too (zeroed, a ball rolling at 5/7 v0
+    slipped again and slowed to 1.02 m/s: a new user's); ``BatchState(spins=)`` and ``reset(spins=)``
+    set it, ``sphere_spins()`` reads it; a backspun solid ball on a floor ends at (5 v0 - 2 r w0) / 7
+    (closed form); spins given to point masses are kept, change nothing and are warned of; a run's
+    summary records the sphere body."""
+    from dynmesh_warp.batch import BatchedWorld, BatchModel, BatchState
+    from dynmesh_warp.world import physics_summary
+
+    r, v0, mu = 0.05, 2.0, 0.5
+    seq = _static_sheet(size=8.0)
+    params = PhysicsParams(dt=DT, friction=mu, sphere_body="solid")
+    bm = BatchModel(SurfaceModel(seq, TEST_DEVICE, playback="clamp"), 2, [r], 1.0, params)
+    bw = BatchedWorld(bm, BatchState(bm, np.float32([[[-3.0, 0, r]], [[-3.0, 0, r]]]),
+                                     velocities=np.float32([[[v0, 0, 0]], [[v0, 0, 0]]]),
+                                     spins=np.float32([[[0, 0, 0]], [[0, -20.0, 0]]])))
+    for _ in range(int(0.5 / DT)):
+        bw.step()
+    v = bw.sphere_velocities()[:, 0, 0]
+    np.testing.assert_allclose(v, [5 / 7 * v0, (5 * v0 - 2 * r * 20.0) / 7], atol=2e-3)  # rolling; backspun
+    rolling = bw.sphere_spins()
+    bw.reset(np.array([True, False]), times=0.0)  # position, velocity and spin kept
+    np.testing.assert_allclose(bw.sphere_spins(), rolling, atol=1e-6)
+    for _ in range(60):
+        bw.step()
+    np.testing.assert_allclose(bw.sphere_velocities()[0, 0, 0], 5 / 7 * v0, atol=2e-3)  # still rolling
+    bw.reset(np.array([True, False]), spins=np.zeros((1, 3), np.float32))
+    assert not bw.sphere_spins()[0].any() and bw.sphere_spins()[1].any()
+    with pytest.warns(UserWarning, match="spins given to spheres that do not rotate"):
+        w = make_world(seq, [[0.0, 0.0, r]], r, friction=mu)
+        State(w.model, [[0.0, 0.0, r]], spins=[[0.0, -50.0, 0.0]])
+    assert physics_summary(params)["sphere_body"] == "solid" and w.run_summary()["physics"]["sphere_body"] == "point"
+
+
 @pytest.mark.parametrize("e", [0.5, 0.7])
 def test_ground_plane_bounces_like_the_mesh_plane(e):
     """The ground plane's contact has the mesh's time of impact: a sphere dropped on it rebounds
@@ -262,6 +296,9 @@ def test_fast_sphere_note_names_the_sphere_and_the_substeps():
     assert "sphere 1: 30 m/s, 2.5 radii a sub-step" in note and "physics.substeps=3" in note
     assert fast_sphere_note({"velocity": v, "radius": np.array([0.05, 0.05])}, 1 / 240, 4) == ""
     assert fast_sphere_note({"velocity": v * 0.1, "radius": np.array([0.05, 0.05])}, 1 / 240, 1) == ""
+    v[1, 1] = [1000.0, 0.0, 0.0]  # 84 sub-steps: over the default bound of 64, which the note names too
+    note = fast_sphere_note({"velocity": v, "radius": np.array([0.05, 0.05])}, 1 / 240, 1, 64)
+    assert "physics.substeps=84 --set physics.max_substeps=84 (its bound, 64, is lower)" in note
 
 
 # ---------------------------------------------------------------------------------------------
