@@ -468,8 +468,9 @@ class BatchedWorld:
 
     def reset(self, env_mask, positions=None, velocities=None, times=None, rates=None, playback=None, spins=None):
         """Reset the envs where ``env_mask`` (E,) is true: their spheres to ``positions`` /
-        ``velocities`` / ``spins`` ((S, 3) or (E, S, 3) [m], [m/s], [rad/s]; rows of other envs are ignored) and their clocks to
-        ``times`` [s] / ``rates`` / ``playback`` (scalars or (E,)). What is not given is kept.
+        ``velocities`` / ``spins`` ((S, 3) or (E, S, 3) [m], [m/s], [rad/s]; rows of other envs are
+        ignored) and their clocks to ``times`` [s] / ``rates`` / ``playback`` (scalars or (E,)). What
+        is not given is kept.
         The other envs are untouched; the captured graph stays valid (arrays are written, not
         replaced)."""
         m, s = self.model, self.state
@@ -482,13 +483,14 @@ class BatchedWorld:
                              f"shape {given.shape}; for env indices idx use a mask: m = np.zeros({E}, bool); m[idx] = True")
         mask = np.broadcast_to(given, (E,)).astype(np.int32)
         self._mask.assign(mask)
-        pos = s.sphere_pos.numpy().reshape(E, S, 3) if positions is None else positions
-        vel = s.sphere_vel.numpy().reshape(E, S, 3) if velocities is None else velocities
-        new_pos = wp.array(_per_env(pos, E, S, "positions"), dtype=wp.vec3, device=self.device)
-        new_vel = wp.array(_per_env(vel, E, S, "velocities"), dtype=wp.vec3, device=self.device)
-        # (kept where not given, as the velocity is: zeroed, a rolling ball kept its speed and slipped again)
-        spin = s.sphere_spin.numpy().reshape(E, S, 3) if spins is None else spins
-        new_spin = wp.array(_per_env(spin, E, S, "spins"), dtype=wp.vec3, device=self.device)
+
+        def given_or_kept(now, value, what):  # (a spin zeroed, a rolling ball kept its speed and slipped again)
+            rows = now.numpy().reshape(E, S, 3) if value is None else value
+            return wp.array(_per_env(rows, E, S, what), dtype=wp.vec3, device=self.device)
+
+        new_pos, new_vel, new_spin = (given_or_kept(now, value, what) for now, value, what in (
+            (s.sphere_pos, positions, "positions"), (s.sphere_vel, velocities, "velocities"),
+            (s.sphere_spin, spins, "spins")))
         t, r, pb = _clocks(m, s.env_time.numpy() if times is None else times,
                            s.env_rate.numpy() if rates is None else rates, playback)
         if playback is None:

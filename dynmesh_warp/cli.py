@@ -373,20 +373,16 @@ def interruptible_main(fn):
                       "lower --resolution, fewer --frames / --envs / spheres, or a smaller image", file=sys.stderr)
                 return 1
             except OSError as e:
-                from .outputs import WRITE_ERRNOS
+                from .outputs import WRITE_ERRNOS, write_error_text
 
                 if e.errno not in WRITE_ERRNOS:
                     raise
                 # a full disk, a file-size limit, a read-only file system during the work: four chained
                 # tracebacks and exit 1 before (a new user's)
-                where = f"{e.filename}: " if e.filename else ""
-                print(f"error: {where}{e.strerror or e} while writing; nothing of that output was put in place "
-                      "(outputs are atomic: an earlier one there is unchanged). Free space or lift the limit and "
-                      "run again", file=sys.stderr)
+                print(f"{write_error_text(e)}. Free space or lift the limit and run again", file=sys.stderr)
                 return 1
 
     return main
-
 
 
 #: the command lines, ``python -m dynmesh_warp.<name>`` (README.md)

@@ -73,7 +73,7 @@ from .convert_base import (ConversionInfo, ConversionStopped, NearestSurfaceResu
 from .convert_cli import (_FILE_SUFFIXES, _FOLDER_FRAMES, FrameEstimate, _beside_path, _duration, _holds_output,
                           _keeping_journal, _open_journal, _parser, _remove_output, _same_path, _say_frame_numbers,
                           input_frame_numbers)
-from .convert_fit import FRAME_TIMER, RUN_LABEL, _convert_from_key, _journaling
+from .convert_fit import FRAME_TIMER, _convert_from_key, _journaling, run_labelled
 from .convert_input import (MOVING_FRAMES, _CACHE, _bridge_dropouts, _chamfer_to_input, _check_repeats, _check_scales,
                             _drop_small_parts, _drop_unused, _floater_webs, _input_dropouts, _key_candidates, _key_frame,
                             _key_retry_reason, _missing_parts, _moving_points, _moving_score, _input_checked, _tiny_parts,
@@ -319,11 +319,8 @@ def _to_fixed_run(vseq, seq, strategy, template, device, progress, should_stop, 
             for k in trials:
                 if should_stop is not None and should_stop():
                     break
-                label = RUN_LABEL.set(f"trying key frame {k}")
-                try:
+                with run_labelled(f"trying key frame {k}"):
                     r = _convert_from_key(vseq, strategy, o, k, None, device, progress, should_stop, where)
-                finally:
-                    RUN_LABEL.reset(label)
                 if len(r.conversion.coverage) < T:  # stopped during this run: keep the finished ones
                     break
                 tried.append(trial(k, r))
@@ -421,12 +418,8 @@ def _to_piecewise(seq, strategy, template, device, progress, should_stop, option
             if not progress and _STAGE_NOTES.get():  # (the progress bar says it in its label)
                 print(f"conversion: {what} (a segment tried where one template could not follow)", file=sys.stderr,
                       flush=True)
-            label = RUN_LABEL.set(what)
-            try:
-                with _input_checked():  # this run's checks would number the input's frames from lo
-                    r = to_fixed_topology(sub, strategy, None, device, progress, should_stop, **options)
-            finally:
-                RUN_LABEL.reset(label)
+            with run_labelled(what), _input_checked():  # (its checks would number the input's frames from lo)
+                r = to_fixed_topology(sub, strategy, None, device, progress, should_stop, **options)
             runs[lo, hi] = r if len(r.conversion.coverage) == hi - lo else None
         return runs[lo, hi]
 
@@ -463,12 +456,8 @@ def _to_piecewise(seq, strategy, template, device, progress, should_stop, option
             segs = left + _split_segments(a, new, events, limit - len(left), convert)
             return _join_segments(vseq, sorted(segs, key=lambda x: x[0]), first.conversion, events)
         # the new template is not better there: one template for every frame, as without the stop
-        label = RUN_LABEL.set("every frame with one template, as the segment was no better")
-        try:
-            with _input_checked():
-                res = to_fixed_topology(vseq, strategy, None, device, progress, should_stop, **options)
-        finally:
-            RUN_LABEL.reset(label)
+        with run_labelled("every frame with one template, as the segment was no better"), _input_checked():
+            res = to_fixed_topology(vseq, strategy, None, device, progress, should_stop, **options)
         if len(res.conversion.coverage) < len(first.conversion.coverage):
             # stopped by the caller during that run: the first run's frames 0..b are more (a new
             # user's stop kept 1 frame of the rerun and threw the first run's 7 away)
@@ -671,13 +660,12 @@ def main(argv=None) -> int:
                  if journal is not None and (n := journal.frames()) else ""), file=sys.stderr)
         return 128 + int(getattr(signal, str(e.reason), signal.SIGINT))
     except (MeshDataError, FileNotFoundError, ValueError, TypeError, OSError) as e:
-        from .outputs import WRITE_ERRNOS
+        from .outputs import WRITE_ERRNOS, write_error_text
 
         full = isinstance(e, OSError) and e.errno in WRITE_ERRNOS  # a full disk, a file-size limit, ...
         if isinstance(e, OSError) and not isinstance(e, (FileNotFoundError, ValueError)) and not full:
             raise  # another OSError (OutputExistsError is a ValueError too: said as before)
-        print(f"error: {e.filename}: {e.strerror} while writing; nothing of that output was put in place (outputs "
-              "are atomic: an earlier one there is unchanged)" if full else f"error: {e}", file=sys.stderr)
+        print(write_error_text(e) if full else f"error: {e}", file=sys.stderr)
         if journal is not None and journal.frames():
             print(f"note: the {journal.frames()} frame fits done are kept in {journal.folder}: mend the cause and give "
                   "the same command with --resume to go on from them", file=sys.stderr)

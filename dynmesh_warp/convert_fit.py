@@ -684,6 +684,16 @@ FRAME_TIMER: contextvars.ContextVar = contextvars.ContextVar("convert_frame_time
 RUN_LABEL: contextvars.ContextVar = contextvars.ContextVar("convert_run_label", default="")
 
 
+@contextlib.contextmanager
+def run_labelled(label: str):
+    """Runs started within carry ``label`` in their progress bar (:data:`RUN_LABEL`)."""
+    token = RUN_LABEL.set(label)
+    try:
+        yield
+    finally:
+        RUN_LABEL.reset(token)
+
+
 #: the journal of the conversion under way (``journal`` of :func:`to_fixed_topology` /
 #: :func:`to_piecewise_fixed`): every run it starts (:func:`_convert_from_key`) writes its frames there
 _JOURNAL: contextvars.ContextVar[ConversionJournal | None] = contextvars.ContextVar("conversion_journal", default=None)

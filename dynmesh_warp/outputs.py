@@ -130,6 +130,14 @@ def apply_umask(path, folder: bool = False) -> None:
 WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS})
 
 
+def write_error_text(e: OSError) -> str:
+    """The one line for a write the file system refused (:data:`WRITE_ERRNOS`): the output, why,
+    and that nothing of it was put in place (the CLIs say it so)."""
+    where = f"{e.filename}: " if e.filename else ""
+    return (f"error: {where}{e.strerror or e} while writing; nothing of that output was put in place (outputs are "
+            "atomic: an earlier one there is unchanged)")
+
+
 def _for_output(exc, path) -> OSError | None:
     """A write error of the file system (:data:`WRITE_ERRNOS`) named by the output ``path`` it was for
     (NumPy's savez names no file, and a temporary's name means nothing to the user); else None."""
@@ -328,13 +336,19 @@ def foreign_entries(folder: Path) -> list[str]:
     return sorted(e for e in os.listdir(folder) if e != MANIFEST and e not in ours and not TEMPORARY_NAME.match(e))
 
 
+def _nearest_existing(real: Path) -> Path:
+    """The nearest ancestor of ``real`` that exists (a folder, or a file in the way)."""
+    anc = real.parent
+    while not os.path.lexists(anc):
+        anc = anc.parent
+    return anc
+
+
 def _check_creatable(real: Path, shown: str, what: str) -> None:
     """The nearest existing ancestor of ``real`` must be a writable folder (nothing is created
     here; a probe folder is made and removed at once, which also catches read-only file systems
     for root, for whom ``os.access`` always says yes)."""
-    anc = real.parent
-    while not os.path.lexists(anc):
-        anc = anc.parent
+    anc = _nearest_existing(real)
     if not anc.is_dir():
         raise OutputError(f"{what} {shown}: cannot create it, {anc} is a file, not a folder")
     if not os.access(anc, os.W_OK | os.X_OK):
@@ -356,11 +370,8 @@ def check_name_length(real: Path, shown: str, what: str) -> None:
     (a new user's 245-byte name passed, then the run failed after the work writing its temporary
     sibling: ENAMETOOLONG, a traceback)."""
     n = len(os.fsencode(real.name))
-    anc = real.parent
-    while not anc.is_dir() and anc != anc.parent:
-        anc = anc.parent
     try:
-        limit = os.pathconf(anc, "PC_NAME_MAX")
+        limit = os.pathconf(_nearest_existing(real), "PC_NAME_MAX")
     except (OSError, ValueError):
         limit = 255
     if n + SIBLING_NAME_BYTES > limit:

@@ -56,18 +56,27 @@ def _stem(name) -> str:
     return base[: -len(ext)] if ext and ext.count(".") > 1 else Path(base).stem  # frame_3.vol.gz -> frame_3
 
 
-def _frame_number(name) -> re.Match | None:
-    """The frame number in a file name or path (:func:`frame_index_from_name`'s rule: the last
-    integer of the final component's stem) as a match on that component, or None."""
-    found = list(_INT_RE.finditer(_stem(name)))
-    return found[-1] if found else None
-
-
 def _numbers(name, whole: bool = False) -> tuple[str, list]:
     """(the text looked at, the integer matches in it): a file's stem (``whole``: a folder's whole
     name, whose dots are no extension: ``t0.05``)."""
     text = Path(str(name)).name if whole else _stem(name)
     return text, list(_INT_RE.finditer(text))
+
+
+def _frame_number(name) -> re.Match | None:
+    """The frame number in a file name or path (:func:`frame_index_from_name`'s rule: the last
+    integer of the final component's stem) as a match on that component, or None."""
+    found = _numbers(name)[1]
+    return found[-1] if found else None
+
+
+def _varying(seen: list) -> list | None:
+    """The positions of the integers that differ between the names (``seen``: :func:`_numbers` of
+    each), or None where the names hold different counts of integers, or none."""
+    n = len(seen[0][1]) if seen else 0
+    if not n or any(len(m) != n for _t, m in seen):
+        return None
+    return [k for k in range(n) if len({m[k].group() for _t, m in seen}) > 1]
 
 
 def _decimal_keys(seen: list, k: int) -> list:
@@ -81,19 +90,16 @@ def _decimal_keys(seen: list, k: int) -> list:
     return out
 
 
-def _key_choice(files, whole: bool = False):
-    """Which of the names' numbers is the frame's (:func:`frame_keys`): ``(kind, k)`` with kind
-    ``"int"`` (integer k of each name) or ``"dec"`` (integers k - 1 and k joined by a dot: a
-    decimal), or None where the names hold different counts of integers, none differs, or no
-    differing number has distinct values (then the last integer)."""
-    if len(files) < 2:
-        return None
-    seen = [_numbers(f, whole) for f in files]
-    n = len(seen[0][1])
-    if not n or any(len(m) != n for _t, m in seen):
+def _key_choice(seen: list):
+    """Which of the names' numbers is the frame's (:func:`frame_keys`; ``seen``: :func:`_numbers`
+    of each name): ``(kind, k, keys)`` with kind ``"int"`` (integer k of each name) or ``"dec"``
+    (integers k - 1 and k joined by a dot: a decimal) and each name's key, or None where there are fewer than two
+    names, they hold different counts of integers, none differs, or no differing number has
+    distinct values (then the last integer)."""
+    varying = _varying(seen) if len(seen) > 1 else None
+    if not varying:
         return None
     vals = [[x.group() for x in m] for _t, m in seen]
-    varying = [k for k in range(n) if len({v[k] for v in vals}) > 1]
 
     def joined(k):  # integers k - 1 and k written "a.b" in every name
         return k > 0 and all(t[m[k - 1].end():m[k].start()] == "." for t, m in seen)
@@ -110,7 +116,7 @@ def _key_choice(files, whole: bool = False):
         keys = _decimal_keys(seen, k) if k in dec else [int(v[k]) for v in vals]
         if len(set(keys)) == len(keys):
             steps = np.diff(np.sort(np.asarray(keys, float)))
-            choices.append((float(steps.max() / steps.min()), -k, ("dec" if k in dec else "int", k)))
+            choices.append((float(steps.max() / steps.min()), -k, ("dec" if k in dec else "int", k, keys)))
     # the number that counts the frames: of those with distinct values, the one whose sorted values
     # step most evenly (frame_000_iter30000, frame_001_iter29500: the frame, not the iteration), the
     # last on a tie
@@ -130,20 +136,15 @@ def frame_keys(files, whole: bool = False) -> tuple[list, str]:
     (:func:`frame_index_from_name`, which raises naming a file without one). Keys are ``int``,
     or ``float`` for time stamps."""
     files = list(files)
-    choice = _key_choice(files, whole)
-    if choice is None:
-        if whole:
-            return [int(_numbers(f, True)[1][-1].group()) if _numbers(f, True)[1] else
-                    frame_index_from_name(f) for f in files], "the last integer in the name"
-        return [frame_index_from_name(f) for f in files], "the last integer in the file name"
-    kind, k = choice
     seen = [_numbers(f, whole) for f in files]
-    vals = [[x.group() for x in m] for _t, m in seen]
-    n = len(vals[0])
+    choice = _key_choice(seen)
+    if choice is None:  # (a name without an integer raises, naming it)
+        keys = [int(m[-1].group()) if m else frame_index_from_name(f) for f, (_t, m) in zip(files, seen)]
+        return keys, f"the last integer in the {'name' if whole else 'file name'}"
+    kind, k, keys = choice
+    n = len(seen[0][1])
     where = "the last number" if k == n - 1 else f"number {k + 1} of {n}, the one that counts the frames,"
-    if kind == "dec":
-        return _decimal_keys(seen, k), f"{where} in the name (a decimal: ordered by its value)"
-    return [int(v[k]) for v in vals], f"{where} in the name"
+    return keys, f"{where} in the name" + (" (a decimal: ordered by its value)" if kind == "dec" else "")
 
 
 # npz array names: the canonical V (T, N, 3) / F (M, 3) first, then common aliases
@@ -335,9 +336,7 @@ def list_frame_files(folder: Path, quiet: bool = False) -> list[Path]:
             )
         by_index[i] = p
     order = sorted(by_index)
-    if any(isinstance(i, float) for i in order):  # time stamps: no gaps or strides to speak of
-        return [by_index[i] for i in order]
-    if quiet:
+    if quiet or any(isinstance(i, float) for i in order):  # (time stamps: no gaps or strides to speak of)
         return [by_index[i] for i in order]
     series = _name_series(files)
     if len(series) > 1:  # a new user's frame_0003, mesh_0004 and "frame_0005 (copy)" were joined unsaid
@@ -395,7 +394,7 @@ def _frame_subfolders(folder: Path) -> list[Path] | None:
         return None
     if len({mesh_extension(p.name) for p in files}) != 1:
         return None
-    keys, rule = frame_keys(subdirs, whole=True)
+    keys = frame_keys(subdirs, whole=True)[0]
     if len(set(keys)) != len(keys):
         return None
     return [files[i] for i in sorted(range(len(files)), key=lambda i: keys[i])]
@@ -406,23 +405,21 @@ def _name_series(files: list[Path]) -> list[tuple[str, int]]:
     ``#``, each with its count, most common first: one for a sequence's frames (``frame_#.obj``)."""
     from collections import Counter
 
-    seen = [_numbers(p)[1] for p in files]
-    n = len(seen[0]) if seen else 0
-    same = n and all(len(m) == n for m in seen)
-    varying = {k for k in range(n) if len({m[k].group() for m in seen}) > 1} if same else set()
+    seen = [_numbers(p) for p in files]
+    varying = _varying(seen) or []
 
     def pattern(p: Path, m: list) -> str:
         if not varying:  # the last integer as #
             last = _frame_number(p)
             return p.name if last is None else p.name[:last.start()] + "#" + p.name[last.end():]
         name, out, at = p.name, "", 0
-        for k in sorted(varying):  # every number that differs between the names as # (a date that changes too)
+        for k in varying:  # every number that differs between the names as # (a date that changes too)
             out += name[at:m[k].start()] + "#"
             at = m[k].end()
         return out + name[at:]
 
     # most common first, then by name (ties in the files' listing order read differently on another file system)
-    return sorted(Counter(pattern(p, m) for p, m in zip(files, seen)).items(), key=lambda x: (-x[1], x[0]))
+    return sorted(Counter(pattern(p, m) for p, (_t, m) in zip(files, seen)).items(), key=lambda x: (-x[1], x[0]))
 
 
 def load_folder(folder: Path, fps, kind: str, name: str):

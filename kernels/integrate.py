@@ -87,6 +87,21 @@ def spin_friction(vt: wp.vec3, w: wp.vec3, n: wp.vec3, r: float, friction: float
 
 
 @wp.func
+def tangential_friction(vt: wp.vec3, w: wp.vec3, n: wp.vec3, r: float, friction: float, jn: float, inertia: float):
+    """Coulomb friction on vt, the centre's velocity relative to the surface across the normal n
+    [m/s], with normal impulse jn [m/s]: a sphere that does not rotate (``inertia`` 0) keeps
+    max(0, 1 - friction jn / |vt|) of it, and its spin w as it is; one that does, ``spin_friction``.
+    The time-of-impact responses' rule (the mesh's and the ground plane's). Returns (vt, w)."""
+    if inertia > 0.0:
+        vt2, w2 = spin_friction(vt, w, n, r, friction, jn, inertia)
+        return vt2, w2
+    lt = wp.length(vt)
+    if lt > 0.0:
+        return vt * wp.max(0.0, 1.0 - friction * jn / lt), w
+    return vt, w
+
+
+@wp.func
 def contact_friction(v: wp.vec3, w: wp.vec3, vs: wp.vec3, n: wp.vec3, r: float, friction: float, jn: float,
                      inertia: float):
     """Coulomb friction of one contact (normal n, surface velocity vs, normal impulse jn [m/s])
@@ -107,7 +122,7 @@ def pinch_partner(n: wp.vec3, vs: wp.vec3, m: pinch_memory, dt: float):
     seen no more than ``PINCH_KEEP`` sub-steps ago. Returns (normal (zero: none), offset now [m]
     (the plane is dot(normal, x) = offset, carried on one sub-step at the velocity it had when
     seen), velocity, age in sub-steps). A plane seen two or more sub-steps ago: its offset as
-    of the last sub-step (``m[13]``, carried on every sub-step by ``advance_sphere_with_memory``
+    of the last sub-step (``m[13]``, carried on every sub-step by ``advance_and_store_sphere``
     at the velocity it had when seen, never past the contact's point) carried one more; its
     velocity returned is the contact's (``vs``), its own may be stale (a plate that stopped or
     turned back would drag the sphere after it until it aged out)."""
@@ -237,13 +252,7 @@ def advance_sphere(
             if -vn > rest_speed:
                 vn_new = -restitution * vn
             jn = vn_new - vn
-            vt = vrel - vn * n
-            if inertia > 0.0:
-                vt, w = spin_friction(vt, w, n, r, friction, jn, inertia)
-            else:
-                lt = wp.length(vt)
-                if lt > 0.0:
-                    vt = vt * wp.max(0.0, 1.0 - friction * jn / lt)
+            vt, w = tangential_friction(vrel - vn * n, w, n, r, friction, jn, inertia)
             v_new = vs + vn_new * n + vt
             p = p + v * toi + v_new * (dt - toi)
             v = v_new
@@ -263,14 +272,8 @@ def advance_sphere(
                 vn_new = float(0.0)
                 if -vn > rest_speed:
                     vn_new = -restitution * vn
-                vt = wp.vec3(v[0], v[1], 0.0)
-                vt_old = vt
-                if inertia > 0.0:
-                    vt, w = spin_friction(vt, w, wp.vec3(0.0, 0.0, 1.0), r, friction, vn_new - vn, inertia)
-                else:
-                    lt = wp.length(vt)
-                    if lt > 0.0:
-                        vt = vt * wp.max(0.0, 1.0 - friction * (vn_new - vn) / lt)
+                vt_old = wp.vec3(v[0], v[1], 0.0)
+                vt, w = tangential_friction(vt_old, w, wp.vec3(0.0, 0.0, 1.0), r, friction, vn_new - vn, inertia)
                 v = wp.vec3(vt[0], vt[1], vn_new)
                 shift = (vt - vt_old) * tau
                 p = wp.vec3(p[0] + shift[0], p[1] + shift[1], ground_height + r + vn_new * tau)
@@ -280,7 +283,7 @@ def advance_sphere(
 
 
 @wp.func
-def advance_sphere_with_memory(
+def advance_and_store_sphere(
     s: int,
     p: wp.vec3,
     v: wp.vec3,
@@ -293,20 +296,30 @@ def advance_sphere_with_memory(
     rest_speed: float,
     ground: int,
     ground_height: float,
-    face: int,
-    n: wp.vec3,
-    depth: float,
-    vs: wp.vec3,
-    contact_memory: wp.array[pinch_memory],
-    w: wp.vec3,
     inertia: float,
+    contact_face: wp.array[wp.int32],
+    contact_normal: wp.array[wp.vec3],
+    contact_depth: wp.array[float],
+    contact_velocity: wp.array[wp.vec3],
+    contact_memory: wp.array[pinch_memory],
+    sphere_pos_out: wp.array[wp.vec3],
+    sphere_vel_out: wp.array[wp.vec3],
+    sphere_spin_out: wp.array[wp.vec3],
 ):
-    """``advance_sphere`` for sphere s with its contact of this sub-step and its pinch memory
-    (``contact_memory[s]``, ``pinch_memory``), what the world's and the batched step's
-    integration share: the plane facing the contact (``pinch_partner``) before, and after, the
-    contact kept as the last one and, where it was a pinch against the last contact, that
-    contact kept as the other side. ``w``, ``inertia``: the spin and the body, as in
-    ``advance_sphere``. Returns (position, velocity, spin)."""
+    """``advance_sphere`` for sphere s (centre p, velocity v) with its contact of this sub-step
+    (``contact_*[s]``) and its pinch memory (``contact_memory[s]``, ``pinch_memory``), stored:
+    position, velocity and, where the sphere rotates (``inertia`` > 0, as in ``advance_sphere``),
+    its spin (a point mass's spin is neither read nor written). What the world's and the batched
+    step's integration share: the plane facing the contact (``pinch_partner``) before, and after,
+    the contact kept as the last one and, where it was a pinch against the last contact, that
+    contact kept as the other side."""
+    face = contact_face[s]
+    n = contact_normal[s]
+    depth = contact_depth[s]
+    vs = contact_velocity[s]
+    w = wp.vec3(0.0)
+    if inertia > 0.0:
+        w = sphere_spin_out[s]
     m = contact_memory[s]
     n2 = wp.vec3(0.0)
     d2 = float(0.0)
@@ -354,43 +367,6 @@ def advance_sphere_with_memory(
     if pinched != 0:
         m[15] = PINCH_KEEP
     contact_memory[s] = m
-    return p1, v1, w1
-
-
-@wp.func
-def advance_and_store_sphere(
-    s: int,
-    p: wp.vec3,
-    v: wp.vec3,
-    inv_mass: float,
-    r: float,
-    gravity: wp.vec3,
-    dt: float,
-    restitution: float,
-    friction: float,
-    rest_speed: float,
-    ground: int,
-    ground_height: float,
-    inertia: float,
-    contact_face: wp.array[wp.int32],
-    contact_normal: wp.array[wp.vec3],
-    contact_depth: wp.array[float],
-    contact_velocity: wp.array[wp.vec3],
-    contact_memory: wp.array[pinch_memory],
-    sphere_pos_out: wp.array[wp.vec3],
-    sphere_vel_out: wp.array[wp.vec3],
-    sphere_spin_out: wp.array[wp.vec3],
-):
-    """``advance_sphere_with_memory`` for sphere s (centre p, velocity v) with its contact of this
-    sub-step, stored: position, velocity and, where the sphere rotates (``inertia`` > 0), its spin
-    (a point mass's spin is neither read nor written). What the world's and the batched step's
-    integration share."""
-    spin = wp.vec3(0.0)
-    if inertia > 0.0:
-        spin = sphere_spin_out[s]
-    p1, v1, w1 = advance_sphere_with_memory(s, p, v, inv_mass, r, gravity, dt, restitution, friction, rest_speed,
-                                            ground, ground_height, contact_face[s], contact_normal[s], contact_depth[s],
-                                            contact_velocity[s], contact_memory, spin, inertia)
     sphere_pos_out[s] = p1
     sphere_vel_out[s] = v1
     if inertia > 0.0:
@@ -439,7 +415,7 @@ def integrate_spheres(
     the tangential relative velocity, and it moves on for the rest of the step. A sphere
     already penetrating is first projected out along the contact normal. A sphere pinched
     between its contact and the plane facing it that it remembers (``contact_memory`` (S,)
-    ``pinch_memory``: read, then set by ``advance_sphere_with_memory``) is resolved against both
+    ``pinch_memory``: read, then set by ``advance_and_store_sphere``) is resolved against both
     (``resolve_pinch``).
     inv_mass (S,) [1/kg]: 0 marks a kinematic sphere (moves with its velocity, no forces).
     With ``ground`` set, a static plane z = ground_height (normal +z) also stops the spheres
