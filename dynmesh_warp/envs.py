@@ -36,6 +36,7 @@ from .kernels.envs import (
     count_env_steps,
     evaluate_ball_task,
     reset_ball_envs,
+    reset_env_streams,
 )
 
 try:  # gymnasium is an optional dependency (the "rl" and "all" extras)
@@ -196,7 +197,10 @@ class RideSurfaceEnv(VectorEnv):
             raise ValueError(f"seed: one integer for the batch, or None (fresh entropy), got {seed!r}")
         # no seed: fresh entropy, as Gymnasium's reset() without one (every env made without a seed
         # played seed 0's episodes: a new user's unseeded workers collected the same data)
-        self._seed = kernel_seed(np.random.SeedSequence().entropy if seed is None else seed)
+        # each env's seed, set where a seeded reset starts it (a masked one left the others' seed and
+        # episode count alone: they had been rewound to replay their first episode; a new user's)
+        self.env_seed = wp.full(E, kernel_seed(np.random.SeedSequence().entropy if seed is None else seed),
+                                dtype=wp.int32, device=d)
         # bounded where the value is: the contact flag (obs 15) in {0, 1}, the phase's sin and cos
         # (16, 17) in [-1, 1]; positions and velocities unbounded (check_env warned twice of it)
         low, high = np.full(int(OBS_DIM), -np.inf, np.float32), np.full(int(OBS_DIM), np.inf, np.float32)
@@ -213,8 +217,8 @@ class RideSurfaceEnv(VectorEnv):
         surf = m.surface
         wp.launch(reset_ball_envs, self.num_envs,
                   inputs=[surf.frames, surf.indices, m.pair_bvh, surf.fps, int(surf.interpolate), m.time_slices,
-                          m.spheres_per_env, mask, self._seed, wp.vec3(*self.target.tolist()), 0.3 * self.max_distance, self.push,
-                          self.top, self.radius],
+                          m.spheres_per_env, mask, self.env_seed, wp.vec3(*self.target.tolist()), 0.3 * self.max_distance,
+                          self.push, self.top, self.radius],
                   outputs=[s.env_time, s.env_playback, s.sphere_pos, s.sphere_vel, s.sphere_spin, self.env_steps,
                            self.env_episode, self.world.contacts.memory],
                   device=self.device)
@@ -291,8 +295,12 @@ class RideSurfaceEnv(VectorEnv):
             if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
                 raise ValueError(f"seed: one integer for the batch (each env draws its own stream from it and its "
                                  f"index), got {seed!r}")
-            self._seed = kernel_seed(seed)
-            self.env_episode.zero_()
+            # the envs it starts take the seed (Gymnasium's vector API seeds the masked envs only)
+            wp.launch(reset_env_streams, self.num_envs, inputs=[mask, kernel_seed(seed)],
+                      outputs=[self.env_seed, self.env_episode], device=self.device)
+        # the vector env's own np_random, as Gymnasium's VectorEnv.reset seeds it (a negative seed, which
+        # Gymnasium refuses and the envs take, seeds it with its mixed form)
+        super().reset(seed=None if seed is None else int(seed) if seed >= 0 else kernel_seed(seed))
         self.actions.zero_()
         self._reset_envs(mask)
         self._evaluate(mask)  # the episodes' first observations (in contact: 0)
@@ -309,7 +317,9 @@ class RideSurfaceEnv(VectorEnv):
         shape = tuple(actions.shape) if hasattr(actions, "shape") else np.shape(actions)
         if shape != (E, 2):
             raise ValueError(f"actions must have shape ({E}, 2) (one (x, y) per env), got {shape}")
-        if self.backend == "torch" and not isinstance(actions, np.ndarray):
+        if np.iscomplexobj(actions) if not hasattr(actions, "detach") else actions.is_complex():
+            raise ValueError(f"actions must be real numbers, got complex {getattr(actions, 'dtype', '')}".rstrip())
+        if self.backend == "torch" and hasattr(actions, "detach"):  # a tensor (a list or array: the NumPy path)
             # no host check here (it would wait for the device every step): a non-finite action
             # counts as 0 (kernels/envs.py: applied_action)
             wp.copy(self.actions, wp.from_torch(actions.detach().to(dtype=__import__("torch").float32).contiguous()))

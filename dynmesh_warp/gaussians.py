@@ -140,7 +140,8 @@ class Gaussians:
                   outputs=[s.centers, s.rotations, s.scales, s.covariances], device=self.device)
 
     def attach(self, world) -> "Gaussians":
-        """Update after every step of ``world`` (a post-step hook, captured in its CUDA graph)."""
+        """Update after every step of ``world`` (a post-step hook, captured in its CUDA graph), and
+        where its surface moves between steps (``reset``, ``set_time``, a restored checkpoint)."""
         try:
             world.model.surface.faces()  # Gaussians are bound to faces every frame shares
         except ValueError:
@@ -156,7 +157,7 @@ class Gaussians:
                       [w.state.points, w.current_indices(), b.face, b.bary, b.offset, b.local_rotation,
                        b.local_scale], [s.centers, s.rotations, s.scales, s.covariances])
 
-        world.add_post_step_hook(hook)
+        world.add_post_step_hook(hook, follows_surface=True)
         return self
 
     def splat_covariances_f16(self, min_scale: float, min_ratio: float = 0.05) -> np.ndarray:
@@ -369,7 +370,7 @@ class SegmentedGaussians:
         if world.device != self.device:
             raise ValueError(f"Gaussians are on {self.device}, the world on {world.device}")
         self.update(world.state.points, world.current_indices())
-        world.add_post_step_hook(lambda w: self.update(w.state.points, w.current_indices()))
+        world.add_post_step_hook(lambda w: self.update(w.state.points, w.current_indices()), follows_surface=True)
         return self
 
 

@@ -653,7 +653,9 @@ class Contacts:
         self.memory = wp.zeros(count, dtype=pinch_memory, device=device)
 
     def numpy(self) -> dict:
-        return {k: getattr(self, k).numpy() for k in ("face", "point", "normal", "depth", "velocity")}
+        """The contact fields as NumPy copies (on the CPU ``wp.array.numpy()`` is a view that the next
+        step overwrites: a new user's log of five steps' contacts read back five times the last)."""
+        return {k: getattr(self, k).numpy().copy() for k in ("face", "point", "normal", "depth", "velocity")}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1243,6 +1245,7 @@ class World:
                          state.sphere_spin.numpy().copy())
         self._initial_spheres = model.spheres  # the scene's own spheres: reset() goes back to them
         self.post_step_hooks = []  # callables hook(world) launched after each step (inside the graph)
+        self.surface_hooks = []  # those of them also run where the surface moves between steps
 
     def _choose_measured(self, model: Model, state: State, candidates) -> str:
         """The candidate with the least measured time per step (:func:`measure_colliders`);
@@ -1266,11 +1269,16 @@ class World:
         self.swept_search = search or None
         return name
 
-    def add_post_step_hook(self, hook, needs_surface: bool = True):
+    def add_post_step_hook(self, hook, needs_surface: bool = True, follows_surface: bool = False):
         """Run ``hook(world)`` after every step; it must only launch kernels (no allocation, no
         host reads) so it is captured in the same CUDA graph. With ``needs_surface`` the
-        vertex buffer and normals are brought to the current time before it. Drops the graph."""
+        vertex buffer and normals are brought to the current time before it. With
+        ``follows_surface`` it also runs where the surface moves between steps (:meth:`reset`,
+        :meth:`set_time`, a restored checkpoint): attached Gaussians had stayed where the last step
+        left them. Drops the graph."""
         self.post_step_hooks.append(hook)
+        if follows_surface:
+            self.surface_hooks.append(hook)
         if needs_surface:
             self.render_state = True
         self._graph = None
@@ -1455,6 +1463,8 @@ class World:
         self.state.update_frame_key(self.model)  # the clock moved: its frame pair, and whether it changed
         self._catch_up_collider()
         self.compute_normals()
+        for hook in self.surface_hooks:
+            hook(self)
 
     def reset(self):
         """Back to the initial time and the scene's initial spheres: spheres added since

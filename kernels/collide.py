@@ -47,10 +47,17 @@ def contact_side(p: wp.vec3, c: wp.vec3, face_normal: wp.vec3, sign: float) -> f
     edge or a corner): there the face's own plane decides. Faces tied from two parts of the
     surface (a sphere at the middle of two plates closing on it) sum opposite normals, and the
     pseudo-normal's sign was noise: a sphere between two plates was told it lay behind one and
-    pushed through it. Every collider takes its side from here."""
+    pushed through it. A centre in the closest face's own plane, off its boundary (h = 0 exactly,
+    p != c: a sheet's rim, or a convex edge) is in front: the query's sign there is a tie that the
+    colliders broke differently (a new user's sphere centred level with a sheet, 3 cm past its rim,
+    was pushed off it by the swept collider and pulled 8 cm onto it by refit). Every collider takes
+    its side from here."""
     h = wp.dot(p - c, face_normal)
-    if h != 0.0 and h * h >= 0.98 * wp.length_sq(p - c):
+    d2 = wp.length_sq(p - c)
+    if h != 0.0 and h * h >= 0.98 * d2:
         return wp.sign(h)
+    if h == 0.0 and d2 > 0.0:
+        return 1.0
     return sign
 
 

@@ -228,7 +228,7 @@ def reset_ball_envs(
     spheres_per_env: int,
     # In:
     env_mask: wp.array[wp.int32],
-    seed: int,
+    env_seed: wp.array[wp.int32],
     target: wp.vec3,
     spawn_radius: float,
     push: float,
@@ -249,13 +249,13 @@ def reset_ball_envs(
     as forth), the ball over a random point within ``spawn_radius`` [m]
     of the target, just above the surface there, with a random horizontal push of at most
     ``push`` [m/s], its spin stopped and its pinch memory cleared (``BatchedWorld.reset``'s rule). Random numbers from
-    (seed, env, episode): reproducible."""
+    (env_seed[e], env, episode): reproducible."""
     e = wp.tid()
     if env_mask[e] == 0:
         return
     ep = env_episode_out[e] + 1
     env_episode_out[e] = ep
-    state = wp.rand_init(seed, e * 7919 + ep * 104729)
+    state = wp.rand_init(env_seed[e], e * 7919 + ep * 104729)
     T = frames.shape[0]
     t = wp.float64(wp.randf(state) * playback_cycle(T, env_playback_out[e])) / fps
     env_time_out[e] = t
@@ -289,6 +289,23 @@ def combine_env_flags(
     """done[e] = 1 where env e terminated or was truncated, else 0."""
     e = wp.tid()
     done[e] = wp.where(terminated[e] != 0 or truncated[e] != 0, 1, 0)
+
+
+@wp.kernel
+def reset_env_streams(
+    # In:
+    env_mask: wp.array[wp.int32],
+    seed: int,
+    # State out:
+    env_seed_out: wp.array[wp.int32],
+    env_episode_out: wp.array[wp.int32],
+):
+    """A seeded reset: each env with env_mask[e] != 0 takes ``seed`` and restarts its episode
+    count (its next episode draws as the first after that seed); the others keep theirs."""
+    e = wp.tid()
+    if env_mask[e] != 0:
+        env_seed_out[e] = seed
+        env_episode_out[e] = 0
 
 
 @wp.kernel

@@ -79,6 +79,31 @@ def test_reset_mask_resets_only_the_masked_envs(device):
         env.reset(options={"reset_msk": m})
 
 
+def test_a_seeded_masked_reset_leaves_the_other_envs_streams_alone(device):
+    """A seeded reset seeds the envs it starts only (Gymnasium's vector API): the others keep their
+    seed and episode count, so their later episodes are those they would have played without it.
+    Every env's episode count was zeroed and the batch re-seeded: a new user's env 1 replayed its
+    first episode. The vector env's own ``np_random`` takes the seed, as Gymnasium's does."""
+    twins = [_env(device, num_envs=2, seed=0, max_steps=6) for _ in range(2)]
+    a = np.full((2, 2), 0.3, np.float32)
+    for env in twins:
+        env.reset(seed=0)
+        for _ in range(13):  # env 1 in its third episode
+            env.step(a)
+    twins[0].reset(seed=1, options={"reset_mask": np.array([True, False])})
+    np.testing.assert_array_equal(twins[0].env_episode.numpy(), [1, 3])
+    for _ in range(20):  # through three more of env 1's resets
+        o0, *_ = twins[0].step(a)
+        o1, *_ = twins[1].step(a)
+        np.testing.assert_array_equal(o0[1], o1[1])
+    draws = []
+    for env in twins:
+        env.reset(seed=123)
+        assert env.np_random_seed == 123
+        draws.append(env.np_random.random())
+    assert draws[0] == draws[1]
+
+
 def test_actions_are_taken_as_applied_and_checked(device):
     """The reward's action penalty uses the action as the physics applies it (clipped to the
     action space): an action of 1000 gives the rollout and the reward of 1.0. NaN or infinite
@@ -100,6 +125,8 @@ def test_actions_are_taken_as_applied_and_checked(device):
         env.step(bad)
     with pytest.raises(ValueError, match=r"actions must have shape \(4, 2\) .* got \(2, 4\)"):
         env.step(np.zeros((2, E), np.float32))
+    with pytest.raises(ValueError, match="actions must be real numbers, got complex complex128"):
+        env.step(np.full((E, 2), 0.5 + 3j))  # its imaginary part was dropped with NumPy's warning only
     # a finite float64 action beyond float32 (1e40) is clipped like 1000, not refused as infinite
     huge = _env(device, num_envs=E)
     huge.reset(seed=3)

@@ -235,6 +235,14 @@ def test_post_step_hook_follows_world_surface(device):
     np.testing.assert_allclose(g.numpy()["centers"], c, atol=2e-5)
     first = world.model.surface.sequence.V[0]
     assert np.abs(V - first).max() > 1e-3  # the surface did move
+    # and where the surface moves between steps: reset() and set_time() (a new user's splats stayed
+    # where the last step left them while the spheres and the surface went back to t = 0)
+    for move in (world.reset, lambda: world.set_time(0.13)):
+        move()
+        V = world.surface_points().numpy()
+        c, _, _, _ = numpy_update(V, F, *_binding_np(g))
+        np.testing.assert_allclose(g.numpy()["centers"], c, atol=2e-5)
+    assert np.abs(V - first).max() > 1e-3
 
 
 def test_shading_follows_the_surface_normal(device):

@@ -230,6 +230,47 @@ def test_ball_launched_sliding_rolls_on_at_five_sevenths():
             np.testing.assert_allclose(p[-1, 0, 0] + 1.5, v0 ** 2 / (2 * mu * G), rtol=0.02)
 
 
+def test_contacts_numpy_are_copies_that_later_steps_leave_alone():
+    """``Contacts.numpy()`` copies (on the CPU ``.numpy()`` is a view: a new user's log of five
+    steps' contacts on a rising floor read five times the last); the point rises with the floor."""
+    w = make_world(moving_sheet((0.0, 0.0, 0.5), 48, fps=24.0), [[0.1, 0.2, 0.1]], 0.1)
+    log = []
+    for _ in range(5):
+        w.step()
+        log.append(w.contacts.numpy())
+    z = np.array([c["point"][0, 2] for c in log])
+    np.testing.assert_allclose(np.diff(z), 0.5 * DT, rtol=1e-3)
+
+
+@pytest.mark.parametrize("collider", ["refit", "swept", "rebuild"])
+def test_centre_level_with_a_sheet_past_its_rim_is_pushed_off_the_rim(collider):
+    """A sphere (r 5 cm) centred exactly in a static sheet's plane, 3 cm past its rim: the closest
+    point is on the rim, the contact normal points from it to the centre (-x) and the depth is
+    r - 3 cm (closed form). The side there is a tie of the query's sign that the colliders broke
+    differently: refit and rebuild pulled the sphere 8 cm onto the sheet."""
+    V0, F = scenes.grid_sheet(5, 2.0)
+    w = make_world(FixedTopologySequence(V0[None].astype(np.float32), F, fps=24.0), [[-1.03, 0.3, 0.0]], 0.05,
+                   collider=collider, gravity=(0.0, 0.0, 0.0), restitution=0.0)
+    w.step()
+    c = w.contacts.numpy()
+    np.testing.assert_allclose(c["normal"][0], [-1.0, 0.0, 0.0], atol=1e-6)
+    np.testing.assert_allclose(c["depth"][0], 0.02, atol=1e-6)
+    np.testing.assert_allclose(w.sphere_positions()[0], [-1.05, 0.3, 0.0], atol=1e-6)
+
+
+def test_ball_on_a_belt_rolls_at_two_sevenths_spinning_against_its_travel():
+    """A solid ball set at rest on a belt moving at U (mu = 0.5) is dragged and spun until its
+    contact point moves with the belt; angular momentum about the contact point is conserved, so
+    it ends at v = 2U/7 with omega r = 5U/7 against its travel (v - omega r = U along the belt).
+    docs/physics.md had the spin as 2U/7; a later user computed it."""
+    r, U = 0.05, 1.0
+    w = make_world(moving_sheet((U, 0.0, 0.0), 240, fps=240.0, size=8.0), [[0.0, 0.0, r]], r, friction=0.5,
+                   sphere_body="solid")
+    run(w, int(0.5 / DT))
+    np.testing.assert_allclose(w.sphere_velocities()[0], [2.0 * U / 7.0, 0.0, 0.0], atol=1e-4)
+    np.testing.assert_allclose(w.sphere_spins()[0] * r, [0.0, -5.0 * U / 7.0, 0.0], atol=1e-4)
+
+
 def test_rolling_batch_reset_keeps_the_spin_and_spins_can_be_given():
     """A batched reset keeps what it is not given, the spin too (zeroed, a ball rolling at 5/7 v0
     slipped again and slowed to 1.02 m/s: a new user's); ``BatchState(spins=)`` and ``reset(spins=)``
