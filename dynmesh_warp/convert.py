@@ -79,8 +79,8 @@ from .convert_input import (MOVING_FRAMES, _CACHE, _bridge_dropouts, _chamfer_to
                             _key_retry_reason, _missing_parts, _moving_points, _moving_score, _input_checked, _tiny_parts,
                             _topology_events)
 from .convert_journal import ConversionJournal
-from .convert_report import (DROPOUT_FRAMES, FLOATER_AREA, POOR_WEB, WEB_GAP, WEB_STRETCH, _badness, _stretched_far,
-                             conversion_summary, slide_ratio)
+from .convert_report import (CUT_WEB, DROPOUT_FRAMES, FLOATER_AREA, POOR_WEB, WEB_GAP, WEB_STRETCH, _badness, _cut_badness,
+                             _stretched_far, conversion_summary, slide_ratio)
 from .convert_segments import _join_segments, _slice_result, _split_segments
 from .geometry import face_areas, has_area, winding_numbers
 from .kernels import convert as kc
@@ -373,8 +373,9 @@ def to_piecewise_fixed(seq, strategy: str = DEFAULT_STRATEGY, template=None, dev
     follow the input: a piecewise-fixed sequence (issue 12's topology segments).
 
     The run from the automatic key frame is checked frame by frame: a frame is poor when its
-    coverage exceeds POOR_COVERAGE (a lost part) or its web fraction exceeds POOR_WEB (the
-    template fused parts the input has pulled apart, :func:`web_fraction`). At the first poor
+    coverage exceeds POOR_COVERAGE (a lost part) or its web fraction exceeds CUT_WEB (the
+    template fused parts the input has pulled apart, :func:`web_fraction`; twice the POOR_WEB that
+    the summary warns of, so that a borderline web does not flip the segments). At the first poor
     frame on either side of the key frame, the frames from the input's last topology change
     before it (from that frame itself when there is none) to the end on that side are converted
     again with a template of their own (their automatic key frame), and the new segment is kept
@@ -437,8 +438,8 @@ def _to_piecewise(seq, strategy, template, device, progress, should_stop, option
 
     def stop_forward(t, web, buried):
         far = web + buried
-        return bool((web[t] > POOR_WEB and web[t - 1] > POOR_WEB)
-                    or (t - row >= 0 and all(far[t - j] > POOR_WEB for j in range(row))))
+        return bool((web[t] > CUT_WEB and web[t - 1] > CUT_WEB)
+                    or (t - row >= 0 and all(far[t - j] > CUT_WEB for j in range(row))))
 
     first = _to_fixed(vseq, strategy, None, device, progress, should_stop, stop_forward, **options)
     events = first.all_topology_events
@@ -450,7 +451,7 @@ def _to_piecewise(seq, strategy, template, device, progress, should_stop, option
         new = convert(a, T)
         if new is None and stopped():  # stopped by the caller meanwhile: the frames 0..b done
             return first
-        if new is not None and _badness(new.conversion)[:b + 1 - a].max() < _badness(first.conversion)[a:].max():
+        if new is not None and _cut_badness(new.conversion)[:b + 1 - a].max() < _cut_badness(first.conversion)[a:].max():
             keep = _slice_result(first, 0, a, 0)
             left = _split_segments(0, keep, events, limit - 1, convert)
             segs = left + _split_segments(a, new, events, limit - len(left), convert)

@@ -78,6 +78,13 @@ DROPOUT_OPEN_EDGES = 0.001
 WEB_STRETCH = 3.0
 WEB_GAP = 0.05
 POOR_WEB = 0.01
+#: a new template segment (``convert.to_piecewise_fixed``) is tried only where a frame's web is over
+#: CUT_WEB, twice the POOR_WEB that is warned of: a template change costs every correspondence (and
+#: Gaussians' binding) at the cut, and webs just over POOR_WEB are where the decision flipped. The
+#: same 8 frames gave 1 template, and 3 (one of them a single frame's, open) when moved by one float32
+#: ulp or scaled to millimetres; one frame extracted at 4x the resolution gave 4 (a new user's). The
+#: cuts that mended topology events had webs of 7-8 % (tests/test_segments.py)
+CUT_WEB = 2 * POOR_WEB
 #: a frame whose converted surface has more than this fraction of its area off the input (no
 #: input point within WEB_GAP x the diagonal of a face's centroid) besides its web and buried
 #: faces, and no dropout there, is warned of: the fit lost the input unstretched (a new user's
@@ -145,10 +152,16 @@ def _stretched_far(info) -> np.ndarray:
     return np.asarray(info.web, float) + (np.asarray(info.buried, float) if len(info.buried) else 0.0)
 
 
-def _badness(info) -> np.ndarray:
+def _badness(info, web_limit: float = POOR_WEB) -> np.ndarray:
     """Per frame, how poor the fit is: max(coverage / POOR_COVERAGE, :func:`_stretched_far` /
-    POOR_WEB); > 1 is poor."""
-    return np.maximum(np.asarray(info.coverage, float) / POOR_COVERAGE, _stretched_far(info) / POOR_WEB)
+    web_limit); > 1 is poor."""
+    return np.maximum(np.asarray(info.coverage, float) / POOR_COVERAGE, _stretched_far(info) / web_limit)
+
+
+def _cut_badness(info) -> np.ndarray:
+    """Per frame, how poor the fit is for a segment cut: :func:`_badness` with the web against
+    CUT_WEB; > 1 tries a new template."""
+    return _badness(info, CUT_WEB)
 
 
 def _frames_text(frames, limit: int = 12) -> str:
@@ -412,6 +425,9 @@ def conversion_summary(info: ConversionInfo) -> list:
             then = f"; {cuts} fitted no better where tried, {kept}"
         elif segs:
             then = ""
+        elif _stretched_far(info)[poor_web].max() <= CUT_WEB:
+            then = (f"; a new template (segment) is tried only where it is over {100 * CUT_WEB:.0f}% (a template change "
+                    "costs the correspondence there)")
         else:
             then = "; new templates (segments) start there when convert writes a .npz or a folder with max_segments > 1"
         lines.append(f"warning: web on {poor_web.size} frame(s) ({_frames_text(poor_web)}): over "

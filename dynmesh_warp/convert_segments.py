@@ -8,7 +8,7 @@ import dataclasses
 import numpy as np
 
 from .convert_base import ConversionInfo
-from .convert_report import _badness
+from .convert_report import _cut_badness
 from .sequence import FixedTopologySequence, VaryingTopologySequence, carried
 
 
@@ -17,7 +17,7 @@ def _segment_cut(info, events: list, lo: int) -> tuple | None:
     a template of their own, or None: from the first poor frame after the key frame, the range
     from the input's last topology change at or before it to the end; else, before the key
     frame, from frame lo to the first topology change after the last poor frame."""
-    bad = np.flatnonzero(_badness(info) > 1.0) + lo
+    bad = np.flatnonzero(_cut_badness(info) > 1.0) + lo
     K, hi = lo + info.key_frame, lo + len(info.coverage)
     after, before = bad[bad > K], bad[bad < K]
     if after.size:
@@ -41,7 +41,7 @@ def _split_segments(lo: int, res, events: list, budget: int, convert) -> list:
         return [(lo, res)]
     a, b = cut
     new = convert(a, b)
-    if new is None or _badness(new.conversion).max() >= _badness(res.conversion)[a - lo:b - lo].max():
+    if new is None or _cut_badness(new.conversion).max() >= _cut_badness(res.conversion)[a - lo:b - lo].max():
         if new is not None:  # the cut does not help: said in the summary
             res.conversion.rejected_cuts.append((a, b))
         return [(lo, res)]  # the cut does not help (or the run was stopped): one template here

@@ -750,6 +750,38 @@ def test_summary_says_a_cut_tried_without_a_web_and_the_whole_time():
     assert "in all" not in lines[0] and not any("fitted no better" in ln for ln in lines)
 
 
+def test_a_web_under_cut_web_is_warned_of_not_cut():
+    """A segment cut is tried where a frame's web is over CUT_WEB (2 %), not at the POOR_WEB (1 %)
+    that the summary warns of: webs just over 1 % are where the decision flipped (a new user's 8
+    frames gave 1 template, and 3 when moved by one float32 ulp or scaled to millimetres, one of
+    them a single frame's and open; one frame extracted at 4x the resolution gave 4). The warning
+    says why no template was tried."""
+    from dynmesh_warp.convert import ConversionInfo, conversion_summary
+    from dynmesh_warp.convert_report import CUT_WEB, POOR_WEB
+    from dynmesh_warp.convert_segments import _segment_cut
+
+    T = 8
+
+    def info(web4):
+        i = ConversionInfo("graph", {}, T, 100, key_frame=1)
+        for name in ("coverage", "coverage_tail", "web", "buried", "flipped"):
+            setattr(i, name, [0.0] * T)
+        i.coverage = [0.003] * T
+        i.web = [0.0] * 4 + [web4] + [0.0] * 3
+        i.frame_seconds, i.area_ratio, i.frame_motion, i.input_motion = [0.2] * T, [1.0] * T, [0.01] * T, [0.01] * T
+        i.segments, i.rejected_cuts = [(0, T, 1, 100)], []
+        return i
+
+    assert CUT_WEB == 2 * POOR_WEB
+    for web4 in (0.0107, 0.0199):
+        assert _segment_cut(info(web4), [], 0) is None
+        said = [ln for ln in conversion_summary(info(web4)) if ln.startswith("warning: web on 1 frame(s) (4)")]
+        assert len(said) == 1 and "a new template (segment) is tried only where it is over 2%" in said[0], said
+    assert _segment_cut(info(0.021), [], 0) == (4, T)
+    said = [ln for ln in conversion_summary(info(0.021)) if ln.startswith("warning: web on 1 frame(s) (4)")]
+    assert "new templates (segments) start there" in said[0]
+
+
 def test_a_segment_trial_does_not_warn_of_the_inputs_repeats_again():
     """Two balls merge and split, frame 12 repeating frame 11 exactly. The segment trial over
     frames 9..23 warned again, of its own "frame(s) 3" (a new user's); one warning now, of frame 12."""
