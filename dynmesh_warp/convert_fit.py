@@ -785,14 +785,20 @@ def _record_fit(conv, frame, diag: float, pf: _PerFrame, t: int) -> None:
     pf.area[t], pf.off[t] = conv.last_area, conv.last_off
 
 
+#: how far (x the diagonal) :func:`_input_motion` looks for the other frame's surface
+INPUT_MOTION_REACH = 1.0e4
+
+
 def _input_motion(frame, points, diag: float, device) -> float:
     """How far the input surface moved between a neighbouring frame and ``frame``: the 99th
     percentile of the neighbour's sampled vertices ``points`` (device) distances to ``frame``'s
     surface, over the diagonal ``diag`` (``ConversionInfo.input_motion``; one launch on the
-    frame's own BVH)."""
+    frame's own BVH). Looked for up to INPUT_MOTION_REACH diagonals: it stopped at one, so a body
+    moving two diagonals a frame read as 1, and its output, which followed it, as sliding 2.8x
+    along it (a new user's)."""
     dist = wp.empty(points.shape[0], dtype=float, device=device)
-    wp.launch(kc.measure_distances_to_mesh, dim=points.shape[0], inputs=[frame[0].id, points, float(diag)],
-              outputs=[dist], device=device)
+    wp.launch(kc.measure_distances_to_mesh, dim=points.shape[0],
+              inputs=[frame[0].id, points, float(INPUT_MOTION_REACH * diag)], outputs=[dist], device=device)
     return float(np.percentile(dist.numpy(), 99)) / max(diag, 1e-12)
 
 

@@ -29,6 +29,11 @@ POOR_FLIPPED = 0.12
 #: surface: a new user's balloon converted from its inflated frame read 2.0-2.4x on its deflated
 #: frames; the issue-12 protocol's sequences peak at 1.03-1.43x (CPU, 1 % error; docs/conversion.md)
 POOR_AREA = 1.5
+#: a frame over POOR_FLIPPED whose converted area is also over FOLD_AREA x the input's (and not over
+#: POOR_AREA, warned of on its own) is warned of as folded or crumpled: a new user's waving cloth
+#: read 21-27 % flipped at 1.27-1.38x the input's area, and a squeezed balloon 13 % at 1.34x, with a
+#: note only; the thin parts that read as many flipped faces with no fold have about the input's area
+FOLD_AREA = 1.2
 #: a frame whose converted surface moved (``frame_motion``) over JUMP_RATIO x the median of its
 #: JUMP_WINDOW neighbours either side, and over JUMP_LEAST of the diagonal, is warned of as a jump
 JUMP_RATIO = 3.0
@@ -324,6 +329,17 @@ def conversion_summary(info: ConversionInfo) -> list:
     if fl.size == cov.size and fl.size and fl.max() > 0:
         lines.append(mean_and_worst("faces turned against the input (fraction of the converted area; a fold-over)", fl))
         folds = np.flatnonzero(fl > POOR_FLIPPED)
+        ar = np.asarray(info.area_ratio, float)
+        if ar.size == fl.size and folds.size:  # with extra area: a fold or a crumple, warned of
+            grown = folds[(ar[folds] > FOLD_AREA) & (ar[folds] <= POOR_AREA)]
+            if grown.size:
+                w = int(grown[np.argmax(fl[grown])])
+                lines.append(f"warning: on {grown.size} frame(s) ({_frames_text(grown)}) over {100 * POOR_FLIPPED:.0f}% "
+                             f"of the converted surface faces against the input and its area is over {FOLD_AREA:g}x the "
+                             f"input's (frame {w}: {100 * fl[w]:.1f}%, {ar[w]:.2f}x): folded or crumpled there (a sheet "
+                             "doubled back, a template from a larger pose squeezed into a smaller one); spheres meet "
+                             "the folded layers. A key frame among those frames (--key-frame N) may follow them better")
+                folds = np.setdiff1d(folds, grown)
         if folds.size:  # a note, not a warning: thin parts read as much (docs/conversion.md, Folds)
             lines.append(f"note: over {100 * POOR_FLIPPED:.0f}% of the converted surface faces against the input on "
                          f"{folds.size} frame(s) ({_frames_text(folds)}): a fold-over (a sheet's free edge doubled "

@@ -1835,3 +1835,43 @@ def test_the_summary_warns_of_surface_off_the_input():
     assert POOR_OFF == 0.01
     info.off_input = [0.0] * T
     assert not any("off the input" in ln for ln in conversion_summary(info))
+
+
+@pytest.mark.parametrize("shift", [0.5, 2.8])
+def test_input_motion_is_measured_beyond_one_diagonal(device, shift):
+    """The input's motion between frames (``ConversionInfo.input_motion``) is the 99th percentile of
+    the neighbouring frame's vertices' distances to the frame's surface, over the diagonal. It was
+    looked for up to one diagonal only: a new user's body moving 2.8 diagonals a frame read as 1, and
+    its output, which followed it, as sliding 2.8x along it. Closed form: a box moved by D along x
+    has its far corners D from its x face."""
+    import trimesh
+
+    from dynmesh_warp.convert_fit import _input_motion, _motion_sample
+
+    box = trimesh.creation.box(extents=(0.3, 0.2, 0.1))
+    V = np.asarray(box.vertices, np.float32)
+    diag = float(np.linalg.norm(V.max(0) - V.min(0)))
+    mesh = wp.Mesh(points=wp.array(V, dtype=wp.vec3, device=device),
+                   indices=wp.array(np.asarray(box.faces, np.int32).ravel(), dtype=wp.int32, device=device))
+    moved = _motion_sample(V + np.float32([shift * diag, 0.0, 0.0]), device)
+    assert _input_motion((mesh,), moved, diag, device) == pytest.approx(shift, rel=1e-5)
+
+
+def test_faces_turned_with_extra_area_are_warned_of_as_a_fold():
+    """Over POOR_FLIPPED of the area facing against the input is a note (thin parts read as much
+    with no fold); with the area also over FOLD_AREA x the input's it is a warning, naming the
+    frames (a new user's waving cloth read 21-27 % at 1.27-1.38x, a squeezed balloon 13 % at 1.34x,
+    with a note only); over POOR_AREA the crumpled-area warning says it alone."""
+    from dynmesh_warp.convert import ConversionInfo, conversion_summary
+    from dynmesh_warp.convert_report import FOLD_AREA, POOR_AREA, POOR_FLIPPED
+
+    T = 5
+    info = ConversionInfo("graph", {}, T, 10, frame_seconds=[0.1] * T, key_frame=0, coverage=[0.01] * T,
+                          flipped=[0.0, POOR_FLIPPED + 0.09, POOR_FLIPPED + 0.04, 0.01, POOR_FLIPPED + 0.2],
+                          area_ratio=[1.0, FOLD_AREA + 0.18, 1.02, FOLD_AREA + 0.3, POOR_AREA + 0.2])
+    lines = conversion_summary(info)
+    fold = [ln for ln in lines if ln.startswith("warning: on 1 frame(s) (1) over 12%")]
+    assert len(fold) == 1 and "frame 1: 21.0%, 1.38x" in fold[0] and "folded or crumpled" in fold[0], lines
+    note = [ln for ln in lines if ln.startswith("note: over 12%")]
+    assert len(note) == 1 and "on 2 frame(s) (2, 4)" in note[0], lines  # thin parts at 1.02x; 4: the area warning
+    assert any("1.70x the input's area at frame 4" in ln for ln in lines if ln.startswith("warning:"))
