@@ -209,6 +209,10 @@ class PhysicsCore(_Strict):
         return self
 
 
+#: the ``physics:`` keys only the built-in world reads: a scene with a ``newton:`` section warns of them
+NEWTON_IGNORES = frozenset({"collider", "rebuild_every", "rest_speed", "margin", "swept_search", "sphere_body"})
+
+
 class PhysicsConfig(PhysicsCore):
     ground: Optional[Union[float, Literal["auto"]]] = None  # ground plane z = height [m]; auto: lowest surface point
     collider: Collider = DEFAULT_COLLIDER
@@ -313,6 +317,19 @@ class NewtonBodyConfig(_Strict):
                   if getattr(self, k) is not None and k not in need]
         if unused:
             raise ValueError(f"a {self.type} body does not use {', '.join(unused)}")
+        # fields of the other kind of body, set: refused (a new user's were taken and dropped unsaid)
+        primitive = self.type in ("box", "sphere", "capsule")
+        if primitive and not self.floating:
+            raise ValueError(f"floating: false fixes a model file's base (mjcf / urdf / usd); a {self.type} is always "
+                             "a free body (it fell); a static obstacle belongs in the surface")
+        if primitive and self.options:
+            raise ValueError(f"options are keyword arguments of add_mjcf / add_urdf / add_usd; a {self.type} takes none")
+        if not primitive and any(float(v) != 0.0 for v in self.velocity):
+            raise ValueError(f"velocity is a box / sphere / capsule's initial velocity; a {self.type} model's bodies "
+                             "start at rest (it was dropped)")
+        if not primitive and "density" in self.model_fields_set:
+            raise ValueError(f"density applies to a box / sphere / capsule; a {self.type} model's bodies keep the "
+                             "file's masses (it was dropped)")
         return self
 
 

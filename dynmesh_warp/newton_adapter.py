@@ -241,6 +241,14 @@ class NewtonWorld:
             # Newton's XPBD leaves restitution off unless asked: a new user's restitution 1.0 gave
             # no bounce at all (0.05 m after a 0.5 m drop; 0.50 m with it on, 0.51 m built-in)
             opts["enable_restitution"] = True
+        if solver == "xpbd" and opts.get("enable_restitution") and _surface_moves(surface.sequence):
+            import warnings  # noqa: PLC0415
+
+            warnings.warn(f"restitution {float(restitution):g} turns on Newton XPBD's restitution, which takes the "
+                          "deforming surface as static along its normal: a body riding the moving surface follows it, "
+                          "but its velocity reads as if the surface stood still (a new user's box on a floor rising at "
+                          "1 m/s read 0.024 m/s, and was not thrown up when the floor stopped); for bodies that ride "
+                          "the surface set physics.restitution: 0 (docs/newton.md)", UserWarning, stacklevel=3)
         self.solver = make_solver(self.model, solver, **opts)
         newton = _import_newton()
         self.state_0 = self.model.state()
@@ -525,6 +533,64 @@ def _refuse_bodies_inside(cfg, seq) -> None:
     refuse_starts_inside(*seq.frame(0), (sphere_entries(cfg) if cfg.newton.include_spheres else []) + bodies)
 
 
+def _surface_moves(seq) -> bool:
+    """Whether any vertex of the fixed-topology sequence moves between its frames."""
+    V = np.asarray(seq.V)
+    return len(V) > 1 and bool((V != V[:1]).any())
+
+
+def _inscribed(b) -> float:
+    """How far a box / sphere / capsule body reaches from its centre in every direction [m]: its
+    smallest half extent, or its radius."""
+    return min(b.half_extents) if b.type == "box" else b.radius
+
+
+def _refuse_bodies_below_ground(cfg, ground: float | None) -> None:
+    """A box / sphere / capsule body whose centre starts under ``ground`` + its reach
+    (:func:`_inscribed`, less GROUND_OVERLAP of it) is refused, as a sphere is
+    (``scene.refuse_below_ground``): a new user's box 0.2 m under the ground plane was shot up at
+    48 m/s where a sphere there was refused."""
+    from .config import SceneError  # noqa: PLC0415
+    from .scene import GROUND_OVERLAP  # noqa: PLC0415
+
+    if ground is None:
+        return
+    for i, b in enumerate(cfg.newton.bodies):
+        if b.type in ("box", "sphere", "capsule") and b.position[2] < ground + (1.0 - GROUND_OVERLAP) * _inscribed(b):
+            raise SceneError(f"newton.bodies.{i}: centre z = {b.position[2]:.6g} starts below the ground plane "
+                             f"(physics.ground = {cfg.physics.ground!r}, z = {ground:.6g}, plus its "
+                             f"{'smallest half extent' if b.type == 'box' else 'radius'} {_inscribed(b):.4g}): Newton "
+                             "would throw it up at the first step. Lower physics.ground (null: none) or raise the body")
+
+
+def _warn_bodies_overlapping(cfg, seq) -> None:
+    """Warn of a box / sphere / capsule body that starts overlapping the surface (frame 0): its
+    centre nearer the surface than it reaches every way (:func:`_inscribed`). Newton pushes it
+    out at once: a new user's box 4 cm into a sheet left at 6.4 m/s and rose 2 m (the built-in
+    world pushes a sphere out by its depth, at rest)."""
+    import warnings  # noqa: PLC0415
+
+    from .kernels.convert import measure_distances_to_mesh  # noqa: PLC0415
+
+    bodies = [(i, b) for i, b in enumerate(cfg.newton.bodies) if b.type in ("box", "sphere", "capsule")]
+    if not bodies:
+        return
+    V, F = seq.frame(0)
+    mesh = wp.Mesh(points=wp.array(np.asarray(V, np.float32), dtype=wp.vec3, device="cpu"),
+                   indices=wp.array(np.asarray(F, np.int32).ravel(), dtype=wp.int32, device="cpu"))
+    reach = max(_inscribed(b) for _, b in bodies)  # (a centre farther than every body's reach: no overlap)
+    dist = wp.empty(len(bodies), dtype=float, device="cpu")
+    wp.launch(measure_distances_to_mesh, dim=len(bodies), device="cpu", outputs=[dist],
+              inputs=[mesh.id, wp.array(np.array([b.position for _, b in bodies], np.float32), dtype=wp.vec3,
+                                         device="cpu"), float(2.0 * reach)])
+    for (i, b), d in zip(bodies, dist.numpy()):
+        if d < _inscribed(b):
+            warnings.warn(f"newton.bodies.{i} ({b.type}) starts {_inscribed(b) - d:.4g} m into the surface (its centre "
+                          f"{d:.4g} m from it, reaching {_inscribed(b):.4g} m every way): Newton pushes it out at the "
+                          "first steps, fast (a box 4 cm into a sheet left at 6.4 m/s); start it clear of the surface",
+                          UserWarning, stacklevel=4)
+
+
 def _newton_substeps(cfg, surface, radii) -> int:
     """``physics.substeps``, raised (``physics.auto_substeps``, with a warning; else only warned
     of) so the surface moves less than half the thinnest body per sub-step: the built-in world's
@@ -578,8 +644,10 @@ def build_newton_world(cfg, device=None, sequence=None, num_worlds: int = 1, **o
     seq = load_surface(cfg) if sequence is None else prepare_surface(sequence, cfg)
     require_fixed_topology(cfg, seq, "the Newton path needs")
     _refuse_bodies_inside(cfg, seq)
+    _warn_bodies_overlapping(cfg, seq)
     # the one builder (scene.build_model): the surface on the device, the spheres, the ground
     model, state = build_model(cfg, seq, device)
+    _refuse_bodies_below_ground(cfg, model.params.ground_height)
     surface, sp = model.surface, model.spheres
     vel = state.sphere_vel.numpy() if isinstance(cfg.spheres, list) else None
     sph = (sp.radius_np.tolist(), sp.mass_np.tolist(), state.sphere_pos.numpy().copy(), vel)

@@ -19,7 +19,7 @@ from pathlib import Path
 
 
 from .cli import interruptible_main
-from .config import say_sequence_scene, scene_source
+from .config import NEWTON_IGNORES, say_sequence_scene, scene_source
 from .runtime import (
     NonFiniteStateError,
     check_record_output,
@@ -113,6 +113,11 @@ def run_scene(cfg, device=None, steps: int | None = None, collider: str | None =
         if collider is not None or rebuild_every is not None:
             warnings.warn("--collider / --rebuild-every choose the built-in world's collider; a scene "
                           "with a newton: section uses Newton's collision pipeline, so they are ignored",
+                          stacklevel=2)
+        builtin_only = sorted(set(cfg.physics.model_fields_set) & NEWTON_IGNORES)
+        if builtin_only:  # (a new user's collider, margin, rest_speed and sphere_body ran unsaid)
+            warnings.warn(f"physics.{', physics.'.join(builtin_only)}: the built-in world's setting(s); a scene with a "
+                          "newton: section uses Newton's solver and collision pipeline, so they are ignored",
                           stacklevel=2)
         if checkpoint_every or resume is not None:
             raise CheckpointError("--checkpoint-every / --resume: not available for a scene with a newton: section "

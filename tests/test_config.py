@@ -300,3 +300,24 @@ def test_a_ground_plane_needs_gravity_along_minus_z():
     assert load_scene_config(data={"physics": {"gravity": [0, 0, 0], "ground": 0.0}}).physics.ground == 0.0
     assert load_scene_config(data={"physics": {"gravity": [3, 0, -9.81], "ground": "auto"}}).physics.ground == "auto"
     assert load_scene_config(data={"physics": {"gravity": [0, -9.81, 0]}}).physics.ground is None
+
+
+def test_newton_body_fields_of_the_other_kind_are_refused_not_dropped(tmp_path):
+    """A new user's `floating: false` box fell, `options` on a box, `velocity` and `density` on
+    an mjcf model were taken and dropped unsaid: each is refused naming the body and the field."""
+    from dynmesh_warp.config import SceneError, load_scene_config
+
+    def scene(body):
+        return {"surface": {"source": "builtin:wave_bowl"}, "spheres": [], "newton": {"bodies": [body]}}
+
+    box = {"type": "box", "position": [0, 0, 1], "half_extents": [0.1, 0.1, 0.1]}
+    (tmp_path / "ant.xml").write_text("<mujoco/>")
+    mjcf = {"type": "mjcf", "file": str(tmp_path / "ant.xml")}
+    for body, what in [({**box, "floating": False}, "floating: false fixes a model file's base"),
+                       ({**box, "options": {"ignore_names": ["floor"]}}, "options are keyword arguments of add_mjcf"),
+                       ({**mjcf, "velocity": [3, 0, 0]}, "velocity is a box / sphere / capsule's initial velocity"),
+                       ({**mjcf, "density": 500}, "density applies to a box / sphere / capsule")]:
+        with pytest.raises(SceneError, match=r"newton\.bodies\.0.*" + what):
+            load_scene_config(data=scene(body))
+    load_scene_config(data=scene({**box, "floating": True, "velocity": [1, 0, 0], "density": 500}))
+    load_scene_config(data=scene({**mjcf, "floating": False, "options": {"ignore_names": ["floor"]}}))

@@ -170,12 +170,14 @@ def test_scene_yaml_runs_newton_bodies(tmp_path, device):
         "newton": {"solver": "xpbd", "bodies": [
             {"type": "box", "position": [-0.3, 0.0, 0.3], "half_extents": [0.1, 0.1, 0.05]}]},
         "run": {"steps": 240, "output": str(tmp_path / "out")},
+        "physics": {"margin": 0.05, "sphere_body": "solid"},  # the built-in world's: said to be ignored
     }
     import yaml
 
     path = tmp_path / "nt.yaml"
     path.write_text(yaml.safe_dump(scene))
-    summary = run_scene(load_scene_config(path), progress=False, log=lambda *a: None)
+    with pytest.warns(UserWarning, match=r"physics\.margin, physics\.sphere_body: the built-in world's .* ignored"):
+        summary = run_scene(load_scene_config(path), progress=False, log=lambda *a: None)
     q = np.asarray(summary["final"]["body_q"])
     assert summary["engine"] == "newton" and q.shape == (2, 7)
     np.testing.assert_allclose(q[:, 2], [0.05, 0.05], atol=3e-3)  # box half height, sphere radius
@@ -203,6 +205,15 @@ def test_newton_scene_gets_the_ground_plane_and_clear_solver_errors(tmp_path, de
     for _ in range(240):
         w.step()
     assert w.body_transforms()[0, 2] == pytest.approx(0.35, abs=3e-3)  # on the plane, not the sheet (0.05)
+    # a box under the ground is refused as a sphere is (a new user's was thrown up at 48 m/s); one
+    # starting 4 cm into the sheet is warned of (it left at 6.4 m/s)
+    data["newton"]["bodies"][0]["position"] = [0.0, 0.0, 0.3]
+    with pytest.raises(SceneError, match=r"newton\.bodies\.0: centre z = 0.3 starts below the ground plane"):
+        build_newton_world(load_scene_config(data=data))
+    data["physics"] = {}
+    data["newton"]["bodies"][0].update(position=[0.0, 0.0, 0.01], half_extents=[0.1, 0.1, 0.05])
+    with pytest.warns(UserWarning, match=r"newton\.bodies\.0 \(box\) starts 0.04 m into the surface"):
+        build_newton_world(load_scene_config(data=data))
     data["newton"]["solver_options"] = {"iterationz": 3}
     with pytest.raises(SceneError, match=r"newton\.solver_options.*iterationz"):
         build_newton_world(load_scene_config(data=data))
@@ -230,7 +241,12 @@ def test_newton_world_raises_substeps_for_its_thinnest_body(tmp_path, device):
     data["physics"] = {"auto_substeps": False}
     with pytest.warns(UserWarning, match=r"auto_substeps is off .* set physics.substeps to 2"):
         assert build_newton_world(load_scene_config(data=data)).substeps == 1
-    data["physics"] = {"substeps": 3}  # enough already: kept, nothing said
+    # restitution > 0 on a moving surface: XPBD's restitution reads a riding body's velocity as if
+    # the surface stood still (a new user's box on a floor rising at 1 m/s read 0.024 m/s): said
+    data["physics"] = {"substeps": 3}
+    with pytest.warns(UserWarning, match=r"restitution 0.3 turns on Newton XPBD's restitution.*restitution: 0"):
+        build_newton_world(load_scene_config(data=data))
+    data["physics"] = {"substeps": 3, "restitution": 0.0}  # enough sub-steps already: kept, nothing said
     import warnings
 
     with warnings.catch_warnings():
