@@ -50,6 +50,7 @@ from .kernels.batch import (
     reset_env_spheres,
 )
 from .kernels.frames import add_points_offset, update_frame_vertices
+from .config import MAX_TIME_OFFSET
 from .runtime import free_bytes
 from .world import (Contacts, PhysicsParams, SphereModel, SurfaceModel, check_substep_budget, fallen_past_note, physics_summary,
                     frame_pair_host, playback_cycle_host, required_substeps, resolve_playback, seam_note)
@@ -213,7 +214,8 @@ class BatchModel:
 class BatchState:
     """Per-step data of E envs: env_time (E,) float64 [s], env_rate (E,) float32 (1 = real time),
     env_playback (E,) int32 (``choices.PLAYBACK_CODES``), sphere_pos / sphere_vel / sphere_spin
-    (E * S,) vec3 [m], [m/s], [rad/s] (the spin stays zero for ``sphere_body: point``). Owns its
+    (E * S,) vec3 [m], [m/s], [rad/s] (spins given to ``sphere_body: point`` spheres are kept, warned of,
+    and change nothing). Owns its
     arrays (never aliases the model)."""
 
     def __init__(self, model: BatchModel, positions, velocities=None, times=0.0, rates=1.0, playback=None,
@@ -222,6 +224,7 @@ class BatchState:
         pos = _per_env(positions, E, S, "positions")
         vel = np.zeros_like(pos) if velocities is None else _per_env(velocities, E, S, "velocities")
         spin = np.zeros_like(pos) if spins is None else _per_env(spins, E, S, "spins")
+        _spins_kept_note(spin, model.params.sphere_body, "BatchState")
         self.sphere_pos = wp.array(pos, dtype=wp.vec3, device=d)
         self.sphere_vel = wp.array(vel, dtype=wp.vec3, device=d)
         self.sphere_spin = wp.array(spin, dtype=wp.vec3, device=d)
@@ -231,24 +234,36 @@ class BatchState:
         self.env_playback = wp.array(m, dtype=wp.int32, device=d)
 
 
-def _per_env(a, E: int, S: int, what: str) -> np.ndarray:
-    """(S, 3) for every env or (E, S, 3) per env -> (E * S, 3) float32, checked."""
+def _per_env(a, E: int, S: int, what: str, mask=None) -> np.ndarray:
+    """(S, 3) for every env or (E, S, 3) per env -> (E * S, 3) float32, checked (the rows of the
+    envs where ``mask`` (E,) is true only, when given: the others are not read)."""
     a = np.asarray(a, np.float32)
     if a.shape == (S, 3):
         a = np.broadcast_to(a, (E, S, 3))
     if a.shape != (E, S, 3):
         raise ValueError(f"{what}: expected ({S}, 3) or ({E}, {S}, 3), got {a.shape}")
-    if not np.isfinite(a).all():
-        raise ValueError(f"{what}: non-finite values")
+    if not np.isfinite(a if mask is None else a[np.asarray(mask, bool)]).all():
+        raise ValueError(f"{what}: non-finite values" + ("" if mask is None else " in the envs being reset"))
     return np.ascontiguousarray(a.reshape(E * S, 3))
 
 
-def _clocks(model: BatchModel, times, rates, playback):
+def _spins_kept_note(spins: np.ndarray, body, who: str) -> None:
+    """Warn where spins are given to spheres that do not rotate (``State``'s note, for the batch)."""
+    if np.any(spins) and SPHERE_INERTIA[body] == 0:
+        warnings.warn(f"{who}: spins given to spheres that do not rotate (physics.sphere_body point): they are kept as "
+                      "given and change nothing; sphere_body solid or shell makes them roll", stacklevel=3)
+
+
+def _clocks(model: BatchModel, times, rates, playback, mask=None):
     E = model.num_envs
     t = np.broadcast_to(np.asarray(times, np.float64), (E,)).copy()
     r = np.broadcast_to(np.asarray(rates, np.float32), (E,)).copy()
-    if not (np.isfinite(t).all() and np.isfinite(r).all()) or (r < 0).any():
+    read = slice(None) if mask is None else np.asarray(mask, bool)  # (a reset reads the reset envs' only)
+    if not (np.isfinite(t[read]).all() and np.isfinite(r[read]).all()) or (r[read] < 0).any():
         raise ValueError("env clocks: times must be finite and rates finite and >= 0")
+    if (np.abs(t[read]) > MAX_TIME_OFFSET).any():  # 1e30 froze the env's clock (t + dt == t), unsaid
+        raise ValueError(f"env clocks: times must be within +-{MAX_TIME_OFFSET:g} s (envs.time_offset's bound; far "
+                         f"beyond it float64 rounding stops the clock), got {float(np.abs(t[read]).max()):g}")
     if playback is None:
         m = np.full(E, model.surface.playback, np.int32)
     else:
@@ -378,7 +393,13 @@ class BatchedWorld:
         self.model, self.state = model, state
         self.device = model.device
         p = model.params.freeze()  # the step and its graph are made from these values
-        rate = float(state.env_rate.numpy().max()) if max_rate is None else float(max_rate)
+        fastest = float(state.env_rate.numpy().max())
+        if max_rate is not None and fastest > float(max_rate) * (1 + 1e-6):
+            # (a new user's max_rate 1 with an env at 30: one sub-step where 6 were needed, and the
+            # sphere fell through a rising floor; reset refused the same rate)
+            raise ValueError(f"max_rate {float(max_rate):g}: the state's env rates reach {fastest:g}; the sub-steps are "
+                             "chosen for max_rate, so it must be at least the fastest env's rate")
+        rate = fastest if max_rate is None else float(max_rate)
         self.max_rate = rate
         r_min = float(model.spheres.radius_np.min())
         speed = model.surface.max_speed * rate
@@ -469,7 +490,7 @@ class BatchedWorld:
     def reset(self, env_mask, positions=None, velocities=None, times=None, rates=None, playback=None, spins=None):
         """Reset the envs where ``env_mask`` (E,) is true: their spheres to ``positions`` /
         ``velocities`` / ``spins`` ((S, 3) or (E, S, 3) [m], [m/s], [rad/s]; rows of other envs are
-        ignored) and their clocks to ``times`` [s] / ``rates`` / ``playback`` (scalars or (E,)). What
+        ignored: not read, not checked) and their clocks to ``times`` [s] / ``rates`` / ``playback`` (scalars or (E,)). What
         is not given is kept.
         The other envs are untouched; the captured graph stays valid (arrays are written, not
         replaced)."""
@@ -486,13 +507,16 @@ class BatchedWorld:
 
         def given_or_kept(now, value, what):  # (a spin zeroed, a rolling ball kept its speed and slipped again)
             rows = now.numpy().reshape(E, S, 3) if value is None else value
-            return wp.array(_per_env(rows, E, S, what), dtype=wp.vec3, device=self.device)
+            return _per_env(rows, E, S, what, mask)  # (other envs' rows are not read: a NaN there was refused)
 
         new_pos, new_vel, new_spin = (given_or_kept(now, value, what) for now, value, what in (
             (s.sphere_pos, positions, "positions"), (s.sphere_vel, velocities, "velocities"),
             (s.sphere_spin, spins, "spins")))
+        if spins is not None:
+            _spins_kept_note(new_spin.reshape(E, S, 3)[mask.astype(bool)], m.params.sphere_body, "BatchedWorld.reset")
+        new_pos, new_vel, new_spin = (wp.array(a, dtype=wp.vec3, device=self.device) for a in (new_pos, new_vel, new_spin))
         t, r, pb = _clocks(m, s.env_time.numpy() if times is None else times,
-                           s.env_rate.numpy() if rates is None else rates, playback)
+                           s.env_rate.numpy() if rates is None else rates, playback, mask)
         if playback is None:
             pb = s.env_playback.numpy()
         if rates is not None and float(np.max(r)) > self.max_rate * (1 + 1e-6):

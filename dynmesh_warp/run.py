@@ -151,6 +151,12 @@ def run_scene(cfg, device=None, steps: int | None = None, collider: str | None =
 
         if collider not in (None, "swept", "fixed") or rebuild_every is not None:
             raise SceneError(f"--collider {collider}: batched envs use the swept pair BVHs (docs/envs.md)")
+        chosen = cfg.physics.model_fields_set & {"collider", "rebuild_every"}
+        if ("collider" in chosen and cfg.physics.collider not in ("swept", "fixed")) or "rebuild_every" in chosen:
+            # (the scene's own choice was dropped unsaid where the flag was refused; a new user's)
+            raise SceneError(f"physics.collider {getattr(cfg.physics.collider, 'value', cfg.physics.collider)!r} / "
+                             "physics.rebuild_every: batched envs (envs.count > 1) use the swept pair BVHs; leave "
+                             "them unset, fixed or swept (docs/envs.md)")
         sim = build_batched_world(cfg, device=device)
     else:
         from .choices import Collider

@@ -64,7 +64,7 @@ from .choices import (
     parse,
     values,
 )
-from .config import PhysicsCore
+from .config import MAX_TIME_OFFSET, PhysicsCore
 from .geometry import frame_across, points_inside, up_from_gravity
 from .sequence import FixedTopologySequence, VaryingTopologySequence
 
@@ -1442,6 +1442,9 @@ class World:
         t = float(t)
         if not math.isfinite(t):  # a new user's NaN made the surface NaN and the spheres fall through it
             raise ValueError(f"set_time: the time must be a finite number of seconds, got {t}")
+        if abs(t) > MAX_TIME_OFFSET:  # (1e30 froze the clock: t + dt == t; the batch's bound too)
+            raise ValueError(f"set_time: the time must be within +-{MAX_TIME_OFFSET:g} s (far beyond it float64 "
+                             f"rounding stops the clock), got {t:g}")
         self.ctx.time = t
         self.state.sim_time.assign(np.array([self.ctx.time], np.float64))
         self._refresh_surface()

@@ -201,6 +201,44 @@ def test_reset_touches_only_the_named_envs(device):
     with pytest.raises(ValueError, match=r"playback must be one of \['auto', 'loop', 'clamp', 'pingpong'\], got 1"):
         a.reset(mask, playback=1)
     a.reset(mask, playback="pingpong")
+    # rows of envs not being reset are not read (a NaN there, the usual RL buffer, was refused);
+    # the reset envs' are checked
+    buf = np.full((E, S, 3), np.nan, np.float32)
+    buf[mask] = new
+    a.reset(mask, positions=buf, velocities=np.where(np.isnan(buf), np.nan, 0.0))
+    np.testing.assert_array_equal(a.sphere_positions()[mask], np.broadcast_to(new, (2, S, 3)))
+    buf[1, 0, 2] = np.nan
+    with pytest.raises(ValueError, match="positions: non-finite values in the envs being reset"):
+        a.reset(mask, positions=buf)
+    # a clock beyond float64's steps is refused, as envs.time_offset is (1e30 froze the env's clock)
+    with pytest.raises(ValueError, match=r"times must be within \+-1e\+09 s"):
+        a.reset(mask, times=1e30)
+
+
+def test_batch_edges_a_new_user_found(device):
+    """max_rate under the state's rates was taken (one sub-step where six were needed: a sphere on a
+    floor rising at 1 m/s in an env at rate 30 fell through it), as reset refuses; spins given to
+    point masses are warned of, as State does; World.set_time has the batch's time bound."""
+    from dynmesh_warp.scenes import grid_sheet
+
+    V0, F = grid_sheet(5, 2.0)
+    V = np.stack([V0 + np.float32([0.0, 0.0, k / 24.0]) for k in range(24)]).astype(np.float32)
+    from dynmesh_warp.sequence import FixedTopologySequence
+
+    seq = FixedTopologySequence(V, F, fps=24.0)
+    bm = BatchModel(SurfaceModel(seq, device), 2, np.full(1, 0.05), 1.0, _params())
+    pos = np.array([[0.0, 0.0, 0.06]], np.float32)
+    with pytest.raises(ValueError, match="max_rate 1: the state's env rates reach 30"):
+        BatchedWorld(bm, BatchState(bm, pos, rates=[1.0, 30.0]), max_rate=1.0)
+    assert BatchedWorld(bm, BatchState(bm, pos, rates=[1.0, 30.0])).substeps == 6
+    with pytest.warns(UserWarning, match="BatchState: spins given to spheres that do not rotate"):
+        BatchState(bm, pos, spins=np.array([[0.0, 30.0, 0.0]], np.float32))
+    w = BatchedWorld(bm, BatchState(bm, pos))
+    with pytest.warns(UserWarning, match="BatchedWorld.reset: spins given to spheres that do not rotate"):
+        w.reset(np.array([True, False]), spins=np.array([[0.0, 30.0, 0.0]], np.float32))
+    m = Model(SurfaceModel(seq, device), SphereModel(np.full(1, 0.05), 1.0, device), _params())
+    with pytest.raises(ValueError, match=r"set_time: the time must be within \+-1e\+09 s"):
+        World(m, State(m, pos)).set_time(1e30)
 
 
 def test_pair_slots_bound_the_interpolated_surface(device):
@@ -483,3 +521,17 @@ def test_a_rate_beyond_the_work_budget_names_envs_rate():
                                       "spheres": {"count": 1, "radius": 0.05}, "envs": {"count": 4, "rate": [1, 1e6]}})
     with pytest.raises(WorkBudgetError, match=r"the fastest env's rate 1e\+06 x the surface's own .* envs.rate up to \S+ fits"):
         build_batched_world(cfg, device="cpu")
+
+
+def test_a_scene_collider_other_than_swept_is_refused_with_envs(tmp_path):
+    """``--collider rebuild`` with envs was refused, but the scene's own ``physics.collider: rebuild``
+    was dropped unsaid (the run used the swept pair BVHs; a new user's): refused alike, before any work."""
+    from dynmesh_warp.config import SceneConfig, SceneError
+    from dynmesh_warp.run import run_scene
+
+    base = {"surface": {"source": "builtin:wave_bowl", "params": {"n": 8, "frames": 12}}, "device": "cpu",
+            "spheres": {"count": 1, "radius": 0.05}, "envs": {"count": 2}, "run": {"steps": 2, "output": str(tmp_path)}}
+    for physics in ({"collider": "rebuild"}, {"collider": "refit"}, {"rebuild_every": "frame"}):
+        with pytest.raises(SceneError, match=r"batched envs \(envs.count > 1\) use the swept pair BVHs"):
+            run_scene(SceneConfig.model_validate({**base, "physics": physics}), progress=False, log=lambda *a: None)
+    assert not any(tmp_path.iterdir())
