@@ -666,9 +666,11 @@ def say_sequence_scene(scene, cfg: SceneConfig) -> None:
         what = f"{sp.count} sphere{'s' if sp.count != 1 else ''} of radius {sp.radius:g} m dropped on it"
     else:
         what = f"the {len(sp)} sphere{'s' if len(sp) != 1 else ''} of spheres:"
+    up = getattr(cfg.surface.up_axis, "value", cfg.surface.up_axis)
+    axis = ("up axis auto: y for glTF, else z; other data: --set surface.up_axis=y or z" if up == "auto" else
+            f"up axis {up}, as set")  # (it said auto where --set surface.up_axis=y had been given: a new user's)
     print(f"note: {scene} is a mesh sequence, not a scene file: playing it with {what} "
-          "(up axis auto: y for glTF, else z; other data: --set surface.up_axis=y or z; more in a scene YAML, "
-          "docs/scene.md)", file=sys.stderr)
+          f"({axis}; more in a scene YAML, docs/scene.md)", file=sys.stderr)
 
 
 def load_scene_config(path: str | Path | None = None, data: dict | None = None, overrides=None) -> SceneConfig:

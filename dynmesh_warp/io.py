@@ -370,6 +370,7 @@ def _warn_up_axis_lost(seq, path: Path) -> None:
     if _y_up(seq):
         import warnings
 
-        warnings.warn(f"{path}: its coordinates are +Y up, as its source {seq.source} (glTF) holds them, and this "
+        held = "(glTF)" if str(seq.source).lower().endswith((".glb", ".gltf")) else "(its up_axis entry)"
+        warnings.warn(f"{path}: its coordinates are +Y up, as its source {seq.source} {held} holds them, and this "
                       "format cannot say so: read it back with surface.up_axis: y (--set surface.up_axis=y), or "
                       "write a .npz or .glb, which keep it", stacklevel=3)

@@ -796,11 +796,15 @@ def test_an_output_that_appears_during_convert_is_kept(work, tmp_path, monkeypat
 
 def test_convert_says_when_its_output_does_not_keep_the_frame_rate(work, tmp_path, capsys):
     """A new user's --fps 30 to a folder (or a .pc2 / .anime) read back at 24 fps without a word:
-    convert says so; a .npz keeps the rate and says nothing."""
+    convert says so for a .pc2 / .anime; a .npz keeps the rate and says nothing, and so does a folder,
+    whose manifest keeps it since (the note said it was lost: a later user's)."""
     from dynmesh_warp import convert
     from dynmesh_warp.io import load_sequence
 
     assert convert.main([str(work / "frames"), str(tmp_path / "f"), "--fps", "30", "--device", "cpu", "--no-progress"]) == 0
+    assert "frame rate" not in capsys.readouterr().err and load_sequence(tmp_path / "f").fps == 30.0
+    assert convert.main([str(work / "frames"), str(tmp_path / "f.pc2"), "--fps", "30", "--device", "cpu",
+                         "--no-progress"]) == 0
     assert "does not store the frame rate (30 fps): it reads back at 24" in capsys.readouterr().err
     assert convert.main([str(work / "frames"), str(tmp_path / "f.npz"), "--fps", "30", "--device", "cpu",
                          "--no-progress"]) == 0

@@ -1875,3 +1875,41 @@ def test_faces_turned_with_extra_area_are_warned_of_as_a_fold():
     note = [ln for ln in lines if ln.startswith("note: over 12%")]
     assert len(note) == 1 and "on 2 frame(s) (2, 4)" in note[0], lines  # thin parts at 1.02x; 4: the area warning
     assert any("1.70x the input's area at frame 4" in ln for ln in lines if ln.startswith("warning:"))
+
+
+def test_a_sequence_far_from_the_origin_converts_as_at_the_origin(tmp_path):
+    """The fit computes in float32: a new user's ball of radius 100 (mm) at 10^6 from the origin,
+    each frame re-meshed by marching cubes on its own grid and written as PLY, came out of
+    ``convert`` with its vertices sliding over the ball: the last frame's drift (each vertex's move
+    less the ball's, 99th percentile) 2.3 % of the diagonal against 0.4 % at the origin, and the
+    vertices' mean 4 mm off the centre, unsaid. An input farther from the origin than its size is
+    moved to it for the fit and back after. Closed form: a rigid translation, so the vertices stay
+    on the ball and keep their place on it, as well at 10^6 as at the origin."""
+    import trimesh
+    from skimage.measure import marching_cubes
+
+    from dynmesh_warp import convert
+
+    R, T = 100.0, 8
+    frames, centres = [], []
+    for k in range(T):
+        h, lo = 10.0 + 0.37 * k, -1.3 * R + 1.3 * k  # (each frame its own grid, as the user's)
+        ax = lo + h * np.arange(int(np.ceil(2.6 * R / h)) + 1)
+        X, Y, Z = np.meshgrid(ax, ax, ax, indexing="ij")
+        Vm, Fm, _, _ = marching_cubes(np.sqrt(X ** 2 + Y ** 2 + Z ** 2) - R, 0.0, spacing=(h, h, h))
+        frames.append((Vm + lo, Fm))
+        centres.append([0.0, 300.0 + 20.0 * k, 0.0])
+    radii, drift = {}, {}
+    for off in (0.0, 1.0e6):
+        o = np.array([off, 0.0, -0.5 * off]) + centres
+        d = tmp_path / f"in_{off:g}"
+        d.mkdir()
+        for k, (V, F) in enumerate(frames):
+            trimesh.Trimesh(V + o[k], F, process=False).export(d / f"frame_{k:04d}.ply", encoding="binary")
+        out = tmp_path / f"out_{off:g}.npz"
+        assert convert.main([str(d), str(out), "--fps", "29.97", "--no-progress", "--device", "cpu"]) == 0
+        B = np.load(out)["V"].astype(np.float64) - o[:, None, :]  # in the ball's frame
+        radii[off] = np.abs(np.linalg.norm(B, axis=2) - R).max()
+        drift[off] = np.percentile(np.linalg.norm(B[-1] - B[0], axis=1), 99) / np.linalg.norm(np.ptp(B[0], axis=0))
+    assert radii[0.0] < 1.0 and radii[1e6] < radii[0.0] + 0.2, radii
+    assert drift[0.0] < 0.01 and drift[1e6] < 1.5 * drift[0.0], drift  # (2.3 % against 0.4 % before)

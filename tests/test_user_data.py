@@ -554,9 +554,11 @@ def test_run_cli_plays_a_sequence_given_instead_of_a_scene(tmp_path, capsys):
     summary = json.loads((tmp_path / "o" / "summary.json").read_text())
     assert summary["steps"] == 3 and summary["spheres"] == 5 and summary["scene"] == "blob"
     # --set applies as to a scene file, and the note says the spheres it made (it said 5 for 40)
-    assert main([str(tmp_path / "blob.anime"), *base, "--output", str(tmp_path / "o2"), "--set", "spheres.count=2"]) == 0
+    assert main([str(tmp_path / "blob.anime"), *base, "--output", str(tmp_path / "o2"), "--set", "spheres.count=2",
+                 "--set", "surface.up_axis=y"]) == 0
     assert json.loads((tmp_path / "o2" / "summary.json").read_text())["spheres"] == 2
-    assert "with 2 spheres of radius 0.05 m dropped on it" in capsys.readouterr().err
+    err = capsys.readouterr().err  # (and the up axis as set: it said "auto" to a y-up user who had set y)
+    assert "with 2 spheres of radius 0.05 m dropped on it (up axis y, as set;" in err and "auto" not in err
     # a text file is still read as a scene, with the YAML error
     (tmp_path / "notes.txt").write_text("not: [a scene\n")
     assert main([str(tmp_path / "notes.txt"), *base]) == 2
