@@ -53,7 +53,7 @@ from .kernels.frames import add_points_offset, update_frame_vertices
 from .config import MAX_TIME_OFFSET
 from .runtime import free_bytes
 from .world import (Contacts, PhysicsParams, SphereModel, SurfaceModel, check_substep_budget, fallen_past_note, physics_summary,
-                    frame_pair_host, playback_cycle_host, required_substeps, resolve_playback, seam_note)
+                    frame_pair_host, playback_cycle_host, required_substeps, resolve_playback, seam_note, warn_spins_kept)
 
 __all__ = ["BatchModel", "BatchState", "BatchedWorld", "step_envs", "env_clocks", "TIME_SLICES",
            "BATCH_TILE_THREADS", "HYBRID_BUDGET", "default_batch_search", "HYBRID_BLOCKS", "ContactQuery",
@@ -224,7 +224,7 @@ class BatchState:
         pos = _per_env(positions, E, S, "positions")
         vel = np.zeros_like(pos) if velocities is None else _per_env(velocities, E, S, "velocities")
         spin = np.zeros_like(pos) if spins is None else _per_env(spins, E, S, "spins")
-        _spins_kept_note(spin, model.params.sphere_body, "BatchState")
+        warn_spins_kept(spin, model.params.sphere_body, "BatchState")
         self.sphere_pos = wp.array(pos, dtype=wp.vec3, device=d)
         self.sphere_vel = wp.array(vel, dtype=wp.vec3, device=d)
         self.sphere_spin = wp.array(spin, dtype=wp.vec3, device=d)
@@ -245,13 +245,6 @@ def _per_env(a, E: int, S: int, what: str, mask=None) -> np.ndarray:
     if not np.isfinite(a if mask is None else a[np.asarray(mask, bool)]).all():
         raise ValueError(f"{what}: non-finite values" + ("" if mask is None else " in the envs being reset"))
     return np.ascontiguousarray(a.reshape(E * S, 3))
-
-
-def _spins_kept_note(spins: np.ndarray, body, who: str) -> None:
-    """Warn where spins are given to spheres that do not rotate (``State``'s note, for the batch)."""
-    if np.any(spins) and SPHERE_INERTIA[body] == 0:
-        warnings.warn(f"{who}: spins given to spheres that do not rotate (physics.sphere_body point): they are kept as "
-                      "given and change nothing; sphere_body solid or shell makes them roll", stacklevel=3)
 
 
 def _clocks(model: BatchModel, times, rates, playback, mask=None):
@@ -513,7 +506,7 @@ class BatchedWorld:
             (s.sphere_pos, positions, "positions"), (s.sphere_vel, velocities, "velocities"),
             (s.sphere_spin, spins, "spins")))
         if spins is not None:
-            _spins_kept_note(new_spin.reshape(E, S, 3)[mask.astype(bool)], m.params.sphere_body, "BatchedWorld.reset")
+            warn_spins_kept(new_spin.reshape(E, S, 3)[mask.astype(bool)], m.params.sphere_body, "BatchedWorld.reset")
         new_pos, new_vel, new_spin = (wp.array(a, dtype=wp.vec3, device=self.device) for a in (new_pos, new_vel, new_spin))
         t, r, pb = _clocks(m, s.env_time.numpy() if times is None else times,
                            s.env_rate.numpy() if rates is None else rates, playback, mask)

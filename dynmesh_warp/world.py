@@ -71,6 +71,7 @@ from .sequence import FixedTopologySequence, VaryingTopologySequence
 __all__ = [
     "fallen_past_note",
     "physics_summary",
+    "warn_spins_kept",
     "PhysicsParams",
     "WorkBudgetError",
     "check_substep_budget",
@@ -617,9 +618,7 @@ class State:
         self.sphere_pos = wp.array(pos, dtype=wp.vec3, device=d)
         self.sphere_vel = wp.array(vel, dtype=wp.vec3, device=d)
         spin = np.zeros((S, 3), np.float32) if spins is None else _sphere_rows("spin", spins, S)
-        if spin.any() and SPHERE_INERTIA[model.params.sphere_body] == 0:  # (kept, reported, and without effect)
-            warnings.warn("State: spins given to spheres that do not rotate (physics.sphere_body point): they are kept "
-                          "as given and change nothing; sphere_body solid or shell makes them roll", stacklevel=2)
+        warn_spins_kept(spin, model.params.sphere_body, "State")
         self.sphere_spin = wp.array(spin, dtype=wp.vec3, device=d)
 
 
@@ -1127,6 +1126,15 @@ def measure_colliders(model: Model, state: State, candidates, horizon: float | N
         # swept collider, ~20 ms timed in all on the CPU, measured 4x slower now and then)
         cost[name] = float(np.median(rounds)) / per_round
     return cost
+
+
+def warn_spins_kept(spins, body, who: str) -> None:
+    """Warn where spins are given to spheres that do not rotate (``body`` point): they are kept as
+    given and change nothing (``State``, ``BatchState`` and ``BatchedWorld.reset``; ``who`` names
+    the caller). Warned at the caller's caller."""
+    if np.any(spins) and SPHERE_INERTIA[body] == 0:
+        warnings.warn(f"{who}: spins given to spheres that do not rotate (physics.sphere_body point): they are kept as "
+                      "given and change nothing; sphere_body solid or shell makes them roll", stacklevel=3)
 
 
 def physics_summary(params) -> dict:
