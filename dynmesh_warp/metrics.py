@@ -84,13 +84,19 @@ def _device(device):
     return wp.get_device(device)
 
 
-def _points(x, name: str, centre=None) -> np.ndarray:
-    """``x`` checked ((N, 3), finite, within MAX_COORDINATE) as float32, less ``centre`` (float64)
-    when given (:func:`_offset_centre`)."""
-    a = _checked_points(x, name)
+def _kernel_points(a: np.ndarray, centre=None) -> np.ndarray:
+    """Checked points (:func:`_checked_points`) as the kernels take them: float32, less ``centre``
+    (float64) when given (:func:`_offset_centre`)."""
     if centre is not None:
         a = np.asarray(a, np.float64) - centre
     return np.ascontiguousarray(a, dtype=np.float32)
+
+
+def _bounds(*sets) -> tuple[np.ndarray, np.ndarray]:
+    """The point sets' common bounding box (lo, hi), float64."""
+    lo = np.min([np.min(np.asarray(s, np.float64), axis=0) for s in sets], axis=0)
+    hi = np.max([np.max(np.asarray(s, np.float64), axis=0) for s in sets], axis=0)
+    return lo, hi
 
 
 def _offset_centre(*sets, factor: float = 1.0) -> np.ndarray | None:
@@ -99,8 +105,7 @@ def _offset_centre(*sets, factor: float = 1.0) -> np.ndarray | None:
     origin its rounding is a large part of the distances (a new user's 2,000 points with 3 mm of
     noise, offset 10^6: CD 10.9x the float64 one, 0.16x at 10^7; EMD +50 %). CD and EMD do not
     change with a translation; near the origin the points are taken as they are (bit for bit)."""
-    lo = np.min([np.min(np.asarray(s, np.float64), axis=0) for s in sets], axis=0)
-    hi = np.max([np.max(np.asarray(s, np.float64), axis=0) for s in sets], axis=0)
+    lo, hi = _bounds(*sets)
     c = 0.5 * (lo + hi)
     return c if np.abs(c).max() > factor * np.linalg.norm(hi - lo) else None
 
@@ -181,7 +186,7 @@ def nearest_neighbors(queries, targets, device=None):
     """
     q, t = _checked_points(queries, "queries"), _checked_points(targets, "targets")
     c = _offset_centre(q, t)
-    q, t = _points(q, "queries", c), _points(t, "targets", c)
+    q, t = _kernel_points(q, c), _kernel_points(t, c)
     dev = _device(device)
     tq = wp.array(q, dtype=wp.vec3, device=dev)
     tt = wp.array(t, dtype=wp.vec3, device=dev)
@@ -247,11 +252,11 @@ def approxmatch_emd(xyz1, xyz2, device=None, return_details: bool = False):
     'remain_right' (unassigned mass after the last level) and 'cost' (the undivided cost).
     """
     x1, x2 = _checked_points(xyz1, "xyz1"), _checked_points(xyz2, "xyz2")
-    c = _offset_centre(x1, x2)
-    x1, x2 = _points(x1, "xyz1", c), _points(x2, "xyz2", c)
+    lo, hi = _bounds(x1, x2)
+    diag = float(np.linalg.norm(hi - lo))
+    c = _offset_centre(np.stack([lo, hi]))  # (the box's corners have the clouds' box)
+    x1, x2 = _kernel_points(x1, c), _kernel_points(x2, c)
     n, m = len(x1), len(x2)
-    both = np.concatenate([x1, x2]).astype(np.float64)
-    diag = float(np.linalg.norm(both.max(0) - both.min(0)))
     lo, hi = EMD_SCALE_RANGE
     if n > 1 and not lo <= diag <= hi:
         warnings.warn(f"approxmatch EMD of clouds {diag:.3g} units across: its levels are absolute (1/units^2), and "
