@@ -241,7 +241,7 @@ class NewtonWorld:
             # Newton's XPBD leaves restitution off unless asked: a new user's restitution 1.0 gave
             # no bounce at all (0.05 m after a 0.5 m drop; 0.50 m with it on, 0.51 m built-in)
             opts["enable_restitution"] = True
-        if solver == "xpbd" and opts.get("enable_restitution") and _surface_moves(surface.sequence):
+        if solver == "xpbd" and opts.get("enable_restitution") and surface.motion_speed > 0:
             import warnings  # noqa: PLC0415
 
             warnings.warn(f"restitution {float(restitution):g} turns on Newton XPBD's restitution, which takes the "
@@ -533,12 +533,6 @@ def _refuse_bodies_inside(cfg, seq) -> None:
     refuse_starts_inside(*seq.frame(0), (sphere_entries(cfg) if cfg.newton.include_spheres else []) + bodies)
 
 
-def _surface_moves(seq) -> bool:
-    """Whether any vertex of the fixed-topology sequence moves between its frames."""
-    V = np.asarray(seq.V)
-    return len(V) > 1 and bool((V != V[:1]).any())
-
-
 def _inscribed(b) -> float:
     """How far a box / sphere / capsule body reaches from its centre in every direction [m]: its
     smallest half extent, or its radius."""
@@ -570,20 +564,15 @@ def _warn_bodies_overlapping(cfg, seq) -> None:
     world pushes a sphere out by its depth, at rest)."""
     import warnings  # noqa: PLC0415
 
-    from .kernels.convert import measure_distances_to_mesh  # noqa: PLC0415
+    from .convert_base import nearest_surface  # noqa: PLC0415
 
     bodies = [(i, b) for i, b in enumerate(cfg.newton.bodies) if b.type in ("box", "sphere", "capsule")]
     if not bodies:
         return
-    V, F = seq.frame(0)
-    mesh = wp.Mesh(points=wp.array(np.asarray(V, np.float32), dtype=wp.vec3, device="cpu"),
-                   indices=wp.array(np.asarray(F, np.int32).ravel(), dtype=wp.int32, device="cpu"))
     reach = max(_inscribed(b) for _, b in bodies)  # (a centre farther than every body's reach: no overlap)
-    dist = wp.empty(len(bodies), dtype=float, device="cpu")
-    wp.launch(measure_distances_to_mesh, dim=len(bodies), device="cpu", outputs=[dist],
-              inputs=[mesh.id, wp.array(np.array([b.position for _, b in bodies], np.float32), dtype=wp.vec3,
-                                         device="cpu"), float(2.0 * reach)])
-    for (i, b), d in zip(bodies, dist.numpy()):
+    near = nearest_surface(seq.frame(0), [b.position for _, b in bodies], device="cpu", max_dist=2.0 * reach,
+                           source="surface (frame 0)")
+    for (i, b), d in zip(bodies, near.dist):
         if d < _inscribed(b):
             warnings.warn(f"newton.bodies.{i} ({b.type}) starts {_inscribed(b) - d:.4g} m into the surface (its centre "
                           f"{d:.4g} m from it, reaching {_inscribed(b):.4g} m every way): Newton pushes it out at the "
@@ -602,8 +591,7 @@ def _newton_substeps(cfg, surface, radii) -> int:
     from .world import check_substep_budget, required_substeps, seam_note  # noqa: PLC0415
 
     p = cfg.physics
-    thick = [min(b.half_extents) if b.type == "box" else b.radius for b in cfg.newton.bodies
-             if b.type in ("box", "sphere", "capsule")]
+    thick = [_inscribed(b) for b in cfg.newton.bodies if b.type in ("box", "sphere", "capsule")]
     thick += list(radii) if cfg.newton.include_spheres else []
     if not thick or surface.max_speed <= 0 or not surface.interpolate:
         return int(p.substeps)
