@@ -245,9 +245,13 @@ def _moved_near_origin(seq, template):
     keeps the input's coordinates. Only the frames' bounds are read unless the input is moved."""
     if template is not None and not isinstance(template, (tuple, list)):
         return seq, template, None  # (a template file: read inside, as given)
+    if not isinstance(seq, (FixedTopologySequence, VaryingTopologySequence, list, tuple)) or (
+            isinstance(seq, (list, tuple)) and not seq):
+        return seq, template, None  # (what _as_varying refuses, refused there)
     try:
+        # (the frames as given: a list of (V, F) is made a sequence, and checked, inside; twice was once too many)
         verts = ([np.asarray(seq.V).reshape(-1, 3)] if isinstance(seq, FixedTopologySequence)
-                 else [V for V, _ in _as_varying(seq).frames])
+                 else [V for V, _ in (seq.frames if isinstance(seq, VaryingTopologySequence) else seq)])
         verts += [] if template is None else [template[0]]
         bounds = []
         for V in verts:
